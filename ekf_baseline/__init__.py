@@ -1,0 +1,1 @@
+"""The EKFs that the specification documents in shared/seeds describe, with their errors fixed."""

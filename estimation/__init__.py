@@ -1,0 +1,1 @@
+"""Measurements, configuration, geodesy, bag ingestion, the estimator interface and the smoother."""

@@ -1,0 +1,162 @@
+"""Measurement types shared by every estimator.
+
+All units are SI; time ``t`` is float seconds taken from the message's header stamp.
+Angles are radians, counter-clockwise positive. Frames:
+
+* body: x forward, y left, z up (REP 103), after the sensor's mount rotation has been applied.
+* local: the ENU frame about the datum (x east, y north); with a landmark map, the map's frame.
+  Heading (yaw) is measured from the local x axis, counter-clockwise.
+
+``sensor`` names the configured sensor the measurement came from (its topic unless the config
+gives a name), so that estimators can look up per-sensor settings and report per-sensor statistics.
+Variances are those the estimator should use: from the config's ``noise`` when given, else from
+the message's covariance.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(slots=True)
+class WheelOdometry:
+    """Body-frame forward speed and yaw rate from wheel odometry (nav_msgs/Odometry twist,
+    geometry_msgs/TwistStamped). A component that the config does not ``use`` is None."""
+
+    t: float
+    v: float | None  # m/s, body x
+    yaw_rate: float | None  # rad/s, about body z
+    v_var: float  # (m/s)^2
+    yaw_rate_var: float  # (rad/s)^2
+    sensor: str = "odometry"
+
+
+@dataclass(slots=True)
+class WheelSpeeds:
+    """Left and right wheel angular speeds (sensor_msgs/JointState velocity), rad/s.
+    Forward speed is r (w_l + w_r) / 2, yaw rate r (w_r - w_l) / L."""
+
+    t: float
+    left: float  # rad/s
+    right: float  # rad/s
+    left_var: float  # (rad/s)^2
+    right_var: float  # (rad/s)^2
+    sensor: str = "wheels"
+
+
+@dataclass(slots=True)
+class GyroYawRate:
+    """Yaw rate about body z from a gyro, rad/s, after the mount rotation."""
+
+    t: float
+    yaw_rate: float  # rad/s
+    var: float  # (rad/s)^2
+    sensor: str = "imu"
+
+
+@dataclass(slots=True)
+class Heading:
+    """Absolute yaw of the body frame as the sensor reports it, rad, wrapped to (-pi, pi].
+
+    It may differ from local ENU heading by an offset (magnetic declination, a disturbed
+    magnetometer, a sensor that starts at zero); the sensor's ``heading_offset`` config says how.
+    ``source`` is 'imu_orientation', 'compass' or 'pose'."""
+
+    t: float
+    yaw: float  # rad
+    var: float  # rad^2
+    sensor: str = "imu"
+    source: str = "imu_orientation"
+
+
+@dataclass(slots=True)
+class ForwardAccel:
+    """Specific force along body x, m/s^2, after the mount rotation."""
+
+    t: float
+    accel: float  # m/s^2
+    var: float  # (m/s^2)^2
+    sensor: str = "imu"
+
+
+@dataclass(slots=True)
+class GpsFix:
+    """A GNSS fix (sensor_msgs/NavSatFix) and its position in the local ENU frame.
+
+    ``cov`` is the 3x3 ENU position covariance, m^2 (NavSatFix's own order: east, north, up).
+    ``enu`` is filled by the stream once the datum is known: (east, north, up) in metres.
+    ``status`` is NavSatStatus.status (-1 no fix, 0 fix, 1 SBAS, 2 GBAS)."""
+
+    t: float
+    lat: float  # deg
+    lon: float  # deg
+    alt: float  # m, above the WGS-84 ellipsoid
+    cov: np.ndarray  # (3, 3), m^2, ENU
+    status: int = 0
+    sensor: str = "gps"
+    enu: tuple[float, float, float] | None = None
+
+
+@dataclass(slots=True)
+class LandmarkObservation:
+    """Range and bearing from the body origin to a known landmark.
+
+    ``bearing`` is measured in the body frame from the x axis, counter-clockwise, rad.
+    ``has_bearing`` False means a range-only sighting (bearing is then meaningless)."""
+
+    t: float
+    landmark_id: str
+    range: float  # m
+    bearing: float  # rad
+    range_var: float  # m^2
+    bearing_var: float  # rad^2
+    has_bearing: bool = True
+    sensor: str = "landmarks"
+
+
+@dataclass(slots=True)
+class GroundTruthPose:
+    """A reference pose in the local frame (x east, y north, yaw from x), for scoring only."""
+
+    t: float
+    x: float  # m
+    y: float  # m
+    yaw: float  # rad
+    sensor: str = "ground_truth"
+
+
+Measurement = (
+    WheelOdometry
+    | WheelSpeeds
+    | GyroYawRate
+    | Heading
+    | ForwardAccel
+    | GpsFix
+    | LandmarkObservation
+    | GroundTruthPose
+)
+"""Anything an estimator may be fed. Estimators ignore GroundTruthPose."""
+
+
+@dataclass(slots=True)
+class Stream:
+    """One time-ordered list of measurements read from a bag, with what the reader learned.
+
+    ``datum`` is the (lat deg, lon deg, alt m) of the local ENU origin, None without GPS.
+    ``rejected`` counts single messages dropped as invalid, by (topic, reason).
+    ``landmarks`` maps landmark id to its (x, y) in the local frame, m."""
+
+    measurements: list
+    ground_truth: list[GroundTruthPose] = field(default_factory=list)
+    datum: tuple[float, float, float] | None = None
+    landmarks: dict[str, tuple[float, float]] = field(default_factory=dict)
+    rejected: dict[tuple[str, str], int] = field(default_factory=dict)
+    source: str = ""
+    t0: float = 0.0
+    t1: float = 0.0
+
+    @property
+    def duration(self) -> float:
+        return self.t1 - self.t0

@@ -1,0 +1,1 @@
+"""Metrics, plots, reports, simulation, benchmarks and the ddfuse command line."""

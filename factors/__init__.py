@@ -1,0 +1,1 @@
+"""GTSAM factors for a differential-drive robot. Imports nothing else of ddfuse."""
