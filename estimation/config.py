@@ -1,0 +1,341 @@
+"""The ddfuse YAML config: loaded, validated, with errors that name the key and the problem.
+
+Shape (every key documented in README.md)::
+
+    sensors:
+      odometry: [{topic: /odom, use: [v, yaw_rate], noise: {v: 0.05, yaw_rate: 0.05}}]
+      imu: [{topic: /imu/data, use: [yaw, yaw_rate, accel], mount: {rpy: [r, p, y]},
+             noise: {yaw: 0.05, yaw_rate: 0.02, accel: 0.1}, heading_offset: estimate,
+             gyro_bias: estimate}]
+      gps: [{topic: /fix, noise: {horizontal: 1.5}, lever_arm: [0.0, 0.0]}]
+      wheels: [{topic: /joint_states, joints: [left, right], noise: {speed: 0.1}}]
+      landmarks: [{topic: /landmarks, map: some.landmarks.yaml, noise: {range: 0.1, bearing: 0.05}}]
+    robot: {wheel_radius: 0.165, track_width: 0.555}
+    ground_truth: {topic: /ground_truth}
+    frame: {datum: first_fix}            # or [lat_deg, lon_deg, alt_m]
+    initial_pose: ground_truth           # or [x, y, yaw]; default origin
+    smoother: {lag: 10.0, keyframe: gps, robust: huber}
+    ekf: {rate: event}
+    reorder_window: 0.5
+
+Noise values are standard deviations in SI units (m, rad, m/s, rad/s, m/s^2). A ``gate`` on a
+sensor is the chi-square acceptance probability of its Mahalanobis gate (e.g. 0.9999) or
+``off``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from estimation.errors import ConfigError
+
+SENSOR_KINDS = ("odometry", "imu", "gps", "wheels", "landmarks")
+USES = {
+    "odometry": ("v", "yaw_rate"),
+    "imu": ("yaw", "yaw_rate", "accel"),
+    "gps": ("position",),
+    "wheels": ("speeds",),
+    "landmarks": ("range", "bearing"),
+}
+NOISE_KEYS = {
+    "odometry": ("v", "yaw_rate"),
+    "imu": ("yaw", "yaw_rate", "accel"),
+    "gps": ("horizontal", "vertical"),
+    "wheels": ("speed",),
+    "landmarks": ("range", "bearing"),
+}
+DEFAULT_GATE = 0.9999
+
+
+@dataclass
+class SensorConfig:
+    """One configured sensor: where it comes from and how to use it."""
+
+    kind: str  # one of SENSOR_KINDS
+    topic: str
+    name: str  # unique label used in reports; defaults to the topic
+    use: tuple[str, ...]
+    noise: dict[str, float] = field(default_factory=dict)  # std devs, SI
+    mount_rpy: tuple[float, float, float] = (0.0, 0.0, 0.0)  # rad, base_link -> sensor
+    heading_offset: str | float = 0.0  # 'estimate' or rad (sensor yaw = ENU yaw + offset)
+    gyro_bias: str | float = 0.0  # 'estimate' or rad/s
+    lever_arm: tuple[float, float] = (0.0, 0.0)  # m, body frame
+    joints: tuple[str, str] | None = None  # JointState names of left and right wheel
+    map: Path | None = None  # landmark map YAML
+    gate: float | None = DEFAULT_GATE  # chi-square acceptance probability, None = off
+
+
+@dataclass
+class SmootherConfig:
+    lag: float = 10.0  # s
+    keyframe: str = "gps"  # 'gps' (at GPS fixes, preintegrated odometry between) or 'rate'
+    keyframe_rate: float = 2.0  # Hz, for keyframe 'rate' and as the upper gap without GPS
+    robust: str = "huber"  # 'huber', 'cauchy' or 'none' (GPS factors)
+    robust_k: float = 1.345
+
+
+@dataclass
+class EkfConfig:
+    rate: str | float = "event"  # 'event' (update per message) or a fixed rate in Hz
+
+
+@dataclass
+class RobotConfig:
+    wheel_radius: float | None = None  # m
+    track_width: float | None = None  # m
+
+
+@dataclass
+class Config:
+    sensors: list[SensorConfig]
+    robot: RobotConfig = field(default_factory=RobotConfig)
+    ground_truth_topic: str | None = None
+    datum: str | tuple[float, float, float] = "first_fix"
+    initial_pose: str | tuple[float, float, float] | None = None
+    smoother: SmootherConfig = field(default_factory=SmootherConfig)
+    ekf: EkfConfig = field(default_factory=EkfConfig)
+    reorder_window: float = 0.5  # s: messages older than this behind the newest are an error
+    path: Path | None = None
+
+    def of_kind(self, kind: str) -> list[SensorConfig]:
+        return [s for s in self.sensors if s.kind == kind]
+
+    def sensor(self, name: str) -> SensorConfig:
+        for s in self.sensors:
+            if s.name == name:
+                return s
+        raise KeyError(name)
+
+    @property
+    def topics(self) -> list[str]:
+        t = [s.topic for s in self.sensors]
+        if self.ground_truth_topic:
+            t.append(self.ground_truth_topic)
+        return t
+
+
+class _Checker:
+    """Validates one YAML tree, building error messages that carry the key path."""
+
+    def __init__(self, source: str):
+        self.source = source
+
+    def fail(self, key: str, problem: str) -> ConfigError:
+        return ConfigError(f"{self.source}: {key}: {problem}")
+
+    def mapping(self, value: Any, key: str, allowed: tuple[str, ...]) -> dict:
+        if not isinstance(value, dict):
+            raise self.fail(key, f"must be a mapping, got {type(value).__name__}")
+        unknown = sorted(set(value) - set(allowed))
+        if unknown:
+            raise self.fail(
+                f"{key}.{unknown[0]}" if key else unknown[0],
+                f"unknown key (allowed: {', '.join(allowed)})",
+            )
+        return value
+
+    def number(self, value: Any, key: str, positive: bool = False, nonneg: bool = False) -> float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise self.fail(key, f"must be a number, got {value!r}")
+        v = float(value)
+        if not math.isfinite(v):
+            raise self.fail(key, f"must be finite, got {value!r}")
+        if positive and v <= 0:
+            raise self.fail(key, f"must be > 0, got {value!r}")
+        if nonneg and v < 0:
+            raise self.fail(key, f"must be >= 0, got {value!r}")
+        return v
+
+    def vector(self, value: Any, key: str, n: int) -> tuple[float, ...]:
+        if not isinstance(value, (list, tuple)) or len(value) != n:
+            raise self.fail(key, f"must be a list of {n} numbers, got {value!r}")
+        return tuple(self.number(v, f"{key}[{i}]") for i, v in enumerate(value))
+
+    def string(self, value: Any, key: str) -> str:
+        if not isinstance(value, str) or not value:
+            raise self.fail(key, f"must be a non-empty string, got {value!r}")
+        return value
+
+    def estimate_or_number(self, value: Any, key: str) -> str | float:
+        if value == "estimate":
+            return "estimate"
+        if isinstance(value, str):
+            raise self.fail(key, f"must be 'estimate' or a number, got {value!r}")
+        return self.number(value, key)
+
+
+def _sensor(ck: _Checker, kind: str, i: int, raw: Any, base: Path) -> SensorConfig:
+    key = f"sensors.{kind}[{i}]"
+    allowed = ("topic", "name", "use", "noise", "gate")
+    allowed += {
+        "imu": ("mount", "heading_offset", "gyro_bias"),
+        "gps": ("lever_arm",),
+        "wheels": ("joints",),
+        "landmarks": ("map",),
+        "odometry": ("mount",),
+    }.get(kind, ())
+    d = ck.mapping(raw, key, allowed)
+    if "topic" not in d:
+        raise ck.fail(f"{key}.topic", "missing (every sensor needs the topic it is read from)")
+    topic = ck.string(d["topic"], f"{key}.topic")
+    use = d.get("use", list(USES[kind]))
+    if isinstance(use, str):
+        use = [use]
+    if not isinstance(use, list) or not use:
+        raise ck.fail(f"{key}.use", f"must be a non-empty list from {list(USES[kind])}")
+    for u in use:
+        if u not in USES[kind]:
+            raise ck.fail(f"{key}.use", f"{u!r} is not one of {list(USES[kind])}")
+    noise_raw = d.get("noise") or {}
+    ck.mapping(noise_raw, f"{key}.noise", NOISE_KEYS[kind])
+    noise = {k: ck.number(v, f"{key}.noise.{k}", positive=True) for k, v in noise_raw.items()}
+    s = SensorConfig(kind=kind, topic=topic, name=topic, use=tuple(use), noise=noise)
+    if "name" in d:
+        s.name = ck.string(d["name"], f"{key}.name")
+    gate = d.get("gate", DEFAULT_GATE)
+    if gate in ("off", False, None):
+        s.gate = None
+    else:
+        g = ck.number(gate, f"{key}.gate")
+        if not 0.0 < g < 1.0:
+            raise ck.fail(f"{key}.gate", f"must be a probability in (0, 1) or 'off', got {gate!r}")
+        s.gate = g
+    if "mount" in d:
+        m = ck.mapping(d["mount"], f"{key}.mount", ("rpy",))
+        s.mount_rpy = ck.vector(m.get("rpy", [0, 0, 0]), f"{key}.mount.rpy", 3)
+    if "heading_offset" in d:
+        s.heading_offset = ck.estimate_or_number(d["heading_offset"], f"{key}.heading_offset")
+    if "gyro_bias" in d:
+        s.gyro_bias = ck.estimate_or_number(d["gyro_bias"], f"{key}.gyro_bias")
+    if "lever_arm" in d:
+        s.lever_arm = ck.vector(d["lever_arm"], f"{key}.lever_arm", 2)
+    if kind == "wheels":
+        j = d.get("joints")
+        if not isinstance(j, list) or len(j) != 2 or not all(isinstance(x, str) for x in j):
+            raise ck.fail(f"{key}.joints", "must list the left and right wheel joint names")
+        s.joints = (j[0], j[1])
+    if kind == "landmarks":
+        if "map" not in d:
+            raise ck.fail(f"{key}.map", "missing (a landmark map YAML is needed)")
+        p = Path(ck.string(d["map"], f"{key}.map"))
+        s.map = p if p.is_absolute() else base / p
+        if not s.map.is_file():
+            raise ck.fail(f"{key}.map", f"file not found: {s.map}")
+    return s
+
+
+def parse_config(raw: Any, source: str = "<config>", base: Path | None = None) -> Config:
+    """Validate a YAML tree (as loaded) into a Config. Relative paths resolve against ``base``."""
+    ck = _Checker(source)
+    base = base or Path.cwd()
+    top = (
+        "sensors", "robot", "ground_truth", "frame", "initial_pose", "smoother", "ekf",
+        "reorder_window",
+    )
+    d = ck.mapping(raw if raw is not None else {}, "", top)
+    sensors_raw = ck.mapping(d.get("sensors") or {}, "sensors", SENSOR_KINDS)
+    sensors: list[SensorConfig] = []
+    for kind, lst in sensors_raw.items():
+        if isinstance(lst, dict):
+            lst = [lst]
+        if not isinstance(lst, list):
+            raise ck.fail(f"sensors.{kind}", "must be a list of sensors")
+        sensors += [_sensor(ck, kind, i, item, base) for i, item in enumerate(lst)]
+    if not sensors:
+        raise ck.fail("sensors", "no sensor configured (need at least one)")
+    names = [s.name for s in sensors]
+    dup = {n for n in names if names.count(n) > 1}
+    if dup:
+        raise ck.fail("sensors", f"sensor name {sorted(dup)[0]!r} used twice; give each a 'name'")
+    cfg = Config(sensors=sensors, path=Path(source) if source != "<config>" else None)
+
+    if "robot" in d:
+        r = ck.mapping(d["robot"], "robot", ("wheel_radius", "track_width"))
+        cfg.robot = RobotConfig(
+            wheel_radius=ck.number(r["wheel_radius"], "robot.wheel_radius", positive=True)
+            if "wheel_radius" in r else None,
+            track_width=ck.number(r["track_width"], "robot.track_width", positive=True)
+            if "track_width" in r else None,
+        )
+    if cfg.of_kind("wheels") and (cfg.robot.wheel_radius is None or cfg.robot.track_width is None):
+        raise ck.fail("robot", "wheel speed sensors need robot.wheel_radius and robot.track_width")
+    if d.get("ground_truth") is not None:
+        g = ck.mapping(d["ground_truth"], "ground_truth", ("topic",))
+        cfg.ground_truth_topic = ck.string(g.get("topic"), "ground_truth.topic")
+    if "frame" in d:
+        f = ck.mapping(d["frame"], "frame", ("datum",))
+        datum = f.get("datum", "first_fix")
+        if datum == "first_fix":
+            cfg.datum = "first_fix"
+        else:
+            lat, lon, alt = ck.vector(datum, "frame.datum", 3)
+            if not (-90 <= lat <= 90 and -180 <= lon <= 180):
+                raise ck.fail("frame.datum", f"latitude/longitude out of range: {datum!r}")
+            cfg.datum = (lat, lon, alt)
+    if d.get("initial_pose") is not None:
+        ip = d["initial_pose"]
+        if ip == "ground_truth":
+            if not cfg.ground_truth_topic:
+                raise ck.fail("initial_pose", "'ground_truth' needs a ground_truth.topic")
+            cfg.initial_pose = "ground_truth"
+        elif isinstance(ip, str):
+            raise ck.fail("initial_pose", f"must be 'ground_truth' or [x, y, yaw], got {ip!r}")
+        else:
+            cfg.initial_pose = ck.vector(ip, "initial_pose", 3)
+    if "smoother" in d:
+        s = ck.mapping(d["smoother"], "smoother", ("lag", "keyframe", "keyframe_rate", "robust",
+                                                    "robust_k"))
+        sc = SmootherConfig()
+        if "lag" in s:
+            sc.lag = ck.number(s["lag"], "smoother.lag", positive=True)
+        if "keyframe" in s:
+            if s["keyframe"] not in ("gps", "rate"):
+                raise ck.fail("smoother.keyframe", f"must be 'gps' or 'rate', got {s['keyframe']!r}")
+            sc.keyframe = s["keyframe"]
+        if "keyframe_rate" in s:
+            sc.keyframe_rate = ck.number(s["keyframe_rate"], "smoother.keyframe_rate",
+                                         positive=True)
+        if "robust" in s:
+            if s["robust"] not in ("huber", "cauchy", "none"):
+                raise ck.fail("smoother.robust", f"must be huber, cauchy or none, got {s['robust']!r}")
+            sc.robust = s["robust"]
+        if "robust_k" in s:
+            sc.robust_k = ck.number(s["robust_k"], "smoother.robust_k", positive=True)
+        cfg.smoother = sc
+    if "ekf" in d:
+        e = ck.mapping(d["ekf"], "ekf", ("rate",))
+        rate = e.get("rate", "event")
+        cfg.ekf = EkfConfig(rate="event" if rate == "event"
+                            else ck.number(rate, "ekf.rate", positive=True))
+    if "reorder_window" in d:
+        cfg.reorder_window = ck.number(d["reorder_window"], "reorder_window", nonneg=True)
+    return cfg
+
+
+def load_config(path: str | Path) -> Config:
+    """Load and validate a config file. Raises ConfigError naming the file and key."""
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"{p}: config file not found")
+    try:
+        raw = yaml.safe_load(p.read_text())
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{p}: not valid YAML: {str(e).splitlines()[0]}") from None
+    return parse_config(raw, str(p), p.parent)
+
+
+def load_landmark_map(path: Path) -> dict[str, tuple[float, float]]:
+    """Landmark map YAML: ``landmarks: {id: [x, y]}`` (m, in the map/local frame)."""
+    try:
+        raw = yaml.safe_load(Path(path).read_text())
+    except (OSError, yaml.YAMLError) as e:
+        raise ConfigError(f"{path}: cannot read landmark map: {e}") from None
+    ck = _Checker(str(path))
+    if not isinstance(raw, dict) or not isinstance(raw.get("landmarks"), dict):
+        raise ck.fail("landmarks", "missing: expected 'landmarks: {id: [x, y]}'")
+    return {str(k): ck.vector(v, f"landmarks.{k}", 2) for k, v in raw["landmarks"].items()}

@@ -1,0 +1,13 @@
+"""Errors that ddfuse reports to its user as one line (the CLI exits with code 2, no traceback)."""
+
+
+class DdfuseError(Exception):
+    """Base class: the message names the file, topic, field or key and what was wrong."""
+
+
+class ConfigError(DdfuseError):
+    """A config file that does not validate."""
+
+
+class BagError(DdfuseError):
+    """A bag that cannot be read as configured (missing, unreadable, topic absent, wrong type)."""
