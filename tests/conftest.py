@@ -1,0 +1,34 @@
+"""Shared test fixtures: the real bags in ../shared/data, skipped with a reason when absent."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED_DATA = Path(os.environ.get("DDFUSE_SHARED_DATA", ROOT.parent / "shared" / "data"))
+
+
+def shared_bag(name: str) -> Path:
+    """Path of a real bag in ../shared/data (or $DDFUSE_SHARED_DATA); skip the test if absent."""
+    p = SHARED_DATA / name
+    if not p.is_file():
+        pytest.skip(f"real bag {name} not found in {SHARED_DATA} (set DDFUSE_SHARED_DATA)")
+    return p
+
+
+@pytest.fixture
+def husky_bag() -> Path:
+    return shared_bag("rl_husky_gps.bag")
+
+
+@pytest.fixture
+def jackal_bag() -> Path:
+    return shared_bag("rl_jackal.bag")
+
+
+@pytest.fixture
+def mrclam_bag() -> Path:
+    return shared_bag("mrclam1_robot1.bag")
