@@ -60,8 +60,8 @@ def twist_coeffs(a: float) -> tuple[float, float, float, float]:
         # Horner forms; the first omitted term is < 3e-17 at |a| = 0.1.
         s = 1.0 - a2 / 6.0 * (1.0 - a2 / 20.0 * (1.0 - a2 / 42.0 * (1.0 - a2 / 72.0)))
         c = a / 2.0 * (1.0 - a2 / 12.0 * (1.0 - a2 / 30.0 * (1.0 - a2 / 56.0 * (1.0 - a2 / 90.0))))
-        ds = -a / 3.0 * (
-            1.0 - a2 / 10.0 * (1.0 - a2 / 28.0 * (1.0 - a2 / 54.0 * (1.0 - a2 / 88.0)))
+        ds = (
+            -a / 3.0 * (1.0 - a2 / 10.0 * (1.0 - a2 / 28.0 * (1.0 - a2 / 54.0 * (1.0 - a2 / 88.0))))
         )
         dc = 0.5 * (1.0 - a2 / 4.0 * (1.0 - a2 / 18.0 * (1.0 - a2 / 40.0 * (1.0 - a2 / 70.0))))
         return s, c, ds, dc
@@ -103,7 +103,8 @@ def se2_step(
     dyb = d * c
     cp = _cos(psi)
     sp = _sin(psi)
-    return x + cp * dxb - sp * dyb, y + sp * dxb + cp * dyb, psi + a
+    # same operation order as se2_step_jac so both return bit-identical poses
+    return x + (cp * dxb - sp * dyb), y + (sp * dxb + cp * dyb), psi + a
 
 
 def se2_step_jac(
