@@ -1,0 +1,267 @@
+"""The Kalman core every filter in ``ekf_baseline`` uses: predict, gated Joseph-form update, and
+recovery from a gate lock-out.
+
+API (all arrays are float64 numpy; n = state size, m = measurement size)::
+
+    kf = KalmanCore(x0, P0, log, state_angles=(2,))      # x0 (n,), P0 (n, n), EstimatorLog
+    kf.predict(F, Q, x_pred=None)                         # F (n, n), Q (n, n); x_pred = f(x) (n,)
+    ok = kf.update(t, sensor, kind, z, hx, H, R,          # z, hx (m,); H (m, n); R (m, m)
+                   angles=(0,), gate=0.9999)              # -> True if the update was applied
+    kf.x, kf.P                                            # current mean and covariance
+
+* ``predict`` propagates the covariance P <- F P F^T + Q and the mean to ``x_pred`` (the EKF's
+  nonlinear f(x), computed by the caller) or, for a linear model, to F x.
+* ``update`` forms the innovation y = z - h(x) (components listed in ``angles`` are wrapped to
+  [-pi, pi)), its covariance S = H P H^T + R and the NIS y^T S^-1 y. With ``gate`` (the sensor's
+  chi-square acceptance probability from its config, None = no gate) the update is rejected when
+  NIS > chi2.ppf(gate, m). Every update, accepted or rejected, is appended to ``log.innovations``
+  as an :class:`estimation.estimator.Innovation`; a rejection also counts in
+  ``log.rejected[(sensor, 'gate')]``. An accepted update applies the gain K = P H^T S^-1 and the
+  Joseph form P <- (I - K H) P (I - K H)^T + K R K^T (stays symmetric PSD even with the rounding
+  of K); state components in ``state_angles`` are wrapped after every predict and update.
+* Non-finite z or h(x), or an S that is not positive definite, are rejected with reason
+  'nonfinite' / 'singular' and never touch the state.
+
+Gate lock-out and its recovery
+------------------------------
+A Mahalanobis gate can lock a filter out for good: while the robot stands still the covariance
+collapses (every update shrinks it, the process noise of a stationary model is small), a later
+measurement that disagrees by more than the (now tiny) S allows is rejected, no update widens the
+covariance again, so every following measurement of that sensor is rejected too and the estimate
+drifts away on dead reckoning. ``KalmanCore`` detects this per sensor: when a sensor has had at
+least ``lockout_count`` consecutive gate rejections spanning at least ``lockout_time`` seconds
+(both conditions, so that a burst of outliers from a fast sensor, or a single bad GPS fix, does
+not trigger it), the filter is declared locked out for that sensor. Recovery inflates the whole
+covariance by the smallest factor alpha >= 1 for which the current innovation is statistically
+ordinary (NIS = m, its chi-square mean) -- scaling P keeps its correlation structure, so the
+update moves the correlated states (e.g. heading with position) consistently -- and then applies
+the measurement with the normal Joseph update. If no alpha up to ``MAX_INFLATION`` achieves that
+(P has no variance in the measured direction at all), the minimum-norm state perturbation that
+explains the innovation, H^+ y, is added to P as a rank-one term as well. The recovery is
+recorded with ``log.note`` and counted in ``log.rejected[(sensor, 'lockout_recovery')]``;
+``recoveries`` lists (t, sensor, alpha) for tests and reports.
+"""
+
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+
+import numpy as np
+from scipy.stats import chi2
+
+from estimation.estimator import EstimatorLog, Innovation
+
+__all__ = ["KalmanCore", "chi2_threshold", "DEFAULT_LOCKOUT_COUNT", "DEFAULT_LOCKOUT_TIME"]
+
+DEFAULT_LOCKOUT_COUNT = 5  # consecutive gate rejections of one sensor ...
+DEFAULT_LOCKOUT_TIME = 1.0  # ... spanning at least this many seconds => locked out
+MAX_INFLATION = 1e12  # largest covariance scale factor tried by the recovery
+
+_TWO_PI = 2.0 * math.pi
+_PI = math.pi
+
+
+@lru_cache(maxsize=256)
+def chi2_threshold(prob: float, dof: int) -> float:
+    """Chi-square gate threshold: the ``prob`` quantile of chi2 with ``dof`` degrees of freedom.
+
+    Cached per (prob, dof): scipy's ppf costs tens of microseconds, the gate runs per update."""
+    return float(chi2.ppf(prob, dof))
+
+
+class KalmanCore:
+    """Mean ``x`` (n,) and covariance ``P`` (n, n) of a (extended) Kalman filter.
+
+    Units and frames are the caller's; ``state_angles`` lists the indices of angle states (rad)
+    that are kept wrapped to [-pi, pi). ``log`` receives innovations, rejections and notes.
+    ``lockout_count`` / ``lockout_time`` (s) set the gate lock-out detection (module docstring).
+    """
+
+    __slots__ = (
+        "x", "P", "n", "log", "state_angles", "lockout_count", "lockout_time", "_streak",
+        "recoveries", "last_nis", "_eye",
+    )
+
+    def __init__(
+        self,
+        x0,
+        P0,
+        log: EstimatorLog | None = None,
+        *,
+        state_angles: tuple[int, ...] = (),
+        lockout_count: int = DEFAULT_LOCKOUT_COUNT,
+        lockout_time: float = DEFAULT_LOCKOUT_TIME,
+    ) -> None:
+        self.x = np.array(x0, dtype=float).reshape(-1)
+        self.n = self.x.shape[0]
+        self.P = np.array(P0, dtype=float).reshape(self.n, self.n)
+        if not np.allclose(self.P, self.P.T, rtol=0.0, atol=1e-12 * (1.0 + np.abs(self.P).max())):
+            raise ValueError("P0 must be symmetric")
+        self.log = log if log is not None else EstimatorLog()
+        self.state_angles = tuple(state_angles)
+        self.lockout_count = int(lockout_count)
+        self.lockout_time = float(lockout_time)
+        # sensor -> [consecutive gate rejections, time of the first of them]
+        self._streak: dict[str, list] = {}
+        self.recoveries: list[tuple[float, str, float]] = []
+        self.last_nis = float("nan")
+        self._eye = np.eye(self.n)
+        self._wrap_state()
+
+    # ------------------------------------------------------------------ helpers
+    def _wrap_state(self) -> None:
+        x = self.x
+        for i in self.state_angles:
+            x[i] = (x[i] + _PI) % _TWO_PI - _PI
+
+    def _symmetrize(self) -> None:
+        P = self.P
+        P += P.T
+        P *= 0.5
+
+    # ------------------------------------------------------------------ predict
+    def predict(self, F: np.ndarray, Q: np.ndarray, x_pred: np.ndarray | None = None) -> None:
+        """Time update: P <- F P F^T + Q; x <- ``x_pred`` (nonlinear f(x), (n,)) or F x.
+
+        F is the (n, n) transition (Jacobian of f at the prior mean), Q the (n, n) discrete
+        process noise covariance of the step."""
+        if x_pred is None:
+            self.x = F @ self.x
+        else:
+            self.x = np.array(x_pred, dtype=float).reshape(self.n)
+        self.P = F @ self.P @ F.T + Q
+        self._symmetrize()
+        self._wrap_state()
+
+    # ------------------------------------------------------------------ update
+    def update(
+        self,
+        t: float,
+        sensor: str,
+        kind: str,
+        z,
+        hx,
+        H,
+        R,
+        *,
+        angles: tuple[int, ...] = (),
+        gate: float | None = None,
+    ) -> bool:
+        """Measurement update with innovation gate and Joseph-form covariance update.
+
+        ``t`` (s) is the measurement time, ``sensor`` its configured name, ``kind`` the model
+        name recorded in the Innovation ('gps', 'v', 'gyro', 'heading', ...). ``z`` and ``hx``
+        are the measurement and its prediction h(x), (m,); ``H`` the (m, n) Jacobian of h; ``R``
+        the (m, m) measurement covariance. ``angles`` lists the measurement components that are
+        angles (their innovation is wrapped). ``gate`` is the chi-square acceptance probability
+        (None disables the gate). Returns True when the update was applied."""
+        z = np.asarray(z, dtype=float).reshape(-1)
+        hx = np.asarray(hx, dtype=float).reshape(-1)
+        m = z.shape[0]
+        H = np.asarray(H, dtype=float).reshape(m, self.n)
+        R = np.asarray(R, dtype=float).reshape(m, m)
+        y = z - hx
+        for i in angles:
+            y[i] = (y[i] + _PI) % _TWO_PI - _PI
+        if not (np.isfinite(y).all() and np.isfinite(R).all()):
+            self.log.rejected[(sensor, "nonfinite")] += 1
+            return False
+        P = self.P
+        PHt = P @ H.T
+        S = H @ PHt + R
+        try:
+            L = np.linalg.cholesky(S)
+        except np.linalg.LinAlgError:
+            self.log.rejected[(sensor, "singular")] += 1
+            self.log.note(t, f"{sensor}/{kind}: innovation covariance not positive definite")
+            return False
+        w = _solve_lower(L, y)
+        nis = float(w @ w)
+        self.last_nis = nis
+        if gate is not None and nis > chi2_threshold(gate, m):
+            streak = self._streak.get(sensor)
+            if streak is None:
+                streak = self._streak[sensor] = [0, t]
+            if streak[0] == 0:
+                streak[1] = t
+            streak[0] += 1
+            if streak[0] >= self.lockout_count and t - streak[1] >= self.lockout_time:
+                PHt, S = self._recover(t, sensor, kind, y, H, R, streak)
+                nis = float(y @ np.linalg.solve(S, y))
+            else:
+                self.log.rejected[(sensor, "gate")] += 1
+                self.log.innovations.append(
+                    Innovation(t, sensor, kind, y, S, nis, accepted=False)
+                )
+                return False
+        else:
+            streak = self._streak.get(sensor)
+            if streak is not None:
+                streak[0] = 0
+        # K = P H^T S^-1 through the Cholesky factor (S is symmetric PD)
+        K = _solve_right_spd(PHt, S)
+        self.x = self.x + K @ y
+        IKH = self._eye - K @ H
+        self.P = IKH @ self.P @ IKH.T + K @ R @ K.T
+        self._symmetrize()
+        self._wrap_state()
+        self.log.innovations.append(Innovation(t, sensor, kind, y, S, nis, accepted=True))
+        return True
+
+    # ------------------------------------------------------------------ recovery
+    def _recover(self, t, sensor, kind, y, H, R, streak):
+        """Inflate P so that innovation ``y`` is ordinary (NIS = m); return the new P H^T, S."""
+        m = y.shape[0]
+        P = self.P
+        A = H @ P @ H.T
+        target = float(m)
+
+        def nis_at(alpha: float) -> float:
+            return float(y @ np.linalg.solve(alpha * A + R, y))
+
+        alpha = 1.0
+        if nis_at(MAX_INFLATION) <= target:
+            # NIS(alpha) decreases monotonically in alpha: bisect on log(alpha)
+            lo, hi = 0.0, math.log(MAX_INFLATION)
+            for _ in range(60):
+                mid = 0.5 * (lo + hi)
+                if nis_at(math.exp(mid)) > target:
+                    lo = mid
+                else:
+                    hi = mid
+            alpha = math.exp(hi)
+            self.P = P * alpha
+        else:
+            alpha = MAX_INFLATION
+            d = np.linalg.pinv(H) @ y  # minimum-norm state error explaining the innovation
+            self.P = P * alpha + np.outer(d, d)
+        self._symmetrize()
+        self.recoveries.append((t, sensor, alpha))
+        self.log.rejected[(sensor, "lockout_recovery")] += 1
+        self.log.note(
+            t,
+            f"{sensor}/{kind}: gate lock-out after {streak[0]} rejections over "
+            f"{t - streak[1]:.2f} s; covariance inflated x{alpha:.3g} and measurement accepted",
+        )
+        streak[0] = 0
+        PHt = self.P @ H.T
+        return PHt, H @ PHt + R
+
+
+def _solve_lower(L: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Solve L w = b for lower-triangular L (small m: plain forward substitution)."""
+    m = b.shape[0]
+    if m == 1:
+        return b / L[0, 0]
+    w = np.empty(m)
+    for i in range(m):
+        w[i] = (b[i] - L[i, :i] @ w[:i]) / L[i, i]
+    return w
+
+
+def _solve_right_spd(B: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """B S^-1 for symmetric positive-definite S, (n, m)."""
+    if S.shape[0] == 1:
+        return B / S[0, 0]
+    return np.linalg.solve(S, B.T).T

@@ -1,0 +1,155 @@
+"""Tests of the shared Kalman core: update algebra, Joseph form, gate, lock-out recovery."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from ekf_baseline.kalman import KalmanCore, chi2_threshold
+from estimation.estimator import EstimatorLog
+
+
+def _random_spd(rng, n, scale=1.0):
+    A = rng.normal(size=(n, n))
+    return scale * (A @ A.T + n * np.eye(n))
+
+
+def test_update_matches_information_form():
+    """The posterior equals the information-form result (P^-1 + H^T R^-1 H)^-1, independent
+    algebra, and the logged innovation, S and NIS are the textbook ones."""
+    rng = np.random.default_rng(1)
+    n, m = 5, 2
+    x0 = rng.normal(size=n)
+    P0 = _random_spd(rng, n)
+    H = rng.normal(size=(m, n))
+    R = _random_spd(rng, m, 0.1)
+    z = rng.normal(size=m)
+    kf = KalmanCore(x0, P0)
+    assert kf.update(0.0, "s", "k", z, H @ x0, H, R)
+    Pinf = np.linalg.inv(np.linalg.inv(P0) + H.T @ np.linalg.inv(R) @ H)
+    xinf = x0 + Pinf @ H.T @ np.linalg.inv(R) @ (z - H @ x0)
+    np.testing.assert_allclose(kf.P, Pinf, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(kf.x, xinf, rtol=1e-9, atol=1e-12)
+    inn = kf.log.innovations[-1]
+    S = H @ P0 @ H.T + R
+    np.testing.assert_allclose(inn.residual, z - H @ x0)
+    np.testing.assert_allclose(inn.cov, S)
+    y = z - H @ x0
+    assert inn.nis == pytest.approx(float(y @ np.linalg.solve(S, y)), rel=1e-10)
+    assert np.array_equal(kf.P, kf.P.T)
+
+
+def test_joseph_form_stays_psd_where_simple_form_fails():
+    """A very precise measurement of a poorly known state: (I - KH)P loses symmetry/PSD in
+    floating point, the Joseph form keeps P symmetric positive semi-definite."""
+    P0 = np.array([[1e8, 1e4 - 1e-3], [1e4 - 1e-3, 1.0]])
+    H = np.array([[1.0, 0.0]])
+    R = np.array([[1e-10]])
+    kf = KalmanCore(np.zeros(2), P0)
+    for _ in range(20):
+        kf.update(0.0, "s", "k", [0.0], kf.x[:1], H, R)
+        assert np.array_equal(kf.P, kf.P.T)
+        assert np.linalg.eigvalsh(kf.P).min() > -1e-12 * np.abs(kf.P).max()
+
+
+def test_angle_innovation_wrapped_and_state_wrapped():
+    kf = KalmanCore([3.1], [[0.1]], state_angles=(0,))
+    kf.update(0.0, "imu", "heading", [-3.1], [3.1], [[1.0]], [[0.1]], angles=(0,))
+    inn = kf.log.innovations[-1]
+    assert inn.residual[0] == pytest.approx(2 * math.pi - 6.2)
+    # halfway between 3.1 and -3.1 across the +-pi seam is pi, wrapped to -pi
+    assert abs(abs(kf.x[0]) - math.pi) < 1e-9
+    assert -math.pi <= kf.x[0] < math.pi
+
+
+def test_chi2_threshold_cached_and_correct():
+    assert chi2_threshold(0.99, 2) == pytest.approx(chi2.ppf(0.99, 2))
+    assert chi2_threshold(0.9999, 1) == pytest.approx(15.1367, rel=1e-4)
+    before = chi2_threshold.cache_info().hits
+    chi2_threshold(0.99, 2)
+    assert chi2_threshold.cache_info().hits == before + 1
+
+
+def test_gate_rejects_outlier_and_logs_it():
+    kf = KalmanCore([0.0], [[1.0]])
+    # NIS = 100 / 1.01 >> chi2.ppf(0.99, 1) = 6.63
+    assert not kf.update(1.0, "gps", "gps", [10.0], [0.0], [[1.0]], [[0.01]], gate=0.99)
+    assert kf.x[0] == 0.0 and kf.P[0, 0] == 1.0
+    assert kf.log.rejected[("gps", "gate")] == 1
+    inn = kf.log.innovations[-1]
+    assert not inn.accepted and inn.nis == pytest.approx(100 / 1.01)
+    # an ordinary measurement passes
+    assert kf.update(2.0, "gps", "gps", [0.5], [0.0], [[1.0]], [[0.01]], gate=0.99)
+
+
+def test_nonfinite_and_singular_rejected():
+    kf = KalmanCore([0.0], [[0.0]])
+    assert not kf.update(0.0, "s", "k", [float("nan")], [0.0], [[1.0]], [[1.0]])
+    assert kf.log.rejected[("s", "nonfinite")] == 1
+    assert not kf.update(0.0, "s", "k", [1.0], [0.0], [[1.0]], [[0.0]])
+    assert kf.log.rejected[("s", "singular")] == 1
+
+
+def _standstill_then_move(lockout_count, seed=0):
+    """Constant-velocity 1-D filter, position sensor 10 Hz (sigma 0.1 m). The robot stands still
+    for 60 s (P collapses: the model's process noise is small), then moves at 0.5 m/s for 30 s.
+    Returns the filter and the truth at the end."""
+    rng = np.random.default_rng(seed)
+    dt, sigma, q = 0.1, 0.1, 1e-6  # q: white-acceleration PSD, (m/s^2)^2/Hz -- deliberately low
+    F = np.array([[1.0, dt], [0.0, 1.0]])
+    Q = q * np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]])
+    kf = KalmanCore([0.0, 0.0], np.diag([1.0, 0.1]), EstimatorLog(), lockout_count=lockout_count,
+                    lockout_time=1.0)
+    pos = 0.0
+    H, R = np.array([[1.0, 0.0]]), np.array([[sigma**2]])
+    for k in range(1, 901):
+        t = k * dt
+        if t > 60.0:
+            pos += 0.5 * dt
+        kf.predict(F, Q)
+        z = pos + sigma * rng.normal()
+        kf.update(t, "pos", "position", [z], kf.x[:1], H, R, gate=0.9999)
+    return kf, pos
+
+
+def test_gate_lockout_happens_without_recovery():
+    """The failure mode the recovery exists for: with recovery disabled the filter never accepts
+    another measurement and ends far from the truth."""
+    kf, pos = _standstill_then_move(lockout_count=10**9)
+    assert abs(kf.x[0] - pos) > 5.0
+    assert kf.log.rejected[("pos", "gate")] > 200
+    assert not kf.recoveries
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_gate_lockout_recovery(seed):
+    """With recovery the filter detects the lock-out, inflates P, logs it, and tracks again:
+    final error within 5 sigma of the measurement noise."""
+    kf, pos = _standstill_then_move(lockout_count=5, seed=seed)
+    assert kf.recoveries, "lock-out not detected"
+    assert any("lock-out" in msg for msg in kf.log.messages)
+    assert kf.log.rejected[("pos", "lockout_recovery")] == len(kf.recoveries)
+    assert abs(kf.x[0] - pos) < 5 * 0.1
+    # velocity learned too (0.5 m/s), within a loose bound
+    assert abs(kf.x[1] - 0.5) < 0.2
+    # it detected it quickly: first recovery within 2 s of the robot starting to move
+    # (rejections begin once the drift exceeds the gate; >= 5 rejections over >= 1 s)
+    assert 60.0 < kf.recoveries[0][0] < 63.0
+    assert np.linalg.eigvalsh(kf.P).min() > 0
+
+
+def test_isolated_outliers_do_not_trigger_recovery():
+    """A single bad measurement among good ones is rejected, the streak resets, no recovery."""
+    rng = np.random.default_rng(5)
+    kf = KalmanCore([0.0], [[1.0]], lockout_count=3, lockout_time=0.0)
+    for k in range(200):
+        kf.predict(np.eye(1), np.array([[1e-4]]))
+        z = 0.1 * rng.normal() + (50.0 if k % 2 == 0 and k > 50 else 0.0)
+        # every other measurement an outlier: never 3 in a row
+        kf.update(k * 0.1, "s", "k", [z], kf.x, [[1.0]], [[0.01]], gate=0.999)
+    assert not kf.recoveries
+    assert kf.log.rejected[("s", "gate")] == 74
+    assert abs(kf.x[0]) < 0.1
