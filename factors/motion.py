@@ -1,0 +1,210 @@
+"""Differential-drive motion factor between two consecutive keyframe states (2 keys, 7-D error).
+
+Model (states as in ``factors.state``; i = earlier keyframe, j = later, dt = t_j - t_i > 0)::
+
+    twist used for the pose:   vm = a_i v_i + a_j v_j,  wm = a_i w_i + a_j w_j
+        twist="mean"  (default): a_i = a_j = 1/2  -> trapezoid on v, w; exact for a constant twist
+                                 and second-order accurate when v, w vary linearly over dt
+        twist="start":           a_i = 1, a_j = 0 -> explicit (forward-Euler on v, w) step
+    (dx_b, dy_b, dpsi) = kinematics.se2_increment(vm, wm, dt)    exact constant-twist increment
+
+    e[0:2] = R(psi_i)^T (p_j - p_i) - (dx_b, dy_b)    m, in the body frame of keyframe i
+                                                       (row 0 longitudinal, row 1 lateral)
+    e[2]   = wrap(psi_j - psi_i - dpsi)                rad
+    e[3]   = v_j - v_i                                 m/s    random walk / constant-accel model
+    e[4]   = w_j - w_i                                 rad/s
+    e[5]   = bg_j - bg_i                               rad/s  gyro-bias random walk
+    e[6]   = wrap(hoff_j - hoff_i)                     rad    heading-offset random walk
+
+The position residual is taken in keyframe i's body frame so that longitudinal and lateral
+(slip) noise can differ; with equal sigmas it is statistically the same as a world-frame residual.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from factors.kinematics import twist_coeffs
+from factors.noise import NoiseLike, as_noise_model
+
+__all__ = ["MotionNoise", "motion_factor", "motion_error"]
+
+_PI = math.pi
+_TWO_PI = 2.0 * math.pi
+_TWISTS = {"mean": (0.5, 0.5), "start": (1.0, 0.0)}
+
+
+@dataclass(frozen=True)
+class MotionNoise:
+    """Process-noise densities of the motion model; all are sigma densities (sqrt of PSD).
+
+    A white-noise density q gives a random-walk sigma q sqrt(dt) after ``dt`` seconds.
+
+    pos_long, pos_lat: m/sqrt(s) — white velocity noise on the body-frame position residual
+        (model error, wheel slip); lateral is usually smaller for a non-holonomic base.
+    heading: rad/sqrt(s) — white yaw-rate noise on the heading residual.
+    acc: m/s^2/sqrt(Hz) — white forward acceleration driving v (v random walk).
+    yaw_acc: rad/s^2/sqrt(Hz) — white yaw acceleration driving w.
+    gyro_bias: rad/s/sqrt(s) — gyro-bias random walk.
+    heading_offset: rad/sqrt(s) — heading-sensor offset random walk.
+    """
+
+    pos_long: float = 0.05
+    pos_lat: float = 0.02
+    heading: float = 0.01
+    acc: float = 0.5
+    yaw_acc: float = 0.5
+    gyro_bias: float = 1e-4
+    heading_offset: float = 1e-4
+
+    def sigmas(self, dt: float, twist: str = "mean") -> tuple[float, ...]:
+        """The 7 error-row sigmas for an interval of ``dt`` seconds (units of the error rows).
+
+        The acceleration noise also enters the pose rows: with white acceleration, integrating
+        the trapezoid ("mean") twist leaves an error of variance q^2 dt^3 / 12 that is
+        uncorrelated with the velocity increment; the "start" twist leaves q^2 dt^3 / 3 and a
+        correlation with the velocity row that this diagonal model ignores.
+        """
+        if not dt > 0.0:
+            raise ValueError(f"dt must be > 0, got {dt}")
+        k = 12.0 if twist == "mean" else 3.0
+        c3 = dt * dt * dt / k
+        return (
+            math.sqrt(self.pos_long**2 * dt + self.acc**2 * c3),
+            math.sqrt(self.pos_lat**2 * dt),
+            math.sqrt(self.heading**2 * dt + self.yaw_acc**2 * c3),
+            self.acc * math.sqrt(dt),
+            self.yaw_acc * math.sqrt(dt),
+            self.gyro_bias * math.sqrt(dt),
+            self.heading_offset * math.sqrt(dt),
+        )
+
+    def noise_model(self, dt: float, twist: str = "mean") -> gtsam.noiseModel.Diagonal:
+        """Diagonal gtsam noise model for ``dt`` seconds, dimension 7."""
+        return gtsam.noiseModel.Diagonal.Sigmas(np.array(self.sigmas(dt, twist)))
+
+
+def motion_error(
+    si: tuple[float, ...] | list[float],
+    sj: tuple[float, ...] | list[float],
+    dt: float,
+    twist: str = "mean",
+) -> tuple[float, ...]:
+    """The 7-D motion residual for states ``si``, ``sj`` (plain sequences); reference helper."""
+    ai, aj = _TWISTS[twist]
+    xi, yi, pi, vi, wi, bi, hi = si
+    xj, yj, pj, vj, wj, bj, hj = sj
+    a = (ai * wi + aj * wj) * dt
+    s, c, _, _ = twist_coeffs(a)
+    d = (ai * vi + aj * vj) * dt
+    dx = xj - xi
+    dy = yj - yi
+    cp = math.cos(pi)
+    sp = math.sin(pi)
+    return (
+        cp * dx + sp * dy - d * s,
+        cp * dy - sp * dx - d * c,
+        (pj - pi - a + _PI) % _TWO_PI - _PI,
+        vj - vi,
+        wj - wi,
+        bj - bi,
+        (hj - hi + _PI) % _TWO_PI - _PI,
+    )
+
+
+def motion_factor(
+    key_i: int,
+    key_j: int,
+    dt: float,
+    noise: MotionNoise | NoiseLike,
+    twist: str = "mean",
+) -> gtsam.CustomFactor:
+    """Motion factor between keyframe states ``key_i`` (time t) and ``key_j`` (time t + dt).
+
+    Args:
+        key_i, key_j: gtsam keys of 7-vector states (``factors.state`` layout).
+        dt: t_j - t_i, s, > 0.
+        noise: a ``MotionNoise`` (turned into a diagonal model for ``dt``) or any 7-D gtsam noise
+            model / sigmas accepted by ``factors.noise.as_noise_model``.
+        twist: "mean" (trapezoid, default) or "start"; see the module docstring.
+
+    Returns a ``gtsam.CustomFactor`` with the 7-D error of the module docstring.
+    """
+    if twist not in _TWISTS:
+        raise ValueError(f"twist must be one of {sorted(_TWISTS)}, got {twist!r}")
+    if not dt > 0.0:
+        raise ValueError(f"dt must be > 0, got {dt}")
+    if isinstance(noise, MotionNoise):
+        model = noise.noise_model(dt, twist)
+    else:
+        model = as_noise_model(noise, 7)
+    ai, aj = _TWISTS[twist]
+    dt = float(dt)
+    cos = math.cos
+    sin = math.sin
+    arr = np.array
+    coeffs = twist_coeffs
+    # Jacobian buffers owned by this factor: gtsam copies them on assignment to H, so only the
+    # entries that depend on the state are rewritten per call.
+    hi = -np.eye(7)
+    hj = np.eye(7)
+    hi[2, 4] = -ai * dt
+    hj[2, 4] = -aj * dt
+    ki = key_i
+    kj = key_j
+
+    def error(this, values, H):
+        xi, yi, pi, vi, wi, bi, hoi = values.atVector(ki).tolist()
+        xj, yj, pj, vj, wj, bj, hoj = values.atVector(kj).tolist()
+        a = (ai * wi + aj * wj) * dt
+        s, c, ds, dc = coeffs(a)
+        d = (ai * vi + aj * vj) * dt
+        dx = xj - xi
+        dy = yj - yi
+        cp = cos(pi)
+        sp = sin(pi)
+        u0 = cp * dx + sp * dy
+        u1 = cp * dy - sp * dx
+        if H is not None:
+            # d(dx_b, dy_b)/d(vm, wm) = dt (S, C), d dt (S', C'); chain rule through a_i, a_j
+            ts = dt * s
+            tc = dt * c
+            dds = d * dt * ds
+            ddc = d * dt * dc
+            hi[0, 0] = -cp
+            hi[0, 1] = -sp
+            hi[0, 2] = u1
+            hi[0, 3] = -ai * ts
+            hi[0, 4] = -ai * dds
+            hi[1, 0] = sp
+            hi[1, 1] = -cp
+            hi[1, 2] = -u0
+            hi[1, 3] = -ai * tc
+            hi[1, 4] = -ai * ddc
+            hj[0, 0] = cp
+            hj[0, 1] = sp
+            hj[0, 3] = -aj * ts
+            hj[0, 4] = -aj * dds
+            hj[1, 0] = -sp
+            hj[1, 1] = cp
+            hj[1, 3] = -aj * tc
+            hj[1, 4] = -aj * ddc
+            H[0] = hi
+            H[1] = hj
+        return arr(
+            (
+                u0 - d * s,
+                u1 - d * c,
+                (pj - pi - a + _PI) % _TWO_PI - _PI,
+                vj - vi,
+                wj - wi,
+                bj - bi,
+                (hoj - hoi + _PI) % _TWO_PI - _PI,
+            )
+        )
+
+    return gtsam.CustomFactor(model, [key_i, key_j], error)
