@@ -1,0 +1,141 @@
+"""GPS position factor on one keyframe state, local ENU (east, north), with lever arm and latency.
+
+Measurement model (world = local ENU frame, m)::
+
+    (x', y', psi') = kinematics.se2_step(x, y, psi, v, w, dt_fix)   # pose at the fix time
+    h = (x', y') + R(psi') l                                         # antenna position
+    error = h - z                                                    # 2-D, m
+
+where ``l`` = (lx, ly) is the antenna position in the body frame (m, x forward, y left) and
+``dt_fix`` (s) is the fix time minus the keyframe time (either sign), so a fix that is not exactly
+at a keyframe is compared with the state propagated along its own constant twist. With
+``dt_fix = 0`` and a zero lever arm this is ``gtsam.PoseTranslationPrior2D`` on the position.
+
+Robust noise (``gtsam.noiseModel.Robust`` with Huber, Cauchy...) is passed by the caller as the
+``noise`` argument.
+"""
+
+from __future__ import annotations
+
+import math
+
+import gtsam
+import numpy as np
+
+from factors.kinematics import twist_coeffs
+from factors.noise import NoiseLike, as_noise_model
+from factors.state import DIM
+
+__all__ = ["gps_factor", "gps_predict"]
+
+
+def gps_predict(
+    state: tuple[float, ...] | list[float],
+    lever_arm: tuple[float, float] = (0.0, 0.0),
+    dt_fix: float = 0.0,
+) -> tuple[float, float]:
+    """Predicted antenna position (east, north), m, for a 7-state; reference helper."""
+    x, y, psi, v, w = state[:5]
+    a = w * dt_fix
+    s, c, _, _ = twist_coeffs(a)
+    d = v * dt_fix
+    cp, sp = math.cos(psi), math.sin(psi)
+    x1 = x + cp * d * s - sp * d * c
+    y1 = y + sp * d * s + cp * d * c
+    p1 = psi + a
+    lx, ly = lever_arm
+    c1, s1 = math.cos(p1), math.sin(p1)
+    return x1 + c1 * lx - s1 * ly, y1 + s1 * lx + c1 * ly
+
+
+def gps_factor(
+    key: int,
+    east: float,
+    north: float,
+    noise: NoiseLike,
+    lever_arm: tuple[float, float] = (0.0, 0.0),
+    dt_fix: float = 0.0,
+) -> gtsam.CustomFactor:
+    """GPS factor.
+
+    Args:
+        key: 7-vector state key (``factors.state``).
+        east, north: fix position in the local ENU frame, m.
+        noise: 2-D noise model or sigma(s), m; pass a robust model for outlier rejection.
+        lever_arm: antenna (lx, ly) in the body frame, m.
+        dt_fix: fix time - keyframe time, s.
+
+    Returns a ``gtsam.CustomFactor`` with the 2-D error of the module docstring and a 2x7 Jacobian
+    (zero in the bg and hoff columns).
+    """
+    zx = float(east)
+    zy = float(north)
+    lx, ly = float(lever_arm[0]), float(lever_arm[1])
+    dt = float(dt_fix)
+    model = as_noise_model(noise, 2)
+    arr = np.array
+    cos = math.cos
+    sin = math.sin
+    h = np.zeros((2, DIM))
+    h[0, 0] = h[1, 1] = 1.0
+
+    if dt == 0.0:
+        if lx == 0.0 and ly == 0.0:
+
+            def error(this, values, H):
+                s = values.atVector(key).tolist()
+                if H is not None:
+                    H[0] = h
+                return arr((s[0] - zx, s[1] - zy))
+
+        else:
+
+            def error(this, values, H):
+                x, y, psi = values.atVector(key).tolist()[:3]
+                c = cos(psi)
+                sn = sin(psi)
+                rx = c * lx - sn * ly
+                ry = sn * lx + c * ly
+                if H is not None:
+                    h[0, 2] = -ry
+                    h[1, 2] = rx
+                    H[0] = h
+                return arr((x + rx - zx, y + ry - zy))
+
+        return gtsam.CustomFactor(model, [key], error)
+
+    coeffs = twist_coeffs
+
+    def error(this, values, H):
+        x, y, psi, v, w = values.atVector(key).tolist()[:5]
+        a = w * dt
+        s, c, ds, dc = coeffs(a)
+        d = v * dt
+        cp = cos(psi)
+        sp = sin(psi)
+        dxb = d * s
+        dyb = d * c
+        ex = cp * dxb - sp * dyb
+        ey = sp * dxb + cp * dyb
+        p1 = psi + a
+        c1 = cos(p1)
+        s1 = sin(p1)
+        rx = c1 * lx - s1 * ly
+        ry = s1 * lx + c1 * ly
+        if H is not None:
+            # through the step, plus the lever arm turning with psi' = psi + w dt
+            vs = dt * s
+            vc = dt * c
+            dd = d * dt
+            ws = dd * ds
+            wc = dd * dc
+            h[0, 2] = -ey - ry
+            h[1, 2] = ex + rx
+            h[0, 3] = cp * vs - sp * vc
+            h[1, 3] = sp * vs + cp * vc
+            h[0, 4] = cp * ws - sp * wc - ry * dt
+            h[1, 4] = sp * ws + cp * wc + rx * dt
+            H[0] = h
+        return arr((x + ex + rx - zx, y + ey + ry - zy))
+
+    return gtsam.CustomFactor(model, [key], error)

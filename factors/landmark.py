@@ -1,0 +1,176 @@
+"""Range/bearing and range-only factors between a keyframe state and a landmark.
+
+Geometry (world = local ENU / map frame, m, rad)::
+
+    sensor position  q = p + R(psi) s            s = (sx, sy): sensor mount in the body frame, m
+    (dx, dy)         = landmark - q
+    range            = hypot(dx, dy)                             m
+    bearing          = wrap(atan2(dy, dx) - psi)                 rad, body frame, CCW from body x
+
+Errors are ``range - z_range`` and ``wrap(bearing - z_bearing)`` (rad, wrap-safe near +-pi).
+The sensor is assumed aligned with the body axes (only offset, no mount rotation; subtract a
+known mount yaw from the measured bearing before calling).
+
+Two flavours:
+
+* known landmark (1 key: the state) — the landmark position is a constant of the factor;
+* SLAM (2 keys: the state and a ``gtsam.Point2`` landmark key), Jacobian 2x7 and 2x2.
+
+GTSAM's ``BearingRangeFactor2D`` / ``RangeFactor2D`` need a Pose2 key, so they do not apply to the
+7-vector state (``factors.state``); these CustomFactors implement the same model on it.
+At zero range the bearing and the Jacobians are undefined; the range is floored at 1e-9 m to avoid
+a division by zero, which keeps the factor finite but meaningless there.
+"""
+
+from __future__ import annotations
+
+import math
+
+import gtsam
+import numpy as np
+
+from factors.noise import NoiseLike, as_noise_model
+from factors.state import DIM
+
+__all__ = [
+    "range_bearing_factor",
+    "range_factor",
+    "range_bearing_slam_factor",
+    "range_slam_factor",
+    "range_bearing_predict",
+]
+
+_PI = math.pi
+_TWO_PI = 2.0 * math.pi
+_MIN_RANGE = 1e-9
+
+
+def range_bearing_predict(
+    state: tuple[float, ...] | list[float],
+    landmark: tuple[float, float],
+    sensor_offset: tuple[float, float] = (0.0, 0.0),
+) -> tuple[float, float]:
+    """Predicted (range m, bearing rad in [-pi, pi)) of ``landmark`` from a 7-state."""
+    x, y, psi = state[:3]
+    c, s = math.cos(psi), math.sin(psi)
+    sx, sy = sensor_offset
+    dx = landmark[0] - (x + c * sx - s * sy)
+    dy = landmark[1] - (y + s * sx + c * sy)
+    b = math.atan2(dy, dx) - psi
+    return math.hypot(dx, dy), (b + _PI) % _TWO_PI - _PI
+
+
+def _make(
+    keys: list[int],
+    landmark: tuple[float, float] | None,
+    z_range: float,
+    z_bearing: float | None,
+    sensor_offset: tuple[float, float],
+    noise: NoiseLike,
+) -> gtsam.CustomFactor:
+    key = keys[0]
+    slam = landmark is None
+    lm_key = keys[1] if slam else None
+    lx0, ly0 = (0.0, 0.0) if slam else (float(landmark[0]), float(landmark[1]))
+    sx, sy = float(sensor_offset[0]), float(sensor_offset[1])
+    zr = float(z_range)
+    bearing = z_bearing is not None
+    zb = float(z_bearing) if bearing else 0.0
+    dim = 2 if bearing else 1
+    hs = np.zeros((dim, DIM))
+    hl = np.zeros((dim, 2))
+    arr = np.array
+    cos = math.cos
+    sin = math.sin
+    atan2 = math.atan2
+    sqrt = math.sqrt
+
+    def error(this, values, H):
+        x, y, psi = values.atVector(key).tolist()[:3]
+        if slam:
+            lx, ly = values.atPoint2(lm_key).tolist()
+        else:
+            lx, ly = lx0, ly0
+        c = cos(psi)
+        s = sin(psi)
+        ox = c * sx - s * sy
+        oy = s * sx + c * sy
+        dx = lx - x - ox
+        dy = ly - y - oy
+        r2 = dx * dx + dy * dy
+        r = sqrt(r2)
+        if r < _MIN_RANGE:
+            r = _MIN_RANGE
+            r2 = r * r
+        if H is not None:
+            # d(dx, dy)/d(x, y) = -I; d(dx, dy)/dpsi = -(-oy, ox)
+            gr_x = dx / r
+            gr_y = dy / r
+            hs[0, 0] = -gr_x
+            hs[0, 1] = -gr_y
+            hs[0, 2] = gr_x * oy - gr_y * ox
+            if bearing:
+                gb_x = -dy / r2
+                gb_y = dx / r2
+                hs[1, 0] = -gb_x
+                hs[1, 1] = -gb_y
+                hs[1, 2] = gb_x * oy - gb_y * ox - 1.0
+            H[0] = hs
+            if slam:
+                hl[0, 0] = gr_x
+                hl[0, 1] = gr_y
+                if bearing:
+                    hl[1, 0] = gb_x
+                    hl[1, 1] = gb_y
+                H[1] = hl
+        if bearing:
+            return arr((r - zr, (atan2(dy, dx) - psi - zb + _PI) % _TWO_PI - _PI))
+        return arr((r - zr,))
+
+    return gtsam.CustomFactor(as_noise_model(noise, dim), keys, error)
+
+
+def range_bearing_factor(
+    key: int,
+    landmark: tuple[float, float],
+    z_range: float,
+    z_bearing: float,
+    noise: NoiseLike,
+    sensor_offset: tuple[float, float] = (0.0, 0.0),
+) -> gtsam.CustomFactor:
+    """Range (m) and bearing (rad) to a known landmark (x, y) in m; 2-D error, 1 key."""
+    return _make([key], landmark, z_range, z_bearing, sensor_offset, noise)
+
+
+def range_factor(
+    key: int,
+    landmark: tuple[float, float],
+    z_range: float,
+    noise: NoiseLike,
+    sensor_offset: tuple[float, float] = (0.0, 0.0),
+) -> gtsam.CustomFactor:
+    """Range (m) to a known landmark (x, y) in m; 1-D error, 1 key."""
+    return _make([key], landmark, z_range, None, sensor_offset, noise)
+
+
+def range_bearing_slam_factor(
+    key: int,
+    landmark_key: int,
+    z_range: float,
+    z_bearing: float,
+    noise: NoiseLike,
+    sensor_offset: tuple[float, float] = (0.0, 0.0),
+) -> gtsam.CustomFactor:
+    """Range (m) and bearing (rad) to a ``gtsam.Point2`` landmark key; 2-D error, 2 keys."""
+    return _make([key, landmark_key], None, z_range, z_bearing, sensor_offset, noise)
+
+
+def range_slam_factor(
+    key: int,
+    landmark_key: int,
+    z_range: float,
+    noise: NoiseLike,
+    sensor_offset: tuple[float, float] = (0.0, 0.0),
+) -> gtsam.CustomFactor:
+    """Range (m) to a ``gtsam.Point2`` landmark key; 1-D error, 2 keys."""
+    return _make([key, landmark_key], None, z_range, None, sensor_offset, noise)
