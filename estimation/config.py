@@ -161,6 +161,11 @@ class _Checker:
             raise self.fail(key, f"must be a non-empty string, got {value!r}")
         return value
 
+    def choice(self, value: Any, key: str, options: tuple[str, ...]) -> str:
+        if value not in options:
+            raise self.fail(key, f"must be one of {', '.join(options)}; got {value!r}")
+        return value
+
     def estimate_or_number(self, value: Any, key: str) -> str | float:
         if value == "estimate":
             return "estimate"
@@ -219,6 +224,8 @@ def _sensor(ck: _Checker, kind: str, i: int, raw: Any, base: Path) -> SensorConf
         if not isinstance(j, list) or len(j) != 2 or not all(isinstance(x, str) for x in j):
             raise ck.fail(f"{key}.joints", "must list the left and right wheel joint names")
         s.joints = (j[0], j[1])
+        if "speed" not in s.noise:
+            raise ck.fail(f"{key}.noise.speed", "missing (JointState carries no covariance)")
     if kind == "landmarks":
         if "map" not in d:
             raise ck.fail(f"{key}.map", "missing (a landmark map YAML is needed)")
@@ -294,16 +301,12 @@ def parse_config(raw: Any, source: str = "<config>", base: Path | None = None) -
         if "lag" in s:
             sc.lag = ck.number(s["lag"], "smoother.lag", positive=True)
         if "keyframe" in s:
-            if s["keyframe"] not in ("gps", "rate"):
-                raise ck.fail("smoother.keyframe", f"must be 'gps' or 'rate', got {s['keyframe']!r}")
-            sc.keyframe = s["keyframe"]
+            sc.keyframe = ck.choice(s["keyframe"], "smoother.keyframe", ("gps", "rate"))
         if "keyframe_rate" in s:
             sc.keyframe_rate = ck.number(s["keyframe_rate"], "smoother.keyframe_rate",
                                          positive=True)
         if "robust" in s:
-            if s["robust"] not in ("huber", "cauchy", "none"):
-                raise ck.fail("smoother.robust", f"must be huber, cauchy or none, got {s['robust']!r}")
-            sc.robust = s["robust"]
+            sc.robust = ck.choice(s["robust"], "smoother.robust", ("huber", "cauchy", "none"))
         if "robust_k" in s:
             sc.robust_k = ck.number(s["robust_k"], "smoother.robust_k", positive=True)
         cfg.smoother = sc
