@@ -1,0 +1,162 @@
+"""Analytic Jacobians of every factor vs central differences through gtsam's Values.retract.
+
+States include yaw rates of exactly 0, 1e-9 and 1e-5 rad/s (the series branch of the kinematics),
+rates across the series threshold, and headings on both sides of +-pi.
+"""
+
+import math
+import random
+
+import gtsam
+import numpy as np
+import pytest
+
+from factors.checks import analytic_jacobians, max_jacobian_error, numerical_jacobians
+from factors.gps import gps_factor
+from factors.gyro import gyro_factor
+from factors.heading import heading_factor
+from factors.landmark import (
+    range_bearing_factor,
+    range_bearing_slam_factor,
+    range_factor,
+    range_slam_factor,
+)
+from factors.motion import MotionNoise, motion_factor
+from factors.preintegration import WheelGyroPreintegration, preintegrated_factor
+from factors.wheel import wheel_rates_calib_factor, wheel_rates_factor, wheel_speed_factor
+
+KI, KJ, KC, KL = 1, 2, 3, 4
+TOL = 1e-6
+
+
+def unit(d):
+    return gtsam.noiseModel.Unit.Create(d)
+
+
+def _pim():
+    p = WheelGyroPreintegration(bg_lin=0.01)
+    for k in range(30):
+        p.integrate(0.02, 1.2 + 0.1 * math.sin(k), 0.3 * math.cos(0.2 * k), 0.05**2, 0.01**2)
+    return p
+
+
+PIM = _pim()
+
+FACTORS = {
+    "motion_mean": lambda: motion_factor(KI, KJ, 0.37, unit(7), twist="mean"),
+    "motion_start": lambda: motion_factor(KI, KJ, 0.37, unit(7), twist="start"),
+    "motion_long_dt": lambda: motion_factor(KI, KJ, 2.5, unit(7)),
+    "gyro": lambda: gyro_factor(KI, 0.2, unit(1)),
+    "heading": lambda: heading_factor(KI, 3.1, unit(1)),
+    "heading_no_offset": lambda: heading_factor(KI, -3.1, unit(1), use_offset=False),
+    "wheel_speed": lambda: wheel_speed_factor(KI, 1.1, unit(1)),
+    "wheel_rates": lambda: wheel_rates_factor(KI, 9.0, 11.0, 0.11, 0.52, unit(2)),
+    "wheel_rates_calib": lambda: wheel_rates_calib_factor(KI, KC, 9.0, 11.0, 0.11, 0.52, unit(2)),
+    "gps": lambda: gps_factor(KI, 3.0, -4.0, unit(2)),
+    "gps_lever": lambda: gps_factor(KI, 3.0, -4.0, unit(2), lever_arm=(0.4, -0.25)),
+    "gps_lever_dt": lambda: gps_factor(KI, 3.0, -4.0, unit(2), lever_arm=(0.4, -0.25), dt_fix=0.23),
+    "gps_neg_dt": lambda: gps_factor(KI, 3.0, -4.0, unit(2), lever_arm=(-0.3, 0.1), dt_fix=-0.4),
+    "range_bearing": lambda: range_bearing_factor(KI, (7.0, -2.0), 5.0, 0.3, unit(2), (0.2, 0.1)),
+    "range": lambda: range_factor(KI, (7.0, -2.0), 5.0, unit(1), (0.2, 0.1)),
+    "range_bearing_slam": lambda: range_bearing_slam_factor(KI, KL, 5.0, -3.1, unit(2), (0.3, 0)),
+    "range_slam": lambda: range_slam_factor(KI, KL, 5.0, unit(1)),
+    "preintegrated": lambda: preintegrated_factor(KI, KJ, PIM, noise=unit(7)),
+}
+
+YAW_RATES = [0.0, 1e-9, 1e-5, -1e-5, 0.0999 / 0.37, 0.1001 / 0.37, 0.8, -2.0]
+HEADINGS = [math.pi - 1e-6, -math.pi + 1e-6, math.pi + 0.2, 0.4]
+
+
+def make_values(w, psi, seed):
+    rng = random.Random(seed)
+    si = np.array(
+        [
+            rng.uniform(-20, 20),
+            rng.uniform(-20, 20),
+            psi,
+            rng.uniform(-1.5, 2.5),
+            w,
+            rng.uniform(-0.05, 0.05),
+            rng.uniform(-math.pi, math.pi),
+        ]
+    )
+    # j near i, heading on the other side of +-pi for the near-pi cases
+    sj = si + np.array(
+        [
+            rng.uniform(-1, 1),
+            rng.uniform(-1, 1),
+            rng.uniform(-0.3, 0.3) + (2e-6 if psi > 3 else -2e-6 if psi < -3 else 0.0),
+            rng.uniform(-0.2, 0.2),
+            0.5 * w if rng.random() < 0.5 else w,
+            rng.uniform(-0.01, 0.01),
+            rng.uniform(-0.1, 0.1),
+        ]
+    )
+    values = gtsam.Values()
+    values.insert(KI, si)
+    values.insert(KJ, sj)
+    values.insert(KC, np.array([rng.uniform(0.9, 1.1), rng.uniform(0.9, 1.1)]))
+    values.insert(KL, gtsam.Point2(rng.uniform(-30, 30), rng.uniform(-30, 30)))
+    return values
+
+
+def _subset(values, keys):
+    out = gtsam.Values()
+    for k in keys:
+        if k == KL:
+            out.insert(k, values.atPoint2(k))
+        else:
+            out.insert(k, values.atVector(k))
+    return out
+
+
+@pytest.mark.parametrize("name", sorted(FACTORS))
+def test_jacobians_match_central_differences(name):
+    worst = 0.0
+    for w in YAW_RATES:
+        for psi in HEADINGS:
+            factor = FACTORS[name]()
+            values = _subset(make_values(w, psi, seed=hash((w, psi)) & 0xFFFF), factor.keys())
+            err = max_jacobian_error(factor, values)
+            worst = max(worst, err)
+            assert err < TOL, (name, w, psi, err)
+    # a sanity floor: the check itself is not vacuous
+    assert worst < TOL
+
+
+def test_check_detects_a_wrong_jacobian():
+    """The comparison must be able to fail: a factor with a deliberately wrong Jacobian."""
+
+    def bad(this, values, H):
+        s = values.atVector(KI)
+        if H is not None:
+            H[0] = np.array([[1.0, 0, 0, 0, 0, 0, 0]])  # misses the y dependence
+        return np.array([s[0] + 1e-3 * s[1]])
+
+    f = gtsam.CustomFactor(unit(1), [KI], bad)
+    v = gtsam.Values()
+    v.insert(KI, np.zeros(7))
+    assert max_jacobian_error(f, v) > 5e-4
+
+
+def test_jacobian_buffers_are_copied_by_gtsam():
+    """Factors reuse their Jacobian buffers; earlier linearizations must not change."""
+    f = motion_factor(KI, KJ, 0.5, unit(7))
+    v1 = make_values(0.3, 0.2, 1)
+    v2 = make_values(-0.7, 2.0, 2)
+    a1 = f.linearize(v1).jacobian()[0].copy()
+    lin1 = f.linearize(v1)
+    f.linearize(v2)
+    np.testing.assert_array_equal(lin1.jacobian()[0], a1)
+    assert not np.allclose(f.linearize(v2).jacobian()[0], a1)
+
+
+def test_whitening_is_undone_for_diagonal_noise():
+    """analytic_jacobians unwhitens: same result with unit and diagonal noise."""
+    v = make_values(0.2, 1.0, 3)
+    f1 = motion_factor(KI, KJ, 0.4, unit(7))
+    f2 = motion_factor(KI, KJ, 0.4, MotionNoise())
+    for a, b in zip(analytic_jacobians(f1, v), analytic_jacobians(f2, v), strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-12)
+    nj = numerical_jacobians(f2, v)
+    assert len(nj) == 2 and nj[0].shape == (7, 7)
