@@ -1,0 +1,250 @@
+"""Facts about a bag (topics, types, counts, rates, span, covariance sanity) and a suggested config.
+
+``bag_info(path)`` decodes every message of the types ddfuse understands and summarises each
+topic from its header stamps; ``suggest_config(info)`` turns the facts into a config tree that
+``estimation.config.parse_config`` accepts. For an IMU, the mean specific force tells which sensor
+axis points up (gravity) and the correlation of each gyro axis with the odometry yaw rate tells
+which axis measures yaw rate: the suggested ``mount`` rotates that axis onto body z.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from estimation import rosmsg
+from estimation.bags import open_reader
+from estimation.errors import BagError
+
+GRAVITY = 9.80665  # m/s^2
+
+
+@dataclass
+class TopicInfo:
+    """What one topic holds. Rates from header stamps (Hz); times in seconds."""
+
+    topic: str
+    msgtype: str
+    count: int
+    t0: float = math.nan
+    t1: float = math.nan
+    rate_hz: float = math.nan
+    median_dt: float = math.nan
+    out_of_order: int = 0  # messages whose stamp is older than the previous one's
+    notes: list[str] = field(default_factory=list)  # covariance sanity and other findings
+    # For IMUs: mean specific force per sensor axis (m/s^2) and gyro axes' correlation with
+    # the odometry yaw rate; for NavSatFix: status counts.
+    accel_mean: tuple[float, float, float] | None = None
+    gyro_corr: tuple[float, float, float] | None = None
+    gyro_series: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False)
+    yaw_rate_series: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False)
+    has_orientation: bool = False
+    cov_ok: bool = True  # the message covariances are usable as they are
+
+
+@dataclass
+class BagInfo:
+    path: Path
+    topics: list[TopicInfo]
+    t0: float
+    t1: float
+
+    @property
+    def duration(self) -> float:
+        return self.t1 - self.t0
+
+
+def _diag_summary(name: str, values: list[float]) -> tuple[str, bool]:
+    a = np.asarray(values, float)
+    if a.size == 0:
+        return f"{name}: none", False
+    bad = int(np.sum(~np.isfinite(a) | (a <= 0)))
+    lo, hi = np.nanmin(a), np.nanmax(a)
+    text = f"{name} {lo:.3g}..{hi:.3g}" if lo != hi else f"{name} {lo:.3g}"
+    if bad:
+        text += f" ({bad} zero/invalid: set noise in the config)"
+    return text, bad == 0
+
+
+def _summarise(info: TopicInfo, recs: list[tuple]) -> None:
+    t = np.array([r[0] for r in recs])
+    info.t0, info.t1 = float(t.min()), float(t.max())
+    if len(t) > 1:
+        ts = np.sort(t)
+        info.rate_hz = (len(t) - 1) / max(ts[-1] - ts[0], 1e-9)
+        info.median_dt = float(np.median(np.diff(ts)))
+        info.out_of_order = int(np.sum(np.diff(t) < 0))
+    mt = info.msgtype
+    if _is_ground_truth(info.topic):
+        info.notes.append("looks like ground truth (pose used for scoring only)")
+        return
+    if mt == rosmsg.ODOMETRY:
+        cov = np.array([r[5] for r in recs])
+        a, ok1 = _diag_summary("twist var v", cov[:, 0])
+        b, ok2 = _diag_summary("yaw_rate", cov[:, 35])
+        info.notes.append(f"{a}, {b}")
+        info.cov_ok = ok1 and ok2
+        info.yaw_rate_series = (t, np.array([r[4][2] for r in recs]))
+    elif mt == rosmsg.IMU:
+        ocov = np.array([r[2] for r in recs])
+        info.has_orientation = bool(np.all(ocov[:, 0] != -1.0))
+        acc = np.array([r[5] for r in recs])
+        info.accel_mean = tuple(float(v) for v in acc.mean(axis=0))
+        info.gyro_series = (t, np.array([r[3] for r in recs]))
+        a, ok1 = _diag_summary("gyro var z", np.array([r[4][8] for r in recs]))
+        b, _ = _diag_summary("yaw var", ocov[:, 8]) if info.has_orientation else ("no yaw", True)
+        info.notes.append(f"{a}, {b}; mean specific force (x, y, z) = "
+                          + ", ".join(f"{v:+.2f}" for v in info.accel_mean) + " m/s^2")
+        info.cov_ok = ok1
+    elif mt == rosmsg.NAVSATFIX:
+        status = [r[1] for r in recs]
+        ctype = {r[6] for r in recs}
+        a, ok = _diag_summary("var east", [r[5][0] for r in recs])
+        nofix = sum(s < 0 for s in status)
+        info.notes.append(f"{a}; covariance type {sorted(ctype)}; "
+                          f"{nofix} NO_FIX of {len(status)}")
+        info.cov_ok = ok and 0 not in ctype
+    elif mt == rosmsg.LANDMARK:
+        ids = sorted({r[1] for r in recs}, key=lambda s: (len(s), s))
+        info.notes.append(f"{len(ids)} landmark ids: {', '.join(ids)}")
+
+
+def _is_ground_truth(topic: str) -> bool:
+    t = topic.lower().replace("_", "").replace("-", "")
+    return "groundtruth" in t or t.endswith("/gt") or "vicon" in t or "mocap" in t
+
+
+def bag_info(path: str | Path) -> BagInfo:
+    """Decode every message of a known type in the bag and summarise each topic."""
+    path = Path(path)
+    reader = open_reader(path)
+    recs: dict[str, list] = {}
+    infos: dict[str, TopicInfo] = {}
+    try:
+        for c in reader.connections:
+            infos.setdefault(c.topic, TopicInfo(c.topic, c.msgtype, 0))
+            infos[c.topic].count += c.msgcount
+        known = [c for c in reader.connections if c.msgtype in rosmsg.EXTRACTORS]
+        for conn, _, raw in reader.messages(connections=known):
+            fast, slow = rosmsg.EXTRACTORS[conn.msgtype]
+            try:
+                rec = fast(raw) if fast and not reader.is2 else slow(
+                    reader.deserialize(raw, conn.msgtype))
+            except Exception:  # counted below as undecodable
+                continue
+            recs.setdefault(conn.topic, []).append(rec)
+    except (OSError, ValueError, KeyError) as e:
+        raise BagError(f"{path}: bag became unreadable mid-way ({e}); truncated?") from None
+    finally:
+        reader.close()
+    for topic, lst in recs.items():
+        _summarise(infos[topic], lst)
+        undecoded = infos[topic].count - len(lst)
+        if undecoded:
+            infos[topic].notes.append(f"{undecoded} message(s) could not be decoded")
+    _correlate_gyros(list(infos.values()))
+    t0 = min((i.t0 for i in infos.values() if math.isfinite(i.t0)), default=0.0)
+    t1 = max((i.t1 for i in infos.values() if math.isfinite(i.t1)), default=0.0)
+    return BagInfo(path, sorted(infos.values(), key=lambda i: i.topic), t0, t1)
+
+
+def _correlate_gyros(infos: list[TopicInfo]) -> None:
+    """Correlate each IMU gyro axis with the first odometry's yaw rate, resampled in time."""
+    odom = next((i for i in infos if i.yaw_rate_series is not None), None)
+    if odom is None:
+        return
+    to, wo = odom.yaw_rate_series
+    order = np.argsort(to)
+    to, wo = to[order], wo[order]
+    for imu in infos:
+        if imu.gyro_series is None:
+            continue
+        tg, wg = imu.gyro_series
+        inside = (tg >= to[0]) & (tg <= to[-1])
+        if inside.sum() < 10:
+            continue
+        ref = np.interp(tg[inside], to, wo)
+        corr = []
+        for k in range(3):
+            g = wg[inside, k]
+            s = np.std(g) * np.std(ref)
+            corr.append(float(np.mean((g - g.mean()) * (ref - ref.mean())) / s) if s > 0 else 0.0)
+        imu.gyro_corr = tuple(corr)
+        best = int(np.argmax(np.abs(corr)))
+        imu.notes.append("gyro axes' correlation with odometry yaw rate (x, y, z) = "
+                         + ", ".join(f"{c:+.2f}" for c in corr)
+                         + f": yaw rate is on axis {'xyz'[best]}")
+
+
+def _mount_for_up_axis(axis: int, sign: float) -> list[float]:
+    """rpy (rad) of a mount whose sensor axis ``axis`` (0 x, 1 y, 2 z), with ``sign``, is up."""
+    half = round(math.pi / 2, 4)
+    if axis == 2:
+        return [0.0, 0.0, 0.0] if sign > 0 else [round(math.pi, 4), 0.0, 0.0]
+    if axis == 1:  # Rx(+90) takes sensor +y to body +z
+        return [half, 0.0, 0.0] if sign > 0 else [-half, 0.0, 0.0]
+    return [0.0, -half, 0.0] if sign > 0 else [0.0, half, 0.0]  # Ry(-90) takes +x to +z
+
+
+def imu_mount(info: TopicInfo) -> list[float]:
+    """Suggested mount rpy for an IMU: the axis that carries the yaw rate (by correlation with
+    odometry) or else gravity, rotated onto body z; sign from gravity (specific force is up)."""
+    if info.accel_mean is None:
+        return [0.0, 0.0, 0.0]
+    acc = np.array(info.accel_mean)
+    up = int(np.argmax(np.abs(acc)))
+    if info.gyro_corr is not None and max(abs(c) for c in info.gyro_corr) > 0.5:
+        up = int(np.argmax(np.abs(info.gyro_corr)))
+    if abs(abs(acc[up]) - GRAVITY) > 2.0:
+        return [0.0, 0.0, 0.0]  # no clear gravity on that axis: do not guess
+    return _mount_for_up_axis(up, float(np.sign(acc[up])))
+
+
+def suggest_config(info: BagInfo) -> dict:
+    """A config tree for the bag (loadable by parse_config): one sensor per known topic."""
+    sensors: dict[str, list] = {}
+    gt = None
+    for t in info.topics:
+        if t.count == 0:
+            continue
+        if _is_ground_truth(t.topic):
+            if t.msgtype in (rosmsg.ODOMETRY, rosmsg.POSE_STAMPED, rosmsg.NAVSATFIX):
+                gt = t.topic
+            continue
+        if t.msgtype in (rosmsg.ODOMETRY, rosmsg.TWIST_STAMPED):
+            s = {"topic": t.topic, "use": ["v", "yaw_rate"]}
+            if not t.cov_ok or t.msgtype == rosmsg.TWIST_STAMPED:
+                s["noise"] = {"v": 0.05, "yaw_rate": 0.05}
+            sensors.setdefault("odometry", []).append(s)
+        elif t.msgtype == rosmsg.IMU:
+            s = {"topic": t.topic, "use": ["yaw_rate"]}
+            mount = imu_mount(t)
+            if mount != [0.0, 0.0, 0.0]:
+                s["mount"] = {"rpy": mount}
+            s["noise"] = {"yaw_rate": 0.02}
+            if t.has_orientation:
+                s["use"] = ["yaw", "yaw_rate"]
+                s["noise"]["yaw"] = 0.05
+                s["heading_offset"] = "estimate"
+            s["gyro_bias"] = "estimate"
+            sensors.setdefault("imu", []).append(s)
+        elif t.msgtype == rosmsg.NAVSATFIX:
+            s = {"topic": t.topic, "lever_arm": [0.0, 0.0]}
+            if not t.cov_ok:
+                s["noise"] = {"horizontal": 2.0}
+            sensors.setdefault("gps", []).append(s)
+        elif t.msgtype == rosmsg.LANDMARK:
+            guess = info.path.with_suffix(".landmarks.yaml")
+            sensors.setdefault("landmarks", []).append(
+                {"topic": t.topic, "map": str(guess.resolve() if guess.is_file() else "MAP.yaml")})
+    cfg: dict = {"sensors": sensors}
+    if gt:
+        cfg["ground_truth"] = {"topic": gt}
+        cfg["initial_pose"] = "ground_truth"
+    if "gps" in sensors:
+        cfg["frame"] = {"datum": "first_fix"}
+        cfg["smoother"] = {"lag": 10.0}
+    return cfg
