@@ -7,6 +7,10 @@ API (all arrays are float64 numpy; n = state size, m = measurement size)::
     kf.predict(F, Q, x_pred=None)                         # F (n, n), Q (n, n); x_pred = f(x) (n,)
     ok = kf.update(t, sensor, kind, z, hx, H, R,          # z, hx (m,); H (m, n); R (m, m)
                    angles=(0,), gate=0.9999)              # -> True if the update was applied
+    n_ok = kf.update_blocks(t, z, hx, H, R, blocks)       # stacked measurements, each gated
+                                                          # and logged on its own; blocks are
+                                                          # (sensor, kind, start, stop, angles,
+                                                          #  gate) -> number accepted
     kf.x, kf.P                                            # current mean and covariance
 
 * ``predict`` propagates the covariance P <- F P F^T + Q and the mean to ``x_pred`` (the EKF's
@@ -157,61 +161,117 @@ class KalmanCore:
         angles (their innovation is wrapped). ``gate`` is the chi-square acceptance probability
         (None disables the gate). Returns True when the update was applied."""
         z = np.asarray(z, dtype=float).reshape(-1)
-        hx = np.asarray(hx, dtype=float).reshape(-1)
         m = z.shape[0]
-        H = np.asarray(H, dtype=float).reshape(m, self.n)
-        R = np.asarray(R, dtype=float).reshape(m, m)
+        return self.update_blocks(
+            t, z, np.asarray(hx, dtype=float).reshape(m),
+            np.asarray(H, dtype=float).reshape(m, self.n),
+            np.asarray(R, dtype=float).reshape(m, m),
+            ((sensor, kind, 0, m, tuple(angles), gate),),
+        ) == 1
+
+    def update_blocks(
+        self,
+        t: float,
+        z: np.ndarray,
+        hx: np.ndarray,
+        H: np.ndarray,
+        R: np.ndarray,
+        blocks,
+    ) -> int:
+        """One stacked update from several measurements present at the same filter step.
+
+        This is seed 003's piecewise measurement model: ``z``, ``hx`` (m,), ``H`` (m, n) and
+        ``R`` (m, m) are assembled from whatever measurements are present. ``blocks`` splits the
+        rows by measurement: a sequence of ``(sensor, kind, start, stop, angles, gate)`` with rows
+        ``start:stop``, ``angles`` the angle components *relative to start*, ``gate`` the chi-square
+        probability or None. Each block is gated on its own (its NIS uses its diagonal block of
+        S = H P H^T + R, i.e. the same prior as the others) and logged as its own Innovation;
+        the accepted rows are then applied together in one Joseph-form update. Cross-covariance
+        between blocks in ``R`` is allowed but dropped with a rejected block. Returns the number
+        of accepted blocks. Arrays passed in may be modified."""
         y = z - hx
-        for i in angles:
-            y[i] = (y[i] + _PI) % _TWO_PI - _PI
-        if not (np.isfinite(y).all() and np.isfinite(R).all()):
-            self.log.rejected[(sensor, "nonfinite")] += 1
-            return False
-        P = self.P
-        PHt = P @ H.T
+        log = self.log
+        for _sensor, _kind, i0, _i1, angles, _gate in blocks:
+            for a in angles:
+                y[i0 + a] = (y[i0 + a] + _PI) % _TWO_PI - _PI
+        PHt = self.P @ H.T
         S = H @ PHt + R
-        try:
-            L = np.linalg.cholesky(S)
-        except np.linalg.LinAlgError:
-            self.log.rejected[(sensor, "singular")] += 1
-            self.log.note(t, f"{sensor}/{kind}: innovation covariance not positive definite")
-            return False
-        w = _solve_lower(L, y)
-        nis = float(w @ w)
-        self.last_nis = nis
-        if gate is not None and nis > chi2_threshold(gate, m):
+        keep: list[bool] = []
+        nis_list: list[float] = []
+        recovered = False
+        for sensor, kind, i0, i1, _angles, gate in blocks:
+            m = i1 - i0
+            yb = y[i0:i1]
+            if not (np.isfinite(yb).all() and np.isfinite(R[i0:i1, i0:i1]).all()):
+                log.rejected[(sensor, "nonfinite")] += 1
+                keep.append(False)
+                nis_list.append(math.nan)
+                continue
+            nis = _nis(yb, S[i0:i1, i0:i1])
+            if nis is None:
+                log.rejected[(sensor, "singular")] += 1
+                log.note(t, f"{sensor}/{kind}: innovation covariance not positive definite")
+                keep.append(False)
+                nis_list.append(math.nan)
+                continue
+            self.last_nis = nis
             streak = self._streak.get(sensor)
-            if streak is None:
-                streak = self._streak[sensor] = [0, t]
-            if streak[0] == 0:
-                streak[1] = t
-            streak[0] += 1
-            if streak[0] >= self.lockout_count and t - streak[1] >= self.lockout_time:
-                PHt, S = self._recover(t, sensor, kind, y, H, R, streak)
-                nis = float(y @ np.linalg.solve(S, y))
-            else:
-                self.log.rejected[(sensor, "gate")] += 1
-                self.log.innovations.append(
-                    Innovation(t, sensor, kind, y, S, nis, accepted=False)
+            if gate is not None and nis > chi2_threshold(gate, m):
+                if streak is None:
+                    streak = self._streak[sensor] = [0, t]
+                if streak[0] == 0:
+                    streak[1] = t
+                streak[0] += 1
+                if streak[0] >= self.lockout_count and t - streak[1] >= self.lockout_time:
+                    self._recover(t, sensor, kind, yb.copy(), H[i0:i1], R[i0:i1, i0:i1], streak)
+                    PHt = self.P @ H.T
+                    S = H @ PHt + R
+                    recovered = True
+                    keep.append(True)
+                    nis_list.append(nis)
+                    continue
+                log.rejected[(sensor, "gate")] += 1
+                log.innovations.append(
+                    Innovation(t, sensor, kind, yb.copy(), S[i0:i1, i0:i1].copy(), nis, False)
                 )
-                return False
-        else:
-            streak = self._streak.get(sensor)
+                keep.append(False)
+                nis_list.append(nis)
+                continue
             if streak is not None:
                 streak[0] = 0
-        # K = P H^T S^-1 through the Cholesky factor (S is symmetric PD)
-        K = _solve_right_spd(PHt, S)
-        self.x = self.x + K @ y
-        IKH = self._eye - K @ H
-        self.P = IKH @ self.P @ IKH.T + K @ R @ K.T
-        self._symmetrize()
+            keep.append(True)
+            nis_list.append(nis)
+        n_acc = sum(keep)
+        if n_acc == 0:
+            return 0
+        if n_acc < len(blocks):
+            rows = [i for b, k in zip(blocks, keep, strict=True) if k for i in range(b[2], b[3])]
+            Hk, Rk, yk = H[rows], R[np.ix_(rows, rows)], y[rows]
+            PHtk, Sk = PHt[:, rows], S[np.ix_(rows, rows)]
+        else:
+            Hk, Rk, yk, PHtk, Sk = H, R, y, PHt, S
+        # K = P H^T S^-1 (S symmetric PD: checked block-wise above; solve is exact here)
+        K = PHtk / Sk[0, 0] if Sk.shape[0] == 1 else np.linalg.solve(Sk, PHtk.T).T
+        self.x = self.x + K @ yk
+        IKH = self._eye - K @ Hk
+        P = IKH @ self.P @ IKH.T + K @ Rk @ K.T
+        P += P.T
+        P *= 0.5
+        self.P = P
         self._wrap_state()
-        self.log.innovations.append(Innovation(t, sensor, kind, y, S, nis, accepted=True))
-        return True
+        inns = log.innovations
+        for (sensor, kind, i0, i1, _a, _g), k, nis in zip(blocks, keep, nis_list, strict=True):
+            if k:
+                Sb = S[i0:i1, i0:i1].copy()
+                yb = y[i0:i1].copy()
+                if recovered:
+                    nis = _nis(yb, Sb)
+                inns.append(Innovation(t, sensor, kind, yb, Sb, nis, True))
+        return n_acc
 
     # ------------------------------------------------------------------ recovery
-    def _recover(self, t, sensor, kind, y, H, R, streak):
-        """Inflate P so that innovation ``y`` is ordinary (NIS = m); return the new P H^T, S."""
+    def _recover(self, t, sensor, kind, y, H, R, streak) -> None:
+        """Inflate P so that innovation ``y`` of block (H, R) is ordinary (NIS = m)."""
         m = y.shape[0]
         P = self.P
         A = H @ P @ H.T
@@ -220,7 +280,6 @@ class KalmanCore:
         def nis_at(alpha: float) -> float:
             return float(y @ np.linalg.solve(alpha * A + R, y))
 
-        alpha = 1.0
         if nis_at(MAX_INFLATION) <= target:
             # NIS(alpha) decreases monotonically in alpha: bisect on log(alpha)
             lo, hi = 0.0, math.log(MAX_INFLATION)
@@ -245,8 +304,27 @@ class KalmanCore:
             f"{t - streak[1]:.2f} s; covariance inflated x{alpha:.3g} and measurement accepted",
         )
         streak[0] = 0
-        PHt = self.P @ H.T
-        return PHt, H @ PHt + R
+
+
+def _nis(y: np.ndarray, S: np.ndarray) -> float | None:
+    """y^T S^-1 y for a small symmetric S; None if S is not positive definite."""
+    m = y.shape[0]
+    if m == 1:
+        s = float(S[0, 0])
+        return float(y[0]) ** 2 / s if s > 0.0 else None
+    if m == 2:
+        a, b, d = float(S[0, 0]), float(S[0, 1]), float(S[1, 1])
+        det = a * d - b * b
+        if not (a > 0.0 and det > 0.0):
+            return None
+        y0, y1 = float(y[0]), float(y[1])
+        return (d * y0 * y0 - 2.0 * b * y0 * y1 + a * y1 * y1) / det
+    try:
+        L = np.linalg.cholesky(S)
+    except np.linalg.LinAlgError:
+        return None
+    w = _solve_lower(L, y)
+    return float(w @ w)
 
 
 def _solve_lower(L: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -258,10 +336,3 @@ def _solve_lower(L: np.ndarray, b: np.ndarray) -> np.ndarray:
     for i in range(m):
         w[i] = (b[i] - L[i, :i] @ w[:i]) / L[i, i]
     return w
-
-
-def _solve_right_spd(B: np.ndarray, S: np.ndarray) -> np.ndarray:
-    """B S^-1 for symmetric positive-definite S, (n, m)."""
-    if S.shape[0] == 1:
-        return B / S[0, 0]
-    return np.linalg.solve(S, B.T).T

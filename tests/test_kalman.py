@@ -156,3 +156,47 @@ def test_isolated_outliers_do_not_trigger_recovery():
     assert not kf.recoveries
     assert kf.log.rejected[("s", "gate")] == 74
     assert abs(kf.x[0]) < 0.1
+
+
+def test_update_blocks_equals_sequential_updates_and_gates_per_block():
+    """Seed 003's stacked update of independent measurements equals applying them one after the
+    other; each block is gated on its own (the outlier block is dropped, the rest applied), and
+    each is logged with the NIS under the common prior."""
+    rng = np.random.default_rng(7)
+    n = 5
+    x0 = rng.normal(size=n)
+    P0 = _random_spd(rng, n)
+    H1 = rng.normal(size=(2, n))
+    H2 = rng.normal(size=(1, n))
+    R1 = _random_spd(rng, 2, 0.1)
+    R2 = np.array([[0.05]])
+    z1 = H1 @ x0 + rng.normal(size=2) * 0.3
+    z2 = H2 @ x0 + 0.2
+    seq = KalmanCore(x0, P0)
+    seq.update(0.0, "a", "ka", z1, H1 @ x0, H1, R1)
+    seq.update(0.0, "b", "kb", z2, H2 @ seq.x, H2, R2)
+    st = KalmanCore(x0, P0)
+    H = np.vstack([H1, H2])
+    R = np.zeros((3, 3))
+    R[:2, :2], R[2:, 2:] = R1, R2
+    z = np.concatenate([z1, z2])
+    blocks = (("a", "ka", 0, 2, (), 0.999), ("b", "kb", 2, 3, (), 0.999))
+    assert st.update_blocks(0.0, z, H @ x0, H, R, blocks) == 2
+    np.testing.assert_allclose(st.x, seq.x, atol=1e-10)
+    np.testing.assert_allclose(st.P, seq.P, atol=1e-10)
+    S1 = H1 @ P0 @ H1.T + R1
+    y1 = z1 - H1 @ x0
+    assert st.log.innovations[0].nis == pytest.approx(float(y1 @ np.linalg.solve(S1, y1)))
+    assert [i.sensor for i in st.log.innovations] == ["a", "b"]
+    # now block b is an outlier: only a is applied, b is logged as rejected
+    z_bad = z.copy()
+    z_bad[2] += 1e3
+    only_a = KalmanCore(x0, P0)
+    only_a.update(0.0, "a", "ka", z1, H1 @ x0, H1, R1)
+    st2 = KalmanCore(x0, P0)
+    assert st2.update_blocks(0.0, z_bad, H @ x0, H, R, blocks) == 1
+    np.testing.assert_allclose(st2.x, only_a.x, atol=1e-10)
+    np.testing.assert_allclose(st2.P, only_a.P, atol=1e-10)
+    assert st2.log.rejected[("b", "gate")] == 1
+    rejected = [i for i in st2.log.innovations if not i.accepted]
+    assert len(rejected) == 1 and rejected[0].sensor == "b"
