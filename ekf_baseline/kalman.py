@@ -32,8 +32,8 @@ A Mahalanobis gate can lock a filter out for good: while the robot stands still 
 collapses (every update shrinks it, the process noise of a stationary model is small), a later
 measurement that disagrees by more than the (now tiny) S allows is rejected, no update widens the
 covariance again, so every following measurement of that sensor is rejected too and the estimate
-drifts away on dead reckoning. ``KalmanCore`` detects this per sensor: when a sensor has had at
-least ``lockout_count`` consecutive gate rejections spanning at least ``lockout_time`` seconds
+drifts away on dead reckoning. ``KalmanCore`` detects this per (sensor, kind): when one measurement
+model of a sensor has had at least ``lockout_count`` consecutive gate rejections spanning at least ``lockout_time`` seconds
 (both conditions, so that a burst of outliers from a fast sensor, or a single bad GPS fix, does
 not trigger it), the filter is declared locked out for that sensor. Recovery inflates the whole
 covariance by the smallest factor alpha >= 1 for which the current innovation is statistically
@@ -106,8 +106,8 @@ class KalmanCore:
         self.state_angles = tuple(state_angles)
         self.lockout_count = int(lockout_count)
         self.lockout_time = float(lockout_time)
-        # sensor -> [consecutive gate rejections, time of the first of them]
-        self._streak: dict[str, list] = {}
+        # (sensor, kind) -> [consecutive gate rejections, time of the first of them]
+        self._streak: dict[tuple[str, str], list] = {}
         self.recoveries: list[tuple[float, str, float]] = []
         self.last_nis = float("nan")
         self._eye = np.eye(self.n)
@@ -215,10 +215,10 @@ class KalmanCore:
                 nis_list.append(math.nan)
                 continue
             self.last_nis = nis
-            streak = self._streak.get(sensor)
+            streak = self._streak.get((sensor, kind))
             if gate is not None and nis > chi2_threshold(gate, m):
                 if streak is None:
-                    streak = self._streak[sensor] = [0, t]
+                    streak = self._streak[(sensor, kind)] = [0, t]
                 if streak[0] == 0:
                     streak[1] = t
                 streak[0] += 1
