@@ -32,10 +32,11 @@ A Mahalanobis gate can lock a filter out for good: while the robot stands still 
 collapses (every update shrinks it, the process noise of a stationary model is small), a later
 measurement that disagrees by more than the (now tiny) S allows is rejected, no update widens the
 covariance again, so every following measurement of that sensor is rejected too and the estimate
-drifts away on dead reckoning. ``KalmanCore`` detects this per (sensor, kind): when one measurement
-model of a sensor has had at least ``lockout_count`` consecutive gate rejections spanning at least ``lockout_time`` seconds
-(both conditions, so that a burst of outliers from a fast sensor, or a single bad GPS fix, does
-not trigger it), the filter is declared locked out for that sensor. Recovery inflates the whole
+drifts away on dead reckoning. ``KalmanCore`` detects this per (sensor, kind): when one
+measurement model of a sensor has had at least ``lockout_count`` consecutive gate rejections
+spanning at least ``lockout_time`` seconds (both conditions, so that a burst of outliers from a
+fast sensor, or a single bad GPS fix, does not trigger it), the filter is declared locked out for
+that measurement. Recovery inflates the whole
 covariance by the smallest factor alpha >= 1 for which the current innovation is statistically
 ordinary (NIS = m, its chi-square mean) -- scaling P keeps its correlation structure, so the
 update moves the correlated states (e.g. heading with position) consistently -- and then applies
