@@ -73,11 +73,15 @@ def gps_factor(
     lx, ly = float(lever_arm[0]), float(lever_arm[1])
     dt = float(dt_fix)
     model = as_noise_model(noise, 2)
-    arr = np.array
     cos = math.cos
     sin = math.sin
+    # gtsam copies Jacobians and errors into Eigen objects, so these buffers are reused; flat
+    # memoryview writes (index 7 r + c) are ~3x cheaper than numpy item assignment.
     h = np.zeros((2, DIM))
     h[0, 0] = h[1, 1] = 1.0
+    mh = memoryview(h.reshape(-1))
+    e = np.zeros(2)
+    me = memoryview(e)
 
     if dt == 0.0:
         if lx == 0.0 and ly == 0.0:
@@ -86,7 +90,9 @@ def gps_factor(
                 s = values.atVector(key).tolist()
                 if H is not None:
                     H[0] = h
-                return arr((s[0] - zx, s[1] - zy))
+                me[0] = s[0] - zx
+                me[1] = s[1] - zy
+                return e
 
         else:
 
@@ -97,10 +103,12 @@ def gps_factor(
                 rx = c * lx - sn * ly
                 ry = sn * lx + c * ly
                 if H is not None:
-                    h[0, 2] = -ry
-                    h[1, 2] = rx
+                    mh[2] = -ry
+                    mh[9] = rx
                     H[0] = h
-                return arr((x + rx - zx, y + ry - zy))
+                me[0] = x + rx - zx
+                me[1] = y + ry - zy
+                return e
 
         return gtsam.CustomFactor(model, [key], error)
 
@@ -129,13 +137,15 @@ def gps_factor(
             dd = d * dt
             ws = dd * ds
             wc = dd * dc
-            h[0, 2] = -ey - ry
-            h[1, 2] = ex + rx
-            h[0, 3] = cp * vs - sp * vc
-            h[1, 3] = sp * vs + cp * vc
-            h[0, 4] = cp * ws - sp * wc - ry * dt
-            h[1, 4] = sp * ws + cp * wc + rx * dt
+            mh[2] = -ey - ry
+            mh[9] = ex + rx
+            mh[3] = cp * vs - sp * vc
+            mh[10] = sp * vs + cp * vc
+            mh[4] = cp * ws - sp * wc - ry * dt
+            mh[11] = sp * ws + cp * wc + rx * dt
             H[0] = h
-        return arr((x + ex + rx - zx, y + ey + ry - zy))
+        me[0] = x + ex + rx - zx
+        me[1] = y + ey + ry - zy
+        return e
 
     return gtsam.CustomFactor(model, [key], error)

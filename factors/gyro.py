@@ -30,13 +30,15 @@ def gyro_factor(key: int, w_meas: float, noise: NoiseLike) -> gtsam.CustomFactor
         noise: 1-D noise model or sigma (rad/s).
     """
     z = float(w_meas)
-    arr = np.array
-    h = _H  # gtsam copies Jacobians on assignment, so one shared constant is safe
+    h = _H  # gtsam copies Jacobians and errors into Eigen objects, so buffers can be reused
+    e = np.zeros(1)
+    me = memoryview(e)
 
     def error(this, values, H):
         s = values.atVector(key).tolist()
         if H is not None:
             H[0] = h
-        return arr((s[4] + s[5] - z,))
+        me[0] = s[4] + s[5] - z
+        return e
 
     return gtsam.CustomFactor(as_noise_model(noise, 1), [key], error)

@@ -41,7 +41,9 @@ def heading_factor(
         use_offset: model the sensor's heading offset ``hoff`` (default) or not.
     """
     z = float(heading_meas)
-    arr = np.array
+    # gtsam copies Jacobians and errors into Eigen objects, so buffers can be reused
+    e = np.zeros(1)
+    me = memoryview(e)
     if use_offset:
         h = _H_OFF
 
@@ -49,7 +51,8 @@ def heading_factor(
             s = values.atVector(key).tolist()
             if H is not None:
                 H[0] = h
-            return arr(((s[2] + s[6] - z + _PI) % _TWO_PI - _PI,))
+            me[0] = (s[2] + s[6] - z + _PI) % _TWO_PI - _PI
+            return e
 
     else:
         h = _H_NO_OFF
@@ -58,6 +61,7 @@ def heading_factor(
             s = values.atVector(key).tolist()
             if H is not None:
                 H[0] = h
-            return arr(((s[2] - z + _PI) % _TWO_PI - _PI,))
+            me[0] = (s[2] - z + _PI) % _TWO_PI - _PI
+            return e
 
     return gtsam.CustomFactor(as_noise_model(noise, 1), [key], error)

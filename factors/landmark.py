@@ -77,9 +77,14 @@ def _make(
     bearing = z_bearing is not None
     zb = float(z_bearing) if bearing else 0.0
     dim = 2 if bearing else 1
+    # gtsam copies Jacobians and errors into Eigen objects, so these buffers are reused; flat
+    # memoryview writes (index 7 r + c, 2 r + c) are ~3x cheaper than numpy item assignment.
     hs = np.zeros((dim, DIM))
     hl = np.zeros((dim, 2))
-    arr = np.array
+    ms = memoryview(hs.reshape(-1))
+    ml = memoryview(hl.reshape(-1))
+    e = np.zeros(dim)
+    me = memoryview(e)
     cos = math.cos
     sin = math.sin
     atan2 = math.atan2
@@ -106,26 +111,27 @@ def _make(
             # d(dx, dy)/d(x, y) = -I; d(dx, dy)/dpsi = -(-oy, ox)
             gr_x = dx / r
             gr_y = dy / r
-            hs[0, 0] = -gr_x
-            hs[0, 1] = -gr_y
-            hs[0, 2] = gr_x * oy - gr_y * ox
+            ms[0] = -gr_x
+            ms[1] = -gr_y
+            ms[2] = gr_x * oy - gr_y * ox
             if bearing:
                 gb_x = -dy / r2
                 gb_y = dx / r2
-                hs[1, 0] = -gb_x
-                hs[1, 1] = -gb_y
-                hs[1, 2] = gb_x * oy - gb_y * ox - 1.0
+                ms[7] = -gb_x
+                ms[8] = -gb_y
+                ms[9] = gb_x * oy - gb_y * ox - 1.0
             H[0] = hs
             if slam:
-                hl[0, 0] = gr_x
-                hl[0, 1] = gr_y
+                ml[0] = gr_x
+                ml[1] = gr_y
                 if bearing:
-                    hl[1, 0] = gb_x
-                    hl[1, 1] = gb_y
+                    ml[2] = gb_x
+                    ml[3] = gb_y
                 H[1] = hl
+        me[0] = r - zr
         if bearing:
-            return arr((r - zr, (atan2(dy, dx) - psi - zb + _PI) % _TWO_PI - _PI))
-        return arr((r - zr,))
+            me[1] = (atan2(dy, dx) - psi - zb + _PI) % _TWO_PI - _PI
+        return e
 
     return gtsam.CustomFactor(as_noise_model(noise, dim), keys, error)
 

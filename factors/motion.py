@@ -146,14 +146,18 @@ def motion_factor(
     dt = float(dt)
     cos = math.cos
     sin = math.sin
-    arr = np.array
     coeffs = twist_coeffs
-    # Jacobian buffers owned by this factor: gtsam copies them on assignment to H, so only the
-    # entries that depend on the state are rewritten per call.
+    # Buffers owned by this factor: gtsam copies the returned error and the Jacobians into Eigen
+    # objects, so they can be rewritten in place on every call. Element writes go through flat
+    # memoryviews, ~3x cheaper than numpy item assignment.
     hi = -np.eye(7)
     hj = np.eye(7)
     hi[2, 4] = -ai * dt
     hj[2, 4] = -aj * dt
+    mi = memoryview(hi.reshape(-1))
+    mj = memoryview(hj.reshape(-1))
+    e = np.zeros(7)
+    me = memoryview(e)
     ki = key_i
     kj = key_j
 
@@ -170,41 +174,39 @@ def motion_factor(
         u0 = cp * dx + sp * dy
         u1 = cp * dy - sp * dx
         if H is not None:
-            # d(dx_b, dy_b)/d(vm, wm) = dt (S, C), d dt (S', C'); chain rule through a_i, a_j
+            # d(dx_b, dy_b)/d(vm, wm) = dt (S, C), d dt (S', C'); chain rule through a_i, a_j.
+            # Flat index 7 r + c is row r, column c.
             ts = dt * s
             tc = dt * c
             dds = d * dt * ds
             ddc = d * dt * dc
-            hi[0, 0] = -cp
-            hi[0, 1] = -sp
-            hi[0, 2] = u1
-            hi[0, 3] = -ai * ts
-            hi[0, 4] = -ai * dds
-            hi[1, 0] = sp
-            hi[1, 1] = -cp
-            hi[1, 2] = -u0
-            hi[1, 3] = -ai * tc
-            hi[1, 4] = -ai * ddc
-            hj[0, 0] = cp
-            hj[0, 1] = sp
-            hj[0, 3] = -aj * ts
-            hj[0, 4] = -aj * dds
-            hj[1, 0] = -sp
-            hj[1, 1] = cp
-            hj[1, 3] = -aj * tc
-            hj[1, 4] = -aj * ddc
+            mi[0] = -cp
+            mi[1] = -sp
+            mi[2] = u1
+            mi[3] = -ai * ts
+            mi[4] = -ai * dds
+            mi[7] = sp
+            mi[8] = -cp
+            mi[9] = -u0
+            mi[10] = -ai * tc
+            mi[11] = -ai * ddc
+            mj[0] = cp
+            mj[1] = sp
+            mj[3] = -aj * ts
+            mj[4] = -aj * dds
+            mj[7] = -sp
+            mj[8] = cp
+            mj[10] = -aj * tc
+            mj[11] = -aj * ddc
             H[0] = hi
             H[1] = hj
-        return arr(
-            (
-                u0 - d * s,
-                u1 - d * c,
-                (pj - pi - a + _PI) % _TWO_PI - _PI,
-                vj - vi,
-                wj - wi,
-                bj - bi,
-                (hoj - hoi + _PI) % _TWO_PI - _PI,
-            )
-        )
+        me[0] = u0 - d * s
+        me[1] = u1 - d * c
+        me[2] = (pj - pi - a + _PI) % _TWO_PI - _PI
+        me[3] = vj - vi
+        me[4] = wj - wi
+        me[5] = bj - bi
+        me[6] = (hoj - hoi + _PI) % _TWO_PI - _PI
+        return e
 
     return gtsam.CustomFactor(model, [key_i, key_j], error)

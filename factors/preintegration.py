@@ -251,7 +251,8 @@ def preintegrated_factor(
     zw = pim.last_w_gyro
     cos = math.cos
     sin = math.sin
-    arr = np.array
+    # Buffers owned by this factor, rewritten in place (gtsam copies them into Eigen objects);
+    # flat memoryview writes are ~3x cheaper than numpy item assignment.
     hi = np.zeros((7, 7))
     hi[2, 2] = -1.0
     hi[0, 5] = -jx
@@ -261,6 +262,10 @@ def preintegrated_factor(
     hi[6, 6] = -1.0
     hj = np.eye(7)
     hj[4, 5] = 1.0
+    mi = memoryview(hi.reshape(-1))
+    mj = memoryview(hj.reshape(-1))
+    e = np.zeros(7)
+    me = memoryview(e)
     ki = key_i
     kj = key_j
 
@@ -275,28 +280,25 @@ def preintegrated_factor(
         u0 = cp * dx + sp * dy
         u1 = cp * dy - sp * dx
         if H is not None:
-            hi[0, 0] = -cp
-            hi[0, 1] = -sp
-            hi[0, 2] = u1
-            hi[1, 0] = sp
-            hi[1, 1] = -cp
-            hi[1, 2] = -u0
-            hj[0, 0] = cp
-            hj[0, 1] = sp
-            hj[1, 0] = -sp
-            hj[1, 1] = cp
+            mi[0] = -cp  # flat index 7 r + c is row r, column c
+            mi[1] = -sp
+            mi[2] = u1
+            mi[7] = sp
+            mi[8] = -cp
+            mi[9] = -u0
+            mj[0] = cp
+            mj[1] = sp
+            mj[7] = -sp
+            mj[8] = cp
             H[0] = hi
             H[1] = hj
-        return arr(
-            (
-                u0 - ddx - jx * db,
-                u1 - ddy - jy * db,
-                (pj - pi - ddp - jp * db + _PI) % _TWO_PI - _PI,
-                vj - zv,
-                wj + bj - zw,
-                bj - bi,
-                (hoj - hoi + _PI) % _TWO_PI - _PI,
-            )
-        )
+        me[0] = u0 - ddx - jx * db
+        me[1] = u1 - ddy - jy * db
+        me[2] = (pj - pi - ddp - jp * db + _PI) % _TWO_PI - _PI
+        me[3] = vj - zv
+        me[4] = wj + bj - zw
+        me[5] = bj - bi
+        me[6] = (hoj - hoi + _PI) % _TWO_PI - _PI
+        return e
 
     return gtsam.CustomFactor(noise, [key_i, key_j], error)

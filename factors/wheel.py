@@ -50,13 +50,15 @@ def body_twist(w_left: float, w_right: float, radius: float, track: float) -> tu
 def wheel_speed_factor(key: int, v_meas: float, noise: NoiseLike) -> gtsam.CustomFactor:
     """Forward-speed factor, error v - z (m/s). ``noise``: 1-D model or sigma (m/s)."""
     z = float(v_meas)
-    arr = np.array
-    h = _H_SPEED  # gtsam copies Jacobians on assignment, so a shared constant is safe
+    h = _H_SPEED  # gtsam copies Jacobians and errors into Eigen objects: buffers can be reused
+    e = np.zeros(1)
+    me = memoryview(e)
 
     def error(this, values, H):
         if H is not None:
             H[0] = h
-        return arr((values.atVector(key).tolist()[3] - z,))
+        me[0] = values.atVector(key).tolist()[3] - z
+        return e
 
     return gtsam.CustomFactor(as_noise_model(noise, 1), [key], error)
 
@@ -85,7 +87,8 @@ def wheel_rates_factor(
     h[0, V] = h[1, V] = 1.0 / r
     h[0, W] = -half_l / r
     h[1, W] = half_l / r
-    arr = np.array
+    e = np.zeros(2)
+    me = memoryview(e)
 
     def error(this, values, H):
         s = values.atVector(key).tolist()
@@ -93,7 +96,9 @@ def wheel_rates_factor(
         a = half_l * s[4]
         if H is not None:
             H[0] = h
-        return arr(((v - a) / r - zl, (v + a) / r - zr))
+        me[0] = (v - a) / r - zl
+        me[1] = (v + a) / r - zr
+        return e
 
     return gtsam.CustomFactor(as_noise_model(noise, 2), [key], error)
 
@@ -117,9 +122,13 @@ def wheel_rates_calib_factor(
     half_l0 = 0.5 * float(track)
     zl = float(w_left)
     zr = float(w_right)
+    # gtsam copies Jacobians and errors into Eigen objects, so these buffers are reused
     hs = np.zeros((2, DIM))
     hc = np.zeros((2, 2))
-    arr = np.array
+    ms = memoryview(hs.reshape(-1))
+    mc = memoryview(hc.reshape(-1))
+    e = np.zeros(2)
+    me = memoryview(e)
 
     def error(this, values, H):
         s = values.atVector(key).tolist()
@@ -131,17 +140,20 @@ def wheel_rates_calib_factor(
         pl = (v - hl * w) * inv_r
         pr = (v + hl * w) * inv_r
         if H is not None:
-            hs[0, 3] = hs[1, 3] = inv_r
-            hs[0, 4] = -hl * inv_r
-            hs[1, 4] = hl * inv_r
+            # flat index: 7 r + c (state), 2 r + c (calibration)
+            ms[3] = ms[10] = inv_r
+            ms[4] = -hl * inv_r
+            ms[11] = hl * inv_r
             # d/dr_scale of (.)/(r0 sr) is -(.)/sr; d/dL_scale is -+ half_l0 w / (r0 sr)
             g = half_l0 * w * inv_r
-            hc[0, 0] = -pl / sr
-            hc[1, 0] = -pr / sr
-            hc[0, 1] = -g
-            hc[1, 1] = g
+            mc[0] = -pl / sr
+            mc[2] = -pr / sr
+            mc[1] = -g
+            mc[3] = g
             H[0] = hs
             H[1] = hc
-        return arr((pl - zl, pr - zr))
+        me[0] = pl - zl
+        me[1] = pr - zr
+        return e
 
     return gtsam.CustomFactor(as_noise_model(noise, 2), [key, calib_key], error)

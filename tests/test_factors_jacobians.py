@@ -139,16 +139,22 @@ def test_check_detects_a_wrong_jacobian():
     assert max_jacobian_error(f, v) > 5e-4
 
 
-def test_jacobian_buffers_are_copied_by_gtsam():
-    """Factors reuse their Jacobian buffers; earlier linearizations must not change."""
-    f = motion_factor(KI, KJ, 0.5, unit(7))
-    v1 = make_values(0.3, 0.2, 1)
-    v2 = make_values(-0.7, 2.0, 2)
-    a1 = f.linearize(v1).jacobian()[0].copy()
+@pytest.mark.parametrize("name", ["motion_mean", "preintegrated", "gps_lever_dt", "heading"])
+def test_buffers_are_copied_by_gtsam(name):
+    """Factors reuse their Jacobian and error buffers; earlier results must not change."""
+    f = FACTORS[name]()
+    v1 = _subset(make_values(0.3, 0.2, 1), f.keys())
+    v2 = _subset(make_values(-0.7, 2.0, 2), f.keys())
     lin1 = f.linearize(v1)
-    f.linearize(v2)
+    a1, b1 = (x.copy() for x in lin1.jacobian())
+    e1 = f.unwhitenedError(v1)
+    e1c = e1.copy()
+    lin2 = f.linearize(v2)
+    f.unwhitenedError(v2)
     np.testing.assert_array_equal(lin1.jacobian()[0], a1)
-    assert not np.allclose(f.linearize(v2).jacobian()[0], a1)
+    np.testing.assert_array_equal(lin1.jacobian()[1], b1)
+    np.testing.assert_array_equal(e1, e1c)
+    assert not np.allclose(lin2.jacobian()[1], b1)
 
 
 def test_whitening_is_undone_for_diagonal_noise():
