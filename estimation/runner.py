@@ -169,12 +169,16 @@ def run(stream: Stream, estimators: dict[str, Estimator], *, output_rate: float 
                 errors[i] = f"{type(exc).__name__} in finish: {exc}"
         totals[i] += clock() - t_a
         upd = np.array(timings[i])
-        runs[name] = EstimatorRun(name, Trajectory.from_estimates(outputs[i]), upd, totals[i],
+        # An offline estimator (the batch) gives its whole trajectory only at the end.
+        final = getattr(est, "final_estimates", None)
+        track = final() if callable(final) else outputs[i]
+        runs[name] = EstimatorRun(name, Trajectory.from_estimates(track), upd, totals[i],
                                   est.log, errors[i])
         lagged = getattr(est, "lagged_estimates", None)
-        if callable(lagged):
+        lagged = lagged() if callable(lagged) else None
+        if lagged is not None:
             runs[f"{name}_lagged"] = EstimatorRun(
-                f"{name}_lagged", Trajectory.from_estimates(lagged()), upd, totals[i], est.log,
+                f"{name}_lagged", Trajectory.from_estimates(lagged), upd, totals[i], est.log,
                 errors[i])
     if progress is not None:
         progress(1.0)

@@ -1,0 +1,528 @@
+"""ISAM2 fixed-lag smoother over keyframes (gtsam.IncrementalFixedLagSmoother).
+
+Design (from shared/notes/gtsam-smoother-design-study.md, measured there as the fastest that keeps
+velocity and biases as states): one 7-vector key per keyframe, ``[x, y, psi, v, w, bg, hoff]``
+(``factors.state``), and few factors per keyframe:
+
+* wheel speed and yaw rate (gyro, else odometry or wheel speeds) between keyframes are folded
+  into one preintegrated factor (``factors.preintegration``) with first-order gyro-bias
+  correction; its last sample ties the keyframe's v and w;
+* a GPS fix is a GPS factor (lever arm; motion-compensated when it does not fall on the keyframe;
+  robust noise from the config);
+* the absolute heading sample nearest each keyframe is one heading factor (with the offset state
+  when ``heading_offset: estimate``);
+* a landmark sighting is a range/bearing (or range-only) factor to the known map position.
+
+Keyframes: ``smoother.keyframe: gps`` puts one at each GPS fix or landmark sighting (at most one
+per ``MIN_KEYFRAME_DT``), and one after ``1/keyframe_rate`` s without any (so dead reckoning
+keeps the window populated); ``rate`` puts them at ``keyframe_rate`` Hz and attaches absolute
+measurements to the newest keyframe, motion-compensated.
+
+Outputs: the filtered estimate (newest keyframe composed with the partial preintegration, at
+update time) from ``estimate()``; the lagged estimate of each keyframe as it leaves the window
+(``lagged_estimates()``); both with marginal covariance. ``BatchSmoother`` keeps every factor and
+solves the whole run with Levenberg-Marquardt at the end (the offline reference).
+
+Heading without an initial pose: GPS course. Measurements are buffered, dead-reckoned from heading
+0, and once the GPS track has moved ``INIT_DISTANCE`` m the rotation that aligns dead reckoning
+with it gives the initial heading; the buffer is then replayed.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from estimation.config import Config, SensorConfig
+from estimation.estimator import Estimate, Estimator, Innovation, wrap_angle
+from estimation.measurements import (
+    GpsFix,
+    GyroYawRate,
+    Heading,
+    LandmarkObservation,
+    WheelOdometry,
+    WheelSpeeds,
+)
+from factors.gps import gps_factor
+from factors.heading import heading_factor
+from factors.landmark import range_bearing_factor, range_factor
+from factors.preintegration import WheelGyroPreintegration, preintegrated_factor
+from factors.state import BG, HOFF, NAMES, PSI
+
+MIN_KEYFRAME_DT = 0.1  # s: closer absolute measurements share a keyframe
+INIT_DISTANCE = 5.0  # m of GPS travel before the heading is taken from the GPS course
+STALE_HEADING = 0.5  # s: a heading sample older than this at a keyframe is not used
+
+
+@dataclass
+class SmootherNoise:
+    """Process noise (densities) and initial uncertainty, shared by every run.
+
+    Not tuned per bag or per estimator: the same values serve simulated and real data."""
+
+    # m/sqrt(s) (longitudinal, lateral), rad/sqrt(s): slip and model error between keyframes
+    pose_noise: tuple[float, float, float] = (0.02, 0.01, 0.002)
+    gyro_bias_rw: float = 1e-4  # rad/s/sqrt(s)
+    heading_offset_rw: float = 2e-3  # rad/sqrt(s): the Husky's IMU offset drifts ~45 deg/400 s
+    fixed_rw: float = 1e-6  # random walk of a calibration state that is not estimated
+    init_pos_sigma: float = 1e-3  # m, when the initial pose is given
+    init_psi_sigma: float = 0.2  # rad, from GPS course
+    init_v_sigma: float = 1.0  # m/s
+    init_w_sigma: float = 0.5  # rad/s
+    init_bg_sigma: float = 0.02  # rad/s when estimated
+    init_hoff_sigma: float = 0.3  # rad when estimated (initialised from the first sample)
+    fixed_sigma: float = 1e-4  # prior on a calibration state that is not estimated
+
+
+def _threshold_map() -> gtsam.ISAM2ThresholdMap:
+    tm = gtsam.ISAM2ThresholdMap()
+    tm.insert(("x", np.array([0.1, 0.1, 0.02, 0.2, 0.02, 0.002, 0.02])))
+    return tm
+
+
+def isam2_params() -> gtsam.ISAM2Params:
+    """ISAM2 settings from the design study: per-component relinearisation thresholds (the
+    scalar mixes m, rad and m/s), skip 1, Cholesky, cached linear factors, and
+    findUnusedFactorSlots, which a hand-made ISAM2Params leaves off (factor slots would grow)."""
+    p = gtsam.ISAM2Params()
+    p.setRelinearizeThreshold(_threshold_map())
+    p.relinearizeSkip = 1
+    p.cacheLinearizedFactors = True
+    p.findUnusedFactorSlots = True
+    p.evaluateNonlinearError = False
+    p.enableDetailedResults = False
+    p.setFactorization("CHOLESKY")
+    return p
+
+
+def _robust(cfg: Config, sigmas: tuple[float, ...]) -> gtsam.noiseModel.Base:
+    base = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sigmas, float))
+    kind, k = cfg.smoother.robust, cfg.smoother.robust_k
+    if kind == "huber":
+        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(k), base)
+    if kind == "cauchy":
+        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(k), base)
+    return base
+
+
+def _compose(state, delta, pim_cov, pose_cov):
+    """Pose of (state's pose) (+) delta and its 3x3 world-frame covariance."""
+    x, y, psi = state[0], state[1], state[2]
+    dx, dy, dp = delta
+    c, s = math.cos(psi), math.sin(psi)
+    pose = (x + c * dx - s * dy, y + s * dx + c * dy, psi + dp)
+    j = np.array([[1.0, 0.0, -s * dx - c * dy], [0.0, 1.0, c * dx - s * dy], [0.0, 0.0, 1.0]])
+    r = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    cov = j @ pose_cov @ j.T + r @ pim_cov @ r.T
+    return pose, 0.5 * (cov + cov.T)
+
+
+class FixedLagSmoother(Estimator):
+    """The ISAM2 fixed-lag smoother (see the module docstring)."""
+
+    name = "smoother"
+    keep_all = False  # BatchSmoother keeps every factor for a final whole-run solve
+
+    def __init__(self, cfg: Config, *, initial_pose=None, landmarks=None, lag: float | None = None,
+                 noise: SmootherNoise | None = None) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.lag = float(lag if lag is not None else cfg.smoother.lag)
+        self.noise = noise or SmootherNoise()
+        self.landmarks = dict(landmarks or {})
+        self.given_pose = initial_pose
+        self.sensors: dict[str, SensorConfig] = {s.name: s for s in cfg.sensors}
+        imus = [s for s in cfg.of_kind("imu") if "yaw_rate" in s.use]
+        self.gyro_names = {s.name for s in imus}
+        self.est_bias = any(s.gyro_bias == "estimate" for s in imus)
+        self.fixed_bias = next((float(s.gyro_bias) for s in imus if s.gyro_bias != "estimate"),
+                               0.0)
+        heads = [s for s in cfg.of_kind("imu") if "yaw" in s.use]
+        self.est_hoff = any(s.heading_offset == "estimate" for s in heads)
+        self.has_gps = bool(cfg.of_kind("gps"))
+        self.keyframe_rate = cfg.smoother.keyframe_rate
+        self.kf_policy = cfg.smoother.keyframe
+        self._lagged: list[Estimate] = []
+        self._reset_state()
+
+    # --- set-up -----------------------------------------------------------------------------
+    def _reset_state(self) -> None:
+        self.smoother = gtsam.IncrementalFixedLagSmoother(self.lag, isam2_params())
+        self.pim = WheelGyroPreintegration(bg_lin=self.fixed_bias, keep_samples=False)
+        self.initialised = False
+        self.buffer: list = []  # measurements held until the heading is known
+        self.k = -1  # index of the newest keyframe
+        self.kf_t: dict[int, float] = {}  # keyframes in the window
+        self.all_kf_t: dict[int, float] = {}  # every keyframe of the run
+        self.kf_state: np.ndarray | None = None  # newest keyframe's estimate
+        self.kf_cov: np.ndarray | None = None  # its 3x3 pose marginal (world frame)
+        self.last_t: float | None = None
+        self.v = self.w = None  # held samples (zero-order hold)
+        self.v_var = self.w_var = 0.0
+        self.w_from_gyro = False
+        self.heading: Heading | None = None
+        self.pending_graph = gtsam.NonlinearFactorGraph()
+        self.pending_values = gtsam.Values()
+        self.pending_stamps: dict[int, float] = {}
+        if self.keep_all:
+            self.all_graph = gtsam.NonlinearFactorGraph()
+            self.all_values = gtsam.Values()
+
+    @staticmethod
+    def key(k: int) -> int:
+        return gtsam.symbol("x", k)
+
+    def _init_state(self, t: float, pose: tuple[float, float, float], pos_sigma: float,
+                    psi_sigma: float) -> None:
+        n = self.noise
+        x0 = np.array([pose[0], pose[1], pose[2], self.v or 0.0, 0.0, self.fixed_bias, 0.0])
+        if self.est_hoff and self.heading is not None:
+            x0[HOFF] = wrap_angle(self.heading.yaw - pose[2])
+        sig = [pos_sigma, pos_sigma, psi_sigma, n.init_v_sigma, n.init_w_sigma,
+               n.init_bg_sigma if self.est_bias else n.fixed_sigma,
+               n.init_hoff_sigma if self.est_hoff else n.fixed_sigma]
+        self.k += 1  # keys stay unique across re-initialisations (the batch keeps them all)
+        key = self.key(self.k)
+        prior = gtsam.PriorFactorVector(key, x0, gtsam.noiseModel.Diagonal.Sigmas(np.array(sig)))
+        self._add(prior)
+        self.pending_values.insert(key, x0)
+        self.pending_stamps[key] = t
+        self.kf_t[self.k] = t
+        self.all_kf_t[self.k] = t
+        self.kf_state = x0
+        self.kf_cov = np.diag(np.square(sig[:3]))
+        self.pim.reset(x0[BG])
+        self.initialised = True
+        self.last_t = t
+        self._flush()
+
+    def _add(self, f) -> None:
+        self.pending_graph.add(f)
+
+    # --- measurement handling ---------------------------------------------------------------
+    def process(self, m) -> None:
+        if not self.initialised:
+            self._process_uninitialised(m)
+            return
+        self._advance(m.t)
+        if isinstance(m, WheelOdometry):
+            if m.v is not None:
+                self.v, self.v_var = m.v, m.v_var
+            if m.yaw_rate is not None and not self.gyro_names:
+                self.w, self.w_var = m.yaw_rate, m.yaw_rate_var
+        elif isinstance(m, WheelSpeeds):
+            self._wheel_speeds(m)
+        elif isinstance(m, GyroYawRate):
+            if m.sensor in self.gyro_names:
+                self.w, self.w_var, self.w_from_gyro = m.yaw_rate, m.var, True
+        elif isinstance(m, Heading):
+            self.heading = m
+        elif isinstance(m, (GpsFix, LandmarkObservation)):
+            self._absolute(m)
+            return
+        if m.t - self.kf_t[self.k] >= 1.0 / self.keyframe_rate and self.pim.n > 0:
+            self._new_keyframe(m.t)
+            self._flush()
+
+    def _wheel_speeds(self, m: WheelSpeeds) -> None:
+        r, L = self.cfg.robot.wheel_radius, self.cfg.robot.track_width
+        self.v = 0.5 * r * (m.left + m.right)
+        self.v_var = 0.25 * r * r * (m.left_var + m.right_var)
+        if not self.gyro_names:
+            self.w = r * (m.right - m.left) / L
+            self.w_var = r * r * (m.left_var + m.right_var) / (L * L)
+
+    def _advance(self, t: float) -> None:
+        """Integrate the held (v, w) from the last sample time up to ``t``."""
+        dt = t - self.last_t
+        if dt <= 0.0:
+            return
+        if self.v is not None and self.w is not None:
+            w = self.w if self.w_from_gyro else self.w + self.pim.bg_lin
+            # Odometry yaw rate carries no gyro bias: add bg_lin so that the preintegration's
+            # (w - bg_lin) recovers it unchanged.
+            self.pim.integrate(dt, self.v, w, self.v_var, self.w_var)
+        self.last_t = t
+
+    def _absolute(self, m) -> None:
+        t_kf = self.kf_t[self.k]
+        if m.t - t_kf >= (MIN_KEYFRAME_DT if self.kf_policy == "gps" else 1e9) and self.pim.n > 0:
+            self._new_keyframe(m.t)
+        k = self.k
+        # A delayed measurement goes to the keyframe nearest in time inside the window.
+        if m.t < self.kf_t[k] - MIN_KEYFRAME_DT:
+            window = [j for j, tj in self.kf_t.items() if tj >= self.kf_t[k] - self.lag]
+            k = min(window, key=lambda j: abs(self.kf_t[j] - m.t))
+            if abs(self.kf_t[k] - m.t) > 1.0:
+                self.log.rejected[(m.sensor, "older than the smoother lag")] += 1
+                self.log.note(m.t, f"{m.sensor}: measurement older than the lag dropped")
+                return
+        dt = m.t - self.kf_t[k]
+        if isinstance(m, GpsFix):
+            self._gps(m, k, dt)
+        else:
+            self._landmark(m, k)
+        self._flush()
+
+    def _gps(self, m: GpsFix, k: int, dt: float) -> None:
+        s = self.sensors[m.sensor]
+        sig = (math.sqrt(m.cov[0, 0]), math.sqrt(m.cov[1, 1]))
+        e, n = m.enu[0], m.enu[1]
+        if k == self.k and self.kf_state is not None:
+            self._record_gps_innovation(m, e, n, s.lever_arm, dt)
+        self._add(gps_factor(self.key(k), e, n, _robust(self.cfg, sig), s.lever_arm, dt))
+
+    def _record_gps_innovation(self, m, e, n, lever, dt) -> None:
+        """Innovation of the fix against the prediction before it is fused (for NIS)."""
+        x, y, psi = self.kf_state[0], self.kf_state[1], self.kf_state[2]
+        c, s = math.cos(psi), math.sin(psi)
+        pred = (x + c * lever[0] - s * lever[1], y + s * lever[0] + c * lever[1])
+        h = np.array([[1.0, 0.0, -s * lever[0] - c * lever[1]],
+                      [0.0, 1.0, c * lever[0] - s * lever[1]]])
+        r = np.diag([m.cov[0, 0], m.cov[1, 1]])
+        cov = h @ self.kf_cov @ h.T + r
+        res = np.array([e - pred[0] - self.kf_state[3] * c * dt, n - pred[1]
+                        - self.kf_state[3] * s * dt])
+        nis = float(res @ np.linalg.solve(cov, res))
+        self.log.innovations.append(Innovation(m.t, m.sensor, "gps", res, cov, nis, True))
+
+    def _landmark(self, m: LandmarkObservation, k: int) -> None:
+        lm = self.landmarks.get(m.landmark_id)
+        if lm is None:
+            self.log.rejected[(m.sensor, "landmark not in the map")] += 1
+            return
+        if m.has_bearing:
+            sig = (math.sqrt(m.range_var), math.sqrt(m.bearing_var))
+            f = range_bearing_factor(self.key(k), lm, m.range, m.bearing, _robust(self.cfg, sig))
+        else:
+            f = range_factor(self.key(k), lm, m.range, _robust(self.cfg, (math.sqrt(m.range_var),)))
+        self._add(f)
+
+    def _new_keyframe(self, t: float) -> None:
+        i, j = self.k, self.k + 1
+        ki, kj = self.key(i), self.key(j)
+        n = self.noise
+        self._add(preintegrated_factor(
+            ki, kj, self.pim,
+            gyro_bias_rw=n.gyro_bias_rw if self.est_bias else n.fixed_rw,
+            heading_offset_rw=n.heading_offset_rw if self.est_hoff else n.fixed_rw,
+            pose_noise=n.pose_noise))
+        guess = self.pim.predict(self.kf_state)
+        pose, cov = _compose(self.kf_state, self.pim.delta_at(self.kf_state[BG]),
+                             self.pim.covariance, self.kf_cov)
+        self.pending_values.insert(kj, guess)
+        self.pending_stamps[kj] = t
+        self.kf_t[j] = t
+        self.all_kf_t[j] = t
+        self.k = j
+        self.kf_state, self.kf_cov = guess, cov
+        h = self.heading
+        if h is not None and abs(h.t - t) <= STALE_HEADING:
+            s = self.sensors[h.sensor]
+            z = h.yaw + guess[4] * (t - h.t)  # carried to the keyframe time by the yaw rate
+            if s.heading_offset == "estimate":
+                f = heading_factor(kj, z, math.sqrt(h.var), use_offset=True)
+                pred = guess[PSI] + guess[HOFF]
+            else:
+                z -= float(s.heading_offset)
+                f = heading_factor(kj, z, math.sqrt(h.var), use_offset=False)
+                pred = guess[PSI]
+            res = np.array([wrap_angle(z - pred)])
+            scov = np.array([[cov[2, 2] + h.var]])
+            self.log.innovations.append(Innovation(
+                h.t, h.sensor, "heading", res, scov, float(res[0] ** 2 / scov[0, 0]), True))
+            self._add(f)
+            self.heading = None
+        self.pim.reset(guess[BG])
+
+    def _flush(self) -> None:
+        """Send the pending factors and values to the smoother; capture what leaves the window."""
+        if self.pending_graph.size() == 0 and self.pending_values.size() == 0:
+            return
+        if self.keep_all:
+            self.all_graph.push_back(self.pending_graph)
+            self.all_values.insert(self.pending_values)
+        t_max = max(self.pending_stamps.values(), default=self.kf_t[self.k])
+        self._capture_leaving(t_max - self.lag)
+        try:
+            self.smoother.update(self.pending_graph, self.pending_values, self.pending_stamps)
+        except RuntimeError as e:
+            self._recover(str(e))
+            return
+        finally:
+            self.pending_graph = gtsam.NonlinearFactorGraph()
+            self.pending_values = gtsam.Values()
+            self.pending_stamps = {}
+        key = self.key(self.k)
+        self.kf_state = self.smoother.calculateEstimateVector(key)
+        self.kf_cov = self.smoother.marginalCovariance(key)[:3, :3]
+
+    def _capture_leaving(self, t_cut: float) -> None:
+        leaving = [j for j, tj in self.kf_t.items() if tj < t_cut and j != self.k]
+        for j in sorted(leaving):
+            key = self.key(j)
+            try:
+                x = self.smoother.calculateEstimateVector(key)
+                cov = self.smoother.marginalCovariance(key)
+            except (RuntimeError, IndexError, ValueError):
+                del self.kf_t[j]
+                continue
+            self._lagged.append(Estimate(
+                self.kf_t[j], (float(x[0]), float(x[1]), wrap_angle(float(x[2]))),
+                cov[:3, :3].copy(), x.copy(), cov.copy(), NAMES))
+            del self.kf_t[j]
+
+    def _recover(self, reason: str) -> None:
+        """gtsam failed (indeterminate system, ...): restart from the last good estimate."""
+        t = self.kf_t[self.k]
+        self.log.note(t, f"smoother re-initialised after gtsam error: {reason.splitlines()[0]}")
+        self.log.rejected[("smoother", "gtsam error, re-initialised")] += 1
+        state, cov = self.kf_state, self.kf_cov
+        heading, v, w, vv, wv, gyro = (self.heading, self.v, self.w, self.v_var, self.w_var,
+                                       self.w_from_gyro)
+        self.smoother = gtsam.IncrementalFixedLagSmoother(self.lag, isam2_params())
+        self.kf_t = {}
+        self.heading, self.v, self.w, self.v_var, self.w_var = heading, v, w, vv, wv
+        self.w_from_gyro = gyro
+        self.pending_graph = gtsam.NonlinearFactorGraph()
+        self.pending_values = gtsam.Values()
+        self.pending_stamps = {}
+        sig = np.sqrt(np.maximum(np.diag(cov), 1e-6)) * 2.0
+        self._init_state(t, (state[0], state[1], state[2]), float(max(sig[0], sig[1])),
+                         float(sig[2]))
+
+    # --- initialisation from GPS course -------------------------------------------------------
+    def _process_uninitialised(self, m) -> None:
+        if isinstance(m, Heading):
+            self.heading = m
+        if self.given_pose is not None:
+            self._start(m.t, tuple(self.given_pose), self.noise.init_pos_sigma, 1e-3)
+            self.process(m)
+            return
+        if not self.has_gps:
+            psi = 0.0
+            if isinstance(m, Heading) and not self.est_hoff:
+                s = self.sensors[m.sensor]
+                psi = wrap_angle(m.yaw - float(s.heading_offset))
+            self._start(m.t, (0.0, 0.0, psi), self.noise.init_pos_sigma, 0.05 if psi else 1e-3)
+            self.process(m)
+            return
+        self.buffer.append(m)
+        fixes = [b for b in self.buffer if isinstance(b, GpsFix)]
+        if len(fixes) < 2:
+            return
+        f0, f1 = fixes[0], fixes[-1]
+        de, dn = f1.enu[0] - f0.enu[0], f1.enu[1] - f0.enu[1]
+        if math.hypot(de, dn) < INIT_DISTANCE:
+            return
+        psi0 = self._course_heading(f0, f1)
+        if psi0 is None:
+            return
+        buffered = [b for b in self.buffer if b.t >= f0.t]
+        self.buffer = []
+        sig = max(math.sqrt(f0.cov[0, 0]), math.sqrt(f0.cov[1, 1]))
+        self._start(f0.t, (f0.enu[0], f0.enu[1], psi0), sig, self.noise.init_psi_sigma)
+        for b in buffered:
+            self.process(b)
+
+    def _start(self, t: float, pose, pos_sigma: float, psi_sigma: float) -> None:
+        self.last_t = t
+        self._init_state(t, pose, pos_sigma, psi_sigma)
+
+    def _course_heading(self, f0: GpsFix, f1: GpsFix) -> float | None:
+        """Initial heading at f0: the GPS displacement's direction minus the direction of the
+        dead-reckoned displacement (odometry from heading 0) over the same interval."""
+        x = y = psi = 0.0
+        v = w = None
+        last = None
+        for b in self.buffer:
+            if b.t < f0.t:
+                if isinstance(b, WheelOdometry):
+                    v = b.v if b.v is not None else v
+                    w = b.yaw_rate if b.yaw_rate is not None else w
+                continue
+            if b.t > f1.t:
+                break
+            if last is not None and v is not None and w is not None:
+                dt = b.t - last
+                x += v * math.cos(psi) * dt
+                y += v * math.sin(psi) * dt
+                psi += w * dt
+            last = b.t
+            if isinstance(b, WheelOdometry):
+                v = b.v if b.v is not None else v
+                w = b.yaw_rate if b.yaw_rate is not None else w
+            elif isinstance(b, GyroYawRate) and b.sensor in self.gyro_names:
+                w = b.yaw_rate - self.fixed_bias
+            elif isinstance(b, WheelSpeeds):
+                r, L = self.cfg.robot.wheel_radius, self.cfg.robot.track_width
+                v, w = 0.5 * r * (b.left + b.right), r * (b.right - b.left) / L
+        if math.hypot(x, y) < 0.5 * INIT_DISTANCE:
+            return None  # odometry disagrees with GPS about having moved: wait
+        de, dn = f1.enu[0] - f0.enu[0], f1.enu[1] - f0.enu[1]
+        return wrap_angle(math.atan2(dn, de) - math.atan2(y, x))
+
+    # --- outputs ----------------------------------------------------------------------------
+    def estimate(self) -> Estimate | None:
+        if not self.initialised or self.kf_state is None:
+            return None
+        st = self.kf_state
+        pose, cov = _compose(st, self.pim.delta_at(st[BG]), self.pim.covariance, self.kf_cov)
+        return Estimate(self.last_t, (pose[0], pose[1], wrap_angle(pose[2])), cov, st.copy(),
+                        None, NAMES)
+
+    def finish(self) -> None:
+        if not self.initialised:
+            self.log.note(self.buffer[-1].t if self.buffer else 0.0,
+                          "never initialised: the GPS track never moved far enough")
+            return
+        if self.pim.n > 0:
+            self._new_keyframe(self.last_t)
+            self._flush()
+        self._capture_leaving(math.inf)
+
+    def lagged_estimates(self) -> list[Estimate]:
+        return self._lagged
+
+
+class BatchSmoother(FixedLagSmoother):
+    """Every factor of the run, solved at the end with Levenberg-Marquardt: the offline optimum
+    the fixed-lag outputs are compared with. Its trajectory is at the keyframes."""
+
+    name = "batch"
+    keep_all = True
+
+    def __init__(self, cfg: Config, **kw) -> None:
+        super().__init__(cfg, **kw)
+        self._final: list[Estimate] = []
+
+    def finish(self) -> None:
+        super().finish()
+        if not self.initialised:
+            return
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(20)
+        params.setRelativeErrorTol(1e-6)
+        try:
+            result = gtsam.LevenbergMarquardtOptimizer(self.all_graph, self.all_values,
+                                                       params).optimize()
+            marg = gtsam.Marginals(self.all_graph, result)
+        except RuntimeError as e:
+            self.log.note(self.last_t, f"batch optimisation failed: {e}")
+            return
+        times = {int(self.key(j)): t for j, t in self.all_kf_t.items()}
+        for key, t in sorted(times.items(), key=lambda kv: kv[1]):
+            x = result.atVector(key)
+            cov = marg.marginalCovariance(key)
+            self._final.append(Estimate(t, (float(x[0]), float(x[1]), wrap_angle(float(x[2]))),
+                                        cov[:3, :3].copy(), x.copy(), cov.copy(), NAMES))
+
+    def lagged_estimates(self):  # the batch has no lagged output of its own
+        return None
+
+    def final_estimates(self) -> list[Estimate]:
+        return self._final
+
