@@ -347,6 +347,7 @@ class LandmarkData:
     true_bearing: np.ndarray
     ids: list[str]  # landmark id strings
     positions: np.ndarray  # (m, 2) m, local frame
+    scan_t: np.ndarray  # s, every scan, including those that saw nothing
 
 
 @dataclass
@@ -466,11 +467,15 @@ def _periodic_curvature(lengths: list[float], kappas: list[float], smooth: float
     heading change of every segment). Returns (s grid m, kappa 1/m, period m)."""
     period = float(sum(lengths))
     n = int(round(period / ds))
-    s = np.arange(n) * (period / n)
-    edges = np.cumsum([0.0] + lengths)
-    idx = np.clip(np.searchsorted(edges, s, side="right") - 1, 0, len(kappas) - 1)
-    kappa = np.asarray(kappas, dtype=float)[idx]
-    m = max(3, int(round(smooth / (period / n))) | 1)
+    h = period / n
+    # Cell averages of kappa from the exact heading function H(s) = integral of kappa (piecewise
+    # linear), placed at cell centres: the cells then sum to exactly the segments' heading
+    # changes, which sampling kappa at grid points would miss by up to h kappa per segment.
+    seg_edges = np.cumsum([0.0] + list(lengths))
+    heading = np.concatenate([[0.0], np.cumsum(np.multiply(lengths, kappas))])
+    kappa = np.diff(np.interp(np.arange(n + 1) * h, seg_edges, heading)) / h
+    s = (np.arange(n) + 0.5) * h
+    m = max(3, int(round(smooth / h)) | 1)
     win = np.hanning(m + 2)[1:-1]
     win /= win.sum()
     half = m // 2
@@ -690,7 +695,7 @@ def _sim_landmarks(sc: Scenario, truth: Truth, rng: np.random.Generator,
     return LandmarkData(t=t[scan], index=lm, range=rng_true[scan, lm] + n_r[scan, lm],
                         bearing=wrap(brg_true[scan, lm] + n_b[scan, lm]),
                         true_range=rng_true[scan, lm], true_bearing=brg_true[scan, lm],
-                        ids=ids, positions=pos)
+                        ids=ids, positions=pos, scan_t=t)
 
 
 def _sim_ground_truth(sc: Scenario, truth: Truth) -> GroundTruthData:
