@@ -1,0 +1,611 @@
+"""Seed 003's unicycle EKF (x, y, psi, v, psi_dot) with GPS, wheel speed and gyro, corrected and
+extended for real data.
+
+State (world = local ENU frame; the same names and conventions as ``factors.state``)::
+
+    index  name  unit   meaning
+    0      x     m      position east
+    1      y     m      position north
+    2      psi   rad    heading of body x, CCW from east, kept wrapped to [-pi, pi)
+    3      v     m/s    forward speed along body x
+    4      w     rad/s  yaw rate, CCW positive
+    5..    bg    rad/s  gyro bias (gyro reading = w + bg), one per IMU with gyro_bias: estimate
+    ..     hoff  rad    heading offset (heading reading = wrap(psi + hoff)), one per IMU with
+                        heading_offset: estimate
+
+Motion model. Over a step of dt seconds the twist (v, w) is held constant and the pose moves by the
+exact SE(2) constant-twist step ``factors.kinematics.se2_step`` -- the same equations as the
+smoother's motion factor. ``motion="euler"`` selects the seed's first-order step
+x += dt v cos(psi), y += dt v sin(psi), psi += dt w instead (its error is in docs/errata.md).
+v, w, the gyro biases and heading offsets are random walks driven by continuous white noise
+(:class:`ProcessNoise`, spectral densities, not per-bag tuning); the discrete Q is the exact
+integral int_0^dt Phi(s) G Qc G^T Phi(s)^T ds of the model linearised at the start of the step
+(closed form below), plus white body-frame velocity noise (slip) on the position and white
+yaw-rate noise on the heading.
+
+Measurements (seed 003's piecewise model: H, R and h are assembled from the measurements
+present at a step; each measurement is gated on its own with its sensor's chi-square gate):
+
+    GpsFix          z = enu[:2]          h = (x, y) + R(psi) lever_arm      R = fix.cov[:2, :2]
+    WheelOdometry   z = v                h = v                              R = v_var
+                    z = yaw_rate         h = w                              R = yaw_rate_var
+    WheelSpeeds     z = (w_l, w_r)       h = ((v - w L/2)/r, (v + w L/2)/r) R = diag(vars)
+    GyroYawRate     z = yaw_rate         h = w + bg (estimated or configured bias)
+    Heading         z = yaw              h = wrap(psi + hoff) (estimated or configured offset),
+                                         innovation wrapped
+
+ForwardAccel, landmarks and ground truth are not used (ground truth only for
+``initial_pose: ground_truth``).
+
+Stepping. ``cfg.ekf.rate == 'event'``: predict to each message's time and update with it.
+A rate in Hz: messages are buffered and the filter steps at t0 + k / rate, predicting to the step
+time and applying every buffered message in one stacked update (seed 003: "the filter sample time
+should be the same as the fastest sensor"); a message is applied up to 1/rate after its stamp.
+
+Initialisation (constructor ``initial_pose`` first, then the config's ``initial_pose``):
+
+* a known pose: the filter starts there at the first measurement.
+* ``initial_pose: ground_truth``: at the first GroundTruthPose.
+* otherwise position from the first GPS fix (or the origin without GPS), heading from the first
+  absolute Heading of a sensor whose offset is a configured number, else:
+* with GPS: the filter dead-reckons in a provisional frame (heading 0) from the first
+  measurement, and once the GPS fixes have spread over ``init_distance`` metres it rotates and
+  translates its state onto the GPS track by the least-squares 2-D rotation (Kabsch) between the
+  dead-reckoned positions and the fixes -- GPS course, but robust to turns during the first
+  metres. Without odometry it uses the course between the first and the last fix. ``estimate()``
+  is None until then.
+* without GPS: heading 0 (the local frame is the start pose).
+An estimated heading offset is initialised from the first Heading after the heading is known,
+hoff = wrap(z - psi), with the covariance that implies (var psi + R, correlated with psi).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ekf_baseline.kalman import DEFAULT_LOCKOUT_COUNT, DEFAULT_LOCKOUT_TIME, KalmanCore
+from estimation.config import DEFAULT_GATE, Config
+from estimation.estimator import Estimate, Estimator
+from estimation.measurements import (
+    GpsFix,
+    GroundTruthPose,
+    GyroYawRate,
+    Heading,
+    WheelOdometry,
+    WheelSpeeds,
+)
+from factors.kinematics import se2_step_jac
+
+__all__ = ["ProcessNoise", "UnicycleEkf", "unicycle_process_noise", "euler_step_jac"]
+
+_PI = math.pi
+_TWO_PI = 2.0 * math.pi
+_cos = math.cos
+_sin = math.sin
+_USED = (GpsFix, WheelOdometry, WheelSpeeds, GyroYawRate, Heading)
+
+
+@dataclass(frozen=True)
+class ProcessNoise:
+    """Continuous-time process noise, as sigma densities (square roots of spectral densities).
+
+    A white-noise density q drives a random walk whose sigma after dt seconds is q sqrt(dt).
+
+    acc: m/s^2/sqrt(Hz) -- white forward acceleration driving v. 1.0: a ground robot changes its
+        speed by ~1 m/s within ~1 s.
+    yaw_acc: rad/s^2/sqrt(Hz) -- white yaw acceleration driving w; same reasoning, ~1 rad/s in 1 s.
+    pos_long, pos_lat: m/sqrt(s) -- white body-frame velocity error on the position (wheel slip,
+        the twist not being constant within a step); lateral smaller for a non-holonomic base.
+    heading: rad/sqrt(s) -- white yaw-rate error on the heading.
+    gyro_bias: rad/s/sqrt(s) -- gyro-bias random walk (MEMS bias instability order).
+    heading_offset: rad/sqrt(s) -- random walk of a heading sensor's offset: a magnetometer
+        disturbed by the robot and its surroundings wanders by tens of degrees over minutes
+        (0.02 rad/sqrt(s) is 20 degrees 1-sigma over 5 minutes).
+    """
+
+    acc: float = 1.0
+    yaw_acc: float = 1.0
+    pos_long: float = 0.05
+    pos_lat: float = 0.02
+    heading: float = 0.01
+    gyro_bias: float = 1e-4
+    heading_offset: float = 0.02
+
+
+def unicycle_process_noise(
+    psi: float, v: float, dt: float, noise: ProcessNoise
+) -> tuple[float, ...]:
+    """Upper triangle of the 5x5 discrete Q of (x, y, psi, v, w) for a ``dt``-second step.
+
+    Exact integral of the continuous model linearised at (psi, v): x' = v cos psi,
+    y' = v sin psi, psi' = w, v' = n_a, w' = n_alpha, giving Phi(s) columns for the noise inputs
+    (s cos psi, s sin psi, 0, 1, 0) and (-v sin psi s^2/2, v cos psi s^2/2, s, 0, 1). Slip and
+    heading white noise add R(psi) diag(pos_long^2, pos_lat^2) R(psi)^T dt and heading^2 dt.
+    Returned in row-major order: Qxx, Qxy, Qxpsi, Qxv, Qxw, Qyy, Qypsi, Qyv, Qyw, Qpp, Qpv, Qpw,
+    Qvv, Qvw, Qww (units: products of the state units)."""
+    qa = noise.acc * noise.acc
+    qal = noise.yaw_acc * noise.yaw_acc
+    pl2 = noise.pos_long * noise.pos_long
+    pt2 = noise.pos_lat * noise.pos_lat
+    c = _cos(psi)
+    s = _sin(psi)
+    dt2 = dt * dt
+    dt3 = dt2 * dt
+    a3 = qa * dt3 / 3.0
+    b5 = qal * v * v * dt3 * dt2 / 20.0
+    cc, ss, cs = c * c, s * s, c * s
+    b4 = qal * v * dt2 * dt2 / 8.0
+    b3 = qal * v * dt3 / 6.0
+    a2 = qa * dt2 / 2.0
+    return (
+        a3 * cc + b5 * ss + (pl2 * cc + pt2 * ss) * dt,  # xx
+        (a3 - b5 + (pl2 - pt2) * dt) * cs,  # xy
+        -b4 * s,  # x psi
+        a2 * c,  # x v
+        -b3 * s,  # x w
+        a3 * ss + b5 * cc + (pl2 * ss + pt2 * cc) * dt,  # yy
+        b4 * c,  # y psi
+        a2 * s,  # y v
+        b3 * c,  # y w
+        qal * dt3 / 3.0 + noise.heading * noise.heading * dt,  # psi psi
+        0.0,  # psi v
+        qal * dt2 / 2.0,  # psi w
+        qa * dt,  # v v
+        0.0,  # v w
+        qal * dt,  # w w
+    )
+
+
+def euler_step_jac(
+    x: float, y: float, psi: float, v: float, w: float, dt: float
+) -> tuple[float, float, float, tuple[tuple[float, ...], ...]]:
+    """Seed 003's explicit Euler step and its Jacobian (rows x, y, psi; columns x, y, psi, v, w).
+
+    Same return layout as ``factors.kinematics.se2_step_jac``. Position error per step is
+    O(v w dt^2) (the chord is taken along the start heading instead of the mean heading)."""
+    c = _cos(psi)
+    s = _sin(psi)
+    d = v * dt
+    j = (
+        (1.0, 0.0, -d * s, dt * c, 0.0),
+        (0.0, 1.0, d * c, dt * s, 0.0),
+        (0.0, 0.0, 1.0, 0.0, dt),
+    )
+    return x + d * c, y + d * s, psi + w * dt, j
+
+
+class _Sensor:
+    """Per-sensor settings looked up once: gate, GPS lever arm, bias/offset handling."""
+
+    __slots__ = ("gate", "lever", "bias_idx", "bias", "hoff_idx", "hoff", "uses")
+
+    def __init__(self, gate=DEFAULT_GATE, lever=(0.0, 0.0), uses=None):
+        self.gate = gate
+        self.lever = lever
+        self.bias_idx: int | None = None
+        self.bias = 0.0  # rad/s, configured gyro bias when not estimated
+        self.hoff_idx: int | None = None
+        self.hoff = 0.0  # rad, configured heading offset when not estimated
+        self.uses = uses  # None: everything the message carries
+
+
+class UnicycleEkf(Estimator):
+    """Unicycle EKF (module docstring). Convention for every filter in this package:
+    ``UnicycleEkf(cfg, *, initial_pose=None)``, then ``process(m)`` per measurement in time order,
+    ``estimate()`` at any time, ``finish()`` after the last one.
+
+    Options: ``noise`` (:class:`ProcessNoise`), ``motion`` ('exact' SE(2) step or the seed's
+    'euler'), ``init_distance`` (m of GPS spread before the GPS heading alignment),
+    ``initial_std`` (position m, heading rad) for a known initial pose, ``v_std0`` (m/s),
+    ``w_std0`` (rad/s), ``bias_std0`` (rad/s) prior sigmas, ``lockout_count`` /
+    ``lockout_time`` for the gate lock-out recovery of :class:`ekf_baseline.kalman.KalmanCore`.
+    """
+
+    name = "ekf_unicycle"
+
+    def __init__(
+        self,
+        cfg: Config,
+        *,
+        initial_pose: tuple[float, float, float] | None = None,
+        noise: ProcessNoise | None = None,
+        motion: str = "exact",
+        init_distance: float = 5.0,
+        initial_std: tuple[float, float] = (0.01, 0.005),
+        v_std0: float = 1.0,
+        w_std0: float = 0.5,
+        bias_std0: float = 0.02,
+        lockout_count: int = DEFAULT_LOCKOUT_COUNT,
+        lockout_time: float = DEFAULT_LOCKOUT_TIME,
+    ) -> None:
+        super().__init__()
+        if motion not in ("exact", "euler"):
+            raise ValueError(f"motion must be 'exact' or 'euler', got {motion!r}")
+        self.cfg = cfg
+        self.noise = noise or ProcessNoise()
+        self._step_jac = se2_step_jac if motion == "exact" else euler_step_jac
+        self.motion = motion
+        self.rate = None if cfg.ekf.rate == "event" else float(cfg.ekf.rate)
+        self.init_distance = float(init_distance)
+        self.initial_std = initial_std
+        self.v_std0, self.w_std0, self.bias_std0 = v_std0, w_std0, bias_std0
+        self._lockout = (lockout_count, lockout_time)
+
+        names = ["x", "y", "psi", "v", "w"]
+        self._sensors: dict[str, _Sensor] = {}
+        imus_b = [s for s in cfg.of_kind("imu")
+                  if s.gyro_bias == "estimate" and "yaw_rate" in s.use]
+        imus_h = [s for s in cfg.of_kind("imu")
+                  if s.heading_offset == "estimate" and "yaw" in s.use]
+        for s in cfg.sensors:
+            info = _Sensor(gate=s.gate, lever=tuple(s.lever_arm), uses=set(s.use))
+            if s.kind == "imu":
+                if isinstance(s.gyro_bias, float):
+                    info.bias = s.gyro_bias
+                if isinstance(s.heading_offset, float):
+                    info.hoff = s.heading_offset
+            self._sensors[s.name] = info
+        for s in imus_b:
+            self._sensors[s.name].bias_idx = len(names)
+            names.append("bg" if len(imus_b) == 1 else f"bg:{s.name}")
+        for s in imus_h:
+            self._sensors[s.name].hoff_idx = len(names)
+            names.append("hoff" if len(imus_h) == 1 else f"hoff:{s.name}")
+        self.state_names = tuple(names)
+        self.n = len(names)
+        self._hoff_states = tuple(i for i, nm in enumerate(names) if nm.startswith("hoff"))
+        self._bias_states = tuple(i for i, nm in enumerate(names) if nm.startswith("bg"))
+        self._hoff_ready: set[int] = set()
+
+        # initialisation mode
+        if initial_pose is None and isinstance(cfg.initial_pose, tuple):
+            initial_pose = cfg.initial_pose
+        self._initial_pose = initial_pose
+        has_gps = bool(cfg.of_kind("gps"))
+        known_heading = any(
+            "yaw" in s.use and isinstance(s.heading_offset, float) for s in cfg.of_kind("imu")
+        )
+        if initial_pose is not None:
+            self._mode = "pose"
+        elif cfg.initial_pose == "ground_truth":
+            self._mode = "ground_truth"
+        elif known_heading:
+            self._mode = "heading"  # position from the first fix (or origin), heading measured
+        elif has_gps:
+            self._mode = "align"  # dead-reckon, then align onto the GPS track
+        else:
+            self._mode = "origin"
+        self._has_gps = has_gps
+        self._pending_pos: tuple[float, float, np.ndarray] | None = None
+        self._pending_head: tuple[float, float] | None = None
+        self._aligned = self._mode != "align"
+        self._pairs: list[tuple[float, float, float, float, float]] = []  # dr x, y, gps e, n, var
+
+        self.kf: KalmanCore | None = None
+        self.t: float | None = None  # time of the state
+        self._buf: list = []
+        self._t0 = 0.0
+        self._k = 0
+        self._F = np.eye(self.n)
+        self._Q = np.zeros((self.n, self.n))
+        self._eye_n = np.eye(self.n)
+        self._iu = np.triu_indices(5)
+        self._il = (self._iu[1], self._iu[0])
+        r = cfg.robot
+        self._wheel = (r.wheel_radius, r.track_width)
+
+    # ------------------------------------------------------------------ public
+    def process(self, m) -> None:
+        """Consume one measurement (time order). Unused types are ignored."""
+        if isinstance(m, GroundTruthPose):
+            if self._mode == "ground_truth" and self.kf is None:
+                self._start(m.t, m.x, m.y, m.yaw, np.diag(np.square(
+                    (self.initial_std[0], self.initial_std[0]))), self.initial_std[1] ** 2)
+            return
+        if not isinstance(m, _USED):
+            return
+        if self.kf is None and not self._try_start(m):
+            return
+        if self.rate is None:
+            self._predict_to(m.t)
+            self._apply((m,))
+            return
+        # fixed rate: step at t0 + k / rate, applying what arrived since the previous step
+        step = self._t0 + self._k / self.rate
+        if m.t > step:
+            if self._buf:
+                self._step(step)
+            # the next step is the first grid time at or after m.t
+            self._k = max(self._k + 1, math.ceil((m.t - self._t0) * self.rate - 1e-9))
+        self._buf.append(m)
+
+    def finish(self) -> None:
+        """Apply what is still buffered (rate mode) at the time of the last message."""
+        if self._buf:
+            self._step(max(self._buf[-1].t, self.t if self.t is not None else -math.inf))
+
+    def estimate(self) -> Estimate | None:
+        """Current estimate (at the time of the last predict/update), None before the heading is
+        known (see the module docstring)."""
+        if self.kf is None or not self._aligned:
+            return None
+        x = self.kf.x
+        P = self.kf.P
+        return Estimate(
+            t=self.t,
+            pose=(float(x[0]), float(x[1]), float(x[2])),
+            pose_cov=P[:3, :3].copy(),
+            state=x.copy(),
+            state_cov=P.copy(),
+            state_names=self.state_names,
+        )
+
+    # ------------------------------------------------------------------ initialisation
+    def _try_start(self, m) -> bool:
+        """Handle a measurement before the filter exists; True if the filter now runs and ``m``
+        should be processed normally."""
+        mode = self._mode
+        if mode == "pose":
+            x, y, psi = self._initial_pose
+            s0, s2 = self.initial_std
+            self._start(m.t, x, y, psi, np.diag((s0 * s0, s0 * s0)), s2 * s2)
+            return True
+        if mode in ("origin", "align"):
+            self._start(m.t, 0.0, 0.0, 0.0, np.diag((1e-6, 1e-6)), 1e-6)
+            return True
+        if mode == "heading":
+            if isinstance(m, Heading):
+                info = self._sensor(m.sensor)
+                if info.hoff_idx is None and (info.uses is None or "yaw" in info.uses):
+                    self._pending_head = (m.yaw - info.hoff, m.var)
+            elif isinstance(m, GpsFix) and m.enu is not None and m.status >= 0:
+                self._pending_pos = (m.enu[0], m.enu[1], np.asarray(m.cov)[:2, :2])
+            if self._pending_head is not None and (self._pending_pos or not self._has_gps):
+                px, py, pc = self._pending_pos or (0.0, 0.0, np.diag((1e-6, 1e-6)))
+                self._start(m.t, px, py, self._pending_head[0], pc, self._pending_head[1])
+                # the message that completed the initialisation is not fused a second time
+                return False
+            self.log.rejected[(m.sensor, "before_init")] += 1
+            return False
+        # ground_truth: wait for the first reference pose
+        self.log.rejected[(m.sensor, "before_init")] += 1
+        return False
+
+    def _start(self, t: float, x: float, y: float, psi: float, pos_cov, psi_var: float) -> None:
+        n = self.n
+        x0 = np.zeros(n)
+        x0[0], x0[1], x0[2] = x, y, psi
+        P0 = np.zeros((n, n))
+        P0[:2, :2] = pos_cov
+        P0[2, 2] = psi_var
+        P0[3, 3] = self.v_std0**2
+        P0[4, 4] = self.w_std0**2
+        for i in self._bias_states:
+            P0[i, i] = self.bias_std0**2
+        for i in self._hoff_states:
+            P0[i, i] = _PI * _PI / 3.0  # uniform on the circle until initialised from a Heading
+        self.kf = KalmanCore(x0, P0, self.log, state_angles=(2, *self._hoff_states),
+                             lockout_count=self._lockout[0], lockout_time=self._lockout[1])
+        self.t = t
+        self._t0 = t
+        self._k = 0
+        self.log.note(t, f"{self.name}: started ({self._mode}) at ({x:.2f}, {y:.2f}, {psi:.3f})")
+
+    def _sensor(self, name: str) -> _Sensor:
+        info = self._sensors.get(name)
+        if info is None:  # a sensor not in the config (synthetic streams): defaults
+            info = self._sensors[name] = _Sensor()
+        return info
+
+    def _align(self, t: float) -> None:
+        """Rotate/translate the dead-reckoned state onto the GPS track (least squares)."""
+        pairs = np.array(self._pairs)
+        a = pairs[:, 0:2] - pairs[:, 0:2].mean(axis=0)
+        b = pairs[:, 2:4] - pairs[:, 2:4].mean(axis=0)
+        saa = float((a * a).sum())
+        sbb = float((b * b).sum())
+        kf = self.kf
+        if saa > 0.25 * sbb:
+            th = math.atan2(float((a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]).sum()),
+                            float((a * b).sum()))
+            c, s = _cos(th), _sin(th)
+            res = b - a @ np.array([[c, s], [-s, c]])
+            r2 = float((res * res).sum(axis=1).mean())
+            # var(theta) ~ sigma^2 / sum |a_i|^2 for independent position errors of sigma (floored:
+            # GPS noise is at least decimetres), plus a floor for DR heading drift over the track
+            th_var = max(r2, 0.25**2) / saa + 0.03**2
+            dx = kf.x[0] - pairs[:, 0].mean()
+            dy = kf.x[1] - pairs[:, 1].mean()
+            ex = pairs[:, 2].mean() + c * dx - s * dy
+            ny = pairs[:, 3].mean() + s * dx + c * dy
+            psi = kf.x[2] + th
+            how = f"Kabsch rotation {math.degrees(th):.1f} deg, residual {math.sqrt(r2):.2f} m"
+        else:  # no usable dead reckoning: course from the first to the last fix
+            th = math.atan2(pairs[-1, 3] - pairs[0, 3], pairs[-1, 2] - pairs[0, 2])
+            c, s = _cos(th - kf.x[2]), _sin(th - kf.x[2])
+            th_var = 2.0 * pairs[-1, 4] / max(sbb / len(pairs), 1e-9) + 0.03**2
+            ex, ny, psi = pairs[-1, 2], pairs[-1, 3], th
+            how = "GPS course (no dead reckoning)"
+        # rotate the cross-covariances of the pose with the other states, reset the pose block
+        n = self.n
+        T = np.eye(n)
+        T[0, 0], T[0, 1], T[1, 0], T[1, 1] = c, -s, s, c
+        P = T @ kf.P @ T.T
+        P[:3, :] = 0.0
+        P[:, :3] = 0.0
+        P[0, 0] = P[1, 1] = pairs[-1, 4]
+        P[2, 2] = th_var
+        x = kf.x.copy()
+        x[0], x[1], x[2] = ex, ny, (psi + _PI) % _TWO_PI - _PI
+        kf.x = x
+        kf.P = P
+        self._aligned = True
+        self._pairs = []
+        self.log.note(t, f"{self.name}: heading initialised from GPS ({how}); "
+                         f"sigma {math.degrees(math.sqrt(th_var)):.1f} deg")
+
+    # ------------------------------------------------------------------ filter steps
+    def _step(self, ts: float) -> None:
+        self._predict_to(ts)
+        buf = self._buf
+        self._buf = []
+        self._apply(buf)
+
+    def _predict_to(self, t: float) -> None:
+        dt = t - self.t
+        if dt <= 0.0:
+            return  # same stamp (or a tiny reorder): apply at the current state time
+        kf = self.kf
+        xs = kf.x.tolist()
+        x1, y1, p1, J = self._step_jac(xs[0], xs[1], xs[2], xs[3], xs[4], dt)
+        F = self._F
+        F[0, 2:5] = J[0][2:]
+        F[1, 2:5] = J[1][2:]
+        F[2, 4] = dt
+        q = unicycle_process_noise(xs[2], xs[3], dt, self.noise)
+        Q = self._Q
+        Q[self._iu] = q
+        Q[self._il] = q
+        nz = self.noise
+        qb = nz.gyro_bias * nz.gyro_bias * dt
+        for i in self._bias_states:
+            Q[i, i] = qb
+        qh = nz.heading_offset * nz.heading_offset * dt
+        for i in self._hoff_states:
+            Q[i, i] = qh
+        xs[0], xs[1], xs[2] = x1, y1, p1
+        kf.predict(F, Q, np.array(xs))
+        self.t = t
+
+    def _apply(self, ms) -> None:
+        """Assemble the piecewise measurement model of the messages ``ms`` and update."""
+        kf = self.kf
+        x = kf.x.tolist()  # python floats: cheaper than numpy scalars in the scalar code below
+        n = self.n
+        zs: list[float] = []
+        hs: list[float] = []
+        hrows: list[tuple] = []  # (row, col, value)
+        rblocks: list[tuple] = []  # (start, block as nested tuples)
+        blocks: list[tuple] = []
+        t = self.t
+        for m in ms:
+            info = self._sensor(m.sensor)
+            i0 = len(zs)
+            if isinstance(m, GyroYawRate):
+                if info.uses is not None and "yaw_rate" not in info.uses:
+                    continue
+                bi = info.bias_idx
+                zs.append(m.yaw_rate)
+                if bi is None:
+                    hs.append(x[4] + info.bias)
+                else:
+                    hs.append(x[4] + x[bi])
+                    hrows.append((i0, bi, 1.0))
+                hrows.append((i0, 4, 1.0))
+                rblocks.append((i0, ((m.var,),)))
+                blocks.append((m.sensor, "gyro", i0, i0 + 1, (), info.gate))
+            elif isinstance(m, WheelOdometry):
+                if m.v is not None:
+                    zs.append(m.v)
+                    hs.append(x[3])
+                    hrows.append((i0, 3, 1.0))
+                    rblocks.append((i0, ((m.v_var,),)))
+                    blocks.append((m.sensor, "v", i0, i0 + 1, (), info.gate))
+                    i0 += 1
+                if m.yaw_rate is not None:
+                    zs.append(m.yaw_rate)
+                    hs.append(x[4])
+                    hrows.append((i0, 4, 1.0))
+                    rblocks.append((i0, ((m.yaw_rate_var,),)))
+                    blocks.append((m.sensor, "yaw_rate", i0, i0 + 1, (), info.gate))
+            elif isinstance(m, GpsFix):
+                if m.enu is None or m.status < 0:
+                    self.log.rejected[(m.sensor, "no_fix" if m.status < 0 else "no_enu")] += 1
+                    continue
+                if not self._aligned:
+                    self._pairs.append((x[0], x[1], m.enu[0], m.enu[1],
+                                        0.5 * float(m.cov[0][0] + m.cov[1][1])))
+                    e0, n0 = self._pairs[0][2], self._pairs[0][3]
+                    if math.hypot(m.enu[0] - e0, m.enu[1] - n0) >= self.init_distance:
+                        self._align(t)
+                        x = kf.x.tolist()
+                    continue
+                lx, ly = info.lever
+                c, s = _cos(x[2]), _sin(x[2])
+                zs.append(m.enu[0])
+                zs.append(m.enu[1])
+                hs.append(x[0] + c * lx - s * ly)
+                hs.append(x[1] + s * lx + c * ly)
+                hrows.append((i0, 0, 1.0))
+                hrows.append((i0 + 1, 1, 1.0))
+                if lx != 0.0 or ly != 0.0:
+                    hrows.append((i0, 2, -s * lx - c * ly))
+                    hrows.append((i0 + 1, 2, c * lx - s * ly))
+                cv = m.cov
+                rblocks.append((i0, ((cv[0][0], cv[0][1]), (cv[1][0], cv[1][1]))))
+                blocks.append((m.sensor, "gps", i0, i0 + 2, (), info.gate))
+            elif isinstance(m, Heading):
+                if info.uses is not None and "yaw" not in info.uses:
+                    continue
+                if not self._aligned:
+                    self.log.rejected[(m.sensor, "before_init")] += 1
+                    continue
+                hi = info.hoff_idx
+                if hi is None:
+                    hpred = x[2] + info.hoff
+                else:
+                    if hi not in self._hoff_ready:
+                        self._init_offset(t, m, hi)
+                        x = kf.x.tolist()
+                        continue
+                    hpred = x[2] + x[hi]
+                    hrows.append((i0, hi, 1.0))
+                zs.append(m.yaw)
+                hs.append(hpred)
+                hrows.append((i0, 2, 1.0))
+                rblocks.append((i0, ((m.var,),)))
+                blocks.append((m.sensor, "heading", i0, i0 + 1, (0,), info.gate))
+            elif isinstance(m, WheelSpeeds):
+                r, L = self._wheel
+                if r is None or L is None:
+                    raise ValueError("WheelSpeeds need robot.wheel_radius and robot.track_width")
+                zs.append(m.left)
+                zs.append(m.right)
+                hs.append((x[3] - 0.5 * L * x[4]) / r)
+                hs.append((x[3] + 0.5 * L * x[4]) / r)
+                hrows.append((i0, 3, 1.0 / r))
+                hrows.append((i0, 4, -0.5 * L / r))
+                hrows.append((i0 + 1, 3, 1.0 / r))
+                hrows.append((i0 + 1, 4, 0.5 * L / r))
+                rblocks.append((i0, ((m.left_var, 0.0), (0.0, m.right_var))))
+                blocks.append((m.sensor, "wheels", i0, i0 + 2, (), info.gate))
+        mrows = len(zs)
+        if mrows == 0:
+            return
+        H = np.zeros((mrows, n))
+        for i, j, val in hrows:
+            H[i, j] = val
+        R = np.zeros((mrows, mrows))
+        for i0, blk in rblocks:
+            k = len(blk)
+            R[i0:i0 + k, i0:i0 + k] = blk
+        kf.update_blocks(t, np.array(zs), np.array(hs), H, R, blocks)
+
+    def _init_offset(self, t: float, m: Heading, hi: int) -> None:
+        """hoff = wrap(z - psi): variance var(psi) + R, covariance -cov(psi, .) with the rest."""
+        kf = self.kf
+        x = kf.x.copy()
+        x[hi] = (m.yaw - x[2] + _PI) % _TWO_PI - _PI
+        P = kf.P.copy()
+        row = -P[2, :]
+        P[hi, :] = row
+        P[:, hi] = row
+        P[hi, hi] = P[2, 2] + m.var
+        kf.x = x
+        kf.P = P
+        self._hoff_ready.add(hi)
+        self.log.note(t, f"{self.name}: heading offset of {m.sensor} initialised to "
+                         f"{math.degrees(x[hi]):.1f} deg")
