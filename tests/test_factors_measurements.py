@@ -128,9 +128,7 @@ def test_gps_equals_pose_translation_prior():
     rng = random.Random(7)
     unit = gtsam.noiseModel.Unit.Create(2)
     for _ in range(50):
-        s = make_state(
-            rng.uniform(-100, 100), rng.uniform(-100, 100), rng.uniform(-4, 4), 1.0, 0.3
-        )
+        s = make_state(rng.uniform(-100, 100), rng.uniform(-100, 100), rng.uniform(-4, 4), 1.0, 0.3)
         z = np.array([rng.uniform(-100, 100), rng.uniform(-100, 100)])
         ours = err(gps_factor(K, z[0], z[1], unit), vals(s))
         ref = gtsam.PoseTranslationPrior2D(K, z, unit)

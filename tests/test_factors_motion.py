@@ -78,7 +78,12 @@ def test_mean_twist_is_second_order_for_ramping_yaw_rate():
 
 def test_noise_sigmas():
     q = MotionNoise(
-        pos_long=0.1, pos_lat=0.02, heading=0.01, acc=0.5, yaw_acc=0.3, gyro_bias=1e-3,
+        pos_long=0.1,
+        pos_lat=0.02,
+        heading=0.01,
+        acc=0.5,
+        yaw_acc=0.3,
+        gyro_bias=1e-3,
         heading_offset=2e-3,
     )
     dt = 0.25
@@ -105,9 +110,7 @@ def test_tiny_graph_recovers_trajectory():
     truth = truth_states(3, dt, v=1.2, w=0.35, x0=(5.0, -2.0, 2.8))
     graph = gtsam.NonlinearFactorGraph()
     prior_sigmas = np.array([10.0, 10.0, 3.0, 5.0, 5.0, 1e-3, 1e-3])
-    graph.add(
-        gtsam.PriorFactorVector(0, truth[0], gtsam.noiseModel.Diagonal.Sigmas(prior_sigmas))
-    )
+    graph.add(gtsam.PriorFactorVector(0, truth[0], gtsam.noiseModel.Diagonal.Sigmas(prior_sigmas)))
     noise = MotionNoise()
     for k in range(2):
         graph.add(motion_factor(k, k + 1, dt, noise))
