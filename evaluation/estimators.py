@@ -1,0 +1,80 @@
+"""The estimators ``ddfuse run`` knows by name, and which of them a config's sensors allow."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from ekf_baseline.igvc import IgvcEkf
+from ekf_baseline.landmark import LandmarkEkf, LandmarkSlamEkf
+from ekf_baseline.unicycle import UnicycleEkf
+from estimation.config import Config
+from estimation.estimator import Estimator
+from estimation.measurements import Stream
+from estimation.smoother import BatchSmoother, FixedLagSmoother
+
+
+@dataclass(frozen=True)
+class EstimatorSpec:
+    name: str
+    description: str
+    allowed: Callable[[Config], bool]
+    build: Callable[[Config, Stream, tuple | None, float | None], Estimator]
+    produces: tuple[str, ...]  # the output tracks it gives (the smoother's lagged one too)
+
+
+def _has(*kinds: str) -> Callable[[Config], bool]:
+    return lambda cfg: all(cfg.of_kind(k) for k in kinds)
+
+
+def _motion(cfg: Config) -> bool:
+    return bool(cfg.of_kind("odometry") or cfg.of_kind("wheels"))
+
+
+SPECS: dict[str, EstimatorSpec] = {s.name: s for s in (
+    EstimatorSpec("ekf", "unicycle EKF (seed 003) with gyro-bias and heading-offset states",
+                  _motion, lambda cfg, st, pose, lag: UnicycleEkf(cfg, initial_pose=pose),
+                  ("ekf",)),
+    EstimatorSpec("ekf_igvc", "11-state GPS-guided EKF (seed 000)",
+                  lambda cfg: _motion(cfg) and bool(cfg.of_kind("gps")),
+                  lambda cfg, st, pose, lag: IgvcEkf(cfg, initial_pose=pose, datum=st.datum),
+                  ("ekf_igvc",)),
+    EstimatorSpec("ekf_landmark", "range/bearing EKF in the known landmark map (seed 002)",
+                  lambda cfg: _motion(cfg) and bool(cfg.of_kind("landmarks")),
+                  lambda cfg, st, pose, lag: LandmarkEkf(cfg, initial_pose=pose,
+                                                         landmarks=st.landmarks),
+                  ("ekf_landmark",)),
+    EstimatorSpec("ekf_slam", "EKF-SLAM, landmarks augmented into the state (seed 002)",
+                  lambda cfg: _motion(cfg) and bool(cfg.of_kind("landmarks")),
+                  lambda cfg, st, pose, lag: LandmarkSlamEkf(cfg, initial_pose=pose),
+                  ("ekf_slam",)),
+    EstimatorSpec("smoother", "ISAM2 fixed-lag smoother: filtered and lagged outputs",
+                  _motion, lambda cfg, st, pose, lag: FixedLagSmoother(
+                      cfg, initial_pose=pose, landmarks=st.landmarks, lag=lag),
+                  ("smoother", "smoother_lagged")),
+    EstimatorSpec("batch", "Levenberg-Marquardt over the whole run (offline reference)",
+                  _motion, lambda cfg, st, pose, lag: BatchSmoother(
+                      cfg, initial_pose=pose, landmarks=st.landmarks, lag=lag),
+                  ("batch",)),
+)}
+TRACK_TO_SPEC = {track: spec.name for spec in SPECS.values() for track in spec.produces}
+
+
+def select(cfg: Config, names: list[str] | None) -> list[str]:
+    """Estimator names to build for ``names`` (tracks such as 'smoother_lagged' map to their
+    estimator); default: every estimator the config's sensors allow. Unknown or disallowed
+    names raise ValueError saying why."""
+    if not names:
+        return [n for n, s in SPECS.items() if s.allowed(cfg)]
+    out: list[str] = []
+    for n in names:
+        if n not in TRACK_TO_SPEC:
+            raise ValueError(f"--estimators: unknown estimator {n!r} "
+                             f"(known: {', '.join(TRACK_TO_SPEC)})")
+        spec = SPECS[TRACK_TO_SPEC[n]]
+        if not spec.allowed(cfg):
+            raise ValueError(f"--estimators: {n} needs sensors the config does not have "
+                             f"({spec.description})")
+        if spec.name not in out:
+            out.append(spec.name)
+    return out

@@ -1,0 +1,37 @@
+"""Write trajectories as TUM (evo-compatible) and as CSV with the pose covariance per row."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from estimation.runner import Trajectory
+
+
+def write_tum(path: Path, traj: Trajectory) -> None:
+    """TUM format: ``t x y z qx qy qz qw`` per line (z = 0, yaw about z); NaN yaw -> 0."""
+    yaw = np.nan_to_num(traj.pose[:, 2])
+    n = len(traj)
+    rows = np.column_stack([traj.t, traj.pose[:, 0], traj.pose[:, 1], np.zeros(n), np.zeros(n),
+                            np.zeros(n), np.sin(yaw / 2), np.cos(yaw / 2)])
+    np.savetxt(path, rows, fmt="%.9f %.6f %.6f %.6f %.9f %.9f %.9f %.9f")
+
+
+def write_csv(path: Path, traj: Trajectory) -> None:
+    """CSV: t, x, y, yaw and the 3x3 covariance of (x, y, yaw), row-major (m, rad)."""
+    n = len(traj)
+    rows = np.column_stack([traj.t, traj.pose, traj.cov.reshape(n, 9)])
+    names = ["t", "x", "y", "yaw"] + [f"cov_{a}{b}" for a in ("x", "y", "yaw")
+                                       for b in ("x", "y", "yaw")]
+    np.savetxt(path, rows, delimiter=",", header=",".join(names), comments="", fmt="%.9g")
+
+
+def read_tum(path: Path) -> Trajectory:
+    """Read a TUM file written by write_tum (or evo) into a Trajectory (yaw from the quaternion)."""
+    a = np.loadtxt(path, ndmin=2)
+    qx, qy, qz, qw = a[:, 4], a[:, 5], a[:, 6], a[:, 7]
+    yaw = np.arctan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz))
+    n = len(a)
+    return Trajectory(a[:, 0], np.column_stack([a[:, 1], a[:, 2], yaw]),
+                      np.full((n, 3, 3), np.nan))
