@@ -1,0 +1,48 @@
+"""The committed sample data in data/ is exactly what the documented commands generate."""
+
+from __future__ import annotations
+
+import re
+import shlex
+from pathlib import Path
+
+import pytest
+from test_simulate_bags import read_all  # tests/ is on sys.path (no __init__)
+
+from estimation.config import load_config
+from evaluation import simulate as sim
+
+DATA = Path(__file__).resolve().parents[1] / "data"
+
+
+def documented_commands() -> list[list[str]]:
+    """The `python3 -m evaluation.simulate ...` lines of data/README.md, as argv lists."""
+    text = (DATA / "README.md").read_text()
+    cmds = [shlex.split(m) for m in re.findall(r"^python3 -m evaluation\.simulate (.+)$", text,
+                                               flags=re.M)]
+    assert cmds, "data/README.md documents no regenerate command"
+    return cmds
+
+
+def test_sample_data_is_small_and_loads():
+    files = [p for p in DATA.iterdir() if p.name != "README.md"]
+    assert sum(p.stat().st_size for p in files) < 3_000_000
+    for cfg in ("sample_husky.yaml", "sample_seed002.yaml"):
+        load_config(DATA / cfg)
+
+
+@pytest.mark.parametrize("argv", documented_commands(), ids=lambda a: a[0])
+def test_regenerated_sample_matches_committed(argv, tmp_path):
+    i = argv.index("-o")
+    committed = Path(argv[i + 1])
+    assert committed.parts[0] == "data"
+    committed = DATA.parent / committed
+    fresh = tmp_path / committed.name
+    assert sim.main(argv[:i + 1] + [str(fresh)] + argv[i + 2:]) == 0
+    assert read_all(fresh, skip=()) == read_all(committed, skip=())
+    fresh_cfg, fresh_map = sim.sidecar_paths(fresh)
+    cfg, lmap = sim.sidecar_paths(committed)
+    assert fresh_cfg.read_text() == cfg.read_text()
+    assert fresh_map.is_file() == lmap.is_file()
+    if lmap.is_file():
+        assert fresh_map.read_text() == lmap.read_text()
