@@ -1,0 +1,381 @@
+"""Seed 002's EKF: wheel odometry drives the pose, range/bearing sightings of landmarks correct it.
+
+Two filters, both :class:`estimation.estimator.Estimator` s on the shared Kalman core
+(``ekf_baseline.kalman``: Joseph update, wrapped bearing innovations, per-sensor chi-square gate
+with lock-out recovery); the seed's errors are listed in docs/errata.md, "Seed 002".
+
+* :class:`LandmarkEkf` -- localisation in a known map. State (x, y, psi): position in the
+  map/local frame (m) and heading CCW from its x axis (rad).
+* :class:`LandmarkSlamEkf` -- the seed's augmented state: (x, y, psi, l1x, l1y, l2x, l2y, ...),
+  each landmark appended (m, map frame) the first time it is seen with a bearing, initialised
+  from that range/bearing with the full covariance (pose uncertainty and measurement noise mapped
+  through the inverse observation model, cross-covariances with everything already in the state).
+
+Motion (the control input, as in the seed): the latest WheelOdometry (v m/s, yaw rate rad/s) or
+WheelSpeeds (converted with robot.wheel_radius and robot.track_width) is held until the next one
+(zero-order hold). ``motion='exact'`` moves the pose along the constant-twist arc
+(``factors.kinematics.se2_step_jac``, smooth through zero yaw rate); ``'euler'`` is the seed's
+first-order model x' = x + v cos(psi) dt, y' = y + v sin(psi) dt, psi' = psi + w dt.
+
+Process noise: the odometry's error is white from sample to sample and held for one sample
+period tau, so it adds G diag(var_v, var_w) G^T tau / dt per step of length dt, G = df/d(v, w)
+(seed: G Q G^T). Over a whole sample period this equals the seed's per-step G Q G^T, but it does
+not shrink when a landmark sighting splits the period into shorter prediction steps.
+
+Observation (LandmarkObservation): range r = |l - p| (m) and bearing b = atan2(l - p) - psi
+(rad, body frame, CCW from forward x), or the range alone when ``has_bearing`` is False.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ekf_baseline.kalman import KalmanCore
+from estimation.config import DEFAULT_GATE, Config, load_landmark_map
+from estimation.estimator import Estimate, Estimator
+from estimation.measurements import (
+    GroundTruthPose,
+    LandmarkObservation,
+    WheelOdometry,
+    WheelSpeeds,
+)
+from factors.kinematics import se2_step_jac
+
+__all__ = [
+    "LandmarkEkf",
+    "LandmarkSlamEkf",
+    "motion_step",
+    "range_bearing",
+    "landmark_from_range_bearing",
+]
+
+_PI = math.pi
+_TWO_PI = 2.0 * math.pi
+MIN_RANGE = 1e-6  # m: a sighting from (or a landmark at) the body origin has no bearing
+TAU_BOUNDS = (1e-3, 0.5)  # s: the odometry sample period is clamped to this range
+
+
+def _wrap(a: float) -> float:
+    return (a + _PI) % _TWO_PI - _PI
+
+
+def motion_step(pose, v: float, w: float, dt: float, motion: str = "exact"):
+    """Pose after ``dt`` s of constant (v m/s, w rad/s) from ``pose`` (x m, y m, psi rad).
+
+    Returns (pose1 (3,), F (3, 3) = d pose1 / d pose, G (3, 2) = d pose1 / d (v, w)); psi1 is
+    wrapped to [-pi, pi)."""
+    x, y, psi = pose
+    if motion == "exact":
+        x1, y1, p1, J = se2_step_jac(x, y, psi, v, w, dt)
+        J = np.array(J)
+        return np.array([x1, y1, _wrap(p1)]), J[:, :3], J[:, 3:]
+    if motion == "euler":
+        c, s = math.cos(psi), math.sin(psi)
+        F = np.array([[1.0, 0.0, -v * s * dt], [0.0, 1.0, v * c * dt], [0.0, 0.0, 1.0]])
+        G = np.array([[c * dt, 0.0], [s * dt, 0.0], [0.0, dt]])
+        return np.array([x + v * c * dt, y + v * s * dt, _wrap(psi + w * dt)]), F, G
+    raise ValueError(f"motion must be 'exact' or 'euler', got {motion!r}")
+
+
+def range_bearing(pose, landmark, with_bearing: bool = True):
+    """Predicted (range m, bearing rad) of ``landmark`` (x, y) from ``pose`` (x, y, psi).
+
+    Returns (h (m,), Hp (m, 3) = dh/d pose, Hl (m, 2) = dh/d landmark), m = 2, or 1 (range
+    only) without ``with_bearing``; the bearing is wrapped to [-pi, pi). Raises ValueError when
+    the landmark is at the body origin (range < MIN_RANGE), where the bearing is undefined."""
+    dx = landmark[0] - pose[0]
+    dy = landmark[1] - pose[1]
+    q = dx * dx + dy * dy
+    r = math.sqrt(q)
+    if r < MIN_RANGE:
+        raise ValueError("landmark at the body origin")
+    Hl = np.array([[dx / r, dy / r], [-dy / q, dx / q]])
+    Hp = np.array([[-dx / r, -dy / r, 0.0], [dy / q, -dx / q, -1.0]])
+    h = np.array([r, _wrap(math.atan2(dy, dx) - pose[2])])
+    if not with_bearing:
+        return h[:1], Hp[:1], Hl[:1]
+    return h, Hp, Hl
+
+
+def landmark_from_range_bearing(pose, r: float, b: float):
+    """Landmark position (x, y) from one range/bearing sighting taken at ``pose``.
+
+    Returns (l (2,), Gp (2, 3) = dl/d pose, Gz (2, 2) = dl/d (r, b)), the inverse observation
+    model and its Jacobians used to initialise the landmark's covariance."""
+    x, y, psi = pose
+    a = psi + b
+    c, s = math.cos(a), math.sin(a)
+    l = np.array([x + r * c, y + r * s])
+    Gp = np.array([[1.0, 0.0, -r * s], [0.0, 1.0, r * c]])
+    Gz = np.array([[c, -r * s], [s, r * c]])
+    return l, Gp, Gz
+
+
+class _OdometryDrivenEkf(Estimator):
+    """What both filters share: initialisation, the odometry control input and prediction."""
+
+    n_pose = 3
+
+    def __init__(
+        self,
+        cfg: Config,
+        *,
+        initial_pose: tuple[float, float, float] | None,
+        motion: str,
+        init_std: tuple[float, float, float],
+    ) -> None:
+        super().__init__()
+        if motion not in ("exact", "euler"):
+            raise ValueError(f"motion must be 'exact' or 'euler', got {motion!r}")
+        self.cfg = cfg
+        self.motion = motion
+        self.init_std = tuple(float(s) for s in init_std)
+        self.kf: KalmanCore | None = None
+        self.t: float | None = None
+        # control input (zero-order hold) and its variances
+        self.v = 0.0
+        self.w = 0.0
+        self.v_var = 0.0
+        self.w_var = 0.0
+        self._t_odo: float | None = None
+        self.tau: float | None = None  # s, odometry sample period
+        self._gates = {s.name: s.gate for s in cfg.sensors}
+        if initial_pose is None and isinstance(cfg.initial_pose, tuple):
+            initial_pose = cfg.initial_pose
+        self._wait_truth = initial_pose is None and cfg.initial_pose == "ground_truth"
+        if initial_pose is not None:
+            self._start(initial_pose)
+        elif not self._wait_truth:
+            self._start((0.0, 0.0, 0.0))  # the config's documented default: the origin
+
+    def _start(self, pose) -> None:
+        x0 = np.array([float(pose[0]), float(pose[1]), float(pose[2])])
+        self.kf = KalmanCore(x0, np.diag(np.square(self.init_std)), self.log, state_angles=(2,))
+
+    def _gate(self, sensor: str) -> float | None:
+        return self._gates.get(sensor, DEFAULT_GATE)
+
+    # ------------------------------------------------------------------ prediction
+    def predict_to(self, t: float) -> None:
+        """Move the pose to time ``t`` (s) with the held control input."""
+        if self.t is None:
+            self.t = t
+            return
+        dt = t - self.t
+        if dt <= 0.0:
+            return
+        kf = self.kf
+        pose1, Fp, G = motion_step(kf.x[:3], self.v, self.w, dt, self.motion)
+        tau = self.tau if self.tau is not None else dt
+        Qp = (G * np.array([self.v_var, self.w_var])) @ G.T * (tau / dt)
+        n = kf.n
+        if n == 3:
+            F, Q = Fp, Qp
+        else:
+            F = np.eye(n)
+            F[:3, :3] = Fp
+            Q = np.zeros((n, n))
+            Q[:3, :3] = Qp
+        x1 = kf.x.copy()
+        x1[:3] = pose1
+        kf.predict(F, Q, x1)
+        self.t = t
+
+    def _set_control(self, t: float, v, w, v_var: float, w_var: float, sensor: str) -> None:
+        if v is None or w is None:
+            # an odometry sensor configured without 'v' or 'yaw_rate': that component is unknown
+            key = (sensor, "missing_component")
+            if self.log.rejected[key] == 0:
+                self.log.note(t, f"{sensor}: odometry lacks v or yaw_rate; using 0 +- 1 for it")
+            self.log.rejected[key] += 1
+        self.v, self.v_var = (v, v_var) if v is not None else (0.0, 1.0)
+        self.w, self.w_var = (w, w_var) if w is not None else (0.0, 1.0)
+        if self._t_odo is not None and t > self._t_odo:
+            self.tau = min(max(t - self._t_odo, TAU_BOUNDS[0]), TAU_BOUNDS[1])
+        self._t_odo = t
+
+    # ------------------------------------------------------------------ Estimator
+    def process(self, m) -> None:
+        if isinstance(m, GroundTruthPose):
+            if self.kf is None and self._wait_truth:
+                self._start((m.x, m.y, m.yaw))
+                self._wait_truth = False
+                self.t = m.t
+            return
+        if self.kf is None:
+            return
+        if isinstance(m, WheelOdometry):
+            self.predict_to(m.t)
+            self._set_control(m.t, m.v, m.yaw_rate, m.v_var, m.yaw_rate_var, m.sensor)
+        elif isinstance(m, WheelSpeeds):
+            r, L = self.cfg.robot.wheel_radius, self.cfg.robot.track_width
+            if r is None or L is None:
+                self.log.rejected[(m.sensor, "no_wheel_geometry")] += 1
+                return
+            self.predict_to(m.t)
+            v = 0.5 * r * (m.left + m.right)
+            w = r * (m.right - m.left) / L
+            v_var = 0.25 * r * r * (m.left_var + m.right_var)
+            w_var = r * r * (m.left_var + m.right_var) / (L * L)
+            self._set_control(m.t, v, w, v_var, w_var, m.sensor)
+        elif isinstance(m, LandmarkObservation):
+            self.predict_to(m.t)
+            self._sighting(m)
+
+    def _sighting(self, m: LandmarkObservation) -> None:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _measure(self, m: LandmarkObservation, landmark, lcols: list[int] | None) -> None:
+        """Update with one sighting of ``landmark`` (x, y); ``lcols`` its state columns (SLAM)."""
+        kf = self.kf
+        try:
+            h, Hp, Hl = range_bearing(kf.x[:3], landmark, m.has_bearing)
+        except ValueError:
+            self.log.rejected[(m.sensor, "degenerate")] += 1
+            return
+        k = h.shape[0]
+        H = np.zeros((k, kf.n))
+        H[:, :3] = Hp
+        if lcols is not None:
+            H[:, lcols] = Hl
+        if m.has_bearing:
+            z, R, angles = [m.range, m.bearing], np.diag([m.range_var, m.bearing_var]), (1,)
+        else:
+            z, R, angles = [m.range], np.array([[m.range_var]]), ()
+        kf.update(m.t, m.sensor, "landmark", z, h, H, R, angles=angles, gate=self._gate(m.sensor))
+
+    def _pose_estimate(self, names: tuple[str, ...]) -> Estimate | None:
+        if self.kf is None:
+            return None
+        x, P = self.kf.x, self.kf.P
+        return Estimate(
+            t=self.t if self.t is not None else 0.0,
+            pose=(float(x[0]), float(x[1]), float(x[2])),
+            pose_cov=P[:3, :3].copy(),
+            state=x.copy(),
+            state_cov=P.copy(),
+            state_names=names,
+        )
+
+
+class LandmarkEkf(_OdometryDrivenEkf):
+    """Seed 002's EKF localising in a known landmark map.
+
+    ``landmarks`` maps id -> (x, y) (m, map/local frame); default: the maps of the config's
+    landmark sensors. ``initial_pose`` (x, y, psi) overrides the config's; with 'ground_truth'
+    in the config the filter starts at the first GroundTruthPose it is given (or pass
+    ``stream.ground_truth[0]``'s pose). ``init_std`` are the initial standard deviations of
+    (x m, y m, psi rad). ``motion`` is 'exact' (constant-twist arc) or 'euler' (the seed's)."""
+
+    name = "landmark_ekf"
+
+    def __init__(
+        self,
+        cfg: Config,
+        *,
+        initial_pose: tuple[float, float, float] | None = None,
+        landmarks: dict[str, tuple[float, float]] | None = None,
+        motion: str = "exact",
+        init_std: tuple[float, float, float] = (0.1, 0.1, 0.05),
+    ) -> None:
+        super().__init__(cfg, initial_pose=initial_pose, motion=motion, init_std=init_std)
+        if landmarks is None:
+            landmarks = {}
+            for s in cfg.of_kind("landmarks"):
+                landmarks.update(load_landmark_map(s.map))
+        self.landmarks = {str(k): (float(v[0]), float(v[1])) for k, v in landmarks.items()}
+
+    def _sighting(self, m: LandmarkObservation) -> None:
+        lm = self.landmarks.get(m.landmark_id)
+        if lm is None:
+            self.log.rejected[(m.sensor, "unknown_landmark")] += 1
+            return
+        self._measure(m, lm, None)
+
+    def estimate(self) -> Estimate | None:
+        return self._pose_estimate(("x", "y", "yaw"))
+
+
+class LandmarkSlamEkf(_OdometryDrivenEkf):
+    """Seed 002's augmented-state EKF (EKF-SLAM with known data association by landmark id).
+
+    Landmarks are unknown at the start and appended to the state the first time each is seen
+    with a bearing (a range-only first sighting cannot place it and is counted in
+    ``log.rejected[(sensor, 'range_only_unmapped')]``). ``landmark_positions()`` returns the
+    current map. Other arguments as for :class:`LandmarkEkf`."""
+
+    name = "landmark_slam_ekf"
+
+    def __init__(
+        self,
+        cfg: Config,
+        *,
+        initial_pose: tuple[float, float, float] | None = None,
+        motion: str = "exact",
+        init_std: tuple[float, float, float] = (0.1, 0.1, 0.05),
+    ) -> None:
+        super().__init__(cfg, initial_pose=initial_pose, motion=motion, init_std=init_std)
+        self.slots: dict[str, int] = {}  # landmark id -> index of its x in the state
+
+    def _sighting(self, m: LandmarkObservation) -> None:
+        i = self.slots.get(m.landmark_id)
+        if i is not None:
+            self._measure(m, self.kf.x[i:i + 2], [i, i + 1])
+            return
+        if not m.has_bearing:
+            self.log.rejected[(m.sensor, "range_only_unmapped")] += 1
+            return
+        if m.range < MIN_RANGE:
+            self.log.rejected[(m.sensor, "degenerate")] += 1
+            return
+        self._augment(m)
+
+    def _augment(self, m: LandmarkObservation) -> None:
+        """Append a landmark initialised from sighting ``m``: l = g(pose, r, b), with
+        P_ll = Gp P_pp Gp^T + Gz R Gz^T and P_l* = Gp P_p*. The sighting is used for the
+        initialisation only (using it again as an update would count it twice)."""
+        kf = self.kf
+        n = kf.n
+        l, Gp, Gz = landmark_from_range_bearing(kf.x[:3], m.range, m.bearing)
+        R = np.diag([m.range_var, m.bearing_var])
+        P = kf.P
+        cross = Gp @ P[:3, :]  # (2, n)
+        Pll = Gp @ P[:3, :3] @ Gp.T + Gz @ R @ Gz.T
+        Pn = np.zeros((n + 2, n + 2))
+        Pn[:n, :n] = P
+        Pn[n:, :n] = cross
+        Pn[:n, n:] = cross.T
+        Pn[n:, n:] = 0.5 * (Pll + Pll.T)
+        _resize(kf, np.concatenate([kf.x, l]), Pn)
+        self.slots[m.landmark_id] = n
+        self.log.note(m.t, f"landmark {m.landmark_id} added at ({l[0]:.3f}, {l[1]:.3f}) m")
+
+    def landmark_positions(self) -> dict[str, tuple[float, float]]:
+        """Current estimate of every mapped landmark, id -> (x, y) in metres."""
+        if self.kf is None:
+            return {}
+        x = self.kf.x
+        return {k: (float(x[i]), float(x[i + 1])) for k, i in self.slots.items()}
+
+    def landmark_covariance(self, landmark_id: str) -> np.ndarray:
+        """(2, 2) covariance (m^2) of one mapped landmark."""
+        i = self.slots[landmark_id]
+        return self.kf.P[i:i + 2, i:i + 2].copy()
+
+    def estimate(self) -> Estimate | None:
+        names = ["x", "y", "yaw"]
+        for k in sorted(self.slots, key=self.slots.get):
+            names += [f"landmark:{k}:x", f"landmark:{k}:y"]
+        return self._pose_estimate(tuple(names))
+
+
+def _resize(kf: KalmanCore, x: np.ndarray, P: np.ndarray) -> None:
+    """Give ``kf`` a larger state (mean ``x``, covariance ``P``), keeping its log, gate streaks
+    and recoveries. KalmanCore has no resize of its own; it caches the identity of its size."""
+    n = x.shape[0]
+    kf.x = np.array(x, dtype=float)
+    kf.P = np.array(P, dtype=float)
+    kf.n = n
+    kf._eye = np.eye(n)
