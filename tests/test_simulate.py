@@ -312,3 +312,31 @@ def test_unknown_scenario_and_bad_duration():
         sim.simulate("nope")
     with pytest.raises(ValueError, match="duration"):
         sim.simulate("husky", duration=1.0)
+
+
+def test_dead_reckoning_with_perfect_calibration_follows_the_truth():
+    """With nominal = true geometry and near-noiseless encoders, the odometry dead reckoning of
+    plot_sim reproduces the truth; with the scenario's miscalibration it does not. This ties the
+    encoder model (interval means stamped at the interval end) to the truth."""
+    from evaluation.plot_sim import dead_reckoning
+
+    base = sim.get_scenario("husky", duration=120.0)
+    exact = dataclasses.replace(
+        base, nominal_geometry=base.true_geometry,
+        encoders=dataclasses.replace(base.encoders, speed_std=1e-4, counts_per_rev=10**7))
+    for sc, lo, hi in ((exact, 0.0, 0.02), (base, 1.0, np.inf)):
+        res = sim.simulate(sc, seed=0)
+        t, x, y, yaw = dead_reckoning(res)
+        tx, ty, tyaw, _, _ = res.truth.at(t)
+        err = np.hypot(x - tx, y - ty).max()
+        assert lo <= err < hi, err
+    assert np.abs(sim.wrap(yaw - tyaw)).max() > 0.05  # the miscalibrated run also turns wrong
+
+
+def test_plot_sim_writes_a_png(tmp_path):
+    from evaluation.plot_sim import main
+
+    out = tmp_path / "p.png"
+    assert main(["gps-outage", "--duration", "240", "-o", str(out)]) == 0
+    data = out.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 20_000
