@@ -1031,6 +1031,7 @@ def _topic_messages(res: SimResult, mk: _Msgs) -> list[tuple[str, str, Iterator]
 
 
 def _check_output(path: str | Path, fmt: str) -> Path:
+    """The bag path, after checking the format name and that nothing would be overwritten."""
     p = Path(path)
     if fmt not in FORMATS:
         raise ValueError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
