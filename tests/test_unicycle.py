@@ -397,7 +397,7 @@ def test_gps_odometry_gyro_accuracy_and_consistency():
     per_run, rmse, names = _nees_runs(seeds)
     assert names == ("x", "y", "psi", "v", "w")
     # GPS alone would give 0.5 * sqrt(2) = 0.71 m; fusion with odometry does much better
-    assert rmse < 0.35, rmse
+    assert rmse < 0.15, rmse  # measured 0.072 m over 6 seeds
     sample_times = np.linspace(3.0, 59.0, 20)
     dof = len(names)
     lo, hi = chi2.ppf([0.0005, 0.9995], len(seeds) * dof) / len(seeds)
