@@ -18,6 +18,7 @@ from estimation.errors import DdfuseError
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE_BAG = ROOT / "data" / "sample_husky.bag"
+CONFIGS = ROOT / "data" / "configs"
 
 
 def _fmt(v: float, spec: str = ".2f") -> str:
@@ -46,6 +47,73 @@ def cmd_inspect(args: argparse.Namespace) -> int:
             out.write(f"{t.topic}: {note}\n")
     out.write("\n# suggested config (review the noise values; they are starting points)\n")
     out.write(yaml.safe_dump(suggest_config(info), sort_keys=False, default_flow_style=None))
+    return 0
+
+
+def _config_for(bag: Path, given: Path | None) -> Path:
+    """The config: -c if given, else the bag's path with .yaml, else the one ddfuse ships for
+    the known real bags (data/configs/<stem>.yaml)."""
+    if given is not None:
+        return given
+    for cand in (bag.with_suffix(".yaml"), CONFIGS / f"{bag.stem}.yaml"):
+        if cand.is_file():
+            return cand
+    raise DdfuseError(f"{bag}: no config given (-c) and none at {bag.with_suffix('.yaml')}; "
+                      f"'ddfuse inspect {bag}' suggests one")
+
+
+def cmd_online(args: argparse.Namespace) -> int:
+    from estimation.config import load_config
+    from evaluation.online import replay
+
+    cfg = load_config(_config_for(args.bag, args.config))
+    names = [n.strip() for n in args.estimators.split(",")] if args.estimators else None
+
+    def show(t: float, estimates: dict) -> None:
+        cells = []
+        for name, e in estimates.items():
+            cells.append(f"{name} -" if e is None else
+                         f"{name} ({e.pose[0]:8.2f}, {e.pose[1]:8.2f}, "
+                         f"{math.degrees(e.pose[2]):7.1f} deg)")
+        print(f"t={t:8.2f} s  " + "  ".join(cells), flush=True)
+
+    try:
+        session = replay(args.bag, cfg, names=names, realtime=args.realtime,
+                         print_every=args.every, on_print=show)
+    except ValueError as e:
+        raise DdfuseError(str(e)) from None
+    print("update latency (ms):")
+    for name, q in session.latency_ms().items():
+        print(f"  {name:16} p50 {q['p50']:.3f}  p99 {q['p99']:.3f}  max {q['max']:.3f}  "
+              f"({q['updates']} updates)")
+    return 0
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    import json
+
+    from evaluation.bench import bench_bag
+
+    bags = args.bags or [SAMPLE_BAG]
+    names = [n.strip() for n in args.estimators.split(",")] if args.estimators else None
+    results = []
+    for bag in bags:
+        try:
+            r = bench_bag(bag, _config_for(bag, args.config), names, args.lag)
+        except ValueError as e:
+            raise DdfuseError(str(e)) from None
+        results.append(r)
+        print(f"{bag}: {r['duration_s']:.1f} s of data, {r['messages']} measurements, decode "
+              f"{r['decode_s']:.3f} s ({r['decode_rtf']:.0f}x real time)")
+        print(f"  {'estimator':12} {'wall s':>8} {'RTF':>8} {'p50 ms':>8} {'p99 ms':>8} "
+              f"{'max ms':>8} {'RSS MB':>8}")
+        for e in r["estimators"]:
+            u = e["update_ms"] or {"p50": math.nan, "p99": math.nan, "max": math.nan}
+            print(f"  {e['estimator']:12} {e['wall_s']:8.3f} {e['rtf']:8.0f} {u['p50']:8.3f} "
+                  f"{u['p99']:8.3f} {u['max']:8.3f} {e['peak_rss_mb']:8.1f}"
+                  + (f"  ERROR {e['error']}" if e["error"] else ""))
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=2) + "\n")
     return 0
 
 
@@ -88,11 +156,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from evaluation.pipeline import run_bag
 
     bag = args.bag or SAMPLE_BAG
-    cfg_path = args.config or bag.with_suffix(".yaml")
-    if args.config is None and not cfg_path.is_file():
-        raise DdfuseError(f"{bag}: no config given (-c) and none beside the bag at {cfg_path}; "
-                          f"'ddfuse inspect {bag}' suggests one")
-    cfg = load_config(cfg_path)
+    cfg = load_config(_config_for(bag, args.config))
     names = [n.strip() for n in args.estimators.split(",") if n.strip()] if args.estimators \
         else None
     bar, update = _progress()
@@ -143,6 +207,23 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--gps-holdout", metavar="every:K|window:T0:T1",
                     help="withhold these GPS fixes from every estimator and score against them")
     sp.set_defaults(func=cmd_run)
+
+    sp = sub.add_parser("online", help="replay a bag message by message, as a live robot would")
+    sp.add_argument("bag", type=Path)
+    sp.add_argument("-c", "--config", type=Path)
+    sp.add_argument("--estimators", help="comma-separated (default: all the sensors allow)")
+    sp.add_argument("--realtime", action="store_true", help="pace messages by their stamps")
+    sp.add_argument("--every", type=float, default=1.0,
+                    help="print the current estimate every this many seconds of data")
+    sp.set_defaults(func=cmd_online)
+
+    sp = sub.add_parser("bench", help="speed and memory of each estimator on bags")
+    sp.add_argument("bags", type=Path, nargs="*", help="bags (default: the embedded sample)")
+    sp.add_argument("-c", "--config", type=Path)
+    sp.add_argument("--estimators", help="comma-separated (default: all the sensors allow)")
+    sp.add_argument("--lag", type=float)
+    sp.add_argument("--json", type=Path, help="also write the results as JSON")
+    sp.set_defaults(func=cmd_bench)
 
     sp = sub.add_parser("simulate", help="simulate a robot drive into a bag with ground truth",
                         add_help=False)
