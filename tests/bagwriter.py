@@ -13,6 +13,7 @@ bag directory that rosbags creates; the storage file inside is ``<dir>/<dir name
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
@@ -45,8 +46,10 @@ Vec3 = Sequence[float]
 Quat = Sequence[float]  # (x, y, z, w)
 
 
+@functools.cache
 def typestore(fmt: str):
-    """A fresh typestore for the format, with the landmark message type registered."""
+    """The typestore for the format, with the landmark message type registered (one per format:
+    rosbags compiles its serialisers once per typestore)."""
     store = get_typestore(Stores.ROS1_NOETIC if fmt == "ros1" else Stores.ROS2_HUMBLE)
     store.register(get_types_from_msg(LANDMARK_MSGDEF, LANDMARK_TYPE))
     return store
