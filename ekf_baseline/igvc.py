@@ -1,0 +1,476 @@
+"""Seed 000's 11-state IGVC EKF, built as the document means it (its errors: docs/errata.md).
+
+State (STATE_NAMES, index: meaning, unit)::
+
+    0 lat      geodetic latitude, rad            6 v        forward speed, m/s
+    1 lon      longitude, rad                    7 psi_dot  yaw rate, rad/s, CCW +
+    2 theta    bearing, rad, CLOCKWISE from N    8 v_l      left wheel rim speed, m/s
+    3 x        local ENU east, m                 9 v_r      right wheel rim speed, m/s
+    4 y        local ENU north, m               10 a        forward acceleration, m/s^2
+    5 psi      yaw, rad, CCW from local east
+
+Frames: the seed's x north / y east with a "left positive" heading is not a consistent frame for
+its own eqs. 6-7; this filter keeps x, y, psi in the project's right-handed local ENU frame
+(x east, y north, psi CCW from east) internally, so ``Estimate.pose`` is (x, y, psi) without a
+conversion. theta stays a compass bearing, as the great-circle formulas (seed eqs. 4-5) need;
+in the ENU frame at the datum theta = pi/2 - psi (the meridian convergence, about
+dlon sin(lat) -- 2e-6 rad at 10 m east at 45 deg -- is ignored).
+
+Motion models (``motion='euler'`` or ``'icc'``): generated once from sympy in
+``ekf_baseline/igvc_jacobians.py`` (derivation: ``ekf_baseline/igvc_codegen.py``). The seed's
+11-vector is redundant -- (lat, lon) and (x, y) are one position, theta and psi one heading,
+(v, psi_dot) and (v_l, v_r) one twist. The models keep the redundant pairs consistent: the
+wheel speeds are recomputed from (v, psi_dot) every step, and the process noise enters each pair
+through one shared noise source (``IgvcNoise``), so a GPS update of lat/lon moves x/y with it
+through their correlation and a compass update of theta moves psi.
+
+Measurements (seed eq. 17/19, corrected):
+
+* GpsFix -> (lat, lon) of the antenna (``lever_arm`` of the GPS sensor, body frame). Updated in
+  metres (east, north) about the current estimate so the logged residuals are in metres; the
+  NIS is the same as in radians.
+* Heading -> the global heading Theta_g = theta: yaw = pi/2 - theta + heading_offset. A Heading
+  with ``source='pose'`` is the seed's local heading Theta_l = psi + heading_offset. A sensor
+  whose heading_offset is 'estimate' cannot be used (the 11-state has no offset state): it is
+  ignored, with a note in the log.
+* GyroYawRate -> psi_dot (+ the configured numeric gyro_bias).
+* ForwardAccel -> a.
+* WheelSpeeds (rad/s) -> (v_l / r, v_r / r).
+* WheelOdometry -> v = (v_l + v_r)/2 and yaw rate (v_r - v_l)/L (seed eqs. 18-19).
+
+Every update goes through ``ekf_baseline.kalman.KalmanCore`` (Joseph form, wrapped angle
+innovations, per-sensor chi-square gate with lock-out recovery).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ekf_baseline import igvc_jacobians as gen
+from ekf_baseline.kalman import KalmanCore
+from estimation import geodesy
+from estimation.config import DEFAULT_GATE, Config, SensorConfig
+from estimation.estimator import Estimate, Estimator
+from estimation.measurements import (
+    ForwardAccel,
+    GpsFix,
+    GroundTruthPose,
+    GyroYawRate,
+    Heading,
+    WheelOdometry,
+    WheelSpeeds,
+)
+
+__all__ = ["IgvcEkf", "IgvcNoise", "STATE_NAMES", "sphere_radius", "gps_model", "heading_model"]
+
+STATE_NAMES = gen.STATE_NAMES
+LAT, LON, THETA, X, Y, PSI, V, W, VL, VR, A = range(11)
+N = 11
+HALF_PI = 0.5 * math.pi
+DEFAULT_TRACK = 0.5  # m, used only for the wheel-speed states when robot.track_width is unset
+
+
+def sphere_radius(lat_rad: float) -> float:
+    """Radius (m) of the sphere that best fits WGS-84 around latitude ``lat_rad``: the Gaussian
+    mean radius sqrt(M N) of the meridian (M) and prime-vertical (N) radii of curvature.
+
+    The seed's great-circle formulas assume a sphere; with this radius the north and east scale
+    errors against the ellipsoid are equal and opposite, (N - M) / (2 sqrt(M N)), about 0.17 %
+    at 45 deg, instead of up to 0.35 % with the seed's "either value works" polar or equatorial
+    radius."""
+    s2 = math.sin(lat_rad) ** 2
+    w = 1.0 - geodesy.WGS84_E2 * s2
+    m = geodesy.WGS84_A * (1.0 - geodesy.WGS84_E2) / w**1.5
+    n = geodesy.WGS84_A / math.sqrt(w)
+    return math.sqrt(m * n)
+
+
+@dataclass
+class IgvcNoise:
+    """Process noise and initial uncertainty of the 11-state filter (SI units, std devs or PSDs).
+
+    Continuous white-noise spectral densities (variance per second of the random walk they
+    drive): ``jerk_psd`` on a, (m/s^3)^2 s; ``yaw_accel_psd`` on psi_dot, (rad/s^2)^2 s;
+    ``position_psd`` on the position, m^2/s, applied to (x, y) and (lat, lon) alike (Euler and
+    slip errors); ``heading_psd`` on the heading, rad^2/s, applied to psi and theta alike;
+    ``frame_psd``, m^2/s, independent between (lat, lon) and (x, y): the sphere-vs-ellipsoid and
+    meridian-convergence mismatch between the two position representations (it also keeps P
+    positive definite); ``frame_heading_psd``, rad^2/s, likewise between theta and psi (the
+    meridian convergence, d(lon) sin(lat), makes the compass bearing and the local yaw drift
+    apart by ~v tan(lat) / R rad/s). ``slip_var``, (m/s)^2 per step, is the wheel speed's
+    deviation from the body twist (slip); it does not accumulate because the wheel states are
+    recomputed each step.
+    """
+
+    jerk_psd: float = 0.5
+    yaw_accel_psd: float = 0.1
+    position_psd: float = 4e-4
+    heading_psd: float = 2.5e-5
+    frame_psd: float = 1e-6
+    frame_heading_psd: float = 1e-8
+    slip_var: float = 1e-4
+    init_position_std: float = 0.5  # m, with an initial pose given
+    init_heading_std: float = 0.1  # rad, with an initial pose given
+    init_speed_std: float = 0.5  # m/s
+    init_yaw_rate_std: float = 0.2  # rad/s
+    init_accel_std: float = 0.5  # m/s^2
+
+
+def gps_model(s: np.ndarray, lever_arm: tuple[float, float], radius: float):
+    """Antenna (lat, lon) predicted from state ``s`` and its Jacobian, both in radians.
+
+    ``lever_arm`` (m) is the antenna's (x forward, y left) position in the body frame; its ENU
+    offset is rotated by psi. Returns (h (2,) = (lat, lon), H (2, 11))."""
+    lat, psi = s[LAT], s[PSI]
+    lx, ly = lever_arm
+    c, sn = math.cos(psi), math.sin(psi)
+    e_off = c * lx - sn * ly  # m, east
+    n_off = sn * lx + c * ly  # m, north
+    cl = math.cos(lat)
+    h = np.array([lat + n_off / radius, s[LON] + e_off / (radius * cl)])
+    H = np.zeros((2, N))
+    H[0, LAT] = 1.0
+    H[0, PSI] = e_off / radius
+    H[1, LON] = 1.0
+    H[1, LAT] = e_off * math.sin(lat) / (radius * cl * cl)
+    H[1, PSI] = -n_off / (radius * cl)
+    return h, H
+
+
+def heading_model(s: np.ndarray, offset: float, local: bool):
+    """Heading sensor reading predicted from ``s`` (rad, wrapped) and its (1, 11) Jacobian.
+
+    Global (compass, seed Theta_g): yaw = pi/2 - theta + offset. Local (``local``, seed
+    Theta_l): yaw = psi + offset."""
+    H = np.zeros((1, N))
+    if local:
+        h = s[PSI] + offset
+        H[0, PSI] = 1.0
+    else:
+        h = HALF_PI - s[THETA] + offset
+        H[0, THETA] = -1.0
+    return np.array([(h + math.pi) % (2.0 * math.pi) - math.pi]), H
+
+
+class IgvcEkf(Estimator):
+    """Seed 000's 11-state EKF (module docstring) as an :class:`Estimator`.
+
+    ``initial_pose`` (x, y, yaw) in the local ENU frame (m, m, rad) overrides the config's
+    ``initial_pose``; with 'ground_truth' in the config and no ``initial_pose`` the filter starts
+    at the first GroundTruthPose it is given (pass ``stream.ground_truth[0]`` as initial_pose when
+    the ground truth is not in the measurement stream). Without any initial pose and with a GPS
+    configured, it starts at the first fix, with the heading from the first usable Heading or,
+    failing that, from the GPS course once the fixes are ``course_distance`` m apart; without GPS
+    it starts at the origin with yaw 0. ``datum`` (lat deg, lon deg, alt m) is the local ENU
+    origin (``stream.datum``); default the config's, else the first fix. ``motion`` is 'euler'
+    (seed eq. 14) or 'icc' (seed appendix A). Prediction steps are at most ``max_step`` s.
+    """
+
+    name = "igvc_ekf"
+
+    def __init__(
+        self,
+        cfg: Config,
+        *,
+        initial_pose: tuple[float, float, float] | None = None,
+        datum: tuple[float, float, float] | None = None,
+        motion: str = "euler",
+        noise: IgvcNoise | None = None,
+        max_step: float = 0.05,
+        course_distance: float = 3.0,
+    ) -> None:
+        super().__init__()
+        if motion not in ("euler", "icc"):
+            raise ValueError(f"motion must be 'euler' or 'icc', got {motion!r}")
+        self.cfg = cfg
+        self.motion = motion
+        self._step = gen.euler_step if motion == "euler" else gen.icc_step
+        self.noise = noise or IgvcNoise()
+        self.max_step = float(max_step)
+        self.course_distance = float(course_distance)
+        self.track = cfg.robot.track_width or DEFAULT_TRACK
+        self.wheel_radius = cfg.robot.wheel_radius
+        if datum is None and isinstance(cfg.datum, tuple):
+            datum = cfg.datum
+        self.datum = tuple(datum) if datum is not None else None
+        if initial_pose is None and isinstance(cfg.initial_pose, tuple):
+            initial_pose = cfg.initial_pose
+        self._wait_truth = initial_pose is None and cfg.initial_pose == "ground_truth"
+        self._has_gps = bool(cfg.of_kind("gps"))
+        self.kf: KalmanCore | None = None
+        self.t: float | None = None
+        self.radius = sphere_radius(math.radians(self.datum[0]) if self.datum else 0.0)
+        self._first_fix: GpsFix | None = None
+        self._heading_init: tuple[float, float] | None = None  # (yaw, var)
+        self._unusable: set[str] = set()
+        for s in cfg.sensors:
+            if s.kind == "imu" and "yaw" in s.use and s.heading_offset == "estimate":
+                self._unusable.add(s.name)
+                self.log.note(0.0, f"{s.name}: heading_offset 'estimate' needs an offset state "
+                                   "the 11-state filter does not have; its yaw is ignored")
+            if s.kind == "imu" and "yaw_rate" in s.use and s.gyro_bias == "estimate":
+                self.log.note(0.0, f"{s.name}: gyro_bias 'estimate' is not modelled by the "
+                                   "11-state filter; the gyro is used without a bias")
+        if initial_pose is not None and (self.datum is not None or not self._has_gps):
+            self._init(None, initial_pose, self.noise.init_position_std ** 2,
+                       self.noise.init_heading_std ** 2)
+        self._pose_given = initial_pose
+
+    # ------------------------------------------------------------------ initialisation
+    def _init(self, t: float | None, pose, pos_var: float, yaw_var: float) -> None:
+        x, y, yaw = (float(v) for v in pose)
+        if self.datum is not None:
+            lat, lon, _ = geodesy.enu_to_geodetic(x, y, 0.0, *self.datum)
+            lat, lon = math.radians(lat), math.radians(lon)
+        else:
+            # no datum and no GPS: lat/lon are relative to (0, 0) and unobserved
+            lat, lon = y / self.radius, x / self.radius
+        ns = self.noise
+        s0 = np.zeros(N)
+        s0[[LAT, LON, THETA, X, Y, PSI]] = lat, lon, HALF_PI - yaw, x, y, yaw
+        gp = self._position_noise_map(lat)
+        P0 = pos_var * (gp @ gp.T)
+        gh = np.zeros((N, 1))
+        gh[PSI, 0], gh[THETA, 0] = 1.0, -1.0
+        P0 += yaw_var * (gh @ gh.T)
+        P0 += np.diag(self._frame_var(lat, 1.0))
+        P0[V, V] = ns.init_speed_std ** 2
+        P0[W, W] = ns.init_yaw_rate_std ** 2
+        P0[A, A] = ns.init_accel_std ** 2
+        # the wheel speeds are functions of (v, psi_dot), plus slip: s0 -> T s0 maps them
+        T = np.eye(N)
+        T[VL, VL] = T[VR, VR] = 0.0
+        T[VL, V], T[VL, W], T[VR, V], T[VR, W] = 1.0, -0.5 * self.track, 1.0, 0.5 * self.track
+        P0 = T @ P0 @ T.T
+        P0[VL, VL] += ns.slip_var
+        P0[VR, VR] += ns.slip_var
+        self.kf = KalmanCore(s0, P0, self.log, state_angles=(THETA, PSI))
+        self.t = t
+
+    def _position_noise_map(self, lat: float) -> np.ndarray:
+        """(11, 2) map of an (east, north) position perturbation in metres to the state."""
+        g = np.zeros((N, 2))
+        g[X, 0] = 1.0
+        g[LON, 0] = 1.0 / (self.radius * math.cos(lat))
+        g[Y, 1] = 1.0
+        g[LAT, 1] = 1.0 / self.radius
+        return g
+
+    def _frame_var(self, lat: float, scale: float) -> np.ndarray:
+        d = np.zeros(N)
+        v = self.noise.frame_psd * scale
+        d[LAT] = v / self.radius**2
+        d[LON] = v / (self.radius * math.cos(lat)) ** 2
+        d[X] = d[Y] = v
+        d[THETA] = d[PSI] = self.noise.frame_heading_psd * scale
+        return d
+
+    def _try_init_without_pose(self, m) -> None:
+        """Start from GPS (position) plus a heading, or at the origin without GPS."""
+        if not self._has_gps:
+            self._init(m.t, self._pose_given or (0.0, 0.0, 0.0),
+                       self.noise.init_position_std ** 2, self.noise.init_heading_std ** 2)
+            return
+        if isinstance(m, Heading) and m.sensor not in self._unusable:
+            off = self._heading_offset(m.sensor)
+            if m.source != "pose":
+                self._heading_init = (m.yaw - off, m.var)
+        if not isinstance(m, GpsFix) or m.status < 0:
+            return
+        if self.datum is None:
+            self.datum = (m.lat, m.lon, m.alt)
+            self.radius = sphere_radius(math.radians(m.lat))
+        e, n = self._fix_enu(m)
+        pos_var = 0.5 * float(m.cov[0, 0] + m.cov[1, 1])
+        if self._pose_given is not None:
+            self._init(m.t, self._pose_given, self.noise.init_position_std ** 2,
+                       self.noise.init_heading_std ** 2)
+            return
+        if self._heading_init is not None:
+            self._init(m.t, (e, n, self._heading_init[0]), pos_var, self._heading_init[1])
+            return
+        if self._first_fix is None:
+            self._first_fix = m
+            return
+        e0, n0 = self._fix_enu(self._first_fix)
+        d = math.hypot(e - e0, n - n0)
+        if d >= self.course_distance:
+            # the course over ground from the first fix; assumes the robot drove forward
+            yaw_var = (2.0 * pos_var) / (d * d)
+            self._init(m.t, (e, n, math.atan2(n - n0, e - e0)), pos_var, yaw_var)
+            self.log.note(m.t, f"heading initialised from the GPS course over {d:.1f} m")
+
+    def _fix_enu(self, m: GpsFix) -> tuple[float, float]:
+        if m.enu is not None:
+            return m.enu[0], m.enu[1]
+        e, n, _ = geodesy.geodetic_to_enu(m.lat, m.lon, m.alt, *self.datum)
+        return e, n
+
+    # ------------------------------------------------------------------ helpers
+    def _sensor(self, name: str) -> SensorConfig | None:
+        try:
+            return self.cfg.sensor(name)
+        except KeyError:
+            return None
+
+    def _gate(self, name: str) -> float | None:
+        s = self._sensor(name)
+        return s.gate if s is not None else DEFAULT_GATE
+
+    def _heading_offset(self, name: str) -> float:
+        s = self._sensor(name)
+        off = s.heading_offset if s is not None else 0.0
+        return float(off) if off != "estimate" else 0.0
+
+    def process_noise(self, s: np.ndarray, dt: float) -> np.ndarray:
+        """Discrete process noise Q (11, 11) of one step of ``dt`` s at state ``s`` (see
+        IgvcNoise): shared position noise for (x, y) and (lat, lon), shared heading noise for
+        psi and -theta, jerk on a, angular acceleration on psi_dot, slip on the wheel speeds."""
+        ns = self.noise
+        g = self._position_noise_map(s[LAT])
+        Q = ns.position_psd * dt * (g @ g.T)
+        Q[PSI, PSI] += ns.heading_psd * dt
+        Q[THETA, THETA] += ns.heading_psd * dt
+        Q[PSI, THETA] -= ns.heading_psd * dt
+        Q[THETA, PSI] -= ns.heading_psd * dt
+        Q += np.diag(self._frame_var(s[LAT], dt))
+        Q[A, A] += ns.jerk_psd * dt
+        Q[W, W] += ns.yaw_accel_psd * dt
+        Q[VL, VL] += ns.slip_var
+        Q[VR, VR] += ns.slip_var
+        return Q
+
+    def predict_to(self, t: float) -> None:
+        """Propagate the state to time ``t`` (s) in steps of at most ``max_step``."""
+        kf = self.kf
+        dt_total = t - self.t
+        if dt_total <= 0.0:
+            return
+        n = max(1, math.ceil(dt_total / self.max_step - 1e-9))
+        dt = dt_total / n
+        for _ in range(n):
+            f, F = self._step(kf.x, dt, self.track, self.radius)
+            kf.predict(np.array(F), self.process_noise(kf.x, dt), np.array(f))
+        self.t = t
+
+    # ------------------------------------------------------------------ Estimator
+    def process(self, m) -> None:
+        if isinstance(m, GroundTruthPose):
+            if self.kf is None and self._wait_truth:
+                self._pose_given = (m.x, m.y, m.yaw)
+                self._wait_truth = False
+                if self.datum is not None or not self._has_gps:
+                    self._init(m.t, self._pose_given, self.noise.init_position_std ** 2,
+                               self.noise.init_heading_std ** 2)
+            return
+        if self.kf is None:
+            if self._wait_truth:
+                return
+            self._try_init_without_pose(m)
+            if self.kf is None:
+                return
+            if self.t == m.t and isinstance(m, GpsFix | Heading):
+                return  # the measurement that initialised the filter is not used twice
+        if self.t is None:
+            self.t = m.t
+        self.predict_to(m.t)
+        if isinstance(m, GpsFix):
+            self._update_gps(m)
+        elif isinstance(m, Heading):
+            self._update_heading(m)
+        elif isinstance(m, GyroYawRate):
+            self._update_gyro(m)
+        elif isinstance(m, ForwardAccel):
+            self._update_scalar(m.t, m.sensor, "accel", m.accel, A, m.var)
+        elif isinstance(m, WheelSpeeds):
+            self._update_wheels(m)
+        elif isinstance(m, WheelOdometry):
+            self._update_odometry(m)
+
+    def estimate(self) -> Estimate | None:
+        if self.kf is None:
+            return None
+        s, P = self.kf.x, self.kf.P
+        idx = [X, Y, PSI]
+        return Estimate(
+            t=self.t if self.t is not None else 0.0,
+            pose=(float(s[X]), float(s[Y]), float(s[PSI])),
+            pose_cov=P[np.ix_(idx, idx)].copy(),
+            state=s.copy(),
+            state_cov=P.copy(),
+            state_names=STATE_NAMES,
+        )
+
+    # ------------------------------------------------------------------ updates
+    def _update_scalar(self, t, sensor, kind, z, index, var, offset=0.0) -> None:
+        H = np.zeros((1, N))
+        H[0, index] = 1.0
+        self.kf.update(t, sensor, kind, [z], [self.kf.x[index] + offset], H, [[var]],
+                       gate=self._gate(sensor))
+
+    def _update_gyro(self, m: GyroYawRate) -> None:
+        s = self._sensor(m.sensor)
+        bias = s.gyro_bias if s is not None and s.gyro_bias != "estimate" else 0.0
+        self._update_scalar(m.t, m.sensor, "gyro", m.yaw_rate, W, m.var, float(bias))
+
+    def _update_heading(self, m: Heading) -> None:
+        if m.sensor in self._unusable:
+            return
+        h, H = heading_model(self.kf.x, self._heading_offset(m.sensor), m.source == "pose")
+        self.kf.update(m.t, m.sensor, "heading", [m.yaw], h, H, [[m.var]], angles=(0,),
+                       gate=self._gate(m.sensor))
+
+    def _update_gps(self, m: GpsFix) -> None:
+        if m.status < 0:
+            self.log.rejected[(m.sensor, "no_fix")] += 1
+            return
+        s = self._sensor(m.sensor)
+        lever = s.lever_arm if s is not None else (0.0, 0.0)
+        x = self.kf.x
+        h, H = gps_model(x, lever, self.radius)
+        # Residuals in metres (east, north) about the current estimate: scaling z, h and H by
+        # the same constant T leaves gain and NIS unchanged and makes the log readable.
+        lat0, lon0 = x[LAT], x[LON]
+        te, tn = self.radius * math.cos(lat0), self.radius
+        zlat, zlon = math.radians(m.lat), math.radians(m.lon)
+        dlon_z = (zlon - lon0 + math.pi) % (2.0 * math.pi) - math.pi
+        z = [te * dlon_z, tn * (zlat - lat0)]
+        hx = [te * (h[1] - lon0), tn * (h[0] - lat0)]
+        Hm = np.vstack([te * H[1], tn * H[0]])
+        R = np.asarray(m.cov, dtype=float)[:2, :2]
+        self.kf.update(m.t, m.sensor, "gps", z, hx, Hm, R, gate=self._gate(m.sensor))
+
+    def _update_wheels(self, m: WheelSpeeds) -> None:
+        r = self.wheel_radius
+        if r is None:
+            self.log.rejected[(m.sensor, "no_wheel_radius")] += 1
+            return
+        x = self.kf.x
+        H = np.zeros((2, N))
+        H[0, VL] = H[1, VR] = 1.0 / r
+        self.kf.update(m.t, m.sensor, "wheels", [m.left, m.right], [x[VL] / r, x[VR] / r], H,
+                       np.diag([m.left_var, m.right_var]), gate=self._gate(m.sensor))
+
+    def _update_odometry(self, m: WheelOdometry) -> None:
+        x = self.kf.x
+        z, hx, rows, var = [], [], [], []
+        if m.v is not None:
+            row = np.zeros(N)
+            row[VL] = row[VR] = 0.5
+            z.append(m.v)
+            hx.append(0.5 * (x[VL] + x[VR]))
+            rows.append(row)
+            var.append(m.v_var)
+        if m.yaw_rate is not None:
+            row = np.zeros(N)
+            row[VR], row[VL] = 1.0 / self.track, -1.0 / self.track
+            z.append(m.yaw_rate)
+            hx.append((x[VR] - x[VL]) / self.track)
+            rows.append(row)
+            var.append(m.yaw_rate_var)
+        if z:
+            self.kf.update(m.t, m.sensor, "odometry", z, hx, np.array(rows), np.diag(var),
+                           gate=self._gate(m.sensor))

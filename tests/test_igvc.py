@@ -1,0 +1,223 @@
+"""Seed 000's 11-state EKF on synthetic GPS-guided data (wheels, gyro, accelerometer, compass).
+
+The truth is an exact constant-twist integration in local ENU about a datum near Zurich; the GPS
+fixes are the true positions mapped to WGS-84 latitude/longitude exactly (ellipsoid, not the
+filter's sphere) plus noise, so the test also covers the sphere approximation of the model.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from ekf_baseline.igvc import IgvcEkf
+from estimation import geodesy
+from estimation.config import Config, RobotConfig, SensorConfig
+from estimation.measurements import (
+    ForwardAccel,
+    GpsFix,
+    GroundTruthPose,
+    GyroYawRate,
+    Heading,
+    WheelOdometry,
+    WheelSpeeds,
+)
+from factors.kinematics import se2_step
+
+DATUM = (47.397742, 8.545594, 488.0)
+R_WHEEL, TRACK = 0.165, 0.555
+SIG_GPS = 1.0  # m
+SIG_WHEEL = 0.1  # rad/s
+SIG_GYRO = 0.01  # rad/s
+SIG_ACC = 0.05  # m/s^2
+SIG_YAW = 0.03  # rad
+OFFSET = 0.2  # rad: compass yaw = ENU yaw + OFFSET
+DT = 0.01
+
+
+def make_cfg(odometry: bool = False, compass: bool = True, gps: bool = True) -> Config:
+    sensors = [SensorConfig(kind="imu", topic="/imu", name="imu",
+                            use=("yaw", "yaw_rate", "accel") if compass else ("yaw_rate", "accel"),
+                            heading_offset=OFFSET)]
+    if gps:
+        sensors.append(SensorConfig(kind="gps", topic="/fix", name="gps", use=("position",)))
+    if odometry:
+        sensors.append(SensorConfig(kind="odometry", topic="/odom", name="odom",
+                                    use=("v", "yaw_rate")))
+    else:
+        sensors.append(SensorConfig(kind="wheels", topic="/joint_states", name="wheels",
+                                    use=("speeds",), joints=("l", "r")))
+    return Config(sensors=sensors, robot=RobotConfig(wheel_radius=R_WHEEL, track_width=TRACK),
+                  datum=DATUM)
+
+
+def _vw(t: float) -> tuple[float, float]:
+    if 60.0 <= t < 70.0:
+        return -0.5 * math.sin(math.pi * (t - 60.0) / 10.0), 0.0
+    ramp = min(1.0, abs(t - 60.0) / 3.0, abs(t - 70.0) / 3.0)  # slow down into and out of it
+    return ramp * (1.2 + 0.4 * math.sin(0.1 * t)), ramp * (0.25 * math.sin(0.045 * t) + 0.05)
+
+
+def twist(t: float) -> tuple[float, float, float]:
+    """True (v m/s, yaw rate rad/s, dv/dt m/s^2): driving, turning both ways, a stop and a short
+    reverse between 60 and 70 s. dv/dt by a central difference (exact enough: 1e-8 m/s^2)."""
+    v, w = _vw(t)
+    h = 1e-5
+    return v, w, (_vw(t + h)[0] - _vw(t - h)[0]) / (2 * h)
+
+
+def simulate(seed: int, duration: float = 120.0, odometry: bool = False):
+    rng = np.random.default_rng(seed)
+    pose = (0.0, 0.0, 0.8)
+    truth, meas = [], []
+    n = int(round(duration / DT))
+    for k in range(n + 1):
+        t = k * DT
+        v, w, a = twist(t)
+        truth.append((t, *pose))
+        if k % 5 == 0:  # 20 Hz encoders
+            if odometry:
+                meas.append(WheelOdometry(t, v + rng.normal(0, 0.02), w + rng.normal(0, 0.02),
+                                          0.02**2, 0.02**2, "odom"))
+            else:
+                wl, wr = (v - 0.5 * TRACK * w) / R_WHEEL, (v + 0.5 * TRACK * w) / R_WHEEL
+                meas.append(WheelSpeeds(t, wl + rng.normal(0, SIG_WHEEL),
+                                        wr + rng.normal(0, SIG_WHEEL), SIG_WHEEL**2,
+                                        SIG_WHEEL**2, "wheels"))
+        if k % 2 == 0:  # 50 Hz IMU
+            meas.append(GyroYawRate(t, w + rng.normal(0, SIG_GYRO), SIG_GYRO**2, "imu"))
+            meas.append(ForwardAccel(t, a + rng.normal(0, SIG_ACC), SIG_ACC**2, "imu"))
+        if k % 10 == 0:  # 10 Hz compass
+            yaw = (pose[2] + OFFSET + rng.normal(0, SIG_YAW) + math.pi) % (2 * math.pi) - math.pi
+            meas.append(Heading(t, yaw, SIG_YAW**2, "imu", "compass"))
+        if k % 20 == 0:  # 5 Hz GPS
+            e, nn = pose[0] + rng.normal(0, SIG_GPS), pose[1] + rng.normal(0, SIG_GPS)
+            lat, lon, alt = geodesy.enu_to_geodetic(e, nn, 0.0, *DATUM)
+            cov = np.diag([SIG_GPS**2, SIG_GPS**2, 4.0])
+            meas.append(GpsFix(t, lat, lon, alt, cov, 0, "gps", (e, nn, 0.0)))
+        pose = se2_step(*pose, v, w, DT)
+    return np.array(truth), meas
+
+
+def run(ekf, truth, meas):
+    """Feed everything; return per-stamp (position error m, yaw error rad, pose cov, est)."""
+    out = []
+    i = 0
+    while i < len(meas):
+        t = meas[i].t
+        while i < len(meas) and meas[i].t == t:
+            ekf.process(meas[i])
+            i += 1
+        est = ekf.estimate()
+        if est is None:
+            continue
+        k = int(round(t / DT))
+        e = np.array(est.pose) - truth[k, 1:]
+        e[2] = (e[2] + math.pi) % (2 * math.pi) - math.pi
+        out.append((t, e, est))
+    return out
+
+
+def _rmse(res, t_from=5.0):
+    e = np.array([r[1] for r in res if r[0] >= t_from])
+    return float(np.sqrt(np.mean(e[:, 0] ** 2 + e[:, 1] ** 2))), float(
+        np.sqrt(np.mean(e[:, 2] ** 2)))
+
+
+@pytest.mark.parametrize("motion", ["euler", "icc"])
+def test_tracks_within_gps_noise_derived_bound(motion):
+    """Fusing 5 Hz GPS (1 m) with good dead reckoning must beat a single fix by far: position
+    RMSE below SIG_GPS / 2, heading RMSE below the compass sigma; lat/lon agree with x/y."""
+    truth, meas = simulate(1)
+    ekf = IgvcEkf(make_cfg(), initial_pose=tuple(truth[0, 1:]), motion=motion)
+    res = run(ekf, truth, meas)
+    pos, yaw = _rmse(res)
+    assert pos < 0.5 * SIG_GPS, pos
+    assert yaw < SIG_YAW, yaw
+    gps = [i for i in ekf.innovations if i.kind == "gps"]
+    assert len(gps) > 500 and sum(not i.accepted for i in gps) <= 2
+    # residuals are logged in metres: their spread is the GPS noise plus the small estimate error
+    r = np.array([i.residual for i in gps[50:]])
+    assert 0.8 * SIG_GPS < r.std() < 1.3 * SIG_GPS
+    # the redundant position representations agree to the sphere's scale error: about 0.17 %
+    # of the distance from the datum at this latitude (see igvc.sphere_radius)
+    est = res[-1][2]
+    lat, lon = math.degrees(est.state[0]), math.degrees(est.state[1])
+    e, n, _ = geodesy.geodetic_to_enu(lat, lon, DATUM[2], *DATUM)
+    dist = math.hypot(*est.pose[:2])
+    assert math.hypot(e - est.pose[0], n - est.pose[1]) < 0.003 * dist + 0.01
+    theta = est.state[2]
+    assert abs((math.pi / 2 - theta - est.pose[2] + math.pi) % (2 * math.pi) - math.pi) < 1e-3
+    # the speed states follow the true twist, including the reverse
+    t70 = [x for x in res if 64.9 < x[0] < 65.1][0]
+    assert t70[2].state[6] == pytest.approx(twist(65.0)[0], abs=0.1)
+    # positive definite, judged on the correlation matrix: lat/lon variances are ~1e-16 rad^2
+    P = est.state_cov
+    d = np.sqrt(np.diag(P))
+    assert np.array_equal(P, P.T) and np.linalg.eigvalsh(P / np.outer(d, d)).min() > 1e-9
+
+
+def test_nees_of_the_pose_is_consistent():
+    """Average pose NEES over three runs in a wide band around 3 (the model's process noise is a
+    tuning, not the truth's generator, so the exact chi-square band is not expected)."""
+    vals = []
+    for seed in range(3):
+        truth, meas = simulate(10 + seed, duration=60.0)
+        ekf = IgvcEkf(make_cfg(), initial_pose=tuple(truth[0, 1:]))
+        for t, e, est in run(ekf, truth, meas)[::50]:
+            if t >= 5.0:
+                vals.append(float(e @ np.linalg.solve(est.pose_cov, e)))
+    assert 1.0 < np.mean(vals) < 6.0, np.mean(vals)
+
+
+def test_wheel_odometry_input_and_gps_initialisation():
+    """No initial pose: position from the first fix, heading from the first compass reading;
+    WheelOdometry instead of wheel speeds."""
+    truth, meas = simulate(2, duration=60.0, odometry=True)
+    ekf = IgvcEkf(make_cfg(odometry=True))
+    assert ekf.estimate() is None
+    res = run(ekf, truth, meas)
+    pos, yaw = _rmse(res, t_from=10.0)
+    assert pos < 0.5 * SIG_GPS and yaw < SIG_YAW, (pos, yaw)
+    assert {i.kind for i in ekf.innovations} == {"gps", "heading", "gyro", "accel", "odometry"}
+
+
+def test_heading_from_gps_course_without_compass():
+    truth, meas = simulate(3, duration=60.0)
+    meas = [m for m in meas if not isinstance(m, Heading)]
+    ekf = IgvcEkf(make_cfg(compass=False))
+    res = run(ekf, truth, meas)
+    assert any("GPS course" in m for m in ekf.log.messages)
+    pos, yaw = _rmse(res, t_from=20.0)
+    assert pos < 0.6 * SIG_GPS and yaw < 0.1, (pos, yaw)
+
+
+def test_heading_offset_estimate_is_ignored_with_a_note():
+    cfg = make_cfg()
+    cfg.sensors[0].heading_offset = "estimate"
+    ekf = IgvcEkf(cfg, initial_pose=(0.0, 0.0, 0.0))
+    assert any("heading_offset 'estimate'" in m for m in ekf.log.messages)
+    ekf.process(Heading(0.0, 1.0, 0.01, "imu", "compass"))
+    ekf.process(Heading(0.1, 1.0, 0.01, "imu", "compass"))
+    assert not [i for i in ekf.innovations if i.kind == "heading"]
+
+
+def test_initial_pose_from_ground_truth_in_the_stream():
+    cfg = make_cfg()
+    cfg.ground_truth_topic, cfg.initial_pose = "/gt", "ground_truth"
+    ekf = IgvcEkf(cfg)
+    ekf.process(GyroYawRate(0.0, 0.0, 1e-4, "imu"))
+    assert ekf.estimate() is None
+    ekf.process(GroundTruthPose(0.0, 3.0, -2.0, 1.0))
+    est = ekf.estimate()
+    assert est.pose == pytest.approx((3.0, -2.0, 1.0))
+    lat, lon, _ = geodesy.enu_to_geodetic(3.0, -2.0, 0.0, *DATUM)
+    assert est.state[0] == pytest.approx(math.radians(lat), abs=1e-12)
+    assert est.state[1] == pytest.approx(math.radians(lon), abs=1e-12)
+
+
+def test_rejects_bad_motion_name():
+    with pytest.raises(ValueError, match="motion"):
+        IgvcEkf(make_cfg(), motion="rk4")
