@@ -36,15 +36,31 @@ drifts away on dead reckoning. ``KalmanCore`` detects this per (sensor, kind): w
 measurement model of a sensor has had at least ``lockout_count`` consecutive gate rejections
 spanning at least ``lockout_time`` seconds (both conditions, so that a burst of outliers from a
 fast sensor, or a single bad GPS fix, does not trigger it), the filter is declared locked out for
-that measurement. Recovery inflates the whole
-covariance by the smallest factor alpha >= 1 for which the current innovation is statistically
-ordinary (NIS = m, its chi-square mean) -- scaling P keeps its correlation structure, so the
-update moves the correlated states (e.g. heading with position) consistently -- and then applies
-the measurement with the normal Joseph update. If no alpha up to ``MAX_INFLATION`` achieves that
-(P has no variance in the measured direction at all), the minimum-norm state perturbation that
-explains the innovation, H^+ y, is added to P as a rank-one term as well. The recovery is
-recorded with ``log.note`` and counted in ``log.rejected[(sensor, 'lockout_recovery')]``;
-``recoveries`` lists (t, sensor, alpha) for tests and reports.
+that measurement.
+
+Before recovering, the core asks whether the filter or the sensor is wrong: if, since the
+rejection streak began, other measurements (other sensors or kinds) were accepted that together
+observe every state this one observes (its H columns), the filter's belief about those states is
+corroborated and the sensor is the outlier -- e.g. a skid-steer base's odometry yaw rate, rejected
+again and again against the gyro. Then nothing is inflated; the sensor stays gated out and a note
+says why. Otherwise the filter is declared lost for that measurement and recovers.
+
+Recovery inflates the whole covariance by the smallest factor alpha >= 1 for which the current
+innovation is statistically ordinary (NIS = m, its chi-square mean). Scaling all of P keeps its
+correlation structure and widens the states that were dead-reckoned together with the measured
+ones (after a kidnapping, heading and position were both wrong), so later measurements can
+re-estimate them; inflating only the measured subspace instead shifts the correlated states by
+their regression on the (huge) innovation and leaves them overconfident. The measurement is
+then applied with the normal Joseph update. If no alpha up to ``MAX_INFLATION`` achieves NIS = m
+(P has no variance in a measured direction), the minimum-norm state perturbation that explains
+the innovation, H^+ y, is added to P as a rank-one term as well.
+
+Repeated recoveries are bounded: after one, the next recovery (or corroboration verdict) of that
+(sensor, kind) waits at least ``recovery_holdoff`` seconds, and the hold-off doubles each time.
+A genuine lock-out is cleared by the first recovery.
+
+Each recovery is recorded with ``log.note`` and counted in
+``log.rejected[(sensor, 'lockout_recovery')]``; ``recoveries`` lists (t, sensor, alpha).
 """
 
 from __future__ import annotations
@@ -57,10 +73,17 @@ from scipy.stats import chi2
 
 from estimation.estimator import EstimatorLog, Innovation
 
-__all__ = ["KalmanCore", "chi2_threshold", "DEFAULT_LOCKOUT_COUNT", "DEFAULT_LOCKOUT_TIME"]
+__all__ = [
+    "KalmanCore",
+    "chi2_threshold",
+    "DEFAULT_LOCKOUT_COUNT",
+    "DEFAULT_LOCKOUT_TIME",
+    "DEFAULT_RECOVERY_HOLDOFF",
+]
 
 DEFAULT_LOCKOUT_COUNT = 5  # consecutive gate rejections of one sensor ...
 DEFAULT_LOCKOUT_TIME = 1.0  # ... spanning at least this many seconds => locked out
+DEFAULT_RECOVERY_HOLDOFF = 10.0  # s before a second recovery of the same (sensor, kind); doubles
 MAX_INFLATION = 1e12  # largest covariance scale factor tried by the recovery
 
 _TWO_PI = 2.0 * math.pi
@@ -80,12 +103,13 @@ class KalmanCore:
 
     Units and frames are the caller's; ``state_angles`` lists the indices of angle states (rad)
     that are kept wrapped to [-pi, pi). ``log`` receives innovations, rejections and notes.
-    ``lockout_count`` / ``lockout_time`` (s) set the gate lock-out detection (module docstring).
+    ``lockout_count`` / ``lockout_time`` (s) set the gate lock-out detection and
+    ``recovery_holdoff`` (s) the wait before a repeated recovery (module docstring).
     """
 
     __slots__ = (
-        "x", "P", "n", "log", "state_angles", "lockout_count", "lockout_time", "_streak",
-        "recoveries", "last_nis", "_eye",
+        "x", "P", "n", "log", "state_angles", "lockout_count", "lockout_time",
+        "recovery_holdoff", "_streak", "_holdoff", "_last_ok", "recoveries", "last_nis", "_eye",
     )
 
     def __init__(
@@ -97,6 +121,7 @@ class KalmanCore:
         state_angles: tuple[int, ...] = (),
         lockout_count: int = DEFAULT_LOCKOUT_COUNT,
         lockout_time: float = DEFAULT_LOCKOUT_TIME,
+        recovery_holdoff: float = DEFAULT_RECOVERY_HOLDOFF,
     ) -> None:
         self.x = np.array(x0, dtype=float).reshape(-1)
         self.n = self.x.shape[0]
@@ -107,6 +132,11 @@ class KalmanCore:
         self.state_angles = tuple(state_angles)
         self.lockout_count = int(lockout_count)
         self.lockout_time = float(lockout_time)
+        self.recovery_holdoff = float(recovery_holdoff)
+        # (sensor, kind) -> (earliest time of the next recovery, hold-off after that one)
+        self._holdoff: dict[tuple[str, str], tuple[float, float]] = {}
+        # (sensor, kind) -> (time, H, row start, row stop) of its last accepted update
+        self._last_ok: dict[tuple[str, str], tuple] = {}
         # (sensor, kind) -> [consecutive gate rejections, time of the first of them]
         self._streak: dict[tuple[str, str], list] = {}
         self.recoveries: list[tuple[float, str, float]] = []
@@ -234,7 +264,12 @@ class KalmanCore:
                 if streak[0] == 0:
                     streak[1] = t
                 streak[0] += 1
-                if streak[0] >= self.lockout_count and t - streak[1] >= self.lockout_time:
+                if (
+                    streak[0] >= self.lockout_count
+                    and t - streak[1] >= self.lockout_time
+                    and t >= self._holdoff.get((sensor, kind), (-math.inf, 0.0))[0]
+                    and self._lost(t, sensor, kind, H, i0, i1, streak)
+                ):
                     self._recover(t, sensor, kind, y[i0:i1].copy(), H[i0:i1], R[i0:i1, i0:i1],
                                   streak)
                     PHt = self.P @ H.T
@@ -279,8 +314,10 @@ class KalmanCore:
         if self.state_angles:
             self._wrap_state()
         inns = log.innovations
+        last_ok = self._last_ok
         for (sensor, kind, i0, i1, _a, _g), k, nis in zip(blocks, keep, nis_list, strict=True):
             if k:
+                last_ok[(sensor, kind)] = (t, H, i0, i1)
                 yb = y[i0:i1]
                 Sb = S[i0:i1, i0:i1]
                 if recovered:
@@ -289,6 +326,32 @@ class KalmanCore:
         return n_acc
 
     # ------------------------------------------------------------------ recovery
+    def _lost(self, t, sensor, kind, H, i0, i1, streak) -> bool:
+        """True if a lock-out of (sensor, kind) means the filter is lost; False if other accepted
+        measurements corroborate the filter on every state this block observes."""
+        support = set(np.flatnonzero(np.any(H[i0:i1] != 0.0, axis=0)).tolist())
+        covered: set[int] = set()
+        by: list[str] = []
+        for key, (tk, Hk, j0, j1) in self._last_ok.items():
+            if key == (sensor, kind) or tk < streak[1]:
+                continue
+            cols = set(np.flatnonzero(np.any(Hk[j0:j1] != 0.0, axis=0)).tolist())
+            if cols & support:
+                covered |= cols
+                by.append(f"{key[0]}/{key[1]}")
+        if not support <= covered:
+            return True
+        key = (sensor, kind)
+        wait = self._holdoff.get(key, (0.0, self.recovery_holdoff / 2.0))[1] * 2.0
+        self._holdoff[key] = (t + wait, wait)
+        self.log.note(
+            t,
+            f"{sensor}/{kind}: {streak[0]} consecutive gate rejections over {t - streak[1]:.2f} s "
+            f"while {', '.join(sorted(by))} (observing the same states) were accepted: the sensor "
+            f"disagrees with the others, not recovering (checked again in {wait:.0f} s)",
+        )
+        return False
+
     def _recover(self, t, sensor, kind, y, H, R, streak) -> None:
         """Inflate P so that innovation ``y`` of block (H, R) is ordinary (NIS = m)."""
         m = y.shape[0]
@@ -315,12 +378,16 @@ class KalmanCore:
             d = np.linalg.pinv(H) @ y  # minimum-norm state error explaining the innovation
             self.P = P * alpha + np.outer(d, d)
         self._symmetrize()
+        key = (sensor, kind)
+        wait = self._holdoff.get(key, (0.0, self.recovery_holdoff / 2.0))[1] * 2.0
+        self._holdoff[key] = (t + wait, wait)
         self.recoveries.append((t, sensor, alpha))
         self.log.rejected[(sensor, "lockout_recovery")] += 1
         self.log.note(
             t,
             f"{sensor}/{kind}: gate lock-out after {streak[0]} rejections over "
-            f"{t - streak[1]:.2f} s; covariance inflated x{alpha:.3g} and measurement accepted",
+            f"{t - streak[1]:.2f} s; covariance inflated x{alpha:.3g} and measurement accepted "
+            f"(next recovery of it not before {wait:.0f} s)",
         )
         streak[0] = 0
 

@@ -200,3 +200,46 @@ def test_update_blocks_equals_sequential_updates_and_gates_per_block():
     assert st2.log.rejected[("b", "gate")] == 1
     rejected = [i for i in st2.log.innovations if not i.accepted]
     assert len(rejected) == 1 and rejected[0].sensor == "b"
+
+
+def test_no_recovery_when_other_sensors_corroborate_the_filter():
+    """Two sensors observe the same constant state: 'good' is right, 'bad' is biased by 20
+    sigma. 'bad' is rejected persistently; since 'good' keeps being accepted on the same state,
+    the core does not inflate P (no recovery), notes why, and follows 'good'. Without 'good' the
+    same streak is a lock-out and is recovered (the check can fail both ways)."""
+    rng = np.random.default_rng(9)
+    for with_good in (True, False):
+        # start confident at 0 (as after a stand-still), so that 'bad' is gated from the start
+        kf = KalmanCore([0.0], [[1e-4]], lockout_count=5, lockout_time=1.0,
+                        recovery_holdoff=10.0)
+        H, R = np.array([[1.0]]), np.array([[0.01]])
+        for k in range(600):
+            t = 0.1 * k
+            kf.predict(np.eye(1), np.array([[1e-6]]))
+            if with_good:
+                kf.update(t, "good", "v", [0.1 * rng.normal()], kf.x, H, R, gate=0.9999)
+            kf.update(t, "bad", "v", [2.0 + 0.1 * rng.normal()], kf.x, H, R, gate=0.9999)
+        if with_good:
+            assert not kf.recoveries
+            assert abs(kf.x[0]) < 0.05 and kf.P[0, 0] < 1e-3
+            notes = [m for m in kf.log.messages if "disagrees with the others" in m]
+            # verdicts at ~1 s, then after hold-offs of 10, 20 s: bounded, not per message
+            assert 2 <= len(notes) <= 4
+            assert kf.log.rejected[("bad", "gate")] > 550
+        else:
+            assert len(kf.recoveries) == 1 and abs(kf.x[0] - 2.0) < 0.05
+
+
+def test_repeated_recoveries_are_held_off():
+    """A sensor that is the only one on its state and keeps jumping away triggers recoveries at
+    most after hold-offs of 10, 20, 40 s: few, not one per streak."""
+    kf = KalmanCore([0.0], [[1.0]], lockout_count=5, lockout_time=1.0, recovery_holdoff=10.0)
+    H, R = np.array([[1.0]]), np.array([[0.01]])
+    for k in range(800):
+        t = 0.1 * k
+        kf.predict(np.eye(1), np.array([[1e-8]]))
+        kf.update(t, "s", "k", [10.0 * (k // 20)], kf.x, H, R, gate=0.9999)  # jumps every 2 s
+    times = [r[0] for r in kf.recoveries]
+    assert 2 <= len(times) <= 4
+    gaps = np.diff(times)
+    assert (gaps >= np.array([10.0, 20.0, 40.0])[: len(gaps)] - 1e-9).all()
