@@ -247,7 +247,9 @@ class IgvcEkf(Estimator):
         P0 = T @ P0 @ T.T
         P0[VL, VL] += ns.slip_var
         P0[VR, VR] += ns.slip_var
-        self.kf = KalmanCore(s0, P0, self.log, state_angles=(THETA, PSI))
+        # lon is an angle too: wrapped so that crossing the antimeridian does not leave it
+        # outside [-pi, pi) (the GPS innovation is wrapped as well)
+        self.kf = KalmanCore(s0, P0, self.log, state_angles=(LON, THETA, PSI))
         self.t = t
 
     def _position_noise_map(self, lat: float) -> np.ndarray:
