@@ -143,7 +143,7 @@ def test_icc_is_continuous_through_zero_turn_rate():
     rng = random.Random(5)
     s = _state(rng)
     prev = None
-    for w in np.linspace(-2e-3, 2e-3, 41) + SERIES_THRESHOLD * 0:  # crosses 0
+    for w in np.linspace(-2e-3, 2e-3, 41):  # crosses 0
         s[W] = w
         f, F = igvc_jacobians.icc_step(s, 0.5, TRACK, RADIUS)
         cur = np.concatenate([np.array(f) * SCALE, (np.array(F) / SCALE[None, :]).ravel()])
