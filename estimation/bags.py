@@ -328,18 +328,18 @@ def read_stream(bag: str | Path, cfg: Config, progress: Callable[[float], None] 
     try:
         sources = _sources(cfg, reader, bag)
         rejected: Counter = Counter()
-        decoded: dict[int, object] = {}
+        last_raw, last_msg = None, None
         for src, rec_ns, raw in _iterate(reader, sources, progress):
             try:
                 if src.raw:
                     rec = src.extract(raw)
                 else:
-                    # Several sources may share a topic: deserialise once.
-                    key = id(raw)
-                    if key not in decoded:
-                        decoded.clear()
-                        decoded[key] = reader.deserialize(raw, src.msgtype)
-                    rec = src.extract(decoded[key])
+                    # Several sources may share a topic: deserialise each message once. Compare
+                    # the bytes object itself (kept alive here), never its id(), which CPython
+                    # reuses once the previous message is freed.
+                    if raw is not last_raw:
+                        last_raw, last_msg = raw, reader.deserialize(raw, src.msgtype)
+                    rec = src.extract(last_msg)
                 for m in src.convert(rec):
                     src.records.append((m.t, rec_ns * 1e-9, m))
             except Reject as e:
