@@ -302,7 +302,13 @@ class KalmanCore:
         # K = P H^T S^-1. S is symmetric PD (its diagonal blocks were checked above) and small;
         # inv is about half the cost of solve for these sizes and as accurate at these
         # condition numbers
-        K = PHtk / Sk[0, 0] if Sk.shape[0] == 1 else PHtk @ np.linalg.inv(Sk)
+        mk = Sk.shape[0]
+        if mk == 1:
+            K = PHtk / Sk[0, 0]
+        elif mk <= 3:
+            K = PHtk @ _inv_small(Sk.tolist())
+        else:
+            K = PHtk @ np.linalg.inv(Sk)
         self.x = self.x + K @ yk
         # Joseph form in its factored form: the expanded P - K U^T - U K^T + K S K^T is the same
         # algebra but cancels catastrophically for a precise measurement of an uncertain state
@@ -390,6 +396,26 @@ class KalmanCore:
             f"(next recovery of it not before {wait:.0f} s)",
         )
         streak[0] = 0
+
+
+def _inv_small(S: list) -> np.ndarray:
+    """Inverse of a 2x2 or 3x3 positive-definite matrix (nested lists) by its adjugate: a few
+    float operations instead of the several microseconds of LAPACK call overhead."""
+    if len(S) == 2:
+        (a, b), (c, d) = S
+        det = a * d - b * c
+        return np.array(((d / det, -b / det), (-c / det, a / det)))
+    (a, b, c), (d, e, f), (g, h, i) = S
+    A = e * i - f * h
+    B = f * g - d * i
+    C = d * h - e * g
+    det = a * A + b * B + c * C
+    r = 1.0 / det
+    return np.array((
+        (A * r, (c * h - b * i) * r, (b * f - c * e) * r),
+        (B * r, (a * i - c * g) * r, (c * d - a * f) * r),
+        (C * r, (b * g - a * h) * r, (a * e - b * d) * r),
+    ))
 
 
 def _nis(y: np.ndarray, S: np.ndarray) -> float | None:
