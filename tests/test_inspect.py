@@ -168,9 +168,6 @@ def test_mrclam_facts(mrclam_bag):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="bags.read_stream's id(raw) decode cache returns stale "
-                   "landmark messages when /landmarks is interleaved with /odom; the stale "
-                   "stamps then trip the 'header stamps jump' BagError (1503 of 4771)")
 def test_mrclam_suggested_config_reads(mrclam_bag, tmp_path):
     cfg = load_config(write_suggested(bag_info(mrclam_bag), tmp_path))
     s = read_stream(mrclam_bag, cfg)
