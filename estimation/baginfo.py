@@ -136,8 +136,8 @@ def bag_info(path: str | Path) -> BagInfo:
             except Exception:  # counted below as undecodable
                 continue
             recs.setdefault(conn.topic, []).append(rec)
-    except (OSError, ValueError, KeyError) as e:
-        raise BagError(f"{path}: bag became unreadable mid-way ({e}); truncated?") from None
+    except Exception as e:  # rosbags raises many types on damaged storage
+        raise BagError(f"{path}: bag is damaged or truncated ({type(e).__name__}: {e})") from None
     finally:
         reader.close()
     for topic, lst in recs.items():

@@ -325,35 +325,54 @@ def read_stream(bag: str | Path, cfg: Config, progress: Callable[[float], None] 
     Raises BagError (naming the file, topic and field) when the bag or a topic cannot be used."""
     bag = Path(bag)
     reader = open_reader(bag)
+    damaged = None
+    read_counts: Counter = Counter()
     try:
         sources = _sources(cfg, reader, bag)
+        expected = {c.topic: c.msgcount for c in reader.connections}
         rejected: Counter = Counter()
         last_raw, last_msg = None, None
-        for src, rec_ns, raw in _iterate(reader, sources, progress):
-            try:
-                if src.raw:
-                    rec = src.extract(raw)
-                else:
-                    # Several sources may share a topic: deserialise each message once. Compare
-                    # the bytes object itself (kept alive here), never its id(), which CPython
-                    # reuses once the previous message is freed.
-                    if raw is not last_raw:
-                        last_raw, last_msg = raw, reader.deserialize(raw, src.msgtype)
-                    rec = src.extract(last_msg)
-                for m in src.convert(rec):
-                    src.records.append((m.t, rec_ns * 1e-9, m))
-            except Reject as e:
-                rejected[(src.topic, str(e))] += 1
-            except Exception as e:  # a message that fails to decode is one bad message
-                rejected[(src.topic, f"cannot decode message: {type(e).__name__}: {e}")] += 1
-    except (OSError, ValueError, KeyError) as e:
-        raise BagError(f"{bag}: bag became unreadable mid-way ({e}); truncated?") from None
+        try:
+            for src, rec_ns, raw in _iterate(reader, sources, progress):
+                read_counts[src.key] += 1
+                try:
+                    if src.raw:
+                        rec = src.extract(raw)
+                    else:
+                        # Several sources may share a topic: deserialise each message once.
+                        # Compare the bytes object itself (kept alive here), never its id(),
+                        # which CPython reuses once the previous message is freed.
+                        if raw is not last_raw:
+                            last_raw, last_msg = raw, reader.deserialize(raw, src.msgtype)
+                        rec = src.extract(last_msg)
+                    for m in src.convert(rec):
+                        src.records.append((m.t, rec_ns * 1e-9, m))
+                except Reject as e:
+                    rejected[(src.topic, str(e))] += 1
+                except Exception as e:  # a message that fails to decode is one bad message
+                    rejected[(src.topic, f"cannot decode message: {type(e).__name__}: {e}")] += 1
+        except Exception as e:  # rosbags raises many types on damaged storage
+            damaged = f"bag is damaged or truncated after {sum(read_counts.values())} messages " \
+                      f"({type(e).__name__}: {e})"
+        if damaged is None:
+            short = [(s.topic, read_counts[s.key], expected[s.topic]) for s in sources
+                     if read_counts[s.key] < expected[s.topic]]
+            if short:
+                topic, got, want = short[0]
+                damaged = (f"bag is damaged: topic {topic} has {want} messages in its index "
+                           f"but only {got} could be read")
     finally:
         reader.close()
+    if damaged is not None:
+        try:
+            partial = _assemble(bag, cfg, sources, rejected)
+        except BagError:
+            partial = None
+        raise BagError(f"{bag}: {damaged}", partial=partial)
     return _assemble(bag, cfg, sources, rejected)
 
 
-def _drop_bad_stamps(src: _Source, tolerance: float, rejected: Counter) -> list:
+def _drop_bad_stamps(bag: Path, src: _Source, tolerance: float, rejected: Counter) -> list:
     """Drop records whose header stamp is inconsistent with the topic's stamp-to-record offset.
 
     Real bags carry small reorderings (kept and sorted) but also single broken stamps (zero, a
@@ -369,7 +388,7 @@ def _drop_bad_stamps(src: _Source, tolerance: float, rejected: Counter) -> list:
         rejected[(src.topic, f"header stamp more than {tolerance:g} s off its topic's clock "
                              "(time went backwards or jumped)")] += bad
         if bad > 0.1 * len(recs):
-            raise BagError(f"{src.topic} ({src.key}): {bad} of {len(recs)} header stamps "
+            raise BagError(f"{bag}: topic {src.topic} ({src.key}): {bad} of {len(recs)} stamps "
                            f"jump by more than {tolerance:g} s against the bag's record time; "
                            "the bag mixes clocks or time goes backwards beyond reorder_window")
     return keep
@@ -386,7 +405,7 @@ def _assemble(bag: Path, cfg: Config, sources: list[_Source], rejected: Counter)
                          key=lambda x: x[1])[0]
             raise BagError(f"{bag}: topic {src.topic} ({src.key}): all {n_total} messages "
                            f"rejected: {reason}")
-        keep = _drop_bad_stamps(src, tolerance, rejected)
+        keep = _drop_bad_stamps(bag, src, tolerance, rejected)
         target = truth if src.key == "ground_truth" else measurements
         target.extend(r[2] for r in keep)
     # Stable sort by header stamp: messages arrive slightly out of order in real bags.

@@ -203,7 +203,7 @@ def _sensor(ck: _Checker, kind: str, i: int, raw: Any, base: Path) -> SensorConf
     if "name" in d:
         s.name = ck.string(d["name"], f"{key}.name")
     gate = d.get("gate", DEFAULT_GATE)
-    if gate in ("off", False, None):
+    if gate is None or gate is False or gate == "off":
         s.gate = None
     else:
         g = ck.number(gate, f"{key}.gate")
@@ -326,7 +326,9 @@ def load_config(path: str | Path) -> Config:
     if not p.is_file():
         raise ConfigError(f"{p}: config file not found")
     try:
-        raw = yaml.safe_load(p.read_text())
+        raw = yaml.safe_load(p.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as e:
+        raise ConfigError(f"{p}: cannot read config: {e}") from None
     except yaml.YAMLError as e:
         raise ConfigError(f"{p}: not valid YAML: {str(e).splitlines()[0]}") from None
     return parse_config(raw, str(p), p.parent)
@@ -335,8 +337,8 @@ def load_config(path: str | Path) -> Config:
 def load_landmark_map(path: Path) -> dict[str, tuple[float, float]]:
     """Landmark map YAML: ``landmarks: {id: [x, y]}`` (m, in the map/local frame)."""
     try:
-        raw = yaml.safe_load(Path(path).read_text())
-    except (OSError, yaml.YAMLError) as e:
+        raw = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as e:
         raise ConfigError(f"{path}: cannot read landmark map: {e}") from None
     ck = _Checker(str(path))
     if not isinstance(raw, dict) or not isinstance(raw.get("landmarks"), dict):

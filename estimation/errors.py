@@ -10,4 +10,11 @@ class ConfigError(DdfuseError):
 
 
 class BagError(DdfuseError):
-    """A bag that cannot be read as configured (missing, unreadable, topic absent, wrong type)."""
+    """A bag that cannot be read as configured (missing, unreadable, topic absent, wrong type).
+
+    ``partial``, when set, holds the measurement stream decoded before the bag became unreadable
+    (a truncated or damaged bag), so that callers can still use what was read."""
+
+    def __init__(self, message: str, partial=None):
+        super().__init__(message)
+        self.partial = partial

@@ -552,8 +552,6 @@ def test_time_going_backwards_for_many_messages_is_an_error(tmp_path, fmt):
     assert "/imu" in str(e.value) and "sensors.imu[0]" in str(e.value)
 
 
-@pytest.mark.xfail(strict=True, reason="bags._drop_bad_stamps: the 'header stamps jump' BagError "
-                   "names topic and key but not the bag file, unlike every other BagError")
 def test_time_going_backwards_error_names_the_bag(tmp_path):
     recs = [("/imu", bw.imu(T0 + 0.1 * i - (5.0 if i >= 28 else 0.0), wcov=bw.diag(1, 1, 1)),
              T0 + 0.1 * i) for i in range(40)]
@@ -823,10 +821,6 @@ def test_a_ros2_storage_file_can_be_given_directly(tmp_path, fmt):
     assert len(s.measurements) == 10
 
 
-CORRUPT_BUG = ("bags.read_stream (and baginfo.bag_info): an error that rosbags raises while "
-               "iterating a damaged bag (rosbags.rosbag1.ReaderError, OverflowError from the MCAP "
-               "reader) is not one of the caught (OSError, ValueError, KeyError) and escapes as a "
-               "traceback instead of BagError")
 
 
 def _damage(tmp_path: Path, fmt: str, where: float, pattern: bytes) -> Path:
@@ -841,9 +835,9 @@ def _damage(tmp_path: Path, fmt: str, where: float, pattern: bytes) -> Path:
 
 
 @pytest.mark.parametrize("fmt", [
-    pytest.param("ros1", marks=pytest.mark.xfail(strict=True, reason=CORRUPT_BUG)),
+    "ros1",
     "sqlite3",
-    pytest.param("mcap", marks=pytest.mark.xfail(strict=True, reason=CORRUPT_BUG)),
+    "mcap",
 ])
 def test_bag_damaged_in_the_middle(tmp_path, fmt):
     """0xff bytes written over the middle of the file (a disk error, a bad copy): BagError."""
@@ -853,9 +847,6 @@ def test_bag_damaged_in_the_middle(tmp_path, fmt):
     assert str(bad) in str(e.value)
 
 
-@pytest.mark.xfail(strict=True, reason="bags.read_stream: rosbags' MCAP reader stops at a zeroed "
-                   "chunk without an error; read_stream returns the first 989 of 3000 messages "
-                   "with nothing in Stream.rejected (compare with the connections' msgcount)")
 def test_damaged_mcap_does_not_lose_messages_silently(tmp_path):
     bad = _damage(tmp_path, "mcap", 0.3, b"\x00")
     try:

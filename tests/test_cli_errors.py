@@ -86,15 +86,12 @@ def test_inspect_truncated_bag(tmp_path, capsys, fmt):
     assert code == 0 and "/imu" in out and "3000" in out and err == ""
 
 
-DAMAGE_BUG = ("baginfo.bag_info catches (OSError, ValueError, KeyError) only: rosbags' "
-              "ReaderError (ROS1) / OverflowError (MCAP) raised while iterating a damaged bag "
-              "escape evaluation.cli.main as a traceback instead of exit code 2")
 
 
 @pytest.mark.parametrize("fmt", [
-    pytest.param("ros1", marks=pytest.mark.xfail(strict=True, reason=DAMAGE_BUG)),
+    "ros1",
     "sqlite3",
-    pytest.param("mcap", marks=pytest.mark.xfail(strict=True, reason=DAMAGE_BUG)),
+    "mcap",
 ])
 def test_inspect_damaged_bag(tmp_path, capsys, fmt):
     bag = _imu_bag(tmp_path, fmt)

@@ -301,9 +301,6 @@ def test_landmark_map_relative_to_base(tmp_path):
         parse_config(sensor("landmarks", topic="/lm", map="m.yaml"), base=tmp_path / "sub")
 
 
-@pytest.mark.xfail(strict=True, reason="config._sensor: `gate in ('off', False, None)` is true "
-                   "for gate: 0 (0 == False), so gate 0 silently means 'off' instead of an error "
-                   "'must be a probability in (0, 1)'")
 def test_gate_zero_is_an_error():
     with pytest.raises(ConfigError) as e:
         parse_config(sensor("gps", topic="/f", gate=0), "c.yaml")
@@ -358,9 +355,6 @@ def test_empty_or_non_mapping_file(tmp_path, text):
     assert str(e.value).startswith(str(p))
 
 
-@pytest.mark.xfail(strict=True, reason="config.load_config: p.read_text() raises "
-                   "UnicodeDecodeError on a non-UTF-8 file; only yaml.YAMLError is caught, so a "
-                   "binary file (e.g. a bag passed as the config) ends in a traceback")
 def test_binary_config_file_is_a_config_error(tmp_path):
     p = tmp_path / "robot.bag"
     p.write_bytes(b"#ROSBAG V2.0\n\xff\xfe\x00\x01\x89binary")
@@ -403,8 +397,6 @@ def test_unreadable_landmark_map(tmp_path):
         assert str(p) in str(e.value)
 
 
-@pytest.mark.xfail(strict=True, reason="config.load_landmark_map catches OSError and YAMLError "
-                   "but not UnicodeDecodeError: a non-UTF-8 map file ends in a traceback")
 def test_binary_landmark_map(tmp_path):
     p = tmp_path / "m.yaml"
     p.write_bytes(b"\xff\xfe\x00garbage")
