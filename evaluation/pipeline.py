@@ -17,6 +17,7 @@ import numpy as np
 
 from estimation.bags import read_stream
 from estimation.config import Config
+from estimation.errors import BagError
 from estimation.runner import RunResult, initial_pose, run
 from evaluation import estimators as registry
 from evaluation import metrics
@@ -87,8 +88,15 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
     outdir.mkdir(parents=True, exist_ok=True)
     chosen = registry.select(cfg, names)
     t_a = time.perf_counter()
-    stream = read_stream(bag, cfg, progress=(lambda f: progress("decode", f)) if progress
-                         else None)
+    input_error = None
+    try:
+        stream = read_stream(bag, cfg, progress=(lambda f: progress("decode", f)) if progress
+                             else None)
+    except BagError as e:
+        # A truncated or damaged bag: estimate on what was read, write it, then report.
+        if e.partial is None or not e.partial.measurements:
+            raise
+        stream, input_error = e.partial, str(e)
     decode_s = time.perf_counter() - t_a
     pose = initial_pose(cfg.initial_pose, stream)
     lag = lag if lag is not None else cfg.smoother.lag
@@ -103,7 +111,11 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
                            else list(pose) if pose else None)
     out["lag_s"] = lag
     out["gps_holdout"] = holdout
+    out["input_error"] = input_error
     write_outputs(result, outdir, out)
+    if input_error:
+        raise BagError(f"{input_error}; results for the {stream.duration:.1f} s that could be "
+                       f"read are in {outdir}")
     return out
 
 
