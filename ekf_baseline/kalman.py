@@ -55,9 +55,11 @@ then applied with the normal Joseph update. If no alpha up to ``MAX_INFLATION`` 
 (P has no variance in a measured direction), the minimum-norm state perturbation that explains
 the innovation, H^+ y, is added to P as a rank-one term as well.
 
-Repeated recoveries are bounded: after one, the next recovery (or corroboration verdict) of that
-(sensor, kind) waits at least ``recovery_holdoff`` seconds, and the hold-off doubles each time.
-A genuine lock-out is cleared by the first recovery.
+Repeated recoveries are bounded: if a (sensor, kind) locks out again before it has been accepted
+``lockout_count`` times since its last recovery (or corroboration verdict) -- the recovery did
+not take -- the next one waits at least ``recovery_holdoff`` seconds, and that hold-off doubles
+each time. A recovery that took (the sensor was accepted again) resets this, so independent
+lock-outs far apart (sighting gaps on a landmark run) are each recovered at once.
 
 Each recovery is recorded with ``log.note`` and counted in
 ``log.rejected[(sensor, 'lockout_recovery')]``; ``recoveries`` lists (t, sensor, alpha).
@@ -260,14 +262,15 @@ class KalmanCore:
             streak = streaks.get((sensor, kind))
             if gate is not None and nis > chi2_threshold(gate, m):
                 if streak is None:
-                    streak = streaks[(sensor, kind)] = [0, t]
+                    # [consecutive rejections, first of them (s), acceptances since recovery]
+                    streak = streaks[(sensor, kind)] = [0, t, 0]
                 if streak[0] == 0:
                     streak[1] = t
                 streak[0] += 1
                 if (
                     streak[0] >= self.lockout_count
                     and t - streak[1] >= self.lockout_time
-                    and t >= self._holdoff.get((sensor, kind), (-math.inf, 0.0))[0]
+                    and self._holdoff_over(t, (sensor, kind), streak)
                     and self._lost(t, sensor, kind, H, i0, i1, streak)
                 ):
                     self._recover(t, sensor, kind, y[i0:i1].copy(), H[i0:i1], R[i0:i1, i0:i1],
@@ -288,6 +291,7 @@ class KalmanCore:
                 continue
             if streak is not None:
                 streak[0] = 0
+                streak[2] += 1
             keep.append(True)
             nis_list.append(nis)
         n_acc = sum(keep)
@@ -332,6 +336,18 @@ class KalmanCore:
         return n_acc
 
     # ------------------------------------------------------------------ recovery
+    def _holdoff_over(self, t: float, key: tuple[str, str], streak: list) -> bool:
+        """True if a recovery of ``key`` is allowed at ``t``. A previous recovery that 'took'
+        (the measurement was accepted ``lockout_count`` times since) starts afresh: the doubling
+        hold-off is only for lock-outs that recur without the sensor ever being accepted."""
+        ho = self._holdoff.get(key)
+        if ho is None:
+            return True
+        if streak[2] >= self.lockout_count:
+            del self._holdoff[key]
+            return True
+        return t >= ho[0]
+
     def _lost(self, t, sensor, kind, H, i0, i1, streak) -> bool:
         """True if a lock-out of (sensor, kind) means the filter is lost; False if other accepted
         measurements corroborate the filter on every state this block observes."""
@@ -387,6 +403,7 @@ class KalmanCore:
         key = (sensor, kind)
         wait = self._holdoff.get(key, (0.0, self.recovery_holdoff / 2.0))[1] * 2.0
         self._holdoff[key] = (t + wait, wait)
+        streak[2] = 0
         self.recoveries.append((t, sensor, alpha))
         self.log.rejected[(sensor, "lockout_recovery")] += 1
         self.log.note(
