@@ -176,12 +176,6 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_simulate(args: argparse.Namespace) -> int:
-    from evaluation import simulate
-
-    return simulate.main(args.rest) or 0
-
-
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="ddfuse",
@@ -225,14 +219,28 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--json", type=Path, help="also write the results as JSON")
     sp.set_defaults(func=cmd_bench)
 
-    sp = sub.add_parser("simulate", help="simulate a robot drive into a bag with ground truth",
-                        add_help=False)
-    sp.add_argument("rest", nargs=argparse.REMAINDER)
-    sp.set_defaults(func=cmd_simulate)
+    sub.add_parser("simulate", help="simulate a robot drive into a bag with ground truth "
+                   "(ddfuse simulate --help)")
+    sub.add_parser("plot-sim", help="plot a simulated scenario: truth, GPS, dead reckoning "
+                   "(ddfuse plot-sim --help)")
     return p
 
 
+# Sub-commands whose module parses its own arguments (argparse.REMAINDER cannot pass a leading
+# option such as --help through, so they are dispatched before the top-level parser).
+DELEGATED = {"simulate": "evaluation.simulate", "plot-sim": "evaluation.plot_sim"}
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] in DELEGATED:
+        import importlib
+
+        try:
+            return importlib.import_module(DELEGATED[argv[0]]).main(argv[1:]) or 0
+        except DdfuseError as e:
+            print(f"ddfuse: error: {e}", file=sys.stderr)
+            return 2
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.ERROR,
                         format="%(levelname)s %(name)s: %(message)s")
