@@ -76,7 +76,8 @@ class SmootherConfig:
     keyframe: str = "gps"  # 'gps' (at GPS fixes, preintegrated odometry between) or 'rate'
     keyframe_rate: float = 2.0  # Hz, for keyframe 'rate' and as the upper gap without GPS
     robust: str = "huber"  # 'huber', 'cauchy' or 'none' (GPS factors)
-    robust_k: float = 1.345
+    # threshold on the whitened residual norm; None: the sensor's chi-square gate radius
+    robust_k: float | None = None
 
 
 @dataclass
@@ -307,7 +308,7 @@ def parse_config(raw: Any, source: str = "<config>", base: Path | None = None) -
                                          positive=True)
         if "robust" in s:
             sc.robust = ck.choice(s["robust"], "smoother.robust", ("huber", "cauchy", "none"))
-        if "robust_k" in s:
+        if s.get("robust_k") is not None:
             sc.robust_k = ck.number(s["robust_k"], "smoother.robust_k", positive=True)
         cfg.smoother = sc
     if "ekf" in d:

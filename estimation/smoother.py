@@ -4,9 +4,12 @@ Design (from shared/notes/gtsam-smoother-design-study.md, measured there as the 
 velocity and biases as states): one 7-vector key per keyframe, ``[x, y, psi, v, w, bg, hoff]``
 (``factors.state``), and few factors per keyframe:
 
-* wheel speed and yaw rate (gyro, else odometry or wheel speeds) between keyframes are folded
-  into one preintegrated factor (``factors.preintegration``) with first-order gyro-bias
-  correction; its last sample ties the keyframe's v and w;
+* wheel speed and yaw rate between keyframes are folded into one preintegrated factor
+  (``factors.preintegration``) with first-order gyro-bias correction; its last sample ties the
+  keyframe's v and w. When both a gyro and an odometry (or wheel-speed) yaw rate are configured,
+  each integration step uses their inverse-variance weighted mean, the gyro's weight being the
+  share of the gyro bias the fused rate carries. A held sample's error is the same over its whole
+  period T, so its variance enters as a density var * T (per step of dt: var * T / dt);
 * a GPS fix is a GPS factor (lever arm; motion-compensated when it does not fall on the keyframe;
   robust noise from the config);
 * the absolute heading sample nearest each keyframe is one heading factor (with the offset state
@@ -32,11 +35,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import gtsam
 import numpy as np
+from scipy.stats import chi2
 
-from estimation.config import Config, SensorConfig
+from estimation.config import DEFAULT_GATE, Config, SensorConfig
 from estimation.estimator import Estimate, Estimator, Innovation, wrap_angle
 from estimation.measurements import (
     GpsFix,
@@ -64,9 +69,9 @@ class SmootherNoise:
     Not tuned per bag or per estimator: the same values serve simulated and real data."""
 
     # m/sqrt(s) (longitudinal, lateral), rad/sqrt(s): slip and model error between keyframes
-    pose_noise: tuple[float, float, float] = (0.02, 0.01, 0.002)
+    pose_noise: tuple[float, float, float] = (0.05, 0.02, 0.01)
     gyro_bias_rw: float = 1e-4  # rad/s/sqrt(s)
-    heading_offset_rw: float = 2e-3  # rad/sqrt(s): the Husky's IMU offset drifts ~45 deg/400 s
+    heading_offset_rw: float = 0.02
     fixed_rw: float = 1e-6  # random walk of a calibration state that is not estimated
     init_pos_sigma: float = 1e-3  # m, when the initial pose is given
     init_psi_sigma: float = 0.2  # rad, from GPS course
@@ -98,12 +103,26 @@ def isam2_params() -> gtsam.ISAM2Params:
     return p
 
 
-def _robust(cfg: Config, sigmas: tuple[float, ...]) -> gtsam.noiseModel.Base:
-    return _robustify(cfg, gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sigmas, float)))
+def _robust(cfg: Config, sensor: SensorConfig, sigmas: tuple[float, ...]) -> gtsam.noiseModel.Base:
+    return _robustify(cfg, sensor, gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sigmas, float)),
+                      len(sigmas))
 
 
-def _robustify(cfg: Config, base: gtsam.noiseModel.Base) -> gtsam.noiseModel.Base:
+@lru_cache(maxsize=64)
+def _gate_radius(gate: float, dim: int) -> float:
+    return math.sqrt(chi2.ppf(gate, dim))
+
+
+def _robustify(cfg: Config, sensor: SensorConfig, base: gtsam.noiseModel.Base,
+               dim: int) -> gtsam.noiseModel.Base:
+    """``base`` wrapped in the configured M-estimator. gtsam applies it to the norm of the
+    whole whitened residual, so the default threshold is that norm at the sensor's chi-square
+    gate for ``dim`` components: full weight wherever the EKF's gate would accept the same
+    residual, linear (Huber) or log (Cauchy) growth beyond. With Huber's textbook k = 1.345 a
+    2-D fix would be down-weighted 40 % of the time even when exactly Gaussian."""
     kind, k = cfg.smoother.robust, cfg.smoother.robust_k
+    if k is None:
+        k = _gate_radius(sensor.gate if sensor.gate is not None else DEFAULT_GATE, dim)
     if kind == "huber":
         return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(k), base)
     if kind == "cauchy":
@@ -180,9 +199,11 @@ class FixedLagSmoother(Estimator):
         self.kf_state: np.ndarray | None = None  # newest keyframe's estimate
         self.kf_cov: np.ndarray | None = None  # its 3x3 pose marginal (world frame)
         self.last_t: float | None = None
-        self.v = self.w = None  # held samples (zero-order hold)
-        self.v_var = self.w_var = 0.0
-        self.w_from_gyro = False
+        # held samples (zero-order hold): value, per-sample variance and density (var * period)
+        self.v = self.wo = self.wg = None  # speed, odometry yaw rate, raw gyro yaw rate
+        self.v_var = self.wo_var = self.wg_var = 0.0
+        self.v_q = self.wo_q = self.wg_q = 0.0
+        self.sample_t: dict[tuple[str, str], float] = {}  # (sensor, quantity) -> last stamp
         self.heading: Heading | None = None
         self.pending_graph = gtsam.NonlinearFactorGraph()
         self.pending_values = gtsam.Values()
@@ -230,14 +251,15 @@ class FixedLagSmoother(Estimator):
         self._advance(m.t)
         if isinstance(m, WheelOdometry):
             if m.v is not None:
-                self.v, self.v_var = m.v, m.v_var
-            if m.yaw_rate is not None and not self.gyro_names:
-                self.w, self.w_var = m.yaw_rate, m.yaw_rate_var
+                self.v, self.v_var, self.v_q = m.v, m.v_var, self._density(m, "v", m.v_var)
+            if m.yaw_rate is not None:
+                self.wo, self.wo_var = m.yaw_rate, m.yaw_rate_var
+                self.wo_q = self._density(m, "w", m.yaw_rate_var)
         elif isinstance(m, WheelSpeeds):
             self._wheel_speeds(m)
         elif isinstance(m, GyroYawRate):
             if m.sensor in self.gyro_names:
-                self.w, self.w_var, self.w_from_gyro = m.yaw_rate, m.var, True
+                self.wg, self.wg_var, self.wg_q = m.yaw_rate, m.var, self._density(m, "w", m.var)
         elif isinstance(m, Heading):
             self.heading = m
         elif isinstance(m, (GpsFix, LandmarkObservation)):
@@ -247,24 +269,52 @@ class FixedLagSmoother(Estimator):
             self._new_keyframe(m.t)
             self._flush()
 
+    def _density(self, m, quantity: str, var: float) -> float:
+        """Noise density of a held sample, var * period ((unit)^2 s), the period being the time
+        since the same sensor's previous sample of this quantity (clipped to [1 ms, 1 s])."""
+        key = (m.sensor, quantity)
+        last = self.sample_t.get(key)
+        self.sample_t[key] = m.t
+        period = m.t - last if last is not None else 0.1
+        return var * min(max(period, 1e-3), 1.0)
+
     def _wheel_speeds(self, m: WheelSpeeds) -> None:
         r, L = self.cfg.robot.wheel_radius, self.cfg.robot.track_width
         self.v = 0.5 * r * (m.left + m.right)
         self.v_var = 0.25 * r * r * (m.left_var + m.right_var)
-        if not self.gyro_names:
-            self.w = r * (m.right - m.left) / L
-            self.w_var = r * r * (m.left_var + m.right_var) / (L * L)
+        self.v_q = self._density(m, "v", self.v_var)
+        self.wo = r * (m.right - m.left) / L
+        self.wo_var = r * r * (m.left_var + m.right_var) / (L * L)
+        self.wo_q = self._density(m, "w", self.wo_var)
+
+    def _yaw_rate(self) -> tuple[float, float, float, float] | None:
+        """The yaw rate to integrate: (value as measured rad/s, per-sample variance, density,
+        gyro-bias gain), fusing the gyro and the odometry yaw rate when both are held."""
+        wg, wo = self.wg, self.wo
+        if wg is not None and wo is not None:
+            qg, qo = self.wg_q, self.wo_q
+            a = qo / (qo + qg)  # the gyro's weight
+            var = self.wg_var * self.wo_var / (self.wg_var + self.wo_var)
+            return a * wg + (1.0 - a) * wo, var, qg * qo / (qg + qo), a
+        if wg is not None:
+            return wg, self.wg_var, self.wg_q, 1.0
+        if wo is not None:
+            return wo, self.wo_var, self.wo_q, 0.0
+        return None
 
     def _advance(self, t: float) -> None:
         """Integrate the held (v, w) from the last sample time up to ``t``."""
         dt = t - self.last_t
         if dt <= 0.0:
             return
-        if self.v is not None and self.w is not None:
-            w = self.w if self.w_from_gyro else self.w + self.pim.bg_lin
-            # Odometry yaw rate carries no gyro bias: add bg_lin so that the preintegration's
-            # (w - bg_lin) recovers it unchanged.
-            self.pim.integrate(dt, self.v, w, self.v_var, self.w_var)
+        yr = self._yaw_rate() if self.v is not None else None
+        if yr is not None:
+            w, w_var, w_q, gain = yr
+            pim = self.pim
+            pim.integrate(dt, self.v, w, self.v_q / dt, w_q / dt, gain)
+            # The keyframe's v, w rows compare with the last sample itself, not with its share
+            # of one integration step.
+            pim.last_var_v, pim.last_var_w = self.v_var, w_var
         self.last_t = t
 
     def _absolute(self, m) -> None:
@@ -301,10 +351,10 @@ class FixedLagSmoother(Estimator):
             prec[0], prec[1] = 1.0 / (sig[0] * sig[0]), 1.0 / (sig[1] * sig[1])
             target = np.zeros(DIM)
             target[0], target[1] = e, n
-            model = _robustify(self.cfg, gtsam.noiseModel.Diagonal.Precisions(prec))
+            model = _robustify(self.cfg, s, gtsam.noiseModel.Diagonal.Precisions(prec), 2)
             self._add(gtsam.PriorFactorVector(self.key(k), target, model))
         else:
-            self._add(gps_factor(self.key(k), e, n, _robust(self.cfg, sig), s.lever_arm, dt))
+            self._add(gps_factor(self.key(k), e, n, _robust(self.cfg, s, sig), s.lever_arm, dt))
 
     def _record_gps_innovation(self, m, e, n, lever, dt) -> None:
         """Innovation of the fix against the prediction before it is fused (for NIS)."""
@@ -327,11 +377,14 @@ class FixedLagSmoother(Estimator):
         if lm is None:
             self.log.rejected[(m.sensor, "landmark not in the map")] += 1
             return
+        s = self.sensors[m.sensor]
         if m.has_bearing:
             sig = (math.sqrt(m.range_var), math.sqrt(m.bearing_var))
-            f = range_bearing_factor(self.key(k), lm, m.range, m.bearing, _robust(self.cfg, sig))
+            f = range_bearing_factor(self.key(k), lm, m.range, m.bearing,
+                                     _robust(self.cfg, s, sig))
         else:
-            f = range_factor(self.key(k), lm, m.range, _robust(self.cfg, (math.sqrt(m.range_var),)))
+            f = range_factor(self.key(k), lm, m.range,
+                             _robust(self.cfg, s, (math.sqrt(m.range_var),)))
         self._add(f)
 
     def _new_keyframe(self, t: float) -> None:
@@ -414,12 +467,8 @@ class FixedLagSmoother(Estimator):
         self.log.note(t, f"smoother re-initialised after gtsam error: {reason.splitlines()[0]}")
         self.log.rejected[("smoother", "gtsam error, re-initialised")] += 1
         state, cov = self.kf_state, self.kf_cov
-        heading, v, w, vv, wv, gyro = (self.heading, self.v, self.w, self.v_var, self.w_var,
-                                       self.w_from_gyro)
         self.smoother = gtsam.IncrementalFixedLagSmoother(self.lag, isam2_params())
         self.kf_t = {}
-        self.heading, self.v, self.w, self.v_var, self.w_var = heading, v, w, vv, wv
-        self.w_from_gyro = gyro
         self.pending_graph = gtsam.NonlinearFactorGraph()
         self.pending_values = gtsam.Values()
         self.pending_stamps = {}

@@ -7,13 +7,16 @@ and integrated exactly as constant twists (``kinematics.se2_step_jac``) into the
 keyframe j expressed in the frame of keyframe i::
 
     delta = (dx, dy, dpsi)   m, m, rad;  (dx, dy) along keyframe i's body x (forward) and y (left)
-    w     = w_gyro - bg_lin  (rad/s) with ``bg_lin`` the gyro-bias linearisation point
+    w     = w_meas - g bg_lin  (rad/s) with ``bg_lin`` the gyro-bias linearisation point and
+                               g the sample's bias gain: 1 for a raw gyro reading, 0 for a
+                               yaw rate that carries no gyro bias (wheel odometry), and the gyro's
+                               weight when a gyro and an odometry yaw rate are fused per sample
 
 For every sample, with F and G the Jacobians of the step with respect to the running delta and to
 (v, w)::
 
     cov  <- F cov F^T + G_v G_v^T var_v + G_w G_w^T var_w      (3x3, same coordinates as delta)
-    J_bg <- F J_bg - G_w                                       (3, d delta / d bg)
+    J_bg <- F J_bg - g G_w                                     (3, d delta / d bg)
 
 ``var_v`` (m/s)^2 and ``var_w`` (rad/s)^2 are the variances of each held sample. The first-order
 bias correction is ``delta(bg) = delta + J_bg (bg - bg_lin)`` as in IMU preintegration; once the
@@ -27,12 +30,12 @@ Factor (``preintegrated_factor``, 2 keys i and j, 7-D error)
     e[0:2] = R(psi_i)^T (p_j - p_i) - (dx + Jx db, dy + Jy db)     m,  db = bg_i - bg_lin
     e[2]   = wrap(psi_j - psi_i - (dpsi + Jpsi db))                 rad
     e[3]   = v_j - v_last                                           m/s
-    e[4]   = w_j + bg_j - w_gyro_last                               rad/s
+    e[4]   = w_j + g_last bg_j - w_meas_last                        rad/s
     e[5]   = bg_j - bg_i                                            rad/s
     e[6]   = wrap(hoff_j - hoff_i)                                  rad
 
 Rows 3 and 4 tie the keyframe-j twist states to the LAST sample of the interval (speed and raw
-gyro reading, the latter through bg_j), with that sample's variances; they make v_j, w_j
+yaw rate, the latter through g_last bg_j), with that sample's variances; they make v_j, w_j
 meaningful without separate wheel/gyro factors at the keyframe. Their small correlation with the
 pose rows (the last sample also enters the delta) is ignored. Rows 5 and 6 are random walks.
 The 7x7 covariance is block diagonal: [cov + extra pose noise, var_v, var_w, q_bg^2 T,
@@ -79,6 +82,7 @@ class WheelGyroPreintegration:
         "last_w_gyro",
         "last_var_v",
         "last_var_w",
+        "last_gain",
         "n",
         "samples",
         "keep_samples",
@@ -100,20 +104,25 @@ class WheelGyroPreintegration:
         self.j_x = self.j_y = self.j_p = 0.0
         self.last_v = self.last_w_gyro = 0.0
         self.last_var_v = self.last_var_w = 0.0
+        self.last_gain = 1.0
         self.n = 0
-        self.samples: list[tuple[float, float, float, float, float]] = []
+        self.samples: list[tuple[float, float, float, float, float, float]] = []
 
-    def integrate(self, dt: float, v: float, w_gyro: float, var_v: float, var_w: float) -> None:
-        """Add one sample held for ``dt`` s: speed ``v`` m/s, raw gyro ``w_gyro`` rad/s (bias not
-        removed), and their variances (m/s)^2 and (rad/s)^2."""
+    def integrate(self, dt: float, v: float, w_gyro: float, var_v: float, var_w: float,
+                  gain: float = 1.0) -> None:
+        """Add one sample held for ``dt`` s: speed ``v`` m/s, yaw rate ``w_gyro`` rad/s as
+        measured (gyro bias not removed), their variances (m/s)^2 and (rad/s)^2 over this ``dt``,
+        and ``gain``: how much of the gyro bias the yaw rate carries (1 raw gyro, 0 odometry)."""
         if self.keep_samples:
-            self.samples.append((dt, v, w_gyro, var_v, var_w))
-        x1, y1, p1, j = se2_step_jac(self.dx, self.dy, self.dpsi, v, w_gyro - self.bg_lin, dt)
+            self.samples.append((dt, v, w_gyro, var_v, var_w, gain))
+        x1, y1, p1, j = se2_step_jac(self.dx, self.dy, self.dpsi, v,
+                                     w_gyro - gain * self.bg_lin, dt)
         j0, j1 = j[0], j[1]
         a = j0[2]  # -(y1 - y): d x1 / d dpsi
         b = j1[2]  # x1 - x:    d y1 / d dpsi
         gvx, gvy = j0[3], j1[3]
         gwx, gwy, gwp = j0[4], j1[4], dt
+        gbx, gby, gbp = gain * gwx, gain * gwy, gain * dt
         cxx, cxy, cxp = self.c_xx, self.c_xy, self.c_xp
         cyy, cyp, cpp = self.c_yy, self.c_yp, self.c_pp
         # F cov F^T with F = [[1, 0, a], [0, 1, b], [0, 0, 1]], then the sample's noise
@@ -124,15 +133,16 @@ class WheelGyroPreintegration:
         self.c_yp = cyp + b * cpp + gwy * gwp * var_w
         self.c_pp = cpp + gwp * gwp * var_w
         jp = self.j_p
-        self.j_x += a * jp - gwx
-        self.j_y += b * jp - gwy
-        self.j_p = jp - gwp
+        self.j_x += a * jp - gbx
+        self.j_y += b * jp - gby
+        self.j_p = jp - gbp
         self.dx, self.dy, self.dpsi = x1, y1, p1
         self.dt_total += dt
         self.last_v = v
         self.last_w_gyro = w_gyro
         self.last_var_v = var_v
         self.last_var_w = var_w
+        self.last_gain = gain
         self.n += 1
 
     def reintegrate(self, bg_lin: float) -> None:
@@ -174,7 +184,7 @@ class WheelGyroPreintegration:
         """Initial guess for the 7-state at keyframe j from the state at i (array-like, (7,)).
 
         Pose = pose_i composed with the bias-corrected delta; v, w from the last sample (w with
-        bias bg_i removed); bg and hoff carried over. ``psi`` is not wrapped.
+        its share of the bias bg_i removed); bg and hoff carried over. ``psi`` is not wrapped.
         """
         x, y, psi, _, _, bg, hoff = (float(t) for t in state_i)
         dx, dy, dp = self.delta_at(bg)
@@ -186,7 +196,7 @@ class WheelGyroPreintegration:
                 y + s * dx + c * dy,
                 psi + dp,
                 self.last_v,
-                self.last_w_gyro - bg,
+                self.last_w_gyro - self.last_gain * bg,
                 bg,
                 hoff,
             )
@@ -249,6 +259,7 @@ def preintegrated_factor(
     bl = pim.bg_lin
     zv = pim.last_v
     zw = pim.last_w_gyro
+    zg = pim.last_gain
     cos = math.cos
     sin = math.sin
     # Buffers owned by this factor, rewritten in place (gtsam copies them into Eigen objects);
@@ -261,7 +272,7 @@ def preintegrated_factor(
     hi[5, 5] = -1.0
     hi[6, 6] = -1.0
     hj = np.eye(7)
-    hj[4, 5] = 1.0
+    hj[4, 5] = zg
     mi = memoryview(hi.reshape(-1))
     mj = memoryview(hj.reshape(-1))
     e = np.zeros(7)
@@ -296,7 +307,7 @@ def preintegrated_factor(
         me[1] = u1 - ddy - jy * db
         me[2] = (pj - pi - ddp - jp * db + _PI) % _TWO_PI - _PI
         me[3] = vj - zv
-        me[4] = wj + bj - zw
+        me[4] = wj + zg * bj - zw
         me[5] = bj - bi
         me[6] = (hoj - hoi + _PI) % _TWO_PI - _PI
         return e

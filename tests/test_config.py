@@ -119,7 +119,7 @@ def test_minimal_config_defaults():
     assert cfg.robot.wheel_radius is None and cfg.robot.track_width is None
     sm = cfg.smoother
     assert (sm.lag, sm.keyframe, sm.keyframe_rate, sm.robust, sm.robust_k) == (
-        10.0, "gps", 2.0, "huber", 1.345)
+        10.0, "gps", 2.0, "huber", None)
     assert cfg.ekf.rate == "event" and cfg.reorder_window == 0.5 and cfg.path is None
 
 

@@ -42,6 +42,16 @@ def _pim():
 
 PIM = _pim()
 
+
+def _pim_fused():
+    p = WheelGyroPreintegration(bg_lin=0.01)
+    for k in range(30):
+        p.integrate(0.02, 1.2, 0.3 * math.cos(0.2 * k), 0.05**2, 0.01**2, gain=0.6)
+    return p
+
+
+PIM_FUSED = _pim_fused()
+
 FACTORS = {
     "motion_mean": lambda: motion_factor(KI, KJ, 0.37, unit(7), twist="mean"),
     "motion_start": lambda: motion_factor(KI, KJ, 0.37, unit(7), twist="start"),
@@ -61,6 +71,7 @@ FACTORS = {
     "range_bearing_slam": lambda: range_bearing_slam_factor(KI, KL, 5.0, -3.1, unit(2), (0.3, 0)),
     "range_slam": lambda: range_slam_factor(KI, KL, 5.0, unit(1)),
     "preintegrated": lambda: preintegrated_factor(KI, KJ, PIM, noise=unit(7)),
+    "preintegrated_fused": lambda: preintegrated_factor(KI, KJ, PIM_FUSED, noise=unit(7)),
 }
 
 YAW_RATES = [0.0, 1e-9, 1e-5, -1e-5, 0.0999 / 0.37, 0.1001 / 0.37, 0.8, -2.0]

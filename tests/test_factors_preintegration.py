@@ -211,3 +211,35 @@ def test_graph_with_preintegration_estimates_gyro_bias():
         assert abs(math.remainder(est[2] - s[2], 2 * math.pi)) < 1e-3
         assert est[5] == pytest.approx(bias, abs=2e-3)
     assert result.atVector(3).shape == (DIM,)
+
+
+def _integrate_gain(sams, bg_lin, gain):
+    p = WheelGyroPreintegration(bg_lin)
+    for s in sams:
+        p.integrate(*s, gain=gain)
+    return p
+
+
+@pytest.mark.parametrize("gain", [0.0, 0.35, 1.0])
+def test_bias_gain_scales_bias_dependence(gain):
+    """A fused yaw rate carries a share ``gain`` of the gyro bias: the increment depends on bg
+    through w - gain * bg (finite differences), and gain 0 (odometry) makes it bias-free."""
+    sams = samples(n=150, w_scale=1.0)
+    b0, h = 0.03, 1e-6
+    p = _integrate_gain(sams, b0, gain)
+    num = (np.array(_integrate_gain(sams, b0 + h, gain).delta)
+           - np.array(_integrate_gain(sams, b0 - h, gain).delta)) / (2 * h)
+    np.testing.assert_allclose(p.bias_jacobian, num, atol=1e-7)
+    assert p.bias_jacobian[2] == pytest.approx(-gain * p.dt_total)
+    # the same rates with the bias share removed up front integrate to the same increment
+    q = integrate([(dt, v, w - gain * b0, vv, vw) for dt, v, w, vv, vw in sams], 0.0)
+    np.testing.assert_allclose(p.delta, q.delta, atol=1e-12)
+    # the factor is zero at the prediction, whose w has the bias share removed
+    si = make_state(1.0, 2.0, 0.4, 0.0, 0.0, b0, 0.0)
+    sj = p.predict(si)
+    assert sj[4] == pytest.approx(sams[-1][2] - gain * b0)
+    f = preintegrated_factor(1, 2, p, noise=gtsam.noiseModel.Unit.Create(7))
+    v = gtsam.Values()
+    v.insert(1, si)
+    v.insert(2, sj)
+    assert np.max(np.abs(f.unwhitenedError(v))) < 1e-12
