@@ -26,6 +26,8 @@ def _one(bag: str, cfg_path: str, name: str, lag: float | None, queue) -> None:
     t0 = time.perf_counter()
     stream = read_stream(bag, cfg)
     decode_s = time.perf_counter() - t0
+    # Linux reports ru_maxrss in KiB.
+    decoded_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     pose = initial_pose(cfg.initial_pose, stream)
     est = registry.SPECS[name].build(cfg, stream, pose, lag if lag else cfg.smoother.lag)
     t1 = time.perf_counter()
@@ -38,8 +40,8 @@ def _one(bag: str, cfg_path: str, name: str, lag: float | None, queue) -> None:
         "rtf": stream.duration / wall if wall > 0 else None,
         "update_ms": {"p50": float(np.percentile(upd, 50)), "p99": float(np.percentile(upd, 99)),
                       "max": float(upd.max())} if len(upd) else None,
-        # Linux reports ru_maxrss in KiB.
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "decoded_rss_mb": decoded_mb,  # peak up to the end of decoding: libraries + the stream
         "error": result.runs[name].error,
     })
 

@@ -106,11 +106,12 @@ def cmd_bench(args: argparse.Namespace) -> int:
         print(f"{bag}: {r['duration_s']:.1f} s of data, {r['messages']} measurements, decode "
               f"{r['decode_s']:.3f} s ({r['decode_rtf']:.0f}x real time)")
         print(f"  {'estimator':12} {'wall s':>8} {'RTF':>8} {'p50 ms':>8} {'p99 ms':>8} "
-              f"{'max ms':>8} {'RSS MB':>8}")
+              f"{'max ms':>8} {'RSS MB':>8} {'decoded':>8}")
         for e in r["estimators"]:
             u = e["update_ms"] or {"p50": math.nan, "p99": math.nan, "max": math.nan}
             print(f"  {e['estimator']:12} {e['wall_s']:8.3f} {e['rtf']:8.0f} {u['p50']:8.3f} "
-                  f"{u['p99']:8.3f} {u['max']:8.3f} {e['peak_rss_mb']:8.1f}"
+                  f"{u['p99']:8.3f} {u['max']:8.3f} {e['peak_rss_mb']:8.1f} "
+                  f"{e['decoded_rss_mb']:8.1f}"
                   + (f"  ERROR {e['error']}" if e["error"] else ""))
     if args.json:
         args.json.write_text(json.dumps(results, indent=2) + "\n")
