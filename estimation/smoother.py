@@ -60,6 +60,11 @@ from factors.state import BG, DIM, HOFF, NAMES, PSI
 MIN_KEYFRAME_DT = 0.1  # s: closer absolute measurements share a keyframe
 INIT_DISTANCE = 5.0  # m of GPS travel before the heading is taken from the GPS course
 STALE_HEADING = 0.5  # s: a heading sample older than this at a keyframe is not used
+# A GPS fix whose innovation fails the sensor's chi-square gate is not fused, as in the EKF,
+# unless the fixes have disagreed with the estimate this many times in a row over at least this
+# long: then the estimate, not the GPS, is what is wrong (same rule as ekf_baseline.kalman).
+GATE_LOCKOUT_COUNT = 5
+GATE_LOCKOUT_TIME = 1.0  # s
 
 
 @dataclass
@@ -212,7 +217,11 @@ class FixedLagSmoother(Estimator):
         self.v_var = self.wo_var = self.wg_var = 0.0
         self.v_q = self.wo_q = self.wg_q = 0.0
         self.sample_t: dict[tuple[str, str], float] = {}  # (sensor, quantity) -> last stamp
+        # integral of (gyro - odometry yaw rate) dt since the newest keyframe, its duration,
+        # and the summed noise density of the two rates (see _advance)
+        self._diff_int = self._diff_t = self._diff_q = 0.0
         self.heading: Heading | None = None
+        self._streak: dict[str, tuple[float, int]] = {}  # sensor -> (first t, gate rejections)
         self.pending_graph = gtsam.NonlinearFactorGraph()
         self.pending_values = gtsam.Values()
         self.pending_stamps: dict[int, float] = {}
@@ -323,6 +332,12 @@ class FixedLagSmoother(Estimator):
             # The keyframe's v, w rows compare with the last sample itself, not with its share
             # of one integration step.
             pim.last_var_v, pim.last_var_w = self.v_var, w_var
+            if 0.0 < gain < 1.0:
+                # gyro - odometry = bias + noise, independent of the fused mean integrated
+                # above: the bias information the fusion would otherwise throw away
+                self._diff_int += (self.wg - self.wo) * dt
+                self._diff_t += dt
+                self._diff_q = self.wg_q + self.wo_q
         self.last_t = t
 
     def _absolute(self, m) -> None:
@@ -350,7 +365,9 @@ class FixedLagSmoother(Estimator):
         sig = (math.sqrt(m.cov[0, 0]), math.sqrt(m.cov[1, 1]))
         e, n = m.enu[0], m.enu[1]
         if k == self.k and self.kf_state is not None:
-            self._record_gps_innovation(m, e, n, s.lever_arm, dt)
+            nis = self._gps_innovation(m, e, n, s.lever_arm, dt)
+            if not self._gate(m, s, nis):
+                return
         if s.lever_arm == (0.0, 0.0) and abs(dt) < 1e-9:
             # On the keyframe and without a lever arm the fix is linear in the state: the
             # built-in prior with zero precision on unmeasured components is the same factor
@@ -364,8 +381,27 @@ class FixedLagSmoother(Estimator):
         else:
             self._add(gps_factor(self.key(k), e, n, _robust(self.cfg, s, sig), s.lever_arm, dt))
 
-    def _record_gps_innovation(self, m, e, n, lever, dt) -> None:
-        """Innovation of the fix against the prediction before it is fused (for NIS)."""
+    def _gate(self, m: GpsFix, s: SensorConfig, nis: float) -> bool:
+        """Whether to fuse a fix with innovation ``nis`` (logged; rejections counted)."""
+        if s.gate is None or nis <= _gate_radius(s.gate, 2) ** 2:
+            self._streak.pop(m.sensor, None)
+            return True
+        first, count = self._streak.get(m.sensor, (m.t, 0))
+        count += 1
+        if count >= GATE_LOCKOUT_COUNT and m.t - first >= GATE_LOCKOUT_TIME:
+            self._streak.pop(m.sensor, None)
+            self.log.rejected[(m.sensor, "lockout_recovery")] += 1
+            self.log.note(m.t, f"{m.sensor}: {count} fixes in a row failed the gate over "
+                          f"{m.t - first:.1f} s; fusing again (the estimate is lost)")
+            return True
+        self._streak[m.sensor] = (first, count)
+        self.log.rejected[(m.sensor, "gate")] += 1
+        self.log.innovations[-1].accepted = False
+        return False
+
+    def _gps_innovation(self, m, e, n, lever, dt) -> float:
+        """Innovation of the fix against the prediction before it is fused (logged for NIS);
+        returns its NIS."""
         st = self.kf_state
         psi, v = float(st[2]), float(st[3])
         c, s = math.cos(psi), math.sin(psi)
@@ -379,6 +415,7 @@ class FixedLagSmoother(Estimator):
         r0, r1 = res
         nis = (d * r0 * r0 - 2 * b * r0 * r1 + a * r1 * r1) / det
         self.log.innovations.append(Innovation(m.t, m.sensor, "gps", res, cov, float(nis), True))
+        return float(nis)
 
     def _landmark(self, m: LandmarkObservation, k: int) -> None:
         lm = self.landmarks.get(m.landmark_id)
@@ -430,6 +467,16 @@ class FixedLagSmoother(Estimator):
                 h.t, h.sensor, "heading", res, scov, float(res[0] ** 2 / scov[0, 0]), True))
             self._add(f)
             self.heading = None
+        if self.est_bias and self._diff_t > 0.0:
+            # mean of (gyro - odometry yaw rate) over the interval: a measurement of the gyro
+            # bias with variance density / time; a built-in prior on the bias component only
+            prec = np.zeros(DIM)
+            prec[BG] = self._diff_t / self._diff_q
+            target = np.zeros(DIM)
+            target[BG] = self._diff_int / self._diff_t
+            self._add(gtsam.PriorFactorVector(kj, target,
+                                              gtsam.noiseModel.Diagonal.Precisions(prec)))
+        self._diff_int = self._diff_t = 0.0
         self.pim.reset(guess[BG])
 
     def _flush(self) -> None:

@@ -151,9 +151,15 @@ def test_delayed_measurements_within_the_lag_are_used(husky):
     assert _rmse(e) < 0.3, _rmse(e)
 
 
-def test_gps_outliers_with_robust_kernel(husky):
-    """20 fixes displaced by 30 m: the Huber kernel (threshold at the gate radius) keeps the
-    smoothed track within the GPS sigma; without it, the same run is pulled metres away."""
+def _without_gate(cfg):
+    return replace(cfg, sensors=[replace(x, gate=None) if x.kind == "gps" else x
+                                 for x in cfg.sensors])
+
+
+def test_gps_outliers_gate_and_robust_kernel(husky):
+    """20 fixes displaced by 30 m. The chi-square gate (as in the EKF) rejects them; with the
+    gate off, the Huber kernel (threshold at the gate radius) still bounds their pull; with
+    neither, the same run is pulled metres away."""
     cfg, stream = husky
     rng = np.random.default_rng(3)
     fixes = [i for i, m in enumerate(stream.measurements) if isinstance(m, GpsFix)]
@@ -166,13 +172,20 @@ def test_gps_outliers_with_robust_kernel(husky):
         ms.append(m)
     noisy = replace(stream, measurements=ms)
     pose0 = _pose0(stream)
-    results = {}
-    for kind in ("huber", "none"):
-        c = replace(cfg, smoother=replace(cfg.smoother, robust=kind))
+    results, logs = {}, {}
+    for label, c in (("gate", cfg),
+                     ("huber", _without_gate(cfg)),
+                     ("none", _without_gate(replace(cfg, smoother=replace(cfg.smoother,
+                                                                          robust="none"))))):
         r = run(noisy, {"smoother": FixedLagSmoother(c, initial_pose=pose0)})
         e, _ = _errors(r.runs["smoother_lagged"].trajectory, r.truth)
-        results[kind] = float(np.max(np.hypot(e[:, 0], e[:, 1])))
-    assert results["huber"] < GPS_SIGMA, results
+        results[label] = float(np.max(np.hypot(e[:, 0], e[:, 1])))
+        logs[label] = r.runs["smoother"].log
+    assert results["gate"] < 0.5 * GPS_SIGMA, results
+    assert logs["gate"].rejected[("/fix", "gate")] >= 20, logs["gate"].rejected
+    rejected = [i for i in logs["gate"].innovations if i.kind == "gps" and not i.accepted]
+    assert len(rejected) == logs["gate"].rejected[("/fix", "gate")]
+    assert results["huber"] < 2 * GPS_SIGMA, results
     assert results["none"] > 2.0 * results["huber"], results
 
 
