@@ -9,6 +9,11 @@ Bad input never ends in a traceback: a bag or topic that cannot be used raises `
 naming the file, topic and field; a single bad message (NaN field, NO_FIX, unusable covariance,
 a stamp far from its neighbours) is dropped and counted in ``Stream.rejected`` by
 (topic, reason), and the stream's ``warnings`` say so.
+
+A bag that breaks off (truncated, or damaged past some point) still gives what was read before:
+the BagError carries it as ``partial``. A ROS1 bag that rosbags cannot open at all because its
+index is missing or damaged (the recorder was killed, the copy was cut) is read from the front
+by ``estimation.ros1_scan`` for that.
 """
 
 from __future__ import annotations
@@ -20,10 +25,11 @@ from collections import Counter, defaultdict
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NoReturn
 
 import numpy as np
 
-from estimation import geodesy, rosmsg
+from estimation import geodesy, ros1_scan, rosmsg
 from estimation.config import Config, SensorConfig, load_landmark_map
 from estimation.errors import BagError
 from estimation.frames import IDENTITY, body_yaw, dot_row, rotate, rotated_variance, rpy_matrix
@@ -275,31 +281,45 @@ def open_reader(bag: Path):
     return reader
 
 
-def _sources(cfg: Config, reader, bag: Path) -> list[_Source]:
-    conns = {c.topic: c for c in reader.connections}
-    present = ", ".join(sorted(conns)) or "none"
-    wanted: list[tuple[str, str, SensorConfig | None]] = []
+def _wanted(cfg: Config) -> list[tuple[str, str, SensorConfig | None, str]]:
+    """(kind, config key, sensor or None for ground truth, topic) of each configured topic."""
+    wanted: list[tuple[str, str, SensorConfig | None, str]] = []
     counters: Counter = Counter()
     for s in cfg.sensors:
-        wanted.append((s.kind, f"sensors.{s.kind}[{counters[s.kind]}]", s))
+        wanted.append((s.kind, f"sensors.{s.kind}[{counters[s.kind]}]", s, s.topic))
         counters[s.kind] += 1
     if cfg.ground_truth_topic:
-        wanted.append(("ground_truth", "ground_truth", None))
+        wanted.append(("ground_truth", "ground_truth", None, cfg.ground_truth_topic))
+    return wanted
+
+
+def _absent(bag: Path, topic: str, key: str, present) -> BagError:
+    return BagError(f"{bag}: topic {topic} ({key}.topic) is not in the bag; "
+                    f"topics present: {', '.join(sorted(present)) or 'none'}")
+
+
+def _source(bag: Path, wanted: tuple, msgtype: str, ros1: bool) -> _Source:
+    """The source of one configured topic whose messages are of ``msgtype``; ``ros1``: the
+    messages come as ROS1 bytes, so the fast struct extractors apply."""
+    kind, key, s, topic = wanted
+    if msgtype not in ACCEPTED_TYPES[kind]:
+        need = " or ".join(rosmsg.short_type(t) for t in ACCEPTED_TYPES[kind])
+        raise BagError(f"{bag}: topic {topic} has type {rosmsg.short_type(msgtype)}, "
+                       f"but {key} needs {need}")
+    fast, slow = rosmsg.EXTRACTORS[msgtype]
+    use_raw = fast is not None and ros1
+    conv = CONVERTERS[kind](s, key) if s else _ground_truth_converter(msgtype)
+    return _Source(topic, key, msgtype, fast if use_raw else slow, conv, use_raw)
+
+
+def _sources(cfg: Config, reader, bag: Path) -> list[_Source]:
+    conns = {c.topic: c for c in reader.connections}
     out = []
-    for kind, key, s in wanted:
-        topic = s.topic if s else cfg.ground_truth_topic
+    for w in _wanted(cfg):
+        topic = w[3]
         if topic not in conns:
-            raise BagError(f"{bag}: topic {topic} ({key}.topic) is not in the bag; "
-                           f"topics present: {present}")
-        msgtype = conns[topic].msgtype
-        if msgtype not in ACCEPTED_TYPES[kind]:
-            need = " or ".join(rosmsg.short_type(t) for t in ACCEPTED_TYPES[kind])
-            raise BagError(f"{bag}: topic {topic} has type {rosmsg.short_type(msgtype)}, "
-                           f"but {key} needs {need}")
-        fast, slow = rosmsg.EXTRACTORS[msgtype]
-        use_raw = fast is not None and not reader.is2
-        conv = CONVERTERS[kind](s, key) if s else _ground_truth_converter(msgtype)
-        out.append(_Source(topic, key, msgtype, fast if use_raw else slow, conv, use_raw))
+            raise _absent(bag, topic, w[1], conns)
+        out.append(_source(bag, w, conns[topic].msgtype, not reader.is2))
     return out
 
 
@@ -317,43 +337,63 @@ def _iterate(reader, sources: list[_Source], progress: Callable[[float], None] |
             yield src, rec_ns, raw
 
 
+def _decode(items: Iterator[tuple[_Source, int, object]], deserialize: Callable,
+            read_counts: Counter, rejected: Counter) -> str | None:
+    """Convert each (source, record time ns, raw message) into its source's records, counting
+    messages read per config key and rejected ones per (topic, reason). Returns why reading
+    stopped early (the storage raised), None if it did not; BagError passes through."""
+    last_raw, last_msg = None, None
+    try:
+        for src, rec_ns, raw in items:
+            read_counts[src.key] += 1
+            try:
+                if src.raw:
+                    rec = src.extract(raw)
+                else:
+                    # Several sources may share a topic: deserialise each message once.
+                    # Compare the bytes object itself (kept alive here), never its id(),
+                    # which CPython reuses once the previous message is freed.
+                    if raw is not last_raw:
+                        last_raw, last_msg = raw, deserialize(raw, src.msgtype)
+                    rec = src.extract(last_msg)
+                for m in src.convert(rec):
+                    src.records.append((m.t, rec_ns * 1e-9, m))
+            except Reject as e:
+                rejected[(src.topic, str(e))] += 1
+            except Exception as e:  # a message that fails to decode is one bad message
+                rejected[(src.topic, f"cannot decode message: {type(e).__name__}: {e}")] += 1
+    except BagError:
+        raise
+    except Exception as e:  # rosbags raises many types on damaged storage
+        return (f"bag is damaged or truncated after {sum(read_counts.values())} messages "
+                f"({type(e).__name__}: {e})")
+    return None
+
+
 def read_stream(bag: str | Path, cfg: Config, progress: Callable[[float], None] | None = None
                 ) -> Stream:
     """Read the configured topics of ``bag`` into a Stream ordered by header stamp.
 
     ``progress``, if given, is called with the fraction of the bag read so far.
-    Raises BagError (naming the file, topic and field) when the bag or a topic cannot be used."""
+    Raises BagError (naming the file, topic and field) when the bag or a topic cannot be used.
+    A ROS1 bag without a usable index (the recorder was killed, the file was cut) is read from
+    the front by ``estimation.ros1_scan``; the BagError saying it is truncated then carries the
+    stream of what could be read as ``partial``."""
     bag = Path(bag)
-    reader = open_reader(bag)
+    try:
+        reader = open_reader(bag)
+    except BagError as e:
+        if not ros1_scan.has_magic(bag):
+            raise
+        _read_unindexed(bag, cfg, progress, e)
     damaged = None
     read_counts: Counter = Counter()
+    rejected: Counter = Counter()
     try:
         sources = _sources(cfg, reader, bag)
         expected = {c.topic: c.msgcount for c in reader.connections}
-        rejected: Counter = Counter()
-        last_raw, last_msg = None, None
-        try:
-            for src, rec_ns, raw in _iterate(reader, sources, progress):
-                read_counts[src.key] += 1
-                try:
-                    if src.raw:
-                        rec = src.extract(raw)
-                    else:
-                        # Several sources may share a topic: deserialise each message once.
-                        # Compare the bytes object itself (kept alive here), never its id(),
-                        # which CPython reuses once the previous message is freed.
-                        if raw is not last_raw:
-                            last_raw, last_msg = raw, reader.deserialize(raw, src.msgtype)
-                        rec = src.extract(last_msg)
-                    for m in src.convert(rec):
-                        src.records.append((m.t, rec_ns * 1e-9, m))
-                except Reject as e:
-                    rejected[(src.topic, str(e))] += 1
-                except Exception as e:  # a message that fails to decode is one bad message
-                    rejected[(src.topic, f"cannot decode message: {type(e).__name__}: {e}")] += 1
-        except Exception as e:  # rosbags raises many types on damaged storage
-            damaged = f"bag is damaged or truncated after {sum(read_counts.values())} messages " \
-                      f"({type(e).__name__}: {e})"
+        damaged = _decode(_iterate(reader, sources, progress), reader.deserialize, read_counts,
+                          rejected)
         if damaged is None:
             short = [(s.topic, read_counts[s.key], expected[s.topic]) for s in sources
                      if read_counts[s.key] < expected[s.topic]]
@@ -370,6 +410,95 @@ def read_stream(bag: str | Path, cfg: Config, progress: Callable[[float], None] 
             partial = None
         raise BagError(f"{bag}: {damaged}", partial=partial)
     return _assemble(bag, cfg, sources, rejected)
+
+
+def _read_unindexed(bag: Path, cfg: Config, progress: Callable[[float], None] | None,
+                    open_error: BagError) -> NoReturn:
+    """Read the ROS1 bag that rosbags could not open (``open_error``) from the front with
+    ``ros1_scan`` and raise BagError saying it is truncated, with what was read as ``partial``.
+
+    Messages are decoded as on the indexed path: struct extractors on the ROS1 bytes where
+    rosmsg has one, else rosbags' deserialiser with the types defined by the bag's own
+    connection records (as AnyReader does for ROS1 bags)."""
+    from rosbags.typesys import Stores, TypesysError, get_types_from_msg, get_typestore
+
+    log.info("%s; reading it without its index", open_error)
+    scan = ros1_scan.Ros1Scan(bag)
+    wanted = _wanted(cfg)
+    by_topic: dict[str, list[tuple]] = defaultdict(list)
+    for w in wanted:
+        by_topic[w[3]].append(w)
+    made: dict[str, _Source] = {}  # config key -> source, made at its topic's first connection
+    routes: dict[int, list[_Source]] = {}  # connection id -> the sources it feeds
+    store = get_typestore(Stores.EMPTY)
+    used = 0  # messages read on configured topics
+
+    def route(conn: ros1_scan.Connection, w: tuple) -> _Source:
+        src = made.get(w[1])
+        if src is None:
+            src = made[w[1]] = _source(bag, w, conn.msgtype, ros1=True)
+            if not src.raw and conn.msgtype not in store.fielddefs:
+                try:
+                    store.register(get_types_from_msg(conn.msgdef, conn.msgtype) if conn.msgdef
+                                   else get_typestore(Stores.ROS1_NOETIC).fielddefs)
+                except TypesysError as e:
+                    raise BagError(f"{bag}: topic {conn.topic}: cannot use the bag's definition "
+                                   f"of {rosmsg.short_type(conn.msgtype)} ({e})") from None
+        elif src.msgtype != conn.msgtype:
+            raise BagError(f"{bag}: topic {conn.topic} has messages of two types, "
+                           f"{rosmsg.short_type(src.msgtype)} and "
+                           f"{rosmsg.short_type(conn.msgtype)}")
+        return src
+
+    def items() -> Iterator[tuple[_Source, int, bytes]]:
+        nonlocal used
+        st = scan.status
+        try:
+            for i, item in enumerate(scan):
+                if type(item) is ros1_scan.Connection:
+                    routes[item.id] = [route(item, w) for w in by_topic.get(item.topic, ())]
+                    continue
+                if progress and i % 2000 == 0:
+                    progress(st.offset / max(1, st.file_size))
+                srcs = routes[item.conn.id]
+                if srcs:
+                    used += 1
+                for src in srcs:
+                    yield src, item.time_ns, item.data
+        except ros1_scan.ScanError as e:
+            raise BagError(f"{open_error}; reading it without the index fails too: {e}") from None
+
+    read_counts: Counter = Counter()
+    rejected: Counter = Counter()
+    failure = _decode(items(), store.deserialize_ros1, read_counts, rejected)
+    st = scan.status
+    if failure:  # the scanner stops without raising; this is a fault of ours, say so plainly
+        raise BagError(f"{bag}: {failure}")
+    if st.truncated:
+        what = f"bag is truncated: {st.reason}"
+    elif st.reason:
+        what = f"bag is truncated or damaged: its index is unusable and {st.reason}"
+    else:
+        what = ("bag is truncated: it has no index (its recorder did not close it), so the "
+                "messages it still buffered may be missing")
+    where = f"byte {st.offset} of {st.file_size}"
+    if not st.messages:
+        raise BagError(f"{bag}: {what}; no complete message before {where}")
+    missing = [w for w in wanted if w[1] not in made]
+    if missing:
+        kind, key, _, topic = missing[0]
+        present = {c.topic for c in scan.connections.values()}
+        raise BagError(f"{_absent(bag, topic, key, present)} (only up to {where} could be "
+                       f"read: {what})")
+    if not used:
+        raise BagError(f"{bag}: {what}; no message of the configured topics before {where}")
+    sources = [made[w[1]] for w in wanted]
+    try:
+        stream = _assemble(bag, cfg, sources, rejected)
+    except BagError as e:
+        raise BagError(f"{e} (only up to {where} could be read: {what})") from None
+    raise BagError(f"{bag}: {what}; read {used} messages up to t={stream.t1:.3f} "
+                   f"({stream.duration:.1f} s of data, {where})", partial=stream)
 
 
 def _drop_bad_stamps(bag: Path, src: _Source, tolerance: float, rejected: Counter) -> list:

@@ -257,11 +257,14 @@ def storage_file(path: Path, fmt: str) -> Path:
     return path / f"{path.name}.{'db3' if fmt == 'sqlite3' else 'mcap'}"
 
 
-def write_bag(path: str | Path, fmt: str, records: Iterable[tuple]) -> Path:
+def write_bag(path: str | Path, fmt: str, records: Iterable[tuple], *,
+              compression: str = "none", chunk_bytes: int | None = None) -> Path:
     """Write ``(topic, Msg)`` / ``(topic, Msg, record_time_s)`` records into a bag at ``path``.
 
     Records are written in the order given (that is the bag's record order); the record time
-    defaults to the message's header stamp. Returns ``path``."""
+    defaults to the message's header stamp. ROS1 only: ``compression`` of the chunks ('none',
+    'bz2' or 'lz4') and ``chunk_bytes``, the uncompressed size past which a chunk is written
+    (rosbags' default 1 MiB). Returns ``path``."""
     from rosbags.rosbag1 import Writer as Writer1
     from rosbags.rosbag2 import StoragePlugin
     from rosbags.rosbag2 import Writer as Writer2
@@ -272,6 +275,10 @@ def write_bag(path: str | Path, fmt: str, records: Iterable[tuple]) -> Path:
     store = typestore(fmt)
     if fmt == "ros1":
         writer = Writer1(path)
+        if compression != "none":
+            writer.set_compression(Writer1.CompressionFormat[compression.upper()])
+        if chunk_bytes is not None:
+            writer.chunk_threshold = chunk_bytes
         serialize = store.serialize_ros1
     else:
         plugin = StoragePlugin.SQLITE3 if fmt == "sqlite3" else StoragePlugin.MCAP

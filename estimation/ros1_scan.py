@@ -1,0 +1,346 @@
+"""Read a ROS1 bag (format 2.0) from the front, record by record, without its index.
+
+rosbags opens a ROS1 bag through the index that the recorder writes when it closes the file
+(connection and chunk-info records at the end, found through the bag header's ``index_pos``).
+A bag whose recorder was killed has no index (``index_pos`` 0) and a bag cut short in a copy has
+an ``index_pos`` that points past its end, so rosbags cannot open either. Their data is still
+there, in order (http://wiki.ros.org/Bags/Format/2.0)::
+
+    #ROSBAG V2.0\\n
+    bag header record (op 3, padded to 4096 bytes)
+    chunk record (op 5): compressed connection (op 7) and message data (op 2) records
+    index data records (op 4) of that chunk
+    ... more chunks ...
+    index: connection records (op 7), chunk info records (op 6)
+
+Every record is ``<header_len u32><header><data_len u32><data>``; a header is a sequence of
+``<field_len u32>name=value`` fields, little-endian. A connection record's data is itself such a
+field sequence (topic, type, md5sum, message_definition, ...).
+
+``Ros1Scan(path)`` iterates over the file's ``Connection``s (when their record is met, before
+any message on them) and ``Message``s, in file order. It stops at the first record that is
+incomplete (the file ends) or damaged, without raising, and ``Ros1Scan.status`` then says how far
+it got. Of a chunk cut by the end of the file it still yields the complete records that can be
+decompressed from the bytes present: all of them for uncompressed chunks, those in its complete
+LZ4 blocks (rosbags writes 64 KiB blocks), none for bz2 unless a whole bz2 block (900 kB of
+records at level 9, more than a recorder's usual chunk) is present.
+
+``estimation.bags.read_stream`` uses the scanner only for bags rosbags cannot open. Messages come
+in file order, not sorted by time across chunks; read_stream sorts by header stamp anyway.
+"""
+
+from __future__ import annotations
+
+import bz2
+import struct
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import NamedTuple
+
+import lz4.frame
+from rosbags.rosbag1.reader import normalize as normalize_topic
+from rosbags.typesys.msg import normalize_msgtype
+
+MAGIC = b"#ROSBAG V2.0\n"
+OP_MSGDATA, OP_BAGHEADER, OP_IDXDATA, OP_CHUNK, OP_CHUNK_INFO, OP_CONNECTION = 2, 3, 4, 5, 6, 7
+# Record headers hold a few short fields (a connection record's header: conn and topic); a
+# length beyond this is damage, not a header, and must not make us allocate gigabytes.
+MAX_HEADER = 1 << 20  # bytes
+_OP_NAMES = {OP_MSGDATA: "message", OP_BAGHEADER: "bag header", OP_IDXDATA: "chunk index",
+             OP_CHUNK: "chunk", OP_CHUNK_INFO: "chunk info", OP_CONNECTION: "connection"}
+
+_U32 = struct.Struct("<I")
+_TIME = struct.Struct("<II")  # sec, nsec
+
+
+class ScanError(Exception):
+    """The file cannot be scanned at all: not a ROS1 v2.0 bag, or an encrypted one."""
+
+
+@dataclass(frozen=True)
+class Connection:
+    """A connection record: one publisher's topic and message type."""
+
+    id: int  # 'conn' field, the id message records refer to
+    topic: str  # normalised as rosbags does ('/a//b/' -> '/a/b')
+    msgtype: str  # ROS2 spelling, as rosbags gives it: 'sensor_msgs/msg/Imu'
+    md5sum: str
+    msgdef: str  # the ROS1 message_definition text (dependent types after '=====' lines)
+
+
+class Message(NamedTuple):
+    """A message data record."""
+
+    conn: Connection
+    time_ns: int  # record (receive) time, ns since the epoch; not the header stamp
+    data: bytes  # the message in ROS1 serialisation
+
+
+@dataclass
+class ScanStatus:
+    """How far a scan got. Updated while iterating; final once the iteration ends."""
+
+    file_size: int  # bytes
+    offset: int = 0  # bytes from the start of the file read as complete top-level records
+    messages: int = 0  # message records yielded (including salvaged ones)
+    chunks: int = 0  # complete chunks read
+    salvaged: int = 0  # messages yielded from a chunk cut by the end of the file
+    reason: str = ""  # why the scan stopped before the end of the file; '' if it did not
+    truncated: bool = False  # it stopped because the file ends inside a record
+
+    @property
+    def complete(self) -> bool:
+        """The scan read every record up to the end of the file."""
+        return not self.reason
+
+
+class _Incomplete(Exception):
+    """The file (or a chunk's data) ends inside a record."""
+
+
+class _Damaged(Exception):
+    """A record that is not what the format allows."""
+
+
+def _fields(buf: bytes, start: int, end: int) -> dict[str, bytes]:
+    """Parse the ``<len u32>name=value`` fields of a header in ``buf[start:end]``."""
+    out: dict[str, bytes] = {}
+    pos = start
+    while pos < end:
+        if pos + 4 > end:
+            raise _Damaged("header field length runs past the header")
+        (n,) = _U32.unpack_from(buf, pos)
+        pos += 4
+        if pos + n > end:
+            raise _Damaged("header field runs past the header")
+        eq = buf.find(b"=", pos, pos + n)
+        if eq < 0:
+            raise _Damaged("header field without '='")
+        out[buf[pos:eq].decode("ascii", "replace")] = buf[eq + 1:pos + n]
+        pos += n
+    return out
+
+
+def _op(fields: dict[str, bytes]) -> int:
+    op = fields.get("op")
+    if op is None or len(op) != 1:
+        raise _Damaged("record header has no 'op' field")
+    return op[0]
+
+
+def _u32(fields: dict[str, bytes], name: str) -> int:
+    v = fields.get(name)
+    if v is None or len(v) != 4:
+        raise _Damaged(f"record header has no 4-byte {name!r} field")
+    return _U32.unpack(v)[0]
+
+
+def _connection(fields: dict[str, bytes], data: bytes) -> Connection:
+    """A Connection from a connection record's header fields and data."""
+    conn = _u32(fields, "conn")
+    info = _fields(data, 0, len(data))
+    try:
+        topic = (info.get("topic") or fields["topic"]).decode()
+        return Connection(conn, normalize_topic(topic), normalize_msgtype(info["type"].decode()),
+                          info.get("md5sum", b"").decode(),
+                          info.get("message_definition", b"").decode())
+    except (KeyError, UnicodeDecodeError) as e:
+        raise _Damaged(f"connection record {conn} lacks a readable {e} field") from None
+
+
+def has_magic(path: str | Path) -> bool:
+    """Whether ``path`` is a file that starts like a ROS1 v2.0 bag (a file cut inside the first
+    line counts: it is a truncated bag, not some other file)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(len(MAGIC))
+    except OSError:
+        return False
+    return bool(head) and MAGIC.startswith(head)
+
+
+class Ros1Scan:
+    """Iterate over a ROS1 v2.0 bag's connections and messages in file order, without the
+    index; see the module docstring. ``status`` tells how far the iteration got."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self.status = ScanStatus(file_size=self.path.stat().st_size)
+        self.connections: dict[int, Connection] = {}
+
+    def _stop(self, reason: str, truncated: bool) -> None:
+        self.status.reason = reason
+        self.status.truncated = truncated
+
+    def __iter__(self) -> Iterator[Connection | Message]:
+        st = self.status
+        with open(self.path, "rb") as f:
+            magic = f.read(len(MAGIC))
+            if magic != MAGIC:
+                if MAGIC.startswith(magic):
+                    self._stop(f"the file ends inside the bag's first line ({len(magic)} bytes)",
+                               truncated=True)
+                    return
+                raise ScanError(f"not a ROS1 bag v2.0 (its first line is {magic[:13]!r})")
+            st.offset = len(MAGIC)
+            try:
+                fields, _, _ = self._record(f, read_data=False)
+            except _Incomplete:
+                self._stop("the file ends inside the bag header record", truncated=True)
+                return
+            except _Damaged as e:
+                raise ScanError(f"bag header record is damaged ({e})") from None
+            if fields is None:
+                self._stop("the file ends after the bag's first line", truncated=True)
+                return
+            if _op(fields) != OP_BAGHEADER:
+                raise ScanError("the first record is not a bag header")
+            if fields.get("encryptor"):
+                raise ScanError("the bag is encrypted "
+                                f"({fields['encryptor'].decode(errors='replace')!r})")
+            st.offset = f.tell()
+            while True:
+                pos = f.tell()
+                try:
+                    fields, data, dlen = self._record(f, read_data=None)
+                    if fields is None:
+                        return  # end of file exactly between two records
+                    op = _op(fields)
+                    if op == OP_CHUNK:
+                        yield from self._chunk(fields, data, dlen)
+                        st.chunks += 1
+                    elif op == OP_CONNECTION:
+                        # The index repeats every connection; a new one here has no messages.
+                        c = _connection(fields, data)
+                        if c.id not in self.connections:
+                            self.connections[c.id] = c
+                            yield c
+                    elif op not in (OP_IDXDATA, OP_CHUNK_INFO):
+                        raise _Damaged(f"unexpected record op {op} outside a chunk")
+                except _Incomplete as e:
+                    self._stop(f"the file ends inside the record at byte {pos}{e}",
+                               truncated=True)
+                    return
+                except _Damaged as e:
+                    self._stop(f"the record at byte {pos} is damaged ({e})", truncated=False)
+                    return
+                st.offset = f.tell()
+
+    def _record(self, f, read_data: bool | None) -> tuple[dict[str, bytes] | None, bytes, int]:
+        """Read the record at the file position: (header fields, data, declared data length).
+        ``read_data`` False skips the data, None reads it except for index records (which the
+        scan ignores). Returns (None, b'', 0) at the end of the file. A chunk whose data is cut
+        by the end of the file is returned with the bytes present, for its caller to salvage."""
+        head = f.read(4)
+        if not head:
+            return None, b"", 0
+        if len(head) < 4:
+            raise _Incomplete("")
+        (hlen,) = _U32.unpack(head)
+        if hlen > MAX_HEADER:
+            raise _Damaged(f"header length {hlen} bytes")
+        hdr = f.read(hlen)
+        if len(hdr) < hlen:
+            raise _Incomplete("")
+        fields = _fields(hdr, 0, hlen)
+        op = _op(fields)
+        what = f" ({_OP_NAMES.get(op, f'op {op}')} record)"
+        raw = f.read(4)
+        if len(raw) < 4:
+            raise _Incomplete(what)
+        (dlen,) = _U32.unpack(raw)
+        if read_data is False or (read_data is None and op in (OP_IDXDATA, OP_CHUNK_INFO)):
+            end = f.tell() + dlen
+            if end > self.status.file_size:
+                raise _Incomplete(what)
+            f.seek(end)
+            return fields, b"", dlen
+        # Never ask for more than the file holds: a damaged length can be up to 4 GiB, and
+        # read(n) allocates n bytes before it reads.
+        data = f.read(min(dlen, self.status.file_size - f.tell()))
+        if len(data) < dlen and op != OP_CHUNK:
+            raise _Incomplete(what)
+        return fields, data, dlen
+
+    def _chunk(self, fields: dict[str, bytes], data: bytes, dlen: int
+               ) -> Iterator[Connection | Message]:
+        """The records of a chunk record with header ``fields`` and (compressed) ``data`` of
+        declared length ``dlen``. A chunk cut by the end of the file yields the complete records
+        that can be decompressed from the bytes present, then raises _Incomplete saying so."""
+        st = self.status
+        compression = fields.get("compression", b"").decode("ascii", "replace")
+        size = _u32(fields, "size")  # uncompressed bytes
+        cut = len(data) < dlen
+        try:
+            if compression == "none":
+                buf = data
+            elif compression == "lz4":
+                # A cut frame: the streaming decompressor returns every complete block.
+                buf = (lz4.frame.LZ4FrameDecompressor().decompress(data) if cut
+                       else lz4.frame.decompress(data))
+            elif compression == "bz2":
+                buf = bz2.BZ2Decompressor().decompress(data) if cut else bz2.decompress(data)
+            else:
+                raise _Damaged(f"chunk compression {compression!r} is not none, bz2 or lz4")
+        except (RuntimeError, OSError, ValueError, EOFError) as e:
+            if cut:
+                raise _Incomplete(f" (a {compression} chunk with {len(data)} of its {dlen} "
+                                  f"bytes, which cannot be decompressed ({e}): its messages "
+                                  "are lost)") from None
+            raise _Damaged(f"its {compression} data cannot be decompressed: {e}") from None
+        if not cut:
+            if len(buf) != size:
+                raise _Damaged(f"the chunk holds {len(buf)} bytes, its header says {size}")
+            end = yield from self._chunk_records(buf)
+            if end != len(buf):
+                raise _Damaged(f"the chunk's record at offset {end} runs past its end")
+            return
+        # The output of a cut stream is exactly the start of the chunk's records, so every
+        # complete record in it is as good as if the chunk were whole.
+        before = st.messages
+        yield from self._chunk_records(buf[:size])
+        got = st.messages - before
+        st.salvaged += got
+        raise _Incomplete(f" (a {compression} chunk with {len(data)} of its {dlen} bytes: "
+                          + (f"{got} messages recovered from it, the rest lost)" if got else
+                             "no complete message could be recovered from them)"))
+
+    def _chunk_records(self, buf: bytes):
+        """Yield the connection and message records in the decompressed chunk ``buf`` up to the
+        first incomplete one; returns the offset where it stopped."""
+        st = self.status
+        conns = self.connections
+        n = len(buf)
+        pos = 0
+        while pos + 4 <= n:
+            (hlen,) = _U32.unpack_from(buf, pos)
+            hend = pos + 4 + hlen
+            if hend + 4 > n:
+                break
+            (dlen,) = _U32.unpack_from(buf, hend)
+            dend = hend + 4 + dlen
+            if dend > n:
+                break
+            fields = _fields(buf, pos + 4, hend)
+            op = _op(fields)
+            if op == OP_MSGDATA:
+                cid = _u32(fields, "conn")
+                conn = conns.get(cid)
+                if conn is None:
+                    raise _Damaged(f"message on connection {cid}, which has no record before it")
+                t = fields.get("time")
+                if t is None or len(t) != 8:
+                    raise _Damaged("message record has no 8-byte 'time' field")
+                sec, nsec = _TIME.unpack(t)
+                st.messages += 1
+                yield Message(conn, sec * 1_000_000_000 + nsec, buf[hend + 4:dend])
+            elif op == OP_CONNECTION:
+                c = _connection(fields, buf[hend + 4:dend])
+                if conns.get(c.id) != c:  # writers may repeat a connection in later chunks
+                    conns[c.id] = c
+                    yield c
+            else:
+                raise _Damaged(f"unexpected record op {op} inside a chunk")
+            pos = dend
+        return pos

@@ -1,0 +1,375 @@
+"""A ROS1 bag cut short (its recorder killed before it wrote the index, or a partial copy) is read
+from the front by estimation.ros1_scan: read_stream raises a BagError saying the bag is truncated
+that carries the messages before the cut, and ``ddfuse run`` estimates on them, writes the
+results and exits 2.
+
+Oracles that do not depend on the scanner: the full read through rosbags' index (values), and
+the intact bag's index (which chunk holds how many messages, at which offsets).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import re
+import struct
+from pathlib import Path
+
+import bagwriter as bw
+import numpy as np
+import pytest
+import yaml
+from rosbags.rosbag1 import Reader
+
+from estimation import ros1_scan
+from estimation.bags import read_stream
+from estimation.config import load_config, parse_config
+from estimation.errors import BagError
+from evaluation import cli
+
+pytest.importorskip("gtsam")
+pytest.importorskip("pymap3d")
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLE = ROOT / "data" / "sample_husky.bag"  # LZ4 chunks: odometry, IMU, GPS, ground truth
+SAMPLE_CFG = ROOT / "data" / "sample_husky.yaml"
+SEED2 = ROOT / "data" / "sample_seed002.bag"  # JointState and landmarks: rosbags' deserialiser
+SEED2_CFG = ROOT / "data" / "sample_seed002.yaml"
+T0 = 1_600_000_000.0  # s
+IMU_CFG = {"sensors": {"imu": [{"topic": "/imu", "use": ["yaw_rate"]}]}}
+
+
+# --- helpers ---------------------------------------------------------------------------------
+
+def _key(m) -> str:
+    """A measurement's field values as text (NaN == NaN, arrays by value)."""
+    return repr([v.tolist() if isinstance(v, np.ndarray) else v
+                 for v in (getattr(m, f.name) for f in dataclasses.fields(m))])
+
+
+def _groups(stream) -> dict[tuple[str, str], list[str]]:
+    """Measurements and ground truth by (type, sensor), each in the stream's (stamp) order."""
+    if isinstance(stream, dict):  # already grouped
+        return stream
+    out: dict[tuple[str, str], list[str]] = {}
+    for m in [*stream.measurements, *stream.ground_truth]:
+        out.setdefault((type(m).__name__, m.sensor), []).append(_key(m))
+    return out
+
+
+def assert_prefix(partial, full, whole: bool = False) -> int:
+    """Each sensor's measurements in ``partial`` are the first ones of ``full`` (a Stream, or
+    its _groups), value for value (all of them if ``whole``). Returns how many there are."""
+    p, f = _groups(partial), _groups(full)
+    assert set(p) <= set(f)
+    for g, ms in p.items():
+        assert ms == f[g][:len(ms)], g
+        if whole:
+            assert len(ms) == len(f[g]), g
+    if whole:
+        assert set(p) == set(f)
+    return sum(len(ms) for ms in p.values())
+
+
+def cut(src: Path, n: int, dest: Path) -> Path:
+    """``dest`` holding the first ``n`` bytes of ``src``."""
+    dest.write_bytes(src.read_bytes()[:n])
+    return dest
+
+
+def read_cut(bag: Path, cfg, **kw) -> BagError:
+    with pytest.raises(BagError) as e:
+        read_stream(bag, cfg, **kw)
+    msg = str(e.value)
+    assert str(bag) in msg and "truncated" in msg and "\n" not in msg
+    return e.value
+
+
+def messages_read(err: BagError) -> int:
+    """N of the error's 'read N messages'."""
+    return int(re.search(r"read (\d+) messages", str(err)).group(1))
+
+
+@dataclasses.dataclass
+class ChunkLayout:
+    pos: int  # file offset of the chunk record
+    datapos: int  # file offset of its (compressed) data
+    datasize: int  # bytes
+    end: int  # file offset after its index records (where the next chunk starts)
+    counts: dict[str, int]  # topic -> messages in the chunk
+    offsets: list[int]  # offsets of its message records in the uncompressed chunk, ascending
+
+
+def layout(bag: Path) -> list[ChunkLayout]:
+    """The chunks of an intact bag, from its index as rosbags reads it."""
+    with Reader(bag) as r:
+        topic = {c.id: c.topic for c in r.connections}
+        infos = sorted(r.chunk_infos, key=lambda ci: ci.pos)
+        offsets = {ci.pos: sorted(e.offset for idx in r.indexes.values() for e in idx
+                                  if e.chunk_pos == ci.pos) for ci in infos}
+        out = []
+        for i, ci in enumerate(infos):
+            ch = r.chunks[ci.pos]
+            counts: dict[str, int] = {}
+            for cid, n in ci.connection_counts.items():
+                counts[topic[cid]] = counts.get(topic[cid], 0) + n
+            end = infos[i + 1].pos if i + 1 < len(infos) else None
+            out.append(ChunkLayout(ci.pos, ch.datapos, ch.datasize, end, counts, offsets[ci.pos]))
+    return out
+
+
+def configured(cfg) -> set[str]:
+    topics = {s.topic for s in cfg.sensors}
+    return topics | ({cfg.ground_truth_topic} if cfg.ground_truth_topic else set())
+
+
+def imu_bag(tmp_path: Path, compression: str = "none", n: int = 3000) -> Path:
+    """A ROS1 bag of ``n`` IMU messages at 100 Hz in chunks of about 64 kB."""
+    return bw.write_bag(tmp_path / f"imu_{compression}.bag", "ros1",
+                        [("/imu", bw.imu(T0 + 0.01 * i, angvel=(0.0, 0.0, 0.001 * i),
+                                         wcov=bw.diag(1, 1, 1))) for i in range(n)],
+                        compression=compression, chunk_bytes=64 * 1024)
+
+
+@pytest.fixture(scope="module")
+def sample():
+    cfg = load_config(SAMPLE_CFG)
+    return cfg, read_stream(SAMPLE, cfg), layout(SAMPLE)
+
+
+# --- where the cut falls ---------------------------------------------------------------------
+
+@pytest.mark.parametrize("n", [0, 5, 13, 100, 4000, 4096 + 20])
+def test_cut_inside_the_bag_header(tmp_path, sample, n):
+    """Nothing to read before the first chunk: a one-line error, no partial stream."""
+    cfg, _, chunks = sample
+    assert n < chunks[0].datapos
+    bag = cut(SAMPLE, n, tmp_path / "head.bag")
+    with pytest.raises(BagError) as e:
+        read_stream(bag, cfg)
+    msg = str(e.value)
+    assert str(bag) in msg and "\n" not in msg and e.value.partial is None
+    if n:  # an empty file is reported as such by rosbags
+        assert "truncated" in msg
+
+
+@pytest.mark.parametrize("k", [1, 2, 4])
+def test_cut_between_chunks(tmp_path, sample, k):
+    """Cut where chunk k starts: exactly the messages of chunks 0..k-1, with their values."""
+    cfg, full, chunks = sample
+    bag = cut(SAMPLE, chunks[k].pos, tmp_path / "between.bag")
+    err = read_cut(bag, cfg)
+    want = sum(n for c in chunks[:k] for t, n in c.counts.items() if t in configured(cfg))
+    assert messages_read(err) == want
+    assert assert_prefix(err.partial, full) > 0
+    assert err.partial.duration > 0
+
+
+def test_cut_inside_an_lz4_chunk_recovers_its_complete_blocks(tmp_path, sample):
+    """The LZ4 stream of a cut chunk yields its complete 64 KiB blocks: more messages than the
+    complete chunks hold, fewer than with the cut chunk whole."""
+    cfg, full, chunks = sample
+    c = chunks[2]
+    bag = cut(SAMPLE, c.datapos + c.datasize // 2, tmp_path / "mid.bag")
+    err = read_cut(bag, cfg)
+    before = sum(n for ch in chunks[:2] for t, n in ch.counts.items() if t in configured(cfg))
+    with_chunk = before + sum(n for t, n in c.counts.items() if t in configured(cfg))
+    assert before < messages_read(err) < with_chunk
+    assert "recovered" in str(err)
+    assert_prefix(err.partial, full)
+
+
+def test_cut_inside_an_uncompressed_chunk_recovers_every_complete_record(tmp_path):
+    bag = imu_bag(tmp_path)
+    cfg = parse_config(IMU_CFG)
+    full = read_stream(bag, cfg)
+    chunks = layout(bag)
+    c = chunks[1]
+    for into in (10, c.datasize // 3, c.datasize - 1):
+        p = cut(bag, c.datapos + into, tmp_path / f"u{into}.bag")
+        err = read_cut(p, cfg)
+        # A message record ends where the next begins (or at the chunk's end).
+        ends = [*c.offsets[1:], c.datasize]
+        want = chunks[0].counts["/imu"] + sum(e <= into for e in ends)
+        assert messages_read(err) == want == len(err.partial.measurements)
+        assert_prefix(err.partial, full)
+
+
+def test_cut_inside_a_bz2_chunk_drops_it_and_says_so(tmp_path):
+    """bz2 gives nothing before a whole 900 kB block: the cut chunk is lost, the ones before
+    are read in full."""
+    bag = imu_bag(tmp_path, "bz2")
+    cfg = parse_config(IMU_CFG)
+    full = read_stream(bag, cfg)
+    chunks = layout(bag)
+    assert len(chunks) >= 4
+    c = chunks[3]
+    err = read_cut(cut(bag, c.datapos + c.datasize // 2, tmp_path / "bz.bag"), cfg)
+    want = sum(ch.counts["/imu"] for ch in chunks[:3])
+    assert messages_read(err) == len(err.partial.measurements) == want
+    assert "no complete message could be recovered" in str(err)
+    assert_prefix(err.partial, full)
+
+
+def test_cut_inside_the_index_at_the_end_keeps_every_message(tmp_path, sample):
+    cfg, full, chunks = sample
+    size = SAMPLE.stat().st_size
+    err = read_cut(cut(SAMPLE, size - 10, tmp_path / "index.bag"), cfg)
+    assert_prefix(err.partial, full, whole=True)
+
+
+def test_recorder_killed_before_writing_the_index(tmp_path):
+    """The file a killed recorder leaves: index_pos 0 in the bag header and nothing after the
+    last chunk written."""
+    bag = imu_bag(tmp_path)
+    cfg = parse_config(IMU_CFG)
+    full = read_stream(bag, cfg)
+    chunks = layout(bag)
+    data = bytearray(bag.read_bytes()[:chunks[-1].pos])  # the last chunk was never written
+    at = data.index(b"index_pos=") + len(b"index_pos=")
+    data[at:at + 8] = struct.pack("<Q", 0)
+    killed = tmp_path / "killed.bag"
+    killed.write_bytes(bytes(data))
+    err = read_cut(killed, cfg)
+    assert "no index" in str(err)
+    assert messages_read(err) == sum(c.counts["/imu"] for c in chunks[:-1])
+    assert_prefix(err.partial, full)
+
+
+def test_sweep_of_cut_offsets(tmp_path, sample):
+    """30 cuts spread over the file: never anything but a one-line BagError, and whatever was
+    read is the start of the full read, value for value, growing with the cut."""
+    cfg, full, chunks = sample
+    full = _groups(full)
+    size = SAMPLE.stat().st_size
+    got = []
+    for n in np.linspace(0, size, 32).astype(int)[1:-1]:
+        bag = cut(SAMPLE, int(n), tmp_path / "sweep.bag")
+        with pytest.raises(BagError) as e:
+            read_stream(bag, cfg)
+        msg = str(e.value)
+        assert str(bag) in msg and "truncated" in msg and "\n" not in msg, (n, msg)
+        if e.value.partial is None:
+            assert n < chunks[1].pos, (n, msg)  # only before the first chunk is complete
+            got.append(0)
+        else:
+            got.append(assert_prefix(e.value.partial, full))
+    assert got == sorted(got) and got[-1] > 0.9 * assert_prefix(full, full)
+
+
+def test_types_without_a_fast_decoder_use_the_bags_definitions(tmp_path):
+    """JointState and the landmark message go through rosbags' deserialiser, with the types
+    registered from the bag's own connection records."""
+    cfg = load_config(SEED2_CFG)
+    full = read_stream(SEED2, cfg)
+    c = layout(SEED2)[1]
+    err = read_cut(cut(SEED2, c.datapos + c.datasize // 2, tmp_path / "s2.bag"), cfg)
+    kinds = {type(m).__name__ for m in err.partial.measurements}
+    assert {"WheelSpeeds", "LandmarkObservation"} <= kinds
+    assert assert_prefix(err.partial, full) > 0
+    assert not err.partial.rejected
+
+
+def test_progress_is_reported_while_scanning(tmp_path, sample):
+    cfg, _, _ = sample
+    seen: list[float] = []
+    read_cut(cut(SAMPLE, SAMPLE.stat().st_size // 2, tmp_path / "p.bag"), cfg,
+             progress=seen.append)
+    assert len(seen) >= 2 and all(0.0 <= f <= 1.0 for f in seen) and seen == sorted(seen)
+
+
+# --- errors ----------------------------------------------------------------------------------
+
+def test_a_file_that_is_not_a_bag_is_still_not_a_bag(tmp_path, sample):
+    cfg, _, _ = sample
+    p = tmp_path / "notes.bag"
+    p.write_bytes(b"#ROSBAG V1.2\n" + b"x" * 5000)
+    assert not ros1_scan.has_magic(p)
+    with pytest.raises(BagError) as e:
+        read_stream(p, cfg)
+    msg = str(e.value)
+    assert str(p) in msg and "not a bag" in msg and "\n" not in msg
+    assert e.value.partial is None
+
+
+def test_configured_topic_missing_from_what_could_be_read(tmp_path, sample):
+    raw = yaml.safe_load(SAMPLE_CFG.read_text())
+    raw["sensors"]["gps"][0]["topic"] = "/gps/missing"
+    cfg = parse_config(raw, base=SAMPLE_CFG.parent)
+    bag = cut(SAMPLE, SAMPLE.stat().st_size // 2, tmp_path / "m.bag")
+    with pytest.raises(BagError) as e:
+        read_stream(bag, cfg)
+    msg = str(e.value)
+    assert str(bag) in msg and "/gps/missing" in msg and "sensors.gps[0].topic" in msg
+    assert "/imu/data" in msg and "truncated" in msg and "\n" not in msg
+
+
+def test_a_wrong_message_type_is_named(tmp_path, sample):
+    raw = yaml.safe_load(SAMPLE_CFG.read_text())
+    # An Imu topic where NavSatFix is needed (named: sensor names default to the topic).
+    raw["sensors"]["gps"][0].update(topic="/imu/data", name="gps")
+    cfg = parse_config(raw, base=SAMPLE_CFG.parent)
+    bag = cut(SAMPLE, SAMPLE.stat().st_size // 2, tmp_path / "t.bag")
+    with pytest.raises(BagError) as e:
+        read_stream(bag, cfg)
+    assert "sensor_msgs/Imu" in str(e.value) and "sensors.gps[0]" in str(e.value)
+
+
+def test_scanner_reads_an_intact_bag_like_rosbags():
+    """The scanner alone, on the intact sample: the same messages, bytes and record times as
+    rosbags' indexed reader, and a clean end."""
+    scan = ros1_scan.Ros1Scan(SAMPLE)
+    got = sorted((m.conn.topic, m.time_ns, m.data) for m in scan
+                 if isinstance(m, ros1_scan.Message))
+    with Reader(SAMPLE) as r:
+        want = sorted((c.topic, t, d) for c, t, d in r.messages())
+        types = {c.topic: c.msgtype for c in r.connections}
+    assert got == want
+    assert {c.topic: c.msgtype for c in scan.connections.values()} == types
+    assert scan.status.complete and scan.status.offset == SAMPLE.stat().st_size
+
+
+# --- the command line ------------------------------------------------------------------------
+
+def test_cli_run_on_a_truncated_bag_writes_results_and_exits_2(tmp_path, capsys):
+    bag = cut(SAMPLE, SAMPLE.stat().st_size // 2, tmp_path / "half.bag")
+    out = tmp_path / "out"
+    rc = cli.main(["run", str(bag), "-c", str(SAMPLE_CFG), "-o", str(out),
+                   "--estimators", "ekf"])
+    assert rc == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and str(bag) in err and "truncated" in err and str(out) in err
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert "truncated" in metrics["input_error"]
+    assert metrics["duration_s"] > 30 and metrics["estimators"]["ekf"]["samples"] > 100
+    assert metrics["estimators"]["ekf"]["ate_rmse_m"] is not None
+    rows = (out / "ekf.tum").read_text().splitlines()
+    assert len(rows) == metrics["estimators"]["ekf"]["samples"]
+    assert (out / "ekf.csv").is_file() and (out / "ground_truth.tum").is_file()
+
+
+# --- the real bag ----------------------------------------------------------------------------
+
+@pytest.mark.slow
+def test_real_husky_bag_cut_at_quarters(tmp_path, husky_bag):
+    cfg = load_config(ROOT / "data" / "configs" / "rl_husky_gps.yaml")
+    full = read_stream(husky_bag, cfg)
+    size = husky_bag.stat().st_size
+    counts, durations = [], []
+    for frac in (0.25, 0.5, 0.75):
+        bag = cut(husky_bag, int(size * frac), tmp_path / f"husky_{int(frac * 100)}.bag")
+        err = read_cut(bag, cfg)
+        n = assert_prefix(err.partial, full)
+        counts.append(messages_read(err))
+        durations.append(err.partial.duration)
+        # bz2 chunks hold about 40 s: a cut loses at most the chunk it falls in.
+        assert frac * full.duration - 60 < err.partial.duration <= frac * full.duration + 5
+        assert n > 0
+    assert counts == sorted(counts) and durations == sorted(durations)
+    out = tmp_path / "out"
+    bag = tmp_path / "husky_50.bag"
+    assert cli.main(["run", str(bag), "-c", str(ROOT / "data" / "configs" / "rl_husky_gps.yaml"),
+                     "-o", str(out), "--estimators", "ekf", "--gps-holdout", "every:5"]) == 2
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["estimators"]["ekf"]["samples"] > 100
+    assert metrics["estimators"]["ekf"]["gps_holdout_rmse_m"] is not None
