@@ -11,7 +11,11 @@ velocity and biases as states): one 7-vector key per keyframe, ``[x, y, psi, v, 
   share of the gyro bias the fused rate carries. A held sample's error is the same over its whole
   period T, so its variance enters as a density var * T (per step of dt: var * T / dt);
 * a GPS fix is a GPS factor (lever arm; motion-compensated when it does not fall on the keyframe;
-  robust noise from the config);
+  robust noise from the config), unless its innovation against the prediction fails the
+  sensor's chi-square gate (as in the EKF, with the same lock-out rule);
+* with both a gyro and an odometry yaw rate, the mean of their difference over the interval is
+  a measurement of the gyro bias (a prior on that component only), which the fused rate alone
+  would not carry;
 * the absolute heading sample nearest each keyframe is one heading factor (with the offset state
   when ``heading_offset: estimate``);
 * a landmark sighting is a range/bearing (or range-only) factor to the known map position.
