@@ -32,3 +32,16 @@ def jackal_bag() -> Path:
 @pytest.fixture
 def mrclam_bag() -> Path:
     return shared_bag("mrclam1_robot1.bag")
+
+
+@pytest.fixture(scope="session")
+def sample_husky():
+    """(config, decoded stream) of the project's simulated sample data/sample_husky.bag."""
+    from estimation.bags import read_stream
+    from estimation.config import load_config
+
+    bag, yaml = ROOT / "data" / "sample_husky.bag", ROOT / "data" / "sample_husky.yaml"
+    if not bag.is_file():
+        pytest.skip("data/sample_husky.bag not present")
+    cfg = load_config(yaml)
+    return cfg, read_stream(bag, cfg)

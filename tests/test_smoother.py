@@ -11,8 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from estimation.bags import read_stream
-from estimation.config import SmootherConfig, load_config
+from estimation.config import SmootherConfig
 from estimation.measurements import GpsFix, Stream
 from estimation.runner import Trajectory, run
 from estimation.smoother import BatchSmoother, FixedLagSmoother
@@ -24,12 +23,8 @@ TRUE_HEADING_OFFSET = 0.35  # rad
 
 
 @pytest.fixture(scope="module")
-def husky():
-    bag, yaml = DATA / "sample_husky.bag", DATA / "sample_husky.yaml"
-    if not bag.is_file():
-        pytest.skip("data/sample_husky.bag not present")
-    cfg = load_config(yaml)
-    return cfg, read_stream(bag, cfg)
+def husky(sample_husky):
+    return sample_husky
 
 
 def _errors(traj: Trajectory, truth: Trajectory, t_min: float = 5.0) -> np.ndarray:

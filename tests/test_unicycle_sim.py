@@ -11,21 +11,11 @@ import numpy as np
 import pytest
 
 from ekf_baseline.unicycle import UnicycleEkf
-from estimation.bags import read_stream
-from estimation.config import EkfConfig, load_config
+from estimation.config import EkfConfig
 from estimation.measurements import GroundTruthPose
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 TRUE_HEADING_OFFSET = 0.35  # rad, stated in data/sample_husky.yaml
-
-
-@pytest.fixture(scope="module")
-def sample_husky():
-    bag, yaml = DATA / "sample_husky.bag", DATA / "sample_husky.yaml"
-    if not bag.is_file():
-        pytest.skip("data/sample_husky.bag not present")
-    cfg = load_config(yaml)
-    return cfg, read_stream(bag, cfg)
 
 
 @pytest.mark.parametrize("rate", ["event", 50.0])
