@@ -93,8 +93,9 @@ def trajectories(run: SavedRun) -> Figure:
     height = 7.5 if aspect < 1.4 else 6.0
     fig, ax = plt.subplots(figsize=(min(height * aspect + 3.8, 14.0), height))
     if run.truth is not None and len(run.truth):
-        ax.plot(run.truth.pose[:, 0], run.truth.pose[:, 1], "-", color="k", lw=2.2, alpha=0.35,
-                label="ground truth")
+        # A wide pale band under the estimates: it stays visible where they follow it closely.
+        ax.plot(run.truth.pose[:, 0], run.truth.pose[:, 1], "-", color="k", lw=5, alpha=0.2,
+                solid_capstyle="round", label="ground truth")
     if len(run.gps_t):
         used = ~run.gps_withheld
         ax.plot(run.gps_xy[used, 0], run.gps_xy[used, 1], ".", color="0.45", ms=3,
@@ -107,8 +108,8 @@ def trajectories(run: SavedRun) -> Figure:
         xy = np.array(list(run.landmarks.values()))
         ax.plot(xy[:, 0], xy[:, 1], "^", color="tab:green", ms=8, label="landmarks")
     for name, tr in run.tracks.items():
-        ax.plot(tr.pose[:, 0], tr.pose[:, 1], _STYLE.get(name, "-"), color=cols[name], lw=1.2,
-                label=name)
+        ax.plot(tr.pose[:, 0], tr.pose[:, 1], _STYLE.get(name, "-"), color=cols[name], lw=1.1,
+                alpha=0.9, label=name)
     start = run.truth if run.truth is not None and len(run.truth) else next(
         (t for t in run.tracks.values() if len(t)), None)
     if start is not None:

@@ -48,10 +48,22 @@ def _compare(a: str, va: float, b: str, vb: float) -> str:
             f"({100 * rel:.0f}%) lower.")
 
 
-def _direction(ratio: float | None) -> str:
+def _direction(s: dict) -> str:
+    """Which way a failing consistency summary leans: too many values above the band (or a
+    mean well over the expected one) is over-confidence, below is pessimism; excess on both
+    sides at a mean near the expected one is heavy tails (errors not Gaussian)."""
+    ratio, above, below = s.get("ratio"), s.get("above") or 0.0, s.get("below") or 0.0
     if ratio is None:
         return ""
-    return "over-confident" if ratio > 1 else "pessimistic"
+    tail = 0.05  # twice the nominal 2.5% on one side of the 95% band
+    if ratio > 1.5 or (above > tail >= below):
+        return "over-confident"
+    if ratio < 2 / 3 or (below > tail >= above):
+        return "pessimistic"
+    return "heavy tails on both sides"
+
+
+ABSOLUTE_KINDS = {"gps", "heading", "landmark"}
 
 
 def _consistency(name: str, e: dict, seen_nis: dict) -> str:
@@ -62,7 +74,7 @@ def _consistency(name: str, e: dict, seen_nis: dict) -> str:
         v = nees["verdict"]
         txt = f"NEES {v} (mean {nees['mean']:.2f} for {nees['expected']:g} expected"
         if v != "Pass":
-            txt += f", {_direction(nees.get('ratio'))}"
+            txt += f", {_direction(nees)}"
         parts.append(txt + ")")
     nis = e.get("nis") or {}
     key = repr(sorted(nis.items()))
@@ -75,8 +87,7 @@ def _consistency(name: str, e: dict, seen_nis: dict) -> str:
             v = s.get("verdict")
             if v is None:
                 continue
-            note = "" if v == "Pass" else f" ({_direction(s.get('ratio'))}, mean/expected " \
-                                          f"{s['ratio']:.2f})"
+            note = "" if v == "Pass" else f" ({_direction(s)}, mean/expected {s['ratio']:.2f})"
             by.setdefault(v, []).append(label + note)
         parts += [f"NIS {v}: {', '.join(by[v])}" for v in ("Fail", "Warn", "Pass") if v in by]
     bad = (nees or {}).get("verdict") in ("Fail", "Warn") or any(
@@ -85,7 +96,10 @@ def _consistency(name: str, e: dict, seen_nis: dict) -> str:
         "partly consistent" if bad else "consistent")
     if not parts:
         return f"{name}: consistency not measurable (no truth, no innovations logged)."
-    return f"{name}: {head}. " + "; ".join(parts) + "."
+    kinds = {s.get("kind") for s in nis.values()}
+    dr = (f" It fuses no absolute measurement here ({', '.join(sorted(map(str, kinds)))} "
+          "only): it is dead reckoning.") if nis and not kinds & ABSOLUTE_KINDS else ""
+    return f"{name}: {head}. " + "; ".join(parts) + "." + dr
 
 
 def verdict_lines(m: dict) -> list[str]:
