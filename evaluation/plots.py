@@ -122,6 +122,37 @@ def trajectories(run: SavedRun) -> Figure:
     return _finish(fig)
 
 
+def trajectories_each(run: SavedRun) -> Figure:
+    """One panel per track with the truth (or the GPS fixes) behind it, on common axes: the
+    overview's lines overlap where the estimates agree; here each can be read alone."""
+    cols = colors(list(run.tracks))
+    names = [n for n, tr in run.tracks.items() if len(tr)]
+    ncol = min(3, max(len(names), 1))
+    nrow = max(math.ceil(len(names) / ncol), 1)
+    fig, axes = plt.subplots(nrow, ncol, figsize=(4.6 * ncol, 4.3 * nrow), sharex=True,
+                             sharey=True, squeeze=False)
+    for ax in axes.flat[len(names):]:
+        ax.set_axis_off()
+    xl, yl = _frame_labels(run)
+    for ax, name in zip(axes.flat, names, strict=False):
+        if run.truth is not None and len(run.truth):
+            ax.plot(run.truth.pose[:, 0], run.truth.pose[:, 1], "-", color="k", lw=3.5,
+                    alpha=0.2)
+        elif len(run.gps_t):
+            ax.plot(run.gps_xy[:, 0], run.gps_xy[:, 1], ".", color="0.6", ms=2)
+        tr = run.tracks[name]
+        ax.plot(tr.pose[:, 0], tr.pose[:, 1], "-", color=cols[name], lw=0.9)
+        ax.set_title(name, fontsize=10)
+        ax.set_aspect("equal", adjustable="box")  # shared axes: the boxes take the aspect
+        ax.grid(True, alpha=0.3)
+        ax.tick_params(labelsize=8)
+    for ax in axes[-1]:
+        ax.set_xlabel(xl, fontsize=8)
+    for ax in axes[:, 0]:
+        ax.set_ylabel(yl, fontsize=8)
+    return _finish(fig)
+
+
 def _envelope(ax, t, err, sigma3, color, label):
     ax.fill_between(t, -sigma3, sigma3, color=color, alpha=0.18, lw=0, label="±3σ")
     ax.plot(t, err, "-", color=color, lw=0.9, label=label)

@@ -253,6 +253,9 @@ def make_figures(run: SavedRun, progress: Callable[[float], None] | None = None
         ("trajectories", lambda: plots.trajectories(run),
          "Every estimate on the local plane with the truth and the GPS fixes (red circles: "
          "withheld from the estimators and used to score them)."),
+        ("trajectories_each", lambda: plots.trajectories_each(run) if len(run.tracks) > 1
+         else None,
+         "Each estimate on its own, over the ground truth (grey band) or the GPS fixes."),
         ("errors", lambda: err_fig, err_caption),
         ("nees", lambda: plots.nees(series, t, dof, cols) if series else None,
          "Pose NEES against the truth with its 95% chi-square band: a consistent estimator "
