@@ -155,3 +155,19 @@ def test_progress_bars_wait_and_stay_quiet_off_a_terminal(capsys):
     assert bars.bar is not None and "estimate" in bars.tasks
     bars.stop()
     assert cli._progress() is None  # pytest's captured output is not a terminal
+
+
+def test_run_on_a_damaged_bag_reports_what_was_read(tmp_path, capsys):
+    bag = tmp_path / "damaged.bag"
+    shutil.copy(ROOT / "data" / "sample_husky.bag", bag)
+    shutil.copy(ROOT / "data" / "sample_husky.yaml", tmp_path / "damaged.yaml")
+    data = bytearray(bag.read_bytes())
+    data[len(data) // 2: len(data) // 2 + 5000] = b"\xff" * 5000  # a bad copy mid-file
+    bag.write_bytes(bytes(data))
+    out = tmp_path / "out"
+    code = cli.main(["run", str(bag), "-o", str(out), "--estimators", "ekf"])
+    _, err = capsys.readouterr()
+    assert code == 2 and len(err.strip().split("\n")) == 1 and str(bag) in err
+    page = (out / "report.html").read_text()
+    assert "The bag is damaged; these results cover what could be read" in page
+    assert json.loads((out / "metrics.json").read_text())["duration_s"] < 100
