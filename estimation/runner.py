@@ -181,15 +181,18 @@ def _feed(meas, skip, est_list, alive, errors, outputs, timings, totals, period,
     n = len(meas)
     next_tick = -math.inf
     for k, m in enumerate(meas):
-        if k % 5000 == 0:
-            gc.collect(1)
+        if k % 1000 == 0:
+            if k % 5000 == 0:
+                gc.collect(1)
             if progress is not None:
                 progress(k / max(n, 1))
         if id(m) in skip:
             continue
         record = m.t >= next_tick
         if record:
-            next_tick = max(next_tick + period, m.t) if math.isfinite(next_tick) else m.t
+            # The next tick on the grid, or one period after a gap; never m.t itself, which
+            # recorded the same stamp again for each message sharing it (IMU fields).
+            next_tick = next_tick + period if next_tick + period > m.t else m.t + period
         for i, est in enumerate(est_list):
             if not alive[i]:
                 continue

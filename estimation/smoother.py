@@ -427,6 +427,8 @@ class FixedLagSmoother(Estimator):
             self.log.rejected[(m.sensor, "landmark not in the map")] += 1
             return
         s = self.sensors[m.sensor]
+        if k == self.k and self.kf_state is not None:
+            self._record_landmark_innovation(m, lm)
         if m.has_bearing:
             sig = (math.sqrt(m.range_var), math.sqrt(m.bearing_var))
             f = range_bearing_factor(self.key(k), lm, m.range, m.bearing,
@@ -435,6 +437,24 @@ class FixedLagSmoother(Estimator):
             f = range_factor(self.key(k), lm, m.range,
                              _robust(self.cfg, s, (math.sqrt(m.range_var),)))
         self._add(f)
+
+    def _record_landmark_innovation(self, m: LandmarkObservation, lm) -> None:
+        """Range (and bearing) innovation of a sighting against the keyframe's prediction,
+        before it is fused (for NIS); the same model as ``factors.landmark``."""
+        st = self.kf_state
+        dx, dy = lm[0] - st[0], lm[1] - st[1]
+        q = dx * dx + dy * dy
+        r = math.sqrt(q)
+        if r < 1e-6:
+            return  # on top of the landmark: no bearing, and the range Jacobian is undefined
+        h = np.array(((-dx / r, -dy / r, 0.0), (dy / q, -dx / q, -1.0)))
+        res = np.array((m.range - r, wrap_angle(m.bearing - math.atan2(dy, dx) + st[2])))
+        var = np.array((m.range_var, m.bearing_var))
+        if not m.has_bearing:
+            h, res, var = h[:1], res[:1], var[:1]
+        cov = h @ self.kf_cov[:3, :3] @ h.T + np.diag(var)
+        nis = float(res @ np.linalg.solve(cov, res))
+        self.log.innovations.append(Innovation(m.t, m.sensor, "landmark", res, cov, nis, True))
 
     def _new_keyframe(self, t: float) -> None:
         i, j = self.k, self.k + 1

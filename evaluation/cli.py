@@ -118,21 +118,48 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
-def _progress():
-    """A rich progress bar on a terminal; nothing when output is not a terminal."""
-    if not sys.stderr.isatty():
-        return None, None
-    from rich.progress import Progress
+class _Bars:
+    """Rich progress bars on stderr, one per stage, shown only when both stdout and stderr are
+    terminals and only once a stage has run for ``delay`` seconds (short runs stay quiet)."""
 
-    bar = Progress(transient=True)
-    tasks: dict[str, int] = {}
+    def __init__(self, delay: float = 2.0, clock=None) -> None:
+        import time
 
-    def update(stage: str, fraction: float) -> None:
-        if stage not in tasks:
-            tasks[stage] = bar.add_task(stage, total=1.0)
-        bar.update(tasks[stage], completed=fraction)
+        self.delay = delay
+        self.clock = clock or time.monotonic
+        self.bar = None
+        self.tasks: dict[str, int] = {}
+        self.started = self.clock()
 
-    return bar, update
+    def update(self, stage: str, fraction: float) -> None:
+        if self.bar is None:
+            if self.clock() - self.started < self.delay or fraction >= 1.0:
+                return
+            from rich.console import Console
+            from rich.progress import Progress
+
+            self.bar = Progress(console=Console(stderr=True), transient=True)
+            self.bar.start()
+        if stage not in self.tasks:
+            self.tasks[stage] = self.bar.add_task(stage, total=1.0)
+        self.bar.update(self.tasks[stage], completed=fraction)
+
+    def stop(self) -> None:
+        if self.bar is not None:
+            self.bar.stop()
+            self.bar = None
+
+
+def _progress() -> _Bars | None:
+    """Progress bars on a terminal; None (no output at all) when output is redirected."""
+    return _Bars() if sys.stdout.isatty() and sys.stderr.isatty() else None
+
+
+def _render(outdir: Path, bars: _Bars | None) -> Path:
+    from evaluation.report import render_report
+
+    return render_report(outdir, progress=(lambda f: bars.update("report", f)) if bars
+                         else None)
 
 
 def _print_summary(m: dict, out) -> None:
@@ -153,27 +180,49 @@ def _print_summary(m: dict, out) -> None:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    import time
+
     from estimation.config import load_config
+    from estimation.errors import BagError
     from evaluation.pipeline import run_bag
 
     bag = args.bag or SAMPLE_BAG
     cfg = load_config(_config_for(bag, args.config))
     names = [n.strip() for n in args.estimators.split(",") if n.strip()] if args.estimators \
         else None
-    bar, update = _progress()
+    bars = _progress()
     try:
-        if bar:
-            bar.start()
         try:
             m = run_bag(bag, cfg, args.outdir, names=names, lag=args.lag,
-                        holdout=args.gps_holdout, progress=update)
+                        holdout=args.gps_holdout, progress=bars.update if bars else None)
         except ValueError as e:
             raise DdfuseError(str(e)) from None
+        except BagError as e:
+            # A damaged bag whose readable part was estimated: the report shows that part.
+            if getattr(e, "results_written", False):
+                _render(args.outdir, bars)
+            raise
+        _print_summary(m, sys.stdout)
+        # The report is rendered after the run, so its time is in no estimator's runtime.
+        t_a = time.perf_counter()
+        report = _render(args.outdir, bars)
+        report_s = time.perf_counter() - t_a
     finally:
-        if bar:
-            bar.stop()
-    _print_summary(m, sys.stdout)
-    sys.stdout.write(f"results in {args.outdir}/ (metrics.json, <estimator>.tum/.csv)\n")
+        if bars:
+            bars.stop()
+    sys.stdout.write(f"results in {args.outdir}/ (metrics.json, <estimator>.tum/.csv, run.npz); "
+                     f"report {report} ({report_s:.1f} s)\n")
+    return 0
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    bars = _progress()
+    try:
+        path = _render(args.outdir, bars)
+    finally:
+        if bars:
+            bars.stop()
+    sys.stdout.write(f"{path}\n")
     return 0
 
 
@@ -202,6 +251,11 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--gps-holdout", metavar="every:K|window:T0:T1",
                     help="withhold these GPS fixes from every estimator and score against them")
     sp.set_defaults(func=cmd_run)
+
+    sp = sub.add_parser("report", help="re-render OUTDIR/report.html from the results that "
+                        "'ddfuse run -o OUTDIR' saved")
+    sp.add_argument("outdir", type=Path, help="a directory written by ddfuse run")
+    sp.set_defaults(func=cmd_report)
 
     sp = sub.add_parser("online", help="replay a bag message by message, as a live robot would")
     sp.add_argument("bag", type=Path)

@@ -1,4 +1,4 @@
-"""Write trajectories as TUM (evo-compatible) and as CSV with the pose covariance per row."""
+"""Write and read trajectories as TUM (evo-compatible) and as CSV with the pose covariance."""
 
 from __future__ import annotations
 
@@ -7,6 +7,9 @@ from pathlib import Path
 import numpy as np
 
 from estimation.runner import Trajectory
+
+CSV_COLUMNS = ["t", "x", "y", "yaw"] + [f"cov_{a}{b}" for a in ("x", "y", "yaw")
+                                         for b in ("x", "y", "yaw")]
 
 
 def write_tum(path: Path, traj: Trajectory) -> None:
@@ -19,19 +22,29 @@ def write_tum(path: Path, traj: Trajectory) -> None:
 
 
 def write_csv(path: Path, traj: Trajectory) -> None:
-    """CSV: t, x, y, yaw and the 3x3 covariance of (x, y, yaw), row-major (m, rad)."""
+    """CSV: t (s), x, y (m), yaw (rad) and the 3x3 covariance of (x, y, yaw), row-major.
+
+    The stamp is written in fixed point (ns): bag stamps are epoch seconds (~1.7e9), which a
+    significant-digit format would round to whole seconds. NaN stays NaN (no heading, no
+    covariance)."""
     n = len(traj)
     rows = np.column_stack([traj.t, traj.pose, traj.cov.reshape(n, 9)])
-    names = ["t", "x", "y", "yaw"] + [f"cov_{a}{b}" for a in ("x", "y", "yaw")
-                                       for b in ("x", "y", "yaw")]
-    np.savetxt(path, rows, delimiter=",", header=",".join(names), comments="", fmt="%.9g")
+    np.savetxt(path, rows, delimiter=",", header=",".join(CSV_COLUMNS), comments="",
+               fmt=["%.9f"] + ["%.10g"] * 12)
+
+
+def read_csv(path: Path) -> Trajectory:
+    """Read a CSV written by write_csv back into a Trajectory."""
+    a = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2).reshape(-1, len(CSV_COLUMNS))
+    return Trajectory(a[:, 0], a[:, 1:4], a[:, 4:].reshape(-1, 3, 3))
 
 
 def read_tum(path: Path) -> Trajectory:
     """Read a TUM file written by write_tum (or evo) into a Trajectory (yaw from the quaternion)."""
     a = np.loadtxt(path, ndmin=2)
     qx, qy, qz, qw = a[:, 4], a[:, 5], a[:, 6], a[:, 7]
-    yaw = np.arctan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz))
+    # The scale-invariant form: the file's 9-decimal quaternion is not exactly unit length.
+    yaw = np.arctan2(2 * (qw * qz + qx * qy), qw * qw + qx * qx - qy * qy - qz * qz)
     n = len(a)
     return Trajectory(a[:, 0], np.column_stack([a[:, 1], a[:, 2], yaw]),
                       np.full((n, 3, 3), np.nan))

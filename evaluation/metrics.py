@@ -1,18 +1,38 @@
 """Trajectory metrics: pure math on arrays, no I/O or plotting (evo's core/metrics split).
 
 Trajectories are ``estimation.runner.Trajectory``: ``t`` (N,) s, ``pose`` (N, 3) as
-(x m, y m, yaw rad) in the local frame, ``cov`` (N, 3, 3). Association follows evo: each
-estimate is paired with the reference sample nearest in time, if within ``max_diff`` seconds.
+(x m, y m, yaw rad) in the local frame, ``cov`` (N, 3, 3). The semantics follow evo (1.38) so
+that ``evo_ape`` / ``evo_rpe`` on the TUM files ddfuse writes give the same numbers:
+
+* association (``evo.core.sync``): the samples of the shorter trajectory (the estimate when both
+  are equally long) are each paired with the nearest-in-time sample of the other, if within
+  ``max_diff`` seconds; a sample of the longer one may serve several pairs;
+* alignment (``PosePath3D.align`` / ``align_origin``) of the estimate onto the reference, on the
+  associated pairs: ``none``; ``se2``, Umeyama's least-squares rotation and translation of the
+  positions (no scale; on planar data this is evo's SE(3) Umeyama); ``origin``, the rigid motion
+  taking the first associated estimate pose onto the reference's;
+* ATE (evo's APE): the position error |p_est - p_ref| (m) and the heading error
+  |wrap(yaw_est - yaw_ref)| (rad, evo's ``rotation_angle_rad`` for planar poses) per pair;
+* RPE: for index pairs (i, j) a time or path ``delta`` apart, E = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j)
+  with Q the reference and P the estimate; translation |t(E)| (m) and angle |angle(E)| (rad).
+  Pairs are consecutive (evo's default) or all pairs; path pairs are taken on the estimate's path
+  unless ``pairs_from_reference`` (evo's default and option). evo has no time delta; ours is the
+  same rule with elapsed seconds in place of path metres.
+
+Statistics (``Stats``) are evo's: RMSE, mean, median, std (population), min, max.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
 from estimation.runner import Trajectory
+
+ALIGNMENTS = ("none", "se2", "origin")
+RPE_UNITS = ("s", "m")
 
 
 def wrap(a):
@@ -21,25 +41,37 @@ def wrap(a):
 
 
 def associate(t_est: np.ndarray, t_ref: np.ndarray, max_diff: float) -> tuple[np.ndarray, ...]:
-    """Indices (i_est, i_ref) of pairs whose stamps differ by at most ``max_diff`` s; each
-    estimate takes its nearest reference sample. ``t_ref`` must be sorted."""
+    """Indices (i_est, i_ref) of associated pairs, evo's nearest-time rule (module docstring).
+
+    Both stamp arrays (s) must be sorted. Pairs come in increasing order of the shorter
+    trajectory's index; ties between two equally near samples go to the earlier one."""
+    t_est, t_ref = np.asarray(t_est, float), np.asarray(t_ref, float)
     if len(t_est) == 0 or len(t_ref) == 0:
         return np.zeros(0, int), np.zeros(0, int)
-    j = np.clip(np.searchsorted(t_ref, t_est), 1, len(t_ref) - 1)
-    left_closer = np.abs(t_est - t_ref[j - 1]) <= np.abs(t_ref[j] - t_est)
-    j = np.where(left_closer, j - 1, j)
-    ok = np.abs(t_ref[j] - t_est) <= max_diff
-    return np.nonzero(ok)[0], j[ok]
+    # evo starts from the trajectory with fewer poses so that none of its poses is lost.
+    est_short = len(t_est) <= len(t_ref)
+    short, long_ = (t_est, t_ref) if est_short else (t_ref, t_est)
+    k = np.minimum(np.searchsorted(long_, short, side="right"), len(long_) - 1)
+    diff_ub = long_[k] - short
+    diff_lb = np.where(k > 0, short - long_[np.maximum(k - 1, 0)], np.inf)
+    take_ub = (diff_ub <= max_diff) & (diff_ub < diff_lb)
+    take_lb = ~take_ub & (diff_lb <= max_diff) & (diff_lb <= diff_ub)
+    inside = (short >= long_[0] - max_diff) & (short <= long_[-1] + max_diff)
+    ok = inside & (take_ub | take_lb)
+    i_short = np.nonzero(ok)[0]
+    i_long = np.where(take_ub, k, k - 1)[ok]
+    return (i_short, i_long) if est_short else (i_long, i_short)
 
 
 @dataclass
 class Stats:
-    """Statistics of an error series (units of the series)."""
+    """Statistics of an error series (units of the series); NaN for an empty series."""
 
     rmse: float
     mean: float
     median: float
     std: float
+    min: float
     max: float
     n: int
 
@@ -48,44 +80,127 @@ class Stats:
         e = np.asarray(e, float)
         if e.size == 0:
             nan = math.nan
-            return cls(nan, nan, nan, nan, nan, 0)
+            return cls(nan, nan, nan, nan, nan, nan, 0)
         return cls(float(np.sqrt(np.mean(e * e))), float(np.mean(e)), float(np.median(e)),
-                   float(np.std(e)), float(np.max(e)), int(e.size))
+                   float(np.std(e)), float(np.min(e)), float(np.max(e)), int(e.size))
+
+    def scaled(self, k: float) -> Stats:
+        """The same statistics of the series times ``k`` > 0 (e.g. rad -> deg)."""
+        return Stats(self.rmse * k, self.mean * k, self.median * k, self.std * k,
+                     self.min * k, self.max * k, self.n)
+
+    def as_dict(self) -> dict:
+        return asdict(self)
 
 
 @dataclass
 class PoseErrors:
-    """Per-sample errors of an estimate against a reference, at the associated stamps."""
+    """Per-pair errors of an estimate against a reference, at the associated stamps."""
 
-    t: np.ndarray  # (M,) s
-    dxy: np.ndarray  # (M, 2) m, estimate - reference
+    t: np.ndarray  # (M,) s, the estimate's stamps
+    dxy: np.ndarray  # (M, 2) m, estimate - reference (after alignment), local frame
     dyaw: np.ndarray  # (M,) rad, wrapped; NaN where the reference has no yaw
-    i_est: np.ndarray  # indices into the estimate
+    i_est: np.ndarray  # (M,) indices into the estimate
+    i_ref: np.ndarray | None = None  # (M,) indices into the reference
 
     @property
     def position(self) -> np.ndarray:
+        """(M,) horizontal position error, m."""
         return np.hypot(self.dxy[:, 0], self.dxy[:, 1])
 
 
-def pose_errors(est: Trajectory, ref: Trajectory, max_diff: float = 0.05) -> PoseErrors:
-    """Errors of ``est`` against ``ref`` with no alignment (both in the run's local frame)."""
+def umeyama_se2(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation R (2, 2) and translation t (2,) minimising sum |R src_k + t - dst_k|^2.
+
+    ``src``, ``dst``: (N, 2) corresponding points, m. Umeyama (1991) without scale, with the
+    reflection guard (det R = +1). Raises ValueError if the source points are all equal."""
+    src, dst = np.asarray(src, float), np.asarray(dst, float)
+    mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
+    cov = (dst - mu_d).T @ (src - mu_s) / len(src)
+    u, d, vt = np.linalg.svd(cov)
+    if len(src) < 2 or d[0] <= np.finfo(float).eps * max(1.0, float(np.abs(src).max())):
+        raise ValueError("SE(2) alignment needs at least two distinct positions")
+    s = np.diag([1.0, np.sign(np.linalg.det(u) * np.linalg.det(vt)) or 1.0])
+    r = u @ s @ vt
+    return r, mu_d - r @ mu_s
+
+
+def _apply_se2(pose: np.ndarray, r: np.ndarray, t: np.ndarray) -> np.ndarray:
+    out = pose.copy()
+    out[:, :2] = pose[:, :2] @ r.T + t
+    out[:, 2] = wrap(pose[:, 2] + math.atan2(r[1, 0], r[0, 0]))
+    return out
+
+
+def alignment(est_pose: np.ndarray, ref_pose: np.ndarray, method: str
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """The rigid motion (R (2, 2), t (2,)) that ``method`` applies to the estimate, from the
+    associated poses ``est_pose``, ``ref_pose`` (M, 3). ValueError if it cannot be computed."""
+    if method == "none":
+        return np.eye(2), np.zeros(2)
+    if len(est_pose) == 0:
+        raise ValueError(f"{method} alignment of an empty trajectory")
+    if method == "se2":
+        return umeyama_se2(est_pose[:, :2], ref_pose[:, :2])
+    if method == "origin":
+        if not math.isfinite(ref_pose[0, 2]):
+            raise ValueError("origin alignment needs the reference's heading")
+        a = ref_pose[0, 2] - est_pose[0, 2]
+        r = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+        return r, ref_pose[0, :2] - r @ est_pose[0, :2]
+    raise ValueError(f"alignment must be one of {ALIGNMENTS}, got {method!r}")
+
+
+def pose_errors(est: Trajectory, ref: Trajectory, max_diff: float = 0.05,
+                align: str = "none") -> PoseErrors:
+    """Errors of ``est`` against ``ref`` at the associated stamps, after ``align`` (module
+    docstring; 'none': both already in the run's local frame)."""
     i, j = associate(est.t, ref.t, max_diff)
-    dxy = est.pose[i, :2] - ref.pose[j, :2]
-    dyaw = wrap(est.pose[i, 2] - ref.pose[j, 2])
-    return PoseErrors(est.t[i], dxy, dyaw, i)
+    pe, pr = est.pose[i], ref.pose[j]
+    if align != "none":
+        pe = _apply_se2(pe, *alignment(pe, pr, align))
+    return PoseErrors(est.t[i], pe[:, :2] - pr[:, :2], wrap(pe[:, 2] - pr[:, 2]), i, j)
 
 
-def ate(est: Trajectory, ref: Trajectory, max_diff: float = 0.05) -> Stats:
-    """Absolute position error (m) statistics, no alignment."""
-    return Stats.of(pose_errors(est, ref, max_diff).position)
+@dataclass
+class Ape:
+    """Absolute trajectory error: position (m) and heading (rad) statistics, and the errors."""
+
+    position: Stats
+    heading: Stats
+    errors: PoseErrors
+    align: str
 
 
-def nees(est: Trajectory, ref: Trajectory, max_diff: float = 0.05) -> np.ndarray:
-    """Pose NEES e^T P^-1 e per associated sample (3 dof; 2 where the reference has no yaw).
+def ape(est: Trajectory, ref: Trajectory, max_diff: float = 0.05, align: str = "none") -> Ape:
+    """ATE of ``est`` against ``ref`` (evo's APE, translation part and rotation angle)."""
+    err = pose_errors(est, ref, max_diff, align)
+    yaw = np.abs(err.dyaw)
+    return Ape(Stats.of(err.position), Stats.of(yaw[np.isfinite(yaw)]), err, align)
+
+
+def ate(est: Trajectory, ref: Trajectory, max_diff: float = 0.05, align: str = "none"
+        ) -> Stats:
+    """Absolute position error (m) statistics after ``align``."""
+    return ape(est, ref, max_diff, align).position
+
+
+@dataclass
+class Nees:
+    """Pose NEES e^T P^-1 e at the associated stamps ``t`` (s), with its degrees of freedom
+    ``dof`` (3, or 2 where the reference has no yaw)."""
+
+    t: np.ndarray
+    value: np.ndarray
+    dof: np.ndarray
+
+
+def nees_series(est: Trajectory, ref: Trajectory, max_diff: float = 0.05) -> Nees:
+    """NEES of ``est`` against ``ref`` (no alignment: the covariance is in the local frame).
 
     Samples whose covariance is missing or not positive definite are left out."""
     err = pose_errors(est, ref, max_diff)
-    out = []
+    ts, vals, dofs = [], [], []
     for k, i in enumerate(err.i_est):
         p = est.cov[i]
         if math.isnan(err.dyaw[k]):
@@ -99,8 +214,15 @@ def nees(est: Trajectory, ref: Trajectory, max_diff: float = 0.05) -> np.ndarray
         except np.linalg.LinAlgError:
             continue
         z = np.linalg.solve(c, e)
-        out.append(float(z @ z))
-    return np.array(out)
+        ts.append(err.t[k])
+        vals.append(float(z @ z))
+        dofs.append(len(e))
+    return Nees(np.array(ts), np.array(vals), np.array(dofs, int))
+
+
+def nees(est: Trajectory, ref: Trajectory, max_diff: float = 0.05) -> np.ndarray:
+    """Pose NEES values per associated sample (see ``nees_series``)."""
+    return nees_series(est, ref, max_diff).value
 
 
 def interpolate_xy(est: Trajectory, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -120,17 +242,64 @@ def holdout_errors(est: Trajectory, t: np.ndarray, enu_xy: np.ndarray) -> np.nda
     return np.hypot(d[inside, 0], d[inside, 1])
 
 
-def rpe(est: Trajectory, ref: Trajectory, delta: float = 1.0, max_diff: float = 0.05
-        ) -> tuple[Stats, Stats]:
-    """Relative pose error over a time delta (s): translation (m) and heading (rad) statistics
-    of (ref_i^-1 ref_j)^-1 (est_i^-1 est_j) for pairs about ``delta`` apart."""
+def path_length(xy: np.ndarray) -> float:
+    """Length (m) of the polyline through the points ``xy`` (N, 2)."""
+    return float(np.hypot(*np.diff(np.asarray(xy, float), axis=0).T).sum()) if len(xy) > 1 \
+        else 0.0
+
+
+def rpe_pairs(t: np.ndarray, xy: np.ndarray, delta: float, unit: str = "s",
+              all_pairs: bool = False, rel_tol: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs (a, b) for the RPE, ``delta`` seconds (``unit`` 's') or path metres ('m')
+    apart along stamps ``t`` (N,) / positions ``xy`` (N, 2).
+
+    Consecutive pairs (evo's default): the first sample, then each sample at which the time or
+    path since the last chosen one reaches ``delta``. All pairs: each sample with the later one
+    whose distance is nearest to ``delta``, kept if within ``rel_tol * delta`` of it."""
+    if unit not in RPE_UNITS:
+        raise ValueError(f"RPE delta unit must be one of {RPE_UNITS}, got {unit!r}")
+    if not delta > 0:
+        raise ValueError(f"RPE delta must be > 0, got {delta}")
+    n = len(t)
+    steps = np.diff(t) if unit == "s" else np.linalg.norm(np.diff(xy, axis=0), axis=1)
+    if n < 2:
+        return np.zeros(0, int), np.zeros(0, int)
+    if not all_pairs:
+        # The running sum, reset at each chosen sample, is evo's loop, kept as a loop so that
+        # the floating-point sums (and so the chosen samples) are the same as evo's.
+        ids, acc = [0], 0.0
+        for k, s in enumerate(steps.tolist(), start=1):
+            acc += s
+            if acc >= delta:
+                ids.append(k)
+                acc = 0.0
+        return np.array(ids[:-1], int), np.array(ids[1:], int)
+    cum = np.concatenate([[0.0], np.cumsum(steps)])
+    a = np.arange(n - 1)
+    target = cum[a] + delta
+    hi = np.clip(np.searchsorted(cum, target, side="left"), a + 1, n - 1)
+    # The candidate below the target: the first sample holding the last value under it (evo's
+    # argmin returns the first of equal distances, e.g. while the robot stands still).
+    below = np.clip(np.searchsorted(cum, cum[np.maximum(hi - 1, 0)], side="left"), a + 1, n - 1)
+    # Distances as evo forms them (cum[b] - cum[a], then minus delta), for the same roundings.
+    d_hi, d_lo = np.abs(cum[hi] - cum[a] - delta), np.abs(cum[below] - cum[a] - delta)
+    b = np.where(d_lo <= d_hi, below, hi)
+    keep = np.minimum(d_lo, d_hi) <= rel_tol * delta
+    return a[keep], b[keep]
+
+
+def rpe(est: Trajectory, ref: Trajectory, delta: float = 1.0, max_diff: float = 0.05, *,
+        unit: str = "s", all_pairs: bool = False, rel_tol: float = 0.1,
+        pairs_from_reference: bool = False) -> tuple[Stats, Stats]:
+    """Relative pose error over ``delta`` (``unit`` 's' or 'm'): translation (m) and heading
+    (rad) statistics of (ref_i^-1 ref_j)^-1 (est_i^-1 est_j) over the pairs of ``rpe_pairs``
+    taken on the associated samples."""
     i, j = associate(est.t, ref.t, max_diff)
     if len(i) < 2:
         return Stats.of(np.zeros(0)), Stats.of(np.zeros(0))
-    te, pe, pr = est.t[i], est.pose[i], ref.pose[j]
-    k2 = np.searchsorted(te, te + delta)
-    ok = k2 < len(te)
-    a, b = np.nonzero(ok)[0], k2[ok]
+    pe, pr = est.pose[i], ref.pose[j]
+    src = pr if pairs_from_reference else pe
+    a, b = rpe_pairs(est.t[i], src[:, :2], delta, unit, all_pairs, rel_tol)
 
     def rel(p):
         c, s = np.cos(p[a, 2]), np.sin(p[a, 2])
@@ -139,7 +308,69 @@ def rpe(est: Trajectory, ref: Trajectory, delta: float = 1.0, max_diff: float = 
 
     ex, ey, eyaw = rel(pe)
     rx, ry, ryaw = rel(pr)
+    # |t(E)| = |R_rel_ref^T (t_est_rel - t_ref_rel)| = |t_est_rel - t_ref_rel|.
     trans = np.hypot(ex - rx, ey - ry)
     yaw = np.abs(wrap(eyaw - ryaw))
-    yaw = yaw[np.isfinite(yaw)]
-    return Stats.of(trans), Stats.of(yaw)
+    return Stats.of(trans), Stats.of(yaw[np.isfinite(yaw)])
+
+
+@dataclass
+class Outage:
+    """A stretch of the run in which no GPS fix reached the estimators: [t0, t1) s."""
+
+    t0: float
+    t1: float
+
+
+def gps_outages(t_used: np.ndarray, t_end: float, min_gap: float | None = None
+                ) -> list[Outage]:
+    """Gaps of at least ``min_gap`` s between the GPS fixes the estimators received (stamps
+    ``t_used``, sorted), including one from the last fix to ``t_end``; the time before the first
+    fix is not an outage (nothing was lost). Default ``min_gap``: max(5 s, 5 fix intervals)."""
+    t = np.asarray(t_used, float)
+    if len(t) < 2:
+        return []
+    if min_gap is None:
+        min_gap = max(5.0, 5.0 * float(np.median(np.diff(t))))
+    edges = np.concatenate([t, [max(t_end, t[-1])]])
+    gaps = np.diff(edges)
+    return [Outage(float(edges[k]), float(edges[k + 1])) for k in np.nonzero(gaps >= min_gap)[0]]
+
+
+@dataclass
+class OutageDrift:
+    """Error growth of one estimate over one outage.
+
+    ``distance_m`` is the path travelled in the outage (reference path); errors (m) are at the
+    first and last reference samples in it; ``drift_per_m`` = (end - start) / distance (m/m,
+    x100 for % of distance travelled); ``reference`` is 'truth' or 'withheld GPS'."""
+
+    t0: float
+    t1: float
+    distance_m: float
+    error_start_m: float
+    error_end_m: float
+    error_max_m: float
+    drift_per_m: float | None
+    samples: int
+    reference: str
+
+
+def outage_drift(est: Trajectory, outage: Outage, ref_t: np.ndarray, ref_xy: np.ndarray,
+                 reference: str, min_distance: float = 1.0) -> OutageDrift | None:
+    """Position error of ``est`` over ``outage`` against reference positions ``ref_xy`` (M, 2)
+    at ``ref_t`` (M,) s (the truth, or the withheld fixes in the outage). None with fewer than
+    two reference samples inside both the outage and the estimate's span. ``drift_per_m`` is
+    None when the path is shorter than ``min_distance`` m (a robot standing still)."""
+    sel = (ref_t >= outage.t0) & (ref_t < outage.t1)
+    t, xy = ref_t[sel], ref_xy[sel]
+    if len(t) < 2 or len(est) < 2:
+        return None
+    exy, inside = interpolate_xy(est, t)
+    if inside.sum() < 2:
+        return None
+    e = np.hypot(*(exy[inside] - xy[inside]).T)
+    dist = path_length(xy[inside])
+    drift = (e[-1] - e[0]) / dist if dist >= min_distance else None
+    return OutageDrift(outage.t0, outage.t1, dist, float(e[0]), float(e[-1]), float(e.max()),
+                       None if drift is None else float(drift), int(inside.sum()), reference)

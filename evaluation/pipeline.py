@@ -1,8 +1,22 @@
 """The main job: read a bag, run the estimators side by side, score them, write the results.
 
 ``run_bag`` returns the metrics dictionary that ``OUTDIR/metrics.json`` holds and writes every
-trajectory as ``OUTDIR/<track>.tum`` and ``.csv`` (and ``ground_truth.tum`` when there is truth).
-Values that cannot be computed (no truth, no hold-out) are None.
+trajectory as ``OUTDIR/<track>.tum`` and ``.csv`` (and ``ground_truth.tum``/``.csv`` when there
+is truth), plus ``OUTDIR/run.npz`` with what the report needs besides (``evaluation.results``).
+Values that cannot be computed (no truth, no hold-out) are None (null in the JSON).
+
+Per estimator (track), metrics.json holds:
+
+* ``final_xy`` [m, m]; ``samples``; ``runtime_s`` (wall time in the estimator's calls, decoding
+  excluded), ``rtf`` (data duration / runtime), ``update_ms`` (per-call latency p50/p99/max/mean);
+* against the truth (no alignment, every track in the run's local frame; association within
+  ``MAX_DIFF`` s): ``ate_rmse_m``, ``ate_max_m``, ``yaw_rmse_deg``, ``rpe_rmse_m`` (over 1 s),
+  ``nees_mean``; and in full ``ate`` {none, se2, origin: {position_m, heading_deg: statistics}},
+  ``rpe`` {'1s', '10m': {position_m, heading_deg}}, ``nees`` (consistency summary);
+* against withheld GPS fixes: ``gps_holdout_rmse_m`` and ``gps_holdout_m`` (statistics);
+* ``gps_outages``: error growth per metre travelled over each GPS outage (``metrics.gps_outages``);
+* ``nis``: per 'sensor kind', NIS consistency and the gate's accept/reject counts
+  (``evaluation.consistency``); ``rejected`` (sensor: reason -> count), ``events``, ``error``.
 """
 
 from __future__ import annotations
@@ -10,6 +24,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 
@@ -18,22 +33,99 @@ import numpy as np
 from estimation.bags import read_stream
 from estimation.config import Config
 from estimation.errors import BagError
-from estimation.runner import RunResult, initial_pose, run
+from estimation.measurements import GpsFix
+from estimation.runner import RunResult, Trajectory, initial_pose, run
+from evaluation import consistency, metrics
 from evaluation import estimators as registry
-from evaluation import metrics
-from evaluation.export import write_csv, write_tum
+from evaluation.results import save_run
+
+MAX_DIFF = 0.05  # s: association of estimate and truth stamps (truth at >= 10 Hz)
+RPE_DELTAS = (("1s", 1.0, "s"), ("10m", 10.0, "m"))
 
 
 def _num(v) -> float | None:
     return None if v is None or not math.isfinite(v) else round(float(v), 6)
 
 
+def _stats(s: metrics.Stats, k: float = 1.0) -> dict | None:
+    """JSON statistics (rounded; None for an empty series), values times ``k``."""
+    if s.n == 0:
+        return None
+    return {key: (v if key == "n" else _num(v)) for key, v in s.scaled(k).as_dict().items()}
+
+
+def _ape_dict(a: metrics.Ape) -> dict:
+    return {"position_m": _stats(a.position), "heading_deg": _stats(a.heading, math.degrees(1))}
+
+
+def _truth_scores(tr: Trajectory, truth: Trajectory) -> dict:
+    """ATE (three alignments), RPE and NEES of one track against the truth."""
+    m: dict = {}
+    a = metrics.ape(tr, truth, MAX_DIFF)
+    if a.position.n == 0:
+        return m
+    m["ate_rmse_m"] = _num(a.position.rmse)
+    m["ate_max_m"] = _num(a.position.max)
+    m["yaw_rmse_deg"] = _num(math.degrees(a.heading.rmse)) if a.heading.n else None
+    ate = {"none": _ape_dict(a), "pairs": a.position.n, "max_diff_s": MAX_DIFF}
+    for how in ("se2", "origin"):
+        try:
+            ate[how] = _ape_dict(metrics.ape(tr, truth, MAX_DIFF, how))
+        except ValueError:  # too few distinct positions, or a truth without heading
+            ate[how] = None
+    m["ate"] = ate
+    rpe = {}
+    for key, delta, unit in RPE_DELTAS:
+        pos, yaw = metrics.rpe(tr, truth, delta, MAX_DIFF, unit=unit)
+        rpe[key] = {"delta": delta, "unit": unit, "position_m": _stats(pos),
+                    "heading_deg": _stats(yaw, math.degrees(1))} if pos.n else None
+    m["rpe"] = rpe
+    m["rpe_rmse_m"] = _num(rpe["1s"]["position_m"]["rmse"]) if rpe["1s"] else None
+    ns = metrics.nees_series(tr, truth, MAX_DIFF)
+    if len(ns.value):
+        c = consistency.summarize(ns.value, ns.dof)
+        m["nees_mean"] = _num(c.mean)
+        m["nees"] = _rounded(c.as_dict())
+    return m
+
+
+def _rounded(d):
+    if isinstance(d, dict):
+        return {k: _rounded(v) for k, v in d.items()}
+    if isinstance(d, list | tuple):
+        return [_rounded(v) for v in d]
+    if isinstance(d, float):
+        return _num(d)
+    return d
+
+
+def _outage_scores(tr: Trajectory, outages: list[metrics.Outage], truth: Trajectory | None,
+                   hold_t: np.ndarray, hold_xy: np.ndarray) -> list[dict] | None:
+    """Drift per metre over each outage, against the truth if there is one, else against the
+    fixes withheld in it. None when there are no outages."""
+    if not outages:
+        return None
+    out = []
+    for o in outages:
+        if truth is not None:
+            d = metrics.outage_drift(tr, o, truth.t, truth.pose[:, :2], "truth")
+        else:
+            d = metrics.outage_drift(tr, o, hold_t, hold_xy, "withheld GPS")
+        out.append(_rounded(vars(d)) if d else {"t0": o.t0, "t1": o.t1, "drift_per_m": None})
+    return out
+
+
 def score(result: RunResult, decode_s: float = 0.0) -> dict:
     """The metrics dictionary of a run (see module docstring)."""
     stream = result.stream
     duration = stream.duration
+    truth = result.truth
     hold_t = np.array([f.t for f in result.holdout])
     hold_xy = np.array([f.enu[:2] for f in result.holdout]).reshape(-1, 2)
+    withheld = {id(f) for f in result.holdout}
+    used_t = np.array([m.t for m in stream.measurements
+                       if isinstance(m, GpsFix) and id(m) not in withheld])
+    outages = metrics.gps_outages(used_t, stream.t1) if len(used_t) else []
     out: dict = {
         "bag": stream.source,
         "duration_s": _num(duration),
@@ -41,12 +133,14 @@ def score(result: RunResult, decode_s: float = 0.0) -> dict:
         "messages": len(stream.measurements),
         "rejected_messages": {f"{topic}: {reason}": n
                               for (topic, reason), n in stream.rejected.items()},
-        "has_ground_truth": result.truth is not None,
+        "has_ground_truth": truth is not None,
         "gps_holdout_fixes": len(result.holdout),
+        "gps_outages": [_rounded(vars(o)) for o in outages],
         "estimators": {},
     }
     for name, r in result.runs.items():
         tr = r.trajectory
+        upd_ms = r.update_s * 1e3
         m: dict = {
             "final_xy": [_num(tr.pose[-1, 0]), _num(tr.pose[-1, 1])] if len(tr) else None,
             "samples": len(tr),
@@ -54,36 +148,63 @@ def score(result: RunResult, decode_s: float = 0.0) -> dict:
             "nees_mean": None, "gps_holdout_rmse_m": None,
             "runtime_s": _num(r.runtime_s),
             "rtf": _num(duration / r.runtime_s) if r.runtime_s > 0 else None,
-            "update_ms": {k: _num(float(np.percentile(r.update_s, q)) * 1e3)
-                          for k, q in (("p50", 50), ("p99", 99), ("max", 100))}
-            if len(r.update_s) else None,
+            "update_ms": {**{k: _num(float(np.percentile(upd_ms, q)))
+                             for k, q in (("p50", 50), ("p99", 99), ("max", 100))},
+                          "mean": _num(float(upd_ms.mean())), "n": len(upd_ms)}
+            if len(upd_ms) else None,
+            "ate": None, "rpe": None, "nees": None, "gps_holdout_m": None, "gps_outages": None,
+            "nis": {label: _rounded(s.as_dict()) for label, s in consistency.nis_by_sensor(
+                consistency.InnovationTable.from_innovations(r.log.innovations)).items()},
             "rejected": {f"{s}: {why}": n for (s, why), n in r.log.rejected.items()},
             "events": r.log.messages[:20],
             "error": r.error,
         }
-        if result.truth is not None and len(tr):
-            err = metrics.pose_errors(tr, result.truth)
-            if len(err.t):
-                m["ate_rmse_m"] = _num(metrics.Stats.of(err.position).rmse)
-                m["ate_max_m"] = _num(float(err.position.max()))
-                yaw = err.dyaw[np.isfinite(err.dyaw)]
-                m["yaw_rmse_deg"] = _num(math.degrees(metrics.Stats.of(yaw).rmse)) if len(
-                    yaw) else None
-                m["rpe_rmse_m"] = _num(metrics.rpe(tr, result.truth, 1.0)[0].rmse)
-                n = metrics.nees(tr, result.truth)
-                m["nees_mean"] = _num(float(n.mean())) if len(n) else None
+        if truth is not None and len(tr):
+            m.update(_truth_scores(tr, truth))
         if len(hold_t) and len(tr) > 1:
             e = metrics.holdout_errors(tr, hold_t, hold_xy)
-            m["gps_holdout_rmse_m"] = _num(metrics.Stats.of(e).rmse) if len(e) else None
+            if len(e):
+                m["gps_holdout_m"] = _stats(metrics.Stats.of(e))
+                m["gps_holdout_rmse_m"] = m["gps_holdout_m"]["rmse"]
+        if len(tr) > 1:
+            m["gps_outages"] = _outage_scores(tr, outages, truth, hold_t, hold_xy)
         out["estimators"][name] = m
     return out
+
+
+def data_facts(result: RunResult, cfg: Config) -> dict:
+    """What the report states about the data: per sensor topic, kind and message counts; GPS
+    fixes used and withheld; landmarks; path length (from the truth, else the GPS fixes)."""
+    stream = result.stream
+    counts = Counter((m.sensor, type(m).__name__) for m in stream.measurements)
+    sensors = []
+    for s in cfg.sensors:
+        per_type = {t: n for (name, t), n in counts.items() if name == s.name}
+        sensors.append({"name": s.name, "topic": s.topic, "kind": s.kind, "use": list(s.use),
+                        "measurements": per_type})
+    fixes = [m for m in stream.measurements if isinstance(m, GpsFix)]
+    if result.truth is not None and len(result.truth) > 1:
+        length, source = metrics.path_length(result.truth.pose[:, :2]), "ground truth"
+    elif len(fixes) > 1:
+        length, source = metrics.path_length(np.array([f.enu[:2] for f in fixes])), "GPS fixes"
+    else:
+        length, source = None, None
+    return {"sensors": sensors, "ground_truth_topic": cfg.ground_truth_topic,
+            "ground_truth_samples": len(stream.ground_truth), "gps_fixes": len(fixes),
+            "gps_fixes_withheld": len(result.holdout), "landmarks": len(stream.landmarks),
+            "path_length_m": _num(length) if length is not None else None,
+            "path_length_from": source, "t0": stream.t0, "t1": stream.t1,
+            "datum": list(stream.datum) if stream.datum else None}
 
 
 def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str] | None = None,
             lag: float | None = None, holdout: str | None = None,
             progress: Callable[[str, float], None] | None = None) -> dict:
     """Decode ``bag``, run the selected estimators, write results into ``outdir``; returns the
-    metrics dictionary (also written as metrics.json)."""
+    metrics dictionary (also written as metrics.json).
+
+    On a damaged bag the results of what could be read are written, then BagError is raised
+    with ``results_written`` set."""
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
     chosen = registry.select(cfg, names)
@@ -112,18 +233,19 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
     out["lag_s"] = lag
     out["gps_holdout"] = holdout
     out["input_error"] = input_error
-    write_outputs(result, outdir, out)
+    out["data"] = data_facts(result, cfg)
+    config_text = cfg.path.read_text(errors="replace") if cfg.path else None
+    write_outputs(result, outdir, out, config_text)
     if input_error:
-        raise BagError(f"{input_error}; results for the {stream.duration:.1f} s that could be "
+        err = BagError(f"{input_error}; results for the {stream.duration:.1f} s that could be "
                        f"read are in {outdir}")
+        err.results_written = True
+        raise err
     return out
 
 
-def write_outputs(result: RunResult, outdir: Path, metrics_dict: dict) -> None:
-    for name, r in result.runs.items():
-        if len(r.trajectory):
-            write_tum(outdir / f"{name}.tum", r.trajectory)
-            write_csv(outdir / f"{name}.csv", r.trajectory)
-    if result.truth is not None:
-        write_tum(outdir / "ground_truth.tum", result.truth)
+def write_outputs(result: RunResult, outdir: Path, metrics_dict: dict,
+                  config_text: str | None = None) -> None:
+    """metrics.json, the trajectories (TUM, CSV) and run.npz into ``outdir``."""
+    save_run(result, outdir, config_text)
     (outdir / "metrics.json").write_text(json.dumps(metrics_dict, indent=2) + "\n")

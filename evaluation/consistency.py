@@ -1,0 +1,176 @@
+"""Filter consistency: NIS per sensor, NEES, chi-square bands and a Pass / Warn / Fail verdict.
+
+Pure math on arrays (no I/O, no plotting). A consistent estimator's normalised errors are
+chi-square distributed: the NIS r^T S^-1 r of an m-dimensional innovation with m degrees of
+freedom, the pose NEES with 3 (2 when the reference has no heading). So about 5% of the values
+fall outside the two-sided 95% band [chi2(0.025, m), chi2(0.975, m)], and their mean is m.
+
+Verdict (``verdict``), from n >= ``MIN_SAMPLES`` values, each judged against the band of its own
+dimension:
+
+* Pass: at most 10% outside the band AND mean / expected mean in [0.5, 2];
+* Warn: at most 25% outside AND the ratio in [0.25, 4];
+* Fail: anything else. Too many values above the band (ratio > 1) means the estimator is
+  over-confident (its covariance too small for its errors, or the sensor's noise is understated);
+  too many below (ratio < 1) means it is pessimistic (noise overstated).
+
+The thresholds are deliberately wider than the 5% a perfect filter gives: real sensors are never
+exactly Gaussian and white, and samples close in time are correlated, so a few more outside the
+band is normal; 10% is twice the nominal rate, 25% five times. The mean ratio catches a filter
+whose values sit inside the band but all at one end of it.
+
+All innovations count, those the gate rejected too: the NIS tests the filter's own S, and a gate
+(default acceptance 0.9999) rejects about 0.01% of consistent ones; leaving rejected ones out
+would hide a filter that rejects a sensor because it is itself wrong.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from scipy.stats import chi2
+
+BAND_P = 0.95  # two-sided probability of the band
+PASS_OUTSIDE, WARN_OUTSIDE = 0.10, 0.25
+PASS_RATIO, WARN_RATIO = (0.5, 2.0), (0.25, 4.0)
+MIN_SAMPLES = 20
+
+
+def chi2_band(dof: float, n_avg: int = 1, p: float = BAND_P) -> tuple[float, float]:
+    """Two-sided ``p`` band of the average of ``n_avg`` independent chi-square(``dof``) values
+    (the band of a single value when ``n_avg`` is 1; of a Monte Carlo average over ``n_avg``
+    runs otherwise: chi2(n dof) / n)."""
+    a = (1.0 - p) / 2.0
+    k = n_avg * dof
+    return float(chi2.ppf(a, k)) / n_avg, float(chi2.ppf(1.0 - a, k)) / n_avg
+
+
+def verdict(outside: float, ratio: float, n: int) -> str | None:
+    """'Pass', 'Warn' or 'Fail' from the fraction outside the band and mean / expected (module
+    docstring); None with fewer than MIN_SAMPLES values."""
+    if n < MIN_SAMPLES or not np.isfinite(ratio):
+        return None
+    if outside <= PASS_OUTSIDE and PASS_RATIO[0] <= ratio <= PASS_RATIO[1]:
+        return "Pass"
+    if outside <= WARN_OUTSIDE and WARN_RATIO[0] <= ratio <= WARN_RATIO[1]:
+        return "Warn"
+    return "Fail"
+
+
+@dataclass
+class Consistency:
+    """Summary of chi-square distributed values (NIS or NEES) of known dimensions.
+
+    ``dof``: the dimension when all values share one, else the mean dimension; ``expected``: the
+    mean dimension (a consistent estimator's mean); ``band``: the 95% band of one value when
+    all share a dimension, else None; ``below``/``above``/``outside``: fractions of values
+    below / above / outside the band of their own dimension."""
+
+    n: int
+    dof: float
+    mean: float
+    expected: float
+    ratio: float
+    band: tuple[float, float] | None
+    below: float
+    above: float
+    outside: float
+    verdict: str | None
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def summarize(values: np.ndarray, dofs: np.ndarray | int) -> Consistency:
+    """Consistency of ``values`` (N,), each chi-square with ``dofs`` (N,) or a common dof."""
+    v = np.asarray(values, float)
+    d = np.broadcast_to(np.asarray(dofs, float), v.shape)
+    ok = np.isfinite(v)
+    v, d = v[ok], d[ok]
+    n = len(v)
+    if n == 0:
+        nan = float("nan")
+        return Consistency(0, nan, nan, nan, nan, None, nan, nan, nan, None)
+    lo, hi = np.empty(n), np.empty(n)
+    for dim in np.unique(d):
+        sel = d == dim
+        lo[sel], hi[sel] = chi2_band(float(dim))
+    below, above = float(np.mean(v < lo)), float(np.mean(v > hi))
+    expected = float(d.mean())
+    mean = float(v.mean())
+    ratio = mean / expected
+    single = len(np.unique(d)) == 1
+    return Consistency(n, float(d[0]) if single else expected, mean, expected, ratio,
+                       (float(lo[0]), float(hi[0])) if single else None, below, above,
+                       below + above, verdict(below + above, ratio, n))
+
+
+@dataclass
+class InnovationTable:
+    """An estimator's innovation log as arrays (N,): stamp s, sensor name, measurement kind,
+    NIS, innovation dimension, and whether the gate accepted it."""
+
+    t: np.ndarray
+    sensor: np.ndarray  # str
+    kind: np.ndarray  # str
+    nis: np.ndarray
+    dim: np.ndarray  # int
+    accepted: np.ndarray  # bool
+
+    @classmethod
+    def from_innovations(cls, innovations: Iterable) -> InnovationTable:
+        """From ``estimation.estimator.Innovation`` records."""
+        inn = list(innovations)
+        return cls(np.array([i.t for i in inn], float),
+                   np.array([i.sensor for i in inn], dtype=str),
+                   np.array([i.kind for i in inn], dtype=str),
+                   np.array([i.nis for i in inn], float),
+                   np.array([len(np.atleast_1d(i.residual)) for i in inn], int),
+                   np.array([bool(i.accepted) for i in inn], bool))
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def groups(self) -> dict[str, np.ndarray]:
+        """Label 'sensor kind' -> boolean mask, in order of first appearance."""
+        out: dict[str, np.ndarray] = {}
+        for s, k in dict.fromkeys(zip(self.sensor.tolist(), self.kind.tolist(), strict=True)):
+            out[f"{s} {k}"] = (self.sensor == s) & (self.kind == k)
+        return out
+
+
+@dataclass
+class SensorNis:
+    """NIS consistency and gate counts of one sensor's measurements of one kind."""
+
+    sensor: str
+    kind: str
+    accepted: int
+    rejected: int
+    nis: Consistency
+
+    def as_dict(self) -> dict:
+        return {"sensor": self.sensor, "kind": self.kind, "accepted": self.accepted,
+                "rejected": self.rejected, **self.nis.as_dict()}
+
+
+def nis_by_sensor(table: InnovationTable) -> dict[str, SensorNis]:
+    """Per 'sensor kind' (e.g. '/fix gps'): NIS consistency over all its innovations and how
+    many the gate accepted and rejected."""
+    out = {}
+    for label, sel in table.groups().items():
+        acc = int(table.accepted[sel].sum())
+        out[label] = SensorNis(str(table.sensor[sel][0]), str(table.kind[sel][0]), acc,
+                               int(sel.sum()) - acc, summarize(table.nis[sel], table.dim[sel]))
+    return out
+
+
+def average_nees(runs: Sequence[np.ndarray]) -> np.ndarray:
+    """Element-wise mean over Monte Carlo runs of per-time NEES arrays (each (N_k,), the same
+    time grid), truncated to the shortest run. Its band is ``chi2_band(dof, len(runs))``."""
+    if not runs:
+        return np.zeros(0)
+    n = min(len(r) for r in runs)
+    return np.mean(np.stack([np.asarray(r, float)[:n] for r in runs]), axis=0)

@@ -1,0 +1,362 @@
+"""The report's figures (matplotlib, Agg backend): each function returns a Figure.
+
+Inputs are a run's saved results (``evaluation.results.SavedRun``) or plain arrays; nothing here
+computes a score that metrics.json does not already hold, and nothing reads or writes files
+except ``save_png``. Times on the x axes are seconds since the first measurement; positions are
+in the run's local frame (ENU about the datum: x east, y north, m; else the map's frame).
+"""
+
+from __future__ import annotations
+
+import io
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import matplotlib
+import matplotlib.ticker
+
+matplotlib.use("Agg")  # files only; never needs a display
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
+
+from evaluation import consistency, metrics  # noqa: E402
+from evaluation.results import SavedRun  # noqa: E402
+
+DPI = 100
+_STYLE = {"smoother_lagged": "--", "batch": ":"}
+
+
+def colors(names: Sequence[str]) -> dict[str, str]:
+    """A fixed colour per track, the same in every figure."""
+    cycle = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    return {n: cycle[k % len(cycle)] for k, n in enumerate(names)}
+
+
+def save_png(fig: Figure, path: Path | None = None) -> bytes:
+    """The figure as PNG bytes (also written to ``path`` if given); closes the figure."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=DPI)
+    plt.close(fig)
+    data = buf.getvalue()
+    if path is not None:
+        Path(path).write_bytes(data)
+    return data
+
+
+def _finish(fig: Figure) -> Figure:
+    """Drop the minor ticks of log axes, then lay the figure out tightly."""
+    for ax in fig.axes:
+        # Minor ticks on log axes spanning many decades cost most of the drawing time and
+        # carry no label; the major decades are enough to read the values.
+        for axis in (ax.xaxis, ax.yaxis):
+            if axis.get_scale() == "log":
+                axis.set_minor_locator(matplotlib.ticker.NullLocator())
+    fig.tight_layout()
+    return fig
+
+
+def _t0(run: SavedRun) -> float:
+    data = run.metrics.get("data") or {}
+    if data.get("t0") is not None:
+        return float(data["t0"])
+    starts = [tr.t[0] for tr in run.tracks.values() if len(tr)]
+    return float(min(starts)) if starts else 0.0
+
+
+def _frame_labels(run: SavedRun) -> tuple[str, str]:
+    if (run.metrics.get("data") or {}).get("datum"):
+        return "x east [m]", "y north [m]"
+    return "x [m]", "y [m]"
+
+
+def _shade_outages(ax, run: SavedRun) -> None:
+    """Grey spans over the GPS outages (metrics.json ``gps_outages``, absolute stamps)."""
+    t0 = _t0(run)
+    for o in run.metrics.get("gps_outages") or []:
+        ax.axvspan(o["t0"] - t0, o["t1"] - t0, color="0.5", alpha=0.15, lw=0)
+
+
+def trajectories(run: SavedRun) -> Figure:
+    """Every track on the local plane with the truth, the GPS fixes (withheld ones marked) and
+    the landmarks."""
+    cols = colors(list(run.tracks))
+    pts = [tr.pose[:, :2] for tr in run.tracks.values()] + [run.gps_xy.reshape(-1, 2)]
+    if run.truth is not None:
+        pts.append(run.truth.pose[:, :2])
+    xy = np.concatenate(pts) if pts else np.zeros((0, 2))
+    xy = xy[np.isfinite(xy).all(axis=1)]
+    # Size the plot to the path's shape (equal axes), plus room for the legend on the right.
+    span = np.ptp(xy, axis=0) if len(xy) else np.ones(2)
+    aspect = float(np.clip((span[0] + 1e-9) / (span[1] + 1e-9), 0.5, 2.0))
+    height = 7.5 if aspect < 1.4 else 6.0
+    fig, ax = plt.subplots(figsize=(min(height * aspect + 3.8, 14.0), height))
+    if run.truth is not None and len(run.truth):
+        # A wide pale band under the estimates: it stays visible where they follow it closely.
+        ax.plot(run.truth.pose[:, 0], run.truth.pose[:, 1], "-", color="k", lw=5, alpha=0.2,
+                solid_capstyle="round", label="ground truth")
+    if len(run.gps_t):
+        used = ~run.gps_withheld
+        ax.plot(run.gps_xy[used, 0], run.gps_xy[used, 1], ".", color="0.45", ms=3,
+                label=f"GPS fixes used ({used.sum()})")
+        if run.gps_withheld.any():
+            w = run.gps_withheld
+            ax.plot(run.gps_xy[w, 0], run.gps_xy[w, 1], "o", mfc="none", mec="tab:red", ms=5,
+                    mew=1.0, label=f"GPS fixes withheld, scored ({w.sum()})")
+    if run.landmarks:
+        xy = np.array(list(run.landmarks.values()))
+        ax.plot(xy[:, 0], xy[:, 1], "^", color="tab:green", ms=8, label="landmarks")
+    for name, tr in run.tracks.items():
+        ax.plot(tr.pose[:, 0], tr.pose[:, 1], _STYLE.get(name, "-"), color=cols[name], lw=1.1,
+                alpha=0.9, label=name)
+    start = run.truth if run.truth is not None and len(run.truth) else next(
+        (t for t in run.tracks.values() if len(t)), None)
+    if start is not None:
+        ax.plot(*start.pose[0, :2], "o", color="k", ms=7, label="start")
+    ax.set_aspect("equal", adjustable="datalim")
+    xl, yl = _frame_labels(run)
+    ax.set(xlabel=xl, ylabel=yl, title="Trajectories on the local plane")
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=9)
+    return _finish(fig)
+
+
+def trajectories_each(run: SavedRun) -> Figure:
+    """One panel per track with the truth (or the GPS fixes) behind it, on common axes: the
+    overview's lines overlap where the estimates agree; here each can be read alone."""
+    cols = colors(list(run.tracks))
+    names = [n for n, tr in run.tracks.items() if len(tr)]
+    ncol = min(3, max(len(names), 1))
+    nrow = max(math.ceil(len(names) / ncol), 1)
+    fig, axes = plt.subplots(nrow, ncol, figsize=(4.6 * ncol, 4.3 * nrow), sharex=True,
+                             sharey=True, squeeze=False)
+    for ax in axes.flat[len(names):]:
+        ax.set_axis_off()
+    xl, yl = _frame_labels(run)
+    for ax, name in zip(axes.flat, names, strict=False):
+        if run.truth is not None and len(run.truth):
+            ax.plot(run.truth.pose[:, 0], run.truth.pose[:, 1], "-", color="k", lw=3.5,
+                    alpha=0.2)
+        elif len(run.gps_t):
+            ax.plot(run.gps_xy[:, 0], run.gps_xy[:, 1], ".", color="0.6", ms=2)
+        tr = run.tracks[name]
+        ax.plot(tr.pose[:, 0], tr.pose[:, 1], "-", color=cols[name], lw=0.9)
+        ax.set_title(name, fontsize=10)
+        ax.set_aspect("equal", adjustable="box")  # shared axes: the boxes take the aspect
+        ax.grid(True, alpha=0.3)
+        ax.tick_params(labelsize=8)
+    for ax in axes[-1]:
+        ax.set_xlabel(xl, fontsize=8)
+    for ax in axes[:, 0]:
+        ax.set_ylabel(yl, fontsize=8)
+    return _finish(fig)
+
+
+def _envelope(ax, t, err, sigma3, color, label):
+    ax.fill_between(t, -sigma3, sigma3, color=color, alpha=0.18, lw=0, label="±3σ")
+    ax.plot(t, err, "-", color=color, lw=0.9, label=label)
+    ax.axhline(0.0, color="k", lw=0.5)
+    # Scale to the errors and the settled envelope, not to the first seconds' huge sigma.
+    e, s = np.abs(err[np.isfinite(err)]), sigma3[np.isfinite(sigma3)]
+    lim = max(np.percentile(e, 99.5) if len(e) else 0.0, np.percentile(s, 90) if len(s) else 0.0)
+    if lim > 0:
+        ax.set_ylim(-1.15 * lim, 1.15 * lim)
+
+
+def errors(run: SavedRun) -> tuple[Figure, str]:
+    """Per track, the east, north and heading errors against the truth over time with the
+    track's own ±3σ envelope; without truth, the east and north differences to every GPS fix
+    (envelope from the track's and the fix's covariance). Returns the figure and its caption."""
+    names = [n for n, tr in run.tracks.items() if len(tr)]
+    cols = colors(list(run.tracks))
+    t0 = _t0(run)
+    truth = run.truth is not None and len(run.truth) > 0
+    ncol = 3 if truth else 2
+    fig, axes = plt.subplots(len(names), ncol, figsize=(13, 2.1 * len(names) + 0.8),
+                             sharex=True, squeeze=False)
+    for r, name in enumerate(names):
+        tr = run.tracks[name]
+        if truth:
+            err = metrics.pose_errors(tr, run.truth, 0.05)
+            cov = tr.cov[err.i_est]
+            t = err.t - t0
+            comps = [(err.dxy[:, 0], cov[:, 0, 0], "east error [m]", 1.0),
+                     (err.dxy[:, 1], cov[:, 1, 1], "north error [m]", 1.0),
+                     (err.dyaw, cov[:, 2, 2], "heading error [deg]", math.degrees(1))]
+        else:
+            xy, inside = metrics.interpolate_xy(tr, run.gps_t)
+            t = run.gps_t[inside] - t0
+            d = xy[inside] - run.gps_xy[inside]
+            p = np.stack([np.interp(run.gps_t[inside], tr.t, tr.cov[:, i, i]) for i in (0, 1)])
+            r_fix = run.gps_cov[inside]
+            comps = [(d[:, 0], p[0] + r_fix[:, 0, 0], "east − GPS [m]", 1.0),
+                     (d[:, 1], p[1] + r_fix[:, 1, 1], "north − GPS [m]", 1.0)]
+        for c, (e, var, ylabel, k) in enumerate(comps):
+            ax = axes[r, c]
+            with np.errstate(invalid="ignore"):
+                s3 = 3.0 * np.sqrt(np.where(var >= 0, var, np.nan)) * k
+            _envelope(ax, t, e * k, s3, cols[name], name)
+            _shade_outages(ax, run)
+            ax.set_ylabel(ylabel, fontsize=8)
+            ax.grid(True, alpha=0.3)
+            if c == 0:
+                ax.set_title(name, loc="left", fontsize=10, fontweight="bold")
+            if r == 0 and c == ncol - 1:
+                ax.legend(loc="upper right", fontsize=8)
+    for ax in axes[-1]:
+        ax.set_xlabel("time since start [s]")
+    _finish(fig)
+    caption = ("Errors against the ground truth (no alignment) with each estimator's own ±3σ "
+               "envelope: a consistent estimator stays inside it about 99% of the time. "
+               "Grey spans: GPS outages."
+               if truth else
+               "No ground truth: the difference between each estimate and every GPS fix "
+               "(used and withheld); the envelope is ±3σ of the estimate's and the fix's "
+               "covariance together. Grey spans: GPS outages.")
+    return fig, caption
+
+
+def nees(series: Mapping[str, Sequence[np.ndarray]], t: Mapping[str, np.ndarray],
+         dof: Mapping[str, int], colours: Mapping[str, str] | None = None) -> Figure:
+    """NEES over time per track with its 95% band.
+
+    ``series[name]`` is a list of per-run NEES arrays on the same time grid ``t[name]`` (s); with
+    several runs (Monte Carlo) their average is drawn with the band of an N-run average
+    (``consistency.chi2_band(dof, N)``). ``dof[name]`` is the NEES dimension."""
+    names = [n for n in series if series[n] and min(len(r) for r in series[n])]
+    fig, axes = plt.subplots(max(len(names), 1), 1, figsize=(13, 1.9 * max(len(names), 1) + 0.8),
+                             sharex=True, squeeze=False)
+    cols = colours or colors(names)
+    for ax, name in zip(axes[:, 0], names, strict=False):
+        runs = series[name]
+        avg = consistency.average_nees(runs)
+        tt = np.asarray(t[name])[:len(avg)]
+        lo, hi = consistency.chi2_band(dof[name], len(runs))
+        ax.axhspan(lo, hi, color="tab:green", alpha=0.12)
+        ax.axhline(dof[name], color="k", lw=0.8, ls="--")
+        ax.plot(tt, avg, "-", color=cols[name], lw=0.8)
+        # Judged like the NIS: the fraction of time steps outside the band (of one value, or
+        # of an N-run average) and the mean against its expectation.
+        outside = float(np.mean((avg < lo) | (avg > hi)))
+        verdict = consistency.verdict(outside, float(np.mean(avg)) / dof[name], len(avg))
+        runs_txt = f" over {len(runs)} runs" if len(runs) > 1 else ""
+        ax.set_title(f"{name}: mean NEES{runs_txt} {np.mean(avg):.2f} (expected {dof[name]}), "
+                     f"95% band [{lo:.2f}, {hi:.2f}] shaded, {100 * outside:.0f}% outside: "
+                     f"{verdict or 'too few to judge'}", loc="left", fontsize=9,
+                     color={"Fail": "tab:red", "Warn": "tab:orange"}.get(verdict, "k"))
+        ax.set_yscale("log")
+        # The first samples (an exact initial pose) can be tiny: keep the band in view.
+        ax.set_ylim(bottom=max(min(float(np.nanmin(avg)), lo) * 0.8, lo / 100))
+        ax.set_ylabel("NEES")
+        ax.grid(True, alpha=0.3)
+    axes[-1, 0].set_xlabel("time since start [s]")
+    return _finish(fig)
+
+
+def nis(run: SavedRun) -> Figure:
+    """NIS of every innovation over time: a row per estimator, a panel per sensor and
+    measurement kind, with the 95% band of its dimension (dashed); gate-rejected innovations
+    marked x. Titles carry the verdict (``evaluation.consistency``)."""
+    cols = colors(list(run.tracks))
+    owners = [n for n in run.tracks if run.log_owner.get(n, n) == n and len(run.innovations[n])]
+    groups = {n: run.innovations[n].groups() for n in owners}
+    ncol = max((len(g) for g in groups.values()), default=1)
+    t0 = _t0(run)
+    t_end = max((float(run.innovations[n].t.max()) - t0 for n in owners), default=1.0)
+    fig, axes = plt.subplots(max(len(owners), 1), ncol, figsize=(3.2 * ncol + 0.4,
+                             2.4 * max(len(owners), 1) + 0.3), squeeze=False)
+    for ax in axes.flat:
+        ax.set_axis_off()
+    for r, name in enumerate(owners):
+        table = run.innovations[name]
+        nis_json = (run.metrics["estimators"].get(name) or {}).get("nis") or {}
+        for c, (label, sel) in enumerate(groups[name].items()):
+            ax = axes[r, c]
+            ax.set_axis_on()
+            t, v, acc = table.t[sel] - t0, table.nis[sel], table.accepted[sel]
+            v = np.maximum(v, 1e-6)  # log axis: an exact zero sits at the floor
+            ax.plot(t[acc], v[acc], ".", ms=1.5, color=cols[name], alpha=0.6)
+            if (~acc).any():
+                ax.plot(t[~acc], v[~acc], "x", ms=4, color="tab:red", label="rejected")
+                ax.legend(loc="lower right", fontsize=7)
+            for dim in np.unique(table.dim[sel]):
+                for b in consistency.chi2_band(int(dim)):
+                    ax.axhline(b, color="k", lw=0.7, ls="--")
+            ax.set_yscale("log")
+            ax.set_xlim(0, t_end)
+            s = nis_json.get(label) or {}
+            verdict = s.get("verdict") or "too few to judge"
+            detail = (f", {100 * s['outside']:.0f}% outside, mean/exp {s['ratio']:.2f}"
+                      if s.get("outside") is not None and s.get("ratio") is not None else "")
+            ax.set_title(f"{name}: {label}\n{verdict}{detail}", fontsize=8,
+                         color={"Fail": "tab:red", "Warn": "tab:orange"}.get(verdict, "k"))
+            ax.grid(True, alpha=0.3)
+            ax.tick_params(labelsize=7)
+            if c == 0:
+                ax.set_ylabel("NIS")
+            if r == len(owners) - 1:
+                ax.set_xlabel("time since start [s]", fontsize=8)
+    return _finish(fig)
+
+
+def covariance(run: SavedRun) -> Figure:
+    """Trace of each track's position covariance (m^2) and its heading sigma (deg) over time."""
+    cols = colors(list(run.tracks))
+    t0 = _t0(run)
+    fig, (a1, a2) = plt.subplots(2, 1, figsize=(13, 6.5), sharex=True)
+    for name, tr in run.tracks.items():
+        if not len(tr) or not np.isfinite(tr.cov[:, 0, 0]).any():
+            continue
+        t = tr.t - t0
+        a1.plot(t, tr.cov[:, 0, 0] + tr.cov[:, 1, 1], _STYLE.get(name, "-"), color=cols[name],
+                lw=1.0, label=name)
+        with np.errstate(invalid="ignore"):
+            a2.plot(t, np.degrees(np.sqrt(tr.cov[:, 2, 2])), _STYLE.get(name, "-"),
+                    color=cols[name], lw=1.0, label=name)
+    a1.set(yscale="log", ylabel="trace of position covariance [m²]",
+           title="Covariance over time (watch it converge, and grow in outages)")
+    a2.set(yscale="log", ylabel="heading σ [deg]", xlabel="time since start [s]")
+    for a in (a1, a2):
+        a.grid(True, alpha=0.3, which="major")
+        _shade_outages(a, run)
+    a1.legend(loc="upper right", fontsize=8, ncol=3)
+    return _finish(fig)
+
+
+def latency(run: SavedRun) -> Figure:
+    """Histogram of the wall time of each update (``process`` call) per estimator, one row
+    each on a shared log axis, with the median and 99th percentile marked."""
+    cols = colors(list(run.tracks))
+    names = [n for n in run.tracks if run.log_owner.get(n, n) == n and len(run.update_s[n])]
+    fig, axes = plt.subplots(max(len(names), 1), 1, figsize=(11, 1.5 * max(len(names), 1) + 1),
+                             sharex=True, squeeze=False)
+    all_ms = np.concatenate([run.update_s[n] * 1e3 for n in names]) if names else np.ones(1)
+    lo = max(float(all_ms[all_ms > 0].min()) if (all_ms > 0).any() else 1e-3, 1e-4)
+    bins = np.logspace(math.log10(lo), math.log10(max(float(all_ms.max()), lo * 10)), 80)
+    for ax, n in zip(axes[:, 0], names, strict=False):
+        ms = run.update_s[n] * 1e3
+        p50, p99 = np.percentile(ms, [50, 99])
+        ax.hist(np.maximum(ms, lo), bins=bins, color=cols[n], alpha=0.75)
+        for q, ls in ((p50, "-"), (p99, "--")):
+            ax.axvline(q, color="k", lw=0.9, ls=ls)
+        ax.set_yscale("log")
+        ax.set_title(f"{n}: p50 {p50:.3f} ms (solid), p99 {p99:.3f} ms (dashed), max "
+                     f"{ms.max():.2f} ms, {len(ms)} updates", loc="left", fontsize=9)
+        ax.set_ylabel("updates", fontsize=8)
+        ax.grid(True, alpha=0.3)
+    axes[-1, 0].set(xscale="log", xlabel="update wall time [ms]")
+    return _finish(fig)
+
+
+def nees_inputs(run: SavedRun) -> tuple[dict, dict, dict]:
+    """(series, t, dof) for ``nees`` from one run against its truth: one run per track."""
+    series, t, dof = {}, {}, {}
+    if run.truth is None:
+        return series, t, dof
+    for name, tr in run.tracks.items():
+        ns = metrics.nees_series(tr, run.truth, 0.05)
+        if len(ns.value):
+            series[name], t[name] = [ns.value], ns.t - _t0(run)
+            dof[name] = int(np.round(np.mean(ns.dof)))
+    return series, t, dof

@@ -1,0 +1,315 @@
+"""``OUTDIR/report.html``: one self-contained page (inline CSS, PNG figures embedded as base64,
+no script, nothing fetched) rendered from a run's saved results only (``evaluation.results``).
+
+``render_report(outdir)`` is what ``ddfuse run`` calls after the run (outside the timed part)
+and what ``ddfuse report OUTDIR`` calls on its own. The figures are also written to
+``OUTDIR/plots/*.png``.
+"""
+
+from __future__ import annotations
+
+import base64
+import datetime
+import html
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from evaluation import consistency, plots
+from evaluation.results import SavedRun, load_run
+from evaluation.verdict import TIE, track_kind, verdict_lines
+
+REPORT_FILE = "report.html"
+
+_CSS = """
+body{font-family:-apple-system,Segoe UI,Helvetica,Arial,sans-serif;max-width:1400px;
+margin:1.5em auto;padding:0 1em;color:#222;line-height:1.4}
+h1{font-size:1.6em;margin-bottom:.2em}h2{border-bottom:1px solid #ccc;padding-bottom:.2em;
+margin-top:1.8em}.sub{color:#666;margin-top:0}
+table{border-collapse:collapse;margin:.6em 0;font-size:.88em}
+th,td{border:1px solid #ddd;padding:.25em .55em;text-align:right;white-space:nowrap}
+th{background:#f3f3f3;white-space:normal;max-width:7.5em;vertical-align:bottom}
+td.l,th.l{text-align:left}tr:nth-child(even) td{background:#fafafa}
+.verdict{background:#f4f8ff;border-left:4px solid #3b73d1;padding:.5em 1em;margin:1em 0}
+.verdict li{margin:.25em 0}.best{font-weight:bold;color:#0a6b2c}
+.Pass{color:#0a6b2c;font-weight:bold}.Warn{color:#b36b00;font-weight:bold}
+.Fail{color:#c0211b;font-weight:bold}.na{color:#999}
+figure{margin:1em 0}figure img{max-width:100%;border:1px solid #eee}
+figcaption{color:#555;font-size:.9em;max-width:1100px}
+pre{background:#f6f6f6;padding:.7em;overflow-x:auto;font-size:.85em}
+.note{color:#555;font-size:.88em;max-width:1100px}
+"""
+
+
+def _fmt(v, spec: str = ".3f") -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return '<span class="na">–</span>'
+    return format(v, spec)
+
+
+def _pct(v: float | None) -> str:
+    return _fmt(None if v is None else 100 * v, ".1f")
+
+
+def _get(d: dict | None, *keys):
+    for k in keys:
+        if not isinstance(d, dict):
+            return None
+        d = d.get(k)
+    return d
+
+
+def _verdict_cell(v: str | None) -> str:
+    return f'<span class="{v}">{v}</span>' if v else '<span class="na">–</span>'
+
+
+def _summary_table(m: dict) -> str:
+    """One row per track: scores, consistency, speed."""
+    lag = m.get("lag_s")
+    ests = m["estimators"]
+    cols = [  # (header, getter, format, lower-is-better column to mark the best of)
+        ("ATE RMSE [m]", lambda e: e.get("ate_rmse_m"), ".3f", True),
+        ("ATE max [m]", lambda e: e.get("ate_max_m"), ".3f", True),
+        ("ATE SE(2)-aligned RMSE [m]", lambda e: _get(e, "ate", "se2", "position_m", "rmse"),
+         ".3f", True),
+        ("heading RMSE [deg]", lambda e: e.get("yaw_rmse_deg"), ".2f", True),
+        ("RPE 1 s [m]", lambda e: _get(e, "rpe", "1s", "position_m", "rmse"), ".3f", True),
+        ("RPE 10 m [m]", lambda e: _get(e, "rpe", "10m", "position_m", "rmse"), ".3f", True),
+        ("GPS hold-out RMSE [m]", lambda e: e.get("gps_holdout_rmse_m"), ".3f", True),
+        ("NEES mean", lambda e: e.get("nees_mean"), ".2f", False),
+        ("runtime [s]", lambda e: e.get("runtime_s"), ".2f", False),
+        ("RTF [x]", lambda e: e.get("rtf"), ".0f", False),
+        ("update p50 / p99 [ms]", None, None, False),
+    ]
+    present = [c for c in cols if c[1] is None or any(c[1](e) is not None for e in ests.values())]
+    head = "".join(f"<th>{html.escape(c[0])}</th>" for c in present)
+    best = {}
+    for h, get, _, lower in present:
+        vals = [get(e) for e in ests.values() if get and get(e) is not None]
+        if lower and vals:
+            best[h] = min(vals)
+    rows = []
+    for name, e in ests.items():
+        cells = [f'<td class="l"><b>{html.escape(name)}</b></td>',
+                 f'<td class="l">{html.escape(track_kind(name, lag))}</td>']
+        for h, get, spec, _ in present:
+            if get is None:
+                u = e.get("update_ms") or {}
+                cells.append(f"<td>{_fmt(u.get('p50'))} / {_fmt(u.get('p99'))}</td>")
+                continue
+            v = get(e)
+            cls = ' class="best"' if v is not None and h in best and v <= best[h] * (1 + TIE) \
+                and len(ests) > 1 else ""
+            text = _fmt(v, spec)
+            if h == "NEES mean" and v is not None:
+                text += f" ({_verdict_cell(_get(e, 'nees', 'verdict'))})"
+            cells.append(f"<td{cls}>{text}</td>")
+        fx = e.get("final_xy")
+        cells.append(f"<td>({fx[0]:.2f}, {fx[1]:.2f})</td>" if fx else "<td>–</td>")
+        rows.append("<tr>" + "".join(cells) + "</tr>")
+    return (f'<table><tr><th class="l">estimator</th><th class="l">output</th>{head}'
+            f"<th>final (x, y) [m]</th></tr>{''.join(rows)}</table>"
+            f'<p class="note">Green bold: the best in its column, or within {100 * TIE:.0f}% '
+            "of it. ATE without alignment (every track in the run's local frame); RPE over 1 s "
+            "and over 10 m of path, consecutive pairs; RTF: seconds of data per second of "
+            "estimator wall time (decoding excluded).</p>")
+
+
+def _nis_table(m: dict) -> str:
+    rows = []
+    seen: dict[str, str] = {}
+    for name, e in m["estimators"].items():
+        nis = e.get("nis") or {}
+        key = repr(sorted(nis.items()))
+        if not nis:
+            continue
+        if key in seen:
+            rows.append(f'<tr><td class="l"><b>{html.escape(name)}</b></td>'
+                        f'<td class="l" colspan="9">same innovations as {seen[key]}</td></tr>')
+            continue
+        seen[key] = name
+        for label, s in nis.items():
+            band = s.get("band")
+            rows.append(
+                f'<tr><td class="l"><b>{html.escape(name)}</b></td>'
+                f'<td class="l">{html.escape(label)}</td><td>{_fmt(s.get("dof"), "g")}</td>'
+                f"<td>{s['accepted']}</td><td>{s['rejected']}</td>"
+                f"<td>{_fmt(s.get('mean'))} / {_fmt(s.get('expected'), 'g')}</td>"
+                f"<td>{f'[{band[0]:.3g}, {band[1]:.3g}]' if band else '–'}</td>"
+                f"<td>{_pct(s.get('below'))}</td><td>{_pct(s.get('above'))}</td>"
+                f"<td>{_verdict_cell(s.get('verdict'))}</td></tr>")
+    if not rows:
+        return "<p>No innovations were logged.</p>"
+    c = consistency
+    return ('<table><tr><th class="l">estimator</th><th class="l">sensor, measurement</th>'
+            "<th>dim</th><th>gate accepted</th><th>gate rejected</th><th>mean NIS / expected</th>"
+            "<th>95% band</th><th>% below</th><th>% above</th><th>verdict</th></tr>"
+            + "".join(rows) + "</table>"
+            f'<p class="note">NIS = r<sup>T</sup>S<sup>-1</sup>r of each innovation (EKF) or '
+            "measurement residual against the prediction (smoother), rejected ones included. "
+            "A consistent estimator has about 2.5% below and 2.5% above the band and a mean "
+            f"equal to the dimension. Pass: at most {100 * c.PASS_OUTSIDE:.0f}% outside and "
+            f"mean/expected in [{c.PASS_RATIO[0]:g}, {c.PASS_RATIO[1]:g}]; Warn: at most "
+            f"{100 * c.WARN_OUTSIDE:.0f}% and [{c.WARN_RATIO[0]:g}, {c.WARN_RATIO[1]:g}]; "
+            f"else Fail; no verdict under {c.MIN_SAMPLES} values. Many above the band: the "
+            "filter is over-confident (or the sensor noisier than configured); many below: "
+            "pessimistic (noise overstated).</p>")
+
+
+def _outage_table(m: dict) -> str:
+    outs = m.get("gps_outages") or []
+    if not outs:
+        return ""
+    t0 = _get(m, "data", "t0") or 0.0
+    rows = []
+    for k, o in enumerate(outs):
+        for name, e in m["estimators"].items():
+            d = (e.get("gps_outages") or [None] * len(outs))[k] or {}
+            rows.append(
+                f"<tr><td>{o['t0'] - t0:.1f}–{o['t1'] - t0:.1f}</td>"
+                f'<td class="l">{html.escape(name)}</td><td>{_fmt(d.get("distance_m"), ".1f")}'
+                f"</td><td>{_fmt(d.get('error_start_m'))}</td><td>{_fmt(d.get('error_end_m'))}"
+                f"</td><td>{_fmt(d.get('error_max_m'))}</td><td>"
+                + (_fmt(100 * d["drift_per_m"], "+.2f") if d.get("drift_per_m") is not None
+                   else _fmt(None))
+                + f'</td><td class="l">{html.escape(str(d.get("reference", "–")))}</td></tr>')
+    return ("<h2>GPS outages</h2><table><tr><th>outage [s]</th><th class='l'>estimator</th>"
+            "<th>distance [m]</th><th>error at start [m]</th><th>error at end [m]</th>"
+            "<th>max error [m]</th><th>drift [% of distance]</th><th class='l'>against</th>"
+            "</tr>" + "".join(rows) + "</table><p class='note'>An outage is a stretch of at "
+            "least 5 s (or 5 fix intervals) in which no GPS fix reached the estimators "
+            "(withheld with --gps-holdout window:T0:T1, or absent in the bag). Drift = (error at "
+            "end − error at start) / distance travelled in it.</p>")
+
+
+def _facts(m: dict) -> str:
+    d = m.get("data") or {}
+    rows = [("bag", html.escape(str(m.get("bag")))),
+            ("duration", f"{_fmt(m.get('duration_s'), '.1f')} s"),
+            ("measurements decoded", f"{m.get('messages')} (decoded in "
+                                     f"{_fmt(m.get('decode_s'), '.2f')} s)"),
+            ("path length", f"{_fmt(d.get('path_length_m'), '.1f')} m"
+             + (f" (from the {d['path_length_from']})" if d.get("path_length_from") else "")),
+            ("ground truth", f"{html.escape(str(d.get('ground_truth_topic')))}: "
+                             f"{d.get('ground_truth_samples')} samples"
+             if d.get("ground_truth_samples") else "none"),
+            ("GPS fixes", f"{d.get('gps_fixes', 0)}, of which {d.get('gps_fixes_withheld', 0)} "
+                          f"withheld ({html.escape(str(m.get('gps_holdout')))})"
+             if d.get("gps_fixes") else "none"),
+            ("landmarks in the map", str(d.get("landmarks", 0))),
+            ("local frame", "ENU about the datum {:.6f}°, {:.6f}°, {:.1f} m".format(*d["datum"])
+             if d.get("datum") else "the landmark map's frame, or the start pose")]
+    rej = m.get("rejected_messages") or {}
+    rows.append(("messages dropped as invalid", ", ".join(
+        f"{html.escape(k)}: {v}" for k, v in rej.items()) or "none"))
+    facts = "".join(f'<tr><td class="l">{k}</td><td class="l">{v}</td></tr>' for k, v in rows)
+    srows = "".join(
+        f'<tr><td class="l">{html.escape(s["name"])}</td><td class="l">{html.escape(s["topic"])}'
+        f'</td><td class="l">{html.escape(s["kind"])}</td><td class="l">'
+        f'{html.escape(", ".join(s["use"]))}</td><td class="l">'
+        + html.escape(", ".join(f"{t} {n}" for t, n in s["measurements"].items()) or "none")
+        + "</td></tr>" for s in d.get("sensors") or [])
+    return (f"<table>{facts}</table><table><tr><th class='l'>sensor</th><th class='l'>topic</th>"
+            "<th class='l'>kind</th><th class='l'>fused</th><th class='l'>measurements</th></tr>"
+            f"{srows}</table>")
+
+
+def _config(run: SavedRun) -> str:
+    m = run.metrics
+    rows = [("estimators", ", ".join(m["estimators"])),
+            ("smoother lag", f"{m.get('lag_s')} s"),
+            ("GPS hold-out", str(m.get("gps_holdout") or "none")),
+            ("initial pose", str(m.get("initial_pose") or "each estimator's default")),
+            ("config file", str(m.get("config") or "–"))]
+    table = "".join(f'<tr><td class="l">{k}</td><td class="l">{html.escape(v)}</td></tr>'
+                    for k, v in rows)
+    text = html.escape(run.config_text) if run.config_text else "(no config file text saved)"
+    events = "".join(
+        f"<details><summary>{html.escape(n)}: {len(e.get('events') or [])} events"
+        + (f", {sum((e.get('rejected') or {}).values())} rejected" if e.get("rejected") else "")
+        + "</summary><pre>" + html.escape("\n".join(
+            (e.get("events") or []) + [f"rejected {k}: {v}" for k, v in
+                                       (e.get("rejected") or {}).items()])) + "</pre></details>"
+        for n, e in m["estimators"].items())
+    return f"<table>{table}</table><pre>{text}</pre><h3>Estimator events</h3>{events}"
+
+
+def _figure(png: bytes, caption: str, alt: str) -> str:
+    b64 = base64.b64encode(png).decode("ascii")
+    return (f'<figure><img alt="{html.escape(alt)}" src="data:image/png;base64,{b64}">'
+            f"<figcaption>{html.escape(caption)}</figcaption></figure>")
+
+
+def make_figures(run: SavedRun, progress: Callable[[float], None] | None = None
+                 ) -> list[tuple[str, bytes, str]]:
+    """(name, PNG bytes, caption) of every figure, also written to OUTDIR/plots/."""
+    pdir = run.outdir / "plots"
+    pdir.mkdir(exist_ok=True)
+    cols = plots.colors(list(run.tracks))
+    series, t, dof = plots.nees_inputs(run)
+    err_fig, err_caption = plots.errors(run) if run.tracks else (None, "")
+    jobs = [
+        ("trajectories", lambda: plots.trajectories(run),
+         "Every estimate on the local plane with the truth and the GPS fixes (red circles: "
+         "withheld from the estimators and used to score them)."),
+        ("trajectories_each", lambda: plots.trajectories_each(run) if len(run.tracks) > 1
+         else None,
+         "Each estimate on its own, over the ground truth (grey band) or the GPS fixes."),
+        ("errors", lambda: err_fig, err_caption),
+        ("nees", lambda: plots.nees(series, t, dof, cols) if series else None,
+         "Pose NEES against the truth with its 95% chi-square band: a consistent estimator "
+         "stays inside about 95% of the time around the dashed expected value; above it, the "
+         "estimator is over-confident, below it, pessimistic."),
+        ("nis", lambda: plots.nis(run),
+         "NIS of each innovation per estimator and sensor with the 95% band of its dimension "
+         "(dashed); red x: rejected by the gate."),
+        ("covariance", lambda: plots.covariance(run),
+         "Position covariance trace and heading sigma of each estimate over time."),
+        ("latency", lambda: plots.latency(run),
+         "Wall time of each process() call (one per measurement), per estimator."),
+    ]
+    out = []
+    for k, (name, make, caption) in enumerate(jobs):
+        fig = make()
+        if fig is not None:
+            out.append((name, plots.save_png(fig, pdir / f"{name}.png"), caption))
+        if progress:
+            progress((k + 1) / len(jobs))
+    return out
+
+
+def build_html(run: SavedRun, figures: list[tuple[str, bytes, str]], render_s: float) -> str:
+    """The report page for ``run`` with its rendered ``figures``."""
+    m = run.metrics
+    bag = Path(str(m.get("bag"))).name
+    verdict = "".join(f"<li>{html.escape(line)}</li>" for line in verdict_lines(m))
+    figs = "".join(_figure(png, cap, name) for name, png, cap in figures)
+    stamp = datetime.datetime.now().strftime("%Y-%m-%d %H:%M")
+    return (
+        "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>"
+        f"<title>ddfuse report: {html.escape(bag)}</title><style>{_CSS}</style></head><body>"
+        f"<h1>ddfuse report: {html.escape(bag)}</h1>"
+        f"<p class='sub'>{_fmt(m.get('duration_s'), '.1f')} s of data, "
+        f"{len(m['estimators'])} estimator outputs. Rendered {stamp} from the results in "
+        f"{html.escape(str(run.outdir))} (figures in {render_s:.1f} s).</p>"
+        f"<h2>Verdict</h2><div class='verdict'><ul>{verdict}</ul></div>"
+        f"<h2>Summary</h2>{_summary_table(m)}"
+        f"<h2>Consistency and gating per sensor</h2>{_nis_table(m)}"
+        f"{_outage_table(m)}"
+        f"<h2>Figures</h2>{figs}"
+        f"<h2>Data</h2>{_facts(m)}"
+        f"<h2>Configuration</h2>{_config(run)}"
+        "</body></html>\n")
+
+
+def render_report(outdir: str | Path, progress: Callable[[float], None] | None = None) -> Path:
+    """Render ``outdir``/report.html from the saved results in ``outdir``; returns its path.
+    Raises ``results.ResultsError`` (one line, naming the path) when there are none."""
+    run = load_run(outdir)
+    t_a = time.perf_counter()
+    figures = make_figures(run, progress)
+    page = build_html(run, figures, time.perf_counter() - t_a)
+    path = run.outdir / REPORT_FILE
+    path.write_text(page, encoding="utf-8")
+    return path

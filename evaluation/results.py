@@ -1,0 +1,130 @@
+"""A run's saved results: written by ``ddfuse run``, read back by ``ddfuse report``.
+
+An output directory holds ``metrics.json`` (``evaluation.pipeline``), one ``<track>.tum`` and
+``<track>.csv`` per estimator track (``evaluation.export``), ``ground_truth.tum``/``.csv`` when
+there is truth, and ``run.npz`` with the rest of what the report shows:
+
+* ``gps_t`` (G,) s, ``gps_xy`` (G, 2) m local ENU, ``gps_cov`` (G, 2, 2) m^2,
+  ``gps_withheld`` (G,) bool: every GPS fix of the stream, marked if withheld from the estimators;
+* ``landmark_ids`` (L,) str, ``landmark_xy`` (L, 2) m: the landmark map;
+* ``update_s/<track>`` (U,) s: wall time of each ``process`` call;
+* ``innov/<log>/{t, sensor, kind, nis, dim, accepted}`` (N,): each estimator's innovation log
+  (``consistency.InnovationTable``), once per estimator (a lagged track shares its filter's);
+* ``meta``: JSON text: the tracks in order, which log each track's innovations are in, the
+  config file's text.
+"""
+
+from __future__ import annotations
+
+import json
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from estimation.errors import DdfuseError
+from estimation.measurements import GpsFix
+from estimation.runner import RunResult, Trajectory
+from evaluation.consistency import InnovationTable
+from evaluation.export import read_csv, write_csv, write_tum
+
+RUN_FILE = "run.npz"
+METRICS_FILE = "metrics.json"
+TRUTH = "ground_truth"
+_INNOV_FIELDS = ("t", "sensor", "kind", "nis", "dim", "accepted")
+
+
+class ResultsError(DdfuseError):
+    """An output directory that does not hold a run's results (or holds damaged ones)."""
+
+
+@dataclass
+class SavedRun:
+    """A run's results as read back from its output directory (see module docstring)."""
+
+    outdir: Path
+    metrics: dict
+    tracks: dict[str, Trajectory]
+    truth: Trajectory | None
+    gps_t: np.ndarray
+    gps_xy: np.ndarray
+    gps_cov: np.ndarray
+    gps_withheld: np.ndarray
+    landmarks: dict[str, tuple[float, float]] = field(default_factory=dict)
+    innovations: dict[str, InnovationTable] = field(default_factory=dict)  # track -> table
+    log_owner: dict[str, str] = field(default_factory=dict)  # track -> first track of its log
+    update_s: dict[str, np.ndarray] = field(default_factory=dict)
+    config_text: str | None = None
+
+
+def save_run(result: RunResult, outdir: Path, config_text: str | None = None) -> None:
+    """Write the trajectories and run.npz of ``result`` into ``outdir`` (which must exist)."""
+    for name, r in result.runs.items():
+        if len(r.trajectory):
+            write_tum(outdir / f"{name}.tum", r.trajectory)
+            write_csv(outdir / f"{name}.csv", r.trajectory)
+    if result.truth is not None:
+        write_tum(outdir / f"{TRUTH}.tum", result.truth)
+        write_csv(outdir / f"{TRUTH}.csv", result.truth)
+    withheld = {id(f) for f in result.holdout}
+    fixes = [m for m in result.stream.measurements if isinstance(m, GpsFix)]
+    lm = result.stream.landmarks
+    arrays: dict[str, np.ndarray] = {
+        "gps_t": np.array([f.t for f in fixes], float),
+        "gps_xy": np.array([f.enu[:2] for f in fixes], float).reshape(-1, 2),
+        "gps_cov": np.array([np.asarray(f.cov)[:2, :2] for f in fixes], float).reshape(-1, 2, 2),
+        "gps_withheld": np.array([id(f) in withheld for f in fixes], bool),
+        "landmark_ids": np.array(list(lm), dtype=str),
+        "landmark_xy": np.array(list(lm.values()), float).reshape(-1, 2),
+    }
+    owner: dict[str, str] = {}
+    logs: dict[int, str] = {}  # id(log) -> first track using it
+    for name, r in result.runs.items():
+        key = logs.setdefault(id(r.log), name)
+        owner[name] = key
+        arrays[f"update_s/{name}"] = np.asarray(r.update_s, float)
+        if key == name:
+            table = InnovationTable.from_innovations(r.log.innovations)
+            for f in _INNOV_FIELDS:
+                arrays[f"innov/{name}/{f}"] = getattr(table, f)
+    meta = {"tracks": list(result.runs), "log_owner": owner, "config_text": config_text}
+    arrays["meta"] = np.array(json.dumps(meta))
+    np.savez_compressed(outdir / RUN_FILE, **arrays)
+
+
+def load_run(outdir: str | Path) -> SavedRun:
+    """Read the results in ``outdir``; ResultsError naming the path if they are absent or
+    unreadable."""
+    outdir = Path(outdir)
+    mpath, npath = outdir / METRICS_FILE, outdir / RUN_FILE
+    for p in (mpath, npath):
+        if not p.is_file():
+            what = "not a directory" if not outdir.is_dir() else f"no {p.name}"
+            raise ResultsError(f"{p}: no saved run results ({what}; 'ddfuse run -o {outdir}' "
+                               f"writes them)")
+    try:
+        metrics = json.loads(mpath.read_text())
+        z = np.load(npath, allow_pickle=False)
+        meta = json.loads(str(z["meta"]))
+        tracks = {}
+        for name in meta["tracks"]:
+            p = outdir / f"{name}.csv"
+            if p.is_file():
+                tracks[name] = read_csv(p)
+        tpath = outdir / f"{TRUTH}.csv"
+        truth = read_csv(tpath) if tpath.is_file() else None
+        owner = meta["log_owner"]
+        tables = {}
+        for name in meta["tracks"]:
+            key = owner[name]
+            tables[name] = InnovationTable(*(z[f"innov/{key}/{f}"] for f in _INNOV_FIELDS))
+        return SavedRun(
+            outdir, metrics, tracks, truth, z["gps_t"], z["gps_xy"], z["gps_cov"],
+            z["gps_withheld"],
+            {str(i): (float(x), float(y)) for i, (x, y) in zip(z["landmark_ids"],
+                                                                z["landmark_xy"], strict=True)},
+            tables, owner, {name: z[f"update_s/{name}"] for name in meta["tracks"]},
+            meta.get("config_text"))
+    except (OSError, EOFError, ValueError, KeyError, TypeError, zipfile.BadZipFile) as e:
+        raise ResultsError(f"{outdir}: damaged run results ({type(e).__name__}: {e})") from None

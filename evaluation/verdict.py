@@ -1,0 +1,156 @@
+"""A short plain-language verdict from a run's metrics dictionary (pure: dict in, text out).
+
+Which estimator is better on the best score available (position ATE against the truth, else the
+RMSE to withheld GPS fixes), by how much; whether the EKF ties or wins; whether each estimator is
+consistent (NEES, NIS verdicts of ``evaluation.consistency``); drift in GPS outages. Two scores
+within ``TIE`` of each other (relative) are called a tie: a few percent is within what another
+noise draw or a slightly different tuning changes.
+"""
+
+from __future__ import annotations
+
+TIE = 0.05  # relative difference under which two scores tie
+OFFLINE = {"batch": "offline: the whole run at once"}
+
+
+def track_kind(name: str, lag_s: float | None = None) -> str:
+    """'real time', 'lagged by N s' or 'offline' for a track name."""
+    if name in OFFLINE:
+        return "offline"
+    if name.endswith("_lagged"):
+        return f"lagged by {lag_s:g} s" if lag_s else "lagged"
+    return "real time"
+
+
+def _score(m: dict) -> tuple[str | None, str]:
+    """The metrics key to rank by and a sentence saying what it is."""
+    ests = m["estimators"].values()
+    if any(e.get("ate_rmse_m") is not None for e in ests):
+        return "ate_rmse_m", ("Score: RMS position error against the ground truth (ATE, no "
+                              "alignment, lower is better).")
+    if any(e.get("gps_holdout_rmse_m") is not None for e in ests):
+        return "gps_holdout_rmse_m", (f"Score: RMS distance to the {m.get('gps_holdout_fixes')} "
+                                      "GPS fixes withheld from every estimator (no ground truth; "
+                                      "lower is better).")
+    return None, ("No score: the bag has no ground truth and no GPS fixes were withheld "
+                  "(run with --gps-holdout every:5, or window:T0:T1 for an outage).")
+
+
+def _compare(a: str, va: float, b: str, vb: float) -> str:
+    """'a' against 'b' in words (lower is better)."""
+    d = abs(va - vb)
+    rel = d / max(va, vb) if max(va, vb) > 0 else 0.0
+    if rel <= TIE:
+        return (f"{a} ({va:.3f} m) and {b} ({vb:.3f} m) tie: they differ by {d:.3f} m "
+                f"({100 * rel:.0f}%).")
+    win, lose, vw, vl = (a, b, va, vb) if va < vb else (b, a, vb, va)
+    return (f"{win} is better: {vw:.3f} m against {lose}'s {vl:.3f} m, {d:.3f} m "
+            f"({100 * rel:.0f}%) lower.")
+
+
+def _direction(s: dict) -> str:
+    """Which way a failing consistency summary leans: too many values above the band (or a
+    mean well over the expected one) is over-confidence, below is pessimism; excess on both
+    sides at a mean near the expected one is heavy tails (errors not Gaussian)."""
+    ratio, above, below = s.get("ratio"), s.get("above") or 0.0, s.get("below") or 0.0
+    if ratio is None:
+        return ""
+    tail = 0.05  # twice the nominal 2.5% on one side of the 95% band
+    if ratio > 1.5 or (above > tail >= below):
+        return "over-confident"
+    if ratio < 2 / 3 or (below > tail >= above):
+        return "pessimistic"
+    return "heavy tails on both sides"
+
+
+ABSOLUTE_KINDS = {"gps", "heading", "landmark"}
+
+
+def _consistency(name: str, e: dict, seen_nis: dict) -> str:
+    """One estimator's consistency in a sentence."""
+    parts = []
+    nees = e.get("nees")
+    if nees and nees.get("verdict"):
+        v = nees["verdict"]
+        txt = f"NEES {v} (mean {nees['mean']:.2f} for {nees['expected']:g} expected"
+        if v != "Pass":
+            txt += f", {_direction(nees)}"
+        parts.append(txt + ")")
+    nis = e.get("nis") or {}
+    key = repr(sorted(nis.items()))
+    if nis and key in seen_nis:
+        parts.append(f"NIS as {seen_nis[key]} (the same filter)")
+    elif nis:
+        seen_nis[key] = name
+        by: dict[str, list[str]] = {}
+        for label, s in nis.items():
+            v = s.get("verdict")
+            if v is None:
+                continue
+            note = "" if v == "Pass" else f" ({_direction(s)}, mean/expected {s['ratio']:.2f})"
+            by.setdefault(v, []).append(label + note)
+        parts += [f"NIS {v}: {', '.join(by[v])}" for v in ("Fail", "Warn", "Pass") if v in by]
+    bad = (nees or {}).get("verdict") in ("Fail", "Warn") or any(
+        (s or {}).get("verdict") == "Fail" for s in nis.values())
+    head = "not consistent" if (nees or {}).get("verdict") == "Fail" else (
+        "partly consistent" if bad else "consistent")
+    if not parts:
+        return f"{name}: consistency not measurable (no truth, no innovations logged)."
+    kinds = {s.get("kind") for s in nis.values()}
+    dr = (f" It fuses no absolute measurement here ({', '.join(sorted(map(str, kinds)))} "
+          "only): it is dead reckoning.") if nis and not kinds & ABSOLUTE_KINDS else ""
+    return f"{name}: {head}. " + "; ".join(parts) + "." + dr
+
+
+def verdict_lines(m: dict) -> list[str]:
+    """The verdict as a list of sentences (plain text)."""
+    ests = m["estimators"]
+    key, what = _score(m)
+    lines = [what]
+    lag = m.get("lag_s")
+    if key:
+        scored = {n: e[key] for n, e in ests.items() if e.get(key) is not None}
+        ranked = sorted(scored, key=scored.get)
+        best = ranked[0]
+        kind = track_kind(best, lag)
+        lines.append(f"Best here: {best} with {scored[best]:.3f} m"
+                     + ("" if kind == "real time" else f" ({kind})") + ".")
+        ekfs = [n for n in ranked if n.startswith("ekf")]
+        live = [n for n in ranked if track_kind(n) == "real time" and not n.startswith("ekf")]
+        if ekfs and live:
+            lines.append("Real-time head to head, best EKF against the smoother's filtered "
+                         "output: " + _compare(ekfs[0], scored[ekfs[0]], live[0],
+                                               scored[live[0]]))
+        for n in ranked:
+            if track_kind(n) != "real time" and n != best:
+                lines.append(f"{n} ({track_kind(n, lag)}): {scored[n]:.3f} m.")
+        if key == "gps_holdout_rmse_m" and str(m.get("gps_holdout", "")).startswith("every"):
+            lines.append("Caution: GPS errors are correlated in time, so a fix withheld between "
+                         "two used ones lies close to them; this score rewards following the "
+                         "GPS closely. Read it with the GPS NIS below, and with a window "
+                         "hold-out (an outage), where dead reckoning has to carry the estimate.")
+    seen: dict = {}
+    lines += [_consistency(n, e, seen) for n, e in ests.items()]
+    for o_idx, o in enumerate(m.get("gps_outages") or []):
+        drift = {n: e["gps_outages"][o_idx] for n, e in ests.items()
+                 if e.get("gps_outages") and e["gps_outages"][o_idx].get("drift_per_m")
+                 is not None}
+        if not drift:
+            continue
+        t0 = (m.get("data") or {}).get("t0") or 0.0
+        any_d = next(iter(drift.values()))
+        order = sorted(drift, key=lambda n: drift[n]["error_end_m"])
+        lines.append(
+            f"GPS outage {o['t0'] - t0:.0f}-{o['t1'] - t0:.0f} s ({any_d['distance_m']:.0f} m "
+            f"travelled, scored against the {any_d['reference']}), error at its end and its "
+            "growth per metre travelled: "
+            + ", ".join(f"{n} {drift[n]['error_end_m']:.2f} m "
+                        f"({100 * drift[n]['drift_per_m']:+.1f}%)" for n in order)
+            + ".")
+    for n, e in ests.items():
+        if e.get("error"):
+            lines.append(f"{n} stopped early: {e['error']}.")
+    if m.get("input_error"):
+        lines.append(f"The bag is damaged; these results cover what could be read: "
+                     f"{m['input_error']}.")
+    return lines

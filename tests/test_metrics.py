@@ -1,0 +1,178 @@
+"""Trajectory metrics against hand-computed cases (evaluation.metrics)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from estimation.runner import Trajectory
+from evaluation import metrics
+
+
+def traj(t, x, y, yaw, cov=None) -> Trajectory:
+    t = np.asarray(t, float)
+    n = len(t)
+    pose = np.column_stack([np.broadcast_to(x, n), np.broadcast_to(y, n),
+                            np.broadcast_to(yaw, n)]).astype(float)
+    c = np.full((n, 3, 3), np.nan) if cov is None else np.broadcast_to(cov, (n, 3, 3)).copy()
+    return Trajectory(t, pose, c)
+
+
+def test_stats_of_two_values():
+    s = metrics.Stats.of([3.0, 4.0])
+    assert (s.rmse, s.mean, s.median, s.std, s.min, s.max, s.n) == pytest.approx(
+        (math.sqrt(12.5), 3.5, 3.5, 0.5, 3.0, 4.0, 2))
+    assert s.scaled(2.0).rmse == pytest.approx(2 * math.sqrt(12.5))
+    assert metrics.Stats.of([]).n == 0 and math.isnan(metrics.Stats.of([]).rmse)
+
+
+def test_associate_nearest_within_max_diff_from_the_shorter():
+    # estimate shorter: each estimate stamp takes its nearest reference stamp, if near enough
+    i, j = metrics.associate(np.array([0.0, 1.0, 2.04]), np.array([0.02, 1.1, 2.0, 2.05]), 0.05)
+    assert i.tolist() == [0, 2] and j.tolist() == [0, 3]
+    # an exact tie goes to the earlier sample
+    i, j = metrics.associate(np.array([1.0]), np.array([0.9, 1.1]), 0.2)
+    assert (i.tolist(), j.tolist()) == ([0], [0])
+    # reference shorter: each reference stamp takes its nearest estimate
+    i, j = metrics.associate(np.arange(0, 1.0, 0.1), np.array([0.12, 0.5, 3.0]), 0.05)
+    assert i.tolist() == [1, 5] and j.tolist() == [0, 1]
+    assert [len(a) for a in metrics.associate(np.zeros(0), np.ones(3), 1.0)] == [0, 0]
+
+
+def _line(n=11):
+    k = np.arange(n, dtype=float)
+    return traj(k, k, 0.0, 0.0)
+
+
+def test_ate_constant_offset_and_the_three_alignments():
+    ref = _line()
+    k = ref.t
+    est = traj(k, k + 3.0, 4.0, 0.1)
+    a = metrics.ape(est, ref, 0.01)
+    assert a.position.rmse == pytest.approx(5.0) and a.position.std == pytest.approx(0.0)
+    assert a.heading.mean == pytest.approx(0.1)
+    # SE(2): a pure translation is removed; the heading error stays (positions fix rotation 0)
+    s = metrics.ape(est, ref, 0.01, "se2")
+    assert s.position.max == pytest.approx(0.0, abs=1e-9)
+    assert s.heading.mean == pytest.approx(0.1)
+    # origin: the first estimate pose is moved onto the first reference pose (yaw included), so
+    # the estimate turns by -0.1 rad about its start: the error at step k is k * 2 sin(0.05)
+    o = metrics.ape(est, ref, 0.01, "origin")
+    np.testing.assert_allclose(o.errors.position, k * 2 * math.sin(0.05), atol=1e-12)
+    assert o.heading.max == pytest.approx(0.0, abs=1e-12)
+
+
+def test_se2_alignment_undoes_a_rigid_motion():
+    rng = np.random.default_rng(0)
+    xy = rng.normal(0, 10, (50, 2))
+    ref = traj(np.arange(50.0), xy[:, 0], xy[:, 1], rng.uniform(-3, 3, 50))
+    a = 2.5
+    r = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+    moved = xy @ r.T + [7.0, -2.0]
+    est = traj(ref.t, moved[:, 0], moved[:, 1], metrics.wrap(ref.pose[:, 2] + a))
+    assert metrics.ate(est, ref, 0.01).rmse > 5
+    s = metrics.ape(est, ref, 0.01, "se2")
+    assert s.position.max == pytest.approx(0.0, abs=1e-9)
+    assert s.heading.max == pytest.approx(0.0, abs=1e-9)
+
+
+def test_alignment_errors():
+    with pytest.raises(ValueError, match="two distinct"):
+        metrics.umeyama_se2(np.ones((5, 2)), np.zeros((5, 2)))
+    ref = traj([0.0, 1.0], [0.0, 1.0], 0.0, np.nan)
+    with pytest.raises(ValueError, match="heading"):
+        metrics.ape(ref, ref, 0.01, "origin")
+    with pytest.raises(ValueError, match="alignment must be"):
+        metrics.ape(_line(), _line(), 0.01, "sim3")
+
+
+def test_rpe_time_delta_on_a_scaled_line():
+    ref = _line()
+    k = ref.t
+    est = traj(k, 1.1 * k, 0.0, 0.01 * k)  # 10% too fast, heading drifting 0.01 rad/s
+    trans, yaw = metrics.rpe(est, ref, 1.0, 0.01)
+    # 1 s pairs (0,1), (1,2), ... (9,10): the estimate's relative motion, in its own rotated
+    # frame, against (1, 0): |(1.1 cos 0.01k' ...)| computed below from the definition.
+    assert trans.n == 10 and yaw.n == 10
+    assert yaw.mean == pytest.approx(0.01)
+    a = np.arange(10)
+    c, s = np.cos(0.01 * a), np.sin(0.01 * a)
+    expect = np.hypot(c * 1.1 - 1.0, -s * 1.1)
+    np.testing.assert_allclose(trans.rmse, np.sqrt(np.mean(expect ** 2)))
+    # consecutive 2 s pairs: (0,2), (2,4), ..., (8,10); all pairs: (0,2), (1,3), ..., (8,10)
+    assert metrics.rpe(est, ref, 2.0, 0.01)[1].n == 5
+    assert metrics.rpe(est, ref, 2.0, 0.01, all_pairs=True)[1].n == 9
+    assert metrics.rpe(est, ref, 2.0, 0.01)[1].mean == pytest.approx(0.02)
+
+
+def test_rpe_path_delta_pairs_from_estimate_or_reference():
+    ref = _line()
+    est = traj(ref.t, 1.1 * ref.t, 0.0, 0.0)
+    # path steps: estimate 1.1 m, reference 1 m; delta 2.1 m picks every 2nd estimate sample
+    # (2.2 >= 2.1) but every 3rd reference sample (3 >= 2.1).
+    a, b = metrics.rpe_pairs(est.t, est.pose[:, :2], 2.1, "m")
+    assert a.tolist() == [0, 2, 4, 6, 8] and b.tolist() == [2, 4, 6, 8, 10]
+    trans, _ = metrics.rpe(est, ref, 2.1, 0.01, unit="m")
+    assert trans.n == 5 and trans.mean == pytest.approx(0.2)
+    trans, _ = metrics.rpe(est, ref, 2.1, 0.01, unit="m", pairs_from_reference=True)
+    assert trans.n == 3 and trans.mean == pytest.approx(0.3)
+    with pytest.raises(ValueError):
+        metrics.rpe_pairs(est.t, est.pose[:, :2], 1.0, "frames")
+
+
+def test_rpe_all_pairs_path_delta_picks_the_first_of_a_stop():
+    # cumulative path 0, 1, 1, 1, 3: from sample 0 the path 1 m is reached first at sample 1
+    t = np.arange(5.0)
+    x = np.array([0.0, 1.0, 1.0, 1.0, 3.0])
+    a, b = metrics.rpe_pairs(t, np.column_stack([x, np.zeros(5)]), 1.05, "m", all_pairs=True)
+    assert (a[0], b[0]) == (0, 1)
+
+
+def test_nees_hand_computed_and_without_reference_heading():
+    cov = np.diag([1.0, 4.0, 0.01])
+    ref = _line(5)
+    est = traj(ref.t, ref.t + 1.0, 2.0, 0.1, cov)
+    ns = metrics.nees_series(est, ref, 0.01)
+    np.testing.assert_allclose(ns.value, 3.0)
+    assert ns.dof.tolist() == [3] * 5
+    ref_noyaw = traj(ref.t, ref.t, 0.0, np.nan)
+    ns = metrics.nees_series(est, ref_noyaw, 0.01)
+    np.testing.assert_allclose(ns.value, 2.0)
+    assert set(ns.dof.tolist()) == {2}
+    # missing and non-positive-definite covariances are left out
+    est.cov[1] = np.nan
+    est.cov[2] = -np.eye(3)
+    assert len(metrics.nees(est, ref, 0.01)) == 3
+
+
+def test_holdout_errors_and_path_length():
+    est = _line()
+    e = metrics.holdout_errors(est, np.array([2.5, 20.0]), np.array([[2.5, 3.0], [0.0, 0.0]]))
+    assert e.tolist() == pytest.approx([3.0])  # the stamp outside the estimate is dropped
+    assert metrics.path_length(np.array([[0, 0], [3, 4], [3, 0]])) == pytest.approx(9.0)
+
+
+def test_gps_outages_from_gaps_and_the_end():
+    t = np.concatenate([np.arange(0, 40, 0.4), np.arange(70, 100, 0.4)])
+    out = metrics.gps_outages(t, 130.0)
+    assert [(round(o.t0, 1), o.t1) for o in out] == [(39.6, 70.0), (99.6, 130.0)]
+    assert metrics.gps_outages(np.arange(0, 100, 0.4), 100.2) == []  # 0.6 s to the end: none
+    assert metrics.gps_outages(np.array([1.0]), 100.0) == []
+
+
+def test_outage_drift_is_error_growth_per_metre():
+    ref = traj(np.arange(0, 40, 0.1), np.arange(0, 40, 0.1), 0.0, 0.0)  # 1 m/s along x
+    err = np.where(ref.t >= 10, 0.2 + 0.05 * (ref.t - 10), 0.2)  # 5 cm per metre after 10 s
+    est = traj(ref.t, ref.pose[:, 0], err, 0.0)
+    d = metrics.outage_drift(est, metrics.Outage(10.0, 30.0), ref.t, ref.pose[:, :2], "truth")
+    assert d.samples == 200
+    assert d.distance_m == pytest.approx(19.9)
+    assert d.error_start_m == pytest.approx(0.2) and d.error_end_m == pytest.approx(1.195)
+    assert d.drift_per_m == pytest.approx(0.05)
+    # standing still: no drift per metre; no reference samples: None
+    still = traj(ref.t, 0.0, err, 0.0)
+    d = metrics.outage_drift(still, metrics.Outage(10.0, 30.0), ref.t, np.zeros((400, 2)), "x")
+    assert d.drift_per_m is None and d.error_max_m == pytest.approx(1.195)
+    assert metrics.outage_drift(est, metrics.Outage(50, 60), ref.t, ref.pose[:, :2], "x") is None

@@ -1,0 +1,45 @@
+"""`ddfuse run` and its report on the real bags (slow; skipped without ../shared/data)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from evaluation import cli
+
+
+@pytest.mark.slow
+def test_husky_report_with_gps_holdout(husky_bag, tmp_path):
+    out = tmp_path / "husky"
+    assert cli.main(["run", str(husky_bag), "-o", str(out), "--estimators", "ekf,smoother",
+                     "--gps-holdout", "every:5"]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    # the data's documented facts: ~395 m of path, 989 fixes, no truth
+    assert m["data"]["path_length_m"] == pytest.approx(395, abs=10)
+    assert m["data"]["gps_fixes"] == 989 and m["gps_holdout_fixes"] == 989 // 5
+    assert not m["has_ground_truth"]
+    for name in ("ekf", "smoother"):
+        e = m["estimators"][name]
+        assert e["ate_rmse_m"] is None and e["nees"] is None
+        assert 0.3 < e["gps_holdout_rmse_m"] < 5.0
+        assert e["nis"]["/fix gps"]["n"] > 700
+    page = (out / "report.html").read_text()
+    assert "Score: RMS distance to the 197 GPS fixes withheld" in page
+    assert "Caution: GPS errors are correlated" in page
+    assert page.count("data:image/png;base64,") == 6  # no NEES figure without truth
+
+
+@pytest.mark.slow
+def test_mrclam_report_scores_against_truth(mrclam_bag, tmp_path):
+    out = tmp_path / "mrclam"
+    assert cli.main(["run", str(mrclam_bag), "-o", str(out), "--estimators",
+                     "ekf,ekf_landmark"]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    dr, lm = m["estimators"]["ekf"], m["estimators"]["ekf_landmark"]
+    # dead reckoning ends metres off (README: 3.6 m and 97 deg); the landmarks carry the estimate
+    assert lm["ate_rmse_m"] < 0.5 < dr["ate_rmse_m"]
+    assert lm["nis"]["/landmarks landmark"]["n"] > 4000
+    assert m["data"]["path_length_from"] == "ground truth"
+    page = (out / "report.html").read_text()
+    assert "Best here: ekf_landmark" in page and "it is dead reckoning" in page

@@ -1,0 +1,83 @@
+"""The plain-language verdict follows the numbers: who wins, ties, consistency, caveats."""
+
+from __future__ import annotations
+
+from evaluation.verdict import track_kind, verdict_lines
+
+
+def _m(scores: dict, key: str = "ate_rmse_m", **top) -> dict:
+    ests = {n: {key: v, "nis": {}, "nees": None} for n, v in scores.items()}
+    return {"estimators": ests, "lag_s": 10.0, "gps_holdout_fixes": 40, **top}
+
+
+def test_smoother_wins_by_how_much():
+    lines = verdict_lines(_m({"ekf": 0.30, "smoother": 0.20, "smoother_lagged": 0.10}))
+    assert lines[0].startswith("Score: RMS position error against the ground truth")
+    assert lines[1] == "Best here: smoother_lagged with 0.100 m (lagged by 10 s)."
+    assert "smoother is better: 0.200 m against ekf's 0.300 m, 0.100 m (33%) lower" in lines[2]
+
+
+def test_ekf_wins_and_ties_are_said():
+    lines = verdict_lines(_m({"ekf": 0.20, "ekf_igvc": 0.5, "smoother": 0.30}))
+    assert "ekf is better: 0.200 m against smoother's 0.300 m" in lines[2]
+    lines = verdict_lines(_m({"ekf_landmark": 0.131, "smoother": 0.132}))
+    assert "ekf_landmark (0.131 m) and smoother (0.132 m) tie" in lines[2]
+
+
+def test_gps_holdout_score_and_its_caution():
+    lines = verdict_lines(_m({"ekf": 1.2, "smoother": 2.6}, "gps_holdout_rmse_m",
+                             gps_holdout="every:5"))
+    assert "40 GPS fixes withheld" in lines[0]
+    assert any(line.startswith("Caution: GPS errors are correlated") for line in lines)
+    lines = verdict_lines(_m({"ekf": 1.2}, "gps_holdout_rmse_m", gps_holdout="window:10:50"))
+    assert not any(line.startswith("Caution") for line in lines)
+
+
+def test_no_score_without_truth_or_holdout():
+    lines = verdict_lines(_m({"ekf": None}))
+    assert lines[0].startswith("No score") and "--gps-holdout" in lines[0]
+
+
+def test_consistency_sentences():
+    m = _m({"ekf": 0.2, "smoother": 0.3, "smoother_lagged": 0.25})
+    fail = {"kind": "gyro", "verdict": "Fail", "ratio": 0.05, "below": 0.4, "above": 0.0}
+    gps = {"kind": "gps", "verdict": "Pass", "ratio": 1.0, "below": 0.02, "above": 0.03}
+    m["estimators"]["ekf"]["nis"] = {"/imu gyro": fail, "/fix gps": gps}
+    m["estimators"]["ekf"]["nees"] = {"verdict": "Fail", "mean": 30.0, "expected": 3.0,
+                                      "ratio": 10.0, "below": 0.0, "above": 0.9}
+    m["estimators"]["smoother"]["nis"] = {"/fix gps": gps}
+    m["estimators"]["smoother_lagged"]["nis"] = {"/fix gps": gps}
+    m["estimators"]["smoother"]["nees"] = {"verdict": "Pass", "mean": 3.1, "expected": 3.0}
+    text = "\n".join(verdict_lines(m))
+    assert ("ekf: not consistent. NEES Fail (mean 30.00 for 3 expected, over-confident); NIS "
+            "Fail: /imu gyro (pessimistic, mean/expected 0.05); NIS Pass: /fix gps.") in text
+    assert "smoother: consistent. NEES Pass (mean 3.10 for 3 expected); NIS Pass: /fix gps." \
+        in text
+    assert "smoother_lagged: consistent. NIS as smoother (the same filter)." in text
+    m["estimators"]["ekf"]["nis"] = {"/odom v": {**fail, "kind": "v"}}
+    assert "it is dead reckoning" in "\n".join(verdict_lines(m))
+
+
+def test_heavy_tails_and_kinds():
+    m = _m({"ekf": 0.2})
+    m["estimators"]["ekf"]["nis"] = {"/lm landmark": {"kind": "landmark", "verdict": "Warn",
+                                                      "ratio": 1.09, "below": 0.071,
+                                                      "above": 0.053}}
+    assert "heavy tails on both sides" in "\n".join(verdict_lines(m))
+    assert track_kind("batch") == "offline" and track_kind("smoother_lagged", 5) == \
+        "lagged by 5 s" and track_kind("ekf") == "real time"
+
+
+def test_outage_drift_and_errors():
+    m = _m({"ekf": 0.2, "smoother": 0.3}, gps_outages=[{"t0": 160.0, "t1": 190.0}],
+           data={"t0": 100.0})
+    m["estimators"]["ekf"]["gps_outages"] = [{"drift_per_m": 0.02, "error_end_m": 0.9,
+                                              "distance_m": 30.0, "reference": "truth"}]
+    m["estimators"]["smoother"]["gps_outages"] = [{"drift_per_m": 0.01, "error_end_m": 0.4,
+                                                   "distance_m": 30.0, "reference": "truth"}]
+    m["estimators"]["smoother"]["error"] = "RuntimeError at t=5: boom"
+    text = "\n".join(verdict_lines(m))
+    assert ("GPS outage 60-90 s (30 m travelled, scored against the truth), error at its end "
+            "and its growth per metre travelled: smoother 0.40 m (+1.0%), ekf 0.90 m (+2.0%).") \
+        in text
+    assert "smoother stopped early: RuntimeError at t=5: boom." in text
