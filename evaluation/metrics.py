@@ -84,8 +84,14 @@ def nees(est: Trajectory, ref: Trajectory, max_diff: float = 0.05) -> np.ndarray
     """Pose NEES e^T P^-1 e per associated sample (3 dof; 2 where the reference has no yaw).
 
     Samples whose covariance is missing or not positive definite are left out."""
+    return nees_samples(est, ref, max_diff)[1]
+
+
+def nees_samples(est: Trajectory, ref: Trajectory, max_diff: float = 0.05
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """``nees`` with the indices into ``est`` of the samples it could score: (i_est, nees)."""
     err = pose_errors(est, ref, max_diff)
-    out = []
+    idx, out = [], []
     for k, i in enumerate(err.i_est):
         p = est.cov[i]
         if math.isnan(err.dyaw[k]):
@@ -99,8 +105,9 @@ def nees(est: Trajectory, ref: Trajectory, max_diff: float = 0.05) -> np.ndarray
         except np.linalg.LinAlgError:
             continue
         z = np.linalg.solve(c, e)
+        idx.append(int(i))
         out.append(float(z @ z))
-    return np.array(out)
+    return np.array(idx, dtype=np.int64), np.array(out)
 
 
 def interpolate_xy(est: Trajectory, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
