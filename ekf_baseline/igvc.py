@@ -70,7 +70,20 @@ STATE_NAMES = gen.STATE_NAMES
 LAT, LON, THETA, X, Y, PSI, V, W, VL, VR, A = range(11)
 N = 11
 HALF_PI = 0.5 * math.pi
+# flat indices (row-major, 11 x 11) of the entries of Q that IgvcEkf._q_values gives, in order
+_Q_INDEX = np.ravel_multi_index((
+    [X, Y, LON, LAT, LON, X, LAT, Y, PSI, THETA, PSI, THETA, A, W, VL, VR],
+    [X, Y, LON, LAT, X, LON, Y, LAT, PSI, THETA, THETA, PSI, A, W, VL, VR]), (N, N))
 DEFAULT_TRACK = 0.5  # m, used only for the wheel-speed states when robot.track_width is unset
+
+
+_TWO_PI = 2.0 * math.pi
+_POSE_IX = np.ix_((X, Y, PSI), (X, Y, PSI))  # the (x, y, psi) block of P
+# sparse H rows (KalmanCore.update_sparse) of the measurements of single states
+_ROWS_W = (((W, 1.0),),)
+_ROWS_A = (((A, 1.0),),)
+_ROWS_PSI = (((PSI, 1.0),),)
+_ROWS_THETA = (((THETA, -1.0),),)  # compass yaw = pi/2 - theta + offset
 
 
 def sphere_radius(lat_rad: float) -> float:
@@ -167,6 +180,9 @@ class IgvcEkf(Estimator):
     it starts at the origin with yaw 0. ``datum`` (lat deg, lon deg, alt m) is the local ENU
     origin (``stream.datum``); default the config's, else the first fix. ``motion`` is 'euler'
     (seed eq. 14) or 'icc' (seed appendix A). Prediction steps are at most ``max_step`` s.
+    ``reference``: run the dense numpy implementation (``process_noise``, ``gps_model``,
+    ``heading_model``, ``KalmanCore.update``) instead of the fast path (generated sparse F,
+    float Q, ``KalmanCore.update_sparse``); the tests compare the two.
     """
 
     name = "igvc_ekf"
@@ -181,13 +197,23 @@ class IgvcEkf(Estimator):
         noise: IgvcNoise | None = None,
         max_step: float = 0.05,
         course_distance: float = 3.0,
+        reference: bool = False,
     ) -> None:
         super().__init__()
         if motion not in ("euler", "icc"):
             raise ValueError(f"motion must be 'euler' or 'icc', got {motion!r}")
         self.cfg = cfg
         self.motion = motion
+        self.reference = bool(reference)
         self._step = gen.euler_step if motion == "euler" else gen.icc_step
+        self._step_sparse = gen.euler_step_sparse if motion == "euler" else gen.icc_step_sparse
+        ones, variable = ((gen.EULER_F_ONES, gen.EULER_F_VARIABLE) if motion == "euler"
+                          else (gen.ICC_F_ONES, gen.ICC_F_VARIABLE))
+        self._F = np.zeros((N, N))
+        self._F.reshape(-1)[list(ones)] = 1.0
+        self._F_var = np.array(variable)
+        self._Q = np.zeros((N, N))
+        self._sensor_info: dict[str, tuple] = {}
         self.noise = noise or IgvcNoise()
         self.max_step = float(max_step)
         self.course_distance = float(course_distance)
@@ -353,10 +379,39 @@ class IgvcEkf(Estimator):
             return
         n = max(1, math.ceil(dt_total / self.max_step - 1e-9))
         dt = dt_total / n
-        for _ in range(n):
-            f, F = self._step(kf.x, dt, self.track, self.radius)
-            kf.predict(np.array(F), self.process_noise(kf.x, dt), np.array(f))
+        if self.reference:
+            for _ in range(n):
+                f, F = self._step(kf.x, dt, self.track, self.radius)
+                kf.predict(np.array(F), self.process_noise(kf.x, dt), np.array(f))
+        else:
+            F_flat, Q_flat = self._F.reshape(-1), self._Q.reshape(-1)
+            for _ in range(n):
+                xs = kf.x.tolist()
+                f, fv = self._step_sparse(xs, dt, self.track, self.radius)
+                F_flat[self._F_var] = fv
+                Q_flat[_Q_INDEX] = self._q_values(xs[LAT], dt)
+                kf.predict(self._F, self._Q, f)
         self.t = t
+
+    def _q_values(self, lat: float, dt: float) -> tuple[float, ...]:
+        """``process_noise`` (same model) as the values of Q at the flat indices _Q_INDEX."""
+        ns = self.noise
+        rc = self.radius * math.cos(lat)
+        r = self.radius
+        pos = ns.position_psd * dt
+        frame = ns.frame_psd * dt
+        head = ns.heading_psd * dt
+        fh = ns.frame_heading_psd * dt
+        lon_x = pos / rc
+        lat_y = pos / r
+        return (
+            pos + frame, pos + frame,  # x x, y y
+            pos / rc / rc + frame / rc / rc,  # lon lon
+            pos / r / r + frame / r / r,  # lat lat
+            lon_x, lon_x, lat_y, lat_y,  # lon x, x lon, lat y, y lat
+            head + fh, head + fh, -head, -head,  # psi psi, theta theta, psi theta, theta psi
+            ns.jerk_psd * dt, ns.yaw_accel_psd * dt, ns.slip_var, ns.slip_var,  # a, w, vl, vr
+        )
 
     # ------------------------------------------------------------------ Estimator
     def process(self, m) -> None:
@@ -379,7 +434,9 @@ class IgvcEkf(Estimator):
         if self.t is None:
             self.t = m.t
         self.predict_to(m.t)
-        if isinstance(m, GpsFix):
+        if not self.reference:
+            self._process_fast(m)
+        elif isinstance(m, GpsFix):
             self._update_gps(m)
         elif isinstance(m, Heading):
             self._update_heading(m)
@@ -396,15 +453,84 @@ class IgvcEkf(Estimator):
         if self.kf is None:
             return None
         s, P = self.kf.x, self.kf.P
-        idx = [X, Y, PSI]
         return Estimate(
             t=self.t if self.t is not None else 0.0,
             pose=(float(s[X]), float(s[Y]), float(s[PSI])),
-            pose_cov=P[np.ix_(idx, idx)].copy(),
+            pose_cov=P[_POSE_IX],  # advanced indexing: a copy
             state=s.copy(),
             state_cov=P.copy(),
             state_names=STATE_NAMES,
         )
+
+    # ------------------------------------------------------------------ fast updates
+    def _info(self, name: str) -> tuple:
+        """(gate, gyro bias rad/s, heading offset rad, GPS lever arm m) of a sensor, cached."""
+        info = self._sensor_info.get(name)
+        if info is None:
+            s = self._sensor(name)
+            bias = float(s.gyro_bias) if s is not None and s.gyro_bias != "estimate" else 0.0
+            lever = tuple(s.lever_arm) if s is not None else (0.0, 0.0)
+            info = self._sensor_info[name] = (self._gate(name), bias,
+                                              self._heading_offset(name), lever)
+        return info
+
+    def _process_fast(self, m) -> None:
+        """The updates of the _update_* methods below -- the same measurement models -- as
+        sparse blocks for ``KalmanCore.update_sparse``."""
+        kf = self.kf
+        gate, bias, offset, lever = self._info(m.sensor)
+        x = kf.x.tolist()
+        if isinstance(m, GyroYawRate):
+            block = ("gyro", (m.yaw_rate - (x[W] + bias),), _ROWS_W, ((m.var,),))
+        elif isinstance(m, Heading):
+            if m.sensor in self._unusable:
+                return
+            if m.source == "pose":
+                h, rows = x[PSI] + offset, _ROWS_PSI
+            else:
+                h, rows = HALF_PI - x[THETA] + offset, _ROWS_THETA
+            h = (h + math.pi) % _TWO_PI - math.pi
+            block = ("heading", ((m.yaw - h + math.pi) % _TWO_PI - math.pi,), rows, ((m.var,),))
+        elif isinstance(m, ForwardAccel):
+            block = ("accel", (m.accel - x[A],), _ROWS_A, ((m.var,),))
+        elif isinstance(m, WheelOdometry):
+            L = self.track
+            y, rows, var = [], [], []
+            if m.v is not None:
+                y.append(m.v - 0.5 * (x[VL] + x[VR]))
+                rows.append(((VL, 0.5), (VR, 0.5)))
+                var.append(m.v_var)
+            if m.yaw_rate is not None:
+                y.append(m.yaw_rate - (x[VR] - x[VL]) / L)
+                rows.append(((VR, 1.0 / L), (VL, -1.0 / L)))
+                var.append(m.yaw_rate_var)
+            if not y:
+                return
+            R = ((var[0],),) if len(var) == 1 else ((var[0], 0.0), (0.0, var[1]))
+            block = ("odometry", tuple(y), tuple(rows), R)
+        elif isinstance(m, WheelSpeeds):
+            r = self.wheel_radius
+            if r is None:
+                self.log.rejected[(m.sensor, "no_wheel_radius")] += 1
+                return
+            block = ("wheels", (m.left - x[VL] / r, m.right - x[VR] / r),
+                     (((VL, 1.0 / r),), ((VR, 1.0 / r),)),
+                     ((m.left_var, 0.0), (0.0, m.right_var)))
+        elif isinstance(m, GpsFix):
+            if m.status < 0:
+                self.log.rejected[(m.sensor, "no_fix")] += 1
+                return
+            # ~1000 fixes per 400 s: the numpy model of the reference costs nothing here
+            z, hx, H = self._gps_metres(m, lever)
+            rows = tuple(tuple((j, float(v)) for j, v in enumerate(row) if v != 0.0)
+                         for row in H.tolist())
+            cv = m.cov
+            block = ("gps", (z[0] - hx[0], z[1] - hx[1]), rows,
+                     ((float(cv[0, 0]), float(cv[0, 1])), (float(cv[1, 0]), float(cv[1, 1]))))
+        else:
+            return
+        kind, y, rows, R = block
+        kf.update_sparse(m.t, ((m.sensor, kind, y, rows, R, gate),))
 
     # ------------------------------------------------------------------ updates
     def _update_scalar(self, t, sensor, kind, z, index, var, offset=0.0) -> None:
@@ -430,20 +556,23 @@ class IgvcEkf(Estimator):
             self.log.rejected[(m.sensor, "no_fix")] += 1
             return
         s = self._sensor(m.sensor)
-        lever = s.lever_arm if s is not None else (0.0, 0.0)
+        z, hx, Hm = self._gps_metres(m, s.lever_arm if s is not None else (0.0, 0.0))
+        R = np.asarray(m.cov, dtype=float)[:2, :2]
+        self.kf.update(m.t, m.sensor, "gps", z, hx, Hm, R, gate=self._gate(m.sensor))
+
+    def _gps_metres(self, m: GpsFix, lever) -> tuple[list, list, np.ndarray]:
+        """The fix (z), its prediction (hx) and Jacobian (H, (2, 11)) in metres (east, north)
+        about the current estimate: scaling z, h and H by the same constant leaves gain and NIS
+        unchanged and makes the logged residuals readable."""
         x = self.kf.x
         h, H = gps_model(x, lever, self.radius)
-        # Residuals in metres (east, north) about the current estimate: scaling z, h and H by
-        # the same constant T leaves gain and NIS unchanged and makes the log readable.
         lat0, lon0 = x[LAT], x[LON]
         te, tn = self.radius * math.cos(lat0), self.radius
         zlat, zlon = math.radians(m.lat), math.radians(m.lon)
         dlon_z = (zlon - lon0 + math.pi) % (2.0 * math.pi) - math.pi
         z = [te * dlon_z, tn * (zlat - lat0)]
         hx = [te * (h[1] - lon0), tn * (h[0] - lat0)]
-        Hm = np.vstack([te * H[1], tn * H[0]])
-        R = np.asarray(m.cov, dtype=float)[:2, :2]
-        self.kf.update(m.t, m.sensor, "gps", z, hx, Hm, R, gate=self._gate(m.sensor))
+        return z, hx, np.vstack([te * H[1], tn * H[0]])
 
     def _update_wheels(self, m: WheelSpeeds) -> None:
         r = self.wheel_radius

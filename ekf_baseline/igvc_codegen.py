@@ -203,14 +203,24 @@ def _function_code(kind: str) -> str:
     unpack = ", ".join(n if n in used else "_" for n in STATE_NAMES)
     model = {"euler": "First-order (seed eqs. 4-14, corrected)",
              "icc": "Exact ICC arc (seed appendix A, eqs. 28-33, corrected)"}[kind]
+    # F's sparsity: structurally zero, constant one, or computed each step (row-major flat index)
+    ones = [i * N + j for i in range(N) for j in range(N) if F[i, j] == 1]
+    variable = [i * N + j for i in range(N) for j in range(N) if F[i, j] not in (0, 1)]
+    up = kind.upper()
     lines = [
-        f"def {kind}_step(s, dt, track, radius):",
-        f'    """{model} motion step and its Jacobian.',
+        f"{up}_F_ONES = {tuple(ones)!r}",
+        f"{up}_F_VARIABLE = {tuple(variable)!r}",
         "",
+        "",
+        f"def {kind}_step_sparse(s, dt, track, radius):",
+        '    """Motion step f and the nonzero entries of its Jacobian F = df/ds.',
+        "",
+        f"    {model} model.",
         "    ``s`` is the 11-state (see STATE_NAMES; rad, m, m/s, rad/s, m/s^2), ``dt`` the step",
         "    (s), ``track`` the wheel track width (m), ``radius`` the Earth sphere's radius (m).",
-        "    Returns (f, F): the predicted state as an 11-tuple (angles not wrapped) and",
-        '    F = df/ds at ``s`` as 11 rows of 11 floats."""',
+        "    Returns (f, fv): the predicted state as an 11-tuple (angles not wrapped) and the",
+        f"    entries of F = df/ds at the row-major flat indices {up}_F_VARIABLE; the entries",
+        f'    at {up}_F_ONES are 1, all others 0."""',
         f"    {unpack} = s",
         *pre,
     ]
@@ -220,12 +230,19 @@ def _function_code(kind: str) -> str:
     for e in fr:
         lines += _wrap("", _print(e), "        ", ",")
     lines.append("    )")
-    lines.append("    jac = (")
-    for i in range(N):
-        row = ", ".join(_print(Fr[i * N + j]) for j in range(N))
-        lines += _wrap("", f"({row})", "        ", ",")
+    lines.append("    fv = (")
+    for k in variable:
+        lines += _wrap("", _print(Fr[k]), "        ", ",")
     lines.append("    )")
-    lines.append("    return f, jac")
+    lines.append("    return f, fv")
+    lines += [
+        "",
+        "",
+        f"def {kind}_step(s, dt, track, radius):",
+        f'    """{kind}_step_sparse with F dense: returns (f, F), F as 11 rows of 11 floats."""',
+        f"    f, fv = {kind}_step_sparse(s, dt, track, radius)",
+        f"    return f, _dense(fv, {up}_F_VARIABLE, {up}_F_ONES)",
+    ]
     return "\n".join(lines) + "\n"
 
 
@@ -246,6 +263,16 @@ from factors.kinematics import twist_coeffs
 SYMPY_VERSION = {sp.__version__!r}
 
 STATE_NAMES = {STATE_NAMES!r}
+
+
+def _dense(fv, variable, ones):
+    """The 11 x 11 Jacobian as rows of floats from its variable entries and its ones."""
+    flat = [0.0] * {N * N}
+    for k in ones:
+        flat[k] = 1.0
+    for k, v in zip(variable, fv, strict=True):
+        flat[k] = v
+    return tuple(tuple(flat[i:i + {N}]) for i in range(0, {N * N}, {N}))
 
 
 '''

@@ -15,13 +15,29 @@ SYMPY_VERSION = '1.14.0'
 STATE_NAMES = ('lat', 'lon', 'theta', 'x', 'y', 'psi', 'v', 'psi_dot', 'v_l', 'v_r', 'a')
 
 
-def euler_step(s, dt, track, radius):
-    """First-order (seed eqs. 4-14, corrected) motion step and its Jacobian.
+def _dense(fv, variable, ones):
+    """The 11 x 11 Jacobian as rows of floats from its variable entries and its ones."""
+    flat = [0.0] * 121
+    for k in ones:
+        flat[k] = 1.0
+    for k, v in zip(variable, fv, strict=True):
+        flat[k] = v
+    return tuple(tuple(flat[i:i + 11]) for i in range(0, 121, 11))
 
+
+EULER_F_ONES = (12, 24, 36, 48, 60, 72, 84, 94, 105, 120)
+EULER_F_VARIABLE = (0, 2, 6, 11, 13, 17, 29, 38, 39, 49, 50, 62, 76, 95, 98, 106, 109)
+
+
+def euler_step_sparse(s, dt, track, radius):
+    """Motion step f and the nonzero entries of its Jacobian F = df/ds.
+
+    First-order (seed eqs. 4-14, corrected) model.
     ``s`` is the 11-state (see STATE_NAMES; rad, m, m/s, rad/s, m/s^2), ``dt`` the step
     (s), ``track`` the wheel track width (m), ``radius`` the Earth sphere's radius (m).
-    Returns (f, F): the predicted state as an 11-tuple (angles not wrapped) and
-    F = df/ds at ``s`` as 11 rows of 11 floats."""
+    Returns (f, fv): the predicted state as an 11-tuple (angles not wrapped) and the
+    entries of F = df/ds at the row-major flat indices EULER_F_VARIABLE; the entries
+    at EULER_F_ONES are 1, all others 0."""
     lat, lon, theta, x, y, psi, v, psi_dot, _, _, a = s
     t0 = math.sin(lat)
     t1 = 1/radius
@@ -67,32 +83,47 @@ def euler_step(s, dt, track, radius):
         t19 + t21,
         a,
     )
-    jac = (
-        (t23*t24, 0.0, -t12*t24, 0.0, 0.0, 0.0, t24*t25, 0.0, 0.0, 0.0, 0.0),
-        (
-            (-t22*t29 - t30*(-t0*t23 - t10*t6), 1.0, -t0*t26*t27 + t28*t9, 0.0, 0.0, 0.0,
-            t2*t29*t4*t6 - t30*(-t0*t25 - t2*t7), 0.0, 0.0, 0.0, 0.0)
-        ),
-        (0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, -dt, 0.0, 0.0, 0.0),
-        (0.0, 0.0, 0.0, 1.0, 0.0, -t18, t15, 0.0, 0.0, 0.0, 0.0),
-        (0.0, 0.0, 0.0, 0.0, 1.0, t16, t17, 0.0, 0.0, 0.0, 0.0),
-        (0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, dt, 0.0, 0.0, 0.0),
-        (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, dt),
-        (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0),
-        (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, -t20, 0.0, 0.0, dt),
-        (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, t20, 0.0, 0.0, dt),
-        (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0),
+    fv = (
+        t23*t24,
+        -t12*t24,
+        t24*t25,
+        -t22*t29 - t30*(-t0*t23 - t10*t6),
+        -t0*t26*t27 + t28*t9,
+        t2*t29*t4*t6 - t30*(-t0*t25 - t2*t7),
+        -dt,
+        -t18,
+        t15,
+        t16,
+        t17,
+        dt,
+        dt,
+        -t20,
+        dt,
+        t20,
+        dt,
     )
-    return f, jac
+    return f, fv
 
 
-def icc_step(s, dt, track, radius):
-    """Exact ICC arc (seed appendix A, eqs. 28-33, corrected) motion step and its Jacobian.
+def euler_step(s, dt, track, radius):
+    """euler_step_sparse with F dense: returns (f, F), F as 11 rows of 11 floats."""
+    f, fv = euler_step_sparse(s, dt, track, radius)
+    return f, _dense(fv, EULER_F_VARIABLE, EULER_F_ONES)
 
+
+ICC_F_ONES = (12, 24, 36, 48, 60, 72, 84, 94, 105, 120)
+ICC_F_VARIABLE = (0, 2, 6, 7, 11, 13, 17, 18, 29, 38, 39, 40, 49, 50, 51, 62, 76, 95, 98, 106, 109)
+
+
+def icc_step_sparse(s, dt, track, radius):
+    """Motion step f and the nonzero entries of its Jacobian F = df/ds.
+
+    Exact ICC arc (seed appendix A, eqs. 28-33, corrected) model.
     ``s`` is the 11-state (see STATE_NAMES; rad, m, m/s, rad/s, m/s^2), ``dt`` the step
     (s), ``track`` the wheel track width (m), ``radius`` the Earth sphere's radius (m).
-    Returns (f, F): the predicted state as an 11-tuple (angles not wrapped) and
-    F = df/ds at ``s`` as 11 rows of 11 floats."""
+    Returns (f, fv): the predicted state as an 11-tuple (angles not wrapped) and the
+    entries of F = df/ds at the row-major flat indices ICC_F_VARIABLE; the entries
+    at ICC_F_ONES are 1, all others 0."""
     lat, lon, theta, x, y, psi, v, psi_dot, _, _, a = s
     # S, C of the turn and of the half turn (chord length), series near 0
     s1, c1, ds1, dc1 = twist_coeffs(psi_dot * dt)
@@ -153,21 +184,33 @@ def icc_step(s, dt, track, radius):
         t24 + t26,
         a,
     )
-    jac = (
-        (t28*t29, 0.0, t16*t29, 0.0, 0.0, 0.0, t29*t31, t29*t35, 0.0, 0.0, 0.0),
-        (
-            (t27*t39 + t40*(-t0*t28 - t10*t14), 1.0, -t0*t36*t37 + t13*t38, 0.0, 0.0, 0.0,
-            t10*t11*t15*t37*(-t0*t31 - t11*t30) - t30*t39*t41, t38*(-t13*t34 - t15*t33*t41) +
-            t40*(-t0*t35 - t11*t33), 0.0, 0.0, 0.0)
-        ),
-        (0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, -dt, 0.0, 0.0, 0.0),
-        (0.0, 0.0, 0.0, 1.0, 0.0, -t1*t22, t20, t1*(-dc1*t42 + ds1*dt*t19), 0.0, 0.0, 0.0),
-        (0.0, 0.0, 0.0, 0.0, 1.0, t21, t23, t1*(dc1*dt*t19 + ds1*t42), 0.0, 0.0, 0.0),
-        (0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, dt, 0.0, 0.0, 0.0),
-        (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, dt),
-        (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0),
-        (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, -t25, 0.0, 0.0, dt),
-        (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, t25, 0.0, 0.0, dt),
-        (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0),
+    fv = (
+        t28*t29,
+        t16*t29,
+        t29*t31,
+        t29*t35,
+        t27*t39 + t40*(-t0*t28 - t10*t14),
+        -t0*t36*t37 + t13*t38,
+        t10*t11*t15*t37*(-t0*t31 - t11*t30) - t30*t39*t41,
+        t38*(-t13*t34 - t15*t33*t41) + t40*(-t0*t35 - t11*t33),
+        -dt,
+        -t1*t22,
+        t20,
+        t1*(-dc1*t42 + ds1*dt*t19),
+        t21,
+        t23,
+        t1*(dc1*dt*t19 + ds1*t42),
+        dt,
+        dt,
+        -t25,
+        dt,
+        t25,
+        dt,
     )
-    return f, jac
+    return f, fv
+
+
+def icc_step(s, dt, track, radius):
+    """icc_step_sparse with F dense: returns (f, F), F as 11 rows of 11 floats."""
+    f, fv = icc_step_sparse(s, dt, track, radius)
+    return f, _dense(fv, ICC_F_VARIABLE, ICC_F_ONES)

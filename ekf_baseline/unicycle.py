@@ -86,6 +86,11 @@ _TWO_PI = 2.0 * math.pi
 _cos = math.cos
 _sin = math.sin
 _USED = (GpsFix, WheelOdometry, WheelSpeeds, GyroYawRate, Heading)
+# sparse H rows (KalmanCore.update_sparse) of the measurements of fixed states
+_ROWS_V = (((3, 1.0),),)
+_ROWS_W = (((4, 1.0),),)
+_ROWS_PSI = (((2, 1.0),),)
+_ROWS_XY = (((0, 1.0),), ((1, 1.0),))
 
 
 @dataclass(frozen=True)
@@ -180,7 +185,8 @@ def euler_step_jac(
 class _Sensor:
     """Per-sensor settings looked up once: gate, GPS lever arm, bias/offset handling."""
 
-    __slots__ = ("gate", "lever", "bias_idx", "bias", "hoff_idx", "hoff", "uses")
+    __slots__ = ("gate", "lever", "bias_idx", "bias", "hoff_idx", "hoff", "uses", "rows",
+                 "rows_h")
 
     def __init__(self, gate=DEFAULT_GATE, lever=(0.0, 0.0), uses=None):
         self.gate = gate
@@ -190,6 +196,8 @@ class _Sensor:
         self.hoff_idx: int | None = None
         self.hoff = 0.0  # rad, configured heading offset when not estimated
         self.uses = uses  # None: everything the message carries
+        self.rows = _ROWS_W  # sparse H of its gyro (with its bias state when estimated)
+        self.rows_h = _ROWS_PSI  # sparse H of its heading (with its offset state)
 
 
 class UnicycleEkf(Estimator):
@@ -202,6 +210,8 @@ class UnicycleEkf(Estimator):
     ``initial_std`` (position m, heading rad) for a known initial pose, ``v_std0`` (m/s),
     ``w_std0`` (rad/s), ``bias_std0`` (rad/s) prior sigmas, ``lockout_count`` /
     ``lockout_time`` for the gate lock-out recovery of :class:`ekf_baseline.kalman.KalmanCore`.
+    ``reference``: update through the dense numpy ``KalmanCore.update_blocks`` instead of the
+    fast sparse path ``update_sparse`` (same results; the tests compare the two).
     """
 
     name = "ekf_unicycle"
@@ -220,8 +230,10 @@ class UnicycleEkf(Estimator):
         bias_std0: float = 0.02,
         lockout_count: int = DEFAULT_LOCKOUT_COUNT,
         lockout_time: float = DEFAULT_LOCKOUT_TIME,
+        reference: bool = False,
     ) -> None:
         super().__init__()
+        self.reference = bool(reference)
         if motion not in ("exact", "euler"):
             raise ValueError(f"motion must be 'exact' or 'euler', got {motion!r}")
         self.cfg = cfg
@@ -249,10 +261,14 @@ class UnicycleEkf(Estimator):
                     info.hoff = s.heading_offset
             self._sensors[s.name] = info
         for s in imus_b:
-            self._sensors[s.name].bias_idx = len(names)
+            info = self._sensors[s.name]
+            info.bias_idx = len(names)
+            info.rows = (((4, 1.0), (info.bias_idx, 1.0)),)
             names.append("bg" if len(imus_b) == 1 else f"bg:{s.name}")
         for s in imus_h:
-            self._sensors[s.name].hoff_idx = len(names)
+            info = self._sensors[s.name]
+            info.hoff_idx = len(names)
+            info.rows_h = (((2, 1.0), (info.hoff_idx, 1.0)),)
             names.append("hoff" if len(imus_h) == 1 else f"hoff:{s.name}")
         self.state_names = tuple(names)
         self.n = len(names)
@@ -291,9 +307,18 @@ class UnicycleEkf(Estimator):
         self._k = 0
         self._F = np.eye(self.n)
         self._Q = np.zeros((self.n, self.n))
-        self._eye_n = np.eye(self.n)
+        self._F_flat = self._F.reshape(-1)  # views: assigning into them fills F and Q
+        self._Q_flat = self._Q.reshape(-1)
+        self._if = np.ravel_multi_index(([0, 0, 0, 1, 1, 1, 2], [2, 3, 4, 2, 3, 4, 4]),
+                                        (self.n, self.n))
+        # the upper and lower triangle of the 5x5 block (unicycle_process_noise's order), then
+        # the diagonal of the bias and the offset states
         iu = np.triu_indices(5)
-        self._iq = (np.concatenate([iu[0], iu[1]]), np.concatenate([iu[1], iu[0]]))
+        diag = np.array(self._bias_states + self._hoff_states, dtype=int)
+        self._iq = np.ravel_multi_index(
+            (np.concatenate([iu[0], iu[1], diag]), np.concatenate([iu[1], iu[0], diag])),
+            (self.n, self.n))
+        self._nb, self._nh = len(self._bias_states), len(self._hoff_states)
         r = cfg.robot
         self._wheel = (r.wheel_radius, r.track_width)
 
@@ -461,71 +486,64 @@ class UnicycleEkf(Estimator):
         kf = self.kf
         xs = kf.x.tolist()
         x1, y1, p1, J = self._step_jac(xs[0], xs[1], xs[2], xs[3], xs[4], dt)
-        F = self._F
-        # element assignments: ~50 ns each, a slice assignment costs ~400 ns
         j0, j1 = J[0], J[1]
-        F[0, 2] = j0[2]
-        F[0, 3] = j0[3]
-        F[0, 4] = j0[4]
-        F[1, 2] = j1[2]
-        F[1, 3] = j1[3]
-        F[1, 4] = j1[4]
-        F[2, 4] = dt
-        q = unicycle_process_noise(xs[2], xs[3], dt, self.noise)
-        Q = self._Q
-        Q[self._iq] = q + q  # upper and lower triangle of the 5x5 block in one assignment
+        # one flat fancy-index assignment each for F and Q: element assignments cost ~100 ns
+        # apiece, the (row, col) fancy index twice the flat one
+        self._F_flat[self._if] = (j0[2], j0[3], j0[4], j1[2], j1[3], j1[4], dt)
         nz = self.noise
-        qb = nz.gyro_bias * nz.gyro_bias * dt
-        for i in self._bias_states:
-            Q[i, i] = qb
-        qh = nz.heading_offset * nz.heading_offset * dt
-        for i in self._hoff_states:
-            Q[i, i] = qh
+        q = unicycle_process_noise(xs[2], xs[3], dt, nz)
+        self._Q_flat[self._iq] = q + q + (nz.gyro_bias * nz.gyro_bias * dt,) * self._nb \
+            + (nz.heading_offset * nz.heading_offset * dt,) * self._nh
         xs[0], xs[1], xs[2] = x1, y1, p1
-        kf.predict(F, Q, np.array(xs))
+        kf.predict(self._F, self._Q, xs)
         self.t = t
 
     def _apply(self, ms) -> None:
-        """Assemble the piecewise measurement model of the messages ``ms`` and update."""
+        """Assemble the piecewise measurement model of the messages ``ms`` -- per measurement its
+        innovation, sparse H rows and R -- and update (module docstring, "Measurements")."""
         kf = self.kf
         x = kf.x.tolist()  # python floats: cheaper than numpy scalars in the scalar code below
-        n = self.n
-        zs: list[float] = []
-        hs: list[float] = []
-        hrows: list[tuple] = []  # (row, col, value)
-        rblocks: list[tuple] = []  # (start, block as nested tuples)
         blocks: list[tuple] = []
         t = self.t
         for m in ms:
-            info = self._sensor(m.sensor)
-            i0 = len(zs)
+            info = self._sensors.get(m.sensor) or self._sensor(m.sensor)
             if isinstance(m, GyroYawRate):
                 if info.uses is not None and "yaw_rate" not in info.uses:
                     continue
                 bi = info.bias_idx
-                zs.append(m.yaw_rate)
                 if bi is None:
-                    hs.append(x[4] + info.bias)
+                    y = m.yaw_rate - (x[4] + info.bias)
+                    rows = _ROWS_W
                 else:
-                    hs.append(x[4] + x[bi])
-                    hrows.append((i0, bi, 1.0))
-                hrows.append((i0, 4, 1.0))
-                rblocks.append((i0, ((m.var,),)))
-                blocks.append((m.sensor, "gyro", i0, i0 + 1, (), info.gate))
+                    y = m.yaw_rate - (x[4] + x[bi])
+                    rows = info.rows
+                blocks.append((m.sensor, "gyro", (y,), rows, ((m.var,),), info.gate))
+            elif isinstance(m, Heading):
+                if info.uses is not None and "yaw" not in info.uses:
+                    continue
+                if not self._aligned:
+                    self.log.rejected[(m.sensor, "before_init")] += 1
+                    continue
+                hi = info.hoff_idx
+                if hi is None:
+                    hpred = x[2] + info.hoff
+                    rows = _ROWS_PSI
+                else:
+                    if hi not in self._hoff_ready:
+                        self._init_offset(t, m, hi)
+                        x = kf.x.tolist()
+                        continue
+                    hpred = x[2] + x[hi]
+                    rows = info.rows_h
+                y = (m.yaw - hpred + _PI) % _TWO_PI - _PI
+                blocks.append((m.sensor, "heading", (y,), rows, ((m.var,),), info.gate))
             elif isinstance(m, WheelOdometry):
                 if m.v is not None:
-                    zs.append(m.v)
-                    hs.append(x[3])
-                    hrows.append((i0, 3, 1.0))
-                    rblocks.append((i0, ((m.v_var,),)))
-                    blocks.append((m.sensor, "v", i0, i0 + 1, (), info.gate))
-                    i0 += 1
+                    blocks.append((m.sensor, "v", (m.v - x[3],), _ROWS_V, ((m.v_var,),),
+                                   info.gate))
                 if m.yaw_rate is not None:
-                    zs.append(m.yaw_rate)
-                    hs.append(x[4])
-                    hrows.append((i0, 4, 1.0))
-                    rblocks.append((i0, ((m.yaw_rate_var,),)))
-                    blocks.append((m.sensor, "yaw_rate", i0, i0 + 1, (), info.gate))
+                    blocks.append((m.sensor, "yaw_rate", (m.yaw_rate - x[4],), _ROWS_W,
+                                   ((m.yaw_rate_var,),), info.gate))
             elif isinstance(m, GpsFix):
                 if m.enu is None or m.status < 0:
                     self.log.rejected[(m.sensor, "no_fix" if m.status < 0 else "no_enu")] += 1
@@ -540,64 +558,29 @@ class UnicycleEkf(Estimator):
                     continue
                 lx, ly = info.lever
                 c, s = _cos(x[2]), _sin(x[2])
-                zs.append(m.enu[0])
-                zs.append(m.enu[1])
-                hs.append(x[0] + c * lx - s * ly)
-                hs.append(x[1] + s * lx + c * ly)
-                hrows.append((i0, 0, 1.0))
-                hrows.append((i0 + 1, 1, 1.0))
+                y = (m.enu[0] - (x[0] + c * lx - s * ly), m.enu[1] - (x[1] + s * lx + c * ly))
                 if lx != 0.0 or ly != 0.0:
-                    hrows.append((i0, 2, -s * lx - c * ly))
-                    hrows.append((i0 + 1, 2, c * lx - s * ly))
-                cv = m.cov
-                rblocks.append((i0, ((cv[0][0], cv[0][1]), (cv[1][0], cv[1][1]))))
-                blocks.append((m.sensor, "gps", i0, i0 + 2, (), info.gate))
-            elif isinstance(m, Heading):
-                if info.uses is not None and "yaw" not in info.uses:
-                    continue
-                if not self._aligned:
-                    self.log.rejected[(m.sensor, "before_init")] += 1
-                    continue
-                hi = info.hoff_idx
-                if hi is None:
-                    hpred = x[2] + info.hoff
+                    rows = (((0, 1.0), (2, -s * lx - c * ly)), ((1, 1.0), (2, c * lx - s * ly)))
                 else:
-                    if hi not in self._hoff_ready:
-                        self._init_offset(t, m, hi)
-                        x = kf.x.tolist()
-                        continue
-                    hpred = x[2] + x[hi]
-                    hrows.append((i0, hi, 1.0))
-                zs.append(m.yaw)
-                hs.append(hpred)
-                hrows.append((i0, 2, 1.0))
-                rblocks.append((i0, ((m.var,),)))
-                blocks.append((m.sensor, "heading", i0, i0 + 1, (0,), info.gate))
+                    rows = _ROWS_XY
+                cv = m.cov.tolist()
+                blocks.append((m.sensor, "gps", y, rows,
+                               ((cv[0][0], cv[0][1]), (cv[1][0], cv[1][1])), info.gate))
             elif isinstance(m, WheelSpeeds):
                 r, L = self._wheel
                 if r is None or L is None:
                     raise ValueError("WheelSpeeds need robot.wheel_radius and robot.track_width")
-                zs.append(m.left)
-                zs.append(m.right)
-                hs.append((x[3] - 0.5 * L * x[4]) / r)
-                hs.append((x[3] + 0.5 * L * x[4]) / r)
-                hrows.append((i0, 3, 1.0 / r))
-                hrows.append((i0, 4, -0.5 * L / r))
-                hrows.append((i0 + 1, 3, 1.0 / r))
-                hrows.append((i0 + 1, 4, 0.5 * L / r))
-                rblocks.append((i0, ((m.left_var, 0.0), (0.0, m.right_var))))
-                blocks.append((m.sensor, "wheels", i0, i0 + 2, (), info.gate))
-        mrows = len(zs)
-        if mrows == 0:
-            return
-        H = np.zeros((mrows, n))
-        for i, j, val in hrows:
-            H[i, j] = val
-        R = np.zeros((mrows, mrows))
-        for i0, blk in rblocks:
-            k = len(blk)
-            R[i0:i0 + k, i0:i0 + k] = blk
-        kf.update_blocks(t, np.array(zs), np.array(hs), H, R, blocks)
+                k = 0.5 * L / r
+                blocks.append((m.sensor, "wheels",
+                               (m.left - (x[3] - 0.5 * L * x[4]) / r,
+                                m.right - (x[3] + 0.5 * L * x[4]) / r),
+                               (((3, 1.0 / r), (4, -k)), ((3, 1.0 / r), (4, k))),
+                               ((m.left_var, 0.0), (0.0, m.right_var)), info.gate))
+        if blocks:
+            if self.reference:
+                kf.update_dense(t, blocks)
+            else:
+                kf.update_sparse(t, blocks)
 
     def _init_offset(self, t: float, m: Heading, hi: int) -> None:
         """hoff = wrap(z - psi): variance var(psi) + R, covariance -cov(psi, .) with the rest."""

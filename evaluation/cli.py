@@ -280,13 +280,15 @@ def build_parser() -> argparse.ArgumentParser:
                    "(ddfuse plot-sim --help)")
     sub.add_parser("lag-sweep", help="the smoother's accuracy, latency and CPU against its lag "
                    "(ddfuse lag-sweep --help)")
+    sub.add_parser("mc", help="Monte Carlo runs on a simulated scenario: RMSE, dead reckoning, "
+                   "average NEES and its chi-square band (ddfuse mc --help)")
     return p
 
 
 # Sub-commands whose module parses its own arguments (argparse.REMAINDER cannot pass a leading
 # option such as --help through, so they are dispatched before the top-level parser).
 DELEGATED = {"simulate": "evaluation.simulate", "plot-sim": "evaluation.plot_sim",
-             "lag-sweep": "evaluation.lag_sweep"}
+             "lag-sweep": "evaluation.lag_sweep", "mc": "evaluation.montecarlo"}
 
 
 def main(argv: list[str] | None = None) -> int:

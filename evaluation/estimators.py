@@ -9,6 +9,7 @@ from ekf_baseline.igvc import IgvcEkf
 from ekf_baseline.landmark import LandmarkEkf, LandmarkSlamEkf
 from ekf_baseline.unicycle import UnicycleEkf
 from estimation.config import Config
+from estimation.dead_reckoning import DeadReckoning, odometry_source
 from estimation.estimator import Estimator
 from estimation.measurements import Stream
 from estimation.smoother import BatchSmoother, FixedLagSmoother
@@ -21,6 +22,7 @@ class EstimatorSpec:
     allowed: Callable[[Config], bool]
     build: Callable[[Config, Stream, tuple | None, float | None], Estimator]
     produces: tuple[str, ...]  # the output tracks it gives (the smoother's lagged one too)
+    default: bool = True  # run when no estimators are named (if the config allows it)
 
 
 def _has(*kinds: str) -> Callable[[Config], bool]:
@@ -56,16 +58,20 @@ SPECS: dict[str, EstimatorSpec] = {s.name: s for s in (
                   _motion, lambda cfg, st, pose, lag: BatchSmoother(
                       cfg, initial_pose=pose, landmarks=st.landmarks, lag=lag),
                   ("batch",)),
+    EstimatorSpec("dr", "dead reckoning: the wheel odometry integrated alone (baseline)",
+                  lambda cfg: odometry_source(cfg) is not None,
+                  lambda cfg, st, pose, lag: DeadReckoning(cfg, initial_pose=pose),
+                  ("dr",), default=False),
 )}
 TRACK_TO_SPEC = {track: spec.name for spec in SPECS.values() for track in spec.produces}
 
 
 def select(cfg: Config, names: list[str] | None) -> list[str]:
     """Estimator names to build for ``names`` (tracks such as 'smoother_lagged' map to their
-    estimator); default: every estimator the config's sensors allow. Unknown or disallowed
-    names raise ValueError saying why."""
+    estimator); default: every default estimator (all but 'dr') the config's sensors allow.
+    Unknown or disallowed names raise ValueError saying why."""
     if not names:
-        return [n for n, s in SPECS.items() if s.allowed(cfg)]
+        return [n for n, s in SPECS.items() if s.default and s.allowed(cfg)]
     out: list[str] = []
     for n in names:
         if n not in TRACK_TO_SPEC:

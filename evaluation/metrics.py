@@ -193,6 +193,7 @@ class Nees:
     t: np.ndarray
     value: np.ndarray
     dof: np.ndarray
+    i_est: np.ndarray  # indices into the estimate of the scored samples
 
 
 def nees_series(est: Trajectory, ref: Trajectory, max_diff: float = 0.05) -> Nees:
@@ -200,7 +201,7 @@ def nees_series(est: Trajectory, ref: Trajectory, max_diff: float = 0.05) -> Nee
 
     Samples whose covariance is missing or not positive definite are left out."""
     err = pose_errors(est, ref, max_diff)
-    ts, vals, dofs = [], [], []
+    ts, vals, dofs, idx = [], [], [], []
     for k, i in enumerate(err.i_est):
         p = est.cov[i]
         if math.isnan(err.dyaw[k]):
@@ -217,12 +218,20 @@ def nees_series(est: Trajectory, ref: Trajectory, max_diff: float = 0.05) -> Nee
         ts.append(err.t[k])
         vals.append(float(z @ z))
         dofs.append(len(e))
-    return Nees(np.array(ts), np.array(vals), np.array(dofs, int))
+        idx.append(int(i))
+    return Nees(np.array(ts), np.array(vals), np.array(dofs, int), np.array(idx, np.int64))
 
 
 def nees(est: Trajectory, ref: Trajectory, max_diff: float = 0.05) -> np.ndarray:
     """Pose NEES values per associated sample (see ``nees_series``)."""
     return nees_series(est, ref, max_diff).value
+
+
+def nees_samples(est: Trajectory, ref: Trajectory, max_diff: float = 0.05
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """``nees`` with the indices into ``est`` of the samples it could score: (i_est, nees)."""
+    s = nees_series(est, ref, max_diff)
+    return s.i_est, s.value
 
 
 def interpolate_xy(est: Trajectory, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -239,13 +239,27 @@ class _Capture:
         self.x = np.array(x, dtype=float)
         self.got = {}
 
-    def update_blocks(self, t, z, hx, H, R, blocks):
-        self.got.update(z=z.copy(), hx=hx.copy(), H=H.copy(), R=R.copy(), blocks=blocks)
+    def update_sparse(self, t, blocks):
+        """Records the innovations y = z - h(x), the dense H and the block-diagonal R."""
+        y = [v for b in blocks for v in b[2]]
+        rows = [r for b in blocks for r in b[3]]
+        H = np.zeros((len(rows), len(self.x)))
+        R = np.zeros((len(rows), len(rows)))
+        i0 = 0
+        for b in blocks:
+            m = len(b[3])
+            R[i0:i0 + m, i0:i0 + m] = b[4]
+            i0 += m
+        for i, row in enumerate(rows):
+            for c, a in row:
+                H[i, c] += a
+        self.got.update(y=np.array(y), H=H, R=R, blocks=blocks)
         return len(blocks)
 
 
 def _capture_rows(ekf, m, x):
-    """The (z, h(x), H, R, blocks) the filter builds for measurement ``m`` at state ``x``."""
+    """The (y = z - h(x), H, R, blocks) the filter builds for measurement ``m`` at state
+    ``x``."""
     kf = ekf.kf
     ekf.kf = cap = _Capture(x)
     try:
@@ -282,17 +296,20 @@ def test_measurement_jacobians_match_central_differences():
     for m in ms:
         got = _capture_rows(ekf, m, x0)
 
-        def h(xv, m=m):
-            return _capture_rows(ekf, m, xv)["hx"]
+        def h(xv, m=m):  # h(x) = z - y: the same Jacobian as -y
+            return -_capture_rows(ekf, m, xv)["y"]
 
         H_num = _numeric_jac(h, np.array(x0))
         np.testing.assert_allclose(got["H"], H_num, atol=1e-7, err_msg=type(m).__name__)
     gps = _capture_rows(ekf, ms[-1], x0)
     np.testing.assert_array_equal(gps["R"], cov[:2, :2])
-    # heading prediction is psi + hoff and its block is an angle
+    # heading prediction is psi + hoff, its innovation wrapped: 3.0 - (-0.1) = 3.1, and with
+    # hoff 0.1 smaller 3.2 - 2 pi, across the seam
     hd = _capture_rows(ekf, ms[3], x0)
-    assert hd["hx"][0] == pytest.approx(-2.9 + 2.8)
-    assert hd["blocks"][0][4] == (0,)
+    assert hd["y"][0] == pytest.approx(3.0 - (-2.9 + 2.8))
+    x_seam = list(x0)
+    x_seam[6] -= 0.1
+    assert _capture_rows(ekf, ms[3], x_seam)["y"][0] == pytest.approx(3.2 - 2 * math.pi)
 
 
 @pytest.mark.parametrize("dt", [0.02, 0.5, 2.0])

@@ -1,0 +1,301 @@
+"""Monte Carlo consistency and accuracy runs on the simulator: ``ddfuse mc``.
+
+For a simulator scenario and N seeds, each seed is simulated and written as a bag with its
+config and landmark map (``evaluation.simulate``) in a temporary directory, read back like any
+bag (``estimation.bags.read_stream``) and run through the normal runner
+(``estimation.runner.run``) with the chosen estimators plus dead reckoning (``dr``: the same
+stream's wheel odometry integrated alone). Per seed and estimator it records the position RMSE,
+the dead-reckoning RMSE, the pose NEES and the runtime; across seeds it forms Bar-Shalom's
+average NEES and its chi-square band. Seeds run in local processes (``jobs``).
+
+Errors are taken against the EXACT truth at each estimate's stamp (``SimResult.truth.at``), not
+against the nearest 10-20 Hz ground-truth sample, whose stamp may be 50 ms away.
+
+NEES convention (Bar-Shalom, Li, Kirubarajan, "Estimation with Applications to Tracking and
+Navigation", 2001, sec. 5.4.2). The estimators are scored on the pose (x m, y m, yaw rad),
+d = 3, with the 3 x 3 pose covariance they report (for ekf_igvc, whose state also carries
+lat/lon/theta, and ekf_slam, whose state carries the landmarks, this is the marginal of x, y, psi;
+no estimator here compares a different state). At output tick k (10 Hz from the start of the
+simulated run) the NEES of run i is eps_i(k) = e^T P^-1 e, and the average over the N runs is
+eps_bar(k) = (1/N) sum_i eps_i(k). For a consistent filter N eps_bar(k) ~ chi2(N d), so the
+two-sided 95 % acceptance interval of eps_bar(k) is
+    [chi2.ppf(0.025, N d) / N, chi2.ppf(0.975, N d) / N]
+(``nees_band``). The single figure reported, ANEES, is eps_bar(k) averaged over the ticks that
+every run has, and it is judged against that same per-tick band (the band is not narrowed for
+the time average: successive ticks of one run are strongly correlated, so K ticks are not K
+independent samples). The fraction of ticks with eps_bar(k) inside the band is reported too:
+about 95 % for a consistent filter.
+
+Library use (a notebook)::
+
+    from evaluation.montecarlo import monte_carlo, to_markdown
+    mc = monte_carlo("husky", seeds=range(20), estimators=["ekf", "ekf_igvc"], jobs=2)
+    print(to_markdown(mc))
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import tempfile
+import time
+from collections.abc import Iterable
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+from scipy.stats import chi2
+
+__all__ = ["nees_band", "run_seed", "aggregate", "monte_carlo", "to_markdown", "write_report",
+           "main"]
+
+OUTPUT_RATE = 10.0  # Hz, estimates recorded by the runner and NEES ticks
+POSE_DIM = 3  # x, y, yaw
+
+
+def nees_band(n_runs: int, dim: int, prob: float = 0.95) -> tuple[float, float]:
+    """Two-sided ``prob`` acceptance interval of the N-run average NEES of a ``dim``-dimensional
+    state: chi2.ppf((1 -+ prob) / 2, N dim) / N (Bar-Shalom sec. 5.4.2)."""
+    if n_runs < 1 or dim < 1:
+        raise ValueError(f"need n_runs >= 1 and dim >= 1, got {n_runs}, {dim}")
+    a = 0.5 * (1.0 - prob)
+    lo, hi = chi2.ppf([a, 1.0 - a], n_runs * dim)
+    return float(lo) / n_runs, float(hi) / n_runs
+
+
+def default_estimators(cfg) -> list[str]:
+    """Every EKF the config's sensors allow."""
+    from evaluation import estimators as registry
+
+    return [n for n, s in registry.SPECS.items() if n.startswith("ekf") and s.allowed(cfg)]
+
+
+def _truth_errors(sim, tr) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Against the exact truth at each estimate's stamp: the position error (m) of every sample,
+    and the output tick indices and pose NEES of the samples with a usable covariance."""
+    from estimation.runner import Trajectory
+    from evaluation import metrics
+
+    t_rel = tr.t - sim.t0
+    x, y, yaw, _, _ = sim.truth.at(np.clip(t_rel, 0.0, sim.duration))
+    ref = Trajectory(tr.t.copy(), np.column_stack([x, y, yaw]), np.full((len(tr), 3, 3), np.nan))
+    pos = metrics.pose_errors(tr, ref, max_diff=1e-9).position
+    i_nees, nees = metrics.nees_samples(tr, ref, max_diff=1e-9)
+    ticks = np.rint(t_rel[i_nees] * OUTPUT_RATE).astype(np.int64)
+    return pos, ticks, nees
+
+
+def run_seed(scenario: str, seed: int, estimators: list[str] | None = None,
+             duration: float | None = None) -> dict:
+    """Simulate ``scenario`` with ``seed``, write and read it back as a bag in a temporary
+    directory, run ``estimators`` (default: every EKF its config allows) and dead reckoning.
+
+    Returns {'seed', 'scenario', 'duration_s', 'estimators': {name: {'rmse_m', 'nees_mean',
+    'runtime_s', 'error', 'ticks', 'nees'}}, 'dr_rmse_m'}; 'ticks' and 'nees' are the per-sample
+    output tick indices and NEES (lists, for the across-run average)."""
+    from estimation.bags import read_stream
+    from estimation.config import load_config
+    from estimation.runner import initial_pose, run
+    from evaluation import estimators as registry
+    from evaluation.simulate import simulate, write_bag
+
+    sim = simulate(scenario, seed=seed, duration=duration)
+    with tempfile.TemporaryDirectory(prefix="ddfuse-mc-") as d:
+        bag, cfg_path, _ = write_bag(sim, Path(d) / f"{scenario}-{seed}.bag")
+        cfg = load_config(cfg_path)
+        stream = read_stream(bag, cfg)
+    names = list(estimators) if estimators else default_estimators(cfg)
+    chosen = registry.select(cfg, names)
+    if "dr" not in chosen:
+        chosen.append("dr")
+    pose = initial_pose(cfg.initial_pose, stream)
+    built = {n: registry.SPECS[n].build(cfg, stream, pose, cfg.smoother.lag) for n in chosen}
+    result = run(stream, built, output_rate=OUTPUT_RATE)
+    out: dict = {"seed": seed, "scenario": scenario, "duration_s": sim.duration,
+                 "estimators": {}}
+    for name, r in result.runs.items():
+        tr = r.trajectory
+        if len(tr) == 0:
+            out["estimators"][name] = {"rmse_m": math.nan, "nees_mean": math.nan,
+                                       "runtime_s": r.runtime_s, "error": r.error or "no output",
+                                       "ticks": [], "nees": []}
+            continue
+        pos, ticks, nees = _truth_errors(sim, tr)
+        out["estimators"][name] = {
+            "rmse_m": float(np.sqrt(np.mean(pos * pos))),
+            "nees_mean": float(nees.mean()) if len(nees) else math.nan,
+            "runtime_s": r.runtime_s,
+            "error": r.error,
+            "ticks": ticks.tolist(),
+            "nees": nees.tolist(),
+        }
+    out["dr_rmse_m"] = out["estimators"]["dr"]["rmse_m"]
+    return out
+
+
+def _seed_job(args) -> dict:
+    scenario, seed, estimators, duration = args
+    t0 = time.perf_counter()
+    res = run_seed(scenario, seed, estimators, duration)
+    res["wall_s"] = time.perf_counter() - t0
+    return res
+
+
+def aggregate(per_seed: list[dict], prob: float = 0.95) -> dict:
+    """Across-seed statistics per estimator (module docstring for the NEES convention):
+    runs, rmse_mean/max (m), dr_rmse_mean (m), ratio (DR RMSE / RMSE, of the means) and
+    ratio_min (the worst seed), anees, band, anees_in_band, frac_ticks_in_band, runtime_mean (s),
+    the per-seed RMSE and mean NEES, and the errors raised."""
+    names = sorted({n for r in per_seed for n in r["estimators"]})
+    out: dict = {}
+    for name in names:
+        rows = [(r, r["estimators"][name]) for r in per_seed if name in r["estimators"]]
+        rmse = np.array([e["rmse_m"] for _, e in rows])
+        dr = np.array([r["dr_rmse_m"] for r, _ in rows])
+        entry: dict = {
+            "runs": len(rows),
+            "seeds": [r["seed"] for r, _ in rows],
+            "rmse_m": rmse.tolist(),
+            "rmse_mean": float(np.mean(rmse)),
+            "rmse_max": float(np.max(rmse)),
+            "dr_rmse_mean": float(np.mean(dr)),
+            "ratio": float(np.mean(dr) / np.mean(rmse)),
+            "ratio_min": float(np.min(dr / rmse)),
+            "runtime_mean": float(np.mean([e["runtime_s"] for _, e in rows])),
+            "nees_mean_per_seed": [e["nees_mean"] for _, e in rows],
+            "errors": [e["error"] for _, e in rows if e["error"]],
+            "dim": POSE_DIM,
+        }
+        # N-run average NEES per tick, over the ticks every run has
+        series = [dict(zip(e["ticks"], e["nees"], strict=True)) for _, e in rows]
+        common = sorted(set.intersection(*(set(s) for s in series))) if series else []
+        if name != "dr" and common:
+            eps_bar = np.array([np.mean([s[k] for s in series]) for k in common])
+            lo, hi = nees_band(len(rows), POSE_DIM, prob)
+            anees = float(eps_bar.mean())
+            entry.update(anees=anees, band=[lo, hi], anees_in_band=bool(lo <= anees <= hi),
+                         frac_ticks_in_band=float(np.mean((eps_bar >= lo) & (eps_bar <= hi))),
+                         ticks=len(common))
+        else:
+            entry.update(anees=None, band=None, anees_in_band=None, frac_ticks_in_band=None,
+                         ticks=0)
+        out[name] = entry
+    return out
+
+
+def monte_carlo(scenario: str, seeds: Iterable[int], estimators: list[str] | None = None, *,
+                duration: float | None = None, jobs: int | None = None,
+                prob: float = 0.95) -> dict:
+    """Run ``seeds`` of ``scenario`` (``jobs`` local processes, default os.cpu_count(); 1 runs
+    in this process) and aggregate. Returns {'scenario', 'seeds', 'duration_s',
+    'estimators_requested', 'per_seed': [run_seed results without the NEES series],
+    'summary': aggregate(...), 'nees_convention': text}."""
+    seeds = [int(s) for s in seeds]
+    if not seeds:
+        raise ValueError("monte_carlo: no seeds")
+    from evaluation.simulate import get_scenario
+
+    get_scenario(scenario, duration)  # a bad scenario or duration fails here, not in a worker
+    jobs = jobs or os.cpu_count() or 1
+    args = [(scenario, s, estimators, duration) for s in seeds]
+    if jobs == 1:
+        per_seed = [_seed_job(a) for a in args]
+    else:
+        with ProcessPoolExecutor(max_workers=min(jobs, len(args))) as pool:
+            per_seed = list(pool.map(_seed_job, args))
+    summary = aggregate(per_seed, prob)
+    lean = [{**r, "estimators": {n: {k: v for k, v in e.items() if k not in ("ticks", "nees")}
+                                 for n, e in r["estimators"].items()}} for r in per_seed]
+    return {"scenario": scenario, "seeds": seeds, "duration_s": per_seed[0]["duration_s"],
+            "estimators_requested": estimators, "per_seed": lean, "summary": summary,
+            "nees_convention": (
+                "pose (x, y, yaw), d = 3; ANEES = mean over 10 Hz ticks of the N-run average "
+                f"NEES; band = chi2.ppf([{(1 - prob) / 2:g}, {1 - (1 - prob) / 2:g}], N d) / N "
+                "(Bar-Shalom et al. 2001, sec. 5.4.2), the per-tick band")}
+
+
+def _f(v, spec: str = ".3f") -> str:
+    return "-" if v is None or (isinstance(v, float) and not math.isfinite(v)) else format(v, spec)
+
+
+def to_markdown(mc: dict) -> str:
+    """The summary as a markdown table (one row per estimator, dead reckoning last)."""
+    s = mc["summary"]
+    lines = [
+        f"Scenario `{mc['scenario']}`, {len(mc['seeds'])} seeds "
+        f"({mc['seeds'][0]}..{mc['seeds'][-1]}), {mc['duration_s']:g} s each. "
+        f"NEES: {mc['nees_convention']}.",
+        "",
+        "| estimator | runs | ANEES | 95% band | in band | ticks in band | RMSE mean m | "
+        "RMSE max m | DR RMSE m | DR / RMSE | worst seed DR / RMSE | runtime s |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name in sorted(s, key=lambda n: (n == "dr", n)):
+        e = s[name]
+        band = f"[{e['band'][0]:.3f}, {e['band'][1]:.3f}]" if e["band"] else "-"
+        inb = "-" if e["anees_in_band"] is None else ("yes" if e["anees_in_band"] else "NO")
+        frac = "-" if e["frac_ticks_in_band"] is None else f"{100 * e['frac_ticks_in_band']:.0f}%"
+        ratio = "-" if name == "dr" else _f(e["ratio"], ".1f")
+        worst = "-" if name == "dr" else _f(e["ratio_min"], ".1f")
+        lines.append(
+            f"| {name} | {e['runs']} | {_f(e['anees'])} | {band} | {inb} | {frac} | "
+            f"{_f(e['rmse_mean'])} | {_f(e['rmse_max'])} | {_f(e['dr_rmse_mean'])} | "
+            f"{ratio} | {worst} | {_f(e['runtime_mean'], '.2f')} |")
+        if e["errors"]:
+            lines.append(f"|   errors: {'; '.join(e['errors'][:3])} |")
+    return "\n".join(lines) + "\n"
+
+
+def write_report(mc: dict, outdir: str | Path) -> tuple[Path, Path]:
+    """Write ``mc_<scenario>.json`` and ``mc_<scenario>.md`` into ``outdir``."""
+    outdir = Path(outdir)
+    outdir.mkdir(parents=True, exist_ok=True)
+    j = outdir / f"mc_{mc['scenario']}.json"
+    m = outdir / f"mc_{mc['scenario']}.md"
+    j.write_text(json.dumps(mc, indent=2, default=float) + "\n")
+    m.write_text(to_markdown(mc))
+    return j, m
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``ddfuse mc SCENARIO [--seeds N] [--first-seed S] [--duration S] [--estimators LIST]
+    [--jobs J] [-o OUTDIR]``."""
+    from evaluation.simulate import SCENARIOS
+
+    ap = argparse.ArgumentParser(
+        prog="ddfuse mc",
+        description="Monte Carlo runs of the estimators on a simulator scenario: position RMSE, "
+        "dead-reckoning RMSE, average NEES against its 95%% chi-square band, runtime.")
+    ap.add_argument("scenario", choices=list(SCENARIOS))
+    ap.add_argument("--seeds", type=int, default=20, help="number of seeds (default 20)")
+    ap.add_argument("--first-seed", type=int, default=0, help="first seed (default 0)")
+    ap.add_argument("--duration", type=float, default=None,
+                    help="seconds per run (default: the scenario's)")
+    ap.add_argument("--estimators", help="comma-separated (default: every EKF the simulated "
+                    "config allows); dead reckoning always runs")
+    ap.add_argument("--jobs", type=int, default=None,
+                    help="local processes (default: os.cpu_count())")
+    ap.add_argument("-o", "--outdir", type=Path, default=Path("ddfuse-out"),
+                    help="where mc_<scenario>.json and .md go (default ddfuse-out)")
+    args = ap.parse_args(argv)
+    if args.seeds < 1:
+        ap.error("--seeds must be at least 1")
+    names = [n.strip() for n in args.estimators.split(",") if n.strip()] \
+        if args.estimators else None
+    try:
+        mc = monte_carlo(args.scenario, range(args.first_seed, args.first_seed + args.seeds),
+                         names, duration=args.duration, jobs=args.jobs)
+    except ValueError as e:
+        print(f"ddfuse mc: error: {e}", file=sys.stderr)
+        return 2
+    j, m = write_report(mc, args.outdir)
+    sys.stdout.write(to_markdown(mc))
+    print(f"wrote {j} and {m}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

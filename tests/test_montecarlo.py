@@ -1,0 +1,103 @@
+"""Monte Carlo runner: the NEES band, the across-run aggregation, and short real runs."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from evaluation.montecarlo import aggregate, main, monte_carlo, nees_band, run_seed
+
+
+def test_nees_band_values():
+    """Bar-Shalom et al. (2001) sec. 5.4.2's example: 50 runs of a 2-state filter give the
+    95 % interval [1.5, 2.6]; and 20 runs of the 3-dof pose give [2.02, 4.17]."""
+    lo, hi = nees_band(50, 2)
+    assert (round(lo, 1), round(hi, 1)) == (1.5, 2.6)
+    lo, hi = nees_band(20, 3)
+    assert lo == pytest.approx(chi2.ppf(0.025, 60) / 20) and lo == pytest.approx(2.024, abs=1e-3)
+    assert hi == pytest.approx(chi2.ppf(0.975, 60) / 20) and hi == pytest.approx(4.165, abs=1e-3)
+    with pytest.raises(ValueError):
+        nees_band(0, 3)
+
+
+@pytest.mark.parametrize(("n_runs", "dim"), [(3, 3), (20, 3), (5, 2)])
+def test_nees_band_covers_95_percent_of_consistent_averages(n_runs, dim):
+    """The average over N runs of the NEES of a consistent filter (e ~ N(0, P)) falls inside
+    the band 95 % of the time."""
+    rng = np.random.default_rng(n_runs * 10 + dim)
+    trials = 40000
+    avg = (rng.standard_normal((trials, n_runs, dim)) ** 2).sum(axis=2).mean(axis=1)
+    lo, hi = nees_band(n_runs, dim)
+    inside = np.mean((avg >= lo) & (avg <= hi))
+    assert inside == pytest.approx(0.95, abs=0.005)
+    assert np.mean(avg < lo) == pytest.approx(0.025, abs=0.004)
+
+
+def _fake_seed(seed, nees_by_tick, rmse, dr):
+    ticks = sorted(nees_by_tick)
+    return {"seed": seed, "duration_s": 1.0, "dr_rmse_m": dr, "estimators": {
+        "ekf": {"rmse_m": rmse, "nees_mean": float(np.mean([nees_by_tick[k] for k in ticks])),
+                "runtime_s": 0.5, "error": None, "ticks": ticks,
+                "nees": [nees_by_tick[k] for k in ticks]},
+        "dr": {"rmse_m": dr, "nees_mean": math.nan, "runtime_s": 0.01, "error": None,
+               "ticks": [], "nees": []}}}
+
+
+def test_aggregate_averages_over_runs_then_ticks():
+    """eps_bar(k) is the mean over runs at each tick both runs have (tick 3 only in one run is
+    dropped), ANEES its mean over those ticks; RMSE and DR statistics per estimator."""
+    a = _fake_seed(0, {0: 1.0, 1: 2.0, 2: 6.0, 3: 100.0}, rmse=0.2, dr=2.0)
+    b = _fake_seed(1, {0: 3.0, 1: 4.0, 2: 2.0}, rmse=0.4, dr=1.0)
+    s = aggregate([a, b])
+    e = s["ekf"]
+    # eps_bar = (2, 3, 4) -> ANEES 3
+    assert e["anees"] == pytest.approx(3.0)
+    assert e["ticks"] == 3
+    lo, hi = nees_band(2, 3)
+    assert e["band"] == [lo, hi] and e["anees_in_band"] is True
+    assert e["frac_ticks_in_band"] == pytest.approx(np.mean([lo <= v <= hi for v in (2, 3, 4)]))
+    assert e["rmse_mean"] == pytest.approx(0.3) and e["rmse_max"] == pytest.approx(0.4)
+    assert e["dr_rmse_mean"] == pytest.approx(1.5)
+    assert e["ratio"] == pytest.approx(1.5 / 0.3) and e["ratio_min"] == pytest.approx(2.5)
+    assert s["dr"]["anees"] is None
+
+
+def test_gps_scenario_beats_dead_reckoning_and_is_reproducible(tmp_path):
+    """Two short husky runs in two processes: the unicycle EKF beats dead reckoning, its NEES
+    is finite, and a seed run again gives identical numbers (a different seed does not)."""
+    mc = monte_carlo("husky", [0, 1], ["ekf"], duration=40.0, jobs=2)
+    e = mc["summary"]["ekf"]
+    assert e["runs"] == 2 and not e["errors"]
+    assert e["rmse_mean"] < 0.6  # GPS 1 m per axis, 2.5 Hz, fused with odometry and IMU
+    assert e["dr_rmse_mean"] > e["rmse_mean"]
+    assert 0.1 < e["anees"] < 30.0 and e["ticks"] > 300
+    again = run_seed("husky", 1, ["ekf"], duration=40.0)
+    first = next(r for r in mc["per_seed"] if r["seed"] == 1)
+    assert again["estimators"]["ekf"]["rmse_m"] == first["estimators"]["ekf"]["rmse_m"]
+    assert again["estimators"]["ekf"]["nees_mean"] == first["estimators"]["ekf"]["nees_mean"]
+    assert again["dr_rmse_m"] == first["dr_rmse_m"]
+    other = next(r for r in mc["per_seed"] if r["seed"] == 0)
+    assert other["estimators"]["ekf"]["rmse_m"] != first["estimators"]["ekf"]["rmse_m"]
+
+
+def test_command_writes_json_and_markdown(tmp_path, capsys):
+    assert main(["seed002", "--seeds", "1", "--duration", "20", "--jobs", "1",
+                 "--estimators", "ekf_landmark", "-o", str(tmp_path)]) == 0
+    data = json.loads((tmp_path / "mc_seed002.json").read_text())
+    assert set(data["summary"]) == {"ekf_landmark", "dr"}
+    md = (tmp_path / "mc_seed002.md").read_text()
+    assert "| ekf_landmark | 1 |" in md and md in capsys.readouterr().out
+
+
+def test_command_errors_name_the_problem(capsys):
+    assert main(["husky", "--seeds", "1", "--duration", "1"]) == 2
+    assert "duration" in capsys.readouterr().err
+    assert main(["husky", "--seeds", "1", "--duration", "20", "--estimators", "ekf_landmark"]) \
+        == 2
+    assert "ekf_landmark" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["no-such-scenario"])
