@@ -144,6 +144,14 @@ def _seed_job(args) -> dict:
     return res
 
 
+def _bin_means(series: dict[int, float], width: int) -> dict[int, float]:
+    """{tick: nees} -> {tick // width: mean nees in that bin}."""
+    bins: dict[int, list[float]] = {}
+    for k, v in series.items():
+        bins.setdefault(k // width, []).append(v)
+    return {b: float(np.mean(v)) for b, v in bins.items()}
+
+
 def aggregate(per_seed: list[dict], prob: float = 0.95) -> dict:
     """Across-seed statistics per estimator (module docstring for the NEES convention):
     runs, rmse_mean/max (m), dr_rmse_mean (m), ratio (DR RMSE / RMSE, of the means) and
@@ -172,6 +180,14 @@ def aggregate(per_seed: list[dict], prob: float = 0.95) -> dict:
         # N-run average NEES per tick, over the ticks every run has
         series = [dict(zip(e["ticks"], e["nees"], strict=True)) for _, e in rows]
         common = sorted(set.intersection(*(set(s) for s in series))) if series else []
+        shortest = min((len(x) for x in series), default=0)
+        if series and len(common) < 0.5 * shortest:
+            # Samples off the 10 Hz grid (the lagged and batch tracks are at keyframes, at GPS
+            # stamps that differ per seed): the ticks are then 1 s bins, each run contributing
+            # the mean of its NEES samples in the bin. The mean is unchanged; the spread of a
+            # bin's value shrinks, so the per-tick in-band fraction is only indicative there.
+            series = [_bin_means(x, int(OUTPUT_RATE)) for x in series]
+            common = sorted(set.intersection(*(set(x) for x in series)))
         if name != "dr" and common:
             eps_bar = np.array([np.mean([s[k] for s in series]) for k in common])
             lo, hi = nees_band(len(rows), POSE_DIM, prob)

@@ -101,3 +101,17 @@ def test_command_errors_name_the_problem(capsys):
     assert "ekf_landmark" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["no-such-scenario"])
+
+
+def test_aggregate_off_grid_tracks_use_one_second_bins():
+    """Keyframe tracks (lagged, batch) have samples at GPS stamps that differ per seed, so few
+    10 Hz ticks are common to all runs; the runs are then compared in 1 s bins. Every sample
+    has NEES 3, so the average must be 3 (it was ~0 when only the shared first tick counted)."""
+    rng = np.random.default_rng(0)
+    seeds = []
+    for seed in range(5):
+        ticks = np.unique(np.cumsum(rng.integers(3, 6, size=80)))  # ~2.5 Hz, off the grid
+        seeds.append(_fake_seed(seed, {int(k): 3.0 for k in ticks}, rmse=0.2, dr=2.0))
+    e = aggregate(seeds)["ekf"]
+    assert e["anees"] == pytest.approx(3.0)
+    assert e["ticks"] >= 25
