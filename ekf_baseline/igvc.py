@@ -30,10 +30,9 @@ Measurements (seed eq. 17/19, corrected):
   metres (east, north) about the current estimate so the logged residuals are in metres; the
   NIS is the same as in radians.
 * Heading -> the global heading Theta_g = theta: yaw = pi/2 - theta + heading_offset. A Heading
-  with ``source='pose'`` is the seed's local heading Theta_l = psi + heading_offset. A sensor
-  whose heading_offset is 'estimate' cannot be used (the 11-state has no offset state): it is
-  ignored, with a note in the log.
-* GyroYawRate -> psi_dot (+ the configured numeric gyro_bias).
+  with ``source='pose'`` is the seed's local heading Theta_l = psi + heading_offset. An offset
+  'estimate' is a calibration state (IgvcEkf).
+* GyroYawRate -> psi_dot + the configured numeric gyro_bias or the estimated bias state.
 * ForwardAccel -> a.
 * WheelSpeeds (rad/s) -> (v_l / r, v_r / r).
 * WheelOdometry -> v = (v_l + v_r)/2 and yaw rate (v_r - v_l)/L (seed eqs. 18-19).
@@ -45,10 +44,11 @@ innovations, per-sensor chi-square gate with lock-out recovery).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ekf_baseline import GIVEN_POSE_STD
 from ekf_baseline import igvc_jacobians as gen
 from ekf_baseline.kalman import KalmanCore
 from estimation import geodesy
@@ -125,11 +125,15 @@ class IgvcNoise:
     frame_psd: float = 1e-6
     frame_heading_psd: float = 1e-8
     slip_var: float = 1e-4
-    init_position_std: float = 0.5  # m, with an initial pose given
-    init_heading_std: float = 0.1  # rad, with an initial pose given
+    init_position_std: float = GIVEN_POSE_STD[0]  # m, with an initial pose given
+    init_heading_std: float = GIVEN_POSE_STD[1]  # rad, with an initial pose given
     init_speed_std: float = 0.5  # m/s
     init_yaw_rate_std: float = 0.2  # rad/s
     init_accel_std: float = 0.5  # m/s^2
+    # calibration states (IgvcEkf docstring); walks used when the IMU's config states none
+    gyro_bias_walk: float = 1e-4  # rad/s/sqrt(s)
+    heading_offset_walk: float = 0.02  # rad/sqrt(s)
+    init_bias_std: float = 0.02  # rad/s
 
 
 def gps_model(s: np.ndarray, lever_arm: tuple[float, float], radius: float):
@@ -171,6 +175,17 @@ def heading_model(s: np.ndarray, offset: float, local: bool):
 class IgvcEkf(Estimator):
     """Seed 000's 11-state EKF (module docstring) as an :class:`Estimator`.
 
+    Calibration states follow the seed's 11, as in the unicycle EKF: a gyro bias (gyro =
+    psi_dot + bg) per IMU whose ``gyro_bias`` is 'estimate', a heading offset (reading =
+    wrap(heading + hoff), initialised from the first reading) per IMU whose ``heading_offset``
+    is 'estimate' -- random walks of the IMU's stated densities (noise.gyro_bias_walk,
+    heading_offset_walk) or IgvcNoise's -- and the odometry scales k_v, k_w (odometry and wheel
+    speeds report v / k_v, psi_dot / k_w) when the config states the geometry's uncertainty.
+    A GPS sensor's ``delay`` is compensated: the antenna is predicted at t - delay (first
+    order: moved back by v delay along the bearing). The config's robot.slip replaces the
+    position and heading noise densities (isotropic here: the mean of the along- and
+    across-track variances).
+
     ``initial_pose`` (x, y, yaw) in the local ENU frame (m, m, rad) overrides the config's
     ``initial_pose``; with 'ground_truth' in the config and no ``initial_pose`` the filter starts
     at the first GroundTruthPose it is given (pass ``stream.ground_truth[0]`` as initial_pose when
@@ -207,14 +222,37 @@ class IgvcEkf(Estimator):
         self.reference = bool(reference)
         self._step = gen.euler_step if motion == "euler" else gen.icc_step
         self._step_sparse = gen.euler_step_sparse if motion == "euler" else gen.icc_step_sparse
-        ones, variable = ((gen.EULER_F_ONES, gen.EULER_F_VARIABLE) if motion == "euler"
-                          else (gen.ICC_F_ONES, gen.ICC_F_VARIABLE))
-        self._F = np.zeros((N, N))
-        self._F.reshape(-1)[list(ones)] = 1.0
-        self._F_var = np.array(variable)
-        self._Q = np.zeros((N, N))
         self._sensor_info: dict[str, tuple] = {}
         self.noise = noise or IgvcNoise()
+        slip = cfg.robot.slip
+        if slip and noise is None:
+            # the robot's stated slip replaces the defaults; the position noise here is
+            # isotropic: the mean of the along- and across-track variances (same trace)
+            ns = self.noise
+            long_, lat_ = slip.get("longitudinal"), slip.get("lateral")
+            if long_ is not None or lat_ is not None:
+                d = math.sqrt(ns.position_psd)
+                long_ = d if long_ is None else long_
+                lat_ = d if lat_ is None else lat_
+                ns = replace(ns, position_psd=0.5 * (long_ * long_ + lat_ * lat_))
+            if "heading" in slip:
+                ns = replace(ns, heading_psd=slip["heading"] ** 2)
+            self.noise = ns
+        self._calibration_states(cfg)
+        n = self.n
+        ones, variable = ((gen.EULER_F_ONES, gen.EULER_F_VARIABLE) if motion == "euler"
+                          else (gen.ICC_F_ONES, gen.ICC_F_VARIABLE))
+        # the generated Jacobian's flat indices (11 x 11) in the n x n F; the calibration
+        # states are constants or random walks: F = 1 on their diagonal
+        self._F = np.zeros((n, n))
+        self._F.reshape(-1)[[k // N * n + k % N for k in ones]] = 1.0
+        self._F[range(N, n), range(N, n)] = 1.0
+        self._F_var = np.array([k // N * n + k % N for k in variable])
+        self._Q = np.zeros((n, n))
+        walked = list(self._walks)
+        self._q_index = np.concatenate([
+            [i // N * n + i % N for i in _Q_INDEX],
+            [i * n + i for i in walked]]).astype(np.int64)
         self.max_step = float(max_step)
         self.course_distance = float(course_distance)
         self.track = cfg.robot.track_width or DEFAULT_TRACK
@@ -231,21 +269,41 @@ class IgvcEkf(Estimator):
         self.radius = sphere_radius(math.radians(self.datum[0]) if self.datum else 0.0)
         self._first_fix: GpsFix | None = None
         self._heading_init: tuple[float, float] | None = None  # (yaw, var)
-        self._unusable: set[str] = set()
-        for s in cfg.sensors:
-            if s.kind == "imu" and "yaw" in s.use and s.heading_offset == "estimate":
-                self._unusable.add(s.name)
-                self.log.note(0.0, f"{s.name}: heading_offset 'estimate' needs an offset state "
-                                   "the 11-state filter does not have; its yaw is ignored")
-            if s.kind == "imu" and "yaw_rate" in s.use and s.gyro_bias == "estimate":
-                self.log.note(0.0, f"{s.name}: gyro_bias 'estimate' is not modelled by the "
-                                   "11-state filter; the gyro is used without a bias")
         if initial_pose is not None and (self.datum is not None or not self._has_gps):
             self._init(None, initial_pose, self.noise.init_position_std ** 2,
                        self.noise.init_heading_std ** 2)
         self._pose_given = initial_pose
 
     # ------------------------------------------------------------------ initialisation
+    def _calibration_states(self, cfg: Config) -> None:
+        """The states after the seed's 11 (class docstring) and their random-walk densities."""
+        names = list(STATE_NAMES)
+        walks: dict[int, float] = {}  # state index -> variance per second
+        self._bias_idx: dict[str, int] = {}
+        self._hoff_idx: dict[str, int] = {}
+        for s in cfg.of_kind("imu"):
+            if "yaw_rate" in s.use and s.gyro_bias == "estimate":
+                self._bias_idx[s.name] = len(names)
+                walks[len(names)] = s.noise.get("gyro_bias_walk",
+                                                self.noise.gyro_bias_walk) ** 2
+                names.append(f"bg:{s.name}")
+        for s in cfg.of_kind("imu"):
+            if "yaw" in s.use and s.heading_offset == "estimate":
+                self._hoff_idx[s.name] = len(names)
+                walks[len(names)] = s.noise.get("heading_offset_walk",
+                                                self.noise.heading_offset_walk) ** 2
+                names.append(f"hoff:{s.name}")
+        self._scale_prior = cfg.robot.scale_std if (
+            cfg.of_kind("odometry") or cfg.of_kind("wheels")) else None
+        self._ks = None
+        if self._scale_prior is not None:
+            self._ks = len(names)
+            names += ["k_v", "k_w"]
+        self.state_names = tuple(names)
+        self.n = len(names)
+        self._walks = walks
+        self._hoff_ready: set[int] = set()
+
     def _init(self, t: float | None, pose, pos_var: float, yaw_var: float) -> None:
         x, y, yaw = (float(v) for v in pose)
         if self.datum is not None:
@@ -273,9 +331,27 @@ class IgvcEkf(Estimator):
         P0 = T @ P0 @ T.T
         P0[VL, VL] += ns.slip_var
         P0[VR, VR] += ns.slip_var
+        # the calibration states: biases about 0, offsets uniform on the circle until the first
+        # reading initialises them, scales about 1
+        n = self.n
+        x0 = np.zeros(n)
+        x0[:N] = s0
+        Pn = np.zeros((n, n))
+        Pn[:N, :N] = P0
+        for i in self._bias_idx.values():
+            Pn[i, i] = ns.init_bias_std ** 2
+        for i in self._hoff_idx.values():
+            Pn[i, i] = math.pi * math.pi / 3.0
+        if self._ks is not None:
+            k = self._ks
+            sd_v, sd_w, c_vw = self._scale_prior
+            x0[k] = x0[k + 1] = 1.0
+            Pn[k, k], Pn[k + 1, k + 1] = sd_v * sd_v, sd_w * sd_w
+            Pn[k, k + 1] = Pn[k + 1, k] = c_vw
         # lon is an angle too: wrapped so that crossing the antimeridian does not leave it
         # outside [-pi, pi) (the GPS innovation is wrapped as well)
-        self.kf = KalmanCore(s0, P0, self.log, state_angles=(LON, THETA, PSI))
+        self.kf = KalmanCore(x0, Pn, self.log,
+                             state_angles=(LON, THETA, PSI, *self._hoff_idx.values()))
         self.t = t
 
     def _position_noise_map(self, lat: float) -> np.ndarray:
@@ -302,10 +378,9 @@ class IgvcEkf(Estimator):
             self._init(m.t, self._pose_given or (0.0, 0.0, 0.0),
                        self.noise.init_position_std ** 2, self.noise.init_heading_std ** 2)
             return
-        if isinstance(m, Heading) and m.sensor not in self._unusable:
-            off = self._heading_offset(m.sensor)
-            if m.source != "pose":
-                self._heading_init = (m.yaw - off, m.var)
+        if isinstance(m, Heading) and m.sensor not in self._hoff_idx and m.source != "pose":
+            # a compass with a known offset gives the heading; an estimated offset does not
+            self._heading_init = (m.yaw - self._heading_offset(m.sensor), m.var)
         if not isinstance(m, GpsFix) or m.status < 0:
             return
         if self.datum is None:
@@ -381,16 +456,25 @@ class IgvcEkf(Estimator):
         dt = dt_total / n
         if self.reference:
             for _ in range(n):
-                f, F = self._step(kf.x, dt, self.track, self.radius)
-                kf.predict(np.array(F), self.process_noise(kf.x, dt), np.array(f))
+                xs = kf.x.tolist()
+                f, F11 = self._step(xs[:N], dt, self.track, self.radius)
+                F = np.eye(self.n)
+                F[:N, :N] = F11
+                Q = np.zeros((self.n, self.n))
+                Q[:N, :N] = self.process_noise(kf.x, dt)
+                for i, q in self._walks.items():
+                    Q[i, i] = q * dt
+                kf.predict(F, Q, list(f) + xs[N:])
         else:
             F_flat, Q_flat = self._F.reshape(-1), self._Q.reshape(-1)
+            walks = list(self._walks.values())
             for _ in range(n):
                 xs = kf.x.tolist()
-                f, fv = self._step_sparse(xs, dt, self.track, self.radius)
+                f, fv = self._step_sparse(xs[:N], dt, self.track, self.radius)
                 F_flat[self._F_var] = fv
-                Q_flat[_Q_INDEX] = self._q_values(xs[LAT], dt)
-                kf.predict(self._F, self._Q, f)
+                Q_flat[self._q_index] = self._q_values(xs[LAT], dt) + tuple(
+                    [q * dt for q in walks])
+                kf.predict(self._F, self._Q, f + tuple(xs[N:]))
         self.t = t
 
     def _q_values(self, lat: float, dt: float) -> tuple[float, ...]:
@@ -434,20 +518,15 @@ class IgvcEkf(Estimator):
         if self.t is None:
             self.t = m.t
         self.predict_to(m.t)
-        if not self.reference:
-            self._process_fast(m)
-        elif isinstance(m, GpsFix):
-            self._update_gps(m)
-        elif isinstance(m, Heading):
-            self._update_heading(m)
-        elif isinstance(m, GyroYawRate):
-            self._update_gyro(m)
-        elif isinstance(m, ForwardAccel):
-            self._update_scalar(m.t, m.sensor, "accel", m.accel, A, m.var)
-        elif isinstance(m, WheelSpeeds):
-            self._update_wheels(m)
-        elif isinstance(m, WheelOdometry):
-            self._update_odometry(m)
+        block = self._measurement(m)
+        if block is None:
+            return
+        kind, y, rows, R = block
+        blocks = ((m.sensor, kind, y, rows, R, self._info(m.sensor)[0]),)
+        if self.reference:
+            self.kf.update_dense(m.t, blocks)
+        else:
+            self.kf.update_sparse(m.t, blocks)
 
     def estimate(self) -> Estimate | None:
         if self.kf is None:
@@ -459,113 +538,160 @@ class IgvcEkf(Estimator):
             pose_cov=P[_POSE_IX],  # advanced indexing: a copy
             state=s.copy(),
             state_cov=P.copy(),
-            state_names=STATE_NAMES,
+            state_names=self.state_names,
         )
 
-    # ------------------------------------------------------------------ fast updates
+    # ------------------------------------------------------------------ measurements
     def _info(self, name: str) -> tuple:
-        """(gate, gyro bias rad/s, heading offset rad, GPS lever arm m) of a sensor, cached."""
+        """(gate, gyro bias rad/s, heading offset rad, GPS lever arm m, GPS delay s) of a
+        sensor, cached."""
         info = self._sensor_info.get(name)
         if info is None:
             s = self._sensor(name)
             bias = float(s.gyro_bias) if s is not None and s.gyro_bias != "estimate" else 0.0
             lever = tuple(s.lever_arm) if s is not None else (0.0, 0.0)
             info = self._sensor_info[name] = (self._gate(name), bias,
-                                              self._heading_offset(name), lever)
+                                              self._heading_offset(name), lever,
+                                              s.delay if s is not None else 0.0)
         return info
 
-    def _process_fast(self, m) -> None:
-        """The updates of the _update_* methods below -- the same measurement models -- as
-        sparse blocks for ``KalmanCore.update_sparse``."""
-        kf = self.kf
-        gate, bias, offset, lever = self._info(m.sensor)
-        x = kf.x.tolist()
+    def _measurement(self, m):
+        """The model of measurement ``m`` as (kind, innovation y, sparse H rows, R) for
+        ``KalmanCore.update_sparse`` / ``update_dense``, or None (not used, or used to
+        initialise a heading offset). Models: module docstring; calibration states: class
+        docstring."""
+        _gate, bias, offset, lever, delay = self._info(m.sensor)
+        x = self.kf.x.tolist()
+        ks = self._ks
         if isinstance(m, GyroYawRate):
-            block = ("gyro", (m.yaw_rate - (x[W] + bias),), _ROWS_W, ((m.var,),))
-        elif isinstance(m, Heading):
-            if m.sensor in self._unusable:
-                return
+            bi = self._bias_idx.get(m.sensor)
+            if bi is None:
+                return "gyro", (m.yaw_rate - (x[W] + bias),), _ROWS_W, ((m.var,),)
+            return ("gyro", (m.yaw_rate - (x[W] + x[bi]),), (((W, 1.0), (bi, 1.0)),),
+                    ((m.var,),))
+        if isinstance(m, Heading):
             if m.source == "pose":
-                h, rows = x[PSI] + offset, _ROWS_PSI
+                g, row = x[PSI], [(PSI, 1.0)]
             else:
-                h, rows = HALF_PI - x[THETA] + offset, _ROWS_THETA
-            h = (h + math.pi) % _TWO_PI - math.pi
-            block = ("heading", ((m.yaw - h + math.pi) % _TWO_PI - math.pi,), rows, ((m.var,),))
-        elif isinstance(m, ForwardAccel):
-            block = ("accel", (m.accel - x[A],), _ROWS_A, ((m.var,),))
-        elif isinstance(m, WheelOdometry):
-            L = self.track
-            y, rows, var = [], [], []
-            if m.v is not None:
-                y.append(m.v - 0.5 * (x[VL] + x[VR]))
-                rows.append(((VL, 0.5), (VR, 0.5)))
-                var.append(m.v_var)
-            if m.yaw_rate is not None:
-                y.append(m.yaw_rate - (x[VR] - x[VL]) / L)
-                rows.append(((VR, 1.0 / L), (VL, -1.0 / L)))
-                var.append(m.yaw_rate_var)
-            if not y:
-                return
-            R = ((var[0],),) if len(var) == 1 else ((var[0], 0.0), (0.0, var[1]))
-            block = ("odometry", tuple(y), tuple(rows), R)
-        elif isinstance(m, WheelSpeeds):
+                g, row = HALF_PI - x[THETA], [(THETA, -1.0)]
+            hi = self._hoff_idx.get(m.sensor)
+            if hi is not None:
+                if hi not in self._hoff_ready:
+                    self._init_offset(m, hi, g, row)
+                    return None
+                offset = x[hi]
+                row.append((hi, 1.0))
+            h = (g + offset + math.pi) % _TWO_PI - math.pi
+            return ("heading", ((m.yaw - h + math.pi) % _TWO_PI - math.pi,), (tuple(row),),
+                    ((m.var,),))
+        if isinstance(m, ForwardAccel):
+            return "accel", (m.accel - x[A],), _ROWS_A, ((m.var,),)
+        if isinstance(m, WheelOdometry):
+            return self._odometry_model(m, x, ks)
+        if isinstance(m, WheelSpeeds):
             r = self.wheel_radius
             if r is None:
                 self.log.rejected[(m.sensor, "no_wheel_radius")] += 1
-                return
-            block = ("wheels", (m.left - x[VL] / r, m.right - x[VR] / r),
-                     (((VL, 1.0 / r),), ((VR, 1.0 / r),)),
-                     ((m.left_var, 0.0), (0.0, m.right_var)))
-        elif isinstance(m, GpsFix):
+                return None
+            vl, vr = x[VL], x[VR]
+            if ks is None:
+                return ("wheels", (m.left - vl / r, m.right - vr / r),
+                        (((VL, 1.0 / r),), ((VR, 1.0 / r),)),
+                        ((m.left_var, 0.0), (0.0, m.right_var)))
+            # rim speeds -> (v / k_v, w / k_w) -> wheel speeds through the nominal geometry
+            kv, kw = x[ks], x[ks + 1]
+            a, b = 0.5 / (kv * r), 0.5 / (kw * r)
+            s_, d_ = vl + vr, vr - vl
+            dkv, dkw = -a * s_ / kv, b * d_ / kw
+            return ("wheels", (m.left - (a * s_ - b * d_), m.right - (a * s_ + b * d_)),
+                    (((VL, a + b), (VR, a - b), (ks, dkv), (ks + 1, dkw)),
+                     ((VL, a - b), (VR, a + b), (ks, dkv), (ks + 1, -dkw))),
+                    ((m.left_var, 0.0), (0.0, m.right_var)))
+        if isinstance(m, GpsFix):
             if m.status < 0:
                 self.log.rejected[(m.sensor, "no_fix")] += 1
-                return
-            # ~1000 fixes per 400 s: the numpy model of the reference costs nothing here
-            z, hx, H = self._gps_metres(m, lever)
+                return None
+            # ~1000 fixes per 400 s: the numpy model costs nothing here
+            z, hx, H = self._gps_metres(m, lever, delay)
             rows = tuple(tuple((j, float(v)) for j, v in enumerate(row) if v != 0.0)
                          for row in H.tolist())
             cv = m.cov
-            block = ("gps", (z[0] - hx[0], z[1] - hx[1]), rows,
-                     ((float(cv[0, 0]), float(cv[0, 1])), (float(cv[1, 0]), float(cv[1, 1]))))
-        else:
-            return
-        kind, y, rows, R = block
-        kf.update_sparse(m.t, ((m.sensor, kind, y, rows, R, gate),))
+            return ("gps", (z[0] - hx[0], z[1] - hx[1]), rows,
+                    ((float(cv[0, 0]), float(cv[0, 1])), (float(cv[1, 0]), float(cv[1, 1]))))
+        return None
 
-    # ------------------------------------------------------------------ updates
-    def _update_scalar(self, t, sensor, kind, z, index, var, offset=0.0) -> None:
-        H = np.zeros((1, N))
-        H[0, index] = 1.0
-        self.kf.update(t, sensor, kind, [z], [self.kf.x[index] + offset], H, [[var]],
-                       gate=self._gate(sensor))
+    def _odometry_model(self, m: WheelOdometry, x: list, ks: int | None):
+        """v = (v_l + v_r) / 2 and yaw rate (v_r - v_l) / L (seed eqs. 18-19), divided by the
+        odometry scales k_v, k_w when they are estimated."""
+        L = self.track
+        kv, kw = (x[ks], x[ks + 1]) if ks is not None else (1.0, 1.0)
+        y, rows, var = [], [], []
+        if m.v is not None:
+            v = 0.5 * (x[VL] + x[VR])
+            y.append(m.v - v / kv)
+            row = [(VL, 0.5 / kv), (VR, 0.5 / kv)]
+            if ks is not None:
+                row.append((ks, -v / (kv * kv)))
+            rows.append(tuple(row))
+            var.append(m.v_var)
+        if m.yaw_rate is not None:
+            w = (x[VR] - x[VL]) / L
+            y.append(m.yaw_rate - w / kw)
+            row = [(VR, 1.0 / (L * kw)), (VL, -1.0 / (L * kw))]
+            if ks is not None:
+                row.append((ks + 1, -w / (kw * kw)))
+            rows.append(tuple(row))
+            var.append(m.yaw_rate_var)
+        if not y:
+            return None
+        R = ((var[0],),) if len(var) == 1 else ((var[0], 0.0), (0.0, var[1]))
+        return "odometry", tuple(y), tuple(rows), R
 
-    def _update_gyro(self, m: GyroYawRate) -> None:
-        s = self._sensor(m.sensor)
-        bias = s.gyro_bias if s is not None and s.gyro_bias != "estimate" else 0.0
-        self._update_scalar(m.t, m.sensor, "gyro", m.yaw_rate, W, m.var, float(bias))
+    def _init_offset(self, m: Heading, hi: int, g: float, row: list) -> None:
+        """hoff = wrap(z - g(x)), g the reading without its offset (linear: ``row``): variance
+        var(g) + R, covariance -cov(g, .) with the rest of the state."""
+        kf = self.kf
+        gP = sum(a * kf.P[c] for c, a in row)  # row of G P
+        x = kf.x.copy()
+        x[hi] = (m.yaw - g + math.pi) % _TWO_PI - math.pi
+        P = kf.P.copy()
+        P[hi, :] = -gP
+        P[:, hi] = -gP
+        P[hi, hi] = sum(a * gP[c] for c, a in row) + m.var
+        kf.x, kf.P = x, P
+        self._hoff_ready.add(hi)
+        self.log.note(m.t, f"heading offset of {m.sensor} initialised to "
+                           f"{math.degrees(x[hi]):.1f} deg")
 
-    def _update_heading(self, m: Heading) -> None:
-        if m.sensor in self._unusable:
-            return
-        h, H = heading_model(self.kf.x, self._heading_offset(m.sensor), m.source == "pose")
-        self.kf.update(m.t, m.sensor, "heading", [m.yaw], h, H, [[m.var]], angles=(0,),
-                       gate=self._gate(m.sensor))
-
-    def _update_gps(self, m: GpsFix) -> None:
-        if m.status < 0:
-            self.log.rejected[(m.sensor, "no_fix")] += 1
-            return
-        s = self._sensor(m.sensor)
-        z, hx, Hm = self._gps_metres(m, s.lever_arm if s is not None else (0.0, 0.0))
-        R = np.asarray(m.cov, dtype=float)[:2, :2]
-        self.kf.update(m.t, m.sensor, "gps", z, hx, Hm, R, gate=self._gate(m.sensor))
-
-    def _gps_metres(self, m: GpsFix, lever) -> tuple[list, list, np.ndarray]:
-        """The fix (z), its prediction (hx) and Jacobian (H, (2, 11)) in metres (east, north)
+    def _gps_metres(self, m: GpsFix, lever, delay: float = 0.0
+                    ) -> tuple[list, list, np.ndarray]:
+        """The fix (z), its prediction (hx) and Jacobian (H, (2, n)) in metres (east, north)
         about the current estimate: scaling z, h and H by the same constant leaves gain and NIS
-        unchanged and makes the logged residuals readable."""
+        unchanged and makes the logged residuals readable. With a ``delay`` (s) the antenna
+        is predicted where it was that long before the state's time: moved back by v delay
+        along the bearing (first order, as the seed's motion model), heading psi - w delay."""
         x = self.kf.x
-        h, H = gps_model(x, lever, self.radius)
+        s = x[:N].copy()
+        J = None
+        if delay:
+            # s_d = s moved back; J = d s_d / d s for the states that move it
+            lat, theta, v, w = s[LAT], s[THETA], s[V], s[W]
+            ct, st_ = math.cos(theta), math.sin(theta)
+            cl = math.cos(lat)
+            R = self.radius
+            s[LAT] = lat - delay * v * ct / R
+            s[LON] = s[LON] - delay * v * st_ / (R * cl)
+            s[PSI] = s[PSI] - delay * w
+            J = np.eye(N)
+            J[LAT, THETA], J[LAT, V] = delay * v * st_ / R, -delay * ct / R
+            J[LON, LAT] = -delay * v * st_ * math.sin(lat) / (R * cl * cl)
+            J[LON, THETA], J[LON, V] = -delay * v * ct / (R * cl), -delay * st_ / (R * cl)
+            J[PSI, W] = -delay
+        h, H = gps_model(s, lever, self.radius)
+        if J is not None:
+            H = H @ J
+        if self.n > N:
+            H = np.hstack([H, np.zeros((2, self.n - N))])
         lat0, lon0 = x[LAT], x[LON]
         te, tn = self.radius * math.cos(lat0), self.radius
         zlat, zlon = math.radians(m.lat), math.radians(m.lon)
@@ -573,35 +699,3 @@ class IgvcEkf(Estimator):
         z = [te * dlon_z, tn * (zlat - lat0)]
         hx = [te * (h[1] - lon0), tn * (h[0] - lat0)]
         return z, hx, np.vstack([te * H[1], tn * H[0]])
-
-    def _update_wheels(self, m: WheelSpeeds) -> None:
-        r = self.wheel_radius
-        if r is None:
-            self.log.rejected[(m.sensor, "no_wheel_radius")] += 1
-            return
-        x = self.kf.x
-        H = np.zeros((2, N))
-        H[0, VL] = H[1, VR] = 1.0 / r
-        self.kf.update(m.t, m.sensor, "wheels", [m.left, m.right], [x[VL] / r, x[VR] / r], H,
-                       np.diag([m.left_var, m.right_var]), gate=self._gate(m.sensor))
-
-    def _update_odometry(self, m: WheelOdometry) -> None:
-        x = self.kf.x
-        z, hx, rows, var = [], [], [], []
-        if m.v is not None:
-            row = np.zeros(N)
-            row[VL] = row[VR] = 0.5
-            z.append(m.v)
-            hx.append(0.5 * (x[VL] + x[VR]))
-            rows.append(row)
-            var.append(m.v_var)
-        if m.yaw_rate is not None:
-            row = np.zeros(N)
-            row[VR], row[VL] = 1.0 / self.track, -1.0 / self.track
-            z.append(m.yaw_rate)
-            hx.append((x[VR] - x[VL]) / self.track)
-            rows.append(row)
-            var.append(m.yaw_rate_var)
-        if z:
-            self.kf.update(m.t, m.sensor, "odometry", z, hx, np.array(rows), np.diag(var),
-                           gate=self._gate(m.sensor))

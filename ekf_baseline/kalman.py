@@ -486,25 +486,16 @@ class KalmanCore:
             self.P = self._joseph_factored(K.reshape(-1, 1), rows, ((r,),))
 
     def _gain2(self, rows, y, ua: list, ub: list, S, R) -> None:
-        """_gain1 for two rows: ``ua``, ``ub`` = P h^T of each, ``S`` and ``R`` 2 x 2."""
-        (s00, s01), (s10, s11) = S
-        (i00, i01), (i10, i11) = _inv_small(S)
-        y0, y1 = y
-        xl = self.x.tolist()
-        Kl = []
-        Wl = []
-        for i, (u0, u1) in enumerate(zip(ua, ub, strict=True)):
-            k0 = u0 * i00 + u1 * i10
-            k1 = u0 * i01 + u1 * i11
-            xl[i] += k0 * y0 + k1 * y1
-            Kl.append((k0, k1))
-            Wl.append((u0 - 0.5 * (k0 * s00 + k1 * s10), u1 - 0.5 * (k0 * s01 + k1 * s11)))
+        """_gain1 for two rows: ``ua``, ``ub`` = P h^T of each, ``S`` and ``R`` 2 x 2. Here the
+        n x 2 products are numpy: as floats they cost a 1.5 us loop iteration per state."""
+        U = np.array((ua, ub)).T  # P H^T, (n, 2)
+        K = U @ np.array(_inv_small(S))
+        x = self.x + K @ y
         for i in self.state_angles:
-            xl[i] = (xl[i] + _PI) % _TWO_PI - _PI
-        self.x = np.array(xl)
-        K = np.array(Kl)
+            x[i] = (x[i] + _PI) % _TWO_PI - _PI
+        self.x = x
         if _eig_min_ratio(S, R) >= JOSEPH_EXPANDED_MIN:
-            T = K @ np.array(Wl).T
+            T = K @ (U - 0.5 * (K @ np.array(S))).T  # K W^T, W = P H^T - K S / 2
             T += T.T
             self.P = self.P - T
         else:
@@ -721,23 +712,20 @@ def _dense_rows(rows, n: int) -> np.ndarray:
 
 
 def _p_times_row(P: np.ndarray, row, cache: dict) -> list:
-    """P h^T (n floats) for the sparse row h of H; ``cache`` holds P's rows as float lists."""
+    """P h^T (n floats) for the sparse row h of H; ``cache`` holds P's rows as float lists (P is
+    symmetric: column c is row c). Rows of several entries are summed in numpy: one vector
+    operation (~0.5 us) against ~1.5 us for a float loop over the state."""
     if len(row) == 1:
         c, a = row[0]
         pc = cache.get(c)
         if pc is None:
             pc = cache[c] = P[c].tolist()
         return pc if a == 1.0 else [a * p for p in pc]
-    out = None
+    acc = None
     for c, a in row:
-        pc = cache.get(c)
-        if pc is None:
-            pc = cache[c] = P[c].tolist()
-        if out is None:
-            out = [a * p for p in pc]
-        else:
-            out = [o + a * p for o, p in zip(out, pc, strict=True)]
-    return out
+        pc = P[c] if a == 1.0 else a * P[c]
+        acc = pc if acc is None else acc + pc
+    return acc.tolist()
 
 
 def _block_S(rows, U: list, r0: int, R) -> list:

@@ -11,16 +11,31 @@ with lock-out recovery); the seed's errors are listed in docs/errata.md, "Seed 0
   from that range/bearing with the full covariance (pose uncertainty and measurement noise mapped
   through the inverse observation model, cross-covariances with everything already in the state).
 
-Motion (the control input, as in the seed): the latest WheelOdometry (v m/s, yaw rate rad/s) or
-WheelSpeeds (converted with robot.wheel_radius and robot.track_width) is held until the next one
-(zero-order hold). ``motion='exact'`` moves the pose along the constant-twist arc
-(``factors.kinematics.se2_step_jac``, smooth through zero yaw rate); ``'euler'`` is the seed's
-first-order model x' = x + v cos(psi) dt, y' = y + v sin(psi) dt, psi' = psi + w dt.
+Motion (the control input, as in the seed): WheelOdometry (v m/s, yaw rate rad/s) or WheelSpeeds
+(converted with robot.wheel_radius and robot.track_width). An odometry sample is the mean twist
+over its counting interval, the time since the previous sample (that is how wheel odometry is
+computed: encoder counts over the interval, stamped at its end), so the filter moves the pose
+over (t_prev, t] with the sample stamped t: sightings inside that interval wait (at most one
+odometry period) until the sample that covers them arrives, then are applied in time order.
+Holding the LAST sample instead (the seed's zero-order hold) applies every twist one period late.
+Sightings before the first odometry sample are applied at once with the robot at rest; those
+after the last one, in ``finish``, with the last twist held. ``motion='exact'`` moves the pose
+along the constant-twist arc (``factors.kinematics.se2_step_jac``, smooth through zero yaw
+rate); ``'euler'`` is the seed's first-order model x' = x + v cos(psi) dt,
+y' = y + v sin(psi) dt, psi' = psi + w dt.
+
+Odometry calibration: when the config gives the uncertainty of the nominal geometry
+(robot.wheel_radius_std / track_width_std), two states follow the pose, k_v and k_w (unitless):
+the true twist is (k_v v, k_w w) of the odometry's (v, w). Speed scales with the wheel radius and
+the yaw rate with radius / track, so their prior is N(1, .) with the relative uncertainties and
+correlation of ``RobotConfig.scale_std``. They are constants (no process noise); the sightings
+make them observable.
 
 Process noise: the odometry's error is white from sample to sample and held for one sample
 period tau, so it adds G diag(var_v, var_w) G^T tau / dt per step of length dt, G = df/d(v, w)
-(seed: G Q G^T). Over a whole sample period this equals the seed's per-step G Q G^T, but it does
-not shrink when a landmark sighting splits the period into shorter prediction steps.
+(seed: G Q G^T), with the variances scaled by k^2. Over a whole sample period this equals the
+seed's per-step G Q G^T, but it does not shrink when a landmark sighting splits the period into
+shorter prediction steps.
 
 Observation (LandmarkObservation): range r = |l - p| (m) and bearing b = atan2(l - p) - psi
 (rad, body frame, CCW from forward x), or the range alone when ``has_bearing`` is False.
@@ -32,6 +47,7 @@ import math
 
 import numpy as np
 
+from ekf_baseline import GIVEN_POSE_STD
 from ekf_baseline.kalman import KalmanCore
 from estimation.config import DEFAULT_GATE, Config, load_landmark_map
 from estimation.estimator import Estimate, Estimator
@@ -53,6 +69,7 @@ __all__ = [
 
 _PI = math.pi
 _TWO_PI = 2.0 * math.pi
+_GIVEN_STD = (GIVEN_POSE_STD[0], GIVEN_POSE_STD[0], GIVEN_POSE_STD[1])  # x, y, psi
 MIN_RANGE = 1e-6  # m: a sighting from (or a landmark at) the body origin has no bearing
 TAU_BOUNDS = (1e-3, 0.5)  # s: the odometry sample period is clamped to this range
 
@@ -134,13 +151,17 @@ class _OdometryDrivenEkf(Estimator):
         self.init_std = tuple(float(s) for s in init_std)
         self.kf: KalmanCore | None = None
         self.t: float | None = None
-        # control input (zero-order hold) and its variances
+        # control input (the twist of the current odometry interval) and its variances
         self.v = 0.0
         self.w = 0.0
         self.v_var = 0.0
         self.w_var = 0.0
         self._t_odo: float | None = None
         self.tau: float | None = None  # s, odometry sample period
+        self._pending: list[LandmarkObservation] = []  # sightings waiting for their odometry
+        # odometry scale states (k_v, k_w) follow the pose when the geometry is uncertain
+        self.scale_prior = cfg.robot.scale_std
+        self.n_base = 5 if self.scale_prior is not None else 3
         self._gates = {s.name: s.gate for s in cfg.sensors}
         if initial_pose is None and isinstance(cfg.initial_pose, tuple):
             initial_pose = cfg.initial_pose
@@ -152,7 +173,16 @@ class _OdometryDrivenEkf(Estimator):
 
     def _start(self, pose) -> None:
         x0 = np.array([float(pose[0]), float(pose[1]), float(pose[2])])
-        self.kf = KalmanCore(x0, np.diag(np.square(self.init_std)), self.log, state_angles=(2,))
+        self._pose_prior = x0.copy()  # the pose before the updates at the current time
+        P0 = np.diag(np.square(self.init_std))
+        if self.scale_prior is not None:
+            sd_v, sd_w, c_vw = self.scale_prior
+            x0 = np.concatenate([x0, [1.0, 1.0]])
+            P = np.zeros((5, 5))
+            P[:3, :3] = P0
+            P[3:, 3:] = [[sd_v * sd_v, c_vw], [c_vw, sd_w * sd_w]]
+            P0 = P
+        self.kf = KalmanCore(x0, P0, self.log, state_angles=(2,))
 
     def _gate(self, sensor: str) -> float | None:
         return self._gates.get(sensor, DEFAULT_GATE)
@@ -167,21 +197,29 @@ class _OdometryDrivenEkf(Estimator):
         if dt <= 0.0:
             return
         kf = self.kf
-        pose1, Fp, G = motion_step(kf.x[:3], self.v, self.w, dt, self.motion)
+        kv, kw = (float(kf.x[3]), float(kf.x[4])) if self.n_base == 5 else (1.0, 1.0)
+        pose1, Fp, G = motion_step(kf.x[:3], kv * self.v, kw * self.w, dt, self.motion)
+        self._first_estimates_motion(Fp)
         tau = self.tau if self.tau is not None else dt
-        Qp = (G * np.array([self.v_var, self.w_var])) @ G.T * (tau / dt)
+        Qp = (G * np.array([kv * kv * self.v_var, kw * kw * self.w_var])) @ G.T * (tau / dt)
         n = kf.n
         if n == 3:
             F, Q = Fp, Qp
         else:
             F = np.eye(n)
             F[:3, :3] = Fp
+            if self.n_base == 5:
+                F[:3, 3:5] = G * np.array([self.v, self.w])  # d pose1 / d (k_v, k_w)
             Q = np.zeros((n, n))
             Q[:3, :3] = Qp
         x1 = kf.x.copy()
         x1[:3] = pose1
         kf.predict(F, Q, x1)
         self.t = t
+        self._pose_prior = kf.x[:3].copy()
+
+    def _first_estimates_motion(self, Fp: np.ndarray) -> None:
+        """Hook for LandmarkSlamEkf's first-estimates Jacobian; the known-map filter has none."""
 
     def _set_control(self, t: float, v, w, v_var: float, w_var: float, sensor: str) -> None:
         if v is None or w is None:
@@ -207,31 +245,59 @@ class _OdometryDrivenEkf(Estimator):
         if self.kf is None:
             return
         if isinstance(m, WheelOdometry):
-            self.predict_to(m.t)
-            self._set_control(m.t, m.v, m.yaw_rate, m.v_var, m.yaw_rate_var, m.sensor)
+            self._odometry(m.t, m.v, m.yaw_rate, m.v_var, m.yaw_rate_var, m.sensor)
         elif isinstance(m, WheelSpeeds):
             r, L = self.cfg.robot.wheel_radius, self.cfg.robot.track_width
             if r is None or L is None:
                 self.log.rejected[(m.sensor, "no_wheel_geometry")] += 1
                 return
-            self.predict_to(m.t)
             v = 0.5 * r * (m.left + m.right)
             w = r * (m.right - m.left) / L
             v_var = 0.25 * r * r * (m.left_var + m.right_var)
             w_var = r * r * (m.left_var + m.right_var) / (L * L)
-            self._set_control(m.t, v, w, v_var, w_var, m.sensor)
+            self._odometry(m.t, v, w, v_var, w_var, m.sensor)
         elif isinstance(m, LandmarkObservation):
-            self.predict_to(m.t)
-            self._sighting(m)
+            if self._t_odo is None:  # no odometry yet: at rest
+                self.predict_to(m.t)
+                self._sighting(m)
+            else:
+                self._pending.append(m)
+
+    def _odometry(self, t: float, v, w, v_var: float, w_var: float, sensor: str) -> None:
+        """A sample covering (previous sample, t]: the twist of that interval; apply the
+        sightings inside it, then move to t. The first sample only starts the clock."""
+        if self._t_odo is None:
+            self.predict_to(t)
+            self._set_control(t, v, w, v_var, w_var, sensor)
+            return
+        self._set_control(t, v, w, v_var, w_var, sensor)
+        self._flush()
+        self.predict_to(t)
+
+    def _flush(self) -> None:
+        pending, self._pending = self._pending, []
+        for s in pending:
+            self.predict_to(s.t)
+            self._sighting(s)
+
+    def finish(self) -> None:
+        """Apply the sightings after the last odometry sample, with its twist held."""
+        if self.kf is not None:
+            self._flush()
 
     def _sighting(self, m: LandmarkObservation) -> None:  # pragma: no cover - abstract
         raise NotImplementedError
 
-    def _measure(self, m: LandmarkObservation, landmark, lcols: list[int] | None) -> None:
-        """Update with one sighting of ``landmark`` (x, y); ``lcols`` its state columns (SLAM)."""
+    def _measure(self, m: LandmarkObservation, landmark, lcols: list[int] | None,
+                 jac_at=None) -> None:
+        """Update with one sighting of ``landmark`` (x, y); ``lcols`` its state columns (SLAM).
+        ``jac_at`` = (pose, landmark): where the Jacobians are evaluated, if not at the
+        current estimate (first-estimates Jacobians)."""
         kf = self.kf
         try:
             h, Hp, Hl = range_bearing(kf.x[:3], landmark, m.has_bearing)
+            if jac_at is not None:
+                _, Hp, Hl = range_bearing(jac_at[0], jac_at[1], m.has_bearing)
         except ValueError:
             self.log.rejected[(m.sensor, "degenerate")] += 1
             return
@@ -249,6 +315,8 @@ class _OdometryDrivenEkf(Estimator):
     def _pose_estimate(self, names: tuple[str, ...]) -> Estimate | None:
         if self.kf is None:
             return None
+        if self.n_base == 5:
+            names = (*names[:3], "k_v", "k_w", *names[3:])
         x, P = self.kf.x, self.kf.P
         return Estimate(
             t=self.t if self.t is not None else 0.0,
@@ -278,7 +346,7 @@ class LandmarkEkf(_OdometryDrivenEkf):
         initial_pose: tuple[float, float, float] | None = None,
         landmarks: dict[str, tuple[float, float]] | None = None,
         motion: str = "exact",
-        init_std: tuple[float, float, float] = (0.1, 0.1, 0.05),
+        init_std: tuple[float, float, float] = _GIVEN_STD,
     ) -> None:
         super().__init__(cfg, initial_pose=initial_pose, motion=motion, init_std=init_std)
         if landmarks is None:
@@ -314,15 +382,26 @@ class LandmarkSlamEkf(_OdometryDrivenEkf):
         *,
         initial_pose: tuple[float, float, float] | None = None,
         motion: str = "exact",
-        init_std: tuple[float, float, float] = (0.1, 0.1, 0.05),
+        init_std: tuple[float, float, float] = _GIVEN_STD,
     ) -> None:
         super().__init__(cfg, initial_pose=initial_pose, motion=motion, init_std=init_std)
         self.slots: dict[str, int] = {}  # landmark id -> index of its x in the state
+        self.first_estimate: dict[str, np.ndarray] = {}  # landmark id -> its position when added
+
+    def _first_estimates_motion(self, Fp: np.ndarray) -> None:
+        """FEJ: d pose1 / d psi at the pose before this time's updates, not after them. For
+        both motion models that column is (-(y1 - y0), x1 - y0, 1) with (x0, y0) the pose the
+        step starts from; replacing the updated (x0, y0) by the prior one keeps the linearised
+        model's unobservable directions (global translation and rotation) unobservable."""
+        d = self.kf.x[:2] - self._pose_prior[:2]
+        Fp[0, 2] -= d[1]
+        Fp[1, 2] += d[0]
 
     def _sighting(self, m: LandmarkObservation) -> None:
         i = self.slots.get(m.landmark_id)
         if i is not None:
-            self._measure(m, self.kf.x[i:i + 2], [i, i + 1])
+            self._measure(m, self.kf.x[i:i + 2], [i, i + 1],
+                          jac_at=(self._pose_prior, self.first_estimate[m.landmark_id]))
             return
         if not m.has_bearing:
             self.log.rejected[(m.sensor, "range_only_unmapped")] += 1
@@ -350,6 +429,7 @@ class LandmarkSlamEkf(_OdometryDrivenEkf):
         Pn[n:, n:] = 0.5 * (Pll + Pll.T)
         _resize(kf, np.concatenate([kf.x, l]), Pn)
         self.slots[m.landmark_id] = n
+        self.first_estimate[m.landmark_id] = l.copy()
         self.log.note(m.t, f"landmark {m.landmark_id} added at ({l[0]:.3f}, {l[1]:.3f}) m")
 
     def landmark_positions(self) -> dict[str, tuple[float, float]]:

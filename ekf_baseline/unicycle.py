@@ -12,6 +12,13 @@ State (world = local ENU frame; the same names and conventions as ``factors.stat
     5..    bg    rad/s  gyro bias (gyro reading = w + bg), one per IMU with gyro_bias: estimate
     ..     hoff  rad    heading offset (heading reading = wrap(psi + hoff)), one per IMU with
                         heading_offset: estimate
+    ..     k_v   1      odometry scales: the odometry reports (v / k_v, w / k_w), k_v = true /
+    ..     k_w   1      nominal wheel radius, k_w = that times nominal / true track width; when
+                        the config states the geometry's uncertainty (robot.*_std), with the
+                        prior RobotConfig.scale_std; constants
+
+The calibration states' random-walk densities are the IMU's stated ones (noise.gyro_bias_walk,
+heading_offset_walk) where the config gives them, else ProcessNoise's.
 
 Motion model. Over a step of dt seconds the twist (v, w) is held constant and the pose moves by the
 exact SE(2) constant-twist step ``factors.kinematics.se2_step`` -- the same equations as the
@@ -21,15 +28,18 @@ v, w, the gyro biases and heading offsets are random walks driven by continuous 
 (:class:`ProcessNoise`, spectral densities, not per-bag tuning); the discrete Q is the exact
 integral int_0^dt Phi(s) G Qc G^T Phi(s)^T ds of the model linearised at the start of the step
 (closed form below), plus white body-frame velocity noise (slip) on the position and white
-yaw-rate noise on the heading.
+yaw-rate noise on the heading: the config's robot.slip densities where it states them.
 
 Measurements (seed 003's piecewise model: H, R and h are assembled from the measurements
 present at a step; each measurement is gated on its own with its sensor's chi-square gate):
 
     GpsFix          z = enu[:2]          h = (x, y) + R(psi) lever_arm      R = fix.cov[:2, :2]
-    WheelOdometry   z = v                h = v                              R = v_var
-                    z = yaw_rate         h = w                              R = yaw_rate_var
-    WheelSpeeds     z = (w_l, w_r)       h = ((v - w L/2)/r, (v + w L/2)/r) R = diag(vars)
+                    (with the sensor's delay d: the antenna at t - d, reached from the state by
+                    the exact constant-twist step backwards, heading psi - w d)
+    WheelOdometry   z = v                h = v (/ k_v)                      R = v_var
+                    z = yaw_rate         h = w (/ k_w)                      R = yaw_rate_var
+    WheelSpeeds     z = (w_l, w_r)       h = ((v' - w' L/2)/r, (v' + w' L/2)/r), v' = v (/ k_v),
+                                         w' = w (/ k_w)                     R = diag(vars)
     GyroYawRate     z = yaw_rate         h = w + bg (estimated or configured bias)
     Heading         z = yaw              h = wrap(psi + hoff) (estimated or configured offset),
                                          innovation wrapped
@@ -62,10 +72,11 @@ hoff = wrap(z - psi), with the covariance that implies (var psi + R, correlated 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ekf_baseline import GIVEN_POSE_STD
 from ekf_baseline.kalman import DEFAULT_LOCKOUT_COUNT, DEFAULT_LOCKOUT_TIME, KalmanCore
 from estimation.config import DEFAULT_GATE, Config
 from estimation.estimator import Estimate, Estimator
@@ -186,11 +197,12 @@ class _Sensor:
     """Per-sensor settings looked up once: gate, GPS lever arm, bias/offset handling."""
 
     __slots__ = ("gate", "lever", "bias_idx", "bias", "hoff_idx", "hoff", "uses", "rows",
-                 "rows_h")
+                 "rows_h", "delay")
 
-    def __init__(self, gate=DEFAULT_GATE, lever=(0.0, 0.0), uses=None):
+    def __init__(self, gate=DEFAULT_GATE, lever=(0.0, 0.0), uses=None, delay=0.0):
         self.gate = gate
         self.lever = lever
+        self.delay = delay  # s, GPS: the fix is the position this long before its stamp
         self.bias_idx: int | None = None
         self.bias = 0.0  # rad/s, configured gyro bias when not estimated
         self.hoff_idx: int | None = None
@@ -224,7 +236,7 @@ class UnicycleEkf(Estimator):
         noise: ProcessNoise | None = None,
         motion: str = "exact",
         init_distance: float = 5.0,
-        initial_std: tuple[float, float] = (0.01, 0.005),
+        initial_std: tuple[float, float] = GIVEN_POSE_STD,
         v_std0: float = 1.0,
         w_std0: float = 0.5,
         bias_std0: float = 0.02,
@@ -238,6 +250,11 @@ class UnicycleEkf(Estimator):
             raise ValueError(f"motion must be 'exact' or 'euler', got {motion!r}")
         self.cfg = cfg
         self.noise = noise or ProcessNoise()
+        slip = cfg.robot.slip
+        if slip and noise is None:  # the robot's stated slip replaces the default densities
+            self.noise = replace(self.noise, pos_long=slip.get("longitudinal", self.noise.pos_long),
+                                 pos_lat=slip.get("lateral", self.noise.pos_lat),
+                                 heading=slip.get("heading", self.noise.heading))
         self._step_jac = se2_step_jac if motion == "exact" else euler_step_jac
         self.motion = motion
         self.rate = None if cfg.ekf.rate == "event" else float(cfg.ekf.rate)
@@ -253,23 +270,38 @@ class UnicycleEkf(Estimator):
         imus_h = [s for s in cfg.of_kind("imu")
                   if s.heading_offset == "estimate" and "yaw" in s.use]
         for s in cfg.sensors:
-            info = _Sensor(gate=s.gate, lever=tuple(s.lever_arm), uses=set(s.use))
+            info = _Sensor(gate=s.gate, lever=tuple(s.lever_arm), uses=set(s.use),
+                           delay=s.delay)
             if s.kind == "imu":
                 if isinstance(s.gyro_bias, float):
                     info.bias = s.gyro_bias
                 if isinstance(s.heading_offset, float):
                     info.hoff = s.heading_offset
             self._sensors[s.name] = info
+        # random-walk densities (variance per second) of the calibration states, in state order:
+        # the IMU's stated ones (noise.gyro_bias_walk, heading_offset_walk), else the defaults
+        walks: list[float] = []
         for s in imus_b:
             info = self._sensors[s.name]
             info.bias_idx = len(names)
             info.rows = (((4, 1.0), (info.bias_idx, 1.0)),)
             names.append("bg" if len(imus_b) == 1 else f"bg:{s.name}")
+            walks.append(s.noise.get("gyro_bias_walk", self.noise.gyro_bias) ** 2)
         for s in imus_h:
             info = self._sensors[s.name]
             info.hoff_idx = len(names)
             info.rows_h = (((2, 1.0), (info.hoff_idx, 1.0)),)
             names.append("hoff" if len(imus_h) == 1 else f"hoff:{s.name}")
+            walks.append(s.noise.get("heading_offset_walk", self.noise.heading_offset) ** 2)
+        self._walks = tuple(walks)
+        # odometry scale states (module docstring) when the config states the geometry's
+        # uncertainty and a sensor gives odometry
+        self._scale_prior = cfg.robot.scale_std if (
+            cfg.of_kind("odometry") or cfg.of_kind("wheels")) else None
+        self._ks = None
+        if self._scale_prior is not None:
+            self._ks = len(names)
+            names += ["k_v", "k_w"]
         self.state_names = tuple(names)
         self.n = len(names)
         self._hoff_states = tuple(i for i, nm in enumerate(names) if nm.startswith("hoff"))
@@ -318,7 +350,6 @@ class UnicycleEkf(Estimator):
         self._iq = np.ravel_multi_index(
             (np.concatenate([iu[0], iu[1], diag]), np.concatenate([iu[1], iu[0], diag])),
             (self.n, self.n))
-        self._nb, self._nh = len(self._bias_states), len(self._hoff_states)
         r = cfg.robot
         self._wheel = (r.wheel_radius, r.track_width)
 
@@ -412,6 +443,12 @@ class UnicycleEkf(Estimator):
             P0[i, i] = self.bias_std0**2
         for i in self._hoff_states:
             P0[i, i] = _PI * _PI / 3.0  # uniform on the circle until initialised from a Heading
+        if self._ks is not None:
+            k = self._ks
+            sd_v, sd_w, c_vw = self._scale_prior
+            x0[k] = x0[k + 1] = 1.0
+            P0[k, k], P0[k + 1, k + 1] = sd_v * sd_v, sd_w * sd_w
+            P0[k, k + 1] = P0[k + 1, k] = c_vw
         self.kf = KalmanCore(x0, P0, self.log, state_angles=(2, *self._hoff_states),
                              lockout_count=self._lockout[0], lockout_time=self._lockout[1])
         self.t = t
@@ -490,10 +527,8 @@ class UnicycleEkf(Estimator):
         # one flat fancy-index assignment each for F and Q: element assignments cost ~100 ns
         # apiece, the (row, col) fancy index twice the flat one
         self._F_flat[self._if] = (j0[2], j0[3], j0[4], j1[2], j1[3], j1[4], dt)
-        nz = self.noise
-        q = unicycle_process_noise(xs[2], xs[3], dt, nz)
-        self._Q_flat[self._iq] = q + q + (nz.gyro_bias * nz.gyro_bias * dt,) * self._nb \
-            + (nz.heading_offset * nz.heading_offset * dt,) * self._nh
+        q = unicycle_process_noise(xs[2], xs[3], dt, self.noise)
+        self._Q_flat[self._iq] = q + q + tuple([w * dt for w in self._walks])
         xs[0], xs[1], xs[2] = x1, y1, p1
         kf.predict(self._F, self._Q, xs)
         self.t = t
@@ -538,12 +573,24 @@ class UnicycleEkf(Estimator):
                 y = (m.yaw - hpred + _PI) % _TWO_PI - _PI
                 blocks.append((m.sensor, "heading", (y,), rows, ((m.var,),), info.gate))
             elif isinstance(m, WheelOdometry):
+                ks = self._ks
                 if m.v is not None:
-                    blocks.append((m.sensor, "v", (m.v - x[3],), _ROWS_V, ((m.v_var,),),
-                                   info.gate))
+                    if ks is None:
+                        y, rows = m.v - x[3], _ROWS_V
+                    else:  # the odometry reports v / k_v
+                        kv = x[ks]
+                        y = m.v - x[3] / kv
+                        rows = (((3, 1.0 / kv), (ks, -x[3] / (kv * kv))),)
+                    blocks.append((m.sensor, "v", (y,), rows, ((m.v_var,),), info.gate))
                 if m.yaw_rate is not None:
-                    blocks.append((m.sensor, "yaw_rate", (m.yaw_rate - x[4],), _ROWS_W,
-                                   ((m.yaw_rate_var,),), info.gate))
+                    if ks is None:
+                        y, rows = m.yaw_rate - x[4], _ROWS_W
+                    else:  # ... and w / k_w
+                        kw = x[ks + 1]
+                        y = m.yaw_rate - x[4] / kw
+                        rows = (((4, 1.0 / kw), (ks + 1, -x[4] / (kw * kw))),)
+                    blocks.append((m.sensor, "yaw_rate", (y,), rows, ((m.yaw_rate_var,),),
+                                   info.gate))
             elif isinstance(m, GpsFix):
                 if m.enu is None or m.status < 0:
                     self.log.rejected[(m.sensor, "no_fix" if m.status < 0 else "no_enu")] += 1
@@ -556,13 +603,7 @@ class UnicycleEkf(Estimator):
                         self._align(t)
                         x = kf.x.tolist()
                     continue
-                lx, ly = info.lever
-                c, s = _cos(x[2]), _sin(x[2])
-                y = (m.enu[0] - (x[0] + c * lx - s * ly), m.enu[1] - (x[1] + s * lx + c * ly))
-                if lx != 0.0 or ly != 0.0:
-                    rows = (((0, 1.0), (2, -s * lx - c * ly)), ((1, 1.0), (2, c * lx - s * ly)))
-                else:
-                    rows = _ROWS_XY
+                y, rows = self._gps_model(m, info, x)
                 cv = m.cov.tolist()
                 blocks.append((m.sensor, "gps", y, rows,
                                ((cv[0][0], cv[0][1]), (cv[1][0], cv[1][1])), info.gate))
@@ -571,16 +612,45 @@ class UnicycleEkf(Estimator):
                 if r is None or L is None:
                     raise ValueError("WheelSpeeds need robot.wheel_radius and robot.track_width")
                 k = 0.5 * L / r
-                blocks.append((m.sensor, "wheels",
-                               (m.left - (x[3] - 0.5 * L * x[4]) / r,
-                                m.right - (x[3] + 0.5 * L * x[4]) / r),
-                               (((3, 1.0 / r), (4, -k)), ((3, 1.0 / r), (4, k))),
-                               ((m.left_var, 0.0), (0.0, m.right_var)), info.gate))
+                ks = self._ks
+                if ks is None:
+                    vr, wr = x[3] / r, x[4] * k
+                    rows = (((3, 1.0 / r), (4, -k)), ((3, 1.0 / r), (4, k)))
+                else:  # the nominal geometry turns (v / k_v, w / k_w) into wheel speeds
+                    kv, kw = x[ks], x[ks + 1]
+                    vr, wr = x[3] / (kv * r), x[4] * k / kw
+                    dv = (3, 1.0 / (kv * r))
+                    dkv = (ks, -vr / kv)
+                    rows = ((dv, (4, -k / kw), dkv, (ks + 1, wr / kw)),
+                            (dv, (4, k / kw), dkv, (ks + 1, -wr / kw)))
+                blocks.append((m.sensor, "wheels", (m.left - (vr - wr), m.right - (vr + wr)),
+                               rows, ((m.left_var, 0.0), (0.0, m.right_var)), info.gate))
         if blocks:
             if self.reference:
                 kf.update_dense(t, blocks)
             else:
                 kf.update_sparse(t, blocks)
+
+    def _gps_model(self, m: GpsFix, info: _Sensor, x: list) -> tuple[tuple, tuple]:
+        """Innovation (east, north, m) and sparse H rows of a fix: the antenna (lever arm
+        rotated by the heading) at the fix's measurement time, ``info.delay`` s before the
+        state's, reached by the exact constant-twist step backwards (factors.kinematics)."""
+        lx, ly = info.lever
+        d = info.delay
+        if d == 0.0:
+            c, s = _cos(x[2]), _sin(x[2])
+            y = (m.enu[0] - (x[0] + c * lx - s * ly), m.enu[1] - (x[1] + s * lx + c * ly))
+            if lx == 0.0 and ly == 0.0:
+                return y, _ROWS_XY
+            return y, (((0, 1.0), (2, -s * lx - c * ly)), ((1, 1.0), (2, c * lx - s * ly)))
+        xb, yb, pb, J = se2_step_jac(x[0], x[1], x[2], x[3], x[4], -d)
+        c, s = _cos(pb), _sin(pb)
+        ae, an = -s * lx - c * ly, c * lx - s * ly  # d antenna offset / d heading at t - d
+        y = (m.enu[0] - (xb + c * lx - s * ly), m.enu[1] - (yb + s * lx + c * ly))
+        je, jn = J[0], J[1]
+        # d psi(t - d) / d (psi, w) = (1, -d)
+        return y, (((0, 1.0), (2, je[2] + ae), (3, je[3]), (4, je[4] - d * ae)),
+                   ((1, 1.0), (2, jn[2] + an), (3, jn[3]), (4, jn[4] - d * an)))
 
     def _init_offset(self, t: float, m: Heading, hi: int) -> None:
         """hoff = wrap(z - psi): variance var(psi) + R, covariance -cov(psi, .) with the rest."""

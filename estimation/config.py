@@ -5,12 +5,13 @@ Shape (every key documented in README.md)::
     sensors:
       odometry: [{topic: /odom, use: [v, yaw_rate], noise: {v: 0.05, yaw_rate: 0.05}}]
       imu: [{topic: /imu/data, use: [yaw, yaw_rate, accel], mount: {rpy: [r, p, y]},
-             noise: {yaw: 0.05, yaw_rate: 0.02, accel: 0.1}, heading_offset: estimate,
-             gyro_bias: estimate}]
-      gps: [{topic: /fix, noise: {horizontal: 1.5}, lever_arm: [0.0, 0.0]}]
+             noise: {yaw: 0.05, yaw_rate: 0.02, accel: 0.1, gyro_bias_walk: 1e-4,
+                     heading_offset_walk: 0.02}, heading_offset: estimate, gyro_bias: estimate}]
+      gps: [{topic: /fix, noise: {horizontal: 1.5}, lever_arm: [0.0, 0.0], delay: 0.0}]
       wheels: [{topic: /joint_states, joints: [left, right], noise: {speed: 0.1}}]
       landmarks: [{topic: /landmarks, map: some.landmarks.yaml, noise: {range: 0.1, bearing: 0.05}}]
-    robot: {wheel_radius: 0.165, track_width: 0.555}
+    robot: {wheel_radius: 0.165, track_width: 0.555, wheel_radius_std: 0.002,
+            track_width_std: 0.03, slip: {longitudinal: 0.05, lateral: 0.02, heading: 0.01}}
     ground_truth: {topic: /ground_truth}
     frame: {datum: first_fix}            # or [lat_deg, lon_deg, alt_m]
     initial_pose: ground_truth           # or [x, y, yaw]; default origin
@@ -18,8 +19,15 @@ Shape (every key documented in README.md)::
     ekf: {rate: event}
     reorder_window: 0.5
 
-Noise values are standard deviations in SI units (m, rad, m/s, rad/s, m/s^2). A ``gate`` on a
-sensor is the chi-square acceptance probability of its Mahalanobis gate (e.g. 0.9999) or
+Noise values are standard deviations in SI units (m, rad, m/s, rad/s, m/s^2). An IMU's
+``gyro_bias_walk`` (rad/s/sqrt(s)) and ``heading_offset_walk`` (rad/sqrt(s)) are the random-walk
+densities of an estimated gyro bias and heading offset (0: constant; absent: the estimator's
+default). A GPS ``delay`` (s) says that a fix describes the antenna position that many seconds
+before its stamp. ``robot.wheel_radius_std`` / ``track_width_std`` (m) are the 1-sigma
+uncertainties of the nominal geometry; given, the estimators that can estimate the odometry's
+scale errors do. ``robot.slip`` states white-noise densities of the body's motion about its
+twist: longitudinal and lateral velocity (m/sqrt(s)) and yaw rate (rad/sqrt(s)). A ``gate`` on
+a sensor is the chi-square acceptance probability of its Mahalanobis gate (e.g. 0.9999) or
 ``off``.
 """
 
@@ -44,11 +52,12 @@ USES = {
 }
 NOISE_KEYS = {
     "odometry": ("v", "yaw_rate"),
-    "imu": ("yaw", "yaw_rate", "accel"),
+    "imu": ("yaw", "yaw_rate", "accel", "gyro_bias_walk", "heading_offset_walk"),
     "gps": ("horizontal", "vertical"),
     "wheels": ("speed",),
     "landmarks": ("range", "bearing"),
 }
+WALK_KEYS = ("gyro_bias_walk", "heading_offset_walk")  # noise keys that may be 0 (constant)
 DEFAULT_GATE = 0.9999
 
 
@@ -65,6 +74,7 @@ class SensorConfig:
     heading_offset: str | float = 0.0  # 'estimate' or rad (sensor yaw = ENU yaw + offset)
     gyro_bias: str | float = 0.0  # 'estimate' or rad/s
     lever_arm: tuple[float, float] = (0.0, 0.0)  # m, body frame
+    delay: float = 0.0  # s, GPS: a fix is the position this long before its stamp
     joints: tuple[str, str] | None = None  # JointState names of left and right wheel
     map: Path | None = None  # landmark map YAML
     gate: float | None = DEFAULT_GATE  # chi-square acceptance probability, None = off
@@ -89,6 +99,24 @@ class EkfConfig:
 class RobotConfig:
     wheel_radius: float | None = None  # m
     track_width: float | None = None  # m
+    wheel_radius_std: float | None = None  # m, 1-sigma uncertainty of wheel_radius
+    track_width_std: float | None = None  # m, 1-sigma uncertainty of track_width
+    # how far the body's motion departs from its twist (wheel slip, terrain), white-noise
+    # densities: 'longitudinal' and 'lateral' body velocity (m/sqrt(s)), 'heading' (yaw rate,
+    # rad/sqrt(s)); a key absent: the estimator's default
+    slip: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def scale_std(self) -> tuple[float, float, float] | None:
+        """Relative 1-sigma uncertainties of the odometry's speed and yaw-rate scale and their
+        covariance, (sd_v, sd_w, cov_vw), from the geometry's: speed ~ r, yaw rate ~ r / L, so
+        to first order d(ln v) = d(ln r) and d(ln w) = d(ln r) - d(ln L). None when the config
+        gives no geometry uncertainty."""
+        if self.wheel_radius_std is None and self.track_width_std is None:
+            return None
+        sr = self.wheel_radius_std / self.wheel_radius if self.wheel_radius_std else 0.0
+        sl = self.track_width_std / self.track_width if self.track_width_std else 0.0
+        return sr, math.sqrt(sr * sr + sl * sl), sr * sr
 
 
 @dataclass
@@ -180,7 +208,7 @@ def _sensor(ck: _Checker, kind: str, i: int, raw: Any, base: Path) -> SensorConf
     allowed = ("topic", "name", "use", "noise", "gate")
     allowed += {
         "imu": ("mount", "heading_offset", "gyro_bias"),
-        "gps": ("lever_arm",),
+        "gps": ("lever_arm", "delay"),
         "wheels": ("joints",),
         "landmarks": ("map",),
         "odometry": ("mount",),
@@ -199,7 +227,8 @@ def _sensor(ck: _Checker, kind: str, i: int, raw: Any, base: Path) -> SensorConf
             raise ck.fail(f"{key}.use", f"{u!r} is not one of {list(USES[kind])}")
     noise_raw = d.get("noise") or {}
     ck.mapping(noise_raw, f"{key}.noise", NOISE_KEYS[kind])
-    noise = {k: ck.number(v, f"{key}.noise.{k}", positive=True) for k, v in noise_raw.items()}
+    noise = {k: ck.number(v, f"{key}.noise.{k}", positive=k not in WALK_KEYS, nonneg=True)
+             for k, v in noise_raw.items()}
     s = SensorConfig(kind=kind, topic=topic, name=topic, use=tuple(use), noise=noise)
     if "name" in d:
         s.name = ck.string(d["name"], f"{key}.name")
@@ -220,6 +249,8 @@ def _sensor(ck: _Checker, kind: str, i: int, raw: Any, base: Path) -> SensorConf
         s.gyro_bias = ck.estimate_or_number(d["gyro_bias"], f"{key}.gyro_bias")
     if "lever_arm" in d:
         s.lever_arm = ck.vector(d["lever_arm"], f"{key}.lever_arm", 2)
+    if "delay" in d:
+        s.delay = ck.number(d["delay"], f"{key}.delay", nonneg=True)
     if kind == "wheels":
         j = d.get("joints")
         if not isinstance(j, list) or len(j) != 2 or not all(isinstance(x, str) for x in j):
@@ -263,13 +294,18 @@ def parse_config(raw: Any, source: str = "<config>", base: Path | None = None) -
     cfg = Config(sensors=sensors, path=Path(source) if source != "<config>" else None)
 
     if "robot" in d:
-        r = ck.mapping(d["robot"], "robot", ("wheel_radius", "track_width"))
-        cfg.robot = RobotConfig(
-            wheel_radius=ck.number(r["wheel_radius"], "robot.wheel_radius", positive=True)
-            if "wheel_radius" in r else None,
-            track_width=ck.number(r["track_width"], "robot.track_width", positive=True)
-            if "track_width" in r else None,
-        )
+        r = ck.mapping(d["robot"], "robot", ("wheel_radius", "track_width", "wheel_radius_std",
+                                             "track_width_std", "slip"))
+        cfg.robot = RobotConfig(**{
+            k: ck.number(r[k], f"robot.{k}", positive=not k.endswith("_std"), nonneg=True)
+            for k in r if k != "slip"})
+        if "slip" in r:
+            slip = ck.mapping(r["slip"], "robot.slip", ("longitudinal", "lateral", "heading"))
+            cfg.robot.slip = {k: ck.number(v, f"robot.slip.{k}", nonneg=True)
+                              for k, v in slip.items()}
+        for k in ("wheel_radius", "track_width"):
+            if f"{k}_std" in r and k not in r:
+                raise ck.fail(f"robot.{k}_std", f"needs robot.{k} (the nominal value)")
     if cfg.of_kind("wheels") and (cfg.robot.wheel_radius is None or cfg.robot.track_width is None):
         raise ck.fail("robot", "wheel speed sensors need robot.wheel_radius and robot.track_width")
     if d.get("ground_truth") is not None:

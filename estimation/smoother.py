@@ -359,7 +359,9 @@ class FixedLagSmoother(Estimator):
                 return
         dt = m.t - self.kf_t[k]
         if isinstance(m, GpsFix):
-            self._gps(m, k, dt)
+            # A fix with a configured delay is the antenna position that long before its stamp:
+            # the GPS factor's motion compensation carries it from the keyframe (dt < 0).
+            self._gps(m, k, dt - self.sensors[m.sensor].delay)
         else:
             self._landmark(m, k)
         self._flush()

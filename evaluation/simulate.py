@@ -178,6 +178,9 @@ class Scenario:
     t0_ns: int = 1_700_000_000 * 10**9  # header stamp of t = 0
     truth_topic: str = "/ground_truth"
     truth_fix_topic: str = "/ground_truth/fix"
+    # 1-sigma uncertainty of the nominal geometry that the config states (robot.*_std): how
+    # well the scenario's robot is calibrated. The true geometry lies within it.
+    geometry_std: Geometry | None = None
 
 
 # A field site near Zurich, Switzerland: lat, lon (deg), ellipsoidal altitude (m).
@@ -185,6 +188,8 @@ OUTDOOR_DATUM = (47.397742, 8.545594, 488.0)
 
 _HUSKY_TRUE = Geometry(wheel_radius=0.1635, track_width=0.5826)  # worn tyres, skid-steer track
 _HUSKY_NOMINAL = Geometry(wheel_radius=0.165, track_width=0.555)  # Husky datasheet
+# tyre wear and skid-steer slip: the datasheet radius known to 2 mm, the effective track to 3 cm
+_HUSKY_STD = Geometry(wheel_radius=0.002, track_width=0.03)
 
 
 def _husky(name: str, description: str, trajectory: TrajectorySpec, duration: float = 400.0,
@@ -194,6 +199,7 @@ def _husky(name: str, description: str, trajectory: TrajectorySpec, duration: fl
         true_geometry=_HUSKY_TRUE, nominal_geometry=_HUSKY_NOMINAL,
         encoders=EncoderSpec(rate=10.0, speed_std=0.15, counts_per_rev=2000),
         imu=ImuSpec(), gps=gps or GpsSpec(), datum=OUTDOOR_DATUM, truth_rate=truth_rate,
+        geometry_std=_HUSKY_STD,
     )
 
 
@@ -213,6 +219,7 @@ SCENARIOS: dict[str, Scenario] = {
                              joint_topic="/joint_states"),
         landmarks=LandmarkSpec(),
         truth_rate=10.0,
+        geometry_std=Geometry(wheel_radius=0.002, track_width=0.01),
     ),
     "husky": _husky(
         "husky", "Husky-like outdoor robot mowing a field (lawnmower legs of 40 m): 10 Hz "
@@ -399,8 +406,11 @@ class SimResult:
             "wheels": {"speed": s},
         }
         if sc.imu:
+            # and the random walks of the gyro bias (rad/s/sqrt(s)) and of the heading offset
+            # (rad/sqrt(s): none, it is constant)
             out["imu"] = {"yaw": sc.imu.heading_std, "yaw_rate": sc.imu.gyro_std,
-                          "accel": sc.imu.accel_std}
+                          "accel": sc.imu.accel_std, "gyro_bias_walk": sc.imu.gyro_bias_walk,
+                          "heading_offset_walk": 0.0}
         if sc.gps:
             out["gps"] = {"horizontal": sc.gps.horizontal_std, "vertical": sc.gps.vertical_std}
         if sc.landmarks:
@@ -776,16 +786,23 @@ def sim_config(res: SimResult, landmark_map: str | None = None) -> dict:
                            "noise": noise["imu"], "heading_offset": "estimate",
                            "gyro_bias": "estimate"}]
     if sc.gps:
-        sensors["gps"] = [{"topic": sc.gps.topic, "noise": noise["gps"]}]
+        sensors["gps"] = [{"topic": sc.gps.topic, "noise": noise["gps"], "delay": sc.gps.delay}]
     if sc.landmarks:
         if landmark_map is None:
             raise ValueError("a scenario with landmarks needs the landmark map's file name")
         sensors["landmarks"] = [{"topic": sc.landmarks.topic, "map": landmark_map,
                                  "noise": noise["landmarks"]}]
+    robot = {"wheel_radius": sc.nominal_geometry.wheel_radius,
+             "track_width": sc.nominal_geometry.track_width}
+    if sc.geometry_std is not None:
+        robot.update(wheel_radius_std=sc.geometry_std.wheel_radius,
+                     track_width_std=sc.geometry_std.track_width)
+    # the simulated body moves exactly with its twist (the encoders' slip noise is in their
+    # counts, not in the motion)
+    robot["slip"] = {"longitudinal": 0.0, "lateral": 0.0, "heading": 0.0}
     cfg: dict = {
         "sensors": sensors,
-        "robot": {"wheel_radius": sc.nominal_geometry.wheel_radius,
-                  "track_width": sc.nominal_geometry.track_width},
+        "robot": robot,
         "ground_truth": {"topic": sc.truth_topic},
     }
     if sc.datum is not None:

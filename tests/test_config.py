@@ -255,6 +255,19 @@ ERRORS = [
     (with_(sensor("wheels", **WHEELS_OK), robot={"wheel_radius": 0.1}), "robot"),
     (with_(BASE, robot={"wheel_radius": -0.1}), "robot.wheel_radius"),
     (with_(BASE, robot={"track_width": 0}), "robot.track_width"),
+    # calibration statements
+    (with_(BASE, robot={"wheel_radius_std": 0.01}), "robot.wheel_radius_std"),
+    (with_(BASE, robot={"track_width": 0.5, "track_width_std": -0.01}),
+     "robot.track_width_std"),
+    (with_(BASE, robot={"slip": {"sideways": 0.1}}), "robot.slip.sideways"),
+    (with_(BASE, robot={"slip": {"heading": -1}}), "robot.slip.heading"),
+    (with_(BASE, robot={"slip": 0.1}), "robot.slip"),
+    (sensor("gps", topic="/fix", delay=-0.2), "sensors.gps[0].delay"),
+    (sensor("gps", topic="/fix", delay="late"), "sensors.gps[0].delay"),
+    (sensor("odometry", topic="/o", delay=0.1), "sensors.odometry[0].delay"),
+    (sensor("imu", topic="/i", noise={"gyro_bias_walk": -1e-4}),
+     "sensors.imu[0].noise.gyro_bias_walk"),
+    (sensor("imu", topic="/i", noise={"yaw": 0.0}), "sensors.imu[0].noise.yaw"),
     # no sensors / wrong shapes
     ({}, "sensors"),
     ({"sensors": {"imu": []}}, "sensors"),
@@ -403,3 +416,23 @@ def test_binary_landmark_map(tmp_path):
     with pytest.raises(ConfigError) as e:
         load_landmark_map(p)
     assert str(p) in str(e.value)
+
+
+def test_calibration_statements():
+    """GPS delay, random walks of the IMU's calibration (0 allowed: constant), the geometry's
+    uncertainty and the odometry scale uncertainties it implies, slip densities."""
+    cfg = parse_config({
+        "sensors": {"imu": [{"topic": "/i", "noise": {"gyro_bias_walk": 2e-4,
+                                                      "heading_offset_walk": 0.0}}],
+                    "gps": [{"topic": "/fix", "delay": 0.2}],
+                    "odometry": [{"topic": "/o"}]},
+        "robot": {"wheel_radius": 0.2, "track_width": 0.5, "wheel_radius_std": 0.004,
+                  "track_width_std": 0.015, "slip": {"lateral": 0.0, "heading": 0.01}},
+    })
+    assert cfg.of_kind("gps")[0].delay == 0.2
+    assert cfg.of_kind("imu")[0].noise == {"gyro_bias_walk": 2e-4, "heading_offset_walk": 0.0}
+    sd_v, sd_w, c = cfg.robot.scale_std
+    assert sd_v == pytest.approx(0.02) and c == pytest.approx(0.02**2)
+    assert sd_w == pytest.approx(math.hypot(0.02, 0.03))
+    assert cfg.robot.slip == {"lateral": 0.0, "heading": 0.01}
+    assert parse_config(BASE).robot.scale_std is None

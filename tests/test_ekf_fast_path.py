@@ -70,9 +70,15 @@ def _stream(seed: int, duration: float = 40.0) -> list:
 
 
 def _config(estimate_offsets: bool, rate="event"):
+    """With ``estimate_offsets`` also every calibration: gyro bias, heading offset, odometry
+    scales (the geometry's uncertainty stated) and a GPS delay."""
     imu = {"topic": "/imu", "use": ["yaw", "yaw_rate", "accel"]}
+    gps = {"topic": "/fix", "lever_arm": [0.3, -0.1]}
+    robot = {"wheel_radius": R_WHEEL, "track_width": TRACK}
     if estimate_offsets:
         imu.update(heading_offset="estimate", gyro_bias="estimate")
+        gps["delay"] = 0.15
+        robot.update(wheel_radius_std=0.003, track_width_std=0.02)
     else:
         imu.update(heading_offset=OFFSET, gyro_bias=BIAS)
     return parse_config({
@@ -80,9 +86,9 @@ def _config(estimate_offsets: bool, rate="event"):
             "odometry": [{"topic": "/odom"}],
             "wheels": [{"topic": "/joint_states", "joints": ["l", "r"], "noise": {"speed": 0.1}}],
             "imu": [imu],
-            "gps": [{"topic": "/fix", "lever_arm": [0.3, -0.1]}],
+            "gps": [gps],
         },
-        "robot": {"wheel_radius": R_WHEEL, "track_width": TRACK},
+        "robot": robot,
         "frame": {"datum": list(DATUM)},
         "initial_pose": list(START),
         "ekf": {"rate": rate},
@@ -127,17 +133,20 @@ def test_unicycle_fast_path_matches_reference(estimate_offsets, rate):
     cfg = _config(estimate_offsets, rate)
     stream = _stream(1)
     fast = _run_both(lambda ref: UnicycleEkf(cfg, reference=ref), stream)
+    assert len(fast.state_names) == (9 if estimate_offsets else 5)
     kinds = {(i.kind, i.accepted) for i in fast.innovations}
     # every measurement model was used, and the gate rejected the GPS and heading outliers
     assert {k for k, _ in kinds} == {"gyro", "heading", "v", "yaw_rate", "wheels", "gps"}
     assert ("gps", False) in kinds and ("heading", False) in kinds and ("v", False) in kinds
 
 
-@pytest.mark.parametrize("motion", ["euler", "icc"])
-def test_igvc_fast_path_matches_reference(motion):
-    cfg = _config(False)
+@pytest.mark.parametrize(("motion", "estimate_offsets"),
+                         [("euler", False), ("icc", False), ("euler", True)])
+def test_igvc_fast_path_matches_reference(motion, estimate_offsets):
+    cfg = _config(estimate_offsets)
     stream = _stream(2)
     fast = _run_both(lambda ref: IgvcEkf(cfg, motion=motion, reference=ref), stream)
+    assert len(fast.state_names) == (15 if estimate_offsets else 11)
     kinds = {(i.kind, i.accepted) for i in fast.innovations}
     assert {k for k, _ in kinds} == {"gyro", "accel", "heading", "odometry", "wheels", "gps"}
     assert ("gps", False) in kinds and ("heading", False) in kinds

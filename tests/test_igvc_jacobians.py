@@ -231,3 +231,77 @@ def test_generated_code_is_up_to_date():
             f2, F2 = STEPS[kind](s, 0.1, TRACK, RADIUS)
             np.testing.assert_allclose(f1, f2, rtol=1e-13, atol=1e-13)
             np.testing.assert_allclose(F1, F2, rtol=1e-11, atol=1e-13)
+
+
+def test_measurement_rows_with_calibration_states_match_central_differences():
+    """The filter's measurement models as it applies them (IgvcEkf._measurement: innovation and
+    sparse H rows) with a gyro-bias, a heading-offset and the odometry-scale states, and a GPS
+    fix 0.3 s late: H = -d(innovation)/d(state) by central differences."""
+    from ekf_baseline.igvc import IgvcEkf
+    from estimation.config import parse_config
+    from estimation.measurements import (
+        ForwardAccel,
+        GpsFix,
+        GyroYawRate,
+        Heading,
+        WheelOdometry,
+        WheelSpeeds,
+    )
+
+    datum = (45.0, 7.0, 300.0)
+    cfg = parse_config({
+        "sensors": {
+            "odometry": [{"topic": "/odom"}],
+            "wheels": [{"topic": "/js", "joints": ["l", "r"], "noise": {"speed": 0.1}}],
+            "imu": [{"topic": "/imu", "use": ["yaw", "yaw_rate", "accel"],
+                     "gyro_bias": "estimate", "heading_offset": "estimate"}],
+            "gps": [{"topic": "/fix", "lever_arm": [0.4, -0.2], "delay": 0.3}],
+        },
+        "robot": {"wheel_radius": 0.17, "track_width": TRACK, "wheel_radius_std": 0.003,
+                  "track_width_std": 0.02},
+        "frame": {"datum": list(datum)},
+        "initial_pose": [0.0, 0.0, 0.0],
+    })
+    ekf = IgvcEkf(cfg)
+    names = ekf.state_names
+    assert names[11:] == ("bg:/imu", "hoff:/imu", "k_v", "k_w")
+    ekf._hoff_ready.add(12)
+    rng = random.Random(3)
+    lat, lon, _ = geodesy.enu_to_geodetic(30.0, -20.0, 0.0, *datum)
+    fix = GpsFix(0.0, lat, lon, 300.0, np.diag([1.0, 1.2, 4.0]), 0, "/fix", (30.0, -20.0, 0.0))
+    ms = [GyroYawRate(0.0, 0.3, 1e-4, "/imu"), Heading(0.0, 2.0, 1e-3, "/imu", "compass"),
+          Heading(0.0, -1.0, 1e-3, "/imu", "pose"), ForwardAccel(0.0, 0.2, 0.01, "/imu"),
+          WheelOdometry(0.0, 1.0, 0.3, 0.01, 0.02, "/odom"),
+          WheelSpeeds(0.0, 5.0, 7.0, 0.1, 0.2, "/js"), fix]
+    for _ in range(5):
+        s = _state(rng)
+        # at the fix: the GPS innovation is then only the lever arm and the delay (< 1.5 m), so
+        # the metric scaling about the estimate (treated as a constant, see _gps_metres)
+        # changes it by < 3e-7 per metre of latitude
+        s[LAT], s[LON] = math.radians(lat), math.radians(lon)
+        x0 = np.concatenate([s, [0.01, 0.3, 1.02, 0.97]])
+        scale = np.concatenate([SCALE, np.ones(4)])
+        for m in ms:
+            ekf.kf.x = x0.copy()
+            _kind, y0, rows, _R = ekf._measurement(m)
+            H = np.zeros((len(rows), len(names)))
+            for i, row in enumerate(rows):
+                for c, a in row:
+                    H[i, c] += a
+
+            def neg_y(x, m=m, y0=y0):
+                ekf.kf.x = x
+                y = np.array(ekf._measurement(m)[1])
+                # unwrap angle innovations against the centre value
+                return -(y0 + (y - y0 + math.pi) % (2 * math.pi) - math.pi)
+
+            cols = []
+            h = 1e-2  # five-point stencil, as numeric_jacobian: lat/lon rounding needs large h
+            for j in range(len(names)):
+                d = np.zeros(len(names))
+                d[j] = h / scale[j]
+                f = [neg_y(x0 + k * d) for k in (2, 1, -1, -2)]
+                cols.append((-f[0] + 8 * f[1] - 8 * f[2] + f[3]) / (12 * h))
+            num = np.array(cols).T
+            np.testing.assert_allclose(H / scale, num, rtol=0, atol=1e-6,
+                                       err_msg=type(m).__name__)

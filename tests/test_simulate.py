@@ -55,10 +55,22 @@ def test_config_noise_is_the_simulated_noise(husky_long, seed002_long, tmp_path)
         assert cfg.robot.wheel_radius == res.scenario.nominal_geometry.wheel_radius
         assert cfg.robot.wheel_radius != res.scenario.true_geometry.wheel_radius
         assert cfg.robot.track_width != res.scenario.true_geometry.track_width
+        # the stated geometry uncertainty covers the true geometry's offset (within 1 sigma)
+        std = res.scenario.geometry_std
+        assert (cfg.robot.wheel_radius_std, cfg.robot.track_width_std) == \
+            (std.wheel_radius, std.track_width)
+        assert abs(res.scenario.true_geometry.wheel_radius - cfg.robot.wheel_radius) \
+            <= cfg.robot.wheel_radius_std
+        assert abs(res.scenario.true_geometry.track_width - cfg.robot.track_width) \
+            <= cfg.robot.track_width_std
         assert cfg.initial_pose == "ground_truth"
         assert cfg.datum == (res.scenario.datum if res.scenario.datum else "first_fix")
-    imu = parse_config(sim.sim_config(husky_long)).of_kind("imu")[0]
+    husky = parse_config(sim.sim_config(husky_long))
+    imu = husky.of_kind("imu")[0]
     assert imu.heading_offset == "estimate" and imu.gyro_bias == "estimate"
+    assert imu.noise["gyro_bias_walk"] == husky_long.scenario.imu.gyro_bias_walk
+    assert imu.noise["heading_offset_walk"] == 0.0  # the simulated offset is constant
+    assert husky.of_kind("gps")[0].delay == husky_long.scenario.gps.delay
 
 
 def test_odometry_noise(husky_long):

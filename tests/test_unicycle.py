@@ -276,15 +276,19 @@ def test_measurement_jacobians_match_central_differences():
             "wheels": [{"topic": "/js", "joints": ["l", "r"], "noise": {"speed": 0.3}}],
             "imu": [{"topic": "/imu", "use": ["yaw", "yaw_rate"], "gyro_bias": "estimate",
                      "heading_offset": "estimate"}],
-            "gps": [{"topic": "/fix", "lever_arm": [0.4, -0.2]}],
+            "gps": [{"topic": "/fix", "lever_arm": [0.4, -0.2], "delay": 0.25}],
         },
-        "robot": {"wheel_radius": 0.17, "track_width": 0.55},
+        "robot": {"wheel_radius": 0.17, "track_width": 0.55, "wheel_radius_std": 0.003,
+                  "track_width_std": 0.02},
         "initial_pose": [0, 0, 0],
     })
     ekf = UnicycleEkf(cfg)
+    assert ekf.state_names == ("x", "y", "psi", "v", "w", "bg", "hoff", "k_v", "k_w")
     ekf.process(GyroYawRate(0.0, 0.0, 1e-4, sensor="/imu"))
     ekf._hoff_ready.add(6)
-    x0 = [3.0, 4.0, -2.9, 1.1, 0.4, 0.02, 2.8]
+    # with odometry scales and a GPS delay: the odometry rows depend on k_v, k_w, the fix's
+    # on v and w (the antenna 0.25 s back along the arc)
+    x0 = [3.0, 4.0, -2.9, 1.1, 0.4, 0.02, 2.8, 1.03, 0.96]
     cov = np.array([[1.0, 0.2, 0], [0.2, 2.0, 0], [0, 0, 9]])
     ms = [
         WheelOdometry(0.0, 1.0, 0.3, 0.01, 0.02, sensor="/odom"),
