@@ -279,10 +279,8 @@ class KalmanCore:
                 Sl = S.tolist()  # the blocks after this one are gated with the inflated P too
                 recovered = True
             elif verdict == _REJECT:
-                # views, not copies: y and S are not modified after this point
-                log.innovations.append(
-                    Innovation(t, sensor, kind, y[i0:i1], S[i0:i1, i0:i1], nis, False)
-                )
+                log.innovations.append(_FloatInnovation(
+                    t, sensor, kind, yl[i0:i1], [r[i0:i1] for r in Sl[i0:i1]], nis, False))
                 keep.append(False)
                 nis_list.append(nis)
                 continue
@@ -322,11 +320,10 @@ class KalmanCore:
         for (sensor, kind, i0, i1, _a, _g), k, nis in zip(blocks, keep, nis_list, strict=True):
             if k:
                 last_ok[(sensor, kind)] = (t, H[i0:i1])
-                yb = y[i0:i1]
-                Sb = S[i0:i1, i0:i1]
                 if recovered:
-                    nis = _nis(yb, Sb)
-                inns.append(Innovation(t, sensor, kind, yb, Sb, nis, True))
+                    nis = _nis_rows(yl, Sl, i0, i1)
+                inns.append(_FloatInnovation(t, sensor, kind, yl[i0:i1],
+                                             [r[i0:i1] for r in Sl[i0:i1]], nis, True))
         return n_acc
 
     def update_sparse(self, t: float, blocks) -> int:
@@ -503,20 +500,28 @@ class KalmanCore:
 
     def update_dense(self, t: float, blocks) -> int:
         """:meth:`update_sparse`'s blocks applied by the dense numpy :meth:`update_blocks`: the
-        reference the fast path is tested against (same arguments, same result)."""
+        reference the fast path is tested against (same arguments, same result), and the fast
+        path itself for a stacked step of more than two rows."""
         n = self.n
-        rows = [row for blk in blocks for row in blk[3]]
-        m = len(rows)
-        z = np.array([v for blk in blocks for v in blk[2]], dtype=float).reshape(m)
-        R = np.zeros((m, m))
+        rows = []
+        y = []
         dense = []
-        i0 = 0
-        for sensor, kind, _y, rws, Rb, gate in blocks:
-            i1 = i0 + len(rws)
-            R[i0:i1, i0:i1] = Rb
-            dense.append((sensor, kind, i0, i1, (), gate))
-            i0 = i1
-        return self.update_blocks(t, z, np.zeros(m), _dense_rows(rows, n), R, dense)
+        R_entries = []  # (row, col, value): a fixed-rate step is mostly one-row blocks
+        for sensor, kind, yb, rws, Rb, gate in blocks:
+            i0 = len(rows)
+            rows.extend(rws)
+            y.extend(yb)
+            for i, ri in enumerate(Rb):
+                for j, v in enumerate(ri):
+                    R_entries.append((i0 + i, i0 + j, v))
+            dense.append((sensor, kind, i0, len(rows), (), gate))
+        m = len(rows)
+        R = np.zeros((m, m))
+        for i, j, v in R_entries:
+            R[i, j] = v
+        # the innovations are y already: h(x) = 0 in update_blocks' y = z - h(x)
+        return self.update_blocks(t, np.array(y, dtype=float), 0.0, _dense_rows(rows, n), R,
+                                  dense)
 
     def _joseph_factored(self, K: np.ndarray, rows, R) -> np.ndarray:
         """(I - K H) P (I - K H)^T + K R K^T, symmetrised; K (n, m), H from sparse ``rows``."""
