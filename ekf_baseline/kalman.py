@@ -280,7 +280,7 @@ class KalmanCore:
                 recovered = True
             elif verdict == _REJECT:
                 log.innovations.append(_FloatInnovation(
-                    t, sensor, kind, yl[i0:i1], [r[i0:i1] for r in Sl[i0:i1]], nis, False))
+                    t, sensor, kind, yl[i0:i1], _block_of(Sl, i0, i1), nis, False))
                 keep.append(False)
                 nis_list.append(nis)
                 continue
@@ -322,8 +322,8 @@ class KalmanCore:
                 last_ok[(sensor, kind)] = (t, H[i0:i1])
                 if recovered:
                     nis = _nis_rows(yl, Sl, i0, i1)
-                inns.append(_FloatInnovation(t, sensor, kind, yl[i0:i1],
-                                             [r[i0:i1] for r in Sl[i0:i1]], nis, True))
+                inns.append(_FloatInnovation(t, sensor, kind, yl[i0:i1], _block_of(Sl, i0, i1),
+                                             nis, True))
         return n_acc
 
     def update_sparse(self, t: float, blocks) -> int:
@@ -339,7 +339,8 @@ class KalmanCore:
         (blocks uncorrelated with each other); returns the number of accepted blocks."""
         if len(blocks) == 1 and len(blocks[0][3]) == 1:
             return self._update_scalar(t, *blocks[0])
-        if sum(len(b[3]) for b in blocks) > 2:
+        nb = len(blocks)
+        if nb > 2 or (len(blocks[0][3]) if nb == 1 else len(blocks[0][3]) + len(blocks[1][3])) > 2:
             # a stacked step of many rows: numpy's per-call cost is amortised over them
             return self.update_dense(t, blocks)
         P = self.P
@@ -731,6 +732,13 @@ def _p_times_row(P: np.ndarray, row, cache: dict) -> list:
         pc = P[c] if a == 1.0 else a * P[c]
         acc = pc if acc is None else acc + pc
     return acc.tolist()
+
+
+def _block_of(S: list, i0: int, i1: int):
+    """Rows and columns i0:i1 of the nested list S (a one-row block without list building)."""
+    if i1 == i0 + 1:
+        return ((S[i0][i0],),)
+    return [r[i0:i1] for r in S[i0:i1]]
 
 
 def _block_S(rows, U: list, r0: int, R) -> list:
