@@ -271,7 +271,7 @@ class KalmanCore:
                 keep.append(False)
                 nis_list.append(math.nan)
                 continue
-            verdict = self._judge(t, sensor, kind, nis, gate, i1 - i0, H[i0:i1])
+            verdict = self._judge(t, sensor, kind, nis, gate, i1 - i0, (H, i0, i1))
             if verdict == _RECOVER:
                 self._recover(t, sensor, kind, y[i0:i1].copy(), H[i0:i1], R[i0:i1, i0:i1])
                 PHt = self.P @ H.T
@@ -319,7 +319,7 @@ class KalmanCore:
         last_ok = self._last_ok
         for (sensor, kind, i0, i1, _a, _g), k, nis in zip(blocks, keep, nis_list, strict=True):
             if k:
-                last_ok[(sensor, kind)] = (t, H[i0:i1])
+                last_ok[(sensor, kind)] = (t, (H, i0, i1))
                 if recovered:
                     nis = _nis_rows(yl, Sl, i0, i1)
                 inns.append(_FloatInnovation(t, sensor, kind, yl[i0:i1], _block_of(Sl, i0, i1),
@@ -545,7 +545,7 @@ class KalmanCore:
     def _judge(self, t: float, sensor: str, kind: str, nis: float, gate, m: int, rows) -> int:
         """The gate's verdict on one block with NIS ``nis`` (m dof): _ACCEPT, _REJECT (counted)
         or _RECOVER (a lock-out: the caller inflates P and applies the block). Keeps the
-        per-(sensor, kind) rejection streaks; ``rows`` (dense H rows or sparse rows) give the
+        per-(sensor, kind) rejection streaks; ``rows`` ((H, i0, i1) or sparse rows) give the
         states the block observes, for the corroboration check."""
         self.last_nis = nis
         key = (sensor, kind)
@@ -587,7 +587,7 @@ class KalmanCore:
     def _lost(self, t: float, key: tuple[str, str], rows, streak: list) -> bool:
         """True if a lock-out of ``key`` = (sensor, kind) means the filter is lost; False if
         other accepted measurements corroborate the filter on every state this block observes
-        (``rows``: its H rows, dense or sparse)."""
+        (``rows``: its H rows, (H, i0, i1) of a dense H or sparse)."""
         support = _support(rows)
         covered: set[int] = set()
         by: list[str] = []
@@ -701,10 +701,12 @@ def _eig_min_ratio(S, R) -> float:
 
 
 def _support(rows) -> set[int]:
-    """State indices a block observes: nonzero columns of dense H rows (ndarray), or the indices
-    of sparse rows (tuples of (index, coefficient))."""
-    if isinstance(rows, np.ndarray):
-        return set(np.flatnonzero(np.any(rows != 0.0, axis=0)).tolist())
+    """State indices a block observes: the nonzero columns of rows i0:i1 of a dense H, given as
+    (H, i0, i1) (not sliced until needed: this is only asked on a lock-out), or the indices of
+    sparse rows (tuples of (index, coefficient))."""
+    if isinstance(rows[0], np.ndarray):
+        H, i0, i1 = rows
+        return set(np.flatnonzero(np.any(H[i0:i1] != 0.0, axis=0)).tolist())
     return {c for row in rows for c, a in row if a != 0.0}
 
 
