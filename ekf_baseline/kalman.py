@@ -280,7 +280,7 @@ class KalmanCore:
                 recovered = True
             elif verdict == _REJECT:
                 log.innovations.append(_FloatInnovation(
-                    t, sensor, kind, yl[i0:i1], _block_of(Sl, i0, i1), nis, False))
+                    t, sensor, kind, tuple(yl[i0:i1]), _block_of(Sl, i0, i1), nis, False))
                 keep.append(False)
                 nis_list.append(nis)
                 continue
@@ -322,8 +322,8 @@ class KalmanCore:
                 last_ok[(sensor, kind)] = (t, (H, i0, i1))
                 if recovered:
                     nis = _nis_rows(yl, Sl, i0, i1)
-                inns.append(_FloatInnovation(t, sensor, kind, yl[i0:i1], _block_of(Sl, i0, i1),
-                                             nis, True))
+                inns.append(_FloatInnovation(t, sensor, kind, tuple(yl[i0:i1]),
+                                             _block_of(Sl, i0, i1), nis, True))
         return n_acc
 
     def update_sparse(self, t: float, blocks) -> int:
@@ -736,18 +736,20 @@ def _p_times_row(P: np.ndarray, row, cache: dict) -> list:
     return acc.tolist()
 
 
-def _block_of(S: list, i0: int, i1: int):
-    """Rows and columns i0:i1 of the nested list S (a one-row block without list building)."""
+def _block_of(S: list, i0: int, i1: int) -> tuple:
+    """Rows and columns i0:i1 of the nested list S, as tuples: the innovation log keeps one per
+    update, and tuples of floats drop out of the garbage collector's scans, lists do not."""
     if i1 == i0 + 1:
         return ((S[i0][i0],),)
-    return [r[i0:i1] for r in S[i0:i1]]
+    return tuple([tuple(r[i0:i1]) for r in S[i0:i1]])
 
 
 def _block_S(rows, U: list, r0: int, R) -> list:
     """S = H P H^T + R of one block (nested lists), from its sparse rows, U[r0 + j] = P h_j^T
     and its covariance R."""
     m = len(rows)
-    return [[_dot_row(rows[i], U[r0 + j]) + R[i][j] for j in range(m)] for i in range(m)]
+    return tuple([tuple([_dot_row(rows[i], U[r0 + j]) + R[i][j] for j in range(m)])
+                  for i in range(m)])
 
 
 def _dot_row(row, u: list) -> float:
