@@ -50,6 +50,7 @@ import numpy as np
 
 from ekf_baseline import GIVEN_POSE_STD
 from ekf_baseline import igvc_jacobians as gen
+from ekf_baseline.calibration import ScaleStates
 from ekf_baseline.kalman import KalmanCore
 from estimation import geodesy
 from estimation.config import DEFAULT_GATE, Config, SensorConfig
@@ -281,24 +282,20 @@ class IgvcEkf(Estimator):
         walks: dict[int, float] = {}  # state index -> variance per second
         self._bias_idx: dict[str, int] = {}
         self._hoff_idx: dict[str, int] = {}
-        for s in cfg.of_kind("imu"):
-            if "yaw_rate" in s.use and s.gyro_bias == "estimate":
-                self._bias_idx[s.name] = len(names)
-                walks[len(names)] = s.noise.get("gyro_bias_walk",
-                                                self.noise.gyro_bias_walk) ** 2
-                names.append(f"bg:{s.name}")
-        for s in cfg.of_kind("imu"):
-            if "yaw" in s.use and s.heading_offset == "estimate":
-                self._hoff_idx[s.name] = len(names)
-                walks[len(names)] = s.noise.get("heading_offset_walk",
-                                                self.noise.heading_offset_walk) ** 2
-                names.append(f"hoff:{s.name}")
-        self._scale_prior = cfg.robot.scale_std if (
-            cfg.of_kind("odometry") or cfg.of_kind("wheels")) else None
-        self._ks = None
-        if self._scale_prior is not None:
-            self._ks = len(names)
-            names += ["k_v", "k_w"]
+        ns = self.noise
+        # (the reading it corrects, config field, state prefix, its index map, walk key, default)
+        for use, field, prefix, idx, walk, default in (
+                ("yaw_rate", "gyro_bias", "bg", self._bias_idx, "gyro_bias_walk",
+                 ns.gyro_bias_walk),
+                ("yaw", "heading_offset", "hoff", self._hoff_idx, "heading_offset_walk",
+                 ns.heading_offset_walk)):
+            for s in cfg.of_kind("imu"):
+                if use in s.use and getattr(s, field) == "estimate":
+                    idx[s.name] = len(names)
+                    walks[len(names)] = s.noise.get(walk, default) ** 2
+                    names.append(f"{prefix}:{s.name}")
+        self._scale = ScaleStates.append_to(cfg, names)
+        self._ks = self._scale.index if self._scale else None
         self.state_names = tuple(names)
         self.n = len(names)
         self._walks = walks
@@ -342,12 +339,8 @@ class IgvcEkf(Estimator):
             Pn[i, i] = ns.init_bias_std ** 2
         for i in self._hoff_idx.values():
             Pn[i, i] = math.pi * math.pi / 3.0
-        if self._ks is not None:
-            k = self._ks
-            sd_v, sd_w, c_vw = self._scale_prior
-            x0[k] = x0[k + 1] = 1.0
-            Pn[k, k], Pn[k + 1, k + 1] = sd_v * sd_v, sd_w * sd_w
-            Pn[k, k + 1] = Pn[k + 1, k] = c_vw
+        if self._scale:
+            self._scale.set_prior(x0, Pn)
         # lon is an angle too: wrapped so that crossing the antimeridian does not leave it
         # outside [-pi, pi) (the GPS innovation is wrapped as well)
         self.kf = KalmanCore(x0, Pn, self.log,

@@ -11,6 +11,10 @@ API (all arrays are float64 numpy; n = state size, m = measurement size)::
                                                           # and logged on its own; blocks are
                                                           # (sensor, kind, start, stop, angles,
                                                           #  gate) -> number accepted
+    n_ok = kf.update_sparse(t, blocks)                    # the same from sparse H rows and float
+                                                          # innovations: blocks are (sensor, kind,
+                                                          # y, rows, R, gate) (the fast path)
+    n_ok = kf.update_dense(t, blocks)                     # those blocks via update_blocks
     kf.x, kf.P                                            # current mean and covariance
 
 * ``predict`` propagates the covariance P <- F P F^T + Q and the mean to ``x_pred`` (the EKF's
@@ -77,7 +81,7 @@ expanded, as an exactly symmetric rank-2 update (three numpy calls instead of se
 the measurement pins a direction down to less than ``JOSEPH_EXPANDED_MIN`` of its prior
 variance, where the expanded form would cancel digits and the factored product is used. With
 more than two rows (a fixed-rate step stacking many messages) numpy's per-call cost is
-amortised over the rows and the dense update is used.
+amortised over the rows and the dense update is used. Figures: docs/results/ekf_speed.md.
 """
 
 from __future__ import annotations
@@ -271,7 +275,7 @@ class KalmanCore:
                 keep.append(False)
                 nis_list.append(math.nan)
                 continue
-            verdict = self._judge(t, sensor, kind, nis, gate, i1 - i0, H[i0:i1])
+            verdict = self._judge(t, sensor, kind, nis, gate, i1 - i0, (H, i0, i1))
             if verdict == _RECOVER:
                 self._recover(t, sensor, kind, y[i0:i1].copy(), H[i0:i1], R[i0:i1, i0:i1])
                 PHt = self.P @ H.T
@@ -280,7 +284,7 @@ class KalmanCore:
                 recovered = True
             elif verdict == _REJECT:
                 log.innovations.append(_FloatInnovation(
-                    t, sensor, kind, yl[i0:i1], [r[i0:i1] for r in Sl[i0:i1]], nis, False))
+                    t, sensor, kind, tuple(yl[i0:i1]), _block_of(Sl, i0, i1), nis, False))
                 keep.append(False)
                 nis_list.append(nis)
                 continue
@@ -319,11 +323,11 @@ class KalmanCore:
         last_ok = self._last_ok
         for (sensor, kind, i0, i1, _a, _g), k, nis in zip(blocks, keep, nis_list, strict=True):
             if k:
-                last_ok[(sensor, kind)] = (t, H[i0:i1])
+                last_ok[(sensor, kind)] = (t, (H, i0, i1))
                 if recovered:
                     nis = _nis_rows(yl, Sl, i0, i1)
-                inns.append(_FloatInnovation(t, sensor, kind, yl[i0:i1],
-                                             [r[i0:i1] for r in Sl[i0:i1]], nis, True))
+                inns.append(_FloatInnovation(t, sensor, kind, tuple(yl[i0:i1]),
+                                             _block_of(Sl, i0, i1), nis, True))
         return n_acc
 
     def update_sparse(self, t: float, blocks) -> int:
@@ -339,7 +343,8 @@ class KalmanCore:
         (blocks uncorrelated with each other); returns the number of accepted blocks."""
         if len(blocks) == 1 and len(blocks[0][3]) == 1:
             return self._update_scalar(t, *blocks[0])
-        if sum(len(b[3]) for b in blocks) > 2:
+        nb = len(blocks)
+        if nb > 2 or (len(blocks[0][3]) if nb == 1 else len(blocks[0][3]) + len(blocks[1][3])) > 2:
             # a stacked step of many rows: numpy's per-call cost is amortised over them
             return self.update_dense(t, blocks)
         P = self.P
@@ -544,7 +549,7 @@ class KalmanCore:
     def _judge(self, t: float, sensor: str, kind: str, nis: float, gate, m: int, rows) -> int:
         """The gate's verdict on one block with NIS ``nis`` (m dof): _ACCEPT, _REJECT (counted)
         or _RECOVER (a lock-out: the caller inflates P and applies the block). Keeps the
-        per-(sensor, kind) rejection streaks; ``rows`` (dense H rows or sparse rows) give the
+        per-(sensor, kind) rejection streaks; ``rows`` ((H, i0, i1) or sparse rows) give the
         states the block observes, for the corroboration check."""
         self.last_nis = nis
         key = (sensor, kind)
@@ -586,7 +591,7 @@ class KalmanCore:
     def _lost(self, t: float, key: tuple[str, str], rows, streak: list) -> bool:
         """True if a lock-out of ``key`` = (sensor, kind) means the filter is lost; False if
         other accepted measurements corroborate the filter on every state this block observes
-        (``rows``: its H rows, dense or sparse)."""
+        (``rows``: its H rows, (H, i0, i1) of a dense H or sparse)."""
         support = _support(rows)
         covered: set[int] = set()
         by: list[str] = []
@@ -700,10 +705,12 @@ def _eig_min_ratio(S, R) -> float:
 
 
 def _support(rows) -> set[int]:
-    """State indices a block observes: nonzero columns of dense H rows (ndarray), or the indices
-    of sparse rows (tuples of (index, coefficient))."""
-    if isinstance(rows, np.ndarray):
-        return set(np.flatnonzero(np.any(rows != 0.0, axis=0)).tolist())
+    """State indices a block observes: the nonzero columns of rows i0:i1 of a dense H, given as
+    (H, i0, i1) (not sliced until needed: this is only asked on a lock-out), or the indices of
+    sparse rows (tuples of (index, coefficient))."""
+    if isinstance(rows[0], np.ndarray):
+        H, i0, i1 = rows
+        return set(np.flatnonzero(np.any(H[i0:i1] != 0.0, axis=0)).tolist())
     return {c for row in rows for c, a in row if a != 0.0}
 
 
@@ -733,11 +740,20 @@ def _p_times_row(P: np.ndarray, row, cache: dict) -> list:
     return acc.tolist()
 
 
+def _block_of(S: list, i0: int, i1: int) -> tuple:
+    """Rows and columns i0:i1 of the nested list S, as tuples: the innovation log keeps one per
+    update, and tuples of floats drop out of the garbage collector's scans, lists do not."""
+    if i1 == i0 + 1:
+        return ((S[i0][i0],),)
+    return tuple([tuple(r[i0:i1]) for r in S[i0:i1]])
+
+
 def _block_S(rows, U: list, r0: int, R) -> list:
     """S = H P H^T + R of one block (nested lists), from its sparse rows, U[r0 + j] = P h_j^T
     and its covariance R."""
     m = len(rows)
-    return [[_dot_row(rows[i], U[r0 + j]) + R[i][j] for j in range(m)] for i in range(m)]
+    return tuple([tuple([_dot_row(rows[i], U[r0 + j]) + R[i][j] for j in range(m)])
+                  for i in range(m)])
 
 
 def _dot_row(row, u: list) -> float:

@@ -25,11 +25,9 @@ rate); ``'euler'`` is the seed's first-order model x' = x + v cos(psi) dt,
 y' = y + v sin(psi) dt, psi' = psi + w dt.
 
 Odometry calibration: when the config gives the uncertainty of the nominal geometry
-(robot.wheel_radius_std / track_width_std), two states follow the pose, k_v and k_w (unitless):
-the true twist is (k_v v, k_w w) of the odometry's (v, w). Speed scales with the wheel radius and
-the yaw rate with radius / track, so their prior is N(1, .) with the relative uncertainties and
-correlation of ``RobotConfig.scale_std``. They are constants (no process noise); the sightings
-make them observable.
+(robot.wheel_radius_std / track_width_std), two states follow the pose, k_v and k_w
+(``ekf_baseline.calibration``): the true twist is (k_v v, k_w w) of the odometry's (v, w). The
+sightings make them observable.
 
 Process noise: the odometry's error is white from sample to sample and held for one sample
 period tau, so it adds G diag(var_v, var_w) G^T tau / dt per step of length dt, G = df/d(v, w)
@@ -48,6 +46,7 @@ import math
 import numpy as np
 
 from ekf_baseline import GIVEN_POSE_STD
+from ekf_baseline.calibration import ScaleStates
 from ekf_baseline.kalman import KalmanCore
 from estimation.config import DEFAULT_GATE, Config, load_landmark_map
 from estimation.estimator import Estimate, Estimator
@@ -160,8 +159,8 @@ class _OdometryDrivenEkf(Estimator):
         self.tau: float | None = None  # s, odometry sample period
         self._pending: list[LandmarkObservation] = []  # sightings waiting for their odometry
         # odometry scale states (k_v, k_w) follow the pose when the geometry is uncertain
-        self.scale_prior = cfg.robot.scale_std
-        self.n_base = 5 if self.scale_prior is not None else 3
+        self._scale = ScaleStates.of(cfg, 3)
+        self.n_base = 5 if self._scale else 3
         self._gates = {s.name: s.gate for s in cfg.sensors}
         if initial_pose is None and isinstance(cfg.initial_pose, tuple):
             initial_pose = cfg.initial_pose
@@ -175,13 +174,10 @@ class _OdometryDrivenEkf(Estimator):
         x0 = np.array([float(pose[0]), float(pose[1]), float(pose[2])])
         self._pose_prior = x0.copy()  # the pose before the updates at the current time
         P0 = np.diag(np.square(self.init_std))
-        if self.scale_prior is not None:
-            sd_v, sd_w, c_vw = self.scale_prior
+        if self._scale:
             x0 = np.concatenate([x0, [1.0, 1.0]])
-            P = np.zeros((5, 5))
-            P[:3, :3] = P0
-            P[3:, 3:] = [[sd_v * sd_v, c_vw], [c_vw, sd_w * sd_w]]
-            P0 = P
+            P0 = np.pad(P0, ((0, 2), (0, 2)))
+            self._scale.set_prior(x0, P0)
         self.kf = KalmanCore(x0, P0, self.log, state_angles=(2,))
 
     def _gate(self, sensor: str) -> float | None:

@@ -77,6 +77,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ekf_baseline import GIVEN_POSE_STD
+from ekf_baseline.calibration import ScaleStates
 from ekf_baseline.kalman import DEFAULT_LOCKOUT_COUNT, DEFAULT_LOCKOUT_TIME, KalmanCore
 from estimation.config import DEFAULT_GATE, Config
 from estimation.estimator import Estimate, Estimator
@@ -294,14 +295,10 @@ class UnicycleEkf(Estimator):
             names.append("hoff" if len(imus_h) == 1 else f"hoff:{s.name}")
             walks.append(s.noise.get("heading_offset_walk", self.noise.heading_offset) ** 2)
         self._walks = tuple(walks)
-        # odometry scale states (module docstring) when the config states the geometry's
-        # uncertainty and a sensor gives odometry
-        self._scale_prior = cfg.robot.scale_std if (
-            cfg.of_kind("odometry") or cfg.of_kind("wheels")) else None
-        self._ks = None
-        if self._scale_prior is not None:
-            self._ks = len(names)
-            names += ["k_v", "k_w"]
+        # odometry scale states (ekf_baseline.calibration) when the config states the
+        # geometry's uncertainty and a sensor gives odometry
+        self._scale = ScaleStates.append_to(cfg, names)
+        self._ks = self._scale.index if self._scale else None
         self.state_names = tuple(names)
         self.n = len(names)
         self._hoff_states = tuple(i for i, nm in enumerate(names) if nm.startswith("hoff"))
@@ -443,12 +440,8 @@ class UnicycleEkf(Estimator):
             P0[i, i] = self.bias_std0**2
         for i in self._hoff_states:
             P0[i, i] = _PI * _PI / 3.0  # uniform on the circle until initialised from a Heading
-        if self._ks is not None:
-            k = self._ks
-            sd_v, sd_w, c_vw = self._scale_prior
-            x0[k] = x0[k + 1] = 1.0
-            P0[k, k], P0[k + 1, k + 1] = sd_v * sd_v, sd_w * sd_w
-            P0[k, k + 1] = P0[k + 1, k] = c_vw
+        if self._scale:
+            self._scale.set_prior(x0, P0)
         self.kf = KalmanCore(x0, P0, self.log, state_angles=(2, *self._hoff_states),
                              lockout_count=self._lockout[0], lockout_time=self._lockout[1])
         self.t = t

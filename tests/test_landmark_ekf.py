@@ -389,3 +389,37 @@ def test_slam_first_estimates_jacobians_keep_heading_unobservable():
         min_var[cls.__name__] = min(v) / var0
     assert min_var["LandmarkSlamEkf"] > 0.9, min_var
     assert min_var["StandardSlam"] < 0.8, min_var
+
+
+def test_prediction_jacobian_with_scale_states_matches_central_differences():
+    """d(pose after a step)/d(x, y, psi, k_v, k_w) as predict_to hands it to the core, for the
+    known-map filter (the SLAM filter's first-estimates Jacobian differs on purpose)."""
+    cfg = make_cfg()
+    cfg.robot.wheel_radius, cfg.robot.track_width = 0.1, 0.5
+    cfg.robot.wheel_radius_std, cfg.robot.track_width_std = 0.005, 0.025
+    ekf = LandmarkEkf(cfg, initial_pose=(1.0, -2.0, 2.9), landmarks=LANDMARKS)
+    ekf.v, ekf.w, ekf.v_var, ekf.w_var = 0.8, -0.6, 0.01, 0.01
+    x0 = np.array([1.0, -2.0, 2.9, 1.03, 0.95])
+    got = {}
+
+    class Stub:  # stands in for the KalmanCore: records what the prediction hands it
+        n = 5
+
+        def predict(self, F, Q, x_pred):
+            got["F"], got["x"] = F.copy(), np.array(x_pred)
+
+    ekf.kf = Stub()
+
+    def step(x):
+        ekf.kf.x, ekf.t = x.copy(), 0.0
+        ekf.predict_to(0.3)
+        out = got["x"].copy()
+        out[2] = x[2] + ((out[2] - x[2] + math.pi) % (2 * math.pi) - math.pi)
+        return out
+
+    step(x0)
+    F = got["F"]
+    h = 1e-6
+    num = np.array([(step(x0 + h * e) - step(x0 - h * e)) / (2 * h) for e in np.eye(5)]).T
+    np.testing.assert_allclose(F, num, atol=1e-6)
+    assert abs(F[0, 3]) > 0.1 and abs(F[2, 4]) > 0.1  # the scale columns are really there
