@@ -92,6 +92,7 @@ from functools import lru_cache
 import numpy as np
 from scipy.stats import chi2
 
+from estimation.config import DEFAULT_LOCKOUT_COUNT, DEFAULT_LOCKOUT_TIME
 from estimation.estimator import EstimatorLog, Innovation
 
 __all__ = [
@@ -102,8 +103,6 @@ __all__ = [
     "DEFAULT_RECOVERY_HOLDOFF",
 ]
 
-DEFAULT_LOCKOUT_COUNT = 5  # consecutive gate rejections of one sensor ...
-DEFAULT_LOCKOUT_TIME = 1.0  # ... spanning at least this many seconds => locked out
 DEFAULT_RECOVERY_HOLDOFF = 10.0  # s before a second recovery of the same (sensor, kind); doubles
 MAX_INFLATION = 1e12  # largest covariance scale factor tried by the recovery
 # update_sparse evaluates the Joseph form expanded when eig_min(S^-1 R) is at least this (the

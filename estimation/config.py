@@ -59,6 +59,11 @@ NOISE_KEYS = {
 }
 WALK_KEYS = ("gyro_bias_walk", "heading_offset_walk")  # noise keys that may be 0 (constant)
 DEFAULT_GATE = 0.9999
+# Gate lock-out rule shared by the EKFs (ekf_baseline.kalman) and the smoother's GPS gate: this
+# many consecutive rejections of one sensor spanning at least this long mean the estimate, not
+# the sensor, is wrong.
+DEFAULT_LOCKOUT_COUNT = 5
+DEFAULT_LOCKOUT_TIME = 1.0  # s
 
 
 @dataclass

@@ -45,7 +45,13 @@ import gtsam
 import numpy as np
 from scipy.stats import chi2
 
-from estimation.config import DEFAULT_GATE, Config, SensorConfig
+from estimation.config import (
+    DEFAULT_GATE,
+    DEFAULT_LOCKOUT_COUNT,
+    DEFAULT_LOCKOUT_TIME,
+    Config,
+    SensorConfig,
+)
 from estimation.estimator import Estimate, Estimator, Innovation, wrap_angle
 from estimation.measurements import (
     GpsFix,
@@ -64,11 +70,6 @@ from factors.state import BG, DIM, HOFF, NAMES, PSI
 MIN_KEYFRAME_DT = 0.1  # s: closer absolute measurements share a keyframe
 INIT_DISTANCE = 5.0  # m of GPS travel before the heading is taken from the GPS course
 STALE_HEADING = 0.5  # s: a heading sample older than this at a keyframe is not used
-# A GPS fix whose innovation fails the sensor's chi-square gate is not fused, as in the EKF,
-# unless the fixes have disagreed with the estimate this many times in a row over at least this
-# long: then the estimate, not the GPS, is what is wrong (same rule as ekf_baseline.kalman).
-GATE_LOCKOUT_COUNT = 5
-GATE_LOCKOUT_TIME = 1.0  # s
 
 
 @dataclass
@@ -388,13 +389,15 @@ class FixedLagSmoother(Estimator):
             self._add(gps_factor(self.key(k), e, n, _robust(self.cfg, s, sig), s.lever_arm, dt))
 
     def _gate(self, m: GpsFix, s: SensorConfig, nis: float) -> bool:
-        """Whether to fuse a fix with innovation ``nis`` (logged; rejections counted)."""
+        """Whether to fuse a fix with innovation ``nis`` (logged; rejections counted): not when
+        it fails the sensor's chi-square gate, as in the EKF, unless the lock-out rule of
+        ``estimation.config`` says the estimate, not the GPS, is what is wrong."""
         if s.gate is None or nis <= _gate_radius(s.gate, 2) ** 2:
             self._streak.pop(m.sensor, None)
             return True
         first, count = self._streak.get(m.sensor, (m.t, 0))
         count += 1
-        if count >= GATE_LOCKOUT_COUNT and m.t - first >= GATE_LOCKOUT_TIME:
+        if count >= DEFAULT_LOCKOUT_COUNT and m.t - first >= DEFAULT_LOCKOUT_TIME:
             self._streak.pop(m.sensor, None)
             self.log.rejected[(m.sensor, "lockout_recovery")] += 1
             self.log.note(m.t, f"{m.sensor}: {count} fixes in a row failed the gate over "
