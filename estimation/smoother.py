@@ -1,24 +1,32 @@
 """ISAM2 fixed-lag smoother over keyframes (gtsam.IncrementalFixedLagSmoother).
 
 Design (from shared/notes/gtsam-smoother-design-study.md, measured there as the fastest that keeps
-velocity and biases as states): one 7-vector key per keyframe, ``[x, y, psi, v, w, bg, hoff]``
-(``factors.state``), and few factors per keyframe:
+velocity and biases as states): one 9-vector key per keyframe,
+``[x, y, psi, v, w, bg, hoff, k_v, k_w]`` (``factors.state``), and few factors per keyframe:
 
 * wheel speed and yaw rate between keyframes are folded into one preintegrated factor
-  (``factors.preintegration``) with first-order gyro-bias correction; its last sample ties the
-  keyframe's v and w. When both a gyro and an odometry (or wheel-speed) yaw rate are configured,
-  each integration step uses their inverse-variance weighted mean, the gyro's weight being the
-  share of the gyro bias the fused rate carries. A held sample's error is the same over its whole
-  period T, so its variance enters as a density var * T (per step of dt: var * T / dt);
+  (``factors.preintegration``) with first-order corrections for the gyro bias and the odometry's
+  speed and yaw-rate scales; its last sample ties the keyframe's v and w. Wheel odometry is the
+  mean over the interval since its previous sample, stamped at the end, so it is held backward
+  over that interval (messages inside it wait for it, see ``process``); gyro samples are
+  instantaneous and held forward. When both a gyro and an odometry (or wheel-speed) yaw rate are
+  configured, each integration step uses their inverse-variance weighted mean, the gyro's weight
+  being the share of the gyro bias the fused rate carries. A held sample's error is the same over
+  its whole period T, so its variance enters as a density var * T (per step of dt: var * T / dt);
 * a GPS fix is a GPS factor (lever arm; motion-compensated when it does not fall on the keyframe;
   robust noise from the config), unless its innovation against the prediction fails the
   sensor's chi-square gate (as in the EKF, with the same lock-out rule);
-* with both a gyro and an odometry yaw rate, the mean of their difference over the interval is
-  a measurement of the gyro bias (a prior on that component only), which the fused rate alone
-  would not carry;
-* the absolute heading sample nearest each keyframe is one heading factor (with the offset state
-  when ``heading_offset: estimate``);
+* with both a gyro and an odometry yaw rate, the mean gyro rate minus k_w times the mean
+  odometry rate over the interval is a measurement of the gyro bias, which the fused rate alone
+  would not carry (``factors.gyro.bias_difference_factor``);
+* the absolute heading samples of the interval, each carried to the keyframe by the
+  preintegrated yaw and averaged, are one heading factor (with the offset state when
+  ``heading_offset: estimate``);
 * a landmark sighting is a range/bearing (or range-only) factor to the known map position.
+
+Process noise is what the config states, as for the EKFs: the robot's slip densities
+(robot.slip), the IMU's bias and offset walks, the geometry's uncertainty (robot.wheel_radius_std,
+track_width_std: the prior of k_v, k_w, else they are held at 1); see ``SmootherNoise``.
 
 Keyframes: ``smoother.keyframe: gps`` puts one at each GPS fix or landmark sighting (at most one
 per ``MIN_KEYFRAME_DT``), and one after ``1/keyframe_rate`` s without any (so dead reckoning
@@ -38,7 +46,7 @@ with it gives the initial heading; the buffer is then replayed.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 
 import gtsam
@@ -62,14 +70,25 @@ from estimation.measurements import (
     WheelSpeeds,
 )
 from factors.gps import gps_factor
+from factors.gyro import bias_difference_factor
 from factors.heading import heading_factor
+from factors.kinematics import se2_step_jac
 from factors.landmark import range_bearing_factor, range_factor
 from factors.preintegration import WheelGyroPreintegration, preintegrated_factor
-from factors.state import BG, DIM, HOFF, NAMES, PSI
+from factors.state import BG, DIM, HOFF, KV, KW, NAMES, PSI
 
 MIN_KEYFRAME_DT = 0.1  # s: closer absolute measurements share a keyframe
 INIT_DISTANCE = 5.0  # m of GPS travel before the heading is taken from the GPS course
-STALE_HEADING = 0.5  # s: a heading sample older than this at a keyframe is not used
+# m/sqrt(s), m/sqrt(s), rad/sqrt(s): the least pose noise between keyframes (see
+# SmootherNoise.from_config); a tenth of a millimetre per second, negligible against any sensor
+POSE_NOISE_FLOOR = (1e-3, 1e-3, 1e-4)
+ODOMETRY_WAIT = 0.5  # s: without odometry for this long, go on holding the last sample forward
+MAX_RECOVERIES = 3  # failed re-initialisations in a row before the smoother gives up
+# rad/s/sqrt(s), rad/sqrt(s): the least random walk of an estimated gyro bias and heading offset.
+# A keyframe interval's information on the change of the state is 1 / (walk^2 dt); at walks of
+# 1e-6 against a prior of 0.3 rad, Cholesky meets a condition number ~1e11 and gtsam declares
+# the system indeterminate. 1e-4 rad/sqrt(s) is 2 mrad over 400 s.
+WALK_FLOOR = (1e-5, 1e-4)
 
 
 @dataclass
@@ -90,14 +109,40 @@ class SmootherNoise:
     init_bg_sigma: float = 0.02  # rad/s when estimated
     init_hoff_sigma: float = 0.3  # rad when estimated (initialised from the first sample)
     fixed_sigma: float = 1e-4  # prior on a calibration state that is not estimated
+    # 1/sqrt(s): random walk of the odometry scales, 0.2 % over 400 s (tyre wear, load). The
+    # EKFs hold them constant; here 1e-5 already made gtsam's Cholesky declare the first
+    # keyframes indeterminate (simulated husky, seed 1), 3e-5 did not.
+    scale_rw: float = 1e-4
+
+    @classmethod
+    def from_config(cls, cfg: Config) -> SmootherNoise:
+        """The defaults with what the config states about the robot and its IMU: the body's
+        slip densities (robot.slip) and the calibration states' walks (an IMU's
+        noise.gyro_bias_walk / heading_offset_walk), the same values the EKFs read. Each is
+        floored (POSE_NOISE_FLOOR, WALK_FLOOR): a stated zero means 'negligible', but a
+        preintegrated factor with no pose noise would have a singular covariance while the
+        robot stands still."""
+        n = cls()
+        slip = cfg.robot.slip
+        pn = tuple(max(slip.get(k, d), f) for k, d, f in zip(
+            ("longitudinal", "lateral", "heading"), n.pose_noise, POSE_NOISE_FLOOR, strict=True))
+        imus = cfg.of_kind("imu")
+        bg = [s.noise["gyro_bias_walk"] for s in imus
+              if "yaw_rate" in s.use and "gyro_bias_walk" in s.noise]
+        ho = [s.noise["heading_offset_walk"] for s in imus
+              if "yaw" in s.use and "heading_offset_walk" in s.noise]
+        return replace(n, pose_noise=pn,
+                       gyro_bias_rw=max(bg[0], WALK_FLOOR[0]) if bg else n.gyro_bias_rw,
+                       heading_offset_rw=max(ho[0], WALK_FLOOR[1]) if ho else n.heading_offset_rw)
 
 
-# Relinearisation thresholds per state component (m, m, rad, m/s, rad/s, rad/s, rad). Positions
+# Relinearisation thresholds per state component (m, m, rad, m/s, rad/s, rad/s, rad, 1, 1).
+# Positions
 # and v enter every factor linearly (the GPS prior, the body-frame displacement R(psi)^T dp of the
 # preintegration), so their linearisation point hardly matters; the heading enters through sin
 # and cos, so it keeps a tight 0.05 rad (3 deg). On rl_husky_gps.bag this relinearises ~4x fewer
 # factors than thresholds of 0.1 m / 0.02 rad, with hold-out RMSE unchanged to the millimetre.
-RELINEARIZE = (1.0, 1.0, 0.05, 1.0, 0.1, 0.01, 0.05)
+RELINEARIZE = (1.0, 1.0, 0.05, 1.0, 0.1, 0.01, 0.05, 0.01, 0.01)
 
 
 def _threshold_map() -> gtsam.ISAM2ThresholdMap:
@@ -188,7 +233,7 @@ class FixedLagSmoother(Estimator):
         super().__init__()
         self.cfg = cfg
         self.lag = float(lag if lag is not None else cfg.smoother.lag)
-        self.noise = noise or SmootherNoise()
+        self.noise = noise or SmootherNoise.from_config(cfg)
         self.landmarks = dict(landmarks or {})
         self.given_pose = initial_pose
         self.sensors: dict[str, SensorConfig] = {s.name: s for s in cfg.sensors}
@@ -199,7 +244,12 @@ class FixedLagSmoother(Estimator):
                                0.0)
         heads = [s for s in cfg.of_kind("imu") if "yaw" in s.use]
         self.est_hoff = any(s.heading_offset == "estimate" for s in heads)
+        # odometry scale states, as in the EKFs (ekf_baseline.calibration): estimated when the
+        # config states how well the geometry is known and a sensor gives odometry
+        self.scale_prior = cfg.robot.scale_std if (
+            cfg.of_kind("odometry") or cfg.of_kind("wheels")) else None
         self.has_gps = bool(cfg.of_kind("gps"))
+        self.odometry_held_back = bool(cfg.of_kind("odometry") or cfg.of_kind("wheels"))
         self.keyframe_rate = cfg.smoother.keyframe_rate
         self.kf_policy = cfg.smoother.keyframe
         self._lagged: list[Estimate] = []
@@ -222,14 +272,22 @@ class FixedLagSmoother(Estimator):
         self.v_var = self.wo_var = self.wg_var = 0.0
         self.v_q = self.wo_q = self.wg_q = 0.0
         self.sample_t: dict[tuple[str, str], float] = {}  # (sensor, quantity) -> last stamp
-        # integral of (gyro - odometry yaw rate) dt since the newest keyframe, its duration,
-        # and the summed noise density of the two rates (see _advance)
-        self._diff_int = self._diff_t = self._diff_q = 0.0
+        # integrals of the gyro and the odometry yaw rate dt since the newest keyframe while both
+        # are held, that time, and the summed noise density of the two rates (see _advance)
+        self._int_g = self._int_o = self._diff_t = self._diff_q = 0.0
         self.heading: Heading | None = None
+        # heading samples since the newest keyframe: sensor, the first one carried back to the
+        # keyframe (rad), the sum of the others' wrapped differences from it, summed variances
+        self._h_n = 0
+        self._h_sensor, self._h_ref, self._h_sum, self._h_var = "", 0.0, 0.0, 0.0
+        self._held: list = []  # messages since the last odometry sample, waiting for the next
+        self._now = -math.inf  # stamp of the newest message seen
         self._streak: dict[str, tuple[float, int]] = {}  # sensor -> (first t, gate rejections)
         self.pending_graph = gtsam.NonlinearFactorGraph()
         self.pending_values = gtsam.Values()
         self.pending_stamps: dict[int, float] = {}
+        self._scale_belief: tuple[np.ndarray, np.ndarray] | None = None  # (k_v, k_w), 2x2 cov
+        self._recoveries = 0  # re-initialisations since the last successful update
         if self.keep_all:
             self.all_graph = gtsam.NonlinearFactorGraph()
             self.all_values = gtsam.Values()
@@ -239,17 +297,27 @@ class FixedLagSmoother(Estimator):
         return gtsam.symbol("x", k)
 
     def _init_state(self, t: float, pose: tuple[float, float, float], pos_sigma: float,
-                    psi_sigma: float) -> None:
+                    psi_sigma: float, scale: tuple[np.ndarray, np.ndarray] | None = None
+                    ) -> None:
         n = self.noise
-        x0 = np.array([pose[0], pose[1], pose[2], self.v or 0.0, 0.0, self.fixed_bias, 0.0])
+        x0 = np.array([pose[0], pose[1], pose[2], self.v or 0.0, 0.0, self.fixed_bias, 0.0,
+                       1.0, 1.0])
         if self.est_hoff and self.heading is not None:
             x0[HOFF] = wrap_angle(self.heading.yaw - pose[2])
         sig = [pos_sigma, pos_sigma, psi_sigma, n.init_v_sigma, n.init_w_sigma,
                n.init_bg_sigma if self.est_bias else n.fixed_sigma,
-               n.init_hoff_sigma if self.est_hoff else n.fixed_sigma]
+               n.init_hoff_sigma if self.est_hoff else n.fixed_sigma,
+               n.fixed_sigma, n.fixed_sigma]
+        cov0 = np.diag(np.square(sig))
+        if scale is not None:  # a re-initialisation keeps the scales it had learnt
+            x0[KV:], cov0[KV:, KV:] = scale
+        elif self.scale_prior is not None:
+            sd_v, sd_w, c_vw = self.scale_prior
+            cov0[KV:, KV:] = ((max(sd_v, n.fixed_sigma) ** 2, c_vw),
+                              (c_vw, max(sd_w, n.fixed_sigma) ** 2))
         self.k += 1  # keys stay unique across re-initialisations (the batch keeps them all)
         key = self.key(self.k)
-        prior = gtsam.PriorFactorVector(key, x0, gtsam.noiseModel.Diagonal.Sigmas(np.array(sig)))
+        prior = gtsam.PriorFactorVector(key, x0, gtsam.noiseModel.Gaussian.Covariance(cov0))
         self._add(prior)
         self.pending_values.insert(key, x0)
         self.pending_stamps[key] = t
@@ -257,7 +325,8 @@ class FixedLagSmoother(Estimator):
         self.all_kf_t[self.k] = t
         self.kf_state = x0
         self.kf_cov = np.diag(np.square(sig[:3]))
-        self.pim.reset(x0[BG])
+        self.pim.reset(x0[BG], x0[KV], x0[KW])
+        self._h_n = 0
         self.initialised = True
         self.last_t = t
         self._flush()
@@ -270,20 +339,53 @@ class FixedLagSmoother(Estimator):
         if not self.initialised:
             self._process_uninitialised(m)
             return
-        self._advance(m.t)
-        if isinstance(m, WheelOdometry):
-            if m.v is not None:
-                self.v, self.v_var, self.v_q = m.v, m.v_var, self._density(m, "v", m.v_var)
-            if m.yaw_rate is not None:
-                self.wo, self.wo_var = m.yaw_rate, m.yaw_rate_var
-                self.wo_q = self._density(m, "w", m.yaw_rate_var)
-        elif isinstance(m, WheelSpeeds):
+        self._now = max(self._now, m.t)
+        if isinstance(m, (WheelOdometry, WheelSpeeds)):
+            # Wheel odometry is the mean over the interval since its previous sample, stamped at
+            # the interval's end (encoder counts over a control period): it is held BACKWARD
+            # over that interval, so the messages that arrived inside it are integrated now.
+            # Held forward instead, the odometry lags by a period (0.1 s at 10 Hz); on the
+            # simulated husky that alone costs 45 % of the position RMSE.
+            self._set_odometry(m)
+            held, self._held = self._held, []
+            for b in held:
+                self._step(b)
+            self._step(m)
+            return
+        if self.odometry_held_back:
+            self._held.append(m)
+            if m.t - self._held[0].t > ODOMETRY_WAIT:  # odometry stopped: hold the last forward
+                held, self._held = self._held, []
+                for b in held:
+                    self._step(b)
+            return
+        self._step(m)
+
+    def _set_odometry(self, m) -> None:
+        if isinstance(m, WheelSpeeds):
             self._wheel_speeds(m)
-        elif isinstance(m, GyroYawRate):
+            return
+        if m.v is not None:
+            self.v, self.v_var, self.v_q = m.v, m.v_var, self._density(m, "v", m.v_var)
+        if m.yaw_rate is not None:
+            self.wo, self.wo_var = m.yaw_rate, m.yaw_rate_var
+            self.wo_q = self._density(m, "w", m.yaw_rate_var)
+
+    def _step(self, m) -> None:
+        """Integrate up to ``m.t`` and use ``m`` (odometry already set by ``process``)."""
+        self._advance(m.t)
+        if isinstance(m, GyroYawRate):
             if m.sensor in self.gyro_names:
                 self.wg, self.wg_var, self.wg_q = m.yaw_rate, m.var, self._density(m, "w", m.var)
         elif isinstance(m, Heading):
             self.heading = m
+            if self._h_n == 0 or m.sensor == self._h_sensor:
+                u = m.yaw - self.pim.dpsi  # carried back to the interval's start
+                if self._h_n == 0:
+                    self._h_sensor, self._h_ref, self._h_sum, self._h_var = m.sensor, u, 0.0, 0.0
+                self._h_sum += wrap_angle(u - self._h_ref)
+                self._h_var += m.var
+                self._h_n += 1
         elif isinstance(m, (GpsFix, LandmarkObservation)):
             self._absolute(m)
             return
@@ -309,19 +411,21 @@ class FixedLagSmoother(Estimator):
         self.wo_var = r * r * (m.left_var + m.right_var) / (L * L)
         self.wo_q = self._density(m, "w", self.wo_var)
 
-    def _yaw_rate(self) -> tuple[float, float, float, float] | None:
-        """The yaw rate to integrate: (value as measured rad/s, per-sample variance, density,
-        gyro-bias gain), fusing the gyro and the odometry yaw rate when both are held."""
+    def _yaw_rate(self) -> tuple[float, float, float, float, float] | None:
+        """The yaw rate to integrate, fusing the gyro and the odometry yaw rate when both are
+        held: (gyro part rad/s, odometry part rad/s, per-sample variance, density, gyro-bias
+        gain). The gyro part carries the bias with that gain, the odometry part the odometry's
+        yaw-rate scale (``factors.preintegration``)."""
         wg, wo = self.wg, self.wo
         if wg is not None and wo is not None:
             qg, qo = self.wg_q, self.wo_q
             a = qo / (qo + qg)  # the gyro's weight
             var = self.wg_var * self.wo_var / (self.wg_var + self.wo_var)
-            return a * wg + (1.0 - a) * wo, var, qg * qo / (qg + qo), a
+            return a * wg, (1.0 - a) * wo, var, qg * qo / (qg + qo), a
         if wg is not None:
-            return wg, self.wg_var, self.wg_q, 1.0
+            return wg, 0.0, self.wg_var, self.wg_q, 1.0
         if wo is not None:
-            return wo, self.wo_var, self.wo_q, 0.0
+            return 0.0, wo, self.wo_var, self.wo_q, 0.0
         return None
 
     def _advance(self, t: float) -> None:
@@ -331,16 +435,17 @@ class FixedLagSmoother(Estimator):
             return
         yr = self._yaw_rate() if self.v is not None else None
         if yr is not None:
-            w, w_var, w_q, gain = yr
+            wg, wo, w_var, w_q, gain = yr
             pim = self.pim
-            pim.integrate(dt, self.v, w, self.v_q / dt, w_q / dt, gain)
+            pim.integrate(dt, self.v, wg, self.v_q / dt, w_q / dt, gain, wo)
             # The keyframe's v, w rows compare with the last sample itself, not with its share
             # of one integration step.
             pim.last_var_v, pim.last_var_w = self.v_var, w_var
             if 0.0 < gain < 1.0:
-                # gyro - odometry = bias + noise, independent of the fused mean integrated
+                # gyro - k_w odometry = bias + noise, independent of the fused mean integrated
                 # above: the bias information the fusion would otherwise throw away
-                self._diff_int += (self.wg - self.wo) * dt
+                self._int_g += self.wg * dt
+                self._int_o += self.wo * dt
                 self._diff_t += dt
                 self._diff_q = self.wg_q + self.wo_q
         self.last_t = t
@@ -469,44 +574,48 @@ class FixedLagSmoother(Estimator):
             ki, kj, self.pim,
             gyro_bias_rw=n.gyro_bias_rw if self.est_bias else n.fixed_rw,
             heading_offset_rw=n.heading_offset_rw if self.est_hoff else n.fixed_rw,
-            pose_noise=n.pose_noise))
+            pose_noise=n.pose_noise, scale_rw=n.scale_rw))
         guess = self.pim.predict(self.kf_state)
-        pose, cov = _compose(self.kf_state, self.pim.delta_at(self.kf_state[BG]),
-                             self.pim.covariance, self.kf_cov)
+        pose, cov = _compose(self.kf_state, self._delta(self.kf_state), self.pim.covariance,
+                             self.kf_cov)
         self.pending_values.insert(kj, guess)
         self.pending_stamps[kj] = t
         self.kf_t[j] = t
         self.all_kf_t[j] = t
         self.k = j
         self.kf_state, self.kf_cov = guess, cov
-        h = self.heading
-        if h is not None and abs(h.t - t) <= STALE_HEADING:
-            s = self.sensors[h.sensor]
-            z = h.yaw + guess[4] * (t - h.t)  # carried to the keyframe time by the yaw rate
+        if self._h_n:
+            # the interval's heading samples, each carried to this keyframe by the
+            # preintegrated yaw since it, averaged: one factor with variance var / n
+            s = self.sensors[self._h_sensor]
+            nh = self._h_n
+            z = self._h_ref + self._h_sum / nh + self.pim.dpsi
+            var = self._h_var / (nh * nh)
             if s.heading_offset == "estimate":
-                f = heading_factor(kj, z, math.sqrt(h.var), use_offset=True)
+                f = heading_factor(kj, z, math.sqrt(var), use_offset=True)
                 pred = guess[PSI] + guess[HOFF]
             else:
                 z -= float(s.heading_offset)
-                f = heading_factor(kj, z, math.sqrt(h.var), use_offset=False)
+                f = heading_factor(kj, z, math.sqrt(var), use_offset=False)
                 pred = guess[PSI]
             res = np.array([wrap_angle(z - pred)])
-            scov = np.array([[cov[2, 2] + h.var]])
+            scov = np.array([[cov[2, 2] + var]])
             self.log.innovations.append(Innovation(
-                h.t, h.sensor, "heading", res, scov, float(res[0] ** 2 / scov[0, 0]), True))
+                t, self._h_sensor, "heading", res, scov, float(res[0] ** 2 / scov[0, 0]), True))
             self._add(f)
-            self.heading = None
+            self._h_n = 0
         if self.est_bias and self._diff_t > 0.0:
-            # mean of (gyro - odometry yaw rate) over the interval: a measurement of the gyro
-            # bias with variance density / time; a built-in prior on the bias component only
-            prec = np.zeros(DIM)
-            prec[BG] = self._diff_t / self._diff_q
-            target = np.zeros(DIM)
-            target[BG] = self._diff_int / self._diff_t
-            self._add(gtsam.PriorFactorVector(kj, target,
-                                              gtsam.noiseModel.Diagonal.Precisions(prec)))
-        self._diff_int = self._diff_t = 0.0
-        self.pim.reset(guess[BG])
+            # mean gyro - k_w x mean odometry yaw rate over the interval: a measurement of the
+            # gyro bias with variance density / time
+            T = self._diff_t
+            self._add(bias_difference_factor(kj, self._int_g / T, self._int_o / T,
+                                             math.sqrt(self._diff_q / T)))
+        self._int_g = self._int_o = self._diff_t = 0.0
+        self.pim.reset(guess[BG], guess[KV], guess[KW])
+
+    def _delta(self, st) -> tuple[float, float, float]:
+        """The partial preintegrated increment at the biases and scales of state ``st``."""
+        return self.pim.delta_at(float(st[BG]), float(st[KV]), float(st[KW]))
 
     def _flush(self) -> None:
         """Send the pending factors and values to the smoother; capture what leaves the window."""
@@ -528,7 +637,10 @@ class FixedLagSmoother(Estimator):
             self.pending_stamps = {}
         key = self.key(self.k)
         self.kf_state = self.smoother.calculateEstimateVector(key)
-        self.kf_cov = self.smoother.marginalCovariance(key)[:3, :3]
+        full = self.smoother.marginalCovariance(key)
+        self.kf_cov = full[:3, :3]
+        self._scale_belief = (self.kf_state[KV:].copy(), full[KV:, KV:].copy())
+        self._recoveries = 0
 
     def _capture_leaving(self, t_cut: float) -> None:
         leaving = [j for j, tj in self.kf_t.items() if tj < t_cut and j != self.k]
@@ -548,7 +660,14 @@ class FixedLagSmoother(Estimator):
     def _recover(self, reason: str) -> None:
         """gtsam failed (indeterminate system, ...): restart from the last good estimate."""
         t = self.kf_t[self.k]
-        self.log.note(t, f"smoother re-initialised after gtsam error: {reason.splitlines()[0]}")
+        first = reason.splitlines()[0] if reason else "gtsam error"
+        self._recoveries += 1
+        if self._recoveries > MAX_RECOVERIES:
+            # re-initialising from the same estimate keeps failing: stop this estimator (the
+            # runner keeps what it estimated and the other estimators go on)
+            raise RuntimeError(f"smoother: {MAX_RECOVERIES} re-initialisations in a row failed "
+                               f"at t={t:.3f} ({first})")
+        self.log.note(t, f"smoother re-initialised after gtsam error: {first}")
         self.log.rejected[("smoother", "gtsam error, re-initialised")] += 1
         state, cov = self.kf_state, self.kf_cov
         self.smoother = gtsam.IncrementalFixedLagSmoother(self.lag, isam2_params())
@@ -558,7 +677,7 @@ class FixedLagSmoother(Estimator):
         self.pending_stamps = {}
         sig = np.sqrt(np.maximum(np.diag(cov), 1e-6)) * 2.0
         self._init_state(t, (state[0], state[1], state[2]), float(max(sig[0], sig[1])),
-                         float(sig[2]))
+                         float(sig[2]), self._scale_belief)
 
     # --- initialisation from GPS course -------------------------------------------------------
     def _process_uninitialised(self, m) -> None:
@@ -633,18 +752,32 @@ class FixedLagSmoother(Estimator):
 
     # --- outputs ----------------------------------------------------------------------------
     def estimate(self) -> Estimate | None:
+        """The filtered estimate at the newest message's stamp: the newest keyframe composed
+        with the partial preintegration up to the last odometry sample, then the held twist
+        carried forward over the messages still waiting for the next odometry sample."""
         if not self.initialised or self.kf_state is None:
             return None
         st = self.kf_state
-        pose, cov = _compose(st, self.pim.delta_at(st[BG]), self.pim.covariance, self.kf_cov)
-        return Estimate(self.last_t, (pose[0], pose[1], wrap_angle(pose[2])), cov, st.copy(),
-                        None, NAMES)
+        pose, cov = _compose(st, self._delta(st), self.pim.covariance, self.kf_cov)
+        t = self.last_t
+        ahead = self._now - t
+        if ahead > 0.0 and self.v is not None:
+            yr = self._yaw_rate()
+            if yr is not None:
+                wg, wo, _, _, gain = yr
+                x1, y1, p1, _ = se2_step_jac(pose[0], pose[1], pose[2], st[KV] * self.v,
+                                             wg - gain * st[BG] + st[KW] * wo, ahead)
+                pose, t = (x1, y1, p1), self._now
+        return Estimate(t, (pose[0], pose[1], wrap_angle(pose[2])), cov, st.copy(), None, NAMES)
 
     def finish(self) -> None:
         if not self.initialised:
             self.log.note(self.buffer[-1].t if self.buffer else 0.0,
                           "never initialised: the GPS track never moved far enough")
             return
+        held, self._held = self._held, []
+        for b in held:
+            self._step(b)
         if self.pim.n > 0:
             self._new_keyframe(self.last_t)
             self._flush()

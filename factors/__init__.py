@@ -1,6 +1,6 @@
 """GTSAM factors for a differential-drive robot. Imports nothing else of ddfuse.
 
-State: one gtsam Vector key per keyframe, the 7-vector [x, y, psi, v, w, bg, hoff] of
+State: one gtsam Vector key per keyframe, the 9-vector [x, y, psi, v, w, bg, hoff, k_v, k_w] of
 ``factors.state`` (world = local ENU frame).
 
 Modules (import them directly; this package imports nothing eagerly so that the pure-math

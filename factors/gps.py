@@ -34,7 +34,7 @@ def gps_predict(
     lever_arm: tuple[float, float] = (0.0, 0.0),
     dt_fix: float = 0.0,
 ) -> tuple[float, float]:
-    """Predicted antenna position (east, north), m, for a 7-state; reference helper."""
+    """Predicted antenna position (east, north), m, for a 9-state; reference helper."""
     x, y, psi, v, w = state[:5]
     a = w * dt_fix
     s, c, _, _ = twist_coeffs(a)
@@ -59,13 +59,13 @@ def gps_factor(
     """GPS factor.
 
     Args:
-        key: 7-vector state key (``factors.state``).
+        key: 9-vector state key (``factors.state``).
         east, north: fix position in the local ENU frame, m.
         noise: 2-D noise model or sigma(s), m; pass a robust model for outlier rejection.
         lever_arm: antenna (lx, ly) in the body frame, m.
         dt_fix: fix time - keyframe time, s.
 
-    Returns a ``gtsam.CustomFactor`` with the 2-D error of the module docstring and a 2x7 Jacobian
+    Returns a ``gtsam.CustomFactor`` with the 2-D error of the module docstring and a 2x9 Jacobian
     (zero in the bg and hoff columns).
     """
     zx = float(east)
@@ -76,7 +76,7 @@ def gps_factor(
     cos = math.cos
     sin = math.sin
     # gtsam copies Jacobians and errors into Eigen objects, so these buffers are reused; flat
-    # memoryview writes (index 7 r + c) are ~3x cheaper than numpy item assignment.
+    # memoryview writes (index DIM r + c) are ~3x cheaper than numpy item assignment.
     h = np.zeros((2, DIM))
     h[0, 0] = h[1, 1] = 1.0
     mh = memoryview(h.reshape(-1))
@@ -104,7 +104,7 @@ def gps_factor(
                 ry = sn * lx + c * ly
                 if H is not None:
                     mh[2] = -ry
-                    mh[9] = rx
+                    mh[DIM + 2] = rx
                     H[0] = h
                 me[0] = x + rx - zx
                 me[1] = y + ry - zy
@@ -138,11 +138,11 @@ def gps_factor(
             ws = dd * ds
             wc = dd * dc
             mh[2] = -ey - ry
-            mh[9] = ex + rx
+            mh[DIM + 2] = ex + rx
             mh[3] = cp * vs - sp * vc
-            mh[10] = sp * vs + cp * vc
+            mh[DIM + 3] = sp * vs + cp * vc
             mh[4] = cp * ws - sp * wc - ry * dt
-            mh[11] = sp * ws + cp * wc + rx * dt
+            mh[DIM + 4] = sp * ws + cp * wc + rx * dt
             H[0] = h
         me[0] = x + ex + rx - zx
         me[1] = y + ey + ry - zy

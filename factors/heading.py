@@ -35,7 +35,7 @@ def heading_factor(
     """Absolute heading factor.
 
     Args:
-        key: 7-vector state key (``factors.state``).
+        key: 9-vector state key (``factors.state``).
         heading_meas: measured heading, rad, CCW from east (any range; it is wrapped).
         noise: 1-D noise model or sigma (rad); may be robust.
         use_offset: model the sensor's heading offset ``hoff`` (default) or not.

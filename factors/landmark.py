@@ -14,10 +14,10 @@ known mount yaw from the measured bearing before calling).
 Two flavours:
 
 * known landmark (1 key: the state) — the landmark position is a constant of the factor;
-* SLAM (2 keys: the state and a ``gtsam.Point2`` landmark key), Jacobian 2x7 and 2x2.
+* SLAM (2 keys: the state and a ``gtsam.Point2`` landmark key), Jacobian 2x9 and 2x2.
 
 GTSAM's ``BearingRangeFactor2D`` / ``RangeFactor2D`` need a Pose2 key, so they do not apply to the
-7-vector state (``factors.state``); these CustomFactors implement the same model on it.
+9-vector state (``factors.state``); these CustomFactors implement the same model on it.
 At zero range the bearing and the Jacobians are undefined; the range is floored at 1e-9 m to avoid
 a division by zero, which keeps the factor finite but meaningless there.
 """
@@ -50,7 +50,7 @@ def range_bearing_predict(
     landmark: tuple[float, float],
     sensor_offset: tuple[float, float] = (0.0, 0.0),
 ) -> tuple[float, float]:
-    """Predicted (range m, bearing rad in [-pi, pi)) of ``landmark`` from a 7-state."""
+    """Predicted (range m, bearing rad in [-pi, pi)) of ``landmark`` from a 9-state."""
     x, y, psi = state[:3]
     c, s = math.cos(psi), math.sin(psi)
     sx, sy = sensor_offset
@@ -78,7 +78,7 @@ def _make(
     zb = float(z_bearing) if bearing else 0.0
     dim = 2 if bearing else 1
     # gtsam copies Jacobians and errors into Eigen objects, so these buffers are reused; flat
-    # memoryview writes (index 7 r + c, 2 r + c) are ~3x cheaper than numpy item assignment.
+    # memoryview writes (index DIM r + c, 2 r + c) are ~3x cheaper than numpy item assignment.
     hs = np.zeros((dim, DIM))
     hl = np.zeros((dim, 2))
     ms = memoryview(hs.reshape(-1))
@@ -117,9 +117,9 @@ def _make(
             if bearing:
                 gb_x = -dy / r2
                 gb_y = dx / r2
-                ms[7] = -gb_x
-                ms[8] = -gb_y
-                ms[9] = gb_x * oy - gb_y * ox - 1.0
+                ms[DIM] = -gb_x
+                ms[DIM + 1] = -gb_y
+                ms[DIM + 2] = gb_x * oy - gb_y * ox - 1.0
             H[0] = hs
             if slam:
                 ml[0] = gr_x

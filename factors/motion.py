@@ -1,4 +1,4 @@
-"""Differential-drive motion factor between two consecutive keyframe states (2 keys, 7-D error).
+"""Differential-drive motion factor between two consecutive keyframe states (2 keys, 9-D error).
 
 Model (states as in ``factors.state``; i = earlier keyframe, j = later, dt = t_j - t_i > 0)::
 
@@ -15,6 +15,7 @@ Model (states as in ``factors.state``; i = earlier keyframe, j = later, dt = t_j
     e[4]   = w_j - w_i                                 rad/s
     e[5]   = bg_j - bg_i                               rad/s  gyro-bias random walk
     e[6]   = wrap(hoff_j - hoff_i)                     rad    heading-offset random walk
+    e[7:9] = k_j - k_i                                 1      odometry scales (constants)
 
 The position residual is taken in keyframe i's body frame so that longitudinal and lateral
 (slip) noise can differ; with equal sigmas it is statistically the same as a world-frame residual.
@@ -30,6 +31,7 @@ import numpy as np
 
 from factors.kinematics import twist_coeffs
 from factors.noise import NoiseLike, as_noise_model
+from factors.state import DIM
 
 __all__ = ["MotionNoise", "motion_factor", "motion_error"]
 
@@ -51,6 +53,7 @@ class MotionNoise:
     yaw_acc: rad/s^2/sqrt(Hz) — white yaw acceleration driving w.
     gyro_bias: rad/s/sqrt(s) — gyro-bias random walk.
     heading_offset: rad/sqrt(s) — heading-sensor offset random walk.
+    scale: 1/sqrt(s) — random walk of the odometry scales k_v, k_w (constants; a floor).
     """
 
     pos_long: float = 0.05
@@ -60,9 +63,10 @@ class MotionNoise:
     yaw_acc: float = 0.5
     gyro_bias: float = 1e-4
     heading_offset: float = 1e-4
+    scale: float = 1e-4
 
     def sigmas(self, dt: float, twist: str = "mean") -> tuple[float, ...]:
-        """The 7 error-row sigmas for an interval of ``dt`` seconds (units of the error rows).
+        """The 9 error-row sigmas for an interval of ``dt`` seconds (units of the error rows).
 
         The acceleration noise also enters the pose rows: with white acceleration, integrating
         the trapezoid ("mean") twist leaves an error of variance q^2 dt^3 / 12 that is
@@ -81,10 +85,12 @@ class MotionNoise:
             self.yaw_acc * math.sqrt(dt),
             self.gyro_bias * math.sqrt(dt),
             self.heading_offset * math.sqrt(dt),
+            self.scale * math.sqrt(dt),
+            self.scale * math.sqrt(dt),
         )
 
     def noise_model(self, dt: float, twist: str = "mean") -> gtsam.noiseModel.Diagonal:
-        """Diagonal gtsam noise model for ``dt`` seconds, dimension 7."""
+        """Diagonal gtsam noise model for ``dt`` seconds, dimension 9."""
         return gtsam.noiseModel.Diagonal.Sigmas(np.array(self.sigmas(dt, twist)))
 
 
@@ -94,10 +100,10 @@ def motion_error(
     dt: float,
     twist: str = "mean",
 ) -> tuple[float, ...]:
-    """The 7-D motion residual for states ``si``, ``sj`` (plain sequences); reference helper."""
+    """The 9-D motion residual for states ``si``, ``sj`` (plain sequences); reference helper."""
     ai, aj = _TWISTS[twist]
-    xi, yi, pi, vi, wi, bi, hi = si
-    xj, yj, pj, vj, wj, bj, hj = sj
+    xi, yi, pi, vi, wi, bi, hi, kvi, kwi = si
+    xj, yj, pj, vj, wj, bj, hj, kvj, kwj = sj
     a = (ai * wi + aj * wj) * dt
     s, c, _, _ = twist_coeffs(a)
     d = (ai * vi + aj * vj) * dt
@@ -113,6 +119,8 @@ def motion_error(
         wj - wi,
         bj - bi,
         (hj - hi + _PI) % _TWO_PI - _PI,
+        kvj - kvi,
+        kwj - kwi,
     )
 
 
@@ -126,13 +134,13 @@ def motion_factor(
     """Motion factor between keyframe states ``key_i`` (time t) and ``key_j`` (time t + dt).
 
     Args:
-        key_i, key_j: gtsam keys of 7-vector states (``factors.state`` layout).
+        key_i, key_j: gtsam keys of 9-vector states (``factors.state`` layout).
         dt: t_j - t_i, s, > 0.
-        noise: a ``MotionNoise`` (turned into a diagonal model for ``dt``) or any 7-D gtsam noise
+        noise: a ``MotionNoise`` (turned into a diagonal model for ``dt``) or any 9-D gtsam noise
             model / sigmas accepted by ``factors.noise.as_noise_model``.
         twist: "mean" (trapezoid, default) or "start"; see the module docstring.
 
-    Returns a ``gtsam.CustomFactor`` with the 7-D error of the module docstring.
+    Returns a ``gtsam.CustomFactor`` with the 9-D error of the module docstring.
     """
     if twist not in _TWISTS:
         raise ValueError(f"twist must be one of {sorted(_TWISTS)}, got {twist!r}")
@@ -141,7 +149,7 @@ def motion_factor(
     if isinstance(noise, MotionNoise):
         model = noise.noise_model(dt, twist)
     else:
-        model = as_noise_model(noise, 7)
+        model = as_noise_model(noise, DIM)
     ai, aj = _TWISTS[twist]
     dt = float(dt)
     cos = math.cos
@@ -150,20 +158,21 @@ def motion_factor(
     # Buffers owned by this factor: gtsam copies the returned error and the Jacobians into Eigen
     # objects, so they can be rewritten in place on every call. Element writes go through flat
     # memoryviews, ~3x cheaper than numpy item assignment.
-    hi = -np.eye(7)
-    hj = np.eye(7)
+    hi = -np.eye(DIM)
+    hj = np.eye(DIM)
     hi[2, 4] = -ai * dt
     hj[2, 4] = -aj * dt
     mi = memoryview(hi.reshape(-1))
     mj = memoryview(hj.reshape(-1))
-    e = np.zeros(7)
+    e = np.zeros(DIM)
     me = memoryview(e)
+    n = DIM
     ki = key_i
     kj = key_j
 
     def error(this, values, H):
-        xi, yi, pi, vi, wi, bi, hoi = values.atVector(ki).tolist()
-        xj, yj, pj, vj, wj, bj, hoj = values.atVector(kj).tolist()
+        xi, yi, pi, vi, wi, bi, hoi, kvi, kwi = values.atVector(ki).tolist()
+        xj, yj, pj, vj, wj, bj, hoj, kvj, kwj = values.atVector(kj).tolist()
         a = (ai * wi + aj * wj) * dt
         s, c, ds, dc = coeffs(a)
         d = (ai * vi + aj * vj) * dt
@@ -175,7 +184,7 @@ def motion_factor(
         u1 = cp * dy - sp * dx
         if H is not None:
             # d(dx_b, dy_b)/d(vm, wm) = dt (S, C), d dt (S', C'); chain rule through a_i, a_j.
-            # Flat index 7 r + c is row r, column c.
+            # Flat index n r + c is row r, column c.
             ts = dt * s
             tc = dt * c
             dds = d * dt * ds
@@ -185,19 +194,19 @@ def motion_factor(
             mi[2] = u1
             mi[3] = -ai * ts
             mi[4] = -ai * dds
-            mi[7] = sp
-            mi[8] = -cp
-            mi[9] = -u0
-            mi[10] = -ai * tc
-            mi[11] = -ai * ddc
+            mi[n] = sp
+            mi[n + 1] = -cp
+            mi[n + 2] = -u0
+            mi[n + 3] = -ai * tc
+            mi[n + 4] = -ai * ddc
             mj[0] = cp
             mj[1] = sp
             mj[3] = -aj * ts
             mj[4] = -aj * dds
-            mj[7] = -sp
-            mj[8] = cp
-            mj[10] = -aj * tc
-            mj[11] = -aj * ddc
+            mj[n] = -sp
+            mj[n + 1] = cp
+            mj[n + 3] = -aj * tc
+            mj[n + 4] = -aj * ddc
             H[0] = hi
             H[1] = hj
         me[0] = u0 - d * s
@@ -207,6 +216,8 @@ def motion_factor(
         me[4] = wj - wi
         me[5] = bj - bi
         me[6] = (hoj - hoi + _PI) % _TWO_PI - _PI
+        me[7] = kvj - kvi
+        me[8] = kwj - kwi
         return e
 
     return gtsam.CustomFactor(model, [key_i, key_j], error)

@@ -2,44 +2,50 @@
 
 Accumulation (``WheelGyroPreintegration``)
 ------------------------------------------
-Samples (dt, v_meas, w_gyro, var_v, var_w) are held constant over their ``dt`` (zero-order hold)
-and integrated exactly as constant twists (``kinematics.se2_step_jac``) into the pose of
-keyframe j expressed in the frame of keyframe i::
+Samples (dt, v_meas, w_gyro, var_v, var_w, gain, w_odo) are held constant over their ``dt``
+(zero-order hold) and integrated exactly as constant twists (``kinematics.se2_step_jac``) into
+the pose of keyframe j expressed in the frame of keyframe i::
 
     delta = (dx, dy, dpsi)   m, m, rad;  (dx, dy) along keyframe i's body x (forward) and y (left)
-    w     = w_meas - g bg_lin  (rad/s) with ``bg_lin`` the gyro-bias linearisation point and
-                               g the sample's bias gain: 1 for a raw gyro reading, 0 for a
-                               yaw rate that carries no gyro bias (wheel odometry), and the gyro's
-                               weight when a gyro and an odometry yaw rate are fused per sample
+    v     = k_v,lin v_meas                              (m/s)
+    w     = w_gyro - g bg_lin + k_w,lin w_odo           (rad/s)
 
-For every sample, with F and G the Jacobians of the step with respect to the running delta and to
-(v, w)::
+with ``bg_lin``, ``kv_lin``, ``kw_lin`` the linearisation points of the gyro bias and the
+odometry's speed and yaw-rate scales (``factors.state``: true speed = k_v x odometry speed).
+``w_gyro`` is the part of the yaw rate that carries the gyro bias with gain g (1 for a raw gyro
+reading, the gyro's weight when a gyro and an odometry yaw rate are fused per sample), ``w_odo``
+the part that carries the odometry's scale (the odometry's weight times its yaw rate; 0 for a
+gyro alone). For every sample, with F and G the Jacobians of the step with respect to the
+running delta and to (v, w)::
 
     cov  <- F cov F^T + G_v G_v^T var_v + G_w G_w^T var_w      (3x3, same coordinates as delta)
     J_bg <- F J_bg - g G_w                                     (3, d delta / d bg)
+    J_kv <- F J_kv + v_meas G_v                                (3, d delta / d k_v)
+    J_kw <- F J_kw + w_odo G_w                                 (3, d delta / d k_w)
 
 ``var_v`` (m/s)^2 and ``var_w`` (rad/s)^2 are the variances of each held sample. The first-order
-bias correction is ``delta(bg) = delta + J_bg (bg - bg_lin)`` as in IMU preintegration; once the
-estimated bias moves far from ``bg_lin`` (say more than a few sigma of the bias prior) call
-``reintegrate(new_bg_lin)``, which replays the stored samples.
+correction is ``delta(bg, k) = delta + J_bg db + J_kv dk_v + J_kw dk_w`` as in IMU
+preintegration; once the estimates move far from the linearisation points (a few sigma of
+their priors) call ``reintegrate``, which replays the stored samples.
 
-Factor (``preintegrated_factor``, 2 keys i and j, 7-D error)
+Factor (``preintegrated_factor``, 2 keys i and j, 9-D error)
 ------------------------------------------------------------
 ::
 
-    e[0:2] = R(psi_i)^T (p_j - p_i) - (dx + Jx db, dy + Jy db)     m,  db = bg_i - bg_lin
-    e[2]   = wrap(psi_j - psi_i - (dpsi + Jpsi db))                 rad
-    e[3]   = v_j - v_last                                           m/s
-    e[4]   = w_j + g_last bg_j - w_meas_last                        rad/s
-    e[5]   = bg_j - bg_i                                            rad/s
-    e[6]   = wrap(hoff_j - hoff_i)                                  rad
+    e[0:2] = R(psi_i)^T (p_j - p_i) - (dx, dy)(bg_i, k_i)       m
+    e[2]   = wrap(psi_j - psi_i - dpsi(bg_i, k_i))               rad
+    e[3]   = v_j - k_v,j v_last                                  m/s
+    e[4]   = w_j + g_last bg_j - w_gyro,last - k_w,j w_odo,last  rad/s
+    e[5]   = bg_j - bg_i                                         rad/s
+    e[6]   = wrap(hoff_j - hoff_i)                               rad
+    e[7:9] = k_j - k_i                                           1
 
 Rows 3 and 4 tie the keyframe-j twist states to the LAST sample of the interval (speed and raw
 yaw rate, the latter through g_last bg_j), with that sample's variances; they make v_j, w_j
 meaningful without separate wheel/gyro factors at the keyframe. Their small correlation with the
-pose rows (the last sample also enters the delta) is ignored. Rows 5 and 6 are random walks.
-The 7x7 covariance is block diagonal: [cov + extra pose noise, var_v, var_w, q_bg^2 T,
-q_hoff^2 T], with T the integrated time.
+pose rows (the last sample also enters the delta) is ignored. Rows 5 to 8 are random walks.
+The 9x9 covariance is block diagonal: [cov + extra pose noise, var_v, var_w, q_bg^2 T,
+q_hoff^2 T, q_k^2 T, q_k^2 T], with T the integrated time.
 """
 
 from __future__ import annotations
@@ -50,6 +56,7 @@ import gtsam
 import numpy as np
 
 from factors.kinematics import se2_step_jac
+from factors.state import BG, DIM, KV, KW
 
 __all__ = ["WheelGyroPreintegration", "preintegrated_factor"]
 
@@ -64,110 +71,129 @@ class WheelGyroPreintegration:
     """
 
     __slots__ = (
-        "bg_lin",
-        "dx",
-        "dy",
-        "dpsi",
-        "dt_total",
-        "c_xx",
-        "c_xy",
-        "c_xp",
-        "c_yy",
-        "c_yp",
-        "c_pp",
-        "j_x",
-        "j_y",
-        "j_p",
-        "last_v",
-        "last_w_gyro",
-        "last_var_v",
-        "last_var_w",
-        "last_gain",
-        "n",
-        "samples",
-        "keep_samples",
+        "bg_lin", "kv_lin", "kw_lin",
+        "dx", "dy", "dpsi", "dt_total",
+        "c_xx", "c_xy", "c_xp", "c_yy", "c_yp", "c_pp",
+        "j_x", "j_y", "j_p",
+        "kv_x", "kv_y",
+        "kw_x", "kw_y", "kw_p",
+        "last_v", "last_w_gyro", "last_w_odo", "last_var_v", "last_var_w", "last_gain",
+        "n", "samples", "keep_samples",
     )
 
-    def __init__(self, bg_lin: float = 0.0, keep_samples: bool = True) -> None:
-        """``bg_lin``: gyro-bias linearisation point, rad/s. ``keep_samples``: store the samples
-        so that ``reintegrate`` can replay them with a new bias."""
+    def __init__(self, bg_lin: float = 0.0, keep_samples: bool = True, kv_lin: float = 1.0,
+                 kw_lin: float = 1.0) -> None:
+        """``bg_lin``: gyro-bias linearisation point, rad/s; ``kv_lin``, ``kw_lin``: the
+        odometry scales' (unitless). ``keep_samples``: store the samples so that
+        ``reintegrate`` can replay them with new linearisation points."""
         self.keep_samples = keep_samples
+        self.kv_lin = float(kv_lin)
+        self.kw_lin = float(kw_lin)
         self.reset(bg_lin)
 
-    def reset(self, bg_lin: float | None = None) -> None:
-        """Start a new interval (optionally with a new bias linearisation point, rad/s)."""
+    def reset(self, bg_lin: float | None = None, kv_lin: float | None = None,
+              kw_lin: float | None = None) -> None:
+        """Start a new interval, optionally with new linearisation points (bias rad/s, scales)."""
         if bg_lin is not None:
             self.bg_lin = float(bg_lin)
+        if kv_lin is not None:
+            self.kv_lin = float(kv_lin)
+        if kw_lin is not None:
+            self.kw_lin = float(kw_lin)
         self.dx = self.dy = self.dpsi = 0.0
         self.dt_total = 0.0
         self.c_xx = self.c_xy = self.c_xp = self.c_yy = self.c_yp = self.c_pp = 0.0
         self.j_x = self.j_y = self.j_p = 0.0
-        self.last_v = self.last_w_gyro = 0.0
+        self.kv_x = self.kv_y = 0.0  # the speed scale does not turn the robot
+        self.kw_x = self.kw_y = self.kw_p = 0.0
+        self.last_v = self.last_w_gyro = self.last_w_odo = 0.0
         self.last_var_v = self.last_var_w = 0.0
         self.last_gain = 1.0
         self.n = 0
-        self.samples: list[tuple[float, float, float, float, float, float]] = []
+        self.samples: list[tuple[float, ...]] = []
 
     def integrate(self, dt: float, v: float, w_gyro: float, var_v: float, var_w: float,
-                  gain: float = 1.0) -> None:
-        """Add one sample held for ``dt`` s: speed ``v`` m/s, yaw rate ``w_gyro`` rad/s as
-        measured (gyro bias not removed), their variances (m/s)^2 and (rad/s)^2 over this ``dt``,
-        and ``gain``: how much of the gyro bias the yaw rate carries (1 raw gyro, 0 odometry)."""
+                  gain: float = 1.0, w_odo: float = 0.0) -> None:
+        """Add one sample held for ``dt`` s: odometry speed ``v`` m/s; the yaw rate as measured
+        (biases and scales not removed) split into ``w_gyro`` rad/s, which carries ``gain`` times
+        the gyro bias (1 raw gyro, 0 none), and ``w_odo`` rad/s, which carries the odometry's
+        yaw-rate scale; their variances (m/s)^2 and (rad/s)^2 over this ``dt``."""
         if self.keep_samples:
-            self.samples.append((dt, v, w_gyro, var_v, var_w, gain))
-        x1, y1, p1, j = se2_step_jac(self.dx, self.dy, self.dpsi, v,
-                                     w_gyro - gain * self.bg_lin, dt)
+            self.samples.append((dt, v, w_gyro, var_v, var_w, gain, w_odo))
+        kv = self.kv_lin
+        x1, y1, p1, j = se2_step_jac(self.dx, self.dy, self.dpsi, kv * v,
+                                     w_gyro - gain * self.bg_lin + self.kw_lin * w_odo, dt)
         j0, j1 = j[0], j[1]
         a = j0[2]  # -(y1 - y): d x1 / d dpsi
         b = j1[2]  # x1 - x:    d y1 / d dpsi
         gvx, gvy = j0[3], j1[3]
         gwx, gwy, gwp = j0[4], j1[4], dt
-        gbx, gby, gbp = gain * gwx, gain * gwy, gain * dt
+        vv = var_v * kv * kv  # the sample's noise, scaled like the speed
         cxx, cxy, cxp = self.c_xx, self.c_xy, self.c_xp
         cyy, cyp, cpp = self.c_yy, self.c_yp, self.c_pp
         # F cov F^T with F = [[1, 0, a], [0, 1, b], [0, 0, 1]], then the sample's noise
-        self.c_xx = cxx + 2.0 * a * cxp + a * a * cpp + gvx * gvx * var_v + gwx * gwx * var_w
-        self.c_xy = cxy + a * cyp + b * cxp + a * b * cpp + gvx * gvy * var_v + gwx * gwy * var_w
+        self.c_xx = cxx + 2.0 * a * cxp + a * a * cpp + gvx * gvx * vv + gwx * gwx * var_w
+        self.c_xy = cxy + a * cyp + b * cxp + a * b * cpp + gvx * gvy * vv + gwx * gwy * var_w
         self.c_xp = cxp + a * cpp + gwx * gwp * var_w
-        self.c_yy = cyy + 2.0 * b * cyp + b * b * cpp + gvy * gvy * var_v + gwy * gwy * var_w
+        self.c_yy = cyy + 2.0 * b * cyp + b * b * cpp + gvy * gvy * vv + gwy * gwy * var_w
         self.c_yp = cyp + b * cpp + gwy * gwp * var_w
         self.c_pp = cpp + gwp * gwp * var_w
+        # Jacobians wrt bias and scales: F J + G (d twist / d parameter)
         jp = self.j_p
-        self.j_x += a * jp - gbx
-        self.j_y += b * jp - gby
-        self.j_p = jp - gbp
+        self.j_x += a * jp - gain * gwx
+        self.j_y += b * jp - gain * gwy
+        self.j_p = jp - gain * gwp
+        self.kv_x += v * gvx
+        self.kv_y += v * gvy
+        kp = self.kw_p
+        self.kw_x += a * kp + w_odo * gwx
+        self.kw_y += b * kp + w_odo * gwy
+        self.kw_p = kp + w_odo * gwp
         self.dx, self.dy, self.dpsi = x1, y1, p1
         self.dt_total += dt
         self.last_v = v
         self.last_w_gyro = w_gyro
+        self.last_w_odo = w_odo
         self.last_var_v = var_v
         self.last_var_w = var_w
         self.last_gain = gain
         self.n += 1
 
-    def reintegrate(self, bg_lin: float) -> None:
-        """Replay the stored samples with a new bias linearisation point (rad/s)."""
+    def reintegrate(self, bg_lin: float, kv_lin: float | None = None,
+                    kw_lin: float | None = None) -> None:
+        """Replay the stored samples with new linearisation points (rad/s; scales)."""
         if not self.keep_samples:
             raise RuntimeError("reintegrate needs keep_samples=True")
         samples = self.samples
-        self.reset(bg_lin)
+        self.reset(bg_lin, kv_lin, kw_lin)
         for s in samples:
             self.integrate(*s)
 
     @property
     def delta(self) -> tuple[float, float, float]:
-        """(dx m, dy m, dpsi rad) at ``bg_lin``, in keyframe i's body frame."""
+        """(dx m, dy m, dpsi rad) at the linearisation points, in keyframe i's body frame."""
         return self.dx, self.dy, self.dpsi
 
-    def delta_at(self, bg: float) -> tuple[float, float, float]:
-        """First-order bias-corrected increment for gyro bias ``bg`` (rad/s)."""
+    def delta_at(self, bg: float, kv: float | None = None,
+                 kw: float | None = None) -> tuple[float, float, float]:
+        """First-order corrected increment for gyro bias ``bg`` (rad/s) and the odometry
+        scales ``kv``, ``kw`` (default: their linearisation points)."""
         db = bg - self.bg_lin
-        return self.dx + self.j_x * db, self.dy + self.j_y * db, self.dpsi + self.j_p * db
+        dv = 0.0 if kv is None else kv - self.kv_lin
+        dw = 0.0 if kw is None else kw - self.kw_lin
+        return (self.dx + self.j_x * db + self.kv_x * dv + self.kw_x * dw,
+                self.dy + self.j_y * db + self.kv_y * dv + self.kw_y * dw,
+                self.dpsi + self.j_p * db + self.kw_p * dw)
 
     @property
     def bias_jacobian(self) -> tuple[float, float, float]:
         """d(dx, dy, dpsi)/d bg, in (m, m, rad) per rad/s."""
         return self.j_x, self.j_y, self.j_p
+
+    @property
+    def scale_jacobians(self) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+        """d(dx, dy, dpsi)/d k_v and d(dx, dy, dpsi)/d k_w, (m, m, rad) per unit scale."""
+        return (self.kv_x, self.kv_y, 0.0), (self.kw_x, self.kw_y, self.kw_p)
 
     @property
     def covariance(self) -> np.ndarray:
@@ -180,34 +206,33 @@ class WheelGyroPreintegration:
             )
         )
 
-    def predict(self, state_i) -> np.ndarray:
-        """Initial guess for the 7-state at keyframe j from the state at i (array-like, (7,)).
+    def last_rates(self, state) -> tuple[float, float]:
+        """(v m/s, w rad/s) of the last sample with the biases and scales of ``state``."""
+        kv, kw = float(state[KV]), float(state[KW])
+        return (kv * self.last_v,
+                self.last_w_gyro - self.last_gain * float(state[BG]) + kw * self.last_w_odo)
 
-        Pose = pose_i composed with the bias-corrected delta; v, w from the last sample (w with
-        its share of the bias bg_i removed); bg and hoff carried over. ``psi`` is not wrapped.
+    def predict(self, state_i) -> np.ndarray:
+        """Initial guess for the state at keyframe j from the state at i (array-like, (9,)).
+
+        Pose = pose_i composed with the corrected delta; v, w from the last sample (with the
+        biases and scales of state_i); bg, hoff and the scales carried over. ``psi`` is not
+        wrapped.
         """
-        x, y, psi, _, _, bg, hoff = (float(t) for t in state_i)
-        dx, dy, dp = self.delta_at(bg)
+        x, y, psi, _, _, bg, hoff, kv, kw = (float(t) for t in state_i)
+        dx, dy, dp = self.delta_at(bg, kv, kw)
         c = math.cos(psi)
         s = math.sin(psi)
-        return np.array(
-            (
-                x + c * dx - s * dy,
-                y + s * dx + c * dy,
-                psi + dp,
-                self.last_v,
-                self.last_w_gyro - self.last_gain * bg,
-                bg,
-                hoff,
-            )
-        )
+        v, w = self.last_rates(state_i)
+        return np.array((x + c * dx - s * dy, y + s * dx + c * dy, psi + dp, v, w, bg, hoff,
+                         kv, kw))
 
     def pose2_between(self, bg: float | None = None) -> tuple[gtsam.Pose2, np.ndarray]:
         """The increment as a ``gtsam.Pose2`` and its 3x3 covariance in Pose2's tangent space.
 
         For a Pose2-keyed graph with ``gtsam.BetweenFactorPose2`` (bias held fixed at ``bg``,
-        default ``bg_lin``). Pose2 perturbations are body-frame at the increment, so the
-        translation block is rotated by R(dpsi)^T.
+        default ``bg_lin``; scales at their linearisation points). Pose2 perturbations are
+        body-frame at the increment, so the translation block is rotated by R(dpsi)^T.
         """
         dx, dy, dp = self.delta_at(self.bg_lin if bg is None else bg)
         c = math.cos(dp)
@@ -224,11 +249,12 @@ def preintegrated_factor(
     heading_offset_rw: float = 1e-4,
     pose_noise: tuple[float, float, float] = (0.01, 0.01, 0.001),
     noise: gtsam.noiseModel.Base | None = None,
+    scale_rw: float = 1e-5,
 ) -> gtsam.CustomFactor:
     """Preintegrated wheel+gyro factor between keyframe states ``key_i`` and ``key_j``.
 
     Args:
-        key_i, key_j: 7-vector state keys (``factors.state``).
+        key_i, key_j: 9-vector state keys (``factors.state``).
         pim: the accumulated interval (at least one sample). Its values are copied: the object can
             be reset and reused afterwards.
         gyro_bias_rw: gyro-bias random-walk density, rad/s/sqrt(s).
@@ -236,54 +262,65 @@ def preintegrated_factor(
         pose_noise: extra white-noise densities added to the pose rows, (m/sqrt(s), m/sqrt(s),
             rad/sqrt(s)) in keyframe i's frame: unmodelled slip, and a floor that keeps the
             covariance invertible when the robot stands still.
-        noise: a 7-D noise model that replaces the computed one (e.g. robust), optional.
+        noise: a 9-D noise model that replaces the computed one (e.g. robust), optional.
+        scale_rw: random-walk density of the odometry scales, 1/sqrt(s): constants in truth, a
+            floor that keeps the covariance invertible.
 
-    Returns a ``gtsam.CustomFactor`` with the 7-D error of the module docstring.
+    Returns a ``gtsam.CustomFactor`` with the 9-D error of the module docstring.
     """
     if pim.n == 0:
         raise ValueError("preintegration has no samples")
     t = pim.dt_total
     if noise is None:
-        cov = np.zeros((7, 7))
+        cov = np.zeros((DIM, DIM))
         cov[:3, :3] = pim.covariance
         cov[0, 0] += pose_noise[0] ** 2 * t
         cov[1, 1] += pose_noise[1] ** 2 * t
         cov[2, 2] += pose_noise[2] ** 2 * t
-        cov[3, 3] = pim.last_var_v
+        cov[3, 3] = pim.last_var_v * pim.kv_lin**2
         cov[4, 4] = pim.last_var_w
         cov[5, 5] = gyro_bias_rw**2 * t
         cov[6, 6] = heading_offset_rw**2 * t
+        cov[7, 7] = cov[8, 8] = scale_rw**2 * t
         noise = gtsam.noiseModel.Gaussian.Covariance(cov)
     ddx, ddy, ddp = pim.dx, pim.dy, pim.dpsi
     jx, jy, jp = pim.j_x, pim.j_y, pim.j_p
-    bl = pim.bg_lin
+    vx, vy = pim.kv_x, pim.kv_y
+    wx, wy, wp = pim.kw_x, pim.kw_y, pim.kw_p
+    bl, kvl, kwl = pim.bg_lin, pim.kv_lin, pim.kw_lin
     zv = pim.last_v
     zw = pim.last_w_gyro
+    zo = pim.last_w_odo
     zg = pim.last_gain
     cos = math.cos
     sin = math.sin
     # Buffers owned by this factor, rewritten in place (gtsam copies them into Eigen objects);
     # flat memoryview writes are ~3x cheaper than numpy item assignment.
-    hi = np.zeros((7, 7))
+    hi = np.zeros((DIM, DIM))
     hi[2, 2] = -1.0
-    hi[0, 5] = -jx
-    hi[1, 5] = -jy
-    hi[2, 5] = -jp
-    hi[5, 5] = -1.0
-    hi[6, 6] = -1.0
-    hj = np.eye(7)
-    hj[4, 5] = zg
+    hi[:3, BG] = (-jx, -jy, -jp)
+    hi[:3, KV] = (-vx, -vy, 0.0)
+    hi[:3, KW] = (-wx, -wy, -wp)
+    for r in range(5, DIM):
+        hi[r, r] = -1.0
+    hj = np.eye(DIM)
+    hj[4, BG] = zg
+    hj[3, KV] = -zv
+    hj[4, KW] = -zo
     mi = memoryview(hi.reshape(-1))
     mj = memoryview(hj.reshape(-1))
-    e = np.zeros(7)
+    e = np.zeros(DIM)
     me = memoryview(e)
     ki = key_i
     kj = key_j
+    n = DIM
 
     def error(this, values, H):
-        xi, yi, pi, _, _, bi, hoi = values.atVector(ki).tolist()
-        xj, yj, pj, vj, wj, bj, hoj = values.atVector(kj).tolist()
+        xi, yi, pi, _, _, bi, hoi, kvi, kwi = values.atVector(ki).tolist()
+        xj, yj, pj, vj, wj, bj, hoj, kvj, kwj = values.atVector(kj).tolist()
         db = bi - bl
+        dv = kvi - kvl
+        dw = kwi - kwl
         dx = xj - xi
         dy = yj - yi
         cp = cos(pi)
@@ -291,25 +328,27 @@ def preintegrated_factor(
         u0 = cp * dx + sp * dy
         u1 = cp * dy - sp * dx
         if H is not None:
-            mi[0] = -cp  # flat index 7 r + c is row r, column c
+            mi[0] = -cp  # flat index n r + c is row r, column c
             mi[1] = -sp
             mi[2] = u1
-            mi[7] = sp
-            mi[8] = -cp
-            mi[9] = -u0
+            mi[n] = sp
+            mi[n + 1] = -cp
+            mi[n + 2] = -u0
             mj[0] = cp
             mj[1] = sp
-            mj[7] = -sp
-            mj[8] = cp
+            mj[n] = -sp
+            mj[n + 1] = cp
             H[0] = hi
             H[1] = hj
-        me[0] = u0 - ddx - jx * db
-        me[1] = u1 - ddy - jy * db
-        me[2] = (pj - pi - ddp - jp * db + _PI) % _TWO_PI - _PI
-        me[3] = vj - zv
-        me[4] = wj + zg * bj - zw
+        me[0] = u0 - ddx - jx * db - vx * dv - wx * dw
+        me[1] = u1 - ddy - jy * db - vy * dv - wy * dw
+        me[2] = (pj - pi - ddp - jp * db - wp * dw + _PI) % _TWO_PI - _PI
+        me[3] = vj - kvj * zv
+        me[4] = wj + zg * bj - zw - kwj * zo
         me[5] = bj - bi
         me[6] = (hoj - hoi + _PI) % _TWO_PI - _PI
+        me[7] = kvj - kvi
+        me[8] = kwj - kwi
         return e
 
     return gtsam.CustomFactor(noise, [key_i, key_j], error)

@@ -1,6 +1,6 @@
 """Layout of the per-keyframe state vector used by every factor in this package.
 
-One gtsam Vector key per keyframe holds a flat 7-vector in the world (local ENU) frame::
+One gtsam Vector key per keyframe holds a flat 9-vector in the world (local ENU) frame::
 
     index  name   unit    meaning
     0      x      m       position east
@@ -10,6 +10,8 @@ One gtsam Vector key per keyframe holds a flat 7-vector in the world (local ENU)
     4      w      rad/s   yaw rate, CCW positive
     5      bg     rad/s   gyro bias: gyro reading = w + bg
     6      hoff   rad     heading-sensor offset: heading reading = wrap(psi + hoff)
+    7      k_v    1       odometry speed scale: true speed = k_v * odometry speed
+    8      k_w    1       odometry yaw-rate scale: true yaw rate = k_w * odometry yaw rate
 
 Because the state is a plain vector, gtsam's retract is ``x + delta`` and the tangent space is the
 vector itself, in the same (world-frame) coordinates. ``psi`` and ``hoff`` may drift outside
@@ -23,10 +25,10 @@ from __future__ import annotations
 
 import numpy as np
 
-X, Y, PSI, V, W, BG, HOFF = range(7)
-DIM = 7
-NAMES = ("x", "y", "psi", "v", "w", "bg", "hoff")
-UNITS = ("m", "m", "rad", "m/s", "rad/s", "rad/s", "rad")
+X, Y, PSI, V, W, BG, HOFF, KV, KW = range(9)
+DIM = 9
+NAMES = ("x", "y", "psi", "v", "w", "bg", "hoff", "k_v", "k_w")
+UNITS = ("m", "m", "rad", "m/s", "rad/s", "rad/s", "rad", "1", "1")
 
 
 def make_state(
@@ -37,6 +39,8 @@ def make_state(
     w: float = 0.0,
     bg: float = 0.0,
     hoff: float = 0.0,
+    k_v: float = 1.0,
+    k_w: float = 1.0,
 ) -> np.ndarray:
-    """A state vector, shape (7,), float64, in the layout above."""
-    return np.array((x, y, psi, v, w, bg, hoff), dtype=np.float64)
+    """A state vector, shape (9,), float64, in the layout above."""
+    return np.array((x, y, psi, v, w, bg, hoff, k_v, k_w), dtype=np.float64)

@@ -74,7 +74,7 @@ def wheel_rates_factor(
     """Left/right wheel angular-speed factor, 2-D error (rad/s), fixed radius and track.
 
     Args:
-        key: 7-vector state key.
+        key: 9-vector state key.
         w_left, w_right: measured wheel angular speeds, rad/s, positive driving forward.
         radius: wheel radius, m. track: track width, m.
         noise: 2-D model or sigma(s), rad/s.
@@ -115,7 +115,7 @@ def wheel_rates_calib_factor(
     """Left/right wheel angular-speed factor with a calibration key (2 keys, 2-D error, rad/s).
 
     ``calib_key`` holds a gtsam Vector2 [r_scale, L_scale]; the effective wheel radius is
-    ``radius * r_scale`` (m) and the track ``track * L_scale`` (m). Jacobians: 2x7 for the state,
+    ``radius * r_scale`` (m) and the track ``track * L_scale`` (m). Jacobians: 2x9 for the state,
     2x2 for the calibration.
     """
     r0 = float(radius)
@@ -140,10 +140,10 @@ def wheel_rates_calib_factor(
         pl = (v - hl * w) * inv_r
         pr = (v + hl * w) * inv_r
         if H is not None:
-            # flat index: 7 r + c (state), 2 r + c (calibration)
-            ms[3] = ms[10] = inv_r
+            # flat index: DIM r + c (state), 2 r + c (calibration)
+            ms[3] = ms[DIM + 3] = inv_r
             ms[4] = -hl * inv_r
-            ms[11] = hl * inv_r
+            ms[DIM + 4] = hl * inv_r
             # d/dr_scale of (.)/(r0 sr) is -(.)/sr; d/dL_scale is -+ half_l0 w / (r0 sr)
             g = half_l0 * w * inv_r
             mc[0] = -pl / sr

@@ -53,9 +53,9 @@ def _pim_fused():
 PIM_FUSED = _pim_fused()
 
 FACTORS = {
-    "motion_mean": lambda: motion_factor(KI, KJ, 0.37, unit(7), twist="mean"),
-    "motion_start": lambda: motion_factor(KI, KJ, 0.37, unit(7), twist="start"),
-    "motion_long_dt": lambda: motion_factor(KI, KJ, 2.5, unit(7)),
+    "motion_mean": lambda: motion_factor(KI, KJ, 0.37, unit(9), twist="mean"),
+    "motion_start": lambda: motion_factor(KI, KJ, 0.37, unit(9), twist="start"),
+    "motion_long_dt": lambda: motion_factor(KI, KJ, 2.5, unit(9)),
     "gyro": lambda: gyro_factor(KI, 0.2, unit(1)),
     "heading": lambda: heading_factor(KI, 3.1, unit(1)),
     "heading_no_offset": lambda: heading_factor(KI, -3.1, unit(1), use_offset=False),
@@ -70,8 +70,8 @@ FACTORS = {
     "range": lambda: range_factor(KI, (7.0, -2.0), 5.0, unit(1), (0.2, 0.1)),
     "range_bearing_slam": lambda: range_bearing_slam_factor(KI, KL, 5.0, -3.1, unit(2), (0.3, 0)),
     "range_slam": lambda: range_slam_factor(KI, KL, 5.0, unit(1)),
-    "preintegrated": lambda: preintegrated_factor(KI, KJ, PIM, noise=unit(7)),
-    "preintegrated_fused": lambda: preintegrated_factor(KI, KJ, PIM_FUSED, noise=unit(7)),
+    "preintegrated": lambda: preintegrated_factor(KI, KJ, PIM, noise=unit(9)),
+    "preintegrated_fused": lambda: preintegrated_factor(KI, KJ, PIM_FUSED, noise=unit(9)),
 }
 
 YAW_RATES = [0.0, 1e-9, 1e-5, -1e-5, 0.0999 / 0.37, 0.1001 / 0.37, 0.8, -2.0]
@@ -89,6 +89,8 @@ def make_values(w, psi, seed):
             w,
             rng.uniform(-0.05, 0.05),
             rng.uniform(-math.pi, math.pi),
+            rng.uniform(0.9, 1.1),
+            rng.uniform(0.9, 1.1),
         ]
     )
     # j near i, heading on the other side of +-pi for the near-pi cases
@@ -101,6 +103,8 @@ def make_values(w, psi, seed):
             0.5 * w if rng.random() < 0.5 else w,
             rng.uniform(-0.01, 0.01),
             rng.uniform(-0.1, 0.1),
+            rng.uniform(-0.01, 0.01),
+            rng.uniform(-0.01, 0.01),
         ]
     )
     values = gtsam.Values()
@@ -141,12 +145,12 @@ def test_check_detects_a_wrong_jacobian():
     def bad(this, values, H):
         s = values.atVector(KI)
         if H is not None:
-            H[0] = np.array([[1.0, 0, 0, 0, 0, 0, 0]])  # misses the y dependence
+            H[0] = np.array([[1.0, 0, 0, 0, 0, 0, 0, 0, 0]])  # misses the y dependence
         return np.array([s[0] + 1e-3 * s[1]])
 
     f = gtsam.CustomFactor(unit(1), [KI], bad)
     v = gtsam.Values()
-    v.insert(KI, np.zeros(7))
+    v.insert(KI, np.zeros(9))
     assert max_jacobian_error(f, v) > 5e-4
 
 
@@ -171,9 +175,9 @@ def test_buffers_are_copied_by_gtsam(name):
 def test_whitening_is_undone_for_diagonal_noise():
     """analytic_jacobians unwhitens: same result with unit and diagonal noise."""
     v = make_values(0.2, 1.0, 3)
-    f1 = motion_factor(KI, KJ, 0.4, unit(7))
+    f1 = motion_factor(KI, KJ, 0.4, unit(9))
     f2 = motion_factor(KI, KJ, 0.4, MotionNoise())
     for a, b in zip(analytic_jacobians(f1, v), analytic_jacobians(f2, v), strict=True):
         np.testing.assert_allclose(a, b, atol=1e-12)
     nj = numerical_jacobians(f2, v)
-    assert len(nj) == 2 and nj[0].shape == (7, 7)
+    assert len(nj) == 2 and nj[0].shape == (9, 9)

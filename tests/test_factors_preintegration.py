@@ -147,7 +147,7 @@ def test_factor_rows_and_noise():
     v.insert(2, sj)
     e = f.unwhitenedError(v)
     corrected = np.max(np.abs(e[:3]))  # second-order remainder of a 0.02 rad/s bias
-    e_nocorr = preintegrated_factor(1, 2, p, noise=gtsam.noiseModel.Unit.Create(7))
+    e_nocorr = preintegrated_factor(1, 2, p, noise=gtsam.noiseModel.Unit.Create(9))
     v2 = gtsam.Values()
     v2.insert(1, make_state(0, 0, 0.3, 0, 0, 0.0, 0.0))
     v2.insert(2, sj)
@@ -166,14 +166,14 @@ def test_pose2_between_matches_factor_to_first_order():
     sj = p.predict(si)
     pi = gtsam.Pose2(si[0], si[1], si[2])
     between = gtsam.BetweenFactorPose2(1, 2, delta, gtsam.noiseModel.Gaussian.Covariance(cov))
-    f = preintegrated_factor(1, 2, p, noise=gtsam.noiseModel.Unit.Create(7))
+    f = preintegrated_factor(1, 2, p, noise=gtsam.noiseModel.Unit.Create(9))
     dp = np.array([1e-5, -2e-5, 3e-5])
     vb = gtsam.Values()
     vb.insert(1, pi)
     vb.insert(2, gtsam.Pose2(sj[0] + dp[0], sj[1] + dp[1], sj[2] + dp[2]))
     vf = gtsam.Values()
     vf.insert(1, si)
-    vf.insert(2, sj + np.concatenate([dp, np.zeros(4)]))
+    vf.insert(2, sj + np.concatenate([dp, np.zeros(6)]))
     xi = between.unwhitenedError(vb)
     e = f.unwhitenedError(vf)[:3]
     c, s = math.cos(delta.theta()), math.sin(delta.theta())
@@ -201,8 +201,8 @@ def test_graph_with_preintegration_estimates_gyro_bias():
     for k, s in enumerate(truth):
         graph.add(gps_factor(k, s[0], s[1], 0.05))
         graph.add(heading_factor(k, math.remainder(s[2] + s[6], 2 * math.pi), 0.01))
-        init.insert(k, s + np.array([0.3, -0.2, 0.1, 0.1, 0.05, -0.02, 0.05]))
-    prior = np.array([1e3, 1e3, 1e3, 1e3, 1e3, 1.0, 1e-3])  # hoff fixed, bias free
+        init.insert(k, s + np.array([0.3, -0.2, 0.1, 0.1, 0.05, -0.02, 0.05, 0.0, 0.0]))
+    prior = np.array([1e3, 1e3, 1e3, 1e3, 1e3, 1.0, 1e-3, 1e-4, 1e-4])  # hoff, scales fixed
     graph.add(gtsam.PriorFactorVector(0, truth[0], gtsam.noiseModel.Diagonal.Sigmas(prior)))
     result = gtsam.LevenbergMarquardtOptimizer(graph, init).optimize()
     for k, s in enumerate(truth):
@@ -238,8 +238,70 @@ def test_bias_gain_scales_bias_dependence(gain):
     si = make_state(1.0, 2.0, 0.4, 0.0, 0.0, b0, 0.0)
     sj = p.predict(si)
     assert sj[4] == pytest.approx(sams[-1][2] - gain * b0)
-    f = preintegrated_factor(1, 2, p, noise=gtsam.noiseModel.Unit.Create(7))
+    f = preintegrated_factor(1, 2, p, noise=gtsam.noiseModel.Unit.Create(9))
     v = gtsam.Values()
     v.insert(1, si)
     v.insert(2, sj)
     assert np.max(np.abs(f.unwhitenedError(v))) < 1e-12
+
+
+def _integrate_split(sams, bg_lin=0.0, kv_lin=1.0, kw_lin=1.0, share=0.4):
+    """The samples' yaw rate split into a gyro part (gain 1 - share) and an odometry part."""
+    p = WheelGyroPreintegration(bg_lin, kv_lin=kv_lin, kw_lin=kw_lin)
+    for dt, v, w, var_v, var_w in sams:
+        p.integrate(dt, v, (1.0 - share) * w, var_v, var_w, gain=1.0 - share, w_odo=share * w)
+    return p
+
+
+@pytest.mark.parametrize("which", ["kv", "kw"])
+def test_scale_jacobians_finite_differences(which):
+    """d delta / d k_v and d k_w of the running integration equal central differences of a
+    re-integration at shifted linearisation points."""
+    sams = samples(w_scale=1.0)
+    h = 1e-6
+    base = dict(bg_lin=0.01, kv_lin=0.98, kw_lin=1.03)
+    up, dn = dict(base), dict(base)
+    up[f"{which}_lin"] += h
+    dn[f"{which}_lin"] -= h
+    num = (np.array(_integrate_split(sams, **up).delta)
+           - np.array(_integrate_split(sams, **dn).delta)) / (2 * h)
+    jv, jw = _integrate_split(sams, **base).scale_jacobians
+    np.testing.assert_allclose(jv if which == "kv" else jw, num, atol=1e-6)
+    assert num[2] == pytest.approx(0.0, abs=1e-9) if which == "kv" else abs(num[2]) > 1e-3
+
+
+def test_delta_at_scales_first_order():
+    """delta_at(bg, kv, kw) with the scale Jacobians predicts a re-integration at the new scales
+    to second order in the change."""
+    sams = samples(w_scale=1.0)
+    p = _integrate_split(sams)
+    d = 1e-3
+    exact = np.array(_integrate_split(sams, kv_lin=1 + d, kw_lin=1 - d).delta)
+    first = np.array(p.delta_at(0.0, 1 + d, 1 - d))
+    zeroth = np.array(p.delta)
+    assert np.max(np.abs(first - exact)) < 0.05 * np.max(np.abs(zeroth - exact))
+
+
+def test_graph_with_preintegration_estimates_odometry_scales():
+    """Odometry that under-reports speed by 3 % and yaw rate by 5 %, preintegrated at scales 1,
+    with GPS and a heading sensor: LM recovers k_v and k_w."""
+    kv, kw = 1.03, 1.05
+    keys = range(8)
+    graph = gtsam.NonlinearFactorGraph()
+    truth = [make_state(0.0, 0.0, 0.3, 1.0, 0.0, 0.0, 0.0, kv, kw)]
+    init = gtsam.Values()
+    for k in keys[1:]:
+        sams = [(dt, v / kv, w / kw, var_v, var_w)
+                for dt, v, w, var_v, var_w in samples(n=100, dt=0.01, w_scale=0.7, seed=k)]
+        truth.append(_integrate_split(sams, kv_lin=kv, kw_lin=kw, share=1.0).predict(truth[-1]))
+        graph.add(preintegrated_factor(k - 1, k, _integrate_split(sams, share=1.0)))
+    for k, s in enumerate(truth):
+        graph.add(gps_factor(k, s[0], s[1], 0.01))
+        graph.add(heading_factor(k, math.remainder(s[2] + s[6], 2 * math.pi), 1e-3))
+        init.insert(k, s + np.array([0.1, -0.1, 0.02, 0.1, 0.05, 0.0, 0.0, -0.03, -0.05]))
+    prior = np.array([1e-3, 1e-3, 1e-3, 1e3, 1e3, 1e-4, 1e-4, 1.0, 1.0])  # scales free
+    graph.add(gtsam.PriorFactorVector(0, truth[0], gtsam.noiseModel.Diagonal.Sigmas(prior)))
+    result = gtsam.LevenbergMarquardtOptimizer(graph, init).optimize()
+    est = result.atVector(7)
+    assert est[7] == pytest.approx(kv, abs=2e-3)
+    assert est[8] == pytest.approx(kw, abs=2e-3)

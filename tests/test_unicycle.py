@@ -369,7 +369,7 @@ def test_ekf_motion_equals_smoother_motion_factor(twist):
         ekf.kf.x, ekf.t = np.array(si, dtype=float), 0.0
         ekf._predict_to(dt)
         sj = ekf.kf.x.tolist()
-        err = motion_error(si + [0.0], sj + [0.0], dt, twist=twist)
+        err = motion_error(si + [0.0, 1.0, 1.0], sj + [0.0, 1.0, 1.0], dt, twist=twist)
         np.testing.assert_allclose(err, 0.0, atol=1e-12)
 
 
