@@ -158,6 +158,40 @@ class BufferedLog(EstimatorLog):
         return state
 
 
+class _CoreLog:
+    """What a JitKalmanCore's ``log`` is: the estimator's :class:`BufferedLog` for everything
+    but the innovations, whose ``append`` (KalmanCore's Python update code logging a record)
+    writes a row into the kernels' buffer behind the rows already there. So the Python path
+    keeps the log's order without turning the whole buffer into records in the middle of a
+    run (that cost belongs to whoever reads ``log.innovations``). Any other use of
+    ``innovations`` (indexing, iteration, len) sees the estimator's list."""
+
+    __slots__ = ("_core", "_log")
+
+    def __init__(self, core, log) -> None:
+        self._core = core
+        self._log = log
+
+    @property
+    def innovations(self):
+        return self
+
+    def append(self, inn) -> None:
+        self._core.log_record(inn)
+
+    def __getattr__(self, name):  # rejected, messages, note, ...
+        return getattr(self._log, name)
+
+    def __getitem__(self, i):
+        return self._log.innovations[i]
+
+    def __iter__(self):
+        return iter(self._log.innovations)
+
+    def __len__(self) -> int:
+        return len(self._log.innovations)
+
+
 class _StreakView:
     """KalmanCore's [consecutive rejections, time of the first, acceptances since recovery] of
     one (sensor, kind), over the sensor table."""
@@ -319,8 +353,10 @@ class JitKalmanCore(KalmanCore):
         walks = list(walks)
         nf, nq, nw, nv = len(f_pairs), len(q_pairs), len(walks), len(f_variable)
         # ip: header, then F's pairs, Q's pairs, walk indices, F's variable entry numbers
-        ip = np.zeros(kj.IP_HEADER + 2 * nf + 2 * nq + nw + nv, dtype=np.int64)
-        o = kj.IP_HEADER
+        nzi = 8 * kj.MAXB + kj.MAXR + 2 * n  # the event kernels' block table and int scratch
+        ip = np.zeros(kj.IP_HEADER + nzi + 2 * nf + 2 * nq + nw + nv, dtype=np.int64)
+        ip[kj.IP_OFF_ZI] = kj.IP_HEADER
+        o = kj.IP_HEADER + nzi
         ip[kj.IP_OFF_F] = o
         ip[o:o + 2 * nf] = np.array(f_pairs, dtype=np.int64).reshape(-1)
         o += 2 * nf
@@ -353,7 +389,7 @@ class JitKalmanCore(KalmanCore):
         ip[kj.IP_OFF_WALKV] = o + nf + nq
         fp[o + nf + nq:o + nf + nq + nw] = [w for _, w in walks]
         self.fp, self.ip = fp, ip
-        self.W = np.zeros((3 * n + 2 * kj.MAXR, n))
+        self.W = np.zeros((4 * n + 8 * kj.MAXR, n))
         self._xv = fp[kj.FP_X:kj.FP_X + n]
         self._Pv = self.W[:n]
         self.kinds = tuple(kinds)
@@ -362,13 +398,14 @@ class JitKalmanCore(KalmanCore):
         self._names: list[str] = []
         self.sf = np.zeros((0, kj.SF_COLS))
         self.si = np.zeros((0, kj.SI_COLS), dtype=np.int64)
-        self.lg = np.zeros((1024, kj.LG_COLS))
+        self.lg = np.zeros((4096, kj.LG_COLS))
         ip[kj.IP_LOGCAP] = self.lg.shape[0]
         self._logged = 0
         log = log if log is not None else BufferedLog()
         log._sources.append(self)
         super().__init__(x0, P0, log, state_angles=state_angles, lockout_count=lockout_count,
                          lockout_time=lockout_time, **kwargs)
+        self.log = _CoreLog(self, log)
         self._streak = _StreakMap(self)
         self._last_ok = _LastOkMap(self)
         self._holdoff = _HoldoffMap(self)
@@ -443,11 +480,39 @@ class JitKalmanCore(KalmanCore):
 
     # ------------------------------------------------------------------ log
     def grow_log(self) -> None:
-        """Make room in the innovation buffer: write the pending rows out, and double it if it
-        is still more than half full (a fixed-rate step may log many rows at once)."""
-        self.log.innovations  # noqa: B018 - drains the buffer
-        self.lg = np.zeros((2 * self.lg.shape[0], self.kj.LG_COLS))
-        self.ip[self.kj.IP_LOGCAP] = self.lg.shape[0]
+        """Double the innovation buffer (the rows in it are kept: turning them into records
+        here would put that cost inside the filter's run, reading ``log.innovations`` does)."""
+        lg = np.zeros((2 * self.lg.shape[0], self.kj.LG_COLS))
+        nrows = int(self.ip[self.kj.IP_LOGN])
+        lg[:nrows] = self.lg[:nrows]
+        self.lg = lg
+        self.ip[self.kj.IP_LOGCAP] = lg.shape[0]
+
+    def log_record(self, inn) -> None:
+        """Append Innovation ``inn`` (logged by KalmanCore's Python code) as a buffer row."""
+        kj = self.kj
+        y = inn._y if isinstance(inn, _FloatInnovation) else inn.residual
+        S = inn._S if isinstance(inn, _FloatInnovation) else inn.cov
+        y = np.asarray(y, dtype=float).reshape(-1)
+        S = np.asarray(S, dtype=float).reshape(len(y), len(y))
+        if len(y) > 2:  # (not produced by these filters) out of the buffer's row format
+            self.log._log.innovations.append(inn)
+            return
+        ln = int(self.ip[kj.IP_LOGN])
+        if ln >= self.lg.shape[0]:
+            self.grow_log()
+        row = self.lg[ln]
+        row[:] = 0.0
+        row[0], row[1] = inn.t, inn.nis
+        row[2:2 + len(y)] = y
+        row[4] = S[0, 0]
+        if len(y) == 2:
+            row[5], row[6], row[7] = S[0, 1], S[1, 0], S[1, 1]
+        row[8] = self.sensor_row(inn.sensor)
+        row[9] = self.kind_code[inn.kind]
+        row[10] = len(y)
+        row[11] = 1.0 if inn.accepted else 0.0
+        self.ip[kj.IP_LOGN] = ln + 1
 
     def drain_log(self, store) -> None:
         """Append the buffered innovation rows to ``store`` (a list of Innovation) and empty

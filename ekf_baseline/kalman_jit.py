@@ -29,7 +29,7 @@ builds them):
   random-walk variances at offsets given in ``ip``, and scratch.
 * ``ip`` (int, 1-D): header (IP_*), the angle states, F's nonzero (row, col) pairs, Q's (row,
   col) pairs, the random-walk states.
-* ``W`` (float, 2-D, (3 n + 3 MAXR, n)): rows 0:n the covariance P, then scratch.
+* ``W`` (float, 2-D, (4 n + 8 MAXR, n)): rows 0:n the covariance P, then scratch.
 * ``sf``, ``si`` (float / int, (sensors, SF_COLS / SI_COLS)): per sensor its gate thresholds,
   biases, offsets, lever arm, delay, and per (sensor, kind) slot the gate streak, the last
   acceptance and the recovery hold-off (``KalmanCore._streak``, ``_last_ok``, ``_holdoff``).
@@ -94,7 +94,7 @@ IP_OFF_QVAL = 17  # offset in fp of Q's values
 IP_OFF_WALKV = 18  # offset in fp of the random-walk variances per second
 IP_ANG = 24  # angle state indices (up to 8)
 MAXANG = 8
-IP_BLK = 32  # event kernels' block table (MAXB, 4)
+IP_OFF_ZI = 15  # offset in ip of the event kernels' block table (MAXB, 4), then int scratch
 IP_HEADER = 40
 
 # fp header
@@ -105,8 +105,8 @@ FP_TRACK = 3  # m, track width (NaN: not configured)
 FP_RADIUS = 4  # m, igvc: the Earth sphere's radius
 FP_MAXSTEP = 5  # s, igvc: longest prediction step
 FP_NOISE = 8  # process noise densities (8 slots), the filter's order
-FP_SCR = 16  # scratch: y (MAXR), R (MAXR^2), S (MAXR^2)
-FP_X = 32  # the state x (n,)
+FP_SCR = 16  # scratch: y (MAXR), zf (2 MAXB)
+FP_X = 48  # the state x (n,)
 
 # sensor table columns; slot (per kind k) columns at SF_K + SF_KW k, SI_K + SI_KW k
 SF_THR1, SF_THR2, SF_BIAS, SF_HOFF, SF_LX, SF_LY, SF_DELAY = range(7)
@@ -257,10 +257,9 @@ def _igvc_predict(fp, ip, W, n, dt_total):
 
 # ----------------------------------------------------------------------------- update
 @njit(cache=True)
-def _inverse(S, m):
-    """Inverse of the m x m matrix S: the adjugate for m <= 3 (as KalmanCore), else Gauss-Jordan
-    with partial pivoting."""
-    Si = np.empty((m, m))
+def _inverse(S, m, Si):
+    """Si <- the inverse of the m x m matrix S: the adjugate for m <= 3 (as KalmanCore), else
+    Gauss-Jordan with partial pivoting."""
     if m == 1:
         Si[0, 0] = 1.0 / S[0, 0]
     elif m == 2:
@@ -312,14 +311,15 @@ def _inverse(S, m):
                         for j in range(m):
                             M[r, j] -= fct * M[col, j]
                             Si[r, j] -= fct * Si[col, j]
-    return Si
 
 
 @njit(cache=True)
-def _update(fp, ip, W, sf, si, lg, t, H, y, R, blk, nb, nr, Ut, S):
+def _update(fp, ip, W, sf, si, lg, t, H, y, R, blk, nb, nr, Ut, S, Z, zf, zi):
     """KalmanCore.update_blocks (dense reference semantics) of ``nb`` blocks stacked in rows
     0:nr of H (nr, n), y (nr,), R (nr, nr) (block diagonal); ``blk`` (nb, 4) = (row start, row
-    stop, sensor row, kind). Scratch: Ut (>= nr, n) for (P H^T)^T, S (>= nr, >= nr).
+    stop, sensor row, kind). Scratch (no allocation per call): Ut (>= nr, n) for (P H^T)^T,
+    S (>= nr, >= nr), Z (4 nr + n, >= max(n, nr)), zf (>= 2 nb), zi (>= 4 nb + nr + 2 n); ``blk``
+    is flat: block b's fields at 4 b .. 4 b + 3.
 
     Each block is gated on its own against the common prior (its diagonal block of
     S = H P H^T + R), the per-(sensor, kind) streaks are those of KalmanCore._judge, rejected
@@ -348,17 +348,17 @@ def _update(fp, ip, W, sf, si, lg, t, H, y, R, blk, nb, nr, Ut, S):
     # gate every block against the prior; streaks simulated on copies (a DEFER must leave them)
     lockn = ip[IP_LOCKN]
     lockt = fp[FP_LOCKT]
-    verdict = np.empty(nb, np.int64)  # 0 accepted, 1 rejected
-    nis_b = np.empty(nb)
-    cnt = np.empty(nb, np.int64)
-    acc_n = np.empty(nb, np.int64)
-    ex = np.empty(nb, np.int64)
-    t0 = np.empty(nb)
+    verdict = zi[0:nb]  # 0 accepted, 1 rejected
+    cnt = zi[nb:2 * nb]
+    acc_n = zi[2 * nb:3 * nb]
+    ex = zi[3 * nb:4 * nb]
+    nis_b = zf[0:nb]
+    t0 = zf[nb:2 * nb]
     for b in range(nb):
-        r0 = blk[b, 0]
-        r1 = blk[b, 1]
-        s = blk[b, 2]
-        k = blk[b, 3]
+        r0 = blk[4 * b + 0]
+        r1 = blk[4 * b + 1]
+        s = blk[4 * b + 2]
+        k = blk[4 * b + 3]
         m = r1 - r0
         if m == 1:
             s00 = S[r0, r0]
@@ -385,7 +385,7 @@ def _update(fp, ip, W, sf, si, lg, t, H, y, R, blk, nb, nr, Ut, S):
         # this slot's streak: after an earlier block of the same slot in this call, else stored
         prev = -1
         for j in range(b):
-            if blk[j, 2] == s and blk[j, 3] == k:
+            if blk[4 * j + 2] == s and blk[4 * j + 3] == k:
                 prev = j
         cb = SI_K + SI_KW * k
         fb = SF_K + SF_KW * k
@@ -418,8 +418,8 @@ def _update(fp, ip, W, sf, si, lg, t, H, y, R, blk, nb, nr, Ut, S):
     ln = ip[IP_LOGN]
     n_acc_rows = 0
     for b in range(nb):
-        s = blk[b, 2]
-        k = blk[b, 3]
+        s = blk[4 * b + 2]
+        k = blk[4 * b + 3]
         cb = SI_K + SI_KW * k
         si[s, cb + SK_CNT] = cnt[b]
         si[s, cb + SK_ACC] = acc_n[b]
@@ -431,41 +431,47 @@ def _update(fp, ip, W, sf, si, lg, t, H, y, R, blk, nb, nr, Ut, S):
             si[s, SI_REJ] += 1
             code |= REJECTED
         else:
-            n_acc_rows += blk[b, 1] - blk[b, 0]
+            n_acc_rows += blk[4 * b + 1] - blk[4 * b + 0]
     fp[FP_LASTNIS] = nis_b[nb - 1]
     ip[IP_LOGN] = ln
     if n_acc_rows == 0:
         return code
     # the accepted rows
-    rows = np.empty(n_acc_rows, np.int64)
+    o = 4 * nb
+    rows = zi[o:o + n_acc_rows]
+    cols = zi[o + nr:o + nr + n]
+    inC = zi[o + nr + n:o + nr + 2 * n]
     q = 0
     for b in range(nb):
         if verdict[b] == 0:
-            for r in range(blk[b, 0], blk[b, 1]):
+            for r in range(blk[4 * b + 0], blk[4 * b + 1]):
                 rows[q] = r
                 q += 1
     ma = n_acc_rows
-    Sa = np.empty((ma, ma))
+    # S of the accepted rows and its inverse: in U^T's rows (U is not needed after K)
+    Sa = Z[2 * nr + n:2 * nr + n + ma, 0:ma]
+    Si = Z[3 * nr + n:3 * nr + n + ma, 0:ma]
     for i in range(ma):
         for j in range(ma):
             Sa[i, j] = S[rows[i], rows[j]]
-    Si = _inverse(Sa, ma)
-    # K = U S^-1 (n, ma)
-    K = np.empty((n, ma))
+    _inverse(Sa, ma, Si)
+    # K = U S^-1 (n, ma), stored transposed
+    Kt = Z[0:ma]
+    KRt = Z[nr:nr + ma]
+    Mt = Z[2 * nr:2 * nr + n]
     for i in range(n):
         for j in range(ma):
             acc = 0.0
             for l in range(ma):
                 acc += Ut[rows[l], i] * Si[l, j]
-            K[i, j] = acc
+            Kt[j, i] = acc
     for i in range(n):
         acc = 0.0
         for j in range(ma):
-            acc += K[i, j] * y[rows[j]]
+            acc += Kt[j, i] * y[rows[j]]
         x[i] += acc
     # Joseph form, factored: P <- M P M^T + K R K^T, M = I - K H. M differs from I only in the
     # columns H observes (support C): A = M P and M A^T are sums over C only
-    cols = np.empty(n, np.int64)
     nc = 0
     for c in range(n):
         for j in range(ma):
@@ -473,42 +479,40 @@ def _update(fp, ip, W, sf, si, lg, t, H, y, R, blk, nb, nr, Ut, S):
                 cols[nc] = c
                 nc += 1
                 break
-    Mc = np.empty((n, nc))  # M[:, C]
-    for i in range(n):
+    for i in range(n):  # Mt[q, i] = M[i, C[q]]
+        inC[i] = 0
         for q2 in range(nc):
             c = cols[q2]
             acc = 0.0
             for j in range(ma):
-                acc += K[i, j] * H[rows[j], c]
-            Mc[i, q2] = (1.0 if i == c else 0.0) - acc
-    inC = np.zeros(n, np.bool_)
+                acc += Kt[j, i] * H[rows[j], c]
+            Mt[q2, i] = (1.0 if i == c else 0.0) - acc
     for q2 in range(nc):
-        inC[cols[q2]] = True
+        inC[cols[q2]] = 1
     A = W[n:2 * n]
     B = W[2 * n:3 * n]
     for i in range(n):
-        base = 0.0 if inC[i] else 1.0
+        keep = inC[i] == 0
         for jj in range(n):
-            acc = base * P[i, jj] if base != 0.0 else 0.0
+            acc = P[i, jj] if keep else 0.0
             for q2 in range(nc):
-                acc += Mc[i, q2] * P[cols[q2], jj]
+                acc += Mt[q2, i] * P[cols[q2], jj]
             A[i, jj] = acc
     # K R K^T
-    KR = np.empty((n, ma))
     for i in range(n):
         for j in range(ma):
             acc = 0.0
             for l in range(ma):
-                acc += K[i, l] * R[rows[l], rows[j]]
-            KR[i, j] = acc
+                acc += Kt[l, i] * R[rows[l], rows[j]]
+            KRt[j, i] = acc
     for i in range(n):
         for jj in range(n):
             acc = 0.0 if inC[jj] else A[i, jj]
             for q2 in range(nc):
-                acc += A[i, cols[q2]] * Mc[jj, q2]
+                acc += A[i, cols[q2]] * Mt[q2, jj]
             kk = 0.0
             for l in range(ma):
-                kk += KR[i, l] * K[jj, l]
+                kk += KRt[l, i] * Kt[l, jj]
             B[i, jj] = acc + kk
     for i in range(n):
         for jj in range(n):
@@ -517,13 +521,13 @@ def _update(fp, ip, W, sf, si, lg, t, H, y, R, blk, nb, nr, Ut, S):
     # accepted blocks: logged in order, their last acceptance (time, observed columns) kept
     for b in range(nb):
         if verdict[b] == 0:
-            s = blk[b, 2]
-            k = blk[b, 3]
+            s = blk[4 * b + 2]
+            k = blk[4 * b + 3]
             _log_row(lg, ln, t, nis_b[b], y, S, blk, b, 1.0)
             ln += 1
             mask = 0
             for c in range(n):
-                for r in range(blk[b, 0], blk[b, 1]):
+                for r in range(blk[4 * b + 0], blk[4 * b + 1]):
                     if H[r, c] != 0.0:
                         mask |= 1 << c
                         break
@@ -535,8 +539,8 @@ def _update(fp, ip, W, sf, si, lg, t, H, y, R, blk, nb, nr, Ut, S):
 
 @njit(cache=True)
 def _log_row(lg, ln, t, nis, y, S, blk, b, accepted):
-    r0 = blk[b, 0]
-    m = blk[b, 1] - r0
+    r0 = blk[4 * b + 0]
+    m = blk[4 * b + 1] - r0
     lg[ln, 0] = t
     lg[ln, 1] = nis
     lg[ln, 2] = y[r0]
@@ -546,8 +550,8 @@ def _log_row(lg, ln, t, nis, y, S, blk, b, accepted):
         lg[ln, 5] = S[r0, r0 + 1]
         lg[ln, 6] = S[r0 + 1, r0]
         lg[ln, 7] = S[r0 + 1, r0 + 1]
-    lg[ln, 8] = blk[b, 2]
-    lg[ln, 9] = blk[b, 3]
+    lg[ln, 8] = blk[4 * b + 2]
+    lg[ln, 9] = blk[4 * b + 3]
     lg[ln, 10] = m
     lg[ln, 11] = accepted
 
@@ -869,17 +873,17 @@ def _zero_rows(H, R, r0, m):
     for r in range(r0, r0 + m):
         for c in range(H.shape[1]):
             H[r, c] = 0.0
-        for c in range(R.shape[1]):
+        for c in range(R.shape[0]):  # R is square in its first R.shape[0] columns
             R[r, c] = 0.0
             R[c, r] = 0.0
 
 
 @njit(cache=True)
 def _block(blk, r0, m, nb, s, k):
-    blk[nb, 0] = r0
-    blk[nb, 1] = r0 + m
-    blk[nb, 2] = s
-    blk[nb, 3] = k
+    blk[4 * nb + 0] = r0
+    blk[4 * nb + 1] = r0 + m
+    blk[4 * nb + 2] = s
+    blk[4 * nb + 3] = k
     return r0 + m, nb + 1
 
 
@@ -895,15 +899,20 @@ _STACKED_SIG = f"int64({_ARRAYS}, float64[:, ::1], int64)"
 
 @njit(cache=True)
 def _event_scratch(fp, ip, W, n):
-    """The event kernels' scratch: H and U^T after P and its two n x n work blocks in W; y, R,
-    S in fp's header; the block table in ip's header."""
+    """The event kernels' scratch: in W after P and its two n x n work blocks H, U^T and Z;
+    y, R, S, zf in fp's header; the block table and zi at ip[IP_OFF_ZI]."""
     H = W[3 * n:3 * n + MAXR]
     Ut = W[3 * n + MAXR:3 * n + 2 * MAXR]
+    Z = W[3 * n + 2 * MAXR:4 * n + 6 * MAXR]  # Kt, KRt, Mt, Sa, Si
+    # (no reshape: numba's run-time reshape costs ~50 ns a call)
+    R = W[4 * n + 6 * MAXR:4 * n + 7 * MAXR]
+    S = W[4 * n + 7 * MAXR:4 * n + 8 * MAXR]
     y = fp[FP_SCR:FP_SCR + MAXR]
-    R = fp[FP_SCR + MAXR:FP_SCR + MAXR + MAXR * MAXR].reshape((MAXR, MAXR))
-    S = fp[FP_SCR + MAXR + MAXR * MAXR:FP_SCR + MAXR + 2 * MAXR * MAXR].reshape((MAXR, MAXR))
-    blk = ip[IP_BLK:IP_BLK + 4 * MAXB].reshape((MAXB, 4))
-    return H, Ut, y, R, S, blk
+    zf = fp[FP_SCR + MAXR:FP_SCR + MAXR + 2 * MAXB]
+    oi = ip[IP_OFF_ZI]
+    blk = ip[oi:oi + 4 * MAXB]
+    zi = ip[oi + 4 * MAXB:oi + 8 * MAXB + MAXR + 2 * n]
+    return H, Ut, y, R, S, blk, Z, zf, zi
 
 
 @njit(_EVENT_SIG, cache=True)
@@ -917,12 +926,12 @@ def uni_event(fp, ip, W, sf, si, lg, dt, t, typ, s, z0, z1, r0, r1, r01, r10, fl
     n = ip[IP_N]
     if dt > 0.0:
         _uni_predict(fp, ip, W, n, dt)
-    H, Ut, y, R, S, blk = _event_scratch(fp, ip, W, n)
+    H, Ut, y, R, S, blk, Z, zf, zi = _event_scratch(fp, ip, W, n)
     nr, nb = _uni_model(fp, ip, sf, si, H, y, R, blk, 0, 0, typ, s, z0, z1, r0, r1, r01, r10,
                         flags)
     if nb == 0:
         return 0
-    return _update(fp, ip, W, sf, si, lg, t, H, y, R, blk, nb, nr, Ut, S)
+    return _update(fp, ip, W, sf, si, lg, t, H, y, R, blk, nb, nr, Ut, S, Z, zf, zi)
 
 
 @njit(_EVENT_SIG, cache=True)
@@ -933,12 +942,12 @@ def igvc_event(fp, ip, W, sf, si, lg, dt, t, typ, s, z0, z1, r0, r1, r01, r10, f
     n = ip[IP_N]
     if dt > 0.0:
         _igvc_predict(fp, ip, W, n, dt)
-    H, Ut, y, R, S, blk = _event_scratch(fp, ip, W, n)
+    H, Ut, y, R, S, blk, Z, zf, zi = _event_scratch(fp, ip, W, n)
     nr, nb = _igvc_model(fp, ip, sf, si, H, y, R, blk, 0, 0, typ, s, z0, z1, r0, r1, r01, r10,
                          flags)
     if nb == 0:
         return 0
-    return _update(fp, ip, W, sf, si, lg, t, H, y, R, blk, nb, nr, Ut, S)
+    return _update(fp, ip, W, sf, si, lg, t, H, y, R, blk, nb, nr, Ut, S, Z, zf, zi)
 
 
 @njit(_STACKED_SIG, cache=True)
@@ -957,7 +966,10 @@ def uni_stacked(fp, ip, W, sf, si, lg, dt, t, mb, k):
     y = np.empty(mr)
     R = np.zeros((mr, mr))
     S = np.empty((mr, mr))
-    blk = np.empty((MAXB * k, 4), np.int64)
+    blk = np.empty(4 * MAXB * k, np.int64)
+    Z = np.empty((4 * mr + n, max(n, mr)))
+    zf = np.empty(2 * MAXB * k)
+    zi = np.empty(4 * MAXB * k + mr + 2 * n, np.int64)
     nr = 0
     nb = 0
     for i in range(k):
@@ -966,4 +978,4 @@ def uni_stacked(fp, ip, W, sf, si, lg, dt, t, mb, k):
                             int(mb[i, 8]))
     if nb == 0:
         return 0
-    return _update(fp, ip, W, sf, si, lg, t, H[:nr], y, R, blk, nb, nr, Ut, S)
+    return _update(fp, ip, W, sf, si, lg, t, H[:nr], y, R, blk, nb, nr, Ut, S, Z, zf, zi)
