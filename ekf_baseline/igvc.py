@@ -555,7 +555,8 @@ class IgvcEkf(Estimator):
             return
         kind, y, rows, R = block
         blocks = ((m.sensor, kind, y, rows, R, self._info(m.sensor)[0]),)
-        if self.reference:
+        # the compiled filter's Python updates (what its kernels defer) are the reference's
+        if self.reference or self.compiled:
             self.kf.update_dense(m.t, blocks)
         else:
             self.kf.update_sparse(m.t, blocks)

@@ -400,12 +400,12 @@ def _update(fp, ip, W, sf, si, lg, t, H, y, R, blk, nb, nr, Ut, S, Z, zf, zi):
             if c_ == 0:
                 t_ = t
             c_ += 1
-            if c_ >= lockn and t - t_ >= lockt:
-                # KalmanCore._holdoff_over is False only while a hold-off runs (no side
-                # effects then); otherwise the recovery or corroboration decision is Python's
-                if not (si[s, cb + SK_HOLD] != 0 and a_ < lockn
-                        and t < sf[s, fb + SK_HOLD_UNTIL]):
-                    return DEFER
+            # a lock-out candidate. KalmanCore._holdoff_over is False only while a hold-off
+            # runs (no side effects then); otherwise the recovery or corroboration decision
+            # is Python's
+            if c_ >= lockn and t - t_ >= lockt and not (
+                    si[s, cb + SK_HOLD] != 0 and a_ < lockn and t < sf[s, fb + SK_HOLD_UNTIL]):
+                return DEFER
             verdict[b] = 1
         else:
             if e_ != 0:
@@ -707,7 +707,7 @@ def _igvc_model(fp, ip, sf, si, H, y, R, blk, nr, nb, typ, s, z0, z1, r0, r1, r0
         H[nr, _W] = 1.0
         R[nr, nr] = r0
         return _block(blk, nr, 1, nb, s, KI_GYRO)
-    if typ == T_HEAD or typ == T_HEAD_POSE:
+    if typ == T_HEAD or typ == T_HEAD_POSE:  # noqa: SIM109 - plain compares for numba
         _zero_rows(H, R, nr, 1)
         if typ == T_HEAD_POSE:
             g = x[_PSI]

@@ -761,7 +761,8 @@ class UnicycleEkf(Estimator):
                 blocks.append((m.sensor, "wheels", (m.left - (vr - wr), m.right - (vr + wr)),
                                rows, ((m.left_var, 0.0), (0.0, m.right_var)), info.gate))
         if blocks:
-            if self.reference:
+            # the compiled filter's Python updates (what its kernels defer) are the reference's
+            if self.reference or self.compiled:
                 kf.update_dense(t, blocks)
             else:
                 kf.update_sparse(t, blocks)
