@@ -49,6 +49,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ekf_baseline import GIVEN_POSE_STD
+from ekf_baseline import compiled as jit
 from ekf_baseline import igvc_jacobians as gen
 from ekf_baseline.calibration import ScaleStates
 from ekf_baseline.kalman import KalmanCore
@@ -85,6 +86,10 @@ _ROWS_W = (((W, 1.0),),)
 _ROWS_A = (((A, 1.0),),)
 _ROWS_PSI = (((PSI, 1.0),),)
 _ROWS_THETA = (((THETA, -1.0),),)  # compass yaw = pi/2 - theta + offset
+# the compiled kernels' message types and return bits (ekf_baseline.compiled)
+_T_GYRO, _T_HEAD, _T_HEAD_POSE, _T_ACCEL, _T_ODOM, _T_WHEELS, _T_GPS = (
+    jit.T_GYRO, jit.T_HEAD, jit.T_HEAD_POSE, jit.T_ACCEL, jit.T_ODOM, jit.T_WHEELS, jit.T_GPS)
+_DEFER, _REJECTED, _GROW = jit.DEFER, jit.REJECTED, jit.GROW
 
 
 def sphere_radius(lat_rad: float) -> float:
@@ -173,6 +178,30 @@ def heading_model(s: np.ndarray, offset: float, local: bool):
     return np.array([(h + math.pi) % (2.0 * math.pi) - math.pi]), H
 
 
+def igvc_q_values(lat: float, dt: float, radius: float, position_psd: float, frame_psd: float,
+                  heading_psd: float, frame_heading_psd: float, jerk_psd: float,
+                  yaw_accel_psd: float, slip_var: float) -> tuple[float, ...]:
+    """``IgvcEkf.process_noise`` (same model) as the values of Q at the flat indices _Q_INDEX, from
+    the :class:`IgvcNoise` densities as floats (its units; ``lat`` rad, ``dt`` s, ``radius`` m).
+    Plain floats so that the compiled filter (ekf_baseline.kalman_jit) runs this same code."""
+    rc = radius * math.cos(lat)
+    r = radius
+    pos = position_psd * dt
+    frame = frame_psd * dt
+    head = heading_psd * dt
+    fh = frame_heading_psd * dt
+    lon_x = pos / rc
+    lat_y = pos / r
+    return (
+        pos + frame, pos + frame,  # x x, y y
+        pos / rc / rc + frame / rc / rc,  # lon lon
+        pos / r / r + frame / r / r,  # lat lat
+        lon_x, lon_x, lat_y, lat_y,  # lon x, x lon, lat y, y lat
+        head + fh, head + fh, -head, -head,  # psi psi, theta theta, psi theta, theta psi
+        jerk_psd * dt, yaw_accel_psd * dt, slip_var, slip_var,  # a, w, vl, vr
+    )
+
+
 class IgvcEkf(Estimator):
     """Seed 000's 11-state EKF (module docstring) as an :class:`Estimator`.
 
@@ -198,7 +227,9 @@ class IgvcEkf(Estimator):
     (seed eq. 14) or 'icc' (seed appendix A). Prediction steps are at most ``max_step`` s.
     ``reference``: run the dense numpy implementation (``process_noise``, ``gps_model``,
     ``heading_model``, ``KalmanCore.update``) instead of the fast path (generated sparse F,
-    float Q, ``KalmanCore.update_sparse``); the tests compare the two.
+    float Q, ``KalmanCore.update_sparse``); the tests compare the two. ``compiled``: each step
+    in the numba kernels of ``ekf_baseline.kalman_jit`` (the generated Jacobian compiled as it
+    is); default when numba is installed and ``reference`` is not set (as UnicycleEkf).
     """
 
     name = "igvc_ekf"
@@ -214,6 +245,7 @@ class IgvcEkf(Estimator):
         max_step: float = 0.05,
         course_distance: float = 3.0,
         reference: bool = False,
+        compiled: bool | None = None,
     ) -> None:
         super().__init__()
         if motion not in ("euler", "icc"):
@@ -221,6 +253,15 @@ class IgvcEkf(Estimator):
         self.cfg = cfg
         self.motion = motion
         self.reference = bool(reference)
+        if compiled is None:
+            compiled = not self.reference and jit.available()
+        elif compiled and (self.reference or not jit.available()):
+            raise ValueError("compiled=True needs numba and reference=False")
+        self.compiled = bool(compiled)
+        if self.compiled:
+            jit.warm_up("igvc")  # compile / load the kernels now, not in the first step
+            self.log = jit.BufferedLog()
+        self._jrows: dict[str, int] = {}  # sensor -> row in the compiled core's sensor table
         self._step = gen.euler_step if motion == "euler" else gen.icc_step
         self._step_sparse = gen.euler_step_sparse if motion == "euler" else gen.icc_step_sparse
         self._sensor_info: dict[str, tuple] = {}
@@ -343,8 +384,11 @@ class IgvcEkf(Estimator):
             self._scale.set_prior(x0, Pn)
         # lon is an angle too: wrapped so that crossing the antimeridian does not leave it
         # outside [-pi, pi) (the GPS innovation is wrapped as well)
-        self.kf = KalmanCore(x0, Pn, self.log,
-                             state_angles=(LON, THETA, PSI, *self._hoff_idx.values()))
+        angles = (LON, THETA, PSI, *self._hoff_idx.values())
+        if self.compiled:
+            self.kf = self._compiled_core(x0, Pn, angles)
+        else:
+            self.kf = KalmanCore(x0, Pn, self.log, state_angles=angles)
         self.t = t
 
     def _position_noise_map(self, lat: float) -> np.ndarray:
@@ -473,22 +517,8 @@ class IgvcEkf(Estimator):
     def _q_values(self, lat: float, dt: float) -> tuple[float, ...]:
         """``process_noise`` (same model) as the values of Q at the flat indices _Q_INDEX."""
         ns = self.noise
-        rc = self.radius * math.cos(lat)
-        r = self.radius
-        pos = ns.position_psd * dt
-        frame = ns.frame_psd * dt
-        head = ns.heading_psd * dt
-        fh = ns.frame_heading_psd * dt
-        lon_x = pos / rc
-        lat_y = pos / r
-        return (
-            pos + frame, pos + frame,  # x x, y y
-            pos / rc / rc + frame / rc / rc,  # lon lon
-            pos / r / r + frame / r / r,  # lat lat
-            lon_x, lon_x, lat_y, lat_y,  # lon x, x lon, lat y, y lat
-            head + fh, head + fh, -head, -head,  # psi psi, theta theta, psi theta, theta psi
-            ns.jerk_psd * dt, ns.yaw_accel_psd * dt, ns.slip_var, ns.slip_var,  # a, w, vl, vr
-        )
+        return igvc_q_values(lat, dt, self.radius, ns.position_psd, ns.frame_psd, ns.heading_psd,
+                             ns.frame_heading_psd, ns.jerk_psd, ns.yaw_accel_psd, ns.slip_var)
 
     # ------------------------------------------------------------------ Estimator
     def process(self, m) -> None:
@@ -510,13 +540,23 @@ class IgvcEkf(Estimator):
                 return  # the measurement that initialised the filter is not used twice
         if self.t is None:
             self.t = m.t
+        if self.compiled:
+            p = self._pack(m)
+            if p is not None:
+                self._run_event(m, p)
+                return
         self.predict_to(m.t)
+        self._update(m)
+
+    def _update(self, m) -> None:
+        """The measurement update of ``m`` in Python (after the prediction to m.t)."""
         block = self._measurement(m)
         if block is None:
             return
         kind, y, rows, R = block
         blocks = ((m.sensor, kind, y, rows, R, self._info(m.sensor)[0]),)
-        if self.reference:
+        # the compiled filter's Python updates (what its kernels defer) are the reference's
+        if self.reference or self.compiled:
             self.kf.update_dense(m.t, blocks)
         else:
             self.kf.update_sparse(m.t, blocks)
@@ -533,6 +573,82 @@ class IgvcEkf(Estimator):
             state_cov=P.copy(),
             state_names=self.state_names,
         )
+
+    # ------------------------------------------------------------------ compiled path
+    def _compiled_core(self, x0, P0, angles):
+        """The JitKalmanCore of this filter (ekf_baseline.compiled): F's pattern from the
+        generated model (its ones, its variable entries, the calibration states' identity),
+        Q's entries (_Q_INDEX), the random walks."""
+        kj = jit.kernels()
+        self._igvc_event = kj.igvc_event
+        n = self.n
+        ones, variable = ((gen.EULER_F_ONES, gen.EULER_F_VARIABLE) if self.motion == "euler"
+                          else (gen.ICC_F_ONES, gen.ICC_F_VARIABLE))
+        f_pairs = [divmod(k, N) for k in ones] + [divmod(k, N) for k in variable]
+        f_pairs += [(i, i) for i in range(N, n)]
+        ns = self.noise
+        self._jrows = {}
+        return jit.JitKalmanCore(
+            x0, P0, self.log, state_angles=angles, kinds=jit.IGVC_KINDS, f_pairs=f_pairs,
+            f_variable=range(len(ones), len(ones) + len(variable)),
+            q_pairs=[divmod(int(k), N) for k in _Q_INDEX], walks=list(self._walks.items()),
+            motion=0 if self.motion == "euler" else 1, ks=self._ks,
+            noise=(ns.position_psd, ns.frame_psd, ns.heading_psd, ns.frame_heading_psd,
+                   ns.jerk_psd, ns.yaw_accel_psd, ns.slip_var),
+            params={kj.FP_WHEEL_R: self.wheel_radius, kj.FP_TRACK: self.track,
+                    kj.FP_RADIUS: self.radius, kj.FP_MAXSTEP: self.max_step})
+
+    def _pack(self, m):
+        """The kernels' arguments (typ, sensor row, z0, z1, r0, r1, r01, r10, flags) for
+        message ``m``, or None when it needs the Python path: a heading whose offset is not
+        initialised yet, a fix without a fix, wheel speeds without a wheel radius, another
+        message type."""
+        name = m.sensor
+        row = self._jrows.get(name)
+        if row is None:
+            gate, bias, offset, lever, delay = self._info(name)
+            row = self._jrows[name] = self.kf.sensor_row(
+                name, gate=gate, bias=bias, hoff=offset, lever=lever, delay=delay,
+                bias_idx=self._bias_idx.get(name), hoff_idx=self._hoff_idx.get(name))
+        cls = m.__class__
+        if cls is GyroYawRate:
+            return (_T_GYRO, row, m.yaw_rate, 0.0, m.var, 0.0, 0.0, 0.0, 0)
+        if cls is Heading:
+            hi = self._hoff_idx.get(name)
+            if hi is not None and hi not in self._hoff_ready:
+                return None
+            return (_T_HEAD_POSE if m.source == "pose" else _T_HEAD, row, m.yaw, 0.0, m.var,
+                    0.0, 0.0, 0.0, 0)
+        if cls is ForwardAccel:
+            return (_T_ACCEL, row, m.accel, 0.0, m.var, 0.0, 0.0, 0.0, 0)
+        if cls is WheelOdometry:
+            v, w = m.v, m.yaw_rate
+            return (_T_ODOM, row, 0.0 if v is None else v, 0.0 if w is None else w, m.v_var,
+                    m.yaw_rate_var, 0.0, 0.0, (v is not None) | (w is not None) << 1)
+        if cls is WheelSpeeds and self.wheel_radius is not None:
+            return (_T_WHEELS, row, m.left, m.right, m.left_var, m.right_var, 0.0, 0.0, 0)
+        if cls is GpsFix and m.status >= 0:
+            (c00, c01, _), (c10, c11, _), _ = m.cov.tolist()
+            return (_T_GPS, row, m.lat, m.lon, c00, c11, c01, c10, 0)
+        return None
+
+    def _run_event(self, m, p) -> None:
+        """Predict to ``m.t`` and update with ``m`` (packed as ``p``) in one kernel call."""
+        kf = self.kf
+        t = m.t
+        dt = t - self.t
+        code = self._igvc_event(kf.fp, kf.ip, kf.W, kf.sf, kf.si, kf.lg, dt, t, *p)
+        if code:
+            while code & _GROW:  # nothing was done: make room in the log and call again
+                kf.grow_log()
+                code = self._igvc_event(kf.fp, kf.ip, kf.W, kf.sf, kf.si, kf.lg, dt, t, *p)
+        if dt > 0.0:
+            self.t = t
+        if code:
+            if code & _REJECTED:
+                kf.drain_rejections()
+            if code & _DEFER:  # predicted; the update needs Python (lock-out, singular S)
+                self._update(m)
 
     # ------------------------------------------------------------------ measurements
     def _info(self, name: str) -> tuple:

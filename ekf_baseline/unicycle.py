@@ -77,6 +77,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ekf_baseline import GIVEN_POSE_STD
+from ekf_baseline import compiled as jit
 from ekf_baseline.calibration import ScaleStates
 from ekf_baseline.kalman import DEFAULT_LOCKOUT_COUNT, DEFAULT_LOCKOUT_TIME, KalmanCore
 from estimation.config import DEFAULT_GATE, Config
@@ -103,6 +104,10 @@ _ROWS_V = (((3, 1.0),),)
 _ROWS_W = (((4, 1.0),),)
 _ROWS_PSI = (((2, 1.0),),)
 _ROWS_XY = (((0, 1.0),), ((1, 1.0),))
+# the compiled kernels' message types and return bits (ekf_baseline.compiled)
+_T_NONE, _T_GYRO, _T_HEAD, _T_ODOM, _T_GPS, _T_WHEELS = (
+    jit.T_NONE, jit.T_GYRO, jit.T_HEAD, jit.T_ODOM, jit.T_GPS, jit.T_WHEELS)
+_DEFER, _REJECTED, _GROW = jit.DEFER, jit.REJECTED, jit.GROW
 
 
 @dataclass(frozen=True)
@@ -143,10 +148,20 @@ def unicycle_process_noise(
     heading white noise add R(psi) diag(pos_long^2, pos_lat^2) R(psi)^T dt and heading^2 dt.
     Returned in row-major order: Qxx, Qxy, Qxpsi, Qxv, Qxw, Qyy, Qypsi, Qyv, Qyw, Qpp, Qpv, Qpw,
     Qvv, Qvw, Qww (units: products of the state units)."""
-    qa = noise.acc * noise.acc
-    qal = noise.yaw_acc * noise.yaw_acc
-    pl2 = noise.pos_long * noise.pos_long
-    pt2 = noise.pos_lat * noise.pos_lat
+    return unicycle_process_noise_terms(psi, v, dt, noise.acc, noise.yaw_acc, noise.pos_long,
+                                        noise.pos_lat, noise.heading)
+
+
+def unicycle_process_noise_terms(
+    psi: float, v: float, dt: float, acc: float, yaw_acc: float, pos_long: float,
+    pos_lat: float, heading: float
+) -> tuple[float, ...]:
+    """:func:`unicycle_process_noise` with the :class:`ProcessNoise` densities as floats (same
+    units), so that the compiled filter (ekf_baseline.kalman_jit) runs this same code."""
+    qa = acc * acc
+    qal = yaw_acc * yaw_acc
+    pl2 = pos_long * pos_long
+    pt2 = pos_lat * pos_lat
     c = _cos(psi)
     s = _sin(psi)
     dt2 = dt * dt
@@ -167,7 +182,7 @@ def unicycle_process_noise(
         b4 * c,  # y psi
         a2 * s,  # y v
         b3 * c,  # y w
-        qal * dt3 / 3.0 + noise.heading * noise.heading * dt,  # psi psi
+        qal * dt3 / 3.0 + heading * heading * dt,  # psi psi
         0.0,  # psi v
         qal * dt2 / 2.0,  # psi w
         qa * dt,  # v v
@@ -198,7 +213,7 @@ class _Sensor:
     """Per-sensor settings looked up once: gate, GPS lever arm, bias/offset handling."""
 
     __slots__ = ("gate", "lever", "bias_idx", "bias", "hoff_idx", "hoff", "uses", "rows",
-                 "rows_h", "delay")
+                 "rows_h", "delay", "row", "use_w", "use_yaw")
 
     def __init__(self, gate=DEFAULT_GATE, lever=(0.0, 0.0), uses=None, delay=0.0):
         self.gate = gate
@@ -211,6 +226,9 @@ class _Sensor:
         self.uses = uses  # None: everything the message carries
         self.rows = _ROWS_W  # sparse H of its gyro (with its bias state when estimated)
         self.rows_h = _ROWS_PSI  # sparse H of its heading (with its offset state)
+        self.row: int | None = None  # its row in the compiled core's sensor table
+        self.use_w = uses is None or "yaw_rate" in uses  # gyro and heading used
+        self.use_yaw = uses is None or "yaw" in uses
 
 
 class UnicycleEkf(Estimator):
@@ -225,6 +243,11 @@ class UnicycleEkf(Estimator):
     ``lockout_time`` for the gate lock-out recovery of :class:`ekf_baseline.kalman.KalmanCore`.
     ``reference``: update through the dense numpy ``KalmanCore.update_blocks`` instead of the
     fast sparse path ``update_sparse`` (same results; the tests compare the two).
+    ``compiled``: run each step in the numba kernels of ``ekf_baseline.kalman_jit`` (prediction,
+    measurement models, gate, Joseph update, innovation log; what they defer -- a gate
+    lock-out's recovery, the initialisations -- runs the Python code on the same arrays).
+    Default: when numba is installed and ``reference`` is not set; False runs the Python fast
+    path. Same results (tests/test_ekf_fast_path.py).
     """
 
     name = "ekf_unicycle"
@@ -244,9 +267,18 @@ class UnicycleEkf(Estimator):
         lockout_count: int = DEFAULT_LOCKOUT_COUNT,
         lockout_time: float = DEFAULT_LOCKOUT_TIME,
         reference: bool = False,
+        compiled: bool | None = None,
     ) -> None:
         super().__init__()
         self.reference = bool(reference)
+        if compiled is None:
+            compiled = not self.reference and jit.available()
+        elif compiled and (self.reference or not jit.available()):
+            raise ValueError("compiled=True needs numba and reference=False")
+        self.compiled = bool(compiled)
+        if self.compiled:
+            jit.warm_up("unicycle")  # compile / load the kernels now, not in the first step
+            self.log = jit.BufferedLog()
         if motion not in ("exact", "euler"):
             raise ValueError(f"motion must be 'exact' or 'euler', got {motion!r}")
         self.cfg = cfg
@@ -363,6 +395,11 @@ class UnicycleEkf(Estimator):
         if self.kf is None and not self._try_start(m):
             return
         if self.rate is None:
+            if self.compiled:
+                p = self._pack(m)
+                if p is not None:
+                    self._run_event(m, p)
+                    return
             self._predict_to(m.t)
             self._apply((m,))
             return
@@ -442,8 +479,11 @@ class UnicycleEkf(Estimator):
             P0[i, i] = _PI * _PI / 3.0  # uniform on the circle until initialised from a Heading
         if self._scale:
             self._scale.set_prior(x0, P0)
-        self.kf = KalmanCore(x0, P0, self.log, state_angles=(2, *self._hoff_states),
-                             lockout_count=self._lockout[0], lockout_time=self._lockout[1])
+        if self.compiled:
+            self.kf = self._compiled_core(x0, P0)
+        else:
+            self.kf = KalmanCore(x0, P0, self.log, state_angles=(2, *self._hoff_states),
+                                 lockout_count=self._lockout[0], lockout_time=self._lockout[1])
         self.t = t
         self._t0 = t
         self._k = 0
@@ -504,10 +544,112 @@ class UnicycleEkf(Estimator):
 
     # ------------------------------------------------------------------ filter steps
     def _step(self, ts: float) -> None:
-        self._predict_to(ts)
         buf = self._buf
         self._buf = []
+        if self.compiled:
+            packs = [self._pack(m) for m in buf]
+            if None not in packs:
+                self._run_stacked(ts, buf, packs)
+                return
+        self._predict_to(ts)
         self._apply(buf)
+
+    # ------------------------------------------------------------------ compiled path
+    def _compiled_core(self, x0, P0):
+        """The JitKalmanCore of this filter (ekf_baseline.compiled): F's pattern (identity plus
+        the pose rows of the motion Jacobian), Q's entries, the random walks, the sensors."""
+        kj = jit.kernels()
+        self._uni_event, self._uni_stacked = kj.uni_event, kj.uni_stacked
+        n = self.n
+        # F: rows 0..2 in the order uni_predict fills them, then the identity of the rest
+        f_pairs = [(0, 0), (0, 2), (0, 3), (0, 4), (1, 1), (1, 2), (1, 3), (1, 4), (2, 2), (2, 4)]
+        f_pairs += [(i, i) for i in range(3, n)]
+        upper = [(i, j) for i in range(5) for j in range(i, 5)]  # unicycle_process_noise order
+        q_pairs = upper + [(j, i) for i, j in upper if i != j]
+        walks = list(zip(self._bias_states + self._hoff_states, self._walks, strict=True))
+        nz = self.noise
+        r, L = self._wheel
+        kf = jit.JitKalmanCore(
+            x0, P0, self.log, state_angles=(2, *self._hoff_states),
+            lockout_count=self._lockout[0], lockout_time=self._lockout[1], kinds=jit.UNI_KINDS,
+            f_pairs=f_pairs, q_pairs=q_pairs, walks=walks,
+            motion=0 if self.motion == "exact" else 1, ks=self._ks,
+            noise=(nz.acc, nz.yaw_acc, nz.pos_long, nz.pos_lat, nz.heading),
+            params={kj.FP_WHEEL_R: r, kj.FP_TRACK: L})
+        for info in self._sensors.values():
+            info.row = None  # (re)registered with this core on first use
+        return kf
+
+    def _pack(self, m):
+        """The kernels' arguments (typ, sensor row, z0, z1, r0, r1, r01, r10, flags) for
+        message ``m``, or None when it needs the Python path: a heading before the heading is
+        known or before its offset is initialised, a GPS fix while aligning or without a
+        position, wheel speeds without the geometry, another message type."""
+        info = self._sensors.get(m.sensor) or self._sensor(m.sensor)
+        row = info.row
+        if row is None:
+            row = info.row = self.kf.sensor_row(
+                m.sensor, gate=info.gate, bias=info.bias, hoff=info.hoff, lever=info.lever,
+                delay=info.delay, bias_idx=info.bias_idx, hoff_idx=info.hoff_idx)
+        cls = m.__class__
+        if cls is GyroYawRate:
+            if not info.use_w:
+                return (_T_NONE, row, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0)
+            return (_T_GYRO, row, m.yaw_rate, 0.0, m.var, 0.0, 0.0, 0.0, 0)
+        if cls is Heading:
+            if not info.use_yaw:
+                return (_T_NONE, row, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0)
+            if not self._aligned or (info.hoff_idx is not None
+                                     and info.hoff_idx not in self._hoff_ready):
+                return None
+            return (_T_HEAD, row, m.yaw, 0.0, m.var, 0.0, 0.0, 0.0, 0)
+        if cls is WheelOdometry:
+            v, w = m.v, m.yaw_rate
+            return (_T_ODOM, row, 0.0 if v is None else v, 0.0 if w is None else w, m.v_var,
+                    m.yaw_rate_var, 0.0, 0.0, (v is not None) | (w is not None) << 1)
+        if cls is GpsFix:
+            if m.enu is None or m.status < 0 or not self._aligned:
+                return None
+            (c00, c01, _), (c10, c11, _), _ = m.cov.tolist()
+            return (_T_GPS, row, m.enu[0], m.enu[1], c00, c11, c01, c10, 0)
+        if cls is WheelSpeeds and self._wheel[0] is not None and self._wheel[1] is not None:
+            return (_T_WHEELS, row, m.left, m.right, m.left_var, m.right_var, 0.0, 0.0, 0)
+        return None
+
+    def _run_event(self, m, p) -> None:
+        """Predict to ``m.t`` and update with ``m`` (packed as ``p``) in one kernel call."""
+        kf = self.kf
+        t = m.t
+        dt = t - self.t
+        code = self._uni_event(kf.fp, kf.ip, kf.W, kf.sf, kf.si, kf.lg, dt, t, *p)
+        if code:
+            while code & _GROW:  # nothing was done: make room in the log and call again
+                kf.grow_log()
+                code = self._uni_event(kf.fp, kf.ip, kf.W, kf.sf, kf.si, kf.lg, dt, t, *p)
+        if dt > 0.0:
+            self.t = t
+        if code:
+            if code & _REJECTED:
+                kf.drain_rejections()
+            if code & _DEFER:  # predicted; the update needs Python (lock-out, singular S)
+                self._apply((m,))
+
+    def _run_stacked(self, ts: float, buf: list, packs: list) -> None:
+        """A fixed-rate step at ``ts``: predict and one stacked update in one kernel call."""
+        kf = self.kf
+        dt = ts - self.t
+        mb = np.array(packs, dtype=float).reshape(-1, 9)
+        k = len(packs)
+        code = self._uni_stacked(kf.fp, kf.ip, kf.W, kf.sf, kf.si, kf.lg, dt, ts, mb, k)
+        while code & _GROW:
+            kf.grow_log()
+            code = self._uni_stacked(kf.fp, kf.ip, kf.W, kf.sf, kf.si, kf.lg, dt, ts, mb, k)
+        if dt > 0.0:
+            self.t = ts
+        if code & _REJECTED:
+            kf.drain_rejections()
+        if code & _DEFER:
+            self._apply(buf)
 
     def _predict_to(self, t: float) -> None:
         dt = t - self.t
@@ -619,7 +761,8 @@ class UnicycleEkf(Estimator):
                 blocks.append((m.sensor, "wheels", (m.left - (vr - wr), m.right - (vr + wr)),
                                rows, ((m.left_var, 0.0), (0.0, m.right_var)), info.gate))
         if blocks:
-            if self.reference:
+            # the compiled filter's Python updates (what its kernels defer) are the reference's
+            if self.reference or self.compiled:
                 kf.update_dense(t, blocks)
             else:
                 kf.update_sparse(t, blocks)

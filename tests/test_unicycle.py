@@ -282,7 +282,9 @@ def test_measurement_jacobians_match_central_differences():
                   "track_width_std": 0.02},
         "initial_pose": [0, 0, 0],
     })
-    ekf = UnicycleEkf(cfg)
+    # the Python measurement models (the compiled kernels' are checked against them in
+    # tests/test_ekf_fast_path.py)
+    ekf = UnicycleEkf(cfg, compiled=False)
     assert ekf.state_names == ("x", "y", "psi", "v", "w", "bg", "hoff", "k_v", "k_w")
     ekf.process(GyroYawRate(0.0, 0.0, 1e-4, sensor="/imu"))
     ekf._hoff_ready.add(6)
