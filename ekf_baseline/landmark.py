@@ -33,7 +33,8 @@ Process noise: the odometry's error is white from sample to sample and held for 
 period tau, so it adds G diag(var_v, var_w) G^T tau / dt per step of length dt, G = df/d(v, w)
 (seed: G Q G^T), with the variances scaled by k^2. Over a whole sample period this equals the
 seed's per-step G Q G^T, but it does not shrink when a landmark sighting splits the period into
-shorter prediction steps.
+shorter prediction steps. The config's robot.slip, when stated, adds white body-frame velocity
+noise (longitudinal, lateral) and yaw-rate noise over every step, rotated into the world frame.
 
 Observation (LandmarkObservation): range r = |l - p| (m) and bearing b = atan2(l - p) - psi
 (rad, body frame, CCW from forward x), or the range alone when ``has_bearing`` is False.
@@ -162,6 +163,11 @@ class _OdometryDrivenEkf(Estimator):
         self._scale = ScaleStates.of(cfg, 3)
         self.n_base = 5 if self._scale else 3
         self._gates = {s.name: s.gate for s in cfg.sensors}
+        # the robot's stated slip (robot.slip: white body-frame velocity and yaw-rate noise,
+        # densities), on top of the odometry's own noise; none stated: none added
+        slip = cfg.robot.slip
+        self._slip = tuple(float(slip.get(k, 0.0)) ** 2 for k in (
+            "longitudinal", "lateral", "heading")) if slip else None
         if initial_pose is None and isinstance(cfg.initial_pose, tuple):
             initial_pose = cfg.initial_pose
         self._wait_truth = initial_pose is None and cfg.initial_pose == "ground_truth"
@@ -198,6 +204,12 @@ class _OdometryDrivenEkf(Estimator):
         self._first_estimates_motion(Fp)
         tau = self.tau if self.tau is not None else dt
         Qp = (G * np.array([kv * kv * self.v_var, kw * kw * self.w_var])) @ G.T * (tau / dt)
+        if self._slip is not None:
+            ql, qt, qh = self._slip
+            c, sn = math.cos(float(kf.x[2])), math.sin(float(kf.x[2]))
+            Qp = Qp + dt * np.array(((c * c * ql + sn * sn * qt, c * sn * (ql - qt), 0.0),
+                                     (c * sn * (ql - qt), sn * sn * ql + c * c * qt, 0.0),
+                                     (0.0, 0.0, qh)))
         n = kf.n
         if n == 3:
             F, Q = Fp, Qp
