@@ -36,7 +36,12 @@ v, w, the gyro biases and heading offsets are random walks driven by continuous 
 (:class:`ProcessNoise`, spectral densities, not per-bag tuning); the discrete Q is the exact
 integral int_0^dt Phi(s) G Qc G^T Phi(s)^T ds of the model linearised at the start of the step
 (closed form below), plus white body-frame velocity noise (slip) on the position and white
-yaw-rate noise on the heading: the config's robot.slip densities where it states them.
+yaw-rate noise on the heading: the config's robot.slip densities where it states them. When the
+config states the robot's largest accelerations (robot.max_accel, max_yaw_accel), the white
+accelerations driving v and w have the densities a_max sqrt(T) (:func:`twist_densities`,
+Bar-Shalom's rule for the continuous white-noise acceleration model), T the shortest sample
+period among the sensors measuring v (odometry, wheel speeds), resp. w (also the gyro), as
+observed in the data; until a sensor's second sample, the default densities.
 
 Measurements (seed 003's piecewise model: H, R and h are assembled from the measurements
 present at a step; each measurement is gated on its own with its sensor's chi-square gate):
@@ -100,7 +105,8 @@ from estimation.measurements import (
 )
 from factors.kinematics import se2_step_jac
 
-__all__ = ["ProcessNoise", "UnicycleEkf", "unicycle_process_noise", "euler_step_jac"]
+__all__ = ["ProcessNoise", "UnicycleEkf", "unicycle_process_noise", "euler_step_jac",
+           "twist_densities"]
 
 _PI = math.pi
 _TWO_PI = 2.0 * math.pi
@@ -123,6 +129,8 @@ class ProcessNoise:
     acc: m/s^2/sqrt(Hz) -- white forward acceleration driving v. 1.0: a ground robot changes its
         speed by ~1 m/s within ~1 s.
     yaw_acc: rad/s^2/sqrt(Hz) -- white yaw acceleration driving w; same reasoning, ~1 rad/s in 1 s.
+        When the config states the robot's acceleration limits (robot.max_accel,
+        max_yaw_accel), UnicycleEkf replaces both by :func:`twist_densities` of them.
     pos_long, pos_lat: m/sqrt(s) -- white body-frame velocity error on the position (wheel slip,
         the twist not being constant within a step); lateral smaller for a non-holonomic base.
     heading: rad/sqrt(s) -- white yaw-rate error on the heading.
@@ -183,6 +191,20 @@ def unicycle_process_noise(
         0.0,  # v w
         qal * dt,  # w w
     )
+
+
+def twist_densities(a_max: float | None, yaw_a_max: float | None, t_v: float | None,
+                    t_w: float | None, noise: ProcessNoise) -> ProcessNoise:
+    """``noise`` with the white acceleration densities of v and w derived from the robot's
+    largest accelerations (m/s^2, rad/s^2) and the sample periods (s) of the measurements of v
+    and w (None: that density unchanged).
+
+    Bar-Shalom, Li, Kirubarajan 2001, sec. 6.2.2: in the continuous white-noise acceleration
+    model the velocity changes over a sampling period T by the order of sqrt(q T); a twist that
+    changes by at most a_max T within one period gives q = a_max^2 T, density a_max sqrt(T)."""
+    acc = noise.acc if a_max is None or t_v is None else a_max * math.sqrt(t_v)
+    yaw_acc = noise.yaw_acc if yaw_a_max is None or t_w is None else yaw_a_max * math.sqrt(t_w)
+    return replace(noise, acc=acc, yaw_acc=yaw_acc)
 
 
 def euler_step_jac(
@@ -291,6 +313,11 @@ class UnicycleEkf(Estimator):
             self.noise = replace(self.noise, pos_long=slip.get("longitudinal", self.noise.pos_long),
                                  pos_lat=slip.get("lateral", self.noise.pos_lat),
                                  heading=slip.get("heading", self.noise.heading))
+        # the robot's stated acceleration limits set the twist random walks (twist_densities)
+        r = cfg.robot
+        self._amax = (r.max_accel, r.max_yaw_accel) if noise is None else (None, None)
+        self._tw_last: dict[tuple[str, int], float] = {}  # (sensor, 3 v / 4 w): last stamp
+        self._tw_period: dict[int, dict[str, float]] = {3: {}, 4: {}}  # per sensor, s
         self._step_jac = se2_step_jac if motion == "exact" else euler_step_jac
         self.motion = motion
         self.rate = None if cfg.ekf.rate == "event" else float(cfg.ekf.rate)
@@ -574,6 +601,24 @@ class UnicycleEkf(Estimator):
         kf.predict(self._F, self._Q, xs)
         self.t = t
 
+    def _twist_seen(self, sensor: str, comp: int, t: float) -> None:
+        """Record a measurement of v (comp 3) or w (4) by ``sensor`` at ``t``; with stated
+        acceleration limits, re-derive the twist densities when the shortest sample period of
+        that component's sensors changes by more than 10 %."""
+        key = (sensor, comp)
+        last = self._tw_last.get(key)
+        self._tw_last[key] = t
+        if last is None or not t > last:
+            return
+        per = self._tw_period[comp]
+        old = min(per.values()) if per else None
+        per[sensor] = t - last
+        new = min(per.values())
+        if old is None or abs(new - old) > 0.1 * old:
+            p3, p4 = self._tw_period[3], self._tw_period[4]
+            self.noise = twist_densities(*self._amax, min(p3.values()) if p3 else None,
+                                         min(p4.values()) if p4 else None, self.noise)
+
     def _apply(self, ms) -> None:
         """Assemble the piecewise measurement model of the messages ``ms`` -- per measurement its
         innovation, sparse H rows and R -- and update (module docstring, "Measurements")."""
@@ -586,6 +631,8 @@ class UnicycleEkf(Estimator):
             if isinstance(m, GyroYawRate):
                 if info.uses is not None and "yaw_rate" not in info.uses:
                     continue
+                if self._amax[1] is not None:
+                    self._twist_seen(m.sensor, 4, m.t)
                 bi = info.bias_idx
                 ks = self._ks
                 if ks is not None:  # the gyro sees the true yaw rate k_w om (+ bias)
@@ -622,6 +669,11 @@ class UnicycleEkf(Estimator):
             elif isinstance(m, WheelOdometry):
                 # the odometry's twist is the state's (with scale states, the odometry-frame
                 # twist; the scales enter the motion, not this linear measurement)
+                if self._amax != (None, None):
+                    if m.v is not None:
+                        self._twist_seen(m.sensor, 3, m.t)
+                    if m.yaw_rate is not None:
+                        self._twist_seen(m.sensor, 4, m.t)
                 if m.v is not None:
                     blocks.append((m.sensor, "v", (m.v - x[3],), _ROWS_V, ((m.v_var,),),
                                    info.gate))
@@ -649,6 +701,9 @@ class UnicycleEkf(Estimator):
                 if r is None or L is None:
                     raise ValueError("WheelSpeeds need robot.wheel_radius and robot.track_width")
                 k = 0.5 * L / r
+                if self._amax != (None, None):
+                    self._twist_seen(m.sensor, 3, m.t)
+                    self._twist_seen(m.sensor, 4, m.t)
                 # the nominal geometry turns the state's (odometry-frame) twist into wheel speeds
                 vr, wr = x[3] / r, x[4] * k
                 rows = (((3, 1.0 / r), (4, -k)), ((3, 1.0 / r), (4, k)))

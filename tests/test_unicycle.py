@@ -15,6 +15,7 @@ from ekf_baseline.unicycle import (
     ProcessNoise,
     UnicycleEkf,
     euler_step_jac,
+    twist_densities,
     unicycle_process_noise,
 )
 from estimation.config import parse_config
@@ -684,3 +685,34 @@ def test_estimate_is_well_formed():
         assert est.pose_cov.shape == (3, 3)
         assert -math.pi <= est.state[6] < math.pi
     assert est.state.shape == (7,) and len(est.state_names) == 7
+
+
+def test_twist_densities_follow_stated_acceleration_limits_and_sample_periods():
+    """Bar-Shalom's CWNA rule: density a_max sqrt(T), T the shortest sample period of the
+    sensors measuring that twist component, as observed; without limits, the defaults."""
+    base = ProcessNoise()
+    nz = twist_densities(0.5, 0.4, 0.1, 0.02, base)
+    assert nz.acc == pytest.approx(0.5 * math.sqrt(0.1))
+    assert nz.yaw_acc == pytest.approx(0.4 * math.sqrt(0.02))
+    assert twist_densities(None, 0.4, 0.1, None, base) == base
+    # over one period the random walk's sigma is a_max T: the largest change of the twist
+    assert nz.acc * math.sqrt(0.1) == pytest.approx(0.5 * 0.1)
+
+    raw = {"sensors": {"odometry": [{"topic": "/odom", "use": ["v", "yaw_rate"]}],
+                       "imu": [{"topic": "/imu", "use": ["yaw_rate"], "gyro_bias": 0.0}]},
+           "robot": {"max_accel": 0.5, "max_yaw_accel": 0.4}, "initial_pose": [0, 0, 0]}
+    ekf = UnicycleEkf(parse_config(raw))
+    assert ekf.noise == base  # nothing observed yet
+    for k in range(60):  # odometry at 10 Hz, gyro at 50 Hz
+        t = 0.02 * k
+        if k % 5 == 0:
+            ekf.process(WheelOdometry(t, 1.0, 0.1, 1e-4, 1e-4, sensor="/odom"))
+        ekf.process(GyroYawRate(t + 0.001, 0.1, 1e-4, sensor="/imu"))
+    assert ekf.noise.acc == pytest.approx(0.5 * math.sqrt(0.1), rel=1e-6)
+    assert ekf.noise.yaw_acc == pytest.approx(0.4 * math.sqrt(0.02), rel=1e-6)
+    # an explicit ProcessNoise is kept as given
+    fixed = ProcessNoise(acc=0.7, yaw_acc=0.6)
+    ekf = UnicycleEkf(parse_config(raw), noise=fixed)
+    for k in range(10):
+        ekf.process(WheelOdometry(0.1 * k, 1.0, 0.1, 1e-4, 1e-4, sensor="/odom"))
+    assert ekf.noise == fixed
