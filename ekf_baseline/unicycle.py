@@ -17,6 +17,14 @@ State (world = local ENU frame; the same names and conventions as ``factors.stat
                         the config states the geometry's uncertainty (robot.*_std), with the
                         prior RobotConfig.scale_std; constants
 
+With the scale states, states 3 and 4 are the ODOMETRY-FRAME twist (named v_odo, w_odo), and
+the body moves with the true twist (k_v v_odo, k_w w_odo) -- the landmark EKF's convention. The
+odometry and wheel-speed measurements are then linear in the state and carry no information
+about the scales; GPS and the gyro do. (With the true twist as the state and the odometry
+measured as v / k_v, the update's Jacobians at the changing estimates leaked spurious
+information into unobservable scales: with wheel speeds alone, k_w drifted by 1.3 % in 120 s
+of seed 002 at the default noise, by 8 % at 0.3 rad/s^2/sqrt(Hz) yaw-acceleration noise.)
+
 The calibration states' random-walk densities are the IMU's stated ones (noise.gyro_bias_walk,
 heading_offset_walk) where the config gives them, else ProcessNoise's.
 
@@ -28,19 +36,25 @@ v, w, the gyro biases and heading offsets are random walks driven by continuous 
 (:class:`ProcessNoise`, spectral densities, not per-bag tuning); the discrete Q is the exact
 integral int_0^dt Phi(s) G Qc G^T Phi(s)^T ds of the model linearised at the start of the step
 (closed form below), plus white body-frame velocity noise (slip) on the position and white
-yaw-rate noise on the heading: the config's robot.slip densities where it states them.
+yaw-rate noise on the heading: the config's robot.slip densities where it states them. When the
+config states the robot's largest accelerations (robot.max_accel, max_yaw_accel), the white
+accelerations driving v and w have the densities a_max sqrt(T) (:func:`twist_densities`,
+Bar-Shalom's rule for the continuous white-noise acceleration model), T the shortest sample
+period among the sensors measuring v (odometry, wheel speeds), resp. w (also the gyro), as
+observed in the data; until a sensor's second sample, the default densities.
 
 Measurements (seed 003's piecewise model: H, R and h are assembled from the measurements
 present at a step; each measurement is gated on its own with its sensor's chi-square gate):
 
     GpsFix          z = enu[:2]          h = (x, y) + R(psi) lever_arm      R = fix.cov[:2, :2]
                     (with the sensor's delay d: the antenna at t - d, reached from the state by
-                    the exact constant-twist step backwards, heading psi - w d)
-    WheelOdometry   z = v                h = v (/ k_v)                      R = v_var
-                    z = yaw_rate         h = w (/ k_w)                      R = yaw_rate_var
-    WheelSpeeds     z = (w_l, w_r)       h = ((v' - w' L/2)/r, (v' + w' L/2)/r), v' = v (/ k_v),
-                                         w' = w (/ k_w)                     R = diag(vars)
-    GyroYawRate     z = yaw_rate         h = w + bg (estimated or configured bias)
+                    the exact constant-twist step backwards with the true twist, heading
+                    psi - w d)
+    WheelOdometry   z = v                h = v (v_odo)                      R = v_var
+                    z = yaw_rate         h = w (w_odo)                      R = yaw_rate_var
+    WheelSpeeds     z = (w_l, w_r)       h = ((v - w L/2)/r, (v + w L/2)/r) (v_odo, w_odo)
+                                                                            R = diag(vars)
+    GyroYawRate     z = yaw_rate         h = w (k_w w_odo) + bg (estimated or configured bias)
     Heading         z = yaw              h = wrap(psi + hoff) (estimated or configured offset),
                                          innovation wrapped
 
@@ -92,7 +106,8 @@ from estimation.measurements import (
 )
 from factors.kinematics import se2_step_jac
 
-__all__ = ["ProcessNoise", "UnicycleEkf", "unicycle_process_noise", "euler_step_jac"]
+__all__ = ["ProcessNoise", "UnicycleEkf", "unicycle_process_noise", "euler_step_jac",
+           "twist_densities"]
 
 _PI = math.pi
 _TWO_PI = 2.0 * math.pi
@@ -119,6 +134,8 @@ class ProcessNoise:
     acc: m/s^2/sqrt(Hz) -- white forward acceleration driving v. 1.0: a ground robot changes its
         speed by ~1 m/s within ~1 s.
     yaw_acc: rad/s^2/sqrt(Hz) -- white yaw acceleration driving w; same reasoning, ~1 rad/s in 1 s.
+        When the config states the robot's acceleration limits (robot.max_accel,
+        max_yaw_accel), UnicycleEkf replaces both by :func:`twist_densities` of them.
     pos_long, pos_lat: m/sqrt(s) -- white body-frame velocity error on the position (wheel slip,
         the twist not being constant within a step); lateral smaller for a non-holonomic base.
     heading: rad/sqrt(s) -- white yaw-rate error on the heading.
@@ -191,6 +208,20 @@ def unicycle_process_noise_terms(
     )
 
 
+def twist_densities(a_max: float | None, yaw_a_max: float | None, t_v: float | None,
+                    t_w: float | None, noise: ProcessNoise) -> ProcessNoise:
+    """``noise`` with the white acceleration densities of v and w derived from the robot's
+    largest accelerations (m/s^2, rad/s^2) and the sample periods (s) of the measurements of v
+    and w (None: that density unchanged).
+
+    Bar-Shalom, Li, Kirubarajan 2001, sec. 6.2.2: in the continuous white-noise acceleration
+    model the velocity changes over a sampling period T by the order of sqrt(q T); a twist that
+    changes by at most a_max T within one period gives q = a_max^2 T, density a_max sqrt(T)."""
+    acc = noise.acc if a_max is None or t_v is None else a_max * math.sqrt(t_v)
+    yaw_acc = noise.yaw_acc if yaw_a_max is None or t_w is None else yaw_a_max * math.sqrt(t_w)
+    return replace(noise, acc=acc, yaw_acc=yaw_acc)
+
+
 def euler_step_jac(
     x: float, y: float, psi: float, v: float, w: float, dt: float
 ) -> tuple[float, float, float, tuple[tuple[float, ...], ...]]:
@@ -207,6 +238,32 @@ def euler_step_jac(
         (0.0, 0.0, 1.0, 0.0, dt),
     )
     return x + d * c, y + d * s, psi + w * dt, j
+
+
+def _scaled_step(step_jac, xs: list, ks: int, dt: float, noise: ProcessNoise
+                 ) -> tuple[float, float, float, tuple[float, ...], tuple[float, ...]]:
+    """Prediction with odometry scale states: states 3, 4 are the odometry-frame twist (u, om)
+    and the body moves with the true twist (v, w) = (k_v u, k_w om), k_v = xs[ks],
+    k_w = xs[ks + 1].
+
+    Returns the new (x, y, psi), the F entries in the order (x, y, psi rows) d/d(psi, u, om) of
+    x and y, d psi/d om, then d/d(k_v, k_w) of x and y and d psi/d k_w, and the 5x5 Q upper
+    triangle (``unicycle_process_noise``'s order) of (x, y, psi, u, om): the continuous white
+    accelerations act on the true twist, so Q_true's u and om rows and columns are divided by
+    k_v and k_w."""
+    u, om, kv, kw = xs[3], xs[4], xs[ks], xs[ks + 1]
+    v, w = kv * u, kw * om
+    x1, y1, p1, J = step_jac(xs[0], xs[1], xs[2], v, w, dt)
+    j0, j1 = J[0], J[1]
+    F = (j0[2], j0[3] * kv, j0[4] * kw, j1[2], j1[3] * kv, j1[4] * kw, dt * kw,
+         j0[3] * u, j0[4] * om, j1[3] * u, j1[4] * om, dt * om)
+    q = unicycle_process_noise(xs[2], v, dt, noise)
+    a, b = 1.0 / kv, 1.0 / kw
+    q = (q[0], q[1], q[2], q[3] * a, q[4] * b,
+         q[5], q[6], q[7] * a, q[8] * b,
+         q[9], q[10] * a, q[11] * b,
+         q[12] * a * a, q[13] * a * b, q[14] * b * b)
+    return x1, y1, p1, F, q
 
 
 class _Sensor:
@@ -271,10 +328,18 @@ class UnicycleEkf(Estimator):
     ) -> None:
         super().__init__()
         self.reference = bool(reference)
+        # The kernels implement the model without odometry scale states acting in the motion
+        # and without the acceleration-limit densities; such configs run in Python until the
+        # kernels are ported.
+        r = cfg.robot
+        kernel_model = not ((r.scale_std is not None
+                             and (cfg.of_kind("odometry") or cfg.of_kind("wheels")))
+                            or r.max_accel is not None or r.max_yaw_accel is not None)
         if compiled is None:
-            compiled = not self.reference and jit.available()
-        elif compiled and (self.reference or not jit.available()):
-            raise ValueError("compiled=True needs numba and reference=False")
+            compiled = not self.reference and jit.available() and kernel_model
+        elif compiled and (self.reference or not jit.available() or not kernel_model):
+            raise ValueError("compiled=True needs numba, reference=False, and a config without "
+                             "odometry scale states or acceleration limits")
         self.compiled = bool(compiled)
         if self.compiled:
             jit.warm_up("unicycle")  # compile / load the kernels now, not in the first step
@@ -288,6 +353,11 @@ class UnicycleEkf(Estimator):
             self.noise = replace(self.noise, pos_long=slip.get("longitudinal", self.noise.pos_long),
                                  pos_lat=slip.get("lateral", self.noise.pos_lat),
                                  heading=slip.get("heading", self.noise.heading))
+        # the robot's stated acceleration limits set the twist random walks (twist_densities)
+        r = cfg.robot
+        self._amax = (r.max_accel, r.max_yaw_accel) if noise is None else (None, None)
+        self._tw_last: dict[tuple[str, int], float] = {}  # (sensor, 3 v / 4 w): last stamp
+        self._tw_period: dict[int, dict[str, float]] = {3: {}, 4: {}}  # per sensor, s
         self._step_jac = se2_step_jac if motion == "exact" else euler_step_jac
         self.motion = motion
         self.rate = None if cfg.ekf.rate == "event" else float(cfg.ekf.rate)
@@ -331,6 +401,8 @@ class UnicycleEkf(Estimator):
         # geometry's uncertainty and a sensor gives odometry
         self._scale = ScaleStates.append_to(cfg, names)
         self._ks = self._scale.index if self._scale else None
+        if self._scale:  # states 3, 4 are then the odometry-frame twist (module docstring)
+            names[3:5] = ["v_odo", "w_odo"]
         self.state_names = tuple(names)
         self.n = len(names)
         self._hoff_states = tuple(i for i, nm in enumerate(names) if nm.startswith("hoff"))
@@ -370,8 +442,14 @@ class UnicycleEkf(Estimator):
         self._Q = np.zeros((self.n, self.n))
         self._F_flat = self._F.reshape(-1)  # views: assigning into them fills F and Q
         self._Q_flat = self._Q.reshape(-1)
-        self._if = np.ravel_multi_index(([0, 0, 0, 1, 1, 1, 2], [2, 3, 4, 2, 3, 4, 4]),
-                                        (self.n, self.n))
+        if self._ks is None:
+            self._if = np.ravel_multi_index(([0, 0, 0, 1, 1, 1, 2], [2, 3, 4, 2, 3, 4, 4]),
+                                            (self.n, self.n))
+        else:  # _scaled_step's order: the twist and the scale columns of x, y, psi
+            kv, kw = self._ks, self._ks + 1
+            self._if = np.ravel_multi_index(
+                ([0, 0, 0, 1, 1, 1, 2, 0, 0, 1, 1, 2], [2, 3, 4, 2, 3, 4, 4, kv, kw, kv, kw, kw]),
+                (self.n, self.n))
         # the upper and lower triangle of the 5x5 block (unicycle_process_noise's order), then
         # the diagonal of the bias and the offset states
         iu = np.triu_indices(5)
@@ -657,16 +735,39 @@ class UnicycleEkf(Estimator):
             return  # same stamp (or a tiny reorder): apply at the current state time
         kf = self.kf
         xs = kf.x.tolist()
-        x1, y1, p1, J = self._step_jac(xs[0], xs[1], xs[2], xs[3], xs[4], dt)
-        j0, j1 = J[0], J[1]
-        # one flat fancy-index assignment each for F and Q: element assignments cost ~100 ns
-        # apiece, the (row, col) fancy index twice the flat one
-        self._F_flat[self._if] = (j0[2], j0[3], j0[4], j1[2], j1[3], j1[4], dt)
-        q = unicycle_process_noise(xs[2], xs[3], dt, self.noise)
+        ks = self._ks
+        if ks is None:
+            x1, y1, p1, J = self._step_jac(xs[0], xs[1], xs[2], xs[3], xs[4], dt)
+            j0, j1 = J[0], J[1]
+            # one flat fancy-index assignment each for F and Q: element assignments cost
+            # ~100 ns apiece, the (row, col) fancy index twice the flat one
+            self._F_flat[self._if] = (j0[2], j0[3], j0[4], j1[2], j1[3], j1[4], dt)
+            q = unicycle_process_noise(xs[2], xs[3], dt, self.noise)
+        else:
+            x1, y1, p1, F, q = _scaled_step(self._step_jac, xs, ks, dt, self.noise)
+            self._F_flat[self._if] = F
         self._Q_flat[self._iq] = q + q + tuple([w * dt for w in self._walks])
         xs[0], xs[1], xs[2] = x1, y1, p1
         kf.predict(self._F, self._Q, xs)
         self.t = t
+
+    def _twist_seen(self, sensor: str, comp: int, t: float) -> None:
+        """Record a measurement of v (comp 3) or w (4) by ``sensor`` at ``t``; with stated
+        acceleration limits, re-derive the twist densities when the shortest sample period of
+        that component's sensors changes by more than 10 %."""
+        key = (sensor, comp)
+        last = self._tw_last.get(key)
+        self._tw_last[key] = t
+        if last is None or not t > last:
+            return
+        per = self._tw_period[comp]
+        old = min(per.values()) if per else None
+        per[sensor] = t - last
+        new = min(per.values())
+        if old is None or abs(new - old) > 0.1 * old:
+            p3, p4 = self._tw_period[3], self._tw_period[4]
+            self.noise = twist_densities(*self._amax, min(p3.values()) if p3 else None,
+                                         min(p4.values()) if p4 else None, self.noise)
 
     def _apply(self, ms) -> None:
         """Assemble the piecewise measurement model of the messages ``ms`` -- per measurement its
@@ -680,8 +781,16 @@ class UnicycleEkf(Estimator):
             if isinstance(m, GyroYawRate):
                 if info.uses is not None and "yaw_rate" not in info.uses:
                     continue
+                if self._amax[1] is not None:
+                    self._twist_seen(m.sensor, 4, m.t)
                 bi = info.bias_idx
-                if bi is None:
+                ks = self._ks
+                if ks is not None:  # the gyro sees the true yaw rate k_w om (+ bias)
+                    kw, om = x[ks + 1], x[4]
+                    b, bcol = (info.bias, ()) if bi is None else (x[bi], ((bi, 1.0),))
+                    y = m.yaw_rate - (kw * om + b)
+                    rows = (((4, kw), (ks + 1, om), *bcol),)
+                elif bi is None:
                     y = m.yaw_rate - (x[4] + info.bias)
                     rows = _ROWS_W
                 else:
@@ -708,24 +817,19 @@ class UnicycleEkf(Estimator):
                 y = (m.yaw - hpred + _PI) % _TWO_PI - _PI
                 blocks.append((m.sensor, "heading", (y,), rows, ((m.var,),), info.gate))
             elif isinstance(m, WheelOdometry):
-                ks = self._ks
+                # the odometry's twist is the state's (with scale states, the odometry-frame
+                # twist; the scales enter the motion, not this linear measurement)
+                if self._amax != (None, None):
+                    if m.v is not None:
+                        self._twist_seen(m.sensor, 3, m.t)
+                    if m.yaw_rate is not None:
+                        self._twist_seen(m.sensor, 4, m.t)
                 if m.v is not None:
-                    if ks is None:
-                        y, rows = m.v - x[3], _ROWS_V
-                    else:  # the odometry reports v / k_v
-                        kv = x[ks]
-                        y = m.v - x[3] / kv
-                        rows = (((3, 1.0 / kv), (ks, -x[3] / (kv * kv))),)
-                    blocks.append((m.sensor, "v", (y,), rows, ((m.v_var,),), info.gate))
-                if m.yaw_rate is not None:
-                    if ks is None:
-                        y, rows = m.yaw_rate - x[4], _ROWS_W
-                    else:  # ... and w / k_w
-                        kw = x[ks + 1]
-                        y = m.yaw_rate - x[4] / kw
-                        rows = (((4, 1.0 / kw), (ks + 1, -x[4] / (kw * kw))),)
-                    blocks.append((m.sensor, "yaw_rate", (y,), rows, ((m.yaw_rate_var,),),
+                    blocks.append((m.sensor, "v", (m.v - x[3],), _ROWS_V, ((m.v_var,),),
                                    info.gate))
+                if m.yaw_rate is not None:
+                    blocks.append((m.sensor, "yaw_rate", (m.yaw_rate - x[4],), _ROWS_W,
+                                   ((m.yaw_rate_var,),), info.gate))
             elif isinstance(m, GpsFix):
                 if m.enu is None or m.status < 0:
                     self.log.rejected[(m.sensor, "no_fix" if m.status < 0 else "no_enu")] += 1
@@ -747,17 +851,12 @@ class UnicycleEkf(Estimator):
                 if r is None or L is None:
                     raise ValueError("WheelSpeeds need robot.wheel_radius and robot.track_width")
                 k = 0.5 * L / r
-                ks = self._ks
-                if ks is None:
-                    vr, wr = x[3] / r, x[4] * k
-                    rows = (((3, 1.0 / r), (4, -k)), ((3, 1.0 / r), (4, k)))
-                else:  # the nominal geometry turns (v / k_v, w / k_w) into wheel speeds
-                    kv, kw = x[ks], x[ks + 1]
-                    vr, wr = x[3] / (kv * r), x[4] * k / kw
-                    dv = (3, 1.0 / (kv * r))
-                    dkv = (ks, -vr / kv)
-                    rows = ((dv, (4, -k / kw), dkv, (ks + 1, wr / kw)),
-                            (dv, (4, k / kw), dkv, (ks + 1, -wr / kw)))
+                if self._amax != (None, None):
+                    self._twist_seen(m.sensor, 3, m.t)
+                    self._twist_seen(m.sensor, 4, m.t)
+                # the nominal geometry turns the state's (odometry-frame) twist into wheel speeds
+                vr, wr = x[3] / r, x[4] * k
+                rows = (((3, 1.0 / r), (4, -k)), ((3, 1.0 / r), (4, k)))
                 blocks.append((m.sensor, "wheels", (m.left - (vr - wr), m.right - (vr + wr)),
                                rows, ((m.left_var, 0.0), (0.0, m.right_var)), info.gate))
         if blocks:
@@ -779,14 +878,24 @@ class UnicycleEkf(Estimator):
             if lx == 0.0 and ly == 0.0:
                 return y, _ROWS_XY
             return y, (((0, 1.0), (2, -s * lx - c * ly)), ((1, 1.0), (2, c * lx - s * ly)))
-        xb, yb, pb, J = se2_step_jac(x[0], x[1], x[2], x[3], x[4], -d)
+        ks = self._ks
+        kv, kw = (1.0, 1.0) if ks is None else (x[ks], x[ks + 1])
+        xb, yb, pb, J = se2_step_jac(x[0], x[1], x[2], kv * x[3], kw * x[4], -d)
         c, s = _cos(pb), _sin(pb)
         ae, an = -s * lx - c * ly, c * lx - s * ly  # d antenna offset / d heading at t - d
         y = (m.enu[0] - (xb + c * lx - s * ly), m.enu[1] - (yb + s * lx + c * ly))
         je, jn = J[0], J[1]
-        # d psi(t - d) / d (psi, w) = (1, -d)
-        return y, (((0, 1.0), (2, je[2] + ae), (3, je[3]), (4, je[4] - d * ae)),
-                   ((1, 1.0), (2, jn[2] + an), (3, jn[3]), (4, jn[4] - d * an)))
+        # d psi(t - d) / d (psi, w) = (1, -d); w.r.t. the true twist (v, w) = (k_v u, k_w om)
+        de_v, de_w = je[3], je[4] - d * ae
+        dn_v, dn_w = jn[3], jn[4] - d * an
+        if ks is None:
+            return y, (((0, 1.0), (2, je[2] + ae), (3, de_v), (4, de_w)),
+                       ((1, 1.0), (2, jn[2] + an), (3, dn_v), (4, dn_w)))
+        u, om = x[3], x[4]
+        return y, (((0, 1.0), (2, je[2] + ae), (3, de_v * kv), (4, de_w * kw),
+                    (ks, de_v * u), (ks + 1, de_w * om)),
+                   ((1, 1.0), (2, jn[2] + an), (3, dn_v * kv), (4, dn_w * kw),
+                    (ks, dn_v * u), (ks + 1, dn_w * om)))
 
     def _init_offset(self, t: float, m: Heading, hi: int) -> None:
         """hoff = wrap(z - psi): variance var(psi) + R, covariance -cov(psi, .) with the rest."""

@@ -11,7 +11,8 @@ Shape (every key documented in README.md)::
       wheels: [{topic: /joint_states, joints: [left, right], noise: {speed: 0.1}}]
       landmarks: [{topic: /landmarks, map: some.landmarks.yaml, noise: {range: 0.1, bearing: 0.05}}]
     robot: {wheel_radius: 0.165, track_width: 0.555, wheel_radius_std: 0.002,
-            track_width_std: 0.03, slip: {longitudinal: 0.05, lateral: 0.02, heading: 0.01}}
+            track_width_std: 0.03, slip: {longitudinal: 0.05, lateral: 0.02, heading: 0.01},
+            max_accel: 0.5, max_yaw_accel: 0.5}
     ground_truth: {topic: /ground_truth}
     frame: {datum: first_fix}            # or [lat_deg, lon_deg, alt_m]
     initial_pose: ground_truth           # or [x, y, yaw]; default origin
@@ -26,7 +27,9 @@ default). A GPS ``delay`` (s) says that a fix describes the antenna position tha
 before its stamp. ``robot.wheel_radius_std`` / ``track_width_std`` (m) are the 1-sigma
 uncertainties of the nominal geometry; given, the estimators that can estimate the odometry's
 scale errors do. ``robot.slip`` states white-noise densities of the body's motion about its
-twist: longitudinal and lateral velocity (m/sqrt(s)) and yaw rate (rad/sqrt(s)). A ``gate`` on
+twist: longitudinal and lateral velocity (m/sqrt(s)) and yaw rate (rad/sqrt(s)).
+``robot.max_accel`` (m/s^2) and ``max_yaw_accel`` (rad/s^2) are the largest accelerations the
+base performs (its drive controller's limits). A ``gate`` on
 a sensor is the chi-square acceptance probability of its Mahalanobis gate (e.g. 0.9999) or
 ``off``.
 """
@@ -110,6 +113,11 @@ class RobotConfig:
     # densities: 'longitudinal' and 'lateral' body velocity (m/sqrt(s)), 'heading' (yaw rate,
     # rad/sqrt(s)); a key absent: the estimator's default
     slip: dict[str, float] = field(default_factory=dict)
+    # the largest forward (m/s^2) and yaw (rad/s^2) acceleration the base performs (a drive
+    # controller's acceleration limits); given, the unicycle EKF derives its twist random-walk
+    # densities from them and its twist sensors' sample periods
+    max_accel: float | None = None
+    max_yaw_accel: float | None = None
 
     @property
     def scale_std(self) -> tuple[float, float, float] | None:
@@ -300,9 +308,11 @@ def parse_config(raw: Any, source: str = "<config>", base: Path | None = None) -
 
     if "robot" in d:
         r = ck.mapping(d["robot"], "robot", ("wheel_radius", "track_width", "wheel_radius_std",
-                                             "track_width_std", "slip"))
+                                             "track_width_std", "slip", "max_accel",
+                                             "max_yaw_accel"))
         cfg.robot = RobotConfig(**{
-            k: ck.number(r[k], f"robot.{k}", positive=not k.endswith("_std"), nonneg=True)
+            k: ck.number(r[k], f"robot.{k}", positive=k in ("wheel_radius", "track_width"),
+                         nonneg=True)
             for k in r if k != "slip"})
         if "slip" in r:
             slip = ck.mapping(r["slip"], "robot.slip", ("longitudinal", "lateral", "heading"))

@@ -797,6 +797,11 @@ def sim_config(res: SimResult, landmark_map: str | None = None) -> dict:
     if sc.geometry_std is not None:
         robot.update(wheel_radius_std=sc.geometry_std.wheel_radius,
                      track_width_std=sc.geometry_std.track_width)
+    # the largest accelerations of the simulated motion (the commands are smooth; the
+    # unicycle EKF derives its twist random walks from these)
+    tr = res.truth
+    robot["max_accel"] = float(np.max(np.abs(np.gradient(tr.v, tr.dt))))
+    robot["max_yaw_accel"] = float(np.max(np.abs(np.gradient(tr.w, tr.dt))))
     # the simulated body moves exactly with its twist (the encoders' slip noise is in their
     # counts, not in the motion)
     robot["slip"] = {"longitudinal": 0.0, "lateral": 0.0, "heading": 0.0}

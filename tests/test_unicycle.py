@@ -15,6 +15,7 @@ from ekf_baseline.unicycle import (
     ProcessNoise,
     UnicycleEkf,
     euler_step_jac,
+    twist_densities,
     unicycle_process_noise,
 )
 from estimation.config import parse_config
@@ -232,6 +233,70 @@ def test_predict_jacobian_matches_central_differences(motion, w):
     np.testing.assert_allclose(ekf._F, F_num, atol=1e-7)
 
 
+def _scaled_cfg(**extra_sensors):
+    sensors = {"wheels": [{"topic": "/js", "joints": ["l", "r"], "noise": {"speed": 0.1}}]}
+    sensors.update(extra_sensors)
+    return parse_config({
+        "sensors": sensors,
+        "robot": {"wheel_radius": 0.1, "track_width": 0.4, "wheel_radius_std": 0.002,
+                  "track_width_std": 0.01},
+        "initial_pose": [0, 0, 0],
+    })
+
+
+@pytest.mark.parametrize("w", [0.0, 0.6])
+def test_predict_jacobian_with_scale_states_matches_central_differences(w):
+    """With odometry scales the body moves with (k_v u, k_w om): F's scale columns."""
+    ekf = UnicycleEkf(_scaled_cfg())
+    ekf.process(WheelSpeeds(0.0, 0.0, 0.0, 0.01, 0.01, sensor="/js"))
+    assert ekf.state_names == ("x", "y", "psi", "v_odo", "w_odo", "k_v", "k_w")
+    x0 = np.array([1.0, -2.0, 2.5, 1.3, w, 1.03, 0.96])
+    dt = 0.37
+
+    def f(xv):
+        ekf.kf.x = np.array(xv, dtype=float)
+        ekf.kf.P = np.eye(7)
+        ekf.t = 0.0
+        ekf._predict_to(dt)
+        out = ekf.kf.x.copy()
+        out[2] = xv[2] + wrap(out[2] - xv[2])
+        return out
+
+    F_num = _numeric_jac(f, x0)
+    ekf.kf.x, ekf.kf.P, ekf.t = x0.copy(), np.zeros((7, 7)), 0.0
+    ekf._predict_to(dt)
+    np.testing.assert_allclose(ekf._F, F_num, atol=1e-7)
+    # Q is the true-twist Q with the (u, om) rows and columns divided by (k_v, k_w)
+    Qt = np.zeros((5, 5))
+    Qt[np.triu_indices(5)] = unicycle_process_noise(2.5, 1.3 * 1.03, dt, ekf.noise)
+    Qt = Qt + np.triu(Qt, 1).T
+    T = np.diag([1.0, 1.0, 1.0, 1 / 1.03, 1 / 0.96])
+    np.testing.assert_allclose(ekf._Q[:5, :5], T @ Qt @ T, rtol=1e-12, atol=1e-18)
+
+
+def test_unobservable_odometry_scales_do_not_drift():
+    """Wheel speeds alone say nothing about k_v, k_w: they must keep their prior.
+
+    With the odometry twist measured as v / k_v of a true-twist state, the EKF's Jacobians at
+    the changing estimates leaked spurious information into the scales (a bias of the EKF as a
+    joint parameter estimator, Ljung 1979): on 120 s of seed 002 with exact nominal geometry,
+    k_w drifted to 1.08 (2.6 sigma) with 0.3 rad/s^2/sqrt(Hz) yaw-acceleration noise. The
+    scales now act in the motion, and the wheel measurements are linear in the state."""
+    rng = np.random.default_rng(3)
+    ekf = UnicycleEkf(_scaled_cfg())
+    r, half = 0.1, 0.2
+    for k in range(1200):
+        t = 0.1 * k
+        v = 0.5 + 0.3 * math.sin(t / 3.0)
+        w = 0.4 * math.sin(t / 5.0)
+        left = (v - half * w) / r + 0.1 * rng.standard_normal()
+        right = (v + half * w) / r + 0.1 * rng.standard_normal()
+        ekf.process(WheelSpeeds(t, left, right, 0.01, 0.01, sensor="/js"))
+    x, P = ekf.kf.x, ekf.kf.P
+    np.testing.assert_allclose(x[5:7], 1.0, atol=1e-12)
+    np.testing.assert_allclose(np.diag(P)[5:7], [0.02 ** 2, 0.02 ** 2 + 0.025 ** 2], rtol=1e-9)
+
+
 class _Capture:
     """Stands in for the filter's KalmanCore and records what an update would be given."""
 
@@ -285,7 +350,7 @@ def test_measurement_jacobians_match_central_differences():
     # the Python measurement models (the compiled kernels' are checked against them in
     # tests/test_ekf_fast_path.py)
     ekf = UnicycleEkf(cfg, compiled=False)
-    assert ekf.state_names == ("x", "y", "psi", "v", "w", "bg", "hoff", "k_v", "k_w")
+    assert ekf.state_names == ("x", "y", "psi", "v_odo", "w_odo", "bg", "hoff", "k_v", "k_w")
     ekf.process(GyroYawRate(0.0, 0.0, 1e-4, sensor="/imu"))
     ekf._hoff_ready.add(6)
     # with odometry scales and a GPS delay: the odometry rows depend on k_v, k_w, the fix's
@@ -622,3 +687,34 @@ def test_estimate_is_well_formed():
         assert est.pose_cov.shape == (3, 3)
         assert -math.pi <= est.state[6] < math.pi
     assert est.state.shape == (7,) and len(est.state_names) == 7
+
+
+def test_twist_densities_follow_stated_acceleration_limits_and_sample_periods():
+    """Bar-Shalom's CWNA rule: density a_max sqrt(T), T the shortest sample period of the
+    sensors measuring that twist component, as observed; without limits, the defaults."""
+    base = ProcessNoise()
+    nz = twist_densities(0.5, 0.4, 0.1, 0.02, base)
+    assert nz.acc == pytest.approx(0.5 * math.sqrt(0.1))
+    assert nz.yaw_acc == pytest.approx(0.4 * math.sqrt(0.02))
+    assert twist_densities(None, 0.4, 0.1, None, base) == base
+    # over one period the random walk's sigma is a_max T: the largest change of the twist
+    assert nz.acc * math.sqrt(0.1) == pytest.approx(0.5 * 0.1)
+
+    raw = {"sensors": {"odometry": [{"topic": "/odom", "use": ["v", "yaw_rate"]}],
+                       "imu": [{"topic": "/imu", "use": ["yaw_rate"], "gyro_bias": 0.0}]},
+           "robot": {"max_accel": 0.5, "max_yaw_accel": 0.4}, "initial_pose": [0, 0, 0]}
+    ekf = UnicycleEkf(parse_config(raw))
+    assert ekf.noise == base  # nothing observed yet
+    for k in range(60):  # odometry at 10 Hz, gyro at 50 Hz
+        t = 0.02 * k
+        if k % 5 == 0:
+            ekf.process(WheelOdometry(t, 1.0, 0.1, 1e-4, 1e-4, sensor="/odom"))
+        ekf.process(GyroYawRate(t + 0.001, 0.1, 1e-4, sensor="/imu"))
+    assert ekf.noise.acc == pytest.approx(0.5 * math.sqrt(0.1), rel=1e-6)
+    assert ekf.noise.yaw_acc == pytest.approx(0.4 * math.sqrt(0.02), rel=1e-6)
+    # an explicit ProcessNoise is kept as given
+    fixed = ProcessNoise(acc=0.7, yaw_acc=0.6)
+    ekf = UnicycleEkf(parse_config(raw), noise=fixed)
+    for k in range(10):
+        ekf.process(WheelOdometry(0.1 * k, 1.0, 0.1, 1e-4, 1e-4, sensor="/odom"))
+    assert ekf.noise == fixed
