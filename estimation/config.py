@@ -68,6 +68,12 @@ DEFAULT_GATE = 0.9999
 DEFAULT_LOCKOUT_COUNT = 5
 DEFAULT_LOCKOUT_TIME = 1.0  # s
 
+# Standard deviations (m, rad) of a given initial pose -- the config's initial_pose, or the first
+# ground-truth pose with initial_pose: ground_truth -- for every estimator alike: position and
+# heading are taken as known to 1 cm and 5 mrad. A wrong start is caught by the gate's lock-out
+# recovery, not by a wide initial covariance.
+GIVEN_POSE_STD = (0.01, 0.005)
+
 
 @dataclass
 class SensorConfig:

@@ -57,6 +57,7 @@ from estimation.config import (
     DEFAULT_GATE,
     DEFAULT_LOCKOUT_COUNT,
     DEFAULT_LOCKOUT_TIME,
+    GIVEN_POSE_STD,
     Config,
     SensorConfig,
 )
@@ -102,7 +103,8 @@ class SmootherNoise:
     gyro_bias_rw: float = 1e-4  # rad/s/sqrt(s)
     heading_offset_rw: float = 0.02
     fixed_rw: float = 1e-6  # random walk of a calibration state that is not estimated
-    init_pos_sigma: float = 1e-3  # m, when the initial pose is given
+    init_pos_sigma: float = GIVEN_POSE_STD[0]  # m, when the initial pose is given
+    init_given_psi_sigma: float = GIVEN_POSE_STD[1]  # rad, when the initial pose is given
     init_psi_sigma: float = 0.2  # rad, from GPS course
     init_v_sigma: float = 1.0  # m/s
     init_w_sigma: float = 0.5  # rad/s
@@ -684,7 +686,8 @@ class FixedLagSmoother(Estimator):
         if isinstance(m, Heading):
             self.heading = m
         if self.given_pose is not None:
-            self._start(m.t, tuple(self.given_pose), self.noise.init_pos_sigma, 1e-3)
+            self._start(m.t, tuple(self.given_pose), self.noise.init_pos_sigma,
+                        self.noise.init_given_psi_sigma)
             self.process(m)
             return
         if not self.has_gps:
