@@ -287,6 +287,25 @@ def test_unicycle_compiled_matches_reference_on_husky_bag(rate):
 
 
 @needs_numba
+@pytest.mark.parametrize("rate", ["event", 10.0])
+def test_unicycle_compiled_matches_reference_on_sample_bag(rate):
+    """The simulated sample bag (data/sample_husky.bag) as ddfuse runs it: odometry scale
+    states, acceleration limits, gyro bias, compass offset, a delayed GPS."""
+    from estimation.bags import read_stream
+    from estimation.config import load_config
+    from estimation.runner import initial_pose
+
+    cfg = load_config(ROOT / "data" / "sample_husky.yaml")
+    cfg.ekf.rate = rate
+    stream = read_stream(ROOT / "data" / "sample_husky.bag", cfg)
+    pose = initial_pose(cfg.initial_pose, stream)
+    fast = _run_both(lambda ref, compiled: UnicycleEkf(cfg, initial_pose=pose, reference=ref,
+                                                       compiled=compiled),
+                     stream.measurements)
+    assert fast.state_names[-2:] == ("k_v", "k_w") and fast.noise.acc < 1.0
+
+
+@needs_numba
 def test_igvc_compiled_matches_reference_on_husky_bag():
     cfg, stream, ms = _husky_slice(80.0)
     fast = _run_both(_igvc(cfg, datum=stream.datum), ms)
