@@ -339,7 +339,9 @@ class UnicycleEkf(Estimator):
     fast sparse path ``update_sparse`` (same results; the tests compare the two).
     ``compiled``: run each step in the numba kernels of ``ekf_baseline.kalman_jit`` (prediction,
     measurement models, gate, Joseph update, innovation log; what they defer -- a gate
-    lock-out's recovery, the initialisations -- runs the Python code on the same arrays).
+    lock-out's recovery, the initialisations -- runs the Python code on the same arrays; the
+    acceleration-limit densities' bookkeeping stays in Python and is copied into the kernels'
+    arrays when it changes them).
     Default: when numba is installed and ``reference`` is not set; False runs the Python fast
     path. Same results (tests/test_ekf_fast_path.py).
     """
