@@ -435,6 +435,11 @@ class JitKalmanCore(KalmanCore):
     def last_nis(self, value) -> None:
         self.fp[self.kj.FP_LASTNIS] = value
 
+    def set_noise(self, noise) -> None:
+        """Replace the process noise densities (the kernel's order) the kernels read."""
+        kj = self.kj
+        self.fp[kj.FP_NOISE:kj.FP_NOISE + len(noise)] = noise
+
     # ------------------------------------------------------------------ sensors
     def sensor_row(self, name: str, *, gate=None, bias: float = 0.0, hoff: float = 0.0,
                    lever=(0.0, 0.0), delay: float = 0.0, bias_idx: int | None = None,

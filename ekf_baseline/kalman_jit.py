@@ -11,6 +11,7 @@ dense numpy ``KalmanCore.update_blocks``) and the fallback for what this module 
 Functions not written here but compiled into these kernels (``numba.extending.register_jitable``,
 so they stay plain Python for their other callers): ``factors.kinematics.se2_step_jac``,
 ``twist_coeffs``, ``ekf_baseline.unicycle.euler_step_jac``, ``unicycle_process_noise_terms``,
+``scaled_step_terms`` (prediction with odometry scale states), ``delayed_gps_terms``,
 ``ekf_baseline.igvc.igvc_q_values`` and the sympy-generated ``*_step_sparse`` of
 ``ekf_baseline/igvc_jacobians.py``.
 
@@ -62,11 +63,17 @@ from ekf_baseline.compiled import (  # noqa: F401 - re-exported: the kernels' co
     UNI_KINDS,
 )
 from ekf_baseline.igvc import igvc_q_values
-from ekf_baseline.unicycle import euler_step_jac, unicycle_process_noise_terms
+from ekf_baseline.unicycle import (
+    delayed_gps_terms,
+    euler_step_jac,
+    scaled_step_terms,
+    unicycle_process_noise_terms,
+)
 from factors.kinematics import se2_step_jac, twist_coeffs
 
 for _f in (twist_coeffs, se2_step_jac, euler_step_jac, unicycle_process_noise_terms,
-           igvc_q_values, gen.euler_step_sparse, gen.icc_step_sparse):
+           scaled_step_terms, delayed_gps_terms, igvc_q_values, gen.euler_step_sparse,
+           gen.icc_step_sparse):
     register_jitable(_f)
 
 
@@ -104,7 +111,8 @@ FP_WHEEL_R = 2  # m, wheel radius (NaN: not configured)
 FP_TRACK = 3  # m, track width (NaN: not configured)
 FP_RADIUS = 4  # m, igvc: the Earth sphere's radius
 FP_MAXSTEP = 5  # s, igvc: longest prediction step
-FP_NOISE = 8  # process noise densities (8 slots), the filter's order
+FP_NOISE = 8  # process noise densities (8 slots), the filter's order (unicycle: set by
+# UnicycleEkf whenever the acceleration-limit densities change)
 FP_SCR = 16  # scratch: y (MAXR), zf (2 MAXB)
 FP_X = 48  # the state x (n,)
 
@@ -192,23 +200,40 @@ def _propagate_cov(fp, ip, W, n, dt):
 @njit(cache=True)
 def _uni_predict(fp, ip, W, n, dt):
     """UnicycleEkf._predict_to for dt > 0 s: the constant-twist (or Euler) step of (x, y, psi),
-    F (its Jacobian, identity elsewhere), Q (unicycle_process_noise_terms + walks)."""
+    F (its Jacobian, identity elsewhere), Q (unicycle_process_noise_terms + walks); with the
+    odometry scale states (IP_KS >= 0) scaled_step_terms."""
     x = fp[FP_X:FP_X + n]
-    if ip[IP_MOTION] == 0:
-        x1, y1, p1, J = se2_step_jac(x[0], x[1], x[2], x[3], x[4], dt)
-    else:
-        x1, y1, p1, J = euler_step_jac(x[0], x[1], x[2], x[3], x[4], dt)
     ofv = ip[IP_OFF_FVAL]
-    # F's entries in the order ekf_baseline.compiled lays them out: rows 0..2 first
-    fp[ofv + 1] = J[0][2]
-    fp[ofv + 2] = J[0][3]
-    fp[ofv + 3] = J[0][4]
-    fp[ofv + 5] = J[1][2]
-    fp[ofv + 6] = J[1][3]
-    fp[ofv + 7] = J[1][4]
-    fp[ofv + 9] = dt
-    q = unicycle_process_noise_terms(x[2], x[3], dt, fp[FP_NOISE], fp[FP_NOISE + 1],
-                                     fp[FP_NOISE + 2], fp[FP_NOISE + 3], fp[FP_NOISE + 4])
+    ks = ip[IP_KS]
+    # F's entries in the order UnicycleEkf._compiled_core lays them out: rows 0..2 first
+    if ks < 0:
+        if ip[IP_MOTION] == 0:
+            x1, y1, p1, J = se2_step_jac(x[0], x[1], x[2], x[3], x[4], dt)
+        else:
+            x1, y1, p1, J = euler_step_jac(x[0], x[1], x[2], x[3], x[4], dt)
+        fp[ofv + 1] = J[0][2]
+        fp[ofv + 2] = J[0][3]
+        fp[ofv + 3] = J[0][4]
+        fp[ofv + 5] = J[1][2]
+        fp[ofv + 6] = J[1][3]
+        fp[ofv + 7] = J[1][4]
+        fp[ofv + 9] = dt
+        q = unicycle_process_noise_terms(x[2], x[3], dt, fp[FP_NOISE], fp[FP_NOISE + 1],
+                                         fp[FP_NOISE + 2], fp[FP_NOISE + 3], fp[FP_NOISE + 4])
+    else:  # then the scale columns of x, y, psi
+        x1, y1, p1, F, q = scaled_step_terms(
+            x[0], x[1], x[2], x[3], x[4], x[ks], x[ks + 1], dt, ip[IP_MOTION] != 0,
+            fp[FP_NOISE], fp[FP_NOISE + 1], fp[FP_NOISE + 2], fp[FP_NOISE + 3],
+            fp[FP_NOISE + 4])
+        fp[ofv + 1] = F[0]
+        fp[ofv + 2] = F[1]
+        fp[ofv + 3] = F[2]
+        fp[ofv + 5] = F[3]
+        fp[ofv + 6] = F[4]
+        fp[ofv + 7] = F[5]
+        fp[ofv + 9] = F[6]
+        for k in range(5):
+            fp[ofv + 10 + k] = F[7 + k]
     oqv = ip[IP_OFF_QVAL]
     for k in range(15):  # the upper triangle, then its off-diagonal entries again (lower)
         fp[oqv + k] = q[k]
@@ -570,12 +595,18 @@ def _uni_model(fp, ip, sf, si, H, y, R, blk, nr, nb, typ, s, z0, z1, r0, r1, r01
     if typ == T_GYRO:
         _zero_rows(H, R, nr, 1)
         bi = si[s, SI_BIAS]
-        if bi < 0:
-            y[nr] = z0 - (x[4] + sf[s, SF_BIAS])
-        else:
-            y[nr] = z0 - (x[4] + x[bi])
+        b = sf[s, SF_BIAS] if bi < 0 else x[bi]
+        if ks < 0:
+            y[nr] = z0 - (x[4] + b)
+            H[nr, 4] = 1.0
+        else:  # the gyro sees the true yaw rate k_w om (+ bias)
+            kw = x[ks + 1]
+            om = x[4]
+            y[nr] = z0 - (kw * om + b)
+            H[nr, 4] = kw
+            H[nr, ks + 1] = om
+        if bi >= 0:
             H[nr, bi] = 1.0
-        H[nr, 4] = 1.0
         R[nr, nr] = r0
         return _block(blk, nr, 1, nb, s, K_GYRO)
     if typ == T_HEAD:
@@ -591,28 +622,17 @@ def _uni_model(fp, ip, sf, si, H, y, R, blk, nr, nb, typ, s, z0, z1, r0, r1, r01
         R[nr, nr] = r0
         return _block(blk, nr, 1, nb, s, K_HEAD)
     if typ == T_ODOM:
+        # the odometry's twist is the state's (with scale states, the odometry-frame twist)
         if flags & 1:
             _zero_rows(H, R, nr, 1)
-            if ks < 0:
-                y[nr] = z0 - x[3]
-                H[nr, 3] = 1.0
-            else:  # the odometry reports v / k_v
-                kv = x[ks]
-                y[nr] = z0 - x[3] / kv
-                H[nr, 3] = 1.0 / kv
-                H[nr, ks] = -x[3] / (kv * kv)
+            y[nr] = z0 - x[3]
+            H[nr, 3] = 1.0
             R[nr, nr] = r0
             nr, nb = _block(blk, nr, 1, nb, s, K_V)
         if flags & 2:
             _zero_rows(H, R, nr, 1)
-            if ks < 0:
-                y[nr] = z1 - x[4]
-                H[nr, 4] = 1.0
-            else:  # ... and w / k_w
-                kw = x[ks + 1]
-                y[nr] = z1 - x[4] / kw
-                H[nr, 4] = 1.0 / kw
-                H[nr, ks + 1] = -x[4] / (kw * kw)
+            y[nr] = z1 - x[4]
+            H[nr, 4] = 1.0
             R[nr, nr] = r1
             nr, nb = _block(blk, nr, 1, nb, s, K_YAWRATE)
         return nr, nb
@@ -632,21 +652,24 @@ def _uni_model(fp, ip, sf, si, H, y, R, blk, nr, nb, typ, s, z0, z1, r0, r1, r01
                 H[nr, 2] = -sn * lx - c * ly
                 H[nr + 1, 2] = c * lx - sn * ly
         else:  # the antenna d s before the state's time: the exact step backwards
-            xb, yb, pb, J = se2_step_jac(x[0], x[1], x[2], x[3], x[4], -d)
-            c = math.cos(pb)
-            sn = math.sin(pb)
-            ae = -sn * lx - c * ly
-            an = c * lx - sn * ly
-            y[nr] = z0 - (xb + c * lx - sn * ly)
-            y[nr + 1] = z1 - (yb + sn * lx + c * ly)
+            kv = 1.0 if ks < 0 else x[ks]
+            kw = 1.0 if ks < 0 else x[ks + 1]
+            g = delayed_gps_terms(x[0], x[1], x[2], x[3], x[4], kv, kw, lx, ly, d)
+            y[nr] = z0 - g[0]
+            y[nr + 1] = z1 - g[1]
             H[nr, 0] = 1.0
-            H[nr, 2] = J[0][2] + ae
-            H[nr, 3] = J[0][3]
-            H[nr, 4] = J[0][4] - d * ae
+            H[nr, 2] = g[2]
+            H[nr, 3] = g[3]
+            H[nr, 4] = g[4]
             H[nr + 1, 1] = 1.0
-            H[nr + 1, 2] = J[1][2] + an
-            H[nr + 1, 3] = J[1][3]
-            H[nr + 1, 4] = J[1][4] - d * an
+            H[nr + 1, 2] = g[7]
+            H[nr + 1, 3] = g[8]
+            H[nr + 1, 4] = g[9]
+            if ks >= 0:
+                H[nr, ks] = g[5]
+                H[nr, ks + 1] = g[6]
+                H[nr + 1, ks] = g[10]
+                H[nr + 1, ks + 1] = g[11]
         R[nr, nr] = r0
         R[nr, nr + 1] = r01
         R[nr + 1, nr] = r10
@@ -656,28 +679,13 @@ def _uni_model(fp, ip, sf, si, H, y, R, blk, nr, nb, typ, s, z0, z1, r0, r1, r01
         _zero_rows(H, R, nr, 2)
         rw = fp[FP_WHEEL_R]
         k = 0.5 * fp[FP_TRACK] / rw
-        if ks < 0:
-            vr = x[3] / rw
-            wr = x[4] * k
-            H[nr, 3] = 1.0 / rw
-            H[nr, 4] = -k
-            H[nr + 1, 3] = 1.0 / rw
-            H[nr + 1, 4] = k
-        else:  # the nominal geometry turns (v / k_v, w / k_w) into wheel speeds
-            kv = x[ks]
-            kw = x[ks + 1]
-            vr = x[3] / (kv * rw)
-            wr = x[4] * k / kw
-            dv = 1.0 / (kv * rw)
-            dkv = -vr / kv
-            H[nr, 3] = dv
-            H[nr, 4] = -k / kw
-            H[nr, ks] = dkv
-            H[nr, ks + 1] = wr / kw
-            H[nr + 1, 3] = dv
-            H[nr + 1, 4] = k / kw
-            H[nr + 1, ks] = dkv
-            H[nr + 1, ks + 1] = -wr / kw
+        # the nominal geometry turns the state's (odometry-frame) twist into wheel speeds
+        vr = x[3] / rw
+        wr = x[4] * k
+        H[nr, 3] = 1.0 / rw
+        H[nr, 4] = -k
+        H[nr + 1, 3] = 1.0 / rw
+        H[nr + 1, 4] = k
         y[nr] = z0 - (vr - wr)
         y[nr + 1] = z1 - (vr + wr)
         R[nr, nr] = r0

@@ -107,7 +107,7 @@ from estimation.measurements import (
 from factors.kinematics import se2_step_jac
 
 __all__ = ["ProcessNoise", "UnicycleEkf", "unicycle_process_noise", "euler_step_jac",
-           "twist_densities"]
+           "twist_densities", "scaled_step_terms", "delayed_gps_terms"]
 
 _PI = math.pi
 _TWO_PI = 2.0 * math.pi
@@ -240,30 +240,67 @@ def euler_step_jac(
     return x + d * c, y + d * s, psi + w * dt, j
 
 
-def _scaled_step(step_jac, xs: list, ks: int, dt: float, noise: ProcessNoise
-                 ) -> tuple[float, float, float, tuple[float, ...], tuple[float, ...]]:
+def scaled_step_terms(
+    x: float, y: float, psi: float, u: float, om: float, kv: float, kw: float, dt: float,
+    euler: bool, acc: float, yaw_acc: float, pos_long: float, pos_lat: float, heading: float
+) -> tuple[float, float, float, tuple[float, ...], tuple[float, ...]]:
     """Prediction with odometry scale states: states 3, 4 are the odometry-frame twist (u, om)
-    and the body moves with the true twist (v, w) = (k_v u, k_w om), k_v = xs[ks],
-    k_w = xs[ks + 1].
+    and the body moves with the true twist (v, w) = (k_v u, k_w om). ``euler``: the seed's
+    Euler step (:func:`euler_step_jac`) instead of the exact SE(2) step; the densities are
+    :class:`ProcessNoise`'s as floats (the compiled filter, ekf_baseline.kalman_jit, runs this
+    same code).
 
     Returns the new (x, y, psi), the F entries in the order (x, y, psi rows) d/d(psi, u, om) of
     x and y, d psi/d om, then d/d(k_v, k_w) of x and y and d psi/d k_w, and the 5x5 Q upper
     triangle (``unicycle_process_noise``'s order) of (x, y, psi, u, om): the continuous white
     accelerations act on the true twist, so Q_true's u and om rows and columns are divided by
     k_v and k_w."""
-    u, om, kv, kw = xs[3], xs[4], xs[ks], xs[ks + 1]
-    v, w = kv * u, kw * om
-    x1, y1, p1, J = step_jac(xs[0], xs[1], xs[2], v, w, dt)
-    j0, j1 = J[0], J[1]
+    v = kv * u
+    w = kw * om
+    if euler:
+        x1, y1, p1, J = euler_step_jac(x, y, psi, v, w, dt)
+    else:
+        x1, y1, p1, J = se2_step_jac(x, y, psi, v, w, dt)
+    j0 = J[0]
+    j1 = J[1]
     F = (j0[2], j0[3] * kv, j0[4] * kw, j1[2], j1[3] * kv, j1[4] * kw, dt * kw,
          j0[3] * u, j0[4] * om, j1[3] * u, j1[4] * om, dt * om)
-    q = unicycle_process_noise(xs[2], v, dt, noise)
-    a, b = 1.0 / kv, 1.0 / kw
+    q = unicycle_process_noise_terms(psi, v, dt, acc, yaw_acc, pos_long, pos_lat, heading)
+    a = 1.0 / kv
+    b = 1.0 / kw
     q = (q[0], q[1], q[2], q[3] * a, q[4] * b,
          q[5], q[6], q[7] * a, q[8] * b,
          q[9], q[10] * a, q[11] * b,
          q[12] * a * a, q[13] * a * b, q[14] * b * b)
     return x1, y1, p1, F, q
+
+
+def delayed_gps_terms(
+    x: float, y: float, psi: float, u: float, om: float, kv: float, kw: float, lx: float,
+    ly: float, d: float
+) -> tuple[float, ...]:
+    """The GPS antenna ``d`` s before the state's time (lever arm (lx, ly) m, body frame),
+    reached by the exact constant-twist step backwards with the true twist (k_v u, k_w om)
+    (k_v = k_w = 1 without scale states), and its Jacobian.
+
+    Returns (east, north, de/dpsi, de/du, de/dom, de/dk_v, de/dk_w, dn/dpsi, dn/du, dn/dom,
+    dn/dk_v, dn/dk_w); d/dx of east and d/dy of north are 1, the rest 0. Shared by the Python
+    filter and the compiled one (ekf_baseline.kalman_jit)."""
+    xb, yb, pb, J = se2_step_jac(x, y, psi, kv * u, kw * om, -d)
+    c = _cos(pb)
+    s = _sin(pb)
+    ae = -s * lx - c * ly  # d antenna offset / d heading at t - d
+    an = c * lx - s * ly
+    je = J[0]
+    jn = J[1]
+    # d psi(t - d) / d (psi, w) = (1, -d); w.r.t. the true twist (v, w) = (k_v u, k_w om)
+    de_v = je[3]
+    de_w = je[4] - d * ae
+    dn_v = jn[3]
+    dn_w = jn[4] - d * an
+    return (xb + c * lx - s * ly, yb + s * lx + c * ly,
+            je[2] + ae, de_v * kv, de_w * kw, de_v * u, de_w * om,
+            jn[2] + an, dn_v * kv, dn_w * kw, dn_v * u, dn_w * om)
 
 
 class _Sensor:
@@ -302,7 +339,9 @@ class UnicycleEkf(Estimator):
     fast sparse path ``update_sparse`` (same results; the tests compare the two).
     ``compiled``: run each step in the numba kernels of ``ekf_baseline.kalman_jit`` (prediction,
     measurement models, gate, Joseph update, innovation log; what they defer -- a gate
-    lock-out's recovery, the initialisations -- runs the Python code on the same arrays).
+    lock-out's recovery, the initialisations -- runs the Python code on the same arrays; the
+    acceleration-limit densities' bookkeeping stays in Python and is copied into the kernels'
+    arrays when it changes them).
     Default: when numba is installed and ``reference`` is not set; False runs the Python fast
     path. Same results (tests/test_ekf_fast_path.py).
     """
@@ -328,18 +367,10 @@ class UnicycleEkf(Estimator):
     ) -> None:
         super().__init__()
         self.reference = bool(reference)
-        # The kernels implement the model without odometry scale states acting in the motion
-        # and without the acceleration-limit densities; such configs run in Python until the
-        # kernels are ported.
-        r = cfg.robot
-        kernel_model = not ((r.scale_std is not None
-                             and (cfg.of_kind("odometry") or cfg.of_kind("wheels")))
-                            or r.max_accel is not None or r.max_yaw_accel is not None)
         if compiled is None:
-            compiled = not self.reference and jit.available() and kernel_model
-        elif compiled and (self.reference or not jit.available() or not kernel_model):
-            raise ValueError("compiled=True needs numba, reference=False, and a config without "
-                             "odometry scale states or acceleration limits")
+            compiled = not self.reference and jit.available()
+        elif compiled and (self.reference or not jit.available()):
+            raise ValueError("compiled=True needs numba and reference=False")
         self.compiled = bool(compiled)
         if self.compiled:
             jit.warm_up("unicycle")  # compile / load the kernels now, not in the first step
@@ -358,6 +389,7 @@ class UnicycleEkf(Estimator):
         self._amax = (r.max_accel, r.max_yaw_accel) if noise is None else (None, None)
         self._tw_last: dict[tuple[str, int], float] = {}  # (sensor, 3 v / 4 w): last stamp
         self._tw_period: dict[int, dict[str, float]] = {3: {}, 4: {}}  # per sensor, s
+        self._tw_on = self._amax != (None, None)
         self._step_jac = se2_step_jac if motion == "exact" else euler_step_jac
         self.motion = motion
         self.rate = None if cfg.ekf.rate == "event" else float(cfg.ekf.rate)
@@ -445,7 +477,7 @@ class UnicycleEkf(Estimator):
         if self._ks is None:
             self._if = np.ravel_multi_index(([0, 0, 0, 1, 1, 1, 2], [2, 3, 4, 2, 3, 4, 4]),
                                             (self.n, self.n))
-        else:  # _scaled_step's order: the twist and the scale columns of x, y, psi
+        else:  # scaled_step_terms' order: the twist and the scale columns of x, y, psi
             kv, kw = self._ks, self._ks + 1
             self._if = np.ravel_multi_index(
                 ([0, 0, 0, 1, 1, 1, 2, 0, 0, 1, 1, 2], [2, 3, 4, 2, 3, 4, 4, kv, kw, kv, kw, kw]),
@@ -639,24 +671,32 @@ class UnicycleEkf(Estimator):
         kj = jit.kernels()
         self._uni_event, self._uni_stacked = kj.uni_event, kj.uni_stacked
         n = self.n
-        # F: rows 0..2 in the order uni_predict fills them, then the identity of the rest
+        # F: rows 0..2 in the order uni_predict fills them (with scale states their columns of
+        # x, y, psi next), then the identity of the rest
         f_pairs = [(0, 0), (0, 2), (0, 3), (0, 4), (1, 1), (1, 2), (1, 3), (1, 4), (2, 2), (2, 4)]
+        ks = self._ks
+        if ks is not None:
+            f_pairs += [(0, ks), (0, ks + 1), (1, ks), (1, ks + 1), (2, ks + 1)]
         f_pairs += [(i, i) for i in range(3, n)]
         upper = [(i, j) for i in range(5) for j in range(i, 5)]  # unicycle_process_noise order
         q_pairs = upper + [(j, i) for i, j in upper if i != j]
         walks = list(zip(self._bias_states + self._hoff_states, self._walks, strict=True))
-        nz = self.noise
         r, L = self._wheel
         kf = jit.JitKalmanCore(
             x0, P0, self.log, state_angles=(2, *self._hoff_states),
             lockout_count=self._lockout[0], lockout_time=self._lockout[1], kinds=jit.UNI_KINDS,
             f_pairs=f_pairs, q_pairs=q_pairs, walks=walks,
             motion=0 if self.motion == "exact" else 1, ks=self._ks,
-            noise=(nz.acc, nz.yaw_acc, nz.pos_long, nz.pos_lat, nz.heading),
+            noise=self._noise_floats(),
             params={kj.FP_WHEEL_R: r, kj.FP_TRACK: L})
         for info in self._sensors.values():
             info.row = None  # (re)registered with this core on first use
         return kf
+
+    def _noise_floats(self) -> tuple[float, ...]:
+        """The process noise densities in the kernels' order (unicycle_process_noise_terms)."""
+        nz = self.noise
+        return (nz.acc, nz.yaw_acc, nz.pos_long, nz.pos_lat, nz.heading)
 
     def _pack(self, m):
         """The kernels' arguments (typ, sensor row, z0, z1, r0, r1, r01, r10, flags) for
@@ -711,6 +751,9 @@ class UnicycleEkf(Estimator):
                 kf.drain_rejections()
             if code & _DEFER:  # predicted; the update needs Python (lock-out, singular S)
                 self._apply((m,))
+                return
+        if self._tw_on:  # what _apply records, for the next prediction's densities
+            self._twist_msg(m, self._sensors[m.sensor])
 
     def _run_stacked(self, ts: float, buf: list, packs: list) -> None:
         """A fixed-rate step at ``ts``: predict and one stacked update in one kernel call."""
@@ -728,6 +771,10 @@ class UnicycleEkf(Estimator):
             kf.drain_rejections()
         if code & _DEFER:
             self._apply(buf)
+        elif self._tw_on:
+            sensors = self._sensors
+            for m in buf:
+                self._twist_msg(m, sensors[m.sensor])
 
     def _predict_to(self, t: float) -> None:
         dt = t - self.t
@@ -744,12 +791,31 @@ class UnicycleEkf(Estimator):
             self._F_flat[self._if] = (j0[2], j0[3], j0[4], j1[2], j1[3], j1[4], dt)
             q = unicycle_process_noise(xs[2], xs[3], dt, self.noise)
         else:
-            x1, y1, p1, F, q = _scaled_step(self._step_jac, xs, ks, dt, self.noise)
+            nz = self.noise
+            x1, y1, p1, F, q = scaled_step_terms(
+                xs[0], xs[1], xs[2], xs[3], xs[4], xs[ks], xs[ks + 1], dt,
+                self.motion == "euler", nz.acc, nz.yaw_acc, nz.pos_long, nz.pos_lat, nz.heading)
             self._F_flat[self._if] = F
         self._Q_flat[self._iq] = q + q + tuple([w * dt for w in self._walks])
         xs[0], xs[1], xs[2] = x1, y1, p1
         kf.predict(self._F, self._Q, xs)
         self.t = t
+
+    def _twist_msg(self, m, info: _Sensor) -> None:
+        """With stated acceleration limits: record the twist components message ``m`` measures
+        (odometry and wheel speeds: v, w; a used gyro: w) for :meth:`_twist_seen`. Both paths
+        call it once per message they apply, before the next prediction."""
+        if isinstance(m, GyroYawRate):
+            if info.use_w and self._amax[1] is not None:
+                self._twist_seen(m.sensor, 4, m.t)
+        elif isinstance(m, WheelOdometry):
+            if m.v is not None:
+                self._twist_seen(m.sensor, 3, m.t)
+            if m.yaw_rate is not None:
+                self._twist_seen(m.sensor, 4, m.t)
+        elif isinstance(m, WheelSpeeds):
+            self._twist_seen(m.sensor, 3, m.t)
+            self._twist_seen(m.sensor, 4, m.t)
 
     def _twist_seen(self, sensor: str, comp: int, t: float) -> None:
         """Record a measurement of v (comp 3) or w (4) by ``sensor`` at ``t``; with stated
@@ -768,6 +834,8 @@ class UnicycleEkf(Estimator):
             p3, p4 = self._tw_period[3], self._tw_period[4]
             self.noise = twist_densities(*self._amax, min(p3.values()) if p3 else None,
                                          min(p4.values()) if p4 else None, self.noise)
+            if self.compiled and self.kf is not None:  # the kernels' copy of the densities
+                self.kf.set_noise(self._noise_floats())
 
     def _apply(self, ms) -> None:
         """Assemble the piecewise measurement model of the messages ``ms`` -- per measurement its
@@ -776,13 +844,14 @@ class UnicycleEkf(Estimator):
         x = kf.x.tolist()  # python floats: cheaper than numpy scalars in the scalar code below
         blocks: list[tuple] = []
         t = self.t
+        tw = self._tw_on
         for m in ms:
             info = self._sensors.get(m.sensor) or self._sensor(m.sensor)
+            if tw:  # (the sample periods set the densities of the next prediction)
+                self._twist_msg(m, info)
             if isinstance(m, GyroYawRate):
                 if info.uses is not None and "yaw_rate" not in info.uses:
                     continue
-                if self._amax[1] is not None:
-                    self._twist_seen(m.sensor, 4, m.t)
                 bi = info.bias_idx
                 ks = self._ks
                 if ks is not None:  # the gyro sees the true yaw rate k_w om (+ bias)
@@ -819,11 +888,6 @@ class UnicycleEkf(Estimator):
             elif isinstance(m, WheelOdometry):
                 # the odometry's twist is the state's (with scale states, the odometry-frame
                 # twist; the scales enter the motion, not this linear measurement)
-                if self._amax != (None, None):
-                    if m.v is not None:
-                        self._twist_seen(m.sensor, 3, m.t)
-                    if m.yaw_rate is not None:
-                        self._twist_seen(m.sensor, 4, m.t)
                 if m.v is not None:
                     blocks.append((m.sensor, "v", (m.v - x[3],), _ROWS_V, ((m.v_var,),),
                                    info.gate))
@@ -851,9 +915,6 @@ class UnicycleEkf(Estimator):
                 if r is None or L is None:
                     raise ValueError("WheelSpeeds need robot.wheel_radius and robot.track_width")
                 k = 0.5 * L / r
-                if self._amax != (None, None):
-                    self._twist_seen(m.sensor, 3, m.t)
-                    self._twist_seen(m.sensor, 4, m.t)
                 # the nominal geometry turns the state's (odometry-frame) twist into wheel speeds
                 vr, wr = x[3] / r, x[4] * k
                 rows = (((3, 1.0 / r), (4, -k)), ((3, 1.0 / r), (4, k)))
@@ -880,22 +941,14 @@ class UnicycleEkf(Estimator):
             return y, (((0, 1.0), (2, -s * lx - c * ly)), ((1, 1.0), (2, c * lx - s * ly)))
         ks = self._ks
         kv, kw = (1.0, 1.0) if ks is None else (x[ks], x[ks + 1])
-        xb, yb, pb, J = se2_step_jac(x[0], x[1], x[2], kv * x[3], kw * x[4], -d)
-        c, s = _cos(pb), _sin(pb)
-        ae, an = -s * lx - c * ly, c * lx - s * ly  # d antenna offset / d heading at t - d
-        y = (m.enu[0] - (xb + c * lx - s * ly), m.enu[1] - (yb + s * lx + c * ly))
-        je, jn = J[0], J[1]
-        # d psi(t - d) / d (psi, w) = (1, -d); w.r.t. the true twist (v, w) = (k_v u, k_w om)
-        de_v, de_w = je[3], je[4] - d * ae
-        dn_v, dn_w = jn[3], jn[4] - d * an
+        he, hn, e_p, e_u, e_om, e_kv, e_kw, n_p, n_u, n_om, n_kv, n_kw = delayed_gps_terms(
+            x[0], x[1], x[2], x[3], x[4], kv, kw, lx, ly, d)
+        y = (m.enu[0] - he, m.enu[1] - hn)
         if ks is None:
-            return y, (((0, 1.0), (2, je[2] + ae), (3, de_v), (4, de_w)),
-                       ((1, 1.0), (2, jn[2] + an), (3, dn_v), (4, dn_w)))
-        u, om = x[3], x[4]
-        return y, (((0, 1.0), (2, je[2] + ae), (3, de_v * kv), (4, de_w * kw),
-                    (ks, de_v * u), (ks + 1, de_w * om)),
-                   ((1, 1.0), (2, jn[2] + an), (3, dn_v * kv), (4, dn_w * kw),
-                    (ks, dn_v * u), (ks + 1, dn_w * om)))
+            return y, (((0, 1.0), (2, e_p), (3, e_u), (4, e_om)),
+                       ((1, 1.0), (2, n_p), (3, n_u), (4, n_om)))
+        return y, (((0, 1.0), (2, e_p), (3, e_u), (4, e_om), (ks, e_kv), (ks + 1, e_kw)),
+                   ((1, 1.0), (2, n_p), (3, n_u), (4, n_om), (ks, n_kv), (ks + 1, n_kw)))
 
     def _init_offset(self, t: float, m: Heading, hi: int) -> None:
         """hoff = wrap(z - psi): variance var(psi) + R, covariance -cov(psi, .) with the rest."""

@@ -42,12 +42,13 @@ OFFSET, BIAS = 0.3, 0.01  # heading offset (rad), gyro bias (rad/s)
 
 
 def _stream(seed: int, duration: float = 40.0, gps_jump: tuple | None = None,
-            odom_w_bias: float = 0.0) -> list:
+            odom_w_bias: float = 0.0, odom_fast_after: float | None = None) -> list:
     """Every measurement kind the filters use, at its own rate, with outliers: every 23rd GPS
     fix 40 m off, every 31st heading 1.5 rad off, every 41st odometry speed 3 m/s off.
     ``gps_jump`` (t s, east m, north m): every fix from t on is moved by that much (a kidnapped
     robot: the gate locks out, then recovers); ``odom_w_bias`` (rad/s) added to the odometry's
-    yaw rate after 10 s (the gyro contradicts it: rejected, not recovered)."""
+    yaw rate after 10 s (the gyro contradicts it: rejected, not recovered);
+    ``odom_fast_after`` (s): odometry and wheel speeds at 20 Hz from then on."""
     rng = np.random.default_rng(seed)
     pose = START
     dt = 0.01
@@ -65,7 +66,8 @@ def _stream(seed: int, duration: float = 40.0, gps_jump: tuple | None = None,
             yaw = pose[2] + OFFSET + rng.normal(0, 0.02) + (1.5 if k_head % 31 == 0 else 0.0)
             out.append(Heading(t, (yaw + math.pi) % (2 * math.pi) - math.pi, 4e-4, "/imu",
                                "compass"))
-        if k % 10 == 3:  # 10 Hz odometry and wheel speeds, their own clock
+        fast = odom_fast_after is not None and t >= odom_fast_after
+        if k % (5 if fast else 10) == 3:  # 10 Hz odometry and wheel speeds, their own clock
             k_odom += 1
             out.append(WheelOdometry(t, v + rng.normal(0, 0.02) + (3.0 if k_odom % 41 == 0
                                                                     else 0.0),
@@ -89,9 +91,10 @@ def _stream(seed: int, duration: float = 40.0, gps_jump: tuple | None = None,
     return out
 
 
-def _config(estimate_offsets: bool, rate="event"):
+def _config(estimate_offsets: bool, rate="event", accel_limits: tuple | None = None):
     """With ``estimate_offsets`` also every calibration: gyro bias, heading offset, odometry
-    scales (the geometry's uncertainty stated) and a GPS delay."""
+    scales (the geometry's uncertainty stated) and a GPS delay; ``accel_limits`` the robot's
+    (max_accel m/s^2, max_yaw_accel rad/s^2)."""
     imu = {"topic": "/imu", "use": ["yaw", "yaw_rate", "accel"]}
     gps = {"topic": "/fix", "lever_arm": [0.3, -0.1]}
     robot = {"wheel_radius": R_WHEEL, "track_width": TRACK}
@@ -101,6 +104,8 @@ def _config(estimate_offsets: bool, rate="event"):
         robot.update(wheel_radius_std=0.003, track_width_std=0.02)
     else:
         imu.update(heading_offset=OFFSET, gyro_bias=BIAS)
+    if accel_limits is not None:
+        robot.update(max_accel=accel_limits[0], max_yaw_accel=accel_limits[1])
     return parse_config({
         "sensors": {
             "odometry": [{"topic": "/odom"}],
@@ -162,9 +167,6 @@ def _igvc(cfg, motion="euler", datum=None):
 @pytest.mark.parametrize("estimate_offsets", [True, False])
 @pytest.mark.parametrize("rate", ["event", 10.0])
 def test_unicycle_fast_path_matches_reference(estimate_offsets, rate, compiled):
-    if compiled and estimate_offsets:
-        pytest.skip("the kernels do not implement the odometry scale states' motion model yet "
-                    "(UnicycleEkf runs such configs in Python)")
     cfg = _config(estimate_offsets, rate)
     stream = _stream(1)
     fast = _run_both(_unicycle(cfg), stream, compiled)
@@ -173,6 +175,27 @@ def test_unicycle_fast_path_matches_reference(estimate_offsets, rate, compiled):
     # every measurement model was used, and the gate rejected the GPS and heading outliers
     assert {k for k, _ in kinds} == {"gyro", "heading", "v", "yaw_rate", "wheels", "gps"}
     assert ("gps", False) in kinds and ("heading", False) in kinds and ("v", False) in kinds
+
+
+@pytest.mark.parametrize("compiled", PATHS)
+@pytest.mark.parametrize("estimate_offsets", [True, False])
+@pytest.mark.parametrize("rate", ["event", 10.0])
+def test_unicycle_fast_path_matches_reference_with_acceleration_limits(estimate_offsets, rate,
+                                                                       compiled):
+    """The robot's acceleration limits stated: the twist densities follow the observed sample
+    periods (twist_densities), at the start and again when odometry and wheel speeds go from
+    10 to 20 Hz at 20 s; the fast paths' predictions use the same densities as the
+    reference's at every step (the compiled one keeps a copy in its arrays)."""
+    cfg = _config(estimate_offsets, rate, accel_limits=(0.5, 0.4))
+    stream = _stream(5, odom_fast_after=20.0)
+    fast = _run_both(_unicycle(cfg), stream, compiled)
+    # v: odometry / wheel speeds, now 0.05 s apart; w: also the gyro, 0.04 s
+    assert fast.noise.acc == pytest.approx(0.5 * math.sqrt(0.05), rel=1e-6)
+    assert fast.noise.yaw_acc == pytest.approx(0.4 * math.sqrt(0.04), rel=1e-6)
+    if compiled:
+        fp = fast.kf.fp
+        assert tuple(fp[fast.kf.kj.FP_NOISE:fast.kf.kj.FP_NOISE + 2]) == \
+            (fast.noise.acc, fast.noise.yaw_acc)
 
 
 @pytest.mark.parametrize("compiled", PATHS)
@@ -225,7 +248,6 @@ def test_unicycle_compiled_corroboration_matches_reference():
     """An odometry yaw rate 0.6 rad/s off from 10 s on: odometry and wheel speeds are rejected
     again and again while the gyro is accepted -- KalmanCore's corroboration verdict ('not
     recovering'), then rejections during its hold-off, which the kernels handle themselves."""
-    pytest.skip("the kernels do not implement the odometry scale states' motion model yet")
     cfg = _config(True)
     stream = _stream(3, duration=45.0, odom_w_bias=0.6)
     fast = _run_both(_unicycle(cfg), stream)
@@ -262,6 +284,25 @@ def test_unicycle_compiled_matches_reference_on_husky_bag(rate):
         cfg.ekf.rate = rate
     fast = _run_both(_unicycle(cfg), ms)
     assert fast.kf.recoveries and len(fast.state_names) == 7
+
+
+@needs_numba
+@pytest.mark.parametrize("rate", ["event", 10.0])
+def test_unicycle_compiled_matches_reference_on_sample_bag(rate):
+    """The simulated sample bag (data/sample_husky.bag) as ddfuse runs it: odometry scale
+    states, acceleration limits, gyro bias, compass offset, a delayed GPS."""
+    from estimation.bags import read_stream
+    from estimation.config import load_config
+    from estimation.runner import initial_pose
+
+    cfg = load_config(ROOT / "data" / "sample_husky.yaml")
+    cfg.ekf.rate = rate
+    stream = read_stream(ROOT / "data" / "sample_husky.bag", cfg)
+    pose = initial_pose(cfg.initial_pose, stream)
+    fast = _run_both(lambda ref, compiled: UnicycleEkf(cfg, initial_pose=pose, reference=ref,
+                                                       compiled=compiled),
+                     stream.measurements)
+    assert fast.state_names[-2:] == ("k_v", "k_w") and fast.noise.acc < 1.0
 
 
 @needs_numba
