@@ -61,6 +61,7 @@ from estimation.measurements import (
     WheelOdometry,
     WheelSpeeds,
 )
+from estimation.runner import TrackBuilder
 from factors.gps import gps_factor
 from factors.heading import heading_factor
 from factors.landmark import range_bearing_factor, range_factor
@@ -202,7 +203,7 @@ class FixedLagSmoother(Estimator):
         self.has_gps = bool(cfg.of_kind("gps"))
         self.keyframe_rate = cfg.smoother.keyframe_rate
         self.kf_policy = cfg.smoother.keyframe
-        self._lagged: list[Estimate] = []
+        self._lagged = TrackBuilder()  # compact: (t, pose, pose cov) per keyframe
         self._reset_state()
 
     # --- set-up -----------------------------------------------------------------------------
@@ -650,7 +651,7 @@ class FixedLagSmoother(Estimator):
             self._flush()
         self._capture_leaving(math.inf)
 
-    def lagged_estimates(self) -> list[Estimate]:
+    def lagged_estimates(self) -> TrackBuilder:
         return self._lagged
 
 
@@ -663,7 +664,7 @@ class BatchSmoother(FixedLagSmoother):
 
     def __init__(self, cfg: Config, **kw) -> None:
         super().__init__(cfg, **kw)
-        self._final: list[Estimate] = []
+        self._final = TrackBuilder()
 
     def finish(self) -> None:
         super().finish()
@@ -689,6 +690,6 @@ class BatchSmoother(FixedLagSmoother):
     def lagged_estimates(self):  # the batch has no lagged output of its own
         return None
 
-    def final_estimates(self) -> list[Estimate]:
+    def final_estimates(self) -> TrackBuilder:
         return self._final
 
