@@ -313,14 +313,16 @@ def _source(bag: Path, wanted: tuple, msgtype: str, ros1: bool) -> _Source:
     return _Source(topic, key, msgtype, fast if use_raw else slow, conv, use_raw)
 
 
-def _sources(cfg: Config, reader, bag: Path) -> list[_Source]:
-    conns = {c.topic: c for c in reader.connections}
+def _sources(cfg: Config, connections, bag: Path, ros1: bool) -> list[_Source]:
+    """The sources of the configured topics, checked against the bag's ``connections`` (each
+    with .topic and .msgtype); BagError naming the topic if one is absent or of a wrong type."""
+    conns = {c.topic: c for c in connections}
     out = []
     for w in _wanted(cfg):
         topic = w[3]
         if topic not in conns:
             raise _absent(bag, topic, w[1], conns)
-        out.append(_source(bag, w, conns[topic].msgtype, not reader.is2))
+        out.append(_source(bag, w, conns[topic].msgtype, ros1))
     return out
 
 
@@ -441,23 +443,35 @@ class BagStream:
         self._has_truth = self._truth_idx >= 0
         self._reader = None
         self._scan = None
-        try:
-            self._reader = open_reader(bag)
-        except BagError as e:
-            if not ros1_scan.has_magic(bag):
-                raise
-            log.info("%s; reading it without its index", e)
-            self._open_error = e
+        self._indexed = True  # False: a ROS1 bag read from the front for want of its index
+        self._sources: list[_Source] = []
+        index = (ros1_scan.index_connections(bag) if bag.is_file() and ros1_scan.has_magic(bag)
+                 else None)
+        if index is not None:
+            # An intact ROS1 bag: its topics are checked against the connections of its index,
+            # then it is read from the front by the scanner (rosbags' reader would load the
+            # index of every message first: 90 MB for a 2 h bag).
+            self._sources = _sources(cfg, index, bag, ros1=True)
             self._scan = ros1_scan.Ros1Scan(bag)
-            self._sources: list[_Source] = []
         else:
             try:
-                self._sources = _sources(cfg, self._reader, bag)
-            except BagError:
-                self._reader.close()
-                raise
-            for i, src in enumerate(self._sources):
-                src.index = i
+                self._reader = open_reader(bag)
+            except BagError as e:
+                if not ros1_scan.has_magic(bag):
+                    raise
+                log.info("%s; reading it without its index", e)
+                self._open_error = e
+                self._scan = ros1_scan.Ros1Scan(bag)
+                self._indexed = False
+            else:
+                try:
+                    self._sources = _sources(cfg, self._reader.connections, bag,
+                                             not self._reader.is2)
+                except BagError:
+                    self._reader.close()
+                    raise
+        for i, src in enumerate(self._sources):
+            src.index = i
         self._gen = self._emitted()
         self.decode_s += perf_counter() - t_a
 
@@ -604,7 +618,7 @@ class BagStream:
         by_topic: dict[str, list[tuple]] = defaultdict(list)
         for w in self._wanted:
             by_topic[w[3]].append(w)
-        made: dict[str, _Source] = {}  # config key -> source
+        made: dict[str, _Source] = {s.key: s for s in self._sources}  # config key -> source
         self._made = made
         routes: dict[int, list[_Source]] = {}  # connection id -> the sources it feeds
         store = self._store = get_typestore(Stores.EMPTY)
@@ -617,19 +631,19 @@ class BagStream:
                 src = made[w[1]] = _source(bag, w, conn.msgtype, ros1=True)
                 src.index = order[w[1]]
                 self._sources.append(src)
-                if not src.raw and conn.msgtype not in store.fielddefs:
-                    try:
-                        store.register(get_types_from_msg(conn.msgdef, conn.msgtype)
-                                       if conn.msgdef
-                                       else get_typestore(Stores.ROS1_NOETIC).fielddefs)
-                    except TypesysError as e:
-                        raise BagError(f"{bag}: topic {conn.topic}: cannot use the bag's "
-                                       f"definition of {rosmsg.short_type(conn.msgtype)} "
-                                       f"({e})") from None
             elif src.msgtype != conn.msgtype:
                 raise BagError(f"{bag}: topic {conn.topic} has messages of two types, "
                                f"{rosmsg.short_type(src.msgtype)} and "
                                f"{rosmsg.short_type(conn.msgtype)}")
+            if not src.raw and conn.msgtype not in store.fielddefs:
+                try:
+                    store.register(get_types_from_msg(conn.msgdef, conn.msgtype)
+                                   if conn.msgdef
+                                   else get_typestore(Stores.ROS1_NOETIC).fielddefs)
+                except TypesysError as e:
+                    raise BagError(f"{bag}: topic {conn.topic}: cannot use the bag's "
+                                   f"definition of {rosmsg.short_type(conn.msgtype)} "
+                                   f"({e})") from None
             return src
 
         st = scan.status
@@ -646,6 +660,8 @@ class BagStream:
                 for src in srcs:
                     yield src, item.time_ns, item.data
         except ros1_scan.ScanError as e:
+            if self._indexed:
+                raise BagError(f"{bag}: cannot read bag ({e})") from None
             raise BagError(f"{self._open_error}; reading it without the index fails too: "
                            f"{e}") from None
         finally:
@@ -834,7 +850,12 @@ class BagStream:
                 self.datum = (f.lat, f.lon, f.alt)
             self._flush_truth_fixes()
         where = what = None
-        if self._scan is not None:
+        if self._scan is not None and self._indexed:
+            st = self._scan.status
+            if st.reason:
+                self._stopped = (f"bag is damaged or truncated after {st.messages} messages "
+                                 f"({st.reason})")
+        elif self._scan is not None:
             st = self._scan.status
             if st.truncated:
                 what = f"bag is truncated: {st.reason}"

@@ -71,9 +71,13 @@ class TrackBuilder:
         return (self[i] for i in range(len(self._t)))
 
     def trajectory(self) -> Trajectory:
+        """The columns as a Trajectory, sharing their memory (no copy: appending to the builder
+        afterwards is an error)."""
         n = len(self._t)
-        return Trajectory(np.array(self._t, float), np.array(self._pose, float).reshape(n, 3),
-                          np.array(self._cov, float).reshape(n, 3, 3))
+        if not n:
+            return Trajectory(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 3)))
+        return Trajectory(np.frombuffer(self._t, float), np.frombuffer(self._pose, float)
+                          .reshape(n, 3), np.frombuffer(self._cov, float).reshape(n, 3, 3))
 
 
 @dataclass
@@ -304,9 +308,9 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
                 errors[i] = f"{type(exc).__name__} in finish: {exc}"
         totals[i] += clock() - t_a
         est.log.innovations.compact()
-        upd = np.frombuffer(timings[i], np.float32).copy() if len(timings[i]) else \
+        # a view of the compact array, not a copy
+        upd = np.frombuffer(timings[i], np.float32) if len(timings[i]) else \
             np.zeros(0, np.float32)
-        timings[i] = None  # the compact copy above is what is kept
         # An offline estimator (the batch) gives its whole trajectory only at the end.
         final = getattr(est, "final_estimates", None)
         track = final() if callable(final) else outputs[i]
