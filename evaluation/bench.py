@@ -2,7 +2,9 @@
 factor, update latency percentiles and peak resident memory.
 
 Each estimator runs in its own child process (spawned, so nothing is shared with the parent),
-which makes its peak RSS its own: ``resource.getrusage(RUSAGE_SELF).ru_maxrss`` of that child.
+which makes its peak RSS its own: the high-water mark ``VmHWM`` of the child's own address space
+(/proc/self/status). Not ``ru_maxrss``: Linux carries that across the fork and exec that start
+the child, so it would never be below the parent's RSS at that moment.
 The bag is decoded as a stream while the estimator runs (``estimation.bags.BagStream``, ground
 truth not kept), as ``ddfuse run`` does, so the peak is what the estimator itself holds on top
 of the libraries; ``start_rss_mb`` is the peak once the stream is open and the estimator built
@@ -24,6 +26,20 @@ from estimation.errors import BagError
 from estimation.runner import initial_pose, run
 
 
+def peak_rss_mb() -> float:
+    """This process's peak resident set size, MB: VmHWM from /proc/self/status on Linux, else
+    ``ru_maxrss`` (see the module docstring)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0  # kB
+    except (OSError, ValueError, IndexError):
+        pass
+    # Linux and most BSDs report ru_maxrss in KiB (macOS in bytes: rough there)
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
 def _one(bag: str, cfg_path: str, name: str, lag: float | None, queue) -> None:
     try:
         queue.put(_measure(bag, cfg_path, name, lag))
@@ -40,14 +56,14 @@ def _measure(bag: str, cfg_path: str, name: str, lag: float | None) -> dict:
     stream = BagStream(bag, cfg, keep_truth=False).prime()
     pose = initial_pose(cfg.initial_pose, stream)
     est = registry.SPECS[name].build(cfg, stream, pose, lag if lag else cfg.smoother.lag)
-    # Linux reports ru_maxrss in KiB.
-    start_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    start_mb = peak_rss_mb()
     t1 = time.perf_counter()
     result = run(stream, {name: est})
     wall = time.perf_counter() - t1
+    peak_mb = peak_rss_mb()  # before the statistics below make their own copies
     if stream.error is not None and not result.messages:
         raise BagError(stream.error)
-    upd = result.runs[name].update_s.astype(float) * 1e3
+    upd = result.runs[name].update_s
     runtime = result.runs[name].runtime_s
     return {
         "estimator": name, "duration_s": stream.duration, "decode_s": stream.decode_s,
@@ -55,9 +71,10 @@ def _measure(bag: str, cfg_path: str, name: str, lag: float | None) -> dict:
         "wall_s": wall,  # decoding included: the stream is decoded as it is fed
         "runtime_s": runtime,  # in the estimator's calls alone
         "rtf": stream.duration / runtime if runtime > 0 else None,
-        "update_ms": {"p50": float(np.percentile(upd, 50)), "p99": float(np.percentile(upd, 99)),
-                      "max": float(upd.max())} if len(upd) else None,
-        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "update_ms": {"p50": 1e3 * float(np.percentile(upd, 50)),
+                      "p99": 1e3 * float(np.percentile(upd, 99)),
+                      "max": 1e3 * float(upd.max())} if len(upd) else None,
+        "peak_rss_mb": peak_mb,
         "start_rss_mb": start_mb,
         "error": result.runs[name].error,
         "input_error": stream.error,
