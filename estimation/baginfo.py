@@ -9,13 +9,14 @@ which axis measures yaw rate: the suggested ``mount`` rotates that axis onto bod
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from estimation import rosmsg
+from estimation import ros1_scan, rosmsg
 from estimation.bags import open_reader
 from estimation.errors import BagError
 
@@ -51,6 +52,7 @@ class BagInfo:
     topics: list[TopicInfo]
     t0: float
     t1: float
+    error: str | None = None  # the bag breaks off (truncated): why, and where the facts stop
 
     @property
     def duration(self) -> float:
@@ -118,9 +120,19 @@ def _is_ground_truth(topic: str) -> bool:
 
 
 def bag_info(path: str | Path) -> BagInfo:
-    """Decode every message of a known type in the bag and summarise each topic."""
+    """Decode every message of a known type in the bag and summarise each topic.
+
+    A ROS1 bag that rosbags cannot open because its index is missing or damaged (truncated) is
+    read from the front by ``estimation.ros1_scan``, as ``ddfuse run`` does: the BagInfo of what
+    could be read is returned with ``error`` saying that the bag is truncated and where it
+    stops."""
     path = Path(path)
-    reader = open_reader(path)
+    try:
+        reader = open_reader(path)
+    except BagError as e:
+        if not ros1_scan.has_magic(path):
+            raise
+        return _bag_info_unindexed(path, e)
     recs: dict[str, list] = {}
     infos: dict[str, TopicInfo] = {}
     try:
@@ -140,6 +152,61 @@ def bag_info(path: str | Path) -> BagInfo:
         raise BagError(f"{path}: bag is damaged or truncated ({type(e).__name__}: {e})") from None
     finally:
         reader.close()
+    return _finish(path, infos, recs)
+
+
+def _bag_info_unindexed(path: Path, open_error: BagError) -> BagInfo:
+    """bag_info of a ROS1 bag without a usable index, read from the front (see bag_info)."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    scan = ros1_scan.Ros1Scan(path)
+    store = get_typestore(Stores.EMPTY)
+    recs: dict[str, list] = {}
+    infos: dict[str, TopicInfo] = {}
+    try:
+        for item in scan:
+            if type(item) is ros1_scan.Connection:
+                infos.setdefault(item.topic, TopicInfo(item.topic, item.msgtype, 0))
+                fast = rosmsg.EXTRACTORS.get(item.msgtype, (None, None))[0]
+                if item.msgtype in rosmsg.EXTRACTORS and fast is None and \
+                        item.msgtype not in store.fielddefs:
+                    # a definition that cannot be used: its messages count as undecodable
+                    with contextlib.suppress(Exception):
+                        store.register(get_types_from_msg(item.msgdef, item.msgtype)
+                                       if item.msgdef
+                                       else get_typestore(Stores.ROS1_NOETIC).fielddefs)
+                continue
+            conn = item.conn
+            infos[conn.topic].count += 1
+            if conn.msgtype not in rosmsg.EXTRACTORS:
+                continue
+            fast, slow = rosmsg.EXTRACTORS[conn.msgtype]
+            try:
+                rec = fast(item.data) if fast else slow(
+                    store.deserialize_ros1(item.data, conn.msgtype))
+            except Exception:  # counted as undecodable
+                continue
+            recs.setdefault(conn.topic, []).append(rec)
+    except ros1_scan.ScanError as e:
+        raise BagError(f"{open_error}; reading it without the index fails too: {e}") from None
+    st = scan.status
+    if st.truncated:
+        what = f"bag is truncated: {st.reason}"
+    elif st.reason:
+        what = f"bag is truncated or damaged: its index is unusable and {st.reason}"
+    else:
+        what = ("bag is truncated: it has no index (its recorder did not close it), so the "
+                "messages it still buffered may be missing")
+    where = f"byte {st.offset} of {st.file_size}"
+    if not st.messages:
+        raise BagError(f"{path}: {what}; no complete message before {where}")
+    info = _finish(path, infos, recs)
+    info.error = (f"{path}: {what}; the facts above are of the {st.messages} messages up to "
+                  f"{where}")
+    return info
+
+
+def _finish(path: Path, infos: dict[str, TopicInfo], recs: dict[str, list]) -> BagInfo:
     for topic, lst in recs.items():
         _summarise(infos[topic], lst)
         undecoded = infos[topic].count - len(lst)

@@ -18,14 +18,15 @@ by ``estimation.ros1_scan`` for that.
 
 from __future__ import annotations
 
+import heapq
 import logging
 import math
 import statistics
-from collections import Counter, defaultdict
+from array import array
+from collections import Counter, defaultdict, deque
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import NoReturn
 
 import numpy as np
 
@@ -74,7 +75,7 @@ class _Source:
     extract: Callable
     convert: Callable[[tuple], list]
     raw: bool  # extract takes raw ROS1 bytes
-    records: list = field(default_factory=list)  # (stamp, record_time, measurement)
+    index: int = 0  # its place in the config's order (equal stamps keep that order)
 
 
 def _var(sensor: SensorConfig, key: str, name: str, noise_key: str, value: float | None) -> float:
@@ -312,275 +313,633 @@ def _source(bag: Path, wanted: tuple, msgtype: str, ros1: bool) -> _Source:
     return _Source(topic, key, msgtype, fast if use_raw else slow, conv, use_raw)
 
 
-def _sources(cfg: Config, reader, bag: Path) -> list[_Source]:
-    conns = {c.topic: c for c in reader.connections}
+def _sources(cfg: Config, connections, bag: Path, ros1: bool) -> list[_Source]:
+    """The sources of the configured topics, checked against the bag's ``connections`` (each
+    with .topic and .msgtype); BagError naming the topic if one is absent or of a wrong type."""
+    conns = {c.topic: c for c in connections}
     out = []
     for w in _wanted(cfg):
         topic = w[3]
         if topic not in conns:
             raise _absent(bag, topic, w[1], conns)
-        out.append(_source(bag, w, conns[topic].msgtype, not reader.is2))
+        out.append(_source(bag, w, conns[topic].msgtype, ros1))
     return out
 
 
-def _iterate(reader, sources: list[_Source], progress: Callable[[float], None] | None
-             ) -> Iterator[tuple[_Source, int, object]]:
-    by_topic: dict[str, list[_Source]] = defaultdict(list)
-    for src in sources:
-        by_topic[src.topic].append(src)
-    conns = [c for c in reader.connections if c.topic in by_topic]
-    start, span = reader.start_time, max(1, reader.end_time - reader.start_time)
-    for i, (conn, rec_ns, raw) in enumerate(reader.messages(connections=conns)):
-        if progress and i % 2000 == 0:
-            progress((rec_ns - start) / span)
-        for src in by_topic[conn.topic]:
-            yield src, rec_ns, raw
+class _StampCheck:
+    """Drops records of one source whose header stamp disagrees with the source's usual
+    stamp-to-record-time offset by more than ``tolerance`` (a zero stamp, a clock jump): such a
+    message would otherwise land minutes away from its neighbours.
+
+    The usual offset is the median over the source's first ``WARMUP`` records (or those within
+    ``WARMUP_S`` seconds of record time of its first, or all it has at the end of the bag), held
+    back until then; afterwards it follows the median of the last ``WARMUP`` accepted ones, so
+    a slow drift is followed. A source with fewer than 3 records is not checked."""
+
+    WARMUP = 15
+    WARMUP_S = 5.0
+
+    __slots__ = ("pending", "first_rt", "ref", "recent", "n", "bad")
+
+    def __init__(self) -> None:
+        self.pending: list | None = []  # (stamp, record time, measurement) during the warm-up
+        self.first_rt = math.nan
+        self.ref = 0.0
+        self.recent: list[float] = []
+        self.n = 0  # records seen
+        self.bad = 0  # records dropped
+
+    def end_warmup(self, tolerance: float) -> list:
+        """The warm-up's records that pass, in their order; the check is armed from now on."""
+        recs, self.pending = self.pending or [], None
+        if not recs:
+            return []
+        offsets = [t - rt for t, rt, _ in recs]
+        self.ref = statistics.median(offsets)
+        if len(recs) < 3:
+            return recs
+        keep = [r for r, off in zip(recs, offsets, strict=True)
+                if abs(off - self.ref) <= tolerance]
+        self.bad += len(recs) - len(keep)
+        self.recent = [r[0] - r[1] for r in keep][-self.WARMUP:]
+        return keep
+
+    def ok(self, t: float, rt: float, tolerance: float) -> bool:
+        off = t - rt
+        if abs(off - self.ref) > tolerance:
+            self.bad += 1
+            return False
+        recent = self.recent
+        recent.append(off)
+        if len(recent) >= 2 * self.WARMUP:
+            del recent[:self.WARMUP]
+            self.ref = statistics.median(recent)
+        return True
 
 
-def _decode(items: Iterator[tuple[_Source, int, object]], deserialize: Callable,
-            read_counts: Counter, rejected: Counter) -> str | None:
-    """Convert each (source, record time ns, raw message) into its source's records, counting
-    messages read per config key and rejected ones per (topic, reason). Returns why reading
-    stopped early (the storage raised), None if it did not; BagError passes through."""
-    last_raw, last_msg = None, None
-    try:
-        for src, rec_ns, raw in items:
-            read_counts[src.key] += 1
+class BagStream:
+    """The configured topics of a bag as one stream of measurements in header-stamp order,
+    decoded while it is iterated: memory stays bounded however long the bag is.
+
+    rosbags yields messages in record (receive) order; header stamps may be a little out of that
+    order. A reorder buffer keyed by header stamp holds each measurement until the newest stamp
+    is ``reorder_window`` seconds past it (default: the config's ``reorder_window``), then
+    passes it on; a measurement that arrives after later-stamped ones were passed on is dropped
+    and counted in ``rejected`` under its topic ("arrived ... later than reorder_window"), and a
+    warning names the topic. Each topic's broken stamps are dropped as ``_StampCheck`` says.
+    Measurements with equal stamps keep the order of a stable sort by (source, record order).
+
+    Known before iterating (``prime`` decodes ahead as far as needed, holding what it read):
+    ``t0`` (the first stamp), ``datum`` (the config's, or the first GPS fix's), the first
+    ground-truth pose at or after ``t0`` (``first_truth``), ``landmarks``. Known after:
+    ``t1``, ``count``, ``type_counts()``, ``rejected``, the ground truth (``truth_arrays()``,
+    ``ground_truth``; kept as compact arrays, unless ``keep_truth`` is False), ``decode_s``.
+
+    A bag that breaks off (truncated, damaged past some point; a ROS1 bag without its index is
+    read from the front by ``estimation.ros1_scan``) ends the iteration early: ``error`` then
+    says why, in one line naming the file. Errors that leave nothing to estimate on (a topic
+    absent or of the wrong type, a bag that cannot be read at all) raise BagError, at
+    construction or, for those only seen at the end of the bag (every message of a topic
+    rejected, a topic whose clock jumps), when the iteration ends."""
+
+    PRIME_SPAN = 30.0  # s of data past t0 that prime() reads ahead looking for the truth
+
+    def __init__(self, bag: str | Path, cfg: Config, *, reorder_window: float | None = None,
+                 keep_truth: bool = True) -> None:
+        from time import perf_counter
+
+        t_a = perf_counter()
+        self.bag = bag = Path(bag)
+        self.source = str(bag)
+        self.cfg = cfg
+        self.depth = cfg.reorder_window if reorder_window is None else float(reorder_window)
+        if not self.depth >= 0.0:
+            raise BagError(f"{bag}: reorder window must be >= 0 s, got {self.depth!r}")
+        self.tolerance = max(STAMP_TOLERANCE, self.depth)
+        self.keep_truth = keep_truth
+        self.datum: tuple[float, float, float] | None = (
+            cfg.datum if isinstance(cfg.datum, tuple) else None)
+        self.landmarks: dict[str, tuple[float, float]] = {}
+        for s in cfg.of_kind("landmarks"):
+            self.landmarks.update(load_landmark_map(s.map))
+        self.rejected: Counter = Counter()
+        self.late: Counter = Counter()  # topic -> measurements that came too late to reorder
+        self.t0: float | None = None
+        self.t1: float | None = None
+        self.count = 0
+        self._counts: Counter = Counter()  # (sensor, measurement type) -> n
+        self.error: str | None = None
+        self.decode_s = 0.0
+        self._frac = 0.0
+        self._truth = (array("d"), array("d"), array("d"), array("d"))
+        self._truth_fixes: list[GpsFix] = []  # truth fixes waiting for the datum
+        self._truth_found = False  # a truth pose at or after t0 has been seen
+        self._head: deque = deque()
+        self._started = False
+        self._wanted = _wanted(cfg)
+        self._gps_source = any(w[0] == "gps" for w in self._wanted)
+        self._truth_idx = next((i for i, w in enumerate(self._wanted)
+                                if w[1] == "ground_truth"), -1)
+        self._has_truth = self._truth_idx >= 0
+        self._reader = None
+        self._scan = None
+        self._indexed = True  # False: a ROS1 bag read from the front for want of its index
+        self._sources: list[_Source] = []
+        index = (ros1_scan.index_connections(bag) if bag.is_file() and ros1_scan.has_magic(bag)
+                 else None)
+        if index is not None:
+            # An intact ROS1 bag: its topics are checked against the connections of its index,
+            # then it is read from the front by the scanner (rosbags' reader would load the
+            # index of every message first: 90 MB for a 2 h bag).
+            self._sources = _sources(cfg, index, bag, ros1=True)
+            self._scan = ros1_scan.Ros1Scan(bag)
+        else:
             try:
-                if src.raw:
-                    rec = src.extract(raw)
-                else:
-                    # Several sources may share a topic: deserialise each message once.
-                    # Compare the bytes object itself (kept alive here), never its id(),
-                    # which CPython reuses once the previous message is freed.
-                    if raw is not last_raw:
-                        last_raw, last_msg = raw, deserialize(raw, src.msgtype)
-                    rec = src.extract(last_msg)
-                for m in src.convert(rec):
-                    src.records.append((m.t, rec_ns * 1e-9, m))
-            except Reject as e:
-                rejected[(src.topic, str(e))] += 1
-            except Exception as e:  # a message that fails to decode is one bad message
-                rejected[(src.topic, f"cannot decode message: {type(e).__name__}: {e}")] += 1
-    except BagError:
-        raise
-    except Exception as e:  # rosbags raises many types on damaged storage
-        return (f"bag is damaged or truncated after {sum(read_counts.values())} messages "
-                f"({type(e).__name__}: {e})")
-    return None
+                self._reader = open_reader(bag)
+            except BagError as e:
+                if not ros1_scan.has_magic(bag):
+                    raise
+                log.info("%s; reading it without its index", e)
+                self._open_error = e
+                self._scan = ros1_scan.Ros1Scan(bag)
+                self._indexed = False
+            else:
+                try:
+                    self._sources = _sources(cfg, self._reader.connections, bag,
+                                             not self._reader.is2)
+                except BagError:
+                    self._reader.close()
+                    raise
+        for i, src in enumerate(self._sources):
+            src.index = i
+        self._gen = self._emitted()
+        self.decode_s += perf_counter() - t_a
 
+    # --- what is known ---------------------------------------------------------------------
 
-def read_stream(bag: str | Path, cfg: Config, progress: Callable[[float], None] | None = None
-                ) -> Stream:
-    """Read the configured topics of ``bag`` into a Stream ordered by header stamp.
+    @property
+    def duration(self) -> float:
+        return (self.t1 - self.t0) if self.t0 is not None and self.t1 is not None else 0.0
 
-    ``progress``, if given, is called with the fraction of the bag read so far.
-    Raises BagError (naming the file, topic and field) when the bag or a topic cannot be used.
-    A ROS1 bag without a usable index (the recorder was killed, the file was cut) is read from
-    the front by ``estimation.ros1_scan``; the BagError saying it is truncated then carries the
-    stream of what could be read as ``partial``."""
-    bag = Path(bag)
-    try:
-        reader = open_reader(bag)
-    except BagError as e:
-        if not ros1_scan.has_magic(bag):
-            raise
-        _read_unindexed(bag, cfg, progress, e)
-    damaged = None
-    read_counts: Counter = Counter()
-    rejected: Counter = Counter()
-    try:
-        sources = _sources(cfg, reader, bag)
-        expected = {c.topic: c.msgcount for c in reader.connections}
-        damaged = _decode(_iterate(reader, sources, progress), reader.deserialize, read_counts,
-                          rejected)
-        if damaged is None:
+    def fraction(self) -> float:
+        """How much of the bag has been read, 0..1."""
+        return self._frac
+
+    def type_counts(self) -> Counter:
+        """(sensor, measurement type name) -> measurements passed on so far."""
+        return Counter({(s, t.__name__): n for (s, t), n in self._counts.items()})
+
+    def truth_arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """The ground truth so far: stamps (N,) s and poses (N, 3) (x m, y m, yaw rad; yaw NaN
+        for a NavSatFix truth), in stamp order."""
+        t, x, y, yaw = (np.array(a, float) for a in self._truth)
+        return t, np.column_stack([x, y, yaw]) if len(t) else np.zeros((0, 3))
+
+    @property
+    def ground_truth(self) -> list[GroundTruthPose]:
+        t, pose = self.truth_arrays()
+        return [GroundTruthPose(float(ti), float(p[0]), float(p[1]), float(p[2]))
+                for ti, p in zip(t, pose, strict=True)]
+
+    def first_truth(self) -> GroundTruthPose | None:
+        """The first ground-truth pose at or after t0 (else the last one before it); None
+        without truth. Call after ``prime``."""
+        t, pose = self.truth_arrays()
+        if not len(t):
+            return None
+        i = int(np.searchsorted(t, (self.t0 if self.t0 is not None else -math.inf) - 1e-9))
+        i = min(i, len(t) - 1)
+        return GroundTruthPose(float(t[i]), float(pose[i, 0]), float(pose[i, 1]),
+                               float(pose[i, 2]))
+
+    def prime(self) -> BagStream:
+        """Decode ahead until the stream's start, its datum and the first ground truth at or
+        after its start are known (what estimators are built from), holding the measurements
+        read on the way for the iteration. Returns self."""
+        from time import perf_counter
+
+        t_a = perf_counter()
+        need_datum = self.datum is None and self._gps_source
+        try:
+            while True:
+                if self.t0 is not None and not (need_datum and self.datum is None):
+                    if not self._has_truth or self._truth_found:
+                        break
+                    if self._head and self._head[-1].t - self.t0 > self.PRIME_SPAN:
+                        break
+                m = next(self._gen, None)
+                if m is None:
+                    break
+                self._head.append(m)
+        finally:
+            self.decode_s += perf_counter() - t_a
+        return self
+
+    def __iter__(self) -> Iterator:
+        if self._started:
+            raise RuntimeError("a BagStream can be iterated once")
+        self._started = True
+        return self._iterate_all()
+
+    def _iterate_all(self) -> Iterator:
+        from time import perf_counter as clock
+
+        head = self._head
+        while head:
+            yield head.popleft()
+        if not self.keep_truth:
+            self._truth = (array("d"), array("d"), array("d"), array("d"))
+        gen = self._gen
+        t_a = clock()
+        for m in gen:
+            self.decode_s += clock() - t_a
+            yield m
+            t_a = clock()
+        self.decode_s += clock() - t_a
+
+    def close(self) -> None:
+        if self._reader is not None:
+            self._reader.close()
+            self._reader = None
+
+    # --- the pipeline: raw messages -> measurements -> stamp check -> reorder -> out -----------
+
+    def _raw(self) -> Iterator[tuple[_Source, int, object]]:
+        """(source, record time ns, raw message) from the indexed reader or the scanner; stops
+        early (setting ``_stopped``) when the storage fails."""
+        if self._scan is not None:
+            yield from self._raw_unindexed()
+            return
+        reader = self._reader
+        sources = self._sources
+        by_topic: dict[str, list[_Source]] = defaultdict(list)
+        for src in sources:
+            by_topic[src.topic].append(src)
+        conns = [c for c in reader.connections if c.topic in by_topic]
+        start, span = reader.start_time, max(1, reader.end_time - reader.start_time)
+        expected = {c.topic: 0 for c in reader.connections}
+        for c in reader.connections:
+            expected[c.topic] += c.msgcount
+        self._read_counts: Counter = Counter()
+        read_counts = self._read_counts
+        try:
+            try:
+                for i, (conn, rec_ns, raw) in enumerate(reader.messages(connections=conns)):
+                    if i % 2000 == 0:
+                        self._frac = (rec_ns - start) / span
+                    for src in by_topic[conn.topic]:
+                        read_counts[src.key] += 1
+                        yield src, rec_ns, raw
+            except BagError:
+                raise
+            except Exception as e:  # rosbags raises many types on damaged storage
+                self._stopped = (f"bag is damaged or truncated after "
+                                 f"{sum(read_counts.values())} messages "
+                                 f"({type(e).__name__}: {e})")
+                return
             short = [(s.topic, read_counts[s.key], expected[s.topic]) for s in sources
                      if read_counts[s.key] < expected[s.topic]]
             if short:
                 topic, got, want = short[0]
-                damaged = (f"bag is damaged: topic {topic} has {want} messages in its index "
-                           f"but only {got} could be read")
-    finally:
-        reader.close()
-    if damaged is not None:
-        try:
-            partial = _assemble(bag, cfg, sources, rejected)
-        except BagError:
-            partial = None
-        raise BagError(f"{bag}: {damaged}", partial=partial)
-    return _assemble(bag, cfg, sources, rejected)
+                self._stopped = (f"bag is damaged: topic {topic} has {want} messages in its "
+                                 f"index but only {got} could be read")
+        finally:
+            self._frac = 1.0
+            self.close()
 
+    def _raw_unindexed(self) -> Iterator[tuple[_Source, int, bytes]]:
+        """The scanner's messages on configured topics. Sources are made at their topic's first
+        connection record; messages are decoded as on the indexed path (struct extractors on
+        the ROS1 bytes where rosmsg has one, else rosbags' deserialiser with the types that the
+        bag's own connection records define, as AnyReader does for ROS1 bags)."""
+        from rosbags.typesys import Stores, TypesysError, get_types_from_msg, get_typestore
 
-def _read_unindexed(bag: Path, cfg: Config, progress: Callable[[float], None] | None,
-                    open_error: BagError) -> NoReturn:
-    """Read the ROS1 bag that rosbags could not open (``open_error``) from the front with
-    ``ros1_scan`` and raise BagError saying it is truncated, with what was read as ``partial``.
+        bag, scan = self.bag, self._scan
+        by_topic: dict[str, list[tuple]] = defaultdict(list)
+        for w in self._wanted:
+            by_topic[w[3]].append(w)
+        made: dict[str, _Source] = {s.key: s for s in self._sources}  # config key -> source
+        self._made = made
+        routes: dict[int, list[_Source]] = {}  # connection id -> the sources it feeds
+        store = self._store = get_typestore(Stores.EMPTY)
+        order = {w[1]: i for i, w in enumerate(self._wanted)}
+        self._used = 0  # messages read on configured topics
 
-    Messages are decoded as on the indexed path: struct extractors on the ROS1 bytes where
-    rosmsg has one, else rosbags' deserialiser with the types defined by the bag's own
-    connection records (as AnyReader does for ROS1 bags)."""
-    from rosbags.typesys import Stores, TypesysError, get_types_from_msg, get_typestore
-
-    log.info("%s; reading it without its index", open_error)
-    scan = ros1_scan.Ros1Scan(bag)
-    wanted = _wanted(cfg)
-    by_topic: dict[str, list[tuple]] = defaultdict(list)
-    for w in wanted:
-        by_topic[w[3]].append(w)
-    made: dict[str, _Source] = {}  # config key -> source, made at its topic's first connection
-    routes: dict[int, list[_Source]] = {}  # connection id -> the sources it feeds
-    store = get_typestore(Stores.EMPTY)
-    used = 0  # messages read on configured topics
-
-    def route(conn: ros1_scan.Connection, w: tuple) -> _Source:
-        src = made.get(w[1])
-        if src is None:
-            src = made[w[1]] = _source(bag, w, conn.msgtype, ros1=True)
+        def route(conn: ros1_scan.Connection, w: tuple) -> _Source:
+            src = made.get(w[1])
+            if src is None:
+                src = made[w[1]] = _source(bag, w, conn.msgtype, ros1=True)
+                src.index = order[w[1]]
+                self._sources.append(src)
+            elif src.msgtype != conn.msgtype:
+                raise BagError(f"{bag}: topic {conn.topic} has messages of two types, "
+                               f"{rosmsg.short_type(src.msgtype)} and "
+                               f"{rosmsg.short_type(conn.msgtype)}")
             if not src.raw and conn.msgtype not in store.fielddefs:
                 try:
-                    store.register(get_types_from_msg(conn.msgdef, conn.msgtype) if conn.msgdef
+                    store.register(get_types_from_msg(conn.msgdef, conn.msgtype)
+                                   if conn.msgdef
                                    else get_typestore(Stores.ROS1_NOETIC).fielddefs)
                 except TypesysError as e:
-                    raise BagError(f"{bag}: topic {conn.topic}: cannot use the bag's definition "
-                                   f"of {rosmsg.short_type(conn.msgtype)} ({e})") from None
-        elif src.msgtype != conn.msgtype:
-            raise BagError(f"{bag}: topic {conn.topic} has messages of two types, "
-                           f"{rosmsg.short_type(src.msgtype)} and "
-                           f"{rosmsg.short_type(conn.msgtype)}")
-        return src
+                    raise BagError(f"{bag}: topic {conn.topic}: cannot use the bag's "
+                                   f"definition of {rosmsg.short_type(conn.msgtype)} "
+                                   f"({e})") from None
+            return src
 
-    def items() -> Iterator[tuple[_Source, int, bytes]]:
-        nonlocal used
         st = scan.status
         try:
             for i, item in enumerate(scan):
                 if type(item) is ros1_scan.Connection:
                     routes[item.id] = [route(item, w) for w in by_topic.get(item.topic, ())]
                     continue
-                if progress and i % 2000 == 0:
-                    progress(st.offset / max(1, st.file_size))
+                if i % 2000 == 0:
+                    self._frac = st.offset / max(1, st.file_size)
                 srcs = routes[item.conn.id]
                 if srcs:
-                    used += 1
+                    self._used += 1
                 for src in srcs:
                     yield src, item.time_ns, item.data
         except ros1_scan.ScanError as e:
-            raise BagError(f"{open_error}; reading it without the index fails too: {e}") from None
+            if self._indexed:
+                raise BagError(f"{bag}: cannot read bag ({e})") from None
+            raise BagError(f"{self._open_error}; reading it without the index fails too: "
+                           f"{e}") from None
+        finally:
+            self._frac = 1.0
 
-    read_counts: Counter = Counter()
-    rejected: Counter = Counter()
-    failure = _decode(items(), store.deserialize_ros1, read_counts, rejected)
-    st = scan.status
-    if failure:  # the scanner stops without raising; this is a fault of ours, say so plainly
-        raise BagError(f"{bag}: {failure}")
-    if st.truncated:
-        what = f"bag is truncated: {st.reason}"
-    elif st.reason:
-        what = f"bag is truncated or damaged: its index is unusable and {st.reason}"
-    else:
-        what = ("bag is truncated: it has no index (its recorder did not close it), so the "
-                "messages it still buffered may be missing")
-    where = f"byte {st.offset} of {st.file_size}"
-    if not st.messages:
-        raise BagError(f"{bag}: {what}; no complete message before {where}")
-    missing = [w for w in wanted if w[1] not in made]
-    if missing:
-        kind, key, _, topic = missing[0]
-        present = {c.topic for c in scan.connections.values()}
-        raise BagError(f"{_absent(bag, topic, key, present)} (only up to {where} could be "
-                       f"read: {what})")
-    if not used:
-        raise BagError(f"{bag}: {what}; no message of the configured topics before {where}")
-    sources = [made[w[1]] for w in wanted]
-    try:
-        stream = _assemble(bag, cfg, sources, rejected)
-    except BagError as e:
-        raise BagError(f"{e} (only up to {where} could be read: {what})") from None
-    raise BagError(f"{bag}: {what}; read {used} messages up to t={stream.t1:.3f} "
-                   f"({stream.duration:.1f} s of data, {where})", partial=stream)
+    def _emitted(self) -> Iterator:
+        """Every measurement in stamp order (the generator behind iteration and prime)."""
+        self._stopped: str | None = None
+        rejected = self.rejected
+        checks: dict[int, _StampCheck] = {}
+        heap: list = []
+        push, pop = heapq.heappush, heapq.heappop
+        depth, tol = self.depth, self.tolerance
+        deserialize = None
+        seq = 0
+        newest = -math.inf  # the newest stamp pushed
+        released = -math.inf  # the stamp of the last measurement passed on
+        warming: set[int] = set()  # sources still in their stamp check's warm-up
+        last_raw, last_msg = None, None
+        n_raw = 0
+        raw_items = self._raw()
+        if self._scan is None:
+            deserialize = self._reader.deserialize
+        try:
+            for src, rec_ns, raw in raw_items:
+                n_raw += 1
+                if deserialize is None:
+                    deserialize = self._store.deserialize_ros1
+                try:
+                    if src.raw:
+                        rec = src.extract(raw)
+                    else:
+                        # Several sources may share a topic: deserialise each message once.
+                        # Compare the bytes object itself (kept alive here), never its id(),
+                        # which CPython reuses once the previous message is freed.
+                        if raw is not last_raw:
+                            last_raw, last_msg = raw, deserialize(raw, src.msgtype)
+                        rec = src.extract(last_msg)
+                    out = src.convert(rec)
+                except Reject as e:
+                    rejected[(src.topic, str(e))] += 1
+                    continue
+                except Exception as e:  # a message that fails to decode is one bad message
+                    rejected[(src.topic, f"cannot decode message: {type(e).__name__}: {e}")] += 1
+                    continue
+                rt = rec_ns * 1e-9
+                idx = src.index
+                chk = checks.get(idx)
+                if chk is None:
+                    chk = checks[idx] = _StampCheck()
+                    chk.first_rt = rt
+                    warming.add(idx)
+                passed = None
+                for m in out:
+                    chk.n += 1
+                    if chk.pending is not None:
+                        chk.pending.append((m.t, rt, m))
+                    elif chk.ok(m.t, rt, tol):
+                        if passed is None:
+                            passed = [m]
+                        else:
+                            passed.append(m)
+                if warming:
+                    for j in list(warming):
+                        c = checks[j]
+                        if len(c.pending) >= _StampCheck.WARMUP or \
+                                rt - c.first_rt > _StampCheck.WARMUP_S:
+                            warming.discard(j)
+                            for t, _, m in c.end_warmup(tol):
+                                if t < released:
+                                    self._late(self._source_of(j), t, released)
+                                    continue
+                                push(heap, (t, j, seq, m))
+                                seq += 1
+                                if t > newest:
+                                    newest = t
+                if passed is not None:
+                    for m in passed:
+                        t = m.t
+                        if t < released:
+                            self._late(src, t, released)
+                            continue
+                        push(heap, (t, idx, seq, m))
+                        seq += 1
+                        if t > newest:
+                            newest = t
+                if not warming:
+                    cut = newest - depth
+                    while heap and heap[0][0] < cut:
+                        item = pop(heap)
+                        released = item[0]
+                        m = self._out(item)
+                        if m is not None:
+                            yield m
+            # the end of the bag: every warm-up ends, the buffer empties
+            for j in sorted(warming):
+                for t, _, m in checks[j].end_warmup(tol):
+                    if t < released:
+                        self._late(self._source_of(j), t, released)
+                        continue
+                    push(heap, (t, j, seq, m))
+                    seq += 1
+            while heap:
+                item = pop(heap)
+                released = item[0]
+                m = self._out(item)
+                if m is not None:
+                    yield m
+        finally:
+            self.close()
+        self._finish(checks)
+
+    def _source_of(self, index: int) -> _Source:
+        return next(s for s in self._sources if s.index == index)
+
+    def _late(self, src: _Source, t: float, released: float) -> None:
+        self.late[src.topic] += 1
+        self.rejected[(src.topic, f"arrived after messages stamped up to more than "
+                                  f"reorder_window ({self.depth:g} s) later had been passed on; "
+                                  "raise reorder_window to keep it")] += 1
+        if self.late[src.topic] == 1:
+            log.warning("%s: %s: a message stamped %.3f s before the last one passed on came "
+                        "too late to reorder (reorder_window %g s); dropped and counted",
+                        self.bag, src.topic, released - t, self.depth)
+
+    def _out(self, item: tuple):
+        """Finish one measurement leaving the reorder buffer: truth goes to the truth arrays,
+        a GPS fix gets its ENU position; returns the measurement to pass on, or None."""
+        m = item[3]
+        if item[1] == self._truth_idx:
+            if type(m) is GpsFix:
+                if self.datum is None and not self._gps_source:
+                    self.datum = (m.lat, m.lon, m.alt)
+                if self.datum is None:
+                    self._truth_fixes.append(m)
+                else:
+                    e, n, _ = geodesy.geodetic_to_enu(m.lat, m.lon, m.alt, *self.datum)
+                    self._add_truth(m.t, e, n, math.nan)
+            else:
+                self._add_truth(m.t, m.x, m.y, m.yaw)
+            return None
+        if type(m) is GpsFix:
+            if self.datum is None:
+                self.datum = (m.lat, m.lon, m.alt)
+                self._flush_truth_fixes()
+            m.enu = geodesy.geodetic_to_enu(m.lat, m.lon, m.alt, *self.datum)
+        t = m.t
+        if self.t0 is None:
+            self.t0 = t
+            if len(self._truth[0]) and self._truth[0][-1] >= t - 1e-9:
+                self._truth_found = True
+        if self.t1 is None or t > self.t1:
+            self.t1 = t
+        self.count += 1
+        self._counts[(m.sensor, type(m))] += 1
+        return m
+
+    def _add_truth(self, t: float, x: float, y: float, yaw: float) -> None:
+        if self._started and not self.keep_truth:
+            return
+        tt, xx, yy, ww = self._truth
+        tt.append(t)
+        xx.append(x)
+        yy.append(y)
+        ww.append(yaw)
+        if not self._truth_found and self.t0 is not None and t >= self.t0 - 1e-9:
+            self._truth_found = True
+
+    def _flush_truth_fixes(self) -> None:
+        fixes, self._truth_fixes = self._truth_fixes, []
+        if not fixes:
+            return
+        e, n, _ = geodesy.geodetic_to_enu(np.array([f.lat for f in fixes]),
+                                          np.array([f.lon for f in fixes]),
+                                          np.array([f.alt for f in fixes]), *self.datum)
+        for f, ei, ni in zip(fixes, e, n, strict=True):
+            self._add_truth(f.t, float(ei), float(ni), math.nan)
+
+    def _finish(self, checks: dict[int, _StampCheck]) -> None:
+        """At the end of the bag: the datum from a truth fix if no GPS sensor gave one, the
+        counts of what was dropped, the errors that can only be seen now."""
+        bag = self.bag
+        if self._truth_fixes:
+            if self.datum is None:
+                f = self._truth_fixes[0]
+                self.datum = (f.lat, f.lon, f.alt)
+            self._flush_truth_fixes()
+        where = what = None
+        if self._scan is not None and self._indexed:
+            st = self._scan.status
+            if st.reason:
+                self._stopped = (f"bag is damaged or truncated after {st.messages} messages "
+                                 f"({st.reason})")
+        elif self._scan is not None:
+            st = self._scan.status
+            if st.truncated:
+                what = f"bag is truncated: {st.reason}"
+            elif st.reason:
+                what = f"bag is truncated or damaged: its index is unusable and {st.reason}"
+            else:
+                what = ("bag is truncated: it has no index (its recorder did not close it), so "
+                        "the messages it still buffered may be missing")
+            where = f"byte {st.offset} of {st.file_size}"
+            if not st.messages:
+                raise BagError(f"{bag}: {what}; no complete message before {where}")
+            missing = [w for w in self._wanted if w[1] not in self._made]
+            if missing:
+                kind, key, _, topic = missing[0]
+                present = {c.topic for c in self._scan.connections.values()}
+                raise BagError(f"{_absent(bag, topic, key, present)} (only up to {where} could "
+                               f"be read: {what})")
+            if not self._used:
+                raise BagError(f"{bag}: {what}; no message of the configured topics before "
+                               f"{where}")
+        try:
+            self._check_sources(checks)
+        except BagError as e:
+            if where is not None:
+                raise BagError(f"{e} (only up to {where} could be read: {what})") from None
+            raise
+        for (topic, reason), n in sorted(self.rejected.items()):
+            log.warning("%s: %s: %d message(s) rejected: %s", bag, topic, n, reason)
+        if where is not None:
+            self.error = (f"{bag}: {what}; read {self._used} messages up to "
+                          f"t={self.t1 if self.t1 is not None else 0.0:.3f} "
+                          f"({self.duration:.1f} s of data, {where})")
+        elif self._stopped is not None:
+            self.error = f"{bag}: {self._stopped}"
+
+    def _check_sources(self, checks: dict[int, _StampCheck]) -> None:
+        bag, rejected = self.bag, self.rejected
+        for src in sorted(self._sources, key=lambda s: s.index):
+            chk = checks.get(src.index)
+            if chk is None:
+                bad = {r: n for (tp, r), n in rejected.items() if tp == src.topic}
+                if bad:
+                    reason = max(bad.items(), key=lambda x: x[1])[0]
+                    raise BagError(f"{bag}: topic {src.topic} ({src.key}): all "
+                                   f"{sum(bad.values())} messages rejected: {reason}")
+                continue
+            if chk.bad:
+                rejected[(src.topic, f"header stamp more than {self.tolerance:g} s off its "
+                                     "topic's clock (time went backwards or jumped)")] += chk.bad
+                if chk.n >= 3 and chk.bad > 0.1 * chk.n:
+                    raise BagError(
+                        f"{bag}: topic {src.topic} ({src.key}): {chk.bad} of {chk.n} stamps "
+                        f"jump by more than {self.tolerance:g} s against the bag's record "
+                        "time; the bag mixes clocks or time goes backwards beyond "
+                        "reorder_window")
 
 
-def _drop_bad_stamps(bag: Path, src: _Source, tolerance: float, rejected: Counter) -> list:
-    """Drop records whose header stamp is inconsistent with the topic's stamp-to-record offset.
-
-    Real bags carry small reorderings (kept and sorted) but also single broken stamps (zero, a
-    clock jump) that would otherwise land the message minutes away from its neighbours."""
-    recs = src.records
-    if len(recs) < 3:
-        return recs
-    offsets = [t - rt for t, rt, _ in recs]
-    med = statistics.median(offsets)
-    keep = [r for r, off in zip(recs, offsets, strict=True) if abs(off - med) <= tolerance]
-    bad = len(recs) - len(keep)
-    if bad:
-        rejected[(src.topic, f"header stamp more than {tolerance:g} s off its topic's clock "
-                             "(time went backwards or jumped)")] += bad
-        if bad > 0.1 * len(recs):
-            raise BagError(f"{bag}: topic {src.topic} ({src.key}): {bad} of {len(recs)} stamps "
-                           f"jump by more than {tolerance:g} s against the bag's record time; "
-                           "the bag mixes clocks or time goes backwards beyond reorder_window")
-    return keep
+def open_stream(bag: str | Path, cfg: Config, *, reorder_window: float | None = None,
+                keep_truth: bool = True) -> BagStream:
+    """A primed BagStream of ``bag`` (see there): its start, datum and initial truth known,
+    ready to be run."""
+    return BagStream(bag, cfg, reorder_window=reorder_window, keep_truth=keep_truth).prime()
 
 
-def _assemble(bag: Path, cfg: Config, sources: list[_Source], rejected: Counter) -> Stream:
-    tolerance = max(STAMP_TOLERANCE, cfg.reorder_window)
-    measurements: list = []
-    truth: list = []
-    for src in sources:
-        n_total = len(src.records) + sum(n for (tp, _), n in rejected.items() if tp == src.topic)
-        if n_total and not src.records:
-            reason = max(((r, n) for (tp, r), n in rejected.items() if tp == src.topic),
-                         key=lambda x: x[1])[0]
-            raise BagError(f"{bag}: topic {src.topic} ({src.key}): all {n_total} messages "
-                           f"rejected: {reason}")
-        keep = _drop_bad_stamps(bag, src, tolerance, rejected)
-        target = truth if src.key == "ground_truth" else measurements
-        target.extend(r[2] for r in keep)
-    # Stable sort by header stamp: messages arrive slightly out of order in real bags.
-    measurements.sort(key=lambda m: m.t)
-    truth.sort(key=lambda m: m.t)
+def read_stream(bag: str | Path, cfg: Config, progress: Callable[[float], None] | None = None,
+                *, reorder_window: float | None = None) -> Stream:
+    """Read the configured topics of ``bag`` into a Stream ordered by header stamp: the whole
+    of a BagStream (see there) in memory, for the tests and tools that want a list.
 
-    datum = _datum(cfg, measurements, truth)
-    fixes = [m for m in measurements if isinstance(m, GpsFix)]
-    gt_fixes = [m for m in truth if isinstance(m, GpsFix)]
-    if (fixes or gt_fixes) and datum is None:
-        raise BagError(f"{bag}: no GPS fix to take the datum from (frame.datum: first_fix)")
-    if fixes:
-        e, n, u = _to_enu(fixes, datum)
-        for f, ei, ni, ui in zip(fixes, e, n, u, strict=True):
-            f.enu = (float(ei), float(ni), float(ui))
-    if gt_fixes:
-        e, n, _ = _to_enu(gt_fixes, datum)
-        truth = [GroundTruthPose(f.t, float(ei), float(ni), math.nan)
-                 for f, ei, ni in zip(gt_fixes, e, n, strict=True)]
-
-    landmarks: dict[str, tuple[float, float]] = {}
-    for s in cfg.of_kind("landmarks"):
-        landmarks.update(load_landmark_map(s.map))
-    stamps = [m.t for m in measurements]
-    stream = Stream(measurements=measurements, ground_truth=truth, datum=datum,
-                    landmarks=landmarks, rejected=dict(rejected), source=str(bag),
-                    t0=min(stamps) if stamps else 0.0, t1=max(stamps) if stamps else 0.0)
-    for (topic, reason), n in sorted(rejected.items()):
-        log.warning("%s: %s: %d message(s) rejected: %s", bag, topic, n, reason)
+    ``progress``, if given, is called with the fraction of the bag read so far.
+    Raises BagError (naming the file, topic and field) when the bag or a topic cannot be used.
+    A bag that breaks off (truncated or damaged; a ROS1 bag without a usable index is read from
+    the front by ``estimation.ros1_scan``) raises BagError saying so, carrying the stream of
+    what could be read as ``partial``."""
+    bs = BagStream(bag, cfg, reorder_window=reorder_window)
+    measurements = []
+    for i, m in enumerate(bs):
+        measurements.append(m)
+        if progress and i % 2000 == 0:
+            progress(bs.fraction())
+    stream = Stream(measurements=measurements, ground_truth=bs.ground_truth, datum=bs.datum,
+                    landmarks=bs.landmarks, rejected=dict(bs.rejected), source=str(bag),
+                    t0=bs.t0 if bs.t0 is not None else 0.0,
+                    t1=bs.t1 if bs.t1 is not None else 0.0)
+    if bs.error is not None:
+        raise BagError(bs.error, partial=stream)
     return stream
-
-
-def _datum(cfg: Config, measurements: list, truth: list) -> tuple[float, float, float] | None:
-    if isinstance(cfg.datum, tuple):
-        return cfg.datum
-    for m in measurements:
-        if isinstance(m, GpsFix):
-            return (m.lat, m.lon, m.alt)
-    for m in truth:
-        if isinstance(m, GpsFix):
-            return (m.lat, m.lon, m.alt)
-    return None
-
-
-def _to_enu(fixes: list[GpsFix], datum: tuple[float, float, float]):
-    lat = np.array([f.lat for f in fixes])
-    lon = np.array([f.lon for f in fixes])
-    alt = np.array([f.alt for f in fixes])
-    return geodesy.geodetic_to_enu(lat, lon, alt, *datum)

@@ -344,3 +344,37 @@ class Ros1Scan:
                 raise _Damaged(f"unexpected record op {op} inside a chunk")
             pos = dend
         return pos
+
+
+def index_connections(path: str | Path) -> list[Connection] | None:
+    """The connection records of an intact ROS1 v2.0 bag's index (at the end of the file, at the
+    bag header's ``index_pos``), without reading its chunks or the per-message index: what a
+    reader needs to check topics and types before it scans the bag from the front. None when
+    the bag has no usable index (no ``index_pos``, one past the end of the file, or records
+    there that are not connections), is encrypted or is not a ROS1 v2.0 bag at all."""
+    scan = Ros1Scan(path)
+    size = scan.status.file_size
+    try:
+        with open(path, "rb") as f:
+            if f.read(len(MAGIC)) != MAGIC:
+                return None
+            fields, _, _ = scan._record(f, read_data=False)
+            if fields is None or _op(fields) != OP_BAGHEADER or fields.get("encryptor"):
+                return None
+            index_pos = fields.get("index_pos")
+            conn_count = _u32(fields, "conn_count")
+            if index_pos is None or len(index_pos) != 8:
+                return None
+            (pos,) = struct.unpack("<Q", index_pos)
+            if not 0 < pos < size:
+                return None
+            f.seek(pos)
+            out = []
+            for _ in range(conn_count):
+                fields, data, _ = scan._record(f, read_data=True)
+                if fields is None or _op(fields) != OP_CONNECTION:
+                    return None
+                out.append(_connection(fields, data))
+            return out
+    except (OSError, _Incomplete, _Damaged):
+        return None

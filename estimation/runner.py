@@ -11,13 +11,73 @@ from __future__ import annotations
 import gc
 import math
 import time
+from array import array
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from estimation.estimator import Estimate, Estimator, EstimatorLog
-from estimation.measurements import GpsFix, GroundTruthPose, Stream
+from estimation.measurements import GpsFix, Stream
+
+_NAN9 = (math.nan,) * 9
+
+
+class TrackBuilder:
+    """Estimates appended one at a time, kept as compact columns (stamp, pose, 3x3 pose
+    covariance: 13 floats each) instead of objects with their state arrays: a 2 h run at 10 Hz
+    is 7 MB. ``last`` is the last Estimate appended, whole (its state too). Indexing gives
+    Estimates with t, pose and pose_cov (the last one: ``last`` itself)."""
+
+    __slots__ = ("_t", "_pose", "_cov", "last")
+
+    def __init__(self) -> None:
+        self._t = array("d")
+        self._pose = array("d")
+        self._cov = array("d")
+        self.last: Estimate | None = None
+
+    def append(self, e: Estimate) -> None:
+        self._t.append(e.t)
+        self._pose.extend(e.pose)
+        c = e.pose_cov
+        self._cov.extend(_NAN9 if c is None else np.asarray(c, float).ravel().tolist())
+        self.last = e
+
+    def extend(self, estimates: Iterable[Estimate]) -> None:
+        for e in estimates:
+            self.append(e)
+
+    def __len__(self) -> int:
+        return len(self._t)
+
+    def __bool__(self) -> bool:
+        return len(self._t) > 0
+
+    def __getitem__(self, i: int) -> Estimate:
+        n = len(self._t)
+        if isinstance(i, slice):
+            return [self[j] for j in range(n)[i]]
+        if i < 0:
+            i += n
+        if not 0 <= i < n:
+            raise IndexError("track index out of range")
+        if i == n - 1 and self.last is not None:
+            return self.last
+        return Estimate(self._t[i], tuple(self._pose[3 * i:3 * i + 3]),
+                        np.array(self._cov[9 * i:9 * i + 9]).reshape(3, 3))
+
+    def __iter__(self):
+        return (self[i] for i in range(len(self._t)))
+
+    def trajectory(self) -> Trajectory:
+        """The columns as a Trajectory, sharing their memory (no copy: appending to the builder
+        afterwards is an error)."""
+        n = len(self._t)
+        if not n:
+            return Trajectory(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 3)))
+        return Trajectory(np.frombuffer(self._t, float), np.frombuffer(self._pose, float)
+                          .reshape(n, 3), np.frombuffer(self._cov, float).reshape(n, 3, 3))
 
 
 @dataclass
@@ -31,6 +91,8 @@ class Trajectory:
 
     @classmethod
     def from_estimates(cls, estimates: Iterable[Estimate]) -> Trajectory:
+        if isinstance(estimates, TrackBuilder):
+            return estimates.trajectory()
         est = list(estimates)
         if not est:
             return cls(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 3)))
@@ -39,7 +101,13 @@ class Trajectory:
                              for e in est], dtype=float))
 
     @classmethod
-    def from_ground_truth(cls, truth: list[GroundTruthPose]) -> Trajectory:
+    def from_ground_truth(cls, truth) -> Trajectory:
+        """From a list of GroundTruthPose, or from a stream's truth arrays (``t`` (N,),
+        ``pose`` (N, 3)) given as a tuple."""
+        if isinstance(truth, tuple):
+            t, pose = truth
+            return cls(np.asarray(t, float), np.asarray(pose, float).reshape(-1, 3),
+                       np.full((len(t), 3, 3), np.nan))
         n = len(truth)
         return cls(np.array([g.t for g in truth]),
                    np.array([(g.x, g.y, g.yaw) for g in truth], dtype=float).reshape(n, 3),
@@ -55,23 +123,93 @@ class EstimatorRun:
 
     name: str
     trajectory: Trajectory
-    update_s: np.ndarray  # wall time of each process() call, s
+    update_s: np.ndarray  # wall time of each process() call, s (float32)
     runtime_s: float  # total wall time in process/estimate/finish, s
     log: EstimatorLog
     error: str | None = None  # set when the estimator raised; the trajectory holds what it had
 
 
 @dataclass
+class GpsTrack:
+    """Every GPS fix of a run, in stream order, as arrays: ``t`` (G,) s, ``xy`` (G, 2) m local
+    ENU, ``cov`` (G, 2, 2) m^2, ``withheld`` (G,) bool (held out from every estimator)."""
+
+    t: np.ndarray
+    xy: np.ndarray
+    cov: np.ndarray
+    withheld: np.ndarray
+
+    @property
+    def held_t(self) -> np.ndarray:
+        return self.t[self.withheld]
+
+    @property
+    def held_xy(self) -> np.ndarray:
+        return self.xy[self.withheld]
+
+    @property
+    def used_t(self) -> np.ndarray:
+        return self.t[~self.withheld]
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+
+class _GpsRecorder:
+    __slots__ = ("t", "xy", "cov", "held")
+
+    def __init__(self) -> None:
+        self.t, self.xy, self.cov, self.held = array("d"), array("d"), array("d"), array("B")
+
+    def add(self, f: GpsFix, withheld: bool) -> None:
+        self.t.append(f.t)
+        self.xy.extend(f.enu[:2] if f.enu is not None else (math.nan, math.nan))
+        c = f.cov
+        self.cov.extend((c[0, 0], c[0, 1], c[1, 0], c[1, 1]))
+        self.held.append(withheld)
+
+    def track(self) -> GpsTrack:
+        n = len(self.t)
+        return GpsTrack(np.array(self.t, float), np.array(self.xy, float).reshape(n, 2),
+                        np.array(self.cov, float).reshape(n, 2, 2),
+                        np.array(self.held, bool))
+
+
+@dataclass
 class RunResult:
-    stream: Stream
+    stream: object  # the Stream or estimation.bags.BagStream that was run
     runs: dict[str, EstimatorRun]
-    holdout: list[GpsFix] = field(default_factory=list)  # fixes withheld from every estimator
+    gps: GpsTrack
     truth: Trajectory | None = None
+    messages: int = 0  # measurements fed (withheld fixes included)
 
 
-def parse_holdout(spec: str | None) -> Callable[[list[GpsFix], float], set[int]] | None:
+class Holdout:
+    """Which GPS fixes to withhold: ``every:K`` (every K-th fix) or ``window:T0:T1`` (fixes with
+    T0 <= t - t_start < T1, seconds). Decides fix by fix as the stream goes
+    (``withhold(fix, t_start)``), or for a whole list (called with (fixes, t_start) -> the
+    withheld indices)."""
+
+    def __init__(self, kind: str, a: float, b: float = 0.0) -> None:
+        self.kind, self.a, self.b = kind, a, b
+        self.seen = 0
+
+    def withhold(self, fix: GpsFix, t_start: float) -> bool:
+        i = self.seen
+        self.seen += 1
+        if self.kind == "every":
+            k = int(self.a)
+            return i % k == k - 1
+        return self.a <= fix.t - t_start < self.b
+
+    def __call__(self, fixes: list[GpsFix], t_start: float) -> set[int]:
+        sel = Holdout(self.kind, self.a, self.b)
+        return {i for i, f in enumerate(fixes) if sel.withhold(f, t_start)}
+
+
+def parse_holdout(spec: str | None) -> Holdout | None:
     """``every:K`` (withhold every K-th fix) or ``window:T0:T1`` (withhold fixes with
-    T0 <= t - t_start < T1, seconds). Returns a selector (fixes, t_start) -> withheld indices."""
+    T0 <= t - t_start < T1, seconds); None for no hold-out. ValueError for anything else."""
     if not spec:
         return None
     parts = spec.split(":")
@@ -80,66 +218,79 @@ def parse_holdout(spec: str | None) -> Callable[[list[GpsFix], float], set[int]]
             k = int(parts[1])
             if k < 2:
                 raise ValueError
-            return lambda fixes, t0: {i for i in range(len(fixes)) if i % k == k - 1}
+            return Holdout("every", k)
         if parts[0] == "window" and len(parts) == 3:
             a, b = float(parts[1]), float(parts[2])
             if not b > a:
                 raise ValueError
-            return lambda fixes, t0: {i for i, f in enumerate(fixes) if a <= f.t - t0 < b}
+            return Holdout("window", a, b)
     except ValueError:
         pass
     raise ValueError(f"--gps-holdout: expected every:K (K >= 2) or window:T0:T1, got {spec!r}")
 
 
-def initial_pose(cfg_initial, stream: Stream) -> tuple[float, float, float] | None:
+def initial_pose(cfg_initial, stream) -> tuple[float, float, float] | None:
     """Resolve the config's initial_pose: 'ground_truth' -> the first truth pose at or after the
-    first measurement; a tuple -> itself; None -> None (each estimator's default)."""
+    first measurement; a tuple -> itself; None -> None (each estimator's default).
+
+    ``stream`` is a Stream, or a BagStream primed (``BagStream.prime``) so that its start and
+    the truth there are known."""
     if cfg_initial == "ground_truth":
-        if not stream.ground_truth:
-            return None
-        t0 = stream.t0
-        g = next((g for g in stream.ground_truth if g.t >= t0 - 1e-9), stream.ground_truth[-1])
+        first = getattr(stream, "first_truth", None)
+        if first is not None:  # a BagStream: it found the pose while priming
+            g = first()
+            if g is None:
+                return None
+        else:
+            if not stream.ground_truth:
+                return None
+            t0 = stream.t0
+            g = next((g for g in stream.ground_truth if g.t >= t0 - 1e-9),
+                     stream.ground_truth[-1])
         return (g.x, g.y, g.yaw if math.isfinite(g.yaw) else 0.0)
     return cfg_initial
 
 
-def run(stream: Stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
+def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
         holdout: str | None = None, progress: Callable[[float], None] | None = None
         ) -> RunResult:
     """Feed every measurement of ``stream`` to every estimator, in time order.
 
-    The estimate of each estimator is recorded whenever the stream crosses the next tick of
-    ``output_rate`` (Hz). An estimator that raises is stopped there and keeps what it had; the
-    others go on. GPS fixes selected by ``holdout`` are withheld from all estimators."""
+    ``stream`` is a Stream (its list of measurements) or an ``estimation.bags.BagStream``
+    (measurements decoded as they are fed: memory does not grow with the bag). The estimate of
+    each estimator is recorded whenever the stream crosses the next tick of ``output_rate``
+    (Hz). An estimator that raises is stopped there and keeps what it had; the others go on.
+    GPS fixes selected by ``holdout`` are withheld from all estimators. A BagStream that breaks
+    off (a truncated bag) ends the run there; its ``error`` says why."""
     select = parse_holdout(holdout)
-    withheld: list[GpsFix] = []
-    skip: set[int] = set()
-    if select is not None:
-        fixes = [m for m in stream.measurements if isinstance(m, GpsFix)]
-        idx = select(fixes, stream.t0)
-        withheld = [f for i, f in enumerate(fixes) if i in idx]
-        skip = {id(f) for f in withheld}
-
     names = list(estimators)
     est_list = [estimators[n] for n in names]
-    outputs: list[list[Estimate]] = [[] for _ in names]
-    timings: list[list[float]] = [[] for _ in names]
+    outputs = [TrackBuilder() for _ in names]
+    timings = [array("f") for _ in names]
     totals = [0.0] * len(names)
     errors: list[str | None] = [None] * len(names)
     alive = [True] * len(names)
     period = 1.0 / output_rate
-    meas = stream.measurements
     clock = time.perf_counter
-    # The decoded stream and the growing logs are millions of long-lived objects: a full
-    # garbage collection walks them all, inside whichever update it interrupts (0.1-0.9 s
-    # spikes on a 2 h bag). So the stream is frozen (skipped by the collector), automatic
-    # collection is off during the loop, and _feed collects only the young generations
-    # between messages (the estimators make little cyclic garbage).
+    gps = _GpsRecorder()
+    if isinstance(stream, Stream):
+        meas: Iterable = stream.measurements
+        n = len(stream.measurements)
+        fraction = None
+    else:
+        meas = stream
+        n = 0
+        fraction = getattr(stream, "fraction", None)
+    # The growing logs hold many long-lived objects: a full garbage collection walks them
+    # all, inside whichever update it interrupts. So automatic collection is off during the
+    # loop, and _feed collects only the young generations between messages (the estimators
+    # make little cyclic garbage); a list-based stream is frozen (skipped by the collector).
     gc_was_enabled = gc.isenabled()
     gc.freeze()
     gc.disable()
     try:
-        _feed(meas, skip, est_list, alive, errors, outputs, timings, totals, period, progress)
+        fed = _feed(meas, n, fraction, select, gps, est_list, alive, errors, outputs, timings,
+                    totals, period, progress)
     finally:
         if gc_was_enabled:
             gc.enable()
@@ -151,17 +302,21 @@ def run(stream: Stream, estimators: dict[str, Estimator], *, output_rate: float 
             try:
                 est.finish()
                 last = est.estimate()
-                if last is not None and (not outputs[i] or last.t > outputs[i][-1].t):
+                if last is not None and (not outputs[i] or last.t > outputs[i].last.t):
                     outputs[i].append(last)
             except Exception as exc:
                 errors[i] = f"{type(exc).__name__} in finish: {exc}"
         totals[i] += clock() - t_a
-        upd = np.array(timings[i])
+        est.log.innovations.compact()
+        # a view of the compact array, not a copy
+        upd = np.frombuffer(timings[i], np.float32) if len(timings[i]) else \
+            np.zeros(0, np.float32)
         # An offline estimator (the batch) gives its whole trajectory only at the end.
         final = getattr(est, "final_estimates", None)
         track = final() if callable(final) else outputs[i]
         runs[name] = EstimatorRun(name, Trajectory.from_estimates(track), upd, totals[i],
                                   est.log, errors[i])
+        outputs[i] = None
         lagged = getattr(est, "lagged_estimates", None)
         lagged = lagged() if callable(lagged) else None
         if lagged is not None:
@@ -170,24 +325,40 @@ def run(stream: Stream, estimators: dict[str, Estimator], *, output_rate: float 
                 errors[i])
     if progress is not None:
         progress(1.0)
-    truth = Trajectory.from_ground_truth(stream.ground_truth) if stream.ground_truth else None
-    return RunResult(stream, runs, withheld, truth)
+    truth = None
+    arrays = getattr(stream, "truth_arrays", None)
+    if callable(arrays):
+        t, pose = arrays()
+        truth = Trajectory.from_ground_truth((t, pose)) if len(t) else None
+    elif stream.ground_truth:
+        truth = Trajectory.from_ground_truth(stream.ground_truth)
+    return RunResult(stream, runs, gps.track(), truth, fed)
 
 
-def _feed(meas, skip, est_list, alive, errors, outputs, timings, totals, period, progress
-          ) -> None:
-    """The measurement loop of :func:`run` (see there)."""
+def _feed(meas, n, fraction, select, gps, est_list, alive, errors, outputs, timings, totals,
+          period, progress) -> int:
+    """The measurement loop of :func:`run` (see there); returns how many measurements came."""
     clock = time.perf_counter
-    n = len(meas)
     next_tick = -math.inf
+    t_start = None
+    logs = [est.log.innovations for est in est_list]
+    k = -1
     for k, m in enumerate(meas):
         if k % 1000 == 0:
+            # between messages, outside the timed updates: compact the innovation logs
+            for lg in logs:
+                lg.compact()
             if k % 5000 == 0:
                 gc.collect(1)
             if progress is not None:
-                progress(k / max(n, 1))
-        if id(m) in skip:
-            continue
+                progress(fraction() if fraction is not None else k / max(n, 1))
+        if t_start is None:
+            t_start = m.t
+        if isinstance(m, GpsFix):
+            held = select is not None and select.withhold(m, t_start)
+            gps.add(m, held)
+            if held:
+                continue
         record = m.t >= next_tick
         if record:
             # The next tick on the grid, or one period after a gap; never m.t itself, which
@@ -210,3 +381,4 @@ def _feed(meas, skip, est_list, alive, errors, outputs, timings, totals, period,
             totals[i] += dt
             if e is not None:
                 outputs[i].append(e)
+    return k + 1

@@ -70,6 +70,7 @@ from estimation.measurements import (
     WheelOdometry,
     WheelSpeeds,
 )
+from estimation.runner import TrackBuilder
 from factors.gps import gps_factor
 from factors.gyro import bias_difference_factor
 from factors.heading import heading_factor
@@ -254,7 +255,7 @@ class FixedLagSmoother(Estimator):
         self.odometry_held_back = bool(cfg.of_kind("odometry") or cfg.of_kind("wheels"))
         self.keyframe_rate = cfg.smoother.keyframe_rate
         self.kf_policy = cfg.smoother.keyframe
-        self._lagged: list[Estimate] = []
+        self._lagged = TrackBuilder()  # compact: (t, pose, pose cov) per keyframe
         self._reset_state()
 
     # --- set-up -----------------------------------------------------------------------------
@@ -786,7 +787,7 @@ class FixedLagSmoother(Estimator):
             self._flush()
         self._capture_leaving(math.inf)
 
-    def lagged_estimates(self) -> list[Estimate]:
+    def lagged_estimates(self) -> TrackBuilder:
         return self._lagged
 
 
@@ -799,7 +800,7 @@ class BatchSmoother(FixedLagSmoother):
 
     def __init__(self, cfg: Config, **kw) -> None:
         super().__init__(cfg, **kw)
-        self._final: list[Estimate] = []
+        self._final = TrackBuilder()
 
     def finish(self) -> None:
         super().finish()
@@ -825,6 +826,6 @@ class BatchSmoother(FixedLagSmoother):
     def lagged_estimates(self):  # the batch has no lagged output of its own
         return None
 
-    def final_estimates(self) -> list[Estimate]:
+    def final_estimates(self) -> TrackBuilder:
         return self._final
 

@@ -2,7 +2,13 @@
 factor, update latency percentiles and peak resident memory.
 
 Each estimator runs in its own child process (spawned, so nothing is shared with the parent),
-which makes its peak RSS its own: ``resource.getrusage(RUSAGE_SELF).ru_maxrss`` of that child.
+which makes its peak RSS its own: the high-water mark ``VmHWM`` of the child's own address space
+(/proc/self/status). Not ``ru_maxrss``: Linux carries that across the fork and exec that start
+the child, so it would never be below the parent's RSS at that moment.
+The bag is decoded as a stream while the estimator runs (``estimation.bags.BagStream``, ground
+truth not kept), as ``ddfuse run`` does, so the peak is what the estimator itself holds on top
+of the libraries; ``start_rss_mb`` is the peak once the stream is open and the estimator built
+(libraries, the first seconds of data), before any measurement is fed.
 """
 
 from __future__ import annotations
@@ -14,45 +20,78 @@ from pathlib import Path
 
 import numpy as np
 
-from estimation.bags import read_stream
+from estimation.bags import BagStream
 from estimation.config import load_config
+from estimation.errors import BagError
 from estimation.runner import initial_pose, run
 
 
+def peak_rss_mb() -> float:
+    """This process's peak resident set size, MB: VmHWM from /proc/self/status on Linux, else
+    ``ru_maxrss`` (see the module docstring)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0  # kB
+    except (OSError, ValueError, IndexError):
+        pass
+    # Linux and most BSDs report ru_maxrss in KiB (macOS in bytes: rough there)
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
 def _one(bag: str, cfg_path: str, name: str, lag: float | None, queue) -> None:
+    try:
+        queue.put(_measure(bag, cfg_path, name, lag))
+    except BagError as e:
+        queue.put({"estimator": name, "fatal": str(e)})
+    except Exception as e:  # reported by the parent, never a hang on the queue
+        queue.put({"estimator": name, "fatal": f"{type(e).__name__}: {e}"})
+
+
+def _measure(bag: str, cfg_path: str, name: str, lag: float | None) -> dict:
     from evaluation import estimators as registry
 
     cfg = load_config(cfg_path)
-    t0 = time.perf_counter()
-    stream = read_stream(bag, cfg)
-    decode_s = time.perf_counter() - t0
-    # Linux reports ru_maxrss in KiB.
-    decoded_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    stream = BagStream(bag, cfg, keep_truth=False).prime()
     pose = initial_pose(cfg.initial_pose, stream)
     est = registry.SPECS[name].build(cfg, stream, pose, lag if lag else cfg.smoother.lag)
+    start_mb = peak_rss_mb()
     t1 = time.perf_counter()
     result = run(stream, {name: est})
     wall = time.perf_counter() - t1
-    upd = result.runs[name].update_s * 1e3
-    queue.put({
-        "estimator": name, "duration_s": stream.duration, "decode_s": decode_s,
-        "messages": len(stream.measurements), "wall_s": wall,
-        "rtf": stream.duration / wall if wall > 0 else None,
-        "update_ms": {"p50": float(np.percentile(upd, 50)), "p99": float(np.percentile(upd, 99)),
-                      "max": float(upd.max())} if len(upd) else None,
-        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
-        "decoded_rss_mb": decoded_mb,  # peak up to the end of decoding: libraries + the stream
+    peak_mb = peak_rss_mb()  # before the statistics below make their own copies
+    if stream.error is not None and not result.messages:
+        raise BagError(stream.error)
+    upd = result.runs[name].update_s
+    runtime = result.runs[name].runtime_s
+    return {
+        "estimator": name, "duration_s": stream.duration, "decode_s": stream.decode_s,
+        "messages": result.messages,
+        "wall_s": wall,  # decoding included: the stream is decoded as it is fed
+        "runtime_s": runtime,  # in the estimator's calls alone
+        "rtf": stream.duration / runtime if runtime > 0 else None,
+        "update_ms": {"p50": 1e3 * float(np.percentile(upd, 50)),
+                      "p99": 1e3 * float(np.percentile(upd, 99)),
+                      "max": 1e3 * float(upd.max())} if len(upd) else None,
+        "peak_rss_mb": peak_mb,
+        "start_rss_mb": start_mb,
         "error": result.runs[name].error,
-    })
+        "input_error": stream.error,
+    }
 
 
 def bench_bag(bag: Path, cfg_path: Path, names: list[str] | None = None,
               lag: float | None = None) -> dict:
-    """Benchmark every selected estimator on one bag, each in a fresh process."""
+    """Benchmark every selected estimator on one bag, each in a fresh process.
+
+    A truncated or damaged bag is benchmarked on what can be read (as ``ddfuse run`` does);
+    ``input_error`` then says why it stops early. A bag that cannot be used raises BagError."""
     from evaluation import estimators as registry
 
     cfg = load_config(cfg_path)
     chosen = registry.select(cfg, names)
+    BagStream(bag, cfg).close()  # a bag that cannot be opened fails here, once, in one line
     ctx = mp.get_context("spawn")
     rows = []
     for name in chosen:
@@ -63,8 +102,11 @@ def bench_bag(bag: Path, cfg_path: Path, names: list[str] | None = None,
             rows.append(q.get(timeout=3600))
         finally:
             p.join()
+        if "fatal" in rows[-1]:
+            raise BagError(rows[-1]["fatal"])
     decode = min(r["decode_s"] for r in rows) if rows else None
     duration = rows[0]["duration_s"] if rows else None
     return {"bag": str(bag), "config": str(cfg_path), "duration_s": duration,
             "decode_s": decode, "decode_rtf": duration / decode if decode else None,
-            "messages": rows[0]["messages"] if rows else None, "estimators": rows}
+            "messages": rows[0]["messages"] if rows else None,
+            "input_error": rows[0]["input_error"] if rows else None, "estimators": rows}

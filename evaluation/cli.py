@@ -47,6 +47,9 @@ def cmd_inspect(args: argparse.Namespace) -> int:
             out.write(f"{t.topic}: {note}\n")
     out.write("\n# suggested config (review the noise values; they are starting points)\n")
     out.write(yaml.safe_dump(suggest_config(info), sort_keys=False, default_flow_style=None))
+    if info.error:  # a truncated ROS1 bag: the facts are of what could be read
+        out.flush()
+        raise DdfuseError(info.error)
     return 0
 
 
@@ -79,13 +82,18 @@ def cmd_online(args: argparse.Namespace) -> int:
 
     try:
         session = replay(args.bag, cfg, names=names, realtime=args.realtime,
-                         print_every=args.every, on_print=show)
+                         print_every=args.every, on_print=show,
+                         reorder_window=args.reorder_window)
     except ValueError as e:
         raise DdfuseError(str(e)) from None
     print("update latency (ms):")
     for name, q in session.latency_ms().items():
         print(f"  {name:16} p50 {q['p50']:.3f}  p99 {q['p99']:.3f}  max {q['max']:.3f}  "
               f"({q['updates']} updates)")
+    if session.input_error:  # a truncated or damaged bag: replayed up to where it breaks off
+        sys.stdout.flush()
+        raise DdfuseError(f"{session.input_error}; replayed the "
+                          f"{session.replayed_s:.1f} s that could be read")
     return 0
 
 
@@ -104,17 +112,22 @@ def cmd_bench(args: argparse.Namespace) -> int:
             raise DdfuseError(str(e)) from None
         results.append(r)
         print(f"{bag}: {r['duration_s']:.1f} s of data, {r['messages']} measurements, decode "
-              f"{r['decode_s']:.3f} s ({r['decode_rtf']:.0f}x real time)")
-        print(f"  {'estimator':12} {'wall s':>8} {'RTF':>8} {'p50 ms':>8} {'p99 ms':>8} "
-              f"{'max ms':>8} {'RSS MB':>8} {'decoded':>8}")
+              f"{r['decode_s']:.3f} s ({_fmt(r['decode_rtf'], '.0f')}x real time)")
+        print(f"  {'estimator':12} {'est s':>8} {'RTF':>8} {'wall s':>8} {'p50 ms':>8} "
+              f"{'p99 ms':>8} {'max ms':>8} {'RSS MB':>8} {'start':>8}")
         for e in r["estimators"]:
             u = e["update_ms"] or {"p50": math.nan, "p99": math.nan, "max": math.nan}
-            print(f"  {e['estimator']:12} {e['wall_s']:8.3f} {e['rtf']:8.0f} {u['p50']:8.3f} "
-                  f"{u['p99']:8.3f} {u['max']:8.3f} {e['peak_rss_mb']:8.1f} "
-                  f"{e['decoded_rss_mb']:8.1f}"
+            print(f"  {e['estimator']:12} {e['runtime_s']:8.3f} {_fmt(e['rtf'], '8.0f')} "
+                  f"{e['wall_s']:8.3f} {u['p50']:8.3f} {u['p99']:8.3f} {u['max']:8.3f} "
+                  f"{e['peak_rss_mb']:8.1f} {e['start_rss_mb']:8.1f}"
                   + (f"  ERROR {e['error']}" if e["error"] else ""))
     if args.json:
         args.json.write_text(json.dumps(results, indent=2) + "\n")
+    broken = [r["input_error"] for r in results if r.get("input_error")]
+    if broken:  # a truncated or damaged bag: benchmarked on what could be read
+        sys.stdout.flush()
+        raise DdfuseError(f"{broken[0]}; benchmarked on what could be read"
+                          + (f" ({len(broken)} bags)" if len(broken) > 1 else ""))
     return 0
 
 
@@ -194,15 +207,20 @@ def cmd_run(args: argparse.Namespace) -> int:
     try:
         try:
             m = run_bag(bag, cfg, args.outdir, names=names, lag=args.lag,
-                        holdout=args.gps_holdout, progress=bars.update if bars else None)
+                        holdout=args.gps_holdout, progress=bars.update if bars else None,
+                        reorder_window=args.reorder_window)
         except ValueError as e:
             raise DdfuseError(str(e)) from None
         except BagError as e:
             # A damaged bag whose readable part was estimated: the report shows that part.
-            if getattr(e, "results_written", False):
+            if getattr(e, "results_written", False) and not args.no_report:
                 _render(args.outdir, bars)
             raise
         _print_summary(m, sys.stdout)
+        if args.no_report:
+            sys.stdout.write(f"results in {args.outdir}/ (metrics.json, <estimator>.tum/.csv, "
+                             "run.npz); no report (--no-report)\n")
+            return 0
         # The report is rendered after the run, so its time is in no estimator's runtime.
         t_a = time.perf_counter()
         report = _render(args.outdir, bars)
@@ -224,6 +242,23 @@ def cmd_report(args: argparse.Namespace) -> int:
             bars.stop()
     sys.stdout.write(f"{path}\n")
     return 0
+
+
+def _reorder_window(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        v = math.nan
+    if not v >= 0.0:
+        raise argparse.ArgumentTypeError(f"expected seconds >= 0, got {text!r}")
+    return v
+
+
+def _reorder_arg(sp: argparse.ArgumentParser) -> None:
+    sp.add_argument("--reorder-window", type=_reorder_window, metavar="S",
+                    help="seconds of header-stamp disorder the decoder sorts out (messages "
+                    "later than that are dropped and counted; default: the config's "
+                    "reorder_window, 0.5 s)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -250,6 +285,10 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--lag", type=float, help="smoother lag, s (default: from the config)")
     sp.add_argument("--gps-holdout", metavar="every:K|window:T0:T1",
                     help="withhold these GPS fixes from every estimator and score against them")
+    _reorder_arg(sp)
+    sp.add_argument("--no-report", action="store_true",
+                    help="write the results (metrics.json, tracks, run.npz) but not the HTML "
+                    "report ('ddfuse report OUTDIR' renders it later)")
     sp.set_defaults(func=cmd_run)
 
     sp = sub.add_parser("report", help="re-render OUTDIR/report.html from the results that "
@@ -264,6 +303,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--realtime", action="store_true", help="pace messages by their stamps")
     sp.add_argument("--every", type=float, default=1.0,
                     help="print the current estimate every this many seconds of data")
+    _reorder_arg(sp)
     sp.set_defaults(func=cmd_online)
 
     sp = sub.add_parser("bench", help="speed and memory of each estimator on bags")

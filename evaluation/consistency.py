@@ -27,12 +27,14 @@ would hide a filter that rejects a sensor because it is itself wrong.
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 from scipy.stats import chi2
 
-BAND_P = 0.95  # two-sided probability of the band
+from estimation.estimator import NIS_BAND_P, InnovationLog
+
+BAND_P = NIS_BAND_P  # two-sided probability of the band
 PASS_OUTSIDE, WARN_OUTSIDE = 0.10, 0.25
 PASS_RATIO, WARN_RATIO = (0.5, 2.0), (0.25, 4.0)
 MIN_SAMPLES = 20
@@ -110,7 +112,12 @@ def summarize(values: np.ndarray, dofs: np.ndarray | int) -> Consistency:
 @dataclass
 class InnovationTable:
     """An estimator's innovation log as arrays (N,): stamp s, sensor name, measurement kind,
-    NIS, innovation dimension, and whether the gate accepted it."""
+    NIS, innovation dimension, and whether the gate accepted it.
+
+    ``folded``: for a long run's log (``estimation.estimator.InnovationLog``), the exact counts
+    of the entries that are no longer held one by one, (sensor, kind, dim) -> [count, accepted,
+    finite count, NIS sum, below band, above band]; the arrays then hold a thinned subset of
+    those entries (for plots) followed by every recent one. ``nis_by_sensor`` counts both."""
 
     t: np.ndarray
     sensor: np.ndarray  # str
@@ -118,10 +125,16 @@ class InnovationTable:
     nis: np.ndarray
     dim: np.ndarray  # int
     accepted: np.ndarray  # bool
+    folded: dict = field(default_factory=dict)
+    n_thinned: int = 0  # leading entries of the arrays that stand for folded ones
 
     @classmethod
     def from_innovations(cls, innovations: Iterable) -> InnovationTable:
-        """From ``estimation.estimator.Innovation`` records."""
+        """From an ``estimation.estimator.InnovationLog`` or ``Innovation`` records."""
+        if isinstance(innovations, InnovationLog):
+            c = innovations.columns()
+            return cls(c["t"], c["sensor"], c["kind"], c["nis"], c["dim"], c["accepted"],
+                       innovations.folded_by_group(), len(c["t"]) - len(innovations._t))
         inn = list(innovations)
         return cls(np.array([i.t for i in inn], float),
                    np.array([i.sensor for i in inn], dtype=str),
@@ -156,14 +169,57 @@ class SensorNis:
                 "rejected": self.rejected, **self.nis.as_dict()}
 
 
+def _summarize_counts(per_dim: dict[int, list]) -> Consistency:
+    """``summarize`` from per-dimension [finite count, NIS sum, below, above]."""
+    n = sum(v[0] for v in per_dim.values())
+    if n == 0:
+        nan = float("nan")
+        return Consistency(0, nan, nan, nan, nan, None, nan, nan, nan, None)
+    below = sum(v[2] for v in per_dim.values()) / n
+    above = sum(v[3] for v in per_dim.values()) / n
+    expected = sum(d * v[0] for d, v in per_dim.items()) / n
+    mean = sum(v[1] for v in per_dim.values()) / n
+    ratio = mean / expected
+    dims = [d for d, v in per_dim.items() if v[0]]
+    single = len(dims) == 1
+    band = chi2_band(float(dims[0])) if single else None
+    return Consistency(n, float(dims[0]) if single else expected, mean, expected, ratio, band,
+                       below, above, below + above, verdict(below + above, ratio, n))
+
+
 def nis_by_sensor(table: InnovationTable) -> dict[str, SensorNis]:
     """Per 'sensor kind' (e.g. '/fix gps'): NIS consistency over all its innovations and how
-    many the gate accepted and rejected."""
+    many the gate accepted and rejected (the folded ones of a long run's log included)."""
     out = {}
+    held = np.arange(len(table.t)) >= table.n_thinned
+    labels = {f"{s} {k}": (s, k) for s, k, _ in table.folded}
     for label, sel in table.groups().items():
-        acc = int(table.accepted[sel].sum())
-        out[label] = SensorNis(str(table.sensor[sel][0]), str(table.kind[sel][0]), acc,
-                               int(sel.sum()) - acc, summarize(table.nis[sel], table.dim[sel]))
+        labels.setdefault(label, (str(table.sensor[sel][0]), str(table.kind[sel][0])))
+    groups = table.groups()
+    for label, (sensor, kind) in labels.items():
+        sel = groups.get(label, np.zeros(len(table.t), bool))
+        folded = {d: v for (s, k, d), v in table.folded.items() if (s, k) == (sensor, kind)}
+        if not folded:
+            acc = int(table.accepted[sel].sum())
+            out[label] = SensorNis(sensor, kind, acc, int(sel.sum()) - acc,
+                                   summarize(table.nis[sel], table.dim[sel]))
+            continue
+        sel = sel & held
+        acc = int(table.accepted[sel].sum()) + sum(v[1] for v in folded.values())
+        count = int(sel.sum()) + sum(v[0] for v in folded.values())
+        per_dim = {d: [v[2], v[3], v[4], v[5]] for d, v in folded.items()}
+        v, dims = table.nis[sel], table.dim[sel]
+        ok = np.isfinite(v)
+        v, dims = v[ok], dims[ok]
+        for d in np.unique(dims).tolist():
+            x = v[dims == d]
+            lo, hi = chi2_band(float(d))
+            a = per_dim.setdefault(int(d), [0, 0.0, 0, 0])
+            a[0] += len(x)
+            a[1] += float(x.sum())
+            a[2] += int((x < lo).sum())
+            a[3] += int((x > hi).sum())
+        out[label] = SensorNis(sensor, kind, acc, count - acc, _summarize_counts(per_dim))
     return out
 
 

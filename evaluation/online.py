@@ -9,13 +9,15 @@ percentiles. ``replay`` drives a session from a bag, optionally paced by the hea
 from __future__ import annotations
 
 import time
+from array import array
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
-from estimation.bags import read_stream
+from estimation.bags import BagStream
 from estimation.config import Config
+from estimation.errors import BagError
 from estimation.estimator import Estimate, Estimator
 from estimation.measurements import Stream
 from estimation.runner import initial_pose
@@ -27,14 +29,16 @@ class OnlineSession:
 
     def __init__(self, estimators: dict[str, Estimator]) -> None:
         self.estimators = estimators
-        self.update_s: dict[str, list[float]] = {n: [] for n in estimators}
+        self.update_s: dict[str, array] = {n: array("f") for n in estimators}  # s, float32
+        self.input_error: str | None = None  # set by replay when the bag breaks off
+        self.replayed_s = 0.0  # data seconds replayed
 
     @classmethod
     def from_config(cls, cfg: Config, names: list[str] | None = None, *,
                     stream: Stream | None = None, lag: float | None = None) -> OnlineSession:
         """Build the named estimators (default: all the config allows, except the offline
         batch). ``stream`` supplies the datum, landmark map and truth-based initial pose."""
-        stream = stream or Stream(measurements=[])
+        stream = stream if stream is not None else Stream(measurements=[])
         chosen = [n for n in registry.select(cfg, names) if names or n != "batch"]
         pose = initial_pose(cfg.initial_pose, stream)
         lag = lag if lag is not None else cfg.smoother.lag
@@ -47,6 +51,8 @@ class OnlineSession:
             t0 = clock()
             est.process(m)
             self.update_s[name].append(clock() - t0)
+            if len(self.update_s[name]) % 1000 == 0:
+                est.log.innovations.compact()
 
     def estimate(self, name: str) -> Estimate | None:
         return self.estimators[name].estimate()
@@ -55,7 +61,7 @@ class OnlineSession:
         """Per-estimator update latency p50 / p99 / max, ms."""
         out = {}
         for name, s in self.update_s.items():
-            a = np.array(s) * 1e3 if s else np.zeros(1)
+            a = np.array(s, float) * 1e3 if s else np.zeros(1)
             out[name] = {"p50": float(np.percentile(a, 50)), "p99": float(np.percentile(a, 99)),
                          "max": float(a.max()), "updates": len(s)}
         return out
@@ -63,23 +69,32 @@ class OnlineSession:
 
 def replay(bag: str | Path, cfg: Config, *, names: list[str] | None = None,
            realtime: bool = False, print_every: float = 1.0,
-           on_print: Callable[[float, dict[str, Estimate | None]], None] | None = None
-           ) -> OnlineSession:
-    """Replay a bag into an OnlineSession, one message at a time. With ``realtime`` the messages
-    are paced by their header stamps; ``on_print`` is called with (t, estimates) every
-    ``print_every`` seconds of data time."""
-    stream = read_stream(bag, cfg)
+           on_print: Callable[[float, dict[str, Estimate | None]], None] | None = None,
+           reorder_window: float | None = None) -> OnlineSession:
+    """Replay a bag into an OnlineSession, one message at a time, decoding it as it goes
+    (``estimation.bags.BagStream``). With ``realtime`` the messages are paced by their header
+    stamps; ``on_print`` is called with (t, estimates) every ``print_every`` seconds of data
+    time. A truncated or damaged bag is replayed up to where it breaks off; the session's
+    ``input_error`` then says why (BagError if nothing could be read)."""
+    stream = BagStream(bag, cfg, reorder_window=reorder_window, keep_truth=False).prime()
     session = OnlineSession.from_config(cfg, names, stream=stream)
-    wall0, next_print = time.perf_counter(), stream.t0
-    for m in stream.measurements:
+    t0 = stream.t0 if stream.t0 is not None else 0.0
+    wall0, next_print = time.perf_counter(), t0
+    n = 0
+    for m in stream:
+        n += 1
         if realtime:
-            lead = (m.t - stream.t0) - (time.perf_counter() - wall0)
+            lead = (m.t - t0) - (time.perf_counter() - wall0)
             if lead > 0:
                 time.sleep(lead)
         session.push(m)
         if on_print is not None and m.t >= next_print:
-            on_print(m.t - stream.t0, {n: session.estimate(n) for n in session.estimators})
+            on_print(m.t - t0, {k: session.estimate(k) for k in session.estimators})
             next_print = m.t + print_every
+    if stream.error is not None and not n:
+        raise BagError(stream.error)
     for est in session.estimators.values():
         est.finish()
+    session.input_error = stream.error
+    session.replayed_s = stream.duration
     return session

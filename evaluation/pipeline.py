@@ -23,18 +23,17 @@ from __future__ import annotations
 
 import json
 import math
-import time
 from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
-from estimation.bags import read_stream
+from estimation.bags import BagStream
 from estimation.config import Config
 from estimation.errors import BagError
-from estimation.measurements import GpsFix
-from estimation.runner import RunResult, Trajectory, initial_pose, run
+from estimation.measurements import Stream
+from estimation.runner import RunResult, Trajectory, initial_pose, parse_holdout, run
 from evaluation import consistency, metrics
 from evaluation import estimators as registry
 from evaluation.results import save_run
@@ -120,21 +119,18 @@ def score(result: RunResult, decode_s: float = 0.0) -> dict:
     stream = result.stream
     duration = stream.duration
     truth = result.truth
-    hold_t = np.array([f.t for f in result.holdout])
-    hold_xy = np.array([f.enu[:2] for f in result.holdout]).reshape(-1, 2)
-    withheld = {id(f) for f in result.holdout}
-    used_t = np.array([m.t for m in stream.measurements
-                       if isinstance(m, GpsFix) and id(m) not in withheld])
+    hold_t, hold_xy = result.gps.held_t, result.gps.held_xy
+    used_t = result.gps.used_t
     outages = metrics.gps_outages(used_t, stream.t1) if len(used_t) else []
     out: dict = {
         "bag": stream.source,
         "duration_s": _num(duration),
         "decode_s": _num(decode_s),
-        "messages": len(stream.measurements),
+        "messages": result.messages,
         "rejected_messages": {f"{topic}: {reason}": n
                               for (topic, reason), n in stream.rejected.items()},
         "has_ground_truth": truth is not None,
-        "gps_holdout_fixes": len(result.holdout),
+        "gps_holdout_fixes": int(result.gps.withheld.sum()),
         "gps_outages": [_rounded(vars(o)) for o in outages],
         "estimators": {},
     }
@@ -176,22 +172,24 @@ def data_facts(result: RunResult, cfg: Config) -> dict:
     """What the report states about the data: per sensor topic, kind and message counts; GPS
     fixes used and withheld; landmarks; path length (from the truth, else the GPS fixes)."""
     stream = result.stream
-    counts = Counter((m.sensor, type(m).__name__) for m in stream.measurements)
+    counts = (Counter((m.sensor, type(m).__name__) for m in stream.measurements)
+              if isinstance(stream, Stream) else stream.type_counts())
     sensors = []
     for s in cfg.sensors:
         per_type = {t: n for (name, t), n in counts.items() if name == s.name}
         sensors.append({"name": s.name, "topic": s.topic, "kind": s.kind, "use": list(s.use),
                         "measurements": per_type})
-    fixes = [m for m in stream.measurements if isinstance(m, GpsFix)]
+    gps = result.gps
     if result.truth is not None and len(result.truth) > 1:
         length, source = metrics.path_length(result.truth.pose[:, :2]), "ground truth"
-    elif len(fixes) > 1:
-        length, source = metrics.path_length(np.array([f.enu[:2] for f in fixes])), "GPS fixes"
+    elif len(gps) > 1:
+        length, source = metrics.path_length(gps.xy), "GPS fixes"
     else:
         length, source = None, None
     return {"sensors": sensors, "ground_truth_topic": cfg.ground_truth_topic,
-            "ground_truth_samples": len(stream.ground_truth), "gps_fixes": len(fixes),
-            "gps_fixes_withheld": len(result.holdout), "landmarks": len(stream.landmarks),
+            "ground_truth_samples": len(result.truth) if result.truth is not None else 0,
+            "gps_fixes": len(gps), "gps_fixes_withheld": int(gps.withheld.sum()),
+            "landmarks": len(stream.landmarks),
             "path_length_m": _num(length) if length is not None else None,
             "path_length_from": source, "t0": stream.t0, "t1": stream.t1,
             "datum": list(stream.datum) if stream.datum else None}
@@ -199,31 +197,29 @@ def data_facts(result: RunResult, cfg: Config) -> dict:
 
 def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str] | None = None,
             lag: float | None = None, holdout: str | None = None,
-            progress: Callable[[str, float], None] | None = None) -> dict:
-    """Decode ``bag``, run the selected estimators, write results into ``outdir``; returns the
-    metrics dictionary (also written as metrics.json).
+            progress: Callable[[str, float], None] | None = None,
+            reorder_window: float | None = None) -> dict:
+    """Decode ``bag`` as a stream (``estimation.bags.BagStream``: memory bounded however long
+    the bag), run the selected estimators on it, write results into ``outdir``; returns the
+    metrics dictionary (also written as metrics.json). ``reorder_window`` (s) overrides the
+    config's.
 
-    On a damaged bag the results of what could be read are written, then BagError is raised
-    with ``results_written`` set."""
+    On a damaged or truncated bag the results of what could be read are written, then BagError
+    is raised with ``results_written`` set."""
     outdir = Path(outdir)
-    outdir.mkdir(parents=True, exist_ok=True)
     chosen = registry.select(cfg, names)
-    t_a = time.perf_counter()
-    input_error = None
-    try:
-        stream = read_stream(bag, cfg, progress=(lambda f: progress("decode", f)) if progress
-                             else None)
-    except BagError as e:
-        # A truncated or damaged bag: estimate on what was read, write it, then report.
-        if e.partial is None or not e.partial.measurements:
-            raise
-        stream, input_error = e.partial, str(e)
-    decode_s = time.perf_counter() - t_a
+    parse_holdout(holdout)  # a bad spec fails before any decoding
+    stream = BagStream(bag, cfg, reorder_window=reorder_window).prime()
+    outdir.mkdir(parents=True, exist_ok=True)
     pose = initial_pose(cfg.initial_pose, stream)
     lag = lag if lag is not None else cfg.smoother.lag
     ests = {n: registry.SPECS[n].build(cfg, stream, pose, lag) for n in chosen}
     result = run(stream, ests, holdout=holdout,
-                 progress=(lambda f: progress("estimate", f)) if progress else None)
+                 progress=(lambda f: progress("decode + estimate", f)) if progress else None)
+    input_error = stream.error
+    if input_error is not None and not result.messages:
+        raise BagError(input_error)
+    decode_s = stream.decode_s
     if names:  # keep only the tracks asked for ('smoother_lagged' alone drops 'smoother')
         result.runs = {k: v for k, v in result.runs.items() if k in set(names)}
     out = score(result, decode_s)

@@ -24,7 +24,6 @@ from pathlib import Path
 import numpy as np
 
 from estimation.errors import DdfuseError
-from estimation.measurements import GpsFix
 from estimation.runner import RunResult, Trajectory
 from evaluation.consistency import InnovationTable
 from evaluation.export import read_csv, write_csv, write_tum
@@ -67,14 +66,13 @@ def save_run(result: RunResult, outdir: Path, config_text: str | None = None) ->
     if result.truth is not None:
         write_tum(outdir / f"{TRUTH}.tum", result.truth)
         write_csv(outdir / f"{TRUTH}.csv", result.truth)
-    withheld = {id(f) for f in result.holdout}
-    fixes = [m for m in result.stream.measurements if isinstance(m, GpsFix)]
+    gps = result.gps
     lm = result.stream.landmarks
     arrays: dict[str, np.ndarray] = {
-        "gps_t": np.array([f.t for f in fixes], float),
-        "gps_xy": np.array([f.enu[:2] for f in fixes], float).reshape(-1, 2),
-        "gps_cov": np.array([np.asarray(f.cov)[:2, :2] for f in fixes], float).reshape(-1, 2, 2),
-        "gps_withheld": np.array([id(f) in withheld for f in fixes], bool),
+        "gps_t": gps.t,
+        "gps_xy": gps.xy.reshape(-1, 2),
+        "gps_cov": gps.cov.reshape(-1, 2, 2),
+        "gps_withheld": gps.withheld,
         "landmark_ids": np.array(list(lm), dtype=str),
         "landmark_xy": np.array(list(lm.values()), float).reshape(-1, 2),
     }

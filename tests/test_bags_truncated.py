@@ -373,3 +373,50 @@ def test_real_husky_bag_cut_at_quarters(tmp_path, husky_bag):
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["estimators"]["ekf"]["samples"] > 100
     assert metrics["estimators"]["ekf"]["gps_holdout_rmse_m"] is not None
+
+
+def test_cli_online_on_a_truncated_bag_replays_what_was_read_and_exits_2(tmp_path, capsys):
+    bag = cut(SAMPLE, SAMPLE.stat().st_size // 2, tmp_path / "half.bag")
+    rc = cli.main(["online", str(bag), "-c", str(SAMPLE_CFG), "--estimators", "ekf",
+                   "--every", "10"])
+    assert rc == 2
+    out, err = capsys.readouterr()
+    err = err.strip()
+    assert err.startswith("ddfuse: error: ") and "\n" not in err
+    assert str(bag) in err and "truncated" in err and "replayed the" in err
+    assert "update latency" in out and out.count("t=") > 3
+
+
+def test_cli_inspect_on_a_truncated_bag_reports_what_was_read_and_exits_2(tmp_path, capsys):
+    bag = cut(SAMPLE, SAMPLE.stat().st_size // 2, tmp_path / "half.bag")
+    assert cli.main(["inspect", str(bag)]) == 2
+    out, err = capsys.readouterr()
+    err = err.strip()
+    assert err.startswith("ddfuse: error: ") and "\n" not in err
+    assert str(bag) in err and "truncated" in err
+    assert cli.main(["inspect", str(SAMPLE)]) == 0
+    full = _topic_counts(capsys.readouterr().out)
+    got = _topic_counts(out)
+    assert set(got) == set(full) and all(0 < got[t] < full[t] for t in got)
+
+
+def _topic_counts(out: str) -> dict[str, int]:
+    """topic -> count from the table of 'ddfuse inspect'."""
+    return {m.group(1): int(m.group(2)) for m in
+            (re.match(r"(/\S+)\s+\S+/\S+\s+(\d+)\s", line) for line in out.splitlines()) if m}
+
+
+def test_cli_bench_on_a_truncated_bag_measures_what_was_read_and_exits_2(tmp_path, capsys):
+    bag = cut(SAMPLE, SAMPLE.stat().st_size // 2, tmp_path / "half.bag")
+    rc = cli.main(["bench", str(bag), "-c", str(SAMPLE_CFG), "--estimators", "ekf",
+                   "--json", str(tmp_path / "b.json")])
+    assert rc == 2
+    out, err = capsys.readouterr()
+    err = err.strip()
+    assert err.startswith("ddfuse: error: ") and "\n" not in err
+    assert str(bag) in err and "truncated" in err
+    r = json.loads((tmp_path / "b.json").read_text())[0]
+    assert "truncated" in r["input_error"] and 30 < r["duration_s"] < 100
+    e = r["estimators"][0]
+    assert e["estimator"] == "ekf" and e["error"] is None and e["peak_rss_mb"] > 0
+    assert "ekf" in out
