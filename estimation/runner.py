@@ -341,13 +341,15 @@ def _feed(meas, n, fraction, select, gps, est_list, alive, errors, outputs, timi
     clock = time.perf_counter
     next_tick = -math.inf
     t_start = None
-    logs = [est.log.innovations for est in est_list]
+    est_logs = [est.log for est in est_list]
     k = -1
     for k, m in enumerate(meas):
         if k % 1000 == 0:
             # between messages, outside the timed updates: compact the innovation logs
-            for lg in logs:
-                lg.compact()
+            # (read through the log each time: a compiled filter's log drains its kernels'
+            # buffer into the store on that read)
+            for lg in est_logs:
+                lg.innovations.compact()
             if k % 5000 == 0:
                 gc.collect(1)
             if progress is not None:
