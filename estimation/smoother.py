@@ -350,19 +350,21 @@ class FixedLagSmoother(Estimator):
             # Held forward instead, the odometry lags by a period (0.1 s at 10 Hz); on the
             # simulated husky that alone costs 45 % of the position RMSE.
             self._set_odometry(m)
-            held, self._held = self._held, []
-            for b in held:
-                self._step(b)
+            self._release_held()
             self._step(m)
             return
         if self.odometry_held_back:
             self._held.append(m)
             if m.t - self._held[0].t > ODOMETRY_WAIT:  # odometry stopped: hold the last forward
-                held, self._held = self._held, []
-                for b in held:
-                    self._step(b)
+                self._release_held()
             return
         self._step(m)
+
+    def _release_held(self) -> None:
+        """Use the messages that were waiting for an odometry sample, in order."""
+        held, self._held = self._held, []
+        for b in held:
+            self._step(b)
 
     def _set_odometry(self, m) -> None:
         if isinstance(m, WheelSpeeds):
@@ -779,9 +781,7 @@ class FixedLagSmoother(Estimator):
             self.log.note(self.buffer[-1].t if self.buffer else 0.0,
                           "never initialised: the GPS track never moved far enough")
             return
-        held, self._held = self._held, []
-        for b in held:
-            self._step(b)
+        self._release_held()
         if self.pim.n > 0:
             self._new_keyframe(self.last_t)
             self._flush()
