@@ -18,10 +18,11 @@ velocity and biases as states): one 9-vector key per keyframe,
   sensor's chi-square gate (as in the EKF, with the same lock-out rule);
 * with both a gyro and an odometry yaw rate, the mean gyro rate minus k_w times the mean
   odometry rate over the interval is a measurement of the gyro bias, which the fused rate alone
-  would not carry (``factors.gyro.bias_difference_factor``);
+  would not carry (``factors.gyro.bias_difference_factor``'s model);
 * the absolute heading samples of the interval, each carried to the keyframe by the
-  preintegrated yaw and averaged, are one heading factor (with the offset state when
-  ``heading_offset: estimate``);
+  preintegrated yaw and averaged, are one heading measurement (with the offset state when
+  ``heading_offset: estimate``); it and the bias difference are linear in the state, so both
+  go into one C++ factor (``factors.linear``) instead of two Python CustomFactors;
 * a landmark sighting is a range/bearing (or range-only) factor to the known map position.
 
 Process noise is what the config states, as for the EKFs: the robot's slip densities
@@ -72,10 +73,9 @@ from estimation.measurements import (
 )
 from estimation.runner import TrackBuilder
 from factors.gps import gps_factor
-from factors.gyro import bias_difference_factor
-from factors.heading import heading_factor
 from factors.kinematics import se2_step_jac
 from factors.landmark import range_bearing_factor, range_factor
+from factors.linear import bias_difference_row, heading_row, linear_state_factor
 from factors.preintegration import WheelGyroPreintegration, preintegrated_factor
 from factors.state import BG, DIM, HOFF, KV, KW, NAMES, PSI
 
@@ -589,6 +589,7 @@ class FixedLagSmoother(Estimator):
         self.all_kf_t[j] = t
         self.k = j
         self.kf_state, self.kf_cov = guess, cov
+        rows = []
         if self._h_n:
             # the interval's heading samples, each carried to this keyframe by the
             # preintegrated yaw since it, averaged: one factor with variance var / n
@@ -597,24 +598,27 @@ class FixedLagSmoother(Estimator):
             z = self._h_ref + self._h_sum / nh + self.pim.dpsi
             var = self._h_var / (nh * nh)
             if s.heading_offset == "estimate":
-                f = heading_factor(kj, z, math.sqrt(var), use_offset=True)
+                rows.append(heading_row(z, math.sqrt(var), use_offset=True))
                 pred = guess[PSI] + guess[HOFF]
             else:
                 z -= float(s.heading_offset)
-                f = heading_factor(kj, z, math.sqrt(var), use_offset=False)
+                rows.append(heading_row(z, math.sqrt(var), use_offset=False))
                 pred = guess[PSI]
             res = np.array([wrap_angle(z - pred)])
             scov = np.array([[cov[2, 2] + var]])
             self.log.innovations.append(Innovation(
                 t, self._h_sensor, "heading", res, scov, float(res[0] ** 2 / scov[0, 0]), True))
-            self._add(f)
             self._h_n = 0
         if self.est_bias and self._diff_t > 0.0:
             # mean gyro - k_w x mean odometry yaw rate over the interval: a measurement of the
             # gyro bias with variance density / time
             T = self._diff_t
-            self._add(bias_difference_factor(kj, self._int_g / T, self._int_o / T,
-                                             math.sqrt(self._diff_q / T)))
+            rows.append(bias_difference_row(self._int_g / T, self._int_o / T,
+                                            math.sqrt(self._diff_q / T)))
+        if rows:
+            # both are linear in the state: one C++ factor, no Python callback per
+            # relinearisation (factors.linear)
+            self._add(linear_state_factor(kj, rows, guess))
         self._int_g = self._int_o = self._diff_t = 0.0
         self.pim.reset(guess[BG], guess[KV], guess[KW])
 
