@@ -77,6 +77,7 @@ from factors.kinematics import se2_step_jac
 from factors.landmark import range_bearing_factor, range_factor
 from factors.linear import bias_difference_row, heading_row, linear_state_factor
 from factors.preintegration import WheelGyroPreintegration, preintegrated_factor
+from factors.preintegration_jit import WheelGyroPreintegrationJit
 from factors.state import BG, DIM, HOFF, KV, KW, NAMES, PSI
 
 MIN_KEYFRAME_DT = 0.1  # s: closer absolute measurements share a keyframe
@@ -232,9 +233,12 @@ class FixedLagSmoother(Estimator):
     keep_all = False  # BatchSmoother keeps every factor for a final whole-run solve
 
     def __init__(self, cfg: Config, *, initial_pose=None, landmarks=None, lag: float | None = None,
-                 noise: SmootherNoise | None = None) -> None:
+                 noise: SmootherNoise | None = None, reference: bool = False) -> None:
+        """``reference``: preintegrate with the Python ``WheelGyroPreintegration`` instead of its
+        compiled twin (``factors.preintegration_jit``; the same numbers, for tests)."""
         super().__init__()
         self.cfg = cfg
+        self._pim_class = WheelGyroPreintegration if reference else WheelGyroPreintegrationJit
         self.lag = float(lag if lag is not None else cfg.smoother.lag)
         self.noise = noise or SmootherNoise.from_config(cfg)
         self.landmarks = dict(landmarks or {})
@@ -261,7 +265,7 @@ class FixedLagSmoother(Estimator):
     # --- set-up -----------------------------------------------------------------------------
     def _reset_state(self) -> None:
         self.smoother = gtsam.IncrementalFixedLagSmoother(self.lag, isam2_params())
-        self.pim = WheelGyroPreintegration(bg_lin=self.fixed_bias, keep_samples=False)
+        self.pim = self._pim_class(bg_lin=self.fixed_bias, keep_samples=False)
         self.initialised = False
         self.buffer: list = []  # measurements held until the heading is known
         self.k = -1  # index of the newest keyframe
