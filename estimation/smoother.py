@@ -579,13 +579,14 @@ class FixedLagSmoother(Estimator):
         i, j = self.k, self.k + 1
         ki, kj = self.key(i), self.key(j)
         n = self.noise
+        pim = self._frozen()
         self._add(preintegrated_factor(
-            ki, kj, self.pim,
+            ki, kj, pim,
             gyro_bias_rw=n.gyro_bias_rw if self.est_bias else n.fixed_rw,
             heading_offset_rw=n.heading_offset_rw if self.est_hoff else n.fixed_rw,
             pose_noise=n.pose_noise, scale_rw=n.scale_rw))
-        guess = self.pim.predict(self.kf_state)
-        pose, cov = _compose(self.kf_state, self._delta(self.kf_state), self.pim.covariance,
+        guess = pim.predict(self.kf_state)
+        pose, cov = _compose(self.kf_state, self._delta(self.kf_state, pim), pim.covariance,
                              self.kf_cov)
         self.pending_values.insert(kj, guess)
         self.pending_stamps[kj] = t
@@ -599,7 +600,7 @@ class FixedLagSmoother(Estimator):
             # preintegrated yaw since it, averaged: one factor with variance var / n
             s = self.sensors[self._h_sensor]
             nh = self._h_n
-            z = self._h_ref + self._h_sum / nh + self.pim.dpsi
+            z = self._h_ref + self._h_sum / nh + pim.dpsi
             var = self._h_var / (nh * nh)
             if s.heading_offset == "estimate":
                 rows.append(heading_row(z, math.sqrt(var), use_offset=True))
@@ -626,9 +627,15 @@ class FixedLagSmoother(Estimator):
         self._int_g = self._int_o = self._diff_t = 0.0
         self.pim.reset(guess[BG], guess[KV], guess[KW])
 
-    def _delta(self, st) -> tuple[float, float, float]:
+    def _frozen(self) -> WheelGyroPreintegration:
+        """The preintegration as an object with plain float attributes, for code that reads
+        many of them (the compiled one keeps them in an array read through properties)."""
+        pim = self.pim
+        return pim.frozen() if isinstance(pim, WheelGyroPreintegrationJit) else pim
+
+    def _delta(self, st, pim=None) -> tuple[float, float, float]:
         """The partial preintegrated increment at the biases and scales of state ``st``."""
-        return self.pim.delta_at(float(st[BG]), float(st[KV]), float(st[KW]))
+        return (self.pim if pim is None else pim).delta_at(float(st[BG]), float(st[KV]), float(st[KW]))
 
     def _flush(self) -> None:
         """Send the pending factors and values to the smoother; capture what leaves the window."""
@@ -772,7 +779,8 @@ class FixedLagSmoother(Estimator):
         if not self.initialised or self.kf_state is None:
             return None
         st = self.kf_state
-        pose, cov = _compose(st, self._delta(st), self.pim.covariance, self.kf_cov)
+        pim = self._frozen()
+        pose, cov = _compose(st, self._delta(st, pim), pim.covariance, self.kf_cov)
         t = self.last_t
         ahead = self._now - t
         if ahead > 0.0 and self.v is not None:

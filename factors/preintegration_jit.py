@@ -134,6 +134,18 @@ class WheelGyroPreintegrationJit(WheelGyroPreintegration):
         integrate(self.s, float(dt), float(v), float(w_gyro), float(var_v), float(var_w),
                   float(gain), float(w_odo))
 
+    def frozen(self) -> WheelGyroPreintegration:
+        """The current interval as a reference-class object (a copy, plain float attributes):
+        for code that reads many attributes (``preintegrated_factor``, ``predict``, ``delta_at``,
+        ``covariance``), each of which is an array read through a property here."""
+        f = WheelGyroPreintegration.__new__(WheelGyroPreintegration)
+        for name, x in zip(SLOTS, self.s.tolist(), strict=True):
+            setattr(f, name, x)
+        f.n = int(f.n)
+        f.keep_samples = False
+        f.samples = []
+        return f
+
 
 for _i, _name in enumerate(SLOTS):
     setattr(WheelGyroPreintegrationJit, _name, _slot(_i, as_int=_name == "n"))
