@@ -78,6 +78,7 @@ from factors.landmark import range_bearing_factor, range_factor
 from factors.linear import bias_difference_row, heading_row, linear_state_factor
 from factors.preintegration import WheelGyroPreintegration, preintegrated_factor
 from factors.preintegration_jit import WheelGyroPreintegrationJit
+from factors.preintegration_jit import warm_up as warm_up_preintegration
 from factors.state import BG, DIM, HOFF, KV, KW, NAMES, PSI
 
 MIN_KEYFRAME_DT = 0.1  # s: closer absolute measurements share a keyframe
@@ -239,6 +240,8 @@ class FixedLagSmoother(Estimator):
         super().__init__()
         self.cfg = cfg
         self._pim_class = WheelGyroPreintegration if reference else WheelGyroPreintegrationJit
+        if not reference:
+            warm_up_preintegration()  # here, not in the first (timed) process() call
         self.lag = float(lag if lag is not None else cfg.smoother.lag)
         self.noise = noise or SmootherNoise.from_config(cfg)
         self.landmarks = dict(landmarks or {})
@@ -635,7 +638,8 @@ class FixedLagSmoother(Estimator):
 
     def _delta(self, st, pim=None) -> tuple[float, float, float]:
         """The partial preintegrated increment at the biases and scales of state ``st``."""
-        return (self.pim if pim is None else pim).delta_at(float(st[BG]), float(st[KV]), float(st[KW]))
+        pim = self.pim if pim is None else pim
+        return pim.delta_at(float(st[BG]), float(st[KV]), float(st[KW]))
 
     def _flush(self) -> None:
         """Send the pending factors and values to the smoother; capture what leaves the window."""
