@@ -73,7 +73,7 @@ from estimation.measurements import (
 )
 from estimation.runner import TrackBuilder
 from factors.gps import gps_factor
-from factors.kinematics import se2_step_jac
+from factors.kinematics import se2_step
 from factors.landmark import range_bearing_factor, range_factor
 from factors.linear import bias_difference_row, heading_row, linear_state_factor
 from factors.preintegration import WheelGyroPreintegration, preintegrated_factor
@@ -799,9 +799,10 @@ class FixedLagSmoother(Estimator):
             yr = self._yaw_rate()
             if yr is not None:
                 wg, wo, _, _, gain = yr
-                x1, y1, p1, _ = se2_step_jac(pose[0], pose[1], pose[2], st[KV] * self.v,
-                                             wg - gain * st[BG] + st[KW] * wo, ahead)
-                pose, t = (x1, y1, p1), self._now
+                sl = st.tolist()  # Python floats: numpy scalars cost 4 us in se2_step
+                bg, kv, kw = sl[BG], sl[KV], sl[KW]
+                pose, t = se2_step(pose[0], pose[1], pose[2], kv * self.v,
+                                   wg - gain * bg + kw * wo, ahead), self._now
         return Estimate(t, (pose[0], pose[1], wrap_angle(pose[2])), cov, st.copy(), None, NAMES)
 
     def finish(self) -> None:
