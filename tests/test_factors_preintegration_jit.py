@@ -101,3 +101,23 @@ def test_smoother_with_jit_equals_reference(sample_husky):
     np.testing.assert_allclose(fj, fr, rtol=0, atol=1e-9)
     np.testing.assert_allclose(lj, lr, rtol=0, atol=1e-9)
     assert math.isfinite(fj[-1, 1])
+
+
+def test_cache_guard_drops_stale_kernels(tmp_path, monkeypatch):
+    """numba checks only preintegration_jit.py's time stamp: a change of kinematics.py (compiled
+    into the kernel) must drop the cached kernel, an unchanged source tree must keep it."""
+    import factors.preintegration_jit as pj
+
+    for name in pj._KERNEL_SOURCES:
+        (tmp_path / name).write_bytes((pj._HERE / name).read_bytes())
+    cache = tmp_path / "__pycache__"
+    cache.mkdir()
+    monkeypatch.setattr(pj, "_HERE", tmp_path)
+    pj._guard_cache()  # first run: records the sources' hash
+    kernel = cache / "preintegration_jit.integrate-1.py311.nbi"
+    kernel.write_text("cached")
+    pj._guard_cache()
+    assert kernel.exists()  # unchanged sources: the cache stays
+    (tmp_path / "kinematics.py").write_text("# changed\n")
+    pj._guard_cache()
+    assert not kernel.exists()
