@@ -279,6 +279,7 @@ class FixedLagSmoother(Estimator):
         self.pim = self._pim_class(bg_lin=self.fixed_bias, keep_samples=False)
         self.initialised = False
         self.buffer: list = []  # measurements held until the heading is known
+        self._buf_fixes: tuple[GpsFix, GpsFix] | None = None  # its first and last GPS fix
         self.k = -1  # index of the newest keyframe
         self.kf_t: dict[int, float] = {}  # keyframes in the window
         self.all_kf_t: dict[int, float] = {}  # every keyframe of the run
@@ -729,10 +730,11 @@ class FixedLagSmoother(Estimator):
             self.process(m)
             return
         self.buffer.append(m)
-        fixes = [b for b in self.buffer if isinstance(b, GpsFix)]
-        if len(fixes) < 2:
+        if isinstance(m, GpsFix):  # the buffer's first and last fix (no rescan per message)
+            self._buf_fixes = (self._buf_fixes[0] if self._buf_fixes else m, m)
+        if self._buf_fixes is None or self._buf_fixes[0] is self._buf_fixes[1]:
             return
-        f0, f1 = fixes[0], fixes[-1]
+        f0, f1 = self._buf_fixes
         de, dn = f1.enu[0] - f0.enu[0], f1.enu[1] - f0.enu[1]
         if math.hypot(de, dn) < INIT_DISTANCE:
             return
@@ -741,6 +743,7 @@ class FixedLagSmoother(Estimator):
             return
         buffered = [b for b in self.buffer if b.t >= f0.t]
         self.buffer = []
+        self._buf_fixes = None
         sig = max(math.sqrt(f0.cov[0, 0]), math.sqrt(f0.cov[1, 1]))
         self._start(f0.t, (f0.enu[0], f0.enu[1], psi0), sig, self.noise.init_psi_sigma)
         for b in buffered:
