@@ -77,8 +77,6 @@ from factors.kinematics import se2_step
 from factors.landmark import range_bearing_factor, range_factor
 from factors.linear import bias_difference_row, heading_row, linear_state_factor
 from factors.preintegration import WheelGyroPreintegration, preintegrated_factor
-from factors.preintegration_jit import WheelGyroPreintegrationJit
-from factors.preintegration_jit import warm_up as warm_up_preintegration
 from factors.state import BG, DIM, HOFF, KV, KW, NAMES, PSI
 
 MIN_KEYFRAME_DT = 0.1  # s: closer absolute measurements share a keyframe
@@ -206,6 +204,19 @@ def _robustify(cfg: Config, sensor: SensorConfig, base: gtsam.noiseModel.Base,
     return base
 
 
+def _compiled_preintegration() -> type[WheelGyroPreintegration]:
+    """The compiled preintegration class (``factors.preintegration_jit``), its kernel compiled
+    or loaded from numba's cache now rather than in the first timed ``process`` call; the
+    Python reference if numba does not import. Imported here, not at module level, so that
+    importing the smoother does not load numba."""
+    try:
+        from factors import preintegration_jit
+    except ImportError:
+        return WheelGyroPreintegration
+    preintegration_jit.warm_up()
+    return preintegration_jit.WheelGyroPreintegrationJit
+
+
 def _compose(state, delta, pim_cov, pose_cov):
     """Pose of (state's pose) (+) delta and its 3x3 world-frame covariance J P J^T + R C R^T,
     with J the Jacobian of the composition wrt the keyframe pose and R the keyframe rotation.
@@ -247,9 +258,8 @@ class FixedLagSmoother(Estimator):
         compiled twin (``factors.preintegration_jit``; the same numbers, for tests)."""
         super().__init__()
         self.cfg = cfg
-        self._pim_class = WheelGyroPreintegration if reference else WheelGyroPreintegrationJit
-        if not reference:
-            warm_up_preintegration()  # here, not in the first (timed) process() call
+        self._pim_class = WheelGyroPreintegration if reference else _compiled_preintegration()
+        self._pim_compiled = self._pim_class is not WheelGyroPreintegration
         self.lag = float(lag if lag is not None else cfg.smoother.lag)
         self.noise = noise or SmootherNoise.from_config(cfg)
         self.landmarks = dict(landmarks or {})
@@ -642,8 +652,7 @@ class FixedLagSmoother(Estimator):
     def _frozen(self) -> WheelGyroPreintegration:
         """The preintegration as an object with plain float attributes, for code that reads
         many of them (the compiled one keeps them in an array read through properties)."""
-        pim = self.pim
-        return pim.frozen() if isinstance(pim, WheelGyroPreintegrationJit) else pim
+        return self.pim.frozen() if self._pim_compiled else self.pim
 
     def _delta(self, st, pim=None) -> tuple[float, float, float]:
         """The partial preintegrated increment at the biases and scales of state ``st``."""
