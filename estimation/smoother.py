@@ -277,7 +277,7 @@ class FixedLagSmoother(Estimator):
         self.sample_t: dict[tuple[str, str], float] = {}  # (sensor, quantity) -> last stamp
         # integrals of the gyro and the odometry yaw rate dt since the newest keyframe while both
         # are held, that time, and the summed noise density of the two rates (see _advance)
-        self._int_g = self._int_o = self._diff_t = self._diff_q = 0.0
+        self._int_g = self._int_o = self._diff_t = self._diff_qg = self._diff_qo = 0.0
         self.heading: Heading | None = None
         # heading samples since the newest keyframe: sensor, the first one carried back to the
         # keyframe (rad), the sum of the others' wrapped differences from it, summed variances
@@ -452,7 +452,7 @@ class FixedLagSmoother(Estimator):
                 self._int_g += self.wg * dt
                 self._int_o += self.wo * dt
                 self._diff_t += dt
-                self._diff_q = self.wg_q + self.wo_q
+                self._diff_qg, self._diff_qo = self.wg_q, self.wo_q
         self.last_t = t
 
     def _absolute(self, m) -> None:
@@ -614,7 +614,8 @@ class FixedLagSmoother(Estimator):
             # gyro bias with variance density / time
             T = self._diff_t
             self._add(bias_difference_factor(kj, self._int_g / T, self._int_o / T,
-                                             math.sqrt(self._diff_q / T)))
+                                             math.sqrt(self._diff_qg / T),
+                                             math.sqrt(self._diff_qo / T)))
         self._int_g = self._int_o = self._diff_t = 0.0
         self.pim.reset(guess[BG], guess[KV], guess[KW])
 
