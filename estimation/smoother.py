@@ -18,11 +18,12 @@ velocity and biases as states): one 9-vector key per keyframe,
   sensor's chi-square gate (as in the EKF, with the same lock-out rule);
 * with both a gyro and an odometry yaw rate, the mean gyro rate minus k_w times the mean
   odometry rate over the interval is a measurement of the gyro bias, which the fused rate alone
-  would not carry (``factors.gyro.bias_difference_factor``'s model);
+  would not carry (``factors.gyro.bias_difference_factor``; its residual is whitened by a
+  k_w-dependent sigma, since both rates are noisy);
 * the absolute heading samples of the interval, each carried to the keyframe by the
   preintegrated yaw and averaged, are one heading measurement (with the offset state when
-  ``heading_offset: estimate``); it and the bias difference are linear in the state, so both
-  go into one C++ factor (``factors.linear``) instead of two Python CustomFactors;
+  ``heading_offset: estimate``); it is linear in the state, so it is a C++ factor
+  (``factors.linear``), not a Python CustomFactor;
 * a landmark sighting is a range/bearing (or range-only) factor to the known map position.
 
 Process noise is what the config states, as for the EKFs: the robot's slip densities
@@ -73,9 +74,10 @@ from estimation.measurements import (
 )
 from estimation.runner import TrackBuilder
 from factors.gps import gps_factor
+from factors.gyro import bias_difference_factor
 from factors.kinematics import se2_step
 from factors.landmark import range_bearing_factor, range_factor
-from factors.linear import bias_difference_row, heading_row, linear_state_factor
+from factors.linear import heading_row, linear_state_factor
 from factors.preintegration import WheelGyroPreintegration, preintegrated_factor
 from factors.state import BG, DIM, HOFF, KV, KW, NAMES, PSI
 
@@ -303,7 +305,7 @@ class FixedLagSmoother(Estimator):
         self.sample_t: dict[tuple[str, str], float] = {}  # (sensor, quantity) -> last stamp
         # integrals of the gyro and the odometry yaw rate dt since the newest keyframe while both
         # are held, that time, and the summed noise density of the two rates (see _advance)
-        self._int_g = self._int_o = self._diff_t = self._diff_q = 0.0
+        self._int_g = self._int_o = self._diff_t = self._diff_qg = self._diff_qo = 0.0
         self.heading: Heading | None = None
         # heading samples since the newest keyframe: sensor, the first one carried back to the
         # keyframe (rad), the sum of the others' wrapped differences from it, summed variances
@@ -478,7 +480,7 @@ class FixedLagSmoother(Estimator):
                 self._int_g += self.wg * dt
                 self._int_o += self.wo * dt
                 self._diff_t += dt
-                self._diff_q = self.wg_q + self.wo_q
+                self._diff_qg, self._diff_qo = self.wg_q, self.wo_q
         self.last_t = t
 
     def _absolute(self, m) -> None:
@@ -640,11 +642,13 @@ class FixedLagSmoother(Estimator):
             # mean gyro - k_w x mean odometry yaw rate over the interval: a measurement of the
             # gyro bias with variance density / time
             T = self._diff_t
-            rows.append(bias_difference_row(self._int_g / T, self._int_o / T,
-                                            math.sqrt(self._diff_q / T)))
+            # not a linear row: its sigma depends on k_w (errors in both rates, see the factor)
+            self._add(bias_difference_factor(kj, self._int_g / T, self._int_o / T,
+                                             math.sqrt(self._diff_qg / T),
+                                             math.sqrt(self._diff_qo / T)))
         if rows:
-            # both are linear in the state: one C++ factor, no Python callback per
-            # relinearisation (factors.linear)
+            # linear in the state: one C++ factor, no Python callback per relinearisation
+            # (factors.linear)
             self._add(linear_state_factor(kj, rows, guess))
         self._int_g = self._int_o = self._diff_t = 0.0
         self.pim.reset(guess[BG], guess[KV], guess[KW])

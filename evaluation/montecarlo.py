@@ -118,7 +118,8 @@ def draw_truth(sc, seed: int):
 
 
 def run_seed(scenario: str, seed: int, estimators: list[str] | None = None,
-             duration: float | None = None, fixed_truth: bool = False) -> dict:
+             duration: float | None = None, fixed_truth: bool = False,
+             lag: float | None = None) -> dict:
     """Simulate ``scenario`` with ``seed``, write and read it back as a bag in a temporary
     directory, run ``estimators`` (default: every EKF its config allows) and dead reckoning.
 
@@ -151,7 +152,8 @@ def run_seed(scenario: str, seed: int, estimators: list[str] | None = None,
     pose = initial_pose(cfg.initial_pose, stream)
     if pose is not None:
         pose = (pose[0] + err0[0], pose[1] + err0[1], pose[2] + err0[2])
-    built = {n: registry.SPECS[n].build(cfg, stream, pose, cfg.smoother.lag) for n in chosen}
+    lag = cfg.smoother.lag if lag is None else lag
+    built = {n: registry.SPECS[n].build(cfg, stream, pose, lag) for n in chosen}
     result = run(stream, built, output_rate=OUTPUT_RATE)
     g = sc.true_geometry
     out: dict = {"seed": seed, "scenario": scenario, "duration_s": sim.duration,
@@ -178,9 +180,9 @@ def run_seed(scenario: str, seed: int, estimators: list[str] | None = None,
 
 
 def _seed_job(args) -> dict:
-    scenario, seed, estimators, duration, fixed_truth = args
+    scenario, seed, estimators, duration, fixed_truth, lag = args
     t0 = time.perf_counter()
-    res = run_seed(scenario, seed, estimators, duration, fixed_truth)
+    res = run_seed(scenario, seed, estimators, duration, fixed_truth, lag)
     res["wall_s"] = time.perf_counter() - t0
     return res
 
@@ -245,7 +247,8 @@ def aggregate(per_seed: list[dict], prob: float = 0.95) -> dict:
 
 def monte_carlo(scenario: str, seeds: Iterable[int], estimators: list[str] | None = None, *,
                 duration: float | None = None, jobs: int | None = None,
-                prob: float = 0.95, fixed_truth: bool = False) -> dict:
+                prob: float = 0.95, fixed_truth: bool = False,
+                lag: float | None = None) -> dict:
     """Run ``seeds`` of ``scenario`` (``jobs`` local processes, default os.cpu_count(); 1 runs
     in this process) and aggregate. Returns {'scenario', 'seeds', 'duration_s',
     'estimators_requested', 'per_seed': [run_seed results without the NEES series],
@@ -257,7 +260,7 @@ def monte_carlo(scenario: str, seeds: Iterable[int], estimators: list[str] | Non
 
     get_scenario(scenario, duration)  # a bad scenario or duration fails here, not in a worker
     jobs = jobs or os.cpu_count() or 1
-    args = [(scenario, s, estimators, duration, fixed_truth) for s in seeds]
+    args = [(scenario, s, estimators, duration, fixed_truth, lag) for s in seeds]
     if jobs == 1:
         per_seed = [_seed_job(a) for a in args]
     else:
@@ -267,7 +270,7 @@ def monte_carlo(scenario: str, seeds: Iterable[int], estimators: list[str] | Non
     lean = [{**r, "estimators": {n: {k: v for k, v in e.items() if k not in ("ticks", "nees")}
                                  for n, e in r["estimators"].items()}} for r in per_seed]
     return {"scenario": scenario, "seeds": seeds, "duration_s": per_seed[0]["duration_s"],
-            "estimators_requested": estimators, "fixed_truth": fixed_truth,
+            "estimators_requested": estimators, "fixed_truth": fixed_truth, "lag_s": lag,
             "per_seed": lean, "summary": summary,
             "nees_convention": (
                 "pose (x, y, yaw), d = 3; ANEES = mean over 10 Hz ticks of the N-run average "
@@ -340,6 +343,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="every seed with the scenario's true geometry and the exact true "
                     "initial pose (default: both drawn per seed from the priors the config "
                     "states)")
+    ap.add_argument("--lag", type=float, default=None,
+                    help="smoother lag, s (default: the simulated config's, 10 s)")
     ap.add_argument("-o", "--outdir", type=Path, default=Path("ddfuse-out"),
                     help="where mc_<scenario>.json and .md go (default ddfuse-out)")
     args = ap.parse_args(argv)
@@ -350,7 +355,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         mc = monte_carlo(args.scenario, range(args.first_seed, args.first_seed + args.seeds),
                          names, duration=args.duration, jobs=args.jobs,
-                         fixed_truth=args.fixed_truth)
+                         fixed_truth=args.fixed_truth, lag=args.lag)
     except ValueError as e:
         print(f"ddfuse mc: error: {e}", file=sys.stderr)
         return 2

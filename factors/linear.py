@@ -1,10 +1,10 @@
 """Measurements that are linear in one keyframe state, as one C++ factor.
 
-The absolute heading (``factors.heading``: z = wrap(psi [+ hoff])) and the gyro-bias difference
-(``factors.gyro.bias_difference_factor``: z = bg + k_w z_o) have constant Jacobians. As Python
-``CustomFactor``s each costs a Python callback (and a pybind11 copy of the whole window's Values)
-every time ISAM2 relinearises it. Stacked into one ``gtsam.JacobianFactor`` wrapped in a
-``gtsam.LinearContainerFactor`` they are one factor that ISAM2 relinearises in C++, exactly: for
+The absolute heading (``factors.heading``: z = wrap(psi [+ hoff])) has a constant Jacobian (the
+gyro-bias difference does not: its sigma depends on k_w, ``factors.gyro``). As Python
+``CustomFactor`` it costs a Python callback (and a pybind11 copy of the whole window's Values)
+every time ISAM2 relinearises it. As a ``gtsam.JacobianFactor`` wrapped in a
+``gtsam.LinearContainerFactor`` it is one factor that ISAM2 relinearises in C++, exactly: for
 a linear measurement the linear factor re-centred at any point (``LinearContainerFactor`` shifts
 its right-hand side by A (x - x_lin)) is the factor's own linearisation there.
 
@@ -22,9 +22,9 @@ from collections.abc import Sequence
 import gtsam
 import numpy as np
 
-from factors.state import BG, DIM, HOFF, KW, PSI
+from factors.state import DIM, HOFF, PSI
 
-__all__ = ["bias_difference_row", "heading_row", "linear_state_factor"]
+__all__ = ["heading_row", "linear_state_factor"]
 
 _PI = math.pi
 _TWO_PI = 2.0 * math.pi
@@ -40,16 +40,6 @@ def heading_row(z: float, sigma: float, use_offset: bool = True) -> Row:
     if use_offset:
         h[HOFF] = 1.0
     return h, float(z), float(sigma), True
-
-
-def bias_difference_row(mean_gyro: float, mean_odo: float, sigma: float) -> Row:
-    """Mean gyro rate ``mean_gyro`` and mean odometry yaw rate ``mean_odo`` over one interval
-    (rad/s): error bg + k_w mean_odo - mean_gyro, sigma rad/s (as
-    ``factors.gyro.bias_difference_factor``)."""
-    h = np.zeros(DIM)
-    h[BG] = 1.0
-    h[KW] = float(mean_odo)
-    return h, float(mean_gyro), float(sigma), False
 
 
 def linear_state_factor(key: int, rows: Sequence[Row],

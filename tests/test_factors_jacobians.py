@@ -13,7 +13,7 @@ import pytest
 
 from factors.checks import analytic_jacobians, max_jacobian_error, numerical_jacobians
 from factors.gps import gps_factor
-from factors.gyro import gyro_factor
+from factors.gyro import bias_difference_factor, gyro_factor
 from factors.heading import heading_factor
 from factors.landmark import (
     range_bearing_factor,
@@ -57,6 +57,7 @@ FACTORS = {
     "motion_start": lambda: motion_factor(KI, KJ, 0.37, unit(9), twist="start"),
     "motion_long_dt": lambda: motion_factor(KI, KJ, 2.5, unit(9)),
     "gyro": lambda: gyro_factor(KI, 0.2, unit(1)),
+    "bias_difference": lambda: bias_difference_factor(KI, 0.31, 0.27, 0.004, 0.02),
     "heading": lambda: heading_factor(KI, 3.1, unit(1)),
     "heading_no_offset": lambda: heading_factor(KI, -3.1, unit(1), use_offset=False),
     "wheel_speed": lambda: wheel_speed_factor(KI, 1.1, unit(1)),
