@@ -443,8 +443,8 @@ class UnicycleEkf(Estimator):
         self.pose_error = pose_error
         self._lie = pose_error == "se2"
         self.reference = bool(reference)
-        if compiled is None:  # TEMP: the kernels do not have the se2 error yet
-            compiled = not self.reference and jit.available() and pose_error != "se2"
+        if compiled is None:
+            compiled = not self.reference and jit.available()
         elif compiled and (self.reference or not jit.available()):
             raise ValueError("compiled=True needs numba and reference=False")
         self.compiled = bool(compiled)
@@ -767,6 +767,8 @@ class UnicycleEkf(Estimator):
         ks = self._ks
         if ks is not None:
             f_pairs += [(0, ks), (0, ks + 1), (1, ks), (1, ks + 1), (2, ks + 1)]
+        if self._lie:  # the rotation block of the pose error's F (se2_error_terms)
+            f_pairs += [(0, 1), (1, 0)]
         f_pairs += [(i, i) for i in range(3, n)]
         upper = [(i, j) for i in range(5) for j in range(i, 5)]  # unicycle_process_noise order
         q_pairs = upper + [(j, i) for i, j in upper if i != j]
@@ -779,6 +781,7 @@ class UnicycleEkf(Estimator):
             motion=0 if self.motion == "exact" else 1, ks=self._ks,
             noise=self._noise_floats(),
             params={kj.FP_WHEEL_R: r, kj.FP_TRACK: L})
+        kf.ip[kj.IP_LIE] = 1 if self._lie else 0
         for info in self._sensors.values():
             info.row = None  # (re)registered with this core on first use
         return kf
