@@ -43,6 +43,32 @@ Bar-Shalom's rule for the continuous white-noise acceleration model), T the shor
 period among the sensors measuring v (odometry, wheel speeds), resp. w (also the gyro), as
 observed in the data; until a sensor's second sample, the default densities.
 
+Pose error (``pose_error='se2'``, the default). The state vector holds the pose estimate
+X_hat = (x, y, psi) in the world frame, but the covariance's pose block is that of the
+body-frame error in SE(2) exponential coordinates, X_true = X_hat Exp(xi),
+xi = (rho_x m, rho_y m, theta rad) = Log(X_hat^-1 X_true) (the left-invariant error of Barrau &
+Bonnabel 2017; the other states' errors stay differences). Dead reckoning under a large heading
+uncertainty spreads the true pose along a curved "banana", which a Gaussian in x, y cannot
+describe and one in xi does (Long, Wolfe, Mashner, Chirikjian, RSS 2012): the world-frame
+filter's position NEES grew to 38.6 (2 dof) where its heading sigma exceeded 0.4 rad
+(docs/results/ekf_monte_carlo.md). The prediction's F and Q are the world-frame ones mapped
+through the chart, F_xi = A1^-1 F A0, Q_xi = A1^-1 Q A1^-T, A = blockdiag(R(psi), 1) at the
+estimate before / after the step (:func:`se2_error_terms`; for the exact step F_xi's pose block
+is the adjoint Ad(Exp(-tau dt)) and its twist columns the right Jacobian J_r(tau dt) dt). A GPS
+fix's rows are d(east, north)/d(rho) = R(psi) (times the world-frame lever-arm and delay rows,
+which act on theta, the twist and the scales as before); heading, gyro, odometry and wheel
+speeds touch psi and the Euclidean states only, unchanged. An update's correction K y adds
+theta to psi and R(psi) rho to the position (:func:`pose_correct`), the first-order chart the
+measurement rows are linearised in; the exponential map X Exp(K y) agrees to first order but,
+for a large correction with the heading unknown (a gate lock-out's recovery), moves the
+position along an arc off the fix (13 m in the kidnap test). No reset Jacobian is applied to P
+after the correction (its effect is second order in the correction). ``estimate()`` reports
+``pose_cov`` and ``state_cov`` mapped to the world frame to first order (A P A^T) and
+``pose_error='se2'``, so that a NEES is scored against the filter's own Gaussian:
+xi = Log(X_hat^-1 X_true) with covariance A^-1 pose_cov A^-T (evaluation.metrics.nees_series,
+navlie's ``state.minus(truth)``). ``pose_error='world'`` keeps the world-frame error
+(x, y, psi)_true - estimate throughout (the filter before; the same to first order).
+
 Measurements (seed 003's piecewise model: H, R and h are assembled from the measurements
 present at a step; each measurement is gated on its own with its sensor's chi-square gate):
 
@@ -415,6 +441,8 @@ class UnicycleEkf(Estimator):
     arrays when it changes them).
     Default: when numba is installed and ``reference`` is not set; False runs the Python fast
     path. Same results (tests/test_ekf_fast_path.py).
+    ``pose_error``: 'se2' (default) carries the pose error in SE(2) exponential coordinates,
+    'world' as the world-frame difference (module docstring, "Pose error").
     """
 
     name = "ekf_unicycle"
