@@ -785,8 +785,8 @@ def test_dead_reckoning_banana_is_gaussian_in_the_filters_error_coordinates():
     for 2000 draws of the start from the filter's prior the mean NEES it scores is chi2(3) / 1
     (inside the 99.9 % band of the mean of 2000), while the same covariance read as a
     world-frame Gaussian (the world-error filter's, the same to first order) is far off."""
-    from evaluation import metrics
     from estimation.runner import Trajectory
+    from evaluation import metrics
 
     s0, s2 = 0.01, 0.5
     quiet = ProcessNoise(acc=1e-4, yaw_acc=1e-4, pos_long=0.0, pos_lat=0.0, heading=0.0)
