@@ -1032,3 +1032,32 @@ def uni_stacked(fp, ip, W, sf, si, lg, dt, t, mb, k):
     if nb == 0:
         return 0
     return _update(fp, ip, W, sf, si, lg, t, H[:nr], y, R, blk, nb, nr, Ut, S, Z, zf, zi)
+
+
+@njit("float64[:, ::1](float64[:, ::1], int64, float64)", cache=True)
+def world_cov(W, n, psi):
+    """UnicycleEkf.estimate's covariance for the se2 pose error: A P A^T (P = W[0:n]),
+    A = I with R(psi) in its (x, y) block, the first-order world-frame image of the body-frame
+    pose error; exactly symmetric. A new (n, n) array."""
+    c = math.cos(psi)
+    s = math.sin(psi)
+    out = np.empty((n, n))
+    for i in range(n):
+        for j in range(n):
+            out[i, j] = W[i, j]
+    for j in range(n):
+        a = out[0, j]
+        b = out[1, j]
+        out[0, j] = c * a - s * b
+        out[1, j] = s * a + c * b
+    for i in range(n):
+        a = out[i, 0]
+        b = out[i, 1]
+        out[i, 0] = c * a - s * b
+        out[i, 1] = s * a + c * b
+    for i in range(n):
+        for j in range(i + 1, n):
+            v = 0.5 * (out[i, j] + out[j, i])
+            out[i, j] = v
+            out[j, i] = v
+    return out

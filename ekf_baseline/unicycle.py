@@ -575,6 +575,7 @@ class UnicycleEkf(Estimator):
         self._t0 = 0.0
         self._k = 0
         self._F = np.eye(self.n)
+        self._T = np.eye(self.n)  # estimate(): the se2 error's covariance to the world frame
         self._Q = np.zeros((self.n, self.n))
         self._F_flat = self._F.reshape(-1)  # views: assigning into them fills F and Q
         self._Q_flat = self._Q.reshape(-1)
@@ -635,18 +636,19 @@ class UnicycleEkf(Estimator):
         known (see the module docstring)."""
         if self.kf is None or not self._aligned:
             return None
-        x = self.kf.x
-        P = self.kf.P
-        if self._lie:  # to the world frame, to first order: A P A^T, A = blockdiag(R(psi), I)
+        kf = self.kf
+        x = kf.x
+        if not self._lie:
+            P = kf.P.copy()
+        elif self.compiled:  # (the runner asks at 10 Hz: ~1 us here, ~9 us in numpy)
+            P = kf.kj.world_cov(kf.W, self.n, float(x[2]))
+        else:  # to the world frame, to first order: A P A^T, A = blockdiag(R(psi), I)
             c, s = _cos(x[2]), _sin(x[2])
-            P = P.copy()
-            r0, r1 = P[0].copy(), P[1].copy()
-            P[0], P[1] = c * r0 - s * r1, s * r0 + c * r1
-            c0, c1 = P[:, 0].copy(), P[:, 1].copy()
-            P[:, 0], P[:, 1] = c * c0 - s * c1, s * c0 + c * c1
-            P = 0.5 * (P + P.T)
-        else:
-            P = P.copy()
+            T = self._T
+            T[0, 0], T[0, 1], T[1, 0], T[1, 1] = c, -s, s, c
+            P = T @ kf.P @ T.T
+            P += P.T
+            P *= 0.5
         return Estimate(
             t=self.t,
             pose=(float(x[0]), float(x[1]), float(x[2])),
