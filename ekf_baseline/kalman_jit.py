@@ -66,14 +66,16 @@ from ekf_baseline.igvc import igvc_q_values
 from ekf_baseline.unicycle import (
     delayed_gps_terms,
     euler_step_jac,
+    pose_correct,
     scaled_step_terms,
+    se2_error_terms,
     unicycle_process_noise_terms,
 )
 from factors.kinematics import se2_step_jac, twist_coeffs
 
 for _f in (twist_coeffs, se2_step_jac, euler_step_jac, unicycle_process_noise_terms,
-           scaled_step_terms, delayed_gps_terms, igvc_q_values, gen.euler_step_sparse,
-           gen.icc_step_sparse):
+           scaled_step_terms, delayed_gps_terms, se2_error_terms, pose_correct, igvc_q_values,
+           gen.euler_step_sparse, gen.icc_step_sparse):
     register_jitable(_f)
 
 
@@ -99,6 +101,9 @@ IP_NFVAR = 14  # number of those
 IP_OFF_FVAL = 16  # offset in fp of F's values (IP_NF of them)
 IP_OFF_QVAL = 17  # offset in fp of Q's values
 IP_OFF_WALKV = 18  # offset in fp of the random-walk variances per second
+IP_LIE = 19  # unicycle: 1 when the pose error is in SE(2) exponential coordinates (body-frame
+# rho, theta; UnicycleEkf(pose_error='se2')): se2_error_terms' F and Q, the GPS rows' R(psi),
+# the position correction by pose_correct
 IP_ANG = 24  # angle state indices (up to 8)
 MAXANG = 8
 IP_OFF_ZI = 15  # offset in ip of the event kernels' block table (MAXB, 4), then int scratch
@@ -206,7 +211,31 @@ def _uni_predict(fp, ip, W, n, dt):
     ofv = ip[IP_OFF_FVAL]
     ks = ip[IP_KS]
     # F's entries in the order UnicycleEkf._compiled_core lays them out: rows 0..2 first
-    if ks < 0:
+    if ip[IP_LIE] != 0:  # UnicycleEkf._predict_to's se2 branch
+        kv = 1.0 if ks < 0 else x[ks]
+        kw = 1.0 if ks < 0 else x[ks + 1]
+        x1, y1, p1, F0, q0 = scaled_step_terms(
+            x[0], x[1], x[2], x[3], x[4], kv, kw, dt, ip[IP_MOTION] != 0,
+            fp[FP_NOISE], fp[FP_NOISE + 1], fp[FP_NOISE + 2], fp[FP_NOISE + 3],
+            fp[FP_NOISE + 4])
+        F, q = se2_error_terms(x[2], p1, F0, q0)
+        fp[ofv + 0] = F[12]
+        fp[ofv + 1] = F[0]
+        fp[ofv + 2] = F[1]
+        fp[ofv + 3] = F[2]
+        fp[ofv + 4] = F[15]
+        fp[ofv + 5] = F[3]
+        fp[ofv + 6] = F[4]
+        fp[ofv + 7] = F[5]
+        fp[ofv + 9] = F[6]
+        o2 = ofv + 10
+        if ks >= 0:
+            for k in range(5):
+                fp[ofv + 10 + k] = F[7 + k]
+            o2 = ofv + 15
+        fp[o2] = F[13]  # the pose block's (0, 1), (1, 0)
+        fp[o2 + 1] = F[14]
+    elif ks < 0:
         if ip[IP_MOTION] == 0:
             x1, y1, p1, J = se2_step_jac(x[0], x[1], x[2], x[3], x[4], dt)
         else:
@@ -490,11 +519,22 @@ def _update(fp, ip, W, sf, si, lg, t, H, y, R, blk, nb, nr, Ut, S, Z, zf, zi):
             for l in range(ma):
                 acc += Ut[rows[l], i] * Si[l, j]
             Kt[j, i] = acc
+    px = x[0]
+    py = x[1]
+    psi0 = x[2]
+    d0 = 0.0
+    d1 = 0.0
     for i in range(n):
         acc = 0.0
         for j in range(ma):
             acc += Kt[j, i] * y[rows[j]]
+        if i == 0:
+            d0 = acc
+        elif i == 1:
+            d1 = acc
         x[i] += acc
+    if ip[IP_LIE] != 0:  # the body-frame position correction (UnicycleEkf._apply)
+        x[0], x[1] = pose_correct(px, py, psi0, d0, d1)
     # Joseph form, factored: P <- M P M^T + K R K^T, M = I - K H. M differs from I only in the
     # columns H observes (support C): A = M P and M A^T are sums over C only
     nc = 0
@@ -641,9 +681,9 @@ def _uni_model(fp, ip, sf, si, H, y, R, blk, nr, nb, typ, s, z0, z1, r0, r1, r01
         lx = sf[s, SF_LX]
         ly = sf[s, SF_LY]
         d = sf[s, SF_DELAY]
+        c = math.cos(x[2])
+        sn = math.sin(x[2])
         if d == 0.0:
-            c = math.cos(x[2])
-            sn = math.sin(x[2])
             y[nr] = z0 - (x[0] + c * lx - sn * ly)
             y[nr + 1] = z1 - (x[1] + sn * lx + c * ly)
             H[nr, 0] = 1.0
@@ -670,6 +710,11 @@ def _uni_model(fp, ip, sf, si, H, y, R, blk, nr, nb, typ, s, z0, z1, r0, r1, r01
                 H[nr, ks + 1] = g[6]
                 H[nr + 1, ks] = g[10]
                 H[nr + 1, ks + 1] = g[11]
+        if ip[IP_LIE] != 0:  # d(east, north) / d(rho_x, rho_y) = R(psi)
+            H[nr, 0] = c
+            H[nr, 1] = -sn
+            H[nr + 1, 0] = sn
+            H[nr + 1, 1] = c
         R[nr, nr] = r0
         R[nr, nr + 1] = r01
         R[nr + 1, nr] = r10
@@ -987,3 +1032,32 @@ def uni_stacked(fp, ip, W, sf, si, lg, dt, t, mb, k):
     if nb == 0:
         return 0
     return _update(fp, ip, W, sf, si, lg, t, H[:nr], y, R, blk, nb, nr, Ut, S, Z, zf, zi)
+
+
+@njit("float64[:, ::1](float64[:, ::1], int64, float64)", cache=True)
+def world_cov(W, n, psi):
+    """UnicycleEkf.estimate's covariance for the se2 pose error: A P A^T (P = W[0:n]),
+    A = I with R(psi) in its (x, y) block, the first-order world-frame image of the body-frame
+    pose error; exactly symmetric. A new (n, n) array."""
+    c = math.cos(psi)
+    s = math.sin(psi)
+    out = np.empty((n, n))
+    for i in range(n):
+        for j in range(n):
+            out[i, j] = W[i, j]
+    for j in range(n):
+        a = out[0, j]
+        b = out[1, j]
+        out[0, j] = c * a - s * b
+        out[1, j] = s * a + c * b
+    for i in range(n):
+        a = out[i, 0]
+        b = out[i, 1]
+        out[i, 0] = c * a - s * b
+        out[i, 1] = s * a + c * b
+    for i in range(n):
+        for j in range(i + 1, n):
+            v = 0.5 * (out[i, j] + out[j, i])
+            out[i, j] = v
+            out[j, i] = v
+    return out

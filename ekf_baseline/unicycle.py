@@ -43,6 +43,32 @@ Bar-Shalom's rule for the continuous white-noise acceleration model), T the shor
 period among the sensors measuring v (odometry, wheel speeds), resp. w (also the gyro), as
 observed in the data; until a sensor's second sample, the default densities.
 
+Pose error (``pose_error='se2'``, the default). The state vector holds the pose estimate
+X_hat = (x, y, psi) in the world frame, but the covariance's pose block is that of the
+body-frame error in SE(2) exponential coordinates, X_true = X_hat Exp(xi),
+xi = (rho_x m, rho_y m, theta rad) = Log(X_hat^-1 X_true) (the left-invariant error of Barrau &
+Bonnabel 2017; the other states' errors stay differences). Dead reckoning under a large heading
+uncertainty spreads the true pose along a curved "banana", which a Gaussian in x, y cannot
+describe and one in xi does (Long, Wolfe, Mashner, Chirikjian, RSS 2012): the world-frame
+filter's position NEES grew to 38.6 (2 dof) where its heading sigma exceeded 0.4 rad
+(docs/results/ekf_monte_carlo.md). The prediction's F and Q are the world-frame ones mapped
+through the chart, F_xi = A1^-1 F A0, Q_xi = A1^-1 Q A1^-T, A = blockdiag(R(psi), 1) at the
+estimate before / after the step (:func:`se2_error_terms`; for the exact step F_xi's pose block
+is the adjoint Ad(Exp(-tau dt)) and its twist columns the right Jacobian J_r(tau dt) dt). A GPS
+fix's rows are d(east, north)/d(rho) = R(psi) (times the world-frame lever-arm and delay rows,
+which act on theta, the twist and the scales as before); heading, gyro, odometry and wheel
+speeds touch psi and the Euclidean states only, unchanged. An update's correction K y adds
+theta to psi and R(psi) rho to the position (:func:`pose_correct`), the first-order chart the
+measurement rows are linearised in; the exponential map X Exp(K y) agrees to first order but,
+for a large correction with the heading unknown (a gate lock-out's recovery), moves the
+position along an arc off the fix (13 m in the kidnap test). No reset Jacobian is applied to P
+after the correction (its effect is second order in the correction). ``estimate()`` reports
+``pose_cov`` and ``state_cov`` mapped to the world frame to first order (A P A^T) and
+``pose_error='se2'``, so that a NEES is scored against the filter's own Gaussian:
+xi = Log(X_hat^-1 X_true) with covariance A^-1 pose_cov A^-T (evaluation.metrics.nees_series,
+navlie's ``state.minus(truth)``). ``pose_error='world'`` keeps the world-frame error
+(x, y, psi)_true - estimate throughout (the filter before; the same to first order).
+
 Measurements (seed 003's piecewise model: H, R and h are assembled from the measurements
 present at a step; each measurement is gated on its own with its sensor's chi-square gate):
 
@@ -104,10 +130,11 @@ from estimation.measurements import (
     WheelOdometry,
     WheelSpeeds,
 )
-from factors.kinematics import se2_step_jac
+from factors.kinematics import se2_step_jac, twist_coeffs
 
 __all__ = ["ProcessNoise", "UnicycleEkf", "unicycle_process_noise", "euler_step_jac",
-           "twist_densities", "scaled_step_terms", "delayed_gps_terms"]
+           "twist_densities", "scaled_step_terms", "delayed_gps_terms", "se2_error_terms",
+           "se2_retract", "se2_log_error", "pose_correct", "POSE_ERRORS"]
 
 _PI = math.pi
 _TWO_PI = 2.0 * math.pi
@@ -123,6 +150,7 @@ _ROWS_XY = (((0, 1.0),), ((1, 1.0),))
 _T_NONE, _T_GYRO, _T_HEAD, _T_ODOM, _T_GPS, _T_WHEELS = (
     jit.T_NONE, jit.T_GYRO, jit.T_HEAD, jit.T_ODOM, jit.T_GPS, jit.T_WHEELS)
 _DEFER, _REJECTED, _GROW = jit.DEFER, jit.REJECTED, jit.GROW
+POSE_ERRORS = ("se2", "world")  # UnicycleEkf(pose_error=...): module docstring, "Pose error"
 
 
 @dataclass(frozen=True)
@@ -303,6 +331,75 @@ def delayed_gps_terms(
             jn[2] + an, dn_v * kv, dn_w * kw, dn_v * u, dn_w * om)
 
 
+def se2_error_terms(p0: float, p1: float, F: tuple[float, ...], q: tuple[float, ...]
+                    ) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """The prediction's F and Q for the SE(2) exponential-coordinate pose error (module
+    docstring, "Pose error"): world-frame ones (``scaled_step_terms``' F layout, 12 entries,
+    and Q's 15-entry upper triangle of (x, y, psi, u, om)) of a step from heading ``p0`` to
+    ``p1`` (rad) mapped by the chart's Jacobians, F_xi = A1^-1 F A0, Q_xi = A1^-1 Q A1^-T,
+    A = d(x, y, psi) / d(rho_x, rho_y, theta) at xi = 0 = blockdiag(R(psi), 1).
+
+    For the exact step this is the Lie-group Jacobian: the pose block is the adjoint
+    Ad(Exp(-tau dt)) (rotation R(p0 - p1), translation column R(p1)^T dF/dpsi), the twist
+    columns the right Jacobian J_r(tau dt) dt times the scales. Returns (F' in F's layout, then
+    the pose block's (0, 0), (0, 1), (1, 0), (1, 1) entries; Q' in Q's order)."""
+    c = _cos(p1)
+    s = _sin(p1)
+    cd = _cos(p0 - p1)
+    sd = _sin(p0 - p1)
+    Fo = (c * F[0] + s * F[3], c * F[1] + s * F[4], c * F[2] + s * F[5],
+          -s * F[0] + c * F[3], -s * F[1] + c * F[4], -s * F[2] + c * F[5], F[6],
+          c * F[7] + s * F[9], c * F[8] + s * F[10], -s * F[7] + c * F[9],
+          -s * F[8] + c * F[10], F[11], cd, -sd, sd, cd)
+    a, b, d = q[0], q[1], q[5]
+    cc, ss, cs = c * c, s * s, c * s
+    qo = (cc * a + 2.0 * cs * b + ss * d,  # xx
+          cs * (d - a) + (cc - ss) * b,  # xy
+          c * q[2] + s * q[6], c * q[3] + s * q[7], c * q[4] + s * q[8],  # x psi, x u, x om
+          ss * a - 2.0 * cs * b + cc * d,  # yy
+          -s * q[2] + c * q[6], -s * q[3] + c * q[7], -s * q[4] + c * q[8],  # y psi, u, om
+          q[9], q[10], q[11], q[12], q[13], q[14])
+    return Fo, qo
+
+
+def se2_retract(x: float, y: float, psi: float, d0: float, d1: float, d2: float
+                ) -> tuple[float, float, float]:
+    """The pose (x m, y m, psi rad, world) moved by the body-frame exponential coordinates
+    (d0 m, d1 m, d2 rad): X Exp(d), Exp(rho, theta) = (R(theta), V(theta) rho),
+    V = [[S, -C], [C, S]], S = sin(theta)/theta, C = (1 - cos theta)/theta. psi not wrapped."""
+    sa, ca, _, _ = twist_coeffs(d2)
+    tx = sa * d0 - ca * d1
+    ty = ca * d0 + sa * d1
+    c = _cos(psi)
+    s = _sin(psi)
+    return x + c * tx - s * ty, y + s * tx + c * ty, psi + d2
+
+
+def pose_correct(x: float, y: float, psi: float, d0: float, d1: float) -> tuple[float, float]:
+    """The position (m, world) after an update's correction (d0, d1) m of the body-frame
+    position error rho at heading ``psi`` (rad, the prior's): (x, y) + R(psi) (d0, d1), the
+    chart the measurement models are linearised in (the heading correction is added to psi).
+    Not the exponential map's (x, y) + R(psi) V(d_theta) (d0, d1): a large correction (a gate
+    lock-out's recovery, with the heading unknown) would then land off the measured position
+    (module docstring, "Pose error"); the two agree to first order."""
+    c = _cos(psi)
+    s = _sin(psi)
+    return x + c * d0 - s * d1, y + s * d0 + c * d1
+
+
+def se2_log_error(dx: float, dy: float, dpsi: float, psi: float) -> tuple[float, float, float]:
+    """xi = Log(X_hat^-1 X_true) of a true pose that differs from the estimate (heading ``psi``
+    rad) by the world-frame (dx m, dy m) and the wrapped heading difference ``dpsi`` rad:
+    rho = V(dpsi)^-1 R(psi)^T (dx, dy), theta = dpsi. The inverse of :func:`se2_retract`."""
+    c = _cos(psi)
+    s = _sin(psi)
+    bx = c * dx + s * dy
+    by = -s * dx + c * dy
+    sa, ca, _, _ = twist_coeffs(dpsi)
+    det = sa * sa + ca * ca
+    return (sa * bx + ca * by) / det, (-ca * bx + sa * by) / det, dpsi
+
+
 class _Sensor:
     """Per-sensor settings looked up once: gate, GPS lever arm, bias/offset handling."""
 
@@ -344,6 +441,8 @@ class UnicycleEkf(Estimator):
     arrays when it changes them).
     Default: when numba is installed and ``reference`` is not set; False runs the Python fast
     path. Same results (tests/test_ekf_fast_path.py).
+    ``pose_error``: 'se2' (default) carries the pose error in SE(2) exponential coordinates,
+    'world' as the world-frame difference (module docstring, "Pose error").
     """
 
     name = "ekf_unicycle"
@@ -364,8 +463,13 @@ class UnicycleEkf(Estimator):
         lockout_time: float = DEFAULT_LOCKOUT_TIME,
         reference: bool = False,
         compiled: bool | None = None,
+        pose_error: str = "se2",
     ) -> None:
         super().__init__()
+        if pose_error not in POSE_ERRORS:
+            raise ValueError(f"pose_error must be one of {POSE_ERRORS}, got {pose_error!r}")
+        self.pose_error = pose_error
+        self._lie = pose_error == "se2"
         self.reference = bool(reference)
         if compiled is None:
             compiled = not self.reference and jit.available()
@@ -471,17 +575,17 @@ class UnicycleEkf(Estimator):
         self._t0 = 0.0
         self._k = 0
         self._F = np.eye(self.n)
+        self._T = np.eye(self.n)  # estimate(): the se2 error's covariance to the world frame
         self._Q = np.zeros((self.n, self.n))
         self._F_flat = self._F.reshape(-1)  # views: assigning into them fills F and Q
         self._Q_flat = self._Q.reshape(-1)
-        if self._ks is None:
-            self._if = np.ravel_multi_index(([0, 0, 0, 1, 1, 1, 2], [2, 3, 4, 2, 3, 4, 4]),
-                                            (self.n, self.n))
-        else:  # scaled_step_terms' order: the twist and the scale columns of x, y, psi
+        fr, fc = [0, 0, 0, 1, 1, 1, 2], [2, 3, 4, 2, 3, 4, 4]
+        if self._ks is not None:  # scaled_step_terms' order: the scale columns of x, y, psi
             kv, kw = self._ks, self._ks + 1
-            self._if = np.ravel_multi_index(
-                ([0, 0, 0, 1, 1, 1, 2, 0, 0, 1, 1, 2], [2, 3, 4, 2, 3, 4, 4, kv, kw, kv, kw, kw]),
-                (self.n, self.n))
+            fr, fc = fr + [0, 0, 1, 1, 2], fc + [kv, kw, kv, kw, kw]
+        if self._lie:  # se2_error_terms: then the pose block's rotation
+            fr, fc = fr + [0, 0, 1, 1], fc + [0, 1, 0, 1]
+        self._if = np.ravel_multi_index((fr, fc), (self.n, self.n))
         # the upper and lower triangle of the 5x5 block (unicycle_process_noise's order), then
         # the diagonal of the bias and the offset states
         iu = np.triu_indices(5)
@@ -532,15 +636,27 @@ class UnicycleEkf(Estimator):
         known (see the module docstring)."""
         if self.kf is None or not self._aligned:
             return None
-        x = self.kf.x
-        P = self.kf.P
+        kf = self.kf
+        x = kf.x
+        if not self._lie:
+            P = kf.P.copy()
+        elif self.compiled:  # (the runner asks at 10 Hz: ~1 us here, ~9 us in numpy)
+            P = kf.kj.world_cov(kf.W, self.n, float(x[2]))
+        else:  # to the world frame, to first order: A P A^T, A = blockdiag(R(psi), I)
+            c, s = _cos(x[2]), _sin(x[2])
+            T = self._T
+            T[0, 0], T[0, 1], T[1, 0], T[1, 1] = c, -s, s, c
+            P = T @ kf.P @ T.T
+            P += P.T
+            P *= 0.5
         return Estimate(
             t=self.t,
             pose=(float(x[0]), float(x[1]), float(x[2])),
             pose_cov=P[:3, :3].copy(),
             state=x.copy(),
-            state_cov=P.copy(),
+            state_cov=P,
             state_names=self.state_names,
+            pose_error=self.pose_error,
         )
 
     # ------------------------------------------------------------------ initialisation
@@ -579,6 +695,10 @@ class UnicycleEkf(Estimator):
         x0 = np.zeros(n)
         x0[0], x0[1], x0[2] = x, y, psi
         P0 = np.zeros((n, n))
+        if self._lie:  # the position error in the body frame: R(psi)^T C R(psi)
+            c, s = _cos(psi), _sin(psi)
+            Rt = np.array([[c, s], [-s, c]])
+            pos_cov = Rt @ np.asarray(pos_cov, dtype=float) @ Rt.T
         P0[:2, :2] = pos_cov
         P0[2, 2] = psi_var
         P0[3, 3] = self.v_std0**2
@@ -677,6 +797,8 @@ class UnicycleEkf(Estimator):
         ks = self._ks
         if ks is not None:
             f_pairs += [(0, ks), (0, ks + 1), (1, ks), (1, ks + 1), (2, ks + 1)]
+        if self._lie:  # the rotation block of the pose error's F (se2_error_terms)
+            f_pairs += [(0, 1), (1, 0)]
         f_pairs += [(i, i) for i in range(3, n)]
         upper = [(i, j) for i in range(5) for j in range(i, 5)]  # unicycle_process_noise order
         q_pairs = upper + [(j, i) for i, j in upper if i != j]
@@ -689,6 +811,7 @@ class UnicycleEkf(Estimator):
             motion=0 if self.motion == "exact" else 1, ks=self._ks,
             noise=self._noise_floats(),
             params={kj.FP_WHEEL_R: r, kj.FP_TRACK: L})
+        kf.ip[kj.IP_LIE] = 1 if self._lie else 0
         for info in self._sensors.values():
             info.row = None  # (re)registered with this core on first use
         return kf
@@ -783,7 +906,16 @@ class UnicycleEkf(Estimator):
         kf = self.kf
         xs = kf.x.tolist()
         ks = self._ks
-        if ks is None:
+        if self._lie:
+            # the world-frame step's F and Q mapped to the pose error's coordinates
+            nz = self.noise
+            kv, kw = (1.0, 1.0) if ks is None else (xs[ks], xs[ks + 1])
+            x1, y1, p1, F, q = scaled_step_terms(
+                xs[0], xs[1], xs[2], xs[3], xs[4], kv, kw, dt,
+                self.motion == "euler", nz.acc, nz.yaw_acc, nz.pos_long, nz.pos_lat, nz.heading)
+            F, q = se2_error_terms(xs[2], p1, F, q)
+            self._F_flat[self._if] = F if ks is not None else F[:7] + F[12:]
+        elif ks is None:
             x1, y1, p1, J = self._step_jac(xs[0], xs[1], xs[2], xs[3], xs[4], dt)
             j0, j1 = J[0], J[1]
             # one flat fancy-index assignment each for F and Q: element assignments cost
@@ -921,11 +1053,19 @@ class UnicycleEkf(Estimator):
                 blocks.append((m.sensor, "wheels", (m.left - (vr - wr), m.right - (vr + wr)),
                                rows, ((m.left_var, 0.0), (0.0, m.right_var)), info.gate))
         if blocks:
+            xb = kf.x[:3].tolist() if self._lie else None
             # the compiled filter's Python updates (what its kernels defer) are the reference's
             if self.reference or self.compiled:
                 kf.update_dense(t, blocks)
             else:
                 kf.update_sparse(t, blocks)
+            if xb is not None:
+                # KalmanCore added the correction K y; its position part is the body-frame rho
+                xa = kf.x.copy()
+                x1, y1 = pose_correct(xb[0], xb[1], xb[2], float(xa[0]) - xb[0],
+                                      float(xa[1]) - xb[1])
+                xa[0], xa[1] = x1, y1
+                kf.x = xa
 
     def _gps_model(self, m: GpsFix, info: _Sensor, x: list) -> tuple[tuple, tuple]:
         """Innovation (east, north, m) and sparse H rows of a fix: the antenna (lever arm
@@ -933,22 +1073,25 @@ class UnicycleEkf(Estimator):
         state's, reached by the exact constant-twist step backwards (factors.kinematics)."""
         lx, ly = info.lever
         d = info.delay
+        c, s = _cos(x[2]), _sin(x[2])
+        # d(east, north) / d(x, y) (world) is I; d / d(rho_x, rho_y) (body-frame pose error,
+        # X Exp(xi): position + R(psi) rho to first order) is R(psi)
+        pe, pn = (((0, c), (1, -s)), ((0, s), (1, c))) if self._lie else (((0, 1.0),), ((1, 1.0),))
         if d == 0.0:
-            c, s = _cos(x[2]), _sin(x[2])
             y = (m.enu[0] - (x[0] + c * lx - s * ly), m.enu[1] - (x[1] + s * lx + c * ly))
             if lx == 0.0 and ly == 0.0:
-                return y, _ROWS_XY
-            return y, (((0, 1.0), (2, -s * lx - c * ly)), ((1, 1.0), (2, c * lx - s * ly)))
+                return y, _ROWS_XY if not self._lie else (pe, pn)
+            return y, ((*pe, (2, -s * lx - c * ly)), (*pn, (2, c * lx - s * ly)))
         ks = self._ks
         kv, kw = (1.0, 1.0) if ks is None else (x[ks], x[ks + 1])
         he, hn, e_p, e_u, e_om, e_kv, e_kw, n_p, n_u, n_om, n_kv, n_kw = delayed_gps_terms(
             x[0], x[1], x[2], x[3], x[4], kv, kw, lx, ly, d)
         y = (m.enu[0] - he, m.enu[1] - hn)
         if ks is None:
-            return y, (((0, 1.0), (2, e_p), (3, e_u), (4, e_om)),
-                       ((1, 1.0), (2, n_p), (3, n_u), (4, n_om)))
-        return y, (((0, 1.0), (2, e_p), (3, e_u), (4, e_om), (ks, e_kv), (ks + 1, e_kw)),
-                   ((1, 1.0), (2, n_p), (3, n_u), (4, n_om), (ks, n_kv), (ks + 1, n_kw)))
+            return y, ((*pe, (2, e_p), (3, e_u), (4, e_om)),
+                       (*pn, (2, n_p), (3, n_u), (4, n_om)))
+        return y, ((*pe, (2, e_p), (3, e_u), (4, e_om), (ks, e_kv), (ks + 1, e_kw)),
+                   (*pn, (2, n_p), (3, n_u), (4, n_om), (ks, n_kv), (ks + 1, n_kw)))
 
     def _init_offset(self, t: float, m: Heading, hi: int) -> None:
         """hoff = wrap(z - psi): variance var(psi) + R, covariance -cov(psi, .) with the rest."""

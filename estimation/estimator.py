@@ -28,9 +28,17 @@ class Estimate:
     """An estimator's belief at time ``t``.
 
     ``pose`` is (x, y, yaw) in the local frame (m, m, rad) and ``pose_cov`` its 3x3 covariance in
-    the same world-frame coordinates (x, y, yaw), so that every estimator is scored alike.
+    the same world-frame coordinates (x, y, yaw), so that every estimator can be plotted alike.
     ``state``/``state_cov`` hold the estimator's full state vector and covariance, with
-    ``state_names`` naming each component (e.g. ('x', 'y', 'yaw', 'v', 'yaw_rate'))."""
+    ``state_names`` naming each component (e.g. ('x', 'y', 'yaw', 'v', 'yaw_rate')).
+
+    ``pose_error`` names the coordinates in which the estimator's Gaussian describes the pose
+    error (``POSE_ERRORS``; the NEES is scored in them, ``evaluation.metrics.nees_series``):
+    ``'world'``, e = (x, y, yaw)_true - pose (yaw wrapped), with covariance ``pose_cov``;
+    ``'se2'``, SE(2) exponential coordinates of the body-frame error, X_true = X_hat Exp(xi),
+    xi = (rho_x m, rho_y m, theta rad) = Log(X_hat^-1 X_true), with covariance
+    A^-1 pose_cov A^-T, A = blockdiag(R(yaw), 1): ``pose_cov`` (and ``state_cov``) are then
+    that covariance mapped to the world frame to first order (A P_xi A^T)."""
 
     t: float
     pose: tuple[float, float, float]
@@ -38,6 +46,10 @@ class Estimate:
     state: np.ndarray | None = None  # (n,)
     state_cov: np.ndarray | None = None  # (n, n)
     state_names: tuple[str, ...] = ()
+    pose_error: str = "world"
+
+
+POSE_ERRORS = ("world", "se2")  # Estimate.pose_error / Estimator.pose_error
 
 
 NIS_BAND_P = 0.95  # two-sided probability of the chi-square band NIS values are judged against
@@ -390,6 +402,8 @@ class Estimator(ABC):
     (ground truth, a sensor type it does not model) are ignored, not rejected."""
 
     name: str = "estimator"
+    # the coordinates of its pose error, as Estimate.pose_error (the NEES is scored in them)
+    pose_error: str = "world"
 
     def __init__(self) -> None:
         self.log = EstimatorLog()

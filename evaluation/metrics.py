@@ -196,16 +196,52 @@ class Nees:
     i_est: np.ndarray  # indices into the estimate of the scored samples
 
 
-def nees_series(est: Trajectory, ref: Trajectory, max_diff: float = 0.05) -> Nees:
+def se2_log_errors(est_pose: np.ndarray, ref_pose: np.ndarray) -> np.ndarray:
+    """xi = Log(X_est^-1 X_ref) (N, 3) of poses (N, 3) (x m, y m, yaw rad): the SE(2)
+    exponential coordinates (rho_x m, rho_y m, theta rad) of the reference in the estimate's
+    body frame, X_ref = X_est Exp(xi); rho = V(theta)^-1 R(yaw_est)^T (p_ref - p_est),
+    V = [[S, -C], [C, S]], S = sin(theta)/theta, C = (1 - cos theta)/theta, theta wrapped."""
+    est_pose = np.asarray(est_pose, dtype=float).reshape(-1, 3)
+    ref_pose = np.asarray(ref_pose, dtype=float).reshape(-1, 3)
+    th = wrap(ref_pose[:, 2] - est_pose[:, 2])
+    c, s = np.cos(est_pose[:, 2]), np.sin(est_pose[:, 2])
+    dx, dy = ref_pose[:, 0] - est_pose[:, 0], ref_pose[:, 1] - est_pose[:, 1]
+    bx, by = c * dx + s * dy, -s * dx + c * dy
+    small = np.abs(th) < 1e-6
+    ts = np.where(small, 1.0, th)
+    sa = np.where(small, 1.0 - th * th / 6.0, np.sin(ts) / ts)
+    ca = np.where(small, 0.5 * th, (1.0 - np.cos(ts)) / ts)
+    det = sa * sa + ca * ca
+    return np.column_stack([(sa * bx + ca * by) / det, (-ca * bx + sa * by) / det, th])
+
+
+def nees_series(est: Trajectory, ref: Trajectory, max_diff: float = 0.05,
+                pose_error: str = "world") -> Nees:
     """NEES of ``est`` against ``ref`` (no alignment: the covariance is in the local frame).
 
+    ``pose_error`` (``estimation.estimator.Estimate.pose_error``) says in which coordinates the
+    estimator's Gaussian describes its error: 'world', e = pose_est - pose_ref (yaw wrapped)
+    with P = ``est.cov``; 'se2', xi = Log(X_est^-1 X_ref) (``se2_log_errors``) with
+    P_xi = A^-1 P A^-T, A = blockdiag(R(yaw_est), 1) (``est.cov`` is then the first-order
+    world image A P_xi A^T of the filter's covariance). Where the reference has no yaw, both
+    score the world-frame position error with ``est.cov[:2, :2]`` (2 dof).
+
     Samples whose covariance is missing or not positive definite are left out."""
+    if pose_error not in ("world", "se2"):
+        raise ValueError(f"pose_error must be 'world' or 'se2', got {pose_error!r}")
     err = pose_errors(est, ref, max_diff)
+    if pose_error == "se2" and len(err.i_est):
+        xi = se2_log_errors(est.pose[err.i_est], ref.pose[err.i_ref])
     ts, vals, dofs, idx = [], [], [], []
     for k, i in enumerate(err.i_est):
         p = est.cov[i]
         if math.isnan(err.dyaw[k]):
             e, p = err.dxy[k], p[:2, :2]
+        elif pose_error == "se2":
+            e = xi[k]
+            c, s = math.cos(est.pose[i, 2]), math.sin(est.pose[i, 2])
+            ai = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])  # A^-1
+            p = ai @ p @ ai.T
         else:
             e = np.array([err.dxy[k, 0], err.dxy[k, 1], err.dyaw[k]])
         if not np.all(np.isfinite(p)):
@@ -222,15 +258,16 @@ def nees_series(est: Trajectory, ref: Trajectory, max_diff: float = 0.05) -> Nee
     return Nees(np.array(ts), np.array(vals), np.array(dofs, int), np.array(idx, np.int64))
 
 
-def nees(est: Trajectory, ref: Trajectory, max_diff: float = 0.05) -> np.ndarray:
+def nees(est: Trajectory, ref: Trajectory, max_diff: float = 0.05,
+         pose_error: str = "world") -> np.ndarray:
     """Pose NEES values per associated sample (see ``nees_series``)."""
-    return nees_series(est, ref, max_diff).value
+    return nees_series(est, ref, max_diff, pose_error).value
 
 
-def nees_samples(est: Trajectory, ref: Trajectory, max_diff: float = 0.05
-                 ) -> tuple[np.ndarray, np.ndarray]:
+def nees_samples(est: Trajectory, ref: Trajectory, max_diff: float = 0.05,
+                 pose_error: str = "world") -> tuple[np.ndarray, np.ndarray]:
     """``nees`` with the indices into ``est`` of the samples it could score: (i_est, nees)."""
-    s = nees_series(est, ref, max_diff)
+    s = nees_series(est, ref, max_diff, pose_error)
     return s.i_est, s.value
 
 

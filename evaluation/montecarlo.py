@@ -24,7 +24,11 @@ NEES convention (Bar-Shalom, Li, Kirubarajan, "Estimation with Applications to T
 Navigation", 2001, sec. 5.4.2). The estimators are scored on the pose (x m, y m, yaw rad),
 d = 3, with the 3 x 3 pose covariance they report (for ekf_igvc, whose state also carries
 lat/lon/theta, and ekf_slam, whose state carries the landmarks, this is the marginal of x, y, psi;
-no estimator here compares a different state). At output tick k (10 Hz from the start of the
+no estimator here compares a different state), in the coordinates of the error the estimator's
+Gaussian describes (its ``pose_error``, ``metrics.nees_series``): the world-frame difference,
+or for the unicycle EKF, whose pose error is in SE(2) exponential coordinates, the
+body-frame xi = Log(X_hat^-1 X_true) with its own covariance (navlie's
+``state.minus(truth)``). At output tick k (10 Hz from the start of the
 simulated run) the NEES of run i is eps_i(k) = e^T P^-1 e, and the average over the N runs is
 eps_bar(k) = (1/N) sum_i eps_i(k). For a consistent filter N eps_bar(k) ~ chi2(N d), so the
 two-sided 95 % acceptance interval of eps_bar(k) is
@@ -82,9 +86,11 @@ def default_estimators(cfg) -> list[str]:
     return [n for n, s in registry.SPECS.items() if n.startswith("ekf") and s.allowed(cfg)]
 
 
-def _truth_errors(sim, tr) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _truth_errors(sim, tr, pose_error: str = "world"
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Against the exact truth at each estimate's stamp: the position error (m) of every sample,
-    and the output tick indices and pose NEES of the samples with a usable covariance."""
+    and the output tick indices and pose NEES of the samples with a usable covariance, in the
+    estimator's error coordinates ``pose_error`` (``metrics.nees_series``)."""
     from estimation.runner import Trajectory
     from evaluation import metrics
 
@@ -92,7 +98,7 @@ def _truth_errors(sim, tr) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     x, y, yaw, _, _ = sim.truth.at(np.clip(t_rel, 0.0, sim.duration))
     ref = Trajectory(tr.t.copy(), np.column_stack([x, y, yaw]), np.full((len(tr), 3, 3), np.nan))
     pos = metrics.pose_errors(tr, ref, max_diff=1e-9).position
-    i_nees, nees = metrics.nees_samples(tr, ref, max_diff=1e-9)
+    i_nees, nees = metrics.nees_samples(tr, ref, max_diff=1e-9, pose_error=pose_error)
     ticks = np.rint(t_rel[i_nees] * OUTPUT_RATE).astype(np.int64)
     return pos, ticks, nees
 
@@ -166,8 +172,10 @@ def run_seed(scenario: str, seed: int, estimators: list[str] | None = None,
                                        "runtime_s": r.runtime_s, "error": r.error or "no output",
                                        "ticks": [], "nees": []}
             continue
-        pos, ticks, nees = _truth_errors(sim, tr)
+        pose_error = getattr(built.get(name), "pose_error", "world")
+        pos, ticks, nees = _truth_errors(sim, tr, pose_error)
         out["estimators"][name] = {
+            "pose_error": pose_error,
             "rmse_m": float(np.sqrt(np.mean(pos * pos))),
             "nees_mean": float(nees.mean()) if len(nees) else math.nan,
             "runtime_s": r.runtime_s,

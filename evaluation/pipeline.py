@@ -57,7 +57,7 @@ def _ape_dict(a: metrics.Ape) -> dict:
     return {"position_m": _stats(a.position), "heading_deg": _stats(a.heading, math.degrees(1))}
 
 
-def _truth_scores(tr: Trajectory, truth: Trajectory) -> dict:
+def _truth_scores(tr: Trajectory, truth: Trajectory, pose_error: str = "world") -> dict:
     """ATE (three alignments), RPE and NEES of one track against the truth."""
     m: dict = {}
     a = metrics.ape(tr, truth, MAX_DIFF)
@@ -80,7 +80,7 @@ def _truth_scores(tr: Trajectory, truth: Trajectory) -> dict:
                     "heading_deg": _stats(yaw, math.degrees(1))} if pos.n else None
     m["rpe"] = rpe
     m["rpe_rmse_m"] = _num(rpe["1s"]["position_m"]["rmse"]) if rpe["1s"] else None
-    ns = metrics.nees_series(tr, truth, MAX_DIFF)
+    ns = metrics.nees_series(tr, truth, MAX_DIFF, pose_error)
     if len(ns.value):
         c = consistency.summarize(ns.value, ns.dof)
         m["nees_mean"] = _num(c.mean)
@@ -114,8 +114,10 @@ def _outage_scores(tr: Trajectory, outages: list[metrics.Outage], truth: Traject
     return out
 
 
-def score(result: RunResult, decode_s: float = 0.0) -> dict:
-    """The metrics dictionary of a run (see module docstring)."""
+def score(result: RunResult, decode_s: float = 0.0,
+          pose_errors: dict[str, str] | None = None) -> dict:
+    """The metrics dictionary of a run (see module docstring). ``pose_errors``: per track the
+    coordinates of its pose error (``Estimator.pose_error``; default 'world'), for the NEES."""
     stream = result.stream
     duration = stream.duration
     truth = result.truth
@@ -156,7 +158,7 @@ def score(result: RunResult, decode_s: float = 0.0) -> dict:
             "error": r.error,
         }
         if truth is not None and len(tr):
-            m.update(_truth_scores(tr, truth))
+            m.update(_truth_scores(tr, truth, (pose_errors or {}).get(name, "world")))
         if len(hold_t) and len(tr) > 1:
             e = metrics.holdout_errors(tr, hold_t, hold_xy)
             if len(e):
@@ -222,7 +224,8 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
     decode_s = stream.decode_s
     if names:  # keep only the tracks asked for ('smoother_lagged' alone drops 'smoother')
         result.runs = {k: v for k, v in result.runs.items() if k in set(names)}
-    out = score(result, decode_s)
+    out = score(result, decode_s,
+                {n: getattr(e, "pose_error", "world") for n, e in ests.items()})
     out["config"] = str(cfg.path) if cfg.path else None
     out["initial_pose"] = ("first ground-truth pose" if cfg.initial_pose == "ground_truth"
                            else list(pose) if pose else None)

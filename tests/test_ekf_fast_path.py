@@ -154,8 +154,9 @@ def _run_both(make, stream, compiled=True):
     return fast
 
 
-def _unicycle(cfg):
-    return lambda ref, compiled: UnicycleEkf(cfg, reference=ref, compiled=compiled)
+def _unicycle(cfg, pose_error="se2"):
+    return lambda ref, compiled: UnicycleEkf(cfg, reference=ref, compiled=compiled,
+                                             pose_error=pose_error)
 
 
 def _igvc(cfg, motion="euler", datum=None):
@@ -163,13 +164,15 @@ def _igvc(cfg, motion="euler", datum=None):
                                          datum=datum)
 
 
+@pytest.mark.parametrize("pose_error", ["se2", "world"])
 @pytest.mark.parametrize("compiled", PATHS)
 @pytest.mark.parametrize("estimate_offsets", [True, False])
 @pytest.mark.parametrize("rate", ["event", 10.0])
-def test_unicycle_fast_path_matches_reference(estimate_offsets, rate, compiled):
+def test_unicycle_fast_path_matches_reference(estimate_offsets, rate, compiled, pose_error):
     cfg = _config(estimate_offsets, rate)
     stream = _stream(1)
-    fast = _run_both(_unicycle(cfg), stream, compiled)
+    fast = _run_both(_unicycle(cfg, pose_error), stream, compiled)
+    assert fast.pose_error == pose_error and fast.estimate().pose_error == pose_error
     assert len(fast.state_names) == (9 if estimate_offsets else 5)
     kinds = {(i.kind, i.accepted) for i in fast.innovations}
     # every measurement model was used, and the gate rejected the GPS and heading outliers

@@ -176,3 +176,43 @@ def test_outage_drift_is_error_growth_per_metre():
     d = metrics.outage_drift(still, metrics.Outage(10.0, 30.0), ref.t, np.zeros((400, 2)), "x")
     assert d.drift_per_m is None and d.error_max_m == pytest.approx(1.195)
     assert metrics.outage_drift(est, metrics.Outage(50, 60), ref.t, ref.pose[:, :2], "x") is None
+
+
+def test_nees_in_se2_exponential_coordinates():
+    """pose_error='se2': the error is xi = Log(X_est^-1 X_ref) and its covariance A^-1 cov A^-T
+    (cov the first-order world image A P_xi A^T): a reference at X_est Exp(xi) scores exactly
+    xi^T P_xi^-1 xi, whatever the heading; 'world' scores the plain difference."""
+    from scipy.linalg import expm
+
+    rng = np.random.default_rng(2)
+    n = 40
+    est_pose = np.column_stack([rng.uniform(-9, 9, n), rng.uniform(-9, 9, n),
+                                rng.uniform(-math.pi, math.pi, n)])
+    xi = rng.normal(0.0, 1.0, (n, 3)) * (1.0, 0.5, 0.8)
+    L = np.array([[0.3, 0.0, 0.0], [0.1, 0.2, 0.0], [0.05, -0.02, 0.1]])
+    P_xi = L @ L.T
+    ref_pose = np.zeros((n, 3))
+    cov = np.zeros((n, 3, 3))
+    want = np.zeros(n)
+    for i in range(n):
+        x, y, p = est_pose[i]
+        X = np.array([[math.cos(p), -math.sin(p), x], [math.sin(p), math.cos(p), y], [0, 0, 1]])
+        r, s, th = xi[i]
+        Y = X @ expm(np.array([[0, -th, r], [th, 0, s], [0, 0, 0]]))
+        ref_pose[i] = (Y[0, 2], Y[1, 2], math.atan2(Y[1, 0], Y[0, 0]))
+        A = np.eye(3)
+        A[:2, :2] = [[math.cos(p), -math.sin(p)], [math.sin(p), math.cos(p)]]
+        cov[i] = A @ P_xi @ A.T
+        want[i] = xi[i] @ np.linalg.solve(P_xi, xi[i])
+    t = np.arange(n, dtype=float)
+    est = Trajectory(t, est_pose, cov)
+    ref = Trajectory(t, ref_pose, np.full((n, 3, 3), np.nan))
+    np.testing.assert_allclose(metrics.se2_log_errors(est_pose, ref_pose), xi, atol=1e-9)
+    np.testing.assert_allclose(metrics.nees(est, ref, 1e-9, pose_error="se2"), want, rtol=1e-8)
+    e = np.column_stack([est_pose[:, :2] - ref_pose[:, :2],
+                         metrics.wrap(est_pose[:, 2] - ref_pose[:, 2])])
+    world = [e[i] @ np.linalg.solve(cov[i], e[i]) for i in range(n)]
+    np.testing.assert_allclose(metrics.nees(est, ref, 1e-9, pose_error="world"), world,
+                               rtol=1e-8)
+    with pytest.raises(ValueError, match="pose_error must be"):
+        metrics.nees(est, ref, 1e-9, pose_error="body")

@@ -89,6 +89,9 @@ def test_gps_scenario_beats_dead_reckoning_and_is_reproducible(tmp_path):
     assert again["dr_rmse_m"] == first["dr_rmse_m"]
     other = next(r for r in mc["per_seed"] if r["seed"] == 0)
     assert other["estimators"]["ekf"]["rmse_m"] != first["estimators"]["ekf"]["rmse_m"]
+    # each estimator scored in its own error coordinates: the unicycle EKF's SE(2) ones
+    assert first["estimators"]["ekf"]["pose_error"] == "se2"
+    assert first["estimators"]["dr"]["pose_error"] == "world"
 
 
 def test_command_writes_json_and_markdown(tmp_path, capsys):
