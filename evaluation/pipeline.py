@@ -157,8 +157,10 @@ def score(result: RunResult, decode_s: float = 0.0,
             "events": r.log.messages[:20],
             "error": r.error,
         }
+        # the coordinates the NEES is scored in (the report's NEES plot reads them back)
+        m["pose_error"] = (pose_errors or {}).get(name, "world")
         if truth is not None and len(tr):
-            m.update(_truth_scores(tr, truth, (pose_errors or {}).get(name, "world")))
+            m.update(_truth_scores(tr, truth, m["pose_error"]))
         if len(hold_t) and len(tr) > 1:
             e = metrics.holdout_errors(tr, hold_t, hold_xy)
             if len(e):

@@ -355,7 +355,9 @@ def nees_inputs(run: SavedRun) -> tuple[dict, dict, dict]:
     if run.truth is None:
         return series, t, dof
     for name, tr in run.tracks.items():
-        ns = metrics.nees_series(tr, run.truth, 0.05)
+        # in the estimator's own error coordinates, as metrics.json scores it (older runs: world)
+        pe = (run.metrics.get("estimators", {}).get(name) or {}).get("pose_error", "world")
+        ns = metrics.nees_series(tr, run.truth, 0.05, pe)
         if len(ns.value):
             series[name], t[name] = [ns.value], ns.t - _t0(run)
             dof[name] = int(np.round(np.mean(ns.dof)))
