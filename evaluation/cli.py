@@ -190,6 +190,13 @@ def _print_summary(m: dict, out) -> None:
                 cells.append("-" if v is None else f"{v:.3f}")
         out.write(f"{name:16} " + "  ".join(f"{c:>18}" for c in cells)
                   + (f"  ERROR: {e['error']}" if e["error"] else "") + "\n")
+    w = m.get("wall_s")
+    if w:
+        est = ", ".join(f"{k} {v:.3f}" for k, v in w["estimators"].items())
+        out.write(f"wall time {_fmt(w['total'], '.3f')} s: startup {_fmt(w['startup'], '.3f')}, "
+                  f"decode {w['decode']:.3f}, build {w['build']:.3f}, {est}, runner "
+                  f"{w['runner']:.3f}, metrics {w['metrics']:.3f}, write {w['write']:.3f}"
+                  " (to metrics.json; the report after it not included)\n")
 
 
 def cmd_run(args: argparse.Namespace) -> int:
