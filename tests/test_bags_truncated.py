@@ -420,3 +420,20 @@ def test_cli_bench_on_a_truncated_bag_measures_what_was_read_and_exits_2(tmp_pat
     e = r["estimators"][0]
     assert e["estimator"] == "ekf" and e["error"] is None and e["peak_rss_mb"] > 0
     assert "ekf" in out
+
+
+@pytest.mark.parametrize("name", ["/imu/data", "imu/data", "//a//b/", "/", "a", "/a/b/c/",
+                                  "/husky_velocity_controller/odom"])
+def test_scanner_normalises_topics_as_rosbags(name):
+    from rosbags.rosbag1.reader import normalize
+
+    assert ros1_scan.normalize_topic(name) == normalize(name)
+
+
+@pytest.mark.parametrize("name", ["sensor_msgs/Imu", "sensor_msgs/msg/Imu", "pkg/action/Do",
+                                  "a//b/C", "Plain", "nav_msgs/Odometry",
+                                  "ddfuse_msgs/LandmarkObservation"])
+def test_scanner_normalises_msgtypes_as_rosbags(name):
+    from rosbags.typesys.msg import normalize_msgtype
+
+    assert ros1_scan.normalize_msgtype(name) == normalize_msgtype(name)
