@@ -12,13 +12,14 @@ from __future__ import annotations
 
 import math
 
+# imported here, not on first use: the first use may be an estimator's timed update
+from scipy.special import gammaincinv
+
 
 def ppf(p: float, dof: float) -> float:
     """The ``p`` quantile of the chi-square distribution with ``dof`` (> 0) degrees of freedom:
     0 at p = 0, inf at p = 1, NaN for p outside [0, 1], dof <= 0 or a NaN argument (as
     ``scipy.stats.chi2.ppf``)."""
-    from scipy.special import gammaincinv
-
     if not (dof > 0.0 and 0.0 <= p <= 1.0):  # NaN fails these comparisons too
         return math.nan
     return 2.0 * float(gammaincinv(dof / 2.0, p))
