@@ -60,10 +60,10 @@ def nis_band(dim: int) -> tuple[float, float]:
     """The two-sided ``NIS_BAND_P`` chi-square band of one NIS value of dimension ``dim``."""
     b = _BANDS.get(dim)
     if b is None:
-        from scipy.stats import chi2
+        from estimation import chi2
 
         a = (1.0 - NIS_BAND_P) / 2.0
-        b = _BANDS[dim] = (float(chi2.ppf(a, dim)), float(chi2.ppf(1.0 - a, dim)))
+        b = _BANDS[dim] = (chi2.ppf(a, dim), chi2.ppf(1.0 - a, dim))
     return b
 
 

@@ -20,14 +20,29 @@ import numpy as np
 from estimation.estimator import Estimate, Estimator, EstimatorLog
 from estimation.measurements import GpsFix, Stream
 
-_NAN9 = (math.nan,) * 9
+_NAN6 = (math.nan,) * 6
+# the 3x3 positions of the 6 packed values (xx, xy, xyaw, yy, yyaw, yawyaw), row-major
+_UNPACK = np.array((0, 1, 2, 1, 3, 4, 2, 4, 5))
+
+
+def _pack(c) -> tuple[float, ...]:
+    """The 6 distinct values of a 3x3 covariance, each off-diagonal the mean of its two (so an
+    exactly symmetric matrix, as every estimator here gives, is kept bit for bit)."""
+    v = np.asarray(c, float).ravel().tolist()
+    return (v[0], (v[1] + v[3]) * 0.5, (v[2] + v[6]) * 0.5, v[4], (v[5] + v[7]) * 0.5, v[8])
+
+
+def unpack_cov(packed: np.ndarray) -> np.ndarray:
+    """(N, 6) packed covariances (see TrackBuilder) -> (N, 3, 3)."""
+    return np.asarray(packed, float).reshape(-1, 6)[:, _UNPACK].reshape(-1, 3, 3)
 
 
 class TrackBuilder:
-    """Estimates appended one at a time, kept as compact columns (stamp, pose, 3x3 pose
-    covariance: 13 floats each) instead of objects with their state arrays: a 2 h run at 10 Hz
-    is 7 MB. ``last`` is the last Estimate appended, whole (its state too). Indexing gives
-    Estimates with t, pose and pose_cov (the last one: ``last`` itself)."""
+    """Estimates appended one at a time, kept as compact columns (stamp, pose, and the 6
+    distinct values of the symmetric 3x3 pose covariance: 10 floats each) instead of objects
+    with their state arrays: a 2 h run at 10 Hz is 5.8 MB. ``last`` is the last Estimate
+    appended, whole (its state too). Indexing gives Estimates with t, pose and pose_cov (the
+    last one: ``last`` itself)."""
 
     __slots__ = ("_t", "_pose", "_cov", "last")
 
@@ -41,7 +56,7 @@ class TrackBuilder:
         self._t.append(e.t)
         self._pose.extend(e.pose)
         c = e.pose_cov
-        self._cov.extend(_NAN9 if c is None else np.asarray(c, float).ravel().tolist())
+        self._cov.extend(_NAN6 if c is None else _pack(c))
         self.last = e
 
     def extend(self, estimates: Iterable[Estimate]) -> None:
@@ -65,19 +80,20 @@ class TrackBuilder:
         if i == n - 1 and self.last is not None:
             return self.last
         return Estimate(self._t[i], tuple(self._pose[3 * i:3 * i + 3]),
-                        np.array(self._cov[9 * i:9 * i + 9]).reshape(3, 3))
+                        unpack_cov(np.array(self._cov[6 * i:6 * i + 6]))[0])
 
     def __iter__(self):
         return (self[i] for i in range(len(self._t)))
 
     def trajectory(self) -> Trajectory:
         """The columns as a Trajectory, sharing their memory (no copy: appending to the builder
-        afterwards is an error)."""
+        afterwards is an error); its ``cov`` is unpacked to (N, 3, 3) when first read."""
         n = len(self._t)
         if not n:
             return Trajectory(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 3)))
-        return Trajectory(np.frombuffer(self._t, float), np.frombuffer(self._pose, float)
-                          .reshape(n, 3), np.frombuffer(self._cov, float).reshape(n, 3, 3))
+        return _PackedTrajectory(np.frombuffer(self._t, float),
+                                 np.frombuffer(self._pose, float).reshape(n, 3),
+                                 packed=np.frombuffer(self._cov, float).reshape(n, 6))
 
 
 @dataclass
@@ -115,6 +131,27 @@ class Trajectory:
 
     def __len__(self) -> int:
         return len(self.t)
+
+
+class _PackedTrajectory(Trajectory):
+    """A Trajectory whose covariances stay packed (TrackBuilder's 6 values per pose) until
+    ``cov`` is first read: a run that ends holds 10 floats per pose, not 13, until it is
+    scored. Otherwise a Trajectory like any other (``cov`` can be read and set)."""
+
+    def __init__(self, t: np.ndarray, pose: np.ndarray, cov: np.ndarray | None = None, *,
+                 packed: np.ndarray | None = None) -> None:
+        self.t, self.pose = t, pose
+        self._cov, self._packed = cov, packed
+
+    @property
+    def cov(self) -> np.ndarray:
+        if self._cov is None:
+            self._cov, self._packed = unpack_cov(self._packed), None
+        return self._cov
+
+    @cov.setter
+    def cov(self, value: np.ndarray) -> None:
+        self._cov, self._packed = value, None
 
 
 @dataclass

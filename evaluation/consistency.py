@@ -30,8 +30,8 @@ from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
-from scipy.stats import chi2
 
+from estimation import chi2
 from estimation.estimator import NIS_BAND_P, InnovationLog
 
 BAND_P = NIS_BAND_P  # two-sided probability of the band
@@ -46,7 +46,7 @@ def chi2_band(dof: float, n_avg: int = 1, p: float = BAND_P) -> tuple[float, flo
     runs otherwise: chi2(n dof) / n)."""
     a = (1.0 - p) / 2.0
     k = n_avg * dof
-    return float(chi2.ppf(a, k)) / n_avg, float(chi2.ppf(1.0 - a, k)) / n_avg
+    return chi2.ppf(a, k) / n_avg, chi2.ppf(1.0 - a, k) / n_avg
 
 
 def verdict(outside: float, ratio: float, n: int) -> str | None:

@@ -17,12 +17,21 @@ Per estimator (track), metrics.json holds:
 * ``gps_outages``: error growth per metre travelled over each GPS outage (``metrics.gps_outages``);
 * ``nis``: per 'sensor kind', NIS consistency and the gate's accept/reject counts
   (``evaluation.consistency``); ``rejected`` (sensor: reason -> count), ``events``, ``error``.
+
+At the top level, ``wall_s`` splits the wall time of the whole job (``timing_split``): how
+long the process ran before ``run_bag`` (interpreter start, imports, config), decoding,
+building the estimators (numba kernels loaded, ISAM2 set up), each estimator's calls, the
+runner's own per-message work, scoring, writing the outputs, and the process's age when
+metrics.json is written. Like ``decode_s``, ``runtime_s``, ``rtf`` and ``update_ms`` these are
+timings: they differ between runs of the same bag, every other value does not.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import os
+import time
 from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
@@ -40,6 +49,44 @@ from evaluation.results import save_run
 
 MAX_DIFF = 0.05  # s: association of estimate and truth stamps (truth at >= 10 Hz)
 RPE_DELTAS = (("1s", 1.0, "s"), ("10m", 10.0, "m"))
+
+
+def process_age() -> float | None:
+    """Seconds since this process started (Linux: its start time in /proc, 10 ms
+    resolution); None where that cannot be read."""
+    try:
+        with open("/proc/self/stat") as f:
+            # field 22, counted after the command name (which may hold spaces) closes with ')'
+            start_ticks = int(f.read().rsplit(")", 1)[1].split()[19])
+        with open("/proc/uptime") as f:
+            uptime = float(f.read().split()[0])
+        return max(0.0, uptime - start_ticks / os.sysconf("SC_CLK_TCK"))
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def timing_split(*, startup: float | None, decode: float, build: float, loop: float,
+                 loop_decode: float, runtimes: dict[str, float], scoring: float,
+                 writing: float) -> dict:
+    """The ``wall_s`` dictionary of metrics.json, seconds rounded to 0.1 ms.
+
+    In: ``startup`` (process age when run_bag began; None if unknown), ``decode`` (all of the
+    stream's decoding: opening, priming, and the share in the loop), ``build`` (from run_bag's
+    start to the loop, less the decoding in it), ``loop`` (wall time of ``runner.run``),
+    ``loop_decode`` (its share of the decoding), ``runtimes`` (estimator -> time in its calls),
+    ``scoring``, ``writing``. Out: those, plus ``runner`` (the loop less its decoding and the
+    estimators' calls: the runner's own per-message work) and ``total`` (the sum: the wall time
+    from the process's start to metrics.json)."""
+    runner = loop - loop_decode - sum(runtimes.values())
+    parts = [decode, build, runner, *runtimes.values(), scoring, writing]
+    total = sum(parts) + (startup or 0.0)
+
+    def r4(v: float | None) -> float | None:
+        return None if v is None else round(float(v), 4)
+
+    return {"startup": r4(startup), "decode": r4(decode), "build": r4(build),
+            "estimators": {k: r4(v) for k, v in runtimes.items()}, "runner": r4(runner),
+            "metrics": r4(scoring), "write": r4(writing), "total": r4(total)}
 
 
 def _num(v) -> float | None:
@@ -210,6 +257,8 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
 
     On a damaged or truncated bag the results of what could be read are written, then BagError
     is raised with ``results_written`` set."""
+    clock = time.perf_counter
+    t_enter, startup = clock(), process_age()
     outdir = Path(outdir)
     chosen = registry.select(cfg, names)
     parse_holdout(holdout)  # a bad spec fails before any decoding
@@ -218,12 +267,16 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
     pose = initial_pose(cfg.initial_pose, stream)
     lag = lag if lag is not None else cfg.smoother.lag
     ests = {n: registry.SPECS[n].build(cfg, stream, pose, lag) for n in chosen}
+    decode_before = stream.decode_s
+    t_built = clock()
     result = run(stream, ests, holdout=holdout,
                  progress=(lambda f: progress("decode + estimate", f)) if progress else None)
+    t_ran = clock()
     input_error = stream.error
     if input_error is not None and not result.messages:
         raise BagError(input_error)
     decode_s = stream.decode_s
+    runtimes = {n: result.runs[n].runtime_s for n in ests if n in result.runs}
     if names:  # keep only the tracks asked for ('smoother_lagged' alone drops 'smoother')
         result.runs = {k: v for k, v in result.runs.items() if k in set(names)}
     out = score(result, decode_s,
@@ -236,7 +289,13 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
     out["input_error"] = input_error
     out["data"] = data_facts(result, cfg)
     config_text = cfg.path.read_text(errors="replace") if cfg.path else None
-    write_outputs(result, outdir, out, config_text)
+    t_scored = clock()
+    save_run(result, outdir, config_text)
+    out["wall_s"] = timing_split(
+        startup=startup, decode=decode_s, build=t_built - t_enter - decode_before,
+        loop=t_ran - t_built, loop_decode=decode_s - decode_before, runtimes=runtimes,
+        scoring=t_scored - t_ran, writing=clock() - t_scored)
+    _write_metrics(outdir, out)
     if input_error:
         err = BagError(f"{input_error}; results for the {stream.duration:.1f} s that could be "
                        f"read are in {outdir}")
@@ -249,4 +308,8 @@ def write_outputs(result: RunResult, outdir: Path, metrics_dict: dict,
                   config_text: str | None = None) -> None:
     """metrics.json, the trajectories (TUM, CSV) and run.npz into ``outdir``."""
     save_run(result, outdir, config_text)
+    _write_metrics(outdir, metrics_dict)
+
+
+def _write_metrics(outdir: Path, metrics_dict: dict) -> None:
     (outdir / "metrics.json").write_text(json.dumps(metrics_dict, indent=2) + "\n")

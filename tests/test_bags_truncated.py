@@ -420,3 +420,89 @@ def test_cli_bench_on_a_truncated_bag_measures_what_was_read_and_exits_2(tmp_pat
     e = r["estimators"][0]
     assert e["estimator"] == "ekf" and e["error"] is None and e["peak_rss_mb"] > 0
     assert "ekf" in out
+
+
+@pytest.mark.parametrize("name", ["/imu/data", "imu/data", "//a//b/", "/", "a", "/a/b/c/",
+                                  "/husky_velocity_controller/odom"])
+def test_scanner_normalises_topics_as_rosbags(name):
+    from rosbags.rosbag1.reader import normalize
+
+    assert ros1_scan.normalize_topic(name) == normalize(name)
+
+
+@pytest.mark.parametrize("name", ["sensor_msgs/Imu", "sensor_msgs/msg/Imu", "pkg/action/Do",
+                                  "a//b/C", "Plain", "nav_msgs/Odometry",
+                                  "ddfuse_msgs/LandmarkObservation"])
+def test_scanner_normalises_msgtypes_as_rosbags(name):
+    from rosbags.typesys.msg import normalize_msgtype
+
+    assert ros1_scan.normalize_msgtype(name) == normalize_msgtype(name)
+
+
+def _scan_items(path, monkeypatch=None, fast=True):
+    if not fast:
+        monkeypatch.setattr(ros1_scan, "_MSG_HLEN", -1)  # every header through _fields
+    try:
+        return [(type(i).__name__, i.conn.id, i.time_ns, i.data) if type(i) is ros1_scan.Message
+                else ("conn", i.id, i.topic, i.msgtype) for i in ros1_scan.Ros1Scan(path)]
+    finally:
+        if not fast:
+            monkeypatch.undo()
+
+
+def test_message_header_fast_path_reads_both_layouts_as_the_field_parser(monkeypatch):
+    """A chunk holding message records in the C++ recorder's header layout (time, conn, op),
+    in rosbags' (op, conn, time) and in an unusual order (conn, time, op): the one-unpack fast
+    path and the general field parser give the same messages, stamps and connections."""
+    def field(name, value):
+        return struct.pack("<I", len(name) + 1 + len(value)) + name + b"=" + value
+
+    def record(fields, data):
+        head = b"".join(fields)
+        return struct.pack("<I", len(head)) + head + struct.pack("<I", len(data)) + data
+
+    conn_hdr = [field(b"op", b"\x07"), field(b"conn", struct.pack("<I", 3)),
+                field(b"topic", b"/x")]
+    conn_data = b"".join([field(b"topic", b"/x"), field(b"type", b"std_msgs/Empty"),
+                          field(b"md5sum", b"0" * 32), field(b"message_definition", b"")])
+    recs = [record(conn_hdr, conn_data)]
+    for i, order in enumerate((("time", "conn", "op"), ("op", "conn", "time"),
+                               ("conn", "time", "op"))):
+        vals = {"op": b"\x02", "conn": struct.pack("<I", 3),
+                "time": struct.pack("<II", 1_700_000_000 + i, 1000 * i)}
+        recs.append(record([field(k.encode(), vals[k]) for k in order], bytes([i]) * (5 + i)))
+    buf = b"".join(recs)
+    scan = ros1_scan.Ros1Scan.__new__(ros1_scan.Ros1Scan)
+    scan.status, scan.connections = ros1_scan.ScanStatus(file_size=0), {}
+
+    def items():
+        return [(type(x).__name__, x.time_ns, x.data) if type(x) is ros1_scan.Message
+                else ("conn", x.id, x.topic) for x in scan._chunk_records(buf)]
+
+    parsed = []
+    real_fields = ros1_scan._fields
+    monkeypatch.setattr(ros1_scan, "_fields",
+                        lambda b, a, e: parsed.append(e - a) or real_fields(b, a, e))
+    fast = items()
+    # only the connection record (its header and data) and the unusual layout were parsed
+    assert len(parsed) == 3
+    scan.connections = {}
+    monkeypatch.setattr(ros1_scan, "_MSG_HLEN", -1)
+    slow = items()
+    assert fast == slow
+    assert [x[1] for x in fast[1:]] == [1_700_000_000_000_000_000, 1_700_000_001_000_001_000,
+                                        1_700_000_002_000_002_000]
+    assert [x[2] for x in fast[1:]] == [b"\0" * 5, b"\1" * 6, b"\2" * 7]
+
+
+def test_message_header_fast_path_equals_field_parser_on_sample_bag(monkeypatch):
+    assert _scan_items(SAMPLE) == _scan_items(SAMPLE, monkeypatch, fast=False)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["rl_husky_gps.bag", "mrclam1_robot1.bag", "rl_jackal.bag"])
+def test_message_header_fast_path_equals_field_parser_on_real_bags(name, monkeypatch):
+    from conftest import shared_bag
+
+    path = shared_bag(name)
+    assert _scan_items(path) == _scan_items(path, monkeypatch, fast=False)

@@ -3,6 +3,7 @@ traceback. (Only `inspect` reads a bag today; `run` with a config will join thes
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -122,3 +123,19 @@ def test_command_line_exit_code_and_stderr(tmp_path):
     assert r.stdout == ""
     assert r.stderr.strip("\n").count("\n") == 0 and str(p) in r.stderr
     assert r.stderr.startswith("ddfuse: error: ")
+
+
+def test_command_line_run_writes_everything_before_its_fast_exit(tmp_path):
+    """The real process ends with os._exit after main: its stdout (piped, so buffered) and
+    every output file must be complete, and the exit status main's."""
+    out = tmp_path / "out"
+    r = subprocess.run([sys.executable, "-m", "evaluation.cli", "run", "--estimators", "ekf",
+                        "--no-report", "-o", str(out)],
+                       cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.rstrip().endswith("no report (--no-report)")
+    assert "wall time" in r.stdout
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["wall_s"]["total"] > 0 and m["estimators"]["ekf"]["samples"] > 0
+    rows = (out / "ekf.csv").read_text().splitlines()
+    assert len(rows) == m["estimators"]["ekf"]["samples"] + 1

@@ -171,3 +171,29 @@ def test_run_on_a_damaged_bag_reports_what_was_read(tmp_path, capsys):
     page = (out / "report.html").read_text()
     assert "The bag is damaged; these results cover what could be read" in page
     assert json.loads((out / "metrics.json").read_text())["duration_s"] < 100
+
+
+@pytest.mark.parametrize("n", [0, 1, 7, 3000])
+def test_track_files_are_byte_for_byte_what_savetxt_wrote(tmp_path, n):
+    """write_tum/write_csv format all rows in one go; the files must stay exactly those of
+    np.savetxt with the formats they always had (NaN and inf included)."""
+    from estimation.runner import Trajectory
+    from evaluation import export
+
+    rng = np.random.default_rng(n)
+    t = 1.7e9 + np.cumsum(rng.random(n))
+    pose, cov = rng.normal(size=(n, 3)) * 100, rng.normal(size=(n, 3, 3))
+    if n > 3:
+        cov[2], pose[1, 2], pose[3, 0] = np.nan, np.nan, np.inf
+    tr = Trajectory(t, pose, cov)
+    export.write_tum(tmp_path / "a.tum", tr)
+    export.write_csv(tmp_path / "a.csv", tr)
+    yaw = np.nan_to_num(pose[:, 2])
+    z = np.zeros(n)
+    np.savetxt(tmp_path / "b.tum", np.column_stack([t, pose[:, 0], pose[:, 1], z, z, z,
+                                                    np.sin(yaw / 2), np.cos(yaw / 2)]),
+               fmt="%.9f %.6f %.6f %.6f %.9f %.9f %.9f %.9f")
+    np.savetxt(tmp_path / "b.csv", np.column_stack([t, pose, cov.reshape(n, 9)]), delimiter=",",
+               header=",".join(export.CSV_COLUMNS), comments="", fmt=["%.9f"] + ["%.10g"] * 12)
+    for ext in ("tum", "csv"):
+        assert (tmp_path / f"a.{ext}").read_bytes() == (tmp_path / f"b.{ext}").read_bytes()
