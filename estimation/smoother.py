@@ -53,8 +53,8 @@ from functools import lru_cache
 
 import gtsam
 import numpy as np
-from scipy.stats import chi2
 
+from estimation import chi2
 from estimation.config import (
     DEFAULT_GATE,
     DEFAULT_LOCKOUT_COUNT,
@@ -294,7 +294,7 @@ class FixedLagSmoother(Estimator):
         self._buf_fixes: tuple[GpsFix, GpsFix] | None = None  # its first and last GPS fix
         self.k = -1  # index of the newest keyframe
         self.kf_t: dict[int, float] = {}  # keyframes in the window
-        self.all_kf_t: dict[int, float] = {}  # every keyframe of the run
+        self.all_kf_t: dict[int, float] = {}  # every keyframe of the run (keep_all only)
         self.kf_state: np.ndarray | None = None  # newest keyframe's estimate
         self.kf_cov: np.ndarray | None = None  # its 3x3 pose marginal (world frame)
         self.last_t: float | None = None
@@ -353,7 +353,8 @@ class FixedLagSmoother(Estimator):
         self.pending_values.insert(key, x0)
         self.pending_stamps[key] = t
         self.kf_t[self.k] = t
-        self.all_kf_t[self.k] = t
+        if self.keep_all:
+            self.all_kf_t[self.k] = t
         self.kf_state = x0
         self.kf_cov = np.diag(np.square(sig[:3]))
         self.pim.reset(x0[BG], x0[KV], x0[KW])
@@ -615,7 +616,8 @@ class FixedLagSmoother(Estimator):
         self.pending_values.insert(kj, guess)
         self.pending_stamps[kj] = t
         self.kf_t[j] = t
-        self.all_kf_t[j] = t
+        if self.keep_all:  # only the batch needs every stamp; the window's are in kf_t
+            self.all_kf_t[j] = t
         self.k = j
         self.kf_state, self.kf_cov = guess, cov
         rows = []
