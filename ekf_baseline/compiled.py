@@ -20,7 +20,6 @@ changed.
 
 from __future__ import annotations
 
-import hashlib
 import math
 import time
 from pathlib import Path
@@ -36,6 +35,7 @@ from ekf_baseline.kalman import (
     chi2_threshold,
 )
 from estimation.estimator import EstimatorLog
+from factors.jitcache import guard_cache
 
 __all__ = ["BufferedLog", "JitKalmanCore", "available", "kernels", "warm_up", "COLD_COMPILE"]
 
@@ -72,25 +72,9 @@ def available() -> bool:
 
 def _guard_cache() -> None:
     """Drop numba's cached kernels when a source they compile changed (numba checks only the
-    time stamp of kalman_jit.py). The hash of the sources is kept beside the cache."""
-    h = hashlib.sha256()
-    for rel in _KERNEL_SOURCES:
-        h.update((_ROOT / rel).read_bytes())
-    digest = h.hexdigest()
-    cache = _ROOT / "ekf_baseline" / "__pycache__"
-    stamp = cache / "kalman_jit.sources.sha256"
-    try:
-        if stamp.read_text() == digest:
-            return
-    except OSError:
-        pass
-    try:
-        cache.mkdir(exist_ok=True)
-        for f in cache.glob("kalman_jit.*.nb[ic]"):
-            f.unlink(missing_ok=True)
-        stamp.write_text(digest)
-    except OSError:  # read-only tree: numba falls back to its user cache; nothing to guard
-        pass
+    time stamp of kalman_jit.py; ``factors.jitcache``)."""
+    guard_cache((_ROOT / rel for rel in _KERNEL_SOURCES), _ROOT / "ekf_baseline" / "__pycache__",
+                "kalman_jit")
 
 
 def kernels():

@@ -19,13 +19,13 @@ names, so everything but ``integrate`` (``delta_at``, ``predict``, ``covariance`
 
 from __future__ import annotations
 
-import hashlib
 from pathlib import Path
 
 import numpy as np
 from numba import njit
 from numba.extending import register_jitable
 
+from factors.jitcache import guard_cache
 from factors.kinematics import se2_step_jac, twist_coeffs
 from factors.preintegration import WheelGyroPreintegration
 
@@ -37,26 +37,9 @@ _KERNEL_SOURCES = ("preintegration_jit.py", "kinematics.py")
 
 
 def _guard_cache() -> None:
-    """Drop numba's cached kernel when a source it compiles changed (as
-    ``ekf_baseline.compiled._guard_cache``); the sources' hash is kept beside the cache."""
-    h = hashlib.sha256()
-    for rel in _KERNEL_SOURCES:
-        h.update((_HERE / rel).read_bytes())
-    digest = h.hexdigest()
-    cache = _HERE / "__pycache__"
-    stamp = cache / "preintegration_jit.sources.sha256"
-    try:
-        if stamp.read_text() == digest:
-            return
-    except OSError:
-        pass
-    try:
-        cache.mkdir(exist_ok=True)
-        for f in cache.glob("preintegration_jit.*.nb[ic]"):
-            f.unlink(missing_ok=True)
-        stamp.write_text(digest)
-    except OSError:  # read-only tree: numba falls back to its user cache; nothing to guard
-        pass
+    """Drop numba's cached kernel when a source it compiles changed (``factors.jitcache``)."""
+    guard_cache((_HERE / rel for rel in _KERNEL_SOURCES), _HERE / "__pycache__",
+                "preintegration_jit")
 
 
 _guard_cache()  # before the kernel below is first called (numba loads its cache lazily)
