@@ -48,16 +48,7 @@ for _f in (twist_coeffs, se2_step_jac):
     register_jitable(_f)
 
 # the reference class's float attributes, in array order ("n" is stored as a float)
-SLOTS = (
-    "bg_lin", "kv_lin", "kw_lin",
-    "dx", "dy", "dpsi", "dt_total",
-    "c_xx", "c_xy", "c_xp", "c_yy", "c_yp", "c_pp",
-    "j_x", "j_y", "j_p",
-    "kv_x", "kv_y",
-    "kw_x", "kw_y", "kw_p",
-    "last_v", "last_w_gyro", "last_w_odo", "last_var_v", "last_var_w", "last_gain",
-    "n",
-)
+SLOTS = tuple(a for a in WheelGyroPreintegration.__slots__ if a not in ("samples", "keep_samples"))
 (BG_LIN, KV_LIN, KW_LIN, DX, DY, DPSI, DT_TOTAL, C_XX, C_XY, C_XP, C_YY, C_YP, C_PP, J_X, J_Y,
  J_P, KV_X, KV_Y, KW_X, KW_Y, KW_P, LAST_V, LAST_W_GYRO, LAST_W_ODO, LAST_VAR_V, LAST_VAR_W,
  LAST_GAIN, N) = range(len(SLOTS))
