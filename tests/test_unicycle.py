@@ -252,6 +252,28 @@ def test_se2_retract_and_log_are_inverse_and_match_the_group():
         np.testing.assert_allclose(back, d, atol=1e-10)
 
 
+def _check_predict_jacobian(ekf, x0, dt, pose_error):
+    """ekf._F of a ``dt`` s prediction from state ``x0`` (with any P) against central
+    differences through the pose-error chart; returns the predicted state."""
+    n = len(x0)
+
+    def step(xv):
+        ekf.kf.x = np.array(xv, dtype=float)
+        ekf.kf.P = np.eye(n)
+        ekf.t = 0.0
+        ekf._predict_to(dt)
+        return ekf.kf.x.copy()
+
+    x1 = step(x0)
+    to_state, _ = _error_chart(pose_error, x0)
+    _, error = _error_chart(pose_error, x0, x1)
+    F_num = _numeric_jac(lambda d: error(step(to_state(d))), np.zeros(n))
+    ekf.kf.x, ekf.kf.P, ekf.t = x0.copy(), np.zeros((n, n)), 0.0
+    ekf._predict_to(dt)
+    np.testing.assert_allclose(ekf._F, F_num, atol=1e-7)
+    return x1
+
+
 @pytest.mark.parametrize("pose_error", ["world", "se2"])
 @pytest.mark.parametrize("motion", ["exact", "euler"])
 @pytest.mark.parametrize("w", [0.0, 1e-4, 0.6])
@@ -265,21 +287,7 @@ def test_predict_jacobian_matches_central_differences(motion, w, pose_error):
     ekf.process(GyroYawRate(0.0, 0.0, 1e-4, sensor="/imu"))
     assert ekf.state_names == ("x", "y", "psi", "v", "w", "bg", "hoff")
     x0 = np.array([1.0, -2.0, 2.5, 1.3, w, 0.01, 0.3])
-    dt = 0.37
-
-    def step(xv):
-        ekf.kf.x = np.array(xv, dtype=float)
-        ekf.kf.P = np.eye(7)
-        ekf.t = 0.0
-        ekf._predict_to(dt)
-        return ekf.kf.x.copy()
-
-    to_state, _ = _error_chart(pose_error, x0)
-    _, error = _error_chart(pose_error, x0, step(x0))
-    F_num = _numeric_jac(lambda d: error(step(to_state(d))), np.zeros(7))
-    ekf.kf.x, ekf.kf.P, ekf.t = x0.copy(), np.zeros((7, 7)), 0.0
-    ekf._predict_to(dt)
-    np.testing.assert_allclose(ekf._F, F_num, atol=1e-7)
+    _check_predict_jacobian(ekf, x0, 0.37, pose_error)
 
 
 def _scaled_cfg(**extra_sensors):
@@ -302,21 +310,7 @@ def test_predict_jacobian_with_scale_states_matches_central_differences(w, pose_
     assert ekf.state_names == ("x", "y", "psi", "v_odo", "w_odo", "k_v", "k_w")
     x0 = np.array([1.0, -2.0, 2.5, 1.3, w, 1.03, 0.96])
     dt = 0.37
-
-    def step(xv):
-        ekf.kf.x = np.array(xv, dtype=float)
-        ekf.kf.P = np.eye(7)
-        ekf.t = 0.0
-        ekf._predict_to(dt)
-        return ekf.kf.x.copy()
-
-    x1 = step(x0)
-    to_state, _ = _error_chart(pose_error, x0)
-    _, error = _error_chart(pose_error, x0, x1)
-    F_num = _numeric_jac(lambda d: error(step(to_state(d))), np.zeros(7))
-    ekf.kf.x, ekf.kf.P, ekf.t = x0.copy(), np.zeros((7, 7)), 0.0
-    ekf._predict_to(dt)
-    np.testing.assert_allclose(ekf._F, F_num, atol=1e-7)
+    x1 = _check_predict_jacobian(ekf, x0, dt, pose_error)
     # Q is the true-twist Q with the (u, om) rows and columns divided by (k_v, k_w); for the
     # se2 error, mapped by A1^-1 = blockdiag(R(psi1)^T, I) (the chart at the predicted pose)
     Qt = np.zeros((5, 5))
