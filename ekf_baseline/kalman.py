@@ -94,6 +94,7 @@ import numpy as np
 from estimation import chi2
 from estimation.config import DEFAULT_LOCKOUT_COUNT, DEFAULT_LOCKOUT_TIME
 from estimation.estimator import EstimatorLog, Innovation
+from estimation.lockout import DEFAULT_RECOVERY_HOLDOFF, inflation
 
 __all__ = [
     "KalmanCore",
@@ -103,8 +104,6 @@ __all__ = [
     "DEFAULT_RECOVERY_HOLDOFF",
 ]
 
-DEFAULT_RECOVERY_HOLDOFF = 10.0  # s before a second recovery of the same (sensor, kind); doubles
-MAX_INFLATION = 1e12  # largest covariance scale factor tried by the recovery
 # update_sparse evaluates the Joseph form expanded when eig_min(S^-1 R) is at least this (the
 # measurement leaves >= 1e-6 of the prior variance in every direction it observes)
 JOSEPH_EXPANDED_MIN = 1e-6
@@ -617,29 +616,12 @@ class KalmanCore:
     def _recover(self, t, sensor, kind, y, H, R) -> None:
         """Inflate P so that innovation ``y`` (m,) of block (H (m, n), R (m, m)) is ordinary
         (NIS = m)."""
-        m = y.shape[0]
         P = self.P
-        A = H @ P @ H.T
-        target = float(m)
-
-        def nis_at(alpha: float) -> float:
-            return float(y @ np.linalg.solve(alpha * A + R, y))
-
-        if nis_at(MAX_INFLATION) <= target:
-            # NIS(alpha) decreases monotonically in alpha: bisect on log(alpha)
-            lo, hi = 0.0, math.log(MAX_INFLATION)
-            for _ in range(60):
-                mid = 0.5 * (lo + hi)
-                if nis_at(math.exp(mid)) > target:
-                    lo = mid
-                else:
-                    hi = mid
-            alpha = math.exp(hi)
-            self.P = P * alpha
-        else:
-            alpha = MAX_INFLATION
-            d = np.linalg.pinv(H) @ y  # minimum-norm state error explaining the innovation
-            self.P = P * alpha + np.outer(d, d)
+        alpha, rest = inflation(y, H @ P @ H.T, R)
+        self.P = P * alpha
+        if rest is not None:
+            d = np.linalg.pinv(H) @ rest  # minimum-norm state error explaining the innovation
+            self.P += np.outer(d, d)
         self._symmetrize()
         key = (sensor, kind)
         streak = self._streak[key]

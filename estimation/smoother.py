@@ -15,7 +15,9 @@ velocity and biases as states): one 9-vector key per keyframe,
   its whole period T, so its variance enters as a density var * T (per step of dt: var * T / dt);
 * a GPS fix is a GPS factor (lever arm; motion-compensated when it does not fall on the keyframe;
   robust noise from the config), unless its innovation against the prediction fails the
-  sensor's chi-square gate (as in the EKF, with the same lock-out rule);
+  sensor's chi-square gate (as in the EKF). A gate lock-out (``estimation.lockout``) is
+  recovered from as the EKFs do, by widening the belief until the fix is ordinary: here a link
+  factor to a new keyframe at the fix (``FixedLagSmoother._widen``);
 * with both a gyro and an odometry yaw rate, the mean gyro rate minus k_w times the mean
   odometry rate over the interval is a measurement of the gyro bias, which the fused rate alone
   would not carry (``factors.gyro.bias_difference_factor``; its residual is whitened by a
@@ -57,13 +59,12 @@ import numpy as np
 from estimation import chi2
 from estimation.config import (
     DEFAULT_GATE,
-    DEFAULT_LOCKOUT_COUNT,
-    DEFAULT_LOCKOUT_TIME,
     GIVEN_POSE_STD,
     Config,
     SensorConfig,
 )
 from estimation.estimator import Estimate, Estimator, Innovation, wrap_angle
+from estimation.lockout import Lockout, inflation
 from estimation.measurements import (
     GpsFix,
     GyroYawRate,
@@ -81,6 +82,7 @@ from factors.linear import heading_row, linear_state_factor
 from factors.preintegration import WheelGyroPreintegration, preintegrated_factor
 from factors.state import BG, DIM, HOFF, KV, KW, NAMES, PSI
 
+_ACCEPT, _REJECT, _RECOVER = 0, 1, 2  # verdicts of the GPS gate (FixedLagSmoother._gate)
 MIN_KEYFRAME_DT = 0.1  # s: closer absolute measurements share a keyframe
 INIT_DISTANCE = 5.0  # m of GPS travel before the heading is taken from the GPS course
 # m/sqrt(s), m/sqrt(s), rad/sqrt(s): the least pose noise between keyframes (see
@@ -313,7 +315,11 @@ class FixedLagSmoother(Estimator):
         self._h_sensor, self._h_ref, self._h_sum, self._h_var = "", 0.0, 0.0, 0.0
         self._held: list = []  # messages since the last odometry sample, waiting for the next
         self._now = -math.inf  # stamp of the newest message seen
-        self._streak: dict[str, tuple[float, int]] = {}  # sensor -> (first t, gate rejections)
+        self._lockout = Lockout()  # GPS gate streaks per sensor (estimation.lockout)
+        self._landmark_t = -math.inf  # stamp of the newest landmark sighting fused
+        self._full: np.ndarray | None = None  # newest keyframe's (DIM, DIM) marginal
+        self._skip_in_batch: int | None = None  # pending factor the batch leaves out (_widen)
+        self._batch_only: list = []  # factors for the batch alone, sent with the pending ones
         self.pending_graph = gtsam.NonlinearFactorGraph()
         self.pending_values = gtsam.Values()
         self.pending_stamps: dict[int, float] = {}
@@ -356,7 +362,8 @@ class FixedLagSmoother(Estimator):
         if self.keep_all:
             self.all_kf_t[self.k] = t
         self.kf_state = x0
-        self.kf_cov = np.diag(np.square(sig[:3]))
+        self.kf_cov = cov0[:3, :3].copy()
+        self._full = cov0
         self.pim.reset(x0[BG], x0[KV], x0[KW])
         self._h_n = 0
         self.initialised = True
@@ -512,8 +519,11 @@ class FixedLagSmoother(Estimator):
         e, n = m.enu[0], m.enu[1]
         if k == self.k and self.kf_state is not None:
             nis = self._gps_innovation(m, e, n, s.lever_arm, dt)
-            if not self._gate(m, s, nis):
+            verdict = self._gate(m, s, nis)
+            if verdict == _REJECT:
                 return
+            if verdict == _RECOVER:
+                k = self._widen(m, s, dt)
         if s.lever_arm == (0.0, 0.0) and abs(dt) < 1e-9:
             # On the keyframe and without a lever arm the fix is linear in the state: the
             # built-in prior with zero precision on unmeasured components is the same factor
@@ -527,25 +537,81 @@ class FixedLagSmoother(Estimator):
         else:
             self._add(gps_factor(self.key(k), e, n, _robust(self.cfg, s, sig), s.lever_arm, dt))
 
-    def _gate(self, m: GpsFix, s: SensorConfig, nis: float) -> bool:
-        """Whether to fuse a fix with innovation ``nis`` (logged; rejections counted): not when
-        it fails the sensor's chi-square gate, as in the EKF, unless the lock-out rule of
-        ``estimation.config`` says the estimate, not the GPS, is what is wrong."""
+    def _gate(self, m: GpsFix, s: SensorConfig, nis: float) -> int:
+        """The gate's verdict on a fix with innovation ``nis``, as in the EKF: _ACCEPT, _REJECT
+        (logged, counted) or _RECOVER, a lock-out (``estimation.lockout``) that no landmark
+        sighting since the rejections began contradicts: the estimate, not the GPS, is wrong."""
         if s.gate is None or nis <= _gate_radius(s.gate, 2) ** 2:
-            self._streak.pop(m.sensor, None)
-            return True
-        first, count = self._streak.get(m.sensor, (m.t, 0))
-        count += 1
-        if count >= DEFAULT_LOCKOUT_COUNT and m.t - first >= DEFAULT_LOCKOUT_TIME:
-            self._streak.pop(m.sensor, None)
-            self.log.rejected[(m.sensor, "lockout_recovery")] += 1
+            self._lockout.accepted(m.sensor)
+            return _ACCEPT
+        if self._lockout.rejected(m.sensor, m.t):
+            count, first = self._lockout.streak(m.sensor)
+            if self._landmark_t < first:
+                return _RECOVER
+            wait = self._lockout.corroborated(m.sensor, m.t)
             self.log.note(m.t, f"{m.sensor}: {count} fixes in a row failed the gate over "
-                          f"{m.t - first:.1f} s; fusing again (the estimate is lost)")
-            return True
-        self._streak[m.sensor] = (first, count)
+                          f"{m.t - first:.1f} s while landmark sightings were fused: the GPS "
+                          f"disagrees with them, not recovering (checked again in {wait:.0f} s)")
         self.log.rejected[(m.sensor, "gate")] += 1
         self.log.innovations[-1].accepted = False
-        return False
+        return _REJECT
+
+    def _widen(self, m: GpsFix, s: SensorConfig, dt: float) -> int:
+        """Recover from a gate lock-out on fix ``m`` (``dt`` s from the newest keyframe) as the
+        EKFs do, by widening the belief by the smallest factor alpha that makes the fix's
+        innovation ordinary (``estimation.lockout.inflation``), here inside the graph: the fix
+        goes on a new keyframe at the same stamp, tied to the newest one by a zero-mean link with
+        covariance (alpha - 1) times the newest keyframe's marginal of the motion states, so its
+        marginal is the widened one while the window stays whole (the lagged output keeps
+        smoothing across the jump). The batch ties the two keyframes tightly instead: the
+        robot did not jump, the filter was lost. Returns the new keyframe."""
+        self._flush()  # the newest keyframe's motion and heading factors, without the fix
+        x, full = self.kf_state, self._full
+        psi, v = float(x[PSI]), float(x[3])
+        c, sn = math.cos(psi), math.sin(psi)
+        lx, ly = s.lever_arm
+        H = np.zeros((2, DIM))
+        H[0, 0] = H[1, 1] = 1.0
+        H[0, PSI], H[1, PSI] = -sn * lx - c * ly - v * sn * dt, c * lx - sn * ly + v * c * dt
+        H[0, 3], H[1, 3] = c * dt, sn * dt
+        y = np.array((m.enu[0] - (x[0] + c * lx - sn * ly + v * c * dt),
+                      m.enu[1] - (x[1] + sn * lx + c * ly + v * sn * dt)))
+        alpha, rest = inflation(y, H @ full @ H.T, m.cov[:2, :2])
+        # Everything but the odometry scales widens, as in the EKFs (which widen all): H observes
+        # none of them, so alpha is the EKF's. Widened too, the scales explain the jump: on the
+        # Husky bag with a 0.3 m GPS sigma k_v went to 0.44, then the system was indeterminate.
+        # (Widening only x, y, psi, v, w instead: Husky hold-out 1.001 m lagged, not 0.999.)
+        q = np.zeros((DIM, DIM))
+        q[:KV, :KV] = (alpha - 1.0) * full[:KV, :KV]
+        if rest is not None:
+            d = np.linalg.pinv(H) @ rest
+            q += np.outer(d, d)
+        q = 0.5 * (q + q.T) + np.eye(DIM) * self.noise.fixed_sigma ** 2
+        i, t = self.k, self.kf_t[self.k]
+        j = self.k = i + 1
+        if self.keep_all:
+            # the whole-run solve keeps the chain: the robot did not jump, the filter was lost
+            self._batch_only.append(gtsam.BetweenFactorVector(
+                self.key(i), self.key(j), np.zeros(DIM),
+                gtsam.noiseModel.Isotropic.Sigma(DIM, self.noise.fixed_sigma)))
+            self._skip_in_batch = self.pending_graph.size()
+        self._add(gtsam.BetweenFactorVector(self.key(i), self.key(j), np.zeros(DIM),
+                                            gtsam.noiseModel.Gaussian.Covariance(q)))
+        self.pending_values.insert(self.key(j), np.asarray(x, dtype=float))
+        self.pending_stamps[self.key(j)] = t
+        del self.kf_t[i]  # the same instant as j: only j is output
+        self.kf_t[j] = t
+        if self.keep_all:
+            del self.all_kf_t[i]
+            self.all_kf_t[j] = t
+        self.kf_cov = full[:3, :3] + q[:3, :3]
+        count, first = self._lockout.streak(m.sensor)
+        wait = self._lockout.recovered(m.sensor, m.t)
+        self.log.rejected[(m.sensor, "lockout_recovery")] += 1
+        self.log.note(m.t, f"{m.sensor}: gate lock-out after {count} rejections over "
+                      f"{m.t - first:.1f} s; motion states widened x{alpha:.3g} and the fix "
+                      f"fused (next recovery not before {wait:.0f} s)")
+        return j
 
     def _gps_innovation(self, m, e, n, lever, dt) -> float:
         """Innovation of the fix against the prediction before it is fused (logged for NIS);
@@ -581,6 +647,7 @@ class FixedLagSmoother(Estimator):
             f = range_factor(self.key(k), lm, m.range,
                              _robust(self.cfg, s, (math.sqrt(m.range_var),)))
         self._add(f)
+        self._landmark_t = m.t
 
     def _record_landmark_innovation(self, m: LandmarkObservation, lm) -> None:
         """Range (and bearing) innovation of a sighting against the keyframe's prediction,
@@ -670,7 +737,16 @@ class FixedLagSmoother(Estimator):
         if self.pending_graph.size() == 0 and self.pending_values.size() == 0:
             return
         if self.keep_all:
-            self.all_graph.push_back(self.pending_graph)
+            if self._skip_in_batch is None:
+                self.all_graph.push_back(self.pending_graph)
+            else:  # the widening link of a lock-out recovery (_widen) is the smoother's alone
+                for f in range(self.pending_graph.size()):
+                    if f != self._skip_in_batch:
+                        self.all_graph.add(self.pending_graph.at(f))
+                self._skip_in_batch = None
+            for f in self._batch_only:
+                self.all_graph.add(f)
+            self._batch_only = []
             self.all_values.insert(self.pending_values)
         t_max = max(self.pending_stamps.values(), default=self.kf_t[self.k])
         self._capture_leaving(t_max - self.lag)
@@ -685,7 +761,7 @@ class FixedLagSmoother(Estimator):
             self.pending_stamps = {}
         key = self.key(self.k)
         self.kf_state = self.smoother.calculateEstimateVector(key)
-        full = self.smoother.marginalCovariance(key)
+        full = self._full = self.smoother.marginalCovariance(key)
         self.kf_cov = full[:3, :3]
         self._scale_belief = (self.kf_state[KV:].copy(), full[KV:, KV:].copy())
         self._recoveries = 0
@@ -718,14 +794,19 @@ class FixedLagSmoother(Estimator):
         self.log.note(t, f"smoother re-initialised after gtsam error: {first}")
         self.log.rejected[("smoother", "gtsam error, re-initialised")] += 1
         state, cov = self.kf_state, self.kf_cov
+        self._new_smoother()
+        sig = np.sqrt(np.maximum(np.diag(cov), 1e-6)) * 2.0
+        self._init_state(t, (state[0], state[1], state[2]), float(max(sig[0], sig[1])),
+                         float(sig[2]), self._scale_belief)
+
+    def _new_smoother(self) -> None:
+        """An empty smoother and window (what was pending is dropped)."""
         self.smoother = gtsam.IncrementalFixedLagSmoother(self.lag, isam2_params())
         self.kf_t = {}
         self.pending_graph = gtsam.NonlinearFactorGraph()
         self.pending_values = gtsam.Values()
         self.pending_stamps = {}
-        sig = np.sqrt(np.maximum(np.diag(cov), 1e-6)) * 2.0
-        self._init_state(t, (state[0], state[1], state[2]), float(max(sig[0], sig[1])),
-                         float(sig[2]), self._scale_belief)
+        self._skip_in_batch, self._batch_only = None, []
 
     # --- initialisation from GPS course -------------------------------------------------------
     def _process_uninitialised(self, m) -> None:

@@ -1,0 +1,118 @@
+"""Gate lock-out: when a run of gate rejections means the estimate, not the sensor, is wrong,
+and how far to widen the estimate's covariance so that it can recover.
+
+A Mahalanobis gate can lock an estimator out for good: once the estimate has drifted away (or
+its covariance collapsed), every later measurement disagrees by more than the gate allows, is
+rejected, and nothing widens the covariance again. The rule, shared by the EKFs
+(``ekf_baseline.kalman``) and the smoother's GPS gate: at least ``count`` consecutive rejections
+of one measurement model spanning at least ``time`` seconds (both, so that a burst of outliers
+from a fast sensor or a single bad fix does not trigger it) mean the estimator is locked out.
+If other measurements observing the same states were accepted meanwhile, they corroborate the
+estimate and the sensor is the outlier: no recovery. Otherwise the estimator recovers by
+inflating its covariance by the smallest factor that makes the current innovation ordinary
+(:func:`inflation`). A recovery that does not take (the measurement is not accepted ``count``
+times before it locks out again) makes the next one wait ``holdoff`` seconds, doubling each time.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Hashable
+
+import numpy as np
+
+from estimation.config import DEFAULT_LOCKOUT_COUNT, DEFAULT_LOCKOUT_TIME
+
+DEFAULT_RECOVERY_HOLDOFF = 10.0  # s before a second recovery of the same measurement; doubles
+MAX_INFLATION = 1e12  # largest covariance scale factor tried by a recovery
+
+
+def inflation(y: np.ndarray, A: np.ndarray, R: np.ndarray) -> tuple[float, np.ndarray | None]:
+    """The smallest alpha >= 1 for which innovation ``y`` (m,) is ordinary, NIS = m, against
+    S = alpha A + R: ``A`` (m, m) is the state's share H P H^T, ``R`` (m, m) the measurement's.
+
+    Returns (alpha, None), or (MAX_INFLATION, d) when no alpha up to MAX_INFLATION is enough
+    (P has no variance in a measured direction): then the caller also adds the rank-one term
+    d d^T, with d = H^+ y the minimum-norm state error explaining the innovation, which the
+    caller forms because only it has H."""
+    m = y.shape[0]
+
+    def nis_at(alpha: float) -> float:
+        return float(y @ np.linalg.solve(alpha * A + R, y))
+
+    if nis_at(1.0) <= m:
+        return 1.0, None
+    if nis_at(MAX_INFLATION) > m:
+        return MAX_INFLATION, y
+    lo, hi = 0.0, math.log(MAX_INFLATION)  # NIS(alpha) falls monotonically: bisect on log alpha
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        if nis_at(math.exp(mid)) > m:
+            lo = mid
+        else:
+            hi = mid
+    return math.exp(hi), None
+
+
+class Lockout:
+    """Gate rejection streaks and recovery hold-offs of an estimator's measurement models, each
+    named by a hashable key (a sensor, or (sensor, kind)). Times in seconds (stamps)."""
+
+    def __init__(self, count: int = DEFAULT_LOCKOUT_COUNT, time: float = DEFAULT_LOCKOUT_TIME,
+                 holdoff: float = DEFAULT_RECOVERY_HOLDOFF) -> None:
+        self.count, self.time, self.holdoff = int(count), float(time), float(holdoff)
+        # key -> [consecutive rejections, stamp of the first of them, acceptances since recovery]
+        self._streak: dict[Hashable, list] = {}
+        # key -> (earliest stamp of the next recovery, the hold-off that set it)
+        self._hold: dict[Hashable, tuple[float, float]] = {}
+
+    def accepted(self, key: Hashable) -> None:
+        """The measurement passed the gate: its streak ends."""
+        s = self._streak.get(key)
+        if s is not None:
+            s[0] = 0
+            s[2] += 1
+
+    def rejected(self, key: Hashable, t: float) -> bool:
+        """The measurement at ``t`` failed the gate. True if that locks the estimator out and a
+        recovery is allowed now (the caller then checks corroboration, and recovers or calls
+        :meth:`corroborated`); False for a plain rejection."""
+        s = self._streak.get(key)
+        if s is None:
+            s = self._streak[key] = [0, t, 0]
+        if s[0] == 0:
+            s[1] = t
+        s[0] += 1
+        if s[0] < self.count or t - s[1] < self.time:
+            return False
+        ho = self._hold.get(key)
+        if ho is None:
+            return True
+        if s[2] >= self.count:  # the last recovery took: this is a new lock-out
+            del self._hold[key]
+            return True
+        return t >= ho[0]
+
+    def streak(self, key: Hashable) -> tuple[int, float]:
+        """(consecutive rejections, stamp of the first) of ``key``."""
+        s = self._streak.get(key, (0, math.nan))
+        return s[0], s[1]
+
+    def _hold_off(self, key: Hashable, t: float) -> float:
+        wait = self._hold.get(key, (0.0, self.holdoff / 2.0))[1] * 2.0
+        self._hold[key] = (t + wait, wait)
+        return wait
+
+    def recovered(self, key: Hashable, t: float) -> float:
+        """The estimator recovered on ``key`` at ``t``: the streak restarts and the next recovery
+        waits; returns that wait (s)."""
+        wait = self._hold_off(key, t)
+        s = self._streak[key]
+        s[0] = 0
+        s[2] = 0
+        return wait
+
+    def corroborated(self, key: Hashable, t: float) -> float:
+        """Other accepted measurements vouch for the estimate: no recovery; the rejections go on
+        and the question is asked again after the returned wait (s)."""
+        return self._hold_off(key, t)
