@@ -604,6 +604,7 @@ class KalmanCore:
             return True
         wait = self._holdoff.get(key, (0.0, self.recovery_holdoff / 2.0))[1] * 2.0
         self._holdoff[key] = (t + wait, wait)
+        streak[2] = 0  # acceptances count from this verdict, as from a recovery
         self.log.note(
             t,
             f"{key[0]}/{key[1]}: {streak[0]} consecutive gate rejections over "

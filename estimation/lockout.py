@@ -99,17 +99,17 @@ class Lockout:
         return s[0], s[1]
 
     def _hold_off(self, key: Hashable, t: float) -> float:
+        """The next recovery of ``key`` waits (doubling); acceptances count from now."""
         wait = self._hold.get(key, (0.0, self.holdoff / 2.0))[1] * 2.0
         self._hold[key] = (t + wait, wait)
+        self._streak[key][2] = 0
         return wait
 
     def recovered(self, key: Hashable, t: float) -> float:
         """The estimator recovered on ``key`` at ``t``: the streak restarts and the next recovery
         waits; returns that wait (s)."""
         wait = self._hold_off(key, t)
-        s = self._streak[key]
-        s[0] = 0
-        s[2] = 0
+        self._streak[key][0] = 0
         return wait
 
     def corroborated(self, key: Hashable, t: float) -> float:
