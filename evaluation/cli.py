@@ -369,11 +369,18 @@ def entry() -> None:
     0.3-0.4 s (module by module, object by object) after the work is done and every output
     file is closed; a program about to end need not free its memory. Output streams and
     logging are flushed first. ``main`` itself returns normally (tests call it); an exception
-    that escapes it ends the process the ordinary way, with its traceback."""
-    rc = main()
-    logging.shutdown()
-    sys.stdout.flush()
-    sys.stderr.flush()
+    that escapes it ends the process the ordinary way, with its traceback. A reader that
+    stops early (``ddfuse inspect BAG | head``) ends it quietly, as it does ``cat``."""
+    try:
+        rc = main()
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+    except BrokenPipeError:
+        # the reader of stdout has gone: what is still buffered can never be written (the
+        # Python docs' recipe, "Note on SIGPIPE"); 141 = 128 + SIGPIPE, as a shell reports it
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        os._exit(141)
     os._exit(rc if isinstance(rc, int) else 0)
 
 

@@ -60,7 +60,8 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
-from scipy.stats import chi2
+
+from estimation import chi2
 
 __all__ = ["nees_band", "run_seed", "aggregate", "monte_carlo", "to_markdown", "write_report",
            "main"]
@@ -75,8 +76,7 @@ def nees_band(n_runs: int, dim: int, prob: float = 0.95) -> tuple[float, float]:
     if n_runs < 1 or dim < 1:
         raise ValueError(f"need n_runs >= 1 and dim >= 1, got {n_runs}, {dim}")
     a = 0.5 * (1.0 - prob)
-    lo, hi = chi2.ppf([a, 1.0 - a], n_runs * dim)
-    return float(lo) / n_runs, float(hi) / n_runs
+    return chi2.ppf(a, n_runs * dim) / n_runs, chi2.ppf(1.0 - a, n_runs * dim) / n_runs
 
 
 def default_estimators(cfg) -> list[str]:

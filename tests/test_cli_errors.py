@@ -139,3 +139,15 @@ def test_command_line_run_writes_everything_before_its_fast_exit(tmp_path):
     assert m["wall_s"]["total"] > 0 and m["estimators"]["ekf"]["samples"] > 0
     rows = (out / "ekf.csv").read_text().splitlines()
     assert len(rows) == m["estimators"]["ekf"]["samples"] + 1
+
+
+def test_command_line_reader_that_stops_early():
+    """``ddfuse inspect BAG | head -1``: when the reader has closed the pipe, the program ends
+    with status 141 (128 + SIGPIPE) and no traceback, instead of a BrokenPipeError. (``true``
+    reads nothing and exits at once, so the first write fails whatever the timing.)"""
+    r = subprocess.run(f"{sys.executable} -m evaluation.cli inspect data/sample_husky.bag "
+                       "| true; echo \"rc=${PIPESTATUS[0]}\"",
+                       shell=True, executable="/bin/bash", cwd=ROOT, capture_output=True,
+                       text=True, timeout=120)
+    assert "Traceback" not in r.stderr and "BrokenPipe" not in r.stderr, r.stderr
+    assert r.stdout.strip() == "rc=141", (r.stdout, r.stderr)
