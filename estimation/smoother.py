@@ -794,6 +794,7 @@ class FixedLagSmoother(Estimator):
         self.log.note(t, f"smoother re-initialised after gtsam error: {first}")
         self.log.rejected[("smoother", "gtsam error, re-initialised")] += 1
         state, cov = self.kf_state, self.kf_cov
+        self._capture_leaving(math.inf)  # the window's keyframes as they stood: no gap in the lag
         self._new_smoother()
         sig = np.sqrt(np.maximum(np.diag(cov), 1e-6)) * 2.0
         self._init_state(t, (state[0], state[1], state[2]), float(max(sig[0], sig[1])),
