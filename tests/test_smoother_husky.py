@@ -1,0 +1,45 @@
+"""Issue 6's real-data criteria on robot_localization's Husky bag (../shared/data): the GPS
+hold-out scores of every estimator. Slow (three runs of the whole bag)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from estimation.config import load_config
+from evaluation import pipeline
+
+pytestmark = pytest.mark.slow
+
+CONFIG = Path(__file__).resolve().parents[1] / "data" / "configs" / "rl_husky_gps.yaml"
+NAMES = ["ekf", "smoother", "smoother_lagged"]
+
+
+def _run(bag: Path, out: Path, holdout: str) -> dict:
+    m = pipeline.run_bag(bag, load_config(CONFIG), out, names=NAMES, holdout=holdout)
+    return m["estimators"]
+
+
+def test_every_fifth_fix_withheld(husky_bag, tmp_path):
+    """Every 5th fix withheld: filtered smoother <= 2 m and lagged <= 1 m against them (the
+    issue's targets; measured 1.322 and 0.999 m, the lagged one at the line: a change that moves
+    it up by 0.1 % fails here and should be looked at). The smoother's gate recovers from its
+    lock-out as the EKF does, once, not the 3 times (16 rejections) of the old rule."""
+    e = _run(husky_bag, tmp_path, "every:5")
+    assert e["smoother"]["gps_holdout_rmse_m"] <= 2.0
+    assert e["smoother_lagged"]["gps_holdout_rmse_m"] <= 1.0, e["smoother_lagged"]
+    assert e["smoother_lagged"]["gps_holdout_rmse_m"] < e["ekf"]["gps_holdout_rmse_m"]
+    rej = e["smoother"]["rejected"]
+    assert rej.get("/fix: lockout_recovery", 0) <= 2 and rej.get("/fix: gate", 0) <= 10, rej
+
+
+def test_sixty_second_outage(husky_bag, tmp_path):
+    """Fixes withheld from 150 to 210 s: dead reckoning carries every estimator, each within
+    6 m of the withheld fixes (measured 4.0-4.2 m), and the lagged output, which sees the fixes
+    after the outage, ends it closer than the filtered ones."""
+    e = _run(husky_bag, tmp_path, "window:150:210")
+    for name in NAMES:
+        assert e[name]["gps_holdout_rmse_m"] <= 6.0, (name, e[name]["gps_holdout_rmse_m"])
+    end = {n: e[n]["gps_outages"][0]["error_end_m"] for n in NAMES}
+    assert end["smoother_lagged"] < min(end["ekf"], end["smoother"]), end
