@@ -319,7 +319,6 @@ class FixedLagSmoother(Estimator):
         self._landmark_t = -math.inf  # stamp of the newest landmark sighting fused
         self._full: np.ndarray | None = None  # newest keyframe's (DIM, DIM) marginal
         self._skip_in_batch: int | None = None  # pending factor the batch leaves out (_widen)
-        self._batch_only: list = []  # factors for the batch alone, sent with the pending ones
         self.pending_graph = gtsam.NonlinearFactorGraph()
         self.pending_values = gtsam.Values()
         self.pending_stamps: dict[int, float] = {}
@@ -561,10 +560,10 @@ class FixedLagSmoother(Estimator):
         EKFs do, by widening the belief by the smallest factor alpha that makes the fix's
         innovation ordinary (``estimation.lockout.inflation``), here inside the graph: the fix
         goes on a new keyframe at the same stamp, tied to the newest one by a zero-mean link with
-        covariance (alpha - 1) times the newest keyframe's marginal of the motion states, so its
-        marginal is the widened one while the window stays whole (the lagged output keeps
-        smoothing across the jump). The batch ties the two keyframes tightly instead: the
-        robot did not jump, the filter was lost. Returns the new keyframe."""
+        covariance (alpha - 1) times the newest keyframe's marginal (the odometry scales
+        excepted), so its marginal is the widened one while the window stays whole (the lagged
+        output keeps smoothing across the jump). The batch ties the two keyframes tightly
+        instead: the robot did not jump, the filter was lost. Returns the new keyframe."""
         self._flush()  # the newest keyframe's motion and heading factors, without the fix
         x, full = self.kf_state, self._full
         psi, v = float(x[PSI]), float(x[3])
@@ -591,7 +590,7 @@ class FixedLagSmoother(Estimator):
         j = self.k = i + 1
         if self.keep_all:
             # the whole-run solve keeps the chain: the robot did not jump, the filter was lost
-            self._batch_only.append(gtsam.BetweenFactorVector(
+            self.all_graph.add(gtsam.BetweenFactorVector(
                 self.key(i), self.key(j), np.zeros(DIM),
                 gtsam.noiseModel.Isotropic.Sigma(DIM, self.noise.fixed_sigma)))
             self._skip_in_batch = self.pending_graph.size()
@@ -609,7 +608,7 @@ class FixedLagSmoother(Estimator):
         wait = self._lockout.recovered(m.sensor, m.t)
         self.log.rejected[(m.sensor, "lockout_recovery")] += 1
         self.log.note(m.t, f"{m.sensor}: gate lock-out after {count} rejections over "
-                      f"{m.t - first:.1f} s; motion states widened x{alpha:.3g} and the fix "
+                      f"{m.t - first:.1f} s; belief widened x{alpha:.3g} and the fix "
                       f"fused (next recovery not before {wait:.0f} s)")
         return j
 
@@ -744,9 +743,6 @@ class FixedLagSmoother(Estimator):
                     if f != self._skip_in_batch:
                         self.all_graph.add(self.pending_graph.at(f))
                 self._skip_in_batch = None
-            for f in self._batch_only:
-                self.all_graph.add(f)
-            self._batch_only = []
             self.all_values.insert(self.pending_values)
         t_max = max(self.pending_stamps.values(), default=self.kf_t[self.k])
         self._capture_leaving(t_max - self.lag)
@@ -807,7 +803,7 @@ class FixedLagSmoother(Estimator):
         self.pending_graph = gtsam.NonlinearFactorGraph()
         self.pending_values = gtsam.Values()
         self.pending_stamps = {}
-        self._skip_in_batch, self._batch_only = None, []
+        self._skip_in_batch = None
 
     # --- initialisation from GPS course -------------------------------------------------------
     def _process_uninitialised(self, m) -> None:
