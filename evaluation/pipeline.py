@@ -14,6 +14,9 @@ Per estimator (track), metrics.json holds:
   ``nees_mean``; and in full ``ate`` {none, se2, origin: {position_m, heading_deg: statistics}},
   ``rpe`` {'1s', '10m': {position_m, heading_deg}}, ``nees`` (consistency summary);
 * against withheld GPS fixes: ``gps_holdout_rmse_m`` and ``gps_holdout_m`` (statistics);
+* ``gps_residual_corr_s``: how long the used GPS fixes' residuals to the track stay correlated
+  (``metrics.correlation_time``; 0 for white GPS noise): a hold-out of single fixes scores
+  how closely a track follows the GPS on that time scale;
 * ``gps_outages``: error growth per metre travelled over each GPS outage (``metrics.gps_outages``);
 * ``nis``: per 'sensor kind', NIS consistency and the gate's accept/reject counts
   (``evaluation.consistency``); ``rejected`` (sensor: reason -> count), ``events``, ``error``.
@@ -161,6 +164,13 @@ def _outage_scores(tr: Trajectory, outages: list[metrics.Outage], truth: Traject
     return out
 
 
+def _residual_corr(tr: Trajectory, t: np.ndarray, xy: np.ndarray) -> float | None:
+    """Correlation time (s) of the used GPS fixes' residuals to track ``tr``
+    (``metrics.correlation_time``)."""
+    est, inside = metrics.interpolate_xy(tr, t)
+    return metrics.correlation_time(t[inside], (xy - est)[inside])
+
+
 def score(result: RunResult, decode_s: float = 0.0,
           pose_errors: dict[str, str] | None = None) -> dict:
     """The metrics dictionary of a run (see module docstring). ``pose_errors``: per track the
@@ -170,6 +180,7 @@ def score(result: RunResult, decode_s: float = 0.0,
     truth = result.truth
     hold_t, hold_xy = result.gps.held_t, result.gps.held_xy
     used_t = result.gps.used_t
+    used_xy = result.gps.xy[~result.gps.withheld]
     outages = metrics.gps_outages(used_t, stream.t1) if len(used_t) else []
     out: dict = {
         "bag": stream.source,
@@ -190,7 +201,7 @@ def score(result: RunResult, decode_s: float = 0.0,
             "final_xy": [_num(tr.pose[-1, 0]), _num(tr.pose[-1, 1])] if len(tr) else None,
             "samples": len(tr),
             "ate_rmse_m": None, "ate_max_m": None, "rpe_rmse_m": None, "yaw_rmse_deg": None,
-            "nees_mean": None, "gps_holdout_rmse_m": None,
+            "nees_mean": None, "gps_holdout_rmse_m": None, "gps_residual_corr_s": None,
             "runtime_s": _num(r.runtime_s),
             "rtf": _num(duration / r.runtime_s) if r.runtime_s > 0 else None,
             "update_ms": {**{k: _num(float(np.percentile(upd_ms, q)))
@@ -215,13 +226,15 @@ def score(result: RunResult, decode_s: float = 0.0,
                 m["gps_holdout_rmse_m"] = m["gps_holdout_m"]["rmse"]
         if len(tr) > 1:
             m["gps_outages"] = _outage_scores(tr, outages, truth, hold_t, hold_xy)
+            m["gps_residual_corr_s"] = _num(_residual_corr(tr, used_t, used_xy))
         out["estimators"][name] = m
     return out
 
 
 def data_facts(result: RunResult, cfg: Config) -> dict:
     """What the report states about the data: per sensor topic, kind and message counts; GPS
-    fixes used and withheld; landmarks; path length (from the truth, else the GPS fixes)."""
+    fixes used and withheld, their median interval (s); landmarks; path length (from the truth,
+    else the GPS fixes)."""
     stream = result.stream
     counts = (Counter((m.sensor, type(m).__name__) for m in stream.measurements)
               if isinstance(stream, Stream) else stream.type_counts())
@@ -240,6 +253,8 @@ def data_facts(result: RunResult, cfg: Config) -> dict:
     return {"sensors": sensors, "ground_truth_topic": cfg.ground_truth_topic,
             "ground_truth_samples": len(result.truth) if result.truth is not None else 0,
             "gps_fixes": len(gps), "gps_fixes_withheld": int(gps.withheld.sum()),
+            "gps_fix_interval_s": _num(float(np.median(np.diff(gps.t)))) if len(gps) > 1
+            else None,
             "landmarks": len(stream.landmarks),
             "path_length_m": _num(length) if length is not None else None,
             "path_length_from": source, "t0": stream.t0, "t1": stream.t1,

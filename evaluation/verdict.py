@@ -102,6 +102,27 @@ def _consistency(name: str, e: dict, seen_nis: dict) -> str:
     return f"{name}: {head}. " + "; ".join(parts) + "." + dr
 
 
+def _holdout_caution(m: dict, best: str) -> str:
+    """What a hold-out of single fixes measures, with the GPS residuals' correlation time to
+    the best track where the run measured it (``metrics.correlation_time``)."""
+    tail = (" Read it with the GPS NIS below, and with a window hold-out (an outage), where "
+            "dead reckoning has to carry the estimate.")
+    corr = m["estimators"][best].get("gps_residual_corr_s")
+    interval = (m.get("data") or {}).get("gps_fix_interval_s")
+    if corr is None or not interval:
+        return ("Caution: GPS errors are often correlated in time, so a fix withheld between two "
+                "used ones lies close to them; this score then rewards following the GPS "
+                "closely." + tail)
+    if corr < interval:
+        return (f"The GPS residuals to {best} are uncorrelated from one fix to the next "
+                f"({interval:.2g} s apart): the withheld fixes are independent checks.")
+    return (f"Caution: the GPS residuals to {best} stay correlated for {corr:.1f} s, "
+            f"{corr / interval:.0f} fix intervals of {interval:.2g} s: a withheld fix carries "
+            "nearly the error of the used ones beside it, so this score rewards following the "
+            "GPS closely: a track that averages over longer spans can score worse without being "
+            "less accurate." + tail)
+
+
 def verdict_lines(m: dict) -> list[str]:
     """The verdict as a list of sentences (plain text)."""
     ests = m["estimators"]
@@ -125,10 +146,7 @@ def verdict_lines(m: dict) -> list[str]:
             if track_kind(n) != "real time" and n != best:
                 lines.append(f"{n} ({track_kind(n, lag)}): {scored[n]:.3f} m.")
         if key == "gps_holdout_rmse_m" and str(m.get("gps_holdout", "")).startswith("every"):
-            lines.append("Caution: GPS errors are correlated in time, so a fix withheld between "
-                         "two used ones lies close to them; this score rewards following the "
-                         "GPS closely. Read it with the GPS NIS below, and with a window "
-                         "hold-out (an outage), where dead reckoning has to carry the estimate.")
+            lines.append(_holdout_caution(m, best))
     seen: dict = {}
     lines += [_consistency(n, e, seen) for n, e in ests.items()]
     for o_idx, o in enumerate(m.get("gps_outages") or []):

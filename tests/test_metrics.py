@@ -216,3 +216,38 @@ def test_nees_in_se2_exponential_coordinates():
                                rtol=1e-8)
     with pytest.raises(ValueError, match="pose_error must be"):
         metrics.nees(est, ref, 1e-9, pose_error="body")
+
+
+def _gauss_markov(rng, n: int, dt: float, tau: float) -> np.ndarray:
+    """(n, 2) first-order Gauss-Markov samples, unit variance, correlation exp(-lag / tau)."""
+    a = math.exp(-dt / tau)
+    x = np.zeros((n, 2))
+    x[0] = rng.normal(size=2)
+    for i in range(1, n):
+        x[i] = a * x[i - 1] + math.sqrt(1.0 - a * a) * rng.normal(size=2)
+    return x
+
+
+@pytest.mark.parametrize("tau", [2.0, 5.0, 20.0])
+def test_correlation_time_recovers_a_gauss_markov_time_constant(tau):
+    # the 1/e time of exp(-lag / tau) is tau; 4000 fixes at 0.4 s give it to ~15 %
+    rng = np.random.default_rng(int(tau))
+    t = np.arange(4000) * 0.4
+    x = _gauss_markov(rng, len(t), 0.4, tau)
+    assert metrics.correlation_time(t, x) == pytest.approx(tau, rel=0.2)
+    # every 5th fix withheld and a 60 s outage: gaps pair nothing at the wrong lag
+    keep = (np.arange(len(t)) % 5 != 4) & ((t < 300.0) | (t >= 360.0))
+    assert metrics.correlation_time(t[keep], x[keep]) == pytest.approx(tau, rel=0.2)
+
+
+def test_correlation_time_white_noise_and_too_few_samples():
+    rng = np.random.default_rng(0)
+    t = np.arange(1000) * 0.4
+    assert metrics.correlation_time(t, rng.normal(size=(1000, 2))) == 0.0
+    assert metrics.correlation_time(t[:10], rng.normal(size=(10, 2))) is None
+    assert metrics.correlation_time(np.zeros(0), np.zeros((0, 2))) is None
+    # a constant offset (a datum error) is not correlation: the residuals are demeaned
+    assert metrics.correlation_time(t, rng.normal(size=(1000, 2)) + 5.0) == 0.0
+    # a random walk never decorrelates within the lags looked at
+    walk = np.cumsum(rng.normal(size=(1000, 2)), axis=0)
+    assert metrics.correlation_time(t, walk, max_lag=20.0) is None

@@ -28,7 +28,18 @@ def test_gps_holdout_score_and_its_caution():
     lines = verdict_lines(_m({"ekf": 1.2, "smoother": 2.6}, "gps_holdout_rmse_m",
                              gps_holdout="every:5"))
     assert "40 GPS fixes withheld" in lines[0]
-    assert any(line.startswith("Caution: GPS errors are correlated") for line in lines)
+    assert any(line.startswith("Caution: GPS errors are often correlated") for line in lines)
+    # measured: residuals to the best track correlated over 4 s at fixes 0.4 s apart
+    m = _m({"ekf": 1.2, "smoother": 2.6}, "gps_holdout_rmse_m", gps_holdout="every:5",
+           data={"gps_fix_interval_s": 0.4})
+    m["estimators"]["ekf"]["gps_residual_corr_s"] = 4.0
+    m["estimators"]["smoother"]["gps_residual_corr_s"] = 0.0
+    assert ("Caution: the GPS residuals to ekf stay correlated for 4.0 s, 10 fix intervals of "
+            "0.4 s") in "\n".join(verdict_lines(m))
+    # white residuals to the best track: the withheld fixes are independent checks
+    m["estimators"]["ekf"]["gps_residual_corr_s"] = 0.0
+    text = "\n".join(verdict_lines(m))
+    assert "Caution" not in text and "withheld fixes are independent checks" in text
     lines = verdict_lines(_m({"ekf": 1.2}, "gps_holdout_rmse_m", gps_holdout="window:10:50"))
     assert not any(line.startswith("Caution") for line in lines)
 
