@@ -288,6 +288,22 @@ def holdout_errors(est: Trajectory, t: np.ndarray, enu_xy: np.ndarray) -> np.nda
     return np.hypot(d[inside, 0], d[inside, 1])
 
 
+def interpolation_errors(used_t: np.ndarray, used_xy: np.ndarray, t: np.ndarray,
+                         xy: np.ndarray) -> np.ndarray:
+    """Horizontal distance (m) from withheld fixes ``xy`` (M, 2) at ``t`` (M,) to the used fixes
+    ``used_xy`` (N, 2) at ``used_t`` (N,) linearly interpolated in time: the hold-out score of
+    no estimator at all, the reference a track's hold-out score is read against. Fixes outside
+    the used fixes' span are left out."""
+    used_t, t = np.asarray(used_t, float), np.asarray(t, float)
+    if len(used_t) < 2 or len(t) == 0:
+        return np.zeros(0)
+    inside = (t >= used_t[0]) & (t <= used_t[-1])
+    ix = np.column_stack([np.interp(t[inside], used_t, used_xy[:, 0]),
+                          np.interp(t[inside], used_t, used_xy[:, 1])])
+    d = ix - np.asarray(xy, float)[inside]
+    return np.hypot(d[:, 0], d[:, 1])
+
+
 def correlation_time(t: np.ndarray, resid: np.ndarray, max_lag: float = 120.0,
                      min_samples: int = 30) -> float | None:
     """Time (s) over which residuals ``resid`` (N, D) at stamps ``t`` (N,) stay correlated:

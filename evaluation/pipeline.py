@@ -13,7 +13,9 @@ Per estimator (track), metrics.json holds:
   ``MAX_DIFF`` s): ``ate_rmse_m``, ``ate_max_m``, ``yaw_rmse_deg``, ``rpe_rmse_m`` (over 1 s),
   ``nees_mean``; and in full ``ate`` {none, se2, origin: {position_m, heading_deg: statistics}},
   ``rpe`` {'1s', '10m': {position_m, heading_deg}}, ``nees`` (consistency summary);
-* against withheld GPS fixes: ``gps_holdout_rmse_m`` and ``gps_holdout_m`` (statistics);
+* against withheld GPS fixes: ``gps_holdout_rmse_m`` and ``gps_holdout_m`` (statistics); at the
+  top level ``gps_holdout_interpolation_rmse_m``, the same score of the used fixes linearly
+  interpolated in time (no estimator: the reference to read a track's score against);
 * ``gps_residual_corr_s``: how long the used GPS fixes' residuals to the track stay correlated
   (``metrics.correlation_time``; 0 for white GPS noise): a hold-out of single fixes scores
   how closely a track follows the GPS on that time scale;
@@ -171,6 +173,11 @@ def _residual_corr(tr: Trajectory, t: np.ndarray, xy: np.ndarray) -> float | Non
     return metrics.correlation_time(t[inside], (xy - est)[inside])
 
 
+def _interpolation_rmse(used_t, used_xy, hold_t, hold_xy) -> float | None:
+    e = metrics.interpolation_errors(used_t, used_xy, hold_t, hold_xy)
+    return _num(float(np.sqrt(np.mean(e * e)))) if len(e) else None
+
+
 def score(result: RunResult, decode_s: float = 0.0,
           pose_errors: dict[str, str] | None = None) -> dict:
     """The metrics dictionary of a run (see module docstring). ``pose_errors``: per track the
@@ -191,6 +198,8 @@ def score(result: RunResult, decode_s: float = 0.0,
                               for (topic, reason), n in stream.rejected.items()},
         "has_ground_truth": truth is not None,
         "gps_holdout_fixes": int(result.gps.withheld.sum()),
+        "gps_holdout_interpolation_rmse_m": _interpolation_rmse(used_t, used_xy, hold_t,
+                                                                hold_xy),
         "gps_outages": [_rounded(vars(o)) for o in outages],
         "estimators": {},
     }

@@ -109,18 +109,21 @@ def _holdout_caution(m: dict, best: str) -> str:
             "dead reckoning has to carry the estimate.")
     corr = m["estimators"][best].get("gps_residual_corr_s")
     interval = (m.get("data") or {}).get("gps_fix_interval_s")
+    interp = m.get("gps_holdout_interpolation_rmse_m")
+    ref = (f" For reference, the used fixes interpolated in time, no estimator, score "
+           f"{interp:.3f} m." if interp is not None else "")
     if corr is None or not interval:
         return ("Caution: GPS errors are often correlated in time, so a fix withheld between two "
                 "used ones lies close to them; this score then rewards following the GPS "
-                "closely." + tail)
+                "closely." + ref + tail)
     if corr < interval:
         return (f"The GPS residuals to {best} are uncorrelated from one fix to the next "
-                f"({interval:.2g} s apart): the withheld fixes are independent checks.")
+                f"({interval:.2g} s apart): the withheld fixes are independent checks." + ref)
     return (f"Caution: the GPS residuals to {best} stay correlated for {corr:.1f} s, "
             f"{corr / interval:.0f} fix intervals of {interval:.2g} s: a withheld fix carries "
             "nearly the error of the used ones beside it, so this score rewards following the "
             "GPS closely: a track that averages over longer spans can score worse without being "
-            "less accurate." + tail)
+            "less accurate." + ref + tail)
 
 
 def verdict_lines(m: dict) -> list[str]:
@@ -147,6 +150,10 @@ def verdict_lines(m: dict) -> list[str]:
                 lines.append(f"{n} ({track_kind(n, lag)}): {scored[n]:.3f} m.")
         if key == "gps_holdout_rmse_m" and str(m.get("gps_holdout", "")).startswith("every"):
             lines.append(_holdout_caution(m, best))
+        elif key == "gps_holdout_rmse_m" and m.get("gps_holdout_interpolation_rmse_m") is not None:
+            lines.append("For reference, the used fixes interpolated in time across the withheld "
+                         "ones (a straight line over an outage), no estimator, score "
+                         f"{m['gps_holdout_interpolation_rmse_m']:.3f} m.")
     seen: dict = {}
     lines += [_consistency(n, e, seen) for n, e in ests.items()]
     for o_idx, o in enumerate(m.get("gps_outages") or []):

@@ -251,3 +251,14 @@ def test_correlation_time_white_noise_and_too_few_samples():
     # a random walk never decorrelates within the lags looked at
     walk = np.cumsum(rng.normal(size=(1000, 2)), axis=0)
     assert metrics.correlation_time(t, walk, max_lag=20.0) is None
+
+
+def test_interpolation_errors_of_withheld_fixes():
+    t = np.arange(10.0)
+    xy = np.column_stack([2.0 * t, np.zeros(10)])  # 2 m/s east, exact
+    xy[5, 1] = 0.3  # the withheld fix 5 is 0.3 m north of the line
+    used = np.arange(10) != 5
+    e = metrics.interpolation_errors(t[used], xy[used], t[~used], xy[~used])
+    assert e == pytest.approx([0.3])
+    # outside the used fixes' span: not scored (no extrapolation)
+    assert len(metrics.interpolation_errors(t[1:], xy[1:], t[:1], xy[:1])) == 0

@@ -27,6 +27,8 @@ def test_husky_report_with_gps_holdout(husky_bag, tmp_path):
         # the receiver's error wanders over seconds (session 6: 3.8-7.9 s against every track)
         assert 2.0 < e["gps_residual_corr_s"] < 15.0
     assert m["data"]["gps_fix_interval_s"] == pytest.approx(0.4, abs=0.01)
+    # the data README: the neighbouring fixes predict a fix to about 0.16 m
+    assert m["gps_holdout_interpolation_rmse_m"] == pytest.approx(0.16, abs=0.03)
     page = (out / "report.html").read_text()
     assert "Score: RMS distance to the 197 GPS fixes withheld" in page
     assert "Caution: the GPS residuals to ekf stay correlated for" in page

@@ -34,14 +34,21 @@ def test_gps_holdout_score_and_its_caution():
            data={"gps_fix_interval_s": 0.4})
     m["estimators"]["ekf"]["gps_residual_corr_s"] = 4.0
     m["estimators"]["smoother"]["gps_residual_corr_s"] = 0.0
+    m["gps_holdout_interpolation_rmse_m"] = 0.1636
+    text = "\n".join(verdict_lines(m))
     assert ("Caution: the GPS residuals to ekf stay correlated for 4.0 s, 10 fix intervals of "
-            "0.4 s") in "\n".join(verdict_lines(m))
+            "0.4 s") in text
+    assert "the used fixes interpolated in time, no estimator, score 0.164 m" in text
     # white residuals to the best track: the withheld fixes are independent checks
     m["estimators"]["ekf"]["gps_residual_corr_s"] = 0.0
     text = "\n".join(verdict_lines(m))
     assert "Caution" not in text and "withheld fixes are independent checks" in text
     lines = verdict_lines(_m({"ekf": 1.2}, "gps_holdout_rmse_m", gps_holdout="window:10:50"))
     assert not any(line.startswith("Caution") for line in lines)
+    lines = verdict_lines(_m({"ekf": 4.1}, "gps_holdout_rmse_m", gps_holdout="window:150:210",
+                             gps_holdout_interpolation_rmse_m=9.18))
+    assert any("a straight line over an outage), no estimator, score 9.180 m" in line
+               for line in lines)
 
 
 def test_no_score_without_truth_or_holdout():
