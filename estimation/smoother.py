@@ -762,8 +762,10 @@ class FixedLagSmoother(Estimator):
         self._scale_belief = (self.kf_state[KV:].copy(), full[KV:, KV:].copy())
         self._recoveries = 0
 
-    def _capture_leaving(self, t_cut: float) -> None:
-        leaving = [j for j, tj in self.kf_t.items() if tj < t_cut and j != self.k]
+    def _capture_leaving(self, t_cut: float, newest: bool = False) -> None:
+        """Output the window's keyframes older than ``t_cut`` (s) as lagged estimates and drop
+        them from ``kf_t``; the newest keyframe too only when ``newest`` (the run's end)."""
+        leaving = [j for j, tj in self.kf_t.items() if tj < t_cut and (newest or j != self.k)]
         for j in sorted(leaving):
             key = self.key(j)
             try:
@@ -907,10 +909,14 @@ class FixedLagSmoother(Estimator):
                           "never initialised: the GPS track never moved far enough")
             return
         self._release_held()
-        if self.pim.n > 0:
+        # The odometry since the newest keyframe closes the run as a last keyframe, unless it
+        # spans less than MIN_KEYFRAME_DT: a preintegrated factor over a few milliseconds has
+        # walk sigmas of ~1e-6, and gtsam declared such a system indeterminate (a run cut
+        # 0.03 s after a GPS keyframe: the batch lost its whole solution).
+        if self.pim.n > 0 and self.last_t - self.kf_t[self.k] >= MIN_KEYFRAME_DT:
             self._new_keyframe(self.last_t)
             self._flush()
-        self._capture_leaving(math.inf)
+        self._capture_leaving(math.inf, newest=True)
 
     def lagged_estimates(self) -> TrackBuilder:
         return self._lagged
