@@ -265,6 +265,9 @@ class FixedLagSmoother(Estimator):
         self._pim_class = WheelGyroPreintegration if reference else _compiled_preintegration()
         self._pim_compiled = self._pim_class is not WheelGyroPreintegration
         self.lag = float(lag if lag is not None else cfg.smoother.lag)
+        if not (self.lag > 0.0 and math.isfinite(self.lag)):
+            # gtsam would take it and fail later, deep inside an update (IndexError on 'x0')
+            raise ValueError(f"smoother lag: expected seconds > 0, got {self.lag:g}")
         self.noise = noise or SmootherNoise.from_config(cfg)
         self.landmarks = dict(landmarks or {})
         self.given_pose = initial_pose

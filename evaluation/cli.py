@@ -225,6 +225,10 @@ def cmd_run(args: argparse.Namespace) -> int:
                 _render(args.outdir, bars)
             raise
         _print_summary(m, sys.stdout)
+        if args.gps_holdout and not m.get("gps_holdout_fixes"):
+            sys.stderr.write(f"ddfuse: warning: --gps-holdout {args.gps_holdout} withheld no GPS "
+                             f"fix (the data span {m.get('duration_s') or 0:.1f} s from the first "
+                             "message): nothing is scored against withheld fixes\n")
         if args.no_report:
             sys.stdout.write(f"results in {args.outdir}/ (metrics.json, <estimator>.tum/.csv, "
                              "run.npz); no report (--no-report)\n")
@@ -262,6 +266,17 @@ def _reorder_window(text: str) -> float:
     return v
 
 
+def lag_seconds(text: str) -> float:
+    """argparse type of a smoother lag: seconds > 0 (the config's smoother.lag rule)."""
+    try:
+        v = float(text)
+    except ValueError:
+        v = math.nan
+    if not (v > 0.0 and math.isfinite(v)):
+        raise argparse.ArgumentTypeError(f"expected seconds > 0, got {text!r}")
+    return v
+
+
 def _reorder_arg(sp: argparse.ArgumentParser) -> None:
     sp.add_argument("--reorder-window", type=_reorder_window, metavar="S",
                     help="seconds of header-stamp disorder the decoder sorts out (messages "
@@ -290,7 +305,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="output directory (default: ddfuse-out)")
     sp.add_argument("--estimators", help="comma-separated: ekf, ekf_igvc, ekf_landmark, "
                     "ekf_slam, smoother, smoother_lagged, batch (default: all the sensors allow)")
-    sp.add_argument("--lag", type=float, help="smoother lag, s (default: from the config)")
+    sp.add_argument("--lag", type=lag_seconds,
+                    help="smoother lag, s (default: from the config)")
     sp.add_argument("--gps-holdout", metavar="every:K|window:T0:T1",
                     help="withhold these GPS fixes from every estimator and score against them")
     _reorder_arg(sp)
@@ -318,7 +334,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("bags", type=Path, nargs="*", help="bags (default: the embedded sample)")
     sp.add_argument("-c", "--config", type=Path)
     sp.add_argument("--estimators", help="comma-separated (default: all the sensors allow)")
-    sp.add_argument("--lag", type=float)
+    sp.add_argument("--lag", type=lag_seconds, help="smoother lag, s (default: from the config)")
     sp.add_argument("--json", type=Path, help="also write the results as JSON")
     sp.set_defaults(func=cmd_bench)
 

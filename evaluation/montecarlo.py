@@ -332,6 +332,7 @@ def write_report(mc: dict, outdir: str | Path) -> tuple[Path, Path]:
 def main(argv: list[str] | None = None) -> int:
     """``ddfuse mc SCENARIO [--seeds N] [--first-seed S] [--duration S] [--estimators LIST]
     [--jobs J] [-o OUTDIR]``."""
+    from evaluation.cli import lag_seconds
     from evaluation.simulate import SCENARIOS
 
     ap = argparse.ArgumentParser(
@@ -351,7 +352,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="every seed with the scenario's true geometry and the exact true "
                     "initial pose (default: both drawn per seed from the priors the config "
                     "states)")
-    ap.add_argument("--lag", type=float, default=None,
+    ap.add_argument("--lag", type=lag_seconds, default=None,
                     help="smoother lag, s (default: the simulated config's, 10 s)")
     ap.add_argument("-o", "--outdir", type=Path, default=Path("ddfuse-out"),
                     help="where mc_<scenario>.json and .md go (default ddfuse-out)")

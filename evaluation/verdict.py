@@ -32,6 +32,10 @@ def _score(m: dict) -> tuple[str | None, str]:
         return "gps_holdout_rmse_m", (f"Score: RMS distance to the {m.get('gps_holdout_fixes')} "
                                       "GPS fixes withheld from every estimator (no ground truth; "
                                       "lower is better).")
+    if m.get("gps_holdout") and not m.get("gps_holdout_fixes"):
+        return None, (f"No score: the bag has no ground truth, and --gps-holdout "
+                      f"{m['gps_holdout']} withheld no GPS fix (its window is outside the "
+                      f"{m.get('duration_s') or 0:.0f} s of data, or the bag has no fixes).")
     return None, ("No score: the bag has no ground truth and no GPS fixes were withheld "
                   "(run with --gps-holdout every:5, or window:T0:T1 for an outage).")
 

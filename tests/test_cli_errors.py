@@ -151,3 +151,28 @@ def test_command_line_reader_that_stops_early():
                        text=True, timeout=120)
     assert "Traceback" not in r.stderr and "BrokenPipe" not in r.stderr, r.stderr
     assert r.stdout.strip() == "rc=141", (r.stdout, r.stderr)
+
+
+@pytest.mark.parametrize("argv", [["run", "--lag", "-1"], ["bench", "--lag", "0"],
+                                  ["mc", "husky", "--lag", "nan"], ["run", "--lag", "ten"]])
+def test_a_lag_that_is_not_positive_seconds_is_refused_before_any_work(argv, capsys):
+    """It reached gtsam before: an IndexError on 'x0' inside the first update, per estimator."""
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    err = capsys.readouterr().err
+    assert e.value.code == 2
+    assert f"argument --lag: expected seconds > 0, got '{argv[-1]}'" in err
+    assert "Traceback" not in err
+
+
+def test_a_gps_holdout_that_withholds_nothing_is_said(tmp_path, capsys):
+    """window:T0:T1 past the end of the data: the run goes on (there may be truth to score
+    against), and stderr says that nothing was withheld."""
+    code = main(["run", "-o", str(tmp_path / "out"), "--estimators", "ekf", "--no-report",
+                 "--gps-holdout", "window:9000:9100"])
+    err = capsys.readouterr().err
+    assert code == 0
+    assert ("ddfuse: warning: --gps-holdout window:9000:9100 withheld no GPS fix (the data "
+            "span") in err
+    m = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert m["gps_holdout_fixes"] == 0 and m["estimators"]["ekf"]["gps_holdout_rmse_m"] is None

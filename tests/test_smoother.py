@@ -374,3 +374,10 @@ def test_odometry_scales_are_estimated(husky_run):
         sd = math.sqrt(last.state_cov[i, i])
         assert abs(last.state[i] - truth) < 3 * sd, (i, last.state[i], truth, sd)
         assert sd < 0.5 * prior, (i, sd, prior)
+
+
+@pytest.mark.parametrize("lag", [0.0, -1.0, math.nan, math.inf])
+def test_a_lag_that_is_not_positive_seconds_is_refused(husky, lag):
+    cfg, _ = husky
+    with pytest.raises(ValueError, match="smoother lag: expected seconds > 0"):
+        FixedLagSmoother(cfg, lag=lag)

@@ -54,6 +54,12 @@ def test_gps_holdout_score_and_its_caution():
 def test_no_score_without_truth_or_holdout():
     lines = verdict_lines(_m({"ekf": None}))
     assert lines[0].startswith("No score") and "--gps-holdout" in lines[0]
+    # a hold-out asked for that withheld nothing says so, not "run with --gps-holdout"
+    m = _m({"ekf": None}, gps_holdout="window:500:600", duration_s=395.3)
+    m["gps_holdout_fixes"] = 0
+    assert verdict_lines(m)[0] == (
+        "No score: the bag has no ground truth, and --gps-holdout window:500:600 withheld no "
+        "GPS fix (its window is outside the 395 s of data, or the bag has no fixes).")
 
 
 def test_consistency_sentences():
