@@ -89,7 +89,8 @@ INIT_DISTANCE = 5.0  # m of GPS travel before the heading is taken from the GPS 
 # SmootherNoise.from_config); a tenth of a millimetre per second, negligible against any sensor
 POSE_NOISE_FLOOR = (1e-3, 1e-3, 1e-4)
 ODOMETRY_WAIT = 0.5  # s: without odometry for this long, go on holding the last sample forward
-MAX_RECOVERIES = 3  # failed re-initialisations in a row before the smoother gives up
+MAX_RECOVERIES = 3  # re-initialisations within RECOVERY_WINDOW the smoother survives
+RECOVERY_WINDOW = 10.0  # s of data
 # rad/s/sqrt(s), rad/sqrt(s): the least random walk of an estimated gyro bias and heading offset.
 # A keyframe interval's information on the change of the state is 1 / (walk^2 dt); at walks of
 # 1e-6 against a prior of 0.3 rad, Cholesky meets a condition number ~1e11 and gtsam declares
@@ -326,7 +327,7 @@ class FixedLagSmoother(Estimator):
         self.pending_values = gtsam.Values()
         self.pending_stamps: dict[int, float] = {}
         self._scale_belief: tuple[np.ndarray, np.ndarray] | None = None  # (k_v, k_w), 2x2 cov
-        self._recoveries = 0  # re-initialisations since the last successful update
+        self._recovery_t: list[float] = []  # stamps of the recent re-initialisations
         if self.keep_all:
             self.all_graph = gtsam.NonlinearFactorGraph()
             self.all_values = gtsam.Values()
@@ -763,7 +764,6 @@ class FixedLagSmoother(Estimator):
         full = self._full = self.smoother.marginalCovariance(key)
         self.kf_cov = full[:3, :3]
         self._scale_belief = (self.kf_state[KV:].copy(), full[KV:, KV:].copy())
-        self._recoveries = 0
 
     def _capture_leaving(self, t_cut: float, newest: bool = False) -> None:
         """Output the window's keyframes older than ``t_cut`` (s) as lagged estimates and drop
@@ -785,13 +785,20 @@ class FixedLagSmoother(Estimator):
     def _recover(self, reason: str) -> None:
         """gtsam failed (indeterminate system, ...): restart from the last good estimate."""
         t = self.kf_t[self.k]
-        first = reason.splitlines()[0] if reason else "gtsam error"
-        self._recoveries += 1
-        if self._recoveries > MAX_RECOVERIES:
-            # re-initialising from the same estimate keeps failing: stop this estimator (the
-            # runner keeps what it estimated and the other estimators go on)
-            raise RuntimeError(f"smoother: {MAX_RECOVERIES} re-initialisations in a row failed "
-                               f"at t={t:.3f} ({first})")
+        # gtsam's messages start with a blank line
+        first = next((line.strip() for line in reason.splitlines() if line.strip()),
+                     "gtsam error")
+        self._recovery_t = [r for r in self._recovery_t if r > t - RECOVERY_WINDOW] + [t]
+        if len(self._recovery_t) > MAX_RECOVERIES:
+            self._capture_leaving(math.inf, newest=True)  # what the window holds is kept
+            # Failing again and again (each re-initialisation's own update succeeds, the next
+            # keyframes' do not): the model is ill-conditioned here, and going on would output
+            # a track re-started from ever staler estimates (metres off). Stop this estimator:
+            # the runner keeps what it estimated and the other estimators go on.
+            raise RuntimeError(
+                f"smoother: {len(self._recovery_t)} re-initialisations within "
+                f"{RECOVERY_WINDOW:g} s at t={t:.3f} ({first}): its system is ill-conditioned "
+                "here (noise values or priors orders of magnitude apart?)")
         self.log.note(t, f"smoother re-initialised after gtsam error: {first}")
         self.log.rejected[("smoother", "gtsam error, re-initialised")] += 1
         state, cov = self.kf_state, self.kf_cov
