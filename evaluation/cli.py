@@ -59,6 +59,8 @@ def _config_for(bag: Path, given: Path | None) -> Path:
     the known real bags (data/configs/<stem>.yaml)."""
     if given is not None:
         return given
+    if not Path(bag).exists():  # say that, not that its config is missing
+        raise DdfuseError(f"{bag}: no such bag (file or ROS 2 directory)")
     for cand in (bag.with_suffix(".yaml"), CONFIGS / f"{bag.stem}.yaml"):
         if cand.is_file():
             return cand

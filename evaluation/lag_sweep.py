@@ -19,7 +19,7 @@ from pathlib import Path
 
 from estimation.bags import read_stream
 from estimation.config import load_config
-from estimation.runner import initial_pose, run
+from estimation.runner import initial_pose, parse_holdout, run
 from evaluation import estimators as registry
 from evaluation.pipeline import score
 
@@ -94,6 +94,10 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--lags: expected comma-separated seconds, got {args.lags!r}")
     if not lags or min(lags) <= 0:
         p.error(f"--lags: every lag must be > 0 s, got {args.lags!r}")
+    try:
+        parse_holdout(args.gps_holdout)
+    except ValueError as e:
+        p.error(str(e))
     bag = args.bag or SAMPLE_BAG
     rows = lag_sweep(bag, _config_for(bag, args.config), lags, args.gps_holdout)
     sys.stdout.write(format_table(rows) + "\n")

@@ -176,3 +176,19 @@ def test_a_gps_holdout_that_withholds_nothing_is_said(tmp_path, capsys):
             "span") in err
     m = json.loads((tmp_path / "out" / "metrics.json").read_text())
     assert m["gps_holdout_fixes"] == 0 and m["estimators"]["ekf"]["gps_holdout_rmse_m"] is None
+
+
+@pytest.mark.parametrize("command", ["run", "online", "bench"])
+def test_a_missing_bag_without_a_config_is_named_as_missing(tmp_path, capsys, command):
+    """Not 'no config given': the config is looked up next to the bag, which is not there."""
+    bag = tmp_path / "nowhere.bag"
+    code, out, err = run([command, str(bag)], capsys)
+    assert_one_line_error(code, out, err, str(bag), "no such bag")
+
+
+def test_lag_sweep_refuses_a_bad_holdout_before_any_work(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["lag-sweep", "--gps-holdout", "every:x"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "Traceback" not in err
+    assert "--gps-holdout: expected every:K (K >= 2) or window:T0:T1, got 'every:x'" in err
