@@ -798,7 +798,7 @@ class FixedLagSmoother(Estimator):
             raise RuntimeError(
                 f"smoother: {len(self._recovery_t)} re-initialisations within "
                 f"{RECOVERY_WINDOW:g} s at t={t:.3f} ({first}): its system is ill-conditioned "
-                "here (noise values or priors orders of magnitude apart?)")
+                "here; check the config's noise values, priors and delays")
         self.log.note(t, f"smoother re-initialised after gtsam error: {first}")
         self.log.rejected[("smoother", "gtsam error, re-initialised")] += 1
         state, cov = self.kf_state, self.kf_cov
