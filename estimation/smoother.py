@@ -76,7 +76,7 @@ from estimation.measurements import (
 from estimation.runner import TrackBuilder
 from factors.gps import gps_factor
 from factors.gyro import bias_difference_factor
-from factors.kinematics import se2_step
+from factors.kinematics import se2_step, se2_step_jac
 from factors.landmark import range_bearing_factor, range_factor
 from factors.linear import heading_row, linear_state_factor
 from factors.preintegration import WheelGyroPreintegration, preintegrated_factor
@@ -513,7 +513,7 @@ class FixedLagSmoother(Estimator):
             # the GPS factor's motion compensation carries it from the keyframe (dt < 0).
             self._gps(m, k, dt - self.sensors[m.sensor].delay)
         else:
-            self._landmark(m, k)
+            self._landmark(m, k, dt)
         self._flush()
 
     def _gps(self, m: GpsFix, k: int, dt: float) -> None:
@@ -634,39 +634,45 @@ class FixedLagSmoother(Estimator):
         self.log.innovations.append(Innovation(m.t, m.sensor, "gps", res, cov, float(nis), True))
         return float(nis)
 
-    def _landmark(self, m: LandmarkObservation, k: int) -> None:
+    def _landmark(self, m: LandmarkObservation, k: int, dt: float) -> None:
+        """A sighting ``dt`` s after keyframe ``k``: a range/bearing (or range) factor from the
+        keyframe pose carried along its twist to the sighting (``factors.landmark``)."""
         lm = self.landmarks.get(m.landmark_id)
         if lm is None:
             self.log.rejected[(m.sensor, "landmark not in the map")] += 1
             return
         s = self.sensors[m.sensor]
         if k == self.k and self.kf_state is not None:
-            self._record_landmark_innovation(m, lm)
+            self._record_landmark_innovation(m, lm, dt)
         if m.has_bearing:
             sig = (math.sqrt(m.range_var), math.sqrt(m.bearing_var))
             f = range_bearing_factor(self.key(k), lm, m.range, m.bearing,
-                                     _robust(self.cfg, s, sig))
+                                     _robust(self.cfg, s, sig), dt=dt)
         else:
             f = range_factor(self.key(k), lm, m.range,
-                             _robust(self.cfg, s, (math.sqrt(m.range_var),)))
+                             _robust(self.cfg, s, (math.sqrt(m.range_var),)), dt=dt)
         self._add(f)
         self._landmark_t = m.t
 
-    def _record_landmark_innovation(self, m: LandmarkObservation, lm) -> None:
-        """Range (and bearing) innovation of a sighting against the keyframe's prediction,
-        before it is fused (for NIS); the same model as ``factors.landmark``."""
-        st = self.kf_state
-        dx, dy = lm[0] - st[0], lm[1] - st[1]
+    def _record_landmark_innovation(self, m: LandmarkObservation, lm, dt: float) -> None:
+        """Range (and bearing) innovation of a sighting ``dt`` s after the newest keyframe
+        against its prediction, before it is fused (for NIS); the same model as
+        ``factors.landmark``, the pose covariance carried through the step's pose Jacobian."""
+        st = self.kf_state.tolist()
+        x, y, psi, j = se2_step_jac(st[0], st[1], st[2], st[3], st[4], dt)
+        jp = np.array([row[:3] for row in j])
+        pose_cov = jp @ self.kf_cov[:3, :3] @ jp.T
+        dx, dy = lm[0] - x, lm[1] - y
         q = dx * dx + dy * dy
         r = math.sqrt(q)
         if r < 1e-6:
             return  # on top of the landmark: no bearing, and the range Jacobian is undefined
         h = np.array(((-dx / r, -dy / r, 0.0), (dy / q, -dx / q, -1.0)))
-        res = np.array((m.range - r, wrap_angle(m.bearing - math.atan2(dy, dx) + st[2])))
+        res = np.array((m.range - r, wrap_angle(m.bearing - math.atan2(dy, dx) + psi)))
         var = np.array((m.range_var, m.bearing_var))
         if not m.has_bearing:
             h, res, var = h[:1], res[:1], var[:1]
-        cov = h @ self.kf_cov[:3, :3] @ h.T + np.diag(var)
+        cov = h @ pose_cov @ h.T + np.diag(var)
         nis = float(res @ np.linalg.solve(cov, res))
         self.log.innovations.append(Innovation(m.t, m.sensor, "landmark", res, cov, nis, True))
 

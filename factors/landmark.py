@@ -11,6 +11,10 @@ Errors are ``range - z_range`` and ``wrap(bearing - z_bearing)`` (rad, wrap-safe
 The sensor is assumed aligned with the body axes (only offset, no mount rotation; subtract a
 known mount yaw from the measured bearing before calling).
 
+A sighting ``dt`` seconds from the keyframe (either sign) is compared with the keyframe pose
+carried along its own constant twist, ``(x, y, psi) <- kinematics.se2_step(x, y, psi, v, w,
+dt)``, as the GPS factor does; the Jacobian then has v and w columns too.
+
 Two flavours:
 
 * known landmark (1 key: the state) — the landmark position is a constant of the factor;
@@ -29,6 +33,7 @@ import math
 import gtsam
 import numpy as np
 
+from factors.kinematics import se2_step, se2_step_jac
 from factors.noise import NoiseLike, as_noise_model
 from factors.state import DIM
 
@@ -49,9 +54,13 @@ def range_bearing_predict(
     state: tuple[float, ...] | list[float],
     landmark: tuple[float, float],
     sensor_offset: tuple[float, float] = (0.0, 0.0),
+    dt: float = 0.0,
 ) -> tuple[float, float]:
-    """Predicted (range m, bearing rad in [-pi, pi)) of ``landmark`` from a 9-state."""
+    """Predicted (range m, bearing rad in [-pi, pi)) of ``landmark`` from a 9-state, ``dt`` s
+    after its time."""
     x, y, psi = state[:3]
+    if dt != 0.0:
+        x, y, psi = se2_step(x, y, psi, state[3], state[4], dt)
     c, s = math.cos(psi), math.sin(psi)
     sx, sy = sensor_offset
     dx = landmark[0] - (x + c * sx - s * sy)
@@ -67,8 +76,10 @@ def _make(
     z_bearing: float | None,
     sensor_offset: tuple[float, float],
     noise: NoiseLike,
+    dt: float = 0.0,
 ) -> gtsam.CustomFactor:
     key = keys[0]
+    dt = float(dt)
     slam = landmark is None
     lm_key = keys[1] if slam else None
     lx0, ly0 = (0.0, 0.0) if slam else (float(landmark[0]), float(landmark[1]))
@@ -91,7 +102,11 @@ def _make(
     sqrt = math.sqrt
 
     def error(this, values, H):
-        x, y, psi = values.atVector(key).tolist()[:3]
+        if dt == 0.0:
+            x, y, psi = values.atVector(key).tolist()[:3]
+        else:
+            x, y, psi, v, w = values.atVector(key).tolist()[:5]
+            x, y, psi, jac = se2_step_jac(x, y, psi, v, w, dt)
         if slam:
             lx, ly = values.atPoint2(lm_key).tolist()
         else:
@@ -120,6 +135,13 @@ def _make(
                 ms[DIM] = -gb_x
                 ms[DIM + 1] = -gb_y
                 ms[DIM + 2] = gb_x * oy - gb_y * ox - 1.0
+            if dt != 0.0:
+                # chain rule through the step: rows d(err)/d(x1, y1, psi1) times its 3x5 Jacobian
+                for row in range(dim):
+                    o = row * DIM
+                    g0, g1, g2 = ms[o], ms[o + 1], ms[o + 2]
+                    for col in range(5):
+                        ms[o + col] = g0 * jac[0][col] + g1 * jac[1][col] + g2 * jac[2][col]
             H[0] = hs
             if slam:
                 ml[0] = gr_x
@@ -143,9 +165,11 @@ def range_bearing_factor(
     z_bearing: float,
     noise: NoiseLike,
     sensor_offset: tuple[float, float] = (0.0, 0.0),
+    dt: float = 0.0,
 ) -> gtsam.CustomFactor:
-    """Range (m) and bearing (rad) to a known landmark (x, y) in m; 2-D error, 1 key."""
-    return _make([key], landmark, z_range, z_bearing, sensor_offset, noise)
+    """Range (m) and bearing (rad) to a known landmark (x, y) in m, sighted ``dt`` s after the
+    keyframe; 2-D error, 1 key."""
+    return _make([key], landmark, z_range, z_bearing, sensor_offset, noise, dt)
 
 
 def range_factor(
@@ -154,9 +178,11 @@ def range_factor(
     z_range: float,
     noise: NoiseLike,
     sensor_offset: tuple[float, float] = (0.0, 0.0),
+    dt: float = 0.0,
 ) -> gtsam.CustomFactor:
-    """Range (m) to a known landmark (x, y) in m; 1-D error, 1 key."""
-    return _make([key], landmark, z_range, None, sensor_offset, noise)
+    """Range (m) to a known landmark (x, y) in m, sighted ``dt`` s after the keyframe; 1-D
+    error, 1 key."""
+    return _make([key], landmark, z_range, None, sensor_offset, noise, dt)
 
 
 def range_bearing_slam_factor(
@@ -166,9 +192,11 @@ def range_bearing_slam_factor(
     z_bearing: float,
     noise: NoiseLike,
     sensor_offset: tuple[float, float] = (0.0, 0.0),
+    dt: float = 0.0,
 ) -> gtsam.CustomFactor:
-    """Range (m) and bearing (rad) to a ``gtsam.Point2`` landmark key; 2-D error, 2 keys."""
-    return _make([key, landmark_key], None, z_range, z_bearing, sensor_offset, noise)
+    """Range (m) and bearing (rad) to a ``gtsam.Point2`` landmark key, sighted ``dt`` s after
+    the keyframe; 2-D error, 2 keys."""
+    return _make([key, landmark_key], None, z_range, z_bearing, sensor_offset, noise, dt)
 
 
 def range_slam_factor(
@@ -177,6 +205,8 @@ def range_slam_factor(
     z_range: float,
     noise: NoiseLike,
     sensor_offset: tuple[float, float] = (0.0, 0.0),
+    dt: float = 0.0,
 ) -> gtsam.CustomFactor:
-    """Range (m) to a ``gtsam.Point2`` landmark key; 1-D error, 2 keys."""
-    return _make([key, landmark_key], None, z_range, None, sensor_offset, noise)
+    """Range (m) to a ``gtsam.Point2`` landmark key, sighted ``dt`` s after the keyframe; 1-D
+    error, 2 keys."""
+    return _make([key, landmark_key], None, z_range, None, sensor_offset, noise, dt)

@@ -71,6 +71,11 @@ FACTORS = {
     "range": lambda: range_factor(KI, (7.0, -2.0), 5.0, unit(1), (0.2, 0.1)),
     "range_bearing_slam": lambda: range_bearing_slam_factor(KI, KL, 5.0, -3.1, unit(2), (0.3, 0)),
     "range_slam": lambda: range_slam_factor(KI, KL, 5.0, unit(1)),
+    "range_bearing_dt": lambda: range_bearing_factor(KI, (7.0, -2.0), 5.0, 0.3, unit(2),
+                                                     (0.2, 0.1), dt=0.23),
+    "range_neg_dt": lambda: range_factor(KI, (7.0, -2.0), 5.0, unit(1), (0.2, 0.1), dt=-0.4),
+    "range_bearing_slam_dt": lambda: range_bearing_slam_factor(KI, KL, 5.0, -3.1, unit(2),
+                                                               (0.3, 0), dt=0.31),
     "preintegrated": lambda: preintegrated_factor(KI, KJ, PIM, noise=unit(9)),
     "preintegrated_fused": lambda: preintegrated_factor(KI, KJ, PIM_FUSED, noise=unit(9)),
 }

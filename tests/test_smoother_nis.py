@@ -1,4 +1,5 @@
-"""The smoother logs each landmark sighting's innovation against its prediction (for NIS)."""
+"""The smoother with landmark sightings: each one's innovation against its prediction (for NIS),
+and its accuracy beside the landmark EKF."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ekf_baseline.landmark import LandmarkEkf
 from estimation.bags import read_stream
 from estimation.config import load_config
 from estimation.measurements import LandmarkObservation
@@ -34,3 +36,30 @@ def test_smoother_landmark_innovations_on_the_seed002_sample():
     assert np.sqrt(np.mean(ranges ** 2)) < 0.3  # range noise 0.1 m plus prediction error
     for i in inn[:50]:
         np.testing.assert_allclose(i.nis, i.residual @ np.linalg.solve(i.cov, i.residual))
+
+
+def test_smoother_on_the_seed002_sample_is_as_accurate_as_the_landmark_ekf():
+    """Rate keyframes (2 Hz) with 10 Hz scans: each sighting is seen from where the robot is at
+    its stamp, up to 0.5 s after the keyframe (``factors.landmark``'s dt). Taken from the
+    keyframe pose instead, the lagged track was 0.149 m off on this sample (the landmark EKF:
+    0.011 m); now 0.009 m, the filtered one 0.012 m. Scored against the truth interpolated at
+    each output stamp."""
+    cfg = load_config(ROOT / "data" / "sample_seed002.yaml")
+    stream = read_stream(ROOT / "data" / "sample_seed002.bag", cfg)
+    assert cfg.smoother.keyframe == "rate"
+    pose = initial_pose(cfg.initial_pose, stream)
+    ests = {"ekf_landmark": LandmarkEkf(cfg, initial_pose=pose, landmarks=stream.landmarks),
+            "smoother": FixedLagSmoother(cfg, initial_pose=pose, landmarks=stream.landmarks)}
+    result = run(stream, ests)
+    truth = result.truth
+
+    def rmse(name: str) -> float:
+        tr = result.runs[name].trajectory
+        keep = (tr.t >= truth.t[0]) & (tr.t <= truth.t[-1])
+        ex = tr.pose[keep, 0] - np.interp(tr.t[keep], truth.t, truth.pose[:, 0])
+        ey = tr.pose[keep, 1] - np.interp(tr.t[keep], truth.t, truth.pose[:, 1])
+        return float(np.sqrt(np.mean(ex ** 2 + ey ** 2)))
+
+    ekf, lagged, filtered = rmse("ekf_landmark"), rmse("smoother_lagged"), rmse("smoother")
+    assert lagged <= ekf, (lagged, ekf)
+    assert filtered < 1.5 * ekf, (filtered, ekf)
