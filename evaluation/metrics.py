@@ -63,6 +63,21 @@ def associate(t_est: np.ndarray, t_ref: np.ndarray, max_diff: float) -> tuple[np
     return (i_short, i_long) if est_short else (i_long, i_short)
 
 
+def association_error(est: Trajectory, ref: Trajectory, max_diff: float = 0.05) -> Stats:
+    """What the nearest-time association alone costs the position ATE (m): for each associated
+    pair, the distance between the reference at its own stamp and the reference interpolated at
+    the estimate's stamp. An estimate exactly on the reference's path at its own time still
+    scores this much (evo's rule, which does not interpolate); with truth at 10 Hz and 0.5 m/s
+    it reaches 2.5 cm for an estimate midway between two truth samples."""
+    i_est, i_ref = associate(est.t, ref.t, max_diff)
+    if len(i_est) == 0 or len(ref) < 2:
+        return Stats.of(np.zeros(0))
+    t = est.t[i_est]
+    d = np.column_stack([np.interp(t, ref.t, ref.pose[:, 0]),
+                         np.interp(t, ref.t, ref.pose[:, 1])]) - ref.pose[i_ref, :2]
+    return Stats.of(np.hypot(d[:, 0], d[:, 1]))
+
+
 @dataclass
 class Stats:
     """Statistics of an error series (units of the series); NaN for an empty series."""

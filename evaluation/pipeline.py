@@ -11,7 +11,9 @@ Per estimator (track), metrics.json holds:
   excluded), ``rtf`` (data duration / runtime), ``update_ms`` (per-call latency p50/p99/max/mean);
 * against the truth (no alignment, every track in the run's local frame; association within
   ``MAX_DIFF`` s): ``ate_rmse_m``, ``ate_max_m``, ``yaw_rmse_deg``, ``rpe_rmse_m`` (over 1 s),
-  ``nees_mean``; and in full ``ate`` {none, se2, origin: {position_m, heading_deg: statistics}},
+  ``nees_mean``; ``ate_association_rmse_m``, what the nearest-time pairing alone adds
+  (``metrics.association_error``: the truth at its stamp against the truth at the estimate's);
+  and in full ``ate`` {none, se2, origin: {position_m, heading_deg: statistics}, association_m},
   ``rpe`` {'1s', '10m': {position_m, heading_deg}}, ``nees`` (consistency summary);
 * against withheld GPS fixes: ``gps_holdout_rmse_m`` and ``gps_holdout_m`` (statistics); at the
   top level ``gps_holdout_interpolation_rmse_m``, the same score of the used fixes linearly
@@ -118,7 +120,10 @@ def _truth_scores(tr: Trajectory, truth: Trajectory, pose_error: str = "world") 
     m["ate_rmse_m"] = _num(a.position.rmse)
     m["ate_max_m"] = _num(a.position.max)
     m["yaw_rmse_deg"] = _num(math.degrees(a.heading.rmse)) if a.heading.n else None
-    ate = {"none": _ape_dict(a), "pairs": a.position.n, "max_diff_s": MAX_DIFF}
+    assoc = metrics.association_error(tr, truth, MAX_DIFF)
+    m["ate_association_rmse_m"] = _num(assoc.rmse)
+    ate = {"none": _ape_dict(a), "pairs": a.position.n, "max_diff_s": MAX_DIFF,
+           "association_m": _stats(assoc)}
     for how in ("se2", "origin"):
         try:
             ate[how] = _ape_dict(metrics.ape(tr, truth, MAX_DIFF, how))
@@ -209,7 +214,8 @@ def score(result: RunResult, decode_s: float = 0.0,
         m: dict = {
             "final_xy": [_num(tr.pose[-1, 0]), _num(tr.pose[-1, 1])] if len(tr) else None,
             "samples": len(tr),
-            "ate_rmse_m": None, "ate_max_m": None, "rpe_rmse_m": None, "yaw_rmse_deg": None,
+            "ate_rmse_m": None, "ate_max_m": None, "ate_association_rmse_m": None,
+            "rpe_rmse_m": None, "yaw_rmse_deg": None,
             "nees_mean": None, "gps_holdout_rmse_m": None, "gps_residual_corr_s": None,
             "runtime_s": _num(r.runtime_s),
             "rtf": _num(duration / r.runtime_s) if r.runtime_s > 0 else None,
@@ -261,6 +267,8 @@ def data_facts(result: RunResult, cfg: Config) -> dict:
         length, source = None, None
     return {"sensors": sensors, "ground_truth_topic": cfg.ground_truth_topic,
             "ground_truth_samples": len(result.truth) if result.truth is not None else 0,
+            "ground_truth_interval_s": _num(float(np.median(np.diff(result.truth.t))))
+            if result.truth is not None and len(result.truth) > 1 else None,
             "gps_fixes": len(gps), "gps_fixes_withheld": int(gps.withheld.sum()),
             "gps_fix_interval_s": _num(float(np.median(np.diff(gps.t)))) if len(gps) > 1
             else None,

@@ -262,3 +262,16 @@ def test_interpolation_errors_of_withheld_fixes():
     assert e == pytest.approx([0.3])
     # outside the used fixes' span: not scored (no extrapolation)
     assert len(metrics.interpolation_errors(t[1:], xy[1:], t[:1], xy[:1])) == 0
+
+
+def test_association_error_is_what_nearest_time_pairing_alone_costs():
+    # truth at 10 Hz moving east at 0.5 m/s; an exact estimate 0.03 s after each truth sample
+    tt = np.arange(0.0, 10.0, 0.1)
+    truth = traj(tt, 0.5 * tt, 0.0, 0.0)
+    te = tt[:-1] + 0.03
+    est = traj(te, 0.5 * te, 0.0, 0.0)
+    a = metrics.association_error(est, truth, max_diff=0.05)
+    assert a.n == len(te) and a.rmse == pytest.approx(0.015, abs=1e-9)
+    # the ATE of that exact track is the same 0.015 m; on the truth's own stamps it is 0
+    assert metrics.ape(est, truth, 0.05).position.rmse == pytest.approx(0.015, abs=1e-9)
+    assert metrics.association_error(truth, truth, 0.05).rmse == pytest.approx(0.0, abs=1e-12)
