@@ -22,6 +22,7 @@ class EstimatorSpec:
     allowed: Callable[[Config], bool]
     build: Callable[[Config, Stream, tuple | None, float | None], Estimator]
     produces: tuple[str, ...]  # the output tracks it gives (the smoother's lagged one too)
+    needs: str  # the sensors ``allowed`` asks for, in words (for error messages)
     default: bool = True  # run when no estimators are named (if the config allows it)
 
 
@@ -36,32 +37,34 @@ def _motion(cfg: Config) -> bool:
 SPECS: dict[str, EstimatorSpec] = {s.name: s for s in (
     EstimatorSpec("ekf", "unicycle EKF (seed 003) with gyro-bias and heading-offset states",
                   _motion, lambda cfg, st, pose, lag: UnicycleEkf(cfg, initial_pose=pose),
-                  ("ekf",)),
+                  ("ekf",), "an odometry or wheels sensor"),
     EstimatorSpec("ekf_igvc", "11-state GPS-guided EKF (seed 000)",
                   lambda cfg: _motion(cfg) and bool(cfg.of_kind("gps")),
                   lambda cfg, st, pose, lag: IgvcEkf(cfg, initial_pose=pose, datum=st.datum),
-                  ("ekf_igvc",)),
+                  ("ekf_igvc",), "an odometry or wheels sensor, and gps"),
     EstimatorSpec("ekf_landmark", "range/bearing EKF in the known landmark map (seed 002)",
                   lambda cfg: _motion(cfg) and bool(cfg.of_kind("landmarks")),
                   lambda cfg, st, pose, lag: LandmarkEkf(cfg, initial_pose=pose,
                                                          landmarks=st.landmarks),
-                  ("ekf_landmark",)),
+                  ("ekf_landmark",), "an odometry or wheels sensor, and landmarks"),
     EstimatorSpec("ekf_slam", "EKF-SLAM, landmarks augmented into the state (seed 002)",
                   lambda cfg: _motion(cfg) and bool(cfg.of_kind("landmarks")),
                   lambda cfg, st, pose, lag: LandmarkSlamEkf(cfg, initial_pose=pose),
-                  ("ekf_slam",)),
+                  ("ekf_slam",), "an odometry or wheels sensor, and landmarks"),
     EstimatorSpec("smoother", "ISAM2 fixed-lag smoother: filtered and lagged outputs",
                   _motion, lambda cfg, st, pose, lag: FixedLagSmoother(
                       cfg, initial_pose=pose, landmarks=st.landmarks, lag=lag),
-                  ("smoother", "smoother_lagged")),
+                  ("smoother", "smoother_lagged"), "an odometry or wheels sensor"),
     EstimatorSpec("batch", "Levenberg-Marquardt over the whole run (offline reference)",
                   _motion, lambda cfg, st, pose, lag: BatchSmoother(
                       cfg, initial_pose=pose, landmarks=st.landmarks, lag=lag),
-                  ("batch",)),
+                  ("batch",), "an odometry or wheels sensor"),
     EstimatorSpec("dr", "dead reckoning: the wheel odometry integrated alone (baseline)",
                   lambda cfg: odometry_source(cfg) is not None,
                   lambda cfg, st, pose, lag: DeadReckoning(cfg, initial_pose=pose),
-                  ("dr",), default=False),
+                  ("dr",), "an odometry sensor using v and yaw_rate, or wheels with the "
+                  "robot's geometry",
+                  default=False),
 )}
 TRACK_TO_SPEC = {track: spec.name for spec in SPECS.values() for track in spec.produces}
 
@@ -71,7 +74,12 @@ def select(cfg: Config, names: list[str] | None) -> list[str]:
     estimator); default: every default estimator (all but 'dr') the config's sensors allow.
     Unknown or disallowed names raise ValueError saying why."""
     if not names:
-        return [n for n, s in SPECS.items() if s.default and s.allowed(cfg)]
+        out = [n for n, s in SPECS.items() if s.default and s.allowed(cfg)]
+        if not out:
+            have = ", ".join(sorted({s.kind for s in cfg.sensors})) or "none"
+            raise ValueError(f"no estimator can run on the config's sensors ({have}): every one "
+                             f"needs {SPECS['ekf'].needs}, the motion between the measurements")
+        return out
     out: list[str] = []
     for n in names:
         if n not in TRACK_TO_SPEC:
@@ -79,8 +87,8 @@ def select(cfg: Config, names: list[str] | None) -> list[str]:
                              f"(known: {', '.join(TRACK_TO_SPEC)})")
         spec = SPECS[TRACK_TO_SPEC[n]]
         if not spec.allowed(cfg):
-            raise ValueError(f"--estimators: {n} needs sensors the config does not have "
-                             f"({spec.description})")
+            raise ValueError(f"--estimators: {n} ({spec.description}) needs {spec.needs}, "
+                             "which the config does not have")
         if spec.name not in out:
             out.append(spec.name)
     return out

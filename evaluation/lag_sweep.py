@@ -35,6 +35,10 @@ def lag_sweep(bag: str | Path, config: str | Path, lags=DEFAULT_LAGS, holdout: s
     per (lag, smoother track) plus one for ``reference`` (lag None). ``score`` says what the
     RMSE is against: "truth" or "gps_holdout"."""
     cfg = load_config(config)
+    for name in ["smoother"] + ([reference] if reference else []):
+        if not registry.SPECS[name].allowed(cfg):
+            raise ValueError(f"{config}: {name} needs {registry.SPECS[name].needs}, which the "
+                             "config does not have")
     stream = read_stream(bag, cfg)
     pose = initial_pose(cfg.initial_pose, stream)
     rows: list[dict] = []
@@ -78,7 +82,7 @@ def format_table(rows: list[dict]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from evaluation.cli import SAMPLE_BAG, _config_for
+    from evaluation.cli import SAMPLE_BAG, DdfuseError, _config_for
 
     p = argparse.ArgumentParser(prog="ddfuse lag-sweep", description=__doc__.split("\n\n")[1])
     p.add_argument("bag", type=Path, nargs="?", help="bag (default: the embedded sample)")
@@ -99,7 +103,10 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as e:
         p.error(str(e))
     bag = args.bag or SAMPLE_BAG
-    rows = lag_sweep(bag, _config_for(bag, args.config), lags, args.gps_holdout)
+    try:
+        rows = lag_sweep(bag, _config_for(bag, args.config), lags, args.gps_holdout)
+    except ValueError as e:
+        raise DdfuseError(str(e)) from None
     sys.stdout.write(format_table(rows) + "\n")
     if args.json:
         args.json.write_text(json.dumps(rows, indent=2) + "\n")

@@ -192,3 +192,19 @@ def test_lag_sweep_refuses_a_bad_holdout_before_any_work(capsys):
     err = capsys.readouterr().err
     assert e.value.code == 2 and "Traceback" not in err
     assert "--gps-holdout: expected every:K (K >= 2) or window:T0:T1, got 'every:x'" in err
+
+
+def test_a_config_no_estimator_can_run_on_is_refused(tmp_path, capsys):
+    """GPS alone: every estimator needs the motion between measurements (odometry or wheel
+    speeds). Before, `run` printed an empty table and `lag-sweep` ran the smoother anyway."""
+    cfg = tmp_path / "gps_only.yaml"
+    cfg.write_text("sensors:\n  gps:\n  - topic: /fix\n    noise: {horizontal: 1.0}\n"
+                   "frame: {datum: first_fix}\n")
+    bag = str(ROOT / "data" / "sample_husky.bag")
+    code, out, err = run(["run", bag, "-c", str(cfg), "-o", str(tmp_path / "o")], capsys)
+    assert_one_line_error(code, out, err, "no estimator can run on the config's sensors (gps)",
+                          "an odometry or wheels sensor")
+    code, out, err = run(["run", bag, "-c", str(cfg), "--estimators", "ekf_igvc"], capsys)
+    assert_one_line_error(code, out, err, "ekf_igvc", "needs an odometry or wheels sensor, and gps")
+    code, out, err = run(["lag-sweep", bag, "-c", str(cfg)], capsys)
+    assert_one_line_error(code, out, err, str(cfg), "smoother needs an odometry or wheels sensor")
