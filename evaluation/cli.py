@@ -375,6 +375,14 @@ def main(argv: list[str] | None = None) -> int:
     except DdfuseError as e:
         print(f"ddfuse: error: {e}", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        raise  # a reader that stopped early: entry() ends quietly
+    except OSError as e:  # an output path that cannot be written: a directory that is a file...
+        where = f"{e.filename}: " if e.filename else ""
+        what = " (a file where a directory is needed)" if isinstance(
+            e, (FileExistsError, NotADirectoryError)) else ""
+        print(f"ddfuse: error: {where}{e.strerror or e}{what}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print("ddfuse: interrupted", file=sys.stderr)
         return 130

@@ -208,3 +208,11 @@ def test_a_config_no_estimator_can_run_on_is_refused(tmp_path, capsys):
     assert_one_line_error(code, out, err, "ekf_igvc", "needs an odometry or wheels sensor, and gps")
     code, out, err = run(["lag-sweep", bag, "-c", str(cfg)], capsys)
     assert_one_line_error(code, out, err, str(cfg), "smoother needs an odometry or wheels sensor")
+
+
+def test_an_output_directory_that_is_a_file_is_one_line(tmp_path, capsys):
+    out = tmp_path / "results"
+    out.write_text("not a directory")
+    code, stdout, err = run(["run", "-o", str(out), "--estimators", "ekf", "--no-report"],
+                            capsys)
+    assert_one_line_error(code, stdout, err, str(out), "a file where a directory is needed")
