@@ -70,7 +70,11 @@ def _pose_raw(raw: bytes) -> tuple:
 
 
 def _stamp(m) -> float:
-    return m.header.stamp.sec + m.header.stamp.nanosec * 1e-9
+    s = m.header.stamp
+    sec = getattr(s, "sec", None)
+    if sec is None:  # rospy's Time (a live ROS 1 message, estimation.live)
+        return s.secs + s.nsecs * 1e-9
+    return sec + s.nanosec * 1e-9
 
 
 def _xyz(v) -> tuple[float, float, float]:

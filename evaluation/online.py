@@ -1,7 +1,8 @@
 """Online use: feed measurements one at a time, ask for the current estimate at any moment.
 
 ``OnlineSession`` is what a live robot uses from Python: call ``push(measurement)`` from each
-sensor callback (measurements in time order, as ``estimation.measurements`` dataclasses) and
+sensor callback (measurements in time order, as ``estimation.measurements`` dataclasses;
+``estimation.live.LiveConverter`` makes them from the ROS messages) and
 ``estimate(name)`` whenever a pose is needed; ``latency_ms()`` gives per-update latency
 percentiles. ``replay`` drives a session from a bag, optionally paced by the header stamps.
 """

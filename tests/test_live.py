@@ -1,0 +1,139 @@
+"""Live ROS messages (rosbags, rospy or rclpy objects) become the measurements a bag gives."""
+
+from __future__ import annotations
+
+import math
+import sys
+from dataclasses import fields, replace
+from pathlib import Path
+from types import ModuleType, SimpleNamespace
+
+import numpy as np
+import pytest
+
+from estimation.bags import open_reader, read_stream
+from estimation.config import load_config
+from estimation.live import LiveConverter, message_type
+from estimation.measurements import GpsFix, WheelOdometry
+from evaluation.online import OnlineSession
+
+ROOT = Path(__file__).resolve().parents[1]
+BAG, CFG = ROOT / "data" / "sample_husky.bag", ROOT / "data" / "sample_husky.yaml"
+
+
+def _same(a, b) -> bool:
+    for f in fields(a):
+        x, y = getattr(a, f.name), getattr(b, f.name)
+        if isinstance(x, (float, np.ndarray, tuple)):
+            if not np.allclose(x, y, rtol=0, atol=1e-12, equal_nan=True):
+                return False
+        elif x != y:
+            return False
+    return True
+
+
+@pytest.fixture(scope="module")
+def live_and_bag():
+    cfg = load_config(CFG)
+    conv = LiveConverter(cfg)
+    reader = open_reader(BAG)
+    conns = [c for c in reader.connections if c.topic in conv.topics]
+    live = []
+    for c, _, raw in reader.messages(connections=conns):
+        live += conv.convert(c.topic, reader.deserialize(raw, c.msgtype))
+    live.sort(key=lambda m: m.t)  # as a robot's callbacks deliver them: in stamp order
+    return cfg, conv, live, read_stream(BAG, cfg)
+
+
+def test_every_message_converts_as_the_bag_reader_converts_it(live_and_bag):
+    _, conv, live, stream = live_and_bag
+    assert conv.topics == ["/odom", "/imu/data", "/fix"]
+    assert len(live) == len(stream.measurements) > 10000 and not conv.rejected
+    by_key: dict = {}
+    for m in stream.measurements:
+        by_key.setdefault((type(m), m.sensor, m.t), []).append(m)
+    for m in live:
+        assert any(_same(m, r) for r in by_key[(type(m), m.sensor, m.t)]), m
+    # the datum is the first fix's, as the bag's first_fix
+    assert conv.datum == pytest.approx(stream.datum)
+
+
+def test_a_live_session_estimates_what_a_bag_run_does(live_and_bag):
+    cfg, conv, live, stream = live_and_bag
+    t_end = stream.t0 + 30.0
+    g = stream.ground_truth[0]  # live, 'ground_truth' means nothing: the pose as [x, y, yaw]
+    cfg = replace(cfg, initial_pose=(g.x, g.y, g.yaw))
+    session = OnlineSession.from_config(cfg, ["ekf", "smoother"], stream=conv.stream())
+    replayed = OnlineSession.from_config(cfg, ["ekf", "smoother"], stream=conv.stream())
+    for m in live:
+        if m.t <= t_end:
+            session.push(m)
+    for m in stream.measurements:
+        if m.t <= t_end:
+            replayed.push(m)
+    for name in ("ekf", "smoother"):
+        a, b = session.estimate(name), replayed.estimate(name)
+        assert a.t == b.t and np.allclose(a.pose, b.pose, atol=1e-9), name
+
+
+def _rospy_odometry(t: float, v: float, w: float) -> SimpleNamespace:
+    """A rospy-style nav_msgs/Odometry: ``_type`` and a Time with secs/nsecs."""
+    stamp = SimpleNamespace(secs=int(t), nsecs=round((t - int(t)) * 1e9))
+    xyz = lambda x=0.0, y=0.0, z=0.0: SimpleNamespace(x=x, y=y, z=z)  # noqa: E731
+    cov = [0.0] * 36
+    cov[0], cov[35] = 0.01, 0.04
+    return SimpleNamespace(
+        _type="nav_msgs/Odometry", header=SimpleNamespace(stamp=stamp),
+        pose=SimpleNamespace(pose=SimpleNamespace(position=xyz(),
+                                                  orientation=SimpleNamespace(x=0, y=0, z=0,
+                                                                              w=1))),
+        twist=SimpleNamespace(twist=SimpleNamespace(linear=xyz(v), angular=xyz(z=w)),
+                              covariance=cov))
+
+
+def test_rospy_and_rclpy_messages(tmp_path):
+    cfg = load_config(CFG)
+    conv = LiveConverter(cfg)
+    msg = _rospy_odometry(1700000012.25, 0.8, -0.1)
+    (m,) = conv.convert("/odom", msg)
+    assert isinstance(m, WheelOdometry)
+    assert m.t == pytest.approx(1700000012.25, abs=1e-6) and (m.v, m.yaw_rate) == (0.8, -0.1)
+    # the config's noise (sample_husky.yaml states v and yaw_rate) replaces the message's
+    s = cfg.sensors[0]
+    assert (m.v_var, m.yaw_rate_var) == pytest.approx((s.noise["v"] ** 2, s.noise["yaw_rate"] ** 2))
+    # an rclpy message: its type is its class's package/msg/Name
+    mod = ModuleType("nav_msgs.msg._odometry")
+    rclpy_cls = type("Odometry", (), {"__module__": mod.__name__})
+    assert message_type(rclpy_cls()) == "nav_msgs/msg/Odometry"
+    assert message_type(object(), "sensor_msgs/Imu") == "sensor_msgs/msg/Imu"
+    with pytest.raises(ValueError, match="cannot tell the ROS type of a object"):
+        message_type(object())
+    assert "nav_msgs.msg._odometry" not in sys.modules
+
+
+def test_bad_topics_types_and_fixes():
+    cfg = replace(load_config(CFG), datum="first_fix")
+    conv = LiveConverter(cfg)
+    odo = _rospy_odometry(1700000000.0, 1.0, 0.0)
+    with pytest.raises(ValueError, match=r"topic /cmd_vel is not in the config \(its topics: "
+                                         r"/odom, /imu/data, /fix\)"):
+        conv.convert("/cmd_vel", odo)
+    with pytest.raises(ValueError, match=r"topic /fix: a nav_msgs/Odometry message, but "
+                                         r"sensors.gps\[0\] needs sensor_msgs/NavSatFix"):
+        conv.convert("/fix", odo)
+    stamp = SimpleNamespace(sec=1700000001, nanosec=0)
+
+    def fix(lat, lon, status=0):
+        return SimpleNamespace(__msgtype__="sensor_msgs/msg/NavSatFix",
+                               header=SimpleNamespace(stamp=stamp),
+                               status=SimpleNamespace(status=status), latitude=lat,
+                               longitude=lon, altitude=math.nan,
+                               position_covariance=[1.0, 0, 0, 0, 1.0, 0, 0, 0, 4.0],
+                               position_covariance_type=1)
+
+    assert conv.convert("/fix", fix(47.0, 8.0, status=-1)) == []
+    assert conv.rejected[("/fix", "status NO_FIX")] == 1
+    (f0,) = conv.convert("/fix", fix(47.0, 8.0))
+    (f1,) = conv.convert("/fix", fix(47.0 + 1e-5, 8.0))  # ~1.11 m north
+    assert isinstance(f0, GpsFix) and np.allclose(f0.enu[:2], 0.0)
+    assert f1.enu[1] == pytest.approx(1.112, abs=0.01) and abs(f1.enu[0]) < 1e-6
