@@ -144,6 +144,11 @@ def test_jackal_facts_and_suggested_config(jackal_info, jackal_bag, tmp_path):
     cfg = load_config(write_suggested(info, tmp_path))
     assert {s.kind for s in cfg.sensors} == {"odometry", "imu"}
     assert cfg.of_kind("imu")[0].mount_rpy == (0.0, 0.0, 0.0)
+    # skid steering: the odometry's yaw rate correlates 0.53 with the gyro (Husky: 0.86), so
+    # the suggestion takes speed only from it; fused, it took every estimator ~10 m off
+    assert max(abs(c) for c in imu.gyro_corr) < 0.8
+    assert any("agrees poorly with this gyro" in n for n in imu.notes)
+    assert cfg.of_kind("odometry")[0].use == ("v",)
     s = read_stream(jackal_bag, cfg)
     assert counts(s) == {"WheelOdometry": 3060, "Heading": 3061, "GyroYawRate": 3061}
     assert s.rejected == {}
