@@ -48,9 +48,11 @@ SPECS: dict[str, EstimatorSpec] = {s.name: s for s in (
                                                          landmarks=st.landmarks),
                   ("ekf_landmark",), "an odometry or wheels sensor, and landmarks"),
     EstimatorSpec("ekf_slam", "EKF-SLAM, landmarks augmented into the state (seed 002)",
-                  lambda cfg: _motion(cfg) and bool(cfg.of_kind("landmarks")),
+                  # range alone cannot place a new landmark: every sighting would be rejected
+                  lambda cfg: _motion(cfg) and any("bearing" in s.use
+                                                   for s in cfg.of_kind("landmarks")),
                   lambda cfg, st, pose, lag: LandmarkSlamEkf(cfg, initial_pose=pose),
-                  ("ekf_slam",), "an odometry or wheels sensor, and landmarks"),
+                  ("ekf_slam",), "an odometry or wheels sensor, and landmarks with bearing"),
     EstimatorSpec("smoother", "ISAM2 fixed-lag smoother: filtered and lagged outputs",
                   _motion, lambda cfg, st, pose, lag: FixedLagSmoother(
                       cfg, initial_pose=pose, landmarks=st.landmarks, lag=lag),
