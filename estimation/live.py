@@ -56,6 +56,11 @@ class LiveConverter:
     """Per configured topic, ROS message -> measurements (module docstring)."""
 
     def __init__(self, cfg: Config) -> None:
+        if cfg.initial_pose == "ground_truth":
+            # the EKFs would wait for a truth pose that never comes, without a word
+            raise ValueError(f"{cfg.path or 'config'}: initial_pose: ground_truth has no "
+                             "meaning on a live robot (no truth is read); give [x, y, yaw] or "
+                             "leave it out (heading from the GPS course or a compass)")
         self.cfg = cfg
         self.datum: tuple[float, float, float] | None = (
             cfg.datum if isinstance(cfg.datum, tuple) else None)
@@ -66,8 +71,7 @@ class LiveConverter:
     def stream(self) -> Stream:
         """An empty Stream with what the estimators are built from: the landmark maps of the
         config's landmark sensors and the datum (the config's; with ``first_fix`` none until a
-        fix arrives, and the estimators then take the first fix's, as this converter does). The
-        config's ``initial_pose: ground_truth`` has no meaning live: give [x, y, yaw] or none."""
+        fix arrives, and the estimators then take the first fix's, as this converter does)."""
         landmarks: dict[str, tuple[float, float]] = {}
         for s in self.cfg.of_kind("landmarks"):
             landmarks.update(load_landmark_map(s.map))
