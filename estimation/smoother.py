@@ -37,10 +37,11 @@ per ``MIN_KEYFRAME_DT``), and one after ``1/keyframe_rate`` s without any (so de
 keeps the window populated); ``rate`` puts them at ``keyframe_rate`` Hz and attaches absolute
 measurements to the newest keyframe, motion-compensated.
 
-Outputs: the filtered estimate (newest keyframe composed with the partial preintegration, at
-update time) from ``estimate()``; the lagged estimate of each keyframe as it leaves the window
-(``lagged_estimates()``); both with marginal covariance. ``BatchSmoother`` keeps every factor and
-solves the whole run with Levenberg-Marquardt at the end (the offline reference).
+Outputs: the filtered estimate (newest keyframe, updated with the heading samples since it,
+composed with the partial preintegration, at update time) from ``estimate()``; the lagged
+estimate of each keyframe as it leaves the window (``lagged_estimates()``); both with marginal
+covariance. ``BatchSmoother`` keeps every factor and solves the whole run with
+Levenberg-Marquardt at the end (the offline reference).
 
 Heading without an initial pose: GPS course. Measurements are buffered, dead-reckoned from heading
 0, and once the GPS track has moved ``INIT_DISTANCE`` m the rotation that aligns dead reckoning
@@ -904,9 +905,9 @@ class FixedLagSmoother(Estimator):
         carried forward over the messages still waiting for the next odometry sample."""
         if not self.initialised or self.kf_state is None:
             return None
-        st = self.kf_state
+        st, kf_cov = self._with_pending_heading()
         pim = self._frozen()
-        pose, cov = _compose(st, self._delta(st, pim), pim.covariance, self.kf_cov)
+        pose, cov = _compose(st, self._delta(st, pim), pim.covariance, kf_cov)
         t = self.last_t
         ahead = self._now - t
         if ahead > 0.0 and self.v is not None:
@@ -918,6 +919,30 @@ class FixedLagSmoother(Estimator):
                 pose, t = se2_step(pose[0], pose[1], pose[2], kv * self.v,
                                    wg - gain * bg + kw * wo, ahead), self._now
         return Estimate(t, (pose[0], pose[1], wrap_angle(pose[2])), cov, st.copy(), None, NAMES)
+
+    def _with_pending_heading(self) -> tuple[np.ndarray, np.ndarray]:
+        """The newest keyframe's state and 3x3 pose covariance, updated (outside the graph)
+        with the heading samples that arrived since it: they become one factor only at the next
+        keyframe, but the filtered output should use them now, as the EKFs do. One scalar
+        Kalman update with the keyframe's full marginal; the same averaged measurement as that
+        factor (``_new_keyframe``)."""
+        st, full = self.kf_state, self._full
+        if not self._h_n or full is None or full.shape != (DIM, DIM):
+            return st, self.kf_cov
+        s = self.sensors[self._h_sensor]
+        z = self._h_ref + self._h_sum / self._h_n  # carried back to the keyframe (see _step)
+        var = self._h_var / (self._h_n * self._h_n)
+        h = np.zeros(DIM)
+        h[PSI] = 1.0
+        if s.heading_offset == "estimate":
+            h[HOFF] = 1.0
+        else:
+            z -= float(s.heading_offset)
+        ph = full @ h
+        k = ph / (h @ ph + var)
+        x = st + k * wrap_angle(z - h @ st)
+        p = full - np.outer(k, ph)
+        return x, 0.5 * (p[:3, :3] + p[:3, :3].T)
 
     def finish(self) -> None:
         if not self.initialised:

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from estimation.config import SmootherConfig
-from estimation.measurements import GpsFix, Stream, WheelOdometry
+from estimation.measurements import GpsFix, Heading, Stream, WheelOdometry
 from estimation.runner import Trajectory, run
 from estimation.smoother import BatchSmoother, FixedLagSmoother
 from factors.state import HOFF, KV, KW
@@ -425,3 +425,34 @@ def test_a_lag_that_is_not_positive_seconds_is_refused(husky, lag):
     cfg, _ = husky
     with pytest.raises(ValueError, match="smoother lag: expected seconds > 0"):
         FixedLagSmoother(cfg, lag=lag)
+
+
+def test_filtered_estimate_uses_the_headings_since_the_newest_keyframe(husky):
+    """IMU headings become one factor at the next keyframe; the filtered output takes them in
+    at once (one Kalman update with the keyframe's marginal), as the EKFs do. Shifting every
+    heading since the newest keyframe by d moves the filtered yaw by the update's gain on psi
+    times d (before, not at all)."""
+    cfg, stream = husky
+    ms = stream.measurements
+    a = FixedLagSmoother(cfg, initial_pose=_pose0(stream))
+    n = 0
+    while n < len(ms) and (ms[n].t - ms[0].t < 20.0 or a._h_n < 6):
+        a.process(ms[n])
+        n += 1
+    t_kf = a.kf_t[a.k]
+    b = FixedLagSmoother(cfg, initial_pose=_pose0(stream))
+    for m in ms[:n]:
+        b.process(replace(m, yaw=m.yaw + 0.05) if m.t > t_kf and isinstance(m, Heading) else m)
+    assert a.k == b.k and a._h_n == b._h_n >= 6  # the same keyframe, headings pending
+    h = np.zeros(a._full.shape[0])
+    h[2] = h[HOFF] = 1.0  # psi + heading offset (heading_offset: estimate)
+    ph = a._full @ h
+    gain_psi = ph[2] / (h @ ph + a._h_var / a._h_n ** 2)
+    # the keyframe's heading moves by exactly the gain times the shift...
+    kf_shift = b._with_pending_heading()[0][2] - a._with_pending_heading()[0][2]
+    assert kf_shift == pytest.approx(gain_psi * 0.05, rel=1e-9)
+    assert kf_shift > 0.005  # not a negligible correction
+    # ...and the output with it (give or take the bias the update also moves, which turns the
+    # preintegrated yaw since the keyframe)
+    shift = math.remainder(b.estimate().pose[2] - a.estimate().pose[2], math.tau)
+    assert shift == pytest.approx(kf_shift, rel=0.2)
