@@ -282,7 +282,7 @@ def open_reader(bag: Path):
     return reader
 
 
-def _wanted(cfg: Config) -> list[tuple[str, str, SensorConfig | None, str]]:
+def configured_topics(cfg: Config) -> list[tuple[str, str, SensorConfig | None, str]]:
     """(kind, config key, sensor or None for ground truth, topic) of each configured topic."""
     wanted: list[tuple[str, str, SensorConfig | None, str]] = []
     counters: Counter = Counter()
@@ -318,7 +318,7 @@ def _sources(cfg: Config, connections, bag: Path, ros1: bool) -> list[_Source]:
     with .topic and .msgtype); BagError naming the topic if one is absent or of a wrong type."""
     conns = {c.topic: c for c in connections}
     out = []
-    for w in _wanted(cfg):
+    for w in configured_topics(cfg):
         topic = w[3]
         if topic not in conns:
             raise _absent(bag, topic, w[1], conns)
@@ -436,7 +436,7 @@ class BagStream:
         self._truth_found = False  # a truth pose at or after t0 has been seen
         self._head: deque = deque()
         self._started = False
-        self._wanted = _wanted(cfg)
+        self._wanted = configured_topics(cfg)
         self._gps_source = any(w[0] == "gps" for w in self._wanted)
         self._truth_idx = next((i for i, w in enumerate(self._wanted)
                                 if w[1] == "ground_truth"), -1)

@@ -29,7 +29,7 @@ from __future__ import annotations
 from collections import Counter
 
 from estimation import geodesy, rosmsg
-from estimation.bags import ACCEPTED_TYPES, CONVERTERS, Reject, _wanted
+from estimation.bags import ACCEPTED_TYPES, CONVERTERS, Reject, configured_topics
 from estimation.config import Config, load_landmark_map
 from estimation.measurements import GpsFix, Stream
 
@@ -66,7 +66,7 @@ class LiveConverter:
             cfg.datum if isinstance(cfg.datum, tuple) else None)
         self.rejected: Counter = Counter()  # (topic, reason) -> messages
         self._topics = {topic: (kind, key, CONVERTERS[kind](s, key))
-                        for kind, key, s, topic in _wanted(cfg) if s is not None}
+                        for kind, key, s, topic in configured_topics(cfg) if s is not None}
 
     def stream(self) -> Stream:
         """An empty Stream with what the estimators are built from: the landmark maps of the

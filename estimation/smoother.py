@@ -701,17 +701,10 @@ class FixedLagSmoother(Estimator):
         if self._h_n:
             # the interval's heading samples, each carried to this keyframe by the
             # preintegrated yaw since it, averaged: one factor with variance var / n
-            s = self.sensors[self._h_sensor]
-            nh = self._h_n
-            z = self._h_ref + self._h_sum / nh + pim.dpsi
-            var = self._h_var / (nh * nh)
-            if s.heading_offset == "estimate":
-                rows.append(heading_row(z, math.sqrt(var), use_offset=True))
-                pred = guess[PSI] + guess[HOFF]
-            else:
-                z -= float(s.heading_offset)
-                rows.append(heading_row(z, math.sqrt(var), use_offset=False))
-                pred = guess[PSI]
+            z, var, use_offset = self._pending_heading()
+            z += pim.dpsi
+            rows.append(heading_row(z, math.sqrt(var), use_offset=use_offset))
+            pred = guess[PSI] + guess[HOFF] if use_offset else guess[PSI]
             res = np.array([wrap_angle(z - pred)])
             scov = np.array([[cov[2, 2] + var]])
             self.log.innovations.append(Innovation(
@@ -920,6 +913,19 @@ class FixedLagSmoother(Estimator):
                                    wg - gain * bg + kw * wo, ahead), self._now
         return Estimate(t, (pose[0], pose[1], wrap_angle(pose[2])), cov, st.copy(), None, NAMES)
 
+    def _pending_heading(self) -> tuple[float, float, bool]:
+        """The heading samples since the newest keyframe as one measurement of its heading:
+        (value rad, variance rad^2, whether it measures psi + the estimated offset; else psi,
+        the sensor's fixed offset removed). Each sample is carried back to the keyframe by the
+        preintegrated yaw up to it (``_step``); add the yaw to a later time to move it there."""
+        s = self.sensors[self._h_sensor]
+        n = self._h_n
+        z = self._h_ref + self._h_sum / n
+        use_offset = s.heading_offset == "estimate"
+        if not use_offset:
+            z -= float(s.heading_offset)
+        return z, self._h_var / (n * n), use_offset
+
     def _with_pending_heading(self) -> tuple[np.ndarray, np.ndarray]:
         """The newest keyframe's state and 3x3 pose covariance, updated (outside the graph)
         with the heading samples that arrived since it: they become one factor only at the next
@@ -929,19 +935,16 @@ class FixedLagSmoother(Estimator):
         st, full = self.kf_state, self._full
         if not self._h_n or full is None or full.shape != (DIM, DIM):
             return st, self.kf_cov
-        s = self.sensors[self._h_sensor]
-        z = self._h_ref + self._h_sum / self._h_n  # carried back to the keyframe (see _step)
-        var = self._h_var / (self._h_n * self._h_n)
+        z, var, use_offset = self._pending_heading()
         # H = e_psi (+ e_hoff): P H^T is a column (sum), H P H^T an entry. Python floats: numpy
         # on 9-vectors cost 10 us here, per output sample.
         f = full.tolist()
         x = st.tolist()
-        if s.heading_offset == "estimate":
+        if use_offset:
             ph = [row[PSI] + row[HOFF] for row in f]
             pred = x[PSI] + x[HOFF]
             hph = ph[PSI] + ph[HOFF]
         else:
-            z -= float(s.heading_offset)
             ph = [row[PSI] for row in f]
             pred, hph = x[PSI], ph[PSI]
         g = wrap_angle(z - pred) / (hph + var)  # innovation over its variance
