@@ -104,6 +104,8 @@ IP_OFF_WALKV = 18  # offset in fp of the random-walk variances per second
 IP_LIE = 19  # unicycle: 1 when the pose error is in SE(2) exponential coordinates (body-frame
 # rho, theta; UnicycleEkf(pose_error='se2')): se2_error_terms' F and Q, the GPS rows' R(psi),
 # the position correction by pose_correct
+IP_WTRUE = 20  # unicycle with scale states: 1 when state 4 is the true yaw rate (a gyro is
+# fused), 0 when it is the odometry's (UnicycleEkf._w_true)
 IP_ANG = 24  # angle state indices (up to 8)
 MAXANG = 8
 IP_OFF_ZI = 15  # offset in ip of the event kernels' block table (MAXB, 4), then int scratch
@@ -217,7 +219,7 @@ def _uni_predict(fp, ip, W, n, dt):
         x1, y1, p1, F0, q0 = scaled_step_terms(
             x[0], x[1], x[2], x[3], x[4], kv, kw, dt, ip[IP_MOTION] != 0,
             fp[FP_NOISE], fp[FP_NOISE + 1], fp[FP_NOISE + 2], fp[FP_NOISE + 3],
-            fp[FP_NOISE + 4])
+            fp[FP_NOISE + 4], ip[IP_WTRUE] != 0)
         F, q = se2_error_terms(x[2], p1, F0, q0)
         fp[ofv + 0] = F[12]
         fp[ofv + 1] = F[0]
@@ -253,7 +255,7 @@ def _uni_predict(fp, ip, W, n, dt):
         x1, y1, p1, F, q = scaled_step_terms(
             x[0], x[1], x[2], x[3], x[4], x[ks], x[ks + 1], dt, ip[IP_MOTION] != 0,
             fp[FP_NOISE], fp[FP_NOISE + 1], fp[FP_NOISE + 2], fp[FP_NOISE + 3],
-            fp[FP_NOISE + 4])
+            fp[FP_NOISE + 4], ip[IP_WTRUE] != 0)
         fp[ofv + 1] = F[0]
         fp[ofv + 2] = F[1]
         fp[ofv + 3] = F[2]
@@ -636,7 +638,7 @@ def _uni_model(fp, ip, sf, si, H, y, R, blk, nr, nb, typ, s, z0, z1, r0, r1, r01
         _zero_rows(H, R, nr, 1)
         bi = si[s, SI_BIAS]
         b = sf[s, SF_BIAS] if bi < 0 else x[bi]
-        if ks < 0:
+        if ks < 0 or ip[IP_WTRUE] != 0:
             y[nr] = z0 - (x[4] + b)
             H[nr, 4] = 1.0
         else:  # the gyro sees the true yaw rate k_w om (+ bias)
@@ -671,8 +673,14 @@ def _uni_model(fp, ip, sf, si, H, y, R, blk, nr, nb, typ, s, z0, z1, r0, r1, r01
             nr, nb = _block(blk, nr, 1, nb, s, K_V)
         if flags & 2:
             _zero_rows(H, R, nr, 1)
-            y[nr] = z1 - x[4]
-            H[nr, 4] = 1.0
+            if ks >= 0 and ip[IP_WTRUE] != 0:  # the true yaw rate / k_w
+                kw = x[ks + 1]
+                y[nr] = z1 - x[4] / kw
+                H[nr, 4] = 1.0 / kw
+                H[nr, ks + 1] = -x[4] / (kw * kw)
+            else:
+                y[nr] = z1 - x[4]
+                H[nr, 4] = 1.0
             R[nr, nr] = r1
             nr, nb = _block(blk, nr, 1, nb, s, K_YAWRATE)
         return nr, nb
@@ -694,7 +702,8 @@ def _uni_model(fp, ip, sf, si, H, y, R, blk, nr, nb, typ, s, z0, z1, r0, r1, r01
         else:  # the antenna d s before the state's time: the exact step backwards
             kv = 1.0 if ks < 0 else x[ks]
             kw = 1.0 if ks < 0 else x[ks + 1]
-            g = delayed_gps_terms(x[0], x[1], x[2], x[3], x[4], kv, kw, lx, ly, d)
+            g = delayed_gps_terms(x[0], x[1], x[2], x[3], x[4], kv, kw, lx, ly, d,
+                                  ip[IP_WTRUE] != 0)
             y[nr] = z0 - g[0]
             y[nr + 1] = z1 - g[1]
             H[nr, 0] = 1.0
@@ -725,6 +734,12 @@ def _uni_model(fp, ip, sf, si, H, y, R, blk, nr, nb, typ, s, z0, z1, r0, r1, r01
         rw = fp[FP_WHEEL_R]
         k = 0.5 * fp[FP_TRACK] / rw
         # the nominal geometry turns the state's (odometry-frame) twist into wheel speeds
+        if ks >= 0 and ip[IP_WTRUE] != 0:  # (the odometry-frame yaw rate is w / k_w)
+            kw = x[ks + 1]
+            k /= kw
+            dk = x[4] * k / kw
+            H[nr, ks + 1] = dk
+            H[nr + 1, ks + 1] = -dk
         vr = x[3] / rw
         wr = x[4] * k
         H[nr, 3] = 1.0 / rw

@@ -301,22 +301,30 @@ def _scaled_cfg(**extra_sensors):
     })
 
 
+_GYRO = {"imu": [{"topic": "/imu", "use": ["yaw_rate"], "gyro_bias": 0.0}]}
+
+
+@pytest.mark.parametrize("gyro", [False, True])
 @pytest.mark.parametrize("pose_error", ["world", "se2"])
 @pytest.mark.parametrize("w", [0.0, 0.6])
-def test_predict_jacobian_with_scale_states_matches_central_differences(w, pose_error):
-    """With odometry scales the body moves with (k_v u, k_w om): F's scale columns."""
-    ekf = UnicycleEkf(_scaled_cfg(), pose_error=pose_error)
+def test_predict_jacobian_with_scale_states_matches_central_differences(w, pose_error, gyro):
+    """With odometry scales the body moves with (k_v u, k_w om); with a gyro, state 4 is the
+    true yaw rate and the body moves with (k_v u, w): F's scale columns."""
+    ekf = UnicycleEkf(_scaled_cfg(**(_GYRO if gyro else {})), pose_error=pose_error)
     ekf.process(WheelSpeeds(0.0, 0.0, 0.0, 0.01, 0.01, sensor="/js"))
-    assert ekf.state_names == ("x", "y", "psi", "v_odo", "w_odo", "k_v", "k_w")
+    assert ekf.state_names == ("x", "y", "psi", "v_odo", "w" if gyro else "w_odo", "k_v", "k_w")
     x0 = np.array([1.0, -2.0, 2.5, 1.3, w, 1.03, 0.96])
     dt = 0.37
     x1 = _check_predict_jacobian(ekf, x0, dt, pose_error)
-    # Q is the true-twist Q with the (u, om) rows and columns divided by (k_v, k_w); for the
-    # se2 error, mapped by A1^-1 = blockdiag(R(psi1)^T, I) (the chart at the predicted pose)
+    if gyro:  # k_w does not enter the motion
+        assert not ekf._F[:5, 6].any()
+    # Q is the true-twist Q with the (u, om) rows and columns divided by (k_v, k_w) (by k_v
+    # alone when state 4 is the true yaw rate); for the se2 error, mapped by
+    # A1^-1 = blockdiag(R(psi1)^T, I) (the chart at the predicted pose)
     Qt = np.zeros((5, 5))
     Qt[np.triu_indices(5)] = unicycle_process_noise(2.5, 1.3 * 1.03, dt, ekf.noise)
     Qt = Qt + np.triu(Qt, 1).T
-    T = np.diag([1.0, 1.0, 1.0, 1 / 1.03, 1 / 0.96])
+    T = np.diag([1.0, 1.0, 1.0, 1 / 1.03, 1.0 if gyro else 1 / 0.96])
     if pose_error == "se2":
         c, s = math.cos(x1[2]), math.sin(x1[2])
         T[:2, :2] = [[c, s], [-s, c]]
@@ -344,6 +352,48 @@ def test_unobservable_odometry_scales_do_not_drift():
     x, P = ekf.kf.x, ekf.kf.P
     np.testing.assert_allclose(x[5:7], 1.0, atol=1e-12)
     np.testing.assert_allclose(np.diag(P)[5:7], [0.02 ** 2, 0.02 ** 2 + 0.025 ** 2], rtol=1e-9)
+
+
+@pytest.mark.parametrize("compiled", [False, True])
+@pytest.mark.parametrize("turning", [False, True])
+def test_gyro_and_odometry_yaw_rates_do_not_bias_k_w(turning, compiled):
+    """Odometry (v, yaw rate) and a gyro, nominal geometry exact (k_v = k_w = 1), 120 s.
+
+    With the odometry-frame yaw rate w_odo as the state and the gyro measured as k_w w_odo,
+    every gyro update regressed on the filter's own noisy w_odo: k_w shrank towards 0 (the
+    errors-in-variables bias of an EKF estimating a parameter, Ljung 1979) to 0.54 on a
+    straight line (8 prior sigmas, no information at all) and to 0.952 +- 0.013 while turning,
+    and the prior correlation of the scales dragged k_v to 0.978. With a gyro, state 4 is the
+    true yaw rate: the gyro is linear in it, and the odometry's w / k_w regresses on a state
+    the gyro pins down. Straight: both scales keep their prior; turning: k_w within 2 sigma."""
+    rng = np.random.default_rng(5)
+    cfg = _scaled_cfg(odometry=[{"topic": "/odom", "noise": {"v": 0.02, "yaw_rate": 0.06}}],
+                      imu=[{"topic": "/imu", "use": ["yaw_rate"], "gyro_bias": 0.0,
+                            "noise": {"yaw_rate": 0.01}}])
+    cfg.sensors = [s for s in cfg.sensors if s.kind != "wheels"]
+    ekf = UnicycleEkf(cfg, compiled=compiled)
+    ms = []
+    for k in range(1200):
+        t = 0.1 * k + 0.1
+        w = 0.3 * math.sin(t / 4.0) if turning else 0.0
+        ms.append(WheelOdometry(t, 1.0 + 0.02 * rng.standard_normal(),
+                                w + 0.06 * rng.standard_normal(), 0.02 ** 2, 0.06 ** 2,
+                                sensor="/odom"))
+    for k in range(3600):
+        t = k / 30.0 + 0.01
+        w = 0.3 * math.sin(t / 4.0) if turning else 0.0
+        ms.append(GyroYawRate(t, w + 0.01 * rng.standard_normal(), 0.01 ** 2, sensor="/imu"))
+    for m in sorted(ms, key=lambda m: m.t):
+        ekf.process(m)
+    e = ekf.estimate()
+    assert e.state_names[3:] == ("v_odo", "w", "k_v", "k_w")
+    (kv, kw), sd = e.state[5:7], np.sqrt(np.diag(e.state_cov)[5:7])
+    sd_v, sd_w, _ = cfg.robot.scale_std
+    if turning:
+        assert abs(kw - 1.0) < 2 * sd[1] and sd[1] < 0.5 * sd_w, (kw, sd)
+    else:
+        assert abs(kw - 1.0) < 0.05 * sd_w and abs(kv - 1.0) < 0.01 * sd_v, (kv, kw)
+        np.testing.assert_allclose(sd, [sd_v, sd_w], rtol=0.02)
 
 
 class _Capture:
@@ -383,14 +433,20 @@ def _capture_rows(ekf, m, x):
     return cap.got
 
 
+@pytest.mark.parametrize("gyro", [True, False])
 @pytest.mark.parametrize("pose_error", ["world", "se2"])
-def test_measurement_jacobians_match_central_differences(pose_error):
+def test_measurement_jacobians_match_central_differences(pose_error, gyro):
+    """Every measurement's H against central differences of its h, with the scale states in
+    both conventions: with a gyro state 4 is the true yaw rate (the odometry and the wheels
+    see w / k_w), without one the odometry's (the gyro-less config has no bias state)."""
+    imu = ({"topic": "/imu", "use": ["yaw", "yaw_rate"], "gyro_bias": "estimate",
+            "heading_offset": "estimate"} if gyro else
+           {"topic": "/imu", "use": ["yaw"], "heading_offset": "estimate"})
     cfg = parse_config({
         "sensors": {
             "odometry": [{"topic": "/odom"}],
             "wheels": [{"topic": "/js", "joints": ["l", "r"], "noise": {"speed": 0.3}}],
-            "imu": [{"topic": "/imu", "use": ["yaw", "yaw_rate"], "gyro_bias": "estimate",
-                     "heading_offset": "estimate"}],
+            "imu": [imu],
             "gps": [{"topic": "/fix", "lever_arm": [0.4, -0.2], "delay": 0.25}],
         },
         "robot": {"wheel_radius": 0.17, "track_width": 0.55, "wheel_radius_std": 0.003,
@@ -400,17 +456,21 @@ def test_measurement_jacobians_match_central_differences(pose_error):
     # the Python measurement models (the compiled kernels' are checked against them in
     # tests/test_ekf_fast_path.py)
     ekf = UnicycleEkf(cfg, compiled=False, pose_error=pose_error)
-    assert ekf.state_names == ("x", "y", "psi", "v_odo", "w_odo", "bg", "hoff", "k_v", "k_w")
-    ekf.process(GyroYawRate(0.0, 0.0, 1e-4, sensor="/imu"))
-    ekf._hoff_ready.add(6)
+    calib = ("bg", "hoff") if gyro else ("hoff",)
+    assert ekf.state_names == ("x", "y", "psi", "v_odo", "w" if gyro else "w_odo", *calib,
+                               "k_v", "k_w")
+    ekf.process(Heading(0.0, 0.0, 1e-4, sensor="/imu") if not gyro
+                else GyroYawRate(0.0, 0.0, 1e-4, sensor="/imu"))
+    hi = ekf.state_names.index("hoff")
+    ekf._hoff_ready.add(hi)
     # with odometry scales and a GPS delay: the odometry rows depend on k_v, k_w, the fix's
     # on v and w (the antenna 0.25 s back along the arc)
-    x0 = [3.0, 4.0, -2.9, 1.1, 0.4, 0.02, 2.8, 1.03, 0.96]
+    x0 = [3.0, 4.0, -2.9, 1.1, 0.4, *((0.02,) if gyro else ()), 2.8, 1.03, 0.96]
     cov = np.array([[1.0, 0.2, 0], [0.2, 2.0, 0], [0, 0, 9]])
     ms = [
         WheelOdometry(0.0, 1.0, 0.3, 0.01, 0.02, sensor="/odom"),
         WheelSpeeds(0.0, 5.0, 7.0, 0.1, 0.2, sensor="/js"),
-        GyroYawRate(0.0, 0.5, 1e-4, sensor="/imu"),
+        *([GyroYawRate(0.0, 0.5, 1e-4, sensor="/imu")] if gyro else []),
         Heading(0.0, 3.0, 1e-3, sensor="/imu"),
         GpsFix(0.0, 0, 0, 0, cov, 0, sensor="/fix", enu=(3.5, 4.2, 0.0)),
     ]
@@ -423,15 +483,23 @@ def test_measurement_jacobians_match_central_differences(pose_error):
 
         H_num = _numeric_jac(h, np.zeros(len(x0)))
         np.testing.assert_allclose(got["H"], H_num, atol=1e-7, err_msg=type(m).__name__)
+    # the scales' columns: the odometry's yaw rate and the wheels depend on k_w exactly when
+    # state 4 is the true yaw rate; the gyro never depends on it then
+    ks = ekf.state_names.index("k_w")
+    for m in ms[:2]:
+        assert (np.abs(_capture_rows(ekf, m, x0)["H"][:, ks]).max() > 0.1) == gyro
+    if gyro:
+        assert _capture_rows(ekf, ms[2], x0)["H"][0, ks] == 0.0
     gps = _capture_rows(ekf, ms[-1], x0)
     np.testing.assert_array_equal(gps["R"], cov[:2, :2])
     # heading prediction is psi + hoff, its innovation wrapped: 3.0 - (-0.1) = 3.1, and with
     # hoff 0.1 smaller 3.2 - 2 pi, across the seam
-    hd = _capture_rows(ekf, ms[3], x0)
+    head = ms[-2]
+    hd = _capture_rows(ekf, head, x0)
     assert hd["y"][0] == pytest.approx(3.0 - (-2.9 + 2.8))
     x_seam = list(x0)
-    x_seam[6] -= 0.1
-    assert _capture_rows(ekf, ms[3], x_seam)["y"][0] == pytest.approx(3.2 - 2 * math.pi)
+    x_seam[hi] -= 0.1
+    assert _capture_rows(ekf, head, x_seam)["y"][0] == pytest.approx(3.2 - 2 * math.pi)
 
 
 @pytest.mark.parametrize("dt", [0.02, 0.5, 2.0])
