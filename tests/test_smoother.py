@@ -420,6 +420,44 @@ def test_odometry_scales_are_estimated(husky_run):
         assert sd < 0.5 * prior, (i, sd, prior)
 
 
+def test_speed_scale_on_the_first_straight_leg_is_the_closed_form_optimum(husky):
+    """On the sample's first leg (straight for 21 s) the along-track GPS residuals depend on the
+    start (prior 1 cm) and on k_v times the odometry's distance: a two-unknown linear least
+    squares with the priors and noise the config states, the fixes compared with the distance
+    at their measurement time (stamp - delay). The filtered k_v is that optimum to within 0.05
+    of its sigma at three times on the leg, where the optimum is 1.0007-0.9986 (the unicycle
+    EKF, with its own twist model, 1.0019-1.0002; 0.9959-0.9946 before its k_w bias was fixed,
+    docs/results/smoother_monte_carlo.md, session 7)."""
+    from estimation.config import GIVEN_POSE_STD
+
+    cfg, stream = husky
+    g0 = stream.ground_truth[0]
+    t0 = g0.t
+    turn = next(g.t for g in stream.ground_truth if abs(g.yaw - g0.yaw) > 0.02) - t0
+    assert turn > 15.0
+    gps = cfg.of_kind("gps")[0]
+    sd_v = cfg.robot.scale_std[0]
+    sigma = gps.noise["horizontal"]
+    u = np.array([math.cos(g0.yaw), math.sin(g0.yaw)])
+    odo = [m for m in stream.measurements if isinstance(m, WheelOdometry)]
+    ot = np.array([m.t for m in odo])
+    dist = np.concatenate([[0.0], np.cumsum([m.v for m in odo[1:]] * np.diff(ot))])
+    for t_end in (turn - 6.0, turn - 3.0, turn - 0.5):
+        fixes = [m for m in stream.measurements if isinstance(m, GpsFix) and m.t - t0 <= t_end]
+        A = np.array([[1.0, np.interp(f.t - gps.delay, ot, dist)] for f in fixes])
+        z = np.array([(np.array(f.enu[:2]) - (g0.x, g0.y)) @ u for f in fixes])
+        info = A.T @ A / sigma**2 + np.diag([GIVEN_POSE_STD[0] ** -2, sd_v**-2])
+        kv_opt = np.linalg.solve(info, A.T @ z / sigma**2 + [0.0, sd_v**-2])[1]
+        kv_sd = math.sqrt(np.linalg.inv(info)[1, 1])
+        sm = FixedLagSmoother(cfg, initial_pose=_pose0(stream))
+        for m in stream.measurements:
+            if m.t - t0 > t_end:
+                break
+            sm.process(m)
+        kv = sm.estimate().state[KV]
+        assert abs(kv - kv_opt) < 0.05 * kv_sd, (t_end, kv, kv_opt, kv_sd)
+
+
 @pytest.mark.parametrize("lag", [0.0, -1.0, math.nan, math.inf])
 def test_a_lag_that_is_not_positive_seconds_is_refused(husky, lag):
     cfg, _ = husky
