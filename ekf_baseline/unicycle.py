@@ -20,7 +20,7 @@ State (world = local ENU frame; the same names and conventions as ``factors.stat
 Scale states. With them, state 3 is the ODOMETRY-FRAME speed (named v_odo) and the body moves
 with k_v v_odo -- the landmark EKF's convention; the odometry's and the wheels' speed is linear
 in the state and carries no information about k_v; GPS does. State 4 is the yaw rate in the
-frame of the most precise sensor of it:
+frame of the sensor that pins it down, the gyro where one is fused:
 
 * without a fused gyro, the odometry's (w_odo; the body turns at k_w w_odo), so that the
   odometry and the wheel speeds are linear in the state. (With the true twist as the state and
