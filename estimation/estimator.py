@@ -419,6 +419,12 @@ class Estimator(ABC):
     def finish(self) -> None:  # noqa: B027 - optional hook
         """Called once after the last measurement."""
 
+    def final_state(self) -> Estimate | None:
+        """After ``finish``: the estimate whose ``state`` and ``state_cov`` describe the
+        estimator's whole state at the end of the run (calibration states included), or None
+        to use the last output sample's."""
+        return None
+
     @property
     def innovations(self) -> InnovationLog:
         return self.log.innovations

@@ -164,6 +164,8 @@ class EstimatorRun:
     runtime_s: float  # total wall time in process/estimate/finish, s
     log: EstimatorLog
     error: str | None = None  # set when the estimator raised; the trajectory holds what it had
+    # the whole state at the end (Estimator.final_state, else the last sample's), or None
+    final_state: Estimate | None = None
 
 
 @dataclass
@@ -352,14 +354,14 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
         final = getattr(est, "final_estimates", None)
         track = final() if callable(final) else outputs[i]
         runs[name] = EstimatorRun(name, Trajectory.from_estimates(track), upd, totals[i],
-                                  est.log, errors[i])
+                                  est.log, errors[i], _final_state(est, track))
         outputs[i] = None
         lagged = getattr(est, "lagged_estimates", None)
         lagged = lagged() if callable(lagged) else None
         if lagged is not None:
             runs[f"{name}_lagged"] = EstimatorRun(
                 f"{name}_lagged", Trajectory.from_estimates(lagged), upd, totals[i], est.log,
-                errors[i])
+                errors[i], getattr(lagged, "last", None))
     if progress is not None:
         progress(1.0)
     truth = None
@@ -370,6 +372,19 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
     elif stream.ground_truth:
         truth = Trajectory.from_ground_truth(stream.ground_truth)
     return RunResult(stream, runs, gps.track(), truth, fed)
+
+
+def _final_state(est: Estimator, track) -> Estimate | None:
+    """The estimator's whole state at the end of the run: its own ``final_state()``, else the
+    last output sample (a TrackBuilder keeps that one whole), if it has a state vector."""
+    hook = getattr(est, "final_state", None)
+    try:
+        e = hook() if callable(hook) else None
+    except Exception:  # a broken hook is not worth losing the run's outputs over
+        e = None
+    if e is None:
+        e = getattr(track, "last", None) if track is not None else None
+    return e if e is not None and e.state is not None else None
 
 
 def _feed(meas, n, fraction, select, gps, est_list, alive, errors, outputs, timings, totals,

@@ -972,6 +972,11 @@ class FixedLagSmoother(Estimator):
     def lagged_estimates(self) -> TrackBuilder:
         return self._lagged
 
+    def final_state(self) -> Estimate | None:
+        """The newest keyframe with its full marginal (the lagged track's last entry after
+        ``finish``: at the end of the run the filtered and the lagged output meet there)."""
+        return self._lagged.last
+
 
 class BatchSmoother(FixedLagSmoother):
     """Every factor of the run, solved at the end with Levenberg-Marquardt: the offline optimum
@@ -1010,4 +1015,7 @@ class BatchSmoother(FixedLagSmoother):
 
     def final_estimates(self) -> TrackBuilder:
         return self._final
+
+    def final_state(self) -> Estimate | None:
+        return self._final.last
 

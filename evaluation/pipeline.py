@@ -23,7 +23,11 @@ Per estimator (track), metrics.json holds:
   how closely a track follows the GPS on that time scale;
 * ``gps_outages``: error growth per metre travelled over each GPS outage (``metrics.gps_outages``);
 * ``nis``: per 'sensor kind', NIS consistency and the gate's accept/reject counts
-  (``evaluation.consistency``); ``rejected`` (sensor: reason -> count), ``events``, ``error``.
+  (``evaluation.consistency``); ``rejected`` (sensor: reason -> count), ``events``, ``error``;
+* ``final_state``: the calibration states at the end of the run, ``{"t": s, "states": {name:
+  {"value", "sigma"}}}`` (``calibration_states``): gyro bias ``bg`` rad/s, heading offset
+  ``hoff`` rad, odometry scales ``k_v``, ``k_w``; a sensor's name after a colon where an
+  estimator has several of a kind; None for an estimator without them.
 
 At the top level, ``wall_s`` splits the wall time of the whole job (``timing_split``): how
 long the process ran before ``run_bag`` (interpreter start, imports, config), decoding,
@@ -171,6 +175,29 @@ def _outage_scores(tr: Trajectory, outages: list[metrics.Outage], truth: Traject
     return out
 
 
+CALIBRATION = ("bg", "hoff", "k_v", "k_w")  # state names (a sensor may follow after ':')
+
+
+def calibration_states(e) -> dict | None:
+    """The calibration states of Estimate ``e`` (its ``state``, ``state_cov``,
+    ``state_names``): {"t": s, "states": {name: {"value": v, "sigma": sd or None}}}, in the
+    order of CALIBRATION; ``bg:<sensor>`` is named ``bg`` where it is the estimator's only
+    one. None without any."""
+    if e is None or e.state is None or not e.state_names:
+        return None
+    kinds = [n.split(":", 1)[0] for n in e.state_names]
+    sd = (np.sqrt(np.clip(np.diagonal(e.state_cov), 0.0, None))
+          if e.state_cov is not None else None)
+    states = {}
+    for kind in CALIBRATION:
+        for i, (name, k) in enumerate(zip(e.state_names, kinds, strict=True)):
+            if k == kind:
+                label = kind if kinds.count(kind) == 1 else name
+                states[label] = {"value": _num(e.state[i]),
+                                 "sigma": _num(sd[i]) if sd is not None else None}
+    return {"t": _num(e.t), "states": states} if states else None
+
+
 def _residual_corr(tr: Trajectory, t: np.ndarray, xy: np.ndarray) -> float | None:
     """Correlation time (s) of the used GPS fixes' residuals to track ``tr``
     (``metrics.correlation_time``)."""
@@ -229,6 +256,7 @@ def score(result: RunResult, decode_s: float = 0.0,
             "rejected": {f"{s}: {why}": n for (s, why), n in r.log.rejected.items()},
             "events": r.log.messages[:20],
             "error": r.error,
+            "final_state": calibration_states(r.final_state),
         }
         # the coordinates the NEES is scored in (the report's NEES plot reads them back)
         m["pose_error"] = (pose_errors or {}).get(name, "world")

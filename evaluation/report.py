@@ -18,7 +18,7 @@ from pathlib import Path
 
 from evaluation import consistency, plots
 from evaluation.results import SavedRun, load_run
-from evaluation.verdict import TIE, track_kind, verdict_lines
+from evaluation.verdict import CALIBRATION_SIGMAS, TIE, track_kind, verdict_lines
 
 REPORT_FILE = "report.html"
 
@@ -155,6 +155,45 @@ def _nis_table(m: dict) -> str:
             f"else Fail; no verdict under {c.MIN_SAMPLES} values. Many above the band: the "
             "filter is over-confident (or the sensor noisier than configured); many below: "
             "pessimistic (noise overstated).</p>")
+
+
+# calibration state: (row title, unit, factor from SI, format)
+_CALIBRATION_ROWS = {"bg": ("gyro bias", "deg/s", 180.0 / math.pi, ".3f"),
+                     "hoff": ("heading offset", "deg", 180.0 / math.pi, ".2f"),
+                     "k_v": ("odometry speed scale k_v", "", 1.0, ".4f"),
+                     "k_w": ("odometry yaw-rate scale k_w", "", 1.0, ".4f")}
+
+
+def _calibration_table(m: dict) -> str:
+    """Each estimator's calibration states at the end of the run (metrics ``final_state``)."""
+    finals = {n: (e.get("final_state") or {}).get("states") or {}
+              for n, e in m["estimators"].items()}
+    finals = {n: st for n, st in finals.items() if st}
+    if not finals:
+        return ""
+    labels = list(dict.fromkeys(label for st in finals.values() for label in st))
+    rows = []
+    for label in labels:
+        kind, _, sensor = label.partition(":")
+        title, unit, k, spec = _CALIBRATION_ROWS.get(kind, (kind, "", 1.0, ".4g"))
+        head = title + (f" ({sensor})" if sensor else "") + (f" [{unit}]" if unit else "")
+        cells = []
+        for st in finals.values():
+            s = st.get(label) or {}
+            v, sd = s.get("value"), s.get("sigma")
+            cells.append("–" if v is None else f"{k * v:{spec}}"
+                         + ("" if sd is None else f" ± {k * sd:{spec}}"))
+        rows.append(f'<tr><td class="l">{html.escape(head)}</td>'
+                    + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
+    return ("<h2>Calibration at the end of the run</h2><table><tr><th class='l'>state</th>"
+            + "".join(f"<th>{html.escape(n)}</th>" for n in finals) + "</tr>" + "".join(rows)
+            + "</table><p class='note'>Each estimator's estimate and its own 1-sigma at the "
+            "end of the run (the smoother's filtered and lagged outputs meet at the newest "
+            "keyframe there). Heading offset: heading reading = heading + offset; gyro bias: "
+            "gyro reading = yaw rate + bias; k_v, k_w: true speed and yaw rate over the "
+            "odometry's. The estimators read the same data, so values further apart than "
+            f"{CALIBRATION_SIGMAS:g} combined sigmas mean at least one is biased (the verdict "
+            "names them).</p>")
 
 
 def _outage_table(m: dict) -> str:
@@ -296,6 +335,7 @@ def build_html(run: SavedRun, figures: list[tuple[str, bytes, str]], render_s: f
         f"<h2>Verdict</h2><div class='verdict'><ul>{verdict}</ul></div>"
         f"<h2>Summary</h2>{_summary_table(m)}"
         f"<h2>Consistency and gating per sensor</h2>{_nis_table(m)}"
+        f"{_calibration_table(m)}"
         f"{_outage_table(m)}"
         f"<h2>Figures</h2>{figs}"
         f"<h2>Data</h2>{_facts(m)}"

@@ -10,6 +10,12 @@ noise draw or a slightly different tuning changes.
 from __future__ import annotations
 
 TIE = 0.05  # relative difference under which two scores tie
+# Two estimators' final calibration states further apart than this many of their combined
+# sigmas: at least one of them is biased. Both estimate from the same data, so their errors are
+# correlated and the combined sigma overstates the gap's: the test errs towards silence.
+CALIBRATION_SIGMAS = 3.0
+CALIBRATION_UNITS = {"bg": ("rad/s", ".4f"), "hoff": ("rad", ".3f"), "k_v": ("", ".4f"),
+                     "k_w": ("", ".4f")}
 OFFLINE = {"batch": "offline: the whole run at once"}
 
 
@@ -154,6 +160,36 @@ def _holdout_caution(m: dict, best: str) -> str:
             "less accurate." + ref + tail)
 
 
+def _calibration_gaps(m: dict) -> list[str]:
+    """Per calibration state, the pair of estimators whose final values lie furthest apart in
+    combined sigmas, where that exceeds CALIBRATION_SIGMAS."""
+    finals = {n: (e.get("final_state") or {}).get("states") or {}
+              for n, e in m["estimators"].items()}
+    labels = list(dict.fromkeys(label for st in finals.values() for label in st))
+    out = []
+    for label in labels:
+        have = [(n, st[label]) for n, st in finals.items()
+                if label in st and st[label].get("value") is not None
+                and st[label].get("sigma")]
+        worst = None
+        for i, (a, sa) in enumerate(have):
+            for b, sb in have[i + 1:]:
+                z = abs(sa["value"] - sb["value"]) / (sa["sigma"] ** 2 + sb["sigma"] ** 2) ** 0.5
+                if z > CALIBRATION_SIGMAS and (worst is None or z > worst[0]):
+                    worst = (z, a, sa, b, sb)
+        if worst:
+            z, a, sa, b, sb = worst
+            unit, spec = CALIBRATION_UNITS.get(label.split(":", 1)[0], ("", ".4g"))
+            u = f" {unit}" if unit else ""
+            out.append(
+                f"{a} and {b} end the run with different {label}: "
+                f"{sa['value']:{spec}} ± {sa['sigma']:{spec}}{u} against "
+                f"{sb['value']:{spec}} ± {sb['sigma']:{spec}}{u}, {z:.1f} combined sigmas "
+                "apart. From the same data that is more than their stated uncertainty allows: "
+                "at least one of them is biased there (see the calibration table).")
+    return out
+
+
 def verdict_lines(m: dict) -> list[str]:
     """The verdict as a list of sentences (plain text)."""
     ests = m["estimators"]
@@ -204,6 +240,7 @@ def verdict_lines(m: dict) -> list[str]:
             + ", ".join(f"{n} {drift[n]['error_end_m']:.2f} m "
                         f"({100 * drift[n]['drift_per_m']:+.1f}%)" for n in order)
             + ".")
+    lines += _calibration_gaps(m)
     for n, e in ests.items():
         if e.get("error"):
             lines.append(f"{n} stopped early: {e['error']}.")

@@ -80,6 +80,29 @@ def test_metrics_json_holds_evo_style_scores_and_consistency(sample_run):
     assert m["data"]["gps_fixes_withheld"] == m["gps_holdout_fixes"] > 40
 
 
+def test_calibration_states_at_the_end_are_reported_and_match_the_simulated_truth(sample_run):
+    """Every estimator's gyro bias, heading offset and odometry scales at the end of the run,
+    with its sigma, in metrics.json and the report. The sample's truth (data/sample_husky.yaml):
+    heading offset 0.35 rad, k_v = 0.1635 / 0.165 = 0.9909, k_w = k_v 0.555 / 0.5826 = 0.9440;
+    each within 3 of the estimator's sigmas (the gyro bias walks: its truth is not stated). The
+    smoother's two outputs meet at the newest keyframe."""
+    m = json.loads((sample_run / "metrics.json").read_text())
+    finals = {n: e["final_state"]["states"] for n, e in m["estimators"].items()}
+    assert set(finals) == {"ekf", "smoother", "smoother_lagged"}
+    kv_true = 0.1635 / 0.165
+    for name, st in finals.items():
+        assert list(st) == ["bg", "hoff", "k_v", "k_w"], name
+        for label, true in (("hoff", 0.35), ("k_v", kv_true), ("k_w", kv_true * 0.555 / 0.5826)):
+            v, sd = st[label]["value"], st[label]["sigma"]
+            assert sd > 0 and abs(v - true) < 3 * sd, (name, label, v, sd)
+    assert finals["smoother"] == finals["smoother_lagged"]
+    page = (sample_run / "report.html").read_text()
+    table = page.split("<h2>Calibration at the end of the run</h2>")[1].split("</table>")[0]
+    hoff = finals["ekf"]["hoff"]
+    assert (f"{np.degrees(hoff['value']):.2f} ± {np.degrees(hoff['sigma']):.2f}" in table)
+    assert "odometry yaw-rate scale k_w" in table
+
+
 def test_report_re_renders_from_saved_results_only(sample_run, tmp_path, capsys):
     copy = tmp_path / "copy"
     shutil.copytree(sample_run, copy)
