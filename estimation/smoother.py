@@ -118,9 +118,11 @@ class SmootherNoise:
     init_bg_sigma: float = 0.02  # rad/s when estimated
     init_hoff_sigma: float = 0.3  # rad when estimated (initialised from the first sample)
     fixed_sigma: float = 1e-4  # prior on a calibration state that is not estimated
-    # 1/sqrt(s): random walk of the odometry scales, 0.2 % over 400 s (tyre wear, load). The
-    # EKFs hold them constant; here 1e-5 already made gtsam's Cholesky declare the first
-    # keyframes indeterminate (simulated husky, seed 1), 3e-5 did not.
+    # 1/sqrt(s): random walk of the odometry scales when they are estimated (the config states
+    # the geometry's uncertainty), 0.2 % over 400 s (tyre wear, load); otherwise they are held
+    # at 1 (fixed_rw), as the EKFs hold them. The EKFs' estimated scales are constants; here
+    # 1e-5 already made gtsam's Cholesky declare the first keyframes indeterminate (simulated
+    # husky, seed 1), 3e-5 did not.
     scale_rw: float = 1e-4
 
     @classmethod
@@ -686,7 +688,8 @@ class FixedLagSmoother(Estimator):
             ki, kj, pim,
             gyro_bias_rw=n.gyro_bias_rw if self.est_bias else n.fixed_rw,
             heading_offset_rw=n.heading_offset_rw if self.est_hoff else n.fixed_rw,
-            pose_noise=n.pose_noise, scale_rw=n.scale_rw))
+            pose_noise=n.pose_noise,
+            scale_rw=n.scale_rw if self.scale_prior is not None else n.fixed_rw))
         guess = pim.predict(self.kf_state)
         pose, cov = _compose(self.kf_state, self._delta(self.kf_state, pim), pim.covariance,
                              self.kf_cov)

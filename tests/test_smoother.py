@@ -458,6 +458,23 @@ def test_speed_scale_on_the_first_straight_leg_is_the_closed_form_optimum(husky)
         assert abs(kv - kv_opt) < 0.05 * kv_sd, (t_end, kv, kv_opt, kv_sd)
 
 
+def test_odometry_scales_are_held_at_one_without_a_stated_geometry_uncertainty(husky):
+    """A config without robot.wheel_radius_std / track_width_std asks for no scale estimation:
+    the EKFs then have no scale states, and the smoother holds k_v = k_w = 1 (prior and random
+    walk of a state that is not estimated). Before, its scales walked at the estimated ones'
+    1e-4/sqrt(s) anyway: on rl_husky_gps.bag k_v ended at 0.9927 +- 0.0019, a freedom the
+    EKFs did not have. On the sample, whose true k_v is 0.9909, they would move the same way."""
+    from dataclasses import replace as dc_replace
+
+    cfg, stream = husky
+    cfg = dc_replace(cfg, robot=dc_replace(cfg.robot, wheel_radius_std=None,
+                                           track_width_std=None))
+    assert cfg.robot.scale_std is None
+    result = run(stream, {"smoother": FixedLagSmoother(cfg, initial_pose=_pose0(stream))})
+    final = result.runs["smoother"].final_state
+    assert abs(final.state[KV] - 1.0) < 1e-4 and abs(final.state[KW] - 1.0) < 1e-4, final.state
+
+
 @pytest.mark.parametrize("lag", [0.0, -1.0, math.nan, math.inf])
 def test_a_lag_that_is_not_positive_seconds_is_refused(husky, lag):
     cfg, _ = husky
