@@ -586,7 +586,8 @@ class FixedLagSmoother(Estimator):
         # Everything but the odometry scales widens, as in the EKFs (which widen all): H observes
         # none of them, so alpha is the EKF's. Widened too, the scales explain the jump: on the
         # Husky bag with a 0.3 m GPS sigma k_v went to 0.44, then the system was indeterminate.
-        # (Widening only x, y, psi, v, w instead: Husky hold-out 1.001 m lagged, not 0.999.)
+        # (Widening only x, y, psi, v, w instead: Husky hold-out 1.001 m lagged, not 0.999,
+        # session 5, when the scales still walked without a configured uncertainty.)
         q = np.zeros((DIM, DIM))
         q[:KV, :KV] = (alpha - 1.0) * full[:KV, :KV]
         if rest is not None:
