@@ -361,7 +361,7 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
         if lagged is not None:
             runs[f"{name}_lagged"] = EstimatorRun(
                 f"{name}_lagged", Trajectory.from_estimates(lagged), upd, totals[i], est.log,
-                errors[i], getattr(lagged, "last", None))
+                errors[i], _final_state(est, lagged))
     if progress is not None:
         progress(1.0)
     truth = None

@@ -978,8 +978,19 @@ class FixedLagSmoother(Estimator):
 
     def final_state(self) -> Estimate | None:
         """The newest keyframe with its full marginal (the lagged track's last entry after
-        ``finish``: at the end of the run the filtered and the lagged output meet there)."""
-        return self._lagged.last
+        ``finish``: at the end of the run the filtered and the lagged output meet there),
+        restricted to the states this run estimates (a held bias, offset or scale is left out,
+        as the EKFs carry no state for it)."""
+        return self._estimated_only(self._lagged.last)
+
+    def _estimated_only(self, e: Estimate | None) -> Estimate | None:
+        if e is None or e.state is None:
+            return e
+        keep = [i for i in range(DIM) if i < BG or (i == BG and self.est_bias)
+                or (i == HOFF and self.est_hoff) or (i >= KV and self.scale_prior is not None)]
+        cov = e.state_cov[np.ix_(keep, keep)] if e.state_cov is not None else None
+        return replace(e, state=e.state[keep], state_cov=cov,
+                       state_names=tuple(NAMES[i] for i in keep))
 
 
 class BatchSmoother(FixedLagSmoother):
@@ -1021,5 +1032,5 @@ class BatchSmoother(FixedLagSmoother):
         return self._final
 
     def final_state(self) -> Estimate | None:
-        return self._final.last
+        return self._estimated_only(self._final.last)
 
