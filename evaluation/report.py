@@ -18,7 +18,15 @@ from pathlib import Path
 
 from evaluation import consistency, plots
 from evaluation.results import SavedRun, load_run
-from evaluation.verdict import CALIBRATION_SIGMAS, TIE, track_kind, verdict_lines
+from evaluation.verdict import (
+    CALIBRATION_SIGMAS,
+    TIE,
+    calibration_title,
+    calibration_value,
+    final_states,
+    track_kind,
+    verdict_lines,
+)
 
 REPORT_FILE = "report.html"
 
@@ -157,32 +165,20 @@ def _nis_table(m: dict) -> str:
             "pessimistic (noise overstated).</p>")
 
 
-# calibration state: (row title, unit, factor from SI, format)
-_CALIBRATION_ROWS = {"bg": ("gyro bias", "deg/s", 180.0 / math.pi, ".3f"),
-                     "hoff": ("heading offset", "deg", 180.0 / math.pi, ".2f"),
-                     "k_v": ("odometry speed scale k_v", "", 1.0, ".4f"),
-                     "k_w": ("odometry yaw-rate scale k_w", "", 1.0, ".4f")}
-
-
 def _calibration_table(m: dict) -> str:
     """Each estimator's calibration states at the end of the run (metrics ``final_state``)."""
-    finals = {n: (e.get("final_state") or {}).get("states") or {}
-              for n, e in m["estimators"].items()}
-    finals = {n: st for n, st in finals.items() if st}
+    finals = final_states(m)
     if not finals:
         return ""
     labels = list(dict.fromkeys(label for st in finals.values() for label in st))
     rows = []
     for label in labels:
-        kind, _, sensor = label.partition(":")
-        title, unit, k, spec = _CALIBRATION_ROWS.get(kind, (kind, "", 1.0, ".4g"))
-        head = title + (f" ({sensor})" if sensor else "") + (f" [{unit}]" if unit else "")
+        head = calibration_title(label)
         cells = []
         for st in finals.values():
             s = st.get(label) or {}
-            v, sd = s.get("value"), s.get("sigma")
-            cells.append("–" if v is None else f"{k * v:{spec}}"
-                         + ("" if sd is None else f" ± {k * sd:{spec}}"))
+            cells.append("–" if s.get("value") is None
+                         else calibration_value(label, s["value"], s.get("sigma")))
         rows.append(f'<tr><td class="l">{html.escape(head)}</td>'
                     + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
     return ("<h2>Calibration at the end of the run</h2><table><tr><th class='l'>state</th>"

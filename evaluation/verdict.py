@@ -9,13 +9,39 @@ noise draw or a slightly different tuning changes.
 
 from __future__ import annotations
 
+import math
+
 TIE = 0.05  # relative difference under which two scores tie
 # Two estimators' final calibration states further apart than this many of their combined
 # sigmas: at least one of them is biased. Both estimate from the same data, so their errors are
 # correlated and the combined sigma overstates the gap's: the test errs towards silence.
 CALIBRATION_SIGMAS = 3.0
-CALIBRATION_UNITS = {"bg": ("rad/s", ".4f"), "hoff": ("rad", ".3f"), "k_v": ("", ".4f"),
-                     "k_w": ("", ".4f")}
+# calibration state (metrics final_state, SI): (what it is, display unit, factor, format)
+CALIBRATION_DISPLAY = {"bg": ("gyro bias", "deg/s", 180.0 / math.pi, ".3f"),
+                       "hoff": ("heading offset", "deg", 180.0 / math.pi, ".2f"),
+                       "k_v": ("odometry speed scale k_v", "", 1.0, ".4f"),
+                       "k_w": ("odometry yaw-rate scale k_w", "", 1.0, ".4f")}
+
+
+def final_states(m: dict) -> dict[str, dict]:
+    """Per estimator that has any, its calibration states at the end (metrics
+    ``final_state``): {estimator: {label: {"value", "sigma"}}}."""
+    finals = {n: (e.get("final_state") or {}).get("states") or {}
+              for n, e in m["estimators"].items()}
+    return {n: st for n, st in finals.items() if st}
+
+
+def calibration_title(label: str) -> str:
+    """What calibration state ``label`` is, with its display unit: 'heading offset [deg]'."""
+    kind, _, sensor = label.partition(":")
+    title, unit, _, _ = CALIBRATION_DISPLAY.get(kind, (kind, "", 1.0, ".4g"))
+    return title + (f" ({sensor})" if sensor else "") + (f" [{unit}]" if unit else "")
+
+
+def calibration_value(label: str, value: float, sigma: float | None) -> str:
+    """'value +- sigma' of calibration state ``label`` (SI) in its display unit."""
+    _, _, k, spec = CALIBRATION_DISPLAY.get(label.partition(":")[0], ("", "", 1.0, ".4g"))
+    return f"{k * value:{spec}}" + ("" if sigma is None else f" ± {k * sigma:{spec}}")
 OFFLINE = {"batch": "offline: the whole run at once"}
 
 
@@ -163,8 +189,7 @@ def _holdout_caution(m: dict, best: str) -> str:
 def _calibration_gaps(m: dict) -> list[str]:
     """Per calibration state, the pair of estimators whose final values lie furthest apart in
     combined sigmas, where that exceeds CALIBRATION_SIGMAS."""
-    finals = {n: (e.get("final_state") or {}).get("states") or {}
-              for n, e in m["estimators"].items()}
+    finals = final_states(m)
     labels = list(dict.fromkeys(label for st in finals.values() for label in st))
     out = []
     for label in labels:
@@ -174,19 +199,21 @@ def _calibration_gaps(m: dict) -> list[str]:
         worst = None
         for i, (a, sa) in enumerate(have):
             for b, sb in have[i + 1:]:
-                z = abs(sa["value"] - sb["value"]) / (sa["sigma"] ** 2 + sb["sigma"] ** 2) ** 0.5
+                d = sa["value"] - sb["value"]
+                if label.startswith("hoff"):  # an angle: the short way round
+                    d = (d + math.pi) % (2.0 * math.pi) - math.pi
+                z = abs(d) / math.hypot(sa["sigma"], sb["sigma"])
                 if z > CALIBRATION_SIGMAS and (worst is None or z > worst[0]):
                     worst = (z, a, sa, b, sb)
         if worst:
             z, a, sa, b, sb = worst
-            unit, spec = CALIBRATION_UNITS.get(label.split(":", 1)[0], ("", ".4g"))
-            u = f" {unit}" if unit else ""
             out.append(
-                f"{a} and {b} end the run with different {label}: "
-                f"{sa['value']:{spec}} ± {sa['sigma']:{spec}}{u} against "
-                f"{sb['value']:{spec}} ± {sb['sigma']:{spec}}{u}, {z:.1f} combined sigmas "
-                "apart. From the same data that is more than their stated uncertainty allows: "
-                "at least one of them is biased there (see the calibration table).")
+                f"{a} and {b} end the run with different {calibration_title(label)}: "
+                f"{calibration_value(label, sa['value'], sa['sigma'])} against "
+                f"{calibration_value(label, sb['value'], sb['sigma'])}, "
+                f"{z:.1f} combined sigmas apart. From the same data that is more than their "
+                "stated uncertainty allows: at least one of them is biased there (see the "
+                "calibration table).")
     return out
 
 

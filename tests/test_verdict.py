@@ -140,9 +140,17 @@ def test_calibration_states_further_apart_than_their_sigmas_are_named():
                                                         hoff=(0.35, 0.003))
     m["estimators"]["batch"]["final_state"] = _calib(k_w=(0.99, 0.01), bg=(0.012, 0.001))
     gaps = [line for line in verdict_lines(m) if "end the run with different" in line]
-    assert gaps == ["ekf and batch end the run with different k_w: 0.7800 ± 0.0500 against "
-                    "0.9900 ± 0.0100, 4.1 combined sigmas apart. From the same data that is more "
-                    "than their stated uncertainty allows: at least one of them is biased there "
-                    "(see the calibration table)."]
+    assert gaps == ["ekf and batch end the run with different odometry yaw-rate scale k_w: "
+                    "0.7800 ± 0.0500 against 0.9900 ± 0.0100, 4.1 combined sigmas apart. From "
+                    "the same data that is more than their stated uncertainty allows: at least "
+                    "one of them is biased there (see the calibration table)."]
     m["estimators"]["ekf"]["final_state"] = _calib(k_w=(0.90, 0.05))
     assert not any("end the run with different" in line for line in verdict_lines(m))
+    # heading offsets either side of +-pi are 0.02 rad apart, not 6.26
+    m["estimators"]["ekf"]["final_state"] = _calib(hoff=(3.13, 0.01))
+    m["estimators"]["smoother"]["final_state"] = _calib(hoff=(-3.13, 0.01))
+    assert not any("end the run with different" in line for line in verdict_lines(m))
+    m["estimators"]["smoother"]["final_state"] = _calib(hoff=(-3.05, 0.01))
+    gap = [line for line in verdict_lines(m) if "end the run with different" in line]
+    assert gap[0].startswith("ekf and smoother end the run with different heading offset [deg]: "
+                             "179.34 ± 0.57 against -174.75 ± 0.57, 7.3 combined sigmas")
