@@ -304,13 +304,16 @@ def _scaled_cfg(**extra_sensors):
 _GYRO = {"imu": [{"topic": "/imu", "use": ["yaw_rate"], "gyro_bias": 0.0}]}
 
 
+@pytest.mark.parametrize("motion", ["exact", "euler"])
 @pytest.mark.parametrize("gyro", [False, True])
 @pytest.mark.parametrize("pose_error", ["world", "se2"])
 @pytest.mark.parametrize("w", [0.0, 0.6])
-def test_predict_jacobian_with_scale_states_matches_central_differences(w, pose_error, gyro):
+def test_predict_jacobian_with_scale_states_matches_central_differences(w, pose_error, gyro,
+                                                                         motion):
     """With odometry scales the body moves with (k_v u, k_w om); with a gyro, state 4 is the
     true yaw rate and the body moves with (k_v u, w): F's scale columns."""
-    ekf = UnicycleEkf(_scaled_cfg(**(_GYRO if gyro else {})), pose_error=pose_error)
+    ekf = UnicycleEkf(_scaled_cfg(**(_GYRO if gyro else {})), pose_error=pose_error,
+                      motion=motion)
     ekf.process(WheelSpeeds(0.0, 0.0, 0.0, 0.01, 0.01, sensor="/js"))
     assert ekf.state_names == ("x", "y", "psi", "v_odo", "w" if gyro else "w_odo", "k_v", "k_w")
     x0 = np.array([1.0, -2.0, 2.5, 1.3, w, 1.03, 0.96])
