@@ -123,6 +123,42 @@ def draw_truth(sc, seed: int):
     return sc, (s0 * z[2], s0 * z[3], s2 * z[4])
 
 
+def calibration_truth(sim) -> dict[str, object]:
+    """What the filters' calibration states should end at, from the simulation: the odometry
+    scales k_v, k_w of its true geometry, and with an IMU its heading offset (rad) and the gyro
+    bias as a function of the time since the start (rad/s; it walks)."""
+    sc = sim.scenario
+    g, ng = sc.true_geometry, sc.nominal_geometry
+    kv = g.wheel_radius / ng.wheel_radius
+    truth: dict[str, object] = {"k_v": kv, "k_w": kv * ng.track_width / g.track_width}
+    if sc.imu is not None and sim.imu is not None:
+        truth["hoff"] = sc.imu.heading_offset
+        t, b = np.asarray(sim.imu.t), np.asarray(sim.imu.bias)
+        truth["bg"] = lambda t_rel: float(np.interp(t_rel, t, b))
+    return truth
+
+
+def _calibration_errors(sim, final) -> dict:
+    """Per calibration state an estimator ends the run with (``pipeline.calibration_entries``
+    of its final state): the error against the simulation's truth and that error over the
+    estimator's sigma."""
+    from evaluation.pipeline import calibration_entries
+
+    truth = calibration_truth(sim)
+    out = {}
+    for label, value, sigma in calibration_entries(final):
+        true = truth.get(label)
+        if true is None or not math.isfinite(value):
+            continue
+        if callable(true):
+            true = true(final.t - sim.t0)
+        err = value - true
+        if label == "hoff":
+            err = (err + math.pi) % (2.0 * math.pi) - math.pi
+        out[label] = {"error": err, "z": err / sigma if sigma else None}
+    return out
+
+
 def run_seed(scenario: str, seed: int, estimators: list[str] | None = None,
              duration: float | None = None, fixed_truth: bool = False,
              lag: float | None = None) -> dict:
@@ -134,8 +170,9 @@ def run_seed(scenario: str, seed: int, estimators: list[str] | None = None,
     starts at the exact true pose.
 
     Returns {'seed', 'scenario', 'duration_s', 'estimators': {name: {'rmse_m', 'nees_mean',
-    'runtime_s', 'error', 'ticks', 'nees'}}, 'dr_rmse_m'}; 'ticks' and 'nees' are the per-sample
-    output tick indices and NEES (lists, for the across-run average)."""
+    'runtime_s', 'error', 'ticks', 'nees', 'calibration'}}, 'dr_rmse_m'}; 'ticks' and 'nees' are
+    the per-sample output tick indices and NEES (lists, for the across-run average);
+    'calibration' the final calibration states' errors (``_calibration_errors``)."""
     from estimation.bags import read_stream
     from estimation.config import load_config
     from estimation.runner import initial_pose, run
@@ -182,6 +219,7 @@ def run_seed(scenario: str, seed: int, estimators: list[str] | None = None,
             "error": r.error,
             "ticks": ticks.tolist(),
             "nees": nees.tolist(),
+            "calibration": _calibration_errors(sim, r.final_state),
         }
     out["dr_rmse_m"] = out["estimators"]["dr"]["rmse_m"]
     return out
@@ -201,6 +239,20 @@ def _bin_means(series: dict[int, float], width: int) -> dict[int, float]:
     for k, v in series.items():
         bins.setdefault(k // width, []).append(v)
     return {b: float(np.mean(v)) for b, v in bins.items()}
+
+
+def _calibration_summary(per_run: list[dict]) -> dict:
+    """Per calibration state over the runs that have it: n, the mean and RMS of the final
+    error, and the RMS of error / sigma (about 1 for a consistent estimator)."""
+    labels = list(dict.fromkeys(label for c in per_run for label in c))
+    out = {}
+    for label in labels:
+        err = np.array([c[label]["error"] for c in per_run if label in c])
+        z = np.array([c[label]["z"] for c in per_run if label in c and c[label]["z"] is not None])
+        out[label] = {"n": len(err), "error_mean": float(err.mean()),
+                      "error_rms": float(np.sqrt(np.mean(err**2))),
+                      "z_rms": float(np.sqrt(np.mean(z**2))) if len(z) else None}
+    return out
 
 
 def aggregate(per_seed: list[dict], prob: float = 0.95) -> dict:
@@ -227,6 +279,7 @@ def aggregate(per_seed: list[dict], prob: float = 0.95) -> dict:
             "nees_mean_per_seed": [e["nees_mean"] for _, e in rows],
             "errors": [e["error"] for _, e in rows if e["error"]],
             "dim": POSE_DIM,
+            "calibration": _calibration_summary([e.get("calibration") or {} for _, e in rows]),
         }
         # N-run average NEES per tick, over the ticks every run has
         series = [dict(zip(e["ticks"], e["nees"], strict=True)) for _, e in rows]
@@ -315,6 +368,19 @@ def to_markdown(mc: dict) -> str:
             f"{ratio} | {worst} | {_f(e['runtime_mean'], '.2f')} |")
         if e["errors"]:
             lines.append(f"|   errors: {'; '.join(e['errors'][:3])} |")
+    cal = [(name, label, c) for name in sorted(s) for label, c in
+           (s[name].get("calibration") or {}).items()]
+    if cal:
+        lines += ["", "Calibration states at the end of each run against the simulation's truth "
+                  "(k_v, k_w of the drawn geometry; heading offset rad; gyro bias rad/s at that "
+                  "time). RMS of error / sigma is about 1 for a consistent estimator; the "
+                  f"two-sided 95% range for {len(mc['seeds'])} runs is "
+                  f"[{math.sqrt(chi2.ppf(0.025, len(mc['seeds'])) / len(mc['seeds'])):.2f}, "
+                  f"{math.sqrt(chi2.ppf(0.975, len(mc['seeds'])) / len(mc['seeds'])):.2f}].",
+                  "", "| estimator | state | runs | error mean | error RMS | RMS error / sigma |",
+                  "|---|---|---|---|---|---|"]
+        lines += [f"| {name} | {label} | {c['n']} | {c['error_mean']:+.2e} | "
+                  f"{c['error_rms']:.2e} | {_f(c['z_rms'], '.2f')} |" for name, label, c in cal]
     return "\n".join(lines) + "\n"
 
 

@@ -178,24 +178,29 @@ def _outage_scores(tr: Trajectory, outages: list[metrics.Outage], truth: Traject
 CALIBRATION = ("bg", "hoff", "k_v", "k_w")  # state names (a sensor may follow after ':')
 
 
-def calibration_states(e) -> dict | None:
-    """The calibration states of Estimate ``e`` (its ``state``, ``state_cov``,
-    ``state_names``): {"t": s, "states": {name: {"value": v, "sigma": sd or None}}}, in the
-    order of CALIBRATION; ``bg:<sensor>`` is named ``bg`` where it is the estimator's only
-    one. None without any."""
+def calibration_entries(e) -> list[tuple[str, float, float | None]]:
+    """(label, value, sigma or None) of each calibration state of Estimate ``e`` (its
+    ``state``, ``state_cov``, ``state_names``), in the order of CALIBRATION; ``bg:<sensor>``
+    is labelled ``bg`` where it is the estimator's only one."""
     if e is None or e.state is None or not e.state_names:
-        return None
+        return []
     kinds = [n.split(":", 1)[0] for n in e.state_names]
     sd = (np.sqrt(np.clip(np.diagonal(e.state_cov), 0.0, None))
           if e.state_cov is not None else None)
-    states = {}
-    for kind in CALIBRATION:
-        for i, (name, k) in enumerate(zip(e.state_names, kinds, strict=True)):
-            if k == kind:
-                label = kind if kinds.count(kind) == 1 else name
-                states[label] = {"value": _num(e.state[i]),
-                                 "sigma": _num(sd[i]) if sd is not None else None}
-    return {"t": _num(e.t), "states": states} if states else None
+    return [(kind if kinds.count(kind) == 1 else name, float(e.state[i]),
+             float(sd[i]) if sd is not None else None)
+            for kind in CALIBRATION
+            for i, (name, k) in enumerate(zip(e.state_names, kinds, strict=True)) if k == kind]
+
+
+def calibration_states(e) -> dict | None:
+    """``calibration_entries`` of Estimate ``e`` for metrics.json: {"t": s, "states": {label:
+    {"value": v, "sigma": sd or None}}}, or None without any."""
+    entries = calibration_entries(e)
+    if not entries:
+        return None
+    return {"t": _num(e.t), "states": {label: {"value": _num(v), "sigma": _num(sd)}
+                                       for label, v, sd in entries}}
 
 
 def _residual_corr(tr: Trajectory, t: np.ndarray, xy: np.ndarray) -> float | None:

@@ -164,3 +164,34 @@ def test_run_seed_records_the_drawn_or_fixed_truth():
     fixed = run_seed("seed002", 3, ["ekf_landmark"], duration=10.0, fixed_truth=True)
     assert fixed["true_geometry"] == [sc.true_geometry.wheel_radius, sc.true_geometry.track_width]
     assert fixed["initial_error"] == [0.0, 0.0, 0.0]
+
+
+def test_calibration_errors_against_the_simulated_truth():
+    """The final calibration states against what the simulation drew: k_v, k_w of the drawn
+    geometry, the IMU's heading offset (wrapped), the walking gyro bias at the state's time.
+    An estimate that equals the truth has error 0; one 2 sigma off has z = 2."""
+
+    from estimation.estimator import Estimate
+    from evaluation.montecarlo import _calibration_errors, calibration_truth
+    from evaluation.simulate import get_scenario, simulate
+
+    sc, _ = draw_truth(get_scenario("husky", 20.0), 4)
+    sim = simulate(sc, seed=4)
+    truth = calibration_truth(sim)
+    g, ng = sc.true_geometry, sc.nominal_geometry
+    assert truth["k_v"] == g.wheel_radius / ng.wheel_radius
+    assert truth["k_w"] == pytest.approx(truth["k_v"] * ng.track_width / g.track_width)
+    t_end = sim.t0 + 15.0
+    bias = float(np.interp(15.0, sim.imu.t, sim.imu.bias))
+    assert bias != sc.imu.gyro_bias0  # it walked
+    sd = np.array([1.0, 1.0, 1.0, 0.1, 0.1, 1e-3, 0.01, 0.004, 0.02])
+    x = np.array([0.0, 0.0, 0.0, 1.0, 0.0, bias, sc.imu.heading_offset - 2 * math.pi,
+                  truth["k_v"] + 2 * sd[7], truth["k_w"] - 0.5 * sd[8]])
+    names = ("x", "y", "psi", "v", "w", "bg", "hoff", "k_v", "k_w")
+    e = Estimate(t_end, (0.0, 0.0, 0.0), np.eye(3), x, np.diag(sd**2), names)
+    got = _calibration_errors(sim, e)
+    assert got["bg"]["error"] == pytest.approx(0.0, abs=1e-15)
+    assert got["hoff"]["error"] == pytest.approx(0.0, abs=1e-12)
+    assert got["k_v"]["z"] == pytest.approx(2.0) and got["k_w"]["z"] == pytest.approx(-0.5)
+    seed002 = simulate(draw_truth(get_scenario("seed002", 10.0), 1)[0], seed=1)
+    assert set(calibration_truth(seed002)) == {"k_v", "k_w"}  # no IMU there
