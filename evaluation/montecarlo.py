@@ -142,6 +142,7 @@ def _calibration_errors(sim, final) -> dict:
     """Per calibration state an estimator ends the run with (``pipeline.calibration_entries``
     of its final state): the error against the simulation's truth and that error over the
     estimator's sigma."""
+    from estimation.estimator import wrap_angle
     from evaluation.pipeline import calibration_entries
 
     truth = calibration_truth(sim)
@@ -152,9 +153,7 @@ def _calibration_errors(sim, final) -> dict:
             continue
         if callable(true):
             true = true(final.t - sim.t0)
-        err = value - true
-        if label == "hoff":
-            err = (err + math.pi) % (2.0 * math.pi) - math.pi
+        err = wrap_angle(value - true) if label == "hoff" else value - true
         out[label] = {"error": err, "z": err / sigma if sigma else None}
     return out
 

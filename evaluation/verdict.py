@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import math
 
+from estimation.estimator import wrap_angle
+
 TIE = 0.05  # relative difference under which two scores tie
 # Two estimators' final calibration states further apart than this many of their combined
 # sigmas: at least one of them is biased. Both estimate from the same data, so their errors are
@@ -201,7 +203,7 @@ def _calibration_gaps(m: dict) -> list[str]:
             for b, sb in have[i + 1:]:
                 d = sa["value"] - sb["value"]
                 if label.startswith("hoff"):  # an angle: the short way round
-                    d = (d + math.pi) % (2.0 * math.pi) - math.pi
+                    d = wrap_angle(d)
                 z = abs(d) / math.hypot(sa["sigma"], sb["sigma"])
                 if z > CALIBRATION_SIGMAS and (worst is None or z > worst[0]):
                     worst = (z, a, sa, b, sb)
