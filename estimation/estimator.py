@@ -190,7 +190,8 @@ class InnovationLog:
         self._res = array("d")
         self._cov = array("d")
         self._n_folded = 0
-        # folded: code -> [count, accepted, finite count, NIS sum, below band, above band]
+        # folded: code -> [count, accepted, finite count, NIS sum, below band, above band,
+        # accepted finite count, their NIS sum]
         self.folded: dict[int, list] = {}
         # thinned series of folded entries: t, nis, code, accepted
         self._st, self._snis, self._sg, self._sacc = array("d"), array("d"), array("H"), \
@@ -273,13 +274,16 @@ class InnovationLog:
             v = nis[sel]
             fin = v[np.isfinite(v)]
             lo, hi = nis_band(self._groups[code][2])
-            a = self.folded.setdefault(code, [0, 0, 0, 0.0, 0, 0])
+            a = self.folded.setdefault(code, [0, 0, 0, 0.0, 0, 0, 0, 0.0])
             a[0] += int(sel.sum())
             a[1] += int(acc[sel].sum())
             a[2] += len(fin)
             a[3] += float(fin.sum())
             a[4] += int((fin < lo).sum())
             a[5] += int((fin > hi).sum())
+            fa = v[np.isfinite(v) & (acc[sel] != 0)]
+            a[6] += len(fa)
+            a[7] += float(fa.sum())
         # the thinned series: every stride-th entry (counted over the whole log) and every
         # rejected one
         idx = np.arange(self._n_folded, self._n_folded + k)

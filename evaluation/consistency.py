@@ -19,9 +19,14 @@ exactly Gaussian and white, and samples close in time are correlated, so a few m
 band is normal; 10% is twice the nominal rate, 25% five times. The mean ratio catches a filter
 whose values sit inside the band but all at one end of it.
 
-All innovations count, those the gate rejected too: the NIS tests the filter's own S, and a gate
-(default acceptance 0.9999) rejects about 0.01% of consistent ones; leaving rejected ones out
-would hide a filter that rejects a sensor because it is itself wrong.
+The fraction outside the band counts every innovation, those the gate rejected too (a rejected
+one is above the band): leaving them out would hide a filter that rejects a sensor because it is
+itself wrong. The mean counts the accepted ones only: one outlier 40 sigma off (a GPS multipath
+jump, which the gate exists to reject) adds 1600 to a sum whose expectation per value is the
+dimension, so with rejected ones included a 2 % rate of such outliers made a correct filter's
+mean 18 times the expected one (simulated gps-outage) and the verdict 'over-confident'. A
+filter that rejects valid data still fails on the fraction: 10 % wrongly rejected is 10 %
+outside.
 """
 
 from __future__ import annotations
@@ -85,11 +90,15 @@ class Consistency:
         return asdict(self)
 
 
-def summarize(values: np.ndarray, dofs: np.ndarray | int) -> Consistency:
-    """Consistency of ``values`` (N,), each chi-square with ``dofs`` (N,) or a common dof."""
+def summarize(values: np.ndarray, dofs: np.ndarray | int,
+              accepted: np.ndarray | None = None) -> Consistency:
+    """Consistency of ``values`` (N,), each chi-square with ``dofs`` (N,) or a common dof.
+    ``accepted`` (N,) bool, for innovations: the mean (and the dimension it is compared with)
+    over the accepted ones only, the fractions outside the band over all (module docstring)."""
     v = np.asarray(values, float)
     d = np.broadcast_to(np.asarray(dofs, float), v.shape)
     ok = np.isfinite(v)
+    acc = None if accepted is None else np.asarray(accepted, bool)[ok]
     v, d = v[ok], d[ok]
     n = len(v)
     if n == 0:
@@ -100,8 +109,9 @@ def summarize(values: np.ndarray, dofs: np.ndarray | int) -> Consistency:
         sel = d == dim
         lo[sel], hi[sel] = chi2_band(float(dim))
     below, above = float(np.mean(v < lo)), float(np.mean(v > hi))
-    expected = float(d.mean())
-    mean = float(v.mean())
+    m = acc if acc is not None and acc.any() else np.ones(n, bool)
+    expected = float(d[m].mean())
+    mean = float(v[m].mean())
     ratio = mean / expected
     single = len(np.unique(d)) == 1
     return Consistency(n, float(d[0]) if single else expected, mean, expected, ratio,
@@ -170,15 +180,18 @@ class SensorNis:
 
 
 def _summarize_counts(per_dim: dict[int, list]) -> Consistency:
-    """``summarize`` from per-dimension [finite count, NIS sum, below, above]."""
+    """``summarize`` from per-dimension [finite count, NIS sum, below, above, accepted finite
+    count, their NIS sum]."""
     n = sum(v[0] for v in per_dim.values())
     if n == 0:
         nan = float("nan")
         return Consistency(0, nan, nan, nan, nan, None, nan, nan, nan, None)
     below = sum(v[2] for v in per_dim.values()) / n
     above = sum(v[3] for v in per_dim.values()) / n
-    expected = sum(d * v[0] for d, v in per_dim.items()) / n
-    mean = sum(v[1] for v in per_dim.values()) / n
+    n_acc = sum(v[4] for v in per_dim.values())
+    c, s = (4, 5) if n_acc else (0, 1)
+    expected = sum(d * v[c] for d, v in per_dim.items()) / (n_acc or n)
+    mean = sum(v[s] for v in per_dim.values()) / (n_acc or n)
     ratio = mean / expected
     dims = [d for d, v in per_dim.items() if v[0]]
     single = len(dims) == 1
@@ -188,8 +201,9 @@ def _summarize_counts(per_dim: dict[int, list]) -> Consistency:
 
 
 def nis_by_sensor(table: InnovationTable) -> dict[str, SensorNis]:
-    """Per 'sensor kind' (e.g. '/fix gps'): NIS consistency over all its innovations and how
-    many the gate accepted and rejected (the folded ones of a long run's log included)."""
+    """Per 'sensor kind' (e.g. '/fix gps'): NIS consistency of its innovations (``summarize``
+    with the gate's decisions) and how many the gate accepted and rejected (the folded ones
+    of a long run's log included)."""
     out = {}
     held = np.arange(len(table.t)) >= table.n_thinned
     labels = {f"{s} {k}": (s, k) for s, k, _ in table.folded}
@@ -202,23 +216,27 @@ def nis_by_sensor(table: InnovationTable) -> dict[str, SensorNis]:
         if not folded:
             acc = int(table.accepted[sel].sum())
             out[label] = SensorNis(sensor, kind, acc, int(sel.sum()) - acc,
-                                   summarize(table.nis[sel], table.dim[sel]))
+                                   summarize(table.nis[sel], table.dim[sel],
+                                             table.accepted[sel]))
             continue
         sel = sel & held
         acc = int(table.accepted[sel].sum()) + sum(v[1] for v in folded.values())
         count = int(sel.sum()) + sum(v[0] for v in folded.values())
-        per_dim = {d: [v[2], v[3], v[4], v[5]] for d, v in folded.items()}
-        v, dims = table.nis[sel], table.dim[sel]
+        per_dim = {d: [v[2], v[3], v[4], v[5], v[6], v[7]] for d, v in folded.items()}
+        v, dims, accd = table.nis[sel], table.dim[sel], table.accepted[sel]
         ok = np.isfinite(v)
-        v, dims = v[ok], dims[ok]
+        v, dims, accd = v[ok], dims[ok], accd[ok]
         for d in np.unique(dims).tolist():
             x = v[dims == d]
+            xa = x[accd[dims == d]]
             lo, hi = chi2_band(float(d))
-            a = per_dim.setdefault(int(d), [0, 0.0, 0, 0])
+            a = per_dim.setdefault(int(d), [0, 0.0, 0, 0, 0, 0.0])
             a[0] += len(x)
             a[1] += float(x.sum())
             a[2] += int((x < lo).sum())
             a[3] += int((x > hi).sum())
+            a[4] += len(xa)
+            a[5] += float(xa.sum())
         out[label] = SensorNis(sensor, kind, acc, count - acc, _summarize_counts(per_dim))
     return out
 

@@ -77,3 +77,30 @@ def test_average_nees_over_runs():
     runs = [np.array([1.0, 2.0, 3.0]), np.array([3.0, 4.0]), np.array([2.0, 3.0, 9.0, 9.0])]
     np.testing.assert_allclose(cs.average_nees(runs), [2.0, 3.0])
     assert len(cs.average_nees([])) == 0
+
+
+def test_gate_rejected_outliers_count_outside_the_band_but_not_in_the_mean():
+    """A consistent filter whose gate rejects 2 % gross GPS outliers (NIS ~1600, 40 sigma)
+    passes: those count as outside the band, not in the mean, which they would otherwise
+    raise ~17-fold. A filter whose gate rejects 30 % of its fixes fails on the fraction."""
+    rng = np.random.default_rng(1)
+    nis = rng.chisquare(2, 1000)
+    outlier = np.zeros(1000, bool)
+    outlier[::50] = True
+    nis[outlier] = 1600.0
+    ok = cs.summarize(nis, 2, ~outlier)
+    assert ok.verdict == "Pass", ok
+    assert ok.ratio == pytest.approx(1.0, abs=0.1)
+    assert ok.above >= 0.02
+    assert cs.summarize(nis, 2).ratio > 10  # without the gate's decisions
+    wrong = rng.chisquare(2, 1000)
+    rejected = np.zeros(1000, bool)
+    rejected[::3] = True
+    wrong[rejected] = 50.0
+    bad = cs.summarize(wrong, 2, ~rejected)
+    assert bad.verdict == "Fail" and bad.above > 0.3
+    table = cs.InnovationTable.from_innovations(
+        [_inn(0.1 * k, "/fix", "gps", float(v), 2, accepted=not o)
+         for k, (v, o) in enumerate(zip(nis, outlier, strict=True))])
+    gps = cs.nis_by_sensor(table)["/fix gps"]
+    assert (gps.rejected, gps.nis.verdict) == (20, "Pass")
