@@ -128,12 +128,19 @@ def _consistency(name: str, e: dict, seen_nis: dict) -> str:
             note = "" if v == "Pass" else f" ({_direction(s)}, mean/expected {s['ratio']:.2f})"
             by.setdefault(v, []).append(label + note)
         parts += [f"NIS {v}: {', '.join(by[v])}" for v in ("Fail", "Warn", "Pass") if v in by]
-    bad = (nees or {}).get("verdict") in ("Fail", "Warn") or any(
-        (s or {}).get("verdict") == "Fail" for s in nis.values())
-    head = "not consistent" if (nees or {}).get("verdict") == "Fail" else (
+    nees_v = (nees or {}).get("verdict")
+    judged = [s.get("verdict") for s in nis.values() if (s or {}).get("verdict")]
+    fails = judged.count("Fail")
+    bad = nees_v in ("Fail", "Warn") or fails > 0
+    # without truth the NIS is all there is: failing on half the sensors or more is no
+    # 'partly'
+    head = "not consistent" if nees_v == "Fail" or (
+        nees_v is None and judged and 2 * fails >= len(judged)) else (
         "partly consistent" if bad else "consistent")
     if not parts:
-        return f"{name}: consistency not measurable (no truth, no innovations logged)."
+        why = ("no covariance to test against the truth" if e.get("ate_rmse_m") is not None
+               else "no truth")
+        return f"{name}: consistency not measurable ({why}, no innovations logged)."
     kinds = {s.get("kind") for s in nis.values()}
     dr = (f" It fuses no absolute measurement here ({', '.join(sorted(map(str, kinds)))} "
           "only): it is dead reckoning.") if nis and not kinds & ABSOLUTE_KINDS else ""
@@ -233,7 +240,7 @@ def verdict_lines(m: dict) -> list[str]:
         lines.append(f"Best here: {best} with {scored[best]:.3f} m"
                      + ("" if kind == "real time" else f" ({kind})") + ".")
         ekfs = [n for n in ranked if n.startswith("ekf")]
-        live = [n for n in ranked if track_kind(n) == "real time" and not n.startswith("ekf")]
+        live = [n for n in ranked if track_kind(n) == "real time" and n.startswith("smoother")]
         if ekfs and live:
             lines.append("Real-time head to head, best EKF against the smoother's filtered "
                          "output: " + _compare(ekfs[0], scored[ekfs[0]], live[0],

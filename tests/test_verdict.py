@@ -154,3 +154,21 @@ def test_calibration_states_further_apart_than_their_sigmas_are_named():
     gap = [line for line in verdict_lines(m) if "end the run with different" in line]
     assert gap[0].startswith("ekf and smoother end the run with different heading offset [deg]: "
                              "179.34 ± 0.57 against -174.75 ± 0.57, 7.3 combined sigmas")
+
+
+def test_dead_reckoning_is_not_the_smoother_and_nis_alone_can_fail_a_filter():
+    m = _m({"ekf": 0.114, "dr": 4.84})
+    text = "\n".join(verdict_lines(m))
+    assert "head to head" not in text  # no smoother ran: nothing to hold the EKF against
+    assert "dr: consistency not measurable (no covariance to test against the truth" in text
+    m = _m({"ekf": 0.3, "dr": 4.8, "smoother": 0.2})
+    assert "smoother is better: 0.200 m against ekf's 0.300 m" in "\n".join(verdict_lines(m))
+    # no truth: failing the NIS of most sensors is 'not consistent', one of several 'partly'
+    m = _m({"ekf": None})
+    fail = {"kind": "gyro", "verdict": "Fail", "ratio": 0.05, "below": 0.4, "above": 0.0}
+    ok = {"kind": "gps", "verdict": "Pass", "ratio": 1.0, "below": 0.02, "above": 0.03}
+    m["estimators"]["ekf"]["nis"] = {"/imu gyro": fail, "/odom v": {**fail, "kind": "v"},
+                                     "/fix gps": ok}
+    assert "ekf: not consistent. NIS Fail" in "\n".join(verdict_lines(m))
+    m["estimators"]["ekf"]["nis"] = {"/imu gyro": fail, "/fix gps": ok, "/imu yaw": ok}
+    assert "ekf: partly consistent. NIS Fail" in "\n".join(verdict_lines(m))
