@@ -15,8 +15,10 @@ Per estimator (track), metrics.json holds:
   (``metrics.association_error``: the truth at its stamp against the truth at the estimate's);
   and in full ``ate`` {none, se2, origin: {position_m, heading_deg: statistics}, association_m},
   ``rpe`` {'1s', '10m': {position_m, heading_deg}}, ``nees`` (consistency summary);
-* against withheld GPS fixes: ``gps_holdout_rmse_m`` and ``gps_holdout_m`` (statistics); at the
-  top level ``gps_holdout_interpolation_rmse_m``, the same score of the used fixes linearly
+* against withheld GPS fixes: ``gps_holdout_rmse_m`` and ``gps_holdout_m`` (statistics), every
+  track on the same fixes, those inside every track's span (top level:
+  ``gps_holdout_scored_fixes`` of ``gps_holdout_fixes``); at the top level
+  ``gps_holdout_interpolation_rmse_m``, the same score of the used fixes linearly
   interpolated in time (no estimator: the reference to read a track's score against);
 * ``gps_residual_corr_s``: how long the used GPS fixes' residuals to the track stay correlated
   (``metrics.correlation_time``; 0 for white GPS noise): a hold-out of single fixes scores
@@ -223,6 +225,16 @@ def score(result: RunResult, decode_s: float = 0.0,
     duration = stream.duration
     truth = result.truth
     hold_t, hold_xy = result.gps.held_t, result.gps.held_xy
+    n_held = len(hold_t)
+    # Every track is scored on the same withheld fixes: those inside every track's span (a
+    # filter that starts after its heading is known has no estimate at the first ones, and a
+    # ranking over different fixes would compare different things).
+    covered = np.ones(n_held, bool)
+    for r in result.runs.values():
+        if len(r.trajectory) > 1:
+            covered &= metrics.interpolate_xy(r.trajectory, hold_t)[1]
+    if covered.any():
+        hold_t, hold_xy = hold_t[covered], hold_xy[covered]
     used_t = result.gps.used_t
     used_xy = result.gps.xy[~result.gps.withheld]
     outages = metrics.gps_outages(used_t, stream.t1) if len(used_t) else []
@@ -235,6 +247,7 @@ def score(result: RunResult, decode_s: float = 0.0,
                               for (topic, reason), n in stream.rejected.items()},
         "has_ground_truth": truth is not None,
         "gps_holdout_fixes": int(result.gps.withheld.sum()),
+        "gps_holdout_scored_fixes": int(len(hold_t)),
         "gps_holdout_interpolation_rmse_m": _interpolation_rmse(used_t, used_xy, hold_t,
                                                                 hold_xy),
         "gps_outages": [_rounded(vars(o)) for o in outages],

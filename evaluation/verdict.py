@@ -63,8 +63,11 @@ def _score(m: dict) -> tuple[str | None, str]:
         return "ate_rmse_m", ("Score: RMS position error against the ground truth (ATE, no "
                               "alignment, lower is better).")
     if any(e.get("gps_holdout_rmse_m") is not None for e in ests):
-        return "gps_holdout_rmse_m", (f"Score: RMS distance to the {m.get('gps_holdout_fixes')} "
-                                      "GPS fixes withheld from every estimator (no ground truth; "
+        n, scored = m.get("gps_holdout_fixes"), m.get("gps_holdout_scored_fixes")
+        which = (f"{n} GPS fixes withheld from every estimator" if scored in (None, n) else
+                 f"{scored} of the {n} GPS fixes withheld from every estimator (those at which "
+                 "every estimator has an estimate)")
+        return "gps_holdout_rmse_m", (f"Score: RMS distance to the {which} (no ground truth; "
                                       "lower is better).")
     if m.get("gps_holdout") and not m.get("gps_holdout_fixes"):
         return None, (f"No score: the bag has no ground truth, and --gps-holdout "

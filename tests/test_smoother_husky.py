@@ -23,17 +23,19 @@ def _run(bag: Path, out: Path, holdout: str) -> dict:
 
 def test_every_fifth_fix_withheld(husky_bag, tmp_path):
     """Every 5th fix withheld: the issue's targets are filtered smoother <= 2 m and lagged
-    <= 1 m against them. Measured 1.328 and 1.007 m (the EKF 1.267): the lagged one misses by
-    7 mm since session 7, when the smoother stopped letting the odometry scales walk where the
-    config asks for no scale estimation (it had scored 0.999 with that freedom, which the EKFs
-    do not have). On this bag the score follows the receiver's correlated wander
+    <= 1 m against them. Measured on the 194 fixes every track has an estimate at (the filters
+    start 6.5 s in, once the heading is known): 1.328 and 1.014 m (the EKF 1.267); on all 197
+    the lagged track scored 1.007. It misses since session 7, when the smoother stopped letting
+    the odometry scales walk where the config asks for no scale estimation (it had scored 0.999
+    with that freedom, which the EKFs do not have). On this bag the score follows the
+    receiver's correlated wander
     (docs/results/smoother_monte_carlo.md). Asserted: <= 2 m, and the lagged score within 1 %
     of the measured one, so that a change that moves it up is looked at. The smoother's gate
     recovers from its lock-out as the EKF does, once, not the 3 times (16 rejections) of the
     old rule."""
     e = _run(husky_bag, tmp_path, "every:5")
     assert e["smoother"]["gps_holdout_rmse_m"] <= 2.0
-    assert e["smoother_lagged"]["gps_holdout_rmse_m"] <= 1.007 * 1.01, e["smoother_lagged"]
+    assert e["smoother_lagged"]["gps_holdout_rmse_m"] <= 1.014 * 1.01, e["smoother_lagged"]
     assert e["smoother_lagged"]["gps_holdout_rmse_m"] < e["ekf"]["gps_holdout_rmse_m"]
     rej = e["smoother"]["rejected"]
     assert rej.get("/fix: lockout_recovery", 0) <= 2 and rej.get("/fix: gate", 0) <= 10, rej
