@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from estimation import geodesy, ros1_scan, rosmsg
-from estimation.config import Config, SensorConfig, load_landmark_map
+from estimation.config import Config, SensorConfig, load_landmark_map, resolve_landmark_maps
 from estimation.errors import BagError
 from estimation.frames import IDENTITY, body_yaw, dot_row, rotate, rotated_variance, rpy_matrix
 from estimation.measurements import (
@@ -420,6 +420,7 @@ class BagStream:
         self.datum: tuple[float, float, float] | None = (
             cfg.datum if isinstance(cfg.datum, tuple) else None)
         self.landmarks: dict[str, tuple[float, float]] = {}
+        resolve_landmark_maps(cfg, bag)
         for s in cfg.of_kind("landmarks"):
             self.landmarks.update(load_landmark_map(s.map))
         self.rejected: Counter = Counter()

@@ -37,6 +37,7 @@ a sensor is the chi-square acceptance probability of its Mahalanobis gate (e.g. 
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -44,6 +45,21 @@ from typing import Any
 import yaml
 
 from estimation.errors import ConfigError
+
+
+class _Loader(yaml.SafeLoader):
+    """PyYAML's safe loader with YAML 1.2's floats: 1.1's rule wants a dot in the mantissa and a
+    signed exponent, so ``1e-4`` (how noise densities are written) would load as a string."""
+
+
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
+                 |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
+                 |\.[0-9_]+(?:[eE][-+]?[0-9]+)?
+                 |[-+]?\.(?:inf|Inf|INF)
+                 |\.(?:nan|NaN|NAN))$""", re.X),
+    list("-+0123456789."))
 
 SENSOR_KINDS = ("odometry", "imu", "gps", "wheels", "landmarks")
 USES = {
@@ -91,6 +107,7 @@ class SensorConfig:
     delay: float = 0.0  # s, GPS: a fix is the position this long before its stamp
     joints: tuple[str, str] | None = None  # JointState names of left and right wheel
     map: Path | None = None  # landmark map YAML
+    map_name: Path | None = None  # the map path as the config gives it
     gate: float | None = DEFAULT_GATE  # chi-square acceptance probability, None = off
 
 
@@ -281,9 +298,11 @@ def _sensor(ck: _Checker, kind: str, i: int, raw: Any, base: Path) -> SensorConf
         if "map" not in d:
             raise ck.fail(f"{key}.map", "missing (a landmark map YAML is needed)")
         p = Path(ck.string(d["map"], f"{key}.map"))
+        s.map_name = p
         s.map = p if p.is_absolute() else base / p
-        if not s.map.is_file():
+        if p.is_absolute() and not s.map.is_file():
             raise ck.fail(f"{key}.map", f"file not found: {s.map}")
+        # a relative one may sit next to the bag instead (resolve_landmark_maps)
     return s
 
 
@@ -384,7 +403,7 @@ def load_config(path: str | Path) -> Config:
     if not p.is_file():
         raise ConfigError(f"{p}: config file not found")
     try:
-        raw = yaml.safe_load(p.read_text(encoding="utf-8"))
+        raw = yaml.load(p.read_text(encoding="utf-8"), Loader=_Loader)
     except (OSError, UnicodeDecodeError) as e:
         raise ConfigError(f"{p}: cannot read config: {e}") from None
     except yaml.YAMLError as e:
@@ -392,10 +411,30 @@ def load_config(path: str | Path) -> Config:
     return parse_config(raw, str(p), p.parent)
 
 
+def resolve_landmark_maps(cfg: Config, bag: str | Path | None = None) -> None:
+    """Find each landmark sensor's map: a relative path is looked up next to the config, then
+    next to ``bag`` (a dataset's map sits beside its bag, which a shipped config cannot point
+    to from every checkout). Sets the sensors' ``map``; raises ConfigError naming the key and
+    every place tried when none has it."""
+    for i, s in enumerate(cfg.of_kind("landmarks")):
+        if s.map is None or s.map.is_file():
+            continue
+        tried = [s.map]
+        if bag is not None and s.map_name is not None and not s.map_name.is_absolute():
+            beside = Path(bag).parent / s.map_name
+            if beside.is_file():
+                s.map = beside
+                continue
+            tried.append(beside)
+        where = " or ".join(str(t) for t in tried)
+        raise ConfigError(f"{cfg.path or '<config>'}: sensors.landmarks[{i}].map: file not "
+                          f"found: {where}")
+
+
 def load_landmark_map(path: Path) -> dict[str, tuple[float, float]]:
     """Landmark map YAML: ``landmarks: {id: [x, y]}`` (m, in the map/local frame)."""
     try:
-        raw = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+        raw = yaml.load(Path(path).read_text(encoding="utf-8"), Loader=_Loader)
     except (OSError, UnicodeDecodeError, yaml.YAMLError) as e:
         raise ConfigError(f"{path}: cannot read landmark map: {e}") from None
     ck = _Checker(str(path))

@@ -15,6 +15,7 @@ from estimation.config import (
     load_config,
     load_landmark_map,
     parse_config,
+    resolve_landmark_maps,
 )
 from estimation.errors import ConfigError
 
@@ -213,7 +214,7 @@ ERRORS = [
     (sensor("gps", topic="/f", name=""), "sensors.gps[0].name"),
     # landmarks
     (sensor("landmarks", topic="/lm"), "sensors.landmarks[0].map"),
-    (sensor("landmarks", topic="/lm", map="nowhere/none.yaml"), "sensors.landmarks[0].map"),
+    (sensor("landmarks", topic="/lm", map="/nowhere/none.yaml"), "sensors.landmarks[0].map"),
     # frame.datum
     (with_(BASE, frame={"datum": [91.0, 0.0, 0.0]}), "frame.datum"),
     (with_(BASE, frame={"datum": [0.0, -180.5, 0.0]}), "frame.datum"),
@@ -301,19 +302,30 @@ def test_error_messages_say_what_is_wrong(tmp_path):
     assert "-0.1" in err(sensor("imu", topic="/i", noise={"yaw_rate": -0.1}))
     assert "'heading'" in err(sensor("odometry", topic="/o", use=["v", "heading"]))
     assert "'/imu'" in err({"sensors": {"imu": [{"topic": "/imu"}, {"topic": "/imu"}]}})
-    msg = err(sensor("landmarks", topic="/lm", map="nowhere/none.yaml"))
-    assert str(tmp_path / "nowhere" / "none.yaml") in msg  # the resolved path that is missing
+    msg = err(sensor("landmarks", topic="/lm", map="/nowhere/none.yaml"))
+    assert "/nowhere/none.yaml" in msg
     msg = err(with_(BASE, smoother={"robust": "tukey"}))
     assert "huber" in msg and "cauchy" in msg and "'tukey'" in msg
     assert "allowed" in err(with_(BASE, bogus=1))
 
 
-def test_landmark_map_relative_to_base(tmp_path):
+def test_landmark_map_next_to_the_config_then_next_to_the_bag(tmp_path):
     (tmp_path / "m.yaml").write_text("landmarks: {a: [1, 2]}\n")
     cfg = parse_config(sensor("landmarks", topic="/lm", map="m.yaml"), base=tmp_path)
+    resolve_landmark_maps(cfg, tmp_path / "elsewhere" / "run.bag")
     assert cfg.sensors[0].map == tmp_path / "m.yaml"
-    with pytest.raises(ConfigError):
-        parse_config(sensor("landmarks", topic="/lm", map="m.yaml"), base=tmp_path / "sub")
+    # a shipped config names the map by the name it has beside its dataset's bag
+    cfg = parse_config(sensor("landmarks", topic="/lm", map="m.yaml"), "c.yaml",
+                       base=tmp_path / "configs")
+    with pytest.raises(ConfigError) as e:
+        resolve_landmark_maps(cfg)  # no bag: only next to the config
+    assert str(e.value) == (f"c.yaml: sensors.landmarks[0].map: file not found: "
+                            f"{tmp_path / 'configs' / 'm.yaml'}")
+    with pytest.raises(ConfigError) as e:
+        resolve_landmark_maps(cfg, tmp_path / "bags" / "run.bag")
+    assert str(tmp_path / "bags" / "m.yaml") in str(e.value)  # both places named
+    resolve_landmark_maps(cfg, tmp_path / "run.bag")
+    assert cfg.sensors[0].map == tmp_path / "m.yaml"
 
 
 def test_gate_zero_is_an_error():
@@ -440,3 +452,16 @@ def test_calibration_statements():
     assert cfg.robot.slip == {"lateral": 0.0, "heading": 0.01}
     assert (cfg.robot.max_accel, cfg.robot.max_yaw_accel) == (0.5, 0.0)  # 0: never turns
     assert parse_config(BASE).robot.scale_std is None
+
+
+def test_exponents_without_a_dot_are_numbers(tmp_path):
+    """YAML 1.1 (PyYAML's default) loads 1e-4 as a string; the README writes densities so."""
+    p = tmp_path / "c.yaml"
+    p.write_text("sensors:\n  imu:\n    - topic: /imu\n      use: [yaw_rate]\n"
+                 "      noise: {yaw_rate: 2E-2, gyro_bias_walk: 1e-4}\n")
+    noise = load_config(p).sensors[0].noise
+    assert noise["gyro_bias_walk"] == 1e-4 and noise["yaw_rate"] == 0.02
+    p.write_text("sensors:\n  imu:\n    - topic: /imu\n      use: [yaw_rate]\n"
+                 "      noise: {yaw_rate: 1e-4x}\n")
+    with pytest.raises(ConfigError, match=r"sensors.imu\[0\].noise.yaw_rate: must be a number"):
+        load_config(p)
