@@ -18,3 +18,11 @@ class BagError(DdfuseError):
     def __init__(self, message: str, partial=None):
         super().__init__(message)
         self.partial = partial
+
+
+class RunInterrupted(KeyboardInterrupt):
+    """Ctrl-C ended a run after its results so far were written (``results_written``); the
+    message says where the run stopped and where the results are. A KeyboardInterrupt, so that
+    whatever does not know it still stops as on Ctrl-C."""
+
+    results_written = True

@@ -221,6 +221,7 @@ class RunResult:
     gps: GpsTrack
     truth: Trajectory | None = None
     messages: int = 0  # measurements fed (withheld fixes included)
+    interrupted: str | None = None  # Ctrl-C ended the run early (run(interruptible=True))
 
 
 class Holdout:
@@ -291,8 +292,8 @@ def initial_pose(cfg_initial, stream) -> tuple[float, float, float] | None:
 
 
 def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
-        holdout: str | None = None, progress: Callable[[float], None] | None = None
-        ) -> RunResult:
+        holdout: str | None = None, progress: Callable[[float], None] | None = None,
+        interruptible: bool = False) -> RunResult:
     """Feed every measurement of ``stream`` to every estimator, in time order.
 
     ``stream`` is a Stream (its list of measurements) or an ``estimation.bags.BagStream``
@@ -300,7 +301,12 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
     each estimator is recorded whenever the stream crosses the next tick of ``output_rate``
     (Hz). An estimator that raises is stopped there and keeps what it had; the others go on.
     GPS fixes selected by ``holdout`` are withheld from all estimators. A BagStream that breaks
-    off (a truncated bag) ends the run there; its ``error`` says why."""
+    off (a truncated bag) ends the run there; its ``error`` says why.
+
+    ``interruptible``: Ctrl-C (KeyboardInterrupt) ends the feeding there, and each estimator is
+    finished with what it had (the one interrupted inside an update is stopped, as one that
+    raised; one interrupted inside its ``finish``, e.g. the batch's whole-run solve, keeps
+    nothing more): the result says so in ``interrupted``. Otherwise Ctrl-C propagates."""
     select = parse_holdout(holdout)
     names = list(estimators)
     est_list = [estimators[n] for n in names]
@@ -327,9 +333,10 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
     gc_was_enabled = gc.isenabled()
     gc.freeze()
     gc.disable()
+    stop: list[str] = []
     try:
         fed = _feed(meas, n, fraction, select, gps, est_list, alive, errors, outputs, timings,
-                    totals, period, progress)
+                    totals, period, progress, stop if interruptible else None)
     finally:
         if gc_was_enabled:
             gc.enable()
@@ -345,6 +352,11 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
                     outputs[i].append(last)
             except Exception as exc:
                 errors[i] = f"{type(exc).__name__} in finish: {exc}"
+            except KeyboardInterrupt:
+                if not interruptible:
+                    raise
+                errors[i] = "interrupted (Ctrl-C) in finish"
+                stop.append(f"{name} interrupted in finish")
         totals[i] += clock() - t_a
         est.log.innovations.compact()
         # a view of the compact array, not a copy
@@ -371,7 +383,7 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
         truth = Trajectory.from_ground_truth((t, pose)) if len(t) else None
     elif stream.ground_truth:
         truth = Trajectory.from_ground_truth(stream.ground_truth)
-    return RunResult(stream, runs, gps.track(), truth, fed)
+    return RunResult(stream, runs, gps.track(), truth, fed, "; ".join(stop) or None)
 
 
 def _final_state(est: Estimator, track) -> Estimate | None:
@@ -388,51 +400,69 @@ def _final_state(est: Estimator, track) -> Estimate | None:
 
 
 def _feed(meas, n, fraction, select, gps, est_list, alive, errors, outputs, timings, totals,
-          period, progress) -> int:
-    """The measurement loop of :func:`run` (see there); returns how many measurements came."""
+          period, progress, stop: list[str] | None = None) -> int:
+    """The measurement loop of :func:`run` (see there); returns how many measurements came.
+    With ``stop`` (a list), Ctrl-C ends the loop and says where in ``stop``."""
     clock = time.perf_counter
     next_tick = -math.inf
     t_start = None
     est_logs = [est.log for est in est_list]
     k = -1
-    for k, m in enumerate(meas):
-        if k % 1000 == 0:
-            # between messages, outside the timed updates: compact the innovation logs
-            # (read through the log each time: a compiled filter's log drains its kernels'
-            # buffer into the store on that read)
-            for lg in est_logs:
-                lg.innovations.compact()
-            if k % 5000 == 0:
-                gc.collect(1)
-            if progress is not None:
-                progress(fraction() if fraction is not None else k / max(n, 1))
-        if t_start is None:
-            t_start = m.t
-        if isinstance(m, GpsFix):
-            held = select is not None and select.withhold(m, t_start)
-            gps.add(m, held)
-            if held:
-                continue
-        record = m.t >= next_tick
-        if record:
-            # The next tick on the grid, or one period after a gap; never m.t itself, which
-            # recorded the same stamp again for each message sharing it (IMU fields).
-            next_tick = next_tick + period if next_tick + period > m.t else m.t + period
-        for i, est in enumerate(est_list):
-            if not alive[i]:
-                continue
-            t_a = clock()
-            try:
-                est.process(m)
-                e = est.estimate() if record else None
-            except Exception as exc:  # one estimator failing must not end the run
-                alive[i] = False
-                errors[i] = f"{type(exc).__name__} at t={m.t:.3f}: {exc}"
-                est.log.note(m.t, f"stopped: {errors[i]}")
-                continue
-            dt = clock() - t_a
-            timings[i].append(dt)
-            totals[i] += dt
-            if e is not None:
-                outputs[i].append(e)
+    done = 0  # measurements every estimator has had
+    t_m = math.nan
+    busy = None  # the estimator inside an update
+    try:
+        for k, m in enumerate(meas):
+            if k % 1000 == 0:
+                # between messages, outside the timed updates: compact the innovation logs
+                # (read through the log each time: a compiled filter's log drains its kernels'
+                # buffer into the store on that read)
+                for lg in est_logs:
+                    lg.innovations.compact()
+                if k % 5000 == 0:
+                    gc.collect(1)
+                if progress is not None:
+                    progress(fraction() if fraction is not None else k / max(n, 1))
+            t_m = m.t
+            if t_start is None:
+                t_start = t_m
+            if isinstance(m, GpsFix):
+                held = select is not None and select.withhold(m, t_start)
+                gps.add(m, held)
+                if held:
+                    done = k + 1
+                    continue
+            record = t_m >= next_tick
+            if record:
+                # The next tick on the grid, or one period after a gap; never m.t itself,
+                # which recorded the same stamp again for each message sharing it (IMU fields).
+                next_tick = next_tick + period if next_tick + period > t_m else t_m + period
+            for i, est in enumerate(est_list):
+                if not alive[i]:
+                    continue
+                busy = i
+                t_a = clock()
+                try:
+                    est.process(m)
+                    e = est.estimate() if record else None
+                except Exception as exc:  # one estimator failing must not end the run
+                    alive[i] = False
+                    errors[i] = f"{type(exc).__name__} at t={t_m:.3f}: {exc}"
+                    est.log.note(t_m, f"stopped: {errors[i]}")
+                    continue
+                dt = clock() - t_a
+                timings[i].append(dt)
+                totals[i] += dt
+                if e is not None:
+                    outputs[i].append(e)
+            busy = None
+            done = k + 1
+    except KeyboardInterrupt:
+        if stop is None:
+            raise
+        if busy is not None:  # inside an update: that estimator's state is half-updated
+            alive[busy] = False
+            errors[busy] = f"interrupted (Ctrl-C) inside an update at t={t_m:.3f}"
+        stop.append(f"interrupted (Ctrl-C) after {done} measurements, at t={t_m:.3f}")
+        return done
     return k + 1

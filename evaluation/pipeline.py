@@ -53,7 +53,7 @@ import numpy as np
 
 from estimation.bags import BagStream
 from estimation.config import Config
-from estimation.errors import BagError
+from estimation.errors import BagError, RunInterrupted
 from estimation.measurements import Stream
 from estimation.runner import RunResult, Trajectory, initial_pose, parse_holdout, run
 from evaluation import consistency, metrics
@@ -348,7 +348,8 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
     decode_before = stream.decode_s
     t_built = clock()
     result = run(stream, ests, holdout=holdout,
-                 progress=(lambda f: progress("decode + estimate", f)) if progress else None)
+                 progress=(lambda f: progress("decode + estimate", f)) if progress else None,
+                 interruptible=True)
     t_ran = clock()
     input_error = stream.error
     if input_error is not None and not result.messages:
@@ -365,6 +366,7 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
     out["lag_s"] = lag
     out["gps_holdout"] = holdout
     out["input_error"] = input_error
+    out["interrupted"] = result.interrupted
     out["data"] = data_facts(result, cfg)
     config_text = cfg.path.read_text(errors="replace") if cfg.path else None
     t_scored = clock()
@@ -374,6 +376,9 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
         loop=t_ran - t_built, loop_decode=decode_s - decode_before, runtimes=runtimes,
         scoring=t_scored - t_ran, writing=clock() - t_scored)
     _write_metrics(outdir, out)
+    if result.interrupted:
+        raise RunInterrupted(f"{result.interrupted}; the results of what was processed are in "
+                             f"{outdir}")
     if input_error:
         err = BagError(f"{input_error}; results for the {stream.duration:.1f} s that could be "
                        f"read are in {outdir}")

@@ -286,4 +286,7 @@ def verdict_lines(m: dict) -> list[str]:
     if m.get("input_error"):
         lines.append(f"The bag is damaged; these results cover what could be read: "
                      f"{m['input_error']}.")
+    if m.get("interrupted"):
+        lines.append(f"The run was stopped early ({m['interrupted']}); these results cover what "
+                     "was processed.")
     return lines
