@@ -2,14 +2,16 @@
 
 Inputs are a run's saved results (``evaluation.results.SavedRun``) or plain arrays; nothing here
 computes a score that metrics.json does not already hold, and nothing reads or writes files
-except ``save_png``. Times on the x axes are seconds since the first measurement; positions are
-in the run's local frame (ENU about the datum: x east, y north, m; else the map's frame).
-"""
+except ``save_png``. Times on the x axes are seconds since the first measurement (metrics.json
+``data.t0``); positions are in the run's local frame (``frame``: ENU about the GPS datum, x east,
+y north; else the landmark map's frame, the truth's, or the start pose), in metres. Each track
+name has one colour in every figure (``PALETTE``)."""
 
 from __future__ import annotations
 
 import io
 import math
+import zlib
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -28,10 +30,58 @@ DPI = 100
 _STYLE = {"smoother_lagged": "--", "batch": ":"}
 
 
+# One colour per estimator track, whatever else ran: the same in every figure of every report.
+# Red is left to the withheld GPS fixes and rejected innovations, grey to the GPS, black to the
+# truth, the landmarks and the start.
+PALETTE = {
+    "ekf": "tab:blue",
+    "ekf_igvc": "tab:orange",
+    "ekf_landmark": "tab:cyan",
+    "ekf_slam": "tab:olive",
+    "smoother": "tab:green",
+    "smoother_lagged": "tab:purple",
+    "batch": "tab:brown",
+    "dr": "tab:pink",
+}
+# Tracks of other names: a colour chosen by a hash of the name (stable across runs).
+_OTHER = ("#1f3f7f", "#b8860b", "#2f6f4f", "#7f3f7f", "#5f5f00", "#00607f", "#8f4f1f",
+          "#4f4fbf")
+
+
 def colors(names: Sequence[str]) -> dict[str, str]:
-    """A fixed colour per track, the same in every figure."""
-    cycle = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    return {n: cycle[k % len(cycle)] for k, n in enumerate(names)}
+    """A fixed colour per track name (``PALETTE``), the same in every figure and report
+    whichever other tracks are present and in whatever order."""
+    return {n: PALETTE.get(n) or _OTHER[zlib.crc32(n.encode()) % len(_OTHER)] for n in names}
+
+
+def frame(metrics: Mapping) -> dict[str, str]:
+    """The local frame of a run (from its metrics.json): ``kind`` ('enu': about the GPS datum;
+    'map': the landmark map's; 'truth': the ground truth's, every estimator starting at its
+    first pose; 'given': the configured initial pose's; 'start': the start pose), ``text`` (a
+    sentence for the report), ``short`` (for titles), ``x``/``y`` (axis names without unit)."""
+    d = metrics.get("data") or {}
+    ip = metrics.get("initial_pose")
+    if d.get("datum"):
+        lat, lon, alt = d["datum"]
+        return {"kind": "enu", "x": "x east", "y": "y north", "short": "ENU about the GPS datum",
+                "text": f"ENU about the GPS datum {lat:.6f}°, {lon:.6f}°, {alt:.1f} m (x east, "
+                        "y north)"}
+    if d.get("landmarks"):
+        return {"kind": "map", "x": "x (map)", "y": "y (map)", "short": "the landmark map's frame",
+                "text": "the landmark map's frame (x, y as in the map; no GPS)"}
+    if ip == "first ground-truth pose":
+        return {"kind": "truth", "x": "x", "y": "y", "short": "the ground truth's frame",
+                "text": "the ground truth's frame: every estimator starts at the first truth "
+                        "pose (no GPS, no landmark map)"}
+    if isinstance(ip, (list, tuple)) and len(ip) == 3:
+        return {"kind": "given", "x": "x", "y": "y", "short": "the initial pose's frame",
+                "text": f"the frame the configured initial pose ({ip[0]:.2f} m, "
+                        f"{ip[1]:.2f} m, {math.degrees(ip[2]):.1f}°) is given in (no GPS, "
+                        "no landmark map)"}
+    return {"kind": "start", "x": "x", "y": "y", "short": "the start-pose frame",
+            "text": "the start pose: origin where the robot started, x at heading 0 (the "
+                    "first absolute heading reading where its offset is configured, else "
+                    "the robot's initial heading); no GPS, no landmark map"}
 
 
 def save_png(fig: Figure, path: Path | None = None) -> bytes:
@@ -45,14 +95,36 @@ def save_png(fig: Figure, path: Path | None = None) -> bytes:
     return data
 
 
+def _plain(v: float, _pos=None) -> str:
+    return f"{v:g}"
+
+
+def label_log_axis(axis) -> None:
+    """Labelled ticks on a log axis whatever its span: the decades when it spans three or
+    more, else 1-2-5 steps (under one decade: 1-9 steps, or failing two of those in view,
+    round linear steps), printed as plain numbers. No minor ticks: on axes spanning many
+    decades they cost most of the drawing time and carry no label."""
+    axis.set_minor_locator(matplotlib.ticker.NullLocator())
+    lo, hi = sorted(axis.get_view_interval())
+    if not (lo > 0 and math.isfinite(hi)) or hi / lo >= 1e3:
+        return
+    subs = (1.0, 2.0, 5.0) if hi / lo >= 10 else tuple(float(k) for k in range(1, 10))
+    loc = matplotlib.ticker.LogLocator(base=10.0, subs=subs, numticks=30)
+    ticks = [v for v in loc.tick_values(lo, hi) if lo <= v <= hi]
+    if len(ticks) < 2:
+        ticks = [v for v in matplotlib.ticker.MaxNLocator(4).tick_values(lo, hi)
+                 if lo <= v <= hi and v > 0]
+        loc = matplotlib.ticker.FixedLocator(ticks)
+    axis.set_major_locator(loc)
+    axis.set_major_formatter(matplotlib.ticker.FuncFormatter(_plain))
+
+
 def _finish(fig: Figure) -> Figure:
-    """Drop the minor ticks of log axes, then lay the figure out tightly."""
+    """Label the ticks of log axes (``label_log_axis``), then lay the figure out tightly."""
     for ax in fig.axes:
-        # Minor ticks on log axes spanning many decades cost most of the drawing time and
-        # carry no label; the major decades are enough to read the values.
         for axis in (ax.xaxis, ax.yaxis):
             if axis.get_scale() == "log":
-                axis.set_minor_locator(matplotlib.ticker.NullLocator())
+                label_log_axis(axis)
     fig.tight_layout()
     return fig
 
@@ -66,9 +138,34 @@ def _t0(run: SavedRun) -> float:
 
 
 def _frame_labels(run: SavedRun) -> tuple[str, str]:
-    if (run.metrics.get("data") or {}).get("datum"):
-        return "x east [m]", "y north [m]"
-    return "x [m]", "y [m]"
+    f = frame(run.metrics)
+    return f"{f['x']} [m]", f"{f['y']} [m]"
+
+
+def seconds(t: float) -> str:
+    """``t`` in s to 0.1 s, without a "-0.0"."""
+    return f"{0.0 if abs(t) < 0.05 else t:.1f}"
+
+
+def start_point(run: SavedRun) -> tuple[float, float, str, float] | None:
+    """The earliest position among the truth, the GPS fixes and the tracks: (x, y, whose
+    ('ground truth', 'GPS fix' or the track's name), when in seconds since the first
+    measurement); None without any."""
+    t0 = _t0(run)
+    cands = []  # (t, order, x, y, whose): on a tie the truth, then GPS, then the tracks
+    if run.truth is not None:
+        cands.append((run.truth.t, run.truth.pose[:, :2], "ground truth"))
+    if len(run.gps_t):
+        cands.append((run.gps_t, run.gps_xy.reshape(-1, 2), "GPS fix"))
+    cands += [(tr.t, tr.pose[:, :2], name) for name, tr in run.tracks.items()]
+    best = None
+    for k, (t, xy, whose) in enumerate(cands):
+        ok = np.flatnonzero(np.isfinite(xy).all(axis=1) & np.isfinite(t))
+        if len(ok) and (best is None or (t[ok[0]], k) < best[:2]):
+            best = (float(t[ok[0]]), k, float(xy[ok[0], 0]), float(xy[ok[0], 1]), whose)
+    if best is None:
+        return None
+    return best[2], best[3], best[4], best[0] - t0
 
 
 def _shade_outages(ax, run: SavedRun) -> None:
@@ -106,17 +203,17 @@ def trajectories(run: SavedRun) -> Figure:
                     mew=1.0, label=f"GPS fixes withheld, scored ({w.sum()})")
     if run.landmarks:
         xy = np.array(list(run.landmarks.values()))
-        ax.plot(xy[:, 0], xy[:, 1], "^", color="tab:green", ms=8, label="landmarks")
+        ax.plot(xy[:, 0], xy[:, 1], "^", mfc="none", mec="k", ms=8, label="landmarks")
     for name, tr in run.tracks.items():
         ax.plot(tr.pose[:, 0], tr.pose[:, 1], _STYLE.get(name, "-"), color=cols[name], lw=1.1,
                 alpha=0.9, label=name)
-    start = run.truth if run.truth is not None and len(run.truth) else next(
-        (t for t in run.tracks.values() if len(t)), None)
+    start = start_point(run)
     if start is not None:
-        ax.plot(*start.pose[0, :2], "o", color="k", ms=7, label="start")
+        ax.plot(start[0], start[1], "o", color="k", ms=7,
+                label=f"start: first {start[2]} position ({seconds(start[3])} s)")
     ax.set_aspect("equal", adjustable="datalim")
     xl, yl = _frame_labels(run)
-    ax.set(xlabel=xl, ylabel=yl, title="Trajectories on the local plane")
+    ax.set(xlabel=xl, ylabel=yl, title=f"Trajectories in {frame(run.metrics)['short']}")
     ax.grid(True, alpha=0.3)
     ax.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=9)
     return _finish(fig)
@@ -129,8 +226,16 @@ def trajectories_each(run: SavedRun) -> Figure:
     names = [n for n, tr in run.tracks.items() if len(tr)]
     ncol = min(3, max(len(names), 1))
     nrow = max(math.ceil(len(names) / ncol), 1)
-    fig, axes = plt.subplots(nrow, ncol, figsize=(4.6 * ncol, 4.3 * nrow), sharex=True,
-                             sharey=True, squeeze=False)
+    # Panels shaped like the path (equal axes), so that a tall path leaves no wide gaps.
+    pts = [run.tracks[n].pose[:, :2] for n in names] + [run.gps_xy.reshape(-1, 2)]
+    if run.truth is not None:
+        pts.append(run.truth.pose[:, :2])
+    xy = np.concatenate(pts)
+    xy = xy[np.isfinite(xy).all(axis=1)]
+    span = np.ptp(xy, axis=0) if len(xy) else np.ones(2)
+    aspect = float(np.clip((span[0] + 1e-9) / (span[1] + 1e-9), 0.6, 1.6))
+    fig, axes = plt.subplots(nrow, ncol, figsize=(3.9 * aspect * ncol + 0.8, 4.3 * nrow),
+                             sharex=True, sharey=True, squeeze=False)
     for ax in axes.flat[len(names):]:
         ax.set_axis_off()
     xl, yl = _frame_labels(run)
@@ -146,8 +251,14 @@ def trajectories_each(run: SavedRun) -> Figure:
         ax.set_aspect("equal", adjustable="box")  # shared axes: the boxes take the aspect
         ax.grid(True, alpha=0.3)
         ax.tick_params(labelsize=8)
-    for ax in axes[-1]:
-        ax.set_xlabel(xl, fontsize=8)
+    for c in range(ncol):
+        # The lowest panel drawn in each column carries the x ticks and label (sharex hides
+        # them on all but the last row, which may be empty in this column).
+        rows = [r for r in range(nrow) if r * ncol + c < len(names)]
+        if rows:
+            ax = axes[rows[-1], c]
+            ax.tick_params(labelbottom=True)
+            ax.set_xlabel(xl, fontsize=8)
     for ax in axes[:, 0]:
         ax.set_ylabel(yl, fontsize=8)
     return _finish(fig)
@@ -164,14 +275,24 @@ def _envelope(ax, t, err, sigma3, color, label):
         ax.set_ylim(-1.15 * lim, 1.15 * lim)
 
 
-def errors(run: SavedRun) -> tuple[Figure, str]:
-    """Per track, the east, north and heading errors against the truth over time with the
-    track's own ±3σ envelope; without truth, the east and north differences to every GPS fix
-    (envelope from the track's and the fix's covariance). Returns the figure and its caption."""
+def errors(run: SavedRun) -> tuple[Figure | None, str]:
+    """Per track, the x (east), y (north) and heading errors against the truth over time with
+    the track's own ±3σ envelope; without truth, the x and y differences to every GPS fix
+    (envelope from the track's and the fix's covariance). Axes are named by the run's frame
+    (``frame``). Returns the figure and its caption; without truth and without GPS fixes there
+    is nothing to compare with: (None, the reason)."""
     names = [n for n, tr in run.tracks.items() if len(tr)]
-    cols = colors(list(run.tracks))
-    t0 = _t0(run)
     truth = run.truth is not None and len(run.truth) > 0
+    if not names:
+        return None, "No error figure: no estimator produced a track."
+    if not truth and not len(run.gps_t):
+        return None, ("No error figure: the bag has neither ground truth nor GPS fixes, so "
+                      "there is nothing to compare the estimates with.")
+    cols = colors(names)
+    t0 = _t0(run)
+    f = frame(run.metrics)
+    ex, ey = ("east", "north") if f["kind"] == "enu" else ("x", "y")
+    where = {"enu": "", "map": " (map)", "truth": " (truth frame)"}.get(f["kind"], " (local)")
     ncol = 3 if truth else 2
     fig, axes = plt.subplots(len(names), ncol, figsize=(13, 2.1 * len(names) + 0.8),
                              sharex=True, squeeze=False)
@@ -181,8 +302,8 @@ def errors(run: SavedRun) -> tuple[Figure, str]:
             err = metrics.pose_errors(tr, run.truth, 0.05)
             cov = tr.cov[err.i_est]
             t = err.t - t0
-            comps = [(err.dxy[:, 0], cov[:, 0, 0], "east error [m]", 1.0),
-                     (err.dxy[:, 1], cov[:, 1, 1], "north error [m]", 1.0),
+            comps = [(err.dxy[:, 0], cov[:, 0, 0], f"{ex} error{where} [m]", 1.0),
+                     (err.dxy[:, 1], cov[:, 1, 1], f"{ey} error{where} [m]", 1.0),
                      (err.dyaw, cov[:, 2, 2], "heading error [deg]", math.degrees(1))]
         else:
             xy, inside = metrics.interpolate_xy(tr, run.gps_t)
@@ -190,8 +311,8 @@ def errors(run: SavedRun) -> tuple[Figure, str]:
             d = xy[inside] - run.gps_xy[inside]
             p = np.stack([np.interp(run.gps_t[inside], tr.t, tr.cov[:, i, i]) for i in (0, 1)])
             r_fix = run.gps_cov[inside]
-            comps = [(d[:, 0], p[0] + r_fix[:, 0, 0], "east − GPS [m]", 1.0),
-                     (d[:, 1], p[1] + r_fix[:, 1, 1], "north − GPS [m]", 1.0)]
+            comps = [(d[:, 0], p[0] + r_fix[:, 0, 0], f"{ex} − GPS [m]", 1.0),
+                     (d[:, 1], p[1] + r_fix[:, 1, 1], f"{ey} − GPS [m]", 1.0)]
         for c, (e, var, ylabel, k) in enumerate(comps):
             ax = axes[r, c]
             with np.errstate(invalid="ignore"):
@@ -205,15 +326,19 @@ def errors(run: SavedRun) -> tuple[Figure, str]:
             if r == 0 and c == ncol - 1:
                 ax.legend(loc="upper right", fontsize=8)
     for ax in axes[-1]:
-        ax.set_xlabel("time since start [s]")
+        ax.set_xlabel("time since the first measurement [s]")
     _finish(fig)
-    caption = ("Errors against the ground truth (no alignment) with each estimator's own ±3σ "
-               "envelope: a consistent estimator stays inside it about 99% of the time. "
-               "Grey spans: GPS outages."
-               if truth else
-               "No ground truth: the difference between each estimate and every GPS fix "
-               "(used and withheld); the envelope is ±3σ of the estimate's and the fix's "
-               "covariance together. Grey spans: GPS outages.")
+    outages = " Grey spans: GPS outages." if run.metrics.get("gps_outages") else ""
+    if truth:
+        caption = (f"Errors against the ground truth (no alignment; x, y in {f['short']}) with "
+                   "each estimator's own ±3σ envelope: a consistent estimator stays inside it "
+                   f"about 99% of the time.{outages}")
+    else:
+        which = ("used and withheld" if run.gps_withheld.any()
+                 else "all of them fused by the estimators, so not an independent score")
+        caption = ("No ground truth: the difference between each estimate and every GPS fix "
+                   f"({which}) in {f['short']}; the envelope is ±3σ of the estimate's and the "
+                   f"fix's covariance together.{outages}")
     return fig, caption
 
 
@@ -250,7 +375,7 @@ def nees(series: Mapping[str, Sequence[np.ndarray]], t: Mapping[str, np.ndarray]
         ax.set_ylim(bottom=max(min(float(np.nanmin(avg)), lo) * 0.8, lo / 100))
         ax.set_ylabel("NEES")
         ax.grid(True, alpha=0.3)
-    axes[-1, 0].set_xlabel("time since start [s]")
+    axes[-1, 0].set_xlabel("time since the first measurement [s]")
     return _finish(fig)
 
 
@@ -296,7 +421,7 @@ def nis(run: SavedRun) -> Figure:
             if c == 0:
                 ax.set_ylabel("NIS")
             if r == len(owners) - 1:
-                ax.set_xlabel("time since start [s]", fontsize=8)
+                ax.set_xlabel("time since the first measurement [s]", fontsize=8)
     return _finish(fig)
 
 
@@ -316,7 +441,8 @@ def covariance(run: SavedRun) -> Figure:
                     color=cols[name], lw=1.0, label=name)
     a1.set(yscale="log", ylabel="trace of position covariance [m²]",
            title="Covariance over time (watch it converge, and grow in outages)")
-    a2.set(yscale="log", ylabel="heading σ [deg]", xlabel="time since start [s]")
+    a2.set(yscale="log", ylabel="heading σ [deg]",
+           xlabel="time since the first measurement [s]")
     for a in (a1, a2):
         a.grid(True, alpha=0.3, which="major")
         _shade_outages(a, run)

@@ -12,6 +12,7 @@ import base64
 import datetime
 import html
 import math
+import re
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -116,12 +117,60 @@ def _summary_table(m: dict) -> str:
         fx = e.get("final_xy")
         cells.append(f"<td>({fx[0]:.2f}, {fx[1]:.2f})</td>" if fx else "<td>–</td>")
         rows.append("<tr>" + "".join(cells) + "</tr>")
+    shown = {c[0] for c in present}
+    notes = [f"Green bold: the best in its column, or within {100 * TIE:.0f}% of it."
+             if len(ests) > 1 and best else ""]
+    if shown & {"ATE RMSE [m]", "ATE max [m]", "heading RMSE [deg]"}:
+        notes.append("ATE against the ground truth without alignment (every track in the "
+                     "run's local frame)" + ("; SE(2)-aligned: after the rigid motion that "
+                                             "minimises it" if "ATE SE(2)-aligned RMSE [m]"
+                                             in shown else "") + ".")
+    rpe = [w for h, w in (("RPE 1 s [m]", "1 s"), ("RPE 10 m [m]", "10 m of path"))
+           if h in shown]
+    if rpe:
+        notes.append(f"RPE over {' and over '.join(rpe)}, consecutive pairs.")
+    if "GPS hold-out RMSE [m]" in shown:
+        notes.append("GPS hold-out RMSE: distance to the GPS fixes withheld from the "
+                     "estimators.")
+    if "NEES mean" in shown:
+        notes.append("NEES mean against the truth, with its verdict.")
+    if "RTF [x]" in shown:
+        notes.append("RTF: seconds of data per second of estimator wall time (decoding "
+                     "excluded).")
+    notes.append(f"Final (x, y): the last position in {plots.frame(m)['short']}.")
+    skipped = not_run(m)
+    if skipped:
+        notes.append("Not run: " + "; ".join(f"{n}: {why}" for n, why in skipped) + ".")
     return (f'<table><tr><th class="l">estimator</th><th class="l">output</th>{head}'
             f"<th>final (x, y) [m]</th></tr>{''.join(rows)}</table>"
-            f'<p class="note">Green bold: the best in its column, or within {100 * TIE:.0f}% '
-            "of it. ATE without alignment (every track in the run's local frame); RPE over 1 s "
-            "and over 10 m of path, consecutive pairs; RTF: seconds of data per second of "
-            "estimator wall time (decoding excluded).</p>")
+            f'<p class="note">{html.escape(" ".join(n for n in notes if n))}</p>')
+
+
+def not_run(m: dict) -> list[tuple[str, str]]:
+    """(name, why) of each estimator of the registry (``evaluation.estimators``) that this run
+    does not have: its sensors missing from the config (judged on the sensors metrics.json
+    lists), off by default, or not among the estimators asked for."""
+    from estimation.config import Config, SensorConfig
+    from evaluation.estimators import SPECS
+
+    sensors = (m.get("data") or {}).get("sensors")
+    cfg = None
+    if sensors:
+        cfg = Config(sensors=[SensorConfig(kind=s["kind"], topic=s["topic"], name=s["name"],
+                                           use=tuple(s["use"])) for s in sensors])
+    ran = set(m.get("estimators") or {})
+    out = []
+    for name, spec in SPECS.items():
+        if ran & set(spec.produces):
+            continue
+        if not spec.default:
+            why = f"off by default, --estimators {name} runs it; it needs {spec.needs}"
+        elif cfg is not None and not spec.allowed(cfg):
+            why = f"needs {spec.needs}, which the config does not have"
+        else:
+            why = "not among the estimators asked for (--estimators)"
+        out.append((name, why))
+    return out
 
 
 def _nis_table(m: dict) -> str:
@@ -218,6 +267,18 @@ def _outage_table(m: dict) -> str:
             "end − error at start) / distance travelled in it.</p>")
 
 
+def _gps_fixes(m: dict) -> str:
+    d = m.get("data") or {}
+    n, held = d.get("gps_fixes") or 0, d.get("gps_fixes_withheld") or 0
+    if not n:
+        return "none"
+    if held:
+        return f"{n}, of which {held} withheld ({html.escape(str(m.get('gps_holdout')))})"
+    if m.get("gps_holdout"):
+        return f"{n}, none withheld ({html.escape(str(m['gps_holdout']))} selected none)"
+    return f"{n}, none withheld (no --gps-holdout)"
+
+
 def _facts(m: dict) -> str:
     d = m.get("data") or {}
     rows = [("bag", html.escape(str(m.get("bag")))),
@@ -225,16 +286,15 @@ def _facts(m: dict) -> str:
             ("measurements decoded", f"{m.get('messages')} (decoded in "
                                      f"{_fmt(m.get('decode_s'), '.2f')} s)"),
             ("path length", f"{_fmt(d.get('path_length_m'), '.1f')} m"
-             + (f" (from the {d['path_length_from']})" if d.get("path_length_from") else "")),
+             + (f" (from the {d['path_length_from']})" if d.get("path_length_from") else "")
+             if d.get("path_length_m") is not None
+             else "not measured: no ground truth or GPS fixes to measure it on"),
             ("ground truth", f"{html.escape(str(d.get('ground_truth_topic')))}: "
                              f"{d.get('ground_truth_samples')} samples"
              if d.get("ground_truth_samples") else "none"),
-            ("GPS fixes", f"{d.get('gps_fixes', 0)}, of which {d.get('gps_fixes_withheld', 0)} "
-                          f"withheld ({html.escape(str(m.get('gps_holdout')))})"
-             if d.get("gps_fixes") else "none"),
+            ("GPS fixes", _gps_fixes(m)),
             ("landmarks in the map", str(d.get("landmarks", 0))),
-            ("local frame", "ENU about the datum {:.6f}°, {:.6f}°, {:.1f} m".format(*d["datum"])
-             if d.get("datum") else "the landmark map's frame, or the start pose")]
+            ("local frame", html.escape(plots.frame(m)["text"]))]
     rej = m.get("rejected_messages") or {}
     rows.append(("messages dropped as invalid", ", ".join(
         f"{html.escape(k)}: {v}" for k, v in rej.items()) or "none"))
@@ -253,6 +313,7 @@ def _facts(m: dict) -> str:
 def _config(run: SavedRun) -> str:
     m = run.metrics
     rows = [("estimators", ", ".join(m["estimators"])),
+            ("not run", "; ".join(f"{n}: {why}" for n, why in not_run(m)) or "–"),
             ("smoother lag", f"{m.get('lag_s')} s"),
             ("GPS hold-out", str(m.get("gps_holdout") or "none")),
             ("initial pose", str(m.get("initial_pose") or "each estimator's default")),
@@ -260,14 +321,33 @@ def _config(run: SavedRun) -> str:
     table = "".join(f'<tr><td class="l">{k}</td><td class="l">{html.escape(v)}</td></tr>'
                     for k, v in rows)
     text = html.escape(run.config_text) if run.config_text else "(no config file text saved)"
+    t0 = _get(m, "data", "t0")
     events = "".join(
         f"<details><summary>{html.escape(n)}: {len(e.get('events') or [])} events"
         + (f", {sum((e.get('rejected') or {}).values())} rejected" if e.get("rejected") else "")
         + "</summary><pre>" + html.escape("\n".join(
-            (e.get("events") or []) + [f"rejected {k}: {v}" for k, v in
-                                       (e.get("rejected") or {}).items()])) + "</pre></details>"
+            [relative_event(x, t0) for x in e.get("events") or []]
+            + [f"rejected {k}: {v}" for k, v in (e.get("rejected") or {}).items()]))
+        + "</pre></details>"
         for n, e in m["estimators"].items())
-    return f"<table>{table}</table><pre>{text}</pre><h3>Estimator events</h3>{events}"
+    when = (" (t: seconds since the first measurement, as in the figures)" if t0 is not None
+            else " (t: the bag's time stamps)")
+    return (f"<table>{table}</table><pre>{text}</pre><h3>Estimator events{when}</h3>"
+            f"{events}")
+
+
+_EVENT_T = re.compile(r"^t=(-?\d+(?:\.\d*)?(?:[eE][-+]?\d+)?):")
+
+
+def relative_event(line: str, t0: float | None) -> str:
+    """An estimator event "t=STAMP: text" with its bag stamp made seconds since ``t0`` (the
+    first measurement); other lines, or without ``t0``, unchanged."""
+    hit = _EVENT_T.match(line)
+    if hit is None or t0 is None:
+        return line
+    # the stamp was written to 1 ms: the first measurement's can land a fraction before t0
+    dt = round(float(hit.group(1)) - t0, 3) + 0.0  # + 0.0: no "-0.000"
+    return f"t={dt:.3f} s:{line[hit.end():]}"
 
 
 def _figure(png: bytes, caption: str, alt: str) -> str:
@@ -276,58 +356,108 @@ def _figure(png: bytes, caption: str, alt: str) -> str:
             f"<figcaption>{html.escape(caption)}</figcaption></figure>")
 
 
+def _no_figure(text: str) -> str:
+    return f'<p class="note">{html.escape(text)}</p>'
+
+
+def captions(run: SavedRun) -> dict[str, str]:
+    """The caption of each figure, saying only what this run's figures hold."""
+    f = plots.frame(run.metrics)
+    truth = run.truth is not None and len(run.truth) > 0
+    gps = len(run.gps_t) > 0
+    withheld = bool(run.gps_withheld.any()) if gps else False
+    behind = [w for w, ok in (("the ground truth (grey band)", truth),
+                              ("the GPS fixes (grey dots" + ("; red circles: withheld from "
+                               "the estimators and used to score them)" if withheld else ")"),
+                               gps),
+                              ("the landmarks (triangles)", bool(run.landmarks))) if ok]
+    start = plots.start_point(run)
+    overview = (f"Every estimate in {f['short']} (x, y in m)"
+                + (f" with {', '.join(behind[:-1])} and {behind[-1]}" if len(behind) > 1
+                   else f" with {behind[0]}" if behind else
+                   ", with nothing to compare it with (no ground truth, GPS or landmarks)")
+                + (f"; black dot: the start, the earliest position drawn (the first {start[2]} "
+                   f"position, {plots.seconds(start[3])} s after the first measurement)"
+                   if start else "")
+                + ".")
+    each = ("Each estimate on its own, on common axes, "
+            + ("over the ground truth (grey band)." if truth else "over the GPS fixes (grey "
+               "dots)." if gps else "with no ground truth or GPS to draw behind it."))
+    outages = " Grey spans: GPS outages." if run.metrics.get("gps_outages") else ""
+    return {
+        "trajectories": overview,
+        "trajectories_each": each,
+        "nees": "Pose NEES against the truth with its 95% chi-square band: a consistent "
+                "estimator stays inside about 95% of the time around the dashed expected value; "
+                "above it, the estimator is over-confident, below it, pessimistic.",
+        "nis": "NIS of each innovation per estimator and sensor with the 95% band of its "
+               "dimension (dashed)" + ("; red x: rejected by the gate." if any(
+                   (~run.innovations[n].accepted).any() for n in run.innovations
+                   if len(run.innovations[n])) else "; the gate rejected none."),
+        "covariance": "Trace of the position covariance [m²] and heading sigma [deg] of each "
+                      f"estimate over time, log scales.{outages}",
+        "latency": "Wall time of each process() call (one per measurement), per estimator.",
+    }
+
+
 def make_figures(run: SavedRun, progress: Callable[[float], None] | None = None
-                 ) -> list[tuple[str, bytes, str]]:
-    """(name, PNG bytes, caption) of every figure, also written to OUTDIR/plots/."""
+                 ) -> list[tuple[str, bytes | None, str]]:
+    """(name, PNG bytes, caption) of every figure, also written to OUTDIR/plots/; a figure that
+    has nothing to show is (name, None, why not) and no file."""
     pdir = run.outdir / "plots"
     pdir.mkdir(exist_ok=True)
     cols = plots.colors(list(run.tracks))
     series, t, dof = plots.nees_inputs(run)
-    err_fig, err_caption = plots.errors(run) if run.tracks else (None, "")
+    err_fig, err_caption = plots.errors(run)
+    cap = captions(run)
     jobs = [
-        ("trajectories", lambda: plots.trajectories(run),
-         "Every estimate on the local plane with the truth and the GPS fixes (red circles: "
-         "withheld from the estimators and used to score them)."),
+        ("trajectories", lambda: plots.trajectories(run), cap["trajectories"]),
         ("trajectories_each", lambda: plots.trajectories_each(run) if len(run.tracks) > 1
-         else None,
-         "Each estimate on its own, over the ground truth (grey band) or the GPS fixes."),
+         else None, cap["trajectories_each"]),
         ("errors", lambda: err_fig, err_caption),
-        ("nees", lambda: plots.nees(series, t, dof, cols) if series else None,
-         "Pose NEES against the truth with its 95% chi-square band: a consistent estimator "
-         "stays inside about 95% of the time around the dashed expected value; above it, the "
-         "estimator is over-confident, below it, pessimistic."),
-        ("nis", lambda: plots.nis(run),
-         "NIS of each innovation per estimator and sensor with the 95% band of its dimension "
-         "(dashed); red x: rejected by the gate."),
-        ("covariance", lambda: plots.covariance(run),
-         "Position covariance trace and heading sigma of each estimate over time."),
-        ("latency", lambda: plots.latency(run),
-         "Wall time of each process() call (one per measurement), per estimator."),
+        ("nees", lambda: plots.nees(series, t, dof, cols) if series else None, cap["nees"]),
+        ("nis", lambda: plots.nis(run), cap["nis"]),
+        ("covariance", lambda: plots.covariance(run), cap["covariance"]),
+        ("latency", lambda: plots.latency(run), cap["latency"]),
     ]
-    out = []
+    out: list[tuple[str, bytes | None, str]] = []
     for k, (name, make, caption) in enumerate(jobs):
         fig = make()
         if fig is not None:
             out.append((name, plots.save_png(fig, pdir / f"{name}.png"), caption))
+        else:
+            (pdir / f"{name}.png").unlink(missing_ok=True)  # from an earlier rendering
+            if name == "errors":
+                out.append((name, None, caption))
         if progress:
             progress((k + 1) / len(jobs))
     return out
 
 
-def build_html(run: SavedRun, figures: list[tuple[str, bytes, str]], render_s: float) -> str:
+def build_html(run: SavedRun, figures: list[tuple[str, bytes | None, str]],
+               render_s: float) -> str:
     """The report page for ``run`` with its rendered ``figures``."""
     m = run.metrics
     bag = Path(str(m.get("bag"))).name
     verdict = "".join(f"<li>{html.escape(line)}</li>" for line in verdict_lines(m))
-    figs = "".join(_figure(png, cap, name) for name, png, cap in figures)
+    figs = "".join(_figure(png, cap, name) if png is not None else _no_figure(cap)
+                   for name, png, cap in figures)
     stamp = datetime.datetime.now().strftime("%Y-%m-%d %H:%M")
+    t0 = _get(m, "data", "t0")
+    if t0 is None:
+        times = ""
+    else:
+        when = (" = " + datetime.datetime.fromtimestamp(t0, datetime.UTC).strftime(
+            "%Y-%m-%d %H:%M:%S UTC") if t0 > 1e8 else "")
+        times = (f" Times are seconds since the first measurement (bag stamp {t0:.3f} s{when}),"
+                 " in the tables, the events and the figures alike.")
     return (
         "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>"
         f"<title>ddfuse report: {html.escape(bag)}</title><style>{_CSS}</style></head><body>"
         f"<h1>ddfuse report: {html.escape(bag)}</h1>"
         f"<p class='sub'>{_fmt(m.get('duration_s'), '.1f')} s of data, "
         f"{len(m['estimators'])} estimator outputs. Rendered {stamp} from the results in "
-        f"{html.escape(str(run.outdir))} (figures in {render_s:.1f} s).</p>"
+        f"{html.escape(str(run.outdir))} (figures in {render_s:.1f} s).{times}</p>"
         f"<h2>Verdict</h2><div class='verdict'><ul>{verdict}</ul></div>"
         f"<h2>Summary</h2>{_summary_table(m)}"
         f"<h2>Consistency and gating per sensor</h2>{_nis_table(m)}"

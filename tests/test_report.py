@@ -5,15 +5,20 @@ from __future__ import annotations
 
 import base64
 import json
+import math
 import re
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
+import matplotlib.colors
+import matplotlib.pyplot as plt
 import numpy as np
 import pytest
 
 from estimation.runner import Trajectory
-from evaluation import cli
+from evaluation import cli, plots, report
+from evaluation.estimators import SPECS, TRACK_TO_SPEC
 from evaluation.export import read_csv, write_csv
 from evaluation.results import load_run
 
@@ -220,3 +225,266 @@ def test_track_files_are_byte_for_byte_what_savetxt_wrote(tmp_path, n):
                header=",".join(export.CSV_COLUMNS), comments="", fmt=["%.9f"] + ["%.10g"] * 12)
     for ext in ("tum", "csv"):
         assert (tmp_path / f"a.{ext}").read_bytes() == (tmp_path / f"b.{ext}").read_bytes()
+
+
+# --- what the report and its figures say on runs without GPS, without truth, or neither ---
+
+def _sample_config(tmp: Path, *, truth: bool) -> Path:
+    """data/sample_husky.yaml without its GPS (and without its truth unless ``truth``): the
+    estimators' local frame is then the start pose (or the truth's, starting on it)."""
+    import yaml
+
+    cfg = yaml.safe_load((ROOT / "data" / "sample_husky.yaml").read_text())
+    del cfg["sensors"]["gps"], cfg["frame"]
+    if not truth:
+        del cfg["ground_truth"], cfg["initial_pose"]
+    cfg["smoother"] = {"lag": 10.0, "keyframe": "rate", "keyframe_rate": 5.0}
+    path = tmp / ("truth_no_gps.yaml" if truth else "no_gps.yaml")
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+def _run_sample(tmp: Path, truth: bool) -> Path:
+    out = tmp / "out"
+    assert cli.main(["run", str(ROOT / "data" / "sample_husky.bag"), "-c",
+                     str(_sample_config(tmp, truth=truth)), "-o", str(out),
+                     "--estimators", "ekf,smoother"]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def no_gps_run(tmp_path_factory) -> Path:
+    """The sample without GPS and without truth (like rl_jackal.bag)."""
+    return _run_sample(tmp_path_factory.mktemp("nogps"), truth=False)
+
+
+@pytest.fixture(scope="module")
+def truth_no_gps_run(tmp_path_factory) -> Path:
+    """The sample with its truth but without GPS (like mrclam, without the landmarks)."""
+    return _run_sample(tmp_path_factory.mktemp("truth"), truth=True)
+
+
+def _section(page: str, heading: str) -> str:
+    return page.split(f"<h2>{heading}</h2>")[1].split("<h2>")[0]
+
+
+def _row(page: str, key: str) -> str:
+    return re.search(rf'<td class="l">{key}</td><td class="l">(.*?)</td>', page).group(1)
+
+
+def test_no_error_figure_without_gps_or_truth_and_the_report_says_why(no_gps_run):
+    m = json.loads((no_gps_run / "metrics.json").read_text())
+    assert m["data"]["gps_fixes"] == 0 and not m["has_ground_truth"]  # the case under test
+    page = (no_gps_run / "report.html").read_text()
+    assert not (no_gps_run / "plots" / "errors.png").exists()
+    assert 'alt="errors"' not in page
+    assert "No error figure: the bag has neither ground truth nor GPS fixes" in page
+    assert len(_images(page)) == 5  # trajectories, each, nis, covariance, latency
+
+
+def test_data_table_names_this_runs_frame_and_omits_what_it_cannot_measure(no_gps_run, sample_run):
+    page = (no_gps_run / "report.html").read_text()
+    assert _row(page, "local frame").startswith("the start pose: origin where the robot started")
+    assert "or the start pose" not in page
+    assert _row(page, "path length").startswith("not measured: no ground truth or GPS fixes")
+    assert _row(page, "GPS fixes") == "none"
+    enu = (sample_run / "report.html").read_text()
+    d = json.loads((sample_run / "metrics.json").read_text())["data"]
+    assert _row(enu, "local frame").startswith(f"ENU about the GPS datum {d['datum'][0]:.6f}°")
+    # fixes present, none withheld: said so, not "0 withheld (None)"
+    m = {"data": {"gps_fixes": 989, "gps_fixes_withheld": 0}, "gps_holdout": None}
+    assert report._gps_fixes(m) == "989, none withheld (no --gps-holdout)"
+    m = {"data": {"gps_fixes": 989, "gps_fixes_withheld": 197}, "gps_holdout": "every:5"}
+    assert report._gps_fixes(m) == "989, of which 197 withheld (every:5)"
+
+
+def test_frame_of_each_kind_of_run():
+    datum = {"data": {"datum": [47.4, 8.5, 488.0], "landmarks": 0}}
+    assert plots.frame(datum)["kind"] == "enu" and plots.frame(datum)["x"] == "x east"
+    lm = {"data": {"datum": None, "landmarks": 15}, "initial_pose": "first ground-truth pose"}
+    assert plots.frame(lm)["kind"] == "map" and "east" not in plots.frame(lm)["x"]
+    truth = {"data": {"landmarks": 0}, "initial_pose": "first ground-truth pose"}
+    assert plots.frame(truth)["kind"] == "truth"
+    given = {"data": {}, "initial_pose": [1.0, 2.0, math.pi / 2]}
+    assert plots.frame(given)["kind"] == "given" and "90.0°" in plots.frame(given)["text"]
+    assert plots.frame({"data": {}})["kind"] == "start"
+
+
+def test_estimators_not_run_are_named_with_the_reason(no_gps_run, sample_run):
+    summary = _section((no_gps_run / "report.html").read_text(), "Summary")
+    igvc = SPECS["ekf_igvc"]
+    assert f"ekf_igvc: needs {igvc.needs}, which the config does not have" in summary
+    assert "ekf_landmark: needs" in summary
+    # allowed by the config but not asked for with --estimators
+    assert "batch: not among the estimators asked for (--estimators)" in summary
+    assert "dr: off by default" in summary
+    ran = set(json.loads((no_gps_run / "metrics.json").read_text())["estimators"])
+    assert ran.isdisjoint(n for n, _ in report.not_run(
+        json.loads((no_gps_run / "metrics.json").read_text())))
+    # the sample has GPS: ekf_igvc could have run, it was not asked for
+    with_gps = json.loads((sample_run / "metrics.json").read_text())
+    assert dict(report.not_run(with_gps))["ekf_igvc"] == \
+        "not among the estimators asked for (--estimators)"
+
+
+def test_event_times_are_seconds_since_the_first_measurement(no_gps_run):
+    m = json.loads((no_gps_run / "metrics.json").read_text())
+    t0 = m["data"]["t0"]
+    assert t0 > 1e9  # the sample's stamps are epoch: an unconverted one would show
+    [started] = [e for e in m["estimators"]["ekf"]["events"] if "started" in e]
+    t_abs = float(started.split(":")[0][2:])
+    page = (no_gps_run / "report.html").read_text()
+    assert abs(t_abs - t0) < 1e-3  # it starts at the first measurement: t=0
+    assert "t=0.000 s: ekf_unicycle: started" in page
+    assert not re.search(r"t=1\d{9}", page)
+    assert "Times are seconds since the first measurement" in page
+    assert report.relative_event("t=1432235556.439: x", 1432235500.0) == "t=56.439 s: x"
+    assert report.relative_event("rejected /fix: gate: 4", 1.0) == "rejected /fix: gate: 4"
+    assert report.relative_event("t=100.000: x", 100.0003) == "t=0.000 s: x"
+
+
+def test_summary_footnote_describes_only_the_columns_shown(no_gps_run, sample_run):
+    note = _section((no_gps_run / "report.html").read_text(), "Summary").split("</table>")[1]
+    assert "<th>ATE" not in _section((no_gps_run / "report.html").read_text(), "Summary")
+    assert "ATE" not in note and "RPE" not in note and "RTF:" in note
+    full = _section((sample_run / "report.html").read_text(), "Summary").split("</table>")[1]
+    assert "ATE against the ground truth" in full and "RPE over 1 s" in full
+
+
+def test_with_truth_and_no_gps_the_errors_are_against_the_truth(truth_no_gps_run):
+    run = load_run(truth_no_gps_run)
+    assert run.truth is not None and len(run.gps_t) == 0
+    fig, caption = plots.errors(run)
+    labels = [ax.get_ylabel() for ax in fig.axes]
+    assert len(labels) == 3 * len(run.tracks)
+    assert labels[:3] == ["x error (truth frame) [m]", "y error (truth frame) [m]",
+                          "heading error [deg]"]
+    assert not any("GPS" in lb or "east" in lb for lb in labels)
+    assert caption.startswith("Errors against the ground truth") and "outages" not in caption
+    page = (truth_no_gps_run / "report.html").read_text()
+    assert 'alt="errors"' in page and "the ground truth&#x27;s frame" in page
+
+
+def test_error_axes_are_named_by_the_frame(sample_run):
+    run = load_run(sample_run)
+    fig, _ = plots.errors(run)
+    assert fig.axes[0].get_ylabel() == "east error [m]"
+    mapped = replace(run, metrics={**run.metrics, "data": {**run.metrics["data"], "datum": None,
+                                                            "landmarks": 15}})
+    fig, caption = plots.errors(mapped)
+    assert [ax.get_ylabel() for ax in fig.axes[:2]] == ["x error (map) [m]", "y error (map) [m]"]
+    assert "landmark map's frame" in caption
+
+
+def test_start_marker_is_the_earliest_position_of_any_source(sample_run):
+    run = load_run(sample_run)
+    late = {n: Trajectory(tr.t[60:], tr.pose[60:] + 3.0, tr.cov[60:])
+            for n, tr in run.tracks.items()}  # tracks start 6 s in, elsewhere
+    gps_first = replace(run, truth=None, tracks=late)
+    x, y, whose, t = plots.start_point(gps_first)
+    assert whose == "GPS fix" and (x, y) == tuple(run.gps_xy[0])
+    assert t == pytest.approx(run.gps_t[0] - run.metrics["data"]["t0"])
+    fig = plots.trajectories(gps_first)
+    [marker] = [ln for ln in fig.axes[0].lines if ln.get_label().startswith("start")]
+    assert tuple(marker.get_xydata()[0]) == (x, y)
+    assert marker.get_label().startswith("start: first GPS fix position")
+    # the truth starts first when there is one
+    assert plots.start_point(replace(run, tracks=late))[2] == "ground truth"
+    # a track that starts first wins
+    early = {"ekf": Trajectory(run.gps_t[:1] - 1.0, np.array([[7.0, 8.0, 0.0]]),
+                               np.eye(3)[None])}
+    assert plots.start_point(replace(gps_first, tracks=early))[:3] == (7.0, 8.0, "ekf")
+
+
+def _visible_labels(fig, ax, axis: str) -> list[str]:
+    fig.canvas.draw()
+    getter = ax.get_yticklabels if axis == "y" else ax.get_xticklabels
+    lo, hi = sorted(ax.get_ylim() if axis == "y" else ax.get_xlim())
+    return [t.get_text() for t in getter()
+            if t.get_visible() and t.get_text() and lo <= (t.get_position()[1 if axis == "y"
+                                                                                else 0]) <= hi]
+
+
+def test_log_axes_carry_tick_labels_when_they_span_under_a_decade(sample_run):
+    run = load_run(sample_run)
+    tracks = {}
+    for name, tr in run.tracks.items():
+        cov = tr.cov.copy()
+        sig = np.radians(np.linspace(0.2, 0.4, len(tr)))  # heading sigma 0.2-0.4 deg
+        cov[:, 2, 2] = sig ** 2
+        tracks[name] = Trajectory(tr.t, tr.pose, cov)
+    fig = plots.covariance(replace(run, tracks=tracks))
+    trace_ax, heading_ax = fig.axes[:2]
+    labels = _visible_labels(fig, heading_ax, "y")
+    assert len(labels) >= 2, labels
+    assert {"0.2", "0.3", "0.4"} <= set(labels)
+    assert len(_visible_labels(fig, trace_ax, "y")) >= 2
+    # a narrow span (no 1-9 step inside) still gets two labels
+    fig, ax = plt.subplots()
+    ax.plot([0, 1], [0.201, 0.209])
+    ax.set_yscale("log")
+    plots.label_log_axis(ax.yaxis)
+    assert len(_visible_labels(fig, ax, "y")) >= 2
+    plt.close("all")
+
+
+def test_every_column_of_the_panels_has_x_tick_labels(sample_run):
+    run = load_run(sample_run)
+    four = {**run.tracks, "batch": run.tracks["smoother"]}  # 2 rows x 3, the last row of 1
+    fig = plots.trajectories_each(replace(run, tracks=four))
+    axes = [ax for ax in fig.axes if ax.axison]
+    assert len(axes) == 4
+    bottoms = {}
+    for ax in axes:  # the lowest drawn panel of each column
+        col = round(ax.get_position().x0, 2)
+        if col not in bottoms or ax.get_position().y0 < bottoms[col].get_position().y0:
+            bottoms[col] = ax
+    assert len(bottoms) == 3
+    for ax in bottoms.values():
+        assert len(_visible_labels(fig, ax, "x")) >= 2, ax.get_title()
+        assert ax.get_xlabel() == "x east [m]"
+    plt.close("all")
+
+
+def test_each_estimator_has_one_colour_in_every_figure(sample_run):
+    names = list(TRACK_TO_SPEC)
+    cols = plots.colors(names)
+    assert len(set(cols.values())) == len(names)  # distinct
+    assert "tab:red" not in cols.values()  # red marks withheld fixes and rejections
+    assert plots.colors(["smoother"]) == {"smoother": cols["smoother"]}
+    assert plots.colors(names[::-1]) == cols
+    run = load_run(sample_run)
+    only = replace(run, tracks={"smoother": run.tracks["smoother"]})
+    for r in (run, only):
+        [line] = [ln for ln in plots.trajectories(r).axes[0].lines
+                  if ln.get_label() == "smoother"]
+        assert matplotlib.colors.same_color(line.get_color(), plots.PALETTE["smoother"])
+    plt.close("all")
+
+
+def test_captions_mention_only_what_is_drawn(sample_run, no_gps_run):
+    run = load_run(sample_run)
+    cap = report.captions(run)
+    assert "red circles: withheld" in cap["trajectories"]  # the sample withholds 40-60 s
+    assert "ground truth (grey band)" in cap["trajectories_each"]
+    nothing_withheld = replace(run, truth=None, gps_withheld=np.zeros_like(run.gps_withheld))
+    cap = report.captions(nothing_withheld)
+    assert "red" not in cap["trajectories"] and "truth" not in cap["trajectories"]
+    assert cap["trajectories_each"].endswith("over the GPS fixes (grey dots).")
+    _, err_caption = plots.errors(nothing_withheld)
+    assert "withheld" not in err_caption and "not an independent score" in err_caption
+    cap = report.captions(load_run(no_gps_run))
+    assert "truth" not in cap["trajectories"].split("(no ground truth")[0]
+    assert "GPS" not in cap["trajectories_each"].split("with no ground truth or GPS")[0]
+
+
+@pytest.mark.slow
+def test_jackal_report_without_gps_or_truth(jackal_bag, tmp_path):
+    out = tmp_path / "jackal"
+    assert cli.main(["run", str(jackal_bag), "-c", str(ROOT / "data" / "configs" /
+                                                       "rl_jackal.yaml"), "-o", str(out)]) == 0
+    page = (out / "report.html").read_text()
+    assert not (out / "plots" / "errors.png").exists() and "No error figure" in page
+    assert "ekf_igvc: needs an odometry or wheels sensor, and gps" in page
+    assert _row(page, "local frame").startswith("the start pose")
+    assert "t=0.000 s: ekf_unicycle: started" in page
