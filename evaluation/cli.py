@@ -68,27 +68,43 @@ def _config_for(bag: Path, given: Path | None) -> Path:
                       f"'ddfuse inspect {bag}' suggests one")
 
 
+ONLINE_HEADER = ("t = s since the first message; per estimator (x m, y m, yaw deg) in the local "
+                 "ENU frame (x east, y north, yaw counter-clockwise from east) +- its 1-sigma "
+                 "(m, m, deg)")
+
+
 def cmd_online(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from estimation.config import load_config
     from evaluation.online import replay
 
     cfg = load_config(_config_for(args.bag, args.config))
-    names = [n.strip() for n in args.estimators.split(",")] if args.estimators else None
+    header = []
 
-    def show(t: float, estimates: dict) -> None:
+    def show(t: float, estimates: dict, final: bool = False) -> None:
+        if not header:
+            header.append(True)
+            print(ONLINE_HEADER)
         cells = []
         for name, e in estimates.items():
-            cells.append(f"{name} -" if e is None else
-                         f"{name} ({e.pose[0]:8.2f}, {e.pose[1]:8.2f}, "
-                         f"{math.degrees(e.pose[2]):7.1f} deg)")
-        print(f"t={t:8.2f} s  " + "  ".join(cells), flush=True)
+            if e is None:
+                cells.append(f"{name} -")
+                continue
+            sd = [math.sqrt(v) if v >= 0.0 else math.nan for v in np.diag(e.pose_cov)]
+            cells.append(f"{name} ({e.pose[0]:8.2f}, {e.pose[1]:8.2f}, "
+                         f"{math.degrees(e.pose[2]):7.1f} deg) +- ({sd[0]:.2f}, {sd[1]:.2f}, "
+                         f"{math.degrees(sd[2]):.1f} deg)")
+        print(f"t={t:8.2f} s  " + "  ".join(cells) + ("  (final)" if final else ""), flush=True)
 
     try:
-        session = replay(args.bag, cfg, names=names, realtime=args.realtime,
+        session = replay(args.bag, cfg, names=args.estimators, realtime=args.realtime,
                          print_every=args.every, on_print=show,
                          reorder_window=args.reorder_window)
     except ValueError as e:
         raise DdfuseError(str(e)) from None
+    if session.last_t is not None:  # after every estimator's finish(): what it ends with
+        show(session.last_t, {k: session.estimate(k) for k in session.estimators}, final=True)
     print("update latency (ms):")
     for name, q in session.latency_ms().items():
         print(f"  {name:16} p50 {q['p50']:.3f}  p99 {q['p99']:.3f}  max {q['max']:.3f}  "
@@ -106,11 +122,12 @@ def cmd_bench(args: argparse.Namespace) -> int:
     from evaluation.bench import bench_bag
 
     bags = args.bags or [SAMPLE_BAG]
-    names = [n.strip() for n in args.estimators.split(",")] if args.estimators else None
+    if args.json:  # before the benchmarks, not after them
+        check_output_file(args.json, "--json")
     results = []
     for bag in bags:
         try:
-            r = bench_bag(bag, _config_for(bag, args.config), names, args.lag)
+            r = bench_bag(bag, _config_for(bag, args.config), args.estimators, args.lag)
         except ValueError as e:
             raise DdfuseError(str(e)) from None
         results.append(r)
@@ -211,12 +228,10 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     bag = args.bag or SAMPLE_BAG
     cfg = load_config(_config_for(bag, args.config))
-    names = [n.strip() for n in args.estimators.split(",") if n.strip()] if args.estimators \
-        else None
     bars = _progress()
     try:
         try:
-            m = run_bag(bag, cfg, args.outdir, names=names, lag=args.lag,
+            m = run_bag(bag, cfg, args.outdir, names=args.estimators, lag=args.lag,
                         holdout=args.gps_holdout, progress=bars.update if bars else None,
                         reorder_window=args.reorder_window)
         except ValueError as e:
@@ -279,6 +294,122 @@ def lag_seconds(text: str) -> float:
     return v
 
 
+def int_at_least(minimum: int):
+    """argparse type: an integer >= ``minimum``."""
+
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {text!r}"
+                                             ) from None
+        if v < minimum:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {text!r}")
+        return v
+
+    return parse
+
+
+def estimator_list(text: str) -> list[str]:
+    """argparse type of --estimators: comma-separated known estimator (or track) names; an
+    empty list is refused (leave the option out for the default set)."""
+    from evaluation.estimators import TRACK_TO_SPEC
+
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    if not names:
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated estimator names, got {text!r} (leave --estimators out "
+            "for the default set)")
+    unknown = [n for n in names if n not in TRACK_TO_SPEC]
+    if unknown:
+        raise argparse.ArgumentTypeError(f"unknown estimator {unknown[0]!r} (known: "
+                                         f"{', '.join(TRACK_TO_SPEC)})")
+    return names
+
+
+def gps_holdout(text: str) -> str:
+    """argparse type of --gps-holdout: ``every:K`` (K >= 2) or ``window:T0:T1`` with
+    0 <= T0 < T1, seconds from the bag's first message; returned as given."""
+    from estimation.runner import parse_holdout
+
+    parts = text.split(":")
+    if parts[0] == "window" and len(parts) == 3:
+        try:
+            a, b = float(parts[1]), float(parts[2])
+        except ValueError:
+            a = b = math.nan
+        if math.isfinite(a) and not math.isnan(b):
+            if a < 0.0:
+                raise argparse.ArgumentTypeError(
+                    f"window:T0:T1 needs T0 >= 0 (seconds from the bag's first message), got "
+                    f"T0 = {parts[1]} in {text!r}")
+            if not a < b:
+                raise argparse.ArgumentTypeError(
+                    f"window:T0:T1 needs T0 < T1 (seconds from the bag's first message), got "
+                    f"T0 = {parts[1]}, T1 = {parts[2]} in {text!r}")
+    try:
+        parse_holdout(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e).removeprefix("--gps-holdout: ")) from None
+    return text
+
+
+GPS_HOLDOUT_HELP = ("withhold these GPS fixes from every estimator and score against them: "
+                    "every K-th fix (K >= 2), or the fixes from T0 to T1 s after the bag's first "
+                    "message (0 <= T0 < T1)")
+
+
+def simulated_scenario(name: str, duration: float | None):
+    """The simulator scenario ``name`` (chosen from its list by argparse) with ``duration``;
+    DdfuseError naming --duration when the duration is refused (before any work)."""
+    from evaluation.simulate import get_scenario
+
+    try:
+        return get_scenario(name, duration)
+    except ValueError as e:
+        raise DdfuseError(f"--duration {duration:g}: {str(e).removeprefix('duration ')}"
+                          ) from None
+
+
+def _first_existing(path: Path) -> Path:
+    """``path`` or its nearest ancestor that exists (the working directory at worst)."""
+    for p in (path, *path.parents):
+        if p.exists():
+            return p
+    return Path(".")
+
+
+def check_output_file(path: Path, option: str, create_parents: bool = False) -> None:
+    """Before any work: ``path`` (given as ``option``) can be written, i.e. it is not a
+    directory and its directory exists (or, with ``create_parents``, can be created: no file on
+    the way), is a directory and is writable. DdfuseError naming both otherwise."""
+    path = Path(path)
+    if path.is_dir():
+        raise DdfuseError(f"{option} {path}: is a directory; give a file path")
+    parent = path.parent
+    anchor = _first_existing(parent)
+    if not anchor.is_dir():
+        raise DdfuseError(f"{option} {path}: {anchor} is a file, not a directory")
+    if anchor != parent and not create_parents:
+        raise DdfuseError(f"{option} {path}: no such directory {parent}")
+    if not os.access(anchor, os.W_OK | os.X_OK):
+        raise DdfuseError(f"{option} {path}: directory {anchor} is not writable")
+
+
+def check_output_dir(path: Path, option: str) -> None:
+    """Before any work: the output directory ``path`` (given as ``option``) is a writable
+    directory or can be made one (no file on the way, its nearest existing ancestor
+    writable); it is not created here, so a run refused later leaves nothing behind.
+    DdfuseError naming it otherwise."""
+    path = Path(path)
+    anchor = _first_existing(path)
+    if not anchor.is_dir():
+        what = "is a file" if anchor == path else f"{anchor} is a file"
+        raise DdfuseError(f"{option} {path}: {what}, not a directory")
+    if not os.access(anchor, os.W_OK | os.X_OK):
+        raise DdfuseError(f"{option} {path}: directory {anchor} is not writable")
+
+
 def _reorder_arg(sp: argparse.ArgumentParser) -> None:
     sp.add_argument("--reorder-window", type=_reorder_window, metavar="S",
                     help="seconds of header-stamp disorder the decoder sorts out (messages "
@@ -305,12 +436,13 @@ def build_parser() -> argparse.ArgumentParser:
                     help="config YAML (default: the bag's path with .yaml)")
     sp.add_argument("-o", "--outdir", type=Path, default=Path("ddfuse-out"),
                     help="output directory (default: ddfuse-out)")
-    sp.add_argument("--estimators", help="comma-separated: ekf, ekf_igvc, ekf_landmark, "
+    sp.add_argument("--estimators", type=estimator_list, metavar="LIST",
+                    help="comma-separated: ekf, ekf_igvc, ekf_landmark, "
                     "ekf_slam, smoother, smoother_lagged, batch (default: all the sensors allow)")
     sp.add_argument("--lag", type=lag_seconds,
                     help="smoother lag, s (default: from the config)")
-    sp.add_argument("--gps-holdout", metavar="every:K|window:T0:T1",
-                    help="withhold these GPS fixes from every estimator and score against them")
+    sp.add_argument("--gps-holdout", type=gps_holdout, metavar="every:K|window:T0:T1",
+                    help=GPS_HOLDOUT_HELP)
     _reorder_arg(sp)
     sp.add_argument("--no-report", action="store_true",
                     help="write the results (metrics.json, tracks, run.npz) but not the HTML "
@@ -325,17 +457,20 @@ def build_parser() -> argparse.ArgumentParser:
     sp = sub.add_parser("online", help="replay a bag message by message, as a live robot would")
     sp.add_argument("bag", type=Path)
     sp.add_argument("-c", "--config", type=Path)
-    sp.add_argument("--estimators", help="comma-separated (default: all the sensors allow)")
+    sp.add_argument("--estimators", type=estimator_list, metavar="LIST",
+                    help="comma-separated (default: all the sensors allow)")
     sp.add_argument("--realtime", action="store_true", help="pace messages by their stamps")
-    sp.add_argument("--every", type=float, default=1.0,
-                    help="print the current estimate every this many seconds of data")
+    sp.add_argument("--every", type=lag_seconds, default=1.0, metavar="S",
+                    help="print the current estimates every S > 0 seconds of data (default 1); "
+                    "the final ones are always printed")
     _reorder_arg(sp)
     sp.set_defaults(func=cmd_online)
 
     sp = sub.add_parser("bench", help="speed and memory of each estimator on bags")
     sp.add_argument("bags", type=Path, nargs="*", help="bags (default: the embedded sample)")
     sp.add_argument("-c", "--config", type=Path)
-    sp.add_argument("--estimators", help="comma-separated (default: all the sensors allow)")
+    sp.add_argument("--estimators", type=estimator_list, metavar="LIST",
+                    help="comma-separated (default: all the sensors allow)")
     sp.add_argument("--lag", type=lag_seconds, help="smoother lag, s (default: from the config)")
     sp.add_argument("--json", type=Path, help="also write the results as JSON")
     sp.set_defaults(func=cmd_bench)
@@ -357,21 +492,12 @@ DELEGATED = {"simulate": "evaluation.simulate", "plot-sim": "evaluation.plot_sim
              "lag-sweep": "evaluation.lag_sweep", "mc": "evaluation.montecarlo"}
 
 
-def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else list(argv)
-    if argv and argv[0] in DELEGATED:
-        import importlib
-
-        try:
-            return importlib.import_module(DELEGATED[argv[0]]).main(argv[1:]) or 0
-        except DdfuseError as e:
-            print(f"ddfuse: error: {e}", file=sys.stderr)
-            return 2
-    args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.ERROR,
-                        format="%(levelname)s %(name)s: %(message)s")
+def guarded(func, *args) -> int:
+    """``func(*args)`` with ddfuse's error handling: a DdfuseError, or an OSError on a path
+    (an output directory that is a file, a full disk...), ends in one line on stderr and exit
+    code 2; Ctrl-C in 130. Anything else (a bug) propagates with its traceback."""
     try:
-        return args.func(args)
+        return func(*args) or 0
     except DdfuseError as e:
         print(f"ddfuse: error: {e}", file=sys.stderr)
         return 2
@@ -386,6 +512,18 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("ddfuse: interrupted", file=sys.stderr)
         return 130
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] in DELEGATED:
+        import importlib
+
+        return guarded(importlib.import_module(DELEGATED[argv[0]]).main, argv[1:])
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.ERROR,
+                        format="%(levelname)s %(name)s: %(message)s")
+    return guarded(args.func, args)
 
 
 def entry() -> None:

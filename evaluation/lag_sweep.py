@@ -14,12 +14,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
 from estimation.bags import read_stream
 from estimation.config import load_config
-from estimation.runner import initial_pose, parse_holdout, run
+from estimation.runner import initial_pose, run
 from evaluation import estimators as registry
 from evaluation.pipeline import score
 
@@ -81,27 +82,44 @@ def format_table(rows: list[dict]) -> str:
     return "\n".join(out)
 
 
-def main(argv: list[str] | None = None) -> int:
-    from evaluation.cli import SAMPLE_BAG, DdfuseError, _config_for
+def plain_text(doc: str) -> str:
+    """Sphinx/reST inline markup as plain text, for --help: ``:func:`a.b` `` -> ``a.b``,
+    double back-quoted literals -> the literal."""
+    import re
 
-    p = argparse.ArgumentParser(prog="ddfuse lag-sweep", description=__doc__.split("\n\n")[1])
+    doc = re.sub(r":[a-z]+:`~?([^`]+)`", r"\1", doc)
+    return doc.replace("``", "")
+
+
+def _main(argv: list[str] | None) -> int:
+    from evaluation.cli import (
+        GPS_HOLDOUT_HELP,
+        SAMPLE_BAG,
+        DdfuseError,
+        _config_for,
+        check_output_file,
+        gps_holdout,
+    )
+
+    p = argparse.ArgumentParser(prog="ddfuse lag-sweep",
+                                description=plain_text(__doc__.split("\n\n")[1]))
     p.add_argument("bag", type=Path, nargs="?", help="bag (default: the embedded sample)")
-    p.add_argument("-c", "--config", type=Path)
+    p.add_argument("-c", "--config", type=Path,
+                   help="config YAML (default: the bag's path with .yaml)")
     p.add_argument("--lags", default=",".join(f"{x:g}" for x in DEFAULT_LAGS),
                    help="comma-separated lags in seconds (default: 0.5,2,10,30)")
-    p.add_argument("--gps-holdout", metavar="every:K|window:T0:T1")
+    p.add_argument("--gps-holdout", type=gps_holdout, metavar="every:K|window:T0:T1",
+                   help=GPS_HOLDOUT_HELP)
     p.add_argument("--json", type=Path, help="also write the rows as JSON")
     args = p.parse_args(argv)
     try:
         lags = [float(x) for x in args.lags.split(",") if x.strip()]
     except ValueError:
         p.error(f"--lags: expected comma-separated seconds, got {args.lags!r}")
-    if not lags or min(lags) <= 0:
+    if not lags or not all(x > 0 and math.isfinite(x) for x in lags):
         p.error(f"--lags: every lag must be > 0 s, got {args.lags!r}")
-    try:
-        parse_holdout(args.gps_holdout)
-    except ValueError as e:
-        p.error(str(e))
+    if args.json:  # before the sweep, not after it
+        check_output_file(args.json, "--json")
     bag = args.bag or SAMPLE_BAG
     try:
         rows = lag_sweep(bag, _config_for(bag, args.config), lags, args.gps_holdout)
@@ -109,5 +127,17 @@ def main(argv: list[str] | None = None) -> int:
         raise DdfuseError(str(e)) from None
     sys.stdout.write(format_table(rows) + "\n")
     if args.json:
-        args.json.write_text(json.dumps(rows, indent=2) + "\n")
+        sys.stdout.flush()  # the table stays, whatever happens to the JSON
+        try:
+            args.json.write_text(json.dumps(rows, indent=2) + "\n")
+        except OSError as e:
+            raise DdfuseError(f"--json {args.json}: could not write it ({e.strerror or e}); "
+                              "the table above has the rows") from None
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``ddfuse lag-sweep``; a user error ends in one line on stderr and exit code 2."""
+    from evaluation.cli import guarded
+
+    return guarded(_main, argv)

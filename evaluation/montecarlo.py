@@ -319,6 +319,8 @@ def monte_carlo(scenario: str, seeds: Iterable[int], estimators: list[str] | Non
     from evaluation.simulate import get_scenario
 
     get_scenario(scenario, duration)  # a bad scenario or duration fails here, not in a worker
+    if jobs is not None and jobs < 1:
+        raise ValueError(f"jobs: expected at least 1 process, got {jobs}")
     jobs = jobs or os.cpu_count() or 1
     args = [(scenario, s, estimators, duration, fixed_truth, lag) for s in seeds]
     if jobs == 1:
@@ -394,25 +396,54 @@ def write_report(mc: dict, outdir: str | Path) -> tuple[Path, Path]:
     return j, m
 
 
-def main(argv: list[str] | None = None) -> int:
-    """``ddfuse mc SCENARIO [--seeds N] [--first-seed S] [--duration S] [--estimators LIST]
-    [--jobs J] [-o OUTDIR]``."""
-    from evaluation.cli import lag_seconds
+def _save_or_show(mc: dict, outdir: Path) -> tuple[Path, Path]:
+    """write_report; if that fails after all the runs, the table goes to stdout and the JSON to
+    a temporary file, and the one-line error (DdfuseError) names both."""
+    from estimation.errors import DdfuseError
+
+    try:
+        return write_report(mc, outdir)
+    except OSError as e:
+        reason = f"{e.filename or outdir}: {e.strerror or e}"
+    sys.stdout.write(to_markdown(mc))
+    sys.stdout.flush()
+    try:
+        fd, kept = tempfile.mkstemp(prefix=f"ddfuse-mc_{mc['scenario']}-", suffix=".json")
+        with os.fdopen(fd, "w") as f:
+            f.write(json.dumps(mc, indent=2, default=float) + "\n")
+        where = f"the table is above, the JSON in {kept}"
+    except OSError:
+        where = "the table is above; the JSON could not be kept"
+    raise DdfuseError(f"-o {outdir}: could not write the results ({reason}); {where}")
+
+
+def _main(argv: list[str] | None) -> int:
+    from estimation.errors import DdfuseError
+    from evaluation.cli import (
+        check_output_dir,
+        estimator_list,
+        int_at_least,
+        lag_seconds,
+        simulated_scenario,
+    )
     from evaluation.simulate import SCENARIOS
 
     ap = argparse.ArgumentParser(
         prog="ddfuse mc",
         description="Monte Carlo runs of the estimators on a simulator scenario: position RMSE, "
-        "dead-reckoning RMSE, average NEES against its 95%% chi-square band, runtime.")
+        "dead-reckoning RMSE, average NEES against its 95% chi-square band, runtime.")
     ap.add_argument("scenario", choices=list(SCENARIOS))
-    ap.add_argument("--seeds", type=int, default=20, help="number of seeds (default 20)")
-    ap.add_argument("--first-seed", type=int, default=0, help="first seed (default 0)")
+    ap.add_argument("--seeds", type=int_at_least(1), default=20,
+                    help="number of seeds (default 20)")
+    ap.add_argument("--first-seed", type=int_at_least(0), default=0,
+                    help="first seed (default 0)")
     ap.add_argument("--duration", type=float, default=None,
                     help="seconds per run (default: the scenario's)")
-    ap.add_argument("--estimators", help="comma-separated (default: every EKF the simulated "
+    ap.add_argument("--estimators", type=estimator_list, metavar="LIST",
+                    help="comma-separated (default: every EKF the simulated "
                     "config allows); dead reckoning always runs")
-    ap.add_argument("--jobs", type=int, default=None,
-                    help="local processes (default: os.cpu_count())")
+    ap.add_argument("--jobs", type=int_at_least(1), default=None,
+                    help="local processes, >= 1 (default: os.cpu_count())")
     ap.add_argument("--fixed-truth", action="store_true",
                     help="every seed with the scenario's true geometry and the exact true "
                     "initial pose (default: both drawn per seed from the priors the config "
@@ -422,21 +453,27 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("-o", "--outdir", type=Path, default=Path("ddfuse-out"),
                     help="where mc_<scenario>.json and .md go (default ddfuse-out)")
     args = ap.parse_args(argv)
-    if args.seeds < 1:
-        ap.error("--seeds must be at least 1")
-    names = [n.strip() for n in args.estimators.split(",") if n.strip()] \
-        if args.estimators else None
+    simulated_scenario(args.scenario, args.duration)
+    # before any seed runs: an output directory that cannot be made fails now, not at the end
+    check_output_dir(args.outdir, "-o")
     try:
         mc = monte_carlo(args.scenario, range(args.first_seed, args.first_seed + args.seeds),
-                         names, duration=args.duration, jobs=args.jobs,
+                         args.estimators, duration=args.duration, jobs=args.jobs,
                          fixed_truth=args.fixed_truth, lag=args.lag)
     except ValueError as e:
-        print(f"ddfuse mc: error: {e}", file=sys.stderr)
-        return 2
-    j, m = write_report(mc, args.outdir)
+        raise DdfuseError(str(e)) from None
+    j, m = _save_or_show(mc, args.outdir)
     sys.stdout.write(to_markdown(mc))
     print(f"wrote {j} and {m}")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``ddfuse mc SCENARIO [--seeds N] [--first-seed S] [--duration S] [--estimators LIST]
+    [--jobs J] [-o OUTDIR]``; a user error ends in one line on stderr and exit code 2."""
+    from evaluation.cli import guarded
+
+    return guarded(_main, argv)
 
 
 if __name__ == "__main__":

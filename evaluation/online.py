@@ -33,6 +33,7 @@ class OnlineSession:
         self.update_s: dict[str, array] = {n: array("f") for n in estimators}  # s, float32
         self.input_error: str | None = None  # set by replay when the bag breaks off
         self.replayed_s = 0.0  # data seconds replayed
+        self.last_t: float | None = None  # set by replay: the last message's s since the first
 
     @classmethod
     def from_config(cls, cfg: Config, names: list[str] | None = None, *,
@@ -75,15 +76,21 @@ def replay(bag: str | Path, cfg: Config, *, names: list[str] | None = None,
     """Replay a bag into an OnlineSession, one message at a time, decoding it as it goes
     (``estimation.bags.BagStream``). With ``realtime`` the messages are paced by their header
     stamps; ``on_print`` is called with (t, estimates) every ``print_every`` seconds of data
-    time. A truncated or damaged bag is replayed up to where it breaks off; the session's
+    time (> 0; ValueError otherwise), from the first message on; the session's ``last_t`` is the
+    last message's time (s since the first), at which the estimates after ``finish`` are
+    final. A truncated or damaged bag is replayed up to where it breaks off; the session's
     ``input_error`` then says why (BagError if nothing could be read)."""
+    if not (print_every > 0.0 and np.isfinite(print_every)):
+        raise ValueError(f"print_every: expected seconds > 0, got {print_every!r}")
     stream = BagStream(bag, cfg, reorder_window=reorder_window, keep_truth=False).prime()
     session = OnlineSession.from_config(cfg, names, stream=stream)
     t0 = stream.t0 if stream.t0 is not None else 0.0
     wall0, next_print = time.perf_counter(), t0
     n = 0
+    t_last = None
     for m in stream:
         n += 1
+        t_last = m.t
         if realtime:
             lead = (m.t - t0) - (time.perf_counter() - wall0)
             if lead > 0:
@@ -98,4 +105,5 @@ def replay(bag: str | Path, cfg: Config, *, names: list[str] | None = None,
         est.finish()
     session.input_error = stream.error
     session.replayed_s = stream.duration
+    session.last_t = None if t_last is None else t_last - t0
     return session

@@ -101,17 +101,39 @@ def plot_sim(res: SimResult, out: str | Path, title: str | None = None) -> Path:
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    """``python3 -m evaluation.plot_sim SCENARIO [--seed N] [--duration S] -o OUT.png``."""
-    ap = argparse.ArgumentParser(prog="plot_sim", description=__doc__.splitlines()[0])
+def _main(argv: list[str] | None) -> int:
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    from estimation.errors import DdfuseError
+    from evaluation.cli import check_output_file, int_at_least, simulated_scenario
+
+    ap = argparse.ArgumentParser(prog="ddfuse plot-sim", description=__doc__.splitlines()[0])
     ap.add_argument("scenario", choices=list(SCENARIOS))
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--duration", type=float, default=None)
-    ap.add_argument("-o", "--output", required=True, help="PNG path")
+    ap.add_argument("--seed", type=int_at_least(0), default=0, help="random seed (default 0)")
+    ap.add_argument("--duration", type=float, default=None,
+                    help="seconds to simulate (default: the scenario's)")
+    ap.add_argument("-o", "--output", type=Path, required=True,
+                    help="image path; its extension picks the format (.png, .pdf, .svg...)")
     args = ap.parse_args(argv)
+    simulated_scenario(args.scenario, args.duration)
+    kinds = FigureCanvasBase.get_supported_filetypes()
+    ext = args.output.suffix[1:].lower()
+    if ext and ext not in kinds:
+        raise DdfuseError(f"-o {args.output}: cannot write a .{ext} image (formats: "
+                          f"{', '.join(sorted(kinds))})")
+    check_output_file(args.output, "-o")  # before simulating
     res = simulate(args.scenario, seed=args.seed, duration=args.duration)
     print(f"wrote {plot_sim(res, args.output)}")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``ddfuse plot-sim SCENARIO [--seed N] [--duration S] -o OUT.png`` (also
+    ``python3 -m evaluation.plot_sim``); a user error ends in one line on stderr and exit
+    code 2."""
+    from evaluation.cli import guarded
+
+    return guarded(_main, argv)
 
 
 if __name__ == "__main__":

@@ -1110,8 +1110,10 @@ def write_bag(res: SimResult, path: str | Path, fmt: str = "ros1", compress: boo
 # --------------------------------------------------------------------------------------------
 
 
-def main(argv: list[str] | None = None) -> int:
-    """``ddfuse simulate SCENARIO [--seed N] [--duration S] [--format F] -o PATH``."""
+def _main(argv: list[str] | None) -> int:
+    from estimation.errors import DdfuseError
+    from evaluation.cli import check_output_file, int_at_least, simulated_scenario
+
     ap = argparse.ArgumentParser(
         prog="ddfuse simulate",
         description="Simulate a differential-drive robot and write a bag with ground truth, "
@@ -1119,25 +1121,42 @@ def main(argv: list[str] | None = None) -> int:
         epilog="Scenarios: " + "; ".join(f"{k}: {v.description}" for k, v in SCENARIOS.items()),
     )
     ap.add_argument("scenario", choices=list(SCENARIOS))
-    ap.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    ap.add_argument("--seed", type=int_at_least(0), default=0, help="random seed (default 0)")
     ap.add_argument("--duration", type=float, default=None,
                     help="seconds to simulate (default: the scenario's)")
     ap.add_argument("--format", choices=FORMATS, default="ros1",
                     help="ros1 (.bag file), ros2 (sqlite3 directory) or mcap (directory)")
     ap.add_argument("-o", "--output", required=True, help="bag path to create")
     args = ap.parse_args(argv)
+    simulated_scenario(args.scenario, args.duration)
+    # Before simulating (the long scenario takes a while): the bag must not exist, and its
+    # directory must be one (it is created, as a ROS 2 writer creates its own).
+    out = Path(args.output)
     try:
-        res = simulate(args.scenario, seed=args.seed, duration=args.duration)
-        bag, cfg, lmap = write_bag(res, args.output, args.format)
-    except (ValueError, FileExistsError) as e:
-        print(f"ddfuse simulate: error: {e}", file=sys.stderr)
-        return 2
+        _check_output(out, args.format)
+    except FileExistsError as e:
+        raise DdfuseError(f"-o {e}") from None
+    check_output_file(out, "-o", create_parents=True)
+    res = simulate(args.scenario, seed=args.seed, duration=args.duration)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        bag, cfg, lmap = write_bag(res, out, args.format)
+    except FileExistsError as e:  # made meanwhile by someone else
+        raise DdfuseError(f"-o {e}") from None
     print(f"wrote {bag} ({args.format}, {res.duration:g} s, scenario {args.scenario}, "
           f"seed {args.seed})")
     print(f"wrote {cfg}")
     if lmap:
         print(f"wrote {lmap}")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``ddfuse simulate SCENARIO [--seed N] [--duration S] [--format F] -o PATH``; a user error
+    ends in one line on stderr and exit code 2."""
+    from evaluation.cli import guarded
+
+    return guarded(_main, argv)
 
 
 if __name__ == "__main__":

@@ -216,3 +216,235 @@ def test_an_output_directory_that_is_a_file_is_one_line(tmp_path, capsys):
     code, stdout, err = run(["run", "-o", str(out), "--estimators", "ekf", "--no-report"],
                             capsys)
     assert_one_line_error(code, stdout, err, str(out), "a file where a directory is needed")
+
+
+# --- output paths of the delegated sub-commands (simulate, plot-sim, lag-sweep, mc) ---------
+
+def _not_called(*args, **kwargs):
+    raise AssertionError("the work ran although its output path was already known to be bad")
+
+
+def test_mc_output_dir_that_is_a_file_fails_before_any_seed(tmp_path, capsys, monkeypatch):
+    """It failed in write_report, after every seed had run: a 20-seed run lost."""
+    import evaluation.montecarlo as mc
+
+    monkeypatch.setattr(mc, "monte_carlo", _not_called)
+    afile = tmp_path / "afile"
+    afile.write_text("keep")
+    code, out, err = run(["mc", "husky", "--seeds", "2", "--duration", "30", "-o", str(afile)],
+                         capsys)
+    assert_one_line_error(code, out, err, f"-o {afile}: is a file, not a directory")
+    below = afile / "sub"
+    code, out, err = run(["mc", "husky", "--seeds", "2", "-o", str(below)], capsys)
+    assert_one_line_error(code, out, err, f"-o {below}: {afile} is a file, not a directory")
+    assert afile.read_text() == "keep"
+
+
+def test_mc_that_cannot_write_at_the_end_prints_the_table_and_keeps_the_json(
+        tmp_path, capsys, monkeypatch):
+    import evaluation.montecarlo as mc
+
+    outdir = tmp_path / "results"
+    real = mc.monte_carlo
+
+    def then_break_the_outdir(*args, **kwargs):
+        res = real(*args, **kwargs)
+        outdir.write_text("a file appeared where the results go")
+        return res
+
+    monkeypatch.setattr(mc, "monte_carlo", then_break_the_outdir)
+    code, out, err = run(["mc", "husky", "--seeds", "1", "--duration", "20", "--jobs", "1",
+                          "--estimators", "ekf", "-o", str(outdir)], capsys)
+    assert code == 2 and "Traceback" not in err
+    line = err.strip("\n")
+    assert "\n" not in line and line.startswith(f"ddfuse: error: -o {outdir}: could not write "
+                                                "the results (")
+    assert "| ekf | 1 |" in out and "| dr | 1 |" in out  # the table is on stdout
+    kept = Path(line.split("the JSON in ")[1])
+    try:
+        data = json.loads(kept.read_text())
+        assert data["scenario"] == "husky" and set(data["summary"]) == {"ekf", "dr"}
+    finally:
+        kept.unlink()
+
+
+def test_mc_real_process_output_dir_that_is_a_file(tmp_path):
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    r = subprocess.run([sys.executable, "-m", "evaluation.cli", "mc", "husky", "--seeds", "2",
+                        "--duration", "30", "-o", str(afile)],
+                       cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and r.stdout == ""
+    assert r.stderr == f"ddfuse: error: -o {afile}: is a file, not a directory\n"
+
+
+def test_lag_sweep_json_in_a_missing_directory_fails_before_the_sweep(tmp_path, capsys,
+                                                                      monkeypatch):
+    import evaluation.lag_sweep as ls
+
+    monkeypatch.setattr(ls, "lag_sweep", _not_called)
+    target = tmp_path / "nonexist_dir" / "x.json"
+    code, out, err = run(["lag-sweep", "--json", str(target)], capsys)
+    assert_one_line_error(code, out, err,
+                          f"--json {target}: no such directory {target.parent}")
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    code, out, err = run(["lag-sweep", "--json", str(afile / "x.json")], capsys)
+    assert_one_line_error(code, out, err, f"{afile} is a file, not a directory")
+
+
+def test_lag_sweep_json_that_cannot_be_written_after_the_sweep_keeps_the_table(
+        tmp_path, capsys, monkeypatch):
+    import evaluation.lag_sweep as ls
+
+    sub = tmp_path / "sub"
+    sub.mkdir()
+    row = {"estimator": "ekf", "lag_s": None, "rmse_m": 0.1234, "score": "truth",
+           "nees_mean": 1.0, "rtf": 100.0, "update_ms": None}
+
+    def sweep_then_lose_the_directory(*args, **kwargs):
+        sub.rmdir()
+        return [row]
+
+    monkeypatch.setattr(ls, "lag_sweep", sweep_then_lose_the_directory)
+    code, out, err = run(["lag-sweep", "--json", str(sub / "x.json")], capsys)
+    assert code == 2 and "| ekf | - | 0.123 |" in out
+    assert err.count("\n") == 1 and err.startswith(f"ddfuse: error: --json {sub / 'x.json'}: "
+                                                   "could not write it (")
+
+
+@pytest.mark.parametrize("command", ["simulate", "plot-sim"])
+def test_simulate_and_plot_sim_output_under_a_file_fail_before_simulating(
+        tmp_path, capsys, monkeypatch, command):
+    import evaluation.plot_sim
+    import evaluation.simulate
+
+    monkeypatch.setattr(evaluation.simulate, "simulate", _not_called)
+    monkeypatch.setattr(evaluation.plot_sim, "simulate", _not_called)
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    target = afile / ("x.bag" if command == "simulate" else "x.png")
+    code, out, err = run([command, "husky", "-o", str(target)], capsys)
+    assert_one_line_error(code, out, err, f"-o {target}: {afile} is a file, not a directory")
+
+
+def test_plot_sim_refuses_an_image_format_it_cannot_write(tmp_path, capsys, monkeypatch):
+    import evaluation.plot_sim
+
+    monkeypatch.setattr(evaluation.plot_sim, "simulate", _not_called)
+    target = tmp_path / "x.xyz"
+    code, out, err = run(["plot-sim", "husky", "-o", str(target)], capsys)
+    assert_one_line_error(code, out, err, f"-o {target}: cannot write a .xyz image", "png")
+
+
+def test_delegated_commands_report_os_errors_in_one_line_but_not_bugs(tmp_path, capsys,
+                                                                      monkeypatch):
+    """An OSError while writing (here a refused permission) is one line naming the file; any
+    other exception is a bug and keeps its traceback."""
+    import evaluation.plot_sim
+
+    target = tmp_path / "x.png"
+
+    def denied(res, out, title=None):
+        raise PermissionError(13, "Permission denied", str(out))
+
+    monkeypatch.setattr(evaluation.plot_sim, "plot_sim", denied)
+    code, out, err = run(["plot-sim", "husky", "--duration", "20", "-o", str(target)], capsys)
+    assert_one_line_error(code, out, err, f"{target}: Permission denied")
+
+    def bug(res, out, title=None):
+        raise KeyError("a programming error")
+
+    monkeypatch.setattr(evaluation.plot_sim, "plot_sim", bug)
+    with pytest.raises(KeyError, match="a programming error"):
+        main(["plot-sim", "husky", "--duration", "20", "-o", str(target)])
+
+
+# --- input validation ------------------------------------------------------------------------
+
+def _usage_error(argv: list[str], capsys) -> str:
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "Traceback" not in err
+    return err
+
+
+@pytest.mark.parametrize("every", ["0", "-1", "nan"])
+def test_online_every_must_be_positive(every, capsys):
+    err = _usage_error(["online", "data/sample_husky.bag", "--every", every], capsys)
+    assert f"argument --every: expected seconds > 0, got '{every}'" in err
+
+
+@pytest.mark.parametrize("command", [["run"], ["online", "data/sample_husky.bag"], ["bench"],
+                                     ["mc", "husky"]])
+@pytest.mark.parametrize("value", ["", " , "])
+def test_an_empty_estimator_list_is_refused(command, value, capsys):
+    """It silently ran the default estimators."""
+    err = _usage_error([*command, "--estimators", value], capsys)
+    assert (f"argument --estimators: expected comma-separated estimator names, got {value!r} "
+            "(leave --estimators out for the default set)") in err
+
+
+def test_an_unknown_estimator_is_refused_before_any_work(capsys):
+    err = _usage_error(["mc", "husky", "--estimators", "ekf,kalman"], capsys)
+    assert "argument --estimators: unknown estimator 'kalman' (known: ekf," in err
+
+
+@pytest.mark.parametrize("command", ["run", "lag-sweep"])
+@pytest.mark.parametrize(("spec", "message"), [
+    ("window:-50:10", "window:T0:T1 needs T0 >= 0 (seconds from the bag's first message), got "
+                      "T0 = -50 in 'window:-50:10'"),
+    ("window:210:150", "window:T0:T1 needs T0 < T1 (seconds from the bag's first message), got "
+                       "T0 = 210, T1 = 150 in 'window:210:150'"),
+    ("window:5:5", "window:T0:T1 needs T0 < T1 (seconds from the bag's first message), got "
+                   "T0 = 5, T1 = 5 in 'window:5:5'"),
+    ("every:1", "expected every:K (K >= 2) or window:T0:T1, got 'every:1'"),
+])
+def test_a_gps_holdout_window_says_what_is_wrong(command, spec, message, capsys):
+    err = _usage_error([command, "--gps-holdout", spec], capsys)
+    assert f"argument --gps-holdout: {message}" in err
+
+
+@pytest.mark.parametrize(("option", "value", "minimum"), [
+    ("--jobs", "0", 1), ("--jobs", "-1", 1), ("--seeds", "0", 1), ("--first-seed", "-1", 0)])
+def test_mc_counts_are_checked(option, value, minimum, capsys):
+    err = _usage_error(["mc", "husky", option, value], capsys)
+    assert f"argument {option}: expected an integer >= {minimum}, got '{value}'" in err
+
+
+# --- help text -------------------------------------------------------------------------------
+
+def _help(argv: list[str], capsys) -> str:
+    with pytest.raises(SystemExit) as e:
+        main([*argv, "--help"])
+    assert e.value.code == 0
+    return capsys.readouterr().out
+
+
+def test_help_texts_are_plain(capsys):
+    mc = _help(["mc"], capsys)
+    assert "95% chi-square band" in mc and "%%" not in mc
+    assert _help(["plot-sim"], capsys).startswith("usage: ddfuse plot-sim ")
+    sweep = _help(["lag-sweep"], capsys)
+    assert "each scored by evaluation.pipeline.score:" in sweep
+    assert "withheld by --gps-holdout;" in sweep
+    assert "``" not in sweep and ":func:" not in sweep
+
+
+# --- online output ---------------------------------------------------------------------------
+
+def test_online_prints_a_header_once_and_always_the_final_estimate(capsys):
+    code = main(["online", "data/sample_husky.bag", "--estimators", "ekf", "--every", "1000"])
+    out = capsys.readouterr().out
+    assert code == 0
+    lines = out.splitlines()
+    header = [ln for ln in lines if "since the first message" in ln]
+    assert len(header) == 1 and lines[0] == header[0]
+    for unit in ("t = s", "(x m, y m, yaw deg)", "local ENU frame", "1-sigma (m, m, deg)"):
+        assert unit in header[0]
+    rows = [ln for ln in lines if ln.startswith("t=")]
+    # the first message, then (every 1000 s of a 120 s bag prints nothing more) the final one
+    assert len(rows) == 2 and rows[0].startswith("t=    0.00 s  ekf (")
+    assert rows[1].endswith("(final)") and "+- (" in rows[1]
+    assert 119.0 < float(rows[1][2:].split()[0]) < 120.0
