@@ -460,9 +460,11 @@ def _feed(meas, n, fraction, select, gps, est_list, alive, errors, outputs, timi
     except KeyboardInterrupt:
         if stop is None:
             raise
+        at = f"{t_m - t_start:.3f} s after the first measurement" if t_start is not None \
+            else "before the first measurement"
         if busy is not None:  # inside an update: that estimator's state is half-updated
             alive[busy] = False
-            errors[busy] = f"interrupted (Ctrl-C) inside an update at t={t_m:.3f}"
-        stop.append(f"interrupted (Ctrl-C) after {done} measurements, at t={t_m:.3f}")
+            errors[busy] = f"interrupted (Ctrl-C) inside an update, {at}"
+        stop.append(f"interrupted (Ctrl-C) after {done} measurements, {at}")
         return done
     return k + 1

@@ -223,7 +223,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     import time
 
     from estimation.config import load_config
-    from estimation.errors import BagError
+    from estimation.errors import BagError, RunInterrupted
     from evaluation.pipeline import run_bag
 
     bag = args.bag or SAMPLE_BAG
@@ -236,8 +236,9 @@ def cmd_run(args: argparse.Namespace) -> int:
                         reorder_window=args.reorder_window)
         except ValueError as e:
             raise DdfuseError(str(e)) from None
-        except BagError as e:
-            # A damaged bag whose readable part was estimated: the report shows that part.
+        except (BagError, RunInterrupted) as e:
+            # A damaged bag whose readable part was estimated, or a run stopped by Ctrl-C: the
+            # report shows that part.
             if getattr(e, "results_written", False) and not args.no_report:
                 _render(args.outdir, bars)
             raise
@@ -509,8 +510,8 @@ def guarded(func, *args) -> int:
             e, (FileExistsError, NotADirectoryError)) else ""
         print(f"ddfuse: error: {where}{e.strerror or e}{what}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("ddfuse: interrupted", file=sys.stderr)
+    except KeyboardInterrupt as e:
+        print(f"ddfuse: {e}" if str(e) else "ddfuse: interrupted", file=sys.stderr)
         return 130
 
 

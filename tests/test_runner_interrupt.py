@@ -50,11 +50,11 @@ def test_ctrl_c_inside_an_update_ends_the_feed_and_keeps_every_track(sample_husk
             "b": _CtrlC(cfg, at=n // 2, initial_pose=_pose(stream))}
     res = run(stream, ests, interruptible=True)
     t_stop = stream.measurements[n // 2 - 1].t
-    assert res.interrupted == (f"interrupted (Ctrl-C) after {n // 2 - 1} measurements, at "
-                               f"t={t_stop:.3f}")
+    at = f"{t_stop - stream.measurements[0].t:.3f} s after the first measurement"
+    assert res.interrupted == f"interrupted (Ctrl-C) after {n // 2 - 1} measurements, {at}"
     assert res.messages == n // 2 - 1
     a, b = res.runs["a"], res.runs["b"]
-    assert b.error == f"interrupted (Ctrl-C) inside an update at t={t_stop:.3f}"
+    assert b.error == f"interrupted (Ctrl-C) inside an update, {at}"
     assert a.error is None  # it had finished that message
     # both tracks up to the stop, the same dead reckoning
     assert len(a.trajectory) > 100 and a.trajectory.t[-1] <= t_stop
@@ -76,7 +76,7 @@ def test_ctrl_c_in_one_finish_keeps_the_others(sample_husky):
     assert res.runs["dr"].trajectory.t[-1] > stream.measurements[-1].t - 0.2  # to the end
 
 
-def test_run_bag_writes_the_results_then_says_it_was_interrupted(tmp_path, monkeypatch):
+def test_run_bag_writes_the_results_then_says_it_was_interrupted(tmp_path, monkeypatch, capsys):
     from evaluation import estimators as registry
 
     monkeypatch.setitem(registry.SPECS, "dr", replace(
@@ -91,3 +91,11 @@ def test_run_bag_writes_the_results_then_says_it_was_interrupted(tmp_path, monke
     assert m["interrupted"].startswith("interrupted (Ctrl-C) after 2999 measurements")
     assert m["estimators"]["ekf"]["ate_rmse_m"] < 0.5  # scored over what it processed
     assert (tmp_path / "ekf.tum").is_file()
+    # the command line: the report of what was processed, one line, Ctrl-C's exit code
+    from evaluation import cli
+
+    out = tmp_path / "cli"
+    assert cli.main(["run", "-o", str(out), "--estimators", "ekf,dr"]) == 130
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("ddfuse: interrupted (Ctrl-C) after 2999 measurements")
+    assert (out / "report.html").is_file() and (out / "metrics.json").is_file()
