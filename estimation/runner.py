@@ -261,11 +261,19 @@ def parse_holdout(spec: str | None) -> Holdout | None:
             return Holdout("every", k)
         if parts[0] == "window" and len(parts) == 3:
             a, b = float(parts[1]), float(parts[2])
-            if not b > a:
-                raise ValueError
-            return Holdout("window", a, b)
+        else:
+            raise ValueError
     except ValueError:
         pass
+    else:
+        if not (math.isfinite(a) and a >= 0.0):
+            raise ValueError(f"--gps-holdout: window:T0:T1 needs T0 >= 0 (seconds from the "
+                             f"bag's first message), got T0 = {parts[1]} in {spec!r}")
+        if not b > a:
+            raise ValueError(f"--gps-holdout: window:T0:T1 needs T0 < T1 (seconds from the "
+                             f"bag's first message), got T0 = {parts[1]}, T1 = {parts[2]} in "
+                             f"{spec!r}")
+        return Holdout("window", a, b)
     raise ValueError(f"--gps-holdout: expected every:K (K >= 2) or window:T0:T1, got {spec!r}")
 
 

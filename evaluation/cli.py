@@ -333,21 +333,6 @@ def gps_holdout(text: str) -> str:
     0 <= T0 < T1, seconds from the bag's first message; returned as given."""
     from estimation.runner import parse_holdout
 
-    parts = text.split(":")
-    if parts[0] == "window" and len(parts) == 3:
-        try:
-            a, b = float(parts[1]), float(parts[2])
-        except ValueError:
-            a = b = math.nan
-        if math.isfinite(a) and not math.isnan(b):
-            if a < 0.0:
-                raise argparse.ArgumentTypeError(
-                    f"window:T0:T1 needs T0 >= 0 (seconds from the bag's first message), got "
-                    f"T0 = {parts[1]} in {text!r}")
-            if not a < b:
-                raise argparse.ArgumentTypeError(
-                    f"window:T0:T1 needs T0 < T1 (seconds from the bag's first message), got "
-                    f"T0 = {parts[1]}, T1 = {parts[2]} in {text!r}")
     try:
         parse_holdout(text)
     except ValueError as e:

@@ -204,7 +204,10 @@ def _nis_table(m: dict) -> str:
             "<th>95% band</th><th>% below</th><th>% above</th><th>verdict</th></tr>"
             + "".join(rows) + "</table>"
             f'<p class="note">NIS = r<sup>T</sup>S<sup>-1</sup>r of each innovation (EKF) or '
-            "measurement residual against the prediction (smoother), rejected ones included. "
+            "measurement residual against the prediction (smoother). The % below and above "
+            "count every innovation, those the gate rejected too (as above the band); the "
+            "mean counts the accepted ones (a gross outlier the gate rejects would dominate "
+            "it). "
             "A consistent estimator has about 2.5% below and 2.5% above the band and a mean "
             f"equal to the dimension. Pass: at most {100 * c.PASS_OUTSIDE:.0f}% outside and "
             f"mean/expected in [{c.PASS_RATIO[0]:g}, {c.PASS_RATIO[1]:g}]; Warn: at most "
