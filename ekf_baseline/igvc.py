@@ -389,6 +389,7 @@ class IgvcEkf(Estimator):
             self.kf = self._compiled_core(x0, Pn, angles)
         else:
             self.kf = KalmanCore(x0, Pn, self.log, state_angles=angles)
+        self.kf.after_inflation = self._retie_pairs
         self.t = t
 
     def _position_noise_map(self, lat: float) -> np.ndarray:
@@ -399,6 +400,32 @@ class IgvcEkf(Estimator):
         g[Y, 1] = 1.0
         g[LAT, 1] = 1.0 / self.radius
         return g
+
+    def _retie_pairs(self, kf: KalmanCore) -> None:
+        """Re-tie the redundant pairs (lat, lon) ~ (x, y) and theta ~ pi/2 - psi after a gate
+        recovery inflated P (``KalmanCore._recover``).
+
+        Their independent part (the frame noise, ``frame_psd``) is tiny and observed by no
+        measurement: the GPS measures lat/lon and reaches x, y only through their correlation.
+        The inflation scales it by alpha (x639 on rl_husky_gps.bag at 54 s) along with the
+        rest, and what is left of it after the next fixes is then never reduced: x, y
+        decorrelated from lat/lon (0.99 -> 0.18 in 20 s) and their sigma grew to 3.5 m for
+        200 s while lat/lon held 0.2 m. So the pair differences are pinned back to the frame
+        noise of one second, a constraint update c(s) = (x - E, y - N, psi + theta - pi/2)
+        with that variance (Joseph form) and no innovation: the means agree to the frame
+        mismatch already, only their errors drifted apart."""
+        P = kf.P
+        lat = float(kf.x[LAT])
+        D = np.zeros((3, self.n))
+        D[0, X], D[0, LON] = 1.0, -self.radius * math.cos(lat)
+        D[1, Y], D[1, LAT] = 1.0, -self.radius
+        D[2, PSI] = D[2, THETA] = 1.0
+        Rc = np.diag((self.noise.frame_psd, self.noise.frame_psd, self.noise.frame_heading_psd))
+        PD = P @ D.T
+        K = np.linalg.solve(D @ PD + Rc, PD.T).T
+        A = np.eye(self.n) - K @ D
+        P_new = A @ P @ A.T + K @ Rc @ K.T
+        kf.P = 0.5 * (P_new + P_new.T)
 
     def _frame_var(self, lat: float, scale: float) -> np.ndarray:
         d = np.zeros(N)

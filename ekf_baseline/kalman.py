@@ -87,6 +87,7 @@ amortised over the rows and the dense update is used. Figures: docs/results/ekf_
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from functools import lru_cache
 
 import numpy as np
@@ -132,6 +133,7 @@ class KalmanCore:
     __slots__ = (
         "x", "P", "n", "log", "state_angles", "lockout_count", "lockout_time",
         "recovery_holdoff", "_streak", "_holdoff", "_last_ok", "recoveries", "last_nis", "_eye",
+        "after_inflation",
     )
 
     def __init__(
@@ -162,6 +164,9 @@ class KalmanCore:
         # (sensor, kind) -> [consecutive gate rejections, time of the first of them]
         self._streak: dict[tuple[str, str], list] = {}
         self.recoveries: list[tuple[float, str, float]] = []
+        # called with this core after a recovery's inflation: a filter with redundant states
+        # re-ties them there (ekf_baseline.igvc)
+        self.after_inflation: Callable[[KalmanCore], None] | None = None
         self.last_nis = float("nan")
         self._eye = np.eye(self.n)
         self._wrap_state()
@@ -624,6 +629,8 @@ class KalmanCore:
             d = np.linalg.pinv(H) @ rest  # minimum-norm state error explaining the innovation
             self.P += np.outer(d, d)
         self._symmetrize()
+        if self.after_inflation is not None:
+            self.after_inflation(self)
         key = (sensor, kind)
         streak = self._streak[key]
         wait = self._holdoff.get(key, (0.0, self.recovery_holdoff / 2.0))[1] * 2.0
