@@ -57,8 +57,26 @@ class SavedRun:
     config_text: str | None = None
 
 
+def _previous_tracks(outdir: Path) -> list[str]:
+    """The track names an earlier run recorded in ``outdir``'s run.npz (none if unreadable)."""
+    try:
+        with np.load(outdir / RUN_FILE) as z:
+            return list(json.loads(str(z["meta"]))["tracks"]) + [TRUTH]
+    except (OSError, ValueError, KeyError, TypeError):
+        return []
+
+
 def save_run(result: RunResult, outdir: Path, config_text: str | None = None) -> None:
-    """Write the trajectories and run.npz of ``result`` into ``outdir`` (which must exist)."""
+    """Write the trajectories and run.npz of ``result`` into ``outdir`` (which must exist).
+    Track files that an earlier run into the same directory wrote (its run.npz lists them) and
+    this one does not are removed, so the directory holds one run, not a mix."""
+    now = {n for n, r in result.runs.items() if len(r.trajectory)}
+    if result.truth is not None:
+        now.add(TRUTH)
+    for name in _previous_tracks(outdir):
+        if name not in now:
+            for ext in ("tum", "csv"):
+                (outdir / f"{name}.{ext}").unlink(missing_ok=True)
     for name, r in result.runs.items():
         if len(r.trajectory):
             write_tum(outdir / f"{name}.tum", r.trajectory)

@@ -488,3 +488,18 @@ def test_jackal_report_without_gps_or_truth(jackal_bag, tmp_path):
     assert "ekf_igvc: needs an odometry or wheels sensor, and gps" in page
     assert _row(page, "local frame").startswith("the start pose")
     assert "t=0.000 s: ekf_unicycle: started" in page
+
+
+def test_a_second_run_into_the_same_directory_leaves_no_tracks_of_the_first(tmp_path):
+    from estimation.config import load_config
+    from evaluation import pipeline
+
+    root = Path(__file__).resolve().parents[1] / "data"
+    cfg = load_config(root / "sample_husky.yaml")
+    pipeline.run_bag(root / "sample_husky.bag", cfg, tmp_path, names=["ekf", "dr"])
+    (tmp_path / "notes.txt").write_text("mine")
+    assert (tmp_path / "dr.tum").is_file() and (tmp_path / "dr.csv").is_file()
+    pipeline.run_bag(root / "sample_husky.bag", cfg, tmp_path, names=["ekf"])
+    assert not (tmp_path / "dr.tum").exists() and not (tmp_path / "dr.csv").exists()
+    assert (tmp_path / "ekf.tum").is_file() and (tmp_path / "ground_truth.tum").is_file()
+    assert (tmp_path / "notes.txt").read_text() == "mine"  # only what a run wrote
