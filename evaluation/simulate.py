@@ -827,7 +827,7 @@ def _truth_comment(res: SimResult, fmt: str) -> str:
     lines = [
         f"ddfuse config for a simulated bag: scenario {sc.name}, seed {res.seed}, "
         f"{sc.duration:g} s.",
-        f"Regenerate: python3 -m evaluation.simulate {sc.name} --seed {res.seed} "
+        f"Regenerate: ddfuse simulate {sc.name} --seed {res.seed} "
         f"--duration {sc.duration:g} --format {fmt} -o <bag>",
         "Noise values are the simulator's true standard deviations (SI).",
         f"True geometry: wheel_radius {sc.true_geometry.wheel_radius} m, track_width "

@@ -16,9 +16,9 @@ DATA = Path(__file__).resolve().parents[1] / "data"
 
 
 def documented_commands() -> list[list[str]]:
-    """The `python3 -m evaluation.simulate ...` lines of data/README.md, as argv lists."""
+    """The `ddfuse simulate ...` lines of data/README.md, as argv lists."""
     text = (DATA / "README.md").read_text()
-    cmds = [shlex.split(m) for m in re.findall(r"^python3 -m evaluation\.simulate (.+)$", text,
+    cmds = [shlex.split(m) for m in re.findall(r"^ddfuse simulate (.+)$", text,
                                                flags=re.M)]
     assert cmds, "data/README.md documents no regenerate command"
     return cmds
