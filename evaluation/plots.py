@@ -275,6 +275,14 @@ def _envelope(ax, t, err, sigma3, color, label):
         ax.set_ylim(-1.15 * lim, 1.15 * lim)
 
 
+def _break_wraps(a: np.ndarray) -> np.ndarray:
+    """A wrapped angle series (rad) with NaN at each sample where it wrapped, so that a line
+    plot breaks there instead of drawing a vertical line across the panel."""
+    out = np.array(a, float)
+    out[1:][np.abs(np.diff(out)) > math.pi] = np.nan
+    return out
+
+
 def errors(run: SavedRun) -> tuple[Figure | None, str]:
     """Per track, the x (east), y (north) and heading errors against the truth over time with
     the track's own ±3σ envelope; without truth, the x and y differences to every GPS fix
@@ -304,7 +312,8 @@ def errors(run: SavedRun) -> tuple[Figure | None, str]:
             t = err.t - t0
             comps = [(err.dxy[:, 0], cov[:, 0, 0], f"{ex} error{where} [m]", 1.0),
                      (err.dxy[:, 1], cov[:, 1, 1], f"{ey} error{where} [m]", 1.0),
-                     (err.dyaw, cov[:, 2, 2], "heading error [deg]", math.degrees(1))]
+                     (_break_wraps(err.dyaw), cov[:, 2, 2], "heading error [deg]",
+                      math.degrees(1))]
         else:
             xy, inside = metrics.interpolate_xy(tr, run.gps_t)
             t = run.gps_t[inside] - t0

@@ -503,3 +503,12 @@ def test_a_second_run_into_the_same_directory_leaves_no_tracks_of_the_first(tmp_
     assert not (tmp_path / "dr.tum").exists() and not (tmp_path / "dr.csv").exists()
     assert (tmp_path / "ekf.tum").is_file() and (tmp_path / "ground_truth.tum").is_file()
     assert (tmp_path / "notes.txt").read_text() == "mine"  # only what a run wrote
+
+
+def test_heading_error_lines_break_where_the_angle_wraps():
+    from evaluation.plots import _break_wraps
+
+    e = np.array([3.0, 3.1, -3.1, -3.0, 0.1, -0.1])
+    out = _break_wraps(e)
+    assert np.isnan(out[2]) and np.count_nonzero(np.isnan(out)) == 1
+    assert np.array_equal(out[[0, 1, 3, 4, 5]], e[[0, 1, 3, 4, 5]])
