@@ -20,6 +20,7 @@ from pathlib import Path
 
 from estimation.bags import read_stream
 from estimation.config import load_config
+from estimation.errors import BagError
 from estimation.runner import initial_pose, run
 from evaluation import estimators as registry
 from evaluation.pipeline import score
@@ -34,13 +35,20 @@ def lag_sweep(bag: str | Path, config: str | Path, lags=DEFAULT_LAGS, holdout: s
               reference: str | None = "ekf") -> list[dict]:
     """Rows ``{"estimator", "lag_s", "rmse_m", "score", "nees_mean", "rtf", "update_ms"}``, one
     per (lag, smoother track) plus one for ``reference`` (lag None). ``score`` says what the
-    RMSE is against: "truth" or "gps_holdout"."""
+    RMSE is against: "truth" or "gps_holdout". A truncated or damaged bag is swept on what
+    could be read; its BagError is raised after the sweep, with the rows as ``rows``."""
     cfg = load_config(config)
     for name in ["smoother"] + ([reference] if reference else []):
         if not registry.SPECS[name].allowed(cfg):
             raise ValueError(f"{config}: {name} needs {registry.SPECS[name].needs}, which the "
                              "config does not have")
-    stream = read_stream(bag, cfg)
+    damaged = None
+    try:
+        stream = read_stream(bag, cfg)
+    except BagError as e:
+        if e.partial is None or not e.partial.measurements:
+            raise
+        damaged, stream = e, e.partial
     pose = initial_pose(cfg.initial_pose, stream)
     rows: list[dict] = []
 
@@ -61,6 +69,10 @@ def lag_sweep(bag: str | Path, config: str | Path, lags=DEFAULT_LAGS, holdout: s
     spec = registry.SPECS["smoother"]
     for lag in lags:
         add({"smoother": spec.build(cfg, stream, pose, float(lag))}, float(lag), _TRACKS)
+    if damaged is not None:
+        err = BagError(f"{damaged}; swept on what could be read")
+        err.rows = rows
+        raise err
     return rows
 
 
@@ -121,10 +133,15 @@ def _main(argv: list[str] | None) -> int:
     if args.json:  # before the sweep, not after it
         check_output_file(args.json, "--json")
     bag = args.bag or SAMPLE_BAG
+    damaged = None
     try:
         rows = lag_sweep(bag, _config_for(bag, args.config), lags, args.gps_holdout)
     except ValueError as e:
         raise DdfuseError(str(e)) from None
+    except BagError as e:
+        if not hasattr(e, "rows"):
+            raise
+        damaged, rows = e, e.rows
     sys.stdout.write(format_table(rows) + "\n")
     if args.json:
         sys.stdout.flush()  # the table stays, whatever happens to the JSON
@@ -133,6 +150,8 @@ def _main(argv: list[str] | None) -> int:
         except OSError as e:
             raise DdfuseError(f"--json {args.json}: could not write it ({e.strerror or e}); "
                               "the table above has the rows") from None
+    if damaged is not None:
+        raise damaged
     return 0
 
 

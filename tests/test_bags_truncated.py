@@ -506,3 +506,18 @@ def test_message_header_fast_path_equals_field_parser_on_real_bags(name, monkeyp
 
     path = shared_bag(name)
     assert _scan_items(path) == _scan_items(path, monkeypatch, fast=False)
+
+
+def test_cli_lag_sweep_on_a_truncated_bag_sweeps_what_was_read_and_exits_2(tmp_path, capsys):
+    bag = cut(SAMPLE, SAMPLE.stat().st_size // 2, tmp_path / "half.bag")
+    rc = cli.main(["lag-sweep", str(bag), "-c", str(SAMPLE_CFG), "--lags", "2",
+                   "--json", str(tmp_path / "s.json")])
+    assert rc == 2
+    out, err = capsys.readouterr()
+    err = err.strip()
+    assert err.startswith("ddfuse: error: ") and "\n" not in err
+    assert "truncated" in err and err.endswith("swept on what could be read")
+    rows = json.loads((tmp_path / "s.json").read_text())
+    assert [r["estimator"] for r in rows] == ["ekf", "smoother", "smoother_lagged"]
+    assert all(r["rmse_m"] < 0.5 for r in rows)  # against the truth of the part read
+    assert "| smoother_lagged | 2 |" in out
