@@ -77,6 +77,7 @@ def cmd_online(args: argparse.Namespace) -> int:
     import numpy as np
 
     from estimation.config import load_config
+    from estimation.errors import RunInterrupted
     from evaluation.online import replay
 
     cfg = load_config(_config_for(args.bag, args.config))
@@ -100,7 +101,7 @@ def cmd_online(args: argparse.Namespace) -> int:
     try:
         session = replay(args.bag, cfg, names=args.estimators, realtime=args.realtime,
                          print_every=args.every, on_print=show,
-                         reorder_window=args.reorder_window)
+                         reorder_window=args.reorder_window, interruptible=True)
     except ValueError as e:
         raise DdfuseError(str(e)) from None
     if session.last_t is not None:  # after every estimator's finish(): what it ends with
@@ -109,6 +110,9 @@ def cmd_online(args: argparse.Namespace) -> int:
     for name, q in session.latency_ms().items():
         print(f"  {name:16} p50 {q['p50']:.3f}  p99 {q['p99']:.3f}  max {q['max']:.3f}  "
               f"({q['updates']} updates)")
+    if session.interrupted:
+        sys.stdout.flush()
+        raise RunInterrupted(session.interrupted)
     if session.input_error:  # a truncated or damaged bag: replayed up to where it breaks off
         sys.stdout.flush()
         raise DdfuseError(f"{session.input_error}; replayed the "

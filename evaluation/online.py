@@ -34,6 +34,7 @@ class OnlineSession:
         self.input_error: str | None = None  # set by replay when the bag breaks off
         self.replayed_s = 0.0  # data seconds replayed
         self.last_t: float | None = None  # set by replay: the last message's s since the first
+        self.interrupted: str | None = None  # set by replay(interruptible=True) on Ctrl-C
 
     @classmethod
     def from_config(cls, cfg: Config, names: list[str] | None = None, *,
@@ -72,14 +73,16 @@ class OnlineSession:
 def replay(bag: str | Path, cfg: Config, *, names: list[str] | None = None,
            realtime: bool = False, print_every: float = 1.0,
            on_print: Callable[[float, dict[str, Estimate | None]], None] | None = None,
-           reorder_window: float | None = None) -> OnlineSession:
+           reorder_window: float | None = None, interruptible: bool = False) -> OnlineSession:
     """Replay a bag into an OnlineSession, one message at a time, decoding it as it goes
     (``estimation.bags.BagStream``). With ``realtime`` the messages are paced by their header
     stamps; ``on_print`` is called with (t, estimates) every ``print_every`` seconds of data
     time (> 0; ValueError otherwise), from the first message on; the session's ``last_t`` is the
     last message's time (s since the first), at which the estimates after ``finish`` are
     final. A truncated or damaged bag is replayed up to where it breaks off; the session's
-    ``input_error`` then says why (BagError if nothing could be read)."""
+    ``input_error`` then says why (BagError if nothing could be read). With ``interruptible``,
+    Ctrl-C ends the replay there as the bag's end would, and the session's ``interrupted`` says
+    where (the latency figures so far are kept); otherwise it propagates."""
     if not (print_every > 0.0 and np.isfinite(print_every)):
         raise ValueError(f"print_every: expected seconds > 0, got {print_every!r}")
     stream = BagStream(bag, cfg, reorder_window=reorder_window, keep_truth=False).prime()
@@ -88,17 +91,24 @@ def replay(bag: str | Path, cfg: Config, *, names: list[str] | None = None,
     wall0, next_print = time.perf_counter(), t0
     n = 0
     t_last = None
-    for m in stream:
-        n += 1
-        t_last = m.t
-        if realtime:
-            lead = (m.t - t0) - (time.perf_counter() - wall0)
-            if lead > 0:
-                time.sleep(lead)
-        session.push(m)
-        if on_print is not None and m.t >= next_print:
-            on_print(m.t - t0, {k: session.estimate(k) for k in session.estimators})
-            next_print = m.t + print_every
+    try:
+        for m in stream:
+            n += 1
+            t_last = m.t
+            if realtime:
+                lead = (m.t - t0) - (time.perf_counter() - wall0)
+                if lead > 0:
+                    time.sleep(lead)
+            session.push(m)
+            if on_print is not None and m.t >= next_print:
+                on_print(m.t - t0, {k: session.estimate(k) for k in session.estimators})
+                next_print = m.t + print_every
+    except KeyboardInterrupt:
+        if not interruptible:
+            raise
+        at = "before the first message" if t_last is None else \
+            f"{t_last - t0:.3f} s after the first message"
+        session.interrupted = f"interrupted (Ctrl-C) after {n} messages, {at}"
     if stream.error is not None and not n:
         raise BagError(stream.error)
     for est in session.estimators.values():

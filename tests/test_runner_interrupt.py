@@ -99,3 +99,29 @@ def test_run_bag_writes_the_results_then_says_it_was_interrupted(tmp_path, monke
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith("ddfuse: interrupted (Ctrl-C) after 2999 measurements")
     assert (out / "report.html").is_file() and (out / "metrics.json").is_file()
+
+
+def test_online_on_ctrl_c_prints_the_final_estimates_and_the_latency_so_far(
+        monkeypatch, capsys):
+    from evaluation import cli, online
+
+    push = online.OnlineSession.push
+    calls = []
+
+    def push_until_ctrl_c(self, m):
+        calls.append(1)
+        if len(calls) == 2000:
+            raise KeyboardInterrupt
+        push(self, m)
+
+    monkeypatch.setattr(online.OnlineSession, "push", push_until_ctrl_c)
+    bag = ROOT / "data" / "sample_husky.bag"
+    assert cli.main(["online", str(bag), "--estimators", "ekf", "--every", "50"]) == 130
+    out, err = capsys.readouterr()
+    assert "(final)" in out and "update latency (ms):" in out and "(1999 updates)" in out
+    assert err.strip().splitlines()[-1].startswith(
+        "ddfuse: interrupted (Ctrl-C) after 2000 messages, ")
+    calls.clear()
+    cfg = load_config(ROOT / "data" / "sample_husky.yaml")
+    with pytest.raises(KeyboardInterrupt):  # the library call stops as Ctrl-C always did
+        online.replay(bag, cfg, names=["ekf"])
