@@ -49,7 +49,7 @@ import numpy as np
 from ekf_baseline import GIVEN_POSE_STD
 from ekf_baseline.calibration import ScaleStates
 from ekf_baseline.kalman import KalmanCore
-from estimation.config import DEFAULT_GATE, Config, load_landmark_map
+from estimation.config import DEFAULT_GATE, Config, landmark_maps
 from estimation.estimator import Estimate, Estimator
 from estimation.measurements import (
     GroundTruthPose,
@@ -358,9 +358,7 @@ class LandmarkEkf(_OdometryDrivenEkf):
     ) -> None:
         super().__init__(cfg, initial_pose=initial_pose, motion=motion, init_std=init_std)
         if landmarks is None:
-            landmarks = {}
-            for s in cfg.of_kind("landmarks"):
-                landmarks.update(load_landmark_map(s.map))
+            landmarks = landmark_maps(cfg)
         self.landmarks = {str(k): (float(v[0]), float(v[1])) for k, v in landmarks.items()}
 
     def _sighting(self, m: LandmarkObservation) -> None:

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from estimation import geodesy, ros1_scan, rosmsg
-from estimation.config import Config, SensorConfig, load_landmark_map, resolve_landmark_maps
+from estimation.config import Config, SensorConfig, landmark_maps
 from estimation.errors import BagError
 from estimation.frames import IDENTITY, body_yaw, dot_row, rotate, rotated_variance, rpy_matrix
 from estimation.measurements import (
@@ -419,10 +419,7 @@ class BagStream:
         self.keep_truth = keep_truth
         self.datum: tuple[float, float, float] | None = (
             cfg.datum if isinstance(cfg.datum, tuple) else None)
-        self.landmarks: dict[str, tuple[float, float]] = {}
-        resolve_landmark_maps(cfg, bag)
-        for s in cfg.of_kind("landmarks"):
-            self.landmarks.update(load_landmark_map(s.map))
+        self.landmarks = landmark_maps(cfg, bag)
         self.rejected: Counter = Counter()
         self.late: Counter = Counter()  # topic -> measurements that came too late to reorder
         self.t0: float | None = None

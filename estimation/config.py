@@ -431,6 +431,16 @@ def resolve_landmark_maps(cfg: Config, bag: str | Path | None = None) -> None:
                           f"found: {where}")
 
 
+def landmark_maps(cfg: Config, bag: str | Path | None = None) -> dict[str, tuple[float, float]]:
+    """Every landmark sensor's map merged (id -> (x, y) m), each found as
+    ``resolve_landmark_maps`` says (next to the config, then next to ``bag``)."""
+    resolve_landmark_maps(cfg, bag)
+    out: dict[str, tuple[float, float]] = {}
+    for s in cfg.of_kind("landmarks"):
+        out.update(load_landmark_map(s.map))
+    return out
+
+
 def load_landmark_map(path: Path) -> dict[str, tuple[float, float]]:
     """Landmark map YAML: ``landmarks: {id: [x, y]}`` (m, in the map/local frame)."""
     try:

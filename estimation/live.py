@@ -30,7 +30,7 @@ from collections import Counter
 
 from estimation import geodesy, rosmsg
 from estimation.bags import ACCEPTED_TYPES, CONVERTERS, Reject, configured_topics
-from estimation.config import Config, load_landmark_map, resolve_landmark_maps
+from estimation.config import Config, landmark_maps
 from estimation.measurements import GpsFix, Stream
 
 __all__ = ["LiveConverter", "message_type"]
@@ -72,11 +72,7 @@ class LiveConverter:
         """An empty Stream with what the estimators are built from: the landmark maps of the
         config's landmark sensors and the datum (the config's; with ``first_fix`` none until a
         fix arrives, and the estimators then take the first fix's, as this converter does)."""
-        landmarks: dict[str, tuple[float, float]] = {}
-        resolve_landmark_maps(self.cfg)
-        for s in self.cfg.of_kind("landmarks"):
-            landmarks.update(load_landmark_map(s.map))
-        return Stream(measurements=[], datum=self.datum, landmarks=landmarks)
+        return Stream(measurements=[], datum=self.datum, landmarks=landmark_maps(self.cfg))
 
     @property
     def topics(self) -> list[str]:
