@@ -31,10 +31,12 @@ Per estimator (track), metrics.json holds:
   ``hoff`` rad, odometry scales ``k_v``, ``k_w``; a sensor's name after a colon where an
   estimator has several of a kind; None for an estimator without them.
 
-At the top level, ``wall_s`` splits the wall time of the whole job (``timing_split``): how
-long the process ran before ``run_bag`` (interpreter start, imports, config), decoding,
-building the estimators (numba kernels loaded, ISAM2 set up), each estimator's calls, the
-runner's own per-message work, scoring, writing the outputs, and the process's age when
+At the top level, ``estimators_requested`` is the ``--estimators`` list (None: the default, every
+estimator the config's sensors allow) and ``estimators_run`` what was built from it (a lagged track
+needs the smoother; a name can yield several tracks). ``wall_s`` splits the wall time of the whole
+job (``timing_split``): how long the process ran before ``run_bag`` (interpreter start, imports,
+config), decoding, building the estimators (numba kernels loaded, ISAM2 set up), each estimator's
+calls, the runner's own per-message work, scoring, writing the outputs, and the process's age when
 metrics.json is written. Like ``decode_s``, ``runtime_s``, ``rtf`` and ``update_ms`` these are
 timings: they differ between runs of the same bag, every other value does not.
 """
@@ -364,6 +366,8 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
     out["initial_pose"] = ("first ground-truth pose" if cfg.initial_pose == "ground_truth"
                            else list(pose) if pose else None)
     out["lag_s"] = lag
+    out["estimators_requested"] = list(names) if names else None
+    out["estimators_run"] = chosen
     out["gps_holdout"] = holdout
     out["input_error"] = input_error
     out["interrupted"] = result.interrupted

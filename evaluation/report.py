@@ -148,8 +148,9 @@ def _summary_table(m: dict) -> str:
 
 def not_run(m: dict) -> list[tuple[str, str]]:
     """(name, why) of each estimator of the registry (``evaluation.estimators``) that this run
-    does not have: its sensors missing from the config (judged on the sensors metrics.json
-    lists), off by default, or not among the estimators asked for."""
+    does not have: not among the estimators asked for, off by default, or its sensors missing
+    from the config (judged on the sensors metrics.json lists). Results written before
+    metrics.json recorded ``estimators_requested`` are judged on the config alone."""
     from estimation.config import Config, SensorConfig
     from evaluation.estimators import SPECS
 
@@ -159,14 +160,19 @@ def not_run(m: dict) -> list[tuple[str, str]]:
         cfg = Config(sensors=[SensorConfig(kind=s["kind"], topic=s["topic"], name=s["name"],
                                            use=tuple(s["use"])) for s in sensors])
     ran = set(m.get("estimators") or {})
+    requested = m.get("estimators_requested")
     out = []
     for name, spec in SPECS.items():
         if ran & set(spec.produces):
             continue
-        if not spec.default:
-            why = f"off by default, --estimators {name} runs it; it needs {spec.needs}"
-        elif cfg is not None and not spec.allowed(cfg):
+        if cfg is not None and not spec.allowed(cfg):
             why = f"needs {spec.needs}, which the config does not have"
+        elif not spec.default and name not in (requested or ()):
+            why = f"off by default, --estimators {name} runs it; it needs {spec.needs}"
+        elif requested and name not in requested:
+            why = f"not among the estimators asked for (--estimators {','.join(requested)})"
+        elif requested:
+            why = "asked for, but it produced no track"
         else:
             why = "not among the estimators asked for (--estimators)"
         out.append((name, why))

@@ -316,7 +316,7 @@ def test_estimators_not_run_are_named_with_the_reason(no_gps_run, sample_run):
     assert f"ekf_igvc: needs {igvc.needs}, which the config does not have" in summary
     assert "ekf_landmark: needs" in summary
     # allowed by the config but not asked for with --estimators
-    assert "batch: not among the estimators asked for (--estimators)" in summary
+    assert "batch: not among the estimators asked for (--estimators ekf,smoother)" in summary
     assert "dr: off by default" in summary
     ran = set(json.loads((no_gps_run / "metrics.json").read_text())["estimators"])
     assert ran.isdisjoint(n for n, _ in report.not_run(
@@ -324,7 +324,15 @@ def test_estimators_not_run_are_named_with_the_reason(no_gps_run, sample_run):
     # the sample has GPS: ekf_igvc could have run, it was not asked for
     with_gps = json.loads((sample_run / "metrics.json").read_text())
     assert dict(report.not_run(with_gps))["ekf_igvc"] == \
+        "not among the estimators asked for (--estimators ekf,smoother,smoother_lagged)"
+    assert with_gps["estimators_requested"] == ["ekf", "smoother", "smoother_lagged"]
+    # results written before metrics.json recorded the request: judged on the config alone
+    del with_gps["estimators_requested"]
+    assert dict(report.not_run(with_gps))["ekf_igvc"] == \
         "not among the estimators asked for (--estimators)"
+    # asked for but no track (e.g. the list was edited by hand): not called "not asked for"
+    with_gps["estimators_requested"] = ["ekf", "ekf_igvc"]
+    assert dict(report.not_run(with_gps))["ekf_igvc"] == "asked for, but it produced no track"
 
 
 def test_event_times_are_seconds_since_the_first_measurement(no_gps_run):
