@@ -40,13 +40,15 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def _one(bag: str, cfg_path: str, name: str, lag: float | None, queue) -> None:
+def _one(bag: str, cfg_path: str, name: str, lag: float | None, conn) -> None:
     try:
-        queue.put(_measure(bag, cfg_path, name, lag))
+        conn.send(_measure(bag, cfg_path, name, lag))
     except BagError as e:
-        queue.put({"estimator": name, "fatal": str(e)})
-    except Exception as e:  # reported by the parent, never a hang on the queue
-        queue.put({"estimator": name, "fatal": f"{type(e).__name__}: {e}"})
+        conn.send({"estimator": name, "fatal": str(e)})
+    except Exception as e:  # reported by the parent, never a hang on the pipe
+        conn.send({"estimator": name, "fatal": f"{type(e).__name__}: {e}"})
+    finally:
+        conn.close()
 
 
 def _measure(bag: str, cfg_path: str, name: str, lag: float | None) -> dict:
@@ -95,12 +97,20 @@ def bench_bag(bag: Path, cfg_path: Path, names: list[str] | None = None,
     ctx = mp.get_context("spawn")
     rows = []
     for name in chosen:
-        q = ctx.Queue()
-        p = ctx.Process(target=_one, args=(str(bag), str(cfg_path), name, lag, q))
+        # A pipe, not a Queue: a Queue's semaphores outlive an early exit (a resource_tracker
+        # warning), and a pipe tells the parent when the child dies without a result.
+        recv, send = ctx.Pipe(duplex=False)
+        p = ctx.Process(target=_one, args=(str(bag), str(cfg_path), name, lag, send))
         p.start()
+        send.close()  # the child's copy is the only one: its death ends recv() with EOFError
         try:
-            rows.append(q.get(timeout=3600))
+            rows.append(recv.recv())
+        except EOFError:
+            p.join()
+            rows.append({"estimator": name, "fatal": f"{bag}: the benchmark process of "
+                         f"{name} ended without a result (exit code {p.exitcode})"})
         finally:
+            recv.close()
             p.join()
         if "fatal" in rows[-1]:
             raise BagError(rows[-1]["fatal"])

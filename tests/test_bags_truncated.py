@@ -422,6 +422,21 @@ def test_cli_bench_on_a_truncated_bag_measures_what_was_read_and_exits_2(tmp_pat
     assert "ekf" in out
 
 
+def test_ddfuse_bench_on_a_truncated_bag_ends_in_one_line_and_nothing_else(tmp_path):
+    """As a program (entry() ends with os._exit): the child's pipe leaves no semaphore behind
+    for multiprocessing's resource tracker to warn about after the error line."""
+    import subprocess
+    import sys
+
+    bag = cut(SAMPLE, SAMPLE.stat().st_size // 2, tmp_path / "half.bag")
+    p = subprocess.run([sys.executable, "-m", "evaluation.cli", "bench", str(bag), "-c",
+                        str(SAMPLE_CFG), "--estimators", "ekf"], cwd=ROOT,
+                       capture_output=True, text=True, timeout=300)
+    assert p.returncode == 2
+    assert p.stderr.startswith("ddfuse: error: ") and p.stderr.count("\n") == 1, p.stderr
+    assert "ekf" in p.stdout
+
+
 @pytest.mark.parametrize("name", ["/imu/data", "imu/data", "//a//b/", "/", "a", "/a/b/c/",
                                   "/husky_velocity_controller/odom"])
 def test_scanner_normalises_topics_as_rosbags(name):

@@ -1,0 +1,28 @@
+"""``ddfuse bench``'s process handling: a benchmark child that dies is reported, never waited on."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+from estimation.errors import BagError
+from evaluation import bench
+
+pytest.importorskip("gtsam")
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _dies(bag, cfg_path, name, lag, conn) -> None:
+    """A child that ends the way a crash inside a C++ library does: no result, no exception."""
+    os._exit(3)
+
+
+def test_a_benchmark_child_that_dies_is_an_error_naming_the_estimator_and_exit_code(monkeypatch):
+    monkeypatch.setattr(bench, "_one", _dies)  # the spawned child imports this module for it
+    with pytest.raises(BagError, match=r"benchmark process of ekf ended without a result "
+                                       r"\(exit code 3\)"):
+        bench.bench_bag(ROOT / "data" / "sample_husky.bag", ROOT / "data" / "sample_husky.yaml",
+                        ["ekf"])
