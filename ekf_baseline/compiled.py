@@ -459,6 +459,19 @@ class JitKalmanCore(KalmanCore):
         self._names.append(name)
         return row
 
+    def settle(self, code: int, kernel, *args) -> int:
+        """After ``code = kernel(fp, ip, W, sf, si, lg, *args)`` returned nonzero: the kernel
+        called again after growing the log for as long as it asks (GROW: it did nothing), its
+        gate rejections drained into the log; returns the final code (DEFER: the update is
+        left to Python). The first call stays with the caller: on the per-message path this
+        method's call costs ~9 % of the EKF's time."""
+        while code & GROW:
+            self.grow_log()
+            code = kernel(self.fp, self.ip, self.W, self.sf, self.si, self.lg, *args)
+        if code & REJECTED:
+            self.drain_rejections()
+        return code
+
     def drain_rejections(self) -> None:
         """Add the gate rejections the kernels counted to ``log.rejected``."""
         col = self.kj.SI_REJ

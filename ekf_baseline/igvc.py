@@ -89,7 +89,7 @@ _ROWS_THETA = (((THETA, -1.0),),)  # compass yaw = pi/2 - theta + offset
 # the compiled kernels' message types and return bits (ekf_baseline.compiled)
 _T_GYRO, _T_HEAD, _T_HEAD_POSE, _T_ACCEL, _T_ODOM, _T_WHEELS, _T_GPS = (
     jit.T_GYRO, jit.T_HEAD, jit.T_HEAD_POSE, jit.T_ACCEL, jit.T_ODOM, jit.T_WHEELS, jit.T_GPS)
-_DEFER, _REJECTED, _GROW = jit.DEFER, jit.REJECTED, jit.GROW
+_DEFER = jit.DEFER
 
 
 def sphere_radius(lat_rad: float) -> float:
@@ -666,16 +666,11 @@ class IgvcEkf(Estimator):
         dt = t - self.t
         code = self._igvc_event(kf.fp, kf.ip, kf.W, kf.sf, kf.si, kf.lg, dt, t, *p)
         if code:
-            while code & _GROW:  # nothing was done: make room in the log and call again
-                kf.grow_log()
-                code = self._igvc_event(kf.fp, kf.ip, kf.W, kf.sf, kf.si, kf.lg, dt, t, *p)
+            code = kf.settle(code, self._igvc_event, dt, t, *p)
         if dt > 0.0:
             self.t = t
-        if code:
-            if code & _REJECTED:
-                kf.drain_rejections()
-            if code & _DEFER:  # predicted; the update needs Python (lock-out, singular S)
-                self._update(m)
+        if code & _DEFER:  # predicted; the update needs Python (lock-out, singular S)
+            self._update(m)
 
     # ------------------------------------------------------------------ measurements
     def _info(self, name: str) -> tuple:

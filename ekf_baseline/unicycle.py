@@ -163,7 +163,7 @@ _ROWS_XY = (((0, 1.0),), ((1, 1.0),))
 # the compiled kernels' message types and return bits (ekf_baseline.compiled)
 _T_NONE, _T_GYRO, _T_HEAD, _T_ODOM, _T_GPS, _T_WHEELS = (
     jit.T_NONE, jit.T_GYRO, jit.T_HEAD, jit.T_ODOM, jit.T_GPS, jit.T_WHEELS)
-_DEFER, _REJECTED, _GROW = jit.DEFER, jit.REJECTED, jit.GROW
+_DEFER = jit.DEFER
 POSE_ERRORS = ("se2", "world")  # UnicycleEkf(pose_error=...): module docstring, "Pose error"
 
 
@@ -890,34 +890,25 @@ class UnicycleEkf(Estimator):
         dt = t - self.t
         code = self._uni_event(kf.fp, kf.ip, kf.W, kf.sf, kf.si, kf.lg, dt, t, *p)
         if code:
-            while code & _GROW:  # nothing was done: make room in the log and call again
-                kf.grow_log()
-                code = self._uni_event(kf.fp, kf.ip, kf.W, kf.sf, kf.si, kf.lg, dt, t, *p)
+            code = kf.settle(code, self._uni_event, dt, t, *p)
         if dt > 0.0:
             self.t = t
-        if code:
-            if code & _REJECTED:
-                kf.drain_rejections()
-            if code & _DEFER:  # predicted; the update needs Python (lock-out, singular S)
-                self._apply((m,))
-                return
+        if code & _DEFER:  # predicted; the update needs Python (lock-out, singular S)
+            self._apply((m,))
+            return
         if self._tw_on:  # what _apply records, for the next prediction's densities
             self._twist_msg(m, self._sensors[m.sensor])
 
     def _run_stacked(self, ts: float, buf: list, packs: list) -> None:
         """A fixed-rate step at ``ts``: predict and one stacked update in one kernel call."""
-        kf = self.kf
         dt = ts - self.t
         mb = np.array(packs, dtype=float).reshape(-1, 9)
+        kf = self.kf
         k = len(packs)
-        code = self._uni_stacked(kf.fp, kf.ip, kf.W, kf.sf, kf.si, kf.lg, dt, ts, mb, k)
-        while code & _GROW:
-            kf.grow_log()
-            code = self._uni_stacked(kf.fp, kf.ip, kf.W, kf.sf, kf.si, kf.lg, dt, ts, mb, k)
+        code = kf.settle(self._uni_stacked(kf.fp, kf.ip, kf.W, kf.sf, kf.si, kf.lg, dt, ts, mb, k),
+                         self._uni_stacked, dt, ts, mb, k)
         if dt > 0.0:
             self.t = ts
-        if code & _REJECTED:
-            kf.drain_rejections()
         if code & _DEFER:
             self._apply(buf)
         elif self._tw_on:
