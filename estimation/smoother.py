@@ -127,6 +127,12 @@ class SmootherNoise:
     # 1e-5 already made gtsam's Cholesky declare the first keyframes indeterminate (simulated
     # husky, seed 1), 3e-5 did not.
     scale_rw: float = 1e-4
+    # m/s^2/sqrt(Hz), rad/s^2/sqrt(Hz): white accelerations that move the twist away from a held
+    # sample once it is older than its period (odometry or gyro stopped, a gap in the feed): the
+    # EKFs' default (ProcessNoise.acc, yaw_acc); with robot.max_accel / max_yaw_accel the
+    # density is a_max sqrt(T), T the sample's period, as the EKFs take it (twist_densities)
+    acc: float = 1.0
+    yaw_acc: float = 1.0
 
     @classmethod
     def from_config(cls, cfg: Config) -> SmootherNoise:
@@ -314,6 +320,12 @@ class FixedLagSmoother(Estimator):
         self.v = self.wo = self.wg = None  # speed, odometry yaw rate, raw gyro yaw rate
         self.v_var = self.wo_var = self.wg_var = 0.0
         self.v_q = self.wo_q = self.wg_q = 0.0
+        # each held sample's period (s) and the span it measures the twist over: its period up
+        # to its stamp for odometry (held backward); for the gyro (held forward) from its stamp
+        # to 1.5 periods past it (a sample that comes a little late does not make it stale)
+        self.v_T = self.wo_T = self.wg_T = 0.1
+        self.v_span = self.wo_span = self.wg_span = (-math.inf, math.inf)
+        self.sample_T: dict[tuple[str, str], float] = {}  # (sensor, quantity) -> its period
         self.sample_t: dict[tuple[str, str], float] = {}  # (sensor, quantity) -> last stamp
         # integrals of the gyro and the odometry yaw rate dt since the newest keyframe while both
         # are held, that time, and the summed noise density of the two rates (see _advance)
@@ -416,17 +428,19 @@ class FixedLagSmoother(Estimator):
             self._wheel_speeds(m)
             return
         if m.v is not None:
-            self.v, self.v_var, self.v_q = m.v, m.v_var, self._density(m, "v", m.v_var)
+            self.v, self.v_var, self.v_T = m.v, m.v_var, self._period(m, "v")
+            self.v_q, self.v_span = m.v_var * self.v_T, (m.t - self.v_T, m.t)
         if m.yaw_rate is not None:
-            self.wo, self.wo_var = m.yaw_rate, m.yaw_rate_var
-            self.wo_q = self._density(m, "w", m.yaw_rate_var)
+            self.wo, self.wo_var, self.wo_T = m.yaw_rate, m.yaw_rate_var, self._period(m, "w")
+            self.wo_q, self.wo_span = m.yaw_rate_var * self.wo_T, (m.t - self.wo_T, m.t)
 
     def _step(self, m) -> None:
         """Integrate up to ``m.t`` and use ``m`` (odometry already set by ``process``)."""
         self._advance(m.t)
         if isinstance(m, GyroYawRate):
             if m.sensor in self.gyro_names:
-                self.wg, self.wg_var, self.wg_q = m.yaw_rate, m.var, self._density(m, "w", m.var)
+                self.wg, self.wg_var, self.wg_T = m.yaw_rate, m.var, self._period(m, "w")
+                self.wg_q, self.wg_span = m.var * self.wg_T, (m.t, m.t + 1.5 * self.wg_T)
         elif isinstance(m, Heading):
             self.heading = m
             if self._h_n == 0 or m.sensor == self._h_sensor:
@@ -443,55 +457,101 @@ class FixedLagSmoother(Estimator):
             self._new_keyframe(m.t)
             self._flush()
 
-    def _density(self, m, quantity: str, var: float) -> float:
-        """Noise density of a held sample, var * period ((unit)^2 s), the period being the time
-        since the same sensor's previous sample of this quantity (clipped to [1 ms, 1 s])."""
+    def _period(self, m, quantity: str) -> float:
+        """The period of a held sample (s): the time since the same sensor's previous sample of
+        this quantity, clipped to [1 ms, 1 s]; its noise density is var * period. After a gap
+        (more than twice the previous period) the previous period: the sample describes its
+        own control period, not the gap, which ``_stale`` accounts for."""
         key = (m.sensor, quantity)
         last = self.sample_t.get(key)
         self.sample_t[key] = m.t
-        period = m.t - last if last is not None else 0.1
-        return var * min(max(period, 1e-3), 1.0)
+        period = min(max(m.t - last, 1e-3), 1.0) if last is not None else 0.1
+        prev = self.sample_T.get(key)
+        if prev is not None and period > 2.0 * prev:
+            return prev
+        self.sample_T[key] = period
+        return period
+
+    def _stale(self, var: float, period: float, acc: float | None, default: float,
+               span: tuple[float, float], a: float, b: float) -> tuple[float, float]:
+        """What holding a sample over [a, b] outside ``span`` (the time it measures the twist
+        over) adds: (density to add to its var * period for this step, (unit)^2 s; its variance
+        as a measurement of the twist at b, (unit)^2).
+
+        Outside its span the sample's error e (variance ``var``) no longer averages out with the
+        next sample's: it is the same for the whole hold, and the twist itself moves away from
+        the sample as a random walk with the acceleration density q (``acc``^2 ``period`` from
+        the robot's acceleration limit ``acc``, else ``default``^2, as the EKFs' twist
+        densities). Integrated over an age tau outside the span, the error is
+        var tau^2 + q tau^3 / 3; a step adds the difference between its ends' ages, as a
+        density over the step (before the span for odometry held backward over a gap, after it
+        for a sample held forward). Zero inside the span."""
+        since, until = span
+        if since <= a and b <= until:
+            return 0.0, var
+        q = acc * acc * period if acc is not None else default * default
+
+        def grown(tau: float) -> float:
+            return var * tau * tau + q * tau ** 3 / 3.0
+
+        before = grown(max(since - a, 0.0)) - grown(max(since - b, 0.0))
+        after = grown(max(b - until, 0.0)) - grown(max(a - until, 0.0))
+        return (before + after) / (b - a), var + q * max(b - until, 0.0)
 
     def _wheel_speeds(self, m: WheelSpeeds) -> None:
         r, L = self.cfg.robot.wheel_radius, self.cfg.robot.track_width
         self.v = 0.5 * r * (m.left + m.right)
         self.v_var = 0.25 * r * r * (m.left_var + m.right_var)
-        self.v_q = self._density(m, "v", self.v_var)
+        self.v_T = self._period(m, "v")
+        self.v_q, self.v_span = self.v_var * self.v_T, (m.t - self.v_T, m.t)
         self.wo = r * (m.right - m.left) / L
         self.wo_var = r * r * (m.left_var + m.right_var) / (L * L)
-        self.wo_q = self._density(m, "w", self.wo_var)
+        self.wo_T = self._period(m, "w")
+        self.wo_q, self.wo_span = self.wo_var * self.wo_T, (m.t - self.wo_T, m.t)
 
-    def _yaw_rate(self) -> tuple[float, float, float, float, float] | None:
+    def _yaw_rate(self, qg: float, qo: float, vg: float, vo: float
+                  ) -> tuple[float, float, float, float, float] | None:
         """The yaw rate to integrate, fusing the gyro and the odometry yaw rate when both are
-        held: (gyro part rad/s, odometry part rad/s, per-sample variance, density, gyro-bias
-        gain). The gyro part carries the bias with that gain, the odometry part the odometry's
-        yaw-rate scale (``factors.preintegration``)."""
+        held, given their densities ``qg``, ``qo`` and per-sample variances ``vg``, ``vo`` for
+        this step: (gyro part rad/s, odometry part rad/s, per-sample variance, density,
+        gyro-bias gain). The gyro part carries the bias with that gain, the odometry part the
+        odometry's yaw-rate scale (``factors.preintegration``)."""
         wg, wo = self.wg, self.wo
         if wg is not None and wo is not None:
-            qg, qo = self.wg_q, self.wo_q
             a = qo / (qo + qg)  # the gyro's weight
-            var = self.wg_var * self.wo_var / (self.wg_var + self.wo_var)
-            return a * wg, (1.0 - a) * wo, var, qg * qo / (qg + qo), a
+            return a * wg, (1.0 - a) * wo, vg * vo / (vg + vo), qg * qo / (qg + qo), a
         if wg is not None:
-            return wg, 0.0, self.wg_var, self.wg_q, 1.0
+            return wg, 0.0, vg, qg, 1.0
         if wo is not None:
-            return 0.0, wo, self.wo_var, self.wo_q, 0.0
+            return 0.0, wo, vo, qo, 0.0
         return None
 
     def _advance(self, t: float) -> None:
         """Integrate the held (v, w) from the last sample time up to ``t``."""
-        dt = t - self.last_t
+        a = self.last_t
+        dt = t - a
         if dt <= 0.0:
             return
-        yr = self._yaw_rate() if self.v is not None else None
+        if self.v is None:
+            self.last_t = t
+            return
+        robot, n = self.cfg.robot, self.noise
+        qv, v_var = self._stale(self.v_var, self.v_T, robot.max_accel, n.acc, self.v_span, a, t)
+        qo, vo = self._stale(self.wo_var, self.wo_T, robot.max_yaw_accel, n.yaw_acc,
+                             self.wo_span, a, t) if self.wo is not None else (0.0, 0.0)
+        qg, vg = self._stale(self.wg_var, self.wg_T, robot.max_yaw_accel, n.yaw_acc,
+                             self.wg_span, a, t) if self.wg is not None else (0.0, 0.0)
+        fresh = qo == qg == 0.0
+        yr = self._yaw_rate(self.wg_q + qg, self.wo_q + qo, vg, vo)
         if yr is not None:
             wg, wo, w_var, w_q, gain = yr
             pim = self.pim
-            pim.integrate(dt, self.v, wg, self.v_q / dt, w_q / dt, gain, wo)
+            pim.integrate(dt, self.v, wg, (self.v_q + qv) / dt, w_q / dt, gain, wo)
             # The keyframe's v, w rows compare with the last sample itself, not with its share
             # of one integration step.
-            pim.last_var_v, pim.last_var_w = self.v_var, w_var
-            if 0.0 < gain < 1.0:
+            pim.last_var_v, pim.last_var_w = v_var, w_var
+            # (a stale sample's difference would carry the twist's change, not the bias)
+            if 0.0 < gain < 1.0 and fresh:
                 # gyro - k_w odometry = bias + noise, independent of the fused mean integrated
                 # above: the bias information the fusion would otherwise throw away
                 self._int_g += self.wg * dt
@@ -911,7 +971,7 @@ class FixedLagSmoother(Estimator):
         t = self.last_t
         ahead = self._now - t
         if ahead > 0.0 and self.v is not None:
-            yr = self._yaw_rate()
+            yr = self._yaw_rate(self.wg_q, self.wo_q, self.wg_var, self.wo_var)
             if yr is not None:
                 wg, wo, _, _, gain = yr
                 sl = st.tolist()  # Python floats: numpy scalars cost 4 us in se2_step
