@@ -20,20 +20,56 @@ config's datum, or in the first fix's with ``frame: {datum: first_fix}``. A mess
 be used (NO_FIX, non-finite fields, no covariance and no configured noise) gives no measurement
 and is counted in ``rejected`` under its topic and reason, as the bag reader counts it.
 
-Not applied here, because a live robot has no future to look at: the bag reader's reordering
-by header stamp and its stamp-jump check. Feed messages in stamp order (the smoother places a
-GPS fix or landmark sighting up to its lag late on the right keyframe; the EKFs do not)."""
+Broken stamps. ``convert`` also takes the message's receive time (``received``, seconds on the
+clock of the header stamps; default ``time.time()``, the wall clock that stamps a real robot's
+messages) and applies the bag reader's per-topic stamp check (``estimation.bags._StampCheck``,
+tolerance max(``STAMP_TOLERANCE`` = 1 s, the config's ``reorder_window``)): a message whose
+stamp-to-receive offset is further than that from its topic's usual offset (a zero stamp, a
+stamp seconds in the future, a sensor clock that stepped) gives no measurement and is counted
+in ``rejected`` under the bag reader's reason ("header stamp more than 1 s off its topic's clock
+(time went backwards or jumped)"); the first one per topic is logged as a warning. Replaying
+recorded messages through ``convert``, pass their record time as ``received``: the wall clock
+of a replay that runs faster than the recording is not the clock of the stamps.
+
+The warm-up differs from the bag reader's, which holds a topic's first records back until their
+median offset is known: live, nothing is held back. A topic's first two messages are checked
+against the median offset of the other topics that have one (3 or more messages), and pass
+unchecked when none has; from its third message on, each is checked against the median offset
+of all the topic's messages so far (itself included); after ``_StampCheck.WARMUP`` (15) messages
+or ``WARMUP_S`` (5 s), the check is the bag reader's: against the median of its recent accepted
+offsets, which follows a slow drift. A topic whose stamps step for good (more than the
+tolerance) is rejected from then on, as the bag reader rejects it (there an error when over 10 %
+of a topic's messages): restart the session if its clock was corrected on purpose.
+
+The reordering by header stamp is ``OnlineSession``'s (``reorder_window``; a measurement older
+than one already passed on is dropped there): a converter hands on each message as it comes.
+When the whole clock steps (stamps and receive times alike, e.g. NTP setting the clock back),
+the offsets do not change and the check passes the messages; the session then drops those
+older than what it has passed on."""
 
 from __future__ import annotations
 
+import logging
+import math
+import statistics
+import time
 from collections import Counter
 
 from estimation import geodesy, rosmsg
-from estimation.bags import ACCEPTED_TYPES, CONVERTERS, Reject, configured_topics
+from estimation.bags import (
+    ACCEPTED_TYPES,
+    CONVERTERS,
+    STAMP_TOLERANCE,
+    Reject,
+    _StampCheck,
+    configured_topics,
+)
 from estimation.config import Config, landmark_maps
 from estimation.measurements import GpsFix, Stream
 
 __all__ = ["LiveConverter", "message_type"]
+
+log = logging.getLogger(__name__)
 
 
 def message_type(msg, given: str | None = None) -> str:
@@ -53,20 +89,29 @@ def message_type(msg, given: str | None = None) -> str:
 
 
 class LiveConverter:
-    """Per configured topic, ROS message -> measurements (module docstring)."""
+    """Per configured topic, ROS message -> measurements, each topic's stamps checked against
+    their receive times (module docstring). ``reorder_window`` (s, default the config's) sets
+    the stamp tolerance as for the bag reader: max(``STAMP_TOLERANCE``, reorder_window)."""
 
-    def __init__(self, cfg: Config) -> None:
+    def __init__(self, cfg: Config, *, reorder_window: float | None = None) -> None:
         if cfg.initial_pose == "ground_truth":
             # the EKFs would wait for a truth pose that never comes, without a word
             raise ValueError(f"{cfg.path or 'config'}: initial_pose: ground_truth has no "
                              "meaning on a live robot (no truth is read); give [x, y, yaw] or "
                              "leave it out (heading from the GPS course or a compass)")
+        window = cfg.reorder_window if reorder_window is None else float(reorder_window)
+        if not (window >= 0.0 and math.isfinite(window)):
+            raise ValueError(f"reorder_window: expected seconds >= 0, got {reorder_window!r}")
         self.cfg = cfg
+        self.tolerance = max(STAMP_TOLERANCE, window)
         self.datum: tuple[float, float, float] | None = (
             cfg.datum if isinstance(cfg.datum, tuple) else None)
         self.rejected: Counter = Counter()  # (topic, reason) -> messages
         self._topics = {topic: (kind, key, CONVERTERS[kind](s, key))
                         for kind, key, s, topic in configured_topics(cfg) if s is not None}
+        self._checks: dict[str, _StampCheck] = {}  # topic -> its stamp check
+        self._stamp_reason = (f"header stamp more than {self.tolerance:g} s off its topic's "
+                              "clock (time went backwards or jumped)")  # the bag reader's text
 
     def stream(self) -> Stream:
         """An empty Stream with what the estimators are built from: the landmark maps of the
@@ -79,10 +124,12 @@ class LiveConverter:
         """The topics the config fuses, each to be subscribed to."""
         return list(self._topics)
 
-    def convert(self, topic: str, msg, msgtype: str | None = None) -> list:
-        """The measurements in ``msg`` received on ``topic`` (possibly none: counted in
-        ``rejected``). ValueError for a topic the config does not name or a message type its
-        sensor cannot read."""
+    def convert(self, topic: str, msg, msgtype: str | None = None, *,
+                received: float | None = None) -> list:
+        """The measurements in ``msg`` received on ``topic`` at ``received`` (s, the clock of
+        the header stamps; default ``time.time()``), possibly none: an unusable message or a
+        broken stamp is counted in ``rejected``. ValueError for a topic the config does not
+        name, a message type its sensor cannot read, or a non-finite ``received``."""
         entry = self._topics.get(topic)
         if entry is None:
             raise ValueError(f"topic {topic} is not in the config (its topics: "
@@ -93,10 +140,16 @@ class LiveConverter:
             need = " or ".join(rosmsg.short_type(t) for t in ACCEPTED_TYPES[kind])
             raise ValueError(f"topic {topic}: a {rosmsg.short_type(mt)} message, but {key} "
                              f"needs {need}")
+        rt = time.time() if received is None else float(received)
+        if not math.isfinite(rt):
+            raise ValueError(f"topic {topic}: received = {received!r}; expected the receive "
+                             "time in seconds on the clock of the header stamps")
         try:
             out = convert(rosmsg.EXTRACTORS[mt][1](msg))
         except Reject as e:
             self.rejected[(topic, str(e))] += 1
+            return []
+        if not out or not self._stamp_ok(topic, out[0].t, rt):
             return []
         for m in out:
             if type(m) is GpsFix:
@@ -104,3 +157,50 @@ class LiveConverter:
                     self.datum = (m.lat, m.lon, m.alt)
                 m.enu = geodesy.geodetic_to_enu(m.lat, m.lon, m.alt, *self.datum)
         return out
+
+    def _stamp_ok(self, topic: str, t: float, rt: float) -> bool:
+        """The stamp check of one message (stamp ``t``, received at ``rt``) on ``topic``: the
+        bag reader's once its warm-up is over, the live warm-up before (module docstring)."""
+        chk = self._checks.get(topic)
+        if chk is None:
+            chk = self._checks[topic] = _StampCheck()
+            chk.first_rt = rt
+        tol = self.tolerance
+        chk.n += 1
+        if chk.pending is None:
+            dev = t - rt - chk.ref
+            good = chk.ok(t, rt, tol)  # counts a bad one in chk.bad
+        else:
+            chk.pending.append((t, rt, None))
+            offsets = [s - r for s, r, _ in chk.pending]
+            if len(offsets) >= 3:
+                ref = statistics.median(offsets)
+            else:  # the topic's first two: against the other topics' clocks, if one is known
+                refs = [_reference(c) for tp, c in self._checks.items() if tp != topic]
+                refs = [r for r in refs if r is not None]
+                ref = statistics.median(refs) if refs else None
+            dev = 0.0 if ref is None else t - rt - ref
+            good = abs(dev) <= tol
+            if not good:
+                chk.bad += 1
+            if len(offsets) >= 3 and (len(offsets) >= _StampCheck.WARMUP
+                                      or rt - chk.first_rt > _StampCheck.WARMUP_S):
+                bad = chk.bad  # end_warmup counts the warm-up's outliers again: decided above
+                chk.end_warmup(tol)
+                chk.bad = bad
+        if not good:
+            self.rejected[(topic, self._stamp_reason)] += 1
+            if chk.bad == 1:
+                log.warning("%s: a header stamp %+.3f s off the topic's usual offset to the "
+                            "receive time (tolerance %g s); dropped and counted", topic, dev,
+                            tol)
+        return good
+
+
+def _reference(chk: _StampCheck) -> float | None:
+    """A topic's usual stamp-to-receive offset, once 3 messages have given it; else None."""
+    if chk.pending is None:
+        return chk.ref
+    if len(chk.pending) >= 3:
+        return statistics.median(s - r for s, r, _ in chk.pending)
+    return None

@@ -73,15 +73,28 @@ ONLINE_HEADER = ("t = s since the first message; per estimator (x m, y m, yaw de
                  "(m, m, deg)")
 
 
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
 def cmd_online(args: argparse.Namespace) -> int:
+    """Exit code 0 when the bag was replayed to its end, also if an estimator failed (it is
+    stopped, one line says which, when and why, and its rows say 'stopped'), as ``run`` exits
+    0 with ERROR in that estimator's row; 2 for bad input (a truncated bag: after the
+    replay), 130 for Ctrl-C."""
     import numpy as np
 
     from estimation.config import load_config
     from estimation.errors import RunInterrupted
-    from evaluation.online import replay
+    from evaluation.online import ONLINE_TRACKS_REFUSED, replay
 
+    for name in args.estimators or ():
+        if name in ONLINE_TRACKS_REFUSED:  # before any work
+            raise DdfuseError(f"--estimators {name}: not available online: "
+                              f"{ONLINE_TRACKS_REFUSED[name]}")
     cfg = load_config(_config_for(args.bag, args.config))
     header = []
+    stopped: dict[str, float | None] = {}  # estimator -> s since the first message it stopped
 
     def show(t: float, estimates: dict, final: bool = False) -> None:
         if not header:
@@ -89,27 +102,51 @@ def cmd_online(args: argparse.Namespace) -> int:
             print(ONLINE_HEADER)
         cells = []
         for name, e in estimates.items():
+            mark = ""
+            if name in stopped:
+                if not final:
+                    cells.append(f"{name} stopped")
+                    continue
+                at = stopped[name]
+                mark = " stopped" + ("" if at is None else f" at t={at:.2f} s")
             if e is None:
-                cells.append(f"{name} -")
+                cells.append(f"{name} -{mark}")
                 continue
             sd = [math.sqrt(v) if v >= 0.0 else math.nan for v in np.diag(e.pose_cov)]
             cells.append(f"{name} ({e.pose[0]:8.2f}, {e.pose[1]:8.2f}, "
                          f"{math.degrees(e.pose[2]):7.1f} deg) +- ({sd[0]:.2f}, {sd[1]:.2f}, "
-                         f"{math.degrees(sd[2]):.1f} deg)")
+                         f"{math.degrees(sd[2]):.1f} deg){mark}")
         print(f"t={t:8.2f} s  " + "  ".join(cells) + ("  (final)" if final else ""), flush=True)
+
+    def on_stop(name: str, t: float | None, why: str) -> None:
+        stopped[name] = t
+        at = "in its finish" if t is None else f"at t={t:.2f} s"
+        print(f"{name} failed {at} and is stopped (its last estimate is kept, the others go "
+              f"on): {_one_line(why)}", flush=True)
 
     try:
         session = replay(args.bag, cfg, names=args.estimators, realtime=args.realtime,
                          print_every=args.every, on_print=show,
-                         reorder_window=args.reorder_window, interruptible=True)
+                         reorder_window=args.reorder_window, interruptible=True,
+                         on_stop=on_stop)
     except ValueError as e:
         raise DdfuseError(str(e)) from None
     if session.last_t is not None:  # after every estimator's finish(): what it ends with
         show(session.last_t, {k: session.estimate(k) for k in session.estimators}, final=True)
     print("update latency (ms):")
     for name, q in session.latency_ms().items():
+        err = ""
+        if name in stopped:  # said in full when it happened
+            at = stopped[name]
+            err = "  ERROR: stopped " + ("in its finish" if at is None else f"at t={at:.2f} s")
+        elif session.errors[name]:  # interrupted by Ctrl-C inside an update
+            err = f"  ERROR: {_one_line(session.errors[name])}"
         print(f"  {name:16} p50 {q['p50']:.3f}  p99 {q['p99']:.3f}  max {q['max']:.3f}  "
-              f"({q['updates']} updates)")
+              f"({q['updates']} updates){err}")
+    if session.rejected:
+        print("dropped and counted (topic: messages, reason):")
+        for (topic, reason), n in sorted(session.rejected.items()):
+            print(f"  {topic}: {n}, {reason}")
     if session.interrupted:
         sys.stdout.flush()
         raise RunInterrupted(session.interrupted)
@@ -444,11 +481,20 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("outdir", type=Path, help="a directory written by ddfuse run")
     sp.set_defaults(func=cmd_report)
 
-    sp = sub.add_parser("online", help="replay a bag message by message, as a live robot would")
+    sp = sub.add_parser(
+        "online", help="replay a bag message by message, as a live robot would",
+        description="Replay a bag message by message, as a live robot would, printing the "
+        "current estimates as it goes. An estimator that fails is stopped there (one line says "
+        "which, when and why; its last estimate is kept) and the others go on; the exit code "
+        "stays 0 then, as for 'run' (whose table shows ERROR in its row). Exit 2: bad input "
+        "(a truncated bag: after replaying what could be read); 130: Ctrl-C.")
     sp.add_argument("bag", type=Path)
     sp.add_argument("-c", "--config", type=Path)
     sp.add_argument("--estimators", type=estimator_list, metavar="LIST",
-                    help="comma-separated (default: all the sensors allow)")
+                    help="comma-separated (default: all the sensors allow); not "
+                    "smoother_lagged: the lagged output exists only once a keyframe leaves the "
+                    "smoother's window, so it cannot be shown as the data comes (use 'ddfuse "
+                    "run')")
     sp.add_argument("--realtime", action="store_true", help="pace messages by their stamps")
     sp.add_argument("--every", type=lag_seconds, default=1.0, metavar="S",
                     help="print the current estimates every S > 0 seconds of data (default 1); "

@@ -1,16 +1,39 @@
 """Online use: feed measurements one at a time, ask for the current estimate at any moment.
 
 ``OnlineSession`` is what a live robot uses from Python: call ``push(measurement)`` from each
-sensor callback (measurements in time order, as ``estimation.measurements`` dataclasses;
-``estimation.live.LiveConverter`` makes them from the ROS messages) and
+sensor callback (``estimation.measurements`` dataclasses; ``estimation.live.LiveConverter``
+makes them from the ROS messages, checking each topic's stamps against the receive time) and
 ``estimate(name)`` whenever a pose is needed; ``latency_ms()`` gives per-update latency
 percentiles. ``replay`` drives a session from a bag, optionally paced by the header stamps.
+
+The stream semantics are the bag reader's (``estimation.bags.BagStream``):
+
+- Reordering. A session holds each measurement until a newer stamp is ``reorder_window`` s
+  past it (``from_config``: the config's ``reorder_window``; the constructor's default 0), then
+  passes it on, in stamp order (equal stamps: the config's sensor order, then arrival order).
+  A measurement older than one already passed on is dropped for every estimator and counted in
+  ``rejected`` under (sensor, the bag reader's reason "arrived after messages stamped up to more
+  than reorder_window (... s) later had been passed on; ..."), the first per sensor logged as a
+  warning: no estimator is ever handed a measurement older than one it has processed. A window
+  of 0 passes each measurement straight on (no latency), still dropping the older ones. The
+  estimates lag the newest stamp by up to the window; ``flush()`` passes on what is held,
+  ``finish()`` flushes and ends every estimator. ``replay`` reads through ``BagStream``, which
+  already reorders (``reorder_window`` there), so its session's own window is 0.
+- Isolation, as ``estimation.runner.run``: an estimator that raises (in ``process``,
+  ``estimate`` or ``finish``) is stopped there, never called again, its error kept in
+  ``errors[name]`` ("RuntimeError at t=...: ...") and noted in its ``log``; ``estimate(name)``
+  then gives its last estimate (or None), and the others go on. ``push`` never raises because
+  of one estimator. Ctrl-C inside an update stops that estimator too, and propagates.
 """
 
 from __future__ import annotations
 
+import heapq
+import logging
+import math
 import time
 from array import array
+from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 
@@ -24,41 +47,217 @@ from estimation.measurements import Stream
 from estimation.runner import initial_pose
 from evaluation import estimators as registry
 
+log = logging.getLogger(__name__)
+
+ONLINE_TRACKS_REFUSED = {
+    "smoother_lagged": "the lagged output of a keyframe exists only once it leaves the "
+                       "smoother's window (its lag behind the newest message), so it cannot be "
+                       "shown as the data comes; 'ddfuse run' gives it ('smoother' is the "
+                       "filtered output)"}
+
 
 class OnlineSession:
-    """Estimators updated message by message, with the wall time of every update recorded."""
+    """Estimators updated message by message through a reorder buffer, each isolated from the
+    others' failures, with the wall time of every update recorded (module docstring).
 
-    def __init__(self, estimators: dict[str, Estimator]) -> None:
+    A stopped estimator's ``estimate`` is the newest of the last one handed out and the one the
+    session keeps every ``KEEP_PERIOD`` s of stamps (as ``run`` records 10 per second): at most
+    that old, taken before the failing update (its state after that is not trusted).
+
+    ``order``: sensor name -> rank, the order of measurements with equal stamps (the config's
+    sensor order, as the bag reader's); unknown sensors after the known ones.
+    ``on_stop(name, t, why)`` is called when an estimator is stopped (``t`` the stamp of the
+    measurement it failed on, None in ``finish``; ``why`` "Type: message")."""
+
+    KEEP_PERIOD = 0.1  # s
+
+    def __init__(self, estimators: dict[str, Estimator], *, reorder_window: float = 0.0,
+                 order: dict[str, int] | None = None,
+                 on_stop: Callable[[str, float | None, str], None] | None = None) -> None:
+        window = float(reorder_window)
+        if not (window >= 0.0 and math.isfinite(window)):
+            raise ValueError(f"reorder_window: expected seconds >= 0, got {reorder_window!r}")
         self.estimators = estimators
+        self.reorder_window = window
         self.update_s: dict[str, array] = {n: array("f") for n in estimators}  # s, float32
+        self.errors: dict[str, str | None] = {n: None for n in estimators}
+        self.stopped_t: dict[str, float | None] = {}  # name -> stamp it stopped at (None: finish)
+        self.rejected: Counter = Counter()  # (sensor, reason) -> measurements dropped
+        self.late: Counter = Counter()  # sensor -> measurements that came too late to reorder
+        self.released_t = -math.inf  # the stamp of the last measurement passed on
+        self.on_stop = on_stop
         self.input_error: str | None = None  # set by replay when the bag breaks off
         self.replayed_s = 0.0  # data seconds replayed
         self.last_t: float | None = None  # set by replay: the last message's s since the first
         self.interrupted: str | None = None  # set by replay(interruptible=True) on Ctrl-C
+        self._order = dict(order or {})
+        self._heap: list = []
+        self._seq = 0
+        self._newest = -math.inf
+        # each estimator's last estimate, kept for when it stops: the last one handed out by
+        # estimate(), or taken every KEEP_PERIOD s of stamps, as run() records its output
+        self._last: dict[str, Estimate | None] = {n: None for n in estimators}
+        self._next_keep = -math.inf
+        self._late_reason = (f"arrived after messages stamped up to more than reorder_window "
+                             f"({window:g} s) later had been passed on; raise reorder_window "
+                             "to keep it")  # the bag reader's text
 
     @classmethod
     def from_config(cls, cfg: Config, names: list[str] | None = None, *,
-                    stream: Stream | None = None, lag: float | None = None) -> OnlineSession:
+                    stream: Stream | None = None, lag: float | None = None,
+                    reorder_window: float | None = None,
+                    on_stop: Callable[[str, float | None, str], None] | None = None,
+                    ) -> OnlineSession:
         """Build the named estimators (default: all the config allows, except the offline
-        batch). ``stream`` supplies the datum, landmark map and truth-based initial pose."""
+        batch). ``stream`` supplies the datum, landmark map and truth-based initial pose;
+        ``reorder_window`` (s) defaults to the config's. ValueError for 'smoother_lagged'
+        (``ONLINE_TRACKS_REFUSED`` says why)."""
+        for n in names or ():
+            if n in ONLINE_TRACKS_REFUSED:
+                raise ValueError(f"--estimators {n}: not available online: "
+                                 f"{ONLINE_TRACKS_REFUSED[n]}")
         stream = stream if stream is not None else Stream(measurements=[])
         chosen = [n for n in registry.select(cfg, names) if names or n != "batch"]
         pose = initial_pose(cfg.initial_pose, stream)
         lag = lag if lag is not None else cfg.smoother.lag
-        return cls({n: registry.SPECS[n].build(cfg, stream, pose, lag) for n in chosen})
+        order: dict[str, int] = {}
+        for i, s in enumerate(cfg.sensors):
+            order.setdefault(s.name, i)
+        return cls({n: registry.SPECS[n].build(cfg, stream, pose, lag) for n in chosen},
+                   reorder_window=cfg.reorder_window if reorder_window is None
+                   else reorder_window, order=order, on_stop=on_stop)
+
+    # --- feeding ---------------------------------------------------------------------------
 
     def push(self, m) -> None:
-        """Fuse one measurement into every estimator."""
-        clock = time.perf_counter
+        """Take one measurement: into the reorder buffer, passing on to every running
+        estimator what the buffer releases; dropped and counted when older than what was
+        already passed on (or with a non-finite stamp)."""
+        t = m.t
+        if not (t >= self.released_t and math.isfinite(t)):  # older than what was passed on
+            self._drop(m)
+            return
+        if self.reorder_window == 0.0:
+            self.released_t = t
+            self._apply(m)
+            return
+        heapq.heappush(self._heap, (t, self._order.get(m.sensor, len(self._order)),
+                                    self._seq, m))
+        self._seq += 1
+        if t > self._newest:
+            self._newest = t
+        self._release(self._newest - self.reorder_window)
+
+    def flush(self) -> None:
+        """Pass on every measurement the reorder buffer holds."""
+        self._release(math.inf)
+
+    def finish(self) -> None:
+        """Flush, then end every running estimator (an offline one solves here)."""
+        self.flush()
         for name, est in self.estimators.items():
-            t0 = clock()
-            est.process(m)
-            self.update_s[name].append(clock() - t0)
-            if len(self.update_s[name]) % 1000 == 0:
-                est.log.innovations.compact()
+            if self.errors[name] is None:
+                try:
+                    est.finish()
+                except Exception as exc:
+                    self._stop(name, None, exc)
+
+    @property
+    def pending(self) -> int:
+        """Measurements held in the reorder buffer."""
+        return len(self._heap)
+
+    def _release(self, cut: float) -> None:
+        heap = self._heap
+        while heap and heap[0][0] < cut:
+            item = heapq.heappop(heap)
+            self.released_t = item[0]
+            self._apply(item[3])
+
+    def _drop(self, m) -> None:
+        sensor = m.sensor
+        if not math.isfinite(m.t):
+            self.rejected[(sensor, "non-finite stamp")] += 1
+            return
+        self.late[sensor] += 1
+        self.rejected[(sensor, self._late_reason)] += 1
+        if self.late[sensor] == 1:
+            log.warning("%s: a measurement stamped %.3f s before the last one passed on came "
+                        "too late to reorder (reorder_window %g s); dropped and counted",
+                        sensor, self.released_t - m.t, self.reorder_window)
+
+    def _apply(self, m) -> None:
+        """One measurement into every running estimator, each isolated from the others."""
+        clock = time.perf_counter
+        errors = self.errors
+        if m.t >= self._next_keep:  # before the update: what a failure inside it leaves
+            self._keep(m.t)
+        busy = None
+        try:
+            for name, est in self.estimators.items():
+                if errors[name] is not None:
+                    continue
+                busy = name
+                t0 = clock()
+                try:
+                    est.process(m)
+                except Exception as exc:  # one estimator failing must not stop the others
+                    self._stop(name, m.t, exc)
+                    continue
+                s = self.update_s[name]
+                s.append(clock() - t0)
+                if len(s) % 1000 == 0:
+                    est.log.innovations.compact()
+            busy = None
+        except KeyboardInterrupt:
+            if busy is not None:  # inside an update: its state is half-updated
+                errors[busy] = f"interrupted (Ctrl-C) inside an update at t={m.t:.3f}"
+                self.stopped_t[busy] = m.t
+            raise
+
+    def _keep(self, t: float) -> None:
+        """Keep every running estimator's estimate (the one a failure would leave)."""
+        p = self.KEEP_PERIOD
+        self._next_keep = self._next_keep + p if self._next_keep + p > t else t + p
+        for name, est in self.estimators.items():
+            if self.errors[name] is None:
+                try:
+                    e = est.estimate()
+                except Exception as exc:
+                    self._stop(name, self.released_t, exc)
+                    continue
+                if e is not None:
+                    self._last[name] = e
+
+    def _stop(self, name: str, t: float | None, exc: Exception) -> None:
+        """Stop estimator ``name`` after ``exc`` (at stamp ``t``; None: in finish); its last
+        estimate is what was kept before."""
+        est = self.estimators[name]
+        why = f"{type(exc).__name__}: {exc}"
+        at = "in finish" if t is None else f"at t={t:.3f}"
+        self.errors[name] = f"{type(exc).__name__} {at}: {exc}"
+        self.stopped_t[name] = t
+        est.log.note(t if t is not None else self.released_t, f"stopped: {self.errors[name]}")
+        if self.on_stop is not None:
+            self.on_stop(name, t, why)
+
+    # --- results ---------------------------------------------------------------------------
 
     def estimate(self, name: str) -> Estimate | None:
-        return self.estimators[name].estimate()
+        """The current estimate of ``name``; for a stopped estimator, its last one (or None).
+        KeyError for a name the session does not run."""
+        est = self.estimators[name]
+        if self.errors[name] is not None:
+            return self._last[name]
+        try:
+            e = est.estimate()
+        except Exception as exc:
+            t = self.released_t if math.isfinite(self.released_t) else math.nan
+            self._stop(name, t, exc)
+            return self._last[name]
+        if e is not None:
+            self._last[name] = e
+        return e
 
     def latency_ms(self) -> dict[str, dict[str, float]]:
         """Per-estimator update latency p50 / p99 / max, ms."""
@@ -73,21 +272,32 @@ class OnlineSession:
 def replay(bag: str | Path, cfg: Config, *, names: list[str] | None = None,
            realtime: bool = False, print_every: float = 1.0,
            on_print: Callable[[float, dict[str, Estimate | None]], None] | None = None,
-           reorder_window: float | None = None, interruptible: bool = False) -> OnlineSession:
+           reorder_window: float | None = None, interruptible: bool = False,
+           on_stop: Callable[[str, float | None, str], None] | None = None) -> OnlineSession:
     """Replay a bag into an OnlineSession, one message at a time, decoding it as it goes
-    (``estimation.bags.BagStream``). With ``realtime`` the messages are paced by their header
-    stamps; ``on_print`` is called with (t, estimates) every ``print_every`` seconds of data
-    time (> 0; ValueError otherwise), from the first message on; the session's ``last_t`` is the
-    last message's time (s since the first), at which the estimates after ``finish`` are
-    final. A truncated or damaged bag is replayed up to where it breaks off; the session's
-    ``input_error`` then says why (BagError if nothing could be read). With ``interruptible``,
-    Ctrl-C ends the replay there as the bag's end would, and the session's ``interrupted`` says
-    where (the latency figures so far are kept); otherwise it propagates."""
+    (``estimation.bags.BagStream``, which reorders by stamp within ``reorder_window`` and drops
+    broken stamps; the session itself then passes each measurement straight on). With
+    ``realtime`` the messages are paced by their header stamps; ``on_print`` is called with
+    (t, estimates) every ``print_every`` seconds of data time (> 0; ValueError otherwise), from
+    the first message on; the session's ``last_t`` is the last message's time (s since the
+    first), at which the estimates after ``finish`` are final. ``on_stop(name, t, why)`` is
+    called when an estimator fails and is stopped (``t`` s since the first message, None in
+    its finish); the others go on (the session's ``errors``). The session's ``rejected`` holds
+    what the bag reader dropped. A truncated or damaged bag is replayed up to where it breaks
+    off; the session's ``input_error`` then says why (BagError if nothing could be read). With
+    ``interruptible``, Ctrl-C ends the replay there as the bag's end would, and the session's
+    ``interrupted`` says where (the latency figures so far are kept); otherwise it
+    propagates."""
     if not (print_every > 0.0 and np.isfinite(print_every)):
         raise ValueError(f"print_every: expected seconds > 0, got {print_every!r}")
     stream = BagStream(bag, cfg, reorder_window=reorder_window, keep_truth=False).prime()
-    session = OnlineSession.from_config(cfg, names, stream=stream)
     t0 = stream.t0 if stream.t0 is not None else 0.0
+    stop_hook = None
+    if on_stop is not None:
+        def stop_hook(name: str, t: float | None, why: str) -> None:
+            on_stop(name, None if t is None else t - t0, why)
+    session = OnlineSession.from_config(cfg, names, stream=stream, reorder_window=0.0,
+                                        on_stop=stop_hook)
     wall0, next_print = time.perf_counter(), t0
     n = 0
     t_last = None
@@ -111,8 +321,8 @@ def replay(bag: str | Path, cfg: Config, *, names: list[str] | None = None,
         session.interrupted = f"interrupted (Ctrl-C) after {n} messages, {at}"
     if stream.error is not None and not n:
         raise BagError(stream.error)
-    for est in session.estimators.values():
-        est.finish()
+    session.finish()
+    session.rejected.update(stream.rejected)
     session.input_error = stream.error
     session.replayed_s = stream.duration
     session.last_t = None if t_last is None else t_last - t0

@@ -39,8 +39,10 @@ def live_and_bag():
     reader = open_reader(BAG)
     conns = [c for c in reader.connections if c.topic in conv.topics]
     live = []
-    for c, _, raw in reader.messages(connections=conns):
-        live += conv.convert(c.topic, reader.deserialize(raw, c.msgtype))
+    for c, rec_ns, raw in reader.messages(connections=conns):
+        # received at the record time: the wall clock of this fast replay is not the stamps'
+        live += conv.convert(c.topic, reader.deserialize(raw, c.msgtype),
+                             received=rec_ns * 1e-9)
     live.sort(key=lambda m: m.t)  # as a robot's callbacks deliver them: in stamp order
     return cfg, conv, live, read_stream(BAG, cfg)
 
