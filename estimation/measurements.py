@@ -15,6 +15,7 @@ the message's covariance.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -138,6 +139,35 @@ Measurement = (
     | GroundTruthPose
 )
 """Anything an estimator may be fed. Estimators ignore GroundTruthPose."""
+
+# the numeric fields of each kind (None allowed where a field is optional)
+_NUMERIC = {
+    WheelOdometry: ("t", "v", "yaw_rate", "v_var", "yaw_rate_var"),
+    WheelSpeeds: ("t", "left", "right", "left_var", "right_var"),
+    GyroYawRate: ("t", "yaw_rate", "var"),
+    Heading: ("t", "yaw", "var"),
+    ForwardAccel: ("t", "accel", "var"),
+    LandmarkObservation: ("t", "range", "bearing", "range_var", "bearing_var"),
+    GroundTruthPose: ("t", "x", "y", "yaw"),
+}
+
+
+def is_finite(m) -> bool:
+    """Whether every number ``m`` carries is finite (its stamp included; a GPS fix's lat, lon,
+    alt, covariance and ENU position). The bag reader and ``estimation.live`` reject messages
+    with non-finite fields; a hand-built measurement may still hold one, and a NaN handed to
+    gtsam poisons the whole window."""
+    names = _NUMERIC.get(type(m))
+    if names is not None:
+        for name in names:
+            x = getattr(m, name)
+            if x is not None and not math.isfinite(x):
+                return False
+        return True
+    if type(m) is GpsFix:
+        nums = (m.t, m.lat, m.lon, m.alt) + (tuple(m.enu) if m.enu is not None else ())
+        return all(math.isfinite(x) for x in nums) and bool(np.isfinite(m.cov).all())
+    return True
 
 
 @dataclass(slots=True)

@@ -76,6 +76,7 @@ from estimation.measurements import (
     LandmarkObservation,
     WheelOdometry,
     WheelSpeeds,
+    is_finite,
 )
 from estimation.runner import TrackBuilder
 from factors.gps import gps_factor
@@ -276,6 +277,7 @@ class FixedLagSmoother(Estimator):
         super().__init__()
         self.cfg = cfg
         self._pim_class = WheelGyroPreintegration if reference else _compiled_preintegration()
+        self.stopped: str | None = None  # why it gave up (then every process call says so)
         self._pim_compiled = self._pim_class is not WheelGyroPreintegration
         self.lag = float(lag if lag is not None else cfg.smoother.lag)
         if not (self.lag > 0.0 and math.isfinite(self.lag)):
@@ -396,6 +398,12 @@ class FixedLagSmoother(Estimator):
 
     # --- measurement handling ---------------------------------------------------------------
     def process(self, m) -> None:
+        if self.stopped is not None:
+            # kf_t was emptied when it stopped: say why, not KeyError
+            raise RuntimeError(f"the smoother stopped earlier: {self.stopped}")
+        if not is_finite(m):
+            self.log.rejected[(m.sensor, "nonfinite")] += 1
+            return
         if not self.initialised:
             self._process_uninitialised(m)
             return
@@ -862,10 +870,11 @@ class FixedLagSmoother(Estimator):
             # keyframes' do not): the model is ill-conditioned here, and going on would output
             # a track re-started from ever staler estimates (metres off). Stop this estimator:
             # the runner keeps what it estimated and the other estimators go on.
-            raise RuntimeError(
-                f"smoother: {len(self._recovery_t)} re-initialisations within "
-                f"{RECOVERY_WINDOW:g} s at t={t:.3f} ({first}): its system is ill-conditioned "
-                "here; check the config's noise values, priors and delays")
+            self.stopped = (f"{len(self._recovery_t)} re-initialisations within "
+                            f"{RECOVERY_WINDOW:g} s at t={t:.3f} ({first}): its system is "
+                            "ill-conditioned here; check the config's noise values, priors and "
+                            "delays")
+            raise RuntimeError(f"smoother: {self.stopped}")
         self.log.note(t, f"smoother re-initialised after gtsam error: {first}")
         self.log.rejected[("smoother", "gtsam error, re-initialised")] += 1
         state, cov = self.kf_state, self.kf_cov

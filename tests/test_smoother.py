@@ -398,6 +398,39 @@ def test_gives_up_when_gtsam_keeps_failing(husky, monkeypatch):
     assert sm.log.rejected[("smoother", "gtsam error, re-initialised")] == 3
     assert "after gtsam error: Indeterminate linear system" in sm.log.messages[-1]
     assert len(sm.lagged_estimates()) > n_before + 10  # the window at the first failure
+    # stopped for good: a later measurement gets the same reason (it was a KeyError on the
+    # emptied window, for every message after), and the last estimate stays readable
+    with pytest.raises(RuntimeError, match=r"the smoother stopped earlier: 4 re-initialisations"):
+        sm.process(ms[-1])
+    assert sm.estimate() is not None
+
+
+def test_non_finite_measurements_are_counted_and_never_reach_gtsam(husky):
+    """A hand-built measurement with a NaN (the bag reader and the live converter reject such
+    messages, a Python caller need not): before, one NaN yaw rate made gtsam's system
+    indeterminate at every update until the smoother stopped."""
+    from estimation.measurements import GyroYawRate
+
+    cfg, stream = husky
+    ms = stream.measurements
+    clean = FixedLagSmoother(cfg, initial_pose=_pose0(stream))
+    dirty = FixedLagSmoother(cfg, initial_pose=_pose0(stream))
+    bad = [GyroYawRate(ms[600].t, math.nan, 1e-4, sensor="/imu/data"),
+           replace(next(m for m in ms[600:] if isinstance(m, GpsFix)), enu=(math.inf, 0.0, 0.0)),
+           WheelOdometry(ms[601].t, 1.0, None, math.nan, 0.1, sensor="/odom")]
+    for i, m in enumerate(ms):
+        clean.process(m)
+        dirty.process(m)
+        if i == 600:
+            for b in bad:
+                dirty.process(b)
+    clean.finish()
+    dirty.finish()
+    assert dirty.log.rejected[("/imu/data", "nonfinite")] == 1
+    assert dirty.log.rejected[("/fix", "nonfinite")] == 1
+    assert dirty.log.rejected[("/odom", "nonfinite")] == 1
+    a, b = clean.estimate(), dirty.estimate()
+    assert np.allclose(a.pose, b.pose, atol=1e-9) and np.allclose(a.pose_cov, b.pose_cov)
 
 
 def test_interval_mean_odometry_is_held_backward():
