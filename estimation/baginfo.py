@@ -295,14 +295,16 @@ def suggest_config(info: BagInfo) -> dict:
     odometry's yaw rate is left out when an IMU's gyro shows it disagrees with the rotation
     (``odometry_yaw_rate_agrees``)."""
     sensors: dict[str, list] = {}
-    gt = None
+    gt: tuple[str, bool] | None = None  # (topic, whether it has a heading)
     odo_w = odometry_yaw_rate_agrees(info) is not False
     for t in info.topics:
         if t.count == 0:
             continue
         if _is_ground_truth(t.topic):
-            if t.msgtype in (rosmsg.ODOMETRY, rosmsg.POSE_STAMPED, rosmsg.NAVSATFIX):
-                gt = t.topic
+            # a pose (with heading) over a fix (position only), whatever the topics' order
+            if t.msgtype in (rosmsg.ODOMETRY, rosmsg.POSE_STAMPED) or (
+                    t.msgtype == rosmsg.NAVSATFIX and gt is None):
+                gt = (t.topic, t.msgtype != rosmsg.NAVSATFIX)
             continue
         if t.msgtype in (rosmsg.ODOMETRY, rosmsg.TWIST_STAMPED):
             s = {"topic": t.topic, "use": ["v", "yaw_rate"] if odo_w else ["v"]}
@@ -332,8 +334,9 @@ def suggest_config(info: BagInfo) -> dict:
                 {"topic": t.topic, "map": str(guess.resolve() if guess.is_file() else "MAP.yaml")})
     cfg: dict = {"sensors": sensors}
     if gt:
-        cfg["ground_truth"] = {"topic": gt}
-        cfg["initial_pose"] = "ground_truth"
+        cfg["ground_truth"] = {"topic": gt[0]}
+        if gt[1]:  # a fix has no heading to start from
+            cfg["initial_pose"] = "ground_truth"
     if "gps" in sensors:
         cfg["frame"] = {"datum": "first_fix"}
         cfg["smoother"] = {"lag": 10.0}

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from estimation.errors import ConfigError
 from estimation.estimator import Estimate, Estimator, EstimatorLog
 from estimation.measurements import GpsFix, Stream
 
@@ -295,7 +296,14 @@ def initial_pose(cfg_initial, stream) -> tuple[float, float, float] | None:
             t0 = stream.t0
             g = next((g for g in stream.ground_truth if g.t >= t0 - 1e-9),
                      stream.ground_truth[-1])
-        return (g.x, g.y, g.yaw if math.isfinite(g.yaw) else 0.0)
+        if not math.isfinite(g.yaw):
+            # a NavSatFix truth: heading 0 would start every estimator confidently wrong
+            raise ConfigError(
+                "initial_pose: ground_truth: the ground truth has no heading (a NavSatFix truth "
+                "gives position only); use a pose topic (Odometry, PoseStamped) as "
+                "ground_truth, give initial_pose: [x, y, yaw], or leave initial_pose out (the "
+                "heading then comes from the GPS course or a compass)")
+        return (g.x, g.y, g.yaw)
     return cfg_initial
 
 

@@ -323,3 +323,46 @@ def test_inspect_prints_a_loadable_config(tmp_path, capsys):
     assert cfg.of_kind("imu")[0].mount_rpy == pytest.approx((math.pi / 2, 0.0, 0.0), abs=1e-3)
     s = read_stream(bag, cfg)
     assert counts(s) == {"GyroYawRate": 300, "Heading": 300, "WheelOdometry": 100}
+
+
+@pytest.mark.parametrize("with_pose", [True, False])
+def test_suggested_truth_is_a_pose_and_only_a_pose_gives_the_initial_pose(tmp_path, with_pose,
+                                                                          capsys):
+    """The simulator writes /ground_truth (Odometry) and /ground_truth/fix (NavSatFix). The
+    suggestion took the last truth topic in name order, the fix, with initial_pose:
+    ground_truth, and the run started every estimator at heading 0 with a 0.3 deg sigma (true
+    heading 90 deg): NEES 23-81. A fix alone is truth for scoring, not a start pose."""
+    from estimation.errors import ConfigError
+    from estimation.runner import initial_pose
+
+    recs = [("/odom", bw.odometry(T0 + 0.1 * i, 1.0, 0.0), T0 + 0.1 * i) for i in range(50)]
+    recs += [("/ground_truth/fix", bw.navsatfix(T0 + 0.2 * i, 42.0 + 1e-6 * i, -71.0),
+              T0 + 0.2 * i) for i in range(25)]
+    if with_pose:
+        recs += [("/ground_truth", bw.pose_stamped(T0 + 0.1 * i, 0.1 * i, 0.0, math.pi / 2),
+                  T0 + 0.1 * i) for i in range(50)]
+    recs.sort(key=lambda r: r[2])
+    bag = bw.write_bag(bw.bag_path(tmp_path, "truths", "ros1"), "ros1", recs)
+    cfg = suggest_config(bag_info(bag))
+    if with_pose:
+        assert cfg["ground_truth"] == {"topic": "/ground_truth"}
+        assert cfg["initial_pose"] == "ground_truth"
+        s = read_stream(bag, parse_config(cfg))
+        assert initial_pose(cfg["initial_pose"], s)[2] == pytest.approx(math.pi / 2)
+        return
+    assert cfg["ground_truth"] == {"topic": "/ground_truth/fix"}
+    assert "initial_pose" not in cfg
+    # asked for anyway: a one-line error naming the key, not heading 0
+    cfg["frame"] = {"datum": [42.0, -71.0, 0.0]}
+    s = read_stream(bag, parse_config(cfg))
+    with pytest.raises(ConfigError, match=r"initial_pose: ground_truth: the ground truth has "
+                                          r"no heading"):
+        initial_pose("ground_truth", s)
+    p = tmp_path / "fix_truth.yaml"
+    p.write_text(yaml.safe_dump({**cfg, "initial_pose": "ground_truth"}))
+    from evaluation.cli import main
+
+    assert main(["run", str(bag), "-c", str(p), "-o", str(tmp_path / "out"),
+                 "--estimators", "ekf", "--no-report"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("ddfuse: error: ") and "no heading" in err and "\n" not in err
