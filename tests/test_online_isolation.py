@@ -1,0 +1,176 @@
+"""One estimator failing in a live session (or in `ddfuse online`) is stopped there, as
+`runner.run` stops it: its error kept, its last estimate kept, the others go on."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from estimation.bags import read_stream
+from estimation.config import load_config
+from estimation.estimator import Estimate, Estimator
+from estimation.measurements import GyroYawRate
+from estimation.smoother import FixedLagSmoother
+from evaluation import cli
+from evaluation.online import OnlineSession
+
+ROOT = Path(__file__).resolve().parents[1]
+BAG, CFG = ROOT / "data" / "sample_husky.bag", ROOT / "data" / "sample_husky.yaml"
+T0 = 1700000000.0  # the sample bag's first stamp
+
+
+class Failing(Estimator):
+    """Fails in ``where`` ('process', 'estimate' or 'finish') once it has seen a stamp at or
+    after ``at``; broken afterwards (estimate raises KeyError, as the smoother's did)."""
+
+    def __init__(self, where: str, at: float = 0.0) -> None:
+        super().__init__()
+        self.where, self.at = where, at
+        self.calls = 0
+        self.t: float | None = None
+        self.broken = False
+
+    def process(self, m) -> None:
+        self.calls += 1
+        if self.where == "process" and m.t >= self.at:
+            self.broken = True
+            raise RuntimeError("indeterminate system\nnear x6")
+        self.t = m.t
+
+    def estimate(self) -> Estimate | None:
+        if self.broken:
+            raise KeyError(152)
+        if self.where == "estimate" and self.t is not None and self.t >= self.at:
+            raise ValueError("no estimate")
+        return None if self.t is None else Estimate(self.t, (1.0, 2.0, 0.0), np.eye(3))
+
+    def finish(self) -> None:
+        if self.where == "finish":
+            raise RuntimeError("cannot finish")
+
+
+@pytest.fixture(scope="module")
+def setup():
+    cfg = replace(load_config(CFG), initial_pose=None)
+    return cfg, read_stream(BAG, cfg).measurements
+
+
+def _ekf_session(cfg, extra: dict | None = None) -> OnlineSession:
+    built = OnlineSession.from_config(cfg, ["ekf"])
+    return OnlineSession({**(extra or {}), **built.estimators}, reorder_window=0.5)
+
+
+def test_an_estimator_that_raises_is_stopped_and_the_others_go_on(setup):
+    cfg, meas = setup
+    at = T0 + 60.0
+    boom = Failing("process", at)
+    s = _ekf_session(cfg, {"boom": boom})  # boom first: the EKF after it must miss nothing
+    ref = _ekf_session(cfg)
+    for m in meas:
+        s.push(m)  # never raises
+        ref.push(m)
+    s.finish()
+    ref.finish()
+    assert s.errors["ekf"] is None and s.errors["boom"] is not None
+    t_fail = next(m.t for m in meas if m.t >= at)
+    assert s.errors["boom"] == (f"RuntimeError at t={t_fail:.3f}: indeterminate system\n"
+                                "near x6")  # the runner's format
+    assert s.stopped_t["boom"] == t_fail
+    calls = boom.calls
+    assert calls == sum(1 for m in meas if m.t <= t_fail)  # never called after it failed
+    assert any(n.startswith(f"t={t_fail:.3f}: stopped: RuntimeError at t=")
+               for n in boom.log.messages)
+    last = s.estimate("boom")  # its last estimate, taken before the failing update
+    assert last is not None and t_fail - 2 * OnlineSession.KEEP_PERIOD < last.t < t_fail
+    # the EKF saw every message, as without the failing one
+    a, b = s.estimate("ekf"), ref.estimate("ekf")
+    assert a.t == b.t and np.array_equal(a.pose, b.pose)
+    assert boom.calls == calls
+
+
+@pytest.mark.parametrize("where", ["estimate", "finish"])
+def test_a_failure_in_estimate_or_finish_stops_only_that_estimator(setup, where):
+    cfg, meas = setup
+    s = _ekf_session(cfg, {"boom": Failing(where, T0 + 30.0)})
+    for m in meas:
+        if m.t - T0 > 40.0:
+            break
+        s.push(m)
+        s.estimate("boom")
+    s.finish()
+    err = s.errors["boom"]
+    if where == "estimate":
+        assert err.startswith("ValueError at t=") and err.endswith(": no estimate")
+        assert s.estimate("boom").t < T0 + 30.0 + 0.1
+    else:
+        assert err == "RuntimeError in finish: cannot finish" and s.stopped_t["boom"] is None
+    assert s.errors["ekf"] is None and s.estimate("ekf") is not None
+
+
+def test_a_nan_gyro_sample_does_not_stop_the_session(setup):
+    """The reviewer's case: a hand-built GyroYawRate(yaw_rate=nan) pushed at t=60. Before, the
+    smoother raised RuntimeError, every later push raised KeyError and the EKF after it in the
+    dict missed those messages. Whatever the smoother makes of the NaN, the EKF goes on."""
+    cfg, meas = setup
+    i = next(i for i, m in enumerate(meas) if m.t - T0 > 60.0)
+    bad = GyroYawRate(t=meas[i].t, yaw_rate=float("nan"), var=1e-4, sensor="/imu/data")
+    s = OnlineSession.from_config(cfg, ["smoother", "ekf"])
+    ref = OnlineSession.from_config(cfg, ["ekf"])
+    for m in [*meas[:i], bad, *meas[i:]]:
+        s.push(m)
+    for m in meas:
+        ref.push(m)
+    s.finish()
+    ref.finish()
+    a, b = s.estimate("ekf"), ref.estimate("ekf")
+    assert s.errors["ekf"] is None and a.t == b.t and np.allclose(a.pose, b.pose, atol=1e-9)
+    sm = s.estimate("smoother")
+    assert sm is not None and np.all(np.isfinite(sm.pose))
+    if s.errors["smoother"] is not None:
+        assert s.errors["smoother"].startswith("RuntimeError at t=") and sm.t <= bad.t
+
+
+# --- ddfuse online -----------------------------------------------------------------------------
+
+def test_cli_online_reports_a_failed_estimator_in_one_line_and_carries_on(setup, monkeypatch,
+                                                                          capsys):
+    """Before: a traceback and exit 1. Now: one line (which, when, why), the other estimators
+    to the end, exit 0 as `run` (which shows ERROR in the estimator's row)."""
+    meas = setup[1]
+    at = f"{next(m.t for m in meas if m.t - T0 >= 10.0) - meas[0].t:.2f}"  # s since the first
+    process = FixedLagSmoother.process
+
+    def failing(self, m):
+        if m.t - T0 >= 10.0:
+            raise RuntimeError("smoother: ill-conditioned\n  near x6")
+        process(self, m)
+
+    monkeypatch.setattr(FixedLagSmoother, "process", failing)
+    code = cli.main(["online", str(BAG), "--estimators", "smoother,ekf", "--every", "50"])
+    out, err = capsys.readouterr()
+    assert code == 0 and err == ""
+    lines = out.splitlines()
+    failed = [ln for ln in lines if "failed" in ln]
+    assert failed == [f"smoother failed at t={at} s and is stopped (its last estimate is kept, "
+                      "the others go on): RuntimeError: smoother: ill-conditioned near x6"]
+    assert lines.index(failed[0]) < [i for i, ln in enumerate(lines)
+                                     if ln.startswith("t=   50.")][0]
+    assert [ln for ln in lines if ln.startswith("t=   50.")][0].startswith(
+        "t=   50.00 s  smoother stopped  ekf (")
+    final = [ln for ln in lines if ln.endswith("(final)")]
+    assert len(final) == 1 and f"stopped at t={at} s" in final[0] and "ekf (" in final[0]
+    assert [ln for ln in lines if ln.startswith("  smoother ")][0].endswith(
+        f"ERROR: stopped at t={at} s")
+
+
+def test_cli_online_refuses_the_lagged_smoother_output(capsys):
+    """It printed a column labelled 'smoother' holding the filtered output."""
+    code = cli.main(["online", str(BAG), "--estimators", "ekf,smoother_lagged"])
+    out, err = capsys.readouterr()
+    err = err.strip()
+    assert code == 2 and out == "" and "\n" not in err
+    assert err.startswith("ddfuse: error: --estimators smoother_lagged: not available online: ")
+    assert "'ddfuse run' gives it" in err
