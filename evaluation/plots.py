@@ -1,8 +1,16 @@
-"""The report's figures (matplotlib, Agg backend): each function returns a Figure.
+"""The report's figures: each function returns a matplotlib Figure.
 
-Inputs are a run's saved results (``evaluation.results.SavedRun``) or plain arrays; nothing here
-computes a score that metrics.json does not already hold, and nothing reads or writes files
-except ``save_png``. Times on the x axes are seconds since the first measurement (metrics.json
+Inputs are a run's results (``evaluation.results.SavedRun``: read back from an output directory
+by ``load_run``, or built in memory from a ``RunResult`` by ``SavedRun.from_result``) or plain
+arrays; nothing here computes a score that metrics.json does not already hold, and nothing
+reads or writes files except ``save_png``.
+
+The figures are ``matplotlib.figure.Figure`` objects with their own Agg canvas, made without
+pyplot: importing or using this module never selects or changes matplotlib's backend (a
+notebook's inline backend stays as it was) and needs no display. In a notebook, a returned
+figure shows with ``display(fig)`` (or as a cell's last value); ``save_png`` writes one.
+
+Times on the x axes are seconds since the first measurement (metrics.json
 ``data.t0``); positions are in the run's local frame (``frame``: ENU about the GPS datum, x east,
 y north; else the landmark map's frame, the truth's, or the start pose), in metres. Each track
 name has one colour in every figure (``PALETTE``)."""
@@ -15,16 +23,13 @@ import zlib
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-import matplotlib
 import matplotlib.ticker
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")  # files only; never needs a display
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from matplotlib.figure import Figure  # noqa: E402
-
-from evaluation import consistency, metrics  # noqa: E402
-from evaluation.results import SavedRun  # noqa: E402
+from evaluation import consistency, metrics
+from evaluation.results import SavedRun
 
 DPI = 100
 _STYLE = {"smoother_lagged": "--", "batch": ":"}
@@ -84,11 +89,24 @@ def frame(metrics: Mapping) -> dict[str, str]:
                     "the robot's initial heading); no GPS, no landmark map"}
 
 
+def subplots(nrows: int = 1, ncols: int = 1, *, figsize: tuple[float, float], **kw
+             ) -> tuple[Figure, object]:
+    """``pyplot.subplots`` without pyplot: a Figure on its own Agg canvas (no backend chosen
+    or changed, no display needed, nothing to close) and its axes (``Figure.subplots``)."""
+    fig = Figure(figsize=figsize)
+    FigureCanvasAgg(fig)
+    return fig, fig.subplots(nrows, ncols, **kw)
+
+
 def save_png(fig: Figure, path: Path | None = None) -> bytes:
-    """The figure as PNG bytes (also written to ``path`` if given); closes the figure."""
+    """The figure as PNG bytes (also written to ``path`` if given). A figure that pyplot
+    manages (one a caller made with ``plt.subplots``) is closed there."""
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=DPI)
-    plt.close(fig)
+    if getattr(fig.canvas, "manager", None) is not None:
+        import matplotlib.pyplot as plt  # already imported: it made the figure
+
+        plt.close(fig)
     data = buf.getvalue()
     if path is not None:
         Path(path).write_bytes(data)
@@ -188,7 +206,7 @@ def trajectories(run: SavedRun) -> Figure:
     span = np.ptp(xy, axis=0) if len(xy) else np.ones(2)
     aspect = float(np.clip((span[0] + 1e-9) / (span[1] + 1e-9), 0.5, 2.0))
     height = 7.5 if aspect < 1.4 else 6.0
-    fig, ax = plt.subplots(figsize=(min(height * aspect + 3.8, 14.0), height))
+    fig, ax = subplots(figsize=(min(height * aspect + 3.8, 14.0), height))
     if run.truth is not None and len(run.truth):
         # A wide pale band under the estimates: it stays visible where they follow it closely.
         ax.plot(run.truth.pose[:, 0], run.truth.pose[:, 1], "-", color="k", lw=5, alpha=0.2,
@@ -234,7 +252,7 @@ def trajectories_each(run: SavedRun) -> Figure:
     xy = xy[np.isfinite(xy).all(axis=1)]
     span = np.ptp(xy, axis=0) if len(xy) else np.ones(2)
     aspect = float(np.clip((span[0] + 1e-9) / (span[1] + 1e-9), 0.6, 1.6))
-    fig, axes = plt.subplots(nrow, ncol, figsize=(3.9 * aspect * ncol + 0.8, 4.3 * nrow),
+    fig, axes = subplots(nrow, ncol, figsize=(3.9 * aspect * ncol + 0.8, 4.3 * nrow),
                              sharex=True, sharey=True, squeeze=False)
     for ax in axes.flat[len(names):]:
         ax.set_axis_off()
@@ -302,7 +320,7 @@ def errors(run: SavedRun) -> tuple[Figure | None, str]:
     ex, ey = ("east", "north") if f["kind"] == "enu" else ("x", "y")
     where = {"enu": "", "map": " (map)", "truth": " (truth frame)"}.get(f["kind"], " (local)")
     ncol = 3 if truth else 2
-    fig, axes = plt.subplots(len(names), ncol, figsize=(13, 2.1 * len(names) + 0.8),
+    fig, axes = subplots(len(names), ncol, figsize=(13, 2.1 * len(names) + 0.8),
                              sharex=True, squeeze=False)
     for r, name in enumerate(names):
         tr = run.tracks[name]
@@ -359,7 +377,7 @@ def nees(series: Mapping[str, Sequence[np.ndarray]], t: Mapping[str, np.ndarray]
     several runs (Monte Carlo) their average is drawn with the band of an N-run average
     (``consistency.chi2_band(dof, N)``). ``dof[name]`` is the NEES dimension."""
     names = [n for n in series if series[n] and min(len(r) for r in series[n])]
-    fig, axes = plt.subplots(max(len(names), 1), 1, figsize=(13, 1.9 * max(len(names), 1) + 0.8),
+    fig, axes = subplots(max(len(names), 1), 1, figsize=(13, 1.9 * max(len(names), 1) + 0.8),
                              sharex=True, squeeze=False)
     cols = colours or colors(names)
     for ax, name in zip(axes[:, 0], names, strict=False):
@@ -398,7 +416,7 @@ def nis(run: SavedRun) -> Figure:
     ncol = max((len(g) for g in groups.values()), default=1)
     t0 = _t0(run)
     t_end = max((float(run.innovations[n].t.max()) - t0 for n in owners), default=1.0)
-    fig, axes = plt.subplots(max(len(owners), 1), ncol, figsize=(3.2 * ncol + 0.4,
+    fig, axes = subplots(max(len(owners), 1), ncol, figsize=(3.2 * ncol + 0.4,
                              2.4 * max(len(owners), 1) + 0.3), squeeze=False)
     for ax in axes.flat:
         ax.set_axis_off()
@@ -438,7 +456,7 @@ def covariance(run: SavedRun) -> Figure:
     """Trace of each track's position covariance (m^2) and its heading sigma (deg) over time."""
     cols = colors(list(run.tracks))
     t0 = _t0(run)
-    fig, (a1, a2) = plt.subplots(2, 1, figsize=(13, 6.5), sharex=True)
+    fig, (a1, a2) = subplots(2, 1, figsize=(13, 6.5), sharex=True)
     for name, tr in run.tracks.items():
         if not len(tr) or not np.isfinite(tr.cov[:, 0, 0]).any():
             continue
@@ -464,7 +482,7 @@ def latency(run: SavedRun) -> Figure:
     each on a shared log axis, with the median and 99th percentile marked."""
     cols = colors(list(run.tracks))
     names = [n for n in run.tracks if run.log_owner.get(n, n) == n and len(run.update_s[n])]
-    fig, axes = plt.subplots(max(len(names), 1), 1, figsize=(11, 1.5 * max(len(names), 1) + 1),
+    fig, axes = subplots(max(len(names), 1), 1, figsize=(11, 1.5 * max(len(names), 1) + 1),
                              sharex=True, squeeze=False)
     all_ms = np.concatenate([run.update_s[n] * 1e3 for n in names]) if names else np.ones(1)
     lo = max(float(all_ms[all_ms > 0].min()) if (all_ms > 0).any() else 1e-3, 1e-4)
