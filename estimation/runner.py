@@ -278,6 +278,20 @@ def parse_holdout(spec: str | None) -> Holdout | None:
     raise ValueError(f"--gps-holdout: expected every:K (K >= 2) or window:T0:T1, got {spec!r}")
 
 
+def _never_started(log: EstimatorLog) -> str:
+    """The error of an estimator that was fed measurements and gave no estimate at all."""
+    waiting = sum(n for (_, why), n in log.rejected.items() if why == "before_init")
+    text = "no estimate: it never started"
+    if waiting:
+        text += f" ({waiting} measurements came before it could)"
+    if log.messages:
+        text += f"; its last note: {log.messages[-1]}"
+    # the usual cause when an estimator is built by hand from a config
+    return text + ("; with initial_pose: ground_truth an EKF waits for a GroundTruthPose "
+                   "measurement unless it is given initial_pose (evaluation.estimators.build "
+                   "passes the stream's first truth pose)" if waiting else "")
+
+
 def initial_pose(cfg_initial, stream) -> tuple[float, float, float] | None:
     """Resolve the config's initial_pose: 'ground_truth' -> the first truth pose at or after the
     first measurement; a tuple -> itself; None -> None (each estimator's default).
@@ -381,6 +395,8 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
         # An offline estimator (the batch) gives its whole trajectory only at the end.
         final = getattr(est, "final_estimates", None)
         track = final() if callable(final) else outputs[i]
+        if not track and errors[i] is None and fed:
+            errors[i] = _never_started(est.log)
         runs[name] = EstimatorRun(name, Trajectory.from_estimates(track), upd, totals[i],
                                   est.log, errors[i], _final_state(est, track))
         outputs[i] = None

@@ -66,6 +66,7 @@ from estimation.config import (
     GIVEN_POSE_STD,
     Config,
     SensorConfig,
+    landmark_maps,
 )
 from estimation.estimator import Estimate, Estimator, Innovation, wrap_angle
 from estimation.lockout import Lockout, inflation
@@ -284,8 +285,10 @@ class FixedLagSmoother(Estimator):
             # gtsam would take it and fail later, deep inside an update (IndexError on 'x0')
             raise ValueError(f"smoother lag: expected seconds > 0, got {self.lag:g}")
         self.noise = noise or SmootherNoise.from_config(cfg)
-        self.landmarks = dict(landmarks or {})
-        self.given_pose = initial_pose
+        # as the EKFs: the config's map and its given start pose unless the caller passes them
+        self.landmarks = dict(landmark_maps(cfg) if landmarks is None else landmarks)
+        self.given_pose = initial_pose if initial_pose is not None else (
+            tuple(cfg.initial_pose) if isinstance(cfg.initial_pose, (tuple, list)) else None)
         self.sensors: dict[str, SensorConfig] = {s.name: s for s in cfg.sensors}
         imus = [s for s in cfg.of_kind("imu") if "yaw_rate" in s.use]
         self.gyro_names = {s.name for s in imus}

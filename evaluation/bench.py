@@ -23,7 +23,7 @@ import numpy as np
 from estimation.bags import BagStream
 from estimation.config import load_config
 from estimation.errors import BagError
-from estimation.runner import initial_pose, run
+from estimation.runner import run
 
 
 def peak_rss_mb() -> float:
@@ -56,8 +56,7 @@ def _measure(bag: str, cfg_path: str, name: str, lag: float | None) -> dict:
 
     cfg = load_config(cfg_path)
     stream = BagStream(bag, cfg, keep_truth=False).prime()
-    pose = initial_pose(cfg.initial_pose, stream)
-    est = registry.SPECS[name].build(cfg, stream, pose, lag if lag else cfg.smoother.lag)
+    est = registry.build(cfg, stream, [name], lag=lag or None)[name]
     start_mb = peak_rss_mb()
     t1 = time.perf_counter()
     result = run(stream, {name: est})

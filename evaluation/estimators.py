@@ -12,6 +12,7 @@ from estimation.config import Config
 from estimation.dead_reckoning import DeadReckoning, odometry_source
 from estimation.estimator import Estimator
 from estimation.measurements import Stream
+from estimation.runner import initial_pose
 from estimation.smoother import BatchSmoother, FixedLagSmoother
 
 
@@ -69,6 +70,21 @@ SPECS: dict[str, EstimatorSpec] = {s.name: s for s in (
                   default=False),
 )}
 TRACK_TO_SPEC = {track: spec.name for spec in SPECS.values() for track in spec.produces}
+
+
+def build(cfg: Config, stream, names: list[str] | None = None, *, lag: float | None = None,
+          pose: tuple[float, float, float] | None = None) -> dict[str, Estimator]:
+    """The named estimators (``select``'s names; default: every default one the config
+    allows), built as ``ddfuse run`` builds them, for ``estimation.runner.run`` or an online
+    session: the start pose from the config (``initial_pose: ground_truth``: the stream's
+    first truth pose) unless ``pose`` (x, y, yaw) is given, the landmark maps and datum from
+    ``stream`` (a Stream, or a primed BagStream), the smoother's lag from the config unless
+    ``lag`` (s)."""
+    chosen = select(cfg, names)
+    if pose is None:
+        pose = initial_pose(cfg.initial_pose, stream)
+    lag = cfg.smoother.lag if lag is None else lag
+    return {n: SPECS[n].build(cfg, stream, pose, lag) for n in chosen}
 
 
 def select(cfg: Config, names: list[str] | None) -> list[str]:

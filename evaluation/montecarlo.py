@@ -194,8 +194,7 @@ def run_seed(scenario: str, seed: int, estimators: list[str] | None = None,
     pose = initial_pose(cfg.initial_pose, stream)
     if pose is not None:
         pose = (pose[0] + err0[0], pose[1] + err0[1], pose[2] + err0[2])
-    lag = cfg.smoother.lag if lag is None else lag
-    built = {n: registry.SPECS[n].build(cfg, stream, pose, lag) for n in chosen}
+    built = registry.build(cfg, stream, chosen, lag=lag, pose=pose)
     result = run(stream, built, output_rate=OUTPUT_RATE)
     g = sc.true_geometry
     out: dict = {"seed": seed, "scenario": scenario, "duration_s": sim.duration,
