@@ -346,7 +346,7 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
     outdir.mkdir(parents=True, exist_ok=True)
     pose = initial_pose(cfg.initial_pose, stream)
     lag = lag if lag is not None else cfg.smoother.lag
-    ests = {n: registry.SPECS[n].build(cfg, stream, pose, lag) for n in chosen}
+    ests = registry.build(cfg, stream, chosen, lag=lag, pose=pose)
     decode_before = stream.decode_s
     t_built = clock()
     result = run(stream, ests, holdout=holdout,
