@@ -144,9 +144,9 @@ def cmd_online(args: argparse.Namespace) -> int:
         print(f"  {name:16} p50 {q['p50']:.3f}  p99 {q['p99']:.3f}  max {q['max']:.3f}  "
               f"({q['updates']} updates){err}")
     if session.rejected:
-        print("dropped and counted (topic: messages, reason):")
+        print("dropped and counted, per topic and reason:")
         for (topic, reason), n in sorted(session.rejected.items()):
-            print(f"  {topic}: {n}, {reason}")
+            print(f"  {topic}: {n} x {reason}")
     if session.interrupted:
         sys.stdout.flush()
         raise RunInterrupted(session.interrupted)

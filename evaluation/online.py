@@ -12,13 +12,17 @@ The stream semantics are the bag reader's (``estimation.bags.BagStream``):
   past it (``from_config``: the config's ``reorder_window``; the constructor's default 0), then
   passes it on, in stamp order (equal stamps: the config's sensor order, then arrival order).
   A measurement older than one already passed on is dropped for every estimator and counted in
-  ``rejected`` under (sensor, the bag reader's reason "arrived after messages stamped up to more
-  than reorder_window (... s) later had been passed on; ..."), the first per sensor logged as a
-  warning: no estimator is ever handed a measurement older than one it has processed. A window
-  of 0 passes each measurement straight on (no latency), still dropping the older ones. The
-  estimates lag the newest stamp by up to the window; ``flush()`` passes on what is held,
-  ``finish()`` flushes and ends every estimator. ``replay`` reads through ``BagStream``, which
-  already reorders (``reorder_window`` there), so its session's own window is 0.
+  ``rejected`` under (its sensor's name, by default the topic; the bag reader's reason "arrived
+  after messages stamped up to more than reorder_window (... s) later had been passed on;
+  ..."), the first per sensor logged as a warning: no estimator is ever handed a measurement
+  older than one it has processed. So when the whole clock steps back (stamps and receive times
+  alike, which the converter's stamp check cannot see), what comes in the next seconds is
+  dropped until the stamps pass the last one passed on. A window of 0 passes each measurement
+  straight on (no latency), still dropping the older ones. The estimates lag the newest stamp
+  by up to the window; ``flush()`` passes on what is held, ``finish()`` flushes and ends every
+  estimator. ``replay`` reads through ``BagStream``, which already reorders and checks stamps
+  (``reorder_window`` there), so its session's own window is 0; its ``rejected`` then holds the
+  bag reader's counts (by topic) too.
 - Isolation, as ``estimation.runner.run``: an estimator that raises (in ``process``,
   ``estimate`` or ``finish``) is stopped there, never called again, its error kept in
   ``errors[name]`` ("RuntimeError at t=...: ...") and noted in its ``log``; ``estimate(name)``
