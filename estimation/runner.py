@@ -278,6 +278,21 @@ def parse_holdout(spec: str | None) -> Holdout | None:
     raise ValueError(f"--gps-holdout: expected every:K (K >= 2) or window:T0:T1, got {spec!r}")
 
 
+def broken(e: Estimate) -> str | None:
+    """What is wrong with estimate ``e`` if it is not a number a filter can give (a position
+    or heading not finite, a pose variance negative or infinite: the covariance has lost
+    positive definiteness), else None. NaN variances mean 'no covariance' (dead reckoning).
+    Checked at every output tick, outside the timings."""
+    d = np.diagonal(e.pose_cov)
+    if math.isfinite(e.pose[0] + e.pose[1] + e.pose[2]) and not (d < 0.0).any() and \
+            not np.isinf(d).any():
+        return None
+    return (f"pose ({e.pose[0]:.3g}, {e.pose[1]:.3g}, {e.pose[2]:.3g}), pose variances "
+            f"({d[0]:.3g}, {d[1]:.3g}, {d[2]:.3g}): the covariance lost positive "
+            "definiteness; the config's noise values may be far from the data's (a sigma of "
+            "1e-9 makes an update's rounding exceed the variance it leaves)")
+
+
 def _never_started(log: EstimatorLog) -> str:
     """The error of an estimator that was fed measurements and gave no estimate at all."""
     waiting = sum(n for (_, why), n in log.rejected.items() if why == "before_init")
@@ -379,7 +394,11 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
                 est.finish()
                 last = est.estimate()
                 if last is not None and (not outputs[i] or last.t > outputs[i].last.t):
-                    outputs[i].append(last)
+                    bad = broken(last)
+                    if bad:
+                        errors[i] = f"numerical breakdown at the end: {bad}"
+                    else:
+                        outputs[i].append(last)
             except Exception as exc:
                 errors[i] = f"{type(exc).__name__} in finish: {exc}"
             except KeyboardInterrupt:
@@ -486,6 +505,12 @@ def _feed(meas, n, fraction, select, gps, est_list, alive, errors, outputs, timi
                 timings[i].append(dt)
                 totals[i] += dt
                 if e is not None:
+                    bad = broken(e)
+                    if bad:  # never recorded: the track keeps what it had
+                        alive[i] = False
+                        errors[i] = f"numerical breakdown at t={t_m:.3f}: {bad}"
+                        est.log.note(t_m, f"stopped: {errors[i]}")
+                        continue
                     outputs[i].append(e)
             busy = None
             done = k + 1

@@ -1,0 +1,80 @@
+"""What the runner does with an estimator whose numbers break down: stop it there, keep its
+track up to the last sound estimate, say why, and let the others go on."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from estimation.bags import read_stream
+from estimation.config import load_config
+from estimation.dead_reckoning import DeadReckoning
+from estimation.runner import broken, run
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class _Diverging(DeadReckoning):
+    """Dead reckoning whose estimates from ``t_break`` s on carry ``fault`` ('negative': a
+    negative x variance, as a filter whose covariance lost positive definiteness; 'nan': a NaN
+    position)."""
+
+    def __init__(self, cfg, t_break: float, fault: str, **kw) -> None:
+        super().__init__(cfg, **kw)
+        self.t_break, self.fault, self.t0 = t_break, fault, None
+
+    def estimate(self):
+        e = super().estimate()
+        if e is None:
+            return None
+        self.t0 = e.t if self.t0 is None else self.t0
+        if e.t - self.t0 < self.t_break:
+            return e
+        if self.fault == "nan":
+            return replace(e, pose=(math.nan, e.pose[1], e.pose[2]))
+        cov = e.pose_cov.copy()
+        cov[0, 0] = -1e120
+        return replace(e, pose_cov=cov)
+
+
+@pytest.fixture(scope="module")
+def sample():
+    cfg = load_config(ROOT / "data" / "sample_husky.yaml")
+    return cfg, read_stream(ROOT / "data" / "sample_husky.bag", cfg)
+
+
+@pytest.mark.parametrize("fault", ["negative", "nan"])
+def test_an_estimator_whose_estimate_breaks_down_is_stopped_and_keeps_its_track(sample, fault):
+    """Before, a unicycle EKF with the IMU noise at 1e-9 ended 3e29 m away with pose variances
+    of -5e121 in its CSV, error None."""
+    cfg, stream = sample
+    r = run(stream, {"bad": _Diverging(cfg, 30.0, fault), "good": DeadReckoning(cfg)}).runs
+    bad, good = r["bad"], r["good"]
+    assert bad.error.startswith("numerical breakdown at t=")
+    assert "lost positive definiteness" in bad.error
+    assert bad.trajectory.t[-1] - bad.trajectory.t[0] < 30.0  # nothing after the breakdown
+    assert np.isfinite(bad.trajectory.pose).all()
+    assert not (np.diagonal(bad.trajectory.cov, axis1=1, axis2=2) < 0).any()
+    assert good.error is None and good.trajectory.t[-1] - good.trajectory.t[0] > 119.0
+    assert any("stopped: numerical breakdown" in n for n in bad.log.messages)
+
+
+def test_broken_names_what_is_wrong(sample):
+    cfg, stream = sample
+    e = run(stream, {"dr": DeadReckoning(cfg)}).runs["dr"]
+    assert e.error is None
+    good = _Diverging(cfg, 1e9, "nan")
+    for m in stream.measurements[:200]:
+        good.process(m)
+    est = good.estimate()
+    assert broken(est) is None  # dead reckoning's NaN covariance is 'none', not broken
+    est = replace(est, pose_cov=np.diag([0.1, 0.1, 0.01]))
+    assert broken(est) is None
+    cov = est.pose_cov.copy()
+    cov[2, 2] = -1.0
+    assert "pose variances" in broken(replace(est, pose_cov=cov))
+    assert broken(replace(est, pose=(1.0, math.inf, 0.0))).startswith("pose (1, inf, 0)")
