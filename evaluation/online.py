@@ -48,7 +48,7 @@ from estimation.config import Config
 from estimation.errors import BagError
 from estimation.estimator import Estimate, Estimator
 from estimation.measurements import Stream
-from estimation.runner import initial_pose
+from estimation.runner import broken
 from evaluation import estimators as registry
 
 log = logging.getLogger(__name__)
@@ -122,12 +122,10 @@ class OnlineSession:
                                  f"{ONLINE_TRACKS_REFUSED[n]}")
         stream = stream if stream is not None else Stream(measurements=[])
         chosen = [n for n in registry.select(cfg, names) if names or n != "batch"]
-        pose = initial_pose(cfg.initial_pose, stream)
-        lag = lag if lag is not None else cfg.smoother.lag
         order: dict[str, int] = {}
         for i, s in enumerate(cfg.sensors):
             order.setdefault(s.name, i)
-        return cls({n: registry.SPECS[n].build(cfg, stream, pose, lag) for n in chosen},
+        return cls(registry.build(cfg, stream, chosen, lag=lag),
                    reorder_window=cfg.reorder_window if reorder_window is None
                    else reorder_window, order=order, on_stop=on_stop)
 
@@ -230,7 +228,7 @@ class OnlineSession:
                 except Exception as exc:
                     self._stop(name, self.released_t, exc)
                     continue
-                if e is not None:
+                if e is not None and self._sound(name, e, self.released_t):
                     self._last[name] = e
 
     def _stop(self, name: str, t: float | None, exc: Exception) -> None:
@@ -260,8 +258,19 @@ class OnlineSession:
             self._stop(name, t, exc)
             return self._last[name]
         if e is not None:
+            if not self._sound(name, e, self.released_t):
+                return self._last[name]
             self._last[name] = e
         return e
+
+    def _sound(self, name: str, e: Estimate, t: float) -> bool:
+        """Whether estimate ``e`` is one a filter can give (``runner.broken``); else
+        ``name`` is stopped there, as ``run`` stops it."""
+        bad = broken(e)
+        if bad is None:
+            return True
+        self._stop(name, t, FloatingPointError(f"numerical breakdown: {bad}"))
+        return False
 
     def latency_ms(self) -> dict[str, dict[str, float]]:
         """Per-estimator update latency p50 / p99 / max, ms."""
