@@ -219,10 +219,19 @@ def _interpolation_rmse(used_t, used_xy, hold_t, hold_xy) -> float | None:
     return _num(float(np.sqrt(np.mean(e * e)))) if len(e) else None
 
 
+def _pose_error(r) -> str:
+    """The coordinates of EstimatorRun ``r``'s pose error, as its estimates carry them
+    (``Estimate.pose_error`` of its ``final_state``: the last estimate, or the estimator's
+    own final state); 'world' for a run without a final state (no state vector, no estimate)."""
+    return getattr(r.final_state, "pose_error", None) or "world"
+
+
 def score(result: RunResult, decode_s: float = 0.0,
           pose_errors: dict[str, str] | None = None) -> dict:
     """The metrics dictionary of a run (see module docstring). ``pose_errors``: per track the
-    coordinates of its pose error (``Estimator.pose_error``; default 'world'), for the NEES."""
+    coordinates of its pose error (``Estimator.pose_error``), for the NEES; a track not in it
+    takes the one its estimates carry (``_pose_error``), so ``score(result)`` on a RunResult
+    of ``runner.run`` scores each estimator in its own coordinates, as ``run_bag`` does."""
     stream = result.stream
     duration = stream.duration
     truth = result.truth
@@ -279,7 +288,7 @@ def score(result: RunResult, decode_s: float = 0.0,
             "final_state": calibration_states(r.final_state),
         }
         # the coordinates the NEES is scored in (the report's NEES plot reads them back)
-        m["pose_error"] = (pose_errors or {}).get(name, "world")
+        m["pose_error"] = (pose_errors or {}).get(name) or _pose_error(r)
         if truth is not None and len(tr):
             m.update(_truth_scores(tr, truth, m["pose_error"]))
         if len(hold_t) and len(tr) > 1:

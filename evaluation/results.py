@@ -12,6 +12,16 @@ there is truth, and ``run.npz`` with the rest of what the report shows:
   (``consistency.InnovationTable``), once per estimator (a lagged track shares its filter's);
 * ``meta``: JSON text: the tracks in order, which log each track's innovations are in, the
   config file's text.
+
+In a notebook, ``SavedRun.from_result(result)`` gives the same ``SavedRun`` for an in-memory
+``RunResult`` (``estimation.runner.run``) without writing anything, so the figures of
+``evaluation.plots`` come straight from it::
+
+    from evaluation import plots
+    from evaluation.results import SavedRun
+
+    saved = SavedRun.from_result(result, cfg=cfg)   # scores it (pipeline.score) unless given
+    plots.trajectories(saved)                       # a Figure: display(fig), or plots.save_png
 """
 
 from __future__ import annotations
@@ -40,9 +50,10 @@ class ResultsError(DdfuseError):
 
 @dataclass
 class SavedRun:
-    """A run's results as read back from its output directory (see module docstring)."""
+    """A run's results as read back from its output directory (see module docstring), or
+    built in memory from a RunResult (``from_result``; ``outdir`` None)."""
 
-    outdir: Path
+    outdir: Path | None
     metrics: dict
     tracks: dict[str, Trajectory]
     truth: Trajectory | None
@@ -55,6 +66,47 @@ class SavedRun:
     log_owner: dict[str, str] = field(default_factory=dict)  # track -> first track of its log
     update_s: dict[str, np.ndarray] = field(default_factory=dict)
     config_text: str | None = None
+
+    @classmethod
+    def from_result(cls, result: RunResult, metrics: dict | None = None, *, cfg=None,
+                    config_text: str | None = None) -> SavedRun:
+        """What ``load_run`` would read back had ``result`` been saved, without touching disk:
+        the arrays ``save_run`` would write into run.npz, read as ``load_run`` reads them, and
+        the tracks and truth as they are (the saved CSV rounds to 10 digits). ``outdir`` is
+        None.
+
+        ``metrics``: the run's metrics dictionary (what ``ddfuse run`` writes as metrics.json);
+        by default ``evaluation.pipeline.score(result)`` with the data facts the figures read
+        (the local frame, t0): all of them with the run's config ``cfg``
+        (``pipeline.data_facts``, and the initial pose), else the stream's start, datum and
+        landmarks. ``config_text``: shown by the report (default: ``cfg``'s file)."""
+        if metrics is None:
+            metrics = _score(result, cfg)
+        if config_text is None and cfg is not None and getattr(cfg, "path", None):
+            config_text = Path(cfg.path).read_text(errors="replace")
+        # through JSON, as metrics.json is read back (lists, not tuples; string keys)
+        metrics = json.loads(json.dumps(metrics))
+        tracks = {name: r.trajectory for name, r in result.runs.items() if len(r.trajectory)}
+        return _from_arrays(None, metrics, _run_arrays(result, config_text), tracks,
+                            result.truth)
+
+
+def _score(result: RunResult, cfg) -> dict:
+    """The metrics dictionary of an in-memory run, as far as ``SavedRun.from_result`` needs
+    one (see there)."""
+    from evaluation import pipeline  # it imports this module
+
+    m = pipeline.score(result)
+    if cfg is not None:
+        m["data"] = pipeline.data_facts(result, cfg)
+        ip = cfg.initial_pose
+        m["initial_pose"] = ("first ground-truth pose" if ip == "ground_truth"
+                             else list(ip) if ip else None)
+    else:
+        st = result.stream
+        m["data"] = {"t0": st.t0, "t1": st.t1, "landmarks": len(st.landmarks),
+                     "datum": list(st.datum) if st.datum else None}
+    return m
 
 
 def _previous_tracks(outdir: Path) -> list[str]:
@@ -84,6 +136,11 @@ def save_run(result: RunResult, outdir: Path, config_text: str | None = None) ->
     if result.truth is not None:
         write_tum(outdir / f"{TRUTH}.tum", result.truth)
         write_csv(outdir / f"{TRUTH}.csv", result.truth)
+    np.savez_compressed(outdir / RUN_FILE, **_run_arrays(result, config_text))
+
+
+def _run_arrays(result: RunResult, config_text: str | None) -> dict[str, np.ndarray]:
+    """The arrays of run.npz for ``result`` (module docstring)."""
     gps = result.gps
     lm = result.stream.landmarks
     arrays: dict[str, np.ndarray] = {
@@ -106,7 +163,7 @@ def save_run(result: RunResult, outdir: Path, config_text: str | None = None) ->
                 arrays[f"innov/{name}/{f}"] = getattr(table, f)
     meta = {"tracks": list(result.runs), "log_owner": owner, "config_text": config_text}
     arrays["meta"] = np.array(json.dumps(meta))
-    np.savez_compressed(outdir / RUN_FILE, **arrays)
+    return arrays
 
 
 def load_run(outdir: str | Path) -> SavedRun:
@@ -130,17 +187,25 @@ def load_run(outdir: str | Path) -> SavedRun:
                 tracks[name] = read_csv(p)
         tpath = outdir / f"{TRUTH}.csv"
         truth = read_csv(tpath) if tpath.is_file() else None
-        owner = meta["log_owner"]
-        tables = {}
-        for name in meta["tracks"]:
-            key = owner[name]
-            tables[name] = InnovationTable(*(z[f"innov/{key}/{f}"] for f in _INNOV_FIELDS))
-        return SavedRun(
-            outdir, metrics, tracks, truth, z["gps_t"], z["gps_xy"], z["gps_cov"],
-            z["gps_withheld"],
-            {str(i): (float(x), float(y)) for i, (x, y) in zip(z["landmark_ids"],
-                                                                z["landmark_xy"], strict=True)},
-            tables, owner, {name: z[f"update_s/{name}"] for name in meta["tracks"]},
-            meta.get("config_text"))
+        return _from_arrays(outdir, metrics, z, tracks, truth)
     except (OSError, EOFError, ValueError, KeyError, TypeError, zipfile.BadZipFile) as e:
         raise ResultsError(f"{outdir}: damaged run results ({type(e).__name__}: {e})") from None
+
+
+def _from_arrays(outdir: Path | None, metrics: dict, z, tracks: dict[str, Trajectory],
+                 truth: Trajectory | None) -> SavedRun:
+    """A SavedRun from run.npz's arrays ``z`` (an NpzFile or the dictionary ``_run_arrays``
+    gives) and the tracks and truth."""
+    meta = json.loads(str(z["meta"]))
+    owner = meta["log_owner"]
+    tables = {}
+    for name in meta["tracks"]:
+        key = owner[name]
+        tables[name] = InnovationTable(*(z[f"innov/{key}/{f}"] for f in _INNOV_FIELDS))
+    return SavedRun(
+        outdir, metrics, tracks, truth, z["gps_t"], z["gps_xy"], z["gps_cov"],
+        z["gps_withheld"],
+        {str(i): (float(x), float(y)) for i, (x, y) in zip(z["landmark_ids"],
+                                                            z["landmark_xy"], strict=True)},
+        tables, owner, {name: z[f"update_s/{name}"] for name in meta["tracks"]},
+        meta.get("config_text"))
