@@ -41,7 +41,10 @@ from __future__ import annotations
 import argparse
 import heapq
 import math
+import os
+import shutil
 import sys
+import tempfile
 import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
@@ -64,6 +67,8 @@ bool has_bearing
 """
 UNUSED_VAR = 1e6  # variance written for axes a planar robot does not measure
 FORMATS = ("ros1", "ros2", "mcap")
+# the file extension of each format's bag (ros1) or of the storage file in its directory (ROS 2)
+SUFFIXES = {"ros1": ".bag", "ros2": ".db3", "mcap": ".mcap"}
 
 
 # --------------------------------------------------------------------------------------------
@@ -1055,11 +1060,32 @@ def _topic_messages(res: SimResult, mk: _Msgs) -> list[tuple[str, str, Iterator]
     return out
 
 
+def storage_file(path: str | Path, fmt: str = "ros1") -> Path:
+    """The file holding the messages of the bag ``write_bag(res, path, fmt)`` writes: the
+    ros1 bag itself; for ros2 and mcap, the file in the bag directory ``path``, named after it
+    without the extension the file carries: ``h.mcap`` -> ``h.mcap/h.mcap``, ``run`` ->
+    ``run/run.mcap``, ``x.db3`` -> ``x.db3/x.db3``."""
+    p = Path(path)
+    if fmt == "ros1":
+        return p
+    suffix = SUFFIXES[fmt]
+    name = p.name[:-len(suffix)] if p.name.endswith(suffix) and p.name != suffix else p.name
+    return p / (name + suffix)
+
+
 def _check_output(path: str | Path, fmt: str) -> Path:
-    """The bag path, after checking the format name and that nothing would be overwritten."""
+    """The bag path, after checking the format name, that the path's extension (if it has one
+    of .bag, .db3, .mcap) is the format's (another would name a bag that is read as that
+    format: an mcap directory called x.bag is taken for a ROS 1 bag), and that nothing would
+    be overwritten."""
     p = Path(path)
     if fmt not in FORMATS:
         raise ValueError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
+    other = {v: k for k, v in SUFFIXES.items()}.get(p.suffix, fmt)
+    if other != fmt:
+        raise ValueError(f"{p}: a name ending in {p.suffix} says {other} (and is read as "
+                         f"one); a {fmt} bag's name ends in {SUFFIXES[fmt]} or has no "
+                         "extension")
     if p.exists():
         raise FileExistsError(f"{p} exists; remove it first (bags are never overwritten)")
     return p
@@ -1073,9 +1099,10 @@ def _tagged(i: int, it: Iterator) -> Iterator[tuple[int, int, object]]:
 
 def write_bag(res: SimResult, path: str | Path, fmt: str = "ros1", compress: bool = True
               ) -> tuple[Path, Path, Path | None]:
-    """Write the bag (ROS1 file, or ROS2 directory with sqlite3 or MCAP storage), then the
-    config YAML and landmark map YAML next to it. Messages are written in stamp order with the
-    record time equal to the header stamp. ``compress``: LZ4 chunks for ROS1 (no effect on ROS2).
+    """Write the bag (ROS1 file, or ROS2 directory with sqlite3 or MCAP storage: the file in it
+    is ``storage_file(path, fmt)``), then the config YAML and landmark map YAML next to it
+    (``sidecar_paths``). Messages are written in stamp order with the record time equal to the
+    header stamp. ``compress``: LZ4 chunks for ROS1 (no effect on ROS2).
 
     Returns (bag path, config path, landmark map path or None)."""
     from rosbags.rosbag1 import Writer as Writer1
@@ -1090,9 +1117,29 @@ def write_bag(res: SimResult, path: str | Path, fmt: str = "ros1", compress: boo
         writer = Writer1(p)
         if compress:
             writer.set_compression(Writer1.CompressionFormat.LZ4)
+        _write_messages(writer, topics, ts, mk)
     else:
+        # rosbags names the storage file after the directory it makes (<dir>/<dir name>.mcap):
+        # the bag is made as a directory named like the file's stem in a temporary directory
+        # beside ``p``, then renamed to ``p`` (complete, or not at all).
         plugin = StoragePlugin.MCAP if fmt == "mcap" else StoragePlugin.SQLITE3
-        writer = Writer2(p, version=9, storage_plugin=plugin)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        stage = Path(tempfile.mkdtemp(prefix=f".{p.name}.", dir=p.parent))
+        try:
+            made = stage / storage_file(p, fmt).stem
+            _write_messages(Writer2(made, version=9, storage_plugin=plugin), topics, ts, mk)
+            if p.exists():  # made meanwhile by someone else
+                raise FileExistsError(f"{p} exists; remove it first (bags are never "
+                                      "overwritten)")
+            os.rename(made, p)
+        finally:
+            shutil.rmtree(stage, ignore_errors=True)
+    cfg_path, map_path = write_sidecars(res, p, fmt)
+    return p, cfg_path, map_path
+
+
+def _write_messages(writer, topics, ts, mk: _Msgs) -> None:
+    """Every message of ``topics`` (``_topic_messages``) into the opened-on-entry ``writer``."""
     with writer:
         conns = [writer.add_connection(topic, msgtype, typestore=ts)
                  for topic, msgtype, _ in topics]
@@ -1101,8 +1148,6 @@ def write_bag(res: SimResult, path: str | Path, fmt: str = "ros1", compress: boo
                              key=lambda item: (item[0], item[1]))
         for ns, i, msg in merged:
             writer.write(conns[i], ns, mk.serialize(msg, topics[i][1]))
-    cfg_path, map_path = write_sidecars(res, p, fmt)
-    return p, cfg_path, map_path
 
 
 # --------------------------------------------------------------------------------------------
@@ -1125,8 +1170,12 @@ def _main(argv: list[str] | None) -> int:
     ap.add_argument("--duration", type=float, default=None,
                     help="seconds to simulate (default: the scenario's)")
     ap.add_argument("--format", choices=FORMATS, default="ros1",
-                    help="ros1 (.bag file), ros2 (sqlite3 directory) or mcap (directory)")
-    ap.add_argument("-o", "--output", required=True, help="bag path to create")
+                    help="ros1 (a .bag file), ros2 (a directory: NAME.db3 and metadata.yaml) "
+                    "or mcap (a directory: NAME.mcap and metadata.yaml)")
+    ap.add_argument("-o", "--output", required=True,
+                    help="bag path to create: for ros2 and mcap the directory, whose file is "
+                    "named after it (-o h.mcap: h.mcap/h.mcap; -o run: run/run.mcap); the "
+                    "config goes beside it, the path with .yaml (h.yaml, run.yaml)")
     args = ap.parse_args(argv)
     simulated_scenario(args.scenario, args.duration)
     # Before simulating (the long scenario takes a while): the bag must not exist, and its
@@ -1134,7 +1183,7 @@ def _main(argv: list[str] | None) -> int:
     out = Path(args.output)
     try:
         _check_output(out, args.format)
-    except FileExistsError as e:
+    except (FileExistsError, ValueError) as e:
         raise DdfuseError(f"-o {e}") from None
     check_output_file(out, "-o", create_parents=True)
     res = simulate(args.scenario, seed=args.seed, duration=args.duration)
@@ -1143,8 +1192,12 @@ def _main(argv: list[str] | None) -> int:
         bag, cfg, lmap = write_bag(res, out, args.format)
     except FileExistsError as e:  # made meanwhile by someone else
         raise DdfuseError(f"-o {e}") from None
-    print(f"wrote {bag} ({args.format}, {res.duration:g} s, scenario {args.scenario}, "
-          f"seed {args.seed})")
+    what = f"{res.duration:g} s, scenario {args.scenario}, seed {args.seed}"
+    if args.format == "ros1":
+        print(f"wrote {bag} (ros1, {what})")
+    else:  # say that it is a directory, and what is in it
+        print(f"wrote {bag}{os.sep} (ROS 2 bag directory, {args.format}, {what}): "
+              f"{storage_file(bag, args.format)} and {bag / 'metadata.yaml'}")
     print(f"wrote {cfg}")
     if lmap:
         print(f"wrote {lmap}")

@@ -4,11 +4,14 @@ and through the project's reader (estimation.bags.read_stream), and matches the 
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
+import os
 from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from rosbags.highlevel import AnyReader
 
 from estimation.bags import read_stream
@@ -22,6 +25,7 @@ from estimation.measurements import (
     WheelOdometry,
     WheelSpeeds,
 )
+from evaluation import cli
 from evaluation import simulate as sim
 
 
@@ -199,6 +203,53 @@ def test_main_writes_bag_config_and_map(tmp_path, capsys):
     assert "exists" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         sim.main(["nope", "-o", str(tmp_path / "z.bag")])
+
+
+def test_storage_file_is_named_after_the_directory_without_its_extension(tmp_path):
+    assert sim.storage_file(tmp_path / "run", "mcap") == tmp_path / "run" / "run.mcap"
+    assert sim.storage_file(tmp_path / "h.mcap", "mcap") == tmp_path / "h.mcap" / "h.mcap"
+    assert sim.storage_file(tmp_path / "x.db3", "ros2") == tmp_path / "x.db3" / "x.db3"
+    assert sim.storage_file(tmp_path / "a.b", "ros2") == tmp_path / "a.b" / "a.b.db3"
+    assert sim.storage_file(tmp_path / "x.bag") == tmp_path / "x.bag"
+
+
+@pytest.mark.parametrize(("fmt", "ext"), [("mcap", ".mcap"), ("ros2", ".db3")])
+def test_a_path_with_the_storage_extension_names_the_file_in_the_directory(tmp_path, capsys,
+                                                                           fmt, ext):
+    """-o h.mcap: the directory h.mcap holds h.mcap (not h.mcap.mcap), stdout names both, the
+    config is h.yaml beside it, and ddfuse run reads the bag by the directory and the file."""
+    out = tmp_path / f"h{ext}"
+    inner = out / f"h{ext}"
+    assert sim.main(["husky", "--duration", "10", "--format", fmt, "-o", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert sorted(p.name for p in out.iterdir()) == sorted([inner.name, "metadata.yaml"])
+    # the sidecar where it always was; no staging directory left behind
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([out.name, "h.yaml"])
+    meta = yaml.safe_load((out / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert meta["relative_file_paths"] == [inner.name]
+    assert f"wrote {out}{os.sep} (ROS 2 bag directory" in printed
+    assert str(inner) in printed and ext + ext not in printed
+    assert f"wrote {tmp_path / 'h.yaml'}" in printed
+    ates = []
+    for k, (bag, extra) in enumerate(((out, []), (inner, ["-c", str(tmp_path / "h.yaml")]))):
+        res_dir = tmp_path / f"res{k}"
+        assert cli.main(["run", str(bag), *extra, "-o", str(res_dir), "--estimators", "ekf",
+                         "--no-report"]) == 0
+        m = json.loads((res_dir / "metrics.json").read_text())
+        ates.append(m["estimators"]["ekf"]["ate_rmse_m"])
+    assert ates[0] is not None and ates[0] == ates[1]
+
+
+@pytest.mark.parametrize(("fmt", "name"), [("mcap", "m.bag"), ("ros2", "r.bag"),
+                                           ("ros1", "x.mcap"), ("mcap", "y.db3")])
+def test_an_extension_of_another_format_is_refused(tmp_path, capsys, fmt, name):
+    """A name that says another format would be read as that one (an mcap directory called
+    m.bag is taken for a ROS 1 bag): one line, exit 2, nothing written."""
+    assert sim.main(["husky", "--duration", "10", "--format", fmt, "-o",
+                     str(tmp_path / name)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{name}: a name ending in" in err
+    assert not list(tmp_path.iterdir())
 
 
 @pytest.mark.slow
