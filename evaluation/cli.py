@@ -55,13 +55,17 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 
 
 def _config_for(bag: Path, given: Path | None) -> Path:
-    """The config: -c if given, else the bag's path with .yaml, else the one ddfuse ships for
-    the known real bags (data/configs/<stem>.yaml)."""
+    """The config: -c if given, else the bag's path with .yaml (for the storage file inside a
+    ROS 2 bag directory, ``h.mcap/h.mcap``, the directory's: ``h.yaml``, as ``ddfuse simulate``
+    writes it), else the one ddfuse ships for the known real bags (data/configs/<stem>.yaml)."""
     if given is not None:
         return given
     if not Path(bag).exists():  # say that, not that its config is missing
         raise DdfuseError(f"{bag}: no such bag (file or ROS 2 directory)")
-    for cand in (bag.with_suffix(".yaml"), CONFIGS / f"{bag.stem}.yaml"):
+    cands = [bag.with_suffix(".yaml")]
+    if (bag.parent / "metadata.yaml").is_file():  # a file inside a ROS 2 bag directory
+        cands.append(bag.parent.with_suffix(".yaml"))
+    for cand in (*cands, CONFIGS / f"{bag.stem}.yaml"):
         if cand.is_file():
             return cand
     raise DdfuseError(f"{bag}: no config given (-c) and none at {bag.with_suffix('.yaml')}; "

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from test_runner_guards import _Diverging
+
 from estimation.bags import read_stream
 from estimation.config import load_config
 from estimation.dead_reckoning import DeadReckoning
 from evaluation.online import OnlineSession
-from test_runner_guards import _Diverging
 
 ROOT = Path(__file__).resolve().parents[1]
 

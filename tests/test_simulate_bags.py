@@ -231,7 +231,8 @@ def test_a_path_with_the_storage_extension_names_the_file_in_the_directory(tmp_p
     assert str(inner) in printed and ext + ext not in printed
     assert f"wrote {tmp_path / 'h.yaml'}" in printed
     ates = []
-    for k, (bag, extra) in enumerate(((out, []), (inner, ["-c", str(tmp_path / "h.yaml")]))):
+    # by the file too without -c: the directory's config (it was h.mcap/h.yaml: "no config")
+    for k, (bag, extra) in enumerate(((out, []), (inner, []))):
         res_dir = tmp_path / f"res{k}"
         assert cli.main(["run", str(bag), *extra, "-o", str(res_dir), "--estimators", "ekf",
                          "--no-report"]) == 0
