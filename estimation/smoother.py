@@ -546,12 +546,18 @@ class FixedLagSmoother(Estimator):
         if self.v is None:
             self.last_t = t
             return
-        robot, n = self.cfg.robot, self.noise
-        qv, v_var = self._stale(self.v_var, self.v_T, robot.max_accel, n.acc, self.v_span, a, t)
-        qo, vo = self._stale(self.wo_var, self.wo_T, robot.max_yaw_accel, n.yaw_acc,
-                             self.wo_span, a, t) if self.wo is not None else (0.0, 0.0)
-        qg, vg = self._stale(self.wg_var, self.wg_T, robot.max_yaw_accel, n.yaw_acc,
-                             self.wg_span, a, t) if self.wg is not None else (0.0, 0.0)
+        sv, so, sg = self.v_span, self.wo_span, self.wg_span
+        if sv[0] <= a and t <= sv[1] and so[0] <= a and t <= so[1] and sg[0] <= a and \
+                t <= sg[1]:  # every held sample fresh (almost always): no calls
+            qv = qo = qg = 0.0
+            v_var, vo, vg = self.v_var, self.wo_var, self.wg_var
+        else:
+            robot, n = self.cfg.robot, self.noise
+            qv, v_var = self._stale(self.v_var, self.v_T, robot.max_accel, n.acc, sv, a, t)
+            qo, vo = self._stale(self.wo_var, self.wo_T, robot.max_yaw_accel, n.yaw_acc, so,
+                                 a, t) if self.wo is not None else (0.0, 0.0)
+            qg, vg = self._stale(self.wg_var, self.wg_T, robot.max_yaw_accel, n.yaw_acc, sg,
+                                 a, t) if self.wg is not None else (0.0, 0.0)
         fresh = qo == qg == 0.0
         yr = self._yaw_rate(self.wg_q + qg, self.wo_q + qo, vg, vo)
         if yr is not None:
