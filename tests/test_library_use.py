@@ -35,6 +35,7 @@ def test_the_readmes_library_example_gives_what_ddfuse_run_gives(tmp_path, monke
     ns: dict = {}
     exec(compile(_readme_library_block(), "README.md", "exec"), ns)  # noqa: S102
     lib = ns["score"](ns["result"])["estimators"]
+    assert type(ns["fig"]).__name__ == "Figure" and ns["fig"].axes
     assert cli.main(["run", "-o", str(tmp_path), "--estimators", "ekf,smoother,smoother_lagged",
                      "--no-report"]) == 0
     ran = json.loads((tmp_path / "metrics.json").read_text())["estimators"]
