@@ -14,14 +14,11 @@ import argparse
 import sys
 from pathlib import Path
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")  # files only; never needs a display
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from estimation.geodesy import geodetic_to_enu  # noqa: E402
-from evaluation.simulate import SCENARIOS, SimResult, se2_step, simulate, wrap  # noqa: E402
+from estimation.geodesy import geodetic_to_enu
+from evaluation.plots import subplots  # a Figure on its own canvas: the backend left alone
+from evaluation.simulate import SCENARIOS, SimResult, se2_step, simulate, wrap
 
 
 def dead_reckoning(res: SimResult) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -48,8 +45,7 @@ def plot_sim(res: SimResult, out: str | Path, title: str | None = None) -> Path:
     sc = res.scenario
     gt = res.ground_truth
     t_dr, x_dr, y_dr, _ = dead_reckoning(res)
-    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(14, 6.5),
-                                  gridspec_kw={"width_ratios": [1.6, 1.0]})
+    fig, (ax, ax2) = subplots(1, 2, figsize=(14, 6.5), gridspec_kw={"width_ratios": [1.6, 1.0]})
     ax.plot(gt.x, gt.y, "-", color="k", lw=1.4, label="truth")
     ax.plot(gt.x[0], gt.y[0], "o", color="k", ms=7, label="start")
     ax.plot(x_dr, y_dr, "-", color="tab:orange", lw=1.0,
@@ -97,7 +93,6 @@ def plot_sim(res: SimResult, out: str | Path, title: str | None = None) -> Path:
     ax2.set_title("errors against the truth")
     fig.tight_layout()
     fig.savefig(out, dpi=110)
-    plt.close(fig)
     return out
 
 

@@ -56,7 +56,7 @@ def test_importing_and_plotting_leave_the_backend_alone(husky, backend):
     _, out, _, _ = husky
     code = (
         "import sys, matplotlib\n"
-        "import evaluation.plots, evaluation.report, evaluation.results\n"
+        "import evaluation.plots, evaluation.report, evaluation.results, evaluation.plot_sim\n"
         "before = matplotlib.get_backend()\n"
         "pyplot = 'matplotlib.pyplot' in sys.modules\n"
         "run = evaluation.results.load_run(sys.argv[1])\n"
