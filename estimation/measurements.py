@@ -146,8 +146,10 @@ _isfinite = math.isfinite
 # any term makes it non-finite; only finite values near 1e308 could overflow it, none a sensor
 # gives). Called for every message: ~0.1 us, where a loop over the field names took 0.3.
 _FINITE = {
-    WheelOdometry: lambda m: _isfinite(m.t + (m.v or 0.0) + (m.yaw_rate or 0.0) + m.v_var
-                                       + m.yaw_rate_var),
+    # a quantity not used carries no variance to check (the converter leaves it NaN)
+    WheelOdometry: lambda m: _isfinite(m.t + (0.0 if m.v is None else m.v + m.v_var)
+                                       + (0.0 if m.yaw_rate is None
+                                          else m.yaw_rate + m.yaw_rate_var)),
     WheelSpeeds: lambda m: _isfinite(m.t + m.left + m.right + m.left_var + m.right_var),
     GyroYawRate: lambda m: _isfinite(m.t + m.yaw_rate + m.var),
     Heading: lambda m: _isfinite(m.t + m.yaw + m.var),

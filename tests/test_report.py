@@ -496,6 +496,13 @@ def test_jackal_report_without_gps_or_truth(jackal_bag, tmp_path):
     assert "ekf_igvc: needs an odometry or wheels sensor, and gps" in page
     assert _row(page, "local frame").startswith("the start pose")
     assert "t=0.000 s: ekf_unicycle: started" in page
+    # every estimator near robot_localization's own final position on this bag (a peer
+    # cross-check; tests/test_unicycle_bags.py): the smoother once counted every v-only
+    # odometry message 'nonfinite' (its unused yaw-rate variance) and stayed at the origin
+    m = json.loads((out / "metrics.json").read_text())
+    for name, e in m["estimators"].items():
+        assert math.dist(e["final_xy"], (1.0255, 3.4334)) < 0.5, (name, e["final_xy"])
+        assert not any("nonfinite" in k for k in e["rejected"]), (name, e["rejected"])
 
 
 def test_a_second_run_into_the_same_directory_leaves_no_tracks_of_the_first(tmp_path):
