@@ -95,6 +95,10 @@ INIT_DISTANCE = 5.0  # m of GPS travel before the heading is taken from the GPS 
 # SmootherNoise.from_config); a tenth of a millimetre per second, negligible against any sensor
 POSE_NOISE_FLOOR = (1e-3, 1e-3, 1e-4)
 ODOMETRY_WAIT = 0.5  # s: without odometry for this long, go on holding the last sample forward
+# rad: a gap in the feed over which the yaw rate held across it leaves the heading this
+# uncertain ends the window there (FixedLagSmoother._restart_after_gap)
+GAP_HEADING_SIGMA = 0.5
+RESTART_HEADING_WAIT = 1.0  # s: how long the new window waits for a heading sample
 MAX_RECOVERIES = 3  # re-initialisations within RECOVERY_WINDOW the smoother survives
 RECOVERY_WINDOW = 10.0  # s of data
 # rad/s/sqrt(s), rad/sqrt(s): the least random walk of an estimated gyro bias and heading offset.
@@ -279,6 +283,10 @@ class FixedLagSmoother(Estimator):
         self.cfg = cfg
         self._pim_class = WheelGyroPreintegration if reference else _compiled_preintegration()
         self.stopped: str | None = None  # why it gave up (then every process call says so)
+        # after a gap (_restart_after_gap): the new window's start, and the messages held
+        self._restart: tuple | None = None
+        self._restart_buf: list = []
+        self._realign: tuple | None = None  # calibration kept while the GPS course re-aligns
         self._pim_compiled = self._pim_class is not WheelGyroPreintegration
         self.lag = float(lag if lag is not None else cfg.smoother.lag)
         if not (self.lag > 0.0 and math.isfinite(self.lag)):
@@ -296,6 +304,7 @@ class FixedLagSmoother(Estimator):
         self.fixed_bias = next((float(s.gyro_bias) for s in imus if s.gyro_bias != "estimate"),
                                0.0)
         heads = [s for s in cfg.of_kind("imu") if "yaw" in s.use]
+        self.heading_sensors = bool(heads)
         self.est_hoff = any(s.heading_offset == "estimate" for s in heads)
         # odometry scale states, as in the EKFs (ekf_baseline.calibration): estimated when the
         # config states how well the geometry is known and a sensor gives odometry
@@ -360,8 +369,11 @@ class FixedLagSmoother(Estimator):
         return gtsam.symbol("x", k)
 
     def _init_state(self, t: float, pose: tuple[float, float, float], pos_sigma: float,
-                    psi_sigma: float, scale: tuple[np.ndarray, np.ndarray] | None = None
-                    ) -> None:
+                    psi_sigma: float, scale: tuple[np.ndarray, np.ndarray] | None = None,
+                    calib: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+        """A new first keyframe at ``t``: ``pose`` with the given sigmas; the odometry scales
+        from ``scale`` (value, 2x2 covariance) or their prior; with ``calib`` (value, 4x4
+        covariance of bg, hoff, k_v, k_w) all four calibration states as they were learnt."""
         n = self.noise
         x0 = np.array([pose[0], pose[1], pose[2], self.v or 0.0, 0.0, self.fixed_bias, 0.0,
                        1.0, 1.0])
@@ -372,7 +384,9 @@ class FixedLagSmoother(Estimator):
                n.init_hoff_sigma if self.est_hoff else n.fixed_sigma,
                n.fixed_sigma, n.fixed_sigma]
         cov0 = np.diag(np.square(sig))
-        if scale is not None:  # a re-initialisation keeps the scales it had learnt
+        if calib is not None:
+            x0[BG:], cov0[BG:, BG:] = calib
+        elif scale is not None:  # a re-initialisation keeps the scales it had learnt
             x0[KV:], cov0[KV:, KV:] = scale
         elif self.scale_prior is not None:
             sd_v, sd_w, c_vw = self.scale_prior
@@ -408,8 +422,16 @@ class FixedLagSmoother(Estimator):
             self.log.rejected[(m.sensor, "nonfinite")] += 1
             return
         if not self.initialised:
-            self._process_uninitialised(m)
+            if self._restart is not None:
+                self._restart_now(m)
+            else:
+                self._process_uninitialised(m)
             return
+        if m.t - self._now > ODOMETRY_WAIT and math.isfinite(self._now):
+            self._restart_after_gap(m.t)
+            if self._restart is not None:
+                self._restart_now(m)
+                return
         self._now = max(self._now, m.t)
         if isinstance(m, (WheelOdometry, WheelSpeeds)):
             # Wheel odometry is the mean over the interval since its previous sample, stamped at
@@ -427,6 +449,96 @@ class FixedLagSmoother(Estimator):
                 self._release_held()
             return
         self._step(m)
+
+    def _restart_after_gap(self, t: float) -> None:
+        """No message from ``_now`` to ``t``: if the yaw rate held over that gap leaves the
+        heading more uncertain than GAP_HEADING_SIGMA, end the window at the last message and
+        start a new one at ``t``, from the last estimate carried over the gap by its twist,
+        with the position and heading sigmas the gap leaves and the calibration states as
+        learnt (their walks grown over the gap).
+
+        One preintegrated factor across such a gap describes a relative pose whose rotation
+        is unknown: linearised at the dead-reckoned guess, ISAM2's one step per update left the
+        estimate metres off with a sigma of decimetres for seconds after 20-60 s gaps (the
+        EKF, whose GPS and heading updates are linear in its state, settles at the first fix).
+        The restarted window's first fix and heading sample are updates of that kind."""
+        gap = t - self._now
+        n, robot = self.noise, self.cfg.robot
+        yaw = []
+        for var, period, w in ((self.wg_var, self.wg_T, self.wg), (self.wo_var, self.wo_T,
+                                                                  self.wo)):
+            if w is not None:
+                q = (robot.max_yaw_accel ** 2 * period if robot.max_yaw_accel is not None
+                     else n.yaw_acc ** 2)
+                yaw.append(var * gap * gap + q * gap ** 3 / 3.0)
+        if not yaw or min(yaw) < GAP_HEADING_SIGMA ** 2 or self.v is None:
+            return
+        self._release_held()
+        if self.pim.n > 0:
+            self._new_keyframe(self.last_t)
+        self._flush()
+        x, full = self.kf_state, self._full
+        if full is None or full.shape != (DIM, DIM):
+            return
+        qv = (robot.max_accel ** 2 * self.v_T if robot.max_accel is not None
+              else n.acc ** 2)
+        v = float(x[3])
+        grow_pos = self.v_var * gap * gap + qv * gap ** 3 / 3.0
+        psi_var = float(full[2, 2]) + min(yaw)
+        # a heading this unknown spreads the carried position along the arc of |v| gap
+        pos_sigma = math.sqrt(max(float(full[0, 0]), float(full[1, 1])) + grow_pos
+                              + (v * gap) ** 2 * min(psi_var, 1.0))
+        px, py, ppsi = se2_step(float(x[0]), float(x[1]), float(x[2]), v, float(x[4]), gap)
+        calib_cov = full[BG:, BG:].copy()
+        calib_cov[0, 0] += (n.gyro_bias_rw if self.est_bias else n.fixed_rw) ** 2 * gap
+        calib_cov[1, 1] += (n.heading_offset_rw if self.est_hoff else n.fixed_rw) ** 2 * gap
+        self.log.note(t, f"no message for {gap:.1f} s: the heading after it is unknown (sigma "
+                      f"{math.sqrt(psi_var):.2f} rad); the window ends there and a new one "
+                      f"starts from the estimate carried over the gap (position sigma "
+                      f"{pos_sigma:.1f} m)")
+        self._capture_leaving(math.inf, newest=True)  # the window as it stood: all smoothed
+        self._new_smoother()
+        # the held samples described the time before the gap; the next ones start afresh
+        self.v = self.wo = self.wg = None
+        self._int_g = self._int_o = self._diff_t = 0.0
+        self._held = []
+        self._restart = ((px, py, wrap_angle(ppsi)), pos_sigma, min(math.sqrt(psi_var), math.pi),
+                         (x[BG:].copy(), calib_cov))
+        self._restart_buf = []
+        self.initialised = False  # until _restart_now: the new window's first keyframe
+
+    def _restart_now(self, m) -> None:
+        """Open the window a gap ended (``_restart_after_gap``) at the first message after it,
+        once a heading sample fixes the heading (the motion factors are then linearised at
+        it), or after RESTART_HEADING_WAIT s without one (the carried heading, its wide
+        sigma); then replay the messages held meanwhile."""
+        buf = self._restart_buf
+        buf.append(m)
+        head = m if isinstance(m, Heading) else None
+        if head is None and m.t - buf[0].t < RESTART_HEADING_WAIT and self.heading_sensors:
+            return
+        pose, pos_sigma, psi_sigma, (xc, cc) = self._restart
+        if head is None and not self.heading_sensors and self.has_gps:
+            # no absolute heading at all: the GPS course gives it, as at the start (the
+            # calibration states kept); no estimate until then
+            self._restart, self._restart_buf, self._realign = None, [], (xc, cc)
+            self.heading = None
+            for b in buf:
+                self._process_uninitialised(b)
+            return
+        if head is not None:
+            s = self.sensors[head.sensor]
+            if s.heading_offset == "estimate":
+                psi, var = head.yaw - xc[HOFF - BG], head.var + cc[HOFF - BG, HOFF - BG]
+            else:
+                psi, var = head.yaw - float(s.heading_offset), head.var
+            pose, psi_sigma = (pose[0], pose[1], wrap_angle(psi)), math.sqrt(var)
+        self._restart, self._restart_buf = None, []
+        self.heading = None  # the pre-gap sample must not set the new keyframe's offset
+        self._init_state(buf[0].t, pose, pos_sigma, psi_sigma, calib=(xc, cc))
+        self._now = buf[0].t
+        for b in buf:
+            self.process(b)
 
     def _release_held(self) -> None:
         """Use the messages that were waiting for an odometry sample, in order."""
@@ -906,7 +1018,7 @@ class FixedLagSmoother(Estimator):
     def _process_uninitialised(self, m) -> None:
         if isinstance(m, Heading):
             self.heading = m
-        if self.given_pose is not None:
+        if self.given_pose is not None and self._realign is None:
             self._start(m.t, tuple(self.given_pose), self.noise.init_pos_sigma,
                         self.noise.init_given_psi_sigma)
             self.process(m)
@@ -941,7 +1053,8 @@ class FixedLagSmoother(Estimator):
 
     def _start(self, t: float, pose, pos_sigma: float, psi_sigma: float) -> None:
         self.last_t = t
-        self._init_state(t, pose, pos_sigma, psi_sigma)
+        calib, self._realign = self._realign, None
+        self._init_state(t, pose, pos_sigma, psi_sigma, calib=calib)
 
     def _course_heading(self, f0: GpsFix, f1: GpsFix) -> float | None:
         """Initial heading at f0: the GPS displacement's direction minus the direction of the
@@ -981,6 +1094,11 @@ class FixedLagSmoother(Estimator):
         """The filtered estimate at the newest message's stamp: the newest keyframe composed
         with the partial preintegration up to the last odometry sample, then the held twist
         carried forward over the messages still waiting for the next odometry sample."""
+        if self._restart is not None:  # a gap ended the window; the new one waits to start
+            pose, pos_sigma, psi_sigma, _ = self._restart
+            cov = np.diag((pos_sigma ** 2, pos_sigma ** 2, psi_sigma ** 2))
+            return Estimate(self._restart_buf[-1].t if self._restart_buf else self._now, pose,
+                            cov, None, None, NAMES)
         if not self.initialised or self.kf_state is None:
             return None
         st, kf_cov = self._with_pending_heading()
