@@ -434,6 +434,15 @@ def test_non_finite_measurements_are_counted_and_never_reach_gtsam(husky):
 
     assert is_finite(WheelOdometry(1.0, 1.0, None, 1e-3, math.nan))
     assert not is_finite(WheelOdometry(1.0, 1.0, None, math.nan, 0.1))
+    from estimation.measurements import GroundTruthPose, LandmarkObservation
+
+    # range-only sighting (bearing NaN), NavSatFix truth (no yaw), fix without altitude
+    assert is_finite(LandmarkObservation(1.0, "a", 2.0, math.nan, 0.01, math.nan, False))
+    assert not is_finite(LandmarkObservation(1.0, "a", 2.0, math.nan, 0.01, 0.01))
+    assert is_finite(GroundTruthPose(1.0, 2.0, 3.0, math.nan))
+    fix = replace(bad[1], alt=math.nan, enu=(1.0, 2.0, math.nan),
+                  cov=np.diag([1.0, 1.0, math.nan]))
+    assert is_finite(fix) and not is_finite(replace(fix, lat=math.inf))
     a, b = clean.estimate(), dirty.estimate()
     assert np.allclose(a.pose, b.pose, atol=1e-9) and np.allclose(a.pose_cov, b.pose_cov)
 
