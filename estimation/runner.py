@@ -278,19 +278,24 @@ def parse_holdout(spec: str | None) -> Holdout | None:
     raise ValueError(f"--gps-holdout: expected every:K (K >= 2) or window:T0:T1, got {spec!r}")
 
 
+# m^2 / rad^2: a pose variance above this (a sigma of 1e8 m) says the filter kept nothing; its
+# arithmetic is past what float64 holds together (the covariance then turns indefinite)
+MAX_POSE_VARIANCE = 1e16
+
+
 def broken(e: Estimate) -> str | None:
     """What is wrong with estimate ``e`` if it is not a number a filter can give (a position
-    or heading not finite, a pose variance negative or infinite: the covariance has lost
-    positive definiteness), else None. NaN variances mean 'no covariance' (dead reckoning).
-    Checked at every output tick, outside the timings."""
+    or heading not finite, a pose variance negative or above MAX_POSE_VARIANCE: the covariance
+    has lost positive definiteness or all meaning), else None. NaN variances mean 'no
+    covariance' (dead reckoning). Checked at every output tick, outside the timings."""
     d = np.diagonal(e.pose_cov)
     if math.isfinite(e.pose[0] + e.pose[1] + e.pose[2]) and not (d < 0.0).any() and \
-            not np.isinf(d).any():
+            not (d > MAX_POSE_VARIANCE).any():
         return None
     return (f"pose ({e.pose[0]:.3g}, {e.pose[1]:.3g}, {e.pose[2]:.3g}), pose variances "
             f"({d[0]:.3g}, {d[1]:.3g}, {d[2]:.3g}): the covariance lost positive "
-            "definiteness; the config's noise values may be far from the data's (a sigma of "
-            "1e-9 makes an update's rounding exceed the variance it leaves)")
+            "definiteness or all meaning; the config's noise values may be far from the data's "
+            "(with sigmas of 1e-9 no recovery from a gate lock-out can reconcile the sensors)")
 
 
 def _never_started(log: EstimatorLog) -> str:

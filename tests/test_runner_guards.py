@@ -20,8 +20,9 @@ ROOT = Path(__file__).resolve().parents[1]
 
 class _Diverging(DeadReckoning):
     """Dead reckoning whose estimates from ``t_break`` s on carry ``fault`` ('negative': a
-    negative x variance, as a filter whose covariance lost positive definiteness; 'nan': a NaN
-    position)."""
+    negative x variance, as a filter whose covariance lost positive definiteness; 'huge': an x
+    variance of 1e21 m^2, as one inflated past meaning, yaw 3e21 rad^2 on the way to that in
+    the unicycle EKF with IMU sigmas of 1e-9; 'nan': a NaN position)."""
 
     def __init__(self, cfg, t_break: float, fault: str, **kw) -> None:
         super().__init__(cfg, **kw)
@@ -37,7 +38,7 @@ class _Diverging(DeadReckoning):
         if self.fault == "nan":
             return replace(e, pose=(math.nan, e.pose[1], e.pose[2]))
         cov = e.pose_cov.copy()
-        cov[0, 0] = -1e120
+        cov[0, 0] = -1e120 if self.fault == "negative" else 1e21
         return replace(e, pose_cov=cov)
 
 
@@ -47,7 +48,7 @@ def sample():
     return cfg, read_stream(ROOT / "data" / "sample_husky.bag", cfg)
 
 
-@pytest.mark.parametrize("fault", ["negative", "nan"])
+@pytest.mark.parametrize("fault", ["negative", "nan", "huge"])
 def test_an_estimator_whose_estimate_breaks_down_is_stopped_and_keeps_its_track(sample, fault):
     """Before, a unicycle EKF with the IMU noise at 1e-9 ended 3e29 m away with pose variances
     of -5e121 in its CSV, error None."""
