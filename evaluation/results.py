@@ -10,6 +10,9 @@ there is truth, and ``run.npz`` with the rest of what the report shows:
 * ``update_s/<track>`` (U,) s: wall time of each ``process`` call;
 * ``innov/<log>/{t, sensor, kind, nis, dim, accepted}`` (N,): each estimator's innovation log
   (``consistency.InnovationTable``), once per estimator (a lagged track shares its filter's);
+  on a long run a thinned subset of the early entries (for the plots) and every recent one,
+  with ``innov/<log>/folded`` (JSON: the exact counts of the thinned groups) and
+  ``n_thinned``, so that ``consistency.nis_by_sensor`` of a loaded table is metrics.json's;
 * ``meta``: JSON text: the tracks in order, which log each track's innovations are in, the
   config file's text.
 
@@ -161,6 +164,11 @@ def _run_arrays(result: RunResult, config_text: str | None) -> dict[str, np.ndar
             table = InnovationTable.from_innovations(r.log.innovations)
             for f in _INNOV_FIELDS:
                 arrays[f"innov/{name}/{f}"] = getattr(table, f)
+            # a long run's log is thinned: the exact counts of what it no longer holds one by
+            # one, so that NIS from a loaded run equals metrics.json's
+            arrays[f"innov/{name}/folded"] = np.array(json.dumps(
+                [[list(k), [float(x) for x in v]] for k, v in table.folded.items()]))
+            arrays[f"innov/{name}/n_thinned"] = np.array(table.n_thinned)
     meta = {"tracks": list(result.runs), "log_owner": owner, "config_text": config_text}
     arrays["meta"] = np.array(json.dumps(meta))
     return arrays
@@ -201,7 +209,13 @@ def _from_arrays(outdir: Path | None, metrics: dict, z, tracks: dict[str, Trajec
     tables = {}
     for name in meta["tracks"]:
         key = owner[name]
-        tables[name] = InnovationTable(*(z[f"innov/{key}/{f}"] for f in _INNOV_FIELDS))
+        folded = {}
+        if f"innov/{key}/folded" in z:  # absent from results written before they were saved
+            folded = {(str(a), str(b), int(c)): v
+                      for (a, b, c), v in json.loads(str(z[f"innov/{key}/folded"]))}
+        n_thinned = int(z[f"innov/{key}/n_thinned"]) if f"innov/{key}/n_thinned" in z else 0
+        tables[name] = InnovationTable(*(z[f"innov/{key}/{f}"] for f in _INNOV_FIELDS),
+                                       folded=folded, n_thinned=n_thinned)
     return SavedRun(
         outdir, metrics, tracks, truth, z["gps_t"], z["gps_xy"], z["gps_cov"],
         z["gps_withheld"],
