@@ -20,6 +20,9 @@ Per estimator (track), metrics.json holds:
   ``gps_holdout_scored_fixes`` of ``gps_holdout_fixes``); at the top level
   ``gps_holdout_interpolation_rmse_m``, the same score of the used fixes linearly
   interpolated in time (no estimator: the reference to read a track's score against);
+* ``ate_common_rmse_m``: where the tracks are sampled at different stamps (a lagged track at
+  its keyframes), the RMSE on the stamps of the sparsest one (top level ``ate_common``: how
+  many, and whose), every track and the truth interpolated there (``_common_ate``);
 * ``gps_residual_corr_s``: how long the used GPS fixes' residuals to the track stay correlated
   (``metrics.correlation_time``; 0 for white GPS noise): a hold-out of single fixes scores
   how closely a track follows the GPS on that time scale;
@@ -300,7 +303,43 @@ def score(result: RunResult, decode_s: float = 0.0,
             m["gps_outages"] = _outage_scores(tr, outages, truth, hold_t, hold_xy)
             m["gps_residual_corr_s"] = _num(_residual_corr(tr, used_t, used_xy))
         out["estimators"][name] = m
+    common = _common_ate({n: r.trajectory for n, r in result.runs.items()}, truth)
+    out["ate_common"] = common[1] if common else None
+    for name, m in out["estimators"].items():
+        m["ate_common_rmse_m"] = common[0].get(name) if common else None
     return out
+
+
+# sample counts further apart than this make the tracks' ATEs over different stamps
+COMMON_STAMPS_RATIO = 1.2
+
+
+def _common_ate(tracks: dict[str, Trajectory], truth: Trajectory | None
+                ) -> tuple[dict[str, float], dict] | None:
+    """Each track's position RMSE against the truth on one set of stamps, where the tracks
+    are sampled at different ones (a lagged track at its keyframes, the filters at 10 Hz: each
+    ATE then averages over other moments, e.g. the filters' drift between fixes that the
+    keyframes, at the fixes, never see): the stamps of the sparsest track inside every track's
+    and the truth's span, each track and the truth linearly interpolated there. None when the
+    sample counts are within COMMON_STAMPS_RATIO (or fewer than two tracks, no truth)."""
+    live = {n: tr for n, tr in tracks.items() if len(tr) > 1}
+    if truth is None or len(truth) < 2 or len(live) < 2:
+        return None
+    counts = [len(tr) for tr in live.values()]
+    if max(counts) <= COMMON_STAMPS_RATIO * min(counts):
+        return None
+    base = min(live, key=lambda n: len(live[n]))
+    lo = max([tr.t[0] for tr in live.values()] + [truth.t[0]])
+    hi = min([tr.t[-1] for tr in live.values()] + [truth.t[-1]])
+    t = live[base].t[(live[base].t >= lo) & (live[base].t <= hi)]
+    if len(t) < 2:
+        return None
+    g, _ = metrics.interpolate_xy(truth, t)
+    rmse = {}
+    for n, tr in live.items():
+        xy, _ = metrics.interpolate_xy(tr, t)
+        rmse[n] = _num(float(np.sqrt(np.mean(np.sum((xy - g) ** 2, axis=1)))))
+    return rmse, {"stamps": int(len(t)), "of": base}
 
 
 def data_facts(result: RunResult, cfg: Config) -> dict:

@@ -174,6 +174,22 @@ def _association_caution(m: dict, scored: dict) -> str | None:
             "accuracy.")
 
 
+def _common_line(m: dict, scored: dict, best: str) -> str:
+    """The tracks' ATEs on one set of stamps (``pipeline._common_ate``), where they are sampled
+    at different ones: the comparison the ranking above only approximates."""
+    c = m["ate_common"]
+    common = {n: e["ate_common_rmse_m"] for n, e in m["estimators"].items()
+              if e.get("ate_common_rmse_m") is not None and n in scored}
+    order = sorted(common, key=common.get)
+    text = ("The tracks are sampled at different stamps, so each ATE above averages over "
+            f"other moments. On the {c['stamps']} stamps of {c['of']} (the sparsest), every "
+            "track and the truth interpolated there: "
+            + ", ".join(f"{n} {common[n]:.3f} m" for n in order) + ".")
+    if order and order[0] != best:
+        text += f" There {order[0]} is best, not {best}."
+    return text
+
+
 def _holdout_caution(m: dict, best: str) -> str:
     """What a hold-out of single fixes measures, with the GPS residuals' correlation time to
     the best track where the run measured it (``metrics.correlation_time``)."""
@@ -251,6 +267,8 @@ def verdict_lines(m: dict) -> list[str]:
         for n in ranked:
             if track_kind(n) != "real time" and n != best:
                 lines.append(f"{n} ({track_kind(n, lag)}): {scored[n]:.3f} m.")
+        if key == "ate_rmse_m" and m.get("ate_common"):
+            lines.append(_common_line(m, scored, best))
         if key == "ate_rmse_m":
             caution = _association_caution(m, scored)
             if caution:

@@ -172,3 +172,46 @@ def test_dead_reckoning_is_not_the_smoother_and_nis_alone_can_fail_a_filter():
     assert "ekf: not consistent. NIS Fail" in "\n".join(verdict_lines(m))
     m["estimators"]["ekf"]["nis"] = {"/imu gyro": fail, "/fix gps": ok, "/imu yaw": ok}
     assert "ekf: partly consistent. NIS Fail" in "\n".join(verdict_lines(m))
+
+
+def test_tracks_sampled_at_different_stamps_are_also_compared_on_common_ones():
+    """A lagged track exists only at its keyframes (MRCLAM: 4474 landmark sightings), the
+    filters at 10 Hz: their ATEs average over different moments (the landmark EKF 0.131 m over
+    15001 samples, 0.125 m at the keyframes). The verdict gives the common-stamp figures and
+    says when they rank another track first."""
+    m = _m({"ekf_landmark": 0.131, "smoother": 0.127, "smoother_lagged": 0.102},
+           ate_common={"stamps": 4474, "of": "smoother_lagged"})
+    for n, v in (("ekf_landmark", 0.125), ("smoother", 0.122), ("smoother_lagged", 0.102)):
+        m["estimators"][n]["ate_common_rmse_m"] = v
+    line = next(x for x in verdict_lines(m) if x.startswith("The tracks are sampled"))
+    assert ("On the 4474 stamps of smoother_lagged (the sparsest), every track and the truth "
+            "interpolated there: smoother_lagged 0.102 m, smoother 0.122 m, ekf_landmark "
+            "0.125 m.") in line and "best, not" not in line
+    m["estimators"]["ekf_landmark"]["ate_common_rmse_m"] = 0.090
+    line = next(x for x in verdict_lines(m) if x.startswith("The tracks are sampled"))
+    assert line.endswith("There ekf_landmark is best, not smoother_lagged.")
+    del m["ate_common"]
+    assert not any(x.startswith("The tracks are sampled") for x in verdict_lines(m))
+
+
+def test_common_stamp_ate_interpolates_every_track_at_the_sparsest_ones():
+    import numpy as np
+
+    from estimation.runner import Trajectory
+    from evaluation.pipeline import _common_ate
+
+    def track(t, offset):
+        t = np.asarray(t, float)
+        pose = np.column_stack([t + offset, np.zeros_like(t), np.zeros_like(t)])
+        return Trajectory(t, pose, np.zeros((len(t), 3, 3)))
+
+    truth = track(np.arange(0.0, 10.01, 0.01), 0.0)
+    dense = track(np.arange(0.0, 10.01, 0.1), 0.0)
+    dense.pose[::2, 1] = 1.0  # 1 m off at every other sample: at 0.0, 0.2, 0.4, ...
+    sparse = track(np.arange(0.05, 10.0, 1.0), 0.0)  # keyframes between the dense samples
+    rmse, info = _common_ate({"dense": dense, "sparse": sparse}, truth)
+    assert info == {"stamps": 10, "of": "sparse"}
+    assert rmse["sparse"] == 0.0
+    assert abs(rmse["dense"] - 0.5) < 1e-9  # halfway between an off and an on sample
+    assert _common_ate({"a": dense, "b": dense}, truth) is None  # same sampling: nothing to add
+    assert _common_ate({"a": dense, "b": sparse}, None) is None
