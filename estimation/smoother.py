@@ -523,6 +523,7 @@ class FixedLagSmoother(Estimator):
             # calibration states kept); no estimate until then
             self._restart, self._restart_buf, self._realign = None, [], (xc, cc)
             self.heading = None
+            self._now = -math.inf  # as at the start: no gap to check against until then
             for b in buf:
                 self._process_uninitialised(b)
             return
