@@ -227,6 +227,13 @@ def _robustify(cfg: Config, sensor: SensorConfig, base: gtsam.noiseModel.Base,
     return base
 
 
+def _twist_walk(a_max: float | None, default: float, period: float) -> float:
+    """Density ((unit/s)^2 per s) of the random walk that moves the twist away from a held
+    sample: a_max^2 period from the robot's acceleration limit (the EKFs' twist_densities:
+    Bar-Shalom's a_max sqrt(T)), else the default density squared."""
+    return a_max * a_max * period if a_max is not None else default * default
+
+
 def _compiled_preintegration() -> type[WheelGyroPreintegration]:
     """The compiled preintegration class (``factors.preintegration_jit``), its kernel compiled
     or loaded from numba's cache now rather than in the first timed ``process`` call; the
@@ -468,8 +475,7 @@ class FixedLagSmoother(Estimator):
         for var, period, w in ((self.wg_var, self.wg_T, self.wg), (self.wo_var, self.wo_T,
                                                                   self.wo)):
             if w is not None:
-                q = (robot.max_yaw_accel ** 2 * period if robot.max_yaw_accel is not None
-                     else n.yaw_acc ** 2)
+                q = _twist_walk(robot.max_yaw_accel, n.yaw_acc, period)
                 yaw.append(var * gap * gap + q * gap ** 3 / 3.0)
         if not yaw or min(yaw) < GAP_HEADING_SIGMA ** 2 or self.v is None:
             return
@@ -480,8 +486,7 @@ class FixedLagSmoother(Estimator):
         x, full = self.kf_state, self._full
         if full is None or full.shape != (DIM, DIM):
             return
-        qv = (robot.max_accel ** 2 * self.v_T if robot.max_accel is not None
-              else n.acc ** 2)
+        qv = _twist_walk(robot.max_accel, n.acc, self.v_T)
         v = float(x[3])
         grow_pos = self.v_var * gap * gap + qv * gap ** 3 / 3.0
         psi_var = float(full[2, 2]) + min(yaw)
@@ -613,7 +618,7 @@ class FixedLagSmoother(Estimator):
         since, until = span
         if since <= a and b <= until:
             return 0.0, var
-        q = acc * acc * period if acc is not None else default * default
+        q = _twist_walk(acc, default, period)
 
         def grown(tau: float) -> float:
             return var * tau * tau + q * tau ** 3 / 3.0
