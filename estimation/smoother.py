@@ -283,11 +283,18 @@ class FixedLagSmoother(Estimator):
     keep_all = False  # BatchSmoother keeps every factor for a final whole-run solve
 
     def __init__(self, cfg: Config, *, initial_pose=None, landmarks=None, lag: float | None = None,
-                 noise: SmootherNoise | None = None, reference: bool = False) -> None:
+                 noise: SmootherNoise | None = None, reference: bool = False,
+                 lagged: bool = True) -> None:
         """``reference``: preintegrate with the Python ``WheelGyroPreintegration`` instead of its
-        compiled twin (``factors.preintegration_jit``; the same numbers, for tests)."""
+        compiled twin (``factors.preintegration_jit``; the same numbers, for tests).
+        ``lagged``: whether to output the lagged track (``lagged_estimates``). Its covariances
+        are a quarter to a third of the smoother's cost on a 10 s lag (each leaving keyframe's
+        marginal walks the window's whole chain of cliques), so a caller that does not use the
+        track (``online``, ``--estimators smoother``) turns it off; the filtered output is the
+        same either way, and ``final_state`` is still given."""
         super().__init__()
         self.cfg = cfg
+        self.lagged = lagged
         self._pim_class = WheelGyroPreintegration if reference else _compiled_preintegration()
         self.stopped: str | None = None  # why it gave up (then every process call says so)
         # after a gap (_restart_after_gap): the new window's start, and the messages held
@@ -972,6 +979,9 @@ class FixedLagSmoother(Estimator):
         them from ``kf_t``; the newest keyframe too only when ``newest`` (the run's end)."""
         leaving = [j for j, tj in self.kf_t.items() if tj < t_cut and (newest or j != self.k)]
         for j in sorted(leaving):
+            if not self.lagged and j != self.k:  # the newest still gives final_state
+                del self.kf_t[j]
+                continue
             key = self.key(j)
             try:
                 x = self.smoother.calculateEstimateVector(key)
@@ -1178,8 +1188,8 @@ class FixedLagSmoother(Estimator):
             self._flush()
         self._capture_leaving(math.inf, newest=True)
 
-    def lagged_estimates(self) -> TrackBuilder:
-        return self._lagged
+    def lagged_estimates(self) -> TrackBuilder | None:
+        return self._lagged if self.lagged else None
 
     def final_state(self) -> Estimate | None:
         """The newest keyframe with its full marginal (the lagged track's last entry after
@@ -1206,6 +1216,7 @@ class BatchSmoother(FixedLagSmoother):
     keep_all = True
 
     def __init__(self, cfg: Config, **kw) -> None:
+        kw.setdefault("lagged", False)  # its output is the final solve's, not a lagged one
         super().__init__(cfg, **kw)
         self._final = TrackBuilder()
 

@@ -40,9 +40,10 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def _one(bag: str, cfg_path: str, name: str, lag: float | None, conn) -> None:
+def _one(bag: str, cfg_path: str, name: str, lag: float | None, tracks: list[str] | None,
+         conn) -> None:
     try:
-        conn.send(_measure(bag, cfg_path, name, lag))
+        conn.send(_measure(bag, cfg_path, name, lag, tracks))
     except BagError as e:
         conn.send({"estimator": name, "fatal": str(e)})
     except Exception as e:  # reported by the parent, never a hang on the pipe
@@ -51,12 +52,15 @@ def _one(bag: str, cfg_path: str, name: str, lag: float | None, conn) -> None:
         conn.close()
 
 
-def _measure(bag: str, cfg_path: str, name: str, lag: float | None) -> dict:
+def _measure(bag: str, cfg_path: str, name: str, lag: float | None,
+             tracks: list[str] | None) -> dict:
     from evaluation import estimators as registry
 
     cfg = load_config(cfg_path)
     stream = BagStream(bag, cfg, keep_truth=False).prime()
-    est = registry.build(cfg, stream, [name], lag=lag or None)[name]
+    est = registry.build(cfg, stream, [name], lag=lag or None, tracks=tracks)[name]
+    lagged = getattr(est, "lagged_estimates", None)
+    outputs = [name] + ([f"{name}_lagged"] if callable(lagged) and lagged() is not None else [])
     start_mb = peak_rss_mb()
     t1 = time.perf_counter()
     result = run(stream, {name: est})
@@ -67,7 +71,8 @@ def _measure(bag: str, cfg_path: str, name: str, lag: float | None) -> dict:
     upd = result.runs[name].update_s
     runtime = result.runs[name].runtime_s
     return {
-        "estimator": name, "duration_s": stream.duration, "decode_s": stream.decode_s,
+        "estimator": name, "outputs": outputs,
+        "duration_s": stream.duration, "decode_s": stream.decode_s,
         "messages": result.messages,
         "wall_s": wall,  # decoding included: the stream is decoded as it is fed
         "runtime_s": runtime,  # in the estimator's calls alone
@@ -84,7 +89,10 @@ def _measure(bag: str, cfg_path: str, name: str, lag: float | None) -> dict:
 
 def bench_bag(bag: Path, cfg_path: Path, names: list[str] | None = None,
               lag: float | None = None) -> dict:
-    """Benchmark every selected estimator on one bag, each in a fresh process.
+    """Benchmark every selected estimator on one bag, each in a fresh process. An estimator
+    computes the output tracks named in ``names`` (default: all it gives; each row's
+    ``outputs``): ``smoother`` alone is the filtered output, without the lagged one's
+    covariances.
 
     A truncated or damaged bag is benchmarked on what can be read (as ``ddfuse run`` does);
     ``input_error`` then says why it stops early. A bag that cannot be used raises BagError."""
@@ -99,7 +107,8 @@ def bench_bag(bag: Path, cfg_path: Path, names: list[str] | None = None,
         # A pipe, not a Queue: a Queue's semaphores outlive an early exit (a resource_tracker
         # warning), and a pipe tells the parent when the child dies without a result.
         recv, send = ctx.Pipe(duplex=False)
-        p = ctx.Process(target=_one, args=(str(bag), str(cfg_path), name, lag, send))
+        p = ctx.Process(target=_one, args=(str(bag), str(cfg_path), name, lag, names or None,
+                                           send))
         p.start()
         send.close()  # the child's copy is the only one: its death ends recv() with EOFError
         try:

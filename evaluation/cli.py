@@ -178,11 +178,14 @@ def cmd_bench(args: argparse.Namespace) -> int:
         results.append(r)
         print(f"{bag}: {r['duration_s']:.1f} s of data, {r['messages']} measurements, decode "
               f"{r['decode_s']:.3f} s ({_fmt(r['decode_rtf'], '.0f')}x real time)")
-        print(f"  {'estimator':12} {'est s':>8} {'RTF':>8} {'wall s':>8} {'p50 ms':>8} "
+        print(f"  {'estimator':15} {'est s':>8} {'RTF':>8} {'wall s':>8} {'p50 ms':>8} "
               f"{'p99 ms':>8} {'max ms':>8} {'RSS MB':>8} {'start':>8}")
         for e in r["estimators"]:
             u = e["update_ms"] or {"p50": math.nan, "p99": math.nan, "max": math.nan}
-            print(f"  {e['estimator']:12} {e['runtime_s']:8.3f} {_fmt(e['rtf'], '8.0f')} "
+            # the smoother's row says whether it computed the lagged output too
+            label = e["estimator"] + ("+lagged" if f"{e['estimator']}_lagged" in e["outputs"]
+                                      else "")
+            print(f"  {label:15} {e['runtime_s']:8.3f} {_fmt(e['rtf'], '8.0f')} "
                   f"{e['wall_s']:8.3f} {u['p50']:8.3f} {u['p99']:8.3f} {u['max']:8.3f} "
                   f"{e['peak_rss_mb']:8.1f} {e['start_rss_mb']:8.1f}"
                   + (f"  ERROR {e['error']}" if e["error"] else ""))
@@ -510,7 +513,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("bags", type=Path, nargs="*", help="bags (default: the embedded sample)")
     sp.add_argument("-c", "--config", type=Path)
     sp.add_argument("--estimators", type=estimator_list, metavar="LIST",
-                    help="comma-separated (default: all the sensors allow)")
+                    help="comma-separated (default: all the sensors allow); 'smoother' alone "
+                    "times the filtered output, with 'smoother_lagged' the lagged one too")
     sp.add_argument("--lag", type=lag_seconds, help="smoother lag, s (default: from the config)")
     sp.add_argument("--json", type=Path, help="also write the results as JSON")
     sp.set_defaults(func=cmd_bench)

@@ -125,7 +125,10 @@ class OnlineSession:
         order: dict[str, int] = {}
         for i, s in enumerate(cfg.sensors):
             order.setdefault(s.name, i)
-        return cls(registry.build(cfg, stream, chosen, lag=lag),
+        # no lagged track online: its covariances would cost the smoother a quarter of its time
+        tracks = [t for n in chosen for t in registry.SPECS[n].produces
+                  if t not in ONLINE_TRACKS_REFUSED]
+        return cls(registry.build(cfg, stream, chosen, lag=lag, tracks=tracks),
                    reorder_window=cfg.reorder_window if reorder_window is None
                    else reorder_window, order=order, on_stop=on_stop)
 

@@ -394,7 +394,7 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
     outdir.mkdir(parents=True, exist_ok=True)
     pose = initial_pose(cfg.initial_pose, stream)
     lag = lag if lag is not None else cfg.smoother.lag
-    ests = registry.build(cfg, stream, chosen, lag=lag, pose=pose)
+    ests = registry.build(cfg, stream, chosen, lag=lag, pose=pose, tracks=names or None)
     decode_before = stream.decode_s
     t_built = clock()
     result = run(stream, ests, holdout=holdout,

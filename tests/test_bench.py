@@ -15,7 +15,7 @@ pytest.importorskip("gtsam")
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _dies(bag, cfg_path, name, lag, conn) -> None:
+def _dies(bag, cfg_path, name, lag, tracks, conn) -> None:
     """A child that ends the way a crash inside a C++ library does: no result, no exception."""
     os._exit(3)
 
@@ -26,3 +26,13 @@ def test_a_benchmark_child_that_dies_is_an_error_naming_the_estimator_and_exit_c
                                        r"\(exit code 3\)"):
         bench.bench_bag(ROOT / "data" / "sample_husky.bag", ROOT / "data" / "sample_husky.yaml",
                         ["ekf"])
+
+
+@pytest.mark.parametrize("names, outputs", [(["smoother"], ["smoother"]),
+                                            (["smoother_lagged"], ["smoother", "smoother_lagged"])])
+def test_a_benchmark_row_names_the_outputs_it_timed(names, outputs):
+    r = bench.bench_bag(ROOT / "data" / "sample_husky.bag", ROOT / "data" / "sample_husky.yaml",
+                        names)
+    (row,) = r["estimators"]
+    assert row["estimator"] == "smoother" and row["outputs"] == outputs
+    assert row["error"] is None and row["runtime_s"] > 0
