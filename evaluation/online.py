@@ -19,7 +19,8 @@ The stream semantics are the bag reader's (``estimation.bags.BagStream``):
   alike, which the converter's stamp check cannot see), what comes in the next seconds is
   dropped until the stamps pass the last one passed on. A window of 0 passes each measurement
   straight on (no latency), still dropping the older ones. The estimates lag the newest stamp
-  by up to the window; ``flush()`` passes on what is held, ``finish()`` flushes and ends every
+  by up to the window (``estimate(name, at=t)`` carries one to t on the odometry pushed since,
+  the buffer's included); ``flush()`` passes on what is held, ``finish()`` flushes and ends every
   estimator. ``replay`` reads through ``BagStream``, which already reorders and checks stamps
   (``reorder_window`` there), so its session's own window is 0; its ``rejected`` then holds the
   bag reader's counts (by topic) too.
@@ -47,6 +48,7 @@ from estimation.bags import BagStream
 from estimation.config import Config
 from estimation.errors import BagError
 from estimation.estimator import Estimate, Estimator
+from estimation.forecast import OdometryTwist, carry
 from estimation.measurements import Stream
 from estimation.runner import broken
 from evaluation import estimators as registry
@@ -71,13 +73,16 @@ class OnlineSession:
     ``order``: sensor name -> rank, the order of measurements with equal stamps (the config's
     sensor order, as the bag reader's); unknown sensors after the known ones.
     ``on_stop(name, t, why)`` is called when an estimator is stopped (``t`` the stamp of the
-    measurement it failed on, None in ``finish``; ``why`` "Type: message")."""
+    measurement it failed on, None in ``finish``; ``why`` "Type: message").
+    ``twist``: the odometry ``estimate(name, at=...)`` carries an estimate forward on
+    (``from_config``: the config's)."""
 
     KEEP_PERIOD = 0.1  # s
 
     def __init__(self, estimators: dict[str, Estimator], *, reorder_window: float = 0.0,
                  order: dict[str, int] | None = None,
-                 on_stop: Callable[[str, float | None, str], None] | None = None) -> None:
+                 on_stop: Callable[[str, float | None, str], None] | None = None,
+                 twist: OdometryTwist | None = None) -> None:
         window = float(reorder_window)
         if not (window >= 0.0 and math.isfinite(window)):
             raise ValueError(f"reorder_window: expected seconds >= 0, got {reorder_window!r}")
@@ -95,6 +100,7 @@ class OnlineSession:
         self.last_t: float | None = None  # set by replay: the last message's s since the first
         self.interrupted: str | None = None  # set by replay(interruptible=True) on Ctrl-C
         self._order = dict(order or {})
+        self._twist = twist if twist is not None and twist.usable else None
         self._heap: list = []
         self._seq = 0
         self._newest = -math.inf
@@ -130,7 +136,8 @@ class OnlineSession:
                   if t not in ONLINE_TRACKS_REFUSED]
         return cls(registry.build(cfg, stream, chosen, lag=lag, tracks=tracks),
                    reorder_window=cfg.reorder_window if reorder_window is None
-                   else reorder_window, order=order, on_stop=on_stop)
+                   else reorder_window, order=order, on_stop=on_stop,
+                   twist=OdometryTwist(cfg))
 
     # --- feeding ---------------------------------------------------------------------------
 
@@ -142,6 +149,8 @@ class OnlineSession:
         if not (t >= self.released_t and math.isfinite(t)):  # older than what was passed on
             self._drop(m)
             return
+        if self._twist is not None:
+            self._twist.push(m)
         if self.reorder_window == 0.0:
             self.released_t = t
             self._apply(m)
@@ -248,9 +257,28 @@ class OnlineSession:
 
     # --- results ---------------------------------------------------------------------------
 
-    def estimate(self, name: str) -> Estimate | None:
+    @property
+    def newest(self) -> float:
+        """The newest stamp pushed (s; -inf before the first)."""
+        return max(self._newest, self.released_t)
+
+    def estimate(self, name: str, at: float | None = None) -> Estimate | None:
         """The current estimate of ``name``; for a stopped estimator, its last one (or None).
-        KeyError for a name the session does not run."""
+        KeyError for a name the session does not run.
+
+        ``at`` (s, the stamps' clock; e.g. ``session.newest``, or the time now on a live
+        robot whose stamps are wall-clock): the estimate carried from its own stamp to ``at``
+        on the odometry pushed since, the reorder buffer's included
+        (``estimation.forecast``): the pose "now" although the estimators lag the newest
+        message by up to the reorder window. Its covariance grows with the odometry's noise;
+        it has no ``state``. Not carried: a stopped estimator's, a session without
+        odometry (built without ``twist``), or ``at`` not after the estimate."""
+        e = self._estimate(name)
+        if at is None or e is None or self._twist is None or self.errors[name] is not None:
+            return e
+        return carry(e, self._twist.samples, float(at), self._twist.q(), self._twist.scale_cov)
+
+    def _estimate(self, name: str) -> Estimate | None:
         est = self.estimators[name]
         if self.errors[name] is not None:
             return self._last[name]

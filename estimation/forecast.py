@@ -1,0 +1,183 @@
+"""Carrying an estimate forward in time on the odometry received since it: the pose "now" for
+a live robot, whose estimators lag the newest message by a reorder window.
+
+An estimate at t_e is moved to a later t by the exact constant-twist step
+(``factors.kinematics.se2_step``) of each twist sample after t_e, each sample covering the
+interval since the previous one (as dead reckoning integrates it), then by the last twist held
+up to t. Its 3x3 world-frame pose covariance (x m, y m, yaw rad) grows to first order,
+P <- J_pose P J_pose^T + J_twist S J_twist^T per step, with S the twist sample's variances. Where
+a sample is held beyond the interval it measures (the stretch after the newest one), its error
+is the same for the whole hold and the twist moves away from it as a random walk of density q
+(the smoother's rule for a held sample, ``FixedLagSmoother._stale``): over a hold of tau the
+integrated error is var tau^2 + q tau^3 / 3, i.e. a twist variance of var + q tau / 3 for the
+step.
+
+The twist is the odometry's, uncorrected: no scale or gyro-bias calibration. The scale's
+uncertainty (the config's geometry uncertainty, ``robot.scale_std``) is one error for the whole
+carry, so it enters once, through the pose's sensitivity to the speed and yaw-rate scales
+accumulated over the steps, not per step (which would divide it by the number of steps).
+"""
+
+from __future__ import annotations
+
+import math
+from bisect import insort
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from estimation.config import Config
+from estimation.estimator import Estimate, wrap_angle
+from estimation.measurements import GyroYawRate, WheelOdometry, WheelSpeeds
+from factors.kinematics import se2_step_jac
+
+__all__ = ["OdometryTwist", "TwistSample", "carry"]
+
+
+@dataclass(frozen=True, slots=True)
+class TwistSample:
+    """A body twist measured over the interval ending at ``t`` (s): forward speed ``v`` (m/s),
+    yaw rate ``w`` (rad/s), their variances (m/s)^2 and (rad/s)^2."""
+
+    t: float
+    v: float
+    w: float
+    v_var: float
+    w_var: float
+
+
+def carry(e: Estimate, twists: Sequence[TwistSample], t: float,
+          q: tuple[float, float], scale_cov: np.ndarray | None = None) -> Estimate:
+    """``e`` moved to time ``t`` (s) on ``twists`` (sorted by stamp; those at or before e.t
+    only give the twist held from e.t), see the module docstring. ``q``: the random-walk
+    densities of (v, w), (m/s^2)^2 s and (rad/s^2)^2 s, for a twist held beyond its sample.
+    ``scale_cov``: 2x2 covariance of the relative errors of the speed and yaw-rate scales
+    (None: exact scales). Returns ``e`` itself when t <= e.t or no twist is known; otherwise
+    an Estimate at ``t`` with the carried pose and grown covariance, in world coordinates,
+    without ``state``."""
+    if not t > e.t:
+        return e
+    held = None
+    i = 0
+    while i < len(twists) and twists[i].t <= e.t:
+        held = twists[i]
+        i += 1
+    if held is None and i == len(twists):
+        return e
+    x, y, psi = e.pose
+    P = np.array(e.pose_cov, dtype=float)
+    K = np.zeros((3, 2))  # d pose / d (relative scale error of v, of w)
+    now = e.t
+    steps = []
+    for s in twists[i:]:
+        if s.t > t:
+            break
+        steps.append((s, s.t - now, 0.0))
+        now, held = s.t, s
+    if t > now:
+        # the first sample after t (if any) measures the twist up to t; else the newest is
+        # held beyond its interval
+        nxt = next((s for s in twists[i:] if s.t > t), None)
+        steps.append((nxt, t - now, 0.0) if nxt is not None else (held, t - now, t - now))
+    for s, dt, hold in steps:
+        x, y, psi, P, K = _step(x, y, psi, P, K, s, dt, hold, q)
+    if scale_cov is not None:
+        P = P + K @ scale_cov @ K.T
+    P = 0.5 * (P + P.T)
+    if not np.all(np.isfinite(P)):
+        P = np.full((3, 3), math.nan)
+    return Estimate(t, (x, y, wrap_angle(psi)), P, pose_error="world")
+
+
+def _step(x: float, y: float, psi: float, P: np.ndarray, K: np.ndarray, s: TwistSample,
+          dt: float, hold: float, q: tuple[float, float]):
+    """One constant-twist step of ``dt`` s on sample ``s``; ``hold`` s of it beyond the
+    sample's interval (then its variances grow as var + q hold / 3). ``K``: the pose's
+    sensitivity to the relative scale errors, carried through the step."""
+    if dt <= 0.0:
+        return x, y, psi, P, K
+    x1, y1, p1, J = se2_step_jac(x, y, psi, s.v, s.w, dt)
+    Jp = np.array([r[:3] for r in J])
+    Ju = np.array([r[3:] for r in J])
+    S = np.diag((s.v_var + q[0] * hold / 3.0, s.w_var + q[1] * hold / 3.0))
+    P = Jp @ P @ Jp.T + Ju @ S @ Ju.T
+    K = Jp @ K + Ju * (s.v, s.w)
+    return x1, y1, p1, P, K
+
+
+class OdometryTwist:
+    """The twist samples a config's odometry gives, for ``carry``: forward speed from the
+    first odometry sensor using v (else the first wheel-speed sensor, through the nominal
+    robot.wheel_radius and robot.track_width), yaw rate from that same sensor when it gives
+    one, else from the first gyro (imu using yaw_rate). A sample is made at each message of
+    either, with the other's newest value. ``samples`` holds those of the last ``keep`` s of
+    stamps, sorted."""
+
+    def __init__(self, cfg: Config, keep: float = 5.0) -> None:
+        odo = next((s for s in cfg.of_kind("odometry") if "v" in s.use), None)
+        r, L = cfg.robot.wheel_radius, cfg.robot.track_width
+        wheels = next(iter(cfg.of_kind("wheels")), None) if r is not None and L is not None \
+            else None
+        self.v_sensor = odo.name if odo is not None else (wheels.name if wheels else None)
+        self.w_from_v = (odo is not None and "yaw_rate" in odo.use) or (
+            odo is None and wheels is not None)
+        gyro = next((s for s in cfg.of_kind("imu") if "yaw_rate" in s.use), None)
+        self.w_sensor = self.v_sensor if self.w_from_v else (gyro.name if gyro else None)
+        self._r, self._L = r, L
+        sd = cfg.robot.scale_std
+        # the gyro's yaw rate carries no wheel-geometry scale
+        self.scale_cov = None if sd is None else np.array(
+            [[sd[0] ** 2, sd[2] if self.w_from_v else 0.0],
+             [sd[2] if self.w_from_v else 0.0, sd[1] ** 2 if self.w_from_v else 0.0]])
+        self._a = (cfg.robot.max_accel, cfg.robot.max_yaw_accel)
+        self.keep = float(keep)
+        self.samples: list[TwistSample] = []
+        self._v: tuple[float, float] | None = None  # newest (value, variance)
+        self._w: tuple[float, float] | None = None
+        self._period = math.nan  # s, the spacing of the v sensor's messages (running)
+        self._last_v_t = math.nan
+
+    @property
+    def usable(self) -> bool:
+        return self.v_sensor is not None and self.w_sensor is not None
+
+    def push(self, m) -> None:
+        """Take one measurement (any; those of other sensors are ignored)."""
+        sensor = m.sensor
+        if sensor != self.v_sensor and sensor != self.w_sensor:
+            return
+        if isinstance(m, WheelOdometry):
+            if m.v is not None and sensor == self.v_sensor:
+                self._v = (m.v, m.v_var)
+            if m.yaw_rate is not None and self.w_from_v:
+                self._w = (m.yaw_rate, m.yaw_rate_var)
+        elif isinstance(m, WheelSpeeds):
+            r, L = self._r, self._L
+            lv, rv = m.left_var, m.right_var
+            self._v = (0.5 * r * (m.left + m.right), 0.25 * r * r * (lv + rv))
+            self._w = (r * (m.right - m.left) / L, r * r * (lv + rv) / (L * L))
+        elif isinstance(m, GyroYawRate) and sensor == self.w_sensor:
+            self._w = (m.yaw_rate, m.var)
+        else:
+            return
+        if sensor == self.v_sensor:
+            dt = m.t - self._last_v_t
+            if 0.0 < dt < 1.0:
+                self._period = dt if math.isnan(self._period) else 0.9 * self._period + 0.1 * dt
+            self._last_v_t = m.t
+        if self._v is None or self._w is None or not math.isfinite(m.t):
+            return
+        s = TwistSample(m.t, self._v[0], self._w[0], self._v[1], self._w[1])
+        if not all(math.isfinite(u) for u in (s.v, s.w, s.v_var, s.w_var)):
+            return
+        insort(self.samples, s, key=lambda u: u.t)
+        cut = self.samples[-1].t - self.keep
+        if self.samples[0].t < cut:
+            self.samples = [u for u in self.samples if u.t >= cut]
+
+    def q(self) -> tuple[float, float]:
+        """Random-walk densities of (v, w) for a held twist: a_max^2 T from the robot's
+        acceleration limits and the sample period T (the EKFs' twist densities), else 1."""
+        T = self._period if math.isfinite(self._period) else 0.1
+        return tuple(a * a * T if a is not None else 1.0 for a in self._a)
