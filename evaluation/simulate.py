@@ -24,9 +24,11 @@ absolute epoch that goes into the header stamps):
 * IMU: gyro z = true yaw rate + bias + white noise, the bias a random walk; orientation = true
   yaw + constant offset + noise (roll and pitch: small noise about the true zero);
   linear_acceleration = (dv/dt, v w, g) + white noise (specific force on flat ground).
-* GPS: truth at the sample time + white noise (horizontal, vertical std), optional outliers
-  (tens of metres), random dropouts, outage windows, and a constant latency: the fix measured at
-  t is stamped t + delay.
+* GPS: truth at the sample time + noise (horizontal, vertical std), optional outliers (tens of
+  metres), random dropouts, outage windows, and a constant latency: the fix measured at t is
+  stamped t + delay. The noise is white (``GpsSpec.correlation_s`` 0) or, per axis, a first-order
+  Gauss-Markov process of that correlation time with the same stationary std (a receiver's
+  multipath and atmospheric error wanders slowly); outliers are added on top.
 * Landmarks: range and bearing (body frame, CCW from x) from the body origin to every known
   landmark inside [min_range, max_range] and the field of view, each detected with probability
   ``detect_prob``, with white Gaussian noise.
@@ -148,6 +150,14 @@ class GpsSpec:
     outlier_range: tuple[float, float] = (20.0, 60.0)  # m, horizontal outlier offset magnitude
     outages: tuple[tuple[float, float], ...] = ()  # (start, end) s: no fixes measured inside
     topic: str = "/fix"
+    # s, correlation time tau of the errors: 0 white; > 0 per axis e_k = a e_k-1 +
+    # sqrt(1 - a^2) std w_k with a = exp(-(t_k - t_k-1) / tau), e_0 ~ N(0, std^2) (stationary)
+    correlation_s: float = 0.0
+
+    def __post_init__(self):
+        if not (math.isfinite(self.correlation_s) and self.correlation_s >= 0.0):
+            raise ValueError("GpsSpec.correlation_s must be a finite number of seconds >= 0 "
+                             f"(0: white errors), got {self.correlation_s!r}")
 
 
 @dataclass(frozen=True)
@@ -230,6 +240,18 @@ SCENARIOS: dict[str, Scenario] = {
         "husky", "Husky-like outdoor robot mowing a field (lawnmower legs of 40 m): 10 Hz "
         "wheel odometry, 30 Hz IMU (heading offset, gyro bias), 2.5 Hz GPS, 400 s.",
         _LAWNMOWER),
+    # The correlation time is measured on rl_husky_gps.bag (../shared/data): GPS displacement
+    # along the odometry's chord minus the odometry distance (heading from the batch track),
+    # over lags of 1-120 s, fits 2 sigma^2 (1 - exp(-lag / tau)) with tau 26.7 s, sigma 1.7 m;
+    # errors simulated with tau 30 s on the same fix pairs fit a median 27.8 s (90 % of fits
+    # 12-77 s). The fixes' residuals to an estimated track decorrelate faster (3.6-5.2 s, the
+    # report's figure): a track takes up the slow wander. docs/results/smoother_monte_carlo.md
+    "husky-multipath": _husky(
+        "husky-multipath", "husky with time-correlated GPS errors (multipath, atmosphere): "
+        "per axis a Gauss-Markov process of correlation time 30 s (measured on "
+        "rl_husky_gps.bag) with husky's std (1 m horizontal, 2 m vertical); the config states "
+        "husky's white GPS noise.",
+        _LAWNMOWER, gps=GpsSpec(correlation_s=30.0)),
     "gps-outage": _husky(
         "gps-outage", "husky with a 60 s GPS outage (150-210 s) and 2 % outlier fixes.",
         _LAWNMOWER, gps=GpsSpec(outlier_prob=0.02, outages=((150.0, 210.0),))),
@@ -652,14 +674,32 @@ def _sim_imu(sc: Scenario, truth: Truth, rng: np.random.Generator) -> ImuData:
                    accel=acc, true_yaw_rate=w, true_yaw=wrap(yaw), true_accel=true_acc)
 
 
+def _gauss_markov(t: np.ndarray, w: np.ndarray, std: np.ndarray, tau: float) -> np.ndarray:
+    """First-order Gauss-Markov errors at times ``t`` (N,) s from unit white draws ``w`` (N, D):
+    e_0 = std w_0 (the stationary distribution), e_k = a_k e_k-1 + sqrt(1 - a_k^2) std w_k with
+    a_k = exp(-(t_k - t_k-1) / tau), the exact discretisation over any spacing, so every e_k
+    has std ``std`` (D,) and corr(e_j, e_k) = exp(-|t_k - t_j| / tau)."""
+    a = np.exp(-np.diff(t) / tau)
+    b = np.sqrt(1.0 - a * a)
+    e = np.empty_like(w)
+    if len(t):
+        e[0] = w[0]
+    for k in range(1, len(t)):
+        e[k] = a[k - 1] * e[k - 1] + b[k - 1] * w[k]
+    return e * std
+
+
 def _sim_gps(sc: Scenario, truth: Truth, rng: np.random.Generator) -> GpsData:
     spec = sc.gps
     tm = _sample_times(rng, spec.rate, sc.duration)
     n = len(tm)
     # Draw every random number for every nominal sample first, so the noise of a fix does not
-    # depend on which other fixes were dropped.
-    noise = rng.standard_normal((n, 3)) * [spec.horizontal_std, spec.horizontal_std,
-                                           spec.vertical_std]
+    # depend on which other fixes were dropped (a correlated error runs over every nominal
+    # sample; dropouts and outages remove samples from it).
+    std = np.array([spec.horizontal_std, spec.horizontal_std, spec.vertical_std])
+    w = rng.standard_normal((n, 3))
+    noise = w * std if spec.correlation_s == 0.0 else _gauss_markov(tm, w, std,
+                                                                    spec.correlation_s)
     drop = rng.uniform(size=n) < spec.dropout_prob
     out = rng.uniform(size=n) < spec.outlier_prob
     mag = rng.uniform(*spec.outlier_range, size=n)
@@ -847,6 +887,10 @@ def _truth_comment(res: SimResult, fmt: str) -> str:
         lines.append(f"GPS: latency {g.delay} s (fix stamped late), dropouts {g.dropout_prob}, "
                      f"outliers {g.outlier_prob} ({g.outlier_range[0]:g}-{g.outlier_range[1]:g} "
                      f"m), outages {list(g.outages)} s after the start.")
+        if g.correlation_s > 0.0:
+            lines.append(f"GPS errors are time-correlated: per axis a first-order Gauss-Markov "
+                         f"process, correlation time {g.correlation_s:g} s, stationary std as "
+                         "stated below (the noise: values are the std, not a white model).")
     return "".join(f"# {s}\n" for s in lines)
 
 
