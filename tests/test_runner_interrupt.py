@@ -80,7 +80,7 @@ def test_run_bag_writes_the_results_then_says_it_was_interrupted(tmp_path, monke
     from evaluation import estimators as registry
 
     monkeypatch.setitem(registry.SPECS, "dr", replace(
-        registry.SPECS["dr"], build=lambda cfg, stream, pose, lag: _CtrlC(
+        registry.SPECS["dr"], make=lambda cfg, stream, pose, lag, _: _CtrlC(
             cfg, at=3000, initial_pose=pose)))
     cfg = load_config(ROOT / "data" / "sample_husky.yaml")
     with pytest.raises(RunInterrupted) as e:
