@@ -390,6 +390,8 @@ class IgvcEkf(Estimator):
         else:
             self.kf = KalmanCore(x0, Pn, self.log, state_angles=angles)
         self.kf.after_inflation = self._retie_pairs
+        if self._ks is not None:
+            self.kf.held_in_recovery = (self._ks, self._ks + 1)
         self.t = t
 
     def _position_noise_map(self, lat: float) -> np.ndarray:

@@ -133,7 +133,7 @@ class KalmanCore:
     __slots__ = (
         "x", "P", "n", "log", "state_angles", "lockout_count", "lockout_time",
         "recovery_holdoff", "_streak", "_holdoff", "_last_ok", "recoveries", "last_nis", "_eye",
-        "after_inflation",
+        "after_inflation", "held_in_recovery",
     )
 
     def __init__(
@@ -167,6 +167,12 @@ class KalmanCore:
         # called with this core after a recovery's inflation: a filter with redundant states
         # re-ties them there (ekf_baseline.igvc)
         self.after_inflation: Callable[[KalmanCore], None] | None = None
+        # states a recovery does not widen (the odometry scales): the smoother's rule
+        # (FixedLagSmoother._widen). Widened with the rest, nothing but the motion observes
+        # them, so they take up the jump: on a simulated Husky with GPS errors correlated over
+        # 30 s, a GPS recovery (x6.6e3) let k_w flip sign, after which every turn locked the
+        # odometry's yaw rate out and each recovery inflated more, to x1e12, until P broke.
+        self.held_in_recovery: tuple[int, ...] = ()
         self.last_nis = float("nan")
         self._eye = np.eye(self.n)
         self._wrap_state()
@@ -624,7 +630,14 @@ class KalmanCore:
         (NIS = m)."""
         P = self.P
         alpha, rest = inflation(y, H @ P @ H.T, R)
-        self.P = P * alpha
+        held = self.held_in_recovery
+        if held:  # P + (alpha - 1) P_ww, w the widened states: still positive definite
+            W = P * (alpha - 1.0)
+            W[held, :] = 0.0
+            W[:, held] = 0.0
+            self.P = P + W
+        else:
+            self.P = P * alpha
         if rest is not None:
             d = np.linalg.pinv(H) @ rest  # minimum-norm state error explaining the innovation
             self.P += np.outer(d, d)

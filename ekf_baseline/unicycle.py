@@ -739,6 +739,8 @@ class UnicycleEkf(Estimator):
         else:
             self.kf = KalmanCore(x0, P0, self.log, state_angles=(2, *self._hoff_states),
                                  lockout_count=self._lockout[0], lockout_time=self._lockout[1])
+        if self._ks is not None:
+            self.kf.held_in_recovery = (self._ks, self._ks + 1)
         self.t = t
         self._t0 = t
         self._k = 0
