@@ -240,8 +240,9 @@ def _bin_means(series: dict[int, float], width: int) -> dict[int, float]:
 
 
 def _calibration_summary(per_run: list[dict]) -> dict:
-    """Per calibration state over the runs that have it: n, the mean and RMS of the final
-    error, and the RMS of error / sigma (about 1 for a consistent estimator)."""
+    """Per calibration state over the runs that have it (``aggregate`` passes those that did not
+    fail): n, the mean and RMS of the final error, and the RMS of error / sigma (about 1 for a
+    consistent estimator)."""
     labels = list(dict.fromkeys(label for c in per_run for label in c))
     out = {}
     for label in labels:
@@ -277,7 +278,9 @@ def aggregate(per_seed: list[dict], prob: float = 0.95) -> dict:
             "nees_mean_per_seed": [e["nees_mean"] for _, e in rows],
             "errors": [e["error"] for _, e in rows if e["error"]],
             "dim": POSE_DIM,
-            "calibration": _calibration_summary([e.get("calibration") or {} for _, e in rows]),
+            # a run that broke down ends with meaningless states (k_w -9e20): left out
+            "calibration": _calibration_summary([e.get("calibration") or {} for _, e in rows
+                                                 if not e["error"]]),
         }
         # N-run average NEES per tick, over the ticks every run has
         series = [dict(zip(e["ticks"], e["nees"], strict=True)) for _, e in rows]

@@ -195,3 +195,13 @@ def test_calibration_errors_against_the_simulated_truth():
     assert got["k_v"]["z"] == pytest.approx(2.0) and got["k_w"]["z"] == pytest.approx(-0.5)
     seed002 = simulate(draw_truth(get_scenario("seed002", 10.0), 1)[0], seed=1)
     assert set(calibration_truth(seed002)) == {"k_v", "k_w"}  # no IMU there
+
+
+def test_the_calibration_summary_leaves_out_runs_that_failed():
+    a = _fake_seed(0, {0: 1.0}, rmse=0.2, dr=2.0)
+    b = _fake_seed(1, {0: 3.0}, rmse=0.4, dr=1.0)
+    a["estimators"]["ekf"]["calibration"] = {"k_w": {"error": 0.01, "z": 1.0}}
+    b["estimators"]["ekf"]["calibration"] = {"k_w": {"error": -9e20, "z": -3e21}}
+    b["estimators"]["ekf"]["error"] = "numerical breakdown at t=209.9"
+    c = aggregate([a, b])["ekf"]["calibration"]["k_w"]
+    assert c["n"] == 1 and c["error_mean"] == pytest.approx(0.01) and c["z_rms"] == 1.0
