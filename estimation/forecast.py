@@ -21,7 +21,7 @@ accumulated over the steps, not per step (which would divide it by the number of
 from __future__ import annotations
 
 import math
-from bisect import insort
+from bisect import bisect_left, insort
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -106,6 +106,10 @@ def _step(x: float, y: float, psi: float, P: np.ndarray, K: np.ndarray, s: Twist
     return x1, y1, p1, P, K
 
 
+def _stamp(s: TwistSample) -> float:
+    return s.t
+
+
 class OdometryTwist:
     """The twist samples a config's odometry gives, for ``carry``: forward speed from the
     first odometry sensor using v (else the first wheel-speed sensor, through the nominal
@@ -171,10 +175,11 @@ class OdometryTwist:
         s = TwistSample(m.t, self._v[0], self._w[0], self._v[1], self._w[1])
         if not all(math.isfinite(u) for u in (s.v, s.w, s.v_var, s.w_var)):
             return
-        insort(self.samples, s, key=lambda u: u.t)
-        cut = self.samples[-1].t - self.keep
-        if self.samples[0].t < cut:
-            self.samples = [u for u in self.samples if u.t >= cut]
+        samples = self.samples
+        insort(samples, s, key=_stamp)
+        cut = samples[-1].t - self.keep
+        if samples[0].t < cut:
+            del samples[:bisect_left(samples, cut, key=_stamp)]
 
     def q(self) -> tuple[float, float]:
         """Random-walk densities of (v, w) for a held twist: a_max^2 T from the robot's
