@@ -499,9 +499,9 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("-c", "--config", type=Path)
     sp.add_argument("--estimators", type=estimator_list, metavar="LIST",
                     help="comma-separated (default: all the sensors allow); not "
-                    "smoother_lagged: the lagged output exists only once a keyframe leaves the "
-                    "smoother's window, so it cannot be shown as the data comes (use 'ddfuse "
-                    "run')")
+                    "smoother_lagged or batch: the lagged output exists only once a keyframe "
+                    "leaves the smoother's window and the batch only at the end, so neither can "
+                    "be shown as the data comes (use 'ddfuse run')")
     sp.add_argument("--realtime", action="store_true", help="pace messages by their stamps")
     sp.add_argument("--every", type=lag_seconds, default=1.0, metavar="S",
                     help="print the current estimates every S > 0 seconds of data (default 1); "

@@ -59,7 +59,9 @@ ONLINE_TRACKS_REFUSED = {
     "smoother_lagged": "the lagged output of a keyframe exists only once it leaves the "
                        "smoother's window (its lag behind the newest message), so it cannot be "
                        "shown as the data comes; 'ddfuse run' gives it ('smoother' is the "
-                       "filtered output)"}
+                       "filtered output)",
+    "batch": "the batch optimises the whole run at once, so it has no estimate until the "
+             "input ends; 'ddfuse run' gives it"}
 
 
 class OnlineSession:
@@ -120,14 +122,14 @@ class OnlineSession:
                     ) -> OnlineSession:
         """Build the named estimators (default: all the config allows, except the offline
         batch). ``stream`` supplies the datum, landmark map and truth-based initial pose;
-        ``reorder_window`` (s) defaults to the config's. ValueError for 'smoother_lagged'
-        (``ONLINE_TRACKS_REFUSED`` says why)."""
+        ``reorder_window`` (s) defaults to the config's. ValueError for 'smoother_lagged' and
+        'batch' (``ONLINE_TRACKS_REFUSED`` says why)."""
         for n in names or ():
             if n in ONLINE_TRACKS_REFUSED:
                 raise ValueError(f"--estimators {n}: not available online: "
                                  f"{ONLINE_TRACKS_REFUSED[n]}")
         stream = stream if stream is not None else Stream(measurements=[])
-        chosen = [n for n in registry.select(cfg, names) if names or n != "batch"]
+        chosen = [n for n in registry.select(cfg, names) if n not in ONLINE_TRACKS_REFUSED]
         order: dict[str, int] = {}
         for i, s in enumerate(cfg.sensors):
             order.setdefault(s.name, i)

@@ -174,3 +174,12 @@ def test_cli_online_refuses_the_lagged_smoother_output(capsys):
     assert code == 2 and out == "" and "\n" not in err
     assert err.startswith("ddfuse: error: --estimators smoother_lagged: not available online: ")
     assert "'ddfuse run' gives it" in err
+
+
+def test_cli_online_refuses_the_batch():
+    """It ran and printed nothing for the batch until the input ended."""
+    code = cli.main(["online", str(BAG), "--estimators", "ekf,batch"])
+    assert code == 2
+    with pytest.raises(ValueError, match=r"--estimators batch: not available online: the batch "
+                       r"optimises the whole run at once"):
+        OnlineSession.from_config(load_config(CFG), ["ekf", "batch"])
