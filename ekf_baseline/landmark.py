@@ -259,11 +259,7 @@ class _OdometryDrivenEkf(Estimator):
             if r is None or L is None:
                 self.log.rejected[(m.sensor, "no_wheel_geometry")] += 1
                 return
-            v = 0.5 * r * (m.left + m.right)
-            w = r * (m.right - m.left) / L
-            v_var = 0.25 * r * r * (m.left_var + m.right_var)
-            w_var = r * r * (m.left_var + m.right_var) / (L * L)
-            self._odometry(m.t, v, w, v_var, w_var, m.sensor)
+            self._odometry(m.t, *m.twist(r, L), m.sensor)
         elif isinstance(m, LandmarkObservation):
             if self._t_odo is None:  # no odometry yet: at rest
                 self.predict_to(m.t)

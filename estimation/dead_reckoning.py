@@ -64,8 +64,7 @@ class DeadReckoning(Estimator):
                 return
             v, w = m.v, m.yaw_rate
         elif isinstance(m, WheelSpeeds):
-            v = 0.5 * self._r * (m.left + m.right)
-            w = self._r * (m.right - m.left) / self._L
+            v, w = m.twist(self._r, self._L)[:2]
         else:
             return
         if self.t is not None and m.t > self.t:

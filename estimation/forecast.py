@@ -157,10 +157,8 @@ class OdometryTwist:
             if m.yaw_rate is not None and self.w_from_v:
                 self._w = (m.yaw_rate, m.yaw_rate_var)
         elif isinstance(m, WheelSpeeds):
-            r, L = self._r, self._L
-            lv, rv = m.left_var, m.right_var
-            self._v = (0.5 * r * (m.left + m.right), 0.25 * r * r * (lv + rv))
-            self._w = (r * (m.right - m.left) / L, r * r * (lv + rv) / (L * L))
+            v, w, v_var, w_var = m.twist(self._r, self._L)
+            self._v, self._w = (v, v_var), (w, w_var)
         elif isinstance(m, GyroYawRate) and sensor == self.w_sensor:
             self._w = (m.yaw_rate, m.var)
         else:

@@ -46,6 +46,16 @@ class WheelSpeeds:
     right_var: float  # (rad/s)^2
     sensor: str = "wheels"
 
+    def twist(self, wheel_radius: float, track_width: float
+              ) -> tuple[float, float, float, float]:
+        """(v m/s, yaw rate rad/s, var(v) (m/s)^2, var(yaw rate) (rad/s)^2) for wheel radius
+        and track width in m, the two wheels' errors independent. v and the yaw rate are
+        correlated only when the wheels' variances differ; that covariance is not returned."""
+        r, L = wheel_radius, track_width
+        s = self.left_var + self.right_var
+        return (0.5 * r * (self.left + self.right), r * (self.right - self.left) / L,
+                0.25 * r * r * s, r * r * s / (L * L))
+
 
 @dataclass(slots=True)
 class GyroYawRate:

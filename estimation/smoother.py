@@ -635,13 +635,10 @@ class FixedLagSmoother(Estimator):
         return (before + after) / (b - a), var + q * max(b - until, 0.0)
 
     def _wheel_speeds(self, m: WheelSpeeds) -> None:
-        r, L = self.cfg.robot.wheel_radius, self.cfg.robot.track_width
-        self.v = 0.5 * r * (m.left + m.right)
-        self.v_var = 0.25 * r * r * (m.left_var + m.right_var)
+        self.v, self.wo, self.v_var, self.wo_var = m.twist(self.cfg.robot.wheel_radius,
+                                                           self.cfg.robot.track_width)
         self.v_T = self._period(m, "v")
         self.v_q, self.v_span = self.v_var * self.v_T, (m.t - self.v_T, m.t)
-        self.wo = r * (m.right - m.left) / L
-        self.wo_var = r * r * (m.left_var + m.right_var) / (L * L)
         self.wo_T = self._period(m, "w")
         self.wo_q, self.wo_span = self.wo_var * self.wo_T, (m.t - self.wo_T, m.t)
 
@@ -1098,8 +1095,7 @@ class FixedLagSmoother(Estimator):
             elif isinstance(b, GyroYawRate) and b.sensor in self.gyro_names:
                 w = b.yaw_rate - self.fixed_bias
             elif isinstance(b, WheelSpeeds):
-                r, L = self.cfg.robot.wheel_radius, self.cfg.robot.track_width
-                v, w = 0.5 * r * (b.left + b.right), r * (b.right - b.left) / L
+                v, w = b.twist(self.cfg.robot.wheel_radius, self.cfg.robot.track_width)[:2]
         if math.hypot(x, y) < 0.5 * INIT_DISTANCE:
             return None  # odometry disagrees with GPS about having moved: wait
         de, dn = f1.enu[0] - f0.enu[0], f1.enu[1] - f0.enu[1]
