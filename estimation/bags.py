@@ -342,7 +342,7 @@ class _StampCheck:
     __slots__ = ("pending", "first_rt", "ref", "recent", "n", "bad")
 
     def __init__(self) -> None:
-        self.pending: list | None = []  # (stamp, record time, measurement) during the warm-up
+        self.pending: list | None = []  # (stamp, record time, payload) during the warm-up
         self.first_rt = math.nan
         self.ref = 0.0
         self.recent: list[float] = []
@@ -713,29 +713,28 @@ class BagStream:
                     chk.first_rt = rt
                     warming.add(idx)
                 passed = None
-                for m in out:
+                if out:  # one check per message: its measurements share its header stamp
                     chk.n += 1
                     if chk.pending is not None:
-                        chk.pending.append((m.t, rt, m))
-                    elif chk.ok(m.t, rt, tol):
-                        if passed is None:
-                            passed = [m]
-                        else:
-                            passed.append(m)
+                        chk.pending.append((out[0].t, rt, out))
+                    elif chk.ok(out[0].t, rt, tol):
+                        passed = out
                 if warming:
                     for j in list(warming):
                         c = checks[j]
                         if len(c.pending) >= _StampCheck.WARMUP or \
                                 rt - c.first_rt > _StampCheck.WARMUP_S:
                             warming.discard(j)
-                            for t, _, m in c.end_warmup(tol):
-                                if t < released:
-                                    self._late(self._source_of(j), t, released)
-                                    continue
-                                push(heap, (t, j, seq, m))
-                                seq += 1
-                                if t > newest:
-                                    newest = t
+                            for _, _, ms in c.end_warmup(tol):
+                                for m in ms:
+                                    t = m.t
+                                    if t < released:
+                                        self._late(self._source_of(j), t, released)
+                                        continue
+                                    push(heap, (t, j, seq, m))
+                                    seq += 1
+                                    if t > newest:
+                                        newest = t
                 if passed is not None:
                     for m in passed:
                         t = m.t
@@ -756,12 +755,14 @@ class BagStream:
                             yield m
             # the end of the bag: every warm-up ends, the buffer empties
             for j in sorted(warming):
-                for t, _, m in checks[j].end_warmup(tol):
-                    if t < released:
-                        self._late(self._source_of(j), t, released)
-                        continue
-                    push(heap, (t, j, seq, m))
-                    seq += 1
+                for _, _, ms in checks[j].end_warmup(tol):
+                    for m in ms:
+                        t = m.t
+                        if t < released:
+                            self._late(self._source_of(j), t, released)
+                            continue
+                        push(heap, (t, j, seq, m))
+                        seq += 1
             while heap:
                 item = pop(heap)
                 released = item[0]

@@ -540,6 +540,39 @@ def test_single_broken_stamp_is_dropped_and_counted(tmp_path, fmt, broken):
     assert s.t1 == pytest.approx(T0 + 0.1 * (n - 1), abs=1e-6)
 
 
+@PATHS
+def test_a_broken_stamp_counts_once_per_message_as_live(tmp_path, fmt):
+    """An IMU message gives three measurements (yaw rate, yaw, acceleration). Its broken stamp
+    was counted three times by the bag reader, once by ``LiveConverter``; now once by both,
+    with all three dropped."""
+    from estimation.live import LiveConverter
+
+    n, bad = 30, 15
+    recs = []
+    for i in range(n):
+        t = T0 + 0.1 * i
+        recs.append(("/imu", bw.imu(t if i != bad else t + 1e5, angvel=(0, 0, i),
+                                    wcov=bw.diag(1, 1, 1), ocov=bw.diag(0.01, 0.01, 0.01),
+                                    acov=bw.diag(0.01, 0.01, 0.01)), t))
+    bag = write(tmp_path, fmt, recs)
+    cfg = config({"sensors": {"imu": [{"topic": "/imu", "use": ["yaw_rate", "yaw", "accel"]}]}})
+    s = read_stream(bag, cfg)
+    assert rejected_on(s, "/imu") == 1
+    for cls in (GyroYawRate, Heading, ForwardAccel):
+        assert len(of_type(s, cls)) == n - 1
+    assert [m.yaw_rate for m in of_type(s, GyroYawRate)] == pytest.approx(
+        [float(i) for i in range(n) if i != bad])
+    conv = LiveConverter(cfg)
+    reader = open_reader(bag)
+    try:
+        for c, rec_ns, b in reader.messages(connections=reader.connections):
+            conv.convert(c.topic, reader.deserialize(b, c.msgtype), c.msgtype,
+                         received=rec_ns * 1e-9)
+    finally:
+        reader.close()
+    assert sum(conv.rejected.values()) == 1
+
+
 @FMTS
 def test_time_going_backwards_for_many_messages_is_an_error(tmp_path, fmt):
     recs = []
