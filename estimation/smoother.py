@@ -101,11 +101,26 @@ GAP_HEADING_SIGMA = 0.5
 RESTART_HEADING_WAIT = 1.0  # s: how long the new window waits for a heading sample
 MAX_RECOVERIES = 3  # re-initialisations within RECOVERY_WINDOW the smoother survives
 RECOVERY_WINDOW = 10.0  # s of data
+
 # rad/s/sqrt(s), rad/sqrt(s): the least random walk of an estimated gyro bias and heading offset.
 # A keyframe interval's information on the change of the state is 1 / (walk^2 dt); at walks of
 # 1e-6 against a prior of 0.3 rad, Cholesky meets a condition number ~1e11 and gtsam declares
-# the system indeterminate. 1e-4 rad/sqrt(s) is 2 mrad over 400 s.
+# the system indeterminate. 1e-4 rad/sqrt(s) is 2 mrad over 400 s. While no heading sample has
+# informed the offset, its walk is at least ``walk_floor(init_hoff_sigma)``.
 WALK_FLOOR = (1e-5, 1e-4)
+
+
+def walk_floor(prior_sigma: float) -> float:
+    """The least random walk (per sqrt(s)) of a calibration state informed by nothing but its
+    prior sigma ``prior_sigma`` for gtsam's Cholesky to accept the window.
+
+    Two keyframes ``dt`` apart are tied by the walk with information 1 / (walk^2 dt) against
+    the prior's 1 / sigma^2; gtsam 4.3 refuses a pivot whose information left after the
+    earlier pivots is under 2^-24 of its diagonal (PR #2653, normalized all-pivot Cholesky
+    checks), i.e. walk^2 dt / sigma^2 < 2^-24, and declares the system indeterminate. At the
+    closest keyframes (MIN_KEYFRAME_DT) this floor keeps the ratio 4x above that: 4.6e-4
+    rad/sqrt(s) for the heading offset's 0.3 rad prior, against WALK_FLOOR's 1e-4."""
+    return prior_sigma * 2.0 ** -11 / math.sqrt(MIN_KEYFRAME_DT)
 
 
 @dataclass
@@ -324,6 +339,8 @@ class FixedLagSmoother(Estimator):
         # config states how well the geometry is known and a sensor gives odometry
         self.scale_prior = cfg.robot.scale_std if (
             cfg.of_kind("odometry") or cfg.of_kind("wheels")) else None
+        self._scale_rw = (max(self.noise.scale_rw, walk_floor(max(self.scale_prior[:2])))
+                          if self.scale_prior is not None else self.noise.fixed_rw)
         self.has_gps = bool(cfg.of_kind("gps"))
         self.odometry_held_back = bool(cfg.of_kind("odometry") or cfg.of_kind("wheels"))
         self.keyframe_rate = cfg.smoother.keyframe_rate
@@ -338,6 +355,8 @@ class FixedLagSmoother(Estimator):
         self.initialised = False
         self.buffer: list = []  # measurements held until the heading is known
         self._buf_fixes: tuple[GpsFix, GpsFix] | None = None  # its first and last GPS fix
+        self._buf_moving = False  # whether it holds an odometry speed
+        self._buf_last: GpsFix | None = None  # its last fix
         self.k = -1  # index of the newest keyframe
         self.kf_t: dict[int, float] = {}  # keyframes in the window
         self.all_kf_t: dict[int, float] = {}  # every keyframe of the run (keep_all only)
@@ -362,6 +381,7 @@ class FixedLagSmoother(Estimator):
         # heading samples since the newest keyframe: sensor, the first one carried back to the
         # keyframe (rad), the sum of the others' wrapped differences from it, summed variances
         self._h_n = 0
+        self._hoff_informed = False  # whether a heading sample has informed the offset
         self._h_sensor, self._h_ref, self._h_sum, self._h_var = "", 0.0, 0.0, 0.0
         self._held: list = []  # messages since the last odometry sample, waiting for the next
         self._now = -math.inf  # stamp of the newest message seen
@@ -420,6 +440,7 @@ class FixedLagSmoother(Estimator):
         self._full = cov0
         self.pim.reset(x0[BG], x0[KV], x0[KW])
         self._h_n = 0
+        self._hoff_informed = False
         self.initialised = True
         self.last_t = t
         self._flush()
@@ -666,7 +687,10 @@ class FixedLagSmoother(Estimator):
         if dt <= 0.0:
             return
         if self.v is None:
-            self.last_t = t
+            # No odometry yet: the interval waits for the first sample, which is then held
+            # back over it (grown as a stale sample, ``_stale``). Moving last_t on instead left
+            # the first keyframe interval's motion out of the preintegration: a 0.4 s factor
+            # across 1.2 s, which gtsam declared indeterminate.
             return
         sv, so, sg = self.v_span, self.wo_span, self.wg_span
         if sv[0] <= a and t <= sv[1] and so[0] <= a and t <= so[1] and sg[0] <= a and \
@@ -701,6 +725,13 @@ class FixedLagSmoother(Estimator):
 
     def _absolute(self, m) -> None:
         t_kf = self.kf_t[self.k]
+        if self.v is None and abs(m.t - t_kf) >= MIN_KEYFRAME_DT:
+            # No odometry yet in this window (its sensors started first, or it has not resumed
+            # after a gap): nothing relates a measurement away from the first keyframe to it.
+            # Attached with the keyframe's guessed twist, a few such fixes made gtsam declare
+            # the system indeterminate (re-initialisations; five stopped the smoother).
+            self.log.rejected[(m.sensor, "before odometry began")] += 1
+            return
         if m.t - t_kf >= (MIN_KEYFRAME_DT if self.kf_policy == "gps" else 1e9) and self.pim.n > 0:
             self._new_keyframe(m.t)
         k = self.k
@@ -890,9 +921,9 @@ class FixedLagSmoother(Estimator):
         self._add(preintegrated_factor(
             ki, kj, pim,
             gyro_bias_rw=n.gyro_bias_rw if self.est_bias else n.fixed_rw,
-            heading_offset_rw=n.heading_offset_rw if self.est_hoff else n.fixed_rw,
+            heading_offset_rw=self._hoff_rw(),
             pose_noise=n.pose_noise,
-            scale_rw=n.scale_rw if self.scale_prior is not None else n.fixed_rw))
+            scale_rw=self._scale_rw))
         guess = pim.predict(self.kf_state)
         pose, cov = _compose(self.kf_state, self._delta(self.kf_state, pim), pim.covariance,
                              self.kf_cov)
@@ -930,6 +961,19 @@ class FixedLagSmoother(Estimator):
             self._add(linear_state_factor(kj, rows, guess))
         self._int_g = self._int_o = self._diff_t = 0.0
         self.pim.reset(guess[BG], guess[KV], guess[KW])
+
+    def _hoff_rw(self) -> float:
+        """The heading offset's walk for the interval ending at the next keyframe: at least
+        ``walk_floor`` of its prior until a heading sample has informed it in this window (its
+        prior alone against the stated walk's tie is what gtsam's Cholesky refuses)."""
+        n = self.noise
+        if not self.est_hoff:
+            return n.fixed_rw
+        if self._h_n:
+            self._hoff_informed = True
+        if self._hoff_informed:
+            return n.heading_offset_rw
+        return max(n.heading_offset_rw, walk_floor(n.init_hoff_sigma))
 
     def _frozen(self) -> WheelGyroPreintegration:
         """The preintegration as an object with plain float attributes, for code that reads
@@ -1045,8 +1089,20 @@ class FixedLagSmoother(Estimator):
             self.process(m)
             return
         self.buffer.append(m)
-        if isinstance(m, GpsFix):  # the buffer's first and last fix (no rescan per message)
-            self._buf_fixes = (self._buf_fixes[0] if self._buf_fixes else m, m)
+        # The buffer's first and last fix (no rescan per message). The window starts at a fix
+        # that odometry covers: from ODOMETRY_WAIT before the first sample on (held back over
+        # its period, as ``process`` holds messages); an earlier one has no motion to relate
+        # it to the next.
+        if isinstance(m, GpsFix):
+            self._buf_last = m
+            if self._buf_moving:
+                self._buf_fixes = (self._buf_fixes[0] if self._buf_fixes else m, m)
+        elif not self._buf_moving and (isinstance(m, WheelSpeeds) or (
+                isinstance(m, WheelOdometry) and m.v is not None)):
+            self._buf_moving = True
+            first = next((b for b in self.buffer if isinstance(b, GpsFix)
+                          and b.t >= m.t - ODOMETRY_WAIT), None)
+            self._buf_fixes = (first, self._buf_last) if first is not None else None
         if self._buf_fixes is None or self._buf_fixes[0] is self._buf_fixes[1]:
             return
         f0, f1 = self._buf_fixes
@@ -1057,8 +1113,14 @@ class FixedLagSmoother(Estimator):
         if psi0 is None:
             return
         buffered = [b for b in self.buffer if b.t >= f0.t]
+        for b in self.buffer:
+            if b.t >= f0.t:
+                break
+            if isinstance(b, GpsFix):  # the fixes before odometry began, as ``_absolute``
+                self.log.rejected[(b.sensor, "before odometry began")] += 1
         self.buffer = []
-        self._buf_fixes = None
+        self._buf_fixes = self._buf_last = None
+        self._buf_moving = False
         sig = max(math.sqrt(f0.cov[0, 0]), math.sqrt(f0.cov[1, 1]))
         self._start(f0.t, (f0.enu[0], f0.enu[1], psi0), sig, self.noise.init_psi_sigma)
         for b in buffered:
