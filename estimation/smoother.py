@@ -105,8 +105,9 @@ RECOVERY_WINDOW = 10.0  # s of data
 # rad/s/sqrt(s), rad/sqrt(s): the least random walk of an estimated gyro bias and heading offset.
 # A keyframe interval's information on the change of the state is 1 / (walk^2 dt); at walks of
 # 1e-6 against a prior of 0.3 rad, Cholesky meets a condition number ~1e11 and gtsam declares
-# the system indeterminate. 1e-4 rad/sqrt(s) is 2 mrad over 400 s. While no heading sample has
-# informed the offset, its walk is at least ``walk_floor(init_hoff_sigma)``.
+# the system indeterminate. 1e-4 rad/sqrt(s) is 2 mrad over 400 s. The bias walk is also at
+# least ``walk_floor(init_bg_sigma)`` (3.1e-5: at 1e-5 and 10 Hz keyframes the smoother stopped
+# within 0.5 s), and so is the offset's while no heading sample has informed it.
 WALK_FLOOR = (1e-5, 1e-4)
 
 
@@ -173,7 +174,8 @@ class SmootherNoise:
         ho = [s.noise["heading_offset_walk"] for s in imus
               if "yaw" in s.use and "heading_offset_walk" in s.noise]
         return replace(n, pose_noise=pn,
-                       gyro_bias_rw=max(bg[0], WALK_FLOOR[0]) if bg else n.gyro_bias_rw,
+                       gyro_bias_rw=max(bg[0], WALK_FLOOR[0], walk_floor(n.init_bg_sigma))
+                       if bg else n.gyro_bias_rw,
                        heading_offset_rw=max(ho[0], WALK_FLOOR[1]) if ho else n.heading_offset_rw)
 
 
