@@ -679,6 +679,20 @@ class BagStream:
         released = -math.inf  # the stamp of the last measurement passed on
         warming: set[int] = set()  # sources still in their stamp check's warm-up
         last_raw, last_msg = None, None
+
+        def admit(ms: list, j: int, src: _Source) -> None:
+            """Into the reorder buffer, or dropped as late: measurements of source ``j``."""
+            nonlocal seq, newest
+            for m in ms:
+                t = m.t
+                if t < released:
+                    self._late(src, t, released)
+                    continue
+                push(heap, (t, j, seq, m))
+                seq += 1
+                if t > newest:
+                    newest = t
+
         n_raw = 0
         raw_items = self._raw()
         if self._scan is None:
@@ -726,25 +740,9 @@ class BagStream:
                                 rt - c.first_rt > _StampCheck.WARMUP_S:
                             warming.discard(j)
                             for _, _, ms in c.end_warmup(tol):
-                                for m in ms:
-                                    t = m.t
-                                    if t < released:
-                                        self._late(self._source_of(j), t, released)
-                                        continue
-                                    push(heap, (t, j, seq, m))
-                                    seq += 1
-                                    if t > newest:
-                                        newest = t
+                                admit(ms, j, self._source_of(j))
                 if passed is not None:
-                    for m in passed:
-                        t = m.t
-                        if t < released:
-                            self._late(src, t, released)
-                            continue
-                        push(heap, (t, idx, seq, m))
-                        seq += 1
-                        if t > newest:
-                            newest = t
+                    admit(passed, idx, src)
                 if not warming:
                     cut = newest - depth
                     while heap and heap[0][0] < cut:
@@ -756,13 +754,7 @@ class BagStream:
             # the end of the bag: every warm-up ends, the buffer empties
             for j in sorted(warming):
                 for _, _, ms in checks[j].end_warmup(tol):
-                    for m in ms:
-                        t = m.t
-                        if t < released:
-                            self._late(self._source_of(j), t, released)
-                            continue
-                        push(heap, (t, j, seq, m))
-                        seq += 1
+                    admit(ms, j, self._source_of(j))
             while heap:
                 item = pop(heap)
                 released = item[0]
