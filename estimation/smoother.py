@@ -840,7 +840,7 @@ class FixedLagSmoother(Estimator):
                 # held (widened x8.7e5 with the rest after a 30 s clock step, the offset's prior
                 # against its walk made gtsam's Cholesky refuse the window, see walk_floor)
                 self._widen_link(key, m.t, H, np.array([y]), np.array([[r]]), "heading sample",
-                                 widened=BG)
+                                 calibration=False)
                 return True
             wait = self._lockout.corroborated(key, m.t)
             self.log.note(m.t, f"{m.sensor}: {count} heading samples in a row failed the gate "
@@ -873,16 +873,24 @@ class FixedLagSmoother(Estimator):
         return self._widen_link(m.sensor, m.t, H, y, m.cov[:2, :2], "fix")
 
     def _widen_link(self, key, t_m: float, H: np.ndarray, y: np.ndarray, R: np.ndarray,
-                    what: str, widened: int = KV) -> int:
-        """Widen the newest keyframe's belief in its first ``widened`` states by the smallest
-        alpha that makes innovation ``y`` of a measurement (H (m, DIM), R (m, m)) at ``t_m``
-        ordinary (``_widen``), the lock-out of ``key`` (a sensor, or (sensor, kind))
-        recovered: P + (alpha - 1) P_ww, so S(alpha) = alpha A + (H P H^T - A + R) with
-        A = H_w P_ww H_w^T. Returns the new keyframe."""
+                    what: str, calibration: bool = True) -> int:
+        """Widen the newest keyframe's belief by the smallest alpha that makes innovation ``y``
+        of a measurement (H (m, DIM), R (m, m)) at ``t_m`` ordinary (``_widen``), the lock-out
+        of ``key`` (a sensor, or (sensor, kind)) recovered: P + (alpha - 1) P_ww, so
+        S(alpha) = alpha A + (H P H^T - A + R) with A = H_w P_ww H_w^T. Widened: the pose and
+        twist, and with ``calibration`` the gyro bias and heading offset where they are
+        estimated. A state held at its value is never widened: its prior against its 1e-6 walk
+        is what gtsam's Cholesky then refuses at the next short keyframe interval (Husky bag
+        without a compass: the closing keyframe failed). Returns the new keyframe."""
         x, full = self.kf_state, self._full
-        w = slice(0, widened)
+        w = [0, 1, 2, 3, 4]
+        if calibration and self.est_bias:
+            w.append(BG)
+        if calibration and self.est_hoff:
+            w.append(HOFF)
+        w = np.array(w)
         hph = H @ full @ H.T
-        A = H[:, w] @ full[w, w] @ H[:, w].T
+        A = H[:, w] @ full[np.ix_(w, w)] @ H[:, w].T
         alpha, rest = inflation(y, A, R + hph - A)
         if alpha <= 1.0 and rest is None:
             # already ordinary against the newest marginal (the gate judged an older one): a
@@ -896,10 +904,11 @@ class FixedLagSmoother(Estimator):
         # indeterminate. (Widening only x, y, psi, v, w instead: Husky hold-out 1.001 m lagged,
         # not 0.999, session 5, when the scales still walked without a configured uncertainty.)
         q = np.zeros((DIM, DIM))
-        q[w, w] = (alpha - 1.0) * full[w, w]
+        ww = np.ix_(w, w)
+        q[ww] = (alpha - 1.0) * full[ww]
         if rest is not None:
             d = np.linalg.pinv(H[:, w]) @ rest
-            q[w, w] += np.outer(d, d)
+            q[ww] += np.outer(d, d)
         q = 0.5 * (q + q.T) + np.eye(DIM) * self.noise.fixed_sigma ** 2
         i, t = self.k, self.kf_t[self.k]
         j = self.k = i + 1
