@@ -158,6 +158,33 @@ def _calibration_errors(sim, final) -> dict:
     return out
 
 
+def seed_data(scenario: str, seed: int, duration: float | None = None,
+              fixed_truth: bool = False) -> tuple:
+    """What one Monte Carlo seed runs on: (sim, config, stream, initial pose, initial pose
+    error). ``scenario`` simulated with ``seed`` (its true geometry and the initial pose error
+    drawn per seed by ``draw_truth`` unless ``fixed_truth``), written as a bag in a temporary
+    directory and read back as a user's bag would be; the pose is the config's initial pose
+    plus that error (m, m, rad), None when the config has none."""
+    from estimation.bags import read_stream
+    from estimation.config import load_config
+    from estimation.runner import initial_pose
+    from evaluation.simulate import get_scenario, simulate, write_bag
+
+    sc = get_scenario(scenario, duration)
+    err0 = (0.0, 0.0, 0.0)
+    if not fixed_truth:
+        sc, err0 = draw_truth(sc, seed)
+    sim = simulate(sc, seed=seed)
+    with tempfile.TemporaryDirectory(prefix="ddfuse-mc-") as d:
+        bag, cfg_path, _ = write_bag(sim, Path(d) / f"{scenario}-{seed}.bag")
+        cfg = load_config(cfg_path)
+        stream = read_stream(bag, cfg)
+    pose = initial_pose(cfg.initial_pose, stream)
+    if pose is not None:
+        pose = (pose[0] + err0[0], pose[1] + err0[1], pose[2] + err0[2])
+    return sim, cfg, stream, pose, err0
+
+
 def run_seed(scenario: str, seed: int, estimators: list[str] | None = None,
              duration: float | None = None, fixed_truth: bool = False,
              lag: float | None = None) -> dict:
@@ -172,31 +199,17 @@ def run_seed(scenario: str, seed: int, estimators: list[str] | None = None,
     'runtime_s', 'error', 'ticks', 'nees', 'calibration'}}, 'dr_rmse_m'}; 'ticks' and 'nees' are
     the per-sample output tick indices and NEES (lists, for the across-run average);
     'calibration' the final calibration states' errors (``_calibration_errors``)."""
-    from estimation.bags import read_stream
-    from estimation.config import load_config
-    from estimation.runner import initial_pose, run
+    from estimation.runner import run
     from evaluation import estimators as registry
-    from evaluation.simulate import get_scenario, simulate, write_bag
 
-    sc = get_scenario(scenario, duration)
-    err0 = (0.0, 0.0, 0.0)
-    if not fixed_truth:
-        sc, err0 = draw_truth(sc, seed)
-    sim = simulate(sc, seed=seed)
-    with tempfile.TemporaryDirectory(prefix="ddfuse-mc-") as d:
-        bag, cfg_path, _ = write_bag(sim, Path(d) / f"{scenario}-{seed}.bag")
-        cfg = load_config(cfg_path)
-        stream = read_stream(bag, cfg)
+    sim, cfg, stream, pose, err0 = seed_data(scenario, seed, duration, fixed_truth)
     names = list(estimators) if estimators else default_estimators(cfg)
     chosen = registry.select(cfg, names)
     if "dr" not in chosen:
         chosen.append("dr")
-    pose = initial_pose(cfg.initial_pose, stream)
-    if pose is not None:
-        pose = (pose[0] + err0[0], pose[1] + err0[1], pose[2] + err0[2])
     built = registry.build(cfg, stream, chosen, lag=lag, pose=pose)
     result = run(stream, built, output_rate=OUTPUT_RATE)
-    g = sc.true_geometry
+    g = sim.scenario.true_geometry
     out: dict = {"seed": seed, "scenario": scenario, "duration_s": sim.duration,
                  "true_geometry": [g.wheel_radius, g.track_width], "initial_error": list(err0),
                  "estimators": {}}

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import math
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -16,28 +15,16 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[3]))  # the repo root
 
-from estimation.bags import read_stream  # noqa: E402
-from estimation.config import load_config  # noqa: E402
 from estimation.measurements import GpsFix  # noqa: E402
-from estimation.runner import initial_pose  # noqa: E402
 from evaluation import estimators as registry  # noqa: E402
-from evaluation.montecarlo import draw_truth  # noqa: E402
-from evaluation.simulate import get_scenario, simulate, write_bag  # noqa: E402
+from evaluation.montecarlo import seed_data  # noqa: E402
 
 RATE = 10.0
 
 
 def make_seed(scenario: str, seed: int, duration=None):
     """(sim, cfg, stream, pose) as run_seed builds them (the same draws)."""
-    sc = get_scenario(scenario, duration)
-    sc, err0 = draw_truth(sc, seed)
-    sim = simulate(sc, seed=seed)
-    with tempfile.TemporaryDirectory(prefix="igvc-") as d:
-        bag, cfg_path, _ = write_bag(sim, Path(d) / f"{scenario}-{seed}.bag")
-        cfg = load_config(cfg_path)
-        stream = read_stream(bag, cfg)
-    pose = initial_pose(cfg.initial_pose, stream)
-    pose = (pose[0] + err0[0], pose[1] + err0[1], pose[2] + err0[2])
+    sim, cfg, stream, pose, _ = seed_data(scenario, seed, duration)
     return sim, cfg, stream, pose
 
 
