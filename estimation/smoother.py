@@ -23,9 +23,9 @@ velocity and biases as states): one 9-vector key per keyframe,
   would not carry (``factors.gyro.bias_difference_factor``; its residual is whitened by a
   k_w-dependent sigma, since both rates are noisy);
 * the absolute heading samples of the interval, each carried to the keyframe by the
-  preintegrated yaw and averaged, are one heading measurement (with the offset state when
-  ``heading_offset: estimate``); it is linear in the state, so it is a C++ factor
-  (``factors.linear``), not a Python CustomFactor;
+  preintegrated yaw, gated as in the EKFs (``FixedLagSmoother._heading_gate``) and averaged,
+  are one heading measurement (with the offset state when ``heading_offset: estimate``); it is
+  linear in the state, so it is a C++ factor (``factors.linear``), not a Python CustomFactor;
 * a landmark sighting is a range/bearing (or range-only) factor to the known map position.
 
 Process noise is what the config states, as for the EKFs: the robot's slip densities
