@@ -833,6 +833,8 @@ class FixedLagSmoother(Estimator):
                      use_offset)
             self._hgate = c
         _, _, pred, hph, offset, rad2, use_offset = c
+        if rad2 == math.inf:  # no gate for this sensor (or no marginal yet)
+            return True
         r = m.var + self.pim.c_pp
         y = (u - offset - pred + math.pi) % (2.0 * math.pi) - math.pi  # wrap_angle, inlined
         key = (m.sensor, "heading")
@@ -908,11 +910,12 @@ class FixedLagSmoother(Estimator):
             # m after a heading recovery: gtsam refused that pivot)
             self._lockout.recovered(key, t_m)
             return self.k
-        # The GPS widens everything but the odometry scales, as in the EKFs (which widen all): H
-        # observes none of them, so alpha is the EKF's. Widened too, the scales explain the
-        # jump: on the Husky bag with a 0.3 m GPS sigma k_v went to 0.44, then the system was
-        # indeterminate. (Widening only x, y, psi, v, w instead: Husky hold-out 1.001 m lagged,
-        # not 0.999, session 5, when the scales still walked without a configured uncertainty.)
+        # The GPS widens every estimated state but the odometry scales, as in the EKFs (which
+        # widen all but the scales too): H observes none of them, so alpha is the EKF's.
+        # Widened too, the scales explain the jump: on the Husky bag with a 0.3 m GPS sigma k_v
+        # went to 0.44, then the system was indeterminate. (Widening only x, y, psi, v, w
+        # instead: Husky hold-out 1.001 m lagged, not 0.999, session 5, when the scales still
+        # walked without a configured uncertainty.)
         q = np.zeros((DIM, DIM))
         ww = np.ix_(w, w)
         q[ww] = (alpha - 1.0) * full[ww]
