@@ -112,6 +112,16 @@ JOSEPH_EXPANDED_MIN = 1e-6
 _TWO_PI = 2.0 * math.pi
 _PI = math.pi
 
+# Measurement kinds whose acceptance during a lock-out of another kind corroborates the filter
+# on that kind's states although their H has no column there: position fixes and the heading.
+# A track that keeps passing the GPS gate has the heading the filter gives it (the position
+# the next fixes see is dead-reckoned along it), so a compass failing its gate meanwhile is
+# the outlier (a wrong fixed offset, a magnetic disturbance). By H columns alone, a GPS
+# without lever arm or delay never observes the heading: on rl_husky_gps.bag with the IMU's
+# heading_offset set to 0 both EKFs recovered onto the compass and then locked the GPS out 65
+# times, ending 5 m off. The smoother's compass gate uses the same rule.
+CORROBORATED_BY = {"heading": frozenset({"gps", "landmark"})}
+
 
 @lru_cache(maxsize=256)
 def chi2_threshold(prob: float, dof: int) -> float:
@@ -604,10 +614,11 @@ class KalmanCore:
         support = _support(rows)
         covered: set[int] = set()
         by: list[str] = []
+        kinds = CORROBORATED_BY.get(key[1], ())
         for other, (tk, rows_k) in self._last_ok.items():
             if other == key or tk < streak[1]:
                 continue
-            cols = _support(rows_k)
+            cols = support if other[1] in kinds else _support(rows_k)
             if cols & support:
                 covered |= cols
                 by.append(f"{other[0]}/{other[1]}")
@@ -619,7 +630,8 @@ class KalmanCore:
         self.log.note(
             t,
             f"{key[0]}/{key[1]}: {streak[0]} consecutive gate rejections over "
-            f"{t - streak[1]:.2f} s while {', '.join(sorted(by))} (observing the same states) "
+            f"{t - streak[1]:.2f} s while {', '.join(sorted(by))} (observing the same states"
+            f"{', or position fixes for the heading' if kinds else ''}) "
             f"were accepted: the sensor disagrees with the others, not recovering (checked again "
             f"in {wait:.0f} s)",
         )
