@@ -16,9 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from estimation import ros1_scan, rosmsg
-from estimation.bags import open_reader
-from estimation.errors import BagError
+from estimation import heading_survey, ros1_scan, rosmsg
+from estimation.bags import BagStream, open_reader
+from estimation.config import parse_config
+from estimation.errors import BagError, DdfuseError
 
 GRAVITY = 9.80665  # m/s^2
 
@@ -290,10 +291,35 @@ def odometry_yaw_rate_agrees(info: BagInfo) -> bool | None:
     return None if not corr else max(corr) >= YAW_RATE_AGREEMENT
 
 
-def suggest_config(info: BagInfo) -> dict:
+def offset_surveys(path: str | Path, tree: dict) -> list[heading_survey.OffsetSurvey]:
+    """The heading offset of each compass of the bag measured against the GPS course
+    (``estimation.heading_survey``), reading the bag with the odometry, IMU and GPS sensors of
+    the suggested config ``tree``; [] without a compass, a GPS and an odometry speed."""
+    sensors = tree.get("sensors") or {}
+    if not (sensors.get("gps") and sensors.get("odometry")
+            and any("yaw" in s["use"] for s in sensors.get("imu") or ())):
+        return []
+    sub = {"sensors": {k: sensors[k] for k in ("odometry", "imu", "gps")},
+           "frame": tree.get("frame") or {"datum": "first_fix"}}
+    rec = None
+    try:
+        cfg = parse_config(sub, f"{path} (suggested config)")
+        rec = heading_survey.recorder_for(cfg)
+        for m in BagStream(path, cfg).prime():
+            rec.add(m)
+    except DdfuseError:
+        # what the bag lacks for a run (no valid fix for the datum...) is inspect's to report
+        # in its facts, not the survey's: the windows fitted so far stand
+        pass
+    return rec.surveys() if rec is not None else []
+
+
+def suggest_config(info: BagInfo, surveys: list | tuple = ()) -> dict:
     """A config tree for the bag (loadable by parse_config): one sensor per known topic. The
     odometry's yaw rate is left out when an IMU's gyro shows it disagrees with the rotation
-    (``odometry_yaw_rate_agrees``)."""
+    (``odometry_yaw_rate_agrees``). A compass whose offset wanders (``surveys``,
+    ``offset_surveys``) gets the heading_offset_walk that follows it."""
+    walks = {sv.sensor: heading_survey.suggested_walk(sv) for sv in surveys if sv.wanders}
     sensors: dict[str, list] = {}
     gt: tuple[str, bool] | None = None  # (topic, whether it has a heading)
     odo_w = odometry_yaw_rate_agrees(info) is not False
@@ -320,6 +346,8 @@ def suggest_config(info: BagInfo) -> dict:
             if t.has_orientation:
                 s["use"] = ["yaw", "yaw_rate"]
                 s["noise"]["yaw"] = 0.05
+                if t.topic in walks:
+                    s["noise"]["heading_offset_walk"] = walks[t.topic]
                 s["heading_offset"] = "estimate"
             s["gyro_bias"] = "estimate"
             sensors.setdefault("imu", []).append(s)

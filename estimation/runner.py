@@ -344,7 +344,8 @@ def initial_pose(cfg_initial, stream) -> tuple[float, float, float] | None:
 
 def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
         holdout: str | None = None, progress: Callable[[float], None] | None = None,
-        interruptible: bool = False) -> RunResult:
+        interruptible: bool = False,
+        observers: Iterable[Callable[[object], None]] = ()) -> RunResult:
     """Feed every measurement of ``stream`` to every estimator, in time order.
 
     ``stream`` is a Stream (its list of measurements) or an ``estimation.bags.BagStream``
@@ -357,7 +358,10 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
     ``interruptible``: Ctrl-C (KeyboardInterrupt) ends the feeding there, and each estimator is
     finished with what it had (the one interrupted inside an update is stopped, as one that
     raised; one interrupted inside its ``finish``, e.g. the batch's whole-run solve, keeps
-    nothing more): the result says so in ``interrupted``. Otherwise Ctrl-C propagates."""
+    nothing more): the result says so in ``interrupted``. Otherwise Ctrl-C propagates.
+
+    ``observers`` are called with every measurement (withheld fixes too), outside the
+    estimators' timings: what a run learns about the data besides the estimates."""
     select = parse_holdout(holdout)
     names = list(estimators)
     est_list = [estimators[n] for n in names]
@@ -387,7 +391,7 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
     stop: list[str] = []
     try:
         fed = _feed(meas, n, fraction, select, gps, est_list, alive, errors, outputs, timings,
-                    totals, period, progress, stop if interruptible else None)
+                    totals, period, progress, stop if interruptible else None, tuple(observers))
     finally:
         if gc_was_enabled:
             gc.enable()
@@ -457,7 +461,7 @@ def _final_state(est: Estimator, track) -> Estimate | None:
 
 
 def _feed(meas, n, fraction, select, gps, est_list, alive, errors, outputs, timings, totals,
-          period, progress, stop: list[str] | None = None) -> int:
+          period, progress, stop: list[str] | None = None, observers: tuple = ()) -> int:
     """The measurement loop of :func:`run` (see there); returns how many measurements came.
     With ``stop`` (a list), Ctrl-C ends the loop and says where in ``stop``."""
     clock = time.perf_counter
@@ -483,6 +487,8 @@ def _feed(meas, n, fraction, select, gps, est_list, alive, errors, outputs, timi
             t_m = m.t
             if t_start is None:
                 t_start = t_m
+            for ob in observers:
+                ob(m)
             if isinstance(m, GpsFix):
                 held = select is not None and select.withhold(m, t_start)
                 gps.add(m, held)

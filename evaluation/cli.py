@@ -27,10 +27,12 @@ def _fmt(v: float, spec: str = ".2f") -> str:
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
-    from estimation.baginfo import bag_info, suggest_config
+    from estimation.baginfo import bag_info, offset_surveys, suggest_config
     from estimation.rosmsg import short_type
 
     info = bag_info(args.bag)
+    # measured on the sensors suggest_config picks; a bag that breaks off is not read twice
+    surveys = [] if info.error else offset_surveys(args.bag, suggest_config(info))
     out = sys.stdout
     out.write(f"bag: {info.path}\n")
     out.write(f"time span: {info.t0:.3f} .. {info.t1:.3f} s (header stamps), "
@@ -46,8 +48,12 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     for t in info.topics:
         for note in t.notes:
             out.write(f"{t.topic}: {note}\n")
+    for sv in surveys:
+        out.write(f"{sv.sensor}: {sv.describe()}"
+                  + (": it wanders (heading_offset_walk below)\n" if sv.wanders else "\n"))
     out.write("\n# suggested config (review the noise values; they are starting points)\n")
-    out.write(yaml.safe_dump(suggest_config(info), sort_keys=False, default_flow_style=None))
+    out.write(yaml.safe_dump(suggest_config(info, surveys), sort_keys=False,
+                             default_flow_style=None))
     if info.error:  # a truncated ROS1 bag: the facts are of what could be read
         out.flush()
         raise DdfuseError(info.error)
@@ -291,6 +297,8 @@ def cmd_run(args: argparse.Namespace) -> int:
                 _render(args.outdir, bars)
             raise
         _print_summary(m, sys.stdout)
+        for w in m.get("warnings") or ():
+            sys.stderr.write(f"ddfuse: warning: {w}\n")
         if args.gps_holdout and not m.get("gps_holdout_fixes"):
             sys.stderr.write(f"ddfuse: warning: --gps-holdout {args.gps_holdout} withheld no GPS "
                              f"fix (the data span {m.get('duration_s') or 0:.1f} s from the first "

@@ -34,7 +34,11 @@ Per estimator (track), metrics.json holds:
   ``hoff`` rad, odometry scales ``k_v``, ``k_w``; a sensor's name after a colon where an
   estimator has several of a kind; None for an estimator without them.
 
-At the top level, ``estimators_requested`` is the ``--estimators`` list (None: the default, every
+At the top level, ``data`` holds facts about the data (``data_facts``) and, per compass,
+``heading_offsets``: its heading offset measured from the GPS course without any estimator
+(``estimation.heading_survey``); ``warnings`` lists what those measurements say the config gets
+wrong (a fixed offset far from the measured one, a wandering offset held constant).
+``estimators_requested`` is the ``--estimators`` list (None: the default, every
 estimator the config's sensors allow) and ``estimators_run`` what was built from it (a lagged track
 needs the smoother; a name can yield several tracks). ``wall_s`` splits the wall time of the whole
 job (``timing_split``): how long the process ran before ``run_bag`` (interpreter start, imports,
@@ -56,6 +60,7 @@ from pathlib import Path
 
 import numpy as np
 
+from estimation import heading_survey
 from estimation.bags import BagStream
 from estimation.config import Config
 from estimation.errors import BagError, RunInterrupted
@@ -397,9 +402,10 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
     ests = registry.build(cfg, stream, chosen, lag=lag, pose=pose, tracks=names or None)
     decode_before = stream.decode_s
     t_built = clock()
+    offsets = heading_survey.recorder_for(cfg)
     result = run(stream, ests, holdout=holdout,
                  progress=(lambda f: progress("decode + estimate", f)) if progress else None,
-                 interruptible=True)
+                 interruptible=True, observers=(offsets.add,))
     t_ran = clock()
     input_error = stream.error
     if input_error is not None and not result.messages:
@@ -420,6 +426,9 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
     out["input_error"] = input_error
     out["interrupted"] = result.interrupted
     out["data"] = data_facts(result, cfg)
+    surveys = offsets.surveys()
+    out["data"]["heading_offsets"] = [sv.to_dict() for sv in surveys]
+    out["warnings"] = heading_survey.config_warnings(surveys, cfg)
     config_text = cfg.path.read_text(errors="replace") if cfg.path else None
     t_scored = clock()
     save_run(result, outdir, config_text)

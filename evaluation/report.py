@@ -288,6 +288,31 @@ def _gps_fixes(m: dict) -> str:
     return f"{n}, none withheld (no --gps-holdout)"
 
 
+def _heading_offsets(d: dict) -> str:
+    """Each compass's offset as the GPS course measures it (``estimation.heading_survey``)."""
+    rows = d.get("heading_offsets")
+    if not rows:
+        return "not measured: no compass, GPS and odometry speed together"
+    out = []
+    for r in rows:
+        med = r["median_rad"]
+        # the windows about the median, so that a range across +-180 deg reads as one
+        dev = [(w["offset_rad"] - med + math.pi) % (2 * math.pi) - math.pi for w in r["windows"]]
+        out.append(f"{html.escape(r['sensor'])}: yaw minus GPS course {math.degrees(med):+.1f}"
+                   f" deg (median of {len(dev)} windows of {r['window_s']:.0f} s), windows "
+                   f"{math.degrees(med + min(dev)):+.1f} to {math.degrees(med + max(dev)):+.1f}"
+                   " deg")
+    return "; ".join(out)
+
+
+def _warnings(m: dict) -> str:
+    w = m.get("warnings")
+    if not w:
+        return ""
+    items = "".join(f"<li>{html.escape(line)}</li>" for line in w)
+    return f"<h2>Warnings about the config</h2><div class='verdict'><ul>{items}</ul></div>"
+
+
 def _facts(m: dict) -> str:
     d = m.get("data") or {}
     rows = [("bag", html.escape(str(m.get("bag")))),
@@ -303,6 +328,7 @@ def _facts(m: dict) -> str:
              if d.get("ground_truth_samples") else "none"),
             ("GPS fixes", _gps_fixes(m)),
             ("landmarks in the map", str(d.get("landmarks", 0))),
+            ("heading offset, measured", _heading_offsets(d)),
             ("local frame", html.escape(plots.frame(m)["text"]))]
     rej = m.get("rejected_messages") or {}
     rows.append(("messages dropped as invalid", ", ".join(
@@ -468,6 +494,7 @@ def build_html(run: SavedRun, figures: list[tuple[str, bytes | None, str]],
         f"{len(m['estimators'])} estimator outputs. Rendered {stamp} from the results in "
         f"{html.escape(str(run.outdir))} (figures in {render_s:.1f} s).{times}</p>"
         f"<h2>Verdict</h2><div class='verdict'><ul>{verdict}</ul></div>"
+        f"{_warnings(m)}"
         f"<h2>Summary</h2>{_summary_table(m)}"
         f"<h2>Consistency and gating per sensor</h2>{_nis_table(m)}"
         f"{_calibration_table(m)}"
