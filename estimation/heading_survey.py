@@ -253,8 +253,8 @@ def config_warnings(surveys: list[OffsetSurvey], cfg) -> list[str]:
                     f"({math.degrees(sv.median):+.1f} deg, median of {len(sv.windows)} windows)")
         if fixed and abs(float(_wrap(sv.median - s.heading_offset))) > MISMATCH_RAD:
             out.append(f"{s.topic}: heading_offset is fixed at {s.heading_offset:+.3f} rad but "
-                       f"{measured}: the estimators will take the compass against the GPS; set "
-                       f"heading_offset to the measured value or 'estimate'")
+                       f"{measured}: every estimator will find the compass and the GPS in "
+                       "conflict; set heading_offset to the measured value or 'estimate'")
         if sv.wanders and (fixed or s.noise.get("heading_offset_walk") == 0.0):
             held = "fixed" if fixed else "estimated with heading_offset_walk 0"
             out.append(f"{s.topic}: the heading offset wanders by {math.degrees(sv.spread):.0f} "
