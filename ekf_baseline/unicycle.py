@@ -136,6 +136,7 @@ from ekf_baseline.calibration import ScaleStates
 from ekf_baseline.kalman import DEFAULT_LOCKOUT_COUNT, DEFAULT_LOCKOUT_TIME, KalmanCore
 from estimation.config import DEFAULT_GATE, Config
 from estimation.estimator import Estimate, Estimator
+from estimation.heading_survey import rotation_fit
 from estimation.measurements import (
     GpsFix,
     GroundTruthPose,
@@ -761,10 +762,8 @@ class UnicycleEkf(Estimator):
         sbb = float((b * b).sum())
         kf = self.kf
         if saa > 0.25 * sbb:
-            th = math.atan2(float((a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]).sum()),
-                            float((a * b).sum()))
+            th, res = rotation_fit(a, b)
             c, s = _cos(th), _sin(th)
-            res = b - a @ np.array([[c, s], [-s, c]])
             r2 = float((res * res).sum(axis=1).mean())
             # var(theta) ~ sigma^2 / sum |a_i|^2 for independent position errors of sigma (floored:
             # GPS noise is at least decimetres), plus a floor for DR heading drift over the track

@@ -111,9 +111,9 @@ class OffsetSurvey:
                              "residual_m": w.residual_m} for w in self.windows]}
 
 
-def _rotation(a: np.ndarray, b: np.ndarray) -> tuple[float, np.ndarray]:
-    """The angle (rad) of the rotation R that best maps the centred points a onto the centred
-    b (least squares), and the residuals b - R a, (n, 2)."""
+def rotation_fit(a: np.ndarray, b: np.ndarray) -> tuple[float, np.ndarray]:
+    """The angle (rad) of the rotation R that best maps the centred points a (n, 2) onto the
+    centred b (n, 2) in least squares (2-D Kabsch), and the residuals b - R a, (n, 2)."""
     th = math.atan2(float((a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]).sum()), float((a * b).sum()))
     c, s = math.cos(th), math.sin(th)
     return th, b - a @ np.array([[c, s], [-s, c]])
@@ -132,7 +132,7 @@ def fit_window(t: np.ndarray, dr: np.ndarray, fix: np.ndarray) -> OffsetWindow |
         saa = float((a * a).sum())
         if saa < MIN_EXTENT_M ** 2 * len(a):
             return None
-        th, res = _rotation(a, b)
+        th, res = rotation_fit(a, b)
         r = np.hypot(res[:, 0], res[:, 1])
         out = r > max(OUTLIER_FACTOR * float(np.median(r)), 1.0)
         if refit or not out.any():
