@@ -223,6 +223,9 @@ class RunResult:
     truth: Trajectory | None = None
     messages: int = 0  # measurements fed (withheld fixes included)
     interrupted: str | None = None  # Ctrl-C ended the run early (run(interruptible=True))
+    # each compass's heading offset against the GPS course (estimation.heading_survey), where
+    # the caller measured it during the run (evaluation.pipeline.run_bag)
+    offset_surveys: list | None = None
 
 
 class Holdout:

@@ -32,6 +32,7 @@ import numpy as np
 from estimation.runner import Trajectory
 
 ALIGNMENTS = ("none", "se2", "origin")
+PAIRINGS = ("nearest", "interpolate")
 RPE_UNITS = ("s", "m")
 
 
@@ -166,12 +167,39 @@ def alignment(est_pose: np.ndarray, ref_pose: np.ndarray, method: str
     raise ValueError(f"alignment must be one of {ALIGNMENTS}, got {method!r}")
 
 
+def reference_at(ref: Trajectory, t: np.ndarray, j: np.ndarray, max_diff: float) -> np.ndarray:
+    """The reference's poses (M, 3) at the estimate's stamps ``t`` (M,) s: interpolated between
+    the two samples that bracket each stamp where they are at most 2 ``max_diff`` apart (dense
+    truth: position linearly, yaw along the shorter arc; NaN yaw stays NaN), else the
+    associated sample ``j`` (M,) itself."""
+    pr = ref.pose[j].copy()
+    if len(ref) < 2 or len(t) == 0:
+        return pr
+    k = np.clip(np.searchsorted(ref.t, t, side="right"), 1, len(ref) - 1)
+    t0, t1 = ref.t[k - 1], ref.t[k]
+    dense = (t0 <= t) & (t <= t1) & (t1 - t0 <= 2.0 * max_diff) & (t1 > t0)
+    if not dense.any():
+        return pr
+    k = k[dense]
+    w = ((t[dense] - t0[dense]) / (t1[dense] - t0[dense]))[:, None]
+    a, b = ref.pose[k - 1], ref.pose[k]
+    pr[dense, :2] = a[:, :2] + w * (b[:, :2] - a[:, :2])
+    pr[dense, 2] = wrap(a[:, 2] + w[:, 0] * wrap(b[:, 2] - a[:, 2]))
+    return pr
+
+
 def pose_errors(est: Trajectory, ref: Trajectory, max_diff: float = 0.05,
-                align: str = "none") -> PoseErrors:
+                align: str = "none", pairing: str = "nearest") -> PoseErrors:
     """Errors of ``est`` against ``ref`` at the associated stamps, after ``align`` (module
-    docstring; 'none': both already in the run's local frame)."""
+    docstring; 'none': both already in the run's local frame). ``pairing``: 'nearest', the
+    associated reference sample (evo's rule); 'interpolate', the reference at the estimate's own
+    stamp (``reference_at``), so that an estimate exactly on the true path at its time scores 0
+    (the same pairs, only their reference poses differ)."""
+    if pairing not in PAIRINGS:
+        raise ValueError(f"pairing must be one of {PAIRINGS}, got {pairing!r}")
     i, j = associate(est.t, ref.t, max_diff)
-    pe, pr = est.pose[i], ref.pose[j]
+    pe = est.pose[i]
+    pr = ref.pose[j] if pairing == "nearest" else reference_at(ref, est.t[i], j, max_diff)
     if align != "none":
         pe = _apply_se2(pe, *alignment(pe, pr, align))
     return PoseErrors(est.t[i], pe[:, :2] - pr[:, :2], wrap(pe[:, 2] - pr[:, 2]), i, j)
@@ -241,12 +269,18 @@ def nees_series(est: Trajectory, ref: Trajectory, max_diff: float = 0.05,
     world image A P_xi A^T of the filter's covariance). Where the reference has no yaw, both
     score the world-frame position error with ``est.cov[:2, :2]`` (2 dof).
 
+    The reference is taken at each estimate's own stamp (``reference_at``, where the truth is
+    dense): the nearest truth sample would add the robot's motion over the stamp difference to
+    the error, which no estimator's covariance claims (the sample bag's 10 Hz outputs sit
+    0.025 s from its 20 Hz truth: mean NEES 5.3 instead of 2.9 for the EKF, all at the turns).
+
     Samples whose covariance is missing or not positive definite are left out."""
     if pose_error not in ("world", "se2"):
         raise ValueError(f"pose_error must be 'world' or 'se2', got {pose_error!r}")
-    err = pose_errors(est, ref, max_diff)
+    err = pose_errors(est, ref, max_diff, pairing="interpolate")
     if pose_error == "se2" and len(err.i_est):
-        xi = se2_log_errors(est.pose[err.i_est], ref.pose[err.i_ref])
+        xi = se2_log_errors(est.pose[err.i_est],
+                            reference_at(ref, err.t, err.i_ref, max_diff))
     ts, vals, dofs, idx = [], [], [], []
     for k, i in enumerate(err.i_est):
         p = est.cov[i]

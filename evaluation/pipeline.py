@@ -347,10 +347,31 @@ def _common_ate(tracks: dict[str, Trajectory], truth: Trajectory | None
     return rmse, {"stamps": int(len(t)), "of": base}
 
 
-def data_facts(result: RunResult, cfg: Config) -> dict:
+def offset_surveys(result: RunResult, cfg: Config,
+                   recorder: heading_survey.OffsetRecorder | None = None
+                   ) -> list[heading_survey.OffsetSurvey]:
+    """Each compass's heading offset against the GPS course (``estimation.heading_survey``):
+    from ``recorder`` where it watched the run (a BagStream keeps no measurements), else what
+    the result holds (``RunResult.offset_surveys``), else from the run's Stream."""
+    if recorder is None and result.offset_surveys is not None:
+        return result.offset_surveys
+    if recorder is None:
+        if not isinstance(result.stream, Stream):
+            return []
+        recorder = heading_survey.recorder_for(cfg)
+        for m in result.stream.measurements:
+            recorder.add(m)
+    return recorder.surveys()
+
+
+def data_facts(result: RunResult, cfg: Config,
+               surveys: list[heading_survey.OffsetSurvey] | None = None) -> dict:
     """What the report states about the data: per sensor topic, kind and message counts; GPS
     fixes used and withheld, their median interval (s); landmarks; path length (from the truth,
-    else the GPS fixes)."""
+    else the GPS fixes); each compass's measured heading offset (``surveys``, default
+    ``offset_surveys`` of the run's Stream)."""
+    if surveys is None:
+        surveys = offset_surveys(result, cfg)
     stream = result.stream
     counts = (Counter((m.sensor, type(m).__name__) for m in stream.measurements)
               if isinstance(stream, Stream) else stream.type_counts())
@@ -376,7 +397,8 @@ def data_facts(result: RunResult, cfg: Config) -> dict:
             "landmarks": len(stream.landmarks),
             "path_length_m": _num(length) if length is not None else None,
             "path_length_from": source, "t0": stream.t0, "t1": stream.t1,
-            "datum": list(stream.datum) if stream.datum else None}
+            "datum": list(stream.datum) if stream.datum else None,
+            "heading_offsets": [sv.to_dict() for sv in surveys]}
 
 
 def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str] | None = None,
@@ -425,9 +447,8 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
     out["gps_holdout"] = holdout
     out["input_error"] = input_error
     out["interrupted"] = result.interrupted
-    out["data"] = data_facts(result, cfg)
-    surveys = offsets.surveys()
-    out["data"]["heading_offsets"] = [sv.to_dict() for sv in surveys]
+    surveys = result.offset_surveys = offset_surveys(result, cfg, offsets)
+    out["data"] = data_facts(result, cfg, surveys)
     out["warnings"] = heading_survey.config_warnings(surveys, cfg)
     config_text = cfg.path.read_text(errors="replace") if cfg.path else None
     t_scored = clock()

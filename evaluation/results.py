@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from estimation import heading_survey
 from estimation.errors import DdfuseError
 from estimation.runner import RunResult, Trajectory
 from evaluation.consistency import InnovationTable
@@ -101,7 +102,9 @@ def _score(result: RunResult, cfg) -> dict:
 
     m = pipeline.score(result)
     if cfg is not None:
-        m["data"] = pipeline.data_facts(result, cfg)
+        surveys = pipeline.offset_surveys(result, cfg)
+        m["data"] = pipeline.data_facts(result, cfg, surveys)
+        m["warnings"] = heading_survey.config_warnings(surveys, cfg)
         ip = cfg.initial_pose
         m["initial_pose"] = ("first ground-truth pose" if ip == "ground_truth"
                              else list(ip) if ip else None)

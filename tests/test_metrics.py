@@ -275,3 +275,42 @@ def test_association_error_is_what_nearest_time_pairing_alone_costs():
     # the ATE of that exact track is the same 0.015 m; on the truth's own stamps it is 0
     assert metrics.ape(est, truth, 0.05).position.rmse == pytest.approx(0.015, abs=1e-9)
     assert metrics.association_error(truth, truth, 0.05).rmse == pytest.approx(0.0, abs=1e-12)
+
+
+def _turning_truth(dt: float = 0.05, n: int = 400):
+    """A robot turning at 0.5 rad/s on a 2 m radius, sampled every ``dt`` s."""
+    t = dt * np.arange(n)
+    yaw = 0.5 * t
+    return t, 2.0 * np.sin(yaw), 2.0 * (1.0 - np.cos(yaw)), metrics.wrap(yaw + 0.5 * np.pi)
+
+
+@pytest.mark.parametrize("pose_error", ["world", "se2"])
+def test_nees_takes_the_truth_at_the_estimate_stamp(pose_error):
+    """Estimates at 10 Hz half-way between 20 Hz truth samples (the sample bag's stamps): an
+    estimate drawn from its own covariance about the true pose at its stamp has NEES ~ 3; the
+    nearest truth sample would add 0.025 s of motion (5 cm, 0.7 deg), several sigmas here."""
+    tt, x, y, yaw = _turning_truth()
+    truth = traj(tt, x, y, yaw)
+    te = tt[1:-1:2] + 0.025
+    th = 0.5 * te
+    true = np.column_stack([2.0 * np.sin(th), 2.0 * (1.0 - np.cos(th)), th + 0.5 * np.pi])
+    sd = np.array([0.01, 0.01, 0.004])  # m, m, rad
+    rng = np.random.default_rng(3)
+    noisy = true + sd * rng.standard_normal(true.shape)
+    est = traj(te, noisy[:, 0], noisy[:, 1], metrics.wrap(noisy[:, 2]),
+               np.repeat(np.diag(sd**2)[None], len(te), axis=0))
+    if pose_error == "se2":  # its covariance is then the world image of the body-frame one
+        c, s = np.cos(est.pose[:, 2]), np.sin(est.pose[:, 2])
+        a = np.zeros((len(te), 3, 3))
+        a[:, 0, 0], a[:, 0, 1], a[:, 1, 0], a[:, 1, 1], a[:, 2, 2] = c, -s, s, c, 1.0
+        est.cov[:] = a @ np.diag(sd**2) @ a.transpose(0, 2, 1)
+    v = metrics.nees(est, truth, 0.05, pose_error)
+    assert len(v) == len(te)
+    assert abs(v.mean() - 3.0) < 4 * math.sqrt(6.0 / len(v))  # chi2(3): var 6
+    # the nearest sample (what it used to be compared with) is 3 heading sigmas off
+    near = metrics.pose_errors(est, truth, 0.05)
+    assert np.median(np.abs(near.dyaw)) > 2.5 * sd[2]
+    # sparse truth (1 Hz): nothing to interpolate between within 2 max_diff, nearest kept
+    sparse = traj(tt[::20], x[::20], y[::20], yaw[::20])
+    i, j = metrics.associate(est.t, sparse.t, 0.05)
+    assert np.array_equal(metrics.reference_at(sparse, est.t[i], j, 0.05), sparse.pose[j])
