@@ -73,8 +73,9 @@ def _verdict_cell(v: str | None) -> str:
     return f'<span class="{v}">{v}</span>' if v else '<span class="na">–</span>'
 
 
-def _summary_table(m: dict) -> str:
-    """One row per track: scores, consistency, speed."""
+def _summary_table(m: dict, cfg=None) -> str:
+    """One row per track: scores, consistency, speed. ``cfg``: the run's Config, for the
+    estimators not run (``not_run``)."""
     lag = m.get("lag_s")
     ests = m["estimators"]
     cols = [  # (header, getter, format, lower-is-better column to mark the best of)
@@ -138,7 +139,7 @@ def _summary_table(m: dict) -> str:
         notes.append("RTF: seconds of data per second of estimator wall time (decoding "
                      "excluded).")
     notes.append(f"Final (x, y): the last position in {plots.frame(m)['short']}.")
-    skipped = not_run(m)
+    skipped = not_run(m, cfg)
     if skipped:
         notes.append("Not run: " + "; ".join(f"{n}: {why}" for n, why in skipped) + ".")
     return (f'<table><tr><th class="l">estimator</th><th class="l">output</th>{head}'
@@ -146,19 +147,46 @@ def _summary_table(m: dict) -> str:
             f'<p class="note">{html.escape(" ".join(n for n in notes if n))}</p>')
 
 
-def not_run(m: dict) -> list[tuple[str, str]]:
+def run_config(run: SavedRun):
+    """The run's ``estimation.config.Config``, parsed back from the config text the run saved
+    (relative landmark maps resolved against the output directory); None when no text was
+    saved or it no longer loads here (an absolute map path that is gone, a key this version
+    refuses): ``not_run`` then judges on the sensors metrics.json lists."""
+    if not run.config_text:
+        return None
+    import yaml
+
+    # the config module's own loader: PyYAML's safe one reads 1e-4 as a string, which
+    # parse_config would refuse as a noise value
+    from estimation.config import _Loader, parse_config
+    from estimation.errors import ConfigError
+
+    try:
+        raw = yaml.load(run.config_text, Loader=_Loader)
+        return parse_config(raw, base=run.outdir)
+    except (yaml.YAMLError, ConfigError):
+        return None
+
+
+def not_run(m: dict, cfg=None) -> list[tuple[str, str]]:
     """(name, why) of each estimator of the registry (``evaluation.estimators``) that this run
-    does not have: not among the estimators asked for, off by default, or its sensors missing
-    from the config (judged on the sensors metrics.json lists). Results written before
-    metrics.json recorded ``estimators_requested`` are judged on the config alone."""
-    from estimation.config import Config, SensorConfig
+    does not have: not among the estimators asked for, off by default, or not allowed by the
+    config (the registry's own rule, ``EstimatorSpec.allowed``). ``cfg``: the run's Config
+    (``run_config``); without it, one rebuilt from the sensors metrics.json lists. Results
+    written before metrics.json recorded ``estimators_requested`` are judged on the config
+    alone."""
+    from estimation.config import Config, RobotConfig, SensorConfig
     from evaluation.estimators import SPECS
 
     sensors = (m.get("data") or {}).get("sensors")
-    cfg = None
-    if sensors:
+    if cfg is None and sensors:
         cfg = Config(sensors=[SensorConfig(kind=s["kind"], topic=s["topic"], name=s["name"],
                                            use=tuple(s["use"])) for s in sensors])
+        if cfg.of_kind("wheels"):
+            # parse_config refuses wheel speeds without robot.wheel_radius and track_width, so
+            # the run's config had them; metrics.json does not record their values (NaN: given,
+            # value unknown), and the rules only ask whether they are there (dr's did not)
+            cfg.robot = RobotConfig(wheel_radius=math.nan, track_width=math.nan)
     ran = set(m.get("estimators") or {})
     requested = m.get("estimators_requested")
     out = []
@@ -348,7 +376,8 @@ def _facts(m: dict) -> str:
 def _config(run: SavedRun) -> str:
     m = run.metrics
     rows = [("estimators", ", ".join(m["estimators"])),
-            ("not run", "; ".join(f"{n}: {why}" for n, why in not_run(m)) or "–"),
+            ("not run", "; ".join(f"{n}: {why}" for n, why in not_run(m, run_config(run)))
+             or "–"),
             ("smoother lag", f"{m.get('lag_s')} s"),
             ("GPS hold-out", str(m.get("gps_holdout") or "none")),
             ("initial pose", str(m.get("initial_pose") or "each estimator's default")),
@@ -495,7 +524,7 @@ def build_html(run: SavedRun, figures: list[tuple[str, bytes | None, str]],
         f"{html.escape(str(run.outdir))} (figures in {render_s:.1f} s).{times}</p>"
         f"<h2>Verdict</h2><div class='verdict'><ul>{verdict}</ul></div>"
         f"{_warnings(m)}"
-        f"<h2>Summary</h2>{_summary_table(m)}"
+        f"<h2>Summary</h2>{_summary_table(m, run_config(run))}"
         f"<h2>Consistency and gating per sensor</h2>{_nis_table(m)}"
         f"{_calibration_table(m)}"
         f"{_outage_table(m)}"
