@@ -302,14 +302,20 @@ def broken(e: Estimate) -> str | None:
             "(with sigmas of 1e-9 no recovery from a gate lock-out can reconcile the sensors)")
 
 
-def _never_started(log: EstimatorLog) -> str:
-    """The error of an estimator that was fed measurements and gave no estimate at all."""
+def _never_started(log: EstimatorLog, fixes_withheld: int = 0, fixes_fed: int = 0) -> str:
+    """The error of an estimator that was fed measurements and gave no estimate at all;
+    ``fixes_withheld`` / ``fixes_fed``: the run's GPS fixes held out from it / given to it."""
     waiting = sum(n for (_, why), n in log.rejected.items() if why == "before_init")
     text = "no estimate: it never started"
     if waiting:
         text += f" ({waiting} measurements came before it could)"
     if log.messages:
         text += f"; its last note: {log.messages[-1]}"
+    if fixes_withheld and not fixes_fed:
+        # an estimator that starts from the GPS course (a compass with an estimated offset
+        # gives no heading) waits for fixes forever
+        return text + (f"; all {fixes_withheld} GPS fixes were withheld (--gps-holdout), and "
+                       "it takes its start (its heading) from the GPS course")
     # the usual cause when an estimator is built by hand from a config
     return text + ("; with initial_pose: ground_truth an EKF waits for a GroundTruthPose "
                    "measurement unless it is given initial_pose (evaluation.estimators.build "
@@ -428,7 +434,8 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
         final = getattr(est, "final_estimates", None)
         track = final() if callable(final) else outputs[i]
         if not track and errors[i] is None and fed:
-            errors[i] = _never_started(est.log)
+            held = int(np.count_nonzero(np.frombuffer(gps.held, np.uint8)))
+            errors[i] = _never_started(est.log, held, len(gps.held) - held)
         runs[name] = EstimatorRun(name, Trajectory.from_estimates(track), upd, totals[i],
                                   est.log, errors[i], _final_state(est, track))
         outputs[i] = None

@@ -73,8 +73,21 @@ def _score(m: dict) -> tuple[str | None, str]:
         return None, (f"No score: the bag has no ground truth, and --gps-holdout "
                       f"{m['gps_holdout']} withheld no GPS fix (its window is outside the "
                       f"{m.get('duration_s') or 0:.0f} s of data, or the bag has no fixes).")
+    if m.get("gps_holdout"):
+        n = m["gps_holdout_fixes"]
+        used = (m.get("data") or {}).get("gps_fixes", n) - n
+        why = (" Every fix was withheld, so the estimators that start from GPS never did."
+               if used <= 0 else "")
+        return None, (f"No score: the bag has no ground truth, and no estimator has an estimate "
+                      f"at the {n} GPS fixes --gps-holdout {m['gps_holdout']} withheld.{why}")
     return None, ("No score: the bag has no ground truth and no GPS fixes were withheld "
                   "(run with --gps-holdout every:5, or window:T0:T1 for an outage).")
+
+
+def _signed_pct(v: float) -> str:
+    """A fraction as a signed percentage with one decimal; no sign where it rounds to zero."""
+    text = f"{100 * v:+.1f}%"
+    return "0.0%" if text in ("+0.0%", "-0.0%") else text
 
 
 def _compare(a: str, va: float, b: str, vb: float) -> str:
@@ -280,7 +293,8 @@ def verdict_lines(m: dict) -> list[str]:
                          "ones (a straight line over an outage), no estimator, score "
                          f"{m['gps_holdout_interpolation_rmse_m']:.3f} m.")
     seen: dict = {}
-    lines += [_consistency(n, e, seen) for n, e in ests.items()]
+    # an estimator with no estimate has nothing to be consistent about ("stopped early" below)
+    lines += [_consistency(n, e, seen) for n, e in ests.items() if e.get("samples") != 0]
     for o_idx, o in enumerate(m.get("gps_outages") or []):
         drift = {n: e["gps_outages"][o_idx] for n, e in ests.items()
                  if e.get("gps_outages") and e["gps_outages"][o_idx].get("drift_per_m")
@@ -295,7 +309,7 @@ def verdict_lines(m: dict) -> list[str]:
             f"travelled, scored against the {any_d['reference']}), error at its end and its "
             "growth per metre travelled: "
             + ", ".join(f"{n} {drift[n]['error_end_m']:.2f} m "
-                        f"({100 * drift[n]['drift_per_m']:+.1f}%)" for n in order)
+                        f"({_signed_pct(drift[n]['drift_per_m'])})" for n in order)
             + ".")
     lines += _calibration_gaps(m)
     for n, e in ests.items():

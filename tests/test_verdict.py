@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 from evaluation.verdict import track_kind, verdict_lines
 
 
@@ -215,3 +217,39 @@ def test_common_stamp_ate_interpolates_every_track_at_the_sparsest_ones():
     assert abs(rmse["dense"] - 0.5) < 1e-9  # halfway between an off and an on sample
     assert _common_ate({"a": dense, "b": dense}, truth) is None  # same sampling: nothing to add
     assert _common_ate({"a": dense, "b": sparse}, None) is None
+
+
+def test_withholding_every_fix_says_so_instead_of_grading_estimators_that_never_ran(
+        sample_husky):
+    """All fixes withheld: the unicycle EKF (heading offset estimated: no absolute heading
+    without GPS) and the smoother never start. The verdict says why there is no score, names
+    the hold-out as the cause, and grades no consistency of estimates that do not exist."""
+    from estimation.runner import run
+    from evaluation import estimators as registry
+    from evaluation.pipeline import data_facts, score
+    from evaluation.verdict import verdict_lines
+
+    cfg, stream = sample_husky
+    truthless = replace(stream, ground_truth=[])
+    ests = registry.build(cfg, truthless, ["ekf", "smoother"])
+    result = run(truthless, ests, holdout="window:0:1000")
+    m = score(result)
+    m["gps_holdout"] = "window:0:1000"
+    m["data"] = data_facts(result, cfg)
+    n = m["gps_holdout_fixes"]
+    assert n == m["data"]["gps_fixes"] > 0
+    for name in ("ekf", "smoother"):
+        assert f"all {n} GPS fixes were withheld (--gps-holdout)" in m["estimators"][name]["error"]
+    lines = verdict_lines(m)
+    assert lines[0].startswith("No score: the bag has no ground truth, and no estimator has an "
+                               f"estimate at the {n} GPS fixes")
+    assert "Every fix was withheld" in lines[0]
+    assert not any(" consistent" in line or "NIS" in line for line in lines)
+    assert sum("stopped early" in line for line in lines) == 3  # ekf, smoother, lagged
+
+
+def test_a_drift_that_rounds_to_zero_has_no_sign():
+    from evaluation.verdict import _signed_pct
+
+    assert _signed_pct(-0.0001) == "0.0%" == _signed_pct(0.0003)
+    assert _signed_pct(0.012) == "+1.2%" and _signed_pct(-0.012) == "-1.2%"
