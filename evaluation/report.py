@@ -387,17 +387,51 @@ def _config(run: SavedRun) -> str:
     text = html.escape(run.config_text) if run.config_text else "(no config file text saved)"
     t0 = _get(m, "data", "t0")
     events = "".join(
-        f"<details><summary>{html.escape(n)}: {len(e.get('events') or [])} events"
-        + (f", {sum((e.get('rejected') or {}).values())} rejected" if e.get("rejected") else "")
-        + "</summary><pre>" + html.escape("\n".join(
-            [relative_event(x, t0) for x in e.get("events") or []]
-            + [f"rejected {k}: {v}" for k, v in (e.get("rejected") or {}).items()]))
+        f"<details><summary>{html.escape(n)}: {event_summary(e)}</summary><pre>"
+        + html.escape("\n".join([relative_event(x, t0) for x in e.get("events") or []]
+                                 + _rejection_lines(e.get("rejected") or {})))
         + "</pre></details>"
         for n, e in m["estimators"].items())
     when = (" (t: seconds since the first measurement, as in the figures)" if t0 is not None
             else " (t: the bag's time stamps)")
     return (f"<table>{table}</table><pre>{text}</pre><h3>Estimator events{when}</h3>"
             f"{events}")
+
+
+# The estimators count a gate lock-out recovery under this reason in their ``log.rejected``,
+# but the measurement that triggers one is fused (its covariance widened first) and the gating
+# table counts it as accepted: it is no rejection.
+_RECOVERY = "lockout_recovery"
+
+
+def _reason(key: str) -> str:
+    """The reason of a metrics.json ``rejected`` key "sensor: reason"."""
+    return key.rsplit(": ", 1)[-1]
+
+
+def event_summary(e: dict) -> str:
+    """The events header of one estimator's metrics.json entry: its events, the measurements
+    the gate rejected (the gating table's "gate rejected", summed over its sensors), those
+    dropped for other reasons, and its gate lock-out recoveries (each fused a measurement)."""
+    rej = e.get("rejected") or {}
+    gate = sum(v for k, v in rej.items() if _reason(k) == "gate")
+    recovered = sum(v for k, v in rej.items() if _reason(k) == _RECOVERY)
+    other = sum(rej.values()) - gate - recovered
+    n = len(e.get('events') or [])
+    parts = [f"{n} event{'' if n == 1 else 's'}"]
+    if gate:
+        parts.append(f"{gate} rejected by the gate")
+    if other:
+        parts.append(f"{other} dropped for other reasons")
+    if recovered:
+        parts.append(f"{recovered} lock-out recover{'y' if recovered == 1 else 'ies'} "
+                     "(measurement accepted)")
+    return ", ".join(parts)
+
+
+def _rejection_lines(rej: dict) -> list[str]:
+    return [f"lock-out recovery, measurement accepted {k.rsplit(': ', 1)[0]}: {v}"
+            if _reason(k) == _RECOVERY else f"rejected {k}: {v}" for k, v in rej.items()]
 
 
 _EVENT_T = re.compile(r"^t=(-?\d+(?:\.\d*)?(?:[eE][-+]?\d+)?):")
