@@ -90,16 +90,28 @@ def _signed_pct(v: float) -> str:
     return "0.0%" if text in ("+0.0%", "-0.0%") else text
 
 
+def _m(v: float) -> str:
+    """Metres to the millimetre, to the tenth of one under 10 cm (centimetre-level scores
+    printed to the mm would hide differences of 10 %)."""
+    return f"{v:.4f}" if abs(v) < 0.1 else f"{v:.3f}"
+
+
+def _tie(va: float, vb: float) -> bool:
+    d = abs(va - vb)
+    return (d / max(va, vb) if max(va, vb) > 0 else 0.0) <= TIE
+
+
 def _compare(a: str, va: float, b: str, vb: float) -> str:
     """'a' against 'b' in words (lower is better)."""
     d = abs(va - vb)
     rel = d / max(va, vb) if max(va, vb) > 0 else 0.0
-    if rel <= TIE:
-        return (f"{a} ({va:.3f} m) and {b} ({vb:.3f} m) tie: they differ by {d:.3f} m "
-                f"({100 * rel:.0f}%).")
+    dm = f"{d:.3f}" if max(va, vb) >= 0.1 else f"{d:.4f}"  # to the precision of the scores
+    if _tie(va, vb):
+        return (f"{a} ({_m(va)} m) and {b} ({_m(vb)} m) tie: they differ by {dm} m "
+                f"({100 * rel:.1f}%).")
     win, lose, vw, vl = (a, b, va, vb) if va < vb else (b, a, vb, va)
-    return (f"{win} is better: {vw:.3f} m against {lose}'s {vl:.3f} m, {d:.3f} m "
-            f"({100 * rel:.0f}%) lower.")
+    return (f"{win} is better: {_m(vw)} m against {lose}'s {_m(vl)} m, {dm} m "
+            f"({100 * rel:.1f}%) lower.")
 
 
 def _direction(s: dict) -> str:
@@ -182,7 +194,7 @@ def _association_caution(m: dict, scored: dict) -> str | None:
     return ("Caution: the truth is sampled" + every + ", and each estimate is paired with the "
             "nearest truth sample (evo's rule, no interpolation). A track exactly on the true "
             "path would score from that pairing alone: "
-            + ", ".join(f"{n} {hit[n]:.3f} m (its ATE {scored[n]:.3f} m)" for n in hit)
+            + ", ".join(f"{n} {_m(hit[n])} m (its ATE {_m(scored[n])} m)" for n in hit)
             + ". Differences of that size between tracks output at different stamps are not "
             "accuracy.")
 
@@ -197,7 +209,7 @@ def _common_line(m: dict, scored: dict, best: str) -> str:
     text = ("The tracks are sampled at different stamps, so each ATE above averages over "
             f"other moments. On the {c['stamps']} stamps of {c['of']} (the sparsest), every "
             "track and the truth interpolated there: "
-            + ", ".join(f"{n} {common[n]:.3f} m" for n in order) + ".")
+            + ", ".join(f"{n} {_m(common[n])} m" for n in order) + ".")
     if order and order[0] != best:
         text += f" There {order[0]} is best, not {best}."
     return text
@@ -269,17 +281,24 @@ def verdict_lines(m: dict) -> list[str]:
         ranked = sorted(scored, key=scored.get)
         best = ranked[0]
         kind = track_kind(best, lag)
-        lines.append(f"Best here: {best} with {scored[best]:.3f} m"
+        lines.append(f"Best here: {best} with {_m(scored[best])} m"
                      + ("" if kind == "real time" else f" ({kind})") + ".")
         ekfs = [n for n in ranked if n.startswith("ekf")]
         live = [n for n in ranked if track_kind(n) == "real time" and n.startswith("smoother")]
         if ekfs and live:
-            lines.append("Real-time head to head, best EKF against the smoother's filtered "
-                         "output: " + _compare(ekfs[0], scored[ekfs[0]], live[0],
-                                               scored[live[0]]))
+            a, b = ekfs[0], live[0]
+            text = ("Real-time head to head, best EKF against the smoother's filtered output: "
+                    + _compare(a, scored[a], b, scored[b]))
+            common = {n: ests[n].get("ate_common_rmse_m") for n in (a, b)}
+            if (key == "ate_rmse_m" and None not in common.values()
+                    and _tie(scored[a], scored[b]) != _tie(common[a], common[b])):
+                # sampled at different stamps, the two ATEs average over different moments
+                text += (" On the common stamps (below) the call differs: "
+                         + _compare(a, common[a], b, common[b]))
+            lines.append(text)
         for n in ranked:
             if track_kind(n) != "real time" and n != best:
-                lines.append(f"{n} ({track_kind(n, lag)}): {scored[n]:.3f} m.")
+                lines.append(f"{n} ({track_kind(n, lag)}): {_m(scored[n])} m.")
         if key == "ate_rmse_m" and m.get("ate_common"):
             lines.append(_common_line(m, scored, best))
         if key == "ate_rmse_m":

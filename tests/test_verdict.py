@@ -16,7 +16,7 @@ def test_smoother_wins_by_how_much():
     lines = verdict_lines(_m({"ekf": 0.30, "smoother": 0.20, "smoother_lagged": 0.10}))
     assert lines[0].startswith("Score: RMS position error against the ground truth")
     assert lines[1] == "Best here: smoother_lagged with 0.100 m (lagged by 10 s)."
-    assert "smoother is better: 0.200 m against ekf's 0.300 m, 0.100 m (33%) lower" in lines[2]
+    assert "smoother is better: 0.200 m against ekf's 0.300 m, 0.100 m (33.3%) lower" in lines[2]
 
 
 def test_ekf_wins_and_ties_are_said():
@@ -120,8 +120,8 @@ def test_sparse_truth_pairing_is_stated_where_it_matters():
     assert caution == [
         "Caution: the truth is sampled every 0.1 s, and each estimate is paired with the nearest "
         "truth sample (evo's rule, no interpolation). A track exactly on the true path would "
-        "score from that pairing alone: ekf_landmark 0.008 m (its ATE 0.011 m), smoother 0.015 "
-        "m (its ATE 0.020 m). Differences of that size between tracks output at different "
+        "score from that pairing alone: ekf_landmark 0.0080 m (its ATE 0.0110 m), smoother "
+        "0.0150 m (its ATE 0.0200 m). Differences of that size between tracks output at different "
         "stamps are not accuracy."]
     for e in m["estimators"].values():
         e["ate_association_rmse_m"] = 0.001
@@ -253,3 +253,20 @@ def test_a_drift_that_rounds_to_zero_has_no_sign():
 
     assert _signed_pct(-0.0001) == "0.0%" == _signed_pct(0.0003)
     assert _signed_pct(0.012) == "+1.2%" and _signed_pct(-0.012) == "-1.2%"
+
+
+def test_centimetre_scores_keep_their_digits_and_a_tie_on_common_stamps_is_said():
+    """seed002: 0.0112 against 0.0119 m on each track's own stamps (5.8 %: a win), 0.0112
+    against 0.0118 m on the common ones (4.6 %: a tie). Printed to the mm both were 0.011 and
+    0.012 m, and '0.001 m (6%)' could not be re-derived from them."""
+    m = _m({"ekf_landmark": 0.01122, "smoother": 0.01191, "smoother_lagged": 0.0094},
+           ate_common={"stamps": 718, "of": "smoother_lagged"})
+    for n, v in (("ekf_landmark", 0.01122), ("smoother", 0.01176), ("smoother_lagged", 0.0093)):
+        m["estimators"][n]["ate_common_rmse_m"] = v
+    (h2h,) = [line for line in verdict_lines(m) if line.startswith("Real-time head to head")]
+    assert "ekf_landmark is better: 0.0112 m against smoother's 0.0119 m, 0.0007 m (5.8%)" in h2h
+    assert h2h.endswith("On the common stamps (below) the call differs: ekf_landmark (0.0112 m) "
+                        "and smoother (0.0118 m) tie: they differ by 0.0005 m (4.6%).")
+    m["estimators"]["smoother"]["ate_common_rmse_m"] = 0.0125  # a win there too: said once
+    (h2h,) = [line for line in verdict_lines(m) if line.startswith("Real-time head to head")]
+    assert "common stamps" not in h2h
