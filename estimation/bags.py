@@ -44,6 +44,7 @@ from estimation.measurements import (
     Stream,
     WheelOdometry,
     WheelSpeeds,
+    truth_at_start,
 )
 
 log = logging.getLogger(__name__)
@@ -500,15 +501,9 @@ class BagStream:
                 for ti, p in zip(t, pose, strict=True)]
 
     def first_truth(self) -> GroundTruthPose | None:
-        """The first ground-truth pose at or after t0 (else the last one before it); None
-        without truth. Call after ``prime``."""
-        t, pose = self.truth_arrays()
-        if not len(t):
-            return None
-        i = int(np.searchsorted(t, (self.t0 if self.t0 is not None else -math.inf) - 1e-9))
-        i = min(i, len(t) - 1)
-        return GroundTruthPose(float(t[i]), float(pose[i, 0]), float(pose[i, 1]),
-                               float(pose[i, 2]))
+        """The ground-truth pose at t0 (``measurements.truth_at_start``); None without truth.
+        Call after ``prime``."""
+        return truth_at_start(*self.truth_arrays(), self.t0)
 
     def prime(self) -> BagStream:
         """Decode ahead until the stream's start, its datum and the first ground truth at or

@@ -138,6 +138,31 @@ class GroundTruthPose:
     sensor: str = "ground_truth"
 
 
+# truth samples further apart than this around the start are not interpolated between (s)
+TRUTH_INTERPOLATION_GAP = 0.25
+
+
+def truth_at_start(t: np.ndarray, pose: np.ndarray, t0: float | None) -> GroundTruthPose | None:
+    """The truth pose at the stream's start ``t0`` (s) from samples at stamps ``t`` (N,) s,
+    sorted, and poses (N, 3) (x m, y m, yaw rad): interpolated between the samples on either
+    side when they are at most TRUTH_INTERPOLATION_GAP apart (a robot moving at the start would
+    otherwise begin where the next sample is), else the first sample at or after t0 (the last
+    one when none is). None without samples."""
+    if not len(t):
+        return None
+    t0 = -math.inf if t0 is None else t0
+    i = min(int(np.searchsorted(t, t0 - 1e-9)), len(t) - 1)
+    x, y, yaw = (float(v) for v in pose[i])
+    if i > 0 and t[i - 1] < t0 < t[i] and t[i] - t[i - 1] <= TRUTH_INTERPOLATION_GAP:
+        a = pose[i - 1]
+        w = (t0 - t[i - 1]) / (t[i] - t[i - 1])
+        dyaw = (yaw - a[2] + math.pi) % (2.0 * math.pi) - math.pi
+        x, y = a[0] + w * (x - a[0]), a[1] + w * (y - a[1])
+        yaw = (a[2] + w * dyaw + math.pi) % (2.0 * math.pi) - math.pi
+        return GroundTruthPose(t0, float(x), float(y), float(yaw))
+    return GroundTruthPose(float(t[i]), x, y, yaw)
+
+
 Measurement = (
     WheelOdometry
     | WheelSpeeds

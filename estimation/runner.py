@@ -19,7 +19,7 @@ import numpy as np
 
 from estimation.errors import ConfigError
 from estimation.estimator import Estimate, Estimator, EstimatorLog
-from estimation.measurements import GpsFix, Stream
+from estimation.measurements import GpsFix, Stream, truth_at_start
 
 _NAN6 = (math.nan,) * 6
 # the 3x3 positions of the 6 packed values (xx, xy, xyaw, yy, yyaw, yawyaw), row-major
@@ -323,8 +323,9 @@ def _never_started(log: EstimatorLog, fixes_withheld: int = 0, fixes_fed: int = 
 
 
 def initial_pose(cfg_initial, stream) -> tuple[float, float, float] | None:
-    """Resolve the config's initial_pose: 'ground_truth' -> the first truth pose at or after the
-    first measurement; a tuple -> itself; None -> None (each estimator's default).
+    """Resolve the config's initial_pose: 'ground_truth' -> the truth pose at the first
+    measurement (``measurements.truth_at_start``); a tuple -> itself; None -> None (each
+    estimator's default).
 
     ``stream`` is a Stream, or a BagStream primed (``BagStream.prime``) so that its start and
     the truth there are known."""
@@ -335,11 +336,11 @@ def initial_pose(cfg_initial, stream) -> tuple[float, float, float] | None:
             if g is None:
                 return None
         else:
-            if not stream.ground_truth:
+            gt = stream.ground_truth
+            if not gt:
                 return None
-            t0 = stream.t0
-            g = next((g for g in stream.ground_truth if g.t >= t0 - 1e-9),
-                     stream.ground_truth[-1])
+            g = truth_at_start(np.array([g.t for g in gt]),
+                               np.array([(g.x, g.y, g.yaw) for g in gt]), stream.t0)
         if not math.isfinite(g.yaw):
             # a NavSatFix truth: heading 0 would start every estimator confidently wrong
             raise ConfigError(
