@@ -177,8 +177,13 @@ def test_the_stream_is_primed_with_its_start_datum_and_initial_truth():
     bs = open_stream(SAMPLE, cfg)
     assert bs.t0 == full.t0
     assert bs.datum == full.datum
-    first = next(g for g in full.ground_truth if g.t >= full.t0 - 1e-9)
-    assert bs.first_truth() == first
+    # the truth at the start: between the samples around it (the sample's truth is at 20 Hz)
+    after = next(g for g in full.ground_truth if g.t >= full.t0 - 1e-9)
+    before = full.ground_truth[full.ground_truth.index(after) - 1]
+    first = bs.first_truth()
+    assert before.t < first.t == full.t0 < after.t
+    w = (full.t0 - before.t) / (after.t - before.t)
+    assert first.x == pytest.approx(before.x + w * (after.x - before.x), abs=1e-12)
     assert len(bs._head) < 200  # only the first moments were decoded ahead
     got = list(bs)
     assert len(got) == len(full.measurements) and bs.count == len(got)
