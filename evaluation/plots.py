@@ -1,4 +1,5 @@
-"""The report's figures: each function returns a matplotlib Figure.
+"""The report's figures: each function returns a matplotlib Figure, or None where the run holds
+nothing for it to draw (a blank figure would only look like an empty result).
 
 Inputs are a run's results (``evaluation.results.SavedRun``: read back from an output directory
 by ``load_run``, or built in memory from a ``RunResult`` by ``SavedRun.from_result``) or plain
@@ -155,6 +156,16 @@ def _t0(run: SavedRun) -> float:
     return float(min(starts)) if starts else 0.0
 
 
+def has_covariance(tr) -> bool:
+    """Whether a track carries a position covariance (dead reckoning's is NaN throughout)."""
+    return bool(len(tr)) and bool(np.isfinite(tr.cov[:, 0, 0]).any())
+
+
+def without_covariance(run: SavedRun) -> list[str]:
+    """The run's non-empty tracks that carry no covariance (``has_covariance``)."""
+    return [n for n, tr in run.tracks.items() if len(tr) and not has_covariance(tr)]
+
+
 def _frame_labels(run: SavedRun) -> tuple[str, str]:
     f = frame(run.metrics)
     return f"{f['x']} [m]", f"{f['y']} [m]"
@@ -283,7 +294,8 @@ def trajectories_each(run: SavedRun) -> Figure:
 
 
 def _envelope(ax, t, err, sigma3, color, label):
-    ax.fill_between(t, -sigma3, sigma3, color=color, alpha=0.18, lw=0, label="±3σ")
+    if np.isfinite(sigma3).any():  # no covariance (dead reckoning): no "±3σ" in the legend
+        ax.fill_between(t, -sigma3, sigma3, color=color, alpha=0.18, lw=0, label="±3σ")
     ax.plot(t, err, "-", color=color, lw=0.9, label=label)
     ax.axhline(0.0, color="k", lw=0.5)
     # Scale to the errors and the settled envelope, not to the first seconds' huge sigma.
@@ -356,17 +368,34 @@ def errors(run: SavedRun) -> tuple[Figure | None, str]:
         ax.set_xlabel("time since the first measurement [s]")
     _finish(fig)
     outages = " Grey spans: GPS outages." if run.metrics.get("gps_outages") else ""
+    # the envelope is promised only for the tracks that have one
+    bare = [n for n in names if not has_covariance(run.tracks[n])]
+    envelope = len(bare) < len(names)
+    none = ""
+    if bare:
+        has = "has" if len(bare) == 1 else "have"
+        none = (f" {_listed(bare)} {has} no covariance, so no envelope." if envelope
+                else f" No envelope: {_listed(bare)} {has} no covariance.")
     if truth:
-        caption = (f"Errors against the ground truth (no alignment; x, y in {f['short']}) with "
-                   "each estimator's own ±3σ envelope: a consistent estimator stays inside it "
-                   f"about 99% of the time.{outages}")
+        caption = (f"Errors against the ground truth (no alignment; x, y in {f['short']})"
+                   + (" with each estimator's own ±3σ envelope: a consistent estimator stays "
+                      "inside it about 99% of the time." if envelope else ".")
+                   + f"{none}{outages}")
     else:
         which = ("used and withheld" if run.gps_withheld.any()
                  else "all of them fused by the estimators, so not an independent score")
         caption = ("No ground truth: the difference between each estimate and every GPS fix "
-                   f"({which}) in {f['short']}; the envelope is ±3σ of the estimate's and the "
-                   f"fix's covariance together.{outages}")
+                   f"({which}) in {f['short']}"
+                   + ("; the envelope is ±3σ of the estimate's and the fix's covariance "
+                      "together." if envelope else ".")
+                   + f"{none}{outages}")
     return fig, caption
+
+
+def _listed(names: Sequence[str]) -> str:
+    """'a', 'a and b', 'a, b and c'."""
+    names = list(names)
+    return names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
 
 
 def nees(series: Mapping[str, Sequence[np.ndarray]], t: Mapping[str, np.ndarray],
@@ -406,12 +435,15 @@ def nees(series: Mapping[str, Sequence[np.ndarray]], t: Mapping[str, np.ndarray]
     return _finish(fig)
 
 
-def nis(run: SavedRun) -> Figure:
+def nis(run: SavedRun) -> Figure | None:
     """NIS of every innovation over time: a row per estimator, a panel per sensor and
     measurement kind, with the 95% band of its dimension (dashed); gate-rejected innovations
-    marked x. Titles carry the verdict (``evaluation.consistency``)."""
+    marked x. Titles carry the verdict (``evaluation.consistency``). None when no estimator
+    logged an innovation (dead reckoning alone)."""
     cols = colors(list(run.tracks))
     owners = [n for n in run.tracks if run.log_owner.get(n, n) == n and len(run.innovations[n])]
+    if not owners:
+        return None
     groups = {n: run.innovations[n].groups() for n in owners}
     ncol = max((len(g) for g in groups.values()), default=1)
     t0 = _t0(run)
@@ -452,14 +484,16 @@ def nis(run: SavedRun) -> Figure:
     return _finish(fig)
 
 
-def covariance(run: SavedRun) -> Figure:
-    """Trace of each track's position covariance (m^2) and its heading sigma (deg) over time."""
+def covariance(run: SavedRun) -> Figure | None:
+    """Trace of each track's position covariance (m^2) and its heading sigma (deg) over time;
+    tracks without one (``has_covariance``) are left out, and with none left: None."""
     cols = colors(list(run.tracks))
     t0 = _t0(run)
+    drawn = {name: tr for name, tr in run.tracks.items() if has_covariance(tr)}
+    if not drawn:
+        return None
     fig, (a1, a2) = subplots(2, 1, figsize=(13, 6.5), sharex=True)
-    for name, tr in run.tracks.items():
-        if not len(tr) or not np.isfinite(tr.cov[:, 0, 0]).any():
-            continue
+    for name, tr in drawn.items():
         t = tr.t - t0
         a1.plot(t, tr.cov[:, 0, 0] + tr.cov[:, 1, 1], _STYLE.get(name, "-"), color=cols[name],
                 lw=1.0, label=name)
@@ -477,14 +511,17 @@ def covariance(run: SavedRun) -> Figure:
     return _finish(fig)
 
 
-def latency(run: SavedRun) -> Figure:
-    """Histogram of the wall time of each update (``process`` call) per estimator, one row
-    each on a shared log axis, with the median and 99th percentile marked."""
+def latency(run: SavedRun) -> Figure | None:
+    """Histogram of the wall time (ms) of each update (``process`` call) per estimator, one
+    row each on a shared log axis, with the median and 99th percentile marked; None when no
+    update was timed."""
     cols = colors(list(run.tracks))
     names = [n for n in run.tracks if run.log_owner.get(n, n) == n and len(run.update_s[n])]
+    if not names:
+        return None
     fig, axes = subplots(max(len(names), 1), 1, figsize=(11, 1.5 * max(len(names), 1) + 1),
                              sharex=True, squeeze=False)
-    all_ms = np.concatenate([run.update_s[n] * 1e3 for n in names]) if names else np.ones(1)
+    all_ms = np.concatenate([run.update_s[n] * 1e3 for n in names])
     lo = max(float(all_ms[all_ms > 0].min()) if (all_ms > 0).any() else 1e-3, 1e-4)
     bins = np.logspace(math.log10(lo), math.log10(max(float(all_ms.max()), lo * 10)), 80)
     for ax, n in zip(axes[:, 0], names, strict=False):

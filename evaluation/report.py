@@ -482,26 +482,54 @@ def captions(run: SavedRun) -> dict[str, str]:
             + ("over the ground truth (grey band)." if truth else "over the GPS fixes (grey "
                "dots)." if gps else "with no ground truth or GPS to draw behind it."))
     outages = " Grey spans: GPS outages." if run.metrics.get("gps_outages") else ""
+    bare = plots.without_covariance(run)
+    not_drawn = (f" Not drawn: {', '.join(bare)} ({'it has' if len(bare) == 1 else 'they have'}"
+                 " no covariance)." if bare else "")
     return {
         "trajectories": overview,
         "trajectories_each": each,
         "nees": "Pose NEES against the truth with its 95% chi-square band: a consistent "
                 "estimator stays inside about 95% of the time around the dashed expected value; "
-                "above it, the estimator is over-confident, below it, pessimistic.",
+                f"above it, the estimator is over-confident, below it, pessimistic.{not_drawn}",
         "nis": "NIS of each innovation per estimator and sensor with the 95% band of its "
                "dimension (dashed)" + ("; red x: rejected by the gate." if any(
                    (~run.innovations[n].accepted).any() for n in run.innovations
                    if len(run.innovations[n])) else "; the gate rejected none."),
         "covariance": "Trace of the position covariance [m²] and heading sigma [deg] of each "
-                      f"estimate over time, log scales.{outages}",
+                      f"estimate over time, log scales.{not_drawn}{outages}",
         "latency": "Wall time of each process() call (one per measurement), per estimator.",
     }
+
+
+def why_no_figure(run: SavedRun, name: str) -> str:
+    """The note the report shows in place of figure ``name`` when the run holds nothing for it
+    (its plots function returned None)."""
+    names = [n for n, tr in run.tracks.items() if len(tr)]
+    if not names:
+        return f"No {name} figure: no estimator produced a track."
+    bare = plots.without_covariance(run)
+    dr = "; dead reckoning (dr) fuses none" if "dr" in names else ""
+    return {
+        "trajectories_each": f"No per-estimator trajectory figure: {names[0]} is the only "
+                             "estimate, drawn above.",
+        "nees": "No NEES figure: the bag has no ground truth to score the covariance against."
+                if run.truth is None or not len(run.truth) else
+                f"No NEES figure: {', '.join(bare)} {'has' if len(bare) == 1 else 'have'} no "
+                "covariance." if len(bare) == len(names) else
+                "No NEES figure: no estimate overlaps the ground truth in time.",
+        "nis": f"No NIS figure: no estimator logged an innovation, a measurement compared with "
+               f"its prediction{dr}.",
+        "covariance": f"No covariance figure: {', '.join(bare)} "
+                      f"{'has' if len(bare) == 1 else 'have'} no covariance.",
+        "latency": "No update-latency figure: no update was timed.",
+    }.get(name, f"No {name} figure: nothing to draw.")
 
 
 def make_figures(run: SavedRun, progress: Callable[[float], None] | None = None
                  ) -> list[tuple[str, bytes | None, str]]:
     """(name, PNG bytes, caption) of every figure, also written to OUTDIR/plots/; a figure that
-    has nothing to show is (name, None, why not) and no file."""
+    has nothing to show is (name, None, why not: ``why_no_figure``, or the error figure's own
+    reason) and no file."""
     pdir = run.outdir / "plots"
     pdir.mkdir(exist_ok=True)
     cols = plots.colors(list(run.tracks))
@@ -525,8 +553,7 @@ def make_figures(run: SavedRun, progress: Callable[[float], None] | None = None
             out.append((name, plots.save_png(fig, pdir / f"{name}.png"), caption))
         else:
             (pdir / f"{name}.png").unlink(missing_ok=True)  # from an earlier rendering
-            if name == "errors":
-                out.append((name, None, caption))
+            out.append((name, None, caption if name == "errors" else why_no_figure(run, name)))
         if progress:
             progress((k + 1) / len(jobs))
     return out
