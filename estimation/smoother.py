@@ -1331,8 +1331,9 @@ class FixedLagSmoother(Estimator):
 
     def finish(self) -> None:
         if not self.initialised:
-            self.log.note(self.buffer[-1].t if self.buffer else 0.0,
-                          "never initialised: the GPS track never moved far enough")
+            why = ("the GPS track never moved far enough" if self._buf_last is not None else
+                   "no GPS fix came, and it takes its heading from the GPS course")
+            self.log.note(self.buffer[-1].t if self.buffer else 0.0, f"never initialised: {why}")
             return
         self._release_held()
         # The odometry since the newest keyframe closes the run as a last keyframe, unless it

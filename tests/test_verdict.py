@@ -240,6 +240,7 @@ def test_withholding_every_fix_says_so_instead_of_grading_estimators_that_never_
     assert n == m["data"]["gps_fixes"] > 0
     for name in ("ekf", "smoother"):
         assert f"all {n} GPS fixes were withheld (--gps-holdout)" in m["estimators"][name]["error"]
+    assert "never initialised: no GPS fix came" in m["estimators"]["smoother"]["error"]
     lines = verdict_lines(m)
     assert lines[0].startswith("No score: the bag has no ground truth, and no estimator has an "
                                f"estimate at the {n} GPS fixes")
