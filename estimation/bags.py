@@ -274,6 +274,9 @@ def open_reader(bag: Path):
         path = bag.parent  # rosbags opens ROS2 bags by their directory (with metadata.yaml)
         if not (path / "metadata.yaml").is_file():
             raise BagError(f"{bag}: a ROS2 bag file needs its metadata.yaml beside it")
+    elif bag.is_dir() and not (bag / "metadata.yaml").is_file():
+        raise BagError(f"{bag}: a directory, but not a ROS2 bag (no metadata.yaml in it); give "
+                       "a ROS1 .bag file or a ROS2 bag directory")
     store = get_typestore(Stores.ROS1_NOETIC if bag.suffix == ".bag" else Stores.ROS2_HUMBLE)
     try:
         reader = AnyReader([path], default_typestore=store)

@@ -832,6 +832,8 @@ def test_garbage_ros2_bag(tmp_path, case):
     with pytest.raises(BagError) as e:
         read_stream(p, parse_config(IMU_TREE))
     assert str(p) in str(e.value)
+    if case in ("empty_dir", "dir_garbage_db3"):  # says what a bag directory lacks
+        assert "not a ROS2 bag (no metadata.yaml in it)" in str(e.value)
 
 
 @FMTS
