@@ -78,9 +78,33 @@ def _config_for(bag: Path, given: Path | None) -> Path:
                       f"'ddfuse inspect {bag}' suggests one")
 
 
-ONLINE_HEADER = ("t = s since the first message; per estimator (x m, y m, yaw deg) in the local "
-                 "ENU frame (x east, y north, yaw counter-clockwise from east) +- its 1-sigma "
-                 "(m, m, deg)")
+def online_header(frame: dict[str, str]) -> str:
+    """The column header ``online`` prints, naming the local frame as ``run``'s report does
+    (``frame``: ``evaluation.plots.frame`` of the run)."""
+    axes = ("x east, y north, yaw counter-clockwise from east" if frame["kind"] == "enu"
+            else "yaw counter-clockwise from x")
+    return (f"t = s since the first message; per estimator (x m, y m, yaw deg) in "
+            f"{frame['short']} ({axes}) +- its 1-sigma (m, m, deg)")
+
+
+def online_frame(bag: Path, cfg, reorder_window: float | None = None) -> dict[str, str]:
+    """``evaluation.plots.frame`` of an online replay of ``bag``: the facts it is named from
+    (the datum: the config's or the first GPS fix; the landmark map; the initial pose) as
+    ``run`` records them in metrics.json. The bag's start is decoded for the datum (what the
+    replay's own stream does before its first message, a few ms)."""
+    from estimation.bags import BagStream
+    from evaluation.plots import frame
+
+    stream = BagStream(bag, cfg, reorder_window=reorder_window, keep_truth=False).prime()
+    try:
+        ip = cfg.initial_pose
+        facts = {"data": {"datum": list(stream.datum) if stream.datum else None,
+                          "landmarks": len(stream.landmarks)},
+                 "initial_pose": "first ground-truth pose" if ip == "ground_truth"
+                 else list(ip) if ip else None}
+    finally:
+        stream.close()
+    return frame(facts)
 
 
 def _one_line(text: str) -> str:
@@ -103,13 +127,14 @@ def cmd_online(args: argparse.Namespace) -> int:
             raise DdfuseError(f"--estimators {name}: not available online: "
                               f"{ONLINE_TRACKS_REFUSED[name]}")
     cfg = load_config(_config_for(args.bag, args.config))
-    header = []
+    header = online_header(online_frame(args.bag, cfg, args.reorder_window))
+    printed: list[bool] = []
     stopped: dict[str, float | None] = {}  # estimator -> s since the first message it stopped
 
     def show(t: float, estimates: dict, final: bool = False) -> None:
-        if not header:
-            header.append(True)
-            print(ONLINE_HEADER)
+        if not printed:
+            printed.append(True)
+            print(header)
         cells = []
         for name, e in estimates.items():
             mark = ""

@@ -4,6 +4,7 @@ with nothing to score against, --help and the summary's formatting."""
 
 from __future__ import annotations
 
+import json
 import re
 import warnings
 from pathlib import Path
@@ -159,3 +160,35 @@ def test_a_track_without_covariance_is_named_where_the_others_have_one(dr_run, s
     _, errors_caption = plots.errors(run)
     assert "±3σ envelope" in errors_caption and "dr has no covariance, so no envelope." in \
         errors_caption
+
+
+def _online_header(bag: Path, capsys) -> str:
+    assert cli.main(["online", str(bag), "--estimators", "ekf", "--every", "100000"]) == 0
+    return capsys.readouterr().out.splitlines()[0]
+
+
+def test_online_names_the_landmark_maps_frame_on_mrclam(mrclam_bag, capsys):
+    """MRCLAM has no GPS: the frame is the landmark map's, as run's report says, not ENU
+    (audit #7)."""
+    head = _online_header(mrclam_bag, capsys)
+    assert "ENU" not in head and "east" not in head
+    assert "in the landmark map's frame (yaw counter-clockwise from x)" in head
+
+
+def test_online_names_the_start_pose_frame_on_jackal(jackal_bag, capsys):
+    head = _online_header(jackal_bag, capsys)
+    assert "ENU" not in head and "east" not in head
+    assert "in the start-pose frame" in head
+
+
+def test_online_frame_is_the_reports_frame(mrclam_bag, jackal_bag, husky_bag, seed002_run):
+    """online_frame gives plots.frame the facts run records: the same frame as each report."""
+    from estimation.config import load_config
+
+    for bag, kind in ((mrclam_bag, "map"), (jackal_bag, "start"), (husky_bag, "enu"),
+                      (SEED002, "map")):
+        cfg = load_config(cli._config_for(bag, None))
+        assert cli.online_frame(bag, cfg)["kind"] == kind, bag
+    m = json.loads((seed002_run / "metrics.json").read_text())
+    cfg = load_config(cli._config_for(SEED002, None))
+    assert cli.online_frame(SEED002, cfg) == plots.frame(m)

@@ -441,7 +441,8 @@ def test_online_prints_a_header_once_and_always_the_final_estimate(capsys):
     lines = out.splitlines()
     header = [ln for ln in lines if "since the first message" in ln]
     assert len(header) == 1 and lines[0] == header[0]
-    for unit in ("t = s", "(x m, y m, yaw deg)", "local ENU frame", "1-sigma (m, m, deg)"):
+    for unit in ("t = s", "(x m, y m, yaw deg)", "in ENU about the GPS datum (x east, y north",
+                 "1-sigma (m, m, deg)"):
         assert unit in header[0]
     rows = [ln for ln in lines if ln.startswith("t=")]
     # the first message, then (every 1000 s of a 120 s bag prints nothing more) the final one
