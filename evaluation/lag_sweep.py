@@ -21,7 +21,8 @@ from pathlib import Path
 from estimation.bags import read_stream
 from estimation.config import load_config
 from estimation.errors import BagError
-from estimation.runner import initial_pose, run
+from estimation.measurements import GpsFix
+from estimation.runner import initial_pose, parse_holdout, run
 from evaluation import estimators as registry
 from evaluation.pipeline import score
 
@@ -36,12 +37,18 @@ def lag_sweep(bag: str | Path, config: str | Path, lags=DEFAULT_LAGS, holdout: s
     """Rows ``{"estimator", "lag_s", "rmse_m", "score", "nees_mean", "rtf", "update_ms"}``, one
     per (lag, smoother track) plus one for ``reference`` (lag None). ``score`` says what the
     RMSE is against: "truth" or "gps_holdout". A truncated or damaged bag is swept on what
-    could be read; its BagError is raised after the sweep, with the rows as ``rows``."""
+    could be read; its BagError is raised after the sweep, with the rows as ``rows``.
+
+    A sweep with nothing to score against (no ground truth and no ``holdout``, or a hold-out
+    that withholds no fix) raises ValueError saying so: before decoding when the config
+    shows it (no ground_truth topic, or no gps sensor to withhold from), else after decoding,
+    before any estimator runs."""
     cfg = load_config(config)
     for name in ["smoother"] + ([reference] if reference else []):
         if not registry.SPECS[name].allowed(cfg):
             raise ValueError(f"{config}: {name} needs {registry.SPECS[name].needs}, which the "
                              "config does not have")
+    _check_scorable(cfg, config, holdout)
     damaged = None
     try:
         stream = read_stream(bag, cfg)
@@ -49,6 +56,7 @@ def lag_sweep(bag: str | Path, config: str | Path, lags=DEFAULT_LAGS, holdout: s
         if e.partial is None or not e.partial.measurements:
             raise
         damaged, stream = e, e.partial
+    against = _scored_against(stream, bag, cfg, holdout)
     pose = initial_pose(cfg.initial_pose, stream)
     rows: list[dict] = []
 
@@ -56,10 +64,10 @@ def lag_sweep(bag: str | Path, config: str | Path, lags=DEFAULT_LAGS, holdout: s
         m = score(run(stream, ests, holdout=holdout))
         for track in tracks:
             e = m["estimators"][track]
-            truth = e["ate_rmse_m"] is not None
             rows.append({"estimator": track, "lag_s": lag,
-                         "rmse_m": e["ate_rmse_m"] if truth else e["gps_holdout_rmse_m"],
-                         "score": "truth" if truth else "gps_holdout",
+                         "rmse_m": e["ate_rmse_m"] if against == "truth"
+                         else e["gps_holdout_rmse_m"],
+                         "score": against,
                          "nees_mean": e["nees_mean"], "rtf": e["rtf"],
                          "update_ms": e["update_ms"]})
 
@@ -74,6 +82,41 @@ def lag_sweep(bag: str | Path, config: str | Path, lags=DEFAULT_LAGS, holdout: s
         err.rows = rows
         raise err
     return rows
+
+
+_NEEDS = ("lag-sweep needs ground truth or --gps-holdout (e.g. every:5) to score the smoother "
+          "against")
+_NOTHING = "lag-sweep has nothing to score the smoother against"
+
+
+def _check_scorable(cfg, config, holdout: str | None) -> None:
+    """Before decoding: ValueError when the config alone shows there is nothing to score
+    against (no ground_truth topic and no hold-out; or a hold-out without a gps sensor)."""
+    if cfg.ground_truth_topic:
+        return
+    if not holdout:
+        raise ValueError(f"{_NEEDS}: {config} names no ground_truth topic")
+    if not cfg.of_kind("gps"):
+        raise ValueError(f"{_NOTHING}: {config} names no ground_truth topic and has no gps "
+                         f"sensor for --gps-holdout {holdout} to withhold fixes of")
+
+
+def _scored_against(stream, bag, cfg, holdout: str | None) -> str:
+    """What the decoded ``stream`` lets the sweep score against: "truth" when it has ground
+    truth, else "gps_holdout" when ``holdout`` withholds at least one of its fixes (the rule
+    ``estimation.runner.run`` applies, from the first measurement's stamp); ValueError
+    otherwise."""
+    if stream.ground_truth:
+        return "truth"
+    topic = f"no ground truth on {cfg.ground_truth_topic}" if cfg.ground_truth_topic else \
+        "no ground truth"
+    if not holdout:
+        raise ValueError(f"{_NEEDS}: {bag} has {topic}")
+    fixes = [m for m in stream.measurements if isinstance(m, GpsFix)]
+    if not fixes or not parse_holdout(holdout)(fixes, stream.measurements[0].t):
+        raise ValueError(f"{_NOTHING}: {bag} has {topic} and --gps-holdout {holdout} "
+                         f"withholds none of its {len(fixes)} GPS fixes")
+    return "gps_holdout"
 
 
 def format_table(rows: list[dict]) -> str:
