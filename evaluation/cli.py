@@ -505,7 +505,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="output directory (default: ddfuse-out)")
     sp.add_argument("--estimators", type=estimator_list, metavar="LIST",
                     help="comma-separated: ekf, ekf_igvc, ekf_landmark, "
-                    "ekf_slam, smoother, smoother_lagged, batch (default: all the sensors allow)")
+                    "ekf_slam, smoother, smoother_lagged, batch, dr (dead reckoning, by name "
+                    "only; default: all but dr that the config's sensors allow)")
     sp.add_argument("--lag", type=lag_seconds,
                     help="smoother lag, s (default: from the config)")
     sp.add_argument("--gps-holdout", type=gps_holdout, metavar="every:K|window:T0:T1",

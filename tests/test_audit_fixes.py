@@ -246,3 +246,15 @@ def test_lag_sweep_scores_against_what_the_stream_has():
     truth = Stream(measurements=fixes, ground_truth=[GroundTruthPose(0.0, 0.0, 0.0, 0.0)])
     assert _scored_against(truth, "b.bag", cfg, None) == "truth"
     assert _scored_against(truth, "b.bag", cfg, "window:10:20") == "truth"
+
+
+def test_run_help_lists_every_estimator_the_parser_accepts(capsys):
+    """dr was missing from `run --help` (audit #10): every name --estimators accepts is listed."""
+    from evaluation.estimators import TRACK_TO_SPEC
+
+    with pytest.raises(SystemExit):
+        cli.main(["run", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    listed = text.split("--estimators LIST comma-separated: ")[1].split(" (")[0]
+    assert [n.strip() for n in listed.split(",")] == list(TRACK_TO_SPEC)
+    assert "default: all but dr" in text
