@@ -57,6 +57,13 @@ def _fmt(v, spec: str = ".3f") -> str:
     return format(v, spec)
 
 
+def signed(v: float, spec: str = "+.2f") -> str:
+    """``v`` formatted with its sign (``spec`` has the '+'), but none where it rounds to zero:
+    "0.00", not "-0.00" or "+0.00" (a drift or offset of nothing has no direction)."""
+    text = format(v, spec)
+    return text[1:] if text[:1] in "+-" and not any(c in "123456789" for c in text) else text
+
+
 def _pct(v: float | None) -> str:
     return _fmt(None if v is None else 100 * v, ".1f")
 
@@ -292,8 +299,8 @@ def _outage_table(m: dict) -> str:
                 f'<td class="l">{html.escape(name)}</td><td>{_fmt(d.get("distance_m"), ".1f")}'
                 f"</td><td>{_fmt(d.get('error_start_m'))}</td><td>{_fmt(d.get('error_end_m'))}"
                 f"</td><td>{_fmt(d.get('error_max_m'))}</td><td>"
-                + (_fmt(100 * d["drift_per_m"], "+.2f") if d.get("drift_per_m") is not None
-                   else _fmt(None))
+                + (signed(100 * d["drift_per_m"]) if d.get("drift_per_m") is not None
+                   and math.isfinite(d["drift_per_m"]) else _fmt(None))
                 + f'</td><td class="l">{html.escape(str(d.get("reference", "–")))}</td></tr>')
     return ("<h2>GPS outages</h2><table><tr><th>outage [s]</th><th class='l'>estimator</th>"
             "<th>distance [m]</th><th>error at start [m]</th><th>error at end [m]</th>"
@@ -326,9 +333,11 @@ def _heading_offsets(d: dict) -> str:
         med = r["median_rad"]
         # the windows about the median, so that a range across +-180 deg reads as one
         dev = [(w["offset_rad"] - med + math.pi) % (2 * math.pi) - math.pi for w in r["windows"]]
-        out.append(f"{html.escape(r['sensor'])}: yaw minus GPS course {math.degrees(med):+.1f}"
+        out.append(f"{html.escape(r['sensor'])}: yaw minus GPS course "
+                   f"{signed(math.degrees(med), '+.1f')}"
                    f" deg (median of {len(dev)} windows of {r['window_s']:.0f} s), windows "
-                   f"{math.degrees(med + min(dev)):+.1f} to {math.degrees(med + max(dev)):+.1f}"
+                   f"{signed(math.degrees(med + min(dev)), '+.1f')} to "
+                   f"{signed(math.degrees(med + max(dev)), '+.1f')}"
                    " deg")
     return "; ".join(out)
 

@@ -298,3 +298,18 @@ def test_readme_places_the_wall_time_line_where_run_prints_it(tmp_path, capsys):
     assert lines[-2].startswith("wall time ") and lines[-1].startswith("results in ")
     _, text = _readme_cell("run")
     assert "`wall time` line, the one before the last (`results in ...`)" in text
+
+
+def test_a_drift_that_rounds_to_zero_has_no_sign():
+    """The GPS-outage table printed -0.00 (audit #13)."""
+    m = {"data": {"t0": 0.0}, "gps_outages": [{"t0": 40.0, "t1": 60.0}],
+         "estimators": {name: {"gps_outages": [{"distance_m": 20.0, "error_start_m": 0.1,
+                                                "error_end_m": 0.1, "error_max_m": 0.2,
+                                                "drift_per_m": drift, "reference": "truth"}]}
+                        for name, drift in (("batch", -0.00002), ("ekf", 0.00002),
+                                            ("smoother", 0.0123))}}
+    cells = re.findall(r"<td>([-+]?\d+\.\d\d)</td><td class=\"l\">truth", report._outage_table(m))
+    assert cells == ["0.00", "0.00", "+1.23"]
+    assert report.signed(-0.004) == "0.00" and report.signed(0.004) == "0.00"
+    assert report.signed(-0.006) == "-0.01" and report.signed(0.25) == "+0.25"
+    assert report.signed(-0.04, "+.1f") == "0.0" and report.signed(-10.0, "+.1f") == "-10.0"
