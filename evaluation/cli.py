@@ -274,6 +274,12 @@ def _render(outdir: Path, bars: _Bars | None) -> Path:
                          else None)
 
 
+def produced_estimates(e: dict) -> bool:
+    """Whether an estimator's metrics.json entry has a track (``samples``: its length; entries
+    written without it are taken to have one)."""
+    return e.get("samples") != 0
+
+
 def _print_summary(m: dict, out) -> None:
     cols = ("final_xy", "ate_rmse_m", "yaw_rmse_deg", "nees_mean", "gps_holdout_rmse_m", "rtf")
     out.write(f"{m['bag']}: {m['duration_s']:.1f} s, {m['messages']} measurements, "
@@ -283,6 +289,8 @@ def _print_summary(m: dict, out) -> None:
         cells = []
         for c in cols:
             v = e[c]
+            if c == "rtf" and not produced_estimates(e):
+                v = None  # the speed of an estimator that never estimated says nothing
             if c == "final_xy" and v:
                 cells.append(f"({v[0]:.2f}, {v[1]:.2f})")
             else:

@@ -96,7 +96,8 @@ def _summary_table(m: dict, cfg=None) -> str:
         ("GPS hold-out RMSE [m]", lambda e: e.get("gps_holdout_rmse_m"), ".3f", True),
         ("NEES mean", lambda e: e.get("nees_mean"), ".2f", False),
         ("runtime [s]", lambda e: e.get("runtime_s"), ".2f", False),
-        ("RTF [x]", lambda e: e.get("rtf"), ".0f", False),
+        # no speed for an estimator that never estimated (it only turned measurements away)
+        ("RTF [x]", lambda e: e.get("rtf") if e.get("samples") != 0 else None, ".0f", False),
         ("update p50 / p99 [ms]", None, None, False),
     ]
     present = [c for c in cols if c[1] is None or any(c[1](e) is not None for e in ests.values())]
