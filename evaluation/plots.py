@@ -416,7 +416,11 @@ def nees(series: Mapping[str, Sequence[np.ndarray]], t: Mapping[str, np.ndarray]
         lo, hi = consistency.chi2_band(dof[name], len(runs))
         ax.axhspan(lo, hi, color="tab:green", alpha=0.12)
         ax.axhline(dof[name], color="k", lw=0.8, ls="--")
-        ax.plot(tt, avg, "-", color=cols[name], lw=0.8)
+        # The first samples (an exact initial pose) can be tiny, or 0: keep the band in view
+        # and draw what lies below the axis on its floor (a 0 would be left out of a log
+        # axis, a 1e-26 drawn from far below: the same start drawn two ways)
+        bottom = max(min(float(np.nanmin(avg)), lo) * 0.8, lo / 100)
+        ax.plot(tt, np.maximum(avg, bottom), "-", color=cols[name], lw=0.8)
         # Judged like the NIS: the fraction of time steps outside the band (of one value, or
         # of an N-run average) and the mean against its expectation.
         outside = float(np.mean((avg < lo) | (avg > hi)))
@@ -427,8 +431,7 @@ def nees(series: Mapping[str, Sequence[np.ndarray]], t: Mapping[str, np.ndarray]
                      f"{verdict or 'too few to judge'}", loc="left", fontsize=9,
                      color={"Fail": "tab:red", "Warn": "tab:orange"}.get(verdict, "k"))
         ax.set_yscale("log")
-        # The first samples (an exact initial pose) can be tiny: keep the band in view.
-        ax.set_ylim(bottom=max(min(float(np.nanmin(avg)), lo) * 0.8, lo / 100))
+        ax.set_ylim(bottom=bottom)
         ax.set_ylabel("NEES")
         ax.grid(True, alpha=0.3)
     axes[-1, 0].set_xlabel("time since the first measurement [s]")
