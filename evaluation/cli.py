@@ -80,7 +80,7 @@ def _config_for(bag: Path, given: Path | None) -> Path:
 
 def online_header(frame: dict[str, str]) -> str:
     """The column header ``online`` prints, naming the local frame as ``run``'s report does
-    (``frame``: ``evaluation.plots.frame`` of the run)."""
+    (``frame``: ``evaluation.local_frame.frame`` of the run)."""
     axes = ("x east, y north, yaw counter-clockwise from east" if frame["kind"] == "enu"
             else "yaw counter-clockwise from x")
     return (f"t = s since the first message; per estimator (x m, y m, yaw deg) in "
@@ -88,12 +88,12 @@ def online_header(frame: dict[str, str]) -> str:
 
 
 def online_frame(bag: Path, cfg, reorder_window: float | None = None) -> dict[str, str]:
-    """``evaluation.plots.frame`` of an online replay of ``bag``: the facts it is named from
+    """``evaluation.local_frame.frame`` of an online replay of ``bag``: the facts it is named from
     (the datum: the config's or the first GPS fix; the landmark map; the initial pose) as
     ``run`` records them in metrics.json. The bag's start is decoded for the datum (what the
     replay's own stream does before its first message, a few ms)."""
     from estimation.bags import BagStream
-    from evaluation.plots import frame
+    from evaluation.local_frame import frame
 
     stream = BagStream(bag, cfg, reorder_window=reorder_window, keep_truth=False).prime()
     try:

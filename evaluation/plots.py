@@ -30,6 +30,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from evaluation import consistency, metrics
+from evaluation.local_frame import frame  # noqa: F401 - the figures' and report's frame
 from evaluation.results import SavedRun
 
 DPI = 100
@@ -58,36 +59,6 @@ def colors(names: Sequence[str]) -> dict[str, str]:
     """A fixed colour per track name (``PALETTE``), the same in every figure and report
     whichever other tracks are present and in whatever order."""
     return {n: PALETTE.get(n) or _OTHER[zlib.crc32(n.encode()) % len(_OTHER)] for n in names}
-
-
-def frame(metrics: Mapping) -> dict[str, str]:
-    """The local frame of a run (from its metrics.json): ``kind`` ('enu': about the GPS datum;
-    'map': the landmark map's; 'truth': the ground truth's, every estimator starting at its
-    first pose; 'given': the configured initial pose's; 'start': the start pose), ``text`` (a
-    sentence for the report), ``short`` (for titles), ``x``/``y`` (axis names without unit)."""
-    d = metrics.get("data") or {}
-    ip = metrics.get("initial_pose")
-    if d.get("datum"):
-        lat, lon, alt = d["datum"]
-        return {"kind": "enu", "x": "x east", "y": "y north", "short": "ENU about the GPS datum",
-                "text": f"ENU about the GPS datum {lat:.6f}°, {lon:.6f}°, {alt:.1f} m (x east, "
-                        "y north)"}
-    if d.get("landmarks"):
-        return {"kind": "map", "x": "x (map)", "y": "y (map)", "short": "the landmark map's frame",
-                "text": "the landmark map's frame (x, y as in the map; no GPS)"}
-    if ip == "first ground-truth pose":
-        return {"kind": "truth", "x": "x", "y": "y", "short": "the ground truth's frame",
-                "text": "the ground truth's frame: every estimator starts at the first truth "
-                        "pose (no GPS, no landmark map)"}
-    if isinstance(ip, (list, tuple)) and len(ip) == 3:
-        return {"kind": "given", "x": "x", "y": "y", "short": "the initial pose's frame",
-                "text": f"the frame the configured initial pose ({ip[0]:.2f} m, "
-                        f"{ip[1]:.2f} m, {math.degrees(ip[2]):.1f}°) is given in (no GPS, "
-                        "no landmark map)"}
-    return {"kind": "start", "x": "x", "y": "y", "short": "the start-pose frame",
-            "text": "the start pose: origin where the robot started, x at heading 0 (the "
-                    "first absolute heading reading where its offset is configured, else "
-                    "the robot's initial heading); no GPS, no landmark map"}
 
 
 def subplots(nrows: int = 1, ncols: int = 1, *, figsize: tuple[float, float], **kw
