@@ -403,12 +403,20 @@ def load_config(path: str | Path) -> Config:
     if not p.is_file():
         raise ConfigError(f"{p}: config file not found")
     try:
-        raw = yaml.load(p.read_text(encoding="utf-8"), Loader=_Loader)
+        text = p.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as e:
         raise ConfigError(f"{p}: cannot read config: {e}") from None
+    return parse_config_text(text, str(p), p.parent)
+
+
+def parse_config_text(text: str, source: str = "<config>", base: Path | None = None) -> Config:
+    """Validate a config's YAML text (as a file holds it: 1e-4 is a number here, a string to
+    PyYAML's safe loader). Raises ConfigError naming ``source`` and the key."""
+    try:
+        raw = yaml.load(text, Loader=_Loader)
     except yaml.YAMLError as e:
-        raise ConfigError(f"{p}: not valid YAML: {str(e).splitlines()[0]}") from None
-    return parse_config(raw, str(p), p.parent)
+        raise ConfigError(f"{source}: not valid YAML: {str(e).splitlines()[0]}") from None
+    return parse_config(raw, source, base)
 
 
 def resolve_landmark_maps(cfg: Config, bag: str | Path | None = None) -> None:

@@ -162,17 +162,12 @@ def run_config(run: SavedRun):
     refuses): ``not_run`` then judges on the sensors metrics.json lists."""
     if not run.config_text:
         return None
-    import yaml
-
-    # the config module's own loader: PyYAML's safe one reads 1e-4 as a string, which
-    # parse_config would refuse as a noise value
-    from estimation.config import _Loader, parse_config
+    from estimation.config import parse_config_text
     from estimation.errors import ConfigError
 
     try:
-        raw = yaml.load(run.config_text, Loader=_Loader)
-        return parse_config(raw, base=run.outdir)
-    except (yaml.YAMLError, ConfigError):
+        return parse_config_text(run.config_text, "the run's saved config", run.outdir)
+    except ConfigError:
         return None
 
 
