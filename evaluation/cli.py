@@ -120,6 +120,7 @@ def cmd_online(args: argparse.Namespace) -> int:
 
     from estimation.config import load_config
     from estimation.errors import RunInterrupted
+    from estimation.heading_survey import config_warnings, recorder_for
     from evaluation.online import ONLINE_TRACKS_REFUSED, replay
 
     for name in args.estimators or ():
@@ -159,13 +160,16 @@ def cmd_online(args: argparse.Namespace) -> int:
         print(f"{name} failed {at} and is stopped (its last estimate is kept, the others go "
               f"on): {_one_line(why)}", flush=True)
 
+    offsets = recorder_for(cfg)
     try:
         session = replay(args.bag, cfg, names=args.estimators, realtime=args.realtime,
                          print_every=args.every, on_print=show,
                          reorder_window=args.reorder_window, interruptible=True,
-                         on_stop=on_stop)
+                         on_stop=on_stop, observers=(offsets.add,))
     except ValueError as e:
         raise DdfuseError(str(e)) from None
+    for w in config_warnings(offsets.surveys(), cfg):  # as run warns: a wrong compass offset
+        sys.stderr.write(f"ddfuse: warning: {w}\n")
     if session.last_t is not None:  # after every estimator's finish(): what it ends with
         show(session.last_t, {k: session.estimate(k) for k in session.estimators}, final=True)
     print("update latency (ms):")

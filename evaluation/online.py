@@ -39,7 +39,7 @@ import math
 import time
 from array import array
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -319,7 +319,8 @@ def replay(bag: str | Path, cfg: Config, *, names: list[str] | None = None,
            realtime: bool = False, print_every: float = 1.0,
            on_print: Callable[[float, dict[str, Estimate | None]], None] | None = None,
            reorder_window: float | None = None, interruptible: bool = False,
-           on_stop: Callable[[str, float | None, str], None] | None = None) -> OnlineSession:
+           on_stop: Callable[[str, float | None, str], None] | None = None,
+           observers: Sequence[Callable[[object], None]] = ()) -> OnlineSession:
     """Replay a bag into an OnlineSession, one message at a time, decoding it as it goes
     (``estimation.bags.BagStream``, which reorders by stamp within ``reorder_window`` and drops
     broken stamps; the session itself then passes each measurement straight on). With
@@ -333,7 +334,8 @@ def replay(bag: str | Path, cfg: Config, *, names: list[str] | None = None,
     off; the session's ``input_error`` then says why (BagError if nothing could be read). With
     ``interruptible``, Ctrl-C ends the replay there as the bag's end would, and the session's
     ``interrupted`` says where (the latency figures so far are kept); otherwise it
-    propagates."""
+    propagates. ``observers`` are called with every measurement before the session has it
+    (e.g. ``estimation.heading_survey.OffsetRecorder.add``), outside the latency figures."""
     if not (print_every > 0.0 and np.isfinite(print_every)):
         raise ValueError(f"print_every: expected seconds > 0, got {print_every!r}")
     stream = BagStream(bag, cfg, reorder_window=reorder_window, keep_truth=False).prime()
@@ -355,6 +357,8 @@ def replay(bag: str | Path, cfg: Config, *, names: list[str] | None = None,
                 lead = (m.t - t0) - (time.perf_counter() - wall0)
                 if lead > 0:
                     time.sleep(lead)
+            for ob in observers:
+                ob(m)
             session.push(m)
             if on_print is not None and m.t >= next_print:
                 on_print(m.t - t0, {k: session.estimate(k) for k in session.estimators})

@@ -167,3 +167,15 @@ def test_inspect_without_a_usable_fix_reports_the_bag_and_no_offset(tmp_path, ca
     assert cli.main(["inspect", str(bag)]) == 0
     out = capsys.readouterr().out
     assert "40 NO_FIX of 40" in out and "yaw minus GPS course" not in out
+
+
+def test_online_warns_about_a_wrong_fixed_offset_as_run_does(tmp_path, capsys):
+    cfg_text = cli.SAMPLE_BAG.with_suffix(".yaml").read_text()
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(cfg_text.replace("heading_offset: estimate", "heading_offset: 0.0"))
+    assert cli.main(["online", str(cli.SAMPLE_BAG), "-c", str(bad), "--estimators", "ekf",
+                     "--every", "60"]) == 0
+    err = capsys.readouterr().err
+    assert "ddfuse: warning: /imu/data: heading_offset is fixed at +0.000 rad" in err
+    assert cli.main(["online", str(cli.SAMPLE_BAG), "--estimators", "ekf", "--every", "60"]) == 0
+    assert "warning" not in capsys.readouterr().err
