@@ -175,6 +175,37 @@ def _consistency(name: str, e: dict, seen_nis: dict) -> str:
     return f"{name}: {head}. " + "; ".join(parts) + "." + dr
 
 
+def _noise_hints(ests: dict) -> list[str]:
+    """Where two or more estimators test a sensor's residuals (their own NIS, not a lagged or
+    batch track's copy) and all find them off in the same direction (NIS Fail, all pessimistic
+    or all over-confident), the cause is the config's noise value for that sensor, which they
+    all read, not either method: one line per direction naming the sensors."""
+    tests: dict[str, dict[str, tuple[str | None, float | None]]] = {}
+    for e in ests.values():
+        nis = e.get("nis") or {}
+        if e.get("samples") == 0 or not nis:
+            continue
+        owner = repr(sorted(nis.items()))  # tracks of one filter share its NIS
+        for label, st in nis.items():
+            ok = st.get("verdict") == "Fail" and st.get("ratio") is not None
+            tests.setdefault(label, {})[owner] = ((_direction(st), st["ratio"]) if ok
+                                                  else (None, None))
+    by_dir: dict[str, list[str]] = {}
+    for label, owners in tests.items():
+        dirs = {d for d, _ in owners.values()}
+        if len(owners) < 2 or len(dirs) != 1 or not dirs & {"pessimistic", "over-confident"}:
+            continue
+        ratios = [r for _, r in owners.values()]
+        lo, hi = f"{min(ratios):.2f}", f"{max(ratios):.2f}"
+        by_dir.setdefault(dirs.pop(), []).append(
+            f"{label} ({lo if lo == hi else f'{lo}-{hi}'})")
+    return [f"Every estimator that tests them finds these residuals {d} (NIS mean/expected): "
+            f"{', '.join(labels)}. The config's noise for them is "
+            f"{'larger' if d == 'pessimistic' else 'smaller'} than the data's, alike for all "
+            "estimators: those consistency verdicts are about the config, not about which "
+            "method is better." for d, labels in by_dir.items()]
+
+
 # Share of a track's ATE from which the pairing's own error is stated: 0.3 moves an ATE by
 # 5 % (TIE) when the two errors are independent (they add in quadrature).
 ASSOCIATION_SHARE = 0.3
@@ -314,6 +345,7 @@ def verdict_lines(m: dict) -> list[str]:
     seen: dict = {}
     # an estimator with no estimate has nothing to be consistent about ("stopped early" below)
     lines += [_consistency(n, e, seen) for n, e in ests.items() if e.get("samples") != 0]
+    lines += _noise_hints(ests)
     for o_idx, o in enumerate(m.get("gps_outages") or []):
         drift = {n: e["gps_outages"][o_idx] for n, e in ests.items()
                  if e.get("gps_outages") and e["gps_outages"][o_idx].get("drift_per_m")

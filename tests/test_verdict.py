@@ -271,3 +271,26 @@ def test_centimetre_scores_keep_their_digits_and_a_tie_on_common_stamps_is_said(
     m["estimators"]["smoother"]["ate_common_rmse_m"] = 0.0125  # a win there too: said once
     (h2h,) = [line for line in verdict_lines(m) if line.startswith("Real-time head to head")]
     assert "common stamps" not in h2h
+
+
+def test_residuals_every_estimator_finds_off_alike_are_put_on_the_config():
+    def nis(verdict, ratio):
+        return {"verdict": verdict, "ratio": ratio, "above": 0.0,
+                "below": 0.9 if ratio < 1 else 0.0}
+
+    m = _m({"ekf": 1.2, "ekf_igvc": 1.5, "smoother": 1.3, "smoother_lagged": 1.0},
+           "gps_holdout_rmse_m", gps_holdout="window:100:160")
+    e = m["estimators"]
+    e["ekf"]["nis"] = {"/imu gyro": nis("Fail", 0.01), "/odom v": nis("Fail", 0.005),
+                       "/fix gps": nis("Pass", 1.0)}
+    e["ekf_igvc"]["nis"] = {"/imu gyro": nis("Fail", 0.06), "/fix gps": nis("Fail", 3.0)}
+    e["smoother"]["nis"] = {"/fix gps": nis("Pass", 1.1)}
+    e["smoother_lagged"]["nis"] = dict(e["smoother"]["nis"])  # the smoother's own, copied
+    hints = [line for line in verdict_lines(m) if line.startswith("Every estimator")]
+    # the gyro: both testers pessimistic; the odometry speed: one tester only; the GPS: split
+    assert hints == ["Every estimator that tests them finds these residuals pessimistic (NIS "
+                     "mean/expected): /imu gyro (0.01-0.06). The config's noise for them is "
+                     "larger than the data's, alike for all estimators: those consistency "
+                     "verdicts are about the config, not about which method is better."]
+    e["smoother"]["nis"]["/imu gyro"] = nis("Pass", 0.9)  # one tester disagrees: no hint
+    assert not any(line.startswith("Every estimator") for line in verdict_lines(m))
