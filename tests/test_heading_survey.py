@@ -179,3 +179,18 @@ def test_online_warns_about_a_wrong_fixed_offset_as_run_does(tmp_path, capsys):
     assert "ddfuse: warning: /imu/data: heading_offset is fixed at +0.000 rad" in err
     assert cli.main(["online", str(cli.SAMPLE_BAG), "--estimators", "ekf", "--every", "60"]) == 0
     assert "warning" not in capsys.readouterr().err
+
+
+def test_gps_errors_correlated_over_30_s_do_not_make_a_constant_offset_wander():
+    """husky-multipath: a constant compass offset, GPS errors a 30 s Gauss-Markov process.
+    The windows scatter by more than DRIFT_RAD (each fit follows its window's GPS wander) with
+    fit sigmas far smaller than that scatter; independent from window to window, so their
+    successive ratio stays near 2 and nothing wanders. rl_husky_gps.bag's offset does."""
+    from evaluation.montecarlo import seed_data
+
+    sim, cfg, stream, _, _ = seed_data("husky-multipath", 1)
+    sv = survey(cfg, stream.measurements)
+    assert len(sv.windows) == 13 and sv.spread > hs.DRIFT_RAD > 8 * median_sigma(sv)
+    assert sv.successive_ratio > 1.2 and not sv.wanders
+    assert abs(wrap(sv.median - sim.scenario.imu.heading_offset)) < 0.05
+    assert hs.config_warnings([sv], with_imu(cfg, heading_offset=0.35)) == []
