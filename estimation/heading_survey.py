@@ -118,10 +118,13 @@ class OffsetSurvey:
         """One line: the median, the spread and the windows' offsets in degrees."""
         offs = " ".join(f"{math.degrees(w.offset):+.1f}" for w in self.windows)
         sig = float(np.median([w.sigma for w in self.windows]))
+        r = self.successive_ratio
+        ratio = "" if r is None else (f", successive ratio {r:.2f} (about 2 for scatter, small "
+                                      "for a slow change)")
         return (f"yaw minus GPS course (the heading offset) {math.degrees(self.median):+.1f} deg "
                 f"(median of {len(self.windows)} windows of {WINDOW_S:.0f} s; fit sigma "
-                f"{math.degrees(sig):.1f} deg), spread {math.degrees(self.spread):.1f} deg; per "
-                f"window: {offs}")
+                f"{math.degrees(sig):.1f} deg for white GPS), spread "
+                f"{math.degrees(self.spread):.1f} deg{ratio}; per window: {offs}")
 
     def to_dict(self) -> dict:
         return {"sensor": self.sensor, "median_rad": self.median, "spread_rad": self.spread,
