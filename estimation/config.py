@@ -165,7 +165,8 @@ class Config:
     smoother: SmootherConfig = field(default_factory=SmootherConfig)
     ekf: EkfConfig = field(default_factory=EkfConfig)
     reorder_window: float = 0.5  # s: messages older than this behind the newest are an error
-    path: Path | None = None
+    path: Path | None = None  # the file, or the label the config was parsed under
+    text: str | None = None  # the YAML it was parsed from (load_config, parse_config_text)
 
     def of_kind(self, kind: str) -> list[SensorConfig]:
         return [s for s in self.sensors if s.kind == kind]
@@ -416,7 +417,9 @@ def parse_config_text(text: str, source: str = "<config>", base: Path | None = N
         raw = yaml.load(text, Loader=_Loader)
     except yaml.YAMLError as e:
         raise ConfigError(f"{source}: not valid YAML: {str(e).splitlines()[0]}") from None
-    return parse_config(raw, source, base)
+    cfg = parse_config(raw, source, base)
+    cfg.text = text  # what ran, whatever the file holds later
+    return cfg
 
 
 def resolve_landmark_maps(cfg: Config, bag: str | Path | None = None) -> None:

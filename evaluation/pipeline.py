@@ -68,7 +68,7 @@ from estimation.measurements import Stream
 from estimation.runner import RunResult, Trajectory, initial_pose, parse_holdout, run
 from evaluation import consistency, metrics
 from evaluation import estimators as registry
-from evaluation.results import save_run
+from evaluation.results import config_text_of, save_run
 
 MAX_DIFF = 0.05  # s: association of estimate and truth stamps (truth at >= 10 Hz)
 RPE_DELTAS = (("1s", 1.0, "s"), ("10m", 10.0, "m"))
@@ -450,7 +450,7 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
     surveys = result.offset_surveys = offset_surveys(result, cfg, offsets)
     out["data"] = data_facts(result, cfg, surveys)
     out["warnings"] = heading_survey.config_warnings(surveys, cfg)
-    config_text = cfg.path.read_text(errors="replace") if cfg.path else None
+    config_text = config_text_of(cfg)
     t_scored = clock()
     save_run(result, outdir, config_text)
     out["wall_s"] = timing_split(

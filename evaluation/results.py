@@ -86,13 +86,22 @@ class SavedRun:
         landmarks. ``config_text``: shown by the report (default: ``cfg``'s file)."""
         if metrics is None:
             metrics = _score(result, cfg)
-        if config_text is None and cfg is not None and getattr(cfg, "path", None):
-            config_text = Path(cfg.path).read_text(errors="replace")
+        if config_text is None and cfg is not None:
+            config_text = config_text_of(cfg)
         # through JSON, as metrics.json is read back (lists, not tuples; string keys)
         metrics = json.loads(json.dumps(metrics))
         tracks = {name: r.trajectory for name, r in result.runs.items() if len(r.trajectory)}
         return _from_arrays(None, metrics, _run_arrays(result, config_text), tracks,
                             result.truth)
+
+
+def config_text_of(cfg) -> str | None:
+    """The YAML ``cfg`` was parsed from (``Config.text``), else its file's text as it is now,
+    else None (a config built in code, or parsed under a label that is no file)."""
+    if getattr(cfg, "text", None) is not None:
+        return cfg.text
+    path = getattr(cfg, "path", None)
+    return Path(path).read_text(errors="replace") if path and Path(path).is_file() else None
 
 
 def _score(result: RunResult, cfg) -> dict:

@@ -152,3 +152,19 @@ def test_notebook_flow_without_a_config(husky):
     assert isinstance(fig, Figure)
     pylabtools = pytest.importorskip("IPython.core.pylabtools")
     assert pylabtools.print_figure(fig, "png").startswith(PNG)  # what display(fig) shows
+
+
+def test_from_result_shows_the_config_that_ran_whatever_it_was_parsed_from(husky, tmp_path):
+    from estimation.config import load_config, parse_config_text
+
+    _, _, _, result = husky
+    text = (DATA / "sample_husky.yaml").read_text()
+    # parsed from text under a label that is no file: shown, not read from disk
+    run = SavedRun.from_result(result, cfg=parse_config_text(text, "my robot's config"))
+    assert run.config_text == text
+    # loaded from a file that is changed afterwards: what ran, not what the file holds now
+    p = tmp_path / "c.yaml"
+    p.write_text(text)
+    cfg = load_config(p)
+    p.write_text("# edited later\n")
+    assert SavedRun.from_result(result, cfg=cfg).config_text == text
