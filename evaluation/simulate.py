@@ -196,6 +196,11 @@ class Scenario:
     # 1-sigma uncertainty of the nominal geometry that the config states (robot.*_std): how
     # well the scenario's robot is calibrated. The true geometry lies within it.
     geometry_std: Geometry | None = None
+    # s, the duration the scenario's drive is drawn for: a random drive's commands and the
+    # landmark map (drawn in the path's bounding box) are those of a run of this length, cut at
+    # ``duration`` (see simulate). None: ``duration``. get_scenario and simulate set it to the
+    # scenario's own duration when they replace that, so --duration cuts the documented drive.
+    drive_duration: float | None = None
 
 
 # A field site near Zurich, Switzerland: lat, lon (deg), ellipsoidal altitude (m).
@@ -472,19 +477,36 @@ def _rng(seed: int, stream: str) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence([seed, zlib.crc32(stream.encode())]))
 
 
-def _smooth_noise(rng: np.random.Generator, t: np.ndarray, corr_time: float) -> np.ndarray:
-    """A smooth zero-mean, unit-variance Gaussian process sampled at ``t`` (s, from 0).
+def _smooth_noise(rng: np.random.Generator, t: np.ndarray, corr_time: float, count: int = 1,
+                  span: float | None = None) -> list[np.ndarray]:
+    """``count`` independent smooth zero-mean, unit-variance Gaussian processes sampled at ``t``
+    (s, from 0).
 
-    White noise on a grid of corr_time/8 is filtered by a Gaussian kernel of std corr_time
-    (normalised to unit L2 norm, so the output variance is one) and interpolated linearly."""
+    White noise on a grid of corr_time/8 s is filtered by a Gaussian kernel of std corr_time s
+    (normalised to unit L2 norm, so the output variance is one) and interpolated linearly.
+
+    ``span`` (s) makes the processes a function of the seed alone up to ``span``: every process
+    first draws the white noise of a grid that reaches ``span``, whatever ``t`` covers, and only
+    then does any process draw the grid's extension to a later ``t[-1]``. So the values at any
+    time up to ``span`` are the same for every ``t``. With ``span`` None (or ``t[-1]``), the
+    draws are those of a grid that just covers ``t``, process after process."""
     h = corr_time / 8.0
     k = np.arange(-32, 33) * h
     kernel = np.exp(-0.5 * (k / corr_time) ** 2)
     kernel /= np.sqrt(np.sum(kernel**2))
-    n = int(math.ceil((t[-1] if len(t) else 0.0) / h)) + 2
-    white = rng.standard_normal(n + len(kernel) - 1)
-    g = np.convolve(white, kernel, mode="valid")
-    return np.interp(t, np.arange(n) * h, g)
+    t_end = t[-1] if len(t) else 0.0
+    n = int(math.ceil(t_end / h)) + 2  # grid points of the output, the last beyond t_end
+    n0 = n if span is None else int(math.ceil(span / h)) + 2
+    white = [rng.standard_normal(n0 + len(kernel) - 1) for _ in range(count)]
+    if n > n0:
+        # Appended after every process's first block, so that the first blocks (and with them
+        # the processes up to span) are what a run of length span draws.
+        white = [np.concatenate([w, rng.standard_normal(n - n0)]) for w in white]
+    out = []
+    for w in white:
+        g = np.convolve(w, kernel, mode="valid")  # g[i] depends on w[i : i + len(kernel)] only
+        out.append(np.interp(t, np.arange(len(g)) * h, g))
+    return out
 
 
 def _ramp(x: np.ndarray) -> np.ndarray:
@@ -541,15 +563,26 @@ def _stop_profile(t: np.ndarray, sections: list[float], speed: float, ramp: floa
     return np.tile(lap, reps)[: len(t)]
 
 
-def _commands(tr: TrajectorySpec, duration: float, dt: float, rng: np.random.Generator
-              ) -> tuple[np.ndarray, np.ndarray]:
-    """Commanded (v m/s, w rad/s) at the substep midpoints, for ``duration`` s."""
-    n = int(round(duration / dt))
-    tm = (np.arange(n) + 0.5) * dt
+def _substep_midpoints(duration: float, dt: float) -> np.ndarray:
+    """Midpoints (s) of the substeps of ``dt`` s that cover ``duration`` s."""
+    return (np.arange(int(round(duration / dt))) + 0.5) * dt
+
+
+def _commands(tr: TrajectorySpec, duration: float, dt: float, rng: np.random.Generator,
+              drive_duration: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Commanded (v m/s, w rad/s) at the substep midpoints, for ``duration`` s.
+
+    A random drive is drawn for ``drive_duration`` s (default ``duration``) and then cut (or
+    extended) to ``duration``: the commands agree with those of a ``drive_duration`` run up to
+    min(duration, drive_duration) - tr.ramp s, where the shorter run starts ramping down to rest."""
+    tm = _substep_midpoints(duration, dt)
     env = _envelope(tm, duration, tr.ramp)
     if tr.kind == "random":
-        g_v = _smooth_noise(rng, tm, tr.corr_time)
-        g_w = _smooth_noise(rng, tm, tr.corr_time)
+        # The last midpoint of the drive_duration run, computed as that run computes it, so that
+        # the run of drive_duration s itself draws exactly what it drew before span existed.
+        base = _substep_midpoints(drive_duration, dt) if drive_duration is not None else tm
+        span = float(base[-1]) if len(base) else 0.0
+        g_v, g_w = _smooth_noise(rng, tm, tr.corr_time, count=2, span=span)
         v = tr.speed * np.clip(1.0 + tr.speed_rel_std * g_v, 0.2, 1.8) * env
         # Yaw rate scaled by the envelope too, so the robot does not turn on the spot at rest.
         return v, tr.yaw_rate_std * g_w * env
@@ -729,9 +762,12 @@ def _landmark_map(sc: Scenario, truth: Truth, rng: np.random.Generator
 
 
 def _sim_landmarks(sc: Scenario, truth: Truth, rng: np.random.Generator,
-                   map_rng: np.random.Generator) -> LandmarkData:
+                   map_rng: np.random.Generator, map_truth: Truth | None = None
+                   ) -> LandmarkData:
+    """Sightings along ``truth`` of the landmarks drawn around ``map_truth``'s path (default
+    ``truth``'s)."""
     spec = sc.landmarks
-    ids, pos = _landmark_map(sc, truth, map_rng)
+    ids, pos = _landmark_map(sc, truth if map_truth is None else map_truth, map_rng)
     t = _sample_times(rng, spec.rate, sc.duration)
     x, y, yaw, _, _ = truth.at(t)
     dx = pos[None, :, 0] - x[:, None]
@@ -769,15 +805,28 @@ def _sim_ground_truth(sc: Scenario, truth: Truth) -> GroundTruthData:
 
 
 def get_scenario(scenario: str, duration: float | None = None) -> Scenario:
-    """The named scenario, with its duration (s) replaced when given."""
+    """The named scenario, with its duration (s) replaced when given: the same drive cut (or
+    extended) to that duration, see ``with_duration``."""
     if scenario not in SCENARIOS:
         raise ValueError(f"unknown scenario {scenario!r}; choose from {', '.join(SCENARIOS)}")
     sc = SCENARIOS[scenario]
     if duration is not None:
         if not duration > 2.0 * sc.trajectory.ramp:
             raise ValueError(f"duration must exceed {2.0 * sc.trajectory.ramp} s")
-        sc = replace(sc, duration=float(duration))
+        sc = with_duration(sc, duration)
     return sc
+
+
+def with_duration(sc: Scenario, duration: float) -> Scenario:
+    """``sc`` run for ``duration`` s, its drive still drawn for its own (drive) duration.
+
+    A shorter run is the first part of the longer drive: the same truth up to ``duration`` minus
+    the trajectory's ramp (where it slows to rest) and the same landmark map. A longer run drives
+    the same path up to the drive duration minus the ramp (the longer run does not slow down
+    there) and then goes on; its landmark map is drawn in its own, larger, bounding box. Sensor
+    samples and noise are drawn for ``duration`` s, so they are not a prefix of the longer run's."""
+    drive = sc.drive_duration if sc.drive_duration is not None else sc.duration
+    return replace(sc, duration=float(duration), drive_duration=drive)
 
 
 def simulate(scenario: str | Scenario, seed: int = 0, duration: float | None = None
@@ -785,9 +834,8 @@ def simulate(scenario: str | Scenario, seed: int = 0, duration: float | None = N
     """Simulate a named scenario (see SCENARIOS) or a Scenario; deterministic per ``seed``."""
     sc = scenario if isinstance(scenario, Scenario) else get_scenario(scenario, duration)
     if isinstance(scenario, Scenario) and duration is not None:
-        sc = replace(sc, duration=float(duration))
-    v_cmd, w_cmd = _commands(sc.trajectory, sc.duration, sc.substep, _rng(seed, "trajectory"))
-    truth = integrate_truth(sc, v_cmd, w_cmd)
+        sc = with_duration(sc, duration)
+    truth = _drive(sc, seed, sc.duration)
     res = SimResult(scenario=sc, seed=seed, truth=truth,
                     ground_truth=_sim_ground_truth(sc, truth),
                     encoders=_sim_encoders(sc, truth, _rng(seed, "encoders")))
@@ -798,9 +846,20 @@ def simulate(scenario: str | Scenario, seed: int = 0, duration: float | None = N
             raise ValueError(f"scenario {sc.name}: GPS needs a datum")
         res.gps = _sim_gps(sc, truth, _rng(seed, "gps"))
     if sc.landmarks:
+        # A run cut short of its drive keeps the whole drive's map, so that it is the same world
+        # (the map is drawn in the path's bounding box, which a shorter path would shrink).
+        drive = sc.drive_duration if sc.drive_duration is not None else sc.duration
+        map_truth = truth if drive <= sc.duration else _drive(sc, seed, drive)
         res.landmarks = _sim_landmarks(sc, truth, _rng(seed, "landmarks"),
-                                       _rng(seed, "landmark_map"))
+                                       _rng(seed, "landmark_map"), map_truth)
     return res
+
+
+def _drive(sc: Scenario, seed: int, duration: float) -> Truth:
+    """The true motion of ``sc``'s drive for ``seed``, run for ``duration`` s."""
+    v_cmd, w_cmd = _commands(sc.trajectory, duration, sc.substep, _rng(seed, "trajectory"),
+                             sc.drive_duration)
+    return integrate_truth(sc, v_cmd, w_cmd)
 
 
 # --------------------------------------------------------------------------------------------
@@ -1212,7 +1271,13 @@ def _main(argv: list[str] | None) -> int:
     ap.add_argument("scenario", choices=list(SCENARIOS))
     ap.add_argument("--seed", type=int_at_least(0), default=0, help="random seed (default 0)")
     ap.add_argument("--duration", type=float, default=None,
-                    help="seconds to simulate (default: the scenario's)")
+                    help="seconds to simulate (default: the scenario's). The run is the "
+                    "scenario's drive for this seed cut to S s: the truth (and seed002's "
+                    "landmark map) is that of the default-duration run up to S - 3 s, where the "
+                    "robot starts slowing to rest. Longer than the default, the path is the "
+                    "default run's up to its duration - 3 s and then goes on (seed002 then draws "
+                    "its landmark map around the longer path). Sensor noise is drawn for the S s "
+                    "run, so it is not the default run's")
     ap.add_argument("--format", choices=FORMATS, default="ros1",
                     help="ros1 (a .bag file), ros2 (a directory: NAME.db3 and metadata.yaml) "
                     "or mcap (a directory: NAME.mcap and metadata.yaml)")
