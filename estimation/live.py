@@ -27,7 +27,10 @@ tolerance max(``STAMP_TOLERANCE`` = 1 s, the config's ``reorder_window``)): a me
 stamp-to-receive offset is further than that from its topic's usual offset (a zero stamp, a
 stamp seconds in the future, a sensor clock that stepped) gives no measurement and is counted
 in ``rejected`` under the bag reader's reason ("header stamp more than 1 s off its topic's clock
-(time went backwards or jumped)"); the first one per topic is logged as a warning. Replaying
+(time went backwards or jumped)"); the first one per topic is logged as a warning. A stamp of
+zero or below (a driver before its clock is set) is rejected and counted so always, also as a
+topic's very first message, before any offset is known; a non-finite one likewise, under
+"non-finite stamp". Replaying
 recorded messages through ``convert``, pass their record time as ``received``: the wall clock
 of a replay that runs faster than the recording is not the clock of the stamps.
 
@@ -166,6 +169,18 @@ class LiveConverter:
             chk = self._checks[topic] = _StampCheck()
             chk.first_rt = rt
         tol = self.tolerance
+        if not (t > 0.0 and math.isfinite(t)):
+            # an unset (zero), negative or non-finite stamp is broken whatever the topic's
+            # offset: checked before the warm-up, which passes a topic's first message
+            # unchecked when no clock is known yet, and kept out of the offsets it learns
+            chk.bad += 1
+            # non-finite: the reason the converters and the session give it
+            why = self._stamp_reason if math.isfinite(t) else "non-finite stamp"
+            self.rejected[(topic, why)] += 1
+            if chk.bad == 1:
+                log.warning("%s: a header stamp of %r s (zero, negative or not finite: a "
+                            "clock not yet set); dropped and counted", topic, t)
+            return False
         chk.n += 1
         if chk.pending is None:
             dev = t - rt - chk.ref

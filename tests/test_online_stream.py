@@ -232,6 +232,37 @@ def test_a_zero_stamp_is_dropped(data, which):
     assert min(m.t for m in spy.seen) > T0 - 1.0 and _stamps_in_order(spy)
 
 
+@pytest.mark.parametrize("topic", ["/imu/data", "/odom", "/fix"])
+@pytest.mark.parametrize("stamp", [0.0, -5.0, math.nan, math.inf])
+def test_a_broken_stamp_on_the_very_first_message_is_dropped(data, stamp, topic):
+    """A driver's first message stamped 0 (its clock not yet set): no topic had an offset yet,
+    so the live warm-up passed it, the EKF started at t=0 and broke down 1e11 m away on the
+    next message, then handed out a pose 3600 km off with sigma 1 m. A stamp that is zero,
+    negative or not finite is now dropped and counted like any broken stamp."""
+    cfg, raw, truth = data
+    raw = raw[next(i for i, (tp, _, _) in enumerate(raw) if tp == topic):]  # it comes first
+    first = raw[0][2]
+
+    def unset(topic, received, msg):
+        if msg is not first:
+            return topic, received, msg
+        if math.isfinite(stamp):
+            return topic, received, _restamped(msg, stamp)
+        msg = copy.deepcopy(msg)
+        msg.header.stamp.sec = stamp  # what a broken driver could hand over
+        return topic, received, msg
+
+    conv, s, spy = _feed(cfg, raw[:3000], unset, names=("ekf",))
+    ((tp, why), n), = conv.rejected.items()
+    # a non-finite stamp is the converters' to refuse, under their own reason
+    assert tp == topic and n == 1 and (why == STAMP or not math.isfinite(stamp)), why
+    assert min(m.t for m in spy.seen) > T0 - 1.0 and _stamps_in_order(spy)
+    e = s.estimate("ekf")
+    assert s.errors["ekf"] is None and e is not None
+    err, _ = _error(e, truth)
+    assert err < 2.0, err
+
+
 def test_received_must_be_a_finite_time(data):
     cfg, raw, _ = data
     topic, _, msg = raw[0]
