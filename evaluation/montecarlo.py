@@ -359,13 +359,47 @@ def _f(v, spec: str = ".3f") -> str:
     return "-" if v is None or (isinstance(v, float) and not math.isfinite(v)) else format(v, spec)
 
 
+def _run_settings(mc: dict) -> str:
+    """How the runs were made, beyond scenario, seeds and duration: where the truth came from
+    (--fixed-truth) and the smoother's lag (--lag, s)."""
+    from evaluation.simulate import SMOOTHER_LAG
+
+    if mc.get("fixed_truth"):
+        truth = ("Truth fixed (--fixed-truth): every seed has the scenario's true geometry and "
+                 "starts the estimators at the exact true pose.")
+    else:
+        truth = ("Truth drawn per seed from the priors the config states: the true wheel radius "
+                 "and track width, and the initial pose error the estimators start with.")
+    lag = mc.get("lag_s")
+    lag_text = (f"Smoother lag {lag:g} s (--lag)." if lag is not None else
+                f"Smoother lag {SMOOTHER_LAG:g} s (the simulated config's).")
+    return f"{truth} {lag_text}"
+
+
+def _error_lines(mc: dict) -> list[str]:
+    """One list item per run that stopped with an error, with its seed (from ``per_seed`` when
+    the dict has it, else the summary's errors without seeds)."""
+    found = []
+    for r in mc.get("per_seed") or []:
+        for name, e in sorted(r["estimators"].items()):
+            if e.get("error"):
+                found.append((name, f"seed {r['seed']}", e["error"]))
+    if not mc.get("per_seed"):
+        found = [(name, "a seed", err) for name in sorted(mc["summary"])
+                 for err in mc["summary"][name]["errors"]]
+    # one line each: an error text may carry newlines (a traceback's last lines)
+    return [f"- {name}, {where}: {' '.join(str(err).split())}" for name, where, err in found]
+
+
 def to_markdown(mc: dict) -> str:
-    """The summary as a markdown table (one row per estimator, dead reckoning last)."""
+    """The summary as a markdown table (one row per estimator, dead reckoning last), with the
+    run settings above it, the runs that stopped with an error listed below it (their rows are
+    marked *), and the calibration states' final errors."""
     s = mc["summary"]
     lines = [
         f"Scenario `{mc['scenario']}`, {len(mc['seeds'])} seeds "
         f"({mc['seeds'][0]}..{mc['seeds'][-1]}), {mc['duration_s']:g} s each. "
-        f"NEES: {mc['nees_convention']}.",
+        f"{_run_settings(mc)} NEES: {mc['nees_convention']}.",
         "",
         "| estimator | runs | ANEES | 95% band | in band | ticks in band | RMSE mean m | "
         "RMSE max m | DR RMSE m | DR / RMSE | worst seed DR / RMSE | runtime s |",
@@ -378,19 +412,30 @@ def to_markdown(mc: dict) -> str:
         frac = "-" if e["frac_ticks_in_band"] is None else f"{100 * e['frac_ticks_in_band']:.0f}%"
         ratio = "-" if name == "dr" else _f(e["ratio"], ".1f")
         worst = "-" if name == "dr" else _f(e["ratio_min"], ".1f")
+        label = f"{name} *" if e["errors"] else name
         lines.append(
-            f"| {name} | {e['runs']} | {_f(e['anees'])} | {band} | {inb} | {frac} | "
+            f"| {label} | {e['runs']} | {_f(e['anees'])} | {band} | {inb} | {frac} | "
             f"{_f(e['rmse_mean'])} | {_f(e['rmse_max'])} | {_f(e['dr_rmse_mean'])} | "
             f"{ratio} | {worst} | {_f(e['runtime_mean'], '.2f')} |")
-        if e["errors"]:
-            lines.append(f"|   errors: {'; '.join(e['errors'][:3])} |")
+    errors = _error_lines(mc)
+    if errors:
+        # Below the table, not as a row in it: a one-cell row breaks the 12-column table.
+        lines += ["", "\\* Runs that stopped with an error: the row's figures include what such "
+                  "a run estimated before it stopped; the calibration table leaves those runs "
+                  "out.", ""]
+        lines += errors
     cal = [(name, label, c) for name in sorted(s) for label, c in
            (s[name].get("calibration") or {}).items()]
     if cal:
-        lines += ["", "Calibration states at the end of each run against the simulation's truth "
-                  "(k_v, k_w of the drawn geometry; heading offset rad; gyro bias rad/s at that "
-                  "time). RMS of error / sigma is about 1 for a consistent estimator; the "
-                  f"two-sided 95% range for {len(mc['seeds'])} runs is "
+        geometry = ("the scenario's true geometry, the same in every seed (--fixed-truth)"
+                    if mc.get("fixed_truth") else "the geometry drawn for each seed")
+        lines += ["", "Calibration states at the end of each run against the simulation's truth: "
+                  "k_v, k_w, the odometry's speed and yaw-rate scale factors (k_v = r / r_nominal, "
+                  f"k_w = k_v L_nominal / L for wheel radius r, track width L) of {geometry}; "
+                  "hoff, the IMU's heading offset (rad); bg, the gyro bias (rad/s) "
+                  "at the time of the final state. RMS of error / sigma is about 1 for a "
+                  "consistent estimator; the two-sided 95% range for "
+                  f"{len(mc['seeds'])} runs is "
                   f"[{math.sqrt(chi2.ppf(0.025, len(mc['seeds'])) / len(mc['seeds'])):.2f}, "
                   f"{math.sqrt(chi2.ppf(0.975, len(mc['seeds'])) / len(mc['seeds'])):.2f}].",
                   "", "| estimator | state | runs | error mean | error RMS | RMS error / sigma |",
@@ -441,7 +486,7 @@ def _main(argv: list[str] | None) -> int:
         lag_seconds,
         simulated_scenario,
     )
-    from evaluation.simulate import SCENARIOS
+    from evaluation.simulate import SCENARIOS, SMOOTHER_LAG
 
     ap = argparse.ArgumentParser(
         prog="ddfuse mc",
@@ -464,7 +509,8 @@ def _main(argv: list[str] | None) -> int:
                     "initial pose (default: both drawn per seed from the priors the config "
                     "states)")
     ap.add_argument("--lag", type=lag_seconds, default=None,
-                    help="smoother lag, s (default: the simulated config's, 10 s)")
+                    help="smoother lag, s (default: the simulated config's, "
+                    f"{SMOOTHER_LAG:g} s)")
     ap.add_argument("-o", "--outdir", type=Path, default=Path("ddfuse-out"),
                     help="where mc_<scenario>.json and .md go (default ddfuse-out)")
     args = ap.parse_args(argv)

@@ -203,6 +203,8 @@ class Scenario:
     drive_duration: float | None = None
 
 
+SMOOTHER_LAG = 10.0  # s, the smoother lag of the configs written next to simulated bags
+
 # A field site near Zurich, Switzerland: lat, lon (deg), ellipsoidal altitude (m).
 OUTDOOR_DATUM = (47.397742, 8.545594, 488.0)
 
@@ -920,7 +922,7 @@ def sim_config(res: SimResult, landmark_map: str | None = None) -> dict:
     # a keyframe at every absolute measurement (GPS fix or landmark scan): attached to a rate
     # keyframe instead, a scan is carried there by the keyframe's twist, which one noisy
     # odometry sample ties, and k_w came out biased (seed002, docs/results/smoother_monte_carlo.md)
-    cfg["smoother"] = {"lag": 10.0, "keyframe": "gps", "robust": "huber"}
+    cfg["smoother"] = {"lag": SMOOTHER_LAG, "keyframe": "gps", "robust": "huber"}
     cfg["ekf"] = {"rate": "event"}
     return cfg
 

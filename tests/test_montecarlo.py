@@ -205,3 +205,62 @@ def test_the_calibration_summary_leaves_out_runs_that_failed():
     b["estimators"]["ekf"]["error"] = "numerical breakdown at t=209.9"
     c = aggregate([a, b])["ekf"]["calibration"]["k_w"]
     assert c["n"] == 1 and c["error_mean"] == pytest.approx(0.01) and c["z_rms"] == 1.0
+
+
+def _fake_mc(fixed_truth=False, lag_s=None, error=None):
+    """A two-seed mc dict as monte_carlo returns it, without running anything."""
+    a = _fake_seed(0, {0: 1.0}, rmse=0.2, dr=2.0)
+    b = _fake_seed(1, {0: 3.0}, rmse=0.4, dr=1.0)
+    for r in (a, b):
+        r["estimators"]["ekf"]["calibration"] = {"bg": {"error": 1e-4, "z": 1.0},
+                                                 "hoff": {"error": 1e-3, "z": 0.5}}
+    b["estimators"]["ekf"]["error"] = error
+    return {"scenario": "husky", "seeds": [0, 1], "duration_s": 1.0, "nees_convention": "x",
+            "fixed_truth": fixed_truth, "lag_s": lag_s, "per_seed": [a, b],
+            "summary": aggregate([a, b])}
+
+
+def test_markdown_records_fixed_truth_and_lag():
+    """Two runs that differ only in --fixed-truth or --lag wrote the same header before."""
+    from evaluation.montecarlo import to_markdown
+
+    drawn, fixed = to_markdown(_fake_mc()), to_markdown(_fake_mc(fixed_truth=True))
+    head = drawn.splitlines()[0]
+    assert "drawn per seed" in head and "--fixed-truth" not in head
+    assert "Truth fixed (--fixed-truth)" in fixed.splitlines()[0]
+    assert "Smoother lag 10 s (the simulated config's)" in head
+    assert "Smoother lag 5 s (--lag)" in to_markdown(_fake_mc(lag_s=5.0)).splitlines()[0]
+
+
+def test_markdown_calibration_text_follows_fixed_truth_and_names_the_labels():
+    """Under --fixed-truth nothing is drawn, so the calibration text must not say so; the
+    table's state labels bg and hoff are explained with their units."""
+    from evaluation.montecarlo import to_markdown
+
+    def cal_text(md):
+        return next(line for line in md.splitlines() if line.startswith("Calibration states"))
+
+    fixed = cal_text(to_markdown(_fake_mc(fixed_truth=True)))
+    assert "drawn" not in fixed and "the scenario's true geometry" in fixed
+    assert "the geometry drawn for each seed" in cal_text(to_markdown(_fake_mc()))
+    assert "hoff, the IMU's heading offset (rad)" in fixed
+    assert "bg, the gyro bias (rad/s)" in fixed
+
+
+def test_markdown_errors_go_below_the_table_not_into_it():
+    """Every table row has the header's 12 cells; the error is listed after the table with its
+    seed, on one line, and its estimator's row is marked."""
+    from evaluation.montecarlo import to_markdown
+
+    md = to_markdown(_fake_mc(error="numerical breakdown at t=209.9:\npose (1e9, 2e9, 0.1)"))
+    lines = md.splitlines()
+    start = lines.index(next(x for x in lines if x.startswith("| estimator | runs")))
+    table = []
+    for line in lines[start:]:
+        if not line.startswith("|"):
+            break
+        table.append(line)
+    assert all(line.count("|") == 13 for line in table), table
+    assert any(line.startswith("| ekf * |") for line in table)
+    assert "- ekf, seed 1: numerical breakdown at t=209.9: pose (1e9, 2e9, 0.1)" in lines
+    assert "errors:" not in md and "*" not in to_markdown(_fake_mc()).split("Calibration")[0]
