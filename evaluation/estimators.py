@@ -81,7 +81,8 @@ SPECS: dict[str, EstimatorSpec] = {s.name: s for s in (
 TRACK_TO_SPEC = {track: spec.name for spec in SPECS.values() for track in spec.produces}
 
 
-def build(cfg: Config, stream, names: list[str] | None = None, *, lag: float | None = None,
+def build(cfg: Config, stream, names: list[str] | str | None = None, *,
+          lag: float | None = None,
           pose: tuple[float, float, float] | None = None,
           tracks: list[str] | None = None) -> dict[str, Estimator]:
     """The named estimators (``select``'s names; default: every default one the config
@@ -100,10 +101,38 @@ def build(cfg: Config, stream, names: list[str] | None = None, *, lag: float | N
     return {n: SPECS[n].build(cfg, stream, pose, lag, wanted) for n in chosen}
 
 
-def select(cfg: Config, names: list[str] | None) -> list[str]:
-    """Estimator names to build for ``names`` (tracks such as 'smoother_lagged' map to their
-    estimator); default: every default estimator (all but 'dr') the config's sensors allow.
-    Unknown or disallowed names raise ValueError saying why."""
+def names_list(names, what: str = "estimators") -> list[str] | None:
+    """``names`` as a list of estimator (or track) names: a list or other iterable of strings
+    as it is, a string as the CLI reads ``--estimators`` (comma-separated: "ekf,smoother"), None
+    as None (the default set). ``what`` names the parameter in the errors: TypeError for
+    anything else (a bare string would otherwise be taken letter by letter: "unknown estimator
+    'e'"), ValueError for a string that names no estimator."""
+    if names is None:
+        return None
+    if isinstance(names, str):
+        out = [n.strip() for n in names.split(",") if n.strip()]
+        if not out:
+            raise ValueError(f"{what}: expected comma-separated estimator names, got {names!r} "
+                             "(None for the default set)")
+        return out
+    if isinstance(names, (bytes, dict)) or not hasattr(names, "__iter__"):
+        raise TypeError(f"{what}: expected a list of estimator names (or one string of "
+                        f"comma-separated names), got {type(names).__name__} {names!r}")
+    out = list(names)
+    for n in out:
+        if not isinstance(n, str):
+            raise TypeError(f"{what}: expected estimator names (strings), got "
+                            f"{type(n).__name__} {n!r} in {out!r}")
+    return out
+
+
+def select(cfg: Config, names: list[str] | str | None) -> list[str]:
+    """Estimator names to build for ``names`` (a list, or a comma-separated string as
+    ``names_list`` reads it; tracks such as 'smoother_lagged' map to their estimator);
+    default: every default estimator (all but 'dr') the config's sensors allow. Unknown or
+    disallowed names raise ValueError saying why, naming the parameter ("estimators: ...");
+    anything but a list or a string raises TypeError."""
+    names = names_list(names)
     if not names:
         out = [n for n, s in SPECS.items() if s.default and s.allowed(cfg)]
         if not out:
@@ -113,12 +142,15 @@ def select(cfg: Config, names: list[str] | None) -> list[str]:
         return out
     out: list[str] = []
     for n in names:
+        # the parameter, not the CLI's --estimators flag: the CLI refuses unknown names itself
+        # (cli.estimator_list), and a disallowed one's "estimators: ..." still reads as its
+        # option
         if n not in TRACK_TO_SPEC:
-            raise ValueError(f"--estimators: unknown estimator {n!r} "
+            raise ValueError(f"estimators: unknown estimator {n!r} "
                              f"(known: {', '.join(TRACK_TO_SPEC)})")
         spec = SPECS[TRACK_TO_SPEC[n]]
         if not spec.allowed(cfg):
-            raise ValueError(f"--estimators: {n} ({spec.description}) needs {spec.needs}, "
+            raise ValueError(f"estimators: {n} ({spec.description}) needs {spec.needs}, "
                              "which the config does not have")
         if spec.name not in out:
             out.append(spec.name)

@@ -115,18 +115,20 @@ class OnlineSession:
                              "to keep it")  # the bag reader's text
 
     @classmethod
-    def from_config(cls, cfg: Config, names: list[str] | None = None, *,
+    def from_config(cls, cfg: Config, names: list[str] | str | None = None, *,
                     stream: Stream | None = None, lag: float | None = None,
                     reorder_window: float | None = None,
                     on_stop: Callable[[str, float | None, str], None] | None = None,
                     ) -> OnlineSession:
-        """Build the named estimators (default: all the config allows, except the offline
-        batch). ``stream`` supplies the datum, landmark map and truth-based initial pose;
-        ``reorder_window`` (s) defaults to the config's. ValueError for 'smoother_lagged' and
-        'batch' (``ONLINE_TRACKS_REFUSED`` says why)."""
+        """Build the named estimators (``names``: a list, or a comma-separated string as
+        ``evaluation.estimators.names_list`` reads it; default: all the config allows, except
+        the offline batch). ``stream`` supplies the datum, landmark map and truth-based initial
+        pose; ``reorder_window`` (s) defaults to the config's. ValueError for 'smoother_lagged'
+        and 'batch' (``ONLINE_TRACKS_REFUSED`` says why) and for unknown names."""
+        names = registry.names_list(names)
         for n in names or ():
             if n in ONLINE_TRACKS_REFUSED:
-                raise ValueError(f"--estimators {n}: not available online: "
+                raise ValueError(f"estimators: {n}: not available online: "
                                  f"{ONLINE_TRACKS_REFUSED[n]}")
         stream = stream if stream is not None else Stream(measurements=[])
         chosen = [n for n in registry.select(cfg, names) if n not in ONLINE_TRACKS_REFUSED]

@@ -180,6 +180,18 @@ def test_cli_online_refuses_the_batch():
     """It ran and printed nothing for the batch until the input ended."""
     code = cli.main(["online", str(BAG), "--estimators", "ekf,batch"])
     assert code == 2
-    with pytest.raises(ValueError, match=r"--estimators batch: not available online: the batch "
+    # the library names its parameter, not the CLI's flag
+    with pytest.raises(ValueError, match=r"^estimators: batch: not available online: the batch "
                        r"optimises the whole run at once"):
         OnlineSession.from_config(load_config(CFG), ["ekf", "batch"])
+
+
+def test_from_config_reads_a_string_of_names_as_the_cli_does():
+    """``from_config(cfg, "ekf")`` said "--estimators: unknown estimator 'e'"."""
+    cfg = replace(load_config(CFG), initial_pose=None)
+    assert list(OnlineSession.from_config(cfg, "ekf").estimators) == ["ekf"]
+    assert list(OnlineSession.from_config(cfg, "smoother,ekf").estimators) == ["smoother", "ekf"]
+    with pytest.raises(ValueError, match=r"^estimators: batch: not available online"):
+        OnlineSession.from_config(cfg, "ekf,batch")
+    with pytest.raises(TypeError, match=r"^estimators: expected a list of estimator names"):
+        OnlineSession.from_config(cfg, 3)
