@@ -50,7 +50,7 @@ from estimation.errors import BagError
 from estimation.estimator import Estimate, Estimator
 from estimation.forecast import OdometryTwist, carry
 from estimation.measurements import Stream
-from estimation.runner import broken
+from estimation.runner import broken, initial_pose
 from evaluation import estimators as registry
 
 log = logging.getLogger(__name__)
@@ -124,21 +124,33 @@ class OnlineSession:
         ``evaluation.estimators.names_list`` reads it; default: all the config allows, except
         the offline batch). ``stream`` supplies the datum, landmark map and truth-based initial
         pose; ``reorder_window`` (s) defaults to the config's. ValueError for 'smoother_lagged'
-        and 'batch' (``ONLINE_TRACKS_REFUSED`` says why) and for unknown names."""
+        and 'batch' (``ONLINE_TRACKS_REFUSED`` says why), for unknown names, and for a config
+        with ``initial_pose: ground_truth`` when no ``stream`` is given or it has no ground
+        truth (the EKFs would wait for a truth pose that never comes)."""
         names = registry.names_list(names)
         for n in names or ():
             if n in ONLINE_TRACKS_REFUSED:
                 raise ValueError(f"estimators: {n}: not available online: "
                                  f"{ONLINE_TRACKS_REFUSED[n]}")
-        stream = stream if stream is not None else Stream(measurements=[])
+        given = stream is not None
+        stream = stream if given else Stream(measurements=[])
         chosen = [n for n in registry.select(cfg, names) if n not in ONLINE_TRACKS_REFUSED]
+        pose = initial_pose(cfg.initial_pose, stream)
+        if cfg.initial_pose == "ground_truth" and pose is None:
+            # the EKFs would wait for a GroundTruthPose that a session is never pushed, and
+            # give no estimate and no error: refused here, as LiveConverter refuses it
+            why = "the stream given has no ground truth" if given else "no stream= given"
+            raise ValueError(f"{cfg.path or 'config'}: initial_pose: ground_truth, but no truth "
+                             f"pose to start from ({why}); give initial_pose as [x, y, yaw], "
+                             "leave it out (heading from the GPS course or a compass), or pass "
+                             "stream= with the run's ground truth")
         order: dict[str, int] = {}
         for i, s in enumerate(cfg.sensors):
             order.setdefault(s.name, i)
         # no lagged track online: its covariances would cost the smoother a quarter of its time
         tracks = [t for n in chosen for t in registry.SPECS[n].produces
                   if t not in ONLINE_TRACKS_REFUSED]
-        return cls(registry.build(cfg, stream, chosen, lag=lag, tracks=tracks),
+        return cls(registry.build(cfg, stream, chosen, lag=lag, pose=pose, tracks=tracks),
                    reorder_window=cfg.reorder_window if reorder_window is None
                    else reorder_window, order=order, on_stop=on_stop,
                    twist=OdometryTwist(cfg))
