@@ -21,9 +21,9 @@ The stream semantics are the bag reader's (``estimation.bags.BagStream``):
   straight on (no latency), still dropping the older ones. The estimates lag the newest stamp
   by up to the window (``estimate(name, at=t)`` carries one to t on the odometry pushed since,
   the buffer's included); ``flush()`` passes on what is held, ``finish()`` flushes and ends every
-  estimator. ``replay`` reads through ``BagStream``, which already reorders and checks stamps
-  (``reorder_window`` there), so its session's own window is 0; its ``rejected`` then holds the
-  bag reader's counts (by topic) too.
+  estimator (a ``push`` after it raises RuntimeError). ``replay`` reads through ``BagStream``,
+  which already reorders and checks stamps (``reorder_window`` there), so its session's own
+  window is 0; its ``rejected`` then holds the bag reader's counts (by topic) too.
 - Isolation, as ``estimation.runner.run``: an estimator that raises (in ``process``,
   ``estimate`` or ``finish``) is stopped there, never called again, its error kept in
   ``errors[name]`` ("RuntimeError at t=...: ...") and noted in its ``log``; ``estimate(name)``
@@ -110,6 +110,7 @@ class OnlineSession:
         # estimate(), or taken every KEEP_PERIOD s of stamps, as run() records its output
         self._last: dict[str, Estimate | None] = {n: None for n in estimators}
         self._next_keep = -math.inf
+        self.finished = False  # set by finish(): no push after it
         self._late_reason = (f"arrived after messages stamped up to more than reorder_window "
                              f"({window:g} s) later had been passed on; raise reorder_window "
                              "to keep it")  # the bag reader's text
@@ -160,7 +161,14 @@ class OnlineSession:
     def push(self, m) -> None:
         """Take one measurement: into the reorder buffer, passing on to every running
         estimator what the buffer releases; dropped and counted when older than what was
-        already passed on (or with a non-finite stamp)."""
+        already passed on (or with a non-finite stamp). RuntimeError after ``finish()``:
+        the estimators have ended (the smoother's state is gone; the EKFs would go on from a
+        finished run as if nothing had happened)."""
+        if self.finished:
+            what = f"{type(m).__name__} at t={m.t!r}" if hasattr(m, "t") else type(m).__name__
+            raise RuntimeError(f"OnlineSession ({', '.join(self.estimators) or 'no estimators'})"
+                               f" is finished: push({what}) after finish() is refused; build a "
+                               "new session to go on")
         t = m.t
         if not (t >= self.released_t and math.isfinite(t)):  # older than what was passed on
             self._drop(m)
@@ -183,7 +191,12 @@ class OnlineSession:
         self._release(math.inf)
 
     def finish(self) -> None:
-        """Flush, then end every running estimator (an offline one solves here)."""
+        """Flush, then end every running estimator (an offline one solves here). Once only:
+        a second call does nothing (the estimators are not finished twice), and ``push``
+        is refused from then on."""
+        if self.finished:
+            return
+        self.finished = True
         self.flush()
         for name, est in self.estimators.items():
             if self.errors[name] is None:

@@ -42,3 +42,24 @@ def test_ground_truth_start_without_truth_is_refused(stream):
         s.flush()
         for name in s.estimators:
             assert s.errors[name] is None and s.estimate(name) is not None, name
+
+
+def test_push_after_finish_is_refused(stream):
+    """After finish() the EKFs took further pushes silently and the smoother was stopped with
+    "KeyError at t=104.000: 6"."""
+    cfg = replace(load_config(CFG), initial_pose=None)
+    s = OnlineSession.from_config(cfg, ["ekf", "smoother"])
+    meas = [m for m in stream.measurements if m.t - stream.t0 <= 10.0]
+    for m in meas[:-50]:
+        s.push(m)
+    s.finish()
+    before = {n: s.estimate(n) for n in s.estimators}
+    late = meas[-1]
+    with pytest.raises(RuntimeError, match=rf"^OnlineSession \(ekf, smoother\) is finished: "
+                                           rf"push\({type(late).__name__} at t={late.t!r}\) "
+                                           r"after finish\(\) is refused; build a new session"):
+        s.push(late)
+    s.finish()  # a second finish does nothing: the estimators are not ended twice
+    assert s.errors == {"ekf": None, "smoother": None}
+    for n, e in before.items():
+        assert s.estimate(n).t == e.t, n
