@@ -77,6 +77,11 @@ _Q_INDEX = np.ravel_multi_index((
     [X, Y, LON, LAT, LON, X, LAT, Y, PSI, THETA, PSI, THETA, A, W, VL, VR],
     [X, Y, LON, LAT, X, LON, Y, LAT, PSI, THETA, THETA, PSI, A, W, VL, VR]), (N, N))
 DEFAULT_TRACK = 0.5  # m, used only for the wheel-speed states when robot.track_width is unset
+FEED_GAP_S = 5.0  # s without any message: a gap in the feed (``IgvcEkf._bridge_gap``)
+GAP_RESTART_STD = 10e3  # m: a gap that leaves the position this uncertain restarts the filter
+# s: a longer gap restarts it without predicting over it (its 0.05 s steps: 6000 per 300 s;
+# the sample bag's limits give a 450 km position sigma after 300 s)
+GAP_CARRY_MAX_S = 300.0
 
 
 _TWO_PI = 2.0 * math.pi
@@ -559,6 +564,8 @@ class IgvcEkf(Estimator):
                     self._init(m.t, self._pose_given, self.noise.init_position_std ** 2,
                                self.noise.init_heading_std ** 2)
             return
+        if self.kf is not None and self.t is not None and m.t - self.t > FEED_GAP_S:
+            self._bridge_gap(m.t)
         if self.kf is None:
             if self._wait_truth:
                 return
@@ -576,6 +583,38 @@ class IgvcEkf(Estimator):
                 return
         self.predict_to(m.t)
         self._update(m)
+
+    def _bridge_gap(self, t: float) -> None:
+        """Carry the filter over a gap in the feed (no message for more than FEED_GAP_S), or
+        restart it when the gap leaves its position unknown (sigma over GAP_RESTART_STD).
+
+        The jerk-driven model grows the position's variance as dt^5: 50 m of sigma after a 10
+        s gap on the sample bag, 3.5 km after 60 s, 450 km after 300 s. Past a few tens of km
+        the two position representations (lat, lon on the sphere, x, y on the plane) move
+        apart under it, the covariance between them is lost, and the GPS, which measures
+        lat/lon, no longer reaches x, y: their sigma stayed at 2 m after a 300 s gap, 125 m
+        after 900 s, and a day broke the filter; re-tying the pairs (``_retie_pairs``) at
+        such variances loses positive definiteness. A restart starts as the run did (GPS and a
+        heading, or the GPS course), as the smoother starts a new window after a gap that
+        leaves its heading unknown."""
+        gap = t - self.t
+        if gap <= GAP_CARRY_MAX_S:  # beyond it, not worth its predict steps: restarted anyway
+            self.predict_to(t)
+            sd = math.sqrt(max(float(self.kf.P[X, X]), float(self.kf.P[Y, Y])))
+            if sd <= GAP_RESTART_STD:
+                return
+            why = f"position sigma {sd / 1000.0:.0f} km over it"
+        else:
+            why = f"over {GAP_CARRY_MAX_S:.0f} s"
+        self.log.note(t, f"{self.name}: restarted after a {gap:.1f} s gap in the feed ({why}): "
+                         "it starts again as at the beginning")
+        self.kf = None
+        self.t = None
+        self._first_fix = None
+        self._heading_init = None
+        self._pose_given = None  # the configured start pose was the run's, not this one's
+        self._wait_truth = False
+        self._hoff_ready = set()
 
     def _update(self, m) -> None:
         """The measurement update of ``m`` in Python (after the prediction to m.t)."""
