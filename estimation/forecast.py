@@ -12,6 +12,15 @@ is the same for the whole hold and the twist moves away from it as a random walk
 integrated error is var tau^2 + q tau^3 / 3, i.e. a twist variance of var + q tau / 3 for the
 step.
 
+The carry is for the last seconds only: the reorder window the estimators lag the newest
+message by (``reorder_window``, 0.5 s in the sample configs) and, on a live robot asked for the
+pose "now", the delivery latency since the newest message. ``carry`` refuses (ValueError) to
+move an estimate more than ``horizon`` s (default ``MAX_CARRY_S`` = 5 s; an online session's is
+its reorder window plus that): further on, the pose is dead reckoning on a twist held far
+beyond its samples, whose first-order covariance no longer describes its error (1e6 s ahead
+gave a pose 1e6 m away with variances of 1e16-1e27 m^2), and a feed stalled that long is a
+fault to see, not to paper over. ``OdometryTwist`` keeps the samples of as long (``keep``).
+
 The twist is the odometry's, uncorrected: no scale or gyro-bias calibration. The scale's
 uncertainty (the config's geometry uncertainty, ``robot.scale_std``) is one error for the whole
 carry, so it enters once, through the pose's sensitivity to the speed and yaw-rate scales
@@ -32,7 +41,11 @@ from estimation.estimator import Estimate, wrap_angle
 from estimation.measurements import GyroYawRate, WheelOdometry, WheelSpeeds
 from factors.kinematics import se2_step_jac
 
-__all__ = ["OdometryTwist", "TwistSample", "carry"]
+__all__ = ["MAX_CARRY_S", "OdometryTwist", "TwistSample", "carry"]
+
+# s: the longest carry by default, a reorder window (0.5 s in the sample configs, rarely over
+# 1-2 s) plus a few seconds of delivery latency; see the module docstring
+MAX_CARRY_S = 5.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -48,16 +61,24 @@ class TwistSample:
 
 
 def carry(e: Estimate, twists: Sequence[TwistSample], t: float,
-          q: tuple[float, float], scale_cov: np.ndarray | None = None) -> Estimate:
+          q: tuple[float, float], scale_cov: np.ndarray | None = None, *,
+          horizon: float = MAX_CARRY_S) -> Estimate:
     """``e`` moved to time ``t`` (s) on ``twists`` (sorted by stamp; those at or before e.t
     only give the twist held from e.t), see the module docstring. ``q``: the random-walk
     densities of (v, w), (m/s^2)^2 s and (rad/s^2)^2 s, for a twist held beyond its sample.
     ``scale_cov``: 2x2 covariance of the relative errors of the speed and yaw-rate scales
     (None: exact scales). Returns ``e`` itself when t <= e.t or no twist is known; otherwise
     an Estimate at ``t`` with the carried pose and grown covariance, in world coordinates,
-    without ``state``."""
+    without ``state``. ValueError when ``t`` is more than ``horizon`` s (default
+    ``MAX_CARRY_S``) after ``e.t``, or not finite."""
+    if not math.isfinite(t):
+        raise ValueError(f"at = {t!r}: expected a time in seconds on the stamps' clock")
     if not t > e.t:
         return e
+    if t - e.t > horizon:
+        raise ValueError(f"at = {t:.3f} s is {t - e.t:.3g} s after the estimate (t = {e.t:.3f} "
+                         f"s), beyond the carry's horizon of {horizon:g} s: further on, the "
+                         "pose on a held twist is a guess")
     held = None
     i = 0
     while i < len(twists) and twists[i].t <= e.t:
@@ -116,9 +137,9 @@ class OdometryTwist:
     robot.wheel_radius and robot.track_width), yaw rate from that same sensor when it gives
     one, else from the first gyro (imu using yaw_rate). A sample is made at each message of
     either, with the other's newest value. ``samples`` holds those of the last ``keep`` s of
-    stamps, sorted."""
+    stamps, sorted (default ``MAX_CARRY_S``: those a carry can use)."""
 
-    def __init__(self, cfg: Config, keep: float = 5.0) -> None:
+    def __init__(self, cfg: Config, keep: float = MAX_CARRY_S) -> None:
         odo = next((s for s in cfg.of_kind("odometry") if "v" in s.use), None)
         r, L = cfg.robot.wheel_radius, cfg.robot.track_width
         wheels = next(iter(cfg.of_kind("wheels")), None) if r is not None and L is not None \

@@ -48,7 +48,7 @@ from estimation.bags import BagStream
 from estimation.config import Config
 from estimation.errors import BagError
 from estimation.estimator import Estimate, Estimator
-from estimation.forecast import OdometryTwist, carry
+from estimation.forecast import MAX_CARRY_S, OdometryTwist, carry
 from estimation.measurements import Stream
 from estimation.runner import broken, initial_pose
 from evaluation import estimators as registry
@@ -77,7 +77,8 @@ class OnlineSession:
     ``on_stop(name, t, why)`` is called when an estimator is stopped (``t`` the stamp of the
     measurement it failed on, None in ``finish``; ``why`` "Type: message").
     ``twist``: the odometry ``estimate(name, at=...)`` carries an estimate forward on
-    (``from_config``: the config's)."""
+    (``from_config``: the config's), at most ``carry_horizon`` s (the reorder window plus
+    ``estimation.forecast.MAX_CARRY_S`` = 5 s)."""
 
     KEEP_PERIOD = 0.1  # s
 
@@ -103,6 +104,11 @@ class OnlineSession:
         self.interrupted: str | None = None  # set by replay(interruptible=True) on Ctrl-C
         self._order = dict(order or {})
         self._twist = twist if twist is not None and twist.usable else None
+        # s: the longest carry estimate(at=) makes, the estimators' lag plus some latency;
+        # the twist keeps the samples of as long, or a long window's carry would miss some
+        self.carry_horizon = window + MAX_CARRY_S
+        if self._twist is not None and self._twist.keep < self.carry_horizon:
+            self._twist.keep = self.carry_horizon
         self._heap: list = []
         self._seq = 0
         self._newest = -math.inf
@@ -301,11 +307,29 @@ class OnlineSession:
         (``estimation.forecast``): the pose "now" although the estimators lag the newest
         message by up to the reorder window. Its covariance grows with the odometry's noise;
         it has no ``state``. Not carried: a stopped estimator's, a session without
-        odometry (built without ``twist``), or ``at`` not after the estimate."""
+        odometry (built without ``twist``), or ``at`` not after the estimate. ValueError for
+        an ``at`` that is not a finite time, or more than ``carry_horizon`` s (the reorder
+        window plus ``estimation.forecast.MAX_CARRY_S`` = 5 s) after the estimate: the carry
+        covers the estimators' lag, it does not predict (a stalled feed is to be seen)."""
+        if at is not None:
+            try:
+                t = float(at)
+            except (TypeError, ValueError):
+                t = math.nan
+            if not math.isfinite(t):
+                raise ValueError(f"estimate({name!r}, at={at!r}): expected a time in seconds "
+                                 "on the stamps' clock")
+            at = t
         e = self._estimate(name)
         if at is None or e is None or self._twist is None or self.errors[name] is not None:
             return e
-        return carry(e, self._twist.samples, float(at), self._twist.q(), self._twist.scale_cov)
+        try:
+            return carry(e, self._twist.samples, at, self._twist.q(), self._twist.scale_cov,
+                         horizon=self.carry_horizon)
+        except ValueError as exc:
+            raise ValueError(f"estimate({name!r}, at=...): {exc} (carry_horizon: "
+                             f"reorder_window {self.reorder_window:g} s + {MAX_CARRY_S:g} s "
+                             "of latency)") from None
 
     def _estimate(self, name: str) -> Estimate | None:
         est = self.estimators[name]

@@ -11,7 +11,7 @@ import pytest
 
 from estimation.config import load_config
 from estimation.estimator import Estimate
-from estimation.forecast import OdometryTwist, TwistSample, carry
+from estimation.forecast import MAX_CARRY_S, OdometryTwist, TwistSample, carry
 from estimation.measurements import GyroYawRate, WheelOdometry
 from evaluation.online import OnlineSession
 from factors.kinematics import se2_step
@@ -166,3 +166,39 @@ def test_a_session_without_odometry_gives_the_estimate_uncarried(sample_husky, t
         s.push(m)
     e = s.estimate("ekf", at=s.newest)
     assert e is not None and e.t < s.newest and e.state is not None
+
+
+def test_a_carry_beyond_its_horizon_is_refused():
+    """1e6 s ahead gave a pose 1e6 m away with variances of 1e16-1e27 and no word."""
+    e, twists = _start(), _samples()
+    out = carry(e, twists, e.t + MAX_CARRY_S, (0.1, 0.1))  # at the horizon: carried
+    assert out.t == e.t + MAX_CARRY_S
+    with pytest.raises(ValueError, match=r"^at = 15\.100 s is 5\.1 s after the estimate "
+                                         r"\(t = 10\.000 s\), beyond the carry's horizon of 5 s"):
+        carry(e, twists, e.t + 5.1, (0.1, 0.1))
+    with pytest.raises(ValueError, match=r"horizon of 2 s"):
+        carry(e, twists, e.t + 2.5, (0.1, 0.1), horizon=2.0)
+    with pytest.raises(ValueError, match=r"^at = nan: expected a time in seconds"):
+        carry(e, twists, math.nan, (0.1, 0.1))
+
+
+def test_a_session_carries_over_its_window_plus_the_horizon_only(sample_husky):
+    cfg, stream = sample_husky
+    s = OnlineSession.from_config(cfg, ["ekf"], stream=stream, reorder_window=0.5)
+    assert s.carry_horizon == 0.5 + MAX_CARRY_S
+    for m in stream.measurements[:3000]:
+        s.push(m)
+    e = s.estimate("ekf")
+    assert s.estimate("ekf", at=e.t + 5.4).t == e.t + 5.4
+    with pytest.raises(ValueError, match=r"^estimate\('ekf', at=\.\.\.\): at = .* is 1e\+06 s "
+                                         r"after the estimate .* beyond the carry's horizon of "
+                                         r"5\.5 s: .* \(carry_horizon: reorder_window 0\.5 s "
+                                         r"\+ 5 s of latency\)$"):
+        s.estimate("ekf", at=e.t + 1e6)
+    for bad in (math.inf, math.nan, "soon", [1.0]):
+        with pytest.raises(ValueError, match=r"^estimate\('ekf', at=.*\): expected a time in "
+                                             r"seconds on the stamps' clock"):
+            s.estimate("ekf", at=bad)
+    # a long window: the twist keeps the samples its carry needs
+    long = OnlineSession.from_config(cfg, ["ekf"], stream=stream, reorder_window=8.0)
+    assert long.carry_horizon == 13.0 and long._twist.keep == 13.0
