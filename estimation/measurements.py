@@ -206,10 +206,6 @@ def is_finite(m) -> bool:
     may still hold one, and a NaN handed to gtsam poisons the whole window."""
     check = _FINITE.get(type(m))
     return True if check is None else check(m)
-    if type(m) is GpsFix:
-        nums = (m.t, m.lat, m.lon, m.alt) + (tuple(m.enu) if m.enu is not None else ())
-        return all(math.isfinite(x) for x in nums) and bool(np.isfinite(m.cov).all())
-    return True
 
 
 @dataclass(slots=True)

@@ -460,6 +460,14 @@ class FixedLagSmoother(Estimator):
         if not is_finite(m):
             self.log.rejected[(m.sensor, "nonfinite")] += 1
             return
+        if isinstance(m, (GpsFix, Heading)) and m.sensor not in self.sensors:
+            # a hand-built measurement from a sensor the config does not have: its noise, gate
+            # and offsets are unknown (the EKFs take such a one with defaults)
+            self.log.rejected[(m.sensor, "not in the config")] += 1
+            return
+        if isinstance(m, GpsFix) and (m.enu is None or m.status < 0):
+            self.log.rejected[(m.sensor, "no_fix" if m.status < 0 else "no_enu")] += 1
+            return
         if not self.initialised:
             if self._restart is not None:
                 self._restart_now(m)

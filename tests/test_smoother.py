@@ -790,3 +790,30 @@ def test_a_gps_recovery_leaves_the_states_held_at_their_value_alone(husky):
     assert est.log.rejected[("/fix", "lockout_recovery")] >= 1, dict(est.log.rejected)
     assert not [r for (_, r) in est.log.rejected if "gtsam" in r], dict(est.log.rejected)
     assert math.sqrt(est._full[HOFF, HOFF]) < 2e-4  # still held
+
+
+def test_hand_built_measurements_it_cannot_use_are_counted_not_raised():
+    """A GpsFix without its ENU position (built by hand, no stream to fill it) and a Heading
+    from a sensor the config does not have: counted, as the EKFs count the first, where they
+    raised TypeError and KeyError from inside the smoother."""
+    import math
+
+    from estimation.config import load_config
+    from estimation.measurements import GpsFix, Heading, WheelOdometry
+    from estimation.smoother import FixedLagSmoother
+
+    cfg = load_config(DATA / "sample_husky.yaml")
+    sm = FixedLagSmoother(cfg, initial_pose=(0.0, 0.0, 0.0))
+    for k in range(20):
+        sm.process(WheelOdometry(100.0 + 0.1 * k, 1.0, 0.0, 0.01, 0.01, sensor="/odom"))
+    sm.process(GpsFix(102.05, 47.397742, 8.545594, 488.0, np.eye(3), sensor="/fix"))
+    sm.process(GpsFix(102.06, 47.397742, 8.545594, 488.0, np.eye(3), status=-1, sensor="/fix",
+                      enu=(0.0, 0.0, 0.0)))
+    sm.process(Heading(102.1, 0.3, 0.01, sensor="imu"))
+    for k in range(20):
+        sm.process(WheelOdometry(102.2 + 0.1 * k, 1.0, 0.0, 0.01, 0.01, sensor="/odom"))
+    assert sm.log.rejected[("/fix", "no_enu")] == 1
+    assert sm.log.rejected[("/fix", "no_fix")] == 1
+    assert sm.log.rejected[("imu", "not in the config")] == 1
+    e = sm.estimate()
+    assert e.t == pytest.approx(104.1) and math.isfinite(e.pose[0])
