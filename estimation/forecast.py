@@ -70,8 +70,8 @@ def carry(e: Estimate, twists: Sequence[TwistSample], t: float,
     (None: exact scales). Returns ``e`` itself when t <= e.t or no twist is known; otherwise
     an Estimate at ``t`` with the carried pose and grown covariance, in world coordinates,
     without ``state``. ValueError when ``t`` is more than ``horizon`` s (default
-    ``MAX_CARRY_S``) after ``e.t``, or not finite."""
-    if not math.isfinite(t):
+    ``MAX_CARRY_S``) after ``e.t`` (+inf included), or NaN."""
+    if math.isnan(t):
         raise ValueError(f"at = {t!r}: expected a time in seconds on the stamps' clock")
     if not t > e.t:
         return e

@@ -307,8 +307,9 @@ class OnlineSession:
         (``estimation.forecast``): the pose "now" although the estimators lag the newest
         message by up to the reorder window. Its covariance grows with the odometry's noise;
         it has no ``state``. Not carried: a stopped estimator's, a session without
-        odometry (built without ``twist``), or ``at`` not after the estimate. ValueError for
-        an ``at`` that is not a finite time, or more than ``carry_horizon`` s (the reorder
+        odometry (built without ``twist``), or ``at`` not after the estimate (-inf, i.e.
+        ``newest`` before any push, included). ValueError for an ``at`` that is not a time
+        (NaN, +inf, not a number), or more than ``carry_horizon`` s (the reorder
         window plus ``estimation.forecast.MAX_CARRY_S`` = 5 s) after the estimate: the carry
         covers the estimators' lag, it does not predict (a stalled feed is to be seen)."""
         if at is not None:
@@ -316,7 +317,9 @@ class OnlineSession:
                 t = float(at)
             except (TypeError, ValueError):
                 t = math.nan
-            if not math.isfinite(t):
+            # -inf is allowed: it is ``newest`` before the first push, where nothing is
+            # carried (no estimate yet, or at not after it)
+            if math.isnan(t) or t == math.inf:
                 raise ValueError(f"estimate({name!r}, at={at!r}): expected a time in seconds "
                                  "on the stamps' clock")
             at = t

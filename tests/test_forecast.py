@@ -180,12 +180,16 @@ def test_a_carry_beyond_its_horizon_is_refused():
         carry(e, twists, e.t + 2.5, (0.1, 0.1), horizon=2.0)
     with pytest.raises(ValueError, match=r"^at = nan: expected a time in seconds"):
         carry(e, twists, math.nan, (0.1, 0.1))
+    with pytest.raises(ValueError, match=r"^at = inf s is inf s after the estimate"):
+        carry(e, twists, math.inf, (0.1, 0.1))
+    assert carry(e, twists, -math.inf, (0.1, 0.1)) is e  # not after it: nothing to carry
 
 
 def test_a_session_carries_over_its_window_plus_the_horizon_only(sample_husky):
     cfg, stream = sample_husky
     s = OnlineSession.from_config(cfg, ["ekf"], stream=stream, reorder_window=0.5)
     assert s.carry_horizon == 0.5 + MAX_CARRY_S
+    assert s.estimate("ekf", at=s.newest) is None  # before any push newest is -inf: no error
     for m in stream.measurements[:3000]:
         s.push(m)
     e = s.estimate("ekf")
