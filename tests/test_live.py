@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 import sys
 from dataclasses import fields, replace
 from pathlib import Path
@@ -142,3 +143,42 @@ def test_bad_topics_types_and_fixes():
     (f1,) = conv.convert("/fix", fix(47.0 + 1e-5, 8.0))  # ~1.11 m north
     assert isinstance(f0, GpsFix) and np.allclose(f0.enu[:2], 0.0)
     assert f1.enu[1] == pytest.approx(1.112, abs=0.01) and abs(f1.enu[0]) < 1e-6
+
+
+def _readme_live_block() -> str:
+    text = (ROOT / "README.md").read_text()
+    block = re.search(r"On a live robot, `estimation.live.LiveConverter`.*?```python\n(.*?)```",
+                      text, re.S).group(1)
+    assert "LiveConverter(cfg)" in block  # the block under test
+    return block
+
+
+def test_the_readmes_live_example_handles_no_estimate_yet(monkeypatch):
+    """The example read `.t, .pose` off session.estimate(...), which is None before any data
+    and, for the smoother, until it has a heading: copied code crashed with AttributeError."""
+    import estimation.config
+    import estimation.live
+
+    cfg = replace(load_config(CFG), initial_pose=None)
+    monkeypatch.setattr(estimation.config, "load_config", lambda path: cfg)
+    clock = [0.0]  # received: the record time, as a robot's wall clock would give it
+    monkeypatch.setattr(estimation.live, "time", SimpleNamespace(time=lambda: clock[0]))
+    ns: dict = {}
+    exec(compile(_readme_live_block(), "README.md", "exec"), ns)  # noqa: S102
+    pose_now = ns["pose_now"]
+    assert pose_now() is None  # before any data
+    reader = open_reader(BAG)
+    poses = []  # pose_now() every 200 messages over the first 30 s
+    try:
+        conns = [c for c in reader.connections if c.topic in ns["conv"].topics]
+        for k, (c, rec_ns, raw) in enumerate(reader.messages(connections=conns)):
+            clock[0] = rec_ns * 1e-9
+            if clock[0] - 1700000000.0 > 30.0:
+                break
+            ns["callback"](reader.deserialize(raw, c.msgtype), c.topic)
+            if k % 200 == 0:
+                poses.append(pose_now())
+    finally:
+        reader.close()
+    assert poses[0] is None  # the smoother has no heading yet: no crash
+    assert len(poses[-1]) == 3 and np.all(np.isfinite(poses[-1]))
