@@ -356,7 +356,10 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
         holdout: str | None = None, progress: Callable[[float], None] | None = None,
         interruptible: bool = False,
         observers: Iterable[Callable[[object], None]] = ()) -> RunResult:
-    """Feed every measurement of ``stream`` to every estimator, in time order.
+    """Feed every measurement of ``stream`` to every estimator, in the stream's order: the
+    order of arrival (read_stream and BagStream give stamp order; a list built to test late
+    delivery may hold older stamps after newer ones, which each estimator handles as it does
+    live: the smoother places them by stamp within its lag).
 
     ``stream`` is a Stream (its list of measurements) or an ``estimation.bags.BagStream``
     (measurements decoded as they are fed: memory does not grow with the bag). The estimate of
@@ -372,6 +375,12 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
 
     ``observers`` are called with every measurement (withheld fixes too), outside the
     estimators' timings: what a run learns about the data besides the estimates."""
+    if not (output_rate > 0.0 and math.isfinite(output_rate)):
+        raise ValueError(f"output_rate: expected Hz > 0, got {output_rate!r}")
+    for n, e in estimators.items():
+        if getattr(e, "_run_finished", False):
+            raise ValueError(f"estimator {n!r} was already run to its end (its finish() was "
+                             "called): build a new one for another run")
     select = parse_holdout(holdout)
     names = list(estimators)
     est_list = [estimators[n] for n in names]
@@ -427,6 +436,7 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
                 errors[i] = "interrupted (Ctrl-C) in finish"
                 stop.append(f"{name} interrupted in finish")
         totals[i] += clock() - t_a
+        est._run_finished = True  # fed to its end: another run() of it is refused
         est.log.innovations.compact()
         # a view of the compact array, not a copy
         upd = np.frombuffer(timings[i], np.float32) if len(timings[i]) else \

@@ -79,3 +79,14 @@ def test_broken_names_what_is_wrong(sample):
     cov[2, 2] = -1.0
     assert "pose variances" in broken(replace(est, pose_cov=cov))
     assert broken(replace(est, pose=(1.0, math.inf, 0.0))).startswith("pose (1, inf, 0)")
+
+
+def test_run_refuses_a_finished_estimator_and_a_zero_output_rate(sample):
+    cfg, stream = sample
+    est = DeadReckoning(cfg)
+    with pytest.raises(ValueError, match="output_rate: expected Hz > 0, got 0"):
+        run(stream, {"dr": est}, output_rate=0)
+    ok = replace(stream, measurements=stream.measurements[:200])
+    assert len(run(ok, {"dr": est}).runs["dr"].trajectory)
+    with pytest.raises(ValueError, match="'dr' was already run to its end"):
+        run(ok, {"dr": est})
