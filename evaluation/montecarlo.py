@@ -203,7 +203,7 @@ def run_seed(scenario: str, seed: int, estimators: list[str] | None = None,
     from evaluation import estimators as registry
 
     sim, cfg, stream, pose, err0 = seed_data(scenario, seed, duration, fixed_truth)
-    names = list(estimators) if estimators else default_estimators(cfg)
+    names = registry.names_list(estimators) if estimators else default_estimators(cfg)
     chosen = registry.select(cfg, names)
     if "dr" not in chosen:
         chosen.append("dr")

@@ -264,3 +264,10 @@ def test_markdown_errors_go_below_the_table_not_into_it():
     assert any(line.startswith("| ekf * |") for line in table)
     assert "- ekf, seed 1: numerical breakdown at t=209.9: pose (1e9, 2e9, 0.1)" in lines
     assert "errors:" not in md and "*" not in to_markdown(_fake_mc()).split("Calibration")[0]
+
+
+def test_run_seed_reads_a_string_of_estimator_names_as_the_cli_does():
+    from evaluation.montecarlo import run_seed
+
+    r = run_seed("seed002", 1, "ekf_landmark", duration=20.0)
+    assert set(r["estimators"]) == {"ekf_landmark", "dr"}
