@@ -174,7 +174,9 @@ def _gps_fix(rec: tuple, name: str) -> GpsFix:
     t, status, lat, lon, alt, cov9, _ = rec
     if status < 0:
         raise Reject("status NO_FIX")
-    if not (_finite(t, lat, lon) and -90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
+    if not math.isfinite(t):
+        raise Reject("non-finite stamp")
+    if not (_finite(lat, lon) and -90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
         raise Reject("latitude/longitude not finite or out of range")
     if not math.isfinite(alt):
         alt = 0.0  # NavSatFix uses NaN for "no altitude"; the horizontal fix is still good

@@ -1063,3 +1063,15 @@ def test_fast_ros1_path_equals_rosbags_on_real_bags(request, name):
 @pytest.mark.slow
 def test_fast_ros1_path_equals_rosbags_on_mrclam(mrclam_bag):
     assert _compare_fast_path(mrclam_bag) == {"/odom": 75000, "/ground_truth": 75000}
+
+
+def test_a_fix_with_a_nan_stamp_is_named_for_its_stamp_not_its_position():
+    import math
+
+    from estimation.bags import Reject, _gps_fix
+
+    cov = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 4.0)
+    with pytest.raises(Reject, match="non-finite stamp"):
+        _gps_fix((math.nan, 0, 47.0, 8.0, 400.0, cov, 2), "/fix")
+    with pytest.raises(Reject, match="latitude/longitude not finite"):
+        _gps_fix((1.0, 0, math.nan, 8.0, 400.0, cov, 2), "/fix")
