@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import json
-import re
 from pathlib import Path
 
 import pytest
+from readme import python_block
 
 from estimation.bags import read_stream
 from estimation.config import load_config
@@ -19,11 +19,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _readme_library_block() -> str:
-    text = (ROOT / "README.md").read_text()
-    block = re.search(r"Everything the command line does is a library call.*?```python\n(.*?)```",
-                      text, re.S).group(1)
-    assert "build(cfg, stream" in block  # the block under test
-    return block
+    return python_block(r"Everything the command line does is a library call", "build(cfg, stream")
 
 
 def test_the_readmes_library_example_gives_what_ddfuse_run_gives(tmp_path, monkeypatch):

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import re
 import sys
 from dataclasses import fields, replace
 from pathlib import Path
@@ -11,6 +10,7 @@ from types import ModuleType, SimpleNamespace
 
 import numpy as np
 import pytest
+from readme import python_block
 
 from estimation.bags import open_reader, read_stream
 from estimation.config import load_config
@@ -146,11 +146,7 @@ def test_bad_topics_types_and_fixes():
 
 
 def _readme_live_block() -> str:
-    text = (ROOT / "README.md").read_text()
-    block = re.search(r"On a live robot, `estimation.live.LiveConverter`.*?```python\n(.*?)```",
-                      text, re.S).group(1)
-    assert "LiveConverter(cfg)" in block  # the block under test
-    return block
+    return python_block(r"On a live robot, `estimation.live.LiveConverter`", "LiveConverter(cfg)")
 
 
 def test_the_readmes_live_example_handles_no_estimate_yet(monkeypatch):
