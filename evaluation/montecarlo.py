@@ -498,7 +498,8 @@ def _main(argv: list[str] | None) -> int:
     ap.add_argument("--first-seed", type=int_at_least(0), default=0,
                     help="first seed (default 0)")
     ap.add_argument("--duration", type=float, default=None,
-                    help="seconds per run (default: the scenario's)")
+                    help="seconds per run (default: the scenario's); shorter, the scenario's drive "
+                    "for the seed cut to S s (ddfuse simulate --help)")
     ap.add_argument("--estimators", type=estimator_list, metavar="LIST",
                     help="comma-separated (default: every EKF the simulated "
                     "config allows); dead reckoning always runs")

@@ -106,7 +106,8 @@ def _main(argv: list[str] | None) -> int:
     ap.add_argument("scenario", choices=list(SCENARIOS))
     ap.add_argument("--seed", type=int_at_least(0), default=0, help="random seed (default 0)")
     ap.add_argument("--duration", type=float, default=None,
-                    help="seconds to simulate (default: the scenario's)")
+                    help="seconds to simulate (default: the scenario's); shorter, the "
+                    "scenario's drive for the seed cut to S s (ddfuse simulate --help)")
     ap.add_argument("-o", "--output", type=Path, required=True,
                     help="image path; its extension picks the format (.png, .pdf, .svg...)")
     args = ap.parse_args(argv)
