@@ -37,3 +37,29 @@ def test_the_filters_and_consistency_do_not_import_scipy_stats():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True)
     assert out.stdout.strip() == "False"
+
+
+def test_the_known_quantiles_are_the_formulas_to_the_bit():
+    from scipy.special import gammaincinv
+
+    for (p, dof), v in chi2.KNOWN.items():
+        assert v == 2.0 * float(gammaincinv(dof / 2.0, p)) == float(scipy_chi2.ppf(p, dof))
+
+
+def test_a_run_with_the_usual_gates_and_bands_does_not_import_scipy_special():
+    """The sample run's filters and scoring ask only for KNOWN quantiles: scipy.special (0.2 s
+    of start-up) stays unloaded; an unusual probability still gets its quantile."""
+    code = ("import sys\n"
+            "from evaluation import cli\n"
+            "cli.main(['run', '-o', sys.argv[1], '--no-report', '--estimators', 'ekf,smoother'])\n"
+            "print('scipy.special' in sys.modules)\n"
+            "from estimation import chi2\n"
+            "print(chi2.ppf(0.9995, 2), 'scipy.special' in sys.modules)\n")
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        out = subprocess.run([sys.executable, "-c", code, d], capture_output=True, text=True,
+                             check=True).stdout.split("\n")
+    assert out[-3] == "False"
+    v, loaded = out[-2].split()
+    assert float(v) == float(scipy_chi2.ppf(0.9995, 2)) and loaded == "True"
