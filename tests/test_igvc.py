@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 
-from ekf_baseline.igvc import IgvcEkf
+from ekf_baseline.igvc import IgvcEkf, IgvcNoise
 from estimation import geodesy
 from estimation.config import Config, RobotConfig, SensorConfig
 from estimation.measurements import (
@@ -307,3 +307,149 @@ def test_a_gap_in_the_feed_is_carried_or_restarted_and_the_fixes_reach_x_y_again
     assert math.hypot(e.pose[0] - x, e.pose[1] - y) < 4.0 * sd
     restarted = [n for n in est.log.messages if "restarted after a" in n]
     assert len(restarted) == (0 if gap < 100.0 else 1)
+
+
+# ---------------------------------------------------------------- errata fixes (docs/errata.md)
+@pytest.mark.parametrize("lat_deg", [20.0, DATUM[0], 60.0, 80.0])
+def test_sphere_radius_fits_the_ellipsoid_both_ways_errata_000_5(lat_deg):
+    """Errata 000 #5: the filter's sphere is sqrt(M N) at its datum. Against WGS-84 (geodesy's
+    exact ellipsoid), a 100 m step north and one east then come out scaled by equal and opposite
+    errors +-(N - M) / (2 sqrt(M N)) (0.15 % at 47.4 deg, < 0.17 % north of 20 deg, 0.30 % at
+    20 deg); their sum stays below 1e-5 (finite-step curvature). The seed's polar radius
+    6356752.3 m is 0.2-0.7 % short at these latitudes (both errors negative); the equatorial
+    6378137 m sums to -5e-4 at 47.4 deg and 5e-3 at 20 deg. (At 45 deg the equatorial radius is
+    within 6e-6 of sqrt(M N), at the equator the polar one equals it: no single latitude tells
+    both apart.)"""
+    ekf = IgvcEkf(make_cfg(compass=False), datum=(lat_deg, DATUM[1], 0.0),
+                  initial_pose=(0.0, 0.0, 0.0))
+    R = ekf.radius
+    d = 100.0
+    lat_n, _, _ = geodesy.enu_to_geodetic(0.0, d, 0.0, lat_deg, DATUM[1], 0.0)
+    _, lon_e, _ = geodesy.enu_to_geodetic(d, 0.0, 0.0, lat_deg, DATUM[1], 0.0)
+    e_north = R * math.radians(lat_n - lat_deg) / d - 1.0
+    e_east = R * math.cos(math.radians(lat_deg)) * math.radians(lon_e - DATUM[1]) / d - 1.0
+    assert e_north > 0.0 > e_east, (e_north, e_east)  # opposite signs
+    assert abs(e_north + e_east) < 1e-5, (e_north, e_east)  # equal size
+    assert max(abs(e_north), abs(e_east)) < (3.1e-3 if lat_deg < 45.0 else 1.7e-3)
+
+
+@pytest.mark.parametrize("reference", [True, False])
+def test_longitude_wraps_across_the_antimeridian_errata_000_11(reference):
+    """Errata 000 #11: driving east across lon +-180 deg (start 55 m west of it at 10 deg N),
+    the longitude state is wrapped into [-pi, pi) and every fix beyond it (lon near -180 deg) is
+    used with a metre-sized innovation, the fix that lies east of the line while the estimate is
+    still west of it included: without the wrap of the state it would leave its range, without
+    the wrap of the fix's difference that fix's innovation would be 2 pi R cos(lat) (39 000 km),
+    rejected by the gate (and every later one too, were the state not wrapped)."""
+    datum = (10.0, 179.9995, 0.0)
+    rng = np.random.default_rng(5)
+    v, sig = 2.0, 0.5
+    ekf = IgvcEkf(make_cfg(compass=False), datum=datum, initial_pose=(0.0, 0.0, 0.0),
+                  reference=reference)
+    wheel = v / R_WHEEL
+    # the antimeridian on the filter's sphere, 54.7 m east of the start
+    x_line = ekf.radius * math.cos(math.radians(datum[0])) * (math.pi - math.radians(datum[1]))
+    straddle = None  # (state lon, fix lon) of the fix placed 1 m east of the robot at the line
+    for k in range(0, 6001):  # 60 s at 100 Hz
+        t = k * DT
+        if k % 5 == 0:
+            ekf.process(WheelSpeeds(t, wheel + rng.normal(0, SIG_WHEEL),
+                                    wheel + rng.normal(0, SIG_WHEEL), SIG_WHEEL**2,
+                                    SIG_WHEEL**2, "wheels"))
+        if k % 2 == 0:
+            ekf.process(GyroYawRate(t, rng.normal(0, SIG_GYRO), SIG_GYRO**2, "imu"))
+        if k % 20 == 0 and k > 0:
+            e, n = v * t + rng.normal(0, sig), rng.normal(0, sig)
+            if straddle is None and v * t >= x_line - 0.7:
+                e = v * t + 1.0  # the robot 0.3-0.7 m west of the line, this fix east of it
+            lat, lon, alt = geodesy.enu_to_geodetic(e, n, 0.0, *datum)
+            if straddle is None and v * t >= x_line - 0.7:
+                straddle = (float(ekf.kf.x[1]), math.radians(lon))
+            ekf.process(GpsFix(t, lat, lon, alt, np.diag([sig**2, sig**2, 1.0]), 0, "gps",
+                               (e, n, 0.0)))
+    assert straddle[0] > 3.14159 and straddle[1] < -3.14159  # state west, fix east of it
+    gps = [i for i in ekf.innovations if i.kind == "gps"]
+    crossed = [i for i in gps if i.t > 30.0]  # east of the antimeridian (x > 55 m)
+    assert len(crossed) > 140
+    assert all(i.accepted for i in gps)
+    assert max(float(np.max(np.abs(i.residual))) for i in crossed) < 5.0 * sig
+    s = ekf.kf.x
+    assert -math.pi <= s[1] < -math.pi + 3e-5  # lon 65 m east of -180 deg, wrapped
+    # lat/lon and x/y still describe the same point (on the filter's sphere)
+    lat0, lon0 = math.radians(datum[0]), math.radians(datum[1])
+    e = ekf.radius * math.cos(lat0) * ((s[1] - lon0 + math.pi) % (2 * math.pi) - math.pi)
+    n = ekf.radius * (s[0] - lat0)
+    assert math.hypot(e - s[3], n - s[4]) < 0.05
+    assert abs(s[3] - 120.0) < 1.0 and abs(s[4]) < 1.0
+
+
+@pytest.mark.parametrize("reference", [True, False])
+def test_gps_update_uses_the_east_north_cross_covariance_errata_000_23(reference):
+    """Errata 000 #23: a fix whose east/north errors are correlated (rho = 0.75) updates the
+    state and covariance exactly as the Joseph-form update in metres about the prior, with R the
+    fix's full 2 x 2 covariance, computed here directly. With the cross term dropped the
+    position would differ by ~0.3 m, a thousand times the tolerance."""
+    noise = IgvcNoise(init_position_std=2.0)
+    ekf = IgvcEkf(make_cfg(compass=False), initial_pose=(0.0, 0.0, 0.4), noise=noise,
+                  reference=reference)
+    x0, P0 = ekf.kf.x.copy(), ekf.kf.P.copy()
+    cov = np.array([[4.0, 3.0, 0.0], [3.0, 4.0, 0.0], [0.0, 0.0, 9.0]])
+    e_fix, n_fix = 1.5, -1.0
+    lat, lon, alt = geodesy.enu_to_geodetic(e_fix, n_fix, 0.0, *DATUM)
+    ekf.process(GpsFix(1.0, lat, lon, alt, cov, 0, "gps", (e_fix, n_fix, 0.0)))
+    (inn,) = [i for i in ekf.innovations if i.kind == "gps"]
+    assert inn.accepted
+
+    R = ekf.radius
+    te, tn = R * math.cos(x0[0]), R
+    y = np.array([te * (math.radians(lon) - x0[1]), tn * (math.radians(lat) - x0[0])])
+    H = np.zeros((2, ekf.n))
+    H[0, 1], H[1, 0] = te, tn  # east = R cos(lat0) dlon, north = R dlat (no lever arm)
+
+    def update(Rm):
+        S = H @ P0 @ H.T + Rm
+        K = np.linalg.solve(S, H @ P0).T
+        A_ = np.eye(ekf.n) - K @ H
+        return x0 + K @ y, A_ @ P0 @ A_.T + K @ Rm @ K.T
+
+    x_full, P_full = update(cov[:2, :2])
+    x_diag, _ = update(np.diag(np.diag(cov[:2, :2])))
+    np.testing.assert_allclose(ekf.kf.x[3:5], x_full[3:5], atol=1e-4)  # x, y in m
+    np.testing.assert_allclose(ekf.kf.x[:2] * R, x_full[:2] * R, atol=1e-4)  # lat, lon in m
+    np.testing.assert_allclose(ekf.kf.P[3:5, 3:5], P_full[3:5, 3:5], rtol=1e-6, atol=1e-9)
+    assert np.linalg.norm(x_diag[3:5] - x_full[3:5]) > 0.1  # the cross term matters here
+
+
+@pytest.mark.parametrize("reference", [True, False])
+def test_process_noise_scales_with_the_step_errata_000_25(reference):
+    """Errata 000 #25: predicting 0.1 s in one step or in ten steps of 0.01 s adds the same
+    covariance to first order in the step. The random walks of a (jerk) and psi_dot (angular
+    acceleration) receive exactly psd * 0.1 either way (a per-step Q fixed regardless of dt would
+    add ten times as much in ten steps). The pose, speed and position pairs differ only by
+    second-order terms (the Euler transport of the initial covariance and the jerk and angular
+    acceleration integrated over the steps): below 10 % of what the 0.1 s adds (7 % measured,
+    theta/psi), and shrinking with the step, below 1.5 % for 0.01 s in one or ten steps.
+    (v_l, v_r are left out: they are recomputed from v and psi_dot at the start of each step,
+    so they see the step's own psi_dot noise only at the next step.)"""
+    keep = [0, 1, 2, 3, 4, 5, 6]  # lat, lon, theta, x, y, psi, v
+
+    def added(total, steps):
+        ekf = IgvcEkf(make_cfg(compass=False), initial_pose=(0.0, 0.0, 0.5),
+                      max_step=total / steps, reference=reference)
+        x = ekf.kf.x.copy()
+        x[6], x[7], x[10] = 1.5, 0.3, 0.2  # v, psi_dot, a
+        x[8], x[9] = 1.5 - 0.15 * TRACK, 1.5 + 0.15 * TRACK
+        ekf.kf.x = x
+        P0 = ekf.kf.P.copy()
+        ekf.t = 0.0
+        ekf.predict_to(total)
+        return np.diag(ekf.kf.P - P0), ekf.noise
+
+    for total, tol in ((0.1, 0.10), (0.01, 0.015)):
+        one, ns = added(total, 1)
+        ten, _ = added(total, 10)
+        for d in (one, ten):
+            assert d[10] == pytest.approx(ns.jerk_psd * total, rel=1e-9)
+            assert d[7] == pytest.approx(ns.yaw_accel_psd * total, rel=1e-9)
+        rel = np.abs(ten[keep] - one[keep]) / one[keep]
+        assert np.all(rel < tol), (total, rel)

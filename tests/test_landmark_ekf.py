@@ -423,3 +423,57 @@ def test_prediction_jacobian_with_scale_states_matches_central_differences():
     num = np.array([(step(x0 + h * e) - step(x0 - h * e)) / (2 * h) for e in np.eye(5)]).T
     np.testing.assert_allclose(F, num, atol=1e-6)
     assert abs(F[0, 3]) > 0.1 and abs(F[2, 4]) > 0.1  # the scale columns are really there
+
+
+def test_split_prediction_adds_the_same_noise_errata_002_2():
+    """Errata 002 #2: the odometry noise is held for its sample period tau = 0.1 s, so its
+    covariance per step of dt is G diag(var_v, var_w) G^T tau / dt. Splitting the period at
+    0.13 s (as a sighting does) must leave the added covariance unchanged: the exact motion
+    steps compose exactly, so the only difference is the second-order transport of the first
+    part's noise (at most 0.04 % of the largest entry measured; tolerance 0.1 % of it). The
+    seed's per-step G Q G^T, proportional to dt^2, would lose 1 - (0.3^2 + 0.7^2) = 42 % of
+    it."""
+
+    def predicted(splits):
+        ekf = LandmarkEkf(make_cfg(), initial_pose=(1.0, 2.0, 0.4), landmarks=LANDMARKS,
+                          init_std=(0.0, 0.0, 0.0))
+        ekf.process(WheelOdometry(0.0, 0.0, 0.0, SIG_V**2, SIG_W**2, "odom"))
+        ekf.process(WheelOdometry(0.1, 0.8, 0.5, SIG_V**2, SIG_W**2, "odom"))
+        P0 = ekf.kf.P.copy()  # the noise of (0, 0.1]
+        assert ekf.tau == pytest.approx(0.1) and ekf.t == pytest.approx(0.1)
+        for t in splits:
+            ekf.predict_to(t)
+        return ekf, P0
+
+    one, P0 = predicted([0.2])
+    two, _ = predicted([0.13, 0.2])
+    np.testing.assert_allclose(two.kf.x, one.kf.x, atol=1e-12)
+    added_one, added_two = one.kf.P - P0, two.kf.P - P0
+    # (P0 itself is the noise of (0, 0.1] and is transported the same way in both)
+    assert np.trace(added_one) > 4e-4
+    np.testing.assert_allclose(added_two, added_one, rtol=1e-3, atol=1e-3 * np.abs(added_one).max())
+
+
+def test_range_only_sighting_of_an_unmapped_landmark_is_counted_not_used_errata_002_11():
+    """Errata 002 #11: a range-only first sighting cannot place a landmark. LandmarkSlamEkf
+    counts it as 'range_only_unmapped', adds no state and makes no update; once the landmark is
+    mapped from a range/bearing sighting, a range-only sighting of it is an ordinary update and
+    is not counted."""
+    ekf = LandmarkSlamEkf(make_cfg(), initial_pose=(0.0, 0.0, 0.0), init_std=INIT_STD)
+    ekf.process(WheelOdometry(0.0, 0.0, 0.0, SIG_V**2, SIG_W**2, "odom"))
+    ekf.process(LandmarkObservation(0.05, "a", 5.0, math.nan, SIG_R**2, math.nan,
+                                    has_bearing=False, sensor="landmarks"))
+    ekf.process(WheelOdometry(0.1, 0.0, 0.0, SIG_V**2, SIG_W**2, "odom"))
+    assert ekf.rejected[("landmarks", "range_only_unmapped")] == 1
+    assert ekf.kf.n == 3 and not ekf.slots and not ekf.innovations
+    assert np.all(np.isfinite(ekf.kf.x)) and np.all(np.isfinite(ekf.kf.P))
+
+    b = math.atan2(3.0, 4.0)
+    ekf.process(LandmarkObservation(0.15, "a", 5.0, b, SIG_R**2, SIG_B**2, sensor="landmarks"))
+    ekf.process(LandmarkObservation(0.17, "a", 5.05, math.nan, SIG_R**2, math.nan,
+                                    has_bearing=False, sensor="landmarks"))
+    ekf.process(WheelOdometry(0.2, 0.0, 0.0, SIG_V**2, SIG_W**2, "odom"))
+    assert ekf.slots == {"a": 3} and ekf.kf.n == 5
+    assert ekf.rejected[("landmarks", "range_only_unmapped")] == 1
+    (inn,) = ekf.innovations  # the mapped landmark's range-only sighting, used
+    assert len(inn.residual) == 1 and inn.accepted

@@ -162,3 +162,35 @@ def test_multiply_gaussians_equals_kalman_update_with_identity_h():
     # 1-D: the seed's gain formula
     mean1, var1 = multiply_gaussians([21.0], [[0.1]], [19.5], [[0.1]])
     assert mean1[0] == pytest.approx(20.25) and var1[0, 0] == pytest.approx(0.05)
+
+
+def test_update_from_the_seeds_singular_p0_stays_a_covariance_errata_004_9():
+    """Errata 004 #9: the seed's P0 with zero velocity and acceleration variance ("the robot
+    starts still", ``p0_std=(0.7, 0, 0)``) is allowed because the update is the Joseph form.
+    First update, with a fix far more precise than the prior (sigma 1e-9 m against 0.7 m, so
+    that K rounds to exactly 1): the position variance is R (the Joseph form's K R K^T), not
+    the 0 of the short form (I - K H) P, v and a stay exactly known (zero rows), P symmetric.
+    Then 200 predict/update cycles of 10 ms keep P symmetric and positive definite (Q makes
+    the velocity and acceleration uncertain after the first predict)."""
+    meas = 1e-9
+    kf = ConstantAccelerationKF([0.0], axes=1, jerk_psd=1.0, meas_std=meas, p0_std=(0.7, 0.0, 0.0))
+    assert np.linalg.matrix_rank(kf.P) == 1
+    assert kf.update([0.3])
+    P = kf.P
+    assert P[0, 0] == pytest.approx(meas**2, rel=1e-6, abs=0.0)  # short form: exactly 0
+    assert np.all(P[1:, :] == 0.0) and np.all(P[:, 1:] == 0.0)
+    assert kf.x[0] == pytest.approx(0.3)
+
+    rng = np.random.default_rng(2)
+    kf = ConstantAccelerationKF([0.0], axes=1, jerk_psd=1.0, meas_std=0.01)  # default P0
+    assert np.linalg.matrix_rank(kf.P) == 1  # the default is singular too: (1, 0, 0)
+    for k in range(200):
+        if k:
+            kf.predict(0.01)
+        t = 0.01 * k
+        kf.update([0.5 * t * t + rng.normal(0.0, 0.01)])  # true a = 1 m/s^2
+        P = kf.P
+        assert np.array_equal(P, P.T)
+        if k:
+            assert np.linalg.eigvalsh(P).min() > 0.0
+    assert kf.x[2] == pytest.approx(1.0, abs=0.5)
