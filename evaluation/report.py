@@ -25,6 +25,7 @@ from evaluation.verdict import (
     calibration_title,
     calibration_value,
     final_states,
+    signed,
     track_kind,
     verdict_lines,
 )
@@ -55,13 +56,6 @@ def _fmt(v, spec: str = ".3f") -> str:
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return '<span class="na">–</span>'
     return format(v, spec)
-
-
-def signed(v: float, spec: str = "+.2f") -> str:
-    """``v`` formatted with its sign (``spec`` has the '+'), but none where it rounds to zero:
-    "0.00", not "-0.00" or "+0.00" (a drift or offset of nothing has no direction)."""
-    text = format(v, spec)
-    return text[1:] if text[:1] in "+-" and not any(c in "123456789" for c in text) else text
 
 
 def _pct(v: float | None) -> str:

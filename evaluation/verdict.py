@@ -84,10 +84,16 @@ def _score(m: dict) -> tuple[str | None, str]:
                   "(run with --gps-holdout every:5, or window:T0:T1 for an outage).")
 
 
+def signed(v: float, spec: str = "+.2f") -> str:
+    """``v`` formatted with its sign (``spec`` has the '+'), but none where it rounds to zero:
+    "0.00", not "-0.00" or "+0.00" (a drift or offset of nothing has no direction)."""
+    text = format(v, spec)
+    return text[1:] if text[:1] in "+-" and not any(c in "123456789" for c in text) else text
+
+
 def _signed_pct(v: float) -> str:
     """A fraction as a signed percentage with one decimal; no sign where it rounds to zero."""
-    text = f"{100 * v:+.1f}%"
-    return "0.0%" if text in ("+0.0%", "-0.0%") else text
+    return signed(100 * v, "+.1f") + "%"
 
 
 def _m(v: float) -> str:
