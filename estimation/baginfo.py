@@ -20,9 +20,8 @@ from estimation import heading_survey, ros1_scan, rosmsg
 from estimation.bags import BagStream, open_reader
 from estimation.config import parse_config
 from estimation.errors import BagError, DdfuseError
+from estimation.frames import GRAVITY
 from estimation.geodesy import geodetic_to_enu
-
-GRAVITY = 9.80665  # m/s^2
 
 
 @dataclass

@@ -33,7 +33,16 @@ import numpy as np
 from estimation import geodesy, ros1_scan, rosmsg
 from estimation.config import Config, SensorConfig, landmark_maps
 from estimation.errors import BagError
-from estimation.frames import IDENTITY, body_yaw, dot_row, rotate, rotated_variance, rpy_matrix
+from estimation.frames import (
+    GRAVITY,
+    IDENTITY,
+    body_x_tilt,
+    body_yaw,
+    dot_row,
+    rotate,
+    rotated_variance,
+    rpy_matrix,
+)
 from estimation.measurements import (
     ForwardAccel,
     GpsFix,
@@ -63,7 +72,12 @@ STAMP_TOLERANCE = 1.0  # s
 
 
 class Reject(Exception):
-    """A single message that cannot be used; its text is the counted reason."""
+    """A single message that cannot be used; its text is the counted reason. ``kept``: the
+    measurements of the message's other fields, used all the same (a part rejected)."""
+
+    def __init__(self, reason: str, kept: list | None = None):
+        super().__init__(reason)
+        self.kept = kept or []
 
 
 @dataclass
@@ -127,6 +141,9 @@ def _odometry_converter(s: SensorConfig, key: str) -> Callable[[tuple], list]:
 def _imu_converter(s: SensorConfig, key: str) -> Callable[[tuple], list]:
     mount = IDENTITY if s.mount_rpy == (0.0, 0.0, 0.0) else rpy_matrix(*s.mount_rpy)
     use_yaw, use_w, use_a = "yaw" in s.use, "yaw_rate" in s.use, "accel" in s.use
+    level = s.accel_gravity == "level"
+    gravity_why = f", needed to remove gravity from the acceleration ({key}.accel_gravity: level " \
+        "takes the ground as level)"
     name = s.name
     # Covariances rarely change between messages: rotate each distinct one once.
     cache: dict[tuple, float] = {}
@@ -139,17 +156,20 @@ def _imu_converter(s: SensorConfig, key: str) -> Callable[[tuple], list]:
             v = cache[k] = _var(s, key, field, noise_key, bag_var)
         return v
 
+    def check_orientation(q: tuple, ocov: tuple, why: str) -> None:
+        if ocov[0] == -1.0:
+            raise Reject(f"orientation not provided (orientation_covariance[0] = -1){why}")
+        qx, qy, qz, qw = q
+        if not abs(qx * qx + qy * qy + qz * qz + qw * qw - 1.0) < 2e-3:
+            raise Reject(f"orientation is not a finite unit quaternion{why}")
+
     def convert(rec: tuple) -> list:
         t, q, ocov, w, wcov, a, acov = rec
         if not math.isfinite(t):
             raise Reject("non-finite stamp")
         out: list = []
         if use_yaw:
-            if ocov[0] == -1.0:
-                raise Reject("orientation not provided (orientation_covariance[0] = -1)")
-            qx, qy, qz, qw = q
-            if not abs(qx * qx + qy * qy + qz * qz + qw * qw - 1.0) < 2e-3:
-                raise Reject("orientation is not a finite unit quaternion")
+            check_orientation(q, ocov, "")
             out.append(Heading(t, body_yaw(q, mount),
                                var("orientation_covariance[8]", "yaw", ocov, 2), name,
                                "imu_orientation"))
@@ -163,8 +183,19 @@ def _imu_converter(s: SensorConfig, key: str) -> Callable[[tuple], list]:
             ax = a[0] if mount is IDENTITY else dot_row(mount, 0, a)
             if not math.isfinite(ax):
                 raise Reject("non-finite linear_acceleration")
-            out.append(ForwardAccel(t, ax, var("linear_acceleration_covariance[0]", "accel",
-                                               acov, 0), name))
+            va = var("linear_acceleration_covariance[0]", "accel", acov, 0)
+            if level:
+                out.append(ForwardAccel(t, ax, va, name))
+            else:
+                if not use_yaw:
+                    try:
+                        check_orientation(q, ocov, gravity_why)
+                    except Reject as e:
+                        raise Reject(f"linear_acceleration not used: {e}", kept=out) from None
+                # specific force = acceleration - gravity: on a slope the climb's g sin(angle)
+                # is in the reading (errata 000 #24); the tilt's error adds to the variance
+                up, vup = body_x_tilt(q, mount, ocov)
+                out.append(ForwardAccel(t, ax - GRAVITY * up, va + GRAVITY * GRAVITY * vup, name))
         return out
 
     return convert
@@ -715,7 +746,9 @@ class BagStream:
                     out = src.convert(rec)
                 except Reject as e:
                     rejected[(src.topic, str(e))] += 1
-                    continue
+                    if not e.kept:
+                        continue
+                    out = e.kept
                 except Exception as e:  # a message that fails to decode is one bad message
                     rejected[(src.topic, f"cannot decode message: {type(e).__name__}: {e}")] += 1
                     continue

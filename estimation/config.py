@@ -103,6 +103,9 @@ class SensorConfig:
     mount_rpy: tuple[float, float, float] = (0.0, 0.0, 0.0)  # rad, base_link -> sensor
     heading_offset: str | float = 0.0  # 'estimate' or rad (sensor yaw = ENU yaw + offset)
     gyro_bias: str | float = 0.0  # 'estimate' or rad/s
+    # IMU accel: 'orientation' removes gravity along body x with the message's own orientation
+    # (tilt); 'level' takes the specific force as the acceleration (flat ground, seed 000 eq. 19)
+    accel_gravity: str = "orientation"
     lever_arm: tuple[float, float] = (0.0, 0.0)  # m, body frame
     delay: float = 0.0  # s, GPS: a fix is the position this long before its stamp
     joints: tuple[str, str] | None = None  # JointState names of left and right wheel
@@ -244,7 +247,7 @@ def _sensor(ck: _Checker, kind: str, i: int, raw: Any, base: Path) -> SensorConf
     key = f"sensors.{kind}[{i}]"
     allowed = ("topic", "name", "use", "noise", "gate")
     allowed += {
-        "imu": ("mount", "heading_offset", "gyro_bias"),
+        "imu": ("mount", "heading_offset", "gyro_bias", "accel_gravity"),
         "gps": ("lever_arm", "delay"),
         "wheels": ("joints",),
         "landmarks": ("map",),
@@ -284,6 +287,9 @@ def _sensor(ck: _Checker, kind: str, i: int, raw: Any, base: Path) -> SensorConf
         s.heading_offset = ck.estimate_or_number(d["heading_offset"], f"{key}.heading_offset")
     if "gyro_bias" in d:
         s.gyro_bias = ck.estimate_or_number(d["gyro_bias"], f"{key}.gyro_bias")
+    if "accel_gravity" in d:
+        s.accel_gravity = ck.choice(d["accel_gravity"], f"{key}.accel_gravity",
+                                    ("orientation", "level"))
     if "lever_arm" in d:
         s.lever_arm = ck.vector(d["lever_arm"], f"{key}.lever_arm", 2)
     if "delay" in d:

@@ -11,6 +11,7 @@ import math
 
 Mat3 = tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]]
 IDENTITY: Mat3 = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+GRAVITY = 9.80665  # m/s^2, standard gravity (local values differ by < 0.03 m/s^2)
 
 
 def rpy_matrix(roll: float, pitch: float, yaw: float) -> Mat3:
@@ -62,6 +63,32 @@ def body_yaw(q: tuple[float, float, float, float], mount: Mat3) -> float:
     c1 = (2 * (x * y + z * w) * m0 + (w * w - x * x + y * y - z * z) * m1
           + 2 * (y * z - x * w) * m2)
     return math.atan2(c1, c0)
+
+
+def body_x_tilt(q: tuple[float, float, float, float], mount: Mat3,
+                ocov9: tuple[float, ...] | None = None) -> tuple[float, float]:
+    """The world-z (up) component of the body's forward axis, sin(climb angle), and its variance
+    from the orientation covariance ``ocov9`` (rad^2, about the world axes, row-major; None or a
+    non-finite one: 0).
+
+    q is the sensor's orientation (world <- sensor) and mount R_body_sensor, so the body's x axis
+    in the world is R_ws (row 0 of R_bs). A small world rotation d turns it by d x u, whose z is
+    d_x u_y - d_y u_x: only roll and pitch errors about the horizontal axes count."""
+    x, y, z, w = q
+    n = x * x + y * y + z * z + w * w
+    m0, m1, m2 = mount[0]
+    ux = ((w * w + x * x - y * y - z * z) * m0 + 2 * (x * y - z * w) * m1
+          + 2 * (x * z + y * w) * m2) / n
+    uy = (2 * (x * y + z * w) * m0 + (w * w - x * x + y * y - z * z) * m1
+          + 2 * (y * z - x * w) * m2) / n
+    uz = (2 * (x * z - y * w) * m0 + 2 * (y * z + x * w) * m1
+          + (w * w - x * x - y * y + z * z) * m2) / n
+    var = 0.0
+    if ocov9 is not None:
+        var = uy * uy * ocov9[0] - 2.0 * uy * ux * ocov9[1] + ux * ux * ocov9[4]
+        if not (math.isfinite(var) and var > 0.0):
+            var = 0.0
+    return uz, var
 
 
 def dot_row(r: Mat3, row: int, v: tuple[float, float, float]) -> float:

@@ -151,7 +151,7 @@ class LiveConverter:
             out = convert(rosmsg.EXTRACTORS[mt][1](msg))
         except Reject as e:
             self.rejected[(topic, str(e))] += 1
-            return []
+            out = e.kept
         if not out or not self._stamp_ok(topic, out[0].t, rt):
             return []
         for m in out:

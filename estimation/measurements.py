@@ -84,7 +84,9 @@ class Heading:
 
 @dataclass(slots=True)
 class ForwardAccel:
-    """Specific force along body x, m/s^2, after the mount rotation."""
+    """Forward acceleration along body x, m/s^2: the IMU's specific force after the mount
+    rotation, less gravity's component along body x from the IMU's orientation (config
+    ``accel_gravity: orientation``, the default) or taken as is (``level``)."""
 
     t: float
     accel: float  # m/s^2

@@ -55,9 +55,10 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from estimation.frames import GRAVITY
 from estimation.geodesy import enu_to_geodetic
 
-G = 9.80665  # m/s^2, standard gravity (the accelerometer's z reading at rest)
+G = GRAVITY  # m/s^2 (the accelerometer's z reading at rest)
 LANDMARK_MSGTYPE = "ddfuse_msgs/msg/LandmarkObservation"
 LANDMARK_MSGDEF = """std_msgs/Header header
 string landmark_id

@@ -18,6 +18,7 @@ from estimation import rosmsg
 from estimation.bags import open_reader, read_stream
 from estimation.config import parse_config
 from estimation.errors import BagError
+from estimation.frames import GRAVITY
 from estimation.measurements import (
     ForwardAccel,
     GpsFix,
@@ -185,7 +186,9 @@ def test_imu_fields_and_variances(tmp_path, fmt):
                             accel=(1.5 + i, 2.5, 9.7), ocov=ocov, wcov=wcov, acov=acov))
             for i, y in enumerate(yaws)]
     bag = write(tmp_path, fmt, recs)
-    s = read_stream(bag, config({"sensors": {"imu": [{"topic": "/imu"}]}}))
+    # the covariances' distinct entries are field markers, not a tilt: read the raw x force
+    s = read_stream(bag, config({"sensors": {"imu": [{"topic": "/imu",
+                                                      "accel_gravity": "level"}]}}))
     hd, gy, ac = of_type(s, Heading), of_type(s, GyroYawRate), of_type(s, ForwardAccel)
     assert len(hd) == len(gy) == len(ac) == 4 and len(s.measurements) == 12
     for i, y in enumerate(yaws):
@@ -195,7 +198,8 @@ def test_imu_fields_and_variances(tmp_path, fmt):
         assert ac[i].accel == pytest.approx(1.5 + i) and ac[i].var == pytest.approx(0.04)
         assert hd[i].t == gy[i].t == ac[i].t == pytest.approx(T0 + 0.02 * i, abs=1e-6)
     s = read_stream(bag, config({"sensors": {"imu": [
-        {"topic": "/imu", "noise": {"yaw": 0.1, "yaw_rate": 0.02, "accel": 0.3}}]}}))
+        {"topic": "/imu", "noise": {"yaw": 0.1, "yaw_rate": 0.02, "accel": 0.3},
+         "accel_gravity": "level"}]}}))
     assert all(m.var == pytest.approx(0.01) for m in of_type(s, Heading))
     assert all(m.var == pytest.approx(4e-4) for m in of_type(s, GyroYawRate))
     assert all(m.var == pytest.approx(0.09) for m in of_type(s, ForwardAccel))
@@ -210,8 +214,17 @@ def test_imu_without_orientation(tmp_path, fmt):
                             wcov=bw.diag(1e-4, 1e-4, 1e-4), acov=bw.diag(0.01, 0.01, 0.01)))
             for i in range(5)]
     bag = write(tmp_path, fmt, recs)
+    # gravity cannot be taken out without an orientation: the acceleration is not used, the
+    # yaw rate is, and the reason names the key that takes the ground as level
     s = read_stream(bag, config({"sensors": {"imu": [
         {"topic": "/imu", "use": ["yaw_rate", "accel"]}]}}))
+    assert len(of_type(s, GyroYawRate)) == 5 and not of_type(s, ForwardAccel)
+    ((topic, reason), n), = s.rejected.items()
+    assert topic == "/imu" and n == 5
+    assert reason.startswith("linear_acceleration not used: orientation not provided")
+    assert "sensors.imu[0].accel_gravity: level" in reason
+    s = read_stream(bag, config({"sensors": {"imu": [
+        {"topic": "/imu", "use": ["yaw_rate", "accel"], "accel_gravity": "level"}]}}))
     assert len(of_type(s, GyroYawRate)) == 5 and len(of_type(s, ForwardAccel)) == 5
     assert not of_type(s, Heading) and s.rejected == {}
     with pytest.raises(BagError) as e:
@@ -246,7 +259,11 @@ def test_husky_like_imu_y_up(tmp_path, fmt, mount):
     assert [m.yaw_rate for m in gy] == pytest.approx([0.3, 0.4, 0.5, 0.6], abs=1e-4)
     assert all(m.var == pytest.approx(4e-4, rel=1e-3) for m in gy)  # the sensor-y variance
     assert [m.accel for m in ac] == pytest.approx([1.2] * 4, abs=1e-3)
-    assert all(m.var == pytest.approx(0.04, rel=1e-3) for m in ac)
+    # level: gravity has no share along body x, but the orientation's roll (world x) and pitch
+    # (world y) variances tip the forward axis (cos psi, sin psi, 0) by sin psi dx - cos psi dy
+    assert [m.var for m in ac] == pytest.approx(
+        [0.04 + GRAVITY ** 2 * (math.sin(p) ** 2 * 0.01 + math.cos(p) ** 2 * 0.02)
+         for p in psis], rel=1e-3)
     for m, psi in zip(hd, psis, strict=True):
         assert wrap(m.yaw - psi) == pytest.approx(0.0, abs=1e-4)
     # Without the mount the same bag gives angular_velocity.z: the mount is what matters.
@@ -270,17 +287,21 @@ def test_imu_general_mount_against_gtsam(tmp_path, fmt):
         w_s, a_s = rng.normal(size=3), rng.normal(size=3) * 3
         recs.append(("/imu", bw.imu(T0 + 0.1 * i, quat=quat_of(tilt @ r_bs), angvel=w_s,
                                     accel=a_s, ocov=bw.diag(1, 1, 1), wcov=wcov, acov=acov)))
-        expect.append((math.atan2(tilt[1, 0], tilt[0, 0]), (r_bs @ w_s)[2], (r_bs @ a_s)[0]))
+        # forward acceleration: body-x specific force less gravity's share, g R_wb[2, 0]
+        expect.append((math.atan2(tilt[1, 0], tilt[0, 0]), (r_bs @ w_s)[2],
+                       (r_bs @ a_s)[0] - GRAVITY * tilt[2, 0], tilt[0, 0] ** 2 + tilt[1, 0] ** 2))
     bag = write(tmp_path, fmt, recs)
     s = read_stream(bag, config({"sensors": {"imu": [{"topic": "/imu",
                                                       "mount": {"rpy": mount}}]}}))
     hd, gy, ac = of_type(s, Heading), of_type(s, GyroYawRate), of_type(s, ForwardAccel)
     w_var = (r_bs @ np.reshape(wcov, (3, 3)) @ r_bs.T)[2, 2]
     a_var = (r_bs @ np.reshape(acov, (3, 3)) @ r_bs.T)[0, 0]
-    for (yaw, wz, ax), h, g, f in zip(expect, hd, gy, ac, strict=True):
+    for (yaw, wz, ax, tilt_var), h, g, f in zip(expect, hd, gy, ac, strict=True):
         assert wrap(h.yaw - yaw) == pytest.approx(0.0, abs=1e-9)
         assert g.yaw_rate == pytest.approx(wz) and f.accel == pytest.approx(ax)
-        assert g.var == pytest.approx(w_var) and f.var == pytest.approx(a_var)
+        # ocov diag(1, 1, 1): the forward axis tips by its horizontal length squared
+        assert g.var == pytest.approx(w_var) and f.var == pytest.approx(
+            a_var + GRAVITY ** 2 * tilt_var)
 
 
 # --------------------------------------------------------------------------------------------
