@@ -69,6 +69,9 @@ ACCEPTED_TYPES = {
 # A message whose header stamp disagrees with its topic's usual stamp-to-record-time offset by
 # more than this (or the reorder window, if larger) has a broken stamp and is dropped.
 STAMP_TOLERANCE = 1.0  # s
+# A stamp of zero or below is a driver's clock not yet set, never a time: rejected before the
+# stamp check, whose warm-up median and drift tracking it would otherwise join.
+UNSET_STAMP = "header stamp zero or negative (the sensor's clock was not set)"
 
 
 class Reject(Exception):
@@ -365,8 +368,9 @@ def _sources(cfg: Config, connections, bag: Path, ros1: bool) -> list[_Source]:
 
 class _StampCheck:
     """Drops records of one source whose header stamp disagrees with the source's usual
-    stamp-to-record-time offset by more than ``tolerance`` (a zero stamp, a clock jump): such a
-    message would otherwise land minutes away from its neighbours.
+    stamp-to-record-time offset by more than ``tolerance`` (a clock jump): such a message would
+    otherwise land minutes away from its neighbours. A stamp of zero or below never reaches it
+    (``UNSET_STAMP``): it would drag the warm-up's median and the drift's.
 
     The usual offset is the median over the source's first ``WARMUP`` records (or those within
     ``WARMUP_S`` seconds of record time of its first, or all it has at the end of the bag), held
@@ -743,6 +747,10 @@ class BagStream:
                         if raw is not last_raw:
                             last_raw, last_msg = raw, deserialize(raw, src.msgtype)
                         rec = src.extract(last_msg)
+                    t_rec = rec[0]
+                    if t_rec <= 0.0 and t_rec > -math.inf:  # non-finite: the converters' reason
+                        rejected[(src.topic, UNSET_STAMP)] += 1
+                        continue
                     out = src.convert(rec)
                 except Reject as e:
                     rejected[(src.topic, str(e))] += 1

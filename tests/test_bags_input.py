@@ -1,0 +1,85 @@
+"""The bag reader's input handling found wanting by audit 13: unset (zero or negative) header
+stamps, unusable NavSatFix covariances, Null Island fixes, a bad IMU orientation, late and
+empty topics. Each test builds the smallest bag that shows the defect."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import bagwriter as bw
+import pytest
+
+from estimation.bags import UNSET_STAMP, read_stream
+from estimation.config import parse_config
+from estimation.errors import BagError
+from estimation.measurements import GpsFix, GyroYawRate
+
+T0 = 1_600_000_000.0
+PATHS = pytest.mark.parametrize("fmt", ["ros1", "mcap"])
+IMU_ONLY = {"sensors": {"imu": [{"topic": "/imu", "use": ["yaw_rate"]}]}}
+
+
+def write(tmp_path: Path, fmt: str, records, name: str = "b") -> Path:
+    return bw.write_bag(bw.bag_path(tmp_path, name, fmt), fmt, records)
+
+
+def of_type(stream, cls) -> list:
+    return [m for m in stream.measurements if isinstance(m, cls)]
+
+
+def _imu(t: float, i: int, **kw):
+    return bw.imu(t, angvel=(0, 0, float(i)), wcov=bw.diag(1, 1, 1), **kw)
+
+
+# --------------------------------------------------------------------------------------------
+# Unset header stamps
+# --------------------------------------------------------------------------------------------
+
+@PATHS
+def test_unset_stamps_are_rejected_per_message_even_on_a_two_message_topic(tmp_path, fmt):
+    """A zero stamp on a topic of two messages (too few for the stamp check) became the
+    stream's t0 = 0; one among IMU messages was caught only by the offset check."""
+    stamps = {5: 0.0}
+    if fmt != "ros1":  # ROS1 stamps are unsigned: no negative one can be written
+        stamps[9] = -3.0
+    recs = [("/imu", _imu(stamps.get(i, T0 + 0.1 * i), i), T0 + 0.1 * i) for i in range(30)]
+    recs += [("/fix", bw.navsatfix(0.0, 42.0, -71.0), T0 + 0.2),
+             ("/fix", bw.navsatfix(T0 + 0.6, 42.0, -71.0), T0 + 0.6)]
+    recs.sort(key=lambda r: r[2])
+    bag = write(tmp_path, fmt, recs)
+    s = read_stream(bag, parse_config({"sensors": {**IMU_ONLY["sensors"],
+                                                   "gps": [{"topic": "/fix"}]}}))
+    assert [m.yaw_rate for m in of_type(s, GyroYawRate)] == pytest.approx(
+        [float(i) for i in range(30) if i not in stamps])
+    assert [f.t for f in of_type(s, GpsFix)] == pytest.approx([T0 + 0.6])
+    assert s.t0 == pytest.approx(T0, abs=1e-6)
+    assert s.rejected == {("/imu", UNSET_STAMP): len(stamps), ("/fix", UNSET_STAMP): 1}
+
+
+@PATHS
+def test_a_topic_whose_every_stamp_is_unset_is_an_error_naming_it(tmp_path, fmt):
+    recs = [("/imu", _imu(0.0, i), T0 + 0.1 * i) for i in range(40)]
+    recs += [("/odom", bw.odometry(T0 + 0.1 * i, 1.0, 0.0,
+                                   twist_cov=bw.diag(0.01, 1, 1, 1, 1, 0.01)), T0 + 0.1 * i)
+             for i in range(40)]
+    recs.sort(key=lambda r: r[2])
+    bag = write(tmp_path, fmt, recs)
+    with pytest.raises(BagError) as e:
+        read_stream(bag, parse_config({"sensors": {**IMU_ONLY["sensors"],
+                                                   "odometry": [{"topic": "/odom"}]}}))
+    msg = str(e.value)
+    assert str(bag.name) in msg and "/imu" in msg and "sensors.imu[0]" in msg
+    assert "all 40 messages" in msg and "zero" in msg
+
+
+@PATHS
+def test_unset_stamps_in_a_topics_warm_up_do_not_poison_its_clock(tmp_path, fmt):
+    """The first 10 of 60 IMU stamps zero: the warm-up's median offset was the zero stamps',
+    so the 50 good ones were all 'jumps' and the topic an error."""
+    recs = [("/imu", _imu(0.0 if i < 10 else T0 + 0.05 * i, i), T0 + 0.05 * i)
+            for i in range(60)]
+    bag = write(tmp_path, fmt, recs)
+    s = read_stream(bag, parse_config(IMU_ONLY))
+    assert [m.yaw_rate for m in s.measurements] == pytest.approx([float(i)
+                                                                  for i in range(10, 60)])
+    assert s.rejected == {("/imu", UNSET_STAMP): 10}
