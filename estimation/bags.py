@@ -71,6 +71,7 @@ ACCEPTED_TYPES = {
 STAMP_TOLERANCE = 1.0  # s
 # A stamp of zero or below is a driver's clock not yet set, never a time: rejected before the
 # stamp check, whose warm-up median and drift tracking it would otherwise join.
+NULL_ISLAND = "latitude and longitude both 0: a receiver's placeholder, not a fix"
 UNSET_STAMP = "header stamp zero or negative (the sensor's clock was not set)"
 
 
@@ -212,9 +213,21 @@ def _gps_fix(rec: tuple, name: str) -> GpsFix:
         raise Reject("non-finite stamp")
     if not (_finite(lat, lon) and -90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
         raise Reject("latitude/longitude not finite or out of range")
+    if lat == 0.0 and lon == 0.0:
+        # no robot stands on Null Island to 1e-9 deg; as the first_fix datum it put every
+        # later fix thousands of km away
+        raise Reject(NULL_ISLAND)
     if not math.isfinite(alt):
         alt = 0.0  # NavSatFix uses NaN for "no altitude"; the horizontal fix is still good
     return GpsFix(t, lat, lon, alt, np.array(cov9, dtype=float).reshape(3, 3), status, name)
+
+
+def _horizontal_cov_ok(c: tuple) -> bool:
+    """Whether a NavSatFix's row-major ENU covariance can weigh a fix: finite, symmetric, its
+    east/north block positive definite (what the estimators invert; the vertical is unused)."""
+    if not (_finite(*c) and geodesy.enu_covariance_is_valid(np.reshape(c, (3, 3)))):
+        return False
+    return c[0] * c[4] - c[1] * c[3] > 0.0
 
 
 def _gps_converter(s: SensorConfig, key: str) -> Callable[[tuple], list]:
@@ -229,9 +242,9 @@ def _gps_converter(s: SensorConfig, key: str) -> Callable[[tuple], list]:
         else:
             if rec[6] == 0:
                 raise Reject(f"position_covariance_type UNKNOWN; set {key}.noise.horizontal")
-            c = rec[5]
-            if not (c[0] > 0 and c[4] > 0 and _finite(*c)):
-                raise Reject(f"position_covariance unusable; set {key}.noise.horizontal")
+            if not _horizontal_cov_ok(rec[5]):
+                raise Reject(f"position_covariance unusable (not symmetric positive definite); "
+                             f"set {key}.noise.horizontal")
         return [fix]
 
     return convert

@@ -7,9 +7,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import bagwriter as bw
+import numpy as np
 import pytest
 
-from estimation.bags import UNSET_STAMP, read_stream
+from estimation.bags import NULL_ISLAND, UNSET_STAMP, read_stream
 from estimation.config import parse_config
 from estimation.errors import BagError
 from estimation.measurements import GpsFix, GyroYawRate
@@ -83,3 +84,67 @@ def test_unset_stamps_in_a_topics_warm_up_do_not_poison_its_clock(tmp_path, fmt)
     assert [m.yaw_rate for m in s.measurements] == pytest.approx([float(i)
                                                                   for i in range(10, 60)])
     assert s.rejected == {("/imu", UNSET_STAMP): 10}
+
+
+# --------------------------------------------------------------------------------------------
+# NavSatFix: the covariance the estimators invert, Null Island
+# --------------------------------------------------------------------------------------------
+
+GOOD_COV = [1.0, 0.3, 0.0, 0.3, 1.2, 0.0, 0.0, 0.0, 4.0]
+BAD_COVS = {
+    "indefinite": [1.0, 3.0, 0.0, 3.0, 1.0, 0.0, 0.0, 0.0, 4.0],  # eigenvalues 4 and -2
+    "asymmetric": [1.0, 0.9, 0.0, -0.9, 1.0, 0.0, 0.0, 0.0, 4.0],
+}
+
+
+@PATHS
+@pytest.mark.parametrize("case", sorted(BAD_COVS))
+def test_a_fix_whose_covariance_is_not_positive_definite_is_rejected(tmp_path, fmt, case):
+    """Positive E/N variances with an indefinite or asymmetric block passed; the EKFs then
+    found every innovation covariance singular and used no GPS at all."""
+    bad = {2, 5}
+    recs = [("/fix", bw.navsatfix(T0 + 0.4 * i, 42.0 + 1e-5 * i, -71.0, cov_type=3,
+                                  cov=BAD_COVS[case] if i in bad else GOOD_COV))
+            for i in range(8)]
+    bag = write(tmp_path, fmt, recs)
+    s = read_stream(bag, parse_config({"sensors": {"gps": [{"topic": "/fix"}]}}))
+    fixes = of_type(s, GpsFix)
+    assert [round((f.lat - 42.0) / 1e-5) for f in fixes] == [i for i in range(8) if i not in bad]
+    for f in fixes:
+        assert np.all(np.linalg.eigvalsh(f.cov[:2, :2]) > 0)
+    ((topic, reason), n), = s.rejected.items()
+    assert topic == "/fix" and n == len(bad)
+    assert "not symmetric positive definite" in reason
+    assert "sensors.gps[0].noise.horizontal" in reason
+
+
+@PATHS
+def test_a_fix_with_only_its_unused_vertical_variance_negative_is_kept(tmp_path, fmt):
+    """The estimators weigh a fix by its east/north block alone."""
+    cov = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, -1.0]
+    recs = [("/fix", bw.navsatfix(T0 + 0.4 * i, 42.0, -71.0, cov_type=2, cov=cov))
+            for i in range(3)]
+    s = read_stream(write(tmp_path, fmt, recs),
+                    parse_config({"sensors": {"gps": [{"topic": "/fix"}]}}))
+    assert len(of_type(s, GpsFix)) == 3 and not s.rejected
+
+
+@PATHS
+def test_a_null_island_fix_is_no_fix_and_no_datum(tmp_path, fmt):
+    """A receiver's (0, 0) placeholder first became the first_fix datum: every later fix
+    5000 km away. Rejected, counted, for the GPS sensor and the ground truth alike."""
+    track = [(42.0 + 2e-5 * i, -71.0 + 3e-5 * i) for i in range(6)]
+    recs = [("/fix", bw.navsatfix(T0 + 0.4 * i, *((0.0, 0.0) if i in (0, 3) else track[i])))
+            for i in range(6)]
+    recs += [("/truth", bw.navsatfix(T0 + 0.4 * i + 0.1, *((0.0, 0.0) if i == 0 else track[i])))
+             for i in range(6)]
+    recs.sort(key=lambda r: r[1].stamp)
+    bag = write(tmp_path, fmt, recs)
+    s = read_stream(bag, parse_config({"sensors": {"gps": [{"topic": "/fix"}]},
+                                       "ground_truth": {"topic": "/truth"},
+                                       "frame": {"datum": "first_fix"}}))
+    assert s.datum[:2] == pytest.approx(track[1])
+    assert len(of_type(s, GpsFix)) == 4
+    assert max(abs(f.enu[0]) + abs(f.enu[1]) for f in of_type(s, GpsFix)) < 100.0
+    assert len(s.ground_truth) == 5
+    assert s.rejected == {("/fix", NULL_ISLAND): 2, ("/truth", NULL_ISLAND): 1}
