@@ -16,9 +16,11 @@ the object (rosbags' ``__msgtype__``, rospy's ``_type``, rclpy's class) unless `
 given; the header stamp from ``sec``/``nanosec`` (ROS 2, rosbags) or ``secs``/``nsecs``
 (rospy). The config's topics, types, noise, mounts and datum apply exactly as to a bag (the same
 converters, ``estimation.bags.CONVERTERS``): a GPS fix gets its local ENU position in the
-config's datum, or in the first fix's with ``frame: {datum: first_fix}``. A message that cannot
-be used (NO_FIX, non-finite fields, no covariance and no configured noise) gives no measurement
-and is counted in ``rejected`` under its topic and reason, as the bag reader counts it.
+config's datum, or in the first fix's with ``frame: {datum: first_fix}``. A topic that several
+configured sensors read gives each one's measurements, in the config's order. A message that
+cannot be used (NO_FIX, non-finite fields, no covariance and no configured noise, fields that
+do not fit its type) gives no measurement and is counted in ``rejected`` under its topic and
+reason, as the bag reader counts it.
 
 Broken stamps. ``convert`` also takes the message's receive time (``received``, seconds on the
 clock of the header stamps; default ``time.time()``, the wall clock that stamps a real robot's
@@ -92,8 +94,9 @@ def message_type(msg, given: str | None = None) -> str:
 
 
 class LiveConverter:
-    """Per configured topic, ROS message -> measurements, each topic's stamps checked against
-    their receive times (module docstring). ``reorder_window`` (s, default the config's) sets
+    """Per configured topic, ROS message -> measurements (of every sensor the config reads from
+    that topic, in the config's order), each topic's stamps checked against their receive
+    times (module docstring). ``reorder_window`` (s, default the config's) sets
     the stamp tolerance as for the bag reader: max(``STAMP_TOLERANCE``, reorder_window)."""
 
     def __init__(self, cfg: Config, *, reorder_window: float | None = None) -> None:
@@ -110,8 +113,12 @@ class LiveConverter:
         self.datum: tuple[float, float, float] | None = (
             cfg.datum if isinstance(cfg.datum, tuple) else None)
         self.rejected: Counter = Counter()  # (topic, reason) -> messages
-        self._topics = {topic: (kind, key, CONVERTERS[kind](s, key))
-                        for kind, key, s, topic in configured_topics(cfg) if s is not None}
+        # topic -> (kind, key, converter) of every sensor on it, in the config's order: two
+        # sensors may read one topic (an IMU's yaw rate twice, under two names), as in a bag
+        self._topics: dict[str, list[tuple]] = {}
+        for kind, key, s, topic in configured_topics(cfg):
+            if s is not None:
+                self._topics.setdefault(topic, []).append((kind, key, CONVERTERS[kind](s, key)))
         self._checks: dict[str, _StampCheck] = {}  # topic -> its stamp check
         self._stamp_reason = (f"header stamp more than {self.tolerance:g} s off its topic's "
                               "clock (time went backwards or jumped)")  # the bag reader's text
@@ -133,25 +140,32 @@ class LiveConverter:
         the header stamps; default ``time.time()``), possibly none: an unusable message or a
         broken stamp is counted in ``rejected``. ValueError for a topic the config does not
         name, a message type its sensor cannot read, or a non-finite ``received``."""
-        entry = self._topics.get(topic)
-        if entry is None:
+        entries = self._topics.get(topic)
+        if entries is None:
             raise ValueError(f"topic {topic} is not in the config (its topics: "
                              f"{', '.join(self._topics) or 'none'})")
-        kind, key, convert = entry
         mt = message_type(msg, msgtype)
-        if mt not in ACCEPTED_TYPES[kind]:
-            need = " or ".join(rosmsg.short_type(t) for t in ACCEPTED_TYPES[kind])
-            raise ValueError(f"topic {topic}: a {rosmsg.short_type(mt)} message, but {key} "
-                             f"needs {need}")
+        for kind, key, _ in entries:
+            if mt not in ACCEPTED_TYPES[kind]:
+                need = " or ".join(rosmsg.short_type(t) for t in ACCEPTED_TYPES[kind])
+                raise ValueError(f"topic {topic}: a {rosmsg.short_type(mt)} message, but {key} "
+                                 f"needs {need}")
         rt = time.time() if received is None else float(received)
         if not math.isfinite(rt):
             raise ValueError(f"topic {topic}: received = {received!r}; expected the receive "
                              "time in seconds on the clock of the header stamps")
         try:
-            out = convert(rosmsg.EXTRACTORS[mt][1](msg))
-        except Reject as e:
-            self.rejected[(topic, str(e))] += 1
-            out = e.kept
+            rec = rosmsg.EXTRACTORS[mt][1](msg)
+        except Exception as e:  # as the bag reader counts a message it cannot decode
+            self.rejected[(topic, f"cannot decode message: {type(e).__name__}: {e}")] += 1
+            return []
+        out: list = []
+        for _, _, convert in entries:
+            try:
+                out += convert(rec)
+            except Reject as e:
+                self.rejected[(topic, str(e))] += 1
+                out += e.kept
         if not out or not self._stamp_ok(topic, out[0].t, rt):
             return []
         for m in out:

@@ -33,9 +33,17 @@ def _same(a, b) -> bool:
     return True
 
 
-@pytest.fixture(scope="module")
-def live_and_bag():
+def _shared_topic(cfg):
+    """``cfg`` with a second sensor on the IMU's topic: its yaw rate again, under another name."""
+    imu = cfg.of_kind("imu")[0]
+    return replace(cfg, sensors=[*cfg.sensors, replace(imu, name="imu_b", use=("yaw_rate",))])
+
+
+@pytest.fixture(scope="module", params=["sample", "shared topic"])
+def live_and_bag(request):
     cfg = replace(load_config(CFG), initial_pose=None)  # sample_husky.yaml: ground_truth
+    if request.param == "shared topic":
+        cfg = _shared_topic(cfg)
     conv = LiveConverter(cfg)
     reader = open_reader(BAG)
     conns = [c for c in reader.connections if c.topic in conv.topics]
@@ -49,9 +57,12 @@ def live_and_bag():
 
 
 def test_every_message_converts_as_the_bag_reader_converts_it(live_and_bag):
-    _, conv, live, stream = live_and_bag
+    """Also with two sensors on one topic: the converter kept only the last one's."""
+    cfg, conv, live, stream = live_and_bag
     assert conv.topics == ["/odom", "/imu/data", "/fix"]
     assert len(live) == len(stream.measurements) > 10000 and not conv.rejected
+    sensors = {m.sensor for m in live}
+    assert sensors == {s.name for s in cfg.sensors} == {m.sensor for m in stream.measurements}
     by_key: dict = {}
     for m in stream.measurements:
         by_key.setdefault((type(m), m.sensor, m.t), []).append(m)
@@ -143,6 +154,11 @@ def test_bad_topics_types_and_fixes():
     (f1,) = conv.convert("/fix", fix(47.0 + 1e-5, 8.0))  # ~1.11 m north
     assert isinstance(f0, GpsFix) and np.allclose(f0.enu[:2], 0.0)
     assert f1.enu[1] == pytest.approx(1.112, abs=0.01) and abs(f1.enu[0]) < 1e-6
+    # a message that cannot be read as its stated type is counted as the bag reader counts it
+    # (it was a bare AttributeError out of the subscriber's callback)
+    assert conv.convert("/odom", fix(47.0, 8.0), msgtype="nav_msgs/Odometry") == []
+    ((why, n),) = [(r, n) for (tp, r), n in conv.rejected.items() if tp == "/odom"]
+    assert n == 1 and why.startswith("cannot decode message: AttributeError")
 
 
 def _readme_live_block() -> str:
