@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import math
 import re
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -200,18 +201,26 @@ class _Checker:
     def mapping(self, value: Any, key: str, allowed: tuple[str, ...]) -> dict:
         if not isinstance(value, dict):
             raise self.fail(key, f"must be a mapping, got {type(value).__name__}")
-        unknown = sorted(set(value) - set(allowed))
+        # sorted by text: YAML keys may be of mixed types (an unquoted on/off is a bool)
+        unknown = sorted(set(value) - set(allowed), key=str)
         if unknown:
+            bad = unknown[0]
+            why = (" (YAML reads an unquoted on/off/yes/no as a boolean; quote it)"
+                   if isinstance(bad, bool) else "")
             raise self.fail(
-                f"{key}.{unknown[0]}" if key else unknown[0],
-                f"unknown key (allowed: {', '.join(allowed)})",
+                f"{key}.{bad}" if key else str(bad),
+                f"unknown key{why} (allowed: {', '.join(allowed)})",
             )
         return value
 
     def number(self, value: Any, key: str, positive: bool = False, nonneg: bool = False) -> float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise self.fail(key, f"must be a number, got {value!r}")
-        v = float(value)
+        try:
+            v = float(value)
+        except OverflowError:  # an integer beyond any float
+            raise self.fail(key, f"must be finite, got an integer of {len(str(value))} "
+                                 "digits") from None
         if not math.isfinite(v):
             raise self.fail(key, f"must be finite, got {value!r}")
         if positive and v <= 0:
@@ -243,6 +252,16 @@ class _Checker:
         return self.number(value, key)
 
 
+def _std(ck: _Checker, value: Any, key: str, walk: bool = False) -> float:
+    """A noise standard deviation (a random walk's may be 0) whose square, the variance the
+    estimators use, is a normal float: 1e-200 squares to 0, 1e200 to inf."""
+    v = ck.number(value, key, positive=not walk, nonneg=True)
+    var = v * v
+    if not math.isfinite(var) or (var < sys.float_info.min and not (walk and v == 0.0)):
+        raise ck.fail(key, f"{value!r} squared is {var:g} as a float: not a usable variance")
+    return v
+
+
 def _sensor(ck: _Checker, kind: str, i: int, raw: Any, base: Path) -> SensorConfig:
     key = f"sensors.{kind}[{i}]"
     allowed = ("topic", "name", "use", "noise", "gate")
@@ -265,10 +284,14 @@ def _sensor(ck: _Checker, kind: str, i: int, raw: Any, base: Path) -> SensorConf
     for u in use:
         if u not in USES[kind]:
             raise ck.fail(f"{key}.use", f"{u!r} is not one of {list(USES[kind])}")
-    noise_raw = d.get("noise") or {}
-    ck.mapping(noise_raw, f"{key}.noise", NOISE_KEYS[kind])
-    noise = {k: ck.number(v, f"{key}.noise.{k}", positive=k not in WALK_KEYS, nonneg=True)
-             for k, v in noise_raw.items()}
+    noise_raw = d.get("noise")
+    if noise_raw is None:
+        noise_raw = {}
+    ck.mapping(noise_raw, f"{key}.noise", NOISE_KEYS[kind])  # noise: 0 or [] is no mapping
+    noise = {k: _std(ck, v, f"{key}.noise.{k}", walk=k in WALK_KEYS) for k, v in noise_raw.items()}
+    if "vertical" in noise and "horizontal" not in noise:
+        raise ck.fail(f"{key}.noise.vertical", "needs noise.horizontal: without it the fix's own "
+                      "covariance is used, vertical included")
     s = SensorConfig(kind=kind, topic=topic, name=topic, use=tuple(use), noise=noise)
     if "name" in d:
         s.name = ck.string(d["name"], f"{key}.name")
@@ -283,6 +306,10 @@ def _sensor(ck: _Checker, kind: str, i: int, raw: Any, base: Path) -> SensorConf
     if "mount" in d:
         m = ck.mapping(d["mount"], f"{key}.mount", ("rpy",))
         s.mount_rpy = ck.vector(m.get("rpy", [0, 0, 0]), f"{key}.mount.rpy", 3)
+        for i, a in enumerate(s.mount_rpy):
+            if abs(a) > 2.0 * math.pi:  # 90 for a y-up IMU: degrees
+                raise ck.fail(f"{key}.mount.rpy[{i}]", f"{a:g} is beyond 2 pi: rpy is in "
+                              f"radians ({a:g} deg would be {math.radians(a):.4f})")
     if "heading_offset" in d:
         s.heading_offset = ck.estimate_or_number(d["heading_offset"], f"{key}.heading_offset")
     if "gyro_bias" in d:
@@ -298,6 +325,9 @@ def _sensor(ck: _Checker, kind: str, i: int, raw: Any, base: Path) -> SensorConf
         j = d.get("joints")
         if not isinstance(j, list) or len(j) != 2 or not all(isinstance(x, str) for x in j):
             raise ck.fail(f"{key}.joints", "must list the left and right wheel joint names")
+        if j[0] == j[1]:
+            raise ck.fail(f"{key}.joints", f"names joint {j[0]!r} twice; give the left and the "
+                          "right wheel's")
         s.joints = (j[0], j[1])
         if "speed" not in s.noise:
             raise ck.fail(f"{key}.noise.speed", "missing (JointState carries no covariance)")
@@ -342,6 +372,11 @@ def parse_config(raw: Any, source: str = "<config>", base: Path | None = None) -
         r = ck.mapping(d["robot"], "robot", ("wheel_radius", "track_width", "wheel_radius_std",
                                              "track_width_std", "slip", "max_accel",
                                              "max_yaw_accel"))
+        for k in ("max_accel", "max_yaw_accel"):
+            if k in r and ck.number(r[k], f"robot.{k}") == 0.0:
+                raise ck.fail(f"robot.{k}", "must be > 0: the twist's process noise is derived "
+                              "from it, and 0 would hold the twist fixed (leave it out for the "
+                              "estimators' default)")
         cfg.robot = RobotConfig(**{
             k: ck.number(r[k], f"robot.{k}", positive=k in ("wheel_radius", "track_width"),
                          nonneg=True)
