@@ -39,6 +39,23 @@ Measurements (seed eq. 17/19, corrected):
 
 Every update goes through ``ekf_baseline.kalman.KalmanCore`` (Joseph form, wrapped angle
 innovations, per-sensor chi-square gate with lock-out recovery).
+
+Poles: the (lat, lon) state is singular at a pole (the longitude is undefined there, and every
+lon term carries 1/cos(lat)), so the filter refuses to run within ``POLE_LIMIT_KM`` (about 10
+km) of one, |lat| > ``POLE_LIMIT_DEG`` = 89.91 deg: ``process`` raises ``PolarRegionError``
+(a ValueError) when the datum, the first fix or the state is there, and the runner reports it
+in the estimator's row (errata 000 #37). Use the unicycle EKF or the smoother, whose state is
+the local ENU plane. The limit is where the ignored meridian convergence stops being small
+against the model's own allowance for it: at a distance r from the pole, driving at v turns the
+true bearing against the filter's theta = pi/2 - psi by about v sin(theta) / r rad/s; at r =
+10 km and 1 m/s that is 1e-4 rad/s, already the frame-heading noise the model allows per
+sqrt(s) (``IgvcNoise.frame_heading_psd`` = 1e-8 rad^2/s), and over a 1 km drive it adds up to
+0.1 rad, more than a compass's error. Closer in it grows as 1/r: the sample drive (40 m across)
+re-projected to 100 m from the pole gave ATE 0.40 m and NEES 30 (0.12 m and 3.1 at 10 km and
+at 300 km), at 50 m 2.2 m and NEES 355, and at 11 m the great-circle step's sin(lat) rounded
+to 1 and its Jacobian's 1/sqrt(1 - sin^2 lat) divided by zero. The double-precision
+resolution of that step, R^2 1.1e-16 / r per step (0.5 um at 10 km, 0.4 mm at 11 m), is not
+the binding limit.
 """
 
 from __future__ import annotations
@@ -66,7 +83,8 @@ from estimation.measurements import (
     WheelSpeeds,
 )
 
-__all__ = ["IgvcEkf", "IgvcNoise", "STATE_NAMES", "sphere_radius", "gps_model", "heading_model"]
+__all__ = ["IgvcEkf", "IgvcNoise", "PolarRegionError", "POLE_LIMIT_DEG", "STATE_NAMES",
+           "sphere_radius", "gps_model", "heading_model"]
 
 STATE_NAMES = gen.STATE_NAMES
 LAT, LON, THETA, X, Y, PSI, V, W, VL, VR, A = range(11)
@@ -82,6 +100,16 @@ GAP_RESTART_STD = 10e3  # m: a gap that leaves the position this uncertain resta
 # s: a longer gap restarts it without predicting over it (its 0.05 s steps: 6000 per 300 s;
 # the sample bag's limits give a 450 km position sigma after 300 s)
 GAP_CARRY_MAX_S = 300.0
+# deg: |lat| beyond which the filter refuses to run, about POLE_LIMIT_KM from a pole (module
+# docstring: the meridian convergence the model ignores grows as 1/distance to the pole)
+POLE_LIMIT_DEG = 89.91
+POLE_LIMIT_KM = 10.0
+_POLE_LIMIT_RAD = math.radians(POLE_LIMIT_DEG)
+
+
+class PolarRegionError(ValueError):
+    """The filter's position (datum, first fix or state) is within ``POLE_LIMIT_KM`` of a pole,
+    where seed 000's (lat, lon) state cannot represent it (module docstring)."""
 
 
 _TWO_PI = 2.0 * math.pi
@@ -555,7 +583,30 @@ class IgvcEkf(Estimator):
                              ns.frame_heading_psd, ns.jerk_psd, ns.yaw_accel_psd, ns.slip_var)
 
     # ------------------------------------------------------------------ Estimator
+    def _check_pole(self) -> None:
+        """PolarRegionError when the state's latitude (before the start: the datum's) is
+        within POLE_LIMIT_KM of a pole (module docstring). Checked before each message: one
+        step moves the state by centimetres, and the steps only divide by zero within about
+        0.1 m of the pole, so the limit is met well before."""
+        if self.kf is not None:
+            lat, where = float(self.kf.x[LAT]), "the filter's position is"
+        elif self.datum is not None:
+            lat, where = math.radians(self.datum[0]), "the datum is"
+        else:
+            return
+        if abs(lat) <= _POLE_LIMIT_RAD:
+            return
+        d = self.radius * (HALF_PI - abs(lat))
+        far = f"{d / 1000.0:.3g} km" if d >= 1000.0 else f"{d:.3g} m"
+        raise PolarRegionError(
+            f"seed 000's lat/lon state is singular within {POLE_LIMIT_KM:g} km of a pole (|lat| "
+            f"> {POLE_LIMIT_DEG:g} deg): {where} at latitude {math.degrees(lat):.5f} deg, "
+            f"{far} from the {'north' if lat > 0 else 'south'} pole (the longitude and the "
+            "bearing are undefined at the pole, the model's meridian convergence wrong near "
+            "it); use ekf or the smoother")
+
     def process(self, m) -> None:
+        self._check_pole()
         if isinstance(m, GroundTruthPose):
             if self.kf is None and self._wait_truth:
                 self._pose_given = (m.x, m.y, m.yaw)
@@ -570,6 +621,8 @@ class IgvcEkf(Estimator):
             if self._wait_truth:
                 return
             self._try_init_without_pose(m)
+            # a datum or start taken from this fix: refused at it, not a message later
+            self._check_pole()
             if self.kf is None:
                 return
             if self.t == m.t and isinstance(m, GpsFix | Heading):
