@@ -21,10 +21,19 @@ beyond its samples, whose first-order covariance no longer describes its error (
 gave a pose 1e6 m away with variances of 1e16-1e27 m^2), and a feed stalled that long is a
 fault to see, not to paper over. ``OdometryTwist`` keeps the samples of as long (``keep``).
 
-The twist is the odometry's, uncorrected: no scale or gyro-bias calibration. The scale's
-uncertainty (the config's geometry uncertainty, ``robot.scale_std``) is one error for the whole
-carry, so it enters once, through the pose's sensitivity to the speed and yaw-rate scales
-accumulated over the steps, not per step (which would divide it by the number of steps).
+The twist is the odometry's, without a scale calibration. The scale's uncertainty (the
+config's geometry uncertainty, ``robot.scale_std``) is one error for the whole carry, so it
+enters once, through the pose's sensitivity to the speed and yaw-rate scales accumulated over
+the steps, not per step (which would divide it by the number of steps).
+
+A gyro's yaw rate has its bias removed as the estimators remove it (gyro = w + bias): a
+configured constant ``gyro_bias`` when the samples are made (``OdometryTwist.push``), else
+(``gyro_bias: estimate``) the estimate's own bias state (``state_names`` 'bg:<sensor>' or 'bg',
+as the EKFs and the smoother name it) in ``carry``: like the scale, one error for the whole
+carry, its variance (``state_cov``, when the estimate gives one) entering through the pose's
+sensitivity to it; its correlation with the pose is not used (first order, over the seconds of
+a carry). An estimate without such a state (a carried one, an estimator that does not estimate
+the bias) is carried on the raw rate, bias included: a straight drive then turns at the bias.
 """
 
 from __future__ import annotations
@@ -51,13 +60,17 @@ MAX_CARRY_S = 5.0
 @dataclass(frozen=True, slots=True)
 class TwistSample:
     """A body twist measured over the interval ending at ``t`` (s): forward speed ``v`` (m/s),
-    yaw rate ``w`` (rad/s), their variances (m/s)^2 and (rad/s)^2."""
+    yaw rate ``w`` (rad/s), their variances (m/s)^2 and (rad/s)^2. ``raw_gyro``: the name of
+    the gyro whose reading ``w`` is with its bias still in it, the bias being estimated
+    (``carry`` removes the estimate's); None when ``w`` is bias-free (an odometry's, or a gyro's
+    with its configured constant bias removed)."""
 
     t: float
     v: float
     w: float
     v_var: float
     w_var: float
+    raw_gyro: str | None = None
 
 
 def carry(e: Estimate, twists: Sequence[TwistSample], t: float,
@@ -101,8 +114,21 @@ def carry(e: Estimate, twists: Sequence[TwistSample], t: float,
         # held beyond its interval
         nxt = next((s for s in twists[i:] if s.t > t), None)
         steps.append((nxt, t - now, 0.0) if nxt is not None else (held, t - now, t - now))
+    biases: dict[str, tuple[float, float, np.ndarray]] = {}  # gyro -> (b, var, d pose / d b)
     for s, dt, hold in steps:
-        x, y, psi, P, K = _step(x, y, psi, P, K, s, dt, hold, q)
+        g = s.raw_gyro
+        if g is not None and g not in biases:
+            biases[g] = (*_bias_of(e, g), np.zeros(3))
+        b = biases[g][0] if g is not None else 0.0
+        x, y, psi, P, K, Jp, Ju = _step(x, y, psi, P, K, s, s.w - b, dt, hold, q)
+        for h, (bh, vh, kb) in biases.items():
+            # w = reading - b: the bias error moves the steps on that gyro's samples
+            kb = Jp @ kb if Ju is not None else kb
+            if h == g and Ju is not None:
+                kb = kb - Ju[:, 1]
+            biases[h] = (bh, vh, kb)
+    for _, vb, kb in biases.values():
+        P = P + vb * np.outer(kb, kb)
     if scale_cov is not None:
         P = P + K @ scale_cov @ K.T
     P = 0.5 * (P + P.T)
@@ -111,20 +137,35 @@ def carry(e: Estimate, twists: Sequence[TwistSample], t: float,
     return Estimate(t, (x, y, wrap_angle(psi)), P, pose_error="world")
 
 
+def _bias_of(e: Estimate, gyro: str) -> tuple[float, float]:
+    """(bias rad/s, its variance) of ``gyro`` in estimate ``e``'s state: 'bg:<gyro>', else
+    'bg' (an estimator with one bias state); (0, 0) when ``e`` has neither (module docstring)."""
+    if e.state is None:
+        return 0.0, 0.0
+    names = e.state_names
+    for name in (f"bg:{gyro}", "bg"):
+        if name in names:
+            i = names.index(name)
+            var = float(e.state_cov[i, i]) if e.state_cov is not None else 0.0
+            return float(e.state[i]), var
+    return 0.0, 0.0
+
+
 def _step(x: float, y: float, psi: float, P: np.ndarray, K: np.ndarray, s: TwistSample,
-          dt: float, hold: float, q: tuple[float, float]):
-    """One constant-twist step of ``dt`` s on sample ``s``; ``hold`` s of it beyond the
-    sample's interval (then its variances grow as var + q hold / 3). ``K``: the pose's
-    sensitivity to the relative scale errors, carried through the step."""
+          w: float, dt: float, hold: float, q: tuple[float, float]):
+    """One constant-twist step of ``dt`` s on sample ``s`` with yaw rate ``w`` (its reading,
+    bias removed); ``hold`` s of it beyond the sample's interval (then its variances grow as
+    var + q hold / 3). ``K``: the pose's sensitivity to the relative scale errors, carried
+    through the step. Also returns the step's Jacobians (pose, twist), None for no step."""
     if dt <= 0.0:
-        return x, y, psi, P, K
-    x1, y1, p1, J = se2_step_jac(x, y, psi, s.v, s.w, dt)
+        return x, y, psi, P, K, None, None
+    x1, y1, p1, J = se2_step_jac(x, y, psi, s.v, w, dt)
     Jp = np.array([r[:3] for r in J])
     Ju = np.array([r[3:] for r in J])
     S = np.diag((s.v_var + q[0] * hold / 3.0, s.w_var + q[1] * hold / 3.0))
     P = Jp @ P @ Jp.T + Ju @ S @ Ju.T
-    K = Jp @ K + Ju * (s.v, s.w)
-    return x1, y1, p1, P, K
+    K = Jp @ K + Ju * (s.v, w)
+    return x1, y1, p1, P, K, Jp, Ju
 
 
 def _stamp(s: TwistSample) -> float:
@@ -135,9 +176,11 @@ class OdometryTwist:
     """The twist samples a config's odometry gives, for ``carry``: forward speed from the
     first odometry sensor using v (else the first wheel-speed sensor, through the nominal
     robot.wheel_radius and robot.track_width), yaw rate from that same sensor when it gives
-    one, else from the first gyro (imu using yaw_rate). A sample is made at each message of
-    either, with the other's newest value. ``samples`` holds those of the last ``keep`` s of
-    stamps, sorted (default ``MAX_CARRY_S``: those a carry can use)."""
+    one, else from the first gyro (imu using yaw_rate), its configured constant ``gyro_bias``
+    removed (an estimated one is the estimate's, removed in ``carry``: the samples name the
+    gyro in ``raw_gyro``). A sample is made at each message of either, with the other's newest
+    value. ``samples`` holds those of the last ``keep`` s of stamps, sorted (default
+    ``MAX_CARRY_S``: those a carry can use)."""
 
     def __init__(self, cfg: Config, keep: float = MAX_CARRY_S) -> None:
         odo = next((s for s in cfg.of_kind("odometry") if "v" in s.use), None)
@@ -149,6 +192,12 @@ class OdometryTwist:
             odo is None and wheels is not None)
         gyro = next((s for s in cfg.of_kind("imu") if "yaw_rate" in s.use), None)
         self.w_sensor = self.v_sensor if self.w_from_v else (gyro.name if gyro else None)
+        # the gyro's bias as the estimators take it (gyro = w + bias): a configured constant is
+        # removed from each reading here, an estimated one left to the estimate (carry)
+        use_gyro = not self.w_from_v and gyro is not None
+        estimated = use_gyro and gyro.gyro_bias == "estimate"
+        self.gyro_bias = float(gyro.gyro_bias) if use_gyro and not estimated else 0.0
+        self._raw_gyro = gyro.name if estimated else None
         self._r, self._L = r, L
         sd = cfg.robot.scale_std
         # the gyro's yaw rate carries no wheel-geometry scale
@@ -181,7 +230,7 @@ class OdometryTwist:
             v, w, v_var, w_var = m.twist(self._r, self._L)
             self._v, self._w = (v, v_var), (w, w_var)
         elif isinstance(m, GyroYawRate) and sensor == self.w_sensor:
-            self._w = (m.yaw_rate, m.var)
+            self._w = (m.yaw_rate - self.gyro_bias, m.var)
         else:
             return
         if sensor == self.v_sensor:
@@ -191,7 +240,7 @@ class OdometryTwist:
             self._last_v_t = m.t
         if self._v is None or self._w is None or not math.isfinite(m.t):
             return
-        s = TwistSample(m.t, self._v[0], self._w[0], self._v[1], self._w[1])
+        s = TwistSample(m.t, self._v[0], self._w[0], self._v[1], self._w[1], self._raw_gyro)
         if not all(math.isfinite(u) for u in (s.v, s.w, s.v_var, s.w_var)):
             return
         samples = self.samples
