@@ -69,6 +69,9 @@ ACCEPTED_TYPES = {
 # A message whose header stamp disagrees with its topic's usual stamp-to-record-time offset by
 # more than this (or the reorder window, if larger) has a broken stamp and is dropped.
 STAMP_TOLERANCE = 1.0  # s
+# A topic that loses more than this share of its measurements as late (the reorder window too
+# short for it) gets a warning, beside the count in ``rejected``.
+LATE_SHARE = 0.1
 # A stamp of zero or below is a driver's clock not yet set, never a time: rejected before the
 # stamp check, whose warm-up median and drift tracking it would otherwise join.
 NULL_ISLAND = "latitude and longitude both 0: a receiver's placeholder, not a fix"
@@ -476,6 +479,11 @@ class BagStream:
         self.landmarks = landmark_maps(cfg, bag)
         self.rejected: Counter = Counter()
         self.late: Counter = Counter()  # topic -> measurements that came too late to reorder
+        self._lateness: dict[str, float] = {}  # topic -> the most a late one lagged the newest
+        self._offered: Counter = Counter()  # topic -> measurements offered to the buffer
+        # what the run should tell its user (a topic mostly late, a topic without messages):
+        # whole sentences naming the bag and topic, also logged
+        self.warnings: list[str] = []
         self.t0: float | None = None
         self.t1: float | None = None
         self.count = 0
@@ -716,7 +724,7 @@ class BagStream:
     def _emitted(self) -> Iterator:
         """Every measurement in stamp order (the generator behind iteration and prime)."""
         self._stopped: str | None = None
-        rejected = self.rejected
+        rejected, offered = self.rejected, self._offered
         checks: dict[int, _StampCheck] = {}
         heap: list = []
         push, pop = heapq.heappush, heapq.heappop
@@ -725,16 +733,20 @@ class BagStream:
         seq = 0
         newest = -math.inf  # the newest stamp pushed
         released = -math.inf  # the stamp of the last measurement passed on
+        # the newest stamp when it was: a late one needed a reorder window of this minus its
+        # stamp (not the newest at its own admission, which a topic's warm-up may hold back)
+        released_newest = -math.inf
         warming: set[int] = set()  # sources still in their stamp check's warm-up
         last_raw, last_msg = None, None
 
         def admit(ms: list, j: int, src: _Source) -> None:
             """Into the reorder buffer, or dropped as late: measurements of source ``j``."""
             nonlocal seq, newest
+            offered[src.topic] += len(ms)
             for m in ms:
                 t = m.t
                 if t < released:
-                    self._late(src, t, released)
+                    self._late(src, t, released, released_newest)
                     continue
                 push(heap, (t, j, seq, m))
                 seq += 1
@@ -801,7 +813,7 @@ class BagStream:
                     cut = newest - depth
                     while heap and heap[0][0] < cut:
                         item = pop(heap)
-                        released = item[0]
+                        released, released_newest = item[0], newest
                         m = self._out(item)
                         if m is not None:
                             yield m
@@ -822,8 +834,13 @@ class BagStream:
     def _source_of(self, index: int) -> _Source:
         return next(s for s in self._sources if s.index == index)
 
-    def _late(self, src: _Source, t: float, released: float) -> None:
+    def _late(self, src: _Source, t: float, released: float, newest: float) -> None:
+        """Count a measurement stamped ``t`` that came after ``released`` was passed on, when
+        the newest stamp was ``newest``: a reorder window of ``newest - t`` would have kept
+        it (releases happen at the same messages whatever the window)."""
         self.late[src.topic] += 1
+        if newest - t > self._lateness.get(src.topic, 0.0):
+            self._lateness[src.topic] = newest - t
         self.rejected[(src.topic, f"arrived after messages stamped up to more than "
                                   f"reorder_window ({self.depth:g} s) later had been passed on; "
                                   "raise reorder_window to keep it")] += 1
@@ -927,8 +944,11 @@ class BagStream:
             if where is not None:
                 raise BagError(f"{e} (only up to {where} could be read: {what})") from None
             raise
+        self._warn_late()
         for (topic, reason), n in sorted(self.rejected.items()):
             log.warning("%s: %s: %d message(s) rejected: %s", bag, topic, n, reason)
+        for w in self.warnings:
+            log.warning("%s", w)
         if where is not None:
             self.error = (f"{bag}: {what}; read {self._used} messages up to "
                           f"t={self.t1 if self.t1 is not None else 0.0:.3f} "
@@ -936,8 +956,23 @@ class BagStream:
         elif self._stopped is not None:
             self.error = f"{bag}: {self._stopped}"
 
+    def _warn_late(self) -> None:
+        """A warning for each topic that lost more than LATE_SHARE of its measurements as late
+        (counted in ``rejected`` either way, but a run's terminal shows no log)."""
+        for topic, n in sorted(self.late.items()):
+            total = self._offered[topic]
+            if n > LATE_SHARE * total:
+                lag = self._lateness[topic]
+                self.warnings.append(
+                    f"{self.bag}: topic {topic}: {n} of {total} measurements "
+                    f"({100.0 * n / total:.0f} %) dropped as late: they came up to "
+                    f"{lag:.2f} s behind the newest stamp, beyond reorder_window "
+                    f"({self.depth:g} s); set reorder_window to at least "
+                    f"{math.ceil(lag * 10.0) / 10.0:g} s (or --reorder-window) to keep them")
+
     def _check_sources(self, checks: dict[int, _StampCheck]) -> None:
         bag, rejected = self.bag, self.rejected
+        empty = []
         for src in sorted(self._sources, key=lambda s: s.index):
             chk = checks.get(src.index)
             if chk is None:
@@ -946,6 +981,7 @@ class BagStream:
                     reason = max(bad.items(), key=lambda x: x[1])[0]
                     raise BagError(f"{bag}: topic {src.topic} ({src.key}): all "
                                    f"{sum(bad.values())} messages rejected: {reason}")
+                empty.append(src)  # a message either converts (a check) or is counted
                 continue
             if chk.bad:
                 rejected[(src.topic, f"header stamp more than {self.tolerance:g} s off its "
@@ -956,6 +992,14 @@ class BagStream:
                         f"jump by more than {self.tolerance:g} s against the bag's record "
                         "time; the bag mixes clocks or time goes backwards beyond "
                         "reorder_window")
+        sensors = [s for s in self._sources if s.key != "ground_truth"]
+        if sensors and {s.index for s in sensors} <= {s.index for s in empty}:
+            raise BagError(f"{bag}: no configured sensor topic has a message "
+                           f"({', '.join(f'{s.topic} ({s.key})' for s in sensors)}): nothing "
+                           "to estimate from")
+        for src in empty:
+            self.warnings.append(f"{bag}: topic {src.topic} ({src.key}) has no messages; "
+                                 "the run goes on without it")
 
 
 def open_stream(bag: str | Path, cfg: Config, *, reorder_window: float | None = None,

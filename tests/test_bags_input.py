@@ -10,7 +10,7 @@ import bagwriter as bw
 import numpy as np
 import pytest
 
-from estimation.bags import NULL_ISLAND, UNSET_STAMP, read_stream
+from estimation.bags import NULL_ISLAND, UNSET_STAMP, BagStream, read_stream
 from estimation.config import parse_config
 from estimation.errors import BagError
 from estimation.measurements import GpsFix, GyroYawRate
@@ -148,3 +148,94 @@ def test_a_null_island_fix_is_no_fix_and_no_datum(tmp_path, fmt):
     assert max(abs(f.enu[0]) + abs(f.enu[1]) for f in of_type(s, GpsFix)) < 100.0
     assert len(s.ground_truth) == 5
     assert s.rejected == {("/fix", NULL_ISLAND): 2, ("/truth", NULL_ISLAND): 1}
+
+
+# --------------------------------------------------------------------------------------------
+# What a run must be told: a topic mostly late, a topic without messages
+# --------------------------------------------------------------------------------------------
+
+def _late_gps_bag(tmp_path: Path, fmt: str, late: float, which=range(40)) -> Path:
+    """IMU at 20 Hz recorded at its stamps; 40 fixes every 0.5 s, those numbered in ``which``
+    recorded ``late`` s after their stamp (the others at it)."""
+    recs = [("/imu", _imu(T0 + 0.05 * i, i), T0 + 0.05 * i) for i in range(400)]
+    recs += [("/fix", bw.navsatfix(T0 + 0.5 * k, 42.0 + 1e-6 * k, -71.0),
+              T0 + 0.5 * k + (late if k in which else 0.0)) for k in range(40)]
+    recs.sort(key=lambda r: r[2])
+    return write(tmp_path, fmt, recs)
+
+
+GPS_IMU = {"sensors": {**IMU_ONLY["sensors"], "gps": [{"topic": "/fix"}]}}
+
+
+@PATHS
+def test_a_topic_mostly_dropped_as_late_is_a_warning_with_the_window_it_needs(tmp_path, fmt):
+    """Fixes recorded 1.5 s after their stamp: nearly all dropped as late, and only the
+    rejected count said so (the command line shows no log)."""
+    bag = _late_gps_bag(tmp_path, fmt, 1.5)
+    bs = BagStream(bag, parse_config(GPS_IMU))
+    fixes = [m for m in bs if isinstance(m, GpsFix)]
+    assert bs.late["/fix"] > 0.1 * 40 and len(fixes) == 40 - bs.late["/fix"]
+    (w,) = bs.warnings
+    assert str(bag) in w and "/fix" in w and f"{bs.late['/fix']} of 40" in w
+    need = float(w.split("reorder_window to at least ")[1].split(" s")[0])
+    assert 1.4 <= need <= 1.6
+    # the window it names keeps every fix
+    bs = BagStream(bag, parse_config(GPS_IMU), reorder_window=need)
+    assert sum(isinstance(m, GpsFix) for m in bs) == 40
+    assert not bs.late and bs.warnings == []
+
+
+@PATHS
+def test_a_few_late_messages_are_counted_without_a_warning(tmp_path, fmt):
+    # 2 of 40 recorded 0.9 s late: within the stamp check's 1 s, beyond the 0.5 s window
+    bag = _late_gps_bag(tmp_path, fmt, 0.9, which=(10, 30))
+    bs = BagStream(bag, parse_config(GPS_IMU))
+    assert sum(isinstance(m, GpsFix) for m in bs) == 38 and bs.late["/fix"] == 2
+    assert bs.warnings == []
+
+
+def _bag_with_empty_topics(tmp_path: Path, fmt: str, records, empty: dict[str, str]) -> Path:
+    """A bag with ``records`` and a connection without messages for each topic: msgtype of
+    ``empty`` (what a recorder leaves for a sensor that never published)."""
+    from rosbags.rosbag1 import Writer as Writer1
+    from rosbags.rosbag2 import StoragePlugin
+    from rosbags.rosbag2 import Writer as Writer2
+
+    path = bw.bag_path(tmp_path, "b", fmt)
+    store = bw.typestore(fmt)
+    if fmt == "ros1":
+        writer, serialize = Writer1(path), store.serialize_ros1
+    else:
+        writer = Writer2(path, version=9, storage_plugin=StoragePlugin.MCAP)
+        serialize = store.serialize_cdr
+    with writer:
+        for topic, msgtype in empty.items():
+            writer.add_connection(topic, msgtype, typestore=store)
+        conns: dict = {}
+        for topic, msg in records:
+            if topic not in conns:
+                conns[topic] = writer.add_connection(topic, msg.msgtype, typestore=store)
+            writer.write(conns[topic], round(msg.stamp * 1e9),
+                         serialize(msg.build(store), msg.msgtype))
+    return path
+
+
+@PATHS
+def test_a_configured_topic_without_messages_is_a_warning(tmp_path, fmt):
+    recs = [("/imu", _imu(T0 + 0.05 * i, i)) for i in range(40)]
+    bag = _bag_with_empty_topics(tmp_path, fmt, recs, {"/fix": bw.NAVSATFIX})
+    bs = BagStream(bag, parse_config(GPS_IMU))
+    assert sum(isinstance(m, GyroYawRate) for m in bs) == 40
+    (w,) = bs.warnings
+    assert str(bag) in w and "/fix" in w and "sensors.gps[0]" in w and "no messages" in w
+
+
+@PATHS
+def test_a_bag_where_no_configured_sensor_has_a_message_is_an_error(tmp_path, fmt):
+    """empty_conns.bag of the audit ran every estimator on nothing and exited 0."""
+    recs = [("/other", _imu(T0 + 0.05 * i, i)) for i in range(5)]
+    bag = _bag_with_empty_topics(tmp_path, fmt, recs, {"/fix": bw.NAVSATFIX, "/imu": bw.IMU})
+    with pytest.raises(BagError) as e:
+        read_stream(bag, parse_config(GPS_IMU))
+    msg = str(e.value)
+    assert str(bag) in msg and "/fix (sensors.gps[0])" in msg and "/imu (sensors.imu[0])" in msg
