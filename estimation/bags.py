@@ -69,9 +69,11 @@ ACCEPTED_TYPES = {
 # A message whose header stamp disagrees with its topic's usual stamp-to-record-time offset by
 # more than this (or the reorder window, if larger) has a broken stamp and is dropped.
 STAMP_TOLERANCE = 1.0  # s
-# A topic that loses more than this share of its measurements as late (the reorder window too
-# short for it) gets a warning, beside the count in ``rejected``.
-LATE_SHARE = 0.1
+# A topic that loses more than this share of its messages (or of its measurements as late: the
+# reorder window too short for it), wholly or in part, gets a warning beside the count in
+# ``rejected``: a run's terminal shows no log.
+WARN_SHARE = 0.1
+_LATE_PREFIX = "arrived after messages stamped up to more than"
 # A stamp of zero or below is a driver's clock not yet set, never a time: rejected before the
 # stamp check, whose warm-up median and drift tracking it would otherwise join.
 NULL_ISLAND = "latitude and longitude both 0: a receiver's placeholder, not a fix"
@@ -126,7 +128,9 @@ def _odometry_converter(s: SensorConfig, key: str) -> Callable[[tuple], list]:
         if mount is not IDENTITY:
             lin, ang = rotate(mount, lin), rotate(mount, ang)
         v, w = lin[0], ang[2]
-        if not _finite(t, v, w):
+        # a NaN in a component the config does not use costs nothing (use: [yaw_rate])
+        if not (math.isfinite(t) and (math.isfinite(v) or not use_v)
+                and (math.isfinite(w) or not use_w)):
             raise Reject("non-finite stamp or twist")
         cv = cw = None
         if cov is not None:
@@ -175,11 +179,22 @@ def _imu_converter(s: SensorConfig, key: str) -> Callable[[tuple], list]:
         if not math.isfinite(t):
             raise Reject("non-finite stamp")
         out: list = []
+        # A bad orientation costs the parts that need it (the yaw; the acceleration, whose
+        # gravity it removes), not the message's gyro: one Reject at the end keeps the rest.
+        bad_q = None
+        if use_yaw or (use_a and not level):
+            try:
+                check_orientation(q, ocov, "")
+            except Reject as e:
+                bad_q = str(e)
+        lost = None
         if use_yaw:
-            check_orientation(q, ocov, "")
-            out.append(Heading(t, body_yaw(q, mount),
-                               var("orientation_covariance[8]", "yaw", ocov, 2), name,
-                               "imu_orientation"))
+            if bad_q is not None:
+                lost = f"{bad_q}: yaw not used"
+            else:  # a zero variance rejects the message, as for every field
+                out.append(Heading(t, body_yaw(q, mount),
+                                   var("orientation_covariance[8]", "yaw", ocov, 2), name,
+                                   "imu_orientation"))
         if use_w:
             wz = w[2] if mount is IDENTITY else dot_row(mount, 2, w)
             if not math.isfinite(wz):
@@ -193,16 +208,18 @@ def _imu_converter(s: SensorConfig, key: str) -> Callable[[tuple], list]:
             va = var("linear_acceleration_covariance[0]", "accel", acov, 0)
             if level:
                 out.append(ForwardAccel(t, ax, va, name))
+            elif bad_q is not None:
+                lost = (f"{bad_q}: yaw not used, nor linear_acceleration (its gravity removal "
+                        f"needs the orientation; {key}.accel_gravity: level takes the ground as "
+                        "level)" if use_yaw else
+                        f"linear_acceleration not used: {bad_q}{gravity_why}")
             else:
-                if not use_yaw:
-                    try:
-                        check_orientation(q, ocov, gravity_why)
-                    except Reject as e:
-                        raise Reject(f"linear_acceleration not used: {e}", kept=out) from None
                 # specific force = acceleration - gravity: on a slope the climb's g sin(angle)
                 # is in the reading (errata 000 #24); the tilt's error adds to the variance
                 up, vup = body_x_tilt(q, mount, ocov)
                 out.append(ForwardAccel(t, ax - GRAVITY * up, va + GRAVITY * GRAVITY * vup, name))
+        if lost is not None:
+            raise Reject(lost, kept=out)
         return out
 
     return convert
@@ -481,6 +498,7 @@ class BagStream:
         self.late: Counter = Counter()  # topic -> measurements that came too late to reorder
         self._lateness: dict[str, float] = {}  # topic -> the most a late one lagged the newest
         self._offered: Counter = Counter()  # topic -> measurements offered to the buffer
+        self._seen: Counter = Counter()
         # what the run should tell its user (a topic mostly late, a topic without messages):
         # whole sentences naming the bag and topic, also logged
         self.warnings: list[str] = []
@@ -753,13 +771,13 @@ class BagStream:
                 if t > newest:
                     newest = t
 
-        n_raw = 0
+        seen = self._seen  # topic -> messages read (per source reading it, as ``rejected``)
         raw_items = self._raw()
         if self._scan is None:
             deserialize = self._reader.deserialize
         try:
             for src, rec_ns, raw in raw_items:
-                n_raw += 1
+                seen[src.topic] += 1
                 if deserialize is None:
                     deserialize = self._store.deserialize_ros1
                 try:
@@ -841,7 +859,7 @@ class BagStream:
         self.late[src.topic] += 1
         if newest - t > self._lateness.get(src.topic, 0.0):
             self._lateness[src.topic] = newest - t
-        self.rejected[(src.topic, f"arrived after messages stamped up to more than "
+        self.rejected[(src.topic, f"{_LATE_PREFIX} "
                                   f"reorder_window ({self.depth:g} s) later had been passed on; "
                                   "raise reorder_window to keep it")] += 1
         if self.late[src.topic] == 1:
@@ -944,7 +962,7 @@ class BagStream:
             if where is not None:
                 raise BagError(f"{e} (only up to {where} could be read: {what})") from None
             raise
-        self._warn_late()
+        self._warn_rejected()
         for (topic, reason), n in sorted(self.rejected.items()):
             log.warning("%s: %s: %d message(s) rejected: %s", bag, topic, n, reason)
         for w in self.warnings:
@@ -956,12 +974,20 @@ class BagStream:
         elif self._stopped is not None:
             self.error = f"{bag}: {self._stopped}"
 
-    def _warn_late(self) -> None:
-        """A warning for each topic that lost more than LATE_SHARE of its measurements as late
-        (counted in ``rejected`` either way, but a run's terminal shows no log)."""
+    def _warn_rejected(self) -> None:
+        """The warnings of WARN_SHARE: per topic, each reason that cost more than that share of
+        its messages (a compass without orientation that only a count said was unused), and
+        the measurements dropped as late, with the reorder window that keeps them."""
+        for (topic, reason), n in sorted(self.rejected.items()):
+            total = self._seen[topic]
+            if reason.startswith(_LATE_PREFIX) or not n > WARN_SHARE * total:
+                continue
+            self.warnings.append(f"{self.bag}: topic {topic}: {n} of {total} messages "
+                                 f"({100.0 * n / total:.0f} %) rejected, in whole or in part: "
+                                 f"{reason}")
         for topic, n in sorted(self.late.items()):
             total = self._offered[topic]
-            if n > LATE_SHARE * total:
+            if n > WARN_SHARE * total:
                 lag = self._lateness[topic]
                 self.warnings.append(
                     f"{self.bag}: topic {topic}: {n} of {total} measurements "

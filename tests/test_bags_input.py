@@ -4,6 +4,7 @@ empty topics. Each test builds the smallest bag that shows the defect."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import bagwriter as bw
@@ -13,7 +14,7 @@ import pytest
 from estimation.bags import NULL_ISLAND, UNSET_STAMP, BagStream, read_stream
 from estimation.config import parse_config
 from estimation.errors import BagError
-from estimation.measurements import GpsFix, GyroYawRate
+from estimation.measurements import ForwardAccel, GpsFix, GyroYawRate, Heading
 
 T0 = 1_600_000_000.0
 PATHS = pytest.mark.parametrize("fmt", ["ros1", "mcap"])
@@ -239,3 +240,65 @@ def test_a_bag_where_no_configured_sensor_has_a_message_is_an_error(tmp_path, fm
         read_stream(bag, parse_config(GPS_IMU))
     msg = str(e.value)
     assert str(bag) in msg and "/fix (sensors.gps[0])" in msg and "/imu (sensors.imu[0])" in msg
+
+
+# --------------------------------------------------------------------------------------------
+# A bad orientation costs the yaw (and the acceleration it levels), not the gyro
+# --------------------------------------------------------------------------------------------
+
+def _imu_bag(tmp_path: Path, fmt: str, bad: set, n: int = 30) -> Path:
+    """IMU messages whose yaw rate is their index; those in ``bad`` with a zero quaternion."""
+    recs = [("/imu", bw.imu(T0 + 0.05 * i, quat=(0, 0, 0, 0) if i in bad else bw.yaw_quat(0.3),
+                            angvel=(0, 0, float(i)), accel=(0.5, 0.0, 9.80665),
+                            wcov=bw.diag(1e-4, 1e-4, 1e-4), acov=bw.diag(0.01, 0.01, 0.01),
+                            ocov=bw.diag(0.01, 0.01, 0.01)))
+            for i in range(n)]
+    return write(tmp_path, fmt, recs)
+
+
+def _imu_cfg(**fields):
+    return parse_config({"sensors": {"imu": [{"topic": "/imu", **fields}]}})
+
+
+@PATHS
+@pytest.mark.parametrize("gravity", ["orientation", "level"])
+def test_a_bad_orientation_keeps_the_gyro_of_its_message(tmp_path, fmt, gravity):
+    """imu_quat_zero_some.bag lost 360 yaw rates with its 360 bad quaternions."""
+    bad = {4, 5, 17}
+    s = read_stream(_imu_bag(tmp_path, fmt, bad), _imu_cfg(accel_gravity=gravity))
+    good = [i for i in range(30) if i not in bad]
+    assert [m.yaw_rate for m in of_type(s, GyroYawRate)] == pytest.approx(range(30))
+    assert [round((m.t - T0) / 0.05) for m in of_type(s, Heading)] == good
+    accel = [round((m.t - T0) / 0.05) for m in of_type(s, ForwardAccel)]
+    ((topic, reason), n), = s.rejected.items()
+    assert topic == "/imu" and n == len(bad)
+    assert reason.startswith("orientation is not a finite unit quaternion: yaw not used")
+    if gravity == "level":  # the acceleration needs no orientation
+        assert accel == list(range(30)) and "linear_acceleration" not in reason
+    else:
+        assert accel == good
+        assert "linear_acceleration" in reason and "sensors.imu[0].accel_gravity" in reason
+
+
+@PATHS
+def test_an_imu_that_never_gives_its_orientation_is_a_warning(tmp_path, fmt):
+    """The messages were rejected whole, an error; now their gyro is used, so the compass
+    that is never used must still be said on the terminal."""
+    bs = BagStream(_imu_bag(tmp_path, fmt, set(range(30))), _imu_cfg())
+    assert sum(isinstance(m, GyroYawRate) for m in bs) == 30
+    (w,) = bs.warnings
+    assert "/imu" in w and "30 of 30 messages" in w and "yaw not used" in w
+
+
+@PATHS
+def test_a_nan_in_the_unused_odometry_speed_keeps_the_yaw_rate(tmp_path, fmt):
+    cov = bw.diag(0.01, 1, 1, 1, 1, 0.02)
+    recs = [("/odom", bw.odometry(T0 + 0.1 * i, math.nan if i % 3 == 0 else 1.0, 0.1 * i,
+                                  twist_cov=cov)) for i in range(12)]
+    bag = write(tmp_path, fmt, recs)
+    s = read_stream(bag, parse_config({"sensors": {"odometry": [{"topic": "/odom",
+                                                                 "use": ["yaw_rate"]}]}}))
+    assert [m.yaw_rate for m in s.measurements] == pytest.approx([0.1 * i for i in range(12)])
+    assert not s.rejected
+    s = read_stream(bag, parse_config({"sensors": {"odometry": [{"topic": "/odom"}]}}))
+    assert len(s.measurements) == 8 and sum(s.rejected.values()) == 4
