@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from estimation import heading_survey, ros1_scan, rosmsg
-from estimation.bags import BagStream, open_reader
+from estimation.bags import BagStream, Reject, _gps_fix, open_reader
 from estimation.config import parse_config
 from estimation.errors import BagError, DdfuseError
 from estimation.frames import GRAVITY
@@ -73,6 +73,17 @@ def _diag_summary(name: str, values: list[float]) -> tuple[str, bool]:
 
 
 def _summarise(info: TopicInfo, recs: list[tuple]) -> None:
+    # an unset (zero or negative) or non-finite stamp is no time: as the reader drops such a
+    # message, the facts leave it out (one zero stamp made a 30 Hz IMU 3.6e12 Hz)
+    unset = [r for r in recs if not (r[0] > 0.0 and math.isfinite(r[0]))]
+    if unset:
+        recs = [r for r in recs if r[0] > 0.0 and math.isfinite(r[0])]
+        info.notes.append(f"{len(unset)} message(s) with a zero, negative or non-finite header "
+                          "stamp (a clock not set): left out of these facts; ddfuse drops them"
+                          + ("; every message has one, so the topic is unusable"
+                             if not recs else ""))
+        if not recs:
+            return
     t = np.array([r[0] for r in recs])
     info.t0, info.t1 = float(t.min()), float(t.max())
     if len(t) > 1:
@@ -107,8 +118,11 @@ def _summarise(info: TopicInfo, recs: list[tuple]) -> None:
         ctype = {r[6] for r in recs}
         a, ok = _diag_summary("var east", [r[5][0] for r in recs])
         nofix = sum(s < 0 for s in status)
+        unusable = sum(r[1] >= 0 and not _usable_fix(r) for r in recs)
         info.notes.append(f"{a}; covariance type {sorted(ctype)}; "
-                          f"{nofix} NO_FIX of {len(status)}")
+                          f"{nofix} NO_FIX of {len(status)}"
+                          + (f"; {unusable} more with a position ddfuse drops (latitude/"
+                             "longitude out of range or both 0)" if unusable else ""))
         info.cov_ok = ok and 0 not in ctype
         scatter = fix_scatter(recs)
         if scatter is not None:
@@ -129,8 +143,7 @@ def fix_scatter(recs: list[tuple]) -> str | None:
     its two neighbours, against what white errors of the stated median sigma give (sqrt(1.5)
     sigma for evenly spaced fixes; the robot's motion adds millimetres). None with fewer than
     10 usable fixes."""
-    ok = [r for r in recs if r[1] >= 0 and math.isfinite(r[2]) and math.isfinite(r[3])
-          and math.isfinite(r[5][0]) and r[5][0] > 0.0]
+    ok = [r for r in recs if _usable_fix(r) and math.isfinite(r[5][0]) and r[5][0] > 0.0]
     if len(ok) < 10:
         return None
     ok.sort(key=lambda r: r[0])
@@ -155,6 +168,17 @@ def fix_scatter(recs: list[tuple]) -> str | None:
     return text
 
 
+def _usable_fix(rec: tuple) -> bool:
+    """Whether the reader would take the NavSatFix record's position (its checks: status,
+    stamp, latitude/longitude in range, not (0, 0)): one fix at 95 deg latitude made the
+    scatter 388 km."""
+    try:
+        _gps_fix(rec, "")
+    except Reject:
+        return False
+    return rec[0] > 0.0
+
+
 def _is_ground_truth(topic: str) -> bool:
     t = topic.lower().replace("_", "").replace("-", "")
     return "groundtruth" in t or t.endswith("/gt") or "vicon" in t or "mocap" in t
@@ -176,12 +200,20 @@ def bag_info(path: str | Path) -> BagInfo:
         return _bag_info_unindexed(path, e)
     recs: dict[str, list] = {}
     infos: dict[str, TopicInfo] = {}
+    read = 0
+    damage = None
     try:
         for c in reader.connections:
             infos.setdefault(c.topic, TopicInfo(c.topic, c.msgtype, 0))
             infos[c.topic].count += c.msgcount
+        if not any(i.count for i in infos.values()):
+            raise BagError(f"{path}: the bag has no messages ("
+                           + (f"topics {', '.join(sorted(infos))}, each empty"
+                              if infos else "no topics")
+                           + "): nothing to inspect or suggest a config from")
         known = [c for c in reader.connections if c.msgtype in rosmsg.EXTRACTORS]
         for conn, _, raw in reader.messages(connections=known):
+            read += 1
             fast, slow = rosmsg.EXTRACTORS[conn.msgtype]
             try:
                 rec = fast(raw) if fast and not reader.is2 else slow(
@@ -189,11 +221,21 @@ def bag_info(path: str | Path) -> BagInfo:
             except Exception:  # counted below as undecodable
                 continue
             recs.setdefault(conn.topic, []).append(rec)
+    except BagError:
+        raise
     except Exception as e:  # rosbags raises many types on damaged storage
-        raise BagError(f"{path}: bag is damaged or truncated ({type(e).__name__}: {e})") from None
+        # what was read before the damage is still worth showing, as for a truncated bag
+        damage = f"{type(e).__name__}: {e}"
     finally:
         reader.close()
-    return _finish(path, infos, recs)
+    if damage is not None and not read:
+        raise BagError(f"{path}: bag is damaged or truncated ({damage}); no message could be "
+                       "read")
+    info = _finish(path, infos, recs, cut_short=damage is not None)
+    if damage is not None:
+        info.error = (f"{path}: bag is damaged or truncated ({damage}); the facts above are of "
+                      f"the {read} messages read before it (the counts are the index's)")
+    return info
 
 
 def _bag_info_unindexed(path: Path, open_error: BagError) -> BagInfo:
@@ -247,12 +289,17 @@ def _bag_info_unindexed(path: Path, open_error: BagError) -> BagInfo:
     return info
 
 
-def _finish(path: Path, infos: dict[str, TopicInfo], recs: dict[str, list]) -> BagInfo:
+def _finish(path: Path, infos: dict[str, TopicInfo], recs: dict[str, list],
+            cut_short: bool = False) -> BagInfo:
+    """The BagInfo of the records read; ``cut_short``: the reading stopped at damage, so the
+    messages of a topic's count that were not read need not be undecodable."""
     for topic, lst in recs.items():
         _summarise(infos[topic], lst)
         undecoded = infos[topic].count - len(lst)
         if undecoded:
-            infos[topic].notes.append(f"{undecoded} message(s) could not be decoded")
+            infos[topic].notes.append(
+                f"{undecoded} of its {infos[topic].count} messages lie past the damage or could "
+                "not be decoded" if cut_short else f"{undecoded} message(s) could not be decoded")
     _correlate_gyros(list(infos.values()))
     t0 = min((i.t0 for i in infos.values() if math.isfinite(i.t0)), default=0.0)
     t1 = max((i.t1 for i in infos.values() if math.isfinite(i.t1)), default=0.0)
@@ -364,7 +411,7 @@ def suggest_config(info: BagInfo, surveys: list | tuple = ()) -> dict:
     gt: tuple[str, bool] | None = None  # (topic, whether it has a heading)
     odo_w = odometry_yaw_rate_agrees(info) is not False
     for t in info.topics:
-        if t.count == 0:
+        if t.count == 0 or not math.isfinite(t.t0):  # no message read with a usable stamp
             continue
         if _is_ground_truth(t.topic):
             # a pose (with heading) over a fix (position only), whatever the topics' order

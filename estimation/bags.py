@@ -350,8 +350,11 @@ def open_reader(bag: Path):
     try:
         reader = AnyReader([path], default_typestore=store)
         reader.open()
-    except (AnyReaderError, OSError, ValueError, KeyError) as e:
-        raise BagError(f"{bag}: cannot read bag ({e}); is it truncated or not a bag?") from None
+    except (AnyReaderError, OSError, ValueError, KeyError, AssertionError, IndexError) as e:
+        # rosbags asserts on a damaged ROS1 index (a garbled IndexData record), which the
+        # caller then reads from the front, as one without an index
+        raise BagError(f"{bag}: cannot read bag ({type(e).__name__ if not str(e) else e}); "
+                       "is it truncated or not a bag?") from None
     return reader
 
 
