@@ -80,17 +80,18 @@ from estimation.measurements import (
     is_finite,
 )
 from estimation.runner import TrackBuilder
-from factors.gps import gps_factor
+from factors.gps import gps_factor, gps_predict_jacobian
 from factors.gyro import bias_difference_factor
 from factors.kinematics import se2_step, se2_step_jac
 from factors.landmark import range_bearing_factor, range_factor
-from factors.linear import heading_row, linear_state_factor
+from factors.linear import linear_state_factor
 from factors.preintegration import WheelGyroPreintegration, preintegrated_factor
 from factors.state import BG, DIM, HOFF, KV, KW, NAMES, PSI
 
 _ACCEPT, _REJECT, _RECOVER = 0, 1, 2  # verdicts of the GPS gate (FixedLagSmoother._gate)
 MIN_KEYFRAME_DT = 0.1  # s: closer absolute measurements share a keyframe
 INIT_DISTANCE = 5.0  # m of GPS travel before the heading is taken from the GPS course
+COURSE_SIGMA_MAX = 0.4  # rad: with poor fixes, the travel waits for a course this good
 # m/sqrt(s), m/sqrt(s), rad/sqrt(s): the least pose noise between keyframes (see
 # SmootherNoise.from_config); a tenth of a millimetre per second, negligible against any sensor
 POSE_NOISE_FLOOR = (1e-3, 1e-3, 1e-4)
@@ -107,7 +108,8 @@ RECOVERY_WINDOW = 10.0  # s of data
 # 1e-6 against a prior of 0.3 rad, Cholesky meets a condition number ~1e11 and gtsam declares
 # the system indeterminate. 1e-4 rad/sqrt(s) is 2 mrad over 400 s. The bias walk is also at
 # least ``walk_floor(init_bg_sigma)`` (3.1e-5: at 1e-5 and 10 Hz keyframes the smoother stopped
-# within 0.5 s), and so is the offset's while no heading sample has informed it.
+# within 0.5 s), and the offset's is at least ``walk_floor`` of its current sigma (above
+# 1e-4 while that is over 0.065 rad).
 WALK_FLOOR = (1e-5, 1e-4)
 
 
@@ -137,7 +139,7 @@ class SmootherNoise:
     fixed_rw: float = 1e-6  # random walk of a calibration state that is not estimated
     init_pos_sigma: float = GIVEN_POSE_STD[0]  # m, when the initial pose is given
     init_given_psi_sigma: float = GIVEN_POSE_STD[1]  # rad, when the initial pose is given
-    init_psi_sigma: float = 0.2  # rad, from GPS course
+    init_psi_sigma: float = 0.2  # rad, from GPS course: at least (more on a short baseline)
     init_v_sigma: float = 1.0  # m/s
     init_w_sigma: float = 0.5  # rad/s
     init_bg_sigma: float = 0.02  # rad/s when estimated
@@ -345,7 +347,9 @@ class FixedLagSmoother(Estimator):
                           if self.scale_prior is not None else self.noise.fixed_rw)
         self.has_gps = bool(cfg.of_kind("gps"))
         self.odometry_held_back = bool(cfg.of_kind("odometry") or cfg.of_kind("wheels"))
-        self.keyframe_rate = cfg.smoother.keyframe_rate
+        # keyframes closer than MIN_KEYFRAME_DT would break walk_floor's margin: at 75 Hz and
+        # more (13 ms apart) gtsam declared the window indeterminate within 0.4 s
+        self.keyframe_rate = min(cfg.smoother.keyframe_rate, 1.0 / MIN_KEYFRAME_DT)
         self.kf_policy = cfg.smoother.keyframe
         self._lagged = TrackBuilder()  # compact: (t, pose, pose cov) per keyframe
         self._reset_state()
@@ -383,8 +387,8 @@ class FixedLagSmoother(Estimator):
         # heading samples since the newest keyframe: sensor, the first one carried back to the
         # keyframe (rad), the sum of the others' wrapped differences from it, summed variances
         self._h_n = 0
-        self._hoff_informed = False  # whether a heading sample has informed the offset
         self._h_sensor, self._h_ref, self._h_sum, self._h_var = "", 0.0, 0.0, 0.0
+        self._h_jb = self._h_jk = self._h_c1 = self._h_c2 = 0.0
         self._held: list = []  # messages since the last odometry sample, waiting for the next
         self._now = -math.inf  # stamp of the newest message seen
         self._lockout = Lockout()  # GPS gate streaks per sensor (estimation.lockout)
@@ -392,6 +396,7 @@ class FixedLagSmoother(Estimator):
         self._gps_ok_t = -math.inf  # stamp of the newest fix the gate accepted
         self._hgate: tuple | None = None  # the compass gate's per-keyframe terms (_heading_gate)
         self._full: np.ndarray | None = None  # newest keyframe's (DIM, DIM) marginal
+        self._full_k = -1  # the keyframe whose marginal _full is (behind k after _new_keyframe)
         self._skip_in_batch: int | None = None  # pending factor the batch leaves out (_widen)
         self.pending_graph = gtsam.NonlinearFactorGraph()
         self.pending_values = gtsam.Values()
@@ -441,10 +446,9 @@ class FixedLagSmoother(Estimator):
             self.all_kf_t[self.k] = t
         self.kf_state = x0
         self.kf_cov = cov0[:3, :3].copy()
-        self._full = cov0
+        self._full, self._full_k = cov0, self.k
         self.pim.reset(x0[BG], x0[KV], x0[KW])
         self._h_n = 0
-        self._hoff_informed = False
         self.initialised = True
         self.last_t = t
         self._flush()
@@ -613,13 +617,23 @@ class FixedLagSmoother(Estimator):
         elif isinstance(m, Heading):
             self.heading = m
             if self._h_n == 0 or m.sensor == self._h_sensor:
-                u = m.yaw - self.pim.dpsi  # carried back to the interval's start
+                pim = self.pim
+                u = m.yaw - pim.dpsi  # carried back to the interval's start
                 if not self._heading_gate(m, u):
                     return
                 if self._h_n == 0:
                     self._h_sensor, self._h_ref, self._h_sum, self._h_var = m.sensor, u, 0.0, 0.0
+                    self._h_jb = self._h_jk = self._h_c1 = self._h_c2 = 0.0
                 self._h_sum += wrap_angle(u - self._h_ref)
                 self._h_var += m.var
+                # what the carried yaw depends on: the gyro bias and yaw-rate scale (first
+                # order), and the yaw noise integrated up to the sample (its index-weighted
+                # sum gives the mean's variance, ``_pending_heading``)
+                self._h_jb += pim.j_p
+                self._h_jk += pim.kw_p
+                c = pim.c_pp
+                self._h_c1 += c
+                self._h_c2 += self._h_n * c
                 self._h_n += 1
         elif isinstance(m, (GpsFix, LandmarkObservation)):
             self._absolute(m)
@@ -636,8 +650,12 @@ class FixedLagSmoother(Estimator):
         key = (m.sensor, quantity)
         last = self.sample_t.get(key)
         self.sample_t[key] = m.t
-        period = min(max(m.t - last, 1e-3), 1.0) if last is not None else 0.1
         prev = self.sample_T.get(key)
+        if last is not None and m.t - last < 1e-3 and prev is not None:
+            # a repeated (or re-ordered) stamp says nothing of the rate; taken as a 1 ms period
+            # it made every later period "a gap" and froze the density at 1 ms for the run
+            return prev
+        period = min(max(m.t - last, 1e-3), 1.0) if last is not None else 0.1
         if prev is not None and period > 2.0 * prev:
             return prev
         self.sample_T[key] = period
@@ -749,14 +767,18 @@ class FixedLagSmoother(Estimator):
         if m.t - t_kf >= (MIN_KEYFRAME_DT if self.kf_policy == "gps" else 1e9) and self.pim.n > 0:
             self._new_keyframe(m.t)
         k = self.k
-        # A delayed measurement goes to the keyframe nearest in time inside the window.
+        # A delayed measurement goes to the keyframe nearest in time inside the window; one
+        # older than the lag (gtsam's own cut) is dropped, however near a keyframe it is.
         if m.t < self.kf_t[k] - MIN_KEYFRAME_DT:
-            window = [j for j, tj in self.kf_t.items() if tj >= self.kf_t[k] - self.lag]
-            k = min(window, key=lambda j: abs(self.kf_t[j] - m.t))
-            if abs(self.kf_t[k] - m.t) > 1.0:
+            cut = self.kf_t[k] - self.lag
+            window = [j for j, tj in self.kf_t.items() if tj >= cut]
+            if m.t < cut or not window:
                 self.log.rejected[(m.sensor, "older than the smoother lag")] += 1
-                self.log.note(m.t, f"{m.sensor}: measurement older than the lag dropped")
+                self.log.note(m.t, f"{m.sensor}: measurement {self.kf_t[self.k] - m.t:.2f} s "
+                              f"older than the newest keyframe, beyond the {self.lag:g} s lag, "
+                              "dropped")
                 return
+            k = min(window, key=lambda j: abs(self.kf_t[j] - m.t))
         dt = m.t - self.kf_t[k]
         if isinstance(m, GpsFix):
             # A fix with a configured delay is the antenna position that long before its stamp:
@@ -768,27 +790,81 @@ class FixedLagSmoother(Estimator):
 
     def _gps(self, m: GpsFix, k: int, dt: float) -> None:
         s = self.sensors[m.sensor]
-        sig = (math.sqrt(m.cov[0, 0]), math.sqrt(m.cov[1, 1]))
         e, n = m.enu[0], m.enu[1]
         if k == self.k and self.kf_state is not None:
-            nis = self._gps_innovation(m, e, n, s.lever_arm, dt)
+            cov = self._gps_cov(m, self.kf_state, dt)
+            nis = self._gps_innovation(m, s.lever_arm, dt, cov)
             verdict = self._gate(m, s, nis)
             if verdict == _REJECT:
                 return
             if verdict == _RECOVER:
-                k = self._widen(m, s, dt)
-        if s.lever_arm == (0.0, 0.0) and abs(dt) < 1e-9:
+                k = self._widen(m, s, dt, cov)  # a keyframe at the newest's stamp: same dt
+        else:
+            cov = self._delayed_gps(m, s, k, dt)
+            if cov is None:
+                return
+        if s.lever_arm == (0.0, 0.0) and abs(dt) < 1e-9 and cov[0, 1] == 0.0:
             # On the keyframe and without a lever arm the fix is linear in the state: the
             # built-in prior with zero precision on unmeasured components is the same factor
             # at a fraction of a CustomFactor's cost (design study, design E).
             prec = np.zeros(DIM)
-            prec[0], prec[1] = 1.0 / (sig[0] * sig[0]), 1.0 / (sig[1] * sig[1])
+            prec[0], prec[1] = 1.0 / cov[0, 0], 1.0 / cov[1, 1]
             target = np.zeros(DIM)
             target[0], target[1] = e, n
             model = _robustify(self.cfg, s, gtsam.noiseModel.Diagonal.Precisions(prec), 2)
             self._add(gtsam.PriorFactorVector(self.key(k), target, model))
         else:
-            self._add(gps_factor(self.key(k), e, n, _robust(self.cfg, s, sig), s.lever_arm, dt))
+            # the fix's east/north correlation kept (a receiver's ellipse is rarely a circle)
+            model = (gtsam.noiseModel.Diagonal.Variances(np.array((cov[0, 0], cov[1, 1])))
+                     if cov[0, 1] == 0.0 else gtsam.noiseModel.Gaussian.Covariance(cov))
+            self._add(gps_factor(self.key(k), e, n, _robustify(self.cfg, s, model, 2),
+                                 s.lever_arm, dt))
+
+    def _gps_cov(self, m: GpsFix, x: np.ndarray, dt: float) -> np.ndarray:
+        """The fix's east/north covariance (2, 2), m^2, as a measurement of keyframe state
+        ``x`` carried ``dt`` s along its constant twist: the fix's own plus what the body's
+        motion does off that twist over |dt| -- slip (pose_noise) and the twist's random walk
+        (the held-sample densities): along the heading  l^2 |dt| + q_v |dt|^3 / 3, across it
+        t^2 |dt| + v^2 (h^2 |dt|^3 / 3 + q_w |dt|^5 / 20). Without it a fix carried 2 s onto a
+        keyframe (``keyframe: rate`` at 0.5 Hz) was trusted to its 1 m while the carry alone
+        was 0.14 m RMS off with the true twist, 2.5 m at worst at 4 s: NEES 10.6."""
+        cov = np.array(m.cov[:2, :2], dtype=float)
+        a = abs(dt)
+        if a < 1e-9:
+            return cov
+        nz, robot = self.noise, self.cfg.robot
+        pl, pt, ph = nz.pose_noise
+        qv = _twist_walk(robot.max_accel, nz.acc, self.v_T)
+        qw = _twist_walk(robot.max_yaw_accel, nz.yaw_acc,
+                         self.wg_T if self.wg is not None else self.wo_T)
+        v = float(x[3])
+        along = pl * pl * a + qv * a ** 3 / 3.0
+        across = pt * pt * a + v * v * (ph * ph * a ** 3 / 3.0 + qw * a ** 5 / 20.0)
+        c, sn = math.cos(float(x[PSI])), math.sin(float(x[PSI]))
+        cov[0, 0] += along * c * c + across * sn * sn
+        cov[1, 1] += along * sn * sn + across * c * c
+        cov[0, 1] += (along - across) * c * sn
+        cov[1, 0] = cov[0, 1]
+        return cov
+
+    def _delayed_gps(self, m: GpsFix, s: SensorConfig, k: int, dt: float) -> np.ndarray | None:
+        """A fix for an older keyframe ``k`` of the window: gated against that keyframe's
+        marginal, as a fix on time is against the newest's (an outlier 1 s late was fused),
+        and logged for the NIS. The lock-out is left alone: it is about the current estimate.
+        Returns the fix's covariance for the factor, or None when the gate rejects it."""
+        try:
+            key = self.key(k)
+            x = self.smoother.calculateEstimateVector(key)
+            full = self.smoother.marginalCovariance(key)
+        except (RuntimeError, IndexError, ValueError):
+            return self._gps_cov(m, self.kf_state, dt)  # not in the smoother yet: ungated
+        cov = self._gps_cov(m, x, dt)
+        nis = self._gps_innovation(m, s.lever_arm, dt, cov, x, full)
+        if s.gate is not None and nis > _gate_radius(s.gate, 2) ** 2:
+            self.log.rejected[(m.sensor, "gate")] += 1
+            self.log.innovations[-1].accepted = False
+            return None
+        return cov
 
     def _gate(self, m: GpsFix, s: SensorConfig, nis: float) -> int:
         """The gate's verdict on a fix with innovation ``nis``, as in the EKF: _ACCEPT, _REJECT
@@ -870,7 +946,7 @@ class FixedLagSmoother(Estimator):
         self.log.rejected[(m.sensor, "gate")] += 1
         return False
 
-    def _widen(self, m: GpsFix, s: SensorConfig, dt: float) -> int:
+    def _widen(self, m: GpsFix, s: SensorConfig, dt: float, r: np.ndarray) -> int:
         """Recover from a gate lock-out on fix ``m`` (``dt`` s from the newest keyframe) as the
         EKFs do, by widening the belief by the smallest factor alpha that makes the fix's
         innovation ordinary (``estimation.lockout.inflation``), here inside the graph: the fix
@@ -880,17 +956,22 @@ class FixedLagSmoother(Estimator):
         output keeps smoothing across the jump). The batch ties the two keyframes tightly
         instead: the robot did not jump, the filter was lost. Returns the new keyframe."""
         self._flush()  # the newest keyframe's motion and heading factors, without the fix
-        x = self.kf_state
-        psi, v = float(x[PSI]), float(x[3])
-        c, sn = math.cos(psi), math.sin(psi)
-        lx, ly = s.lever_arm
-        H = np.zeros((2, DIM))
-        H[0, 0] = H[1, 1] = 1.0
-        H[0, PSI], H[1, PSI] = -sn * lx - c * ly - v * sn * dt, c * lx - sn * ly + v * c * dt
-        H[0, 3], H[1, 3] = c * dt, sn * dt
-        y = np.array((m.enu[0] - (x[0] + c * lx - sn * ly + v * c * dt),
-                      m.enu[1] - (x[1] + sn * lx + c * ly + v * sn * dt)))
-        return self._widen_link(m.sensor, m.t, H, y, m.cov[:2, :2], "fix")
+        pred, H = gps_predict_jacobian(self.kf_state, s.lever_arm, dt)
+        y = np.array((m.enu[0] - pred[0], m.enu[1] - pred[1]))
+        return self._widen_link(m.sensor, m.t, H, y, r, "fix")
+
+    def _newest_marginal(self) -> np.ndarray:
+        """The newest keyframe's marginal (DIM, DIM) as far as it is known: gtsam's after an
+        update; between a new keyframe and its update the composed pose covariance with the
+        previous keyframe's twist and calibration blocks (cross terms with the pose left out)."""
+        full = self._full
+        if self._full_k == self.k and full is not None and full.shape == (DIM, DIM):
+            return full
+        out = np.zeros((DIM, DIM))
+        if full is not None and full.shape == (DIM, DIM):
+            out[3:, 3:] = full[3:, 3:]
+        out[:3, :3] = self.kf_cov
+        return out
 
     def _widen_link(self, key, t_m: float, H: np.ndarray, y: np.ndarray, R: np.ndarray,
                     what: str, calibration: bool = True) -> int:
@@ -949,7 +1030,7 @@ class FixedLagSmoother(Estimator):
             del self.all_kf_t[i]
             self.all_kf_t[j] = t
         self.kf_cov = full[:3, :3] + q[:3, :3]
-        self._full = full + q
+        self._full, self._full_k = full + q, j
         sensor = key[0] if isinstance(key, tuple) else key
         count, first = self._lockout.streak(key)
         wait = self._lockout.recovered(key, t_m)
@@ -959,17 +1040,17 @@ class FixedLagSmoother(Estimator):
                       f"fused (next recovery not before {wait:.0f} s)")
         return j
 
-    def _gps_innovation(self, m, e, n, lever, dt) -> float:
-        """Innovation of the fix against the prediction before it is fused (logged for NIS);
-        returns its NIS."""
-        st = self.kf_state
-        psi, v = float(st[2]), float(st[3])
-        c, s = math.cos(psi), math.sin(psi)
-        lx, ly = lever
-        res = np.array((e - (st[0] + c * lx - s * ly + v * c * dt),
-                        n - (st[1] + s * lx + c * ly + v * s * dt)))
-        h = np.array(((1.0, 0.0, -s * lx - c * ly), (0.0, 1.0, c * lx - s * ly)))
-        cov = h @ self.kf_cov @ h.T + m.cov[:2, :2]
+    def _gps_innovation(self, m, lever, dt, r: np.ndarray, st: np.ndarray | None = None,
+                        full: np.ndarray | None = None) -> float:
+        """Innovation of the fix against the prediction before it is fused (logged for NIS),
+        with the GPS factor's own model (``gps_predict_jacobian``) and measurement covariance
+        ``r``; at keyframe state ``st`` with marginal ``full``, by default the newest's.
+        Returns its NIS."""
+        if st is None:
+            st, full = self.kf_state, self._newest_marginal()
+        pred, h = gps_predict_jacobian(st, lever, dt)
+        res = np.array((m.enu[0] - pred[0], m.enu[1] - pred[1]))
+        cov = h[:, :5] @ full[:5, :5] @ h[:, :5].T + r
         a, b, d = cov[0, 0], cov[0, 1], cov[1, 1]
         det = a * d - b * b
         r0, r1 = res
@@ -1020,6 +1101,8 @@ class FixedLagSmoother(Estimator):
         self.log.innovations.append(Innovation(m.t, m.sensor, "landmark", res, cov, nis, True))
 
     def _new_keyframe(self, t: float) -> None:
+        if self._h_n:
+            self._log_heading_innovation(t)
         i, j = self.k, self.k + 1
         ki, kj = self.key(i), self.key(j)
         n = self.noise
@@ -1043,15 +1126,9 @@ class FixedLagSmoother(Estimator):
         rows = []
         if self._h_n:
             # the interval's heading samples, each carried to this keyframe by the
-            # preintegrated yaw since it, averaged: one factor with variance var / n
-            z, var, use_offset = self._pending_heading()
-            z += pim.dpsi
-            rows.append(heading_row(z, math.sqrt(var), use_offset=use_offset))
-            pred = guess[PSI] + guess[HOFF] if use_offset else guess[PSI]
-            res = np.array([wrap_angle(z - pred)])
-            scov = np.array([[cov[2, 2] + var]])
-            self.log.innovations.append(Innovation(
-                t, self._h_sensor, "heading", res, scov, float(res[0] ** 2 / scov[0, 0]), True))
+            # preintegrated yaw since it, averaged: one factor
+            h, z, var = self._pending_heading(pim)
+            rows.append((h, z, math.sqrt(var), True))
             self._h_n = 0
         if self.est_bias and self._diff_t > 0.0:
             # mean gyro - k_w x mean odometry yaw rate over the interval: a measurement of the
@@ -1068,18 +1145,33 @@ class FixedLagSmoother(Estimator):
         self._int_g = self._int_o = self._diff_t = 0.0
         self.pim.reset(guess[BG], guess[KV], guess[KW])
 
+    def _log_heading_innovation(self, t: float) -> None:
+        """The interval's averaged heading measurement (closed at ``t``) against the state
+        before it is fused, for the NIS: carried back to the newest keyframe, whose full
+        marginal gtsam gave (psi and the offset are strongly anti-correlated: their cross
+        term matters, and the logged S had left out all but psi's variance)."""
+        h, z, var = self._pending_heading()
+        full = self._newest_marginal()
+        res = np.array([wrap_angle(z - float(h @ self.kf_state))])
+        scov = np.array([[float(h @ full @ h) + var]])
+        self.log.innovations.append(Innovation(
+            t, self._h_sensor, "heading", res, scov, float(res[0] ** 2 / scov[0, 0]), True))
+
     def _hoff_rw(self) -> float:
         """The heading offset's walk for the interval ending at the next keyframe: at least
-        ``walk_floor`` of its prior until a heading sample has informed it in this window (its
-        prior alone against the stated walk's tie is what gtsam's Cholesky refuses)."""
+        ``walk_floor`` of its marginal sigma at the newest keyframe (an uncertain offset
+        against the stated walk's tie is what gtsam's Cholesky refuses)."""
         n = self.noise
         if not self.est_hoff:
             return n.fixed_rw
-        if self._h_n:
-            self._hoff_informed = True
-        if self._hoff_informed:
-            return n.heading_offset_rw
-        return max(n.heading_offset_rw, walk_floor(n.init_hoff_sigma))
+        # A compass sample informs psi + offset, not the offset: while the heading is
+        # uncertain the offset keeps about its prior sigma, and dropping the floor at the first
+        # sample made gtsam refuse the pivot (30 of 30 runs stopped with a 0.6 rad initial
+        # heading sigma). The floor follows the offset's own marginal instead.
+        full = self._full
+        sigma = (math.sqrt(max(float(full[HOFF, HOFF]), 0.0))
+                 if full is not None and full.shape == (DIM, DIM) else n.init_hoff_sigma)
+        return max(n.heading_offset_rw, walk_floor(sigma))
 
     def _frozen(self) -> WheelGyroPreintegration:
         """The preintegration as an object with plain float attributes, for code that reads
@@ -1118,6 +1210,7 @@ class FixedLagSmoother(Estimator):
         key = self.key(self.k)
         self.kf_state = self.smoother.calculateEstimateVector(key)
         full = self._full = self.smoother.marginalCovariance(key)
+        self._full_k = self.k
         self.kf_cov = full[:3, :3]
         self._scale_belief = (self.kf_state[KV:].copy(), full[KV:, KV:].copy())
 
@@ -1161,12 +1254,19 @@ class FixedLagSmoother(Estimator):
             raise RuntimeError(f"smoother: {self.stopped}")
         self.log.note(t, f"smoother re-initialised after gtsam error: {first}")
         self.log.rejected[("smoother", "gtsam error, re-initialised")] += 1
-        state, cov = self.kf_state, self.kf_cov
+        state, cov, full = self.kf_state, self.kf_cov, self._full
         self._capture_leaving(math.inf)  # the window's keyframes as they stood: no gap in the lag
         self._new_smoother()
         sig = np.sqrt(np.maximum(np.diag(cov), 1e-6)) * 2.0
+        calib = None
+        if full is not None and full.shape == (DIM, DIM):
+            # the gyro bias and heading offset as learnt, their sigmas doubled as the pose's;
+            # their priors instead cost 0.7 deg of yaw for seconds and, with an uncertain
+            # heading, fed the next failures
+            cc = 4.0 * full[BG:, BG:]
+            calib = (np.array(state[BG:], dtype=float), 0.5 * (cc + cc.T))
         self._init_state(t, (state[0], state[1], state[2]), float(max(sig[0], sig[1])),
-                         float(sig[2]), self._scale_belief)
+                         float(sig[2]), self._scale_belief, calib=calib)
 
     def _new_smoother(self) -> None:
         """An empty smoother and window (what was pending is dropped)."""
@@ -1213,7 +1313,13 @@ class FixedLagSmoother(Estimator):
             return
         f0, f1 = self._buf_fixes
         de, dn = f1.enu[0] - f0.enu[0], f1.enu[1] - f0.enu[1]
-        if math.hypot(de, dn) < INIT_DISTANCE:
+        # the course's direction error is both fixes' errors across the baseline d: stated as
+        # such (a fixed 0.2 rad was 0.30 rad RMS off with 1 m fixes), and with poor fixes the
+        # wait is for a baseline that gives COURSE_SIGMA_MAX (with 2 m fixes 5 m gave 0.79 rad
+        # RMS, 12 % of them beyond 3 sigma)
+        across = max(f0.cov[0, 0], f0.cov[1, 1]) + max(f1.cov[0, 0], f1.cov[1, 1])
+        d = math.hypot(de, dn)
+        if d < max(INIT_DISTANCE, math.sqrt(across) / COURSE_SIGMA_MAX):
             return
         psi0 = self._course_heading(f0, f1)
         if psi0 is None:
@@ -1228,7 +1334,11 @@ class FixedLagSmoother(Estimator):
         self._buf_fixes = self._buf_last = None
         self._buf_moving = False
         sig = max(math.sqrt(f0.cov[0, 0]), math.sqrt(f0.cov[1, 1]))
-        self._start(f0.t, (f0.enu[0], f0.enu[1], psi0), sig, self.noise.init_psi_sigma)
+        # the baseline the fixes' own errors lengthened (by 2 across in the mean square): the
+        # wait ended at a noisy d that had reached the threshold early
+        d_true = math.sqrt(max(d * d - 2.0 * across, 0.25 * d * d))
+        self._start(f0.t, (f0.enu[0], f0.enu[1], psi0), sig,
+                    max(self.noise.init_psi_sigma, math.sqrt(across) / d_true))
         for b in buffered:
             self.process(b)
 
@@ -1296,18 +1406,46 @@ class FixedLagSmoother(Estimator):
                                    wg - gain * bg + kw * wo, ahead), self._now
         return Estimate(t, (pose[0], pose[1], wrap_angle(pose[2])), cov, st.copy(), None, NAMES)
 
-    def _pending_heading(self) -> tuple[float, float, bool]:
-        """The heading samples since the newest keyframe as one measurement of its heading:
-        (value rad, variance rad^2, whether it measures psi + the estimated offset; else psi,
-        the sensor's fixed offset removed). Each sample is carried back to the keyframe by the
-        preintegrated yaw up to it (``_step``); add the yaw to a later time to move it there."""
+    def _pending_heading(self, closing=None) -> tuple[np.ndarray, float, float]:
+        """The heading samples since the newest keyframe as one linear measurement h x = z
+        (h (DIM,), z rad, variance rad^2) of the newest keyframe's state, or, with
+        ``closing`` (the interval's preintegration), of the keyframe that closes it.
+
+        Each sample u_i = yaw_i - dpsi_i is carried back to the keyframe by the preintegrated
+        yaw up to it (``_step``), which depends on the gyro bias and the yaw-rate scale:
+        u_i = psi + [hoff] + J_i (bg - bg_lin) + K_i (k_w - kw_lin) + noise. So the mean
+        measures psi + [hoff] + J bg + K k_w, J, K the means of J_i, K_i; at the closing
+        keyframe, psi_j = psi + dpsi_T + J_T (bg - bg_lin) + ..., with J - J_T, K - K_T. Left
+        out, a bias still uncertain (early in a run) biased the heading: with 2 s keyframe
+        intervals 1.0 deg RMS of yaw error against a stated 0.35 deg (NEES 10.6). The variance:
+        the samples' own var / n plus the mean's share of the integrated yaw noise (white:
+        c_i = var(dpsi_i), Var(mean_i int_0^t_i) = sum_il c_min(i,l) / n^2, and
+        Var(mean_i int_t_i^T) = C_T - sum_il c_max(i,l) / n^2)."""
         s = self.sensors[self._h_sensor]
         n = self._h_n
         z = self._h_ref + self._h_sum / n
-        use_offset = s.heading_offset == "estimate"
-        if not use_offset:
+        pim = self.pim if closing is None else closing
+        jb, jk = self._h_jb / n, self._h_jk / n
+        c1, c2 = self._h_c1, self._h_c2
+        if closing is None:
+            carried = ((2 * n - 1) * c1 - 2.0 * c2) / (n * n)
+        else:
+            z += pim.dpsi
+            jb, jk = jb - pim.j_p, jk - pim.kw_p
+            carried = pim.c_pp - (2.0 * c2 + c1) / (n * n)
+        h = np.zeros(DIM)
+        h[PSI] = 1.0
+        if s.heading_offset == "estimate":
+            h[HOFF] = 1.0
+        else:
             z -= float(s.heading_offset)
-        return z, self._h_var / (n * n), use_offset
+        if self.est_bias:
+            h[BG] = jb
+            z += jb * pim.bg_lin
+        if self.scale_prior is not None:
+            h[KW] = jk
+            z += jk * pim.kw_lin
+        return h, z, self._h_var / (n * n) + max(carried, 0.0)
 
     def _with_pending_heading(self) -> tuple[np.ndarray, np.ndarray]:
         """The newest keyframe's state and 3x3 pose covariance, updated (outside the graph)
@@ -1318,18 +1456,14 @@ class FixedLagSmoother(Estimator):
         st, full = self.kf_state, self._full
         if not self._h_n or full is None or full.shape != (DIM, DIM):
             return st, self.kf_cov
-        z, var, use_offset = self._pending_heading()
-        # H = e_psi (+ e_hoff): P H^T is a column (sum), H P H^T an entry. Python floats: numpy
-        # on 9-vectors cost 10 us here, per output sample.
+        h, z, var = self._pending_heading()
+        # Python floats: numpy on 9-vectors cost 10 us here, per output sample.
         f = full.tolist()
         x = st.tolist()
-        if use_offset:
-            ph = [row[PSI] + row[HOFF] for row in f]
-            pred = x[PSI] + x[HOFF]
-            hph = ph[PSI] + ph[HOFF]
-        else:
-            ph = [row[PSI] for row in f]
-            pred, hph = x[PSI], ph[PSI]
+        hs = [(i, c) for i, c in enumerate(h.tolist()) if c != 0.0]
+        ph = [sum(row[i] * c for i, c in hs) for row in f]
+        pred = sum(x[i] * c for i, c in hs)
+        hph = sum(ph[i] * c for i, c in hs)
         g = wrap_angle(z - pred) / (hph + var)  # innovation over its variance
         x = np.array([xi + pi * g for xi, pi in zip(x, ph, strict=True)])
         c = 1.0 / (hph + var)

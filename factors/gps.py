@@ -26,7 +26,7 @@ from factors.kinematics import twist_coeffs
 from factors.noise import NoiseLike, as_noise_model
 from factors.state import DIM
 
-__all__ = ["gps_factor", "gps_predict"]
+__all__ = ["gps_factor", "gps_predict", "gps_predict_jacobian"]
 
 
 def gps_predict(
@@ -46,6 +46,34 @@ def gps_predict(
     lx, ly = lever_arm
     c1, s1 = math.cos(p1), math.sin(p1)
     return x1 + c1 * lx - s1 * ly, y1 + s1 * lx + c1 * ly
+
+
+def gps_predict_jacobian(
+    state: np.ndarray | list[float],
+    lever_arm: tuple[float, float] = (0.0, 0.0),
+    dt_fix: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The factor's prediction h (east, north), m, shape (2,), and its Jacobian with respect to
+    the 9-state, shape (2, DIM): for gating a fix and for its innovation covariance, the same
+    model as ``gps_factor``."""
+    x, y, psi, v, w = (float(c) for c in state[:5])
+    lx, ly = lever_arm
+    dt = float(dt_fix)
+    a = w * dt
+    s, c, ds, dc = twist_coeffs(a)
+    d = v * dt
+    cp, sp = math.cos(psi), math.sin(psi)
+    ex, ey = cp * d * s - sp * d * c, sp * d * s + cp * d * c
+    c1, s1 = math.cos(psi + a), math.sin(psi + a)
+    rx, ry = c1 * lx - s1 * ly, s1 * lx + c1 * ly
+    H = np.zeros((2, DIM))
+    H[0, 0] = H[1, 1] = 1.0
+    H[0, 2], H[1, 2] = -ey - ry, ex + rx
+    H[0, 3], H[1, 3] = dt * (cp * s - sp * c), dt * (sp * s + cp * c)
+    dd = d * dt
+    H[0, 4] = dd * (cp * ds - sp * dc) - ry * dt
+    H[1, 4] = dd * (sp * ds + cp * dc) + rx * dt
+    return np.array((x + ex + rx, y + ey + ry)), H
 
 
 def gps_factor(
