@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from factors.checks import analytic_jacobians, max_jacobian_error, numerical_jacobians
-from factors.gps import gps_factor
+from factors.gps import gps_factor, gps_predict, gps_predict_jacobian
 from factors.gyro import bias_difference_factor, gyro_factor
 from factors.heading import heading_factor
 from factors.landmark import (
@@ -187,3 +187,27 @@ def test_whitening_is_undone_for_diagonal_noise():
         np.testing.assert_allclose(a, b, atol=1e-12)
     nj = numerical_jacobians(f2, v)
     assert len(nj) == 2 and nj[0].shape == (9, 9)
+
+
+def test_gps_predict_jacobian_is_the_factors_model():
+    """The smoother gates a fix, logs its NIS and widens on a lock-out with
+    ``gps_predict_jacobian``: the same prediction as ``gps_predict`` and the same Jacobian as
+    the factor, at random states including w = 0, tiny w and either sign of dt."""
+    rng = np.random.default_rng(11)
+    for k in range(200):
+        x = rng.normal(size=9)
+        x[2] = rng.uniform(-math.pi, math.pi)
+        x[4] = (0.0, 1e-7, rng.normal())[k % 3]
+        lever = (0.0, 0.0) if k % 4 == 0 else tuple(rng.normal(size=2))
+        dt = 0.0 if k % 5 == 0 else rng.normal()
+        pred, h = gps_predict_jacobian(x, lever, dt)
+        assert np.allclose(pred, gps_predict(x, lever, dt), rtol=0, atol=1e-12)
+        values = gtsam.Values()
+        values.insert(0, x)
+        j = gps_factor(0, 0.0, 0.0, 1.0, lever, dt).linearize(values).jacobian()[0]
+        assert np.allclose(h, j, rtol=0, atol=1e-9)
+        # and both against central differences
+        num = np.column_stack([(np.array(gps_predict(x + e, lever, dt))
+                                - np.array(gps_predict(x - e, lever, dt))) / 2e-6
+                               for e in np.eye(9) * 1e-6])
+        assert np.allclose(h, num, rtol=0, atol=1e-6)
