@@ -372,6 +372,11 @@ def parse_config(raw: Any, source: str = "<config>", base: Path | None = None) -
         r = ck.mapping(d["robot"], "robot", ("wheel_radius", "track_width", "wheel_radius_std",
                                              "track_width_std", "slip", "max_accel",
                                              "max_yaw_accel"))
+        for k in ("max_accel", "max_yaw_accel"):
+            if k in r and ck.number(r[k], f"robot.{k}") == 0.0:
+                raise ck.fail(f"robot.{k}", "must be > 0: the twist's process noise is derived "
+                              "from it, and 0 would hold the twist fixed (leave it out for the "
+                              "estimators' default)")
         cfg.robot = RobotConfig(**{
             k: ck.number(r[k], f"robot.{k}", positive=k in ("wheel_radius", "track_width"),
                          nonneg=True)

@@ -168,7 +168,8 @@ def cmd_online(args: argparse.Namespace) -> int:
                          on_stop=on_stop, observers=(offsets.add,))
     except ValueError as e:
         raise DdfuseError(str(e)) from None
-    for w in config_warnings(offsets.surveys(), cfg):  # as run warns: a wrong compass offset
+    # as run warns: the reader's (a topic mostly dropped), a wrong compass offset
+    for w in [*session.input_warnings, *config_warnings(offsets.surveys(), cfg)]:
         sys.stderr.write(f"ddfuse: warning: {w}\n")
     if session.last_t is not None:  # after every estimator's finish(): what it ends with
         show(session.last_t, {k: session.estimate(k) for k in session.estimators}, final=True)

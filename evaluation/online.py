@@ -99,6 +99,7 @@ class OnlineSession:
         self.released_t = -math.inf  # the stamp of the last measurement passed on
         self.on_stop = on_stop
         self.input_error: str | None = None  # set by replay when the bag breaks off
+        self.input_warnings: list[str] = []  # set by replay: what the bag reader warned of
         self.replayed_s = 0.0  # data seconds replayed
         self.last_t: float | None = None  # set by replay: the last message's s since the first
         self.interrupted: str | None = None  # set by replay(interruptible=True) on Ctrl-C
@@ -428,6 +429,7 @@ def replay(bag: str | Path, cfg: Config, *, names: list[str] | None = None,
     session.finish()
     session.rejected.update(stream.rejected)
     session.input_error = stream.error
+    session.input_warnings = list(stream.warnings)
     session.replayed_s = stream.duration
     session.last_t = None if t_last is None else t_last - t0
     return session

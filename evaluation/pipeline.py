@@ -449,7 +449,8 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
     out["interrupted"] = result.interrupted
     surveys = result.offset_surveys = offset_surveys(result, cfg, offsets)
     out["data"] = data_facts(result, cfg, surveys)
-    out["warnings"] = heading_survey.config_warnings(surveys, cfg)
+    # the reader's (a topic mostly dropped or silent), then the compass offset's
+    out["warnings"] = [*stream.warnings, *heading_survey.config_warnings(surveys, cfg)]
     config_text = config_text_of(cfg)
     t_scored = clock()
     save_run(result, outdir, config_text)

@@ -907,8 +907,10 @@ def sim_config(res: SimResult, landmark_map: str | None = None) -> dict:
     # the largest accelerations of the simulated motion (the commands are smooth; the
     # unicycle EKF derives its twist random walks from these)
     tr = res.truth
-    robot["max_accel"] = float(np.max(np.abs(np.gradient(tr.v, tr.dt))))
-    robot["max_yaw_accel"] = float(np.max(np.abs(np.gradient(tr.w, tr.dt))))
+    for key, rate in (("max_accel", tr.v), ("max_yaw_accel", tr.w)):
+        a_max = float(np.max(np.abs(np.gradient(rate, tr.dt))))
+        if a_max > 0.0:  # a drive without any (a short straight one) states no limit
+            robot[key] = a_max
     # the simulated body moves exactly with its twist (the encoders' slip noise is in their
     # counts, not in the motion)
     robot["slip"] = {"longitudinal": 0.0, "lateral": 0.0, "heading": 0.0}

@@ -111,7 +111,13 @@ def test_inspect_damaged_bag(tmp_path, capsys, fmt):
     with open(storage, "r+b") as f:
         f.seek(size // 2)
         f.write(b"\xff" * 5000)
-    assert_one_line_error(*run(["inspect", str(bad)], capsys), str(bad))
+    code, out, err = run(["inspect", str(bad)], capsys)
+    if fmt == "ros1":
+        # a ROS1 bag is read from the front up to the damage: the facts of what was read, then
+        # the one error line
+        assert out.startswith(f"bag: {bad}") and "/imu" in out
+        out = ""
+    assert_one_line_error(code, out, err, str(bad))
 
 
 def test_command_line_exit_code_and_stderr(tmp_path):

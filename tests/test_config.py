@@ -442,7 +442,7 @@ def test_calibration_statements():
                     "odometry": [{"topic": "/o"}]},
         "robot": {"wheel_radius": 0.2, "track_width": 0.5, "wheel_radius_std": 0.004,
                   "track_width_std": 0.015, "slip": {"lateral": 0.0, "heading": 0.01},
-                  "max_accel": 0.5, "max_yaw_accel": 0.0},
+                  "max_accel": 0.5, "max_yaw_accel": 0.3},
     })
     assert cfg.of_kind("gps")[0].delay == 0.2
     assert cfg.of_kind("imu")[0].noise == {"gyro_bias_walk": 2e-4, "heading_offset_walk": 0.0}
@@ -450,7 +450,7 @@ def test_calibration_statements():
     assert sd_v == pytest.approx(0.02) and c == pytest.approx(0.02**2)
     assert sd_w == pytest.approx(math.hypot(0.02, 0.03))
     assert cfg.robot.slip == {"lateral": 0.0, "heading": 0.01}
-    assert (cfg.robot.max_accel, cfg.robot.max_yaw_accel) == (0.5, 0.0)  # 0: never turns
+    assert (cfg.robot.max_accel, cfg.robot.max_yaw_accel) == (0.5, 0.3)
     assert parse_config(BASE).robot.scale_std is None
 
 

@@ -35,6 +35,11 @@ CASES = [
      "sensors.imu[0].noise.gyro_bias_walk", "variance"),
     (sensor("gps", topic="/f", noise={"horizontal": 10 ** 400}), "sensors.gps[0].noise.horizontal",
      "finite"),
+    # an acceleration limit of 0: a zero process-noise density for the twist (on the sample
+    # bag both at 0 took the unicycle EKF's ATE from 0.11 to 1.37 m, its NEES from 2.9 to 379)
+    ({**sensor("odometry", **ODOM), "robot": {"max_accel": 0}}, "robot.max_accel", "> 0"),
+    ({**sensor("odometry", **ODOM), "robot": {"max_yaw_accel": 0.0}}, "robot.max_yaw_accel",
+     "> 0"),
     # one joint as both wheels
     ({**sensor("wheels", topic="/js", joints=["a", "a"], noise={"speed": 0.1}), "robot": ROBOT},
      "sensors.wheels[0].joints", "twice"),

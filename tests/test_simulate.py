@@ -375,3 +375,14 @@ def test_plot_sim_writes_a_png(tmp_path):
     assert main(["gps-outage", "--duration", "240", "-o", str(out)]) == 0
     data = out.read_bytes()
     assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 20_000
+
+
+def test_a_short_straight_drive_states_no_zero_acceleration_limit():
+    """The first 10 s of husky drive straight: the simulated yaw acceleration is 0, and a
+    stated limit of 0 would hold the twist fixed (the config refuses it). The config leaves it
+    out and loads; a drive that turns states its limit."""
+    short = sim.sim_config(sim.simulate("husky", seed=0, duration=10.0))
+    assert "max_yaw_accel" not in short["robot"] and short["robot"]["max_accel"] > 0.0
+    parse_config(short)
+    assert sim.sim_config(sim.simulate("husky", seed=0, duration=60.0))["robot"][
+        "max_yaw_accel"] > 0.0
