@@ -13,19 +13,24 @@ velocity and biases as states): one 9-vector key per keyframe,
   configured, each integration step uses their inverse-variance weighted mean, the gyro's weight
   being the share of the gyro bias the fused rate carries. A held sample's error is the same over
   its whole period T, so its variance enters as a density var * T (per step of dt: var * T / dt);
-* a GPS fix is a GPS factor (lever arm; motion-compensated when it does not fall on the keyframe;
-  robust noise from the config), unless its innovation against the prediction fails the
-  sensor's chi-square gate (as in the EKF). A gate lock-out (``estimation.lockout``) is
-  recovered from as the EKFs do, by widening the belief until the fix is ordinary: here a link
-  factor to a new keyframe at the fix (``FixedLagSmoother._widen``);
+* a GPS fix is a GPS factor (lever arm; motion-compensated when it does not fall on the keyframe,
+  with what the motion does off the keyframe's twist over that time added to the fix's full
+  east/north covariance; robust noise from the config), unless its innovation against the
+  prediction fails the sensor's chi-square gate (as in the EKF). A gate lock-out
+  (``estimation.lockout``) is recovered from as the EKFs do, by widening the belief until the
+  fix is ordinary: here a link factor to a new keyframe at the fix (``FixedLagSmoother._widen``).
+  A fix that arrives late goes to the window's keyframe nearest its stamp, gated against that
+  keyframe's marginal; one older than the newest keyframe minus the lag is dropped and counted;
 * with both a gyro and an odometry yaw rate, the mean gyro rate minus k_w times the mean
   odometry rate over the interval is a measurement of the gyro bias, which the fused rate alone
   would not carry (``factors.gyro.bias_difference_factor``; its residual is whitened by a
   k_w-dependent sigma, since both rates are noisy);
 * the absolute heading samples of the interval, each carried to the keyframe by the
   preintegrated yaw, gated as in the EKFs (``FixedLagSmoother._heading_gate``) and averaged,
-  are one heading measurement (with the offset state when ``heading_offset: estimate``); it is
-  linear in the state, so it is a C++ factor (``factors.linear``), not a Python CustomFactor;
+  are one heading measurement (with the offset state when ``heading_offset: estimate``, and the
+  carried yaw's first-order dependence on the gyro bias and yaw-rate scale,
+  ``FixedLagSmoother._pending_heading``); it is linear in the state, so it is a C++ factor
+  (``factors.linear``), not a Python CustomFactor;
 * a landmark sighting is a range/bearing (or range-only) factor to the known map position.
 
 Process noise is what the config states, as for the EKFs: the robot's slip densities
@@ -47,8 +52,10 @@ covariance. ``BatchSmoother`` keeps every factor and solves the whole run with
 Levenberg-Marquardt at the end (the offline reference).
 
 Heading without an initial pose: GPS course. Measurements are buffered, dead-reckoned from heading
-0, and once the GPS track has moved ``INIT_DISTANCE`` m the rotation that aligns dead reckoning
-with it gives the initial heading; the buffer is then replayed.
+0, and once the GPS track has moved ``INIT_DISTANCE`` m (more with poor fixes: until the course's
+sigma, the fixes' errors across the baseline, is at most ``COURSE_SIGMA_MAX``) the rotation that
+aligns dead reckoning with it gives the initial heading, with that sigma (at least
+``init_psi_sigma``); the buffer is then replayed.
 """
 
 from __future__ import annotations
