@@ -105,6 +105,7 @@ def _measure(bag: str, cfg_path: str, name: str, lag: float | None,
         "start_rss_mb": start_mb,
         "error": result.runs[name].error,
         "input_error": stream.error,
+        "input_warnings": list(stream.warnings),  # the reader's (a topic mostly dropped)
     }
 
 
@@ -148,4 +149,5 @@ def bench_bag(bag: Path, cfg_path: Path, names: list[str] | None = None,
     return {"bag": str(bag), "config": str(cfg_path), "duration_s": duration,
             "decode_s": decode, "decode_rtf": duration / decode if decode else None,
             "messages": rows[0]["messages"] if rows else None,
-            "input_error": rows[0]["input_error"] if rows else None, "estimators": rows}
+            "input_error": rows[0]["input_error"] if rows else None,
+            "input_warnings": rows[0]["input_warnings"] if rows else [], "estimators": rows}

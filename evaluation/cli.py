@@ -234,6 +234,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
                   + (f"  ERROR {e['error']}" if e["error"] else ""))
         for line in notes:
             print(line)
+    # the reader's warnings (the same for every estimator of a bag): once each
+    for w in dict.fromkeys(w for r in results for w in r.get("input_warnings") or ()):
+        sys.stderr.write(f"ddfuse: warning: {w}\n")
     if args.json:
         args.json.write_text(json.dumps(results, indent=2) + "\n")
     broken = [r["input_error"] for r in results if r.get("input_error")]

@@ -14,13 +14,17 @@ CONFIG = {"sensors": {"odometry": [{"topic": "/odom", "noise": {"v": 0.05, "yaw_
                       "gps": [{"topic": "/fix", "noise": {"horizontal": 1.0}}]}}
 
 
-def test_a_topic_mostly_dropped_as_late_is_warned_of_by_run_and_online(tmp_path, capsys):
-    # 60 s driving east at 1 m/s; the fixes recorded 1.5 s after their stamp
+def _late_bag(tmp_path):
+    """60 s driving east at 1 m/s; the fixes recorded 1.5 s after their stamp."""
     recs = [("/odom", bw.odometry(T0 + 0.1 * i, 1.0, 0.0), T0 + 0.1 * i) for i in range(600)]
     recs += [("/fix", bw.navsatfix(T0 + 0.5 * k, 42.0, -71.0 + 0.5 * k / 82_000.0),
               T0 + 0.5 * k + 1.5) for k in range(118)]
     recs.sort(key=lambda r: r[2])
-    bag = bw.write_bag(bw.bag_path(tmp_path, "late", "ros1"), "ros1", recs)
+    return bw.write_bag(bw.bag_path(tmp_path, "late", "ros1"), "ros1", recs)
+
+
+def test_a_topic_mostly_dropped_as_late_is_warned_of_by_run_and_online(tmp_path, capsys):
+    bag = _late_bag(tmp_path)
     cfg = tmp_path / "c.yaml"
     cfg.write_text(json.dumps(CONFIG))
     out = tmp_path / "out"
@@ -32,3 +36,12 @@ def test_a_topic_mostly_dropped_as_late_is_warned_of_by_run_and_online(tmp_path,
     assert "/fix" in w and "reorder_window to at least 1.5 s" in w and w in err
     assert main(["online", str(bag), "-c", str(cfg), "--estimators", "ekf"]) == 0
     assert w in capsys.readouterr().err
+
+
+def test_bench_says_the_readers_warnings_once(tmp_path, capsys):
+    bag = _late_bag(tmp_path)
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(json.dumps(CONFIG))
+    assert main(["bench", str(bag), "-c", str(cfg), "--estimators", "ekf,smoother"]) == 0
+    err = capsys.readouterr().err
+    assert err.count("dropped as late") == 1 and "reorder_window to at least 1.5 s" in err
