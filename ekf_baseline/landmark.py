@@ -392,7 +392,7 @@ class LandmarkSlamEkf(_OdometryDrivenEkf):
 
     def _first_estimates_motion(self, Fp: np.ndarray) -> None:
         """FEJ: d pose1 / d psi at the pose before this time's updates, not after them. For
-        both motion models that column is (-(y1 - y0), x1 - y0, 1) with (x0, y0) the pose the
+        both motion models that column is (-(y1 - y0), x1 - x0, 1) with (x0, y0) the pose the
         step starts from; replacing the updated (x0, y0) by the prior one keeps the linearised
         model's unobservable directions (global translation and rotation) unobservable."""
         d = self.kf.x[:2] - self._pose_prior[:2]
