@@ -445,12 +445,23 @@ def to_markdown(mc: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def report_stem(mc: dict) -> str:
+    """``mc_<scenario>``, with ``_fixed-truth`` and ``_lag<S>`` when the run says so: runs of
+    one scenario with other settings into one directory do not overwrite each other."""
+    stem = f"mc_{mc['scenario']}"
+    if mc.get("fixed_truth"):
+        stem += "_fixed-truth"
+    if mc.get("lag_s") is not None:
+        stem += f"_lag{mc['lag_s']:g}"
+    return stem
+
+
 def write_report(mc: dict, outdir: str | Path) -> tuple[Path, Path]:
-    """Write ``mc_<scenario>.json`` and ``mc_<scenario>.md`` into ``outdir``."""
+    """Write ``<stem>.json`` and ``<stem>.md`` into ``outdir`` (``report_stem``)."""
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
-    j = outdir / f"mc_{mc['scenario']}.json"
-    m = outdir / f"mc_{mc['scenario']}.md"
+    j = outdir / f"{report_stem(mc)}.json"
+    m = outdir / f"{report_stem(mc)}.md"
     j.write_text(json.dumps(mc, indent=2, default=float) + "\n")
     m.write_text(to_markdown(mc))
     return j, m
@@ -468,7 +479,7 @@ def _save_or_show(mc: dict, outdir: Path) -> tuple[Path, Path]:
     sys.stdout.write(to_markdown(mc))
     sys.stdout.flush()
     try:
-        fd, kept = tempfile.mkstemp(prefix=f"ddfuse-mc_{mc['scenario']}-", suffix=".json")
+        fd, kept = tempfile.mkstemp(prefix=f"ddfuse-{report_stem(mc)}-", suffix=".json")
         with os.fdopen(fd, "w") as f:
             f.write(json.dumps(mc, indent=2, default=float) + "\n")
         where = f"the table is above, the JSON in {kept}"
@@ -513,7 +524,8 @@ def _main(argv: list[str] | None) -> int:
                     help="smoother lag, s (default: the simulated config's, "
                     f"{SMOOTHER_LAG:g} s)")
     ap.add_argument("-o", "--outdir", type=Path, default=Path("ddfuse-out"),
-                    help="where mc_<scenario>.json and .md go (default ddfuse-out)")
+                    help="where mc_<scenario>[_fixed-truth][_lag<S>].json and .md go "
+                    "(default ddfuse-out)")
     args = ap.parse_args(argv)
     simulated_scenario(args.scenario, args.duration)
     # before any seed runs: an output directory that cannot be made fails now, not at the end

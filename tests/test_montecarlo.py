@@ -103,6 +103,19 @@ def test_command_writes_json_and_markdown(tmp_path, capsys):
     assert "| ekf_landmark | 1 |" in md and md in capsys.readouterr().out
 
 
+def test_runs_with_other_settings_do_not_overwrite_each_other(tmp_path):
+    from evaluation.montecarlo import report_stem
+
+    assert report_stem({"scenario": "husky"}) == "mc_husky"
+    assert report_stem({"scenario": "husky", "fixed_truth": True, "lag_s": 30.0}) == \
+        "mc_husky_fixed-truth_lag30"
+    for extra in ([], ["--fixed-truth"], ["--lag", "2"]):
+        assert main(["husky", "--seeds", "1", "--duration", "20", "--jobs", "1",
+                     "--estimators", "ekf", "-o", str(tmp_path), *extra]) == 0
+    names = sorted(p.name for p in tmp_path.glob("*.json"))
+    assert names == ["mc_husky.json", "mc_husky_fixed-truth.json", "mc_husky_lag2.json"]
+
+
 def test_command_errors_name_the_problem(capsys):
     assert main(["husky", "--seeds", "1", "--duration", "1"]) == 2
     assert "duration" in capsys.readouterr().err
