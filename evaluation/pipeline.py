@@ -172,9 +172,11 @@ def _rounded(d):
 
 
 def _outage_scores(tr: Trajectory, outages: list[metrics.Outage], truth: Trajectory | None,
-                   hold_t: np.ndarray, hold_xy: np.ndarray) -> list[dict] | None:
+                   hold_t: np.ndarray, hold_xy: np.ndarray, hold_cov: np.ndarray
+                   ) -> list[dict] | None:
     """Drift per metre over each outage, against the truth if there is one, else against the
-    fixes withheld in it. None when there are no outages."""
+    fixes withheld in it (through block means of them: ``metrics.outage_drift``, with their
+    covariances ``hold_cov``). None when there are no outages."""
     if not outages:
         return None
     out = []
@@ -182,7 +184,7 @@ def _outage_scores(tr: Trajectory, outages: list[metrics.Outage], truth: Traject
         if truth is not None:
             d = metrics.outage_drift(tr, o, truth.t, truth.pose[:, :2], "truth")
         else:
-            d = metrics.outage_drift(tr, o, hold_t, hold_xy, "withheld GPS")
+            d = metrics.outage_drift(tr, o, hold_t, hold_xy, "withheld GPS", ref_cov=hold_cov)
         out.append(_rounded(vars(d)) if d else {"t0": o.t0, "t1": o.t1, "drift_per_m": None})
     return out
 
@@ -244,6 +246,7 @@ def score(result: RunResult, decode_s: float = 0.0,
     duration = stream.duration
     truth = result.truth
     hold_t, hold_xy = result.gps.held_t, result.gps.held_xy
+    hold_cov = result.gps.cov[result.gps.withheld]
     n_held = len(hold_t)
     # Every track is scored on the same withheld fixes: those inside every track's span (a
     # filter that starts after its heading is known has no estimate at the first ones, and a
@@ -253,7 +256,7 @@ def score(result: RunResult, decode_s: float = 0.0,
         if len(r.trajectory) > 1:
             covered &= metrics.interpolate_xy(r.trajectory, hold_t)[1]
     if covered.any():
-        hold_t, hold_xy = hold_t[covered], hold_xy[covered]
+        hold_t, hold_xy, hold_cov = hold_t[covered], hold_xy[covered], hold_cov[covered]
     used_t = result.gps.used_t
     used_xy = result.gps.xy[~result.gps.withheld]
     outages = metrics.gps_outages(used_t, stream.t1) if len(used_t) else []
@@ -305,7 +308,7 @@ def score(result: RunResult, decode_s: float = 0.0,
                 m["gps_holdout_m"] = _stats(metrics.Stats.of(e))
                 m["gps_holdout_rmse_m"] = m["gps_holdout_m"]["rmse"]
         if len(tr) > 1:
-            m["gps_outages"] = _outage_scores(tr, outages, truth, hold_t, hold_xy)
+            m["gps_outages"] = _outage_scores(tr, outages, truth, hold_t, hold_xy, hold_cov)
             m["gps_residual_corr_s"] = _num(_residual_corr(tr, used_t, used_xy))
         out["estimators"][name] = m
     common = _common_ate({n: r.trajectory for n, r in result.runs.items()}, truth)

@@ -361,13 +361,23 @@ def verdict_lines(m: dict) -> list[str]:
         t0 = (m.get("data") or {}).get("t0") or 0.0
         any_d = next(iter(drift.values()))
         order = sorted(drift, key=lambda n: drift[n]["error_end_m"])
+        if any_d.get("block_s"):
+            # noisy fixes: path and errors from their medians over a few seconds
+            # (metrics.outage_drift), less the noise left in those medians
+            how = (f"{any_d['distance_m']:.0f} m travelled by the withheld GPS fixes' medians "
+                   f"over {any_d['block_s']:g} s; start and end errors from the median of the "
+                   f"fixes in its first and last {any_d['block_s']:g} s, less their noise of "
+                   f"{any_d['error_noise_m']:.2f} m")
+        else:
+            how = (f"{any_d['distance_m']:.0f} m travelled, scored against the "
+                   f"{any_d['reference']}")
         lines.append(
-            f"GPS outage {o['t0'] - t0:.0f}-{o['t1'] - t0:.0f} s ({any_d['distance_m']:.0f} m "
-            f"travelled, scored against the {any_d['reference']}), error at its end and its "
-            "growth per metre travelled: "
+            f"GPS outage {o['t0'] - t0:.0f}-{o['t1'] - t0:.0f} s ({how}), error at its end "
+            "and its growth per metre travelled: "
             + ", ".join(f"{n} {drift[n]['error_end_m']:.2f} m "
                         f"({_signed_pct(drift[n]['drift_per_m'])})" for n in order)
-            + ".")
+            + "." + (f" Errors under {any_d['error_noise_m']:.2f} m are within the fixes' noise "
+                     "there: not resolved." if any_d.get("block_s") else ""))
     lines += _calibration_gaps(m)
     for n, e in ests.items():
         if e.get("error"):
