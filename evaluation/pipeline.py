@@ -17,7 +17,10 @@ Per estimator (track), metrics.json holds:
   ``rpe`` {'1s', '10m': {position_m, heading_deg}}, ``nees`` (consistency summary);
 * against withheld GPS fixes: ``gps_holdout_rmse_m`` and ``gps_holdout_m`` (statistics), every
   track on the same fixes, those inside every track's span (top level:
-  ``gps_holdout_scored_fixes`` of ``gps_holdout_fixes``); at the top level
+  ``gps_holdout_scored_fixes`` of ``gps_holdout_fixes``); where no withheld fix lies inside
+  every track's span, ``gps_holdout_scored_fixes`` is 0, no track has ``gps_holdout_rmse_m``
+  (nothing to rank on) and ``gps_holdout_m`` holds each track's statistics over the fixes in
+  its own span (``gps_holdout_span_s``, stamps); at the top level
   ``gps_holdout_interpolation_rmse_m``, the same score of the used fixes linearly
   interpolated in time (no estimator: the reference to read a track's score against);
 * ``ate_common_rmse_m``: where the tracks are sampled at different stamps (a lagged track at
@@ -255,7 +258,12 @@ def score(result: RunResult, decode_s: float = 0.0,
     for r in result.runs.values():
         if len(r.trajectory) > 1:
             covered &= metrics.interpolate_xy(r.trajectory, hold_t)[1]
-    if covered.any():
+    # No fix inside every span (one track ends before another starts): each track could only be
+    # scored on its own fixes, a ranking of different things. Then no track gets a hold-out
+    # score (gps_holdout_rmse_m), only its statistics over its own fixes (gps_holdout_m).
+    common_fixes = bool(covered.any())
+    own_t, own_xy = hold_t, hold_xy
+    if common_fixes:
         hold_t, hold_xy, hold_cov = hold_t[covered], hold_xy[covered], hold_cov[covered]
     used_t = result.gps.used_t
     used_xy = result.gps.xy[~result.gps.withheld]
@@ -269,7 +277,7 @@ def score(result: RunResult, decode_s: float = 0.0,
                               for (topic, reason), n in stream.rejected.items()},
         "has_ground_truth": truth is not None,
         "gps_holdout_fixes": int(result.gps.withheld.sum()),
-        "gps_holdout_scored_fixes": int(len(hold_t)),
+        "gps_holdout_scored_fixes": int(len(hold_t)) if common_fixes else 0,
         "gps_holdout_interpolation_rmse_m": _interpolation_rmse(used_t, used_xy, hold_t,
                                                                 hold_xy),
         "gps_outages": [_rounded(vars(o)) for o in outages],
@@ -283,7 +291,8 @@ def score(result: RunResult, decode_s: float = 0.0,
             "samples": len(tr),
             "ate_rmse_m": None, "ate_max_m": None, "ate_association_rmse_m": None,
             "rpe_rmse_m": None, "yaw_rmse_deg": None,
-            "nees_mean": None, "gps_holdout_rmse_m": None, "gps_residual_corr_s": None,
+            "nees_mean": None, "gps_holdout_rmse_m": None, "gps_holdout_span_s": None,
+            "gps_residual_corr_s": None,
             "runtime_s": _num(r.runtime_s),
             "rtf": _num(duration / r.runtime_s) if r.runtime_s > 0 else None,
             "update_ms": {**{k: _num(float(np.percentile(upd_ms, q)))
@@ -303,10 +312,14 @@ def score(result: RunResult, decode_s: float = 0.0,
         if truth is not None and len(tr):
             m.update(_truth_scores(tr, truth, m["pose_error"]))
         if len(hold_t) and len(tr) > 1:
-            e = metrics.holdout_errors(tr, hold_t, hold_xy)
+            e = metrics.holdout_errors(tr, *((hold_t, hold_xy) if common_fixes
+                                             else (own_t, own_xy)))
             if len(e):
                 m["gps_holdout_m"] = _stats(metrics.Stats.of(e))
-                m["gps_holdout_rmse_m"] = m["gps_holdout_m"]["rmse"]
+                if common_fixes:
+                    m["gps_holdout_rmse_m"] = m["gps_holdout_m"]["rmse"]
+                else:  # the fixes it was scored on: its own span's
+                    m["gps_holdout_span_s"] = [_num(tr.t[0]), _num(tr.t[-1])]
         if len(tr) > 1:
             m["gps_outages"] = _outage_scores(tr, outages, truth, hold_t, hold_xy, hold_cov)
             m["gps_residual_corr_s"] = _num(_residual_corr(tr, used_t, used_xy))

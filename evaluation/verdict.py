@@ -58,7 +58,8 @@ def track_kind(name: str, lag_s: float | None = None) -> str:
 
 def _score(m: dict) -> tuple[str | None, str]:
     """The metrics key to rank by and a sentence saying what it is."""
-    ests = m["estimators"].values()
+    ests_d = m["estimators"]
+    ests = ests_d.values()
     if any(e.get("ate_rmse_m") is not None for e in ests):
         return "ate_rmse_m", ("Score: RMS position error against the ground truth (ATE, no "
                               "alignment, lower is better).")
@@ -69,6 +70,19 @@ def _score(m: dict) -> tuple[str | None, str]:
                  "every estimator has an estimate)")
         return "gps_holdout_rmse_m", (f"Score: RMS distance to the {which} (no ground truth; "
                                       "lower is better).")
+    own = {n: e["gps_holdout_span_s"] for n, e in ests_d.items()
+           if e.get("gps_holdout_span_s") and e.get("gps_holdout_m")}
+    if m.get("gps_holdout_fixes") and m.get("gps_holdout_scored_fixes") == 0 and own:
+        # each track could be scored only on the fixes in its own span: not comparable
+        t0 = (m.get("data") or {}).get("t0") or 0.0
+        spans = ", ".join(f"{n} {a - t0:.0f}-{b - t0:.0f} s ({ests_d[n]['gps_holdout_m']['n']} "
+                          "fixes)" for n, (a, b) in own.items())
+        return None, (f"No score: the bag has no ground truth, and none of the "
+                      f"{m['gps_holdout_fixes']} GPS fixes withheld (--gps-holdout "
+                      f"{m.get('gps_holdout')}) lies inside every estimator's span ({spans}), "
+                      "so no two estimators can be scored on the same fixes; their distances "
+                      "to the fixes in their own spans (gps_holdout_m in metrics.json) are not "
+                      "comparable.")
     if m.get("gps_holdout") and not m.get("gps_holdout_fixes"):
         return None, (f"No score: the bag has no ground truth, and --gps-holdout "
                       f"{m['gps_holdout']} withheld no GPS fix (its window is outside the "
