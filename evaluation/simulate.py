@@ -98,7 +98,8 @@ class TrajectorySpec:
     speed: float = 1.0  # m/s, cruise speed
     ramp: float = 3.0  # s
     start: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    # random: smooth Gaussian processes of correlation time corr_time (s)
+    # random: smooth Gaussian processes, white noise smoothed by a Gaussian kernel of std
+    # corr_time (s): correlation exp(-tau^2 / (4 corr_time^2)), 1/e at 2 corr_time
     speed_rel_std: float = 0.25  # std of v / speed
     yaw_rate_std: float = 0.25  # rad/s
     corr_time: float = 4.0  # s
@@ -106,6 +107,7 @@ class TrajectorySpec:
     # minus pi/4, its tangent at the crossing)
     half_width: float = 15.0  # m, A
     # lawnmower: straight legs joined by half-circle U-turns of radius spacing/2, alternating
+    # (the curvature's 2 m smoothing widens each turn: the legs end up 4.07 m apart at 4.0)
     leg_length: float = 40.0  # m
     spacing: float = 4.0  # m, distance between legs
     # loop-stops: rounded rectangle, stops of stop_time at two metres before each corner
@@ -1196,6 +1198,12 @@ def _check_output(path: str | Path, fmt: str) -> Path:
                          "extension")
     if p.exists():
         raise FileExistsError(f"{p} exists; remove it first (bags are never overwritten)")
+    # the config and map go beside the bag: another bag of the same stem (h.bag and h.mcap)
+    # has its own there, and a bag left beside another run's config would be read with it
+    for side in sidecar_paths(p):
+        if side.exists():
+            raise FileExistsError(f"{side} exists (the config or landmark map of another "
+                                  f"bag named like {p.name}); remove it or choose another name")
     return p
 
 

@@ -191,6 +191,18 @@ def test_sidecar_paths_and_no_overwrite(tmp_path):
     assert (tmp_path / "x.bag").read_text() == "keep"
     with pytest.raises(ValueError, match="format"):
         sim.write_bag(res, tmp_path / "y.bag", fmt="ros3")
+    # another format of the same stem would replace the first bag's config and map (a seed-1
+    # bag then read with seed 2's map: landmark range residuals of 11.7 m against a stated 0.1)
+    sim.write_bag(res, tmp_path / "s.bag")
+    kept = (tmp_path / "s.landmarks.yaml").read_text(), (tmp_path / "s.yaml").read_text()
+    other = sim.simulate("seed002", seed=1, duration=10.0)
+    with pytest.raises(FileExistsError, match="s.yaml exists"):
+        sim.write_bag(other, tmp_path / "s.mcap", fmt="mcap")
+    assert not (tmp_path / "s.mcap").exists()
+    assert ((tmp_path / "s.landmarks.yaml").read_text(), (tmp_path / "s.yaml").read_text()) \
+        == kept
+    assert sim.main(["seed002", "--seed", "1", "--duration", "10", "--format", "mcap",
+                     "-o", str(tmp_path / "s.mcap")]) == 2
 
 
 def test_main_writes_bag_config_and_map(tmp_path, capsys):
