@@ -23,9 +23,11 @@ Per estimator (track), metrics.json holds:
   its own span (``gps_holdout_span_s``, stamps); at the top level
   ``gps_holdout_interpolation_rmse_m``, the same score of the used fixes linearly
   interpolated in time (no estimator: the reference to read a track's score against);
-* ``ate_common_rmse_m``: where the tracks are sampled at different stamps (a lagged track at
-  its keyframes), the RMSE on the stamps of the sparsest one (top level ``ate_common``: how
-  many, and whose), every track and the truth interpolated there (``_common_ate``);
+* ``ate_common_rmse_m``: the RMSE on the tracks' common span (the intersection of their and
+  the truth's spans) at the stamps of the track with the fewest samples in it, every track
+  and the truth interpolated there (``_common_ate``; top level ``ate_common``: how many
+  stamps, whose, and the span): what the verdict ranks on; ``span_s``, the track's first and
+  last stamps;
 * ``gps_residual_corr_s``: how long the used GPS fixes' residuals to the track stay correlated
   (``metrics.correlation_time``; 0 for white GPS noise): a hold-out of single fixes scores
   how closely a track follows the GPS on that time scale;
@@ -328,31 +330,30 @@ def score(result: RunResult, decode_s: float = 0.0,
     out["ate_common"] = common[1] if common else None
     for name, m in out["estimators"].items():
         m["ate_common_rmse_m"] = common[0].get(name) if common else None
+        tr = result.runs[name].trajectory
+        m["span_s"] = [_num(tr.t[0]), _num(tr.t[-1])] if len(tr) else None
     return out
-
-
-# sample counts further apart than this make the tracks' ATEs over different stamps
-COMMON_STAMPS_RATIO = 1.2
 
 
 def _common_ate(tracks: dict[str, Trajectory], truth: Trajectory | None
                 ) -> tuple[dict[str, float], dict] | None:
-    """Each track's position RMSE against the truth on one set of stamps, where the tracks
-    are sampled at different ones (a lagged track at its keyframes, the filters at 10 Hz: each
-    ATE then averages over other moments, e.g. the filters' drift between fixes that the
-    keyframes, at the fixes, never see): the stamps of the sparsest track inside every track's
-    and the truth's span, each track and the truth linearly interpolated there. None when the
-    sample counts are within COMMON_STAMPS_RATIO (or fewer than two tracks, no truth)."""
+    """Each track's position RMSE against the truth on one time span and one set of stamps,
+    what the verdict ranks on. Each track's own ATE averages over its own span and stamps:
+    a track that starts late (a filter waiting for its heading) skips the first seconds, often
+    the worst; one that stopped early keeps only its first ones; a lagged track exists only at
+    its keyframes (at the fixes), the filters at 10 Hz also between fixes. The span is the
+    intersection of the tracks' and the truth's spans, the stamps those of the track with the
+    fewest samples in it, each track and the truth linearly interpolated there. Returns
+    ({track: rmse}, {"stamps": n, "of": track, "span_s": [t0, t1]}); None with fewer than two
+    tracks, no truth, or no common span."""
     live = {n: tr for n, tr in tracks.items() if len(tr) > 1}
     if truth is None or len(truth) < 2 or len(live) < 2:
         return None
-    counts = [len(tr) for tr in live.values()]
-    if max(counts) <= COMMON_STAMPS_RATIO * min(counts):
-        return None
-    base = min(live, key=lambda n: len(live[n]))
     lo = max([tr.t[0] for tr in live.values()] + [truth.t[0]])
     hi = min([tr.t[-1] for tr in live.values()] + [truth.t[-1]])
-    t = live[base].t[(live[base].t >= lo) & (live[base].t <= hi)]
+    inside = {n: tr.t[(tr.t >= lo) & (tr.t <= hi)] for n, tr in live.items()}
+    base = min(inside, key=lambda n: len(inside[n]))
+    t = inside[base]
     if len(t) < 2:
         return None
     g, _ = metrics.interpolate_xy(truth, t)
@@ -360,7 +361,7 @@ def _common_ate(tracks: dict[str, Trajectory], truth: Trajectory | None
     for n, tr in live.items():
         xy, _ = metrics.interpolate_xy(tr, t)
         rmse[n] = _num(float(np.sqrt(np.mean(np.sum((xy - g) ** 2, axis=1)))))
-    return rmse, {"stamps": int(len(t)), "of": base}
+    return rmse, {"stamps": int(len(t)), "of": base, "span_s": [_num(lo), _num(hi)]}
 
 
 def offset_surveys(result: RunResult, cfg: Config,

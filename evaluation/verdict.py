@@ -250,20 +250,66 @@ def _association_caution(m: dict, scored: dict) -> str | None:
             "accuracy.")
 
 
-def _common_line(m: dict, scored: dict, best: str) -> str:
-    """The tracks' ATEs on one set of stamps (``pipeline._common_ate``), where they are sampled
-    at different ones: the comparison the ranking above only approximates."""
-    c = m["ate_common"]
-    common = {n: e["ate_common_rmse_m"] for n, e in m["estimators"].items()
-              if e.get("ate_common_rmse_m") is not None and n in scored}
-    order = sorted(common, key=common.get)
-    text = ("The tracks are sampled at different stamps, so each ATE above averages over "
-            f"other moments. On the {c['stamps']} stamps of {c['of']} (the sparsest), every "
-            "track and the truth interpolated there: "
-            + ", ".join(f"{n} {_m(common[n])} m" for n in order) + ".")
-    if order and order[0] != best:
-        text += f" There {order[0]} is best, not {best}."
-    return text
+# A track's span differing from the common one (the intersection every track is ranked over)
+# by more than this is stated: a late start skips the first seconds (often the worst), an early
+# stop keeps only the first ones. Under it: a keyframe track's first keyframe at the first fix.
+SPAN_SLACK_S = 1.0
+
+
+def _ranked_scores(m: dict, key: str, scored: dict) -> tuple[dict, str | None]:
+    """The scores to rank on: for the ATE, every track's RMSE on the common span and stamps
+    (``pipeline._common_ate``) where all scored tracks have one, with a sentence saying so;
+    else the scores themselves."""
+    c = m.get("ate_common")
+    ests = m["estimators"]
+    common = {n: ests[n].get("ate_common_rmse_m") for n in scored}
+    if key != "ate_rmse_m" or not c or None in common.values():
+        return scored, None
+    t0 = (m.get("data") or {}).get("t0") or 0.0
+    span = c.get("span_s")
+    where = (f" within the common span {span[0] - t0:.1f}-{span[1] - t0:.1f} s" if span
+             else "")
+    return common, (f"Ranked on the same moments for every track: the {c['stamps']} stamps of "
+                    f"{c['of']}{where}, every track and the truth interpolated there (each "
+                    "track's own ATE, over all its samples as evo pairs them, is in the "
+                    "table).")
+
+
+def _own_ate_line(scored: dict, ranked: dict, best: str) -> str | None:
+    """Where each track's own ATE (its own span and stamps) ranks another track first."""
+    own_best = min(scored, key=scored.get)
+    if scored is ranked or own_best == best:
+        return None
+    order = sorted(scored, key=scored.get)
+    return ("Over each track's own samples and span (the table's ATE) the order differs: "
+            + ", ".join(f"{n} {_m(scored[n])} m" for n in order)
+            + f"; there {own_best} is best, not {best}.")
+
+
+def _span_lines(m: dict) -> list[str]:
+    """Tracks whose own span differs from the common one by more than SPAN_SLACK_S: which
+    start later or stop earlier than the others, by how much, and what the ranking covers."""
+    c = m.get("ate_common") or {}
+    spans = {n: e["span_s"] for n, e in m["estimators"].items()
+             if e.get("span_s") and e.get("ate_common_rmse_m") is not None}
+    if not c.get("span_s") or len(spans) < 2:
+        return []
+    t0 = (m.get("data") or {}).get("t0") or 0.0
+    lo, hi = c["span_s"]
+    first = min(a for a, _ in spans.values())
+    last = max(b for _, b in spans.values())
+    out = []
+    for n, (a, b) in spans.items():
+        if a - first > SPAN_SLACK_S:
+            out.append(f"{n} starts {a - first:.1f} s after the first track (at {a - t0:.1f} s): "
+                       f"every track is ranked from {lo - t0:.1f} s, so the others' first "
+                       f"{a - first:.1f} s, often their worst, count for none.")
+        if last - b > SPAN_SLACK_S:
+            why = " (an error: it stopped early)" if m["estimators"][n].get("error") else ""
+            out.append(f"{n} ends {last - b:.1f} s before the last track, at {b - t0:.1f} s"
+                       f"{why}: every track is ranked only up to {hi - t0:.1f} s; the table's "
+                       "ATE covers each track's own span.")
+    return out
 
 
 def _holdout_caution(m: dict, best: str) -> str:
@@ -328,7 +374,10 @@ def verdict_lines(m: dict) -> list[str]:
     lines = [what]
     lag = m.get("lag_s")
     if key:
-        scored = {n: e[key] for n, e in ests.items() if e.get(key) is not None}
+        own = {n: e[key] for n, e in ests.items() if e.get(key) is not None}
+        scored, how = _ranked_scores(m, key, own)
+        if how:
+            lines[0] += " " + how
         ranked = sorted(scored, key=scored.get)
         best = ranked[0]
         kind = track_kind(best, lag)
@@ -340,20 +389,21 @@ def verdict_lines(m: dict) -> list[str]:
             a, b = ekfs[0], live[0]
             text = ("Real-time head to head, best EKF against the smoother's filtered output: "
                     + _compare(a, scored[a], b, scored[b]))
-            common = {n: ests[n].get("ate_common_rmse_m") for n in (a, b)}
-            if (key == "ate_rmse_m" and None not in common.values()
-                    and _tie(scored[a], scored[b]) != _tie(common[a], common[b])):
-                # sampled at different stamps, the two ATEs average over different moments
-                text += (" On the common stamps (below) the call differs: "
-                         + _compare(a, common[a], b, common[b]))
+            if (scored is not own
+                    and _tie(scored[a], scored[b]) != _tie(own[a], own[b])):
+                # over their own spans and stamps the two ATEs average over other moments
+                text += (" Over each one's own samples (the table's ATE) the call differs: "
+                         + _compare(a, own[a], b, own[b]))
             lines.append(text)
         for n in ranked:
             if track_kind(n) != "real time" and n != best:
                 lines.append(f"{n} ({track_kind(n, lag)}): {_m(scored[n])} m.")
-        if key == "ate_rmse_m" and m.get("ate_common"):
-            lines.append(_common_line(m, scored, best))
+        own_line = _own_ate_line(own, scored, best)
+        if own_line:
+            lines.append(own_line)
         if key == "ate_rmse_m":
-            caution = _association_caution(m, scored)
+            lines += _span_lines(m)
+            caution = _association_caution(m, own)
             if caution:
                 lines.append(caution)
         if key == "gps_holdout_rmse_m" and str(m.get("gps_holdout", "")).startswith("every"):

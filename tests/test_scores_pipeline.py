@@ -67,3 +67,50 @@ def test_tracks_without_a_common_withheld_fix_are_not_ranked_on_their_own_ones()
     common = withheld & (fix_t >= 47.5) & (fix_t <= tracks["ekf"].t[-1])
     assert m["gps_holdout_scored_fixes"] == common.sum() > 0
     assert all(e["gps_holdout_m"]["n"] == common.sum() for e in m["estimators"].values())
+
+
+def _truth(t1=120.0) -> Trajectory:
+    return _track(np.arange(0.0, t1 + 1e-9, 0.05))
+
+
+def test_the_ranking_is_over_the_common_span_and_a_late_start_is_stated():
+    """'late' starts at 10 s, after 'early's worst seconds (2 m off, then 0.1 m): over its own
+    span 'late' (0.3 m throughout) scores better, but over the span both have, 'early' is
+    better. The verdict ranks on the common span and says who started later by how much."""
+    t = np.arange(0.0, 120.0, 0.1)
+    early = _track(t, np.where(t < 10.0, 2.0, 0.1))
+    late = _track(t[t >= 10.0], 0.3)
+    m = score(_result({"early": early, "late": late}, [], np.zeros((0, 2)), [],
+                      truth=_truth()))
+    e = m["estimators"]
+    assert e["late"]["ate_rmse_m"] < e["early"]["ate_rmse_m"]  # own spans: late is better
+    # the common span [10, 119.9] s: constant offsets of 0.1 and 0.3 m
+    assert m["ate_common"]["span_s"] == pytest.approx([10.0, t[-1]])
+    assert e["early"]["ate_common_rmse_m"] == pytest.approx(0.1, abs=1e-6)
+    assert e["late"]["ate_common_rmse_m"] == pytest.approx(0.3, abs=1e-6)
+    lines = verdict_lines(m)
+    assert lines[1] == "Best here: early with 0.100 m."
+    assert any(line.startswith("late starts 10.0 s after the first track (at 10.0 s): every "
+                               "track is ranked from 10.0 s") for line in lines)
+    assert any("there late is best, not early" in line for line in lines)
+
+
+def test_a_track_that_stopped_early_is_not_best_on_its_first_seconds():
+    """'broken' stopped at 20 s with an error (0.1 m off until then); 'steady' is 0.05 m off
+    for those 20 s and 1 m after. On its own span 'broken' scores best; over the common
+    span 'steady' is better, and the verdict says the ranking covers only those seconds."""
+    t = np.arange(0.0, 120.0, 0.1)
+    broken = _track(t[t < 20.0], 0.1)
+    steady = _track(t, np.where(t < 20.0, 0.05, 1.0))
+    res = _result({"broken": broken, "steady": steady}, [], np.zeros((0, 2)), [],
+                  truth=_truth())
+    res.runs["broken"].error = "RuntimeError at t=20: boom"
+    m = score(res)
+    e = m["estimators"]
+    assert e["broken"]["ate_rmse_m"] < e["steady"]["ate_rmse_m"]
+    assert e["steady"]["ate_common_rmse_m"] == pytest.approx(0.05, abs=1e-6)
+    lines = verdict_lines(m)
+    assert lines[1] == "Best here: steady with 0.0500 m."
+    assert any(line.startswith("broken ends 100.0 s before the last track, at 19.9 s (an "
+                               "error: it stopped early): every track is ranked only up to "
+                               "19.9 s") for line in lines)
