@@ -314,3 +314,19 @@ def test_nees_takes_the_truth_at_the_estimate_stamp(pose_error):
     sparse = traj(tt[::20], x[::20], y[::20], yaw[::20])
     i, j = metrics.associate(est.t, sparse.t, 0.05)
     assert np.array_equal(metrics.reference_at(sparse, est.t[i], j, 0.05), sparse.pose[j])
+
+
+@pytest.mark.parametrize("t0", [0.0, 1.7e9])
+def test_truth_exactly_at_twice_max_diff_is_interpolated_despite_stamp_rounding(t0):
+    """10 Hz truth against max_diff 0.05 s: every gap is 2 max_diff, but float rounding of
+    epoch stamps puts many just over it. Each must still be interpolated: a track exactly on
+    the truth (1 m/s, 0.03 s after each truth sample) then has zero error, and NEES 0."""
+    tt = t0 + np.arange(0, 60, 0.1)
+    truth = traj(tt, tt - t0, 0.0, 0.0)
+    te = tt[:-1] + 0.03
+    est = traj(te, te - t0, 0.0, 0.0, cov=np.diag([1e-4, 1e-4, 1e-4]))
+    i, j = metrics.associate(te, tt, 0.05)
+    ref = metrics.reference_at(truth, te[i], j, 0.05)
+    # the truth's own position at each estimate stamp (an independent computation)
+    assert np.abs(ref[:, 0] - (te[i] - t0)).max() < 1e-5
+    assert metrics.nees_series(est, truth, 0.05).value.max() < 1e-3
