@@ -336,11 +336,33 @@ def interpolate_xy(est: Trajectory, t: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return xy, inside
 
 
-def holdout_errors(est: Trajectory, t: np.ndarray, enu_xy: np.ndarray) -> np.ndarray:
-    """Horizontal distance (m) from the estimate to withheld GPS fixes at their stamps."""
+def antenna_xy(est: Trajectory, t: np.ndarray, lever_arm=(0.0, 0.0), delay: float = 0.0
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Where ``est`` puts a GPS antenna when fixes stamped ``t`` (M,) s were taken: the pose at
+    t - ``delay`` (a fix describes the antenna ``delay`` s before its stamp; position and
+    unwrapped yaw linearly interpolated) plus R(yaw) ``lever_arm`` (body x, y, m), the model
+    the estimators fuse the fixes with. Returns (xy (M, 2), mask of stamps inside the span)."""
+    t = np.asarray(t, float)
+    ts = t - delay
+    if len(est) == 0:
+        return np.zeros((len(t), 2)), np.zeros(len(t), bool)
+    xy, inside = interpolate_xy(est, ts)
+    lx, ly = float(lever_arm[0]), float(lever_arm[1])
+    if lx or ly:
+        yaw = np.interp(ts, est.t, np.unwrap(est.pose[:, 2]))
+        c, s = np.cos(yaw), np.sin(yaw)
+        xy = xy + np.column_stack([c * lx - s * ly, s * lx + c * ly])
+    return xy, inside
+
+
+def holdout_errors(est: Trajectory, t: np.ndarray, enu_xy: np.ndarray, lever_arm=(0.0, 0.0),
+                   delay: float = 0.0) -> np.ndarray:
+    """Horizontal distance (m) from the estimate's GPS antenna (``antenna_xy``: ``lever_arm``,
+    ``delay``) to withheld GPS fixes ``enu_xy`` at their stamps ``t``; fixes whose antenna
+    time lies outside the estimate's span are left out."""
     if len(est) < 2 or len(t) == 0:
         return np.zeros(0)
-    xy, inside = interpolate_xy(est, t)
+    xy, inside = antenna_xy(est, t, lever_arm, delay)
     d = xy - enu_xy
     return np.hypot(d[inside, 0], d[inside, 1])
 

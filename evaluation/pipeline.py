@@ -22,7 +22,9 @@ Per estimator (track), metrics.json holds:
   (nothing to rank on) and ``gps_holdout_m`` holds each track's statistics over the fixes in
   its own span (``gps_holdout_span_s``, stamps); at the top level
   ``gps_holdout_interpolation_rmse_m``, the same score of the used fixes linearly
-  interpolated in time (no estimator: the reference to read a track's score against);
+  interpolated in time (no estimator: the reference to read a track's score against). A fix is
+  compared with the track's GPS antenna as the estimators model it (top level
+  ``gps_antenna``: the config's lever arm and delay, ``gps_antenna``);
 * ``ate_common_rmse_m``: the RMSE on the tracks' common span (the intersection of their and
   the truth's spans) at the stamps of the track with the fewest samples in it, every track
   and the truth interpolated there (``_common_ate``; top level ``ate_common``: how many
@@ -67,7 +69,7 @@ import numpy as np
 
 from estimation import heading_survey
 from estimation.bags import BagStream
-from estimation.config import Config
+from estimation.config import DEFAULT_GATE, Config
 from estimation.errors import BagError, RunInterrupted
 from estimation.measurements import Stream
 from estimation.runner import RunResult, Trajectory, initial_pose, parse_holdout, run
@@ -177,11 +179,12 @@ def _rounded(d):
 
 
 def _outage_scores(tr: Trajectory, outages: list[metrics.Outage], truth: Trajectory | None,
-                   hold_t: np.ndarray, hold_xy: np.ndarray, hold_cov: np.ndarray
-                   ) -> list[dict] | None:
+                   hold_t: np.ndarray, hold_xy: np.ndarray, hold_cov: np.ndarray,
+                   antenna: dict) -> list[dict] | None:
     """Drift per metre over each outage, against the truth if there is one, else against the
     fixes withheld in it (through block means of them: ``metrics.outage_drift``, with their
-    covariances ``hold_cov``). None when there are no outages."""
+    covariances ``hold_cov``; the track's antenna, ``gps_antenna``). None when there are no
+    outages."""
     if not outages:
         return None
     out = []
@@ -189,7 +192,11 @@ def _outage_scores(tr: Trajectory, outages: list[metrics.Outage], truth: Traject
         if truth is not None:
             d = metrics.outage_drift(tr, o, truth.t, truth.pose[:, :2], "truth")
         else:
-            d = metrics.outage_drift(tr, o, hold_t, hold_xy, "withheld GPS", ref_cov=hold_cov)
+            xy, inside = metrics.antenna_xy(tr, hold_t, antenna["lever_arm"],
+                                            antenna["delay_s"])
+            xy[~inside] = np.nan
+            d = metrics.outage_drift(tr, o, hold_t, hold_xy, "withheld GPS", ref_cov=hold_cov,
+                                     est_xy=xy)
         out.append(_rounded(vars(d)) if d else {"t0": o.t0, "t1": o.t1, "drift_per_m": None})
     return out
 
@@ -222,10 +229,11 @@ def calibration_states(e) -> dict | None:
                                        for label, v, sd in entries}}
 
 
-def _residual_corr(tr: Trajectory, t: np.ndarray, xy: np.ndarray) -> float | None:
-    """Correlation time (s) of the used GPS fixes' residuals to track ``tr``
+def _residual_corr(tr: Trajectory, t: np.ndarray, xy: np.ndarray, antenna: dict
+                   ) -> float | None:
+    """Correlation time (s) of the used GPS fixes' residuals to track ``tr``'s antenna
     (``metrics.correlation_time``)."""
-    est, inside = metrics.interpolate_xy(tr, t)
+    est, inside = metrics.antenna_xy(tr, t, antenna["lever_arm"], antenna["delay_s"])
     return metrics.correlation_time(t[inside], (xy - est)[inside])
 
 
@@ -241,14 +249,41 @@ def _pose_error(r) -> str:
     return getattr(r.final_state, "pose_error", None) or "world"
 
 
+def gps_antenna(cfg: Config | None) -> dict:
+    """The GPS antenna model every track's hold-out is scored with, as the estimators fuse the
+    fixes: {"lever_arm": [x, y] m (body frame), "delay_s": s (a fix is the antenna that long
+    before its stamp), "gate": chi-square probability or None, "note": str or None}. The run's
+    fixes do not say which GPS sensor took them: with several whose lever arm or delay differ,
+    neither is applied and the note says so. No config: none applied."""
+    gps = [s for s in (cfg.sensors if cfg is not None else []) if s.kind == "gps"]
+    if not gps:
+        return {"lever_arm": [0.0, 0.0], "delay_s": 0.0, "gate": DEFAULT_GATE,
+                "note": None if cfg is not None else "no config: no lever arm or delay applied"}
+    models = {(tuple(s.lever_arm), s.delay) for s in gps}
+    gates = {s.gate for s in gps}
+    gate = gates.pop() if len(gates) == 1 else max((g for g in gates if g), default=None)
+    if len(models) > 1:
+        return {"lever_arm": [0.0, 0.0], "delay_s": 0.0, "gate": gate,
+                "note": "GPS sensors with different lever arms or delays: neither applied"}
+    (lever, delay), = models
+    return {"lever_arm": [float(lever[0]), float(lever[1])], "delay_s": float(delay),
+            "gate": gate, "note": None}
+
+
 def score(result: RunResult, decode_s: float = 0.0,
-          pose_errors: dict[str, str] | None = None) -> dict:
+          pose_errors: dict[str, str] | None = None, cfg: Config | None = None) -> dict:
     """The metrics dictionary of a run (see module docstring). ``pose_errors``: per track the
     coordinates of its pose error (``Estimator.pose_error``), for the NEES; a track not in it
     takes the one its estimates carry (``_pose_error``), so ``score(result)`` on a RunResult
-    of ``runner.run`` scores each estimator in its own coordinates, as ``run_bag`` does."""
+    of ``runner.run`` scores each estimator in its own coordinates, as ``run_bag`` does.
+    ``cfg``: the config whose GPS lever arm and delay the hold-out scores apply
+    (``gps_antenna``; default the stream's own, a BagStream's)."""
     stream = result.stream
     duration = stream.duration
+    # score a fix as the estimators fuse it: the antenna at t - delay, lever arm applied (a
+    # perfect track otherwise scores the lever arm, 0.5 m, or the motion over the delay)
+    antenna = gps_antenna(cfg if cfg is not None else getattr(stream, "cfg", None))
+    lever, delay = antenna["lever_arm"], antenna["delay_s"]
     truth = result.truth
     hold_t, hold_xy = result.gps.held_t, result.gps.held_xy
     hold_cov = result.gps.cov[result.gps.withheld]
@@ -259,7 +294,7 @@ def score(result: RunResult, decode_s: float = 0.0,
     covered = np.ones(n_held, bool)
     for r in result.runs.values():
         if len(r.trajectory) > 1:
-            covered &= metrics.interpolate_xy(r.trajectory, hold_t)[1]
+            covered &= metrics.antenna_xy(r.trajectory, hold_t, lever, delay)[1]
     # No fix inside every span (one track ends before another starts): each track could only be
     # scored on its own fixes, a ranking of different things. Then no track gets a hold-out
     # score (gps_holdout_rmse_m), only its statistics over its own fixes (gps_holdout_m).
@@ -283,6 +318,7 @@ def score(result: RunResult, decode_s: float = 0.0,
         "gps_holdout_interpolation_rmse_m": _interpolation_rmse(used_t, used_xy, hold_t,
                                                                 hold_xy),
         "gps_outages": [_rounded(vars(o)) for o in outages],
+        "gps_antenna": antenna,
         "estimators": {},
     }
     for name, r in result.runs.items():
@@ -315,7 +351,7 @@ def score(result: RunResult, decode_s: float = 0.0,
             m.update(_truth_scores(tr, truth, m["pose_error"]))
         if len(hold_t) and len(tr) > 1:
             e = metrics.holdout_errors(tr, *((hold_t, hold_xy) if common_fixes
-                                             else (own_t, own_xy)))
+                                             else (own_t, own_xy)), lever, delay)
             if len(e):
                 m["gps_holdout_m"] = _stats(metrics.Stats.of(e))
                 if common_fixes:
@@ -323,8 +359,9 @@ def score(result: RunResult, decode_s: float = 0.0,
                 else:  # the fixes it was scored on: its own span's
                     m["gps_holdout_span_s"] = [_num(tr.t[0]), _num(tr.t[-1])]
         if len(tr) > 1:
-            m["gps_outages"] = _outage_scores(tr, outages, truth, hold_t, hold_xy, hold_cov)
-            m["gps_residual_corr_s"] = _num(_residual_corr(tr, used_t, used_xy))
+            m["gps_outages"] = _outage_scores(tr, outages, truth, hold_t, hold_xy, hold_cov,
+                                              antenna)
+            m["gps_residual_corr_s"] = _num(_residual_corr(tr, used_t, used_xy, antenna))
         out["estimators"][name] = m
     common = _common_ate({n: r.trajectory for n, r in result.runs.items()}, truth)
     out["ate_common"] = common[1] if common else None
@@ -454,7 +491,7 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
     if names:  # keep only the tracks asked for ('smoother_lagged' alone drops 'smoother')
         result.runs = {k: v for k, v in result.runs.items() if k in set(names)}
     out = score(result, decode_s,
-                {n: getattr(e, "pose_error", "world") for n, e in ests.items()})
+                {n: getattr(e, "pose_error", "world") for n, e in ests.items()}, cfg=cfg)
     out["config"] = str(cfg.path) if cfg.path else None
     out["initial_pose"] = ("first ground-truth pose" if cfg.initial_pose == "ground_truth"
                            else list(pose) if pose else None)

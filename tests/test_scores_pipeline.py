@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -114,3 +116,36 @@ def test_a_track_that_stopped_early_is_not_best_on_its_first_seconds():
     assert any(line.startswith("broken ends 100.0 s before the last track, at 19.9 s (an "
                                "error: it stopped early): every track is ranked only up to "
                                "19.9 s") for line in lines)
+
+
+def test_holdout_scores_the_antenna_with_the_configured_lever_arm_and_delay():
+    """Noise-free fixes of an antenna 0.5 m ahead and 0.2 m left of the base, stamped 0.2 s
+    late (the sample config's delay): a track exactly on the truth scores the lever arm (or
+    the motion over the delay) unless the fix is compared with its antenna at t - delay."""
+    import copy
+    from pathlib import Path
+
+    from estimation.config import load_config
+
+    cfg = copy.deepcopy(load_config(Path(__file__).parent.parent / "data" / "sample_husky.yaml"))
+    gps = next(s for s in cfg.sensors if s.kind == "gps")
+    gps.lever_arm, gps.delay = (0.5, 0.2), 0.2
+    fix_t = np.arange(1.0, 119.0, 0.4)
+    p = _pose(fix_t - gps.delay)  # the antenna when the fix was taken
+    c, s = np.cos(p[:, 2]), np.sin(p[:, 2])
+    fix_xy = p[:, :2] + np.column_stack([0.5 * c - 0.2 * s, 0.5 * s + 0.2 * c])
+    exact = _track(np.arange(0.0, 120.0, 0.1))
+    res = _result({"exact": exact, "other": _track(exact.t, 0.3)}, fix_t, fix_xy,
+                  np.ones(len(fix_t), bool))
+    m = score(res, cfg=cfg)
+    assert m["gps_antenna"]["lever_arm"] == [0.5, 0.2] and m["gps_antenna"]["delay_s"] == 0.2
+    # the track's linear interpolation between 0.1 s samples on a 20 m circle: v^2 dt^2 / 8 R
+    # of sag, and as much again from the yaw's
+    assert m["estimators"]["exact"]["gps_holdout_rmse_m"] < 2 * (SPEED * 0.1) ** 2 / (8 * 20.0)
+    assert m["estimators"]["other"]["gps_holdout_rmse_m"] == pytest.approx(0.3, abs=1e-3)
+    # without the model (no config) the exact track scores the lever arm less the 0.2 m
+    # driven over the delay along the heading: |(0.5 - 0.2, 0.2)|
+    bare = score(res)
+    assert bare["gps_antenna"]["note"].startswith("no config")
+    assert bare["estimators"]["exact"]["gps_holdout_rmse_m"] == pytest.approx(
+        math.hypot(0.5 - SPEED * 0.2, 0.2), abs=5e-3)
