@@ -367,6 +367,29 @@ def holdout_errors(est: Trajectory, t: np.ndarray, enu_xy: np.ndarray, lever_arm
     return np.hypot(d[inside, 0], d[inside, 1])
 
 
+def gate_nis(est: Trajectory, t: np.ndarray, fix_xy: np.ndarray, fix_cov: np.ndarray,
+             lever_arm=(0.0, 0.0), delay: float = 0.0) -> np.ndarray:
+    """Normalised squared distance d^T (R + P)^-1 d of fixes ``fix_xy`` (M, 2) at ``t`` (M,)
+    to the estimate's antenna (``antenna_xy``), R the fix's covariance ``fix_cov`` (M, 2, 2),
+    P the estimate's position covariance at its sample nearest t - ``delay`` (R alone where P
+    is missing or not positive definite): what an estimator's chi-square gate tests a fix
+    with. NaN outside the estimate's span."""
+    out = np.full(len(t), np.nan)
+    if len(est) < 2 or len(t) == 0:
+        return out
+    xy, inside = antenna_xy(est, t, lever_arm, delay)
+    k = np.clip(np.searchsorted(est.t, np.asarray(t, float) - delay), 1, len(est) - 1)
+    k = np.where(np.abs(est.t[k - 1] - (t - delay)) <= np.abs(est.t[k] - (t - delay)), k - 1, k)
+    for i in np.nonzero(inside)[0]:
+        r = np.asarray(fix_cov[i], float)
+        p = est.cov[k[i], :2, :2]
+        c = r + p if np.all(np.isfinite(p)) and np.linalg.eigvalsh(0.5 * (p + p.T))[0] >= 0 \
+            else r
+        d = xy[i] - fix_xy[i]
+        out[i] = float(d @ np.linalg.solve(c, d))
+    return out
+
+
 def interpolation_errors(used_t: np.ndarray, used_xy: np.ndarray, t: np.ndarray,
                          xy: np.ndarray) -> np.ndarray:
     """Horizontal distance (m) from withheld fixes ``xy`` (M, 2) at ``t`` (M,) to the used fixes

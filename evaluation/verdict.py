@@ -65,11 +65,17 @@ def _score(m: dict) -> tuple[str | None, str]:
                               "alignment, lower is better).")
     if any(e.get("gps_holdout_rmse_m") is not None for e in ests):
         n, scored = m.get("gps_holdout_fixes"), m.get("gps_holdout_scored_fixes")
+        k = m.get("gps_holdout_outliers") or 0
         which = (f"{n} GPS fixes withheld from every estimator" if scored in (None, n) else
                  f"{scored} of the {n} GPS fixes withheld from every estimator (those at which "
-                 "every estimator has an estimate)")
+                 "every estimator has an estimate)" if scored + k < n else
+                 f"{scored} of the {n} GPS fixes withheld from every estimator")
+        k = m.get("gps_holdout_outliers") or 0
+        gross = (f" {k} withheld fix{'es' if k > 1 else ''} that no estimator comes near "
+                 f"(beyond every one's GPS gate: gross GPS error{'s' if k > 1 else ''}) "
+                 f"{'are' if k > 1 else 'is'} left out for all alike." if k else "")
         return "gps_holdout_rmse_m", (f"Score: RMS distance to the {which} (no ground truth; "
-                                      "lower is better).")
+                                      "lower is better)." + gross)
     own = {n: e["gps_holdout_span_s"] for n, e in ests_d.items()
            if e.get("gps_holdout_span_s") and e.get("gps_holdout_m")}
     if m.get("gps_holdout_fixes") and m.get("gps_holdout_scored_fixes") == 0 and own:

@@ -149,3 +149,34 @@ def test_holdout_scores_the_antenna_with_the_configured_lever_arm_and_delay():
     assert bare["gps_antenna"]["note"].startswith("no config")
     assert bare["estimators"]["exact"]["gps_holdout_rmse_m"] == pytest.approx(
         math.hypot(0.5 - SPEED * 0.2, 0.2), abs=5e-3)
+
+
+def test_a_gross_gps_error_no_track_comes_near_is_left_out_for_every_track():
+    """One withheld fix 30 m off (multipath) would dominate every track's RMSE alike. Fixes
+    every track's chi-square gate rejects (the fix's and the track's own covariance) are left
+    out for all and counted; a track that drifted with a covariance to match keeps them."""
+    from scipy.stats import chi2
+
+    rng = np.random.default_rng(5)
+    fix_t = np.arange(1.0, 119.0, 0.4)
+    fix_xy = _pose(fix_t)[:, :2] + rng.normal(0.0, 1.0, (len(fix_t), 2))
+    fix_xy[100, 0] += 30.0
+    t = np.arange(0.0, 120.0, 0.1)
+    tracks = {"good": _track(t, 0.0), "fair": _track(t, 0.3),
+              "drifted": _track(t, 6.0, sigma=5.0)}  # 6 m off, and says so
+    m = score(_result(tracks, fix_t, fix_xy, np.ones(len(fix_t), bool)))
+    # independently: the fixes every track's gate (R + P, the default 0.9999) rejects
+    limit = chi2.ppf(m["gps_antenna"]["gate"], 2)
+    rejected = np.ones(len(fix_t), bool)
+    for tr in tracks.values():
+        d = tr.pose[np.searchsorted(tr.t, fix_t), :2] - fix_xy
+        v = 1.0 + tr.cov[0, 0, 0]
+        rejected &= np.sum(d * d, axis=1) / v > limit
+    assert rejected.tolist() == [i == 100 for i in range(len(fix_t))]
+    assert m["gps_holdout_outliers"] == 1 and m["gps_holdout_scored_fixes"] == len(fix_t) - 1
+    for n, tr in tracks.items():
+        d = np.delete(tr.pose[np.searchsorted(tr.t, fix_t), :2] - fix_xy, 100, axis=0)
+        want = math.sqrt(np.mean(np.sum(d * d, axis=1)))
+        assert m["estimators"][n]["gps_holdout_rmse_m"] == pytest.approx(want, abs=1e-5)
+    m["gps_holdout"] = "every:1"
+    assert "1 withheld fix that no estimator comes near" in verdict_lines(m)[0]
