@@ -14,7 +14,8 @@ Per estimator (track), metrics.json holds:
   ``nees_mean``; ``ate_association_rmse_m``, what the nearest-time pairing alone adds
   (``metrics.association_error``: the truth at its stamp against the truth at the estimate's);
   and in full ``ate`` {none, se2, origin: {position_m, heading_deg: statistics}, association_m},
-  ``rpe`` {'1s', '10m': {position_m, heading_deg}}, ``nees`` (consistency summary);
+  ``rpe`` {'1s', '10m': {position_m, heading_deg}} (None, with ``rpe_note`` saying why, for a
+  truth without heading), ``nees`` (consistency summary);
 * against withheld GPS fixes: ``gps_holdout_rmse_m`` and ``gps_holdout_m`` (statistics), every
   track on the same fixes, those inside every track's span (top level:
   ``gps_holdout_scored_fixes`` of ``gps_holdout_fixes``); where no withheld fix lies inside
@@ -156,13 +157,20 @@ def _truth_scores(tr: Trajectory, truth: Trajectory, pose_error: str = "world") 
         except ValueError:  # too few distinct positions, or a truth without heading
             ate[how] = None
     m["ate"] = ate
-    rpe = {}
-    for key, delta, unit in RPE_DELTAS:
-        pos, yaw = metrics.rpe(tr, truth, delta, MAX_DIFF, unit=unit)
-        rpe[key] = {"delta": delta, "unit": unit, "position_m": _stats(pos),
-                    "heading_deg": _stats(yaw, math.degrees(1))} if pos.n else None
-    m["rpe"] = rpe
-    m["rpe_rmse_m"] = _num(rpe["1s"]["position_m"]["rmse"]) if rpe["1s"] else None
+    if np.isfinite(truth.pose[:, 2]).any():
+        rpe = {}
+        for key, delta, unit in RPE_DELTAS:
+            pos, yaw = metrics.rpe(tr, truth, delta, MAX_DIFF, unit=unit)
+            rpe[key] = {"delta": delta, "unit": unit, "position_m": _stats(pos),
+                        "heading_deg": _stats(yaw, math.degrees(1))} if pos.n else None
+        m["rpe"] = rpe
+        m["rpe_rmse_m"] = _num(rpe["1s"]["position_m"]["rmse"]) if rpe["1s"] else None
+    else:
+        # Position-only truth (NavSatFix): the RPE compares relative poses, the estimate's
+        # displacement in its own start frame against the truth's in the truth's, which needs
+        # the truth's heading. Left out with the reason, not nulls beside a pair count.
+        m["rpe"], m["rpe_rmse_m"] = None, None
+        m["rpe_note"] = "the ground truth has no heading (position only): no RPE"
     ns = metrics.nees_series(tr, truth, MAX_DIFF, pose_error)
     if len(ns.value):
         c = consistency.summarize(ns.value, ns.dof)

@@ -180,3 +180,21 @@ def test_a_gross_gps_error_no_track_comes_near_is_left_out_for_every_track():
         assert m["estimators"][n]["gps_holdout_rmse_m"] == pytest.approx(want, abs=1e-5)
     m["gps_holdout"] = "every:1"
     assert "1 withheld fix that no estimator comes near" in verdict_lines(m)[0]
+
+
+def test_position_only_truth_gives_no_rpe_rather_than_nulls_with_a_pair_count():
+    """A NavSatFix ground truth has no heading: the RPE's relative poses cannot be formed.
+    The track's RPE is left out with the reason; its ATE is still scored."""
+    t = np.arange(0.0, 60.0, 0.1)
+    truth = _track(np.arange(0.0, 60.0, 0.2))
+    truth.pose[:, 2] = np.nan
+    m = score(_result({"ekf": _track(t, 0.2)}, [], np.zeros((0, 2)), [], truth=truth, t1=60.0))
+    e = m["estimators"]["ekf"]
+    assert e["ate_rmse_m"] == pytest.approx(0.2, abs=1e-6)
+    assert e["rpe"] is None and e["rpe_rmse_m"] is None
+    assert "no heading" in e["rpe_note"]
+    # with the truth's heading the RPE is there, with finite values for every pair it counts
+    truth.pose[:, 2] = _pose(truth.t)[:, 2]
+    e = score(_result({"ekf": _track(t, 0.2)}, [], np.zeros((0, 2)), [], truth=truth,
+                      t1=60.0))["estimators"]["ekf"]
+    assert e["rpe"]["1s"]["position_m"]["n"] > 0 and e["rpe_rmse_m"] is not None
