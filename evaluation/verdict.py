@@ -127,6 +127,11 @@ def _tie(va: float, vb: float) -> bool:
     return (d / max(va, vb) if max(va, vb) > 0 else 0.0) <= TIE
 
 
+def _call(a: str, va: float, b: str, vb: float) -> str | None:
+    """Who wins between ``a`` and ``b`` (lower is better); None for a tie."""
+    return None if _tie(va, vb) else (a if va < vb else b)
+
+
 def _compare(a: str, va: float, b: str, vb: float) -> str:
     """'a' against 'b' in words (lower is better)."""
     d = abs(va - vb)
@@ -281,10 +286,11 @@ def _ranked_scores(m: dict, key: str, scored: dict) -> tuple[dict, str | None]:
                     "table).")
 
 
-def _own_ate_line(scored: dict, ranked: dict, best: str) -> str | None:
-    """Where each track's own ATE (its own span and stamps) ranks another track first."""
+def _own_ate_line(scored: dict, ranked: dict, best: str, tied: list[str]) -> str | None:
+    """Where each track's own ATE (its own span and stamps) ranks another track first, one
+    outside the ``tied`` best ones."""
     own_best = min(scored, key=scored.get)
-    if scored is ranked or own_best == best:
+    if scored is ranked or own_best in tied:
         return None
     order = sorted(scored, key=scored.get)
     return ("Over each track's own samples and span (the table's ATE) the order differs: "
@@ -386,25 +392,34 @@ def verdict_lines(m: dict) -> list[str]:
             lines[0] += " " + how
         ranked = sorted(scored, key=scored.get)
         best = ranked[0]
-        kind = track_kind(best, lag)
-        lines.append(f"Best here: {best} with {_m(scored[best])} m"
-                     + ("" if kind == "real time" else f" ({kind})") + ".")
+        # tracks within TIE of the best tie with it: no single winner among them
+        tied = [n for n in ranked if _tie(scored[best], scored[n])]
+
+        def named(n: str) -> str:
+            kind = track_kind(n, lag)
+            return f"{n} with {_m(scored[n])} m" + ("" if kind == "real time" else f" ({kind})")
+
+        if len(tied) == 1:
+            lines.append(f"Best here: {named(best)}.")
+        else:
+            lines.append(f"Best here, tied (each within {100 * TIE:.0f}% of the best): "
+                         + ", ".join(named(n) for n in tied) + ".")
         ekfs = [n for n in ranked if n.startswith("ekf")]
         live = [n for n in ranked if track_kind(n) == "real time" and n.startswith("smoother")]
         if ekfs and live:
             a, b = ekfs[0], live[0]
             text = ("Real-time head to head, best EKF against the smoother's filtered output: "
                     + _compare(a, scored[a], b, scored[b]))
-            if (scored is not own
-                    and _tie(scored[a], scored[b]) != _tie(own[a], own[b])):
+            if scored is not own and _call(a, scored[a], b, scored[b]) != _call(
+                    a, own[a], b, own[b]):
                 # over their own spans and stamps the two ATEs average over other moments
                 text += (" Over each one's own samples (the table's ATE) the call differs: "
                          + _compare(a, own[a], b, own[b]))
             lines.append(text)
         for n in ranked:
-            if track_kind(n) != "real time" and n != best:
+            if track_kind(n) != "real time" and n not in tied:
                 lines.append(f"{n} ({track_kind(n, lag)}): {_m(scored[n])} m.")
-        own_line = _own_ate_line(own, scored, best)
+        own_line = _own_ate_line(own, scored, best, tied)
         if own_line:
             lines.append(own_line)
         if key == "ate_rmse_m":

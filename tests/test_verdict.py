@@ -304,3 +304,31 @@ def test_residuals_every_estimator_finds_off_alike_are_put_on_the_config():
                      "verdicts are about the config, not about which method is better."]
     e["smoother"]["nis"]["/imu gyro"] = nis("Pass", 0.9)  # one tester disagrees: no hint
     assert not any(line.startswith("Every estimator") for line in verdict_lines(m))
+
+
+def test_best_here_names_no_single_winner_within_the_tie_band():
+    """0.0818 against 0.0820 m is 0.2 %, inside TIE: both are named as tied, the next one
+    (over TIE from the best) is not."""
+    from evaluation.verdict import TIE
+
+    scores = {"ekf": 0.114, "smoother": 0.101, "smoother_lagged": 0.0820, "batch": 0.0818}
+    lines = verdict_lines(_m(scores))
+    within = sorted((n for n in scores if (scores[n] - 0.0818) / scores[n] <= TIE),
+                    key=scores.get)
+    assert within == ["batch", "smoother_lagged"]
+    assert lines[1] == ("Best here, tied (each within 5% of the best): batch with 0.0818 m "
+                        "(offline), smoother_lagged with 0.0820 m (lagged by 10 s).")
+    scores["smoother_lagged"] = 0.0818 / (1 - TIE) * 1.01  # just outside the band
+    assert verdict_lines(_m(scores))[1] == "Best here: batch with 0.0818 m (offline)."
+
+
+def test_a_head_to_head_whose_winner_reverses_on_the_other_figures_is_flagged():
+    """ekf 13 % better over its own samples, the smoother 13 % better on the common stamps:
+    neither is a tie, but the call reverses, and the verdict must say so."""
+    m = _m({"ekf": 0.100, "smoother": 0.115}, ate_common={"stamps": 301, "of": "smoother"})
+    m["estimators"]["ekf"]["ate_common_rmse_m"] = 0.115
+    m["estimators"]["smoother"]["ate_common_rmse_m"] = 0.100
+    (h2h,) = [x for x in verdict_lines(m) if x.startswith("Real-time head to head")]
+    assert "smoother is better: 0.100 m against ekf's 0.115 m" in h2h
+    assert h2h.endswith("Over each one's own samples (the table's ATE) the call differs: ekf "
+                        "is better: 0.100 m against smoother's 0.115 m, 0.015 m (13.0%) lower.")
