@@ -524,6 +524,27 @@ def rpe(est: Trajectory, ref: Trajectory, delta: float = 1.0, max_diff: float = 
     return Stats.of(trans), Stats.of(yaw[np.isfinite(yaw)])
 
 
+def rpe_mean_delta(est: Trajectory, ref: Trajectory, delta: float = 1.0, max_diff: float = 0.05,
+                   *, unit: str = "s", all_pairs: bool = False, rel_tol: float = 0.1,
+                   pairs_from_reference: bool = False) -> float | None:
+    """The mean time (``unit`` 's') or path length ('m', on the positions the pairs are taken
+    on) actually spanned by ``rpe``'s pairs (same arguments): consecutive pairs reach at least
+    ``delta`` at the next sample, so a track sampled every 0.4 s has pairs 1.2 s apart for a
+    1 s RPE. None without pairs."""
+    i, j = associate(est.t, ref.t, max_diff)
+    if len(i) < 2:
+        return None
+    src = (ref.pose[j] if pairs_from_reference else est.pose[i])[:, :2]
+    t = est.t[i]
+    a, b = rpe_pairs(t, src, delta, unit, all_pairs, rel_tol)
+    if not len(a):
+        return None
+    if unit == "s":
+        return float(np.mean(t[b] - t[a]))
+    cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(src, axis=0), axis=1))])
+    return float(np.mean(cum[b] - cum[a]))
+
+
 @dataclass
 class Outage:
     """A stretch of the run in which no GPS fix reached the estimators: [t0, t1) s."""

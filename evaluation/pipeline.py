@@ -14,7 +14,8 @@ Per estimator (track), metrics.json holds:
   ``nees_mean``; ``ate_association_rmse_m``, what the nearest-time pairing alone adds
   (``metrics.association_error``: the truth at its stamp against the truth at the estimate's);
   and in full ``ate`` {none, se2, origin: {position_m, heading_deg: statistics}, association_m},
-  ``rpe`` {'1s', '10m': {position_m, heading_deg}} (None, with ``rpe_note`` saying why, for a
+  ``rpe`` {'1s', '10m': {position_m, heading_deg, mean_delta: the pairs' actual mean spacing
+  in s or m, over the nominal one where samples are sparse}} (None, with ``rpe_note`` saying why, for a
   truth without heading), ``nees`` (consistency summary);
 * against withheld GPS fixes: ``gps_holdout_rmse_m`` and ``gps_holdout_m`` (statistics), every
   track on the same fixes, those inside every track's span (top level:
@@ -161,8 +162,11 @@ def _truth_scores(tr: Trajectory, truth: Trajectory, pose_error: str = "world") 
         rpe = {}
         for key, delta, unit in RPE_DELTAS:
             pos, yaw = metrics.rpe(tr, truth, delta, MAX_DIFF, unit=unit)
-            rpe[key] = {"delta": delta, "unit": unit, "position_m": _stats(pos),
-                        "heading_deg": _stats(yaw, math.degrees(1))} if pos.n else None
+            # the pairs' actual spacing: a keyframe track's 1 s pairs are 1.2 s apart
+            rpe[key] = {"delta": delta, "unit": unit, "mean_delta": _num(
+                metrics.rpe_mean_delta(tr, truth, delta, MAX_DIFF, unit=unit)),
+                "position_m": _stats(pos),
+                "heading_deg": _stats(yaw, math.degrees(1))} if pos.n else None
         m["rpe"] = rpe
         m["rpe_rmse_m"] = _num(rpe["1s"]["position_m"]["rmse"]) if rpe["1s"] else None
     else:

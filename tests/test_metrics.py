@@ -330,3 +330,18 @@ def test_truth_exactly_at_twice_max_diff_is_interpolated_despite_stamp_rounding(
     # the truth's own position at each estimate stamp (an independent computation)
     assert np.abs(ref[:, 0] - (te[i] - t0)).max() < 1e-5
     assert metrics.nees_series(est, truth, 0.05).value.max() < 1e-3
+
+
+def test_rpe_mean_delta_is_the_pairs_actual_spacing():
+    """Consecutive 1 s pairs on a track sampled every 0.4 s are 1.2 s apart (the first sample
+    at or past 1 s); on 0.1 s samples 1.0 s. Path pairs of 10 m on 0.4 m steps: 10.0 m."""
+    ref = traj(np.arange(0.0, 100.0, 0.05), np.arange(0.0, 100.0, 0.05), 0.0, 0.0)
+    for dt, want in ((0.4, 3 * 0.4), (0.1, 1.0)):
+        t = np.arange(0.0, 99.0, dt)
+        est = traj(t, t, 0.0, 0.0)
+        a, b = metrics.rpe_pairs(t, est.pose[:, :2], 1.0)
+        assert np.allclose(t[b] - t[a], want)  # independently, from the pairs themselves
+        assert metrics.rpe_mean_delta(est, ref, 1.0) == pytest.approx(want)
+    t = np.arange(0.0, 99.0, 0.4)
+    assert metrics.rpe_mean_delta(traj(t, t, 0.0, 0.0), ref, 10.0, unit="m") == \
+        pytest.approx(10.0, abs=0.4)
