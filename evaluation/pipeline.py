@@ -15,8 +15,8 @@ Per estimator (track), metrics.json holds:
   (``metrics.association_error``: the truth at its stamp against the truth at the estimate's);
   and in full ``ate`` {none, se2, origin: {position_m, heading_deg: statistics}, association_m},
   ``rpe`` {'1s', '10m': {position_m, heading_deg, mean_delta: the pairs' actual mean spacing
-  in s or m, over the nominal one where samples are sparse}} (None, with ``rpe_note`` saying why, for a
-  truth without heading), ``nees`` (consistency summary);
+  in s or m, over the nominal one where samples are sparse}} (None, with ``rpe_note`` saying
+  why, for a truth without heading), ``nees`` (consistency summary);
 * against withheld GPS fixes: ``gps_holdout_rmse_m`` and ``gps_holdout_m`` (statistics), every
   track on the same fixes, those inside every track's span (top level:
   ``gps_holdout_scored_fixes`` of ``gps_holdout_fixes``); where no withheld fix lies inside
