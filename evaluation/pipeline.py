@@ -70,9 +70,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-from scipy.stats import chi2
 
-from estimation import heading_survey
+from estimation import chi2, heading_survey
 from estimation.bags import BagStream
 from estimation.config import DEFAULT_GATE, Config
 from estimation.errors import BagError, RunInterrupted
@@ -293,7 +292,7 @@ def _gross_outliers(result: RunResult, t: np.ndarray, xy: np.ndarray, cov: np.nd
     live = [r.trajectory for r in result.runs.values() if len(r.trajectory) > 1]
     if not gate or not live or not len(t):
         return np.zeros(len(t), bool)
-    limit = float(chi2.ppf(gate, 2))
+    limit = float(chi2.ppf(gate, 2))  # estimation.chi2: scipy.stats's values, not its import
     out = np.ones(len(t), bool)
     for tr in live:
         nis = metrics.gate_nis(tr, t, xy, cov, antenna["lever_arm"], antenna["delay_s"])
