@@ -406,7 +406,9 @@ def score(result: RunResult, decode_s: float = 0.0,
                                               antenna)
             m["gps_residual_corr_s"] = _num(_residual_corr(tr, used_t, used_xy, antenna))
         out["estimators"][name] = m
-    common = _common_ate({n: r.trajectory for n, r in result.runs.items()}, truth)
+    # a run that stopped with an error is not ranked: it must not cut everyone's span
+    common = _common_ate({n: r.trajectory for n, r in result.runs.items() if r.error is None},
+                         truth)
     out["ate_common"] = common[1] if common else None
     for name, m in out["estimators"].items():
         m["ate_common_rmse_m"] = common[0].get(name) if common else None

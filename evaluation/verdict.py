@@ -385,9 +385,16 @@ def verdict_lines(m: dict) -> list[str]:
     key, what = _score(m)
     lines = [what]
     lag = m.get("lag_s")
-    if key:
-        own = {n: e[key] for n, e in ests.items() if e.get(key) is not None}
+    # an estimator that stopped with an error scored only its first part of the run: left out
+    # of the ranking (otherwise its first seconds, or the common span cut to them, decide)
+    halted = [n for n, e in ests.items() if e.get("error") and key and e.get(key) is not None]
+    if key and len(halted) < sum(e.get(key) is not None for e in ests.values()):
+        own = {n: e[key] for n, e in ests.items() if e.get(key) is not None and n not in halted}
         scored, how = _ranked_scores(m, key, own)
+        if halted:
+            how = (how + " " if how else "") + (
+                "Not ranked, having stopped with an error (said below): "
+                + ", ".join(halted) + ".")
         if how:
             lines[0] += " " + how
         ranked = sorted(scored, key=scored.get)

@@ -97,25 +97,28 @@ def test_the_ranking_is_over_the_common_span_and_a_late_start_is_stated():
     assert any("there late is best, not early" in line for line in lines)
 
 
-def test_a_track_that_stopped_early_is_not_best_on_its_first_seconds():
+def test_a_track_that_stopped_early_is_not_ranked_and_cuts_no_span():
     """'broken' stopped at 20 s with an error (0.1 m off until then); 'steady' is 0.05 m off
-    for those 20 s and 1 m after. On its own span 'broken' scores best; over the common
-    span 'steady' is better, and the verdict says the ranking covers only those seconds."""
+    for those 20 s and 1 m after, 'other' 0.5 m throughout. On its own span 'broken' scores
+    best, and a common span cut to its 20 s would rank 'steady' first on its best seconds.
+    The stopped track is left out of the ranking, which covers the whole run."""
     t = np.arange(0.0, 120.0, 0.1)
     broken = _track(t[t < 20.0], 0.1)
     steady = _track(t, np.where(t < 20.0, 0.05, 1.0))
-    res = _result({"broken": broken, "steady": steady}, [], np.zeros((0, 2)), [],
-                  truth=_truth())
+    other = _track(t, 0.5)
+    res = _result({"broken": broken, "steady": steady, "other": other}, [],
+                  np.zeros((0, 2)), [], truth=_truth())
     res.runs["broken"].error = "RuntimeError at t=20: boom"
     m = score(res)
     e = m["estimators"]
-    assert e["broken"]["ate_rmse_m"] < e["steady"]["ate_rmse_m"]
-    assert e["steady"]["ate_common_rmse_m"] == pytest.approx(0.05, abs=1e-6)
+    assert e["broken"]["ate_rmse_m"] < e["other"]["ate_rmse_m"] < e["steady"]["ate_rmse_m"]
+    assert m["ate_common"]["span_s"] == pytest.approx([0.0, t[-1]])
+    assert e["broken"]["ate_common_rmse_m"] is None
     lines = verdict_lines(m)
-    assert lines[1] == "Best here: steady with 0.0500 m."
-    assert any(line.startswith("broken ends 100.0 s before the last track, at 19.9 s (an "
-                               "error: it stopped early): every track is ranked only up to "
-                               "19.9 s") for line in lines)
+    assert lines[1] == "Best here: other with 0.500 m."
+    assert "Not ranked, having stopped with an error (said below): broken." in lines[0]
+    assert any(line.startswith("broken stopped early: RuntimeError") for line in lines)
+    assert not any("ranked only up to" in line for line in lines)
 
 
 def test_holdout_scores_the_antenna_with_the_configured_lever_arm_and_delay():
