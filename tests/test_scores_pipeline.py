@@ -155,34 +155,47 @@ def test_holdout_scores_the_antenna_with_the_configured_lever_arm_and_delay():
 
 
 def test_a_gross_gps_error_no_track_comes_near_is_left_out_for_every_track():
-    """One withheld fix 30 m off (multipath) would dominate every track's RMSE alike. Fixes
-    every track's chi-square gate rejects (the fix's and the track's own covariance) are left
-    out for all and counted; a track that drifted with a covariance to match keeps them."""
+    """One withheld fix 30 m off (multipath) would dominate every track's RMSE alike. Withheld
+    fixes that every track's chi-square gate rejects (the fix's and the track's own
+    covariance) and that the used fixes on either side reject too are left out for all and
+    counted; a track that drifted with a covariance to match keeps them. In an outage (no used
+    fix near) nothing is left out, however far every track has drifted."""
     from scipy.stats import chi2
 
     rng = np.random.default_rng(5)
     fix_t = np.arange(1.0, 119.0, 0.4)
     fix_xy = _pose(fix_t)[:, :2] + rng.normal(0.0, 1.0, (len(fix_t), 2))
     fix_xy[100, 0] += 30.0
+    withheld = np.arange(len(fix_t)) % 5 == 0  # fix 100 among them
     t = np.arange(0.0, 120.0, 0.1)
     tracks = {"good": _track(t, 0.0), "fair": _track(t, 0.3),
               "drifted": _track(t, 6.0, sigma=5.0)}  # 6 m off, and says so
-    m = score(_result(tracks, fix_t, fix_xy, np.ones(len(fix_t), bool)))
-    # independently: the fixes every track's gate (R + P, the default 0.9999) rejects
+    m = score(_result(tracks, fix_t, fix_xy, withheld))
+    # independently: the withheld fixes every track's gate (R + P, the default 0.9999)
+    # rejects, and the mean of the two used fixes beside them (R + R / 2) rejects
     limit = chi2.ppf(m["gps_antenna"]["gate"], 2)
-    rejected = np.ones(len(fix_t), bool)
+    rejected = withheld.copy()
     for tr in tracks.values():
         d = tr.pose[np.searchsorted(tr.t, fix_t), :2] - fix_xy
-        v = 1.0 + tr.cov[0, 0, 0]
-        rejected &= np.sum(d * d, axis=1) / v > limit
-    assert rejected.tolist() == [i == 100 for i in range(len(fix_t))]
-    assert m["gps_holdout_outliers"] == 1 and m["gps_holdout_scored_fixes"] == len(fix_t) - 1
+        rejected &= np.sum(d * d, axis=1) / (1.0 + tr.cov[0, 0, 0]) > limit
+    i = np.flatnonzero(withheld)
+    between = 0.5 * (fix_xy[np.maximum(i - 1, 0)] + fix_xy[np.minimum(i + 1, len(fix_t) - 1)])
+    rejected[i] &= np.sum((fix_xy[i] - between) ** 2, axis=1) / 1.5 > limit
+    assert np.flatnonzero(rejected).tolist() == [100]
+    held = withheld.sum()
+    assert m["gps_holdout_outliers"] == 1 and m["gps_holdout_scored_fixes"] == held - 1
     for n, tr in tracks.items():
-        d = np.delete(tr.pose[np.searchsorted(tr.t, fix_t), :2] - fix_xy, 100, axis=0)
+        d = (tr.pose[np.searchsorted(tr.t, fix_t), :2] - fix_xy)[withheld & ~rejected]
         want = math.sqrt(np.mean(np.sum(d * d, axis=1)))
         assert m["estimators"][n]["gps_holdout_rmse_m"] == pytest.approx(want, abs=1e-5)
-    m["gps_holdout"] = "every:1"
+    m["gps_holdout"] = "every:5"
     assert "1 withheld fix that no estimator comes near" in verdict_lines(m)[0]
+    # a 30 s outage over which every track drifts to 20 m with a sigma of 1 m: its fixes are
+    # what the score is for, none is left out
+    outage = (fix_t >= 40.0) & (fix_t < 70.0)
+    far = {n: _track(t, np.where((t >= 40.0) & (t < 70.0), 20.0, 0.1)) for n in ("a", "b")}
+    m = score(_result(far, fix_t, _pose(fix_t)[:, :2], outage))
+    assert m["gps_holdout_outliers"] == 0 and m["gps_holdout_scored_fixes"] == outage.sum()
 
 
 def test_position_only_truth_gives_no_rpe_rather_than_nulls_with_a_pair_count():
