@@ -61,7 +61,7 @@ def lag_sweep(bag: str | Path, config: str | Path, lags=DEFAULT_LAGS, holdout: s
     rows: list[dict] = []
 
     def add(ests: dict, lag: float | None, tracks) -> None:
-        m = score(run(stream, ests, holdout=holdout))
+        m = score(run(stream, ests, holdout=holdout), cfg=cfg)  # run's antenna model
         for track in tracks:
             e = m["estimators"][track]
             rows.append({"estimator": track, "lag_s": lag,

@@ -109,7 +109,7 @@ def _score(result: RunResult, cfg) -> dict:
     one (see there)."""
     from evaluation import pipeline  # it imports this module
 
-    m = pipeline.score(result)
+    m = pipeline.score(result, cfg=cfg)  # the GPS antenna (lever arm, delay) as run scores it
     if cfg is not None:
         surveys = pipeline.offset_surveys(result, cfg)
         m["data"] = pipeline.data_facts(result, cfg, surveys)

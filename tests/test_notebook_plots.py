@@ -124,7 +124,9 @@ def test_figures_from_an_in_memory_result_equal_the_saved_ones(husky, tmp_path):
             np.testing.assert_allclose(getattr(mem.tracks[name], f),
                                        getattr(disk.tracks[name], f), rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(mem.truth.pose, disk.truth.pose, rtol=1e-9, atol=1e-12)
-    for key in ("estimators", "data", "initial_pose", "gps_outages"):
+    # scored with run's GPS antenna model (the sample config's 0.2 s delay) too
+    assert mem.metrics["gps_antenna"]["delay_s"] == cfg.of_kind("gps")[0].delay == 0.2
+    for key in ("estimators", "data", "initial_pose", "gps_outages", "gps_antenna"):
         assert mem.metrics[key] == disk.metrics[key], key
     # Fed the same tracks, the same figures byte for byte: nothing else differs.
     b = _figures(disk)
