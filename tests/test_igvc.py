@@ -11,6 +11,7 @@ import math
 
 import numpy as np
 import pytest
+from drives import straight_drive
 
 from ekf_baseline.igvc import IgvcEkf, IgvcNoise
 from estimation import geodesy
@@ -346,27 +347,22 @@ def test_longitude_wraps_across_the_antimeridian_errata_000_11(reference):
     v, sig = 2.0, 0.5
     ekf = IgvcEkf(make_cfg(compass=False), datum=datum, initial_pose=(0.0, 0.0, 0.0),
                   reference=reference)
-    wheel = v / R_WHEEL
     # the antimeridian on the filter's sphere, 54.7 m east of the start
     x_line = ekf.radius * math.cos(math.radians(datum[0])) * (math.pi - math.radians(datum[1]))
-    straddle = None  # (state lon, fix lon) of the fix placed 1 m east of the robot at the line
-    for k in range(0, 6001):  # 60 s at 100 Hz
-        t = k * DT
-        if k % 5 == 0:
-            ekf.process(WheelSpeeds(t, wheel + rng.normal(0, SIG_WHEEL),
-                                    wheel + rng.normal(0, SIG_WHEEL), SIG_WHEEL**2,
-                                    SIG_WHEEL**2, "wheels"))
-        if k % 2 == 0:
-            ekf.process(GyroYawRate(t, rng.normal(0, SIG_GYRO), SIG_GYRO**2, "imu"))
-        if k % 20 == 0 and k > 0:
-            e, n = v * t + rng.normal(0, sig), rng.normal(0, sig)
-            if straddle is None and v * t >= x_line - 0.7:
-                e = v * t + 1.0  # the robot 0.3-0.7 m west of the line, this fix east of it
-            lat, lon, alt = geodesy.enu_to_geodetic(e, n, 0.0, *datum)
-            if straddle is None and v * t >= x_line - 0.7:
-                straddle = (float(ekf.kf.x[1]), math.radians(lon))
-            ekf.process(GpsFix(t, lat, lon, alt, np.diag([sig**2, sig**2, 1.0]), 0, "gps",
-                               (e, n, 0.0)))
+    placed: list = []  # the fix placed 1 m east of the robot at the line
+
+    def east_of_the_line(t, e, n):
+        if not placed and v * t >= x_line - 0.7:
+            placed.append(t)
+            return v * t + 1.0, n  # the robot 0.3-0.7 m west of the line, this fix east of it
+        return e, n
+
+    straddle = None  # (state lon, fix lon) of that fix
+    for m in straight_drive(datum, 0.0, v, 60.0, rng, r_wheel=R_WHEEL, sig_wheel=SIG_WHEEL,
+                            sig_gyro=SIG_GYRO, sig_gps=sig, fix_hook=east_of_the_line):
+        if isinstance(m, GpsFix) and placed and m.t == placed[0]:
+            straddle = (float(ekf.kf.x[1]), math.radians(m.lon))
+        ekf.process(m)
     assert straddle[0] > 3.14159 and straddle[1] < -3.14159  # state west, fix east of it
     gps = [i for i in ekf.innovations if i.kind == "gps"]
     crossed = [i for i in gps if i.t > 30.0]  # east of the antimeridian (x > 55 m)

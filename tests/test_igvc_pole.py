@@ -12,12 +12,12 @@ import math
 
 import numpy as np
 import pytest
+from drives import straight_drive
 
 from ekf_baseline.igvc import POLE_LIMIT_DEG, IgvcEkf, PolarRegionError
 from ekf_baseline.unicycle import UnicycleEkf
-from estimation import geodesy
 from estimation.config import Config, RobotConfig, SensorConfig
-from estimation.measurements import GpsFix, GyroYawRate, Stream, WheelSpeeds
+from estimation.measurements import GpsFix, Stream
 from estimation.runner import run
 
 R_WHEEL, TRACK = 0.165, 0.555
@@ -35,26 +35,13 @@ def _cfg(datum=None) -> Config:
 
 
 def _drive(datum, yaw: float, v: float, duration: float, seed: int = 3):
-    """A straight drive from the datum at ``yaw`` (ENU, rad) and ``v`` m/s: 20 Hz wheels,
-    50 Hz gyro, 5 Hz GPS from t = 0.2 s. Returns (measurements, truth (x, y) at each fix)."""
-    rng = np.random.default_rng(seed)
-    meas, truth = [], {}
-    wheel = v / R_WHEEL
-    for k in range(int(round(duration / 0.01)) + 1):
-        t = k * 0.01
-        if k % 5 == 0:
-            meas.append(WheelSpeeds(t, wheel + rng.normal(0, SIG_WHEEL),
-                                    wheel + rng.normal(0, SIG_WHEEL), SIG_WHEEL**2,
-                                    SIG_WHEEL**2, "wheels"))
-        if k % 2 == 0:
-            meas.append(GyroYawRate(t, rng.normal(0, SIG_GYRO), SIG_GYRO**2, "imu"))
-        if k % 20 == 0 and k > 0:
-            x, y = v * t * math.cos(yaw), v * t * math.sin(yaw)
-            e, n = x + rng.normal(0, SIG_GPS), y + rng.normal(0, SIG_GPS)
-            lat, lon, alt = geodesy.enu_to_geodetic(e, n, 0.0, *datum)
-            meas.append(GpsFix(t, lat, lon, alt, np.diag([SIG_GPS**2, SIG_GPS**2, 1.0]), 0,
-                               "gps", (e, n, 0.0)))
-            truth[t] = (x, y)
+    """A straight drive from the datum at ``yaw`` (ENU, rad) and ``v`` m/s (``drives``).
+    Returns (measurements, truth (x, y) at each fix)."""
+    meas = list(straight_drive(datum, yaw, v, duration, np.random.default_rng(seed),
+                               r_wheel=R_WHEEL, sig_wheel=SIG_WHEEL, sig_gyro=SIG_GYRO,
+                               sig_gps=SIG_GPS))
+    truth = {m.t: (v * m.t * math.cos(yaw), v * m.t * math.sin(yaw)) for m in meas
+             if isinstance(m, GpsFix)}
     return meas, truth
 
 
