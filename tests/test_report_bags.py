@@ -15,8 +15,10 @@ def test_husky_report_with_gps_holdout(husky_bag, tmp_path):
     assert cli.main(["run", str(husky_bag), "-o", str(out), "--estimators", "ekf,smoother",
                      "--gps-holdout", "every:5"]) == 0
     m = json.loads((out / "metrics.json").read_text())
-    # the data's documented facts: ~395 m of path, 989 fixes, no truth
-    assert m["data"]["path_length_m"] == pytest.approx(395, abs=10)
+    # the data's documented facts: 989 fixes, no truth. Its "about 395 m of path" is the
+    # polyline through the fixes, lengthened by their noise; the odometry integrates to 359 m,
+    # 349 m at its fitted speed scale 0.972 (docs/results/smoother_monte_carlo.md)
+    assert m["data"]["path_length_m"] == pytest.approx(349, abs=15)
     assert m["data"]["gps_fixes"] == 989 and m["gps_holdout_fixes"] == 989 // 5
     assert not m["has_ground_truth"]
     for name in ("ekf", "smoother"):
