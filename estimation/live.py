@@ -65,6 +65,7 @@ from estimation.bags import (
     ACCEPTED_TYPES,
     CONVERTERS,
     STAMP_TOLERANCE,
+    UNSET_STAMP,
     Reject,
     _StampCheck,
     configured_topics,
@@ -188,8 +189,9 @@ class LiveConverter:
             # offset: checked before the warm-up, which passes a topic's first message
             # unchecked when no clock is known yet, and kept out of the offsets it learns
             chk.bad += 1
-            # non-finite: the reason the converters and the session give it
-            why = self._stamp_reason if math.isfinite(t) else "non-finite stamp"
+            # the bag reader's reasons: zero or below is a clock not yet set; non-finite is
+            # what the converters and the session call it
+            why = UNSET_STAMP if math.isfinite(t) else "non-finite stamp"
             self.rejected[(topic, why)] += 1
             if chk.bad == 1:
                 log.warning("%s: a header stamp of %r s (zero, negative or not finite: a "
