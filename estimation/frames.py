@@ -50,39 +50,39 @@ def rotated_variance(r: Mat3, cov9: tuple[float, ...], row: int) -> float:
     return sum(a[i] * cov9[3 * i + j] * a[j] for i in range(3) for j in range(3))
 
 
-def body_yaw(q: tuple[float, float, float, float], mount: Mat3) -> float:
-    """Yaw (rad, about world z from world x) of the body frame, given the sensor's orientation
-    quaternion q (world <- sensor) and its mount R_body_sensor: R_wb = R_ws R_bs^T.
-
-    Only the first column of R_wb is needed, R_ws @ (row 0 of R_bs), and atan2 ignores the
-    quaternion's norm, so neither the full matrix nor a normalisation is computed."""
+def body_x_axis(q: tuple[float, float, float, float], mount: Mat3
+                ) -> tuple[float, float, float]:
+    """The body's forward axis in the world, scaled by the quaternion's squared norm (no
+    normalisation), given the sensor's orientation quaternion q (world <- sensor, (x, y, z, w))
+    and its mount R_body_sensor: the first column of R_wb = R_ws R_bs^T, i.e. R_ws @ (row 0 of
+    R_bs); the full matrix is not formed."""
     x, y, z, w = q
     m0, m1, m2 = mount[0]
-    c0 = ((w * w + x * x - y * y - z * z) * m0 + 2 * (x * y - z * w) * m1
-          + 2 * (x * z + y * w) * m2)
-    c1 = (2 * (x * y + z * w) * m0 + (w * w - x * x + y * y - z * z) * m1
-          + 2 * (y * z - x * w) * m2)
-    return math.atan2(c1, c0)
+    return ((w * w + x * x - y * y - z * z) * m0 + 2 * (x * y - z * w) * m1
+            + 2 * (x * z + y * w) * m2,
+            2 * (x * y + z * w) * m0 + (w * w - x * x + y * y - z * z) * m1
+            + 2 * (y * z - x * w) * m2,
+            2 * (x * z - y * w) * m0 + 2 * (y * z + x * w) * m1
+            + (w * w - x * x - y * y + z * z) * m2)
+
+
+def body_yaw(q: tuple[float, float, float, float], mount: Mat3) -> float:
+    """Yaw (rad, about world z from world x) of the body frame (``body_x_axis``; atan2 ignores
+    the quaternion's norm)."""
+    ux, uy, _ = body_x_axis(q, mount)
+    return math.atan2(uy, ux)
 
 
 def body_x_tilt(q: tuple[float, float, float, float], mount: Mat3,
                 ocov9: tuple[float, ...] | None = None) -> tuple[float, float]:
-    """The world-z (up) component of the body's forward axis, sin(climb angle), and its variance
-    from the orientation covariance ``ocov9`` (rad^2, about the world axes, row-major; None or a
-    non-finite one: 0).
-
-    q is the sensor's orientation (world <- sensor) and mount R_body_sensor, so the body's x axis
-    in the world is R_ws (row 0 of R_bs). A small world rotation d turns it by d x u, whose z is
-    d_x u_y - d_y u_x: only roll and pitch errors about the horizontal axes count."""
+    """The world-z (up) component of the body's forward axis (``body_x_axis``, normalised),
+    sin(climb angle), and its variance from the orientation covariance ``ocov9`` (rad^2, about
+    the world axes, row-major; None or a non-finite one: 0). A small world rotation d turns the
+    axis u by d x u, whose z is d_x u_y - d_y u_x: only roll and pitch errors about the
+    horizontal axes count."""
     x, y, z, w = q
     n = x * x + y * y + z * z + w * w
-    m0, m1, m2 = mount[0]
-    ux = ((w * w + x * x - y * y - z * z) * m0 + 2 * (x * y - z * w) * m1
-          + 2 * (x * z + y * w) * m2) / n
-    uy = (2 * (x * y + z * w) * m0 + (w * w - x * x + y * y - z * z) * m1
-          + 2 * (y * z - x * w) * m2) / n
-    uz = (2 * (x * z - y * w) * m0 + 2 * (y * z + x * w) * m1
-          + (w * w - x * x - y * y + z * z) * m2) / n
+    ux, uy, uz = (c / n for c in body_x_axis(q, mount))
     var = 0.0
     if ocov9 is not None:
         var = uy * uy * ocov9[0] - 2.0 * uy * ux * ocov9[1] + ux * ux * ocov9[4]
