@@ -74,9 +74,9 @@ STAMP_TOLERANCE = 1.0  # s
 # ``rejected``: a run's terminal shows no log.
 WARN_SHARE = 0.1
 _LATE_PREFIX = "arrived after messages stamped up to more than"
+NULL_ISLAND = "latitude and longitude both 0: a receiver's placeholder, not a fix"
 # A stamp of zero or below is a driver's clock not yet set, never a time: rejected before the
 # stamp check, whose warm-up median and drift tracking it would otherwise join.
-NULL_ISLAND = "latitude and longitude both 0: a receiver's placeholder, not a fix"
 UNSET_STAMP = "header stamp zero or negative (the sensor's clock was not set)"
 
 
@@ -242,19 +242,6 @@ def _gps_fix(rec: tuple, name: str) -> GpsFix:
     return GpsFix(t, lat, lon, alt, np.array(cov9, dtype=float).reshape(3, 3), status, name)
 
 
-def _horizontal_cov_ok(c: tuple) -> bool:
-    """Whether a NavSatFix's row-major ENU covariance can weigh a fix: finite, symmetric, its
-    east/north block positive definite (what the estimators invert; the vertical is unused).
-    ``geodesy.enu_covariance_is_valid``'s test in plain floats: numpy's cost 70 us a fix."""
-    if not (_finite(*c) and c[0] > 0.0 and c[4] > 0.0):
-        return False
-    tol = 1e-9 * max(1.0, max(abs(v) for v in c))
-    for i, j in ((1, 3), (2, 6), (5, 7)):  # np.allclose(c, c.T, atol=tol): rtol 1e-5 too
-        if abs(c[i] - c[j]) > tol + 1e-5 * abs(c[j]) or abs(c[j] - c[i]) > tol + 1e-5 * abs(c[i]):
-            return False
-    return c[0] * c[4] - c[1] * c[3] > 0.0
-
-
 def _gps_converter(s: SensorConfig, key: str) -> Callable[[tuple], list]:
     h = s.noise.get("horizontal")
     vert = s.noise.get("vertical", 2.0 * h if h else None)
@@ -267,7 +254,7 @@ def _gps_converter(s: SensorConfig, key: str) -> Callable[[tuple], list]:
         else:
             if rec[6] == 0:
                 raise Reject(f"position_covariance_type UNKNOWN; set {key}.noise.horizontal")
-            if not _horizontal_cov_ok(rec[5]):
+            if not geodesy.enu_covariance_is_valid(rec[5]):
                 raise Reject(f"position_covariance unusable (not symmetric positive definite); "
                              f"set {key}.noise.horizontal")
         return [fix]

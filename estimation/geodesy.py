@@ -82,12 +82,19 @@ def enu_to_geodetic(e, n, u, lat0, lon0, alt0):
     return ecef_to_geodetic(d[0] + x0, d[1] + y0, d[2] + z0)
 
 
-def enu_covariance_is_valid(cov: np.ndarray) -> bool:
-    """True when a 3x3 ENU position covariance is finite, symmetric and has positive E/N
-    variances (what a NavSatFix must carry to be usable without a configured noise)."""
-    c = np.asarray(cov, float)
-    return bool(c.shape == (3, 3) and np.all(np.isfinite(c)) and c[0, 0] > 0 and c[1, 1] > 0
-                and np.allclose(c, c.T, atol=1e-9 * max(1.0, np.abs(c).max())))
+def enu_covariance_is_valid(cov) -> bool:
+    """True when an ENU position covariance (3x3, or its 9 entries row-major) is finite,
+    symmetric and has a positive definite east/north block: what a NavSatFix must carry to be
+    usable without a configured noise (the estimators invert that block; the vertical is
+    unused). Plain floats: the reader calls it per fix, and numpy's isclose cost 70 us."""
+    c = tuple(np.asarray(cov, float).ravel().tolist()) if isinstance(cov, np.ndarray) else cov
+    if len(c) != 9 or not all(math.isfinite(v) for v in c) or not (c[0] > 0.0 and c[4] > 0.0):
+        return False
+    tol = 1e-9 * max(1.0, max(abs(v) for v in c))
+    for i, j in ((1, 3), (2, 6), (5, 7)):  # np.allclose(c, c.T, atol=tol): rtol 1e-5 too
+        if abs(c[i] - c[j]) > tol + 1e-5 * abs(c[j]) or abs(c[j] - c[i]) > tol + 1e-5 * abs(c[i]):
+            return False
+    return c[0] * c[4] - c[1] * c[3] > 0.0
 
 
 def great_circle_forward(lat, lon, bearing, distance, radius=EARTH_MEAN_RADIUS):
