@@ -278,8 +278,9 @@ def _ranked_scores(m: dict, key: str, scored: dict) -> tuple[dict, str | None]:
         return scored, None
     t0 = (m.get("data") or {}).get("t0") or 0.0
     span = c.get("span_s")
-    where = (f" within the common span {span[0] - t0:.1f}-{span[1] - t0:.1f} s" if span
-             else "")
+    # max: t0 and the span come rounded from different places ("-0.0-399.9 s")
+    where = (f" within the common span {max(span[0] - t0, 0.0):.1f}-{span[1] - t0:.1f} s"
+             if span else "")
     return common, (f"Ranked on the same moments for every track: the {c['stamps']} stamps of "
                     f"{c['of']}{where}, every track and the truth interpolated there (each "
                     "track's own ATE, over all its samples as evo pairs them, is in the "
@@ -332,7 +333,9 @@ def _holdout_caution(m: dict, best: str) -> str:
     corr = m["estimators"][best].get("gps_residual_corr_s")
     interval = (m.get("data") or {}).get("gps_fix_interval_s")
     interp = m.get("gps_holdout_interpolation_rmse_m")
-    ref = (f" For reference, the used fixes interpolated in time, no estimator, score "
+    k = m.get("gps_holdout_interpolation_outliers") or 0
+    left = (f" ({k} gross error{'s' if k > 1 else ''} among them left out)" if k else "")
+    ref = (f" For reference, the used fixes interpolated in time{left}, no estimator, score "
            f"{interp:.3f} m." if interp is not None else "")
     if corr is None or not interval:
         return ("Caution: GPS errors are often correlated in time, so a fix withheld between two "

@@ -198,6 +198,39 @@ def test_a_gross_gps_error_no_track_comes_near_is_left_out_for_every_track():
     assert m["gps_holdout_outliers"] == 0 and m["gps_holdout_scored_fixes"] == outage.sum()
 
 
+def test_the_interpolation_reference_leaves_out_gross_errors_among_the_used_fixes():
+    """The no-estimator reference interpolates the used fixes: one 30 m used fix would put
+    about 15 m on each withheld fix beside it. Used fixes that every track's gate and their
+    two neighbours reject are left out of it and counted; a drift every track shares in an
+    outage is not (no neighbours near)."""
+    rng = np.random.default_rng(7)
+    fix_t = np.arange(1.0, 119.0, 0.4)
+    fix_t = np.delete(fix_t, [52, 53])  # a dropout after a withheld fix: a 1.2 s used gap
+    fix_xy = _pose(fix_t)[:, :2] + rng.normal(0.0, 1.0, (len(fix_t), 2))
+    withheld = np.arange(len(fix_t)) % 5 == 0
+    bad = [51, 101]  # used fixes; 51 has the dropout after it
+    assert not withheld[bad].any()
+    fix_xy[bad, 1] -= 30.0
+    t = np.arange(0.0, 120.0, 0.1)
+    tracks = {"good": _track(t, 0.0), "fair": _track(t, 0.3)}
+    m = score(_result(tracks, fix_t, fix_xy, withheld))
+    assert m["gps_holdout_interpolation_outliers"] == 2
+    keep = ~withheld
+    keep[bad] = False
+    held = withheld & (fix_t > fix_t[keep][0]) & (fix_t < fix_t[keep][-1])
+
+    def rmse(keep):
+        ix = np.column_stack([np.interp(fix_t[held], fix_t[keep], fix_xy[keep, k])
+                              for k in (0, 1)])
+        return math.sqrt(np.mean(np.sum((ix - fix_xy[held]) ** 2, axis=1)))
+
+    want = rmse(keep)
+    assert want < 2.0
+    assert m["gps_holdout_interpolation_rmse_m"] == pytest.approx(want, abs=1e-5)
+    # without the test: every used fix interpolated, the 30 m fixes included
+    assert rmse(~withheld) > 1.5 * want
+
+
 def test_position_only_truth_gives_no_rpe_rather_than_nulls_with_a_pair_count():
     """A NavSatFix ground truth has no heading: the RPE's relative poses cannot be formed.
     The track's RPE is left out with the reason; its ATE is still scored."""
