@@ -149,10 +149,14 @@ def cmd_online(args: argparse.Namespace) -> int:
                 cells.append(f"{name} -{mark}")
                 continue
             sd = [math.sqrt(v) if v >= 0.0 else math.nan for v in np.diag(e.pose_cov)]
+            # a heading sigma past 180 deg says only that the heading is unknown
+            sd_yaw = f"{math.degrees(sd[2]):.1f}" if not sd[2] > math.pi else ">180"
             cells.append(f"{name} ({e.pose[0]:8.2f}, {e.pose[1]:8.2f}, "
                          f"{math.degrees(e.pose[2]):7.1f} deg) +- ({sd[0]:.2f}, {sd[1]:.2f}, "
-                         f"{math.degrees(sd[2]):.1f} deg){mark}")
-        print(f"t={t:8.2f} s  " + "  ".join(cells) + ("  (final)" if final else ""), flush=True)
+                         f"{sd_yaw} deg){mark}")
+        end = "" if not final else "  (at the interrupt)" if final == "interrupted" else \
+            "  (final)"
+        print(f"t={t:8.2f} s  " + "  ".join(cells) + end, flush=True)
 
     def on_stop(name: str, t: float | None, why: str) -> None:
         stopped[name] = t
@@ -172,7 +176,8 @@ def cmd_online(args: argparse.Namespace) -> int:
     for w in [*session.input_warnings, *config_warnings(offsets.surveys(), cfg)]:
         sys.stderr.write(f"ddfuse: warning: {w}\n")
     if session.last_t is not None:  # after every estimator's finish(): what it ends with
-        show(session.last_t, {k: session.estimate(k) for k in session.estimators}, final=True)
+        show(session.last_t, {k: session.estimate(k) for k in session.estimators},
+             final="interrupted" if session.interrupted else True)
     print("update latency (ms):")
     for name, q in session.latency_ms().items():
         err = ""
@@ -181,8 +186,14 @@ def cmd_online(args: argparse.Namespace) -> int:
             err = "  ERROR: stopped " + ("in its finish" if at is None else f"at t={at:.2f} s")
         elif session.errors[name]:  # interrupted by Ctrl-C inside an update
             err = f"  ERROR: {_one_line(session.errors[name])}"
-        print(f"  {name:16} p50 {q['p50']:.3f}  p99 {q['p99']:.3f}  max {q['max']:.3f}  "
+        ms = {k: "-" if math.isnan(q[k]) else f"{q[k]:.3f}" for k in ("p50", "p99", "max")}
+        print(f"  {name:16} p50 {ms['p50']}  p99 {ms['p99']}  max {ms['max']}  "
               f"({q['updates']} updates){err}")
+    compact = {n: q for n, q in session.latency_ms().items() if q["compactions"]}
+    if compact:  # on the update thread too, every 1000 updates
+        print("outside them, the innovation log's compaction every 1000 updates (max ms): "
+              + ", ".join(f"{n} {q['compact_max']:.3f} ({q['compactions']} x)"
+                          for n, q in compact.items()))
     if session.rejected:
         print("dropped and counted, per topic and reason:")
         for (topic, reason), n in sorted(session.rejected.items()):

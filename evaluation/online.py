@@ -92,6 +92,7 @@ class OnlineSession:
         self.estimators = estimators
         self.reorder_window = window
         self.update_s: dict[str, array] = {n: array("f") for n in estimators}  # s, float32
+        self.compact_s: dict[str, list[float]] = {n: [] for n in estimators}  # s
         self.errors: dict[str, str | None] = {n: None for n in estimators}
         self.stopped_t: dict[str, float | None] = {}  # name -> stamp it stopped at (None: finish)
         self.rejected: Counter = Counter()  # (sensor, reason) -> measurements dropped
@@ -255,14 +256,19 @@ class OnlineSession:
                     self._stop(name, m.t, exc)
                     continue
                 s = self.update_s[name]
-                s.append(clock() - t0)
+                t1 = clock()
+                s.append(t1 - t0)
                 if len(s) % 1000 == 0:
+                    # the log's housekeeping: on this thread too, timed on its own
                     est.log.innovations.compact()
+                    self.compact_s[name].append(clock() - t1)
             busy = None
         except KeyboardInterrupt:
             if busy is not None:  # inside an update: its state is half-updated
                 errors[busy] = f"interrupted (Ctrl-C) inside an update at t={m.t:.3f}"
                 self.stopped_t[busy] = m.t
+                if self.on_stop is not None:
+                    self.on_stop(busy, m.t, "interrupted (Ctrl-C) inside an update")
             raise
 
     def _keep(self, t: float) -> None:
@@ -309,10 +315,13 @@ class OnlineSession:
         message by up to the reorder window. Its covariance grows with the odometry's noise;
         it has no ``state``. Not carried: a stopped estimator's, a session without
         odometry (built without ``twist``), or ``at`` not after the estimate (-inf, i.e.
-        ``newest`` before any push, included). ValueError for an ``at`` that is not a time
-        (NaN, +inf, not a number), or more than ``carry_horizon`` s (the reorder
-        window plus ``estimation.forecast.MAX_CARRY_S`` = 5 s) after the estimate: the carry
-        covers the estimators' lag, it does not predict (a stalled feed is to be seen)."""
+        ``newest`` before any push, included: the estimate returned then carries its own,
+        later stamp ``t``). ValueError for an ``at`` that is not a time (NaN, +inf, not a
+        number), or more than ``carry_horizon`` s (the reorder window plus
+        ``estimation.forecast.MAX_CARRY_S`` = 5 s) after the estimate, carried or not (a
+        stopped estimator's included): the carry covers the estimators' lag, it does not
+        predict, and a stalled feed or a stopped estimator is to be seen, not answered with
+        an old pose."""
         if at is not None:
             try:
                 t = float(at)
@@ -325,7 +334,15 @@ class OnlineSession:
                                  "on the stamps' clock")
             at = t
         e = self._estimate(name)
-        if at is None or e is None or self._twist is None or self.errors[name] is not None:
+        if at is None or e is None:
+            return e
+        if self._twist is None or self.errors[name] is not None:
+            if at - e.t > self.carry_horizon:  # nothing to carry it with: as stale as it is
+                why = (f"stopped ({self.errors[name]})" if self.errors[name] is not None
+                       else "no odometry in the session to carry it with")
+                raise ValueError(f"estimate({name!r}, at={at:.3f}): its estimate is "
+                                 f"{at - e.t:.3f} s older, more than carry_horizon "
+                                 f"{self.carry_horizon:g} s, and it cannot be carried: {why}")
             return e
         try:
             return carry(e, self._twist.samples, at, self._twist.q(), self._twist.scale_cov,
@@ -361,12 +378,17 @@ class OnlineSession:
         return False
 
     def latency_ms(self) -> dict[str, dict[str, float]]:
-        """Per-estimator update latency p50 / p99 / max, ms."""
+        """Per-estimator update latency p50 / p99 / max, ms (NaN without updates), and outside
+        them the innovation log's compaction every 1000 updates: ``compact_max`` ms (NaN
+        without one) over ``compactions`` calls."""
         out = {}
         for name, s in self.update_s.items():
-            a = np.array(s, float) * 1e3 if s else np.zeros(1)
+            a = np.array(s, float) * 1e3 if s else np.full(1, math.nan)
+            c = self.compact_s[name]
             out[name] = {"p50": float(np.percentile(a, 50)), "p99": float(np.percentile(a, 99)),
-                         "max": float(a.max()), "updates": len(s)}
+                         "max": float(a.max()), "updates": len(s),
+                         "compact_max": max(c) * 1e3 if c else math.nan,
+                         "compactions": len(c)}
         return out
 
 
@@ -406,8 +428,6 @@ def replay(bag: str | Path, cfg: Config, *, names: list[str] | None = None,
     t_last = None
     try:
         for m in stream:
-            n += 1
-            t_last = m.t
             if realtime:
                 lead = (m.t - t0) - (time.perf_counter() - wall0)
                 if lead > 0:
@@ -415,15 +435,19 @@ def replay(bag: str | Path, cfg: Config, *, names: list[str] | None = None,
             for ob in observers:
                 ob(m)
             session.push(m)
+            n += 1  # counted once fed: Ctrl-C during the pacing sleep left it unfed
+            t_last = m.t
             if on_print is not None and m.t >= next_print:
                 on_print(m.t - t0, {k: session.estimate(k) for k in session.estimators})
-                next_print = m.t + print_every
+                # the next grid time t0 + k * print_every after m.t (from m.t itself, each
+                # print would lose up to a message interval: 0.1 s asked, 0.12 s printed)
+                next_print = t0 + (math.floor((m.t - t0) / print_every) + 1) * print_every
     except KeyboardInterrupt:
         if not interruptible:
             raise
         at = "before the first message" if t_last is None else \
             f"{t_last - t0:.3f} s after the first message"
-        session.interrupted = f"interrupted (Ctrl-C) after {n} messages, {at}"
+        session.interrupted = f"interrupted (Ctrl-C) after {n} measurements, {at}"
     if stream.error is not None and not n:
         raise BagError(stream.error)
     session.finish()

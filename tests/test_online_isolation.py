@@ -195,3 +195,61 @@ def test_from_config_reads_a_string_of_names_as_the_cli_does():
         OnlineSession.from_config(cfg, "ekf,batch")
     with pytest.raises(TypeError, match=r"^estimators: expected a list of estimator names"):
         OnlineSession.from_config(cfg, 3)
+
+
+def test_a_stopped_estimator_is_not_answered_with_an_old_pose_for_now(setup):
+    """``estimate(name, at=now)`` carries a running estimator's pose to ``now``; a stopped one
+    cannot be carried, and past the carry horizon its last pose is refused, naming why,
+    instead of being handed to a robot as the pose now."""
+    cfg, meas = setup
+    s = OnlineSession.from_config(cfg, ["ekf"])
+    s.estimators = {"boom": Failing("process", T0 + 20.0), **s.estimators}
+    s.errors["boom"], s.update_s["boom"], s.compact_s["boom"] = None, s.update_s["ekf"][:0], []
+    s.stopped_t["boom"] = None
+    for m in meas:
+        if m.t - T0 > 40.0:
+            break
+        s.push(m)
+    now = s.newest
+    assert s.errors["boom"] is not None and s.errors["ekf"] is None
+    assert s.estimate("ekf", at=now).t == pytest.approx(now)  # carried
+    assert s.estimate("boom").t < T0 + 20.0  # its last one, asked for as such
+    near = s.estimate("boom").t + 0.5 * s.carry_horizon
+    assert s.estimate("boom", at=near).t < T0 + 20.0  # within the horizon: as it is
+    with pytest.raises(ValueError, match=r"estimate\('boom', at=.*s older, more than "
+                                         r"carry_horizon .* stopped \(RuntimeError at t="):
+        s.estimate("boom", at=now)
+
+
+def test_latency_without_updates_is_not_a_number_and_the_cli_prints_a_dash(setup, capsys):
+    cfg, _ = setup
+    s = OnlineSession.from_config(cfg, ["ekf"])
+    q = s.latency_ms()["ekf"]
+    assert q["updates"] == 0 and all(np.isnan(q[k]) for k in ("p50", "p99", "max"))
+
+
+def test_cli_online_prints_on_its_grid_and_a_heading_sigma_past_180_as_such(capsys,
+                                                                             monkeypatch):
+    """--every S prints at the first message at or after each t0 + k S (not S after the
+    previous print, which loses a message interval each time); a heading sigma over 180 deg
+    is printed as >180."""
+    from evaluation import online
+
+    pose_cov = np.diag([1.0, 1.0, 4.0 ** 2])
+    real = online.OnlineSession.estimate
+
+    def wide(self, name, at=None):
+        e = real(self, name, at)
+        return e if e is None or e.t - T0 < 50.0 else replace(e, pose_cov=pose_cov)
+
+    monkeypatch.setattr(online.OnlineSession, "estimate", wide)
+    assert cli.main(["online", str(BAG), "--estimators", "ekf", "--every", "0.25"]) == 0
+    out = capsys.readouterr().out
+    t = np.array([float(line.split()[0][2:] or line.split()[1]) for line in out.splitlines()
+                  if line.startswith("t=") and "(final)" not in line])
+    assert len(t) > 400
+    gaps = np.diff(t)
+    # the odometry is 10 Hz: each print within 0.1 s after its grid time, never drifting
+    assert np.all(t - 0.25 * np.floor(t / 0.25 + 1e-9) < 0.1 + 1e-6)
+    assert gaps.mean() == pytest.approx(0.25, abs=0.005)
+    assert ">180 deg)" in out and ", 229.2 deg)" not in out

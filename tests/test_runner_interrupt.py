@@ -118,9 +118,9 @@ def test_online_on_ctrl_c_prints_the_final_estimates_and_the_latency_so_far(
     bag = ROOT / "data" / "sample_husky.bag"
     assert cli.main(["online", str(bag), "--estimators", "ekf", "--every", "50"]) == 130
     out, err = capsys.readouterr()
-    assert "(final)" in out and "update latency (ms):" in out and "(1999 updates)" in out
+    assert "(at the interrupt)" in out and "update latency (ms):" in out and "(1999 updates)" in out
     assert err.strip().splitlines()[-1].startswith(
-        "ddfuse: interrupted (Ctrl-C) after 2000 messages, ")
+        "ddfuse: interrupted (Ctrl-C) after 1999 measurements, ")
     calls.clear()
     cfg = load_config(ROOT / "data" / "sample_husky.yaml")
     with pytest.raises(KeyboardInterrupt):  # the library call stops as Ctrl-C always did
