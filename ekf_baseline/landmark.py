@@ -49,7 +49,7 @@ import numpy as np
 from ekf_baseline import GIVEN_POSE_STD
 from ekf_baseline.calibration import ScaleStates
 from ekf_baseline.kalman import KalmanCore
-from estimation.config import DEFAULT_GATE, Config, landmark_maps
+from estimation.config import DEFAULT_GATE, LANDMARK_NOT_IN_MAP, Config, landmark_maps
 from estimation.estimator import Estimate, Estimator
 from estimation.measurements import (
     GroundTruthPose,
@@ -360,7 +360,8 @@ class LandmarkEkf(_OdometryDrivenEkf):
     def _sighting(self, m: LandmarkObservation) -> None:
         lm = self.landmarks.get(m.landmark_id)
         if lm is None:
-            self.log.rejected[(m.sensor, "unknown_landmark")] += 1
+            # the bag reader drops these already; fed directly, counted under its reason
+            self.log.rejected[(m.sensor, LANDMARK_NOT_IN_MAP)] += 1
             return
         self._measure(m, lm, None)
 

@@ -7,8 +7,8 @@ header stamps), orders them by header stamp, fixes the local ENU datum and conve
 
 Bad input never ends in a traceback: a bag or topic that cannot be used raises ``BagError``
 naming the file, topic and field; a single bad message (NaN field, NO_FIX, unusable covariance,
-a stamp far from its neighbours) is dropped and counted in ``Stream.rejected`` by
-(topic, reason), and the stream's ``warnings`` say so.
+a stamp far from its neighbours, a landmark sighting whose id is not in the map) is dropped and
+counted in ``Stream.rejected`` by (topic, reason), and the stream's ``warnings`` say so.
 
 A bag that breaks off (truncated, or damaged past some point) still gives what was read before:
 the BagError carries it as ``partial``. A ROS1 bag that rosbags cannot open at all because its
@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from estimation import geodesy, ros1_scan, rosmsg
-from estimation.config import Config, SensorConfig, landmark_maps
+from estimation.config import LANDMARK_NOT_IN_MAP, Config, SensorConfig, landmark_maps
 from estimation.errors import BagError
 from estimation.frames import (
     GRAVITY,
@@ -279,13 +279,21 @@ def _wheels_converter(s: SensorConfig, key: str) -> Callable[[tuple], list]:
     return convert
 
 
-def _landmarks_converter(s: SensorConfig, key: str) -> Callable[[tuple], list]:
+def _landmarks_converter(s: SensorConfig, key: str, landmarks: dict | None = None,
+                         unknown: Counter | None = None) -> Callable[[tuple], list]:
+    """Sightings of sensor ``s``. With ``landmarks`` (the map, id -> (x, y)) a sighting of an
+    id not in it is dropped (``LANDMARK_NOT_IN_MAP``), its id counted in ``unknown``. A range
+    of 0 is a range finder's "no return", not a distance."""
     use_b = "bearing" in s.use
 
     def convert(rec: tuple) -> list:
         t, lid, rng, brg, rv, bv, has_b = rec
-        if not _finite(t, rng) or rng < 0:
-            raise Reject("range not finite or negative")
+        if landmarks is not None and lid not in landmarks:
+            if unknown is not None:
+                unknown[lid] += 1
+            raise Reject(LANDMARK_NOT_IN_MAP)
+        if not (_finite(t, rng) and rng > 0.0):
+            raise Reject("range not finite or not positive")
         has_b = has_b and use_b
         if has_b and not math.isfinite(brg):
             raise Reject("bearing not finite")
@@ -320,6 +328,31 @@ CONVERTERS = {
     "wheels": _wheels_converter,
     "landmarks": _landmarks_converter,
 }
+
+
+def converter(kind: str, s: SensorConfig, key: str, landmarks: dict | None = None,
+              unknown: Counter | None = None) -> Callable[[tuple], list]:
+    """The converter of sensor ``s`` (config key ``key``) of ``kind``: the bag reader's and the
+    live converter's. A landmark converter checks the sightings' ids against ``landmarks`` (the
+    merged map; None: not checked), counting the ids not in it in ``unknown``."""
+    if kind == "landmarks":
+        return _landmarks_converter(s, key, landmarks, unknown)
+    return CONVERTERS[kind](s, key)
+
+
+def unknown_landmarks_note(cfg: Config, landmarks: dict, unknown: Counter) -> str:
+    """What to tell about sightings dropped as ``LANDMARK_NOT_IN_MAP``: the map file(s), a few
+    of the ids seen (most frequent first) and a few of the map's (a map for another run)."""
+    maps = list(dict.fromkeys(str(s.map) for s in cfg.of_kind("landmarks")))
+    seen = [k for k, _ in unknown.most_common()]
+    ids = list(landmarks)
+
+    def few(xs: list) -> str:
+        return ", ".join(repr(x) for x in xs[:5]) + (f" ... ({len(xs)} in all)"
+                                                       if len(xs) > 5 else "")
+
+    return (f"map {' and '.join(maps)} has ids {few(ids)}; the sightings' ids not in it: "
+            f"{few(seen)} (is the map the one for this run?)")
 
 
 def open_reader(bag: Path):
@@ -367,9 +400,11 @@ def _absent(bag: Path, topic: str, key: str, present) -> BagError:
                     f"topics present: {', '.join(sorted(present)) or 'none'}")
 
 
-def _source(bag: Path, wanted: tuple, msgtype: str, ros1: bool) -> _Source:
+def _source(bag: Path, wanted: tuple, msgtype: str, ros1: bool, landmarks: dict | None = None,
+            unknown: Counter | None = None) -> _Source:
     """The source of one configured topic whose messages are of ``msgtype``; ``ros1``: the
-    messages come as ROS1 bytes, so the fast struct extractors apply."""
+    messages come as ROS1 bytes, so the fast struct extractors apply. ``landmarks``,
+    ``unknown``: a landmark sensor's map and count of unknown ids (``converter``)."""
     kind, key, s, topic = wanted
     if msgtype not in ACCEPTED_TYPES[kind]:
         need = " or ".join(rosmsg.short_type(t) for t in ACCEPTED_TYPES[kind])
@@ -377,20 +412,25 @@ def _source(bag: Path, wanted: tuple, msgtype: str, ros1: bool) -> _Source:
                        f"but {key} needs {need}")
     fast, slow = rosmsg.EXTRACTORS[msgtype]
     use_raw = fast is not None and ros1
-    conv = CONVERTERS[kind](s, key) if s else _ground_truth_converter(msgtype)
+    conv = (converter(kind, s, key, landmarks, unknown) if s
+            else _ground_truth_converter(msgtype))
     return _Source(topic, key, msgtype, fast if use_raw else slow, conv, use_raw)
 
 
-def _sources(cfg: Config, connections, bag: Path, ros1: bool) -> list[_Source]:
+def _sources(cfg: Config, connections, bag: Path, ros1: bool, landmarks: dict | None = None,
+             unknown: dict[str, Counter] | None = None) -> list[_Source]:
     """The sources of the configured topics, checked against the bag's ``connections`` (each
-    with .topic and .msgtype); BagError naming the topic if one is absent or of a wrong type."""
+    with .topic and .msgtype); BagError naming the topic if one is absent or of a wrong type.
+    ``landmarks``: the map the sightings' ids are checked against, the ids not in it counted
+    in ``unknown[topic]``."""
     conns = {c.topic: c for c in connections}
     out = []
     for w in configured_topics(cfg):
         topic = w[3]
         if topic not in conns:
             raise _absent(bag, topic, w[1], conns)
-        out.append(_source(bag, w, conns[topic].msgtype, ros1))
+        out.append(_source(bag, w, conns[topic].msgtype, ros1, landmarks,
+                           None if unknown is None else unknown[topic]))
     return out
 
 
@@ -489,6 +529,8 @@ class BagStream:
         self.datum: tuple[float, float, float] | None = (
             cfg.datum if isinstance(cfg.datum, tuple) else None)
         self.landmarks = landmark_maps(cfg, bag)
+        # topic -> ids of its sightings not in the map (dropped as LANDMARK_NOT_IN_MAP)
+        self.unknown_landmarks: defaultdict[str, Counter] = defaultdict(Counter)
         self.rejected: Counter = Counter()
         self.late: Counter = Counter()  # topic -> measurements that came too late to reorder
         self._lateness: dict[str, float] = {}  # topic -> the most a late one lagged the newest
@@ -524,7 +566,8 @@ class BagStream:
             # An intact ROS1 bag: its topics are checked against the connections of its index,
             # then it is read from the front by the scanner (rosbags' reader would load the
             # index of every message first: 90 MB for a 2 h bag).
-            self._sources = _sources(cfg, index, bag, ros1=True)
+            self._sources = _sources(cfg, index, bag, ros1=True, landmarks=self.landmarks,
+                                     unknown=self.unknown_landmarks)
             self._scan = ros1_scan.Ros1Scan(bag)
         else:
             try:
@@ -539,7 +582,8 @@ class BagStream:
             else:
                 try:
                     self._sources = _sources(cfg, self._reader.connections, bag,
-                                             not self._reader.is2)
+                                             not self._reader.is2, self.landmarks,
+                                             self.unknown_landmarks)
                 except BagError:
                     self._reader.close()
                     raise
@@ -695,7 +739,9 @@ class BagStream:
         def route(conn: ros1_scan.Connection, w: tuple) -> _Source:
             src = made.get(w[1])
             if src is None:
-                src = made[w[1]] = _source(bag, w, conn.msgtype, ros1=True)
+                src = made[w[1]] = _source(bag, w, conn.msgtype, ros1=True,
+                                           landmarks=self.landmarks,
+                                           unknown=self.unknown_landmarks[conn.topic])
                 src.index = order[w[1]]
                 self._sources.append(src)
             elif src.msgtype != conn.msgtype:
@@ -979,7 +1025,7 @@ class BagStream:
                 continue
             self.warnings.append(f"{self.bag}: topic {topic}: {n} of {total} messages "
                                  f"({100.0 * n / total:.0f} %) rejected, in whole or in part: "
-                                 f"{reason}")
+                                 f"{reason}{self._reason_note(topic, reason)}")
         for topic, n in sorted(self.late.items()):
             total = self._offered[topic]
             if n > WARN_SHARE * total:
@@ -991,6 +1037,14 @@ class BagStream:
                     f"({self.depth:g} s); set reorder_window to at least "
                     f"{math.ceil(lag * 10.0) / 10.0:g} s (or --reorder-window) to keep them")
 
+    def _reason_note(self, topic: str, reason: str) -> str:
+        """More on a rejection ``reason`` of ``topic`` for its warning or error: for sightings
+        not in the map, the map and the ids (``unknown_landmarks_note``); else nothing."""
+        if reason != LANDMARK_NOT_IN_MAP:
+            return ""
+        return "; " + unknown_landmarks_note(self.cfg, self.landmarks,
+                                             self.unknown_landmarks[topic])
+
     def _check_sources(self, checks: dict[int, _StampCheck]) -> None:
         bag, rejected = self.bag, self.rejected
         empty = []
@@ -1001,7 +1055,8 @@ class BagStream:
                 if bad:
                     reason = max(bad.items(), key=lambda x: x[1])[0]
                     raise BagError(f"{bag}: topic {src.topic} ({src.key}): all "
-                                   f"{sum(bad.values())} messages rejected: {reason}")
+                                   f"{sum(bad.values())} messages rejected: {reason}"
+                                   f"{self._reason_note(src.topic, reason)}")
                 empty.append(src)  # a message either converts (a check) or is counted
                 continue
             if chk.bad:

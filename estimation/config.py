@@ -62,6 +62,36 @@ _Loader.add_implicit_resolver(
                  |\.(?:nan|NaN|NAN))$""", re.X),
     list("-+0123456789."))
 
+
+class _DuplicateKey(yaml.constructor.ConstructorError):
+    """A mapping that gives one key twice (``key``, as loaded; ``node``: the mapping)."""
+
+    def __init__(self, key: Any, node: yaml.MappingNode, first: yaml.Mark, again: yaml.Mark):
+        super().__init__(None, None, f"key {key!r} given twice (lines {first.line + 1} and "
+                                     f"{again.line + 1})", again)
+        self.key, self.node, self.lines = key, node, (first.line + 1, again.line + 1)
+
+
+class _UniqueKeyLoader(_Loader):
+    """``_Loader`` that refuses a mapping key given twice (PyYAML keeps the last silently):
+    raises ``_DuplicateKey``. Keys are compared as loaded, so ``1`` and ``0x1`` collide,
+    ``1`` and ``"1"`` do not."""
+
+    def construct_mapping(self, node, deep=False):
+        if isinstance(node, yaml.MappingNode):
+            self.flatten_mapping(node)
+            seen: dict = {}
+            for key_node, _ in node.value:
+                key = self.construct_object(key_node, deep=True)
+                try:
+                    first = seen.setdefault(key, key_node.start_mark)
+                except TypeError:  # an unhashable key: the base class says so
+                    break
+                if first is not key_node.start_mark:
+                    raise _DuplicateKey(key, node, first, key_node.start_mark)
+        return super().construct_mapping(node, deep=deep)
+
+
 SENSOR_KINDS = ("odometry", "imu", "gps", "wheels", "landmarks")
 USES = {
     "odometry": ("v", "yaw_rate"),
@@ -483,23 +513,64 @@ def resolve_landmark_maps(cfg: Config, bag: str | Path | None = None) -> None:
                           f"found: {where}")
 
 
+# The reason a landmark sighting is dropped (by the bag reader, the live converter and each
+# estimator fed directly) when its id is not in the map.
+LANDMARK_NOT_IN_MAP = "landmark id not in the map"
+
+
 def landmark_maps(cfg: Config, bag: str | Path | None = None) -> dict[str, tuple[float, float]]:
     """Every landmark sensor's map merged (id -> (x, y) m), each found as
-    ``resolve_landmark_maps`` says (next to the config, then next to ``bag``)."""
+    ``resolve_landmark_maps`` says (next to the config, then next to ``bag``). An id in two
+    maps must have the same position in both: ConfigError naming the map file and the id."""
     resolve_landmark_maps(cfg, bag)
     out: dict[str, tuple[float, float]] = {}
+    source: dict[str, Path] = {}  # id -> the map that gave it
     for s in cfg.of_kind("landmarks"):
-        out.update(load_landmark_map(s.map))
+        for k, xy in load_landmark_map(s.map).items():
+            if k in out and out[k] != xy:
+                raise ConfigError(
+                    f"{s.map}: landmarks.{k}: duplicate id: at ({xy[0]:g}, {xy[1]:g}) here but "
+                    f"at ({out[k][0]:g}, {out[k][1]:g}) in {source[k]} (two landmark sensors' "
+                    "maps must agree on the ids they share)")
+            out[k] = xy
+            source.setdefault(k, s.map)
     return out
 
 
 def load_landmark_map(path: Path) -> dict[str, tuple[float, float]]:
-    """Landmark map YAML: ``landmarks: {id: [x, y]}`` (m, in the map/local frame)."""
+    """Landmark map YAML: ``landmarks: {id: [x, y]}`` (m, in the map/local frame), ids as
+    strings. ConfigError naming the file and key for a map without landmarks, a key given twice
+    or two ids that are one as strings (``1:`` and ``"1":``)."""
+    ck = _Checker(str(path))
+    loader = lm_node = None
     try:
-        raw = yaml.load(Path(path).read_text(encoding="utf-8"), Loader=_Loader)
+        loader = _UniqueKeyLoader(Path(path).read_text(encoding="utf-8"))
+        root = loader.get_single_node()
+        pairs = root.value if isinstance(root, yaml.MappingNode) else []
+        lm_node = next((v for k, v in pairs
+                        if isinstance(k, yaml.ScalarNode) and k.value == "landmarks"), None)
+        raw = loader.construct_document(root) if root is not None else None
+    except _DuplicateKey as e:
+        if e.node is lm_node:
+            raise ck.fail(f"landmarks.{e.key}", f"duplicate id (lines {e.lines[0]} and "
+                          f"{e.lines[1]})") from None
+        raise ck.fail(str(e.key), f"given twice (lines {e.lines[0]} and {e.lines[1]})") from None
     except (OSError, UnicodeDecodeError, yaml.YAMLError) as e:
         raise ConfigError(f"{path}: cannot read landmark map: {e}") from None
-    ck = _Checker(str(path))
+    finally:
+        if loader is not None:
+            loader.dispose()
     if not isinstance(raw, dict) or not isinstance(raw.get("landmarks"), dict):
         raise ck.fail("landmarks", "missing: expected 'landmarks: {id: [x, y]}'")
-    return {str(k): ck.vector(v, f"landmarks.{k}", 2) for k, v in raw["landmarks"].items()}
+    if not raw["landmarks"]:
+        raise ck.fail("landmarks", "empty: the map names no landmark, so no sighting can be "
+                      "used")
+    out: dict[str, tuple[float, float]] = {}
+    given: dict[str, Any] = {}  # id -> the key as the file wrote it
+    for k, v in raw["landmarks"].items():
+        if str(k) in out:
+            raise ck.fail(f"landmarks.{k}", f"duplicate id: keys {given[str(k)]!r} and {k!r} "
+                          f"are both id {str(k)!r} (ids are text)")
+        given[str(k)] = k
+        out[str(k)] = ck.vector(v, f"landmarks.{k}", 2)
+    return out

@@ -14,9 +14,10 @@ feeds what it returns to ``evaluation.online.OnlineSession.push`` (or an estimat
 ``msg`` is the message object of rclpy (ROS 2), rospy (ROS 1) or rosbags. Its type is read from
 the object (rosbags' ``__msgtype__``, rospy's ``_type``, rclpy's class) unless ``msgtype`` is
 given; the header stamp from ``sec``/``nanosec`` (ROS 2, rosbags) or ``secs``/``nsecs``
-(rospy). The config's topics, types, noise, mounts and datum apply exactly as to a bag (the same
-converters, ``estimation.bags.CONVERTERS``): a GPS fix gets its local ENU position in the
-config's datum, or in the first fix's with ``frame: {datum: first_fix}``. A topic that several
+(rospy). The config's topics, types, noise, mounts, landmark maps and datum apply exactly as to
+a bag (the same converters, ``estimation.bags.converter``; a sighting of a landmark id not in
+the maps is rejected): a GPS fix gets its local ENU position in the config's datum, or in the
+first fix's with ``frame: {datum: first_fix}``. A topic that several
 configured sensors read gives each one's measurements, in the config's order. A message that
 cannot be used (NO_FIX, non-finite fields, no covariance and no configured noise, fields that
 do not fit its type) gives no measurement and is counted in ``rejected`` under its topic and
@@ -63,12 +64,12 @@ from collections import Counter
 from estimation import geodesy, rosmsg
 from estimation.bags import (
     ACCEPTED_TYPES,
-    CONVERTERS,
     STAMP_TOLERANCE,
     UNSET_STAMP,
     Reject,
     _StampCheck,
     configured_topics,
+    converter,
 )
 from estimation.config import Config, landmark_maps
 from estimation.measurements import GpsFix, Stream
@@ -98,7 +99,9 @@ class LiveConverter:
     """Per configured topic, ROS message -> measurements (of every sensor the config reads from
     that topic, in the config's order), each topic's stamps checked against their receive
     times (module docstring). ``reorder_window`` (s, default the config's) sets
-    the stamp tolerance as for the bag reader: max(``STAMP_TOLERANCE``, reorder_window)."""
+    the stamp tolerance as for the bag reader: max(``STAMP_TOLERANCE``, reorder_window). The
+    config's landmark maps are loaded here (ConfigError naming the map file if one cannot be
+    used, as for a bag) and kept in ``landmarks``."""
 
     def __init__(self, cfg: Config, *, reorder_window: float | None = None) -> None:
         if cfg.initial_pose == "ground_truth":
@@ -114,12 +117,16 @@ class LiveConverter:
         self.datum: tuple[float, float, float] | None = (
             cfg.datum if isinstance(cfg.datum, tuple) else None)
         self.rejected: Counter = Counter()  # (topic, reason) -> messages
+        # the landmark sensors' maps, merged: a sighting of an id not in them is rejected as
+        # the bag reader rejects it (estimation.config.LANDMARK_NOT_IN_MAP)
+        self.landmarks = landmark_maps(cfg)
         # topic -> (kind, key, converter) of every sensor on it, in the config's order: two
         # sensors may read one topic (an IMU's yaw rate twice, under two names), as in a bag
         self._topics: dict[str, list[tuple]] = {}
         for kind, key, s, topic in configured_topics(cfg):
             if s is not None:
-                self._topics.setdefault(topic, []).append((kind, key, CONVERTERS[kind](s, key)))
+                self._topics.setdefault(topic, []).append(
+                    (kind, key, converter(kind, s, key, self.landmarks)))
         self._checks: dict[str, _StampCheck] = {}  # topic -> its stamp check
         self._stamp_reason = (f"header stamp more than {self.tolerance:g} s off its topic's "
                               "clock (time went backwards or jumped)")  # the bag reader's text
@@ -128,7 +135,7 @@ class LiveConverter:
         """An empty Stream with what the estimators are built from: the landmark maps of the
         config's landmark sensors and the datum (the config's; with ``first_fix`` none until a
         fix arrives, and the estimators then take the first fix's, as this converter does)."""
-        return Stream(measurements=[], datum=self.datum, landmarks=landmark_maps(self.cfg))
+        return Stream(measurements=[], datum=self.datum, landmarks=dict(self.landmarks))
 
     @property
     def topics(self) -> list[str]:

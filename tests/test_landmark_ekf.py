@@ -21,7 +21,7 @@ from ekf_baseline.landmark import (
     motion_step,
     range_bearing,
 )
-from estimation.config import Config, SensorConfig
+from estimation.config import LANDMARK_NOT_IN_MAP, Config, SensorConfig
 from estimation.measurements import LandmarkObservation, WheelOdometry, WheelSpeeds
 from factors.kinematics import se2_step
 
@@ -238,7 +238,8 @@ def test_unknown_landmark_is_rejected_and_counted():
     ekf.process(WheelOdometry(0.0, 0.0, 0.0, 0.01, 0.01, "odom"))
     ekf.process(LandmarkObservation(0.1, "zz", 2.0, 0.1, 0.01, 0.0025, True, "landmarks"))
     ekf.finish()  # the sighting waits for the odometry sample covering it; the stream ends
-    assert ekf.rejected[("landmarks", "unknown_landmark")] == 1
+    assert ekf.rejected[("landmarks", LANDMARK_NOT_IN_MAP)] == 1
+    assert LANDMARK_NOT_IN_MAP == "landmark id not in the map"  # the bag reader's reason too
     assert not ekf.innovations
 
 
