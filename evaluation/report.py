@@ -571,7 +571,7 @@ def build_html(run: SavedRun, figures: list[tuple[str, bytes | None, str]],
     if t0 is None:
         times = ""
     else:
-        when = (" = " + datetime.datetime.fromtimestamp(t0, datetime.UTC).strftime(
+        when = (" = " + datetime.datetime.fromtimestamp(t0, datetime.timezone.utc).strftime(
             "%Y-%m-%d %H:%M:%S UTC") if t0 > 1e8 else "")
         times = (f" Times are seconds since the first measurement (bag stamp {t0:.3f} s{when}),"
                  " in the tables, the events and the figures alike.")
