@@ -472,6 +472,8 @@ def parse_config(raw: Any, source: str = "<config>", base: Path | None = None) -
 def load_config(path: str | Path) -> Config:
     """Load and validate a config file. Raises ConfigError naming the file and key."""
     p = Path(path)
+    if p.is_dir():
+        raise ConfigError(f"{p}: is a directory, not a config file")
     if not p.is_file():
         raise ConfigError(f"{p}: config file not found")
     try:
@@ -485,12 +487,27 @@ def parse_config_text(text: str, source: str = "<config>", base: Path | None = N
     """Validate a config's YAML text (as a file holds it: 1e-4 is a number here, a string to
     PyYAML's safe loader). Raises ConfigError naming ``source`` and the key."""
     try:
-        raw = yaml.load(text, Loader=_Loader)
+        # a key given twice (two `gps:` blocks) silently kept only the last: now an error
+        raw = yaml.load(text, Loader=_UniqueKeyLoader)
+    except _DuplicateKey as e:
+        raise ConfigError(f"{source}: {e.problem}") from None
     except yaml.YAMLError as e:
-        raise ConfigError(f"{source}: not valid YAML: {str(e).splitlines()[0]}") from None
+        raise ConfigError(f"{source}: not valid YAML: {_yaml_problem(e)}") from None
     cfg = parse_config(raw, source, base)
     cfg.text = text  # what ran, whatever the file holds later
     return cfg
+
+
+def _yaml_problem(e: yaml.YAMLError) -> str:
+    """PyYAML's complaint in one line, with where (its first line alone, "while parsing a
+    flow node", said neither what nor where)."""
+    problem = getattr(e, "problem", None)
+    mark = getattr(e, "problem_mark", None)
+    if problem is None:
+        return str(e).splitlines()[0]
+    where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+    context = getattr(e, "context", None)
+    return f"{problem}{where}" + (f" ({context})" if context else "")
 
 
 def resolve_landmark_maps(cfg: Config, bag: str | Path | None = None) -> None:

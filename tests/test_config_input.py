@@ -87,3 +87,24 @@ def test_a_mount_within_two_pi_and_gps_horizontal_with_vertical_load():
     assert cfg.sensors[0].mount_rpy == (-2 * math.pi, math.pi, 0.0)
     assert cfg.sensors[1].noise == {"horizontal": 1.0, "vertical": 3.0}
     assert cfg.robot.max_accel == 0.5
+
+
+def test_a_key_given_twice_a_yaml_error_and_a_directory_are_named(tmp_path):
+    """A second `sensors:` block silently replaced the first (PyYAML keeps the last); a YAML
+    syntax error said "while parsing a flow node" and not where; `-c` naming a directory said
+    "config file not found"."""
+    from estimation.config import load_config
+
+    twice = tmp_path / "twice.yaml"
+    twice.write_text("sensors:\n  gps:\n    - topic: /fix\nsensors:\n  odometry:\n"
+                     "    - topic: /odom\n")
+    with pytest.raises(ConfigError, match=r"twice\.yaml: key 'sensors' given twice "
+                                          r"\(lines 1 and 4\)"):
+        load_config(twice)
+    broken = tmp_path / "broken.yaml"
+    broken.write_text("sensors:\n  gps: [{topic: /fix\n")
+    with pytest.raises(ConfigError, match=r"broken\.yaml: not valid YAML: expected ',' or '}'"
+                                          r".* at line 3, column 1"):
+        load_config(broken)
+    with pytest.raises(ConfigError, match=r": is a directory, not a config file"):
+        load_config(tmp_path)
