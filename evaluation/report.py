@@ -21,11 +21,12 @@ from evaluation import consistency, plots
 from evaluation.results import SavedRun, load_run
 from evaluation.verdict import (
     CALIBRATION_SIGMAS,
-    TIE,
+    TIE_RULE,
     calibration_title,
     calibration_value,
     final_states,
     signed,
+    tie,
     track_kind,
     verdict_lines,
 )
@@ -79,8 +80,12 @@ def _summary_table(m: dict, cfg=None) -> str:
     estimators not run (``not_run``)."""
     lag = m.get("lag_s")
     ests = m["estimators"]
+    common = any(e.get("ate_common_rmse_m") is not None for e in ests.values())
     cols = [  # (header, getter, format, lower-is-better column to mark the best of)
-        ("ATE RMSE [m]", lambda e: e.get("ate_rmse_m"), ".3f", True),
+        # the verdict ranks on the common stamps: the best is marked there, not on each
+        # track's own ATE (other stamps, another span), which may name another winner
+        ("ATE, common stamps [m]", lambda e: e.get("ate_common_rmse_m"), ".3f", True),
+        ("ATE RMSE [m]", lambda e: e.get("ate_rmse_m"), ".3f", not common),
         ("ATE max [m]", lambda e: e.get("ate_max_m"), ".3f", True),
         ("ATE SE(2)-aligned RMSE [m]", lambda e: _get(e, "ate", "se2", "position_m", "rmse"),
          ".3f", True),
@@ -102,18 +107,24 @@ def _summary_table(m: dict, cfg=None) -> str:
         if lower and vals:
             best[h] = min(vals)
     rows = []
+    offline = [n for n, e in ests.items() if track_kind(n) == "offline" and e.get("update_ms")]
     for name, e in ests.items():
         cells = [f'<td class="l"><b>{html.escape(name)}</b></td>',
                  f'<td class="l">{html.escape(track_kind(name, lag))}</td>']
         for h, get, spec, _ in present:
             if get is None:
                 u = e.get("update_ms") or {}
-                cells.append(f"<td>{_fmt(u.get('p50'))} / {_fmt(u.get('p99'))}</td>")
+                star = " *" if name in offline else ""
+                cells.append(f"<td>{_fmt(u.get('p50'))} / {_fmt(u.get('p99'))}{star}</td>")
                 continue
             v = get(e)
-            cls = ' class="best"' if v is not None and h in best and v <= best[h] * (1 + TIE) \
+            # the verdict's tie rule: the best and every value that ties with it
+            cls = ' class="best"' if v is not None and h in best and tie(v, best[h]) \
                 and len(ests) > 1 else ""
             text = _fmt(v, spec)
+            spacing = _rpe_spacing(e, h)
+            if spacing and v is not None:
+                text += f" ({spacing})"
             if h == "NEES mean" and v is not None:
                 text += f" ({_verdict_cell(_get(e, 'nees', 'verdict'))})"
             cells.append(f"<td{cls}>{text}</td>")
@@ -121,17 +132,24 @@ def _summary_table(m: dict, cfg=None) -> str:
         cells.append(f"<td>({fx[0]:.2f}, {fx[1]:.2f})</td>" if fx else "<td>–</td>")
         rows.append("<tr>" + "".join(cells) + "</tr>")
     shown = {c[0] for c in present}
-    notes = [f"Green bold: the best in its column, or within {100 * TIE:.0f}% of it."
-             if len(ests) > 1 and best else ""]
+    notes = [f"Green bold: the best in its column and every value that ties with it (they "
+             f"{TIE_RULE}, the verdict's rule)." if len(ests) > 1 and best else ""]
     if shown & {"ATE RMSE [m]", "ATE max [m]", "heading RMSE [deg]"}:
         notes.append("ATE against the ground truth without alignment (every track in the "
                      "run's local frame)" + ("; SE(2)-aligned: after the rigid motion that "
                                              "minimises it" if "ATE SE(2)-aligned RMSE [m]"
                                              in shown else "") + ".")
+    if "ATE, common stamps [m]" in shown:
+        notes.append("ATE, common stamps: every track and the truth interpolated at the same "
+                     "stamps over the span all tracks share, what the verdict ranks on (no "
+                     "best marked on each track's own ATE, whose stamps and span differ).")
     rpe = [w for h, w in (("RPE 1 s [m]", "1 s"), ("RPE 10 m [m]", "10 m of path"))
            if h in shown]
     if rpe:
-        notes.append(f"RPE over {' and over '.join(rpe)}, consecutive pairs.")
+        notes.append(f"RPE over {' and over '.join(rpe)}, consecutive pairs; in brackets the "
+                     "pairs' mean spacing where it differs from the nominal one by over "
+                     f"{100 * RPE_SPACING_SLACK:.0f}% (a keyframe track's pairs are keyframes "
+                     "apart).")
     if "GPS hold-out RMSE [m]" in shown:
         notes.append("GPS hold-out RMSE: distance to the GPS fixes withheld from the "
                      "estimators.")
@@ -140,6 +158,8 @@ def _summary_table(m: dict, cfg=None) -> str:
     if "RTF [x]" in shown:
         notes.append("RTF: seconds of data per second of estimator wall time (decoding "
                      "excluded).")
+    if "update p50 / p99 [ms]" in shown:
+        notes += [latency_note(n, ests[n]) for n in offline]
     notes.append(f"Final (x, y): the last position in {plots.frame(m)['short']}.")
     skipped = not_run(m, cfg)
     if skipped:
@@ -147,6 +167,46 @@ def _summary_table(m: dict, cfg=None) -> str:
     return (f'<table><tr><th class="l">estimator</th><th class="l">output</th>{head}'
             f"<th>final (x, y) [m]</th></tr>{''.join(rows)}</table>"
             f'<p class="note">{html.escape(" ".join(n for n in notes if n))}</p>')
+
+
+# An RPE column's pairs whose mean spacing (metrics ``rpe.<delta>.mean_delta``) differs from
+# the nominal one by more than this share show it.
+RPE_SPACING_SLACK = 0.05
+_RPE_NOMINAL = {"RPE 1 s [m]": ("1s", 1.0, "s"), "RPE 10 m [m]": ("10m", 10.0, "m")}
+
+
+def _rpe_spacing(e: dict, header: str) -> str:
+    """'pairs 1.20 s apart' where the column's pairs are not the nominal distance apart."""
+    if header not in _RPE_NOMINAL:
+        return ""
+    key, nominal, unit = _RPE_NOMINAL[header]
+    d = _get(e, "rpe", key, "mean_delta")
+    if d is None or abs(d - nominal) <= RPE_SPACING_SLACK * nominal:
+        return ""
+    return f"pairs {d:.2f} {unit} apart"
+
+
+def finish_seconds(e: dict) -> float | None:
+    """An offline track's seconds outside its per-message updates: its whole-run solve in
+    finish() (``finish_s`` where metrics.json has it, as ``ddfuse bench`` measures it; else its
+    runtime less the updates' total, the solve and its output calls)."""
+    if e.get("finish_s") is not None:
+        return e["finish_s"]
+    u, rt = e.get("update_ms") or {}, e.get("runtime_s")
+    if rt is None or u.get("mean") is None or u.get("n") is None:
+        return None
+    return max(rt - u["mean"] * u["n"] / 1e3, 0.0)
+
+
+def latency_note(name: str, e: dict) -> str:
+    """The footnote of an offline track's latencies (``ddfuse bench``'s '*')."""
+    fin = finish_seconds(e)
+    how = "" if fin is None else (
+        f": {fin:.3f} s of its {e['runtime_s']:.2f} s runtime" if e.get("finish_s") is not None
+        else f": {fin:.3f} s of its {e['runtime_s']:.2f} s runtime lie outside its "
+        "per-message updates")
+    return (f"* {name}: the latencies are of its per-message updates; its whole-run solve "
+            f"runs once in finish(), in no latency percentile{how}.")
 
 
 def run_config(run: SavedRun):
@@ -496,7 +556,11 @@ def captions(run: SavedRun) -> dict[str, str]:
                    if len(run.innovations[n])) else "; the gate rejected none."),
         "covariance": "Trace of the position covariance [m²] and heading sigma [deg] of each "
                       f"estimate over time, log scales.{not_drawn}{outages}",
-        "latency": "Wall time of each process() call (one per measurement), per estimator.",
+        "latency": "Wall time of each process() call (one per measurement), per estimator."
+                   + "".join(" " + latency_note(n, e)
+                             for n, e in run.metrics["estimators"].items()
+                             if track_kind(n) == "offline" and e.get("update_ms")
+                             and n in run.update_s and len(run.update_s[n])),
     }
 
 

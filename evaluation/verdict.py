@@ -14,6 +14,8 @@ import math
 from estimation.estimator import wrap_angle
 
 TIE = 0.05  # relative difference under which two scores tie
+# The one tie rule, for the verdict and the report's tables alike (``tie``).
+TIE_RULE = f"differ by at most {100 * TIE:.0f}% of the larger"
 # Two estimators' final calibration states further apart than this many of their combined
 # sigmas: at least one of them is biased. Both estimate from the same data, so their errors are
 # correlated and the combined sigma overstates the gap's: the test errs towards silence.
@@ -122,9 +124,14 @@ def _m(v: float) -> str:
     return f"{v:.4f}" if abs(v) < 0.1 else f"{v:.3f}"
 
 
-def _tie(va: float, vb: float) -> bool:
+def tie(va: float, vb: float) -> bool:
+    """Whether two scores tie (``TIE_RULE``): |va - vb| <= TIE max(va, vb). The report's
+    tables mark the best of a column and every value that ties with it by this same rule."""
     d = abs(va - vb)
     return (d / max(va, vb) if max(va, vb) > 0 else 0.0) <= TIE
+
+
+_tie = tie
 
 
 def _call(a: str, va: float, b: str, vb: float) -> str | None:
@@ -325,6 +332,30 @@ def _span_lines(m: dict) -> list[str]:
     return out
 
 
+def interruption(error: str | None) -> bool:
+    """Whether an estimator's error is a Ctrl-C that caught it (inside an update or its
+    finish), not a failure of its own (``estimation.runner.run``)."""
+    return bool(error) and error.startswith("interrupted (Ctrl-C)")
+
+
+def _stopped_early(m: dict) -> list[str]:
+    """The tracks left out of the ranking: a real error, or an interruption after which the
+    track ends more than SPAN_SLACK_S before the last one (Ctrl-C ends every track at the same
+    message; one caught inside its update keeps what it had, which is all of it)."""
+    ests = m["estimators"]
+    ends = [e["span_s"][1] for e in ests.values() if e.get("span_s")]
+    last = max(ends) if ends else None
+    out = []
+    for n, e in ests.items():
+        if not e.get("error"):
+            continue
+        span = e.get("span_s")
+        if not interruption(e["error"]) or span is None or last is None or (
+                last - span[1] > SPAN_SLACK_S):
+            out.append(n)
+    return out
+
+
 def _holdout_caution(m: dict, best: str) -> str:
     """What a hold-out of single fixes measures, with the GPS residuals' correlation time to
     the best track where the run measured it (``metrics.correlation_time``)."""
@@ -389,8 +420,9 @@ def verdict_lines(m: dict) -> list[str]:
     lines = [what]
     lag = m.get("lag_s")
     # an estimator that stopped with an error scored only its first part of the run: left out
-    # of the ranking (otherwise its first seconds, or the common span cut to them, decide)
-    halted = [n for n, e in ests.items() if e.get("error") and key and e.get(key) is not None]
+    # of the ranking (otherwise its first seconds, or the common span cut to them, decide);
+    # one that Ctrl-C caught inside an update is no failure: left out only if it ends early
+    halted = [n for n in _stopped_early(m) if key and ests[n].get(key) is not None]
     if key and len(halted) < sum(e.get(key) is not None for e in ests.values()):
         own = {n: e[key] for n, e in ests.items() if e.get(key) is not None and n not in halted}
         scored, how = _ranked_scores(m, key, own)
@@ -412,7 +444,7 @@ def verdict_lines(m: dict) -> list[str]:
         if len(tied) == 1:
             lines.append(f"Best here: {named(best)}.")
         else:
-            lines.append(f"Best here, tied (each within {100 * TIE:.0f}% of the best): "
+            lines.append(f"Best here, tied (each and the best {TIE_RULE}): "
                          + ", ".join(named(n) for n in tied) + ".")
         ekfs = [n for n in ranked if n.startswith("ekf")]
         live = [n for n in ranked if track_kind(n) == "real time" and n.startswith("smoother")]
@@ -474,9 +506,14 @@ def verdict_lines(m: dict) -> list[str]:
             + "." + (f" Errors under {any_d['error_noise_m']:.2f} m are within the fixes' noise "
                      "there: not resolved." if any_d.get("block_s") else ""))
     lines += _calibration_gaps(m)
+    stopped = _stopped_early(m)
     for n, e in ests.items():
-        if e.get("error"):
+        if n in stopped:
             lines.append(f"{n} stopped early: {e['error']}.")
+        elif e.get("error"):
+            lines.append(f"{n}: {e['error']}; its estimate ends with the others' (within "
+                         f"{SPAN_SLACK_S:g} s), so it is ranked: an interruption is no "
+                         "failure of the estimator.")
     if m.get("input_error"):
         lines.append(f"The bag is damaged; these results cover what could be read: "
                      f"{m['input_error']}.")

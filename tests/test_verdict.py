@@ -316,7 +316,8 @@ def test_best_here_names_no_single_winner_within_the_tie_band():
     within = sorted((n for n in scores if (scores[n] - 0.0818) / scores[n] <= TIE),
                     key=scores.get)
     assert within == ["batch", "smoother_lagged"]
-    assert lines[1] == ("Best here, tied (each within 5% of the best): batch with 0.0818 m "
+    assert lines[1] == ("Best here, tied (each and the best differ by at most 5% of the "
+                        "larger): batch with 0.0818 m "
                         "(offline), smoother_lagged with 0.0820 m (lagged by 10 s).")
     scores["smoother_lagged"] = 0.0818 / (1 - TIE) * 1.01  # just outside the band
     assert verdict_lines(_m(scores))[1] == "Best here: batch with 0.0818 m (offline)."
@@ -332,3 +333,29 @@ def test_a_head_to_head_whose_winner_reverses_on_the_other_figures_is_flagged():
     assert "smoother is better: 0.100 m against ekf's 0.115 m" in h2h
     assert h2h.endswith("Over each one's own samples (the table's ATE) the call differs: ekf "
                         "is better: 0.100 m against smoother's 0.115 m, 0.015 m (13.0%) lower.")
+
+
+def test_an_interrupt_inside_one_update_does_not_unrank_that_estimator():
+    """rl_husky_gps.bag every:5, Ctrl-C at 208.5 s caught ekf inside its update: its span ends
+    at the same stamp as everyone's and its hold-out is 1.310 m. It was 'Not ranked', and the
+    head to head was smoother against ekf_igvc (12.9 %). It is ranked: ekf ties the smoother
+    (3.8 %). A real error, or an interrupted track that ends early, is still left out."""
+    m = _m({"ekf": 1.310, "ekf_igvc": 1.563, "smoother": 1.362}, "gps_holdout_rmse_m",
+           gps_holdout="window:100:160", interrupted="interrupted (Ctrl-C) after 15122 "
+           "measurements, 208.511 s after the first measurement")
+    for n, a in (("ekf", 504.5), ("ekf_igvc", 502.5), ("smoother", 504.5)):
+        m["estimators"][n]["span_s"] = [a, 706.5]
+    m["estimators"]["ekf"]["error"] = ("interrupted (Ctrl-C) inside an update, 208.511 s "
+                                       "after the first measurement")
+    lines = verdict_lines(m)
+    assert "Not ranked" not in lines[0]
+    (h2h,) = [x for x in lines if x.startswith("Real-time head to head")]
+    assert "ekf (1.310 m) and smoother (1.362 m) tie: they differ by 0.052 m (3.8%)." in h2h
+    assert not any("ekf stopped early" in x for x in lines)
+    assert any(x.startswith("ekf: interrupted (Ctrl-C) inside an update") and "it is ranked"
+               in x for x in lines)
+    m["estimators"]["ekf"]["span_s"] = [504.5, 600.0]  # the interrupt ended it early
+    assert "Not ranked, having stopped with an error (said below): ekf." in verdict_lines(m)[0]
+    m["estimators"]["ekf"]["span_s"] = [504.5, 706.5]
+    m["estimators"]["ekf"]["error"] = "RuntimeError at t=5: boom"  # a real error
+    assert "Not ranked, having stopped with an error (said below): ekf." in verdict_lines(m)[0]

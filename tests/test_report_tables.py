@@ -1,0 +1,90 @@
+"""The report's tables from a metrics dictionary alone: they show what the verdict ranks on,
+with its tie rule, and say what each figure is (spacing, latency, unresolved errors)."""
+
+from __future__ import annotations
+
+import html
+import re
+
+from evaluation import report
+
+
+def _cells(table: str, name: str) -> list[str]:
+    """The text of the cells of ``name``'s row (tags stripped), best-marked ones '**x**'."""
+    row = re.search(rf"<tr>(<td class=\"l\"><b>{re.escape(name)}</b></td>.*?)</tr>",
+                    table).group(1)
+    out = []
+    for attrs, body in re.findall(r"<td([^>]*)>(.*?)</td>", row):
+        text = html.unescape(re.sub(r"<[^>]+>", "", body))
+        out.append(f"**{text}**" if 'class="best"' in attrs else text)
+    return out
+
+
+def _headers(table: str) -> list[str]:
+    return [html.unescape(re.sub(r"<[^>]+>", "", h))
+            for h in re.findall(r"<th[^>]*>(.*?)</th>", table.split("</tr>")[0])]
+
+
+def _est(**kw) -> dict:
+    return {"nis": {}, "nees": None, "samples": 100, **kw}
+
+
+def test_the_best_is_marked_on_the_common_stamps_the_verdict_ranks_on():
+    """Sample bag: the verdict ties batch 0.0821 and smoother_lagged 0.0850 m (common stamps);
+    the table showed only the own ATE (0.082 / 0.088) and bolded batch alone."""
+    m = {"estimators": {
+        "ekf": _est(ate_rmse_m=0.114, ate_common_rmse_m=0.115),
+        "smoother_lagged": _est(ate_rmse_m=0.088, ate_common_rmse_m=0.0850),
+        "batch": _est(ate_rmse_m=0.082, ate_common_rmse_m=0.0821)}, "lag_s": 10.0}
+    t = report._summary_table(m)
+    heads = _headers(t)
+    i, j = heads.index("ATE, common stamps [m]"), heads.index("ATE RMSE [m]")
+    assert _cells(t, "batch")[i] == "**0.082**" and _cells(t, "smoother_lagged")[i] == "**0.085**"
+    assert _cells(t, "ekf")[i] == "0.115"
+    assert not any(_cells(t, n)[j].startswith("**") for n in m["estimators"])  # own ATE
+    assert "differ by at most 5% of the larger, the verdict's rule" in html.unescape(t)
+
+
+def test_one_tie_rule_for_table_and_verdict():
+    """0.100 against 0.1053: 5.03 % of the larger, 5.3 % of the smaller. The verdict called it
+    a tie (|d|/max <= 5 %), the table did not (v <= 1.05 best). Both now: a tie."""
+    from evaluation.verdict import tie, verdict_lines
+
+    m = {"estimators": {"ekf": _est(ate_rmse_m=0.1053), "smoother": _est(ate_rmse_m=0.1)},
+         "lag_s": 10.0}
+    assert tie(0.1, 0.1053 - 0.0004) and not tie(0.1, 0.1054)
+    m["estimators"]["ekf"]["ate_rmse_m"] = 0.1049 / 0.9995  # 0.10495: 4.7 % of the larger
+    t = report._summary_table(m)
+    assert _cells(t, "ekf")[2].startswith("**")
+    assert "tie" in [x for x in verdict_lines(m) if x.startswith("Real-time")][0]
+    m["estimators"]["ekf"]["ate_rmse_m"] = 0.1052  # 4.94 % of the larger, 5.2 % of 0.100
+    t = report._summary_table(m)
+    assert _cells(t, "ekf")[2] == "**0.105**"
+    assert " tie: " in [x for x in verdict_lines(m) if x.startswith("Real-time")][0]
+
+
+def test_rpe_cells_show_the_pairs_spacing_where_it_is_not_the_nominal_one():
+    """Keyframe tracks' 'RPE 1 s' pairs are 1.2 s apart (mean_delta 1.1997)."""
+    m = {"estimators": {
+        "ekf": _est(rpe={"1s": {"position_m": {"rmse": 0.024}, "mean_delta": 1.0}}),
+        "batch": _est(rpe={"1s": {"position_m": {"rmse": 0.011}, "mean_delta": 1.1997}})},
+        "lag_s": 10.0}
+    t = report._summary_table(m)
+    k = _headers(t).index("RPE 1 s [m]")
+    assert _cells(t, "ekf")[k] == "0.024"
+    assert _cells(t, "batch")[k] == "**0.011 (pairs 1.20 s apart)**"
+
+
+def test_the_offline_tracks_latency_is_footnoted():
+    """batch p99 0.574 ms: its whole-run solve in finish() is in no percentile (bench's '*')."""
+    u = {"p50": 0.001, "p99": 0.574, "mean": 0.0305, "n": 12296}
+    m = {"estimators": {"ekf": _est(runtime_s=0.12, update_ms={**u, "p99": 0.037}),
+                        "batch": _est(runtime_s=0.70, update_ms=u)}, "lag_s": 10.0}
+    t = report._summary_table(m)
+    assert _cells(t, "batch")[-2] == "0.001 / 0.574 *" and _cells(t, "ekf")[-2].endswith("0.037")
+    assert ("* batch: the latencies are of its per-message updates; its whole-run solve runs "
+            "once in finish(), in no latency percentile: 0.325 s of its 0.70 s runtime lie "
+            "outside its per-message updates.") in t
+    m["estimators"]["batch"]["finish_s"] = 0.301  # measured, as bench does
+    assert "in no latency percentile: 0.301 s of its 0.70 s runtime." in \
+        report._summary_table(m)
