@@ -334,6 +334,27 @@ def _print_summary(m: dict, out) -> None:
                   " (to metrics.json; the report after it not included)\n")
 
 
+def _print_written_summary(outdir: Path) -> None:
+    """The summary table of the metrics.json a run stopped short (a damaged bag, Ctrl-C) wrote
+    in ``outdir``, on stdout before the error line (as ``online`` and ``bench`` show what was
+    read); nothing when it cannot be read back."""
+    import json
+
+    try:
+        m = json.loads((Path(outdir) / "metrics.json").read_text())
+        _print_summary(m, sys.stdout)
+    except (OSError, ValueError, KeyError, TypeError):
+        return
+    sys.stdout.flush()
+
+
+def check_holdout_sensor(cfg, config: Path, holdout: str | None) -> None:
+    """Before decoding: a GPS hold-out needs a gps sensor in the config; DdfuseError naming
+    the option and the config otherwise (it ran and warned that no fix was withheld)."""
+    if holdout and not cfg.of_kind("gps"):
+        raise DdfuseError(f"--gps-holdout {holdout}: {config} has no gps sensor")
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     import time
 
@@ -341,8 +362,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     from estimation.errors import BagError, RunInterrupted
     from evaluation.pipeline import run_bag
 
+    check_output_dir(args.outdir, "-o")  # before any work
     bag = args.bag or SAMPLE_BAG
-    cfg = load_config(_config_for(bag, args.config))
+    config = _config_for(bag, args.config)
+    cfg = load_config(config)
+    check_holdout_sensor(cfg, config, args.gps_holdout)  # before decoding
     bars = _progress()
     try:
         try:
@@ -353,9 +377,11 @@ def cmd_run(args: argparse.Namespace) -> int:
             raise DdfuseError(str(e)) from None
         except (BagError, RunInterrupted) as e:
             # A damaged bag whose readable part was estimated, or a run stopped by Ctrl-C: the
-            # report shows that part.
-            if getattr(e, "results_written", False) and not args.no_report:
-                _render(args.outdir, bars)
+            # table and the report show that part, then the error line says why it is a part.
+            if getattr(e, "results_written", False):
+                _print_written_summary(args.outdir)
+                if not args.no_report:
+                    _render(args.outdir, bars)
             raise
         _print_summary(m, sys.stdout)
         for w in m.get("warnings") or ():
@@ -381,6 +407,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
+    check_output_dir(args.outdir, "OUTDIR")
     bars = _progress()
     try:
         path = _render(args.outdir, bars)
@@ -433,6 +460,22 @@ def estimator_list(text: str) -> list[str]:
     empty list is refused (leave the option out for the default set)."""
     from evaluation.estimators import TRACK_TO_SPEC
 
+    return _estimator_names(text, list(TRACK_TO_SPEC))
+
+
+def online_estimator_list(text: str) -> list[str]:
+    """``estimator_list`` of ``online``: an unknown name is refused with the names online can
+    run (not smoother_lagged or batch; asked for, those are refused with the reason by
+    ``cmd_online``)."""
+    from evaluation.estimators import TRACK_TO_SPEC
+    from evaluation.online import ONLINE_TRACKS_REFUSED
+
+    return _estimator_names(text, [n for n in TRACK_TO_SPEC if n not in ONLINE_TRACKS_REFUSED])
+
+
+def _estimator_names(text: str, known: list[str]) -> list[str]:
+    from evaluation.estimators import TRACK_TO_SPEC
+
     names = [n.strip() for n in text.split(",") if n.strip()]
     if not names:
         raise argparse.ArgumentTypeError(
@@ -441,7 +484,7 @@ def estimator_list(text: str) -> list[str]:
     unknown = [n for n in names if n not in TRACK_TO_SPEC]
     if unknown:
         raise argparse.ArgumentTypeError(f"unknown estimator {unknown[0]!r} (known: "
-                                         f"{', '.join(TRACK_TO_SPEC)})")
+                                         f"{', '.join(known)})")
     return names
 
 
@@ -513,6 +556,22 @@ def check_output_dir(path: Path, option: str) -> None:
         raise DdfuseError(f"{option} {path}: directory {anchor} is not writable")
 
 
+class DdfuseParser(argparse.ArgumentParser):
+    """The parser of ``ddfuse`` and of each sub-command: a usage error is one line,
+    ``ddfuse: error: <sub-command>: <what> (see ddfuse <sub-command> --help)``, and exit code 2
+    (argparse's own prints the usage block first and prefixes the sub-command's prog)."""
+
+    def error(self, message: str):
+        sub = self.prog.removeprefix("ddfuse").strip()
+        where = f"{sub}: " if sub else ""
+        hint = f"ddfuse {sub} --help" if sub else "ddfuse --help"
+        self.exit(2, f"ddfuse: error: {where}{_one_line(message)} (see {hint})\n")
+
+
+CONFIG_HELP = ("config YAML (default: the bag's path with .yaml; else, for the real bags "
+               "ddfuse ships a config for, data/configs/<bag's stem>.yaml)")
+
+
 def _reorder_arg(sp: argparse.ArgumentParser) -> None:
     sp.add_argument("--reorder-window", type=_reorder_window, metavar="S",
                     help="seconds of header-stamp disorder the decoder sorts out (messages "
@@ -521,7 +580,7 @@ def _reorder_arg(sp: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = DdfuseParser(
         prog="ddfuse",
         description="Pose estimation for differential-drive robots from ROS bags: "
                     "EKF baseline vs GTSAM fixed-lag smoother.")
@@ -535,15 +594,14 @@ def build_parser() -> argparse.ArgumentParser:
     sp = sub.add_parser("run", help="run the estimators side by side on a bag and score them")
     sp.add_argument("bag", type=Path, nargs="?",
                     help=f"bag to run (default: the embedded sample {SAMPLE_BAG.name})")
-    sp.add_argument("-c", "--config", type=Path,
-                    help="config YAML (default: the bag's path with .yaml)")
+    sp.add_argument("-c", "--config", type=Path, help=CONFIG_HELP)
     sp.add_argument("-o", "--outdir", type=Path, default=Path("ddfuse-out"),
                     help="output directory (default: ddfuse-out)")
     sp.add_argument("--estimators", type=estimator_list, metavar="LIST",
                     help="comma-separated: ekf, ekf_igvc, ekf_landmark, "
                     "ekf_slam, smoother, smoother_lagged, batch, dr (dead reckoning, by name "
                     "only; default: all but dr that the config's sensors allow)")
-    sp.add_argument("--lag", type=lag_seconds,
+    sp.add_argument("--lag", type=lag_seconds, metavar="S",
                     help="smoother lag, s (default: from the config)")
     sp.add_argument("--gps-holdout", type=gps_holdout, metavar="every:K|window:T0:T1",
                     help=GPS_HOLDOUT_HELP)
@@ -565,9 +623,10 @@ def build_parser() -> argparse.ArgumentParser:
         "which, when and why; its last estimate is kept) and the others go on; the exit code "
         "stays 0 then, as for 'run' (whose table shows ERROR in its row). Exit 2: bad input "
         "(a truncated bag: after replaying what could be read); 130: Ctrl-C.")
-    sp.add_argument("bag", type=Path)
-    sp.add_argument("-c", "--config", type=Path)
-    sp.add_argument("--estimators", type=estimator_list, metavar="LIST",
+    sp.add_argument("bag", type=Path, help="bag to replay: ROS1 .bag, ROS2 bag directory or "
+                    ".mcap")
+    sp.add_argument("-c", "--config", type=Path, help=CONFIG_HELP)
+    sp.add_argument("--estimators", type=online_estimator_list, metavar="LIST",
                     help="comma-separated (default: all the sensors allow); not "
                     "smoother_lagged or batch: the lagged output exists only once a keyframe "
                     "leaves the smoother's window and the batch only at the end, so neither can "
@@ -581,12 +640,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     sp = sub.add_parser("bench", help="speed and memory of each estimator on bags")
     sp.add_argument("bags", type=Path, nargs="*", help="bags (default: the embedded sample)")
-    sp.add_argument("-c", "--config", type=Path)
+    sp.add_argument("-c", "--config", type=Path,
+                    help="config YAML for every bag given (default: per bag, "
+                    + CONFIG_HELP.removeprefix("config YAML (default: "))
     sp.add_argument("--estimators", type=estimator_list, metavar="LIST",
                     help="comma-separated (default: all the sensors allow); 'smoother' alone "
                     "times the filtered output, with 'smoother_lagged' the lagged one too")
-    sp.add_argument("--lag", type=lag_seconds, help="smoother lag, s (default: from the config)")
-    sp.add_argument("--json", type=Path, help="also write the results as JSON")
+    sp.add_argument("--lag", type=lag_seconds, metavar="S",
+                    help="smoother lag, s (default: from the config)")
+    sp.add_argument("--json", type=Path, metavar="FILE", help="also write the results as JSON")
     sp.set_defaults(func=cmd_bench)
 
     sub.add_parser("simulate", help="simulate a robot drive into a bag with ground truth "

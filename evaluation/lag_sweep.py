@@ -12,7 +12,6 @@ Usage: ``ddfuse lag-sweep [BAG] [-c CONFIG] [--lags 0.5,2,10,30] [--gps-holdout 
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import sys
@@ -91,14 +90,14 @@ _NOTHING = "lag-sweep has nothing to score the smoother against"
 
 def _check_scorable(cfg, config, holdout: str | None) -> None:
     """Before decoding: ValueError when the config alone shows there is nothing to score
-    against (no ground_truth topic and no hold-out; or a hold-out without a gps sensor)."""
+    against (no ground_truth topic and no hold-out), or a hold-out is asked for without a gps
+    sensor to withhold fixes of (with or without truth: 'run' refuses it the same way)."""
+    if holdout and not cfg.of_kind("gps"):
+        raise ValueError(f"--gps-holdout {holdout}: {config} has no gps sensor")
     if cfg.ground_truth_topic:
         return
     if not holdout:
         raise ValueError(f"{_NEEDS}: {config} names no ground_truth topic")
-    if not cfg.of_kind("gps"):
-        raise ValueError(f"{_NOTHING}: {config} names no ground_truth topic and has no gps "
-                         f"sensor for --gps-holdout {holdout} to withhold fixes of")
 
 
 def _scored_against(stream, bag, cfg, holdout: str | None) -> str:
@@ -148,24 +147,25 @@ def plain_text(doc: str) -> str:
 
 def _main(argv: list[str] | None) -> int:
     from evaluation.cli import (
+        CONFIG_HELP,
         GPS_HOLDOUT_HELP,
         SAMPLE_BAG,
         DdfuseError,
+        DdfuseParser,
         _config_for,
         check_output_file,
         gps_holdout,
     )
 
-    p = argparse.ArgumentParser(prog="ddfuse lag-sweep",
+    p = DdfuseParser(prog="ddfuse lag-sweep",
                                 description=plain_text(__doc__.split("\n\n")[1]))
     p.add_argument("bag", type=Path, nargs="?", help="bag (default: the embedded sample)")
-    p.add_argument("-c", "--config", type=Path,
-                   help="config YAML (default: the bag's path with .yaml)")
-    p.add_argument("--lags", default=",".join(f"{x:g}" for x in DEFAULT_LAGS),
+    p.add_argument("-c", "--config", type=Path, help=CONFIG_HELP)
+    p.add_argument("--lags", default=",".join(f"{x:g}" for x in DEFAULT_LAGS), metavar="S,S,...",
                    help="comma-separated lags in seconds (default: 0.5,2,10,30)")
     p.add_argument("--gps-holdout", type=gps_holdout, metavar="every:K|window:T0:T1",
                    help=GPS_HOLDOUT_HELP)
-    p.add_argument("--json", type=Path, help="also write the rows as JSON")
+    p.add_argument("--json", type=Path, metavar="FILE", help="also write the rows as JSON")
     args = p.parse_args(argv)
     try:
         lags = [float(x) for x in args.lags.split(",") if x.strip()]

@@ -48,7 +48,6 @@ Library use (a notebook)::
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
@@ -491,6 +490,7 @@ def _save_or_show(mc: dict, outdir: Path) -> tuple[Path, Path]:
 def _main(argv: list[str] | None) -> int:
     from estimation.errors import DdfuseError
     from evaluation.cli import (
+        DdfuseParser,
         check_output_dir,
         estimator_list,
         int_at_least,
@@ -499,7 +499,7 @@ def _main(argv: list[str] | None) -> int:
     )
     from evaluation.simulate import SCENARIOS, SMOOTHER_LAG
 
-    ap = argparse.ArgumentParser(
+    ap = DdfuseParser(
         prog="ddfuse mc",
         description="Monte Carlo runs of the estimators on a simulator scenario: position RMSE, "
         "dead-reckoning RMSE, average NEES against its 95% chi-square band, runtime.")
@@ -508,7 +508,7 @@ def _main(argv: list[str] | None) -> int:
                     help="number of seeds (default 20)")
     ap.add_argument("--first-seed", type=int_at_least(0), default=0,
                     help="first seed (default 0)")
-    ap.add_argument("--duration", type=float, default=None,
+    ap.add_argument("--duration", type=float, default=None, metavar="S",
                     help="seconds per run (default: the scenario's); shorter, the scenario's drive "
                     "for the seed cut to S s (ddfuse simulate --help)")
     ap.add_argument("--estimators", type=estimator_list, metavar="LIST",
@@ -520,7 +520,7 @@ def _main(argv: list[str] | None) -> int:
                     help="every seed with the scenario's true geometry and the exact true "
                     "initial pose (default: both drawn per seed from the priors the config "
                     "states)")
-    ap.add_argument("--lag", type=lag_seconds, default=None,
+    ap.add_argument("--lag", type=lag_seconds, default=None, metavar="S",
                     help="smoother lag, s (default: the simulated config's, "
                     f"{SMOOTHER_LAG:g} s)")
     ap.add_argument("-o", "--outdir", type=Path, default=Path("ddfuse-out"),

@@ -10,7 +10,6 @@ it: ``python3 -m evaluation.plot_sim husky --seed 0 -o husky.png``.
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -100,12 +99,17 @@ def _main(argv: list[str] | None) -> int:
     from matplotlib.backend_bases import FigureCanvasBase
 
     from estimation.errors import DdfuseError
-    from evaluation.cli import check_output_file, int_at_least, simulated_scenario
+    from evaluation.cli import (
+        DdfuseParser,
+        check_output_file,
+        int_at_least,
+        simulated_scenario,
+    )
 
-    ap = argparse.ArgumentParser(prog="ddfuse plot-sim", description=__doc__.splitlines()[0])
+    ap = DdfuseParser(prog="ddfuse plot-sim", description=__doc__.splitlines()[0])
     ap.add_argument("scenario", choices=list(SCENARIOS))
     ap.add_argument("--seed", type=int_at_least(0), default=0, help="random seed (default 0)")
-    ap.add_argument("--duration", type=float, default=None,
+    ap.add_argument("--duration", type=float, default=None, metavar="S",
                     help="seconds to simulate (default: the scenario's); shorter, the "
                     "scenario's drive for the seed cut to S s (ddfuse simulate --help)")
     ap.add_argument("-o", "--output", type=Path, required=True,

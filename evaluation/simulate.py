@@ -40,7 +40,6 @@ them as standard deviations under ``noise:``.
 
 from __future__ import annotations
 
-import argparse
 import heapq
 import math
 import os
@@ -1273,9 +1272,14 @@ def _write_messages(writer, topics, ts, mk: _Msgs) -> None:
 
 def _main(argv: list[str] | None) -> int:
     from estimation.errors import DdfuseError
-    from evaluation.cli import check_output_file, int_at_least, simulated_scenario
+    from evaluation.cli import (
+        DdfuseParser,
+        check_output_file,
+        int_at_least,
+        simulated_scenario,
+    )
 
-    ap = argparse.ArgumentParser(
+    ap = DdfuseParser(
         prog="ddfuse simulate",
         description="Simulate a differential-drive robot and write a bag with ground truth, "
         "plus the ddfuse config (and landmark map) next to it.",
@@ -1283,7 +1287,7 @@ def _main(argv: list[str] | None) -> int:
     )
     ap.add_argument("scenario", choices=list(SCENARIOS))
     ap.add_argument("--seed", type=int_at_least(0), default=0, help="random seed (default 0)")
-    ap.add_argument("--duration", type=float, default=None,
+    ap.add_argument("--duration", type=float, default=None, metavar="S",
                     help="seconds to simulate (default: the scenario's). The run is the "
                     "scenario's drive for this seed cut to S s: the truth (and seed002's "
                     "landmark map) is that of the default-duration run up to S - 3 s, where the "

@@ -221,7 +221,7 @@ def test_an_output_directory_that_is_a_file_is_one_line(tmp_path, capsys):
     out.write_text("not a directory")
     code, stdout, err = run(["run", "-o", str(out), "--estimators", "ekf", "--no-report"],
                             capsys)
-    assert_one_line_error(code, stdout, err, str(out), "a file where a directory is needed")
+    assert_one_line_error(code, stdout, err, f"-o {out}: is a file, not a directory")
 
 
 # --- output paths of the delegated sub-commands (simulate, plot-sim, lag-sweep, mc) ---------
