@@ -21,13 +21,16 @@ from evaluation import consistency, plots
 from evaluation.results import SavedRun, load_run
 from evaluation.verdict import (
     CALIBRATION_SIGMAS,
+    SEES_AFTER,
     TIE_RULE,
     calibration_title,
     calibration_value,
     final_states,
+    outage_drift,
     signed,
     tie,
     track_kind,
+    unresolved,
     verdict_lines,
 )
 
@@ -344,21 +347,41 @@ def _outage_table(m: dict) -> str:
     for k, o in enumerate(outs):
         for name, e in m["estimators"].items():
             d = (e.get("gps_outages") or [None] * len(outs))[k] or {}
+            drift = outage_drift(d)
+            if track_kind(name) != "real time" and d:
+                drift_cell = f'<span class="na">– ({SEES_AFTER})</span>'
+            elif drift is not None and math.isfinite(drift):
+                drift_cell = signed(100 * drift)
+            else:
+                drift_cell = _fmt(None)
             rows.append(
                 f"<tr><td>{o['t0'] - t0:.1f}–{o['t1'] - t0:.1f}</td>"
                 f'<td class="l">{html.escape(name)}</td><td>{_fmt(d.get("distance_m"), ".1f")}'
-                f"</td><td>{_fmt(d.get('error_start_m'))}</td><td>{_fmt(d.get('error_end_m'))}"
-                f"</td><td>{_fmt(d.get('error_max_m'))}</td><td>"
-                + (signed(100 * d["drift_per_m"]) if d.get("drift_per_m") is not None
-                   and math.isfinite(d["drift_per_m"]) else _fmt(None))
-                + f'</td><td class="l">{html.escape(str(d.get("reference", "–")))}</td></tr>')
+                f"</td><td>{_outage_error(d, 'start')}</td><td>{_outage_error(d, 'end')}"
+                f"</td><td>{_fmt(d.get('error_max_m'))}</td><td>{drift_cell}"
+                f'</td><td class="l">{html.escape(str(d.get("reference", "–")))}</td></tr>')
+    fixes = any((_get(e, "gps_outages") or [{}])[0].get("block_s")
+                for e in m["estimators"].values() if e.get("gps_outages"))
+    maxnote = (" Max error: the largest distance to a single withheld fix in the outage, that "
+               "fix's noise included (start and end are block medians less their noise: "
+               "'&lt; X (unresolved)' where that is under the noise X, with no drift)."
+               if fixes else " Max error: the largest error against the truth in the outage.")
     return ("<h2>GPS outages</h2><table><tr><th>outage [s]</th><th class='l'>estimator</th>"
             "<th>distance [m]</th><th>error at start [m]</th><th>error at end [m]</th>"
             "<th>max error [m]</th><th>drift [% of distance]</th><th class='l'>against</th>"
             "</tr>" + "".join(rows) + "</table><p class='note'>An outage is a stretch of at "
             "least 5 s (or 5 fix intervals) in which no GPS fix reached the estimators "
             "(withheld with --gps-holdout window:T0:T1, or absent in the bag). Drift = (error at "
-            "end − error at start) / distance travelled in it.</p>")
+            "end − error at start) / distance travelled in it, of the real-time tracks only: a "
+            f"lagged or offline track {SEES_AFTER}, so its error there is smoothed, not "
+            f"dead-reckoned.{maxnote}</p>")
+
+
+def _outage_error(d: dict, which: str) -> str:
+    """An outage's start or end error cell: '< X (unresolved)' below the fixes' noise X."""
+    if unresolved(d, which):
+        return f"&lt; {d['error_noise_m']:.2f} (unresolved)"
+    return _fmt(d.get(f"error_{which}_m"))
 
 
 def _gps_fixes(m: dict) -> str:

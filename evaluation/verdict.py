@@ -356,6 +356,79 @@ def _stopped_early(m: dict) -> list[str]:
     return out
 
 
+def unresolved(d: dict, which: str = "end") -> bool:
+    """Whether an outage's error at its ``which`` ('start' or 'end'), scored through block
+    medians of noisy fixes (``metrics.outage_drift``), lies below their noise there: not
+    resolved (the value is |median| less the noise, clipped at 0: not an error size)."""
+    v, noise = d.get(f"error_{which}_m"), d.get("error_noise_m")
+    return v is not None and noise is not None and v < noise
+
+
+def outage_drift(d: dict) -> float | None:
+    """An outage's drift per metre where both its errors are resolved, else None."""
+    if d.get("drift_per_m") is None or unresolved(d, "start") or unresolved(d, "end"):
+        return None
+    return d["drift_per_m"]
+
+
+SEES_AFTER = "sees fixes after the outage"
+
+
+def _outage_lines(m: dict) -> list[str]:
+    """Per GPS outage: the real-time tracks ranked by their error at its end (dead reckoning
+    through it), with their drift; the lagged and offline tracks, which see the fixes after
+    the outage, named apart and not ranked on drift; unresolved ends said as '< noise'."""
+    ests = m["estimators"]
+    lag = m.get("lag_s")
+    t0 = (m.get("data") or {}).get("t0") or 0.0
+    out = []
+    for o_idx, o in enumerate(m.get("gps_outages") or []):
+        rows = {n: e["gps_outages"][o_idx] for n, e in ests.items()
+                if e.get("gps_outages") and e["gps_outages"][o_idx]
+                and e["gps_outages"][o_idx].get("error_end_m") is not None}
+        if not any(d.get("drift_per_m") is not None for d in rows.values()):
+            continue
+        any_d = next(iter(rows.values()))
+        if any_d.get("block_s"):
+            # noisy fixes: path and errors from their medians over a few seconds
+            # (metrics.outage_drift), less the noise left in those medians
+            how = (f"{any_d['distance_m']:.0f} m travelled by the withheld GPS fixes' medians "
+                   f"over {any_d['block_s']:g} s; start and end errors from the median of the "
+                   f"fixes in its first and last {any_d['block_s']:g} s, less their noise of "
+                   f"{any_d['error_noise_m']:.2f} m")
+        else:
+            how = (f"{any_d['distance_m']:.0f} m travelled, scored against the "
+                   f"{any_d['reference']}")
+
+        def said(n: str, rows: dict = rows) -> str:
+            d = rows[n]
+            if unresolved(d):
+                return f"{n} < {d['error_noise_m']:.2f} m (unresolved)"
+            drift = outage_drift(d)
+            return f"{n} {d['error_end_m']:.2f} m" + (
+                f" ({_signed_pct(drift)})" if drift is not None else "")
+
+        live = sorted((n for n in rows if track_kind(n) == "real time"),
+                      key=lambda n: rows[n]["error_end_m"])
+        later = [n for n in rows if track_kind(n) != "real time"]
+        text = f"GPS outage {o['t0'] - t0:.0f}-{o['t1'] - t0:.0f} s ({how})"
+        if live:
+            text += (", real-time tracks (dead reckoning through it) by their error at its end, "
+                     "with its growth per metre travelled: " + ", ".join(map(said, live)) + ".")
+        else:
+            text += "."
+        if later:
+            text += (" Not ranked on drift, as each " + SEES_AFTER + " ("
+                     + ", ".join(f"{n}: {track_kind(n, lag)}" for n in later) + "), so its "
+                     "error there is smoothed, not dead-reckoned: "
+                     + ", ".join(map(said, later)) + ".")
+        if any_d.get("block_s"):
+            text += (f" Errors under {any_d['error_noise_m']:.2f} m are within the fixes' noise "
+                     "there: not resolved, and no drift is given for them.")
+        out.append(text)
+    return out
+
+
 def _holdout_caution(m: dict, best: str) -> str:
     """What a hold-out of single fixes measures, with the GPS residuals' correlation time to
     the best track where the run measured it (``metrics.correlation_time``)."""
@@ -479,32 +552,7 @@ def verdict_lines(m: dict) -> list[str]:
     # an estimator with no estimate has nothing to be consistent about ("stopped early" below)
     lines += [_consistency(n, e, seen) for n, e in ests.items() if e.get("samples") != 0]
     lines += _noise_hints(ests)
-    for o_idx, o in enumerate(m.get("gps_outages") or []):
-        drift = {n: e["gps_outages"][o_idx] for n, e in ests.items()
-                 if e.get("gps_outages") and e["gps_outages"][o_idx].get("drift_per_m")
-                 is not None}
-        if not drift:
-            continue
-        t0 = (m.get("data") or {}).get("t0") or 0.0
-        any_d = next(iter(drift.values()))
-        order = sorted(drift, key=lambda n: drift[n]["error_end_m"])
-        if any_d.get("block_s"):
-            # noisy fixes: path and errors from their medians over a few seconds
-            # (metrics.outage_drift), less the noise left in those medians
-            how = (f"{any_d['distance_m']:.0f} m travelled by the withheld GPS fixes' medians "
-                   f"over {any_d['block_s']:g} s; start and end errors from the median of the "
-                   f"fixes in its first and last {any_d['block_s']:g} s, less their noise of "
-                   f"{any_d['error_noise_m']:.2f} m")
-        else:
-            how = (f"{any_d['distance_m']:.0f} m travelled, scored against the "
-                   f"{any_d['reference']}")
-        lines.append(
-            f"GPS outage {o['t0'] - t0:.0f}-{o['t1'] - t0:.0f} s ({how}), error at its end "
-            "and its growth per metre travelled: "
-            + ", ".join(f"{n} {drift[n]['error_end_m']:.2f} m "
-                        f"({_signed_pct(drift[n]['drift_per_m'])})" for n in order)
-            + "." + (f" Errors under {any_d['error_noise_m']:.2f} m are within the fixes' noise "
-                     "there: not resolved." if any_d.get("block_s") else ""))
+    lines += _outage_lines(m)
     lines += _calibration_gaps(m)
     stopped = _stopped_early(m)
     for n, e in ests.items():

@@ -103,9 +103,9 @@ def test_outage_drift_and_errors():
                                                    "distance_m": 30.0, "reference": "truth"}]
     m["estimators"]["smoother"]["error"] = "RuntimeError at t=5: boom"
     text = "\n".join(verdict_lines(m))
-    assert ("GPS outage 60-90 s (30 m travelled, scored against the truth), error at its end "
-            "and its growth per metre travelled: smoother 0.40 m (+1.0%), ekf 0.90 m (+2.0%).") \
-        in text
+    assert ("GPS outage 60-90 s (30 m travelled, scored against the truth), real-time tracks "
+            "(dead reckoning through it) by their error at its end, with its growth per metre "
+            "travelled: smoother 0.40 m (+1.0%), ekf 0.90 m (+2.0%).") in text
     assert "smoother stopped early: RuntimeError at t=5: boom." in text
 
 
@@ -359,3 +359,34 @@ def test_an_interrupt_inside_one_update_does_not_unrank_that_estimator():
     m["estimators"]["ekf"]["span_s"] = [504.5, 706.5]
     m["estimators"]["ekf"]["error"] = "RuntimeError at t=5: boom"  # a real error
     assert "Not ranked, having stopped with an error (said below): ekf." in verdict_lines(m)[0]
+
+
+def test_outage_ends_below_the_noise_and_tracks_that_see_the_later_fixes():
+    """rl_husky_gps.bag window:150:210: batch's end error was clipped to 0.000 below the fixes'
+    0.58 m noise and printed with a drift of -2.8 %; batch and smoother_lagged, which fuse the
+    fixes after the outage, were ranked first on drift. Now an unresolved end is '< 0.58 m
+    (unresolved)' with no drift, and only the real-time tracks are ranked on drift."""
+    m = _m({"ekf": 2.1, "smoother": 2.0, "smoother_lagged": 1.2, "batch": 1.1},
+           "gps_holdout_rmse_m", gps_holdout="window:150:210",
+           gps_outages=[{"t0": 249.6, "t1": 310.0}], data={"t0": 100.0})
+    base = {"distance_m": 55.9, "reference": "withheld GPS", "block_s": 3.0,
+            "error_noise_m": 0.5828, "error_max_m": 5.5}
+    for n, start, end in (("ekf", 1.637, 2.948), ("smoother", 1.628, 2.568),
+                          ("smoother_lagged", 1.627, 0.314), ("batch", 1.591, 0.0)):
+        m["estimators"][n]["gps_outages"] = [{**base, "error_start_m": start,
+                                              "error_end_m": end,
+                                              "drift_per_m": (end - start) / 55.9}]
+    (line,) = [x for x in verdict_lines(m) if x.startswith("GPS outage")]
+    assert ("real-time tracks (dead reckoning through it) by their error at its end, with its "
+            "growth per metre travelled: smoother 2.57 m (+1.7%), ekf 2.95 m (+2.3%). Not "
+            "ranked on drift, as each sees fixes after the outage (smoother_lagged: lagged by "
+            "10 s, batch: offline), so its error there is smoothed, not dead-reckoned: "
+            "smoother_lagged < 0.58 m (unresolved), batch < 0.58 m (unresolved).") in line
+    assert "-2.8%" not in line and "0.00 m" not in line
+
+    from evaluation.report import _outage_table
+    table = _outage_table(m)
+    assert "<td>&lt; 0.58 (unresolved)</td>" in table and "-2.84" not in table
+    assert "– (sees fixes after the outage)" in table
+    assert "the largest distance to a single withheld fix in the outage, that fix's noise " \
+        "included" in table
