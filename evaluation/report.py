@@ -21,12 +21,17 @@ from evaluation import consistency, plots
 from evaluation.results import SavedRun, load_run
 from evaluation.verdict import (
     CALIBRATION_SIGMAS,
+    REJECTED_THROUGHOUT,
     SEES_AFTER,
     TIE_RULE,
+    _topic_kind,
+    averaged_per_keyframe,
     calibration_title,
     calibration_value,
     final_states,
+    gate_rejections,
     outage_drift,
+    sensor_samples,
     signed,
     tie,
     track_kind,
@@ -270,6 +275,7 @@ def not_run(m: dict, cfg=None) -> list[tuple[str, str]]:
 def _nis_table(m: dict) -> str:
     rows = []
     seen: dict[str, str] = {}
+    gated = gate_rejections(m)
     for name, e in m["estimators"].items():
         nis = e.get("nis") or {}
         key = repr(sorted(nis.items()))
@@ -282,14 +288,42 @@ def _nis_table(m: dict) -> str:
         seen[key] = name
         for label, s in nis.items():
             band = s.get("band")
+            topic, kind = _topic_kind(label, s)
+            acc, rej, text = s["accepted"], s["rejected"], html.escape(label)
+            if averaged_per_keyframe(name, kind):
+                # one row per keyframe (the samples since the last one averaged): the gate's
+                # decisions are per sample, in the estimator's rejected counts
+                n = sensor_samples(m, topic, kind)
+                rej = (e.get("rejected") or {}).get(f"{topic}: gate", 0)
+                acc = "–" if n is None else max(n - rej, 0)
+                text += (f", averaged per keyframe ({s['accepted'] + s['rejected']} values"
+                         + (f" of {n} samples" if n is not None else "") + ")")
+            mean = s.get("mean") if s["accepted"] else None  # nothing accepted: no mean
+            verdict = ('<span class="Fail">rejected throughout</span>'
+                       if name in (gated.get(topic) or {}).get("throughout", ())
+                       and kind == gated[topic]["kind"] else _verdict_cell(s.get("verdict")))
             rows.append(
                 f'<tr><td class="l"><b>{html.escape(name)}</b></td>'
-                f'<td class="l">{html.escape(label)}</td><td>{_fmt(s.get("dof"), "g")}</td>'
-                f"<td>{s['accepted']}</td><td>{s['rejected']}</td>"
-                f"<td>{_fmt(s.get('mean'))} / {_fmt(s.get('expected'), 'g')}</td>"
+                f'<td class="l">{text}</td><td>{_fmt(s.get("dof"), "g")}</td>'
+                f"<td>{acc}</td><td>{rej}</td>"
+                f"<td>{_fmt(mean)} / {_fmt(s.get('expected'), 'g')}</td>"
                 f"<td>{f'[{band[0]:.3g}, {band[1]:.3g}]' if band else '–'}</td>"
                 f"<td>{_pct(s.get('below'))}</td><td>{_pct(s.get('above'))}</td>"
-                f"<td>{_verdict_cell(s.get('verdict'))}</td></tr>")
+                f"<td>{verdict}</td></tr>")
+        logged = {_topic_kind(label, s)[0] for label, s in nis.items()}
+        for topic, info in gated.items():
+            if name in info["by"] and topic not in logged:
+                # gated, but no NIS row (the smoother's heading when every sample was rejected)
+                r, tot = info["by"][name]
+                what = f"{topic} {info['kind']}" if info["kind"] else topic
+                rows.append(
+                    f'<tr><td class="l"><b>{html.escape(name)}</b></td>'
+                    f'<td class="l">{html.escape(what)} (no NIS logged)</td><td>–</td>'
+                    f"<td>{'–' if tot is None else tot - r}</td><td>{r}</td>"
+                    + "<td>–</td>" * 4 + "<td>"
+                    + ('<span class="Fail">rejected throughout</span>'
+                       if name in info["throughout"] else '<span class="na">–</span>')
+                    + "</td></tr>")
     if not rows:
         return "<p>No innovations were logged.</p>"
     c = consistency
@@ -301,7 +335,12 @@ def _nis_table(m: dict) -> str:
             "measurement residual against the prediction (smoother). The % below and above "
             "count every innovation, those the gate rejected too (as above the band); the "
             "mean counts the accepted ones (a gross outlier the gate rejects would dominate "
-            "it). "
+            "it; '–' where the gate accepted none). Averaged per keyframe (the smoother's "
+            "heading): one value per keyframe, of the samples since the previous one "
+            "averaged; its gate counts are of the samples, from the estimator's rejected "
+            "counts. Rejected throughout: the gate rejected at least "
+            f"{100 * REJECTED_THROUGHOUT:.0f}% of the sensor's samples, so nothing of it was "
+            "fused (see the verdict). "
             "A consistent estimator has about 2.5% below and 2.5% above the band and a mean "
             f"equal to the dimension. Pass: at most {100 * c.PASS_OUTSIDE:.0f}% outside and "
             f"mean/expected in [{c.PASS_RATIO[0]:g}, {c.PASS_RATIO[1]:g}]; Warn: at most "

@@ -153,25 +153,149 @@ def _compare(a: str, va: float, b: str, vb: float) -> str:
 
 
 def _direction(s: dict) -> str:
-    """Which way a failing consistency summary leans: too many values above the band (or a
-    mean well over the expected one) is over-confidence, below is pessimism; excess on both
-    sides at a mean near the expected one is heavy tails (errors not Gaussian)."""
+    """Which way a failing consistency summary leans: a mean well over the expected one (or
+    only the upper tail off) is over-confidence, well under (or only the lower tail) is
+    pessimism; with the mean within [2/3, 1.5] of the expected one it is the tails alone
+    (errors not Gaussian), said with their shares."""
     ratio, above, below = s.get("ratio"), s.get("above") or 0.0, s.get("below") or 0.0
     if ratio is None:
         return ""
     tail = 0.05  # twice the nominal 2.5% on one side of the 95% band
+    if 2 / 3 <= ratio <= 1.5:
+        return f"tails: {100 * below:.1f}% below, {100 * above:.1f}% above the band"
     if ratio > 1.5 or (above > tail >= below):
         return "over-confident"
-    if ratio < 2 / 3 or (below > tail >= above):
-        return "pessimistic"
-    return "heavy tails on both sides"
+    return "pessimistic"
 
 
 ABSOLUTE_KINDS = {"gps", "heading", "landmark"}
+# Kinds that test one sensor's one noise setting under different names: the odometry's speed
+# and yaw rate (ekf: 'v', 'yaw_rate') are one 'odometry' measurement elsewhere (ekf_igvc).
+_KIND_GROUP = {"v": "odometry", "yaw_rate": "odometry", "odometry": "odometry"}
+# A sensor whose samples an estimator's gate rejected at least this share of: rejected
+# throughout (nothing of it fused; a wrong heading offset, a wrong noise).
+REJECTED_THROUGHOUT = 0.95
+# Measurement type (metrics data.sensors 'measurements') of a NIS kind, for its sample count.
+_KIND_TYPE = {"heading": "Heading", "gps": "GpsFix", "gyro": "GyroYawRate",
+              "accel": "ForwardAccel", "landmark": "LandmarkObservation"}
 
 
-def _consistency(name: str, e: dict, seen_nis: dict) -> str:
-    """One estimator's consistency in a sentence."""
+def _topic_kind(label: str, st: dict) -> tuple[str, str]:
+    """A NIS row's sensor topic and kind (metrics ``nis`` entries carry them; else from the
+    label 'topic kind')."""
+    topic, _, kind = label.rpartition(" ")
+    return st.get("sensor") or topic or label, st.get("kind") or kind
+
+
+def averaged_per_keyframe(name: str, kind: str) -> bool:
+    """Whether a track's NIS row of ``kind`` holds one value per keyframe (the smoother's
+    heading: the samples since the last keyframe averaged into one factor), not one per
+    sample: the smoother's tracks and the batch."""
+    return kind == "heading" and (name.startswith("smoother") or name in OFFLINE)
+
+
+def sensor_samples(m: dict, topic: str, kind: str | None = None) -> int | None:
+    """How many measurements of ``kind`` (or of any kind, the most) sensor ``topic`` gave
+    (metrics ``data.sensors``)."""
+    for s in (m.get("data") or {}).get("sensors") or []:
+        if s.get("topic") == topic or s.get("name") == topic:
+            meas = s.get("measurements") or {}
+            if kind in _KIND_TYPE and _KIND_TYPE[kind] in meas:
+                return int(meas[_KIND_TYPE[kind]])
+            return max(meas.values(), default=None)
+    return None
+
+
+def gate_rejections(m: dict) -> dict[str, dict]:
+    """Per sensor topic that some estimator's gate rejected samples of (metrics
+    ``rejected['topic: gate']``, counted per sample whatever its NIS rows hold): its gated
+    'kind', and per estimator fusing it (``by``: {track: (rejected, samples)}), with
+    ``throughout`` the tracks that rejected at least REJECTED_THROUGHOUT of them and ``all``
+    whether every track fusing the sensor did."""
+    ests = m["estimators"]
+    out: dict[str, dict] = {}
+    for e in ests.values():
+        for k in e.get("rejected") or {}:
+            topic, _, reason = k.rpartition(": ")
+            if reason == "gate":
+                out.setdefault(topic, {})
+    for topic, info in out.items():
+        kind, per_row = None, {}
+        for n, e in ests.items():
+            for label, st in (e.get("nis") or {}).items():
+                t, k = _topic_kind(label, st)
+                if t == topic and (st.get("rejected") or 0) > 0 and not \
+                        averaged_per_keyframe(n, k):
+                    kind = kind or k
+                    per_row[n] = (st.get("accepted") or 0) + st["rejected"]
+        n_all = sensor_samples(m, topic, kind)
+        by = {}
+        for n, e in ests.items():
+            fuses = any(_topic_kind(label, st)[0] == topic
+                        for label, st in (e.get("nis") or {}).items()) or any(
+                k.rpartition(": ")[0] == topic for k in e.get("rejected") or {})
+            if not fuses or e.get("samples") == 0:
+                continue
+            r = (e.get("rejected") or {}).get(f"{topic}: gate", 0)
+            by[n] = (r, per_row.get(n) or n_all)
+        thr = [n for n, (r, tot) in by.items() if tot and r >= REJECTED_THROUGHOUT * tot]
+        info.update(kind=kind, by=by, throughout=thr, all=bool(by) and len(thr) == len(by))
+    return out
+
+
+def _rejected_throughout(m: dict, name: str) -> dict[tuple[str, str | None], str]:
+    """The sensors ``name``'s gate rejected throughout: {(topic, kind or None): 'topic kind
+    rejected by the gate throughout (r/N): not fused'}."""
+    out = {}
+    for topic, info in gate_rejections(m).items():
+        if name in info["throughout"]:
+            r, tot = info["by"][name]
+            what = f"{topic} {info['kind']}" if info["kind"] else topic
+            out[(topic, info["kind"])] = (f"{what} rejected by the gate throughout "
+                                          f"({r}/{tot}): not fused")
+    return out
+
+
+def _units(nis: dict) -> dict[tuple[str, str], list[str]]:
+    """What a NIS dictionary tests: (topic, kind group) -> its labels."""
+    out: dict[tuple[str, str], list[str]] = {}
+    for label, st in nis.items():
+        topic, kind = _topic_kind(label, st)
+        out.setdefault((topic, _KIND_GROUP.get(kind, kind)), []).append(label)
+    return out
+
+
+def _gated_units(m: dict | None, name: str) -> set[tuple[str, str]]:
+    """The (topic, kind) a track's gate decided on though it logged no NIS row for them
+    (a sensor rejected throughout: ``gate_rejections``)."""
+    if not m:
+        return set()
+    return {(t, info["kind"]) for t, info in gate_rejections(m).items()
+            if info["kind"] and name in info["by"]}
+
+
+def _shown_units(nis: dict, m: dict | None, name: str) -> list[tuple[str, str]]:
+    """What a track tests, by its own kind names, for its consistency line."""
+    own = [_topic_kind(label, st) for label, st in nis.items()]
+    return list(dict.fromkeys(own + sorted(_gated_units(m, name) - set(own))))
+
+
+def _covered(units) -> str:
+    """'/odom odometry, /imu/data gyro and heading, /fix gps'."""
+    by: dict[str, list[str]] = {}
+    for topic, kind in units:
+        by.setdefault(topic, []).append(kind)
+    return ", ".join(f"{t} {' and '.join(k)}" for t, k in by.items())
+
+
+_HEADS = ("consistent", "partly consistent", "not consistent")
+
+
+def _consistency(name: str, e: dict, seen_nis: dict, m: dict | None = None,
+                 others: dict | None = None) -> tuple[str, str | None]:
+    """One estimator's consistency in a sentence, and its head ('consistent', 'partly ...',
+    None when not measurable). ``others``: {owner: units tested} of the other estimators, to
+    say what this one does not test."""
     parts = []
     nees = e.get("nees")
     if nees and nees.get("verdict"):
@@ -181,21 +305,31 @@ def _consistency(name: str, e: dict, seen_nis: dict) -> str:
             txt += f", {_direction(nees)}"
         parts.append(txt + ")")
     nis = e.get("nis") or {}
+    gone = _rejected_throughout(m, name) if m else {}
     key = repr(sorted(nis.items()))
+    judged_nis = {label: st for label, st in nis.items()
+                  if not any(_topic_kind(label, st)[0] == t and k in (None, _topic_kind(
+                      label, st)[1]) for t, k in gone)}
     if nis and key in seen_nis:
         parts.append(f"NIS as {seen_nis[key]} (the same filter)")
-    elif nis:
-        seen_nis[key] = name
+    else:
+        if nis:
+            seen_nis[key] = name
+        parts += list(gone.values())
         by: dict[str, list[str]] = {}
-        for label, s in nis.items():
-            v = s.get("verdict")
+        for label, st in judged_nis.items():
+            v = st.get("verdict")
             if v is None:
                 continue
-            note = "" if v == "Pass" else f" ({_direction(s)}, mean/expected {s['ratio']:.2f})"
+            per_kf = (", averaged per keyframe" if averaged_per_keyframe(
+                name, _topic_kind(label, st)[1]) else "")
+            note = (f" ({_direction(st)}, mean/expected {st['ratio']:.2f}{per_kf})"
+                    if v != "Pass" else (f" ({per_kf[2:]})" if per_kf else ""))
             by.setdefault(v, []).append(label + note)
         parts += [f"NIS {v}: {', '.join(by[v])}" for v in ("Fail", "Warn", "Pass") if v in by]
     nees_v = (nees or {}).get("verdict")
-    judged = [s.get("verdict") for s in nis.values() if (s or {}).get("verdict")]
+    judged = [s.get("verdict") for s in judged_nis.values() if (s or {}).get("verdict")]
+    judged += ["Fail"] * len(gone)  # a sensor not fused at all is no consistent one
     fails = judged.count("Fail")
     bad = nees_v in ("Fail", "Warn") or fails > 0
     # without truth the NIS is all there is: failing on half the sensors or more is no
@@ -206,42 +340,96 @@ def _consistency(name: str, e: dict, seen_nis: dict) -> str:
     if not parts:
         why = ("no covariance to test against the truth" if e.get("ate_rmse_m") is not None
                else "no truth")
-        return f"{name}: consistency not measurable ({why}, no innovations logged)."
+        return f"{name}: consistency not measurable ({why}, no innovations logged).", None
     kinds = {s.get("kind") for s in nis.values()}
     dr = (f" It fuses no absolute measurement here ({', '.join(sorted(map(str, kinds)))} "
           "only): it is dead reckoning.") if nis and not kinds & ABSOLUTE_KINDS else ""
-    return f"{name}: {head}. " + "; ".join(parts) + "." + dr
+    mine = set(_units(nis)) | _gated_units(m, name)
+    lacks = sorted({u for o, us in (others or {}).items() if o != name for u in us} - mine)
+    if head == "consistent" and lacks:
+        head = "consistent on the sensors it tests"
+    cover = ""
+    if nis and key not in seen_nis or seen_nis.get(key) == name:
+        cover = f" (tests {_covered(_shown_units(nis, m, name))}" + (
+            f"; not {_covered(lacks)}, which others test" if lacks else "") + ")"
+    return f"{name}{cover}: {head}. " + "; ".join(parts) + "." + dr, head
+
+
+def _coverage_caution(heads: dict[str, str], units: dict[str, set]) -> str | None:
+    """Where one estimator is called more consistent than another that tests sensors it does
+    not, the calls are not a comparison of the methods: say so, with the verdicts on what
+    both test."""
+    pairs = []
+    for a, ha in heads.items():
+        for b, hb in heads.items():
+            if a in units and b in units and ha.startswith("consistent") and \
+                    hb != ha and units[b] - units[a]:
+                pairs.append((a, b))
+    if not pairs:
+        return None
+    a, b = pairs[0]
+    both = [u for u in units[a] if u in units[b]]
+    return (f"The consistency calls cover different sensors: {a} tests no "
+            f"{_covered(sorted(units[b] - units[a]))} residuals, which {b} does, so its "
+            f"'{heads[a]}' beside {b}'s '{heads[b]}' is no difference between the methods"
+            + (f"; compare them on what both test ({_covered(both)}) in the NIS table."
+               if both else "."))
 
 
 def _noise_hints(ests: dict) -> list[str]:
     """Where two or more estimators test a sensor's residuals (their own NIS, not a lagged or
     batch track's copy) and all find them off in the same direction (NIS Fail, all pessimistic
     or all over-confident), the cause is the config's noise value for that sensor, which they
-    all read, not either method: one line per direction naming the sensors."""
-    tests: dict[str, dict[str, tuple[str | None, float | None]]] = {}
+    all read, not either method: one line per direction naming the sensors. Grouped by sensor
+    topic: the estimators name one sensor's measurements differently ('odom v' and 'odom
+    yaw_rate' in one, 'odom odometry' in another)."""
+    tests: dict[str, dict[str, tuple[str | None, list, list]]] = {}
     for e in ests.values():
         nis = e.get("nis") or {}
         if e.get("samples") == 0 or not nis:
             continue
         owner = repr(sorted(nis.items()))  # tracks of one filter share its NIS
         for label, st in nis.items():
+            topic, kind = _topic_kind(label, st)
             ok = st.get("verdict") == "Fail" and st.get("ratio") is not None
-            tests.setdefault(label, {})[owner] = ((_direction(st), st["ratio"]) if ok
-                                                  else (None, None))
+            d, ratios, kinds = tests.setdefault(topic, {}).get(owner, ("", [], []))
+            # one row of the sensor not failing, or failing the other way: no config hint
+            new = _direction(st) if ok else None
+            d = new if d in ("", new) else None
+            tests[topic][owner] = (d, ratios + [st["ratio"]] if ok else ratios,
+                                   kinds + [kind] if ok else kinds)
     by_dir: dict[str, list[str]] = {}
-    for label, owners in tests.items():
-        dirs = {d for d, _ in owners.values()}
+    for topic, owners in tests.items():
+        dirs = {d for d, _, _ in owners.values()}
         if len(owners) < 2 or len(dirs) != 1 or not dirs & {"pessimistic", "over-confident"}:
             continue
-        ratios = [r for _, r in owners.values()]
+        ratios = [r for _, rs, _ in owners.values() for r in rs]
+        kinds = list(dict.fromkeys(k for _, _, ks in owners.values() for k in ks))
         lo, hi = f"{min(ratios):.2f}", f"{max(ratios):.2f}"
         by_dir.setdefault(dirs.pop(), []).append(
-            f"{label} ({lo if lo == hi else f'{lo}-{hi}'})")
+            f"{topic} ({', '.join(kinds)}: {lo if lo == hi else f'{lo}-{hi}'})")
     return [f"Every estimator that tests them finds these residuals {d} (NIS mean/expected): "
             f"{', '.join(labels)}. The config's noise for them is "
             f"{'larger' if d == 'pessimistic' else 'smaller'} than the data's, alike for all "
             "estimators: those consistency verdicts are about the config, not about which "
             "method is better." for d, labels in by_dir.items()]
+
+
+def _gate_lines(m: dict) -> list[str]:
+    """A sensor every estimator fusing it rejected (nearly) throughout: one line for all."""
+    out = []
+    for topic, info in gate_rejections(m).items():
+        if not info["all"]:
+            continue
+        counts = {f"{r}/{tot}" for r, tot in info["by"].values()}
+        each = (f"{counts.pop()} each" if len(counts) == 1 else ", ".join(
+            f"{n} {r}/{tot}" for n, (r, tot) in info["by"].items()))
+        what = f"{topic} {info['kind']}" if info["kind"] else topic
+        check = ("heading_offset / noise" if info["kind"] == "heading" else "noise, "
+                 "lever arm / delay" if info["kind"] == "gps" else "noise")
+        out.append(f"Every estimator rejected {what} throughout ({each}): nothing of it was "
+                   f"fused, alike for all; check the config's {check} for {topic}.")
+    return out
 
 
 # Share of a track's ATE from which the pairing's own error is stated: 0.3 moves an ATE by
@@ -550,7 +738,23 @@ def verdict_lines(m: dict) -> list[str]:
                          f"{m['gps_holdout_interpolation_rmse_m']:.3f} m.")
     seen: dict = {}
     # an estimator with no estimate has nothing to be consistent about ("stopped early" below)
-    lines += [_consistency(n, e, seen) for n, e in ests.items() if e.get("samples") != 0]
+    live = {n: e for n, e in ests.items() if e.get("samples") != 0}
+    owners: dict[str, set] = {}
+    for n, e in live.items():
+        key = repr(sorted((e.get("nis") or {}).items()))
+        if e.get("nis") and key not in {repr(sorted((live[o].get("nis") or {}).items()))
+                                         for o in owners}:
+            owners[n] = set(_units(e["nis"])) | _gated_units(m, n)
+    heads = {}
+    for n, e in live.items():
+        text, head = _consistency(n, e, seen, m, owners)
+        lines.append(text)
+        if head and n in owners:
+            heads[n] = head
+    caution = _coverage_caution(heads, owners)
+    if caution:
+        lines.append(caution)
+    lines += _gate_lines(m)
     lines += _noise_hints(ests)
     lines += _outage_lines(m)
     lines += _calibration_gaps(m)

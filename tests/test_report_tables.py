@@ -88,3 +88,51 @@ def test_the_offline_tracks_latency_is_footnoted():
     m["estimators"]["batch"]["finish_s"] = 0.301  # measured, as bench does
     assert "in no latency percentile: 0.301 s of its 0.70 s runtime." in \
         report._summary_table(m)
+
+
+def _nis_rows(table: str) -> dict[tuple[str, str], list[str]]:
+    out = {}
+    for row in re.findall(r"<tr>(.*?)</tr>", table.split("<p")[0])[1:]:
+        cells = [html.unescape(re.sub(r"<[^>]+>", "", c)) for c in
+                 re.findall(r"<td[^>]*>(.*?)</td>", row)]
+        out[(cells[0], cells[1])] = cells[2:]
+    return out
+
+
+def _row(sensor, kind, acc, rej, mean, verdict, ratio=None):
+    return {"sensor": sensor, "kind": kind, "accepted": acc, "rejected": rej, "dof": 1.0,
+            "mean": mean, "expected": 1.0, "ratio": ratio or mean, "band": [0.000982, 5.02],
+            "below": 0.0, "above": 1.0 if not acc else 0.03, "verdict": verdict}
+
+
+_SENSORS = {"sensors": [{"name": "/imu/data", "topic": "/imu/data", "kind": "imu",
+                         "measurements": {"Heading": 3600, "GyroYawRate": 3600}}]}
+
+
+def test_nis_table_gate_counts_of_the_smoothers_averaged_heading_and_of_none_accepted():
+    """Sample bag: the smoother's heading row said 'gate accepted 300, rejected 0' (its 300
+    keyframe averages, logged accepted) while its gate had rejected 1 of the 3600 samples.
+    With heading_offset 0.0 every sample was rejected by every estimator: ekf's row showed a
+    mean 137.145 of nothing accepted, the smoother's had no row at all and read 'consistent'."""
+    m = {"data": _SENSORS, "estimators": {
+        "ekf": _est(nis={"/imu/data heading": _row("/imu/data", "heading", 3598, 1, 0.99,
+                                                   "Pass")}, rejected={"/imu/data: gate": 1}),
+        "smoother": _est(nis={"/imu/data heading": _row("/imu/data", "heading", 300, 0, 1.08,
+                                                        "Pass")},
+                         rejected={"/imu/data: gate": 1})}}
+    rows = _nis_rows(report._nis_table(m))
+    cells = rows[("smoother", "/imu/data heading, averaged per keyframe (300 values of 3600 "
+                              "samples)")]
+    assert cells[1:3] == ["3599", "1"]
+    m["estimators"]["ekf"]["nis"]["/imu/data heading"] = _row(
+        "/imu/data", "heading", 0, 3600, 137.145, "Fail")
+    del m["estimators"]["smoother"]["nis"]["/imu/data heading"]
+    m["estimators"]["smoother"]["nis"]["/fix gps"] = {
+        **_row("/fix", "gps", 297, 0, 2.17, "Pass", 1.08), "dof": 2.0, "expected": 2.0}
+    for e in m["estimators"].values():
+        e["rejected"] = {"/imu/data: gate": 3600}
+    rows = _nis_rows(report._nis_table(m))
+    ekf = rows[("ekf", "/imu/data heading")]
+    assert ekf[1:4] == ["0", "3600", "– / 1"] and ekf[-1] == "rejected throughout"
+    sm = rows[("smoother", "/imu/data heading (no NIS logged)")]
+    assert sm[1:3] == ["0", "3600"] and sm[-1] == "rejected throughout"

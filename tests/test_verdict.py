@@ -75,11 +75,19 @@ def test_consistency_sentences():
     m["estimators"]["smoother_lagged"]["nis"] = {"/fix gps": gps}
     m["estimators"]["smoother"]["nees"] = {"verdict": "Pass", "mean": 3.1, "expected": 3.0}
     text = "\n".join(verdict_lines(m))
-    assert ("ekf: not consistent. NEES Fail (mean 30.00 for 3 expected, over-confident); NIS "
-            "Fail: /imu gyro (pessimistic, mean/expected 0.05); NIS Pass: /fix gps.") in text
-    assert "smoother: consistent. NEES Pass (mean 3.10 for 3 expected); NIS Pass: /fix gps." \
+    assert ("ekf (tests /imu gyro, /fix gps): not consistent. NEES Fail (mean 30.00 for 3 "
+            "expected, over-confident); NIS Fail: /imu gyro (pessimistic, mean/expected 0.05); "
+            "NIS Pass: /fix gps.") in text
+    # it tests fewer sensors: no plain 'consistent' beside ekf's call, and the reason said
+    assert ("smoother (tests /fix gps; not /imu gyro, which others test): consistent on the "
+            "sensors it tests. NEES Pass (mean 3.10 for 3 expected); NIS Pass: /fix gps.") \
         in text
-    assert "smoother_lagged: consistent. NIS as smoother (the same filter)." in text
+    assert ("smoother_lagged: consistent on the sensors it tests. NIS as smoother (the same "
+            "filter).") in text
+    assert ("The consistency calls cover different sensors: smoother tests no /imu gyro "
+            "residuals, which ekf does, so its 'consistent on the sensors it tests' beside "
+            "ekf's 'not consistent' is no difference between the methods; compare them on what "
+            "both test (/fix gps) in the NIS table.") in text
     m["estimators"]["ekf"]["nis"] = {"/odom v": {**fail, "kind": "v"}}
     assert "it is dead reckoning" in "\n".join(verdict_lines(m))
 
@@ -89,7 +97,8 @@ def test_heavy_tails_and_kinds():
     m["estimators"]["ekf"]["nis"] = {"/lm landmark": {"kind": "landmark", "verdict": "Warn",
                                                       "ratio": 1.09, "below": 0.071,
                                                       "above": 0.053}}
-    assert "heavy tails on both sides" in "\n".join(verdict_lines(m))
+    assert "(tails: 7.1% below, 5.3% above the band, mean/expected 1.09)" in \
+        "\n".join(verdict_lines(m))
     assert track_kind("batch") == "offline" and track_kind("smoother_lagged", 5) == \
         "lagged by 5 s" and track_kind("ekf") == "real time"
 
@@ -171,9 +180,9 @@ def test_dead_reckoning_is_not_the_smoother_and_nis_alone_can_fail_a_filter():
     ok = {"kind": "gps", "verdict": "Pass", "ratio": 1.0, "below": 0.02, "above": 0.03}
     m["estimators"]["ekf"]["nis"] = {"/imu gyro": fail, "/odom v": {**fail, "kind": "v"},
                                      "/fix gps": ok}
-    assert "ekf: not consistent. NIS Fail" in "\n".join(verdict_lines(m))
+    assert "/fix gps): not consistent. NIS Fail" in "\n".join(verdict_lines(m))
     m["estimators"]["ekf"]["nis"] = {"/imu gyro": fail, "/fix gps": ok, "/imu yaw": ok}
-    assert "ekf: partly consistent. NIS Fail" in "\n".join(verdict_lines(m))
+    assert "/fix gps): partly consistent. NIS Fail" in "\n".join(verdict_lines(m))
 
 
 def test_tracks_sampled_at_different_stamps_are_ranked_on_common_ones():
@@ -299,7 +308,7 @@ def test_residuals_every_estimator_finds_off_alike_are_put_on_the_config():
     hints = [line for line in verdict_lines(m) if line.startswith("Every estimator")]
     # the gyro: both testers pessimistic; the odometry speed: one tester only; the GPS: split
     assert hints == ["Every estimator that tests them finds these residuals pessimistic (NIS "
-                     "mean/expected): /imu gyro (0.01-0.06). The config's noise for them is "
+                     "mean/expected): /imu (gyro: 0.01-0.06). The config's noise for them is "
                      "larger than the data's, alike for all estimators: those consistency "
                      "verdicts are about the config, not about which method is better."]
     e["smoother"]["nis"]["/imu gyro"] = nis("Pass", 0.9)  # one tester disagrees: no hint
@@ -390,3 +399,56 @@ def test_outage_ends_below_the_noise_and_tracks_that_see_the_later_fixes():
     assert "– (sees fixes after the outage)" in table
     assert "the largest distance to a single withheld fix in the outage, that fix's noise " \
         "included" in table
+
+
+def test_noise_hints_group_one_sensors_measurements_named_differently():
+    """rl_husky_gps.bag: ekf tests the odometry as 'odom v' and 'odom yaw_rate', ekf_igvc as
+    'odom odometry': grouped by label no odometry row had two testers, and the hint named only
+    the gyro and the heading. Grouped by sensor topic it names the odometry too."""
+    def nis(kind, ratio):
+        return {"kind": kind, "verdict": "Fail", "ratio": ratio, "above": 0.0, "below": 0.9}
+
+    odom = "/husky_velocity_controller/odom"
+    m = _m({"ekf": 1.3, "ekf_igvc": 1.5, "smoother": 1.36}, "gps_holdout_rmse_m",
+           gps_holdout="every:5")
+    e = m["estimators"]
+    e["ekf"]["nis"] = {"/imu/data gyro": nis("gyro", 0.01), f"{odom} v": nis("v", 0.00),
+                       f"{odom} yaw_rate": nis("yaw_rate", 0.06),
+                       "/imu/data heading": nis("heading", 0.01)}
+    e["ekf_igvc"]["nis"] = {"/imu/data gyro": nis("gyro", 0.06),
+                            "/imu/data heading": nis("heading", 0.01),
+                            f"{odom} odometry": nis("odometry", 0.10)}
+    e["smoother"]["nis"] = {"/imu/data heading": nis("heading", 0.20)}
+    (hint,) = [x for x in verdict_lines(m) if x.startswith("Every estimator that tests")]
+    assert ("pessimistic (NIS mean/expected): /imu/data (gyro, heading: 0.01-0.20), "
+            f"{odom} (v, yaw_rate, odometry: 0.00-0.10).") in hint
+
+
+def test_a_sensor_every_gate_rejected_throughout_is_said_for_every_estimator():
+    """sample_husky.yaml with heading_offset 0.0: ekf and smoother both rejected all 3600
+    compass samples ({'/imu/data: gate': 3600}); ekf was 'partly consistent', the smoother,
+    whose heading rows are keyframe averages it logs accepted (here none at all), 'consistent'.
+    Now both carry the same note and call, and one line puts it on the config."""
+    m = _m({"ekf": 0.9, "smoother": 0.8}, data={"sensors": [
+        {"name": "/imu/data", "topic": "/imu/data", "kind": "imu",
+         "measurements": {"Heading": 3600, "GyroYawRate": 3600}}]})
+    gps = {"sensor": "/fix", "kind": "gps", "verdict": "Pass", "ratio": 1.08, "accepted": 297,
+           "rejected": 0, "below": 0.027, "above": 0.027}
+    e = m["estimators"]
+    e["ekf"]["nis"] = {"/imu/data heading": {
+        "sensor": "/imu/data", "kind": "heading", "verdict": "Fail", "ratio": 137.1,
+        "accepted": 0, "rejected": 3600, "below": 0.0, "above": 1.0}, "/fix gps": gps}
+    e["smoother"]["nis"] = {"/fix gps": gps}
+    for n in ("ekf", "smoother"):
+        e[n]["rejected"] = {"/imu/data: gate": 3600}
+        e[n]["nees"] = {"verdict": "Pass", "mean": 2.4, "expected": 3.0}
+    lines = verdict_lines(m)
+    note = "/imu/data heading rejected by the gate throughout (3600/3600): not fused"
+    (ekf,) = [x for x in lines if x.startswith("ekf (")]
+    (smoother,) = [x for x in lines if x.startswith("smoother (")]
+    assert note in ekf and note in smoother
+    assert "): partly consistent." in ekf and "): partly consistent." in smoother
+    assert "over-confident" not in ekf  # not judged on the mean of what it rejected
+    assert ("Every estimator rejected /imu/data heading throughout (3600/3600 each): nothing "
+            "of it was fused, alike for all; check the config's heading_offset / noise for "
+            "/imu/data.") in lines
