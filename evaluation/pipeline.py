@@ -41,7 +41,8 @@ Per estimator (track), metrics.json holds:
   how closely a track follows the GPS on that time scale;
 * ``gps_outages``: error growth per metre travelled over each GPS outage (``metrics.gps_outages``);
 * ``nis``: per 'sensor kind', NIS consistency and the gate's accept/reject counts
-  (``evaluation.consistency``); ``rejected`` (sensor: reason -> count), ``events``, ``error``;
+  (``evaluation.consistency``); ``rejected`` (sensor: reason -> count), ``events`` (the first
+  ``EVENTS_KEPT``) and ``events_total`` (all of them), ``error``;
 * ``final_state``: the calibration states at the end of the run, ``{"t": s, "states": {name:
   {"value", "sigma"}}}`` (``calibration_states``): gyro bias ``bg`` rad/s, heading offset
   ``hoff`` rad, odometry scales ``k_v``, ``k_w``; a sensor's name after a colon where an
@@ -85,6 +86,7 @@ from evaluation.results import config_text_of, save_run
 
 MAX_DIFF = 0.05  # s: association of estimate and truth stamps (truth at >= 10 Hz)
 RPE_DELTAS = (("1s", 1.0, "s"), ("10m", 10.0, "m"))
+EVENTS_KEPT = 20  # an estimator's first events kept in metrics.json (events_total: all)
 
 
 def process_age() -> float | None:
@@ -431,7 +433,8 @@ def score(result: RunResult, decode_s: float = 0.0,
             "nis": {label: _rounded(s.as_dict()) for label, s in consistency.nis_by_sensor(
                 consistency.InnovationTable.from_innovations(r.log.innovations)).items()},
             "rejected": {f"{s}: {why}": n for (s, why), n in r.log.rejected.items()},
-            "events": r.log.messages[:20],
+            "events": r.log.messages[:EVENTS_KEPT],
+            "events_total": len(r.log.messages),  # the report says 'first 20 of N'
             "error": r.error,
             "final_state": calibration_states(r.final_state),
         }

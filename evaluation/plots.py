@@ -303,6 +303,9 @@ def errors(run: SavedRun) -> tuple[Figure | None, str]:
     ex, ey = ("east", "north") if f["kind"] == "enu" else ("x", "y")
     where = {"enu": "", "map": " (map)", "truth": " (truth frame)"}.get(f["kind"], " (local)")
     ncol = 3 if truth else 2
+    antenna = run.metrics.get("gps_antenna") or {}
+    lever = antenna.get("lever_arm") or (0.0, 0.0)
+    delay = float(antenna.get("delay_s") or 0.0)
     fig, axes = subplots(len(names), ncol, figsize=(13, 2.1 * len(names) + 0.8),
                              sharex=True, squeeze=False)
     for r, name in enumerate(names):
@@ -316,10 +319,13 @@ def errors(run: SavedRun) -> tuple[Figure | None, str]:
                      (_break_wraps(err.dyaw), cov[:, 2, 2], "heading error [deg]",
                       math.degrees(1))]
         else:
-            xy, inside = metrics.interpolate_xy(tr, run.gps_t)
+            # the antenna where the fix was taken (its delay and lever arm), as the hold-out
+            # score compares it (metrics.antenna_xy)
+            xy, inside = metrics.antenna_xy(tr, run.gps_t, lever, delay)
             t = run.gps_t[inside] - t0
             d = xy[inside] - run.gps_xy[inside]
-            p = np.stack([np.interp(run.gps_t[inside], tr.t, tr.cov[:, i, i]) for i in (0, 1)])
+            p = np.stack([np.interp(run.gps_t[inside] - delay, tr.t, tr.cov[:, i, i])
+                          for i in (0, 1)])
             r_fix = run.gps_cov[inside]
             comps = [(d[:, 0], p[0] + r_fix[:, 0, 0], f"{ex} − GPS [m]", 1.0),
                      (d[:, 1], p[1] + r_fix[:, 1, 1], f"{ey} − GPS [m]", 1.0)]
@@ -355,8 +361,12 @@ def errors(run: SavedRun) -> tuple[Figure | None, str]:
     else:
         which = ("used and withheld" if run.gps_withheld.any()
                  else "all of them fused by the estimators, so not an independent score")
+        at = ("" if not delay and not any(lever) else
+              ", the estimate taken as the hold-out score takes it: its GPS antenna"
+              + (f" (lever arm {lever[0]:g}, {lever[1]:g} m)" if any(lever) else "")
+              + (f" {delay:g} s before the fix's stamp (the GPS delay)" if delay else ""))
         caption = ("No ground truth: the difference between each estimate and every GPS fix "
-                   f"({which}) in {f['short']}"
+                   f"({which}) in {f['short']}{at}"
                    + ("; the envelope is ±3σ of the estimate's and the fix's covariance "
                       "together." if envelope else ".")
                    + f"{none}{outages}")
@@ -416,6 +426,15 @@ def nis(run: SavedRun) -> Figure | None:
     logged an innovation (dead reckoning alone)."""
     cols = colors(list(run.tracks))
     owners = [n for n in run.tracks if run.log_owner.get(n, n) == n and len(run.innovations[n])]
+    # a track whose NIS summary is another's (the batch's is the smoother's: the same
+    # innovations, logged twice) is one row, as in the report's table
+    seen: set[str] = set()
+    for n in list(owners):
+        key = repr(sorted(((run.metrics.get("estimators", {}).get(n) or {}).get("nis")
+                           or {}).items()))
+        if key != repr([]) and key in seen:
+            owners.remove(n)
+        seen.add(key)
     if not owners:
         return None
     groups = {n: run.innovations[n].groups() for n in owners}

@@ -17,7 +17,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from evaluation import consistency, plots
+from evaluation import consistency, metrics, plots
 from evaluation.results import SavedRun, load_run
 from evaluation.verdict import (
     CALIBRATION_SIGMAS,
@@ -459,7 +459,8 @@ def _warnings(m: dict) -> str:
     if not w:
         return ""
     items = "".join(f"<li>{html.escape(line)}</li>" for line in w)
-    return f"<h2>Warnings about the config</h2><div class='verdict'><ul>{items}</ul></div>"
+    # about the config and about the data (a topic mostly dropped, a silent one) alike
+    return f"<h2>Warnings</h2><div class='verdict'><ul>{items}</ul></div>"
 
 
 def _facts(m: dict) -> str:
@@ -469,7 +470,9 @@ def _facts(m: dict) -> str:
             ("measurements decoded", f"{m.get('messages')} (decoded in "
                                      f"{_fmt(m.get('decode_s'), '.2f')} s)"),
             ("path length", f"{_fmt(d.get('path_length_m'), '.1f')} m"
-             + (f" (from the {d['path_length_from']})" if d.get("path_length_from") else "")
+             + (f" (through {metrics.FIX_BLOCK_S:g} s block medians of the GPS fixes)"
+                if d.get("path_length_from") == "GPS fixes" else
+                f" (from the {d['path_length_from']})" if d.get("path_length_from") else "")
              if d.get("path_length_m") is not None
              else "not measured: no ground truth or GPS fixes to measure it on"),
             ("ground truth", f"{html.escape(str(d.get('ground_truth_topic')))}: "
@@ -539,7 +542,9 @@ def event_summary(e: dict) -> str:
     recovered = sum(v for k, v in rej.items() if _reason(k) == _RECOVERY)
     other = sum(rej.values()) - gate - recovered
     n = len(e.get('events') or [])
-    parts = [f"{n} event{'' if n == 1 else 's'}"]
+    total = e.get("events_total", n)
+    parts = [f"first {n} of {total} events" if total > n
+             else f"{n} event{'' if n == 1 else 's'}"]
     if gate:
         parts.append(f"{gate} rejected by the gate")
     if other:
