@@ -87,6 +87,8 @@ __all__ = ["IgvcEkf", "IgvcNoise", "PolarRegionError", "POLE_LIMIT_DEG", "STATE_
            "sphere_radius", "gps_model", "heading_model"]
 
 STATE_NAMES = gen.STATE_NAMES
+# the measurement types the filter uses (the others are ignored, before its start too)
+_USED = (GpsFix, WheelOdometry, WheelSpeeds, GyroYawRate, Heading, ForwardAccel)
 LAT, LON, THETA, X, Y, PSI, V, W, VL, VR, A = range(11)
 N = 11
 HALF_PI = 0.5 * math.pi
@@ -619,11 +621,13 @@ class IgvcEkf(Estimator):
             self._bridge_gap(m.t)
         if self.kf is None:
             if self._wait_truth:
+                self._count_before_init(m)
                 return
             self._try_init_without_pose(m)
             # a datum or start taken from this fix: refused at it, not a message later
             self._check_pole()
             if self.kf is None:
+                self._count_before_init(m)
                 return
             if self.t == m.t and isinstance(m, GpsFix | Heading):
                 return  # the measurement that initialised the filter is not used twice
@@ -636,6 +640,15 @@ class IgvcEkf(Estimator):
                 return
         self.predict_to(m.t)
         self._update(m)
+
+    def _count_before_init(self, m) -> None:
+        """Count a measurement of a kind the filter uses that came before it could start
+        (waiting for a fix and a heading, the GPS course or the truth pose; after a restart,
+        again), as the unicycle EKF counts them: (sensor, "before_init") in ``log.rejected``.
+        A fix that only set the datum or the course's first point is counted too; the message
+        that starts the filter is not."""
+        if isinstance(m, _USED):
+            self.log.rejected[(m.sensor, "before_init")] += 1
 
     def _bridge_gap(self, t: float) -> None:
         """Carry the filter over a gap in the feed (no message for more than FEED_GAP_S), or

@@ -449,3 +449,45 @@ def test_process_noise_scales_with_the_step_errata_000_25(reference):
             assert d[7] == pytest.approx(ns.yaw_accel_psd * total, rel=1e-9)
         rel = np.abs(ten[keep] - one[keep]) / one[keep]
         assert np.all(rel < tol), (total, rel)
+
+
+@pytest.mark.parametrize("compass", [True, False])
+def test_measurements_before_the_start_are_counted_as_before_init(compass):
+    """As the unicycle EKF counts them: every used measurement that came before the filter
+    could start (here the first fix and a compass reading, or the GPS course) is in
+    log.rejected as (sensor, "before_init"), so fed = innovations + before_init per sensor
+    (the fix that starts the filter is neither). They were dropped uncounted: Husky's NIS
+    table read gyro 11731 of 11865 with nothing in rejected."""
+    truth, meas = simulate(3, duration=30.0)
+    meas = [m for m in meas if compass or not isinstance(m, Heading)]
+    # no fix at t = 0: the wheels and the IMU run before the filter can start
+    first_fix = next(m for m in meas if isinstance(m, GpsFix))
+    meas = [m for m in meas if m is not first_fix]
+    ekf = IgvcEkf(make_cfg(compass=compass))
+    started = None
+    for m in meas:
+        ekf.process(m)
+        if started is None and ekf.estimate() is not None:
+            started = m
+    assert started is not None and isinstance(started, GpsFix)
+    fed = {s: sum(m.sensor == s for m in meas) for s in ("imu", "wheels", "gps")}
+    logged = {s: sum(i.sensor == s for i in ekf.innovations) for s in fed}
+    early = {s: ekf.log.rejected.get((s, "before_init"), 0) for s in fed}
+    assert early["imu"] > 0 and early["wheels"] > 0
+    # with a compass the first fix starts it; the GPS course needs the fixes before it too
+    before = meas[:meas.index(started)]
+    assert early["gps"] == sum(isinstance(m, GpsFix) for m in before)
+    assert (early["gps"] == 0) if compass else (early["gps"] > 1)
+    assert early["imu"] + early["wheels"] + early["gps"] == len(before)
+    assert fed["imu"] == logged["imu"] + early["imu"]
+    assert fed["wheels"] == logged["wheels"] + early["wheels"]
+    assert fed["gps"] == logged["gps"] + early["gps"] + 1
+
+
+def test_measurements_waiting_for_the_truth_pose_are_counted_as_before_init():
+    cfg = make_cfg()
+    cfg.ground_truth_topic, cfg.initial_pose = "/gt", "ground_truth"
+    ekf = IgvcEkf(cfg)
+    ekf.process(GyroYawRate(0.0, 0.0, 1e-4, "imu"))
+    ekf.process(WheelSpeeds(0.0, 0.0, 0.0, 0.01, 0.01, "wheels"))
+    assert dict(ekf.log.rejected) == {("imu", "before_init"): 1, ("wheels", "before_init"): 1}
