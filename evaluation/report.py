@@ -295,7 +295,11 @@ def _nis_table(m: dict) -> str:
                 # decisions are per sample, in the estimator's rejected counts
                 n = sensor_samples(m, topic, kind)
                 rej = (e.get("rejected") or {}).get(f"{topic}: gate", 0)
-                acc = "–" if n is None else max(n - rej, 0)
+                # the samples it turned away for other reasons (before it started) are none
+                dropped = sum(v for k, v in (e.get("rejected") or {}).items()
+                              if k.rpartition(": ")[0] == topic
+                              and _reason(k) not in ("gate", _RECOVERY))
+                acc = "–" if n is None else max(n - rej - dropped, 0)
                 text += (f", averaged per keyframe ({s['accepted'] + s['rejected']} values"
                          + (f" of {n} samples" if n is not None else "") + ")")
             mean = s.get("mean") if s["accepted"] else None  # nothing accepted: no mean

@@ -136,3 +136,12 @@ def test_nis_table_gate_counts_of_the_smoothers_averaged_heading_and_of_none_acc
     assert ekf[1:4] == ["0", "3600", "– / 1"] and ekf[-1] == "rejected throughout"
     sm = rows[("smoother", "/imu/data heading (no NIS logged)")]
     assert sm[1:3] == ["0", "3600"] and sm[-1] == "rejected throughout"
+
+
+def test_averaged_heading_rows_accepted_count_leaves_out_samples_dropped_before_the_start():
+    m = {"data": _SENSORS, "estimators": {"smoother": _est(
+        nis={"/imu/data heading": _row("/imu/data", "heading", 300, 0, 1.08, "Pass")},
+        rejected={"/imu/data: gate": 2, "/imu/data: before_init": 195})}}
+    cells = _nis_rows(report._nis_table(m))[
+        ("smoother", "/imu/data heading, averaged per keyframe (300 values of 3600 samples)")]
+    assert cells[1:3] == ["3403", "2"]
