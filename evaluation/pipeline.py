@@ -293,10 +293,11 @@ def _gross_outliers(result: RunResult, t: np.ndarray, xy: np.ndarray, cov: np.nd
     """Mask of the fixes (``t``, ``xy``, ``cov`` (M, 2, 2)) that are gross GPS errors: every
     track's chi-square gate (``antenna['gate']``, 2 dof, ``metrics.gate_nis``) rejects them,
     and so does the same gate against the used fixes on either side, interpolated in time,
-    where no outage lies between them (``_beside_fixes``). The second test is what makes it the GPS's error
-    and not the tracks': in a window outage every track may have drifted beyond its own sigma,
-    and those fixes are exactly what the score is for (rl_husky_gps.bag window:150:210: the
-    tracks' gate alone dropped 77 of 150, the outage scores 4.1-4.6 m -> 2.2-4.1 m).
+    where no outage lies between them (``_beside_fixes``). The second test is what makes it
+    the GPS's error and not the tracks': in a window outage every track may have drifted
+    beyond its own sigma, and those fixes are exactly what the score is for (rl_husky_gps.bag
+    window:150:210: the tracks' gate alone dropped 77 of 150, the outage scores 4.1-4.6 m ->
+    2.2-4.1 m).
     ``used``: the fixes are the used ones themselves (all of them, in order), each tested
     against its neighbours. None with the gate off."""
     gate = antenna.get("gate")
