@@ -18,8 +18,27 @@ import yaml
 from estimation.errors import DdfuseError
 
 ROOT = Path(__file__).resolve().parents[1]
-SAMPLE_BAG = ROOT / "data" / "sample_husky.bag"
-CONFIGS = ROOT / "data" / "configs"
+
+
+def data_dir() -> Path:
+    """Where ddfuse's shipped data is (the sample bags and their configs, configs/<stem>.yaml
+    of the known real bags): ``data/`` of the checkout the code runs from (a source tree or an
+    editable install), else the installed package ``ddfuse_data`` that pyproject.toml makes of
+    it (``pip install .``), else ``data/`` beside the packages (where errors then name it)."""
+    if (ROOT / "pyproject.toml").is_file() and (ROOT / "data").is_dir():
+        return ROOT / "data"
+    try:
+        from importlib.resources import files
+
+        found = Path(str(files("ddfuse_data")))
+    except (ImportError, TypeError):
+        return ROOT / "data"
+    return found if found.is_dir() else ROOT / "data"
+
+
+DATA = data_dir()
+SAMPLE_BAG = DATA / "sample_husky.bag"
+CONFIGS = DATA / "configs"
 
 
 def _fmt(v: float, spec: str = ".2f") -> str:
