@@ -166,6 +166,12 @@ _T_NONE, _T_GYRO, _T_HEAD, _T_ODOM, _T_GPS, _T_WHEELS = (
     jit.T_NONE, jit.T_GYRO, jit.T_HEAD, jit.T_ODOM, jit.T_GPS, jit.T_WHEELS)
 _DEFER = jit.DEFER
 POSE_ERRORS = ("se2", "world")  # UnicycleEkf(pose_error=...): module docstring, "Pose error"
+# Longest prediction step (s): a gap between messages (a driver restart, a dropped link) is
+# predicted in steps of at most this. One linearised step over a turn misplaces the noise the
+# twist's walk puts in along the way: after a 2 s gap at 0.5 rad/s the position covariance was
+# off by 0.3-2.7x in some direction, after 10 s by 0.035-80x (overconfident across the turn);
+# 0.1 s steps are within 0.25 % of 1 ms ones. The messages' own 10-50 Hz steps are never split.
+MAX_PREDICT_DT = 0.1
 
 
 @dataclass(frozen=True)
@@ -888,6 +894,7 @@ class UnicycleEkf(Estimator):
         """Predict to ``m.t`` and update with ``m`` (packed as ``p``) in one kernel call."""
         kf = self.kf
         t = m.t
+        self._gap_steps(t)
         dt = t - self.t
         code = self._uni_event(kf.fp, kf.ip, kf.W, kf.sf, kf.si, kf.lg, dt, t, *p)
         if code:
@@ -902,6 +909,7 @@ class UnicycleEkf(Estimator):
 
     def _run_stacked(self, ts: float, buf: list, packs: list) -> None:
         """A fixed-rate step at ``ts``: predict and one stacked update in one kernel call."""
+        self._gap_steps(ts)
         dt = ts - self.t
         mb = np.array(packs, dtype=float).reshape(-1, 9)
         kf = self.kf
@@ -917,10 +925,24 @@ class UnicycleEkf(Estimator):
             for m in buf:
                 self._twist_msg(m, sensors[m.sensor])
 
+    def _gap_steps(self, t: float) -> None:
+        """Over a gap to ``t`` (more than ``MAX_PREDICT_DT``), predict all but the last of the
+        equal steps of at most that; the last is the caller's (the kernels predict it with
+        their update), so that every path splits a gap alike."""
+        n = math.ceil((t - self.t) / MAX_PREDICT_DT - 1e-9)
+        for k in range(1, n):
+            self._predict_step(self.t + (t - self.t) / (n - k + 1))
+
     def _predict_to(self, t: float) -> None:
-        dt = t - self.t
-        if dt <= 0.0:
+        """Predict to ``t``, in equal steps of at most ``MAX_PREDICT_DT`` over a gap."""
+        if t - self.t <= 0.0:
             return  # same stamp (or a tiny reorder): apply at the current state time
+        self._gap_steps(t)
+        self._predict_step(t)
+
+    def _predict_step(self, t: float) -> None:
+        """One prediction step to ``t`` (> the state's time)."""
+        dt = t - self.t
         kf = self.kf
         xs = kf.x.tolist()
         ks = self._ks

@@ -253,15 +253,16 @@ def test_se2_retract_and_log_are_inverse_and_match_the_group():
 
 
 def _check_predict_jacobian(ekf, x0, dt, pose_error):
-    """ekf._F of a ``dt`` s prediction from state ``x0`` (with any P) against central
-    differences through the pose-error chart; returns the predicted state."""
+    """ekf._F of one ``dt`` s prediction step from state ``x0`` (with any P) against central
+    differences through the pose-error chart; returns the predicted state. (A gap longer
+    than MAX_PREDICT_DT is predicted in several of these steps.)"""
     n = len(x0)
 
     def step(xv):
         ekf.kf.x = np.array(xv, dtype=float)
         ekf.kf.P = np.eye(n)
         ekf.t = 0.0
-        ekf._predict_to(dt)
+        ekf._predict_step(dt)
         return ekf.kf.x.copy()
 
     x1 = step(x0)
@@ -269,7 +270,7 @@ def _check_predict_jacobian(ekf, x0, dt, pose_error):
     _, error = _error_chart(pose_error, x0, x1)
     F_num = _numeric_jac(lambda d: error(step(to_state(d))), np.zeros(n))
     ekf.kf.x, ekf.kf.P, ekf.t = x0.copy(), np.zeros((n, n)), 0.0
-    ekf._predict_to(dt)
+    ekf._predict_step(dt)
     np.testing.assert_allclose(ekf._F, F_num, atol=1e-7)
     return x1
 
