@@ -256,7 +256,16 @@ def not_run(m: dict, cfg=None) -> list[tuple[str, str]]:
     requested = m.get("estimators_requested")
     out = []
     for name, spec in SPECS.items():
-        if ran & set(spec.produces):
+        got = ran & set(spec.produces)
+        if got:
+            # one estimator, several tracks: a track not asked for was computed all the same
+            # (--estimators ekf,smoother_lagged runs the smoother, whose filtered track is then
+            # left out) and is said, not silently missing
+            for track in spec.produces:
+                if track not in ran and requested and track not in requested:
+                    out.append((track, f"computed for {', '.join(sorted(got))} (the same "
+                                       "estimator) but not asked for (--estimators "
+                                       f"{','.join(requested)})"))
             continue
         if cfg is not None and not spec.allowed(cfg):
             why = f"needs {spec.needs}, which the config does not have"

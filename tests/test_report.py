@@ -327,6 +327,13 @@ def test_estimators_not_run_are_named_with_the_reason(no_gps_run, sample_run):
     assert dict(report.not_run(with_gps))["ekf_igvc"] == \
         "not among the estimators asked for (--estimators ekf,smoother,smoother_lagged)"
     assert with_gps["estimators_requested"] == ["ekf", "smoother", "smoother_lagged"]
+    # one estimator's track not asked for, its other one asked for: said, not silently absent
+    lagged_only = {**with_gps, "estimators_requested": ["ekf", "smoother_lagged"],
+                   "estimators": {k: v for k, v in with_gps["estimators"].items()
+                                  if k != "smoother"}}
+    assert dict(report.not_run(lagged_only))["smoother"] == (
+        "computed for smoother_lagged (the same estimator) but not asked for (--estimators "
+        "ekf,smoother_lagged)")
     # results written before metrics.json recorded the request: judged on the config alone
     del with_gps["estimators_requested"]
     assert dict(report.not_run(with_gps))["ekf_igvc"] == \
