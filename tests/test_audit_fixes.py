@@ -205,7 +205,8 @@ def test_lag_sweep_refuses_before_decoding_when_the_config_has_no_truth(tmp_path
         lag_sweep(tmp_path / "absent.bag", jackal_cfg)
     assert str(jackal_cfg) in str(e.value) and "names no ground_truth topic" in str(e.value)
     # a hold-out cannot help a config without GPS either
-    with pytest.raises(ValueError, match="no gps sensor for --gps-holdout every:5"):
+    with pytest.raises(ValueError,
+                       match=r"--gps-holdout every:5: .*rl_jackal\.yaml has no gps sensor"):
         lag_sweep(tmp_path / "absent.bag", jackal_cfg, holdout="every:5")
     bag = tmp_path / "jackal.bag"
     bag.write_bytes(b"")
@@ -306,7 +307,7 @@ def test_a_drift_that_rounds_to_zero_has_no_sign():
          "estimators": {name: {"gps_outages": [{"distance_m": 20.0, "error_start_m": 0.1,
                                                 "error_end_m": 0.1, "error_max_m": 0.2,
                                                 "drift_per_m": drift, "reference": "truth"}]}
-                        for name, drift in (("batch", -0.00002), ("ekf", 0.00002),
+                        for name, drift in (("ekf_igvc", -0.00002), ("ekf", 0.00002),
                                             ("smoother", 0.0123))}}
     cells = re.findall(r"<td>([-+]?\d+\.\d\d)</td><td class=\"l\">truth", report._outage_table(m))
     assert cells == ["0.00", "0.00", "+1.23"]

@@ -149,7 +149,7 @@ def test_run_warns_about_a_wrong_fixed_offset_in_its_output_and_report(tmp_path,
     (row,) = m["data"]["heading_offsets"]
     assert abs(wrap(row["median_rad"] - TRUE_OFFSET)) < 0.05 and len(row["windows"]) == 4
     page = (out / "report.html").read_text()
-    assert "Warnings about the config" in page and "heading_offset is fixed at +0.000" in page
+    assert "<h2>Warnings" in page and "heading_offset is fixed at +0.000" in page
     assert "yaw minus GPS course +19." in page  # the measured offset, in the data facts
 
 
