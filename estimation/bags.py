@@ -118,10 +118,13 @@ def _finite(*vals: float) -> bool:
     return all(math.isfinite(v) for v in vals)
 
 
-def _odometry_converter(s: SensorConfig, key: str) -> Callable[[tuple], list]:
+def _odometry_converter(s: SensorConfig, key: str, slopes: dict | None = None
+                        ) -> Callable[[tuple], list]:
     mount = IDENTITY if s.mount_rpy == (0.0, 0.0, 0.0) else rpy_matrix(*s.mount_rpy)
     use_v, use_w = "v" in s.use, "yaw_rate" in s.use
     name = s.name
+    # with `slope`: the IMU's latest cos(climb) (its converter writes it, ``slope_cells``)
+    slope = slopes.get(s.slope) if s.slope is not None and slopes else None
 
     def convert(rec: tuple) -> list:
         t, lin, ang, cov = rec[0], rec[-3], rec[-2], rec[-1]
@@ -140,17 +143,25 @@ def _odometry_converter(s: SensorConfig, key: str) -> Callable[[tuple], list]:
                 lin9 = tuple(cov[6 * i + j] for i in range(3) for j in range(3))
                 ang9 = tuple(cov[6 * (i + 3) + j + 3] for i in range(3) for j in range(3))
                 cv, cw = rotated_variance(mount, lin9, 0), rotated_variance(mount, ang9, 2)
+        var_v = _var(s, key, "twist.covariance[0]", "v", cv) if use_v else math.nan
+        if slope is not None and use_v:
+            # the wheels roll along the slope; the planar estimators move on the horizontal
+            c = slope[0]
+            v, var_v = v * c, var_v * c * c
         return [WheelOdometry(
-            t, v if use_v else None, w if use_w else None,
-            _var(s, key, "twist.covariance[0]", "v", cv) if use_v else math.nan,
+            t, v if use_v else None, w if use_w else None, var_v,
             _var(s, key, "twist.covariance[35]", "yaw_rate", cw) if use_w else math.nan,
             name)]
 
     return convert
 
 
-def _imu_converter(s: SensorConfig, key: str) -> Callable[[tuple], list]:
+def _imu_converter(s: SensorConfig, key: str, slopes: dict | None = None
+                   ) -> Callable[[tuple], list]:
     mount = IDENTITY if s.mount_rpy == (0.0, 0.0, 0.0) else rpy_matrix(*s.mount_rpy)
+    # an odometry sensor's `slope` names this IMU: its latest cos(climb) goes in the cell the
+    # odometry's converter reads (``slope_cells``)
+    slope = slopes.get(s.name) if slopes else None
     use_yaw, use_w, use_a = "yaw" in s.use, "yaw_rate" in s.use, "accel" in s.use
     level = s.accel_gravity == "level"
     gravity_why = f", needed to remove gravity from the acceleration ({key}.accel_gravity: level " \
@@ -182,11 +193,14 @@ def _imu_converter(s: SensorConfig, key: str) -> Callable[[tuple], list]:
         # A bad orientation costs the parts that need it (the yaw; the acceleration, whose
         # gravity it removes), not the message's gyro: one Reject at the end keeps the rest.
         bad_q = None
-        if use_yaw or (use_a and not level):
+        if use_yaw or (use_a and not level) or slope is not None:
             try:
                 check_orientation(q, ocov, "")
             except Reject as e:
                 bad_q = str(e)
+        if slope is not None and bad_q is None:  # else the last good one holds
+            up = body_x_tilt(q, mount)[0]
+            slope[0] = math.sqrt(max(0.0, 1.0 - up * up))
         lost = None
         if use_yaw:
             if bad_q is not None:
@@ -330,13 +344,25 @@ CONVERTERS = {
 }
 
 
+def slope_cells(cfg: Config) -> dict[str, list[float]]:
+    """Per IMU that an odometry sensor's ``slope`` names, a one-element list holding its
+    latest cos(climb angle) (1.0 until its first orientation): the IMU's converter writes it,
+    the odometry's reads it. Messages are converted in the order they are read, so the climb
+    is the IMU's newest at most a reorder window away: the ground's slope changes slowly."""
+    return {s.slope: [1.0] for s in cfg.of_kind("odometry") if s.slope is not None}
+
+
 def converter(kind: str, s: SensorConfig, key: str, landmarks: dict | None = None,
-              unknown: Counter | None = None) -> Callable[[tuple], list]:
+              unknown: Counter | None = None, slopes: dict | None = None
+              ) -> Callable[[tuple], list]:
     """The converter of sensor ``s`` (config key ``key``) of ``kind``: the bag reader's and the
     live converter's. A landmark converter checks the sightings' ids against ``landmarks`` (the
-    merged map; None: not checked), counting the ids not in it in ``unknown``."""
+    merged map; None: not checked), counting the ids not in it in ``unknown``. ``slopes``: the
+    config's ``slope_cells``, shared by all its converters."""
     if kind == "landmarks":
         return _landmarks_converter(s, key, landmarks, unknown)
+    if kind in ("odometry", "imu"):
+        return CONVERTERS[kind](s, key, slopes)
     return CONVERTERS[kind](s, key)
 
 
@@ -401,10 +427,11 @@ def _absent(bag: Path, topic: str, key: str, present) -> BagError:
 
 
 def _source(bag: Path, wanted: tuple, msgtype: str, ros1: bool, landmarks: dict | None = None,
-            unknown: Counter | None = None) -> _Source:
+            unknown: Counter | None = None, slopes: dict | None = None) -> _Source:
     """The source of one configured topic whose messages are of ``msgtype``; ``ros1``: the
     messages come as ROS1 bytes, so the fast struct extractors apply. ``landmarks``,
-    ``unknown``: a landmark sensor's map and count of unknown ids (``converter``)."""
+    ``unknown``: a landmark sensor's map and count of unknown ids; ``slopes``: the config's
+    ``slope_cells`` (``converter``)."""
     kind, key, s, topic = wanted
     if msgtype not in ACCEPTED_TYPES[kind]:
         need = " or ".join(rosmsg.short_type(t) for t in ACCEPTED_TYPES[kind])
@@ -412,7 +439,7 @@ def _source(bag: Path, wanted: tuple, msgtype: str, ros1: bool, landmarks: dict 
                        f"but {key} needs {need}")
     fast, slow = rosmsg.EXTRACTORS[msgtype]
     use_raw = fast is not None and ros1
-    conv = (converter(kind, s, key, landmarks, unknown) if s
+    conv = (converter(kind, s, key, landmarks, unknown, slopes) if s
             else _ground_truth_converter(msgtype))
     return _Source(topic, key, msgtype, fast if use_raw else slow, conv, use_raw)
 
@@ -425,12 +452,13 @@ def _sources(cfg: Config, connections, bag: Path, ros1: bool, landmarks: dict | 
     in ``unknown[topic]``."""
     conns = {c.topic: c for c in connections}
     out = []
+    slopes = slope_cells(cfg)
     for w in configured_topics(cfg):
         topic = w[3]
         if topic not in conns:
             raise _absent(bag, topic, w[1], conns)
         out.append(_source(bag, w, conns[topic].msgtype, ros1, landmarks,
-                           None if unknown is None else unknown[topic]))
+                           None if unknown is None else unknown[topic], slopes))
     return out
 
 

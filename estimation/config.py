@@ -143,6 +143,9 @@ class SensorConfig:
     map: Path | None = None  # landmark map YAML
     map_name: Path | None = None  # the map path as the config gives it
     gate: float | None = DEFAULT_GATE  # chi-square acceptance probability, None = off
+    # odometry: the name of the IMU sensor whose orientation gives the climb angle, by which
+    # the forward speed is projected onto the horizontal plane (None: taken as horizontal)
+    slope: str | None = None
 
 
 @dataclass
@@ -300,7 +303,7 @@ def _sensor(ck: _Checker, kind: str, i: int, raw: Any, base: Path) -> SensorConf
         "gps": ("lever_arm", "delay"),
         "wheels": ("joints",),
         "landmarks": ("map",),
-        "odometry": ("mount",),
+        "odometry": ("mount", "slope"),
     }.get(kind, ())
     d = ck.mapping(raw, key, allowed)
     if "topic" not in d:
@@ -340,6 +343,8 @@ def _sensor(ck: _Checker, kind: str, i: int, raw: Any, base: Path) -> SensorConf
             if abs(a) > 2.0 * math.pi:  # 90 for a y-up IMU: degrees
                 raise ck.fail(f"{key}.mount.rpy[{i}]", f"{a:g} is beyond 2 pi: rpy is in "
                               f"radians ({a:g} deg would be {math.radians(a):.4f})")
+    if "slope" in d and d["slope"] is not None:
+        s.slope = ck.string(d["slope"], f"{key}.slope")  # checked against the IMUs below
     if "heading_offset" in d:
         s.heading_offset = ck.estimate_or_number(d["heading_offset"], f"{key}.heading_offset")
     if "gyro_bias" in d:
@@ -397,6 +402,18 @@ def parse_config(raw: Any, source: str = "<config>", base: Path | None = None) -
     if dup:
         raise ck.fail("sensors", f"sensor name {sorted(dup)[0]!r} used twice; give each a 'name'")
     cfg = Config(sensors=sensors, path=Path(source) if source != "<config>" else None)
+    for kind in ("odometry",):
+        for i, s in enumerate(cfg.of_kind(kind)):
+            if s.slope is None:
+                continue
+            imus = cfg.of_kind("imu")
+            imu = next((m for m in imus if s.slope in (m.name, m.topic)), None)
+            if imu is None:
+                raise ck.fail(f"sensors.{kind}[{i}].slope", (
+                    f"no imu sensor named {s.slope!r} (imu sensors: "
+                    f"{', '.join(m.name for m in imus) or 'none'}): slope names the IMU whose "
+                    "orientation gives the climb angle"))
+            s.slope = imu.name
 
     if "robot" in d:
         r = ck.mapping(d["robot"], "robot", ("wheel_radius", "track_width", "wheel_radius_std",

@@ -70,6 +70,7 @@ from estimation.bags import (
     _StampCheck,
     configured_topics,
     converter,
+    slope_cells,
 )
 from estimation.config import Config, landmark_maps
 from estimation.measurements import GpsFix, Stream
@@ -123,10 +124,11 @@ class LiveConverter:
         # topic -> (kind, key, converter) of every sensor on it, in the config's order: two
         # sensors may read one topic (an IMU's yaw rate twice, under two names), as in a bag
         self._topics: dict[str, list[tuple]] = {}
+        slopes = slope_cells(cfg)  # an odometry's `slope`: its IMU's climb, shared
         for kind, key, s, topic in configured_topics(cfg):
             if s is not None:
                 self._topics.setdefault(topic, []).append(
-                    (kind, key, converter(kind, s, key, self.landmarks)))
+                    (kind, key, converter(kind, s, key, self.landmarks, slopes=slopes)))
         self._checks: dict[str, _StampCheck] = {}  # topic -> its stamp check
         self._stamp_reason = (f"header stamp more than {self.tolerance:g} s off its topic's "
                               "clock (time went backwards or jumped)")  # the bag reader's text
