@@ -20,7 +20,7 @@ from estimation import heading_survey, ros1_scan, rosmsg
 from estimation.bags import BagStream, Reject, _gps_fix, open_reader
 from estimation.config import parse_config
 from estimation.errors import BagError, DdfuseError
-from estimation.frames import GRAVITY
+from estimation.frames import GRAVITY, body_x_tilt, rpy_matrix
 from estimation.geodesy import geodetic_to_enu
 
 
@@ -44,6 +44,10 @@ class TopicInfo:
     gyro_series: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False)
     yaw_rate_series: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False)
     has_orientation: bool = False
+    orientations: np.ndarray | None = field(default=None, repr=False)  # (N, 4) x, y, z, w
+    # the speed along the ground over the horizontal one, less 1 (mean 1/cos(climb) - 1 of
+    # the body's forward axis, the suggested mount applied); None without orientation
+    slope_excess: float | None = None
     cov_ok: bool = True  # the message covariances are usable as they are
 
 
@@ -105,6 +109,8 @@ def _summarise(info: TopicInfo, recs: list[tuple]) -> None:
     elif mt == rosmsg.IMU:
         ocov = np.array([r[2] for r in recs])
         info.has_orientation = bool(np.all(ocov[:, 0] != -1.0))
+        if info.has_orientation:
+            info.orientations = np.array([r[1] for r in recs], float)
         acc = np.array([r[5] for r in recs])
         info.accel_mean = tuple(float(v) for v in acc.mean(axis=0))
         info.gyro_series = (t, np.array([r[3] for r in recs]))
@@ -301,9 +307,43 @@ def _finish(path: Path, infos: dict[str, TopicInfo], recs: dict[str, list],
                 f"{undecoded} of its {infos[topic].count} messages lie past the damage or could "
                 "not be decoded" if cut_short else f"{undecoded} message(s) could not be decoded")
     _correlate_gyros(list(infos.values()))
+    for info in infos.values():
+        _climb(info)
     t0 = min((i.t0 for i in infos.values() if math.isfinite(i.t0)), default=0.0)
     t1 = max((i.t1 for i in infos.values() if math.isfinite(i.t1)), default=0.0)
     return BagInfo(path, sorted(infos.values(), key=lambda i: i.topic), t0, t1)
+
+
+# Speeds along the ground exceeding the horizontal ones by more than this share (mean 1/cos
+# of the climb angle, less 1): the suggested config projects the odometry's speed with the
+# IMU's climb (`slope`). rl_jackal.bag: 0.5 % (climbs to 12 deg); rl_husky_gps.bag: 0.04 %.
+SLOPE_EXCESS = 1e-3
+MAX_CLIMB_SAMPLES = 5000
+
+
+def _climb(info: TopicInfo) -> None:
+    """An IMU's climb angles: the body's forward axis from its orientation with the suggested
+    mount (``imu_mount``), a note and ``slope_excess``."""
+    q = info.orientations
+    if q is None or not len(q) or info.accel_mean is None:
+        return
+    mount = rpy_matrix(*imu_mount(info))
+    step = max(1, len(q) // MAX_CLIMB_SAMPLES)
+    up = np.array([body_x_tilt(tuple(r), mount)[0] for r in q[::step]])
+    up = up[np.isfinite(up)]
+    if not len(up):
+        return
+    climb = np.degrees(np.arcsin(np.clip(up, -1.0, 1.0)))
+    info.slope_excess = float(np.mean(1.0 / np.sqrt(1.0 - np.clip(up, -0.999, 0.999) ** 2))
+                              - 1.0)
+    lo, hi = np.percentile(climb, [2.5, 97.5])
+    info.notes.append(
+        f"climb of the body's forward axis (its orientation, the mount below): median "
+        f"{np.median(climb):+.1f} deg, 95 % within {lo:+.1f}..{hi:+.1f} deg, at most "
+        f"{np.abs(climb).max():.1f} deg; speeds along the ground exceed the horizontal by "
+        f"{100 * info.slope_excess:.2f} %"
+        + (" (the odometry's `slope` below projects them)" if info.slope_excess > SLOPE_EXCESS
+           else ""))
 
 
 def _correlate_gyros(infos: list[TopicInfo]) -> None:
@@ -410,6 +450,8 @@ def suggest_config(info: BagInfo, surveys: list | tuple = ()) -> dict:
     sensors: dict[str, list] = {}
     gt: tuple[str, bool] | None = None  # (topic, whether it has a heading)
     odo_w = odometry_yaw_rate_agrees(info) is not False
+    sloped = next((t.topic for t in info.topics if t.slope_excess is not None
+                   and t.slope_excess > SLOPE_EXCESS), None)
     for t in info.topics:
         if t.count == 0 or not math.isfinite(t.t0):  # no message read with a usable stamp
             continue
@@ -423,6 +465,8 @@ def suggest_config(info: BagInfo, surveys: list | tuple = ()) -> dict:
             s = {"topic": t.topic, "use": ["v", "yaw_rate"] if odo_w else ["v"]}
             if not t.cov_ok or t.msgtype == rosmsg.TWIST_STAMPED:
                 s["noise"] = {"v": 0.05, "yaw_rate": 0.05} if odo_w else {"v": 0.05}
+            if sloped is not None:
+                s["slope"] = sloped
             sensors.setdefault("odometry", []).append(s)
         elif t.msgtype == rosmsg.IMU:
             s = {"topic": t.topic, "use": ["yaw_rate"]}

@@ -112,6 +112,9 @@ def test_husky_suggested_config_reads(husky_info, husky_bag, tmp_path):
     assert {s.kind for s in cfg.sensors} == {"odometry", "imu", "gps"}
     imu = cfg.of_kind("imu")[0]
     assert imu.mount_rpy == pytest.approx((math.pi / 2, 0.0, 0.0), abs=1e-3)
+    # a field about level (climbs within 4 deg: speeds 0.04 % over the horizontal): no slope
+    assert topic(husky_info, "/imu/data").slope_excess < 1e-3
+    assert cfg.of_kind("odometry")[0].slope is None
     s = read_stream(husky_bag, cfg)
     assert counts(s) == {"WheelOdometry": 3952, "Heading": 11865, "GyroYawRate": 11865,
                          "GpsFix": 989}
@@ -149,6 +152,10 @@ def test_jackal_facts_and_suggested_config(jackal_info, jackal_bag, tmp_path):
     assert max(abs(c) for c in imu.gyro_corr) < 0.8
     assert any("agrees poorly with this gyro" in n for n in imu.notes)
     assert cfg.of_kind("odometry")[0].use == ("v",)
+    # climbs of up to 12 deg: the odometry's speed is projected with the IMU's climb
+    assert imu.slope_excess == pytest.approx(0.0044, abs=0.0005)
+    assert any("at most 11.9 deg" in n and "`slope` below" in n for n in imu.notes)
+    assert cfg.of_kind("odometry")[0].slope == "/imu/data"
     s = read_stream(jackal_bag, cfg)
     assert counts(s) == {"WheelOdometry": 3060, "Heading": 3061, "GyroYawRate": 3061}
     assert s.rejected == {}
