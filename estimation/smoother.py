@@ -875,22 +875,29 @@ class FixedLagSmoother(Estimator):
             return None
         return cov
 
-    def _gate(self, m: GpsFix, s: SensorConfig, nis: float) -> int:
-        """The gate's verdict on a fix with innovation ``nis``, as in the EKF: _ACCEPT, _REJECT
-        (logged, counted) or _RECOVER, a lock-out (``estimation.lockout``) that no landmark
-        sighting since the rejections began contradicts: the estimate, not the GPS, is wrong."""
-        if s.gate is None or nis <= _gate_radius(s.gate, 2) ** 2:
+    def _gate(self, m: GpsFix | LandmarkObservation, s: SensorConfig, nis: float) -> int:
+        """The gate's verdict on a fix or a landmark sighting with innovation ``nis`` (2 dof; a
+        range-only sighting 1), as in the EKFs: _ACCEPT, _REJECT (logged, counted) or _RECOVER,
+        a lock-out (``estimation.lockout``) that nothing of the other kind accepted since the
+        rejections began contradicts (landmark sightings for the GPS, GPS fixes for the
+        landmarks): the estimate, not the sensor, is wrong; the caller widens the belief."""
+        gps = isinstance(m, GpsFix)
+        dim = 2 if gps or m.has_bearing else 1
+        if s.gate is None or nis <= _gate_radius(s.gate, dim) ** 2:
             self._lockout.accepted(m.sensor)
-            self._gps_ok_t = m.t
+            if gps:
+                self._gps_ok_t = m.t
             return _ACCEPT
         if self._lockout.rejected(m.sensor, m.t):
             count, first = self._lockout.streak(m.sensor)
-            if self._landmark_t < first:
+            if (self._landmark_t if gps else self._gps_ok_t) < first:
                 return _RECOVER
             wait = self._lockout.corroborated(m.sensor, m.t)
-            self.log.note(m.t, f"{m.sensor}: {count} fixes in a row failed the gate over "
-                          f"{m.t - first:.1f} s while landmark sightings were fused: the GPS "
-                          f"disagrees with them, not recovering (checked again in {wait:.0f} s)")
+            what, other, mine = (("fixes", "landmark sightings", "the GPS disagrees") if gps
+                                 else ("sightings", "GPS fixes", "the landmarks disagree"))
+            self.log.note(m.t, f"{m.sensor}: {count} {what} in a row failed the gate over "
+                          f"{m.t - first:.1f} s while {other} were fused: {mine} with them, "
+                          f"not recovering (checked again in {wait:.0f} s)")
         self.log.rejected[(m.sensor, "gate")] += 1
         self.log.innovations[-1].accepted = False
         return _REJECT
@@ -1074,7 +1081,7 @@ class FixedLagSmoother(Estimator):
     def _landmark(self, m: LandmarkObservation, k: int, dt: float) -> None:
         """A sighting ``dt`` s after keyframe ``k``: a range/bearing (or range) factor from the
         keyframe pose carried along its twist to the sighting (``factors.landmark``), if it
-        passes its sensor's chi-square gate as in the landmark EKF (``_landmark_gate``; a
+        passes its sensor's chi-square gate as in the landmark EKF (``_gate``; a
         delayed one against its own keyframe's marginal). Before, every sighting was fused,
         the robust kernel its only guard: 5 % misidentified landmarks on seed002 made the
         lagged output 3x worse (0.008 -> 0.024 m) while the EKF's gate kept it at 0.011."""
@@ -1086,7 +1093,7 @@ class FixedLagSmoother(Estimator):
         if k == self.k and self.kf_state is not None:
             inn = self._landmark_innovation(m, lm, dt, self.kf_state, self._newest_marginal())
             if inn is not None:
-                verdict = self._landmark_gate(m, s, inn[0])
+                verdict = self._gate(m, s, inn[0])
                 if verdict == _REJECT:
                     return
                 if verdict == _RECOVER:
@@ -1115,27 +1122,6 @@ class FixedLagSmoother(Estimator):
                              _robust(self.cfg, s, (math.sqrt(m.range_var),)), dt=dt)
         self._add(f)
         self._landmark_t = m.t
-
-    def _landmark_gate(self, m: LandmarkObservation, s: SensorConfig, nis: float) -> int:
-        """The gate's verdict on a sighting with innovation ``nis`` (2 dof, range-only 1), as
-        the GPS gate's (``_gate``): a lock-out (``estimation.lockout``) recovers by widening the
-        belief unless GPS fixes accepted since the rejections began say the landmarks, not
-        the estimate, are wrong."""
-        dim = 2 if m.has_bearing else 1
-        if s.gate is None or nis <= _gate_radius(s.gate, dim) ** 2:
-            self._lockout.accepted(m.sensor)
-            return _ACCEPT
-        if self._lockout.rejected(m.sensor, m.t):
-            count, first = self._lockout.streak(m.sensor)
-            if self._gps_ok_t < first:
-                return _RECOVER
-            wait = self._lockout.corroborated(m.sensor, m.t)
-            self.log.note(m.t, f"{m.sensor}: {count} sightings in a row failed the gate over "
-                          f"{m.t - first:.1f} s while GPS fixes were fused: the landmarks "
-                          f"disagree with them, not recovering (checked again in {wait:.0f} s)")
-        self.log.rejected[(m.sensor, "gate")] += 1
-        self.log.innovations[-1].accepted = False
-        return _REJECT
 
     def _landmark_innovation(self, m: LandmarkObservation, lm, dt: float, st: np.ndarray,
                              full: np.ndarray, log: bool = True):
