@@ -1098,9 +1098,11 @@ class FixedLagSmoother(Estimator):
                     return
                 if verdict == _RECOVER:
                     self._flush()  # as _widen: the keyframe's own factors first
-                    _, y, H, R = self._landmark_innovation(m, lm, dt, self.kf_state,
-                                                           self._full, log=False)
-                    k = self._widen_link(m.sensor, m.t, H, y, R, "sighting")
+                    again = self._landmark_innovation(m, lm, dt, self.kf_state, self._full,
+                                                      log=False)
+                    if again is not None:  # (None: on top of the landmark, nothing to widen)
+                        _, y, H, R = again
+                        k = self._widen_link(m.sensor, m.t, H, y, R, "sighting")
         elif k != self.k and s.gate is not None:
             try:
                 key = self.key(k)
