@@ -485,8 +485,10 @@ class IgvcEkf(Estimator):
         if not isinstance(m, GpsFix) or m.status < 0:
             return
         if self.datum is None:
-            self.datum = (m.lat, m.lon, m.alt)
-            self.radius = sphere_radius(math.radians(m.lat))
+            # the frame the fix's enu is in: a live converter's first fix may have been dropped
+            # before it reached this filter, and the next one is then not the datum
+            self.datum = m.datum if m.datum is not None else (m.lat, m.lon, m.alt)
+            self.radius = sphere_radius(math.radians(self.datum[0]))
         e, n = self._fix_enu(m)
         pos_var = 0.5 * float(m.cov[0, 0] + m.cov[1, 1])
         if self._pose_given is not None:

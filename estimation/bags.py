@@ -957,6 +957,7 @@ class BagStream:
                 self.datum = (m.lat, m.lon, m.alt)
                 self._flush_truth_fixes()
             m.enu = geodesy.geodetic_to_enu(m.lat, m.lon, m.alt, *self.datum)
+            m.datum = self.datum
         t = m.t
         if self.t0 is None:
             self.t0 = t

@@ -136,7 +136,8 @@ class LiveConverter:
     def stream(self) -> Stream:
         """An empty Stream with what the estimators are built from: the landmark maps of the
         config's landmark sensors and the datum (the config's; with ``first_fix`` none until a
-        fix arrives, and the estimators then take the first fix's, as this converter does)."""
+        fix arrives: each fix carries this converter's datum in ``GpsFix.datum``, which an
+        estimator built without one takes, even when the session dropped the first fix)."""
         return Stream(measurements=[], datum=self.datum, landmarks=dict(self.landmarks))
 
     @property
@@ -183,6 +184,7 @@ class LiveConverter:
                 if self.datum is None:
                     self.datum = (m.lat, m.lon, m.alt)
                 m.enu = geodesy.geodetic_to_enu(m.lat, m.lon, m.alt, *self.datum)
+                m.datum = self.datum
         return out
 
     def _stamp_ok(self, topic: str, t: float, rt: float) -> bool:

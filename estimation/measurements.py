@@ -99,7 +99,8 @@ class GpsFix:
     """A GNSS fix (sensor_msgs/NavSatFix) and its position in the local ENU frame.
 
     ``cov`` is the 3x3 ENU position covariance, m^2 (NavSatFix's own order: east, north, up).
-    ``enu`` is filled by the stream once the datum is known: (east, north, up) in metres.
+    ``enu`` is filled by the stream once the datum is known: (east, north, up) in metres, in the
+    ENU frame at ``datum`` (lat deg, lon deg, alt m), which the stream fills alongside it.
     ``status`` is NavSatStatus.status (-1 no fix, 0 fix, 1 SBAS, 2 GBAS)."""
 
     t: float
@@ -110,6 +111,7 @@ class GpsFix:
     status: int = 0
     sensor: str = "gps"
     enu: tuple[float, float, float] | None = None
+    datum: tuple[float, float, float] | None = None
 
 
 @dataclass(slots=True)

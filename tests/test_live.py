@@ -45,6 +45,12 @@ def live_and_bag(request):
     if request.param == "shared topic":
         cfg = _shared_topic(cfg)
     conv = LiveConverter(cfg)
+    return cfg, conv, _converted(conv), read_stream(BAG, cfg)
+
+
+def _converted(conv: LiveConverter) -> list:
+    """The sample bag's messages through ``conv``, in stamp order as a robot's callbacks
+    deliver them."""
     reader = open_reader(BAG)
     conns = [c for c in reader.connections if c.topic in conv.topics]
     live = []
@@ -52,8 +58,8 @@ def live_and_bag(request):
         # received at the record time: the wall clock of this fast replay is not the stamps'
         live += conv.convert(c.topic, reader.deserialize(raw, c.msgtype),
                              received=rec_ns * 1e-9)
-    live.sort(key=lambda m: m.t)  # as a robot's callbacks deliver them: in stamp order
-    return cfg, conv, live, read_stream(BAG, cfg)
+    live.sort(key=lambda m: m.t)
+    return live
 
 
 def test_every_message_converts_as_the_bag_reader_converts_it(live_and_bag):
@@ -194,3 +200,25 @@ def test_the_readmes_live_example_handles_no_estimate_yet(monkeypatch):
         reader.close()
     assert poses[0] is None  # the smoother has no heading yet: no crash
     assert len(poses[-1]) == 3 and np.all(np.isfinite(poses[-1]))
+
+
+def test_ekf_igvc_keeps_the_converters_datum_when_the_first_fix_is_dropped():
+    """With ``datum: first_fix`` the converter's datum is the first fix it converts. A session
+    that drops that fix (late, beyond the reorder window) handed ekf_igvc, built before any fix
+    with no datum, the next fix as its own datum: its whole track was shifted by the distance
+    between the two fixes, against every other estimator's frame."""
+    cfg = replace(load_config(CFG), initial_pose=None, datum="first_fix")
+    conv = LiveConverter(cfg)
+    live = _converted(conv)
+    first = next(i for i, m in enumerate(live) if isinstance(m, GpsFix))
+    nxt = next(m for m in live[first + 1:] if isinstance(m, GpsFix))
+    assert np.hypot(*nxt.enu[:2]) > 0.2  # the two datums are apart: the test can fail
+    fed = [m for i, m in enumerate(live) if i != first and m.t <= live[0].t + 60.0]
+    live_session = OnlineSession.from_config(cfg, ["ekf_igvc"], stream=replace(
+        conv.stream(), datum=None))  # as built before any fix arrived
+    known = OnlineSession.from_config(cfg, ["ekf_igvc"], stream=conv.stream())
+    for m in fed:
+        live_session.push(m)
+        known.push(m)
+    a, b = live_session.estimate("ekf_igvc"), known.estimate("ekf_igvc")
+    assert a.t == b.t and np.allclose(a.pose, b.pose, atol=1e-6)
