@@ -139,6 +139,9 @@ class SensorConfig:
     accel_gravity: str = "orientation"
     lever_arm: tuple[float, float] = (0.0, 0.0)  # m, body frame
     delay: float = 0.0  # s, GPS: a fix is the position this long before its stamp
+    # s, GPS: the correlation time of the fixes' errors (first-order Gauss-Markov); 0 = white.
+    # Each fix is fused with its covariance inflated by estimation.gps_correlation.inflation
+    correlation_time: float = 0.0
     joints: tuple[str, str] | None = None  # JointState names of left and right wheel
     map: Path | None = None  # landmark map YAML
     map_name: Path | None = None  # the map path as the config gives it
@@ -300,7 +303,7 @@ def _sensor(ck: _Checker, kind: str, i: int, raw: Any, base: Path) -> SensorConf
     allowed = ("topic", "name", "use", "noise", "gate")
     allowed += {
         "imu": ("mount", "heading_offset", "gyro_bias", "accel_gravity"),
-        "gps": ("lever_arm", "delay"),
+        "gps": ("lever_arm", "delay", "correlation_time"),
         "wheels": ("joints",),
         "landmarks": ("map",),
         "odometry": ("mount", "slope"),
@@ -356,6 +359,9 @@ def _sensor(ck: _Checker, kind: str, i: int, raw: Any, base: Path) -> SensorConf
         s.lever_arm = ck.vector(d["lever_arm"], f"{key}.lever_arm", 2)
     if "delay" in d:
         s.delay = ck.number(d["delay"], f"{key}.delay", nonneg=True)
+    if "correlation_time" in d:
+        s.correlation_time = ck.number(d["correlation_time"], f"{key}.correlation_time",
+                                       nonneg=True)
     if kind == "wheels":
         j = d.get("joints")
         if not isinstance(j, list) or len(j) != 2 or not all(isinstance(x, str) for x in j):
