@@ -51,7 +51,8 @@ Per estimator (track), metrics.json holds:
 At the top level, ``data`` holds facts about the data (``data_facts``) and, per compass,
 ``heading_offsets``: its heading offset measured from the GPS course without any estimator
 (``estimation.heading_survey``); ``warnings`` lists what those measurements say the config gets
-wrong (a fixed offset far from the measured one, a wandering offset held constant).
+wrong (a fixed offset far from the measured one, a wandering offset held constant, GPS fixes
+fused as independent while their residuals stay correlated: ``gps_correlation_warnings``).
 ``estimators_requested`` is the ``--estimators`` list (None: the default, every
 estimator the config's sensors allow) and ``estimators_run`` what was built from it (a lagged track
 needs the smoother; a name can yield several tracks). ``wall_s`` splits the wall time of the whole
@@ -87,6 +88,12 @@ from evaluation.results import config_text_of, save_run
 MAX_DIFF = 0.05  # s: association of estimate and truth stamps (truth at >= 10 Hz)
 RPE_DELTAS = (("1s", 1.0, "s"), ("10m", 10.0, "m"))
 EVENTS_KEPT = 20  # an estimator's first events kept in metrics.json (events_total: all)
+
+
+# fix intervals: GPS residuals correlated for longer than this many are not white (white fixes
+# measure 0 s on the simulated husky, gps-outage and sample bags; rl_husky_gps.bag 3.6-7.7 s,
+# 9-19 intervals; the simulated husky-multipath, tau 30 s, 15-16 s)
+GPS_CORRELATED_INTERVALS = 5
 
 
 def process_age() -> float | None:
@@ -253,6 +260,31 @@ def _residual_corr(tr: Trajectory, t: np.ndarray, xy: np.ndarray, antenna: dict
     (``metrics.correlation_time``)."""
     est, inside = metrics.antenna_xy(tr, t, antenna["lever_arm"], antenna["delay_s"])
     return metrics.correlation_time(t[inside], (xy - est)[inside])
+
+
+def gps_correlation_warnings(m: dict, cfg: Config) -> list[str]:
+    """A warning when the used GPS fixes' residuals to the tracks (``gps_residual_corr_s``,
+    median over the tracks that have one) stay correlated for at least
+    ``GPS_CORRELATED_INTERVALS`` fix intervals while every GPS sensor fuses its fixes as
+    independent (``correlation_time`` 0): the estimates then follow the GPS's slow wander with
+    over-confident covariances (``estimation.gps_correlation``). The measured time is a lower
+    bound of the errors' own: a track that follows the GPS takes part of the error with it."""
+    gps = cfg.of_kind("gps")
+    interval = (m.get("data") or {}).get("gps_fix_interval_s")
+    corr = [e["gps_residual_corr_s"] for e in m["estimators"].values()
+            if e.get("gps_residual_corr_s") is not None and not e.get("error")]
+    if not gps or not corr or not interval or any(s.correlation_time > 0.0 for s in gps):
+        return []
+    c = float(np.median(corr))
+    if c < GPS_CORRELATED_INTERVALS * interval:
+        return []
+    topics = ", ".join(s.topic for s in gps)
+    return [f"{topics}: the GPS residuals to the tracks stay correlated for {c:.1f} s (median "
+            f"of {len(corr)} track{'s' if len(corr) > 1 else ''}), {c / interval:.0f} fix "
+            f"intervals of {interval:.2g} s, but the fixes are fused as independent: every "
+            "estimate follows the GPS's slow wander and is over-confident about it; set "
+            f"correlation_time: {math.ceil(c)} under the GPS sensor (a lower bound: a track "
+            "that follows the GPS shortens its residuals' correlation)"]
 
 
 def _interpolation_rmse(used_t, used_xy, hold_t, hold_xy) -> float | None:
@@ -602,7 +634,8 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
     surveys = result.offset_surveys = offset_surveys(result, cfg, offsets)
     out["data"] = data_facts(result, cfg, surveys)
     # the reader's (a topic mostly dropped or silent), then the compass offset's
-    out["warnings"] = [*stream.warnings, *heading_survey.config_warnings(surveys, cfg)]
+    out["warnings"] = [*stream.warnings, *heading_survey.config_warnings(surveys, cfg),
+                       *gps_correlation_warnings(out, cfg)]
     config_text = config_text_of(cfg)
     t_scored = clock()
     save_run(result, outdir, config_text)
