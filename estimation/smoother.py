@@ -20,7 +20,10 @@ velocity and biases as states): one 9-vector key per keyframe,
   (``estimation.lockout``) is recovered from as the EKFs do, by widening the belief until the
   fix is ordinary: here a link factor to a new keyframe at the fix (``FixedLagSmoother._widen``).
   A fix that arrives late goes to the window's keyframe nearest its stamp, gated against that
-  keyframe's marginal; one older than the newest keyframe minus the lag is dropped and counted;
+  keyframe's marginal; one older than the newest keyframe minus the lag is dropped and counted.
+  With the sensor's ``correlation_time`` (time-correlated errors, ``estimation.gps_correlation``)
+  the factor's covariance is the fix's inflated by f for the time since the previous fused fix,
+  while the gate and the logged innovation keep the fix's own (``FixedLagSmoother._gps``);
 * with both a gyro and an odometry yaw rate, the mean gyro rate minus k_w times the mean
   odometry rate over the interval is a measurement of the gyro bias, which the fused rate alone
   would not carry (``factors.gyro.bias_difference_factor``; its residual is whitened by a
@@ -60,6 +63,7 @@ aligns dead reckoning with it gives the initial heading, with that sigma (at lea
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass, replace
 from functools import lru_cache
@@ -67,7 +71,7 @@ from functools import lru_cache
 import gtsam
 import numpy as np
 
-from estimation import chi2
+from estimation import chi2, gps_correlation
 from estimation.config import (
     DEFAULT_GATE,
     GIVEN_POSE_STD,
@@ -238,15 +242,25 @@ def _gate_radius(gate: float, dim: int) -> float:
 
 
 def _robustify(cfg: Config, sensor: SensorConfig, base: gtsam.noiseModel.Base,
-               dim: int) -> gtsam.noiseModel.Base:
+               dim: int, inflated: float = 1.0) -> gtsam.noiseModel.Base:
     """``base`` wrapped in the configured M-estimator. gtsam applies it to the norm of the
     whole whitened residual, so the default threshold is that norm at the sensor's chi-square
     gate for ``dim`` components: full weight wherever the EKF's gate would accept the same
     residual, linear (Huber) or log (Cauchy) growth beyond. With Huber's textbook k = 1.345 a
-    2-D fix would be down-weighted 40 % of the time even when exactly Gaussian."""
+    2-D fix would be down-weighted 40 % of the time even when exactly Gaussian.
+
+    ``inflated``: the factor f by which ``base``'s covariance is the measurement's own times f
+    (a time-correlated GPS fix, ``estimation.gps_correlation``). The same residual in metres
+    then whitens to 1/sqrt(f) of its norm against the own covariance, so the threshold (the
+    gate radius, or a given ``robust_k`` alike) is scaled by 1/sqrt(f): the kernel still gives
+    full weight to exactly the residuals the gate accepts (which judges the fix with its own
+    covariance) and acts on the same residuals in metres. Unscaled, at f = 150 it would give
+    full weight to residuals 12 times the gate's radius: no robustness left."""
     kind, k = cfg.smoother.robust, cfg.smoother.robust_k
     if k is None:
         k = _gate_radius(sensor.gate if sensor.gate is not None else DEFAULT_GATE, dim)
+    if inflated != 1.0:
+        k /= math.sqrt(inflated)
     if kind == "huber":
         return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(k), base)
     if kind == "cauchy":
@@ -354,6 +368,9 @@ class FixedLagSmoother(Estimator):
         self._scale_rw = (max(self.noise.scale_rw, walk_floor(max(self.scale_prior[:2])))
                           if self.scale_prior is not None else self.noise.fixed_rw)
         self.has_gps = bool(cfg.of_kind("gps"))
+        # GPS sensors with time-correlated errors: name -> correlation time (s), see _gps
+        self._gps_tau = {s.name: s.correlation_time for s in cfg.of_kind("gps")
+                         if s.correlation_time > 0.0}
         self.odometry_held_back = bool(cfg.of_kind("odometry") or cfg.of_kind("wheels"))
         # keyframes closer than MIN_KEYFRAME_DT would break walk_floor's margin: at 75 Hz and
         # more (13 ms apart) gtsam declared the window indeterminate within 0.4 s
@@ -402,6 +419,9 @@ class FixedLagSmoother(Estimator):
         self._now = -math.inf  # stamp of the newest message seen
         self._lockout = Lockout()  # GPS gate streaks per sensor (estimation.lockout)
         self._landmark_t = -math.inf  # stamp of the newest landmark sighting fused
+        # per GPS sensor with a correlation time: the stamps (sorted) of the fixes fused, from
+        # the last one before the window's lag on (_gps_inflation, _gps_fused)
+        self._gps_fused_t: dict[str, list[float]] = {}
         self._gps_ok_t = -math.inf  # stamp of the newest fix the gate accepted
         self._hgate: tuple | None = None  # the compass gate's per-keyframe terms (_heading_gate)
         self._full: np.ndarray | None = None  # newest keyframe's (DIM, DIM) marginal
@@ -812,6 +832,16 @@ class FixedLagSmoother(Estimator):
             cov = self._delayed_gps(m, s, k, dt)
             if cov is None:
                 return
+        # Time-correlated errors (the sensor's correlation_time): the factor takes the fix's
+        # own covariance times f for the time since the previous fused fix (what the motion
+        # carry of _gps_cov adds stays as it is); the gate, the logged innovation and a
+        # lock-out's widening above used the fix's own. f = 1 without a correlation time.
+        f = 1.0
+        if m.sensor in self._gps_tau:
+            f = self._gps_inflation(m)
+            self._gps_fused(m)
+        if f != 1.0:
+            cov = cov + (f - 1.0) * np.asarray(m.cov[:2, :2], dtype=float)
         if s.lever_arm == (0.0, 0.0) and abs(dt) < 1e-9 and cov[0, 1] == 0.0:
             # On the keyframe and without a lever arm the fix is linear in the state: the
             # built-in prior with zero precision on unmeasured components is the same factor
@@ -820,14 +850,48 @@ class FixedLagSmoother(Estimator):
             prec[0], prec[1] = 1.0 / cov[0, 0], 1.0 / cov[1, 1]
             target = np.zeros(DIM)
             target[0], target[1] = e, n
-            model = _robustify(self.cfg, s, gtsam.noiseModel.Diagonal.Precisions(prec), 2)
+            # the kernel's threshold scaled by 1/sqrt(f) (_robustify): the same residuals in
+            # metres as without the inflation, those the gate accepts given full weight
+            model = _robustify(self.cfg, s, gtsam.noiseModel.Diagonal.Precisions(prec), 2, f)
             self._add(gtsam.PriorFactorVector(self.key(k), target, model))
         else:
             # the fix's east/north correlation kept (a receiver's ellipse is rarely a circle)
             model = (gtsam.noiseModel.Diagonal.Variances(np.array((cov[0, 0], cov[1, 1])))
                      if cov[0, 1] == 0.0 else gtsam.noiseModel.Gaussian.Covariance(cov))
-            self._add(gps_factor(self.key(k), e, n, _robustify(self.cfg, s, model, 2),
+            self._add(gps_factor(self.key(k), e, n, _robustify(self.cfg, s, model, 2, f),
                                  s.lever_arm, dt))
+
+    def _gps_inflation(self, m: GpsFix) -> float:
+        """The factor f (>= 1) by which fix ``m``'s covariance is inflated for fusion
+        (``estimation.gps_correlation.inflation``): its sensor's correlation time, and the time
+        to the nearest earlier fix of that sensor fused; for a fix that comes late (older than
+        one fused), the nearest fused fix on either side. 1 without a correlation time or
+        before the sensor's first fused fix."""
+        tau = self._gps_tau.get(m.sensor)
+        fused = self._gps_fused_t.get(m.sensor)
+        if tau is None or not fused:
+            return 1.0
+        if m.t >= fused[-1]:
+            dt = m.t - fused[-1]
+        else:
+            i = bisect.bisect_left(fused, m.t)
+            dt = min(abs(m.t - fused[j]) for j in (i - 1, i) if 0 <= j < len(fused))
+        return gps_correlation.inflation(dt, tau)
+
+    def _gps_fused(self, m: GpsFix) -> None:
+        """Record fix ``m`` (of a sensor with a correlation time) as fused: its GPS factor is
+        built. Stamps older than the window's lag are dropped but the last of them: a late fix
+        is at most the lag older than the newest keyframe (``_absolute``), so its nearest fused
+        fix on either side is still there, and memory stays bounded."""
+        fused = self._gps_fused_t.setdefault(m.sensor, [])
+        if not fused or m.t >= fused[-1]:
+            fused.append(m.t)
+        else:
+            bisect.insort(fused, m.t)
+        cut = self.kf_t[self.k] - self.lag
+        if len(fused) > 1 and fused[1] < cut:
+            drop = bisect.bisect_left(fused, cut) - 1  # keep the last stamp before the cut
+            del fused[:drop]
 
     def _gps_cov(self, m: GpsFix, x: np.ndarray, dt: float) -> np.ndarray:
         """The fix's east/north covariance (2, 2), m^2, as a measurement of keyframe state
@@ -1571,7 +1635,10 @@ class FixedLagSmoother(Estimator):
 
 class BatchSmoother(FixedLagSmoother):
     """Every factor of the run, solved at the end with Levenberg-Marquardt: the offline optimum
-    the fixed-lag outputs are compared with. Its trajectory is at the keyframes."""
+    the fixed-lag outputs are compared with. Its trajectory is at the keyframes. The factors are
+    the ones the online run builds, so a time-correlated GPS fix is inflated by the f the
+    smoother gave it (for the time since the previous fused fix; a late one's nearest): batch
+    and smoother model the data alike."""
 
     name = "batch"
     keep_all = True
