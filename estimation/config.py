@@ -157,7 +157,9 @@ class SmootherConfig:
     keyframe: str = "gps"  # 'gps' (at GPS fixes, preintegrated odometry between) or 'rate'
     keyframe_rate: float = 2.0  # Hz, for keyframe 'rate' and as the upper gap without GPS
     robust: str = "huber"  # 'huber', 'cauchy' or 'none' (GPS factors)
-    # threshold on the whitened residual norm; None: the sensor's chi-square gate radius
+    # threshold on the whitened residual norm; None: the sensor's chi-square gate radius. For a
+    # GPS fix inflated by its correlation_time (factor f) it is divided by sqrt(f): the same
+    # residual in metres as without the inflation
     robust_k: float | None = None
 
 
