@@ -168,10 +168,28 @@ def fix_scatter(recs: list[tuple]) -> str | None:
             f"axis; white errors of the stated median sigma {sigma:.2f} m would give "
             f"{white:.2f} m")
     if rms < CORRELATED_SCATTER * white:
+        tau = scatter_correlation_time(rms, sigma, float(np.median(np.diff(t))))
         text += (": the errors are correlated in time (the stated covariance is their slow "
                  "wander), so a hold-out of single fixes rewards following the GPS; read it with "
                  "the GPS NIS and a longer outage (--gps-holdout window:T0:T1)")
+        if tau is not None:
+            text += (f". If the stated sigma is their stationary one, a first-order Gauss-Markov "
+                     f"error with these neighbours has a correlation time of {tau:.0f} s "
+                     "(the GPS sensor's correlation_time; `run` measures one from the "
+                     "estimators' residuals)")
     return text
+
+
+def scatter_correlation_time(rms: float, sigma: float, dt: float) -> float | None:
+    """The correlation time (s) of a first-order Gauss-Markov error of stationary sigma whose
+    fixes, ``dt`` s apart, miss the interpolation of their neighbours by ``rms`` per axis: that
+    miss has variance sigma^2 (1 - rho)(3 - rho) / 2 with rho = exp(-dt / tau) (1.5 sigma^2 for
+    white errors). None when the scatter is that of white errors or more."""
+    r = (rms / sigma) ** 2
+    if not (0.0 < r < 1.5 and dt > 0.0):
+        return None
+    rho = 2.0 - math.sqrt(1.0 + 2.0 * r)
+    return -dt / math.log(rho)
 
 
 def _usable_fix(rec: tuple) -> bool:

@@ -387,7 +387,7 @@ def _fix_records(err_east_north: np.ndarray, sigma: float, dt: float = 0.4) -> l
 
 
 def test_fix_scatter_tells_white_gps_errors_from_correlated_ones():
-    from estimation.baginfo import fix_scatter
+    from estimation.baginfo import fix_scatter, scatter_correlation_time
 
     rng = np.random.default_rng(7)
     n, sigma = 1000, 1.0
@@ -403,7 +403,15 @@ def test_fix_scatter_tells_white_gps_errors_from_correlated_ones():
         e[i] = a * e[i - 1] + math.sqrt(1 - a * a) * sigma * rng.standard_normal(2)
     gm = fix_scatter(_fix_records(e, sigma))
     assert "the errors are correlated in time" in gm
+    # the correlation time those neighbours give back (the scatter's 2000 misses: ~5 %)
+    tau = float(gm.split("has a correlation time of ")[1].split(" s")[0])
+    assert tau == pytest.approx(30.0, rel=0.2)
+    assert "correlation time of" not in white
     assert fix_scatter(_fix_records(e[:9], sigma)) is None  # too few to say
+    # the model's own miss, exactly: sigma^2 (1 - rho)(3 - rho) / 2
+    assert scatter_correlation_time(math.sqrt((1 - a) * (3 - a) / 2), 1.0, 0.4) == \
+        pytest.approx(30.0, rel=1e-9)
+    assert scatter_correlation_time(1.3, 1.0, 0.4) is None  # white errors miss by 1.22 sigma
 
 
 def test_the_husky_gps_errors_are_found_correlated(husky_bag):
