@@ -184,11 +184,13 @@ def scatter_correlation_time(rms: float, sigma: float, dt: float) -> float | Non
     """The correlation time (s) of a first-order Gauss-Markov error of stationary sigma whose
     fixes, ``dt`` s apart, miss the interpolation of their neighbours by ``rms`` per axis: that
     miss has variance sigma^2 (1 - rho)(3 - rho) / 2 with rho = exp(-dt / tau) (1.5 sigma^2 for
-    white errors). None when the scatter is that of white errors or more."""
+    white errors). None when the scatter is that of white errors or more, or none at all."""
     r = (rms / sigma) ** 2
     if not (0.0 < r < 1.5 and dt > 0.0):
         return None
     rho = 2.0 - math.sqrt(1.0 + 2.0 * r)
+    if rho >= 1.0:  # no scatter to float precision: a noise-free track, no time to give
+        return None
     return -dt / math.log(rho)
 
 
