@@ -101,13 +101,13 @@ def warm_up(which: str) -> None:
                          f_pairs=[(i, i) for i in range(n)], q_pairs=[])
     row = core.sensor_row("warm-up", gate=None)
     args = (core.fp, core.ip, core.W, core.sf, core.si, core.lg, 0.0, 0.0, T_NONE, row,
-            0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0)
+            0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0, 1.0)
     if which == "igvc":
         kj.igvc_event(*args)
     else:
         kj.uni_event(*args)
         kj.uni_stacked(core.fp, core.ip, core.W, core.sf, core.si, core.lg, 0.0, 0.0,
-                       np.zeros((1, 9)), 0)
+                       np.zeros((1, 10)), 0)
     COLD_COMPILE[which] = time.perf_counter() - t0
 
 

@@ -40,6 +40,13 @@ Measurements (seed eq. 17/19, corrected):
 Every update goes through ``ekf_baseline.kalman.KalmanCore`` (Joseph form, wrapped angle
 innovations, per-sensor chi-square gate with lock-out recovery).
 
+Time-correlated GPS errors: a GPS sensor with ``correlation_time`` tau > 0 has each fix fused
+with R_f = f R, f = ``estimation.gps_correlation.inflation(t - t_last, tau)``, t_last the stamp
+of the last fix of that sensor the filter fused (accepted by the gate or by a lock-out
+recovery, or the fix the filter started at; none: f = 1); the gate, the logged innovation and
+NIS, and a recovery's widening keep R (``KalmanCore``'s ``fuse``), as in the unicycle EKF.
+tau = 0 leaves the arithmetic as without the key, bit for bit.
+
 Poles: the (lat, lon) state is singular at a pole (the longitude is undefined there, and every
 lon term carries 1/cos(lat)), so the filter refuses to run within ``POLE_LIMIT_KM`` (about 10
 km) of one, |lat| > ``POLE_LIMIT_DEG`` = 89.91 deg: ``process`` raises ``PolarRegionError``
@@ -73,6 +80,7 @@ from ekf_baseline.kalman import KalmanCore
 from estimation import geodesy
 from estimation.config import DEFAULT_GATE, Config, SensorConfig
 from estimation.estimator import Estimate, Estimator
+from estimation.gps_correlation import inflation as gps_inflation
 from estimation.measurements import (
     ForwardAccel,
     GpsFix,
@@ -125,6 +133,7 @@ _ROWS_THETA = (((THETA, -1.0),),)  # compass yaw = pi/2 - theta + offset
 _T_GYRO, _T_HEAD, _T_HEAD_POSE, _T_ACCEL, _T_ODOM, _T_WHEELS, _T_GPS = (
     jit.T_GYRO, jit.T_HEAD, jit.T_HEAD_POSE, jit.T_ACCEL, jit.T_ODOM, jit.T_WHEELS, jit.T_GPS)
 _DEFER = jit.DEFER
+_REJECTED = jit.REJECTED
 
 
 def sphere_radius(lat_rad: float) -> float:
@@ -300,6 +309,11 @@ class IgvcEkf(Estimator):
         self._step = gen.euler_step if motion == "euler" else gen.icc_step
         self._step_sparse = gen.euler_step_sparse if motion == "euler" else gen.icc_step_sparse
         self._sensor_info: dict[str, tuple] = {}
+        # GPS sensors with time-correlated errors: name -> correlation time (s), and the stamp
+        # of each one's last fused fix (module docstring)
+        self._gps_tau = {s.name: float(s.correlation_time) for s in cfg.of_kind("gps")
+                         if s.correlation_time > 0.0}
+        self._gps_fused: dict[str, float] = {}
         self.noise = noise or IgvcNoise()
         slip = cfg.robot.slip
         if slip and noise is None:
@@ -497,6 +511,7 @@ class IgvcEkf(Estimator):
             return
         if self._heading_init is not None:
             self._init(m.t, (e, n, self._heading_init[0]), pos_var, self._heading_init[1])
+            self._fused_fix(m.sensor, m.t)  # the position is this fix's
             return
         if self._first_fix is None:
             self._first_fix = m
@@ -507,6 +522,7 @@ class IgvcEkf(Estimator):
             # the course over ground from the first fix; assumes the robot drove forward
             yaw_var = (2.0 * pos_var) / (d * d)
             self._init(m.t, (e, n, math.atan2(n - n0, e - e0)), pos_var, yaw_var)
+            self._fused_fix(m.sensor, m.t)
             self.log.note(m.t, f"heading initialised from the GPS course over {d:.1f} m")
 
     def _fix_enu(self, m: GpsFix) -> tuple[float, float]:
@@ -692,10 +708,28 @@ class IgvcEkf(Estimator):
         kind, y, rows, R = block
         blocks = ((m.sensor, kind, y, rows, R, self._info(m.sensor)[0]),)
         # the compiled filter's Python updates (what its kernels defer) are the reference's
-        if self.reference or self.compiled:
-            self.kf.update_dense(m.t, blocks)
-        else:
-            self.kf.update_sparse(m.t, blocks)
+        update = (self.kf.update_dense if self.reference or self.compiled
+                  else self.kf.update_sparse)
+        if kind != "gps" or m.sensor not in self._gps_tau:
+            update(m.t, blocks)
+        else:  # a GPS with correlated errors: fused with the fix's inflated covariance
+            update(m.t, blocks, (self._gps_factor(m),))
+            if self.kf.last_verdicts[0]:
+                self._fused_fix(m.sensor, m.t)
+
+    def _gps_factor(self, m: GpsFix) -> float:
+        """The factor on fix ``m``'s covariance in the fusion (module docstring): 1.0 for a
+        white sensor or its first fused fix."""
+        tau = self._gps_tau.get(m.sensor)
+        if tau is None:
+            return 1.0
+        return gps_inflation(m.t - self._gps_fused.get(m.sensor, -math.inf), tau)
+
+    def _fused_fix(self, sensor: str, stamp: float) -> None:
+        """Record that the fix of GPS ``sensor`` stamped ``stamp`` was fused (or gave the
+        initial position): the next fix's inflation counts from it (correlated sensors only)."""
+        if sensor in self._gps_tau:
+            self._gps_fused[sensor] = stamp
 
     def estimate(self) -> Estimate | None:
         if self.kf is None:
@@ -735,10 +769,10 @@ class IgvcEkf(Estimator):
                     kj.FP_RADIUS: self.radius, kj.FP_MAXSTEP: self.max_step})
 
     def _pack(self, m):
-        """The kernels' arguments (typ, sensor row, z0, z1, r0, r1, r01, r10, flags) for
+        """The kernels' arguments (typ, sensor row, z0, z1, r0, r1, r01, r10, flags, rf) for
         message ``m``, or None when it needs the Python path: a heading whose offset is not
         initialised yet, a fix without a fix, wheel speeds without a wheel radius, another
-        message type."""
+        message type. ``rf``: the factor on R in the fusion (``_gps_factor``)."""
         name = m.sensor
         row = self._jrows.get(name)
         if row is None:
@@ -748,24 +782,24 @@ class IgvcEkf(Estimator):
                 bias_idx=self._bias_idx.get(name), hoff_idx=self._hoff_idx.get(name))
         cls = m.__class__
         if cls is GyroYawRate:
-            return (_T_GYRO, row, m.yaw_rate, 0.0, m.var, 0.0, 0.0, 0.0, 0)
+            return (_T_GYRO, row, m.yaw_rate, 0.0, m.var, 0.0, 0.0, 0.0, 0, 1.0)
         if cls is Heading:
             hi = self._hoff_idx.get(name)
             if hi is not None and hi not in self._hoff_ready:
                 return None
             return (_T_HEAD_POSE if m.source == "pose" else _T_HEAD, row, m.yaw, 0.0, m.var,
-                    0.0, 0.0, 0.0, 0)
+                    0.0, 0.0, 0.0, 0, 1.0)
         if cls is ForwardAccel:
-            return (_T_ACCEL, row, m.accel, 0.0, m.var, 0.0, 0.0, 0.0, 0)
+            return (_T_ACCEL, row, m.accel, 0.0, m.var, 0.0, 0.0, 0.0, 0, 1.0)
         if cls is WheelOdometry:
             v, w = m.v, m.yaw_rate
             return (_T_ODOM, row, 0.0 if v is None else v, 0.0 if w is None else w, m.v_var,
-                    m.yaw_rate_var, 0.0, 0.0, (v is not None) | (w is not None) << 1)
+                    m.yaw_rate_var, 0.0, 0.0, (v is not None) | (w is not None) << 1, 1.0)
         if cls is WheelSpeeds and self.wheel_radius is not None:
-            return (_T_WHEELS, row, m.left, m.right, m.left_var, m.right_var, 0.0, 0.0, 0)
+            return (_T_WHEELS, row, m.left, m.right, m.left_var, m.right_var, 0.0, 0.0, 0, 1.0)
         if cls is GpsFix and m.status >= 0:
             (c00, c01, _), (c10, c11, _), _ = m.cov.tolist()
-            return (_T_GPS, row, m.lat, m.lon, c00, c11, c01, c10, 0)
+            return (_T_GPS, row, m.lat, m.lon, c00, c11, c01, c10, 0, self._gps_factor(m))
         return None
 
     def _run_event(self, m, p) -> None:
@@ -780,6 +814,8 @@ class IgvcEkf(Estimator):
             self.t = t
         if code & _DEFER:  # predicted; the update needs Python (lock-out, singular S)
             self._update(m)
+        elif self._gps_tau and p[0] == _T_GPS and not code & _REJECTED:
+            self._fused_fix(m.sensor, t)  # fused: the next fix's inflation counts from it
 
     # ------------------------------------------------------------------ measurements
     def _info(self, name: str) -> tuple:

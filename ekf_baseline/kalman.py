@@ -15,6 +15,9 @@ API (all arrays are float64 numpy; n = state size, m = measurement size)::
                                                           # innovations: blocks are (sensor, kind,
                                                           # y, rows, R, gate) (the fast path)
     n_ok = kf.update_dense(t, blocks)                     # those blocks via update_blocks
+    kf.update_sparse(t, blocks, fuse=(1.0, 150.0))        # per block, the factor on its R in
+    kf.last_verdicts                                      # the update (not the gate); then
+                                                          # per block: fused?
     kf.x, kf.P                                            # current mean and covariance
 
 * ``predict`` propagates the covariance P <- F P F^T + Q and the mean to ``x_pred`` (the EKF's
@@ -29,6 +32,15 @@ API (all arrays are float64 numpy; n = state size, m = measurement size)::
   of K); state components in ``state_angles`` are wrapped after every predict and update.
 * Non-finite z or h(x), or an S that is not positive definite, are rejected with reason
   'nonfinite' / 'singular' and never touch the state.
+* ``fuse`` (update_blocks, update_sparse, update_dense; default None = all 1): per block a
+  factor f >= 1 on its R for the fusion only -- a time-correlated GPS fix fused with f R
+  (``estimation.gps_correlation``). The gate, the logged innovation covariance and NIS, and a
+  lock-out recovery's inflation keep R (a fix is judged as one sample of the sensor's error);
+  an accepted block's gain and Joseph update use f R (blocks i, j: sqrt(f_i f_j) R_ij off the
+  diagonal blocks, which keeps f R exactly on them). After a call with ``fuse``,
+  ``last_verdicts`` holds per block whether it was fused (accepted by the gate, or by a
+  lock-out recovery), for the caller's record of its sensor's last fused fix. Without it the
+  arithmetic is that of before, bit for bit.
 
 Gate lock-out and its recovery
 ------------------------------
@@ -144,7 +156,7 @@ class KalmanCore:
     __slots__ = (
         "x", "P", "n", "log", "state_angles", "lockout_count", "lockout_time",
         "recovery_holdoff", "_streak", "_holdoff", "_last_ok", "recoveries", "last_nis", "_eye",
-        "after_inflation", "held_in_recovery",
+        "after_inflation", "held_in_recovery", "last_verdicts",
     )
 
     def __init__(
@@ -185,6 +197,8 @@ class KalmanCore:
         # odometry's yaw rate out and each recovery inflated more, to x1e12, until P broke.
         self.held_in_recovery: tuple[int, ...] = ()
         self.last_nis = float("nan")
+        # per block of the last update given ``fuse``: fused (module docstring)
+        self.last_verdicts: tuple[bool, ...] = ()
         self._eye = np.eye(self.n)
         self._wrap_state()
 
@@ -260,6 +274,7 @@ class KalmanCore:
         H: np.ndarray,
         R: np.ndarray,
         blocks,
+        fuse=None,
     ) -> int:
         """One stacked update from several measurements present at the same filter step.
 
@@ -271,7 +286,8 @@ class KalmanCore:
         S = H P H^T + R, i.e. the same prior as the others) and logged as its own Innovation;
         the accepted rows are then applied together in one Joseph-form update. Cross-covariance
         between blocks in ``R`` is allowed but dropped with a rejected block. Returns the number
-        of accepted blocks. Arrays passed in may be modified.
+        of accepted blocks. Arrays passed in may be modified. ``fuse``: per block the factor on
+        its R in the update (module docstring); then ``last_verdicts`` says which were fused.
 
         This dense numpy form is the reference that :meth:`update_sparse` (the filters' fast
         path) is tested against."""
@@ -311,6 +327,8 @@ class KalmanCore:
             keep.append(True)
             nis_list.append(nis)
         n_acc = sum(keep)
+        if fuse is not None:
+            self.last_verdicts = tuple(keep)
         if n_acc == 0:
             return 0
         if n_acc < len(blocks):
@@ -319,6 +337,13 @@ class KalmanCore:
             PHtk, Sk = PHt[:, rows], S[np.ix_(rows, rows)]
         else:
             Hk, Rk, yk, PHtk, Sk = H, R, y, PHt, S
+        if fuse is not None and any(f != 1.0 for f, k in zip(fuse, keep, strict=True) if k):
+            # the fusion's R: each accepted block's rows and columns by sqrt(f) (its own block
+            # exactly f R: sqrt(f * f) == f in binary floating point)
+            d = np.sqrt(np.array([f for b, k, f in zip(blocks, keep, fuse, strict=True) if k
+                                  for _ in range(b[2], b[3])]))
+            Rk = Rk * np.multiply.outer(d, d)
+            Sk = Hk @ PHtk + Rk
         # K = P H^T S^-1. S is symmetric PD (its diagonal blocks were checked above) and small;
         # inv is about half the cost of solve for these sizes and as accurate at these
         # condition numbers
@@ -350,7 +375,7 @@ class KalmanCore:
                                              _block_of(Sl, i0, i1), nis, True))
         return n_acc
 
-    def update_sparse(self, t: float, blocks) -> int:
+    def update_sparse(self, t: float, blocks, fuse=None) -> int:
         """:meth:`update_blocks` for measurements whose Jacobian rows are sparse: the filters'
         fast path (module docstring, "Fast path").
 
@@ -360,13 +385,18 @@ class KalmanCore:
         (the entries not listed are zero); ``R`` the block's m x m covariance as nested tuples;
         ``gate`` as in update_blocks. Gating, logging, lock-out recovery, the stacked Joseph
         update and the result are those of update_blocks with the dense H, R, y these describe
-        (blocks uncorrelated with each other); returns the number of accepted blocks."""
+        (blocks uncorrelated with each other); returns the number of accepted blocks. ``fuse``
+        as in update_blocks."""
         if len(blocks) == 1 and len(blocks[0][3]) == 1:
-            return self._update_scalar(t, *blocks[0])
+            if fuse is None:
+                return self._update_scalar(t, *blocks[0])
+            ok = self._update_scalar(t, *blocks[0], fuse[0])
+            self.last_verdicts = (ok == 1,)
+            return ok
         nb = len(blocks)
         if nb > 2 or (len(blocks[0][3]) if nb == 1 else len(blocks[0][3]) + len(blocks[1][3])) > 2:
             # a stacked step of many rows: numpy's per-call cost is amortised over them
-            return self.update_dense(t, blocks)
+            return self.update_dense(t, blocks, fuse)
         P = self.P
         log = self.log
         prow: dict[int, list] = {}
@@ -407,6 +437,8 @@ class KalmanCore:
                 continue
             keep.append(True)
             nis_list.append(nis)
+        if fuse is not None:
+            self.last_verdicts = tuple(keep)
         # the accepted rows (two at most): H rows, innovations, P h^T, the block they are from
         rows_a, y_a, u_a, src = [], [], [], []
         r0 = 0
@@ -420,11 +452,18 @@ class KalmanCore:
             r0 += len(rows)
         if len(rows_a) == 1:
             r = blocks[src[0]][4][0][0]
+            if fuse is not None:
+                r = fuse[src[0]] * r
             self._gain1(rows_a, u_a[0], _dot_row(rows_a[0], u_a[0]) + r, y_a[0], r)
         elif len(rows_a) == 2:
             # one two-row block, or two one-row blocks (independent: R diagonal)
             R = blocks[src[0]][4] if src[0] == src[1] else (
                 (blocks[src[0]][4][0][0], 0.0), (0.0, blocks[src[1]][4][0][0]))
+            if fuse is not None:
+                fa, fb = fuse[src[0]], fuse[src[1]]
+                if fa != 1.0 or fb != 1.0:
+                    fo = math.sqrt(fa * fb)  # (one block: fa == fb, fo == fa exactly)
+                    R = ((fa * R[0][0], fo * R[0][1]), (fo * R[1][0], fb * R[1][1]))
             ha, hb = rows_a
             ua, ub = u_a
             S = ((_dot_row(ha, ua) + R[0][0], _dot_row(ha, ub) + R[0][1]),
@@ -441,8 +480,10 @@ class KalmanCore:
                 inns.append(_FloatInnovation(t, sensor, kind, y, Sb, nis, True))
         return sum(keep)
 
-    def _update_scalar(self, t: float, sensor: str, kind: str, y, rows, R, gate) -> int:
-        """update_sparse of one block with one row (most updates of an event-driven filter)."""
+    def _update_scalar(self, t: float, sensor: str, kind: str, y, rows, R, gate,
+                       f: float = 1.0) -> int:
+        """update_sparse of one block with one row (most updates of an event-driven filter);
+        ``f`` the factor on its R in the fusion (``fuse``)."""
         row = rows[0]
         y0 = y[0]
         r = R[0][0]
@@ -472,7 +513,11 @@ class KalmanCore:
             u = _p_times_row(self.P, row, {})
             s = _dot_row(row, u) + r
             nis = y0 * y0 / s
-        self._gain1(rows, u, s, y0, r)
+        if f != 1.0:  # fused with f r; logged (gate, NIS) with r
+            rf = f * r
+            self._gain1(rows, u, s + (rf - r), y0, rf)
+        else:
+            self._gain1(rows, u, s, y0, r)
         self._last_ok[(sensor, kind)] = (t, rows)
         self.log.innovations.append(
             _FloatInnovation(t, sensor, kind, (y0,), ((s,),), nis, True))
@@ -523,7 +568,7 @@ class KalmanCore:
         else:
             self.P = self._joseph_factored(K, rows, R)
 
-    def update_dense(self, t: float, blocks) -> int:
+    def update_dense(self, t: float, blocks, fuse=None) -> int:
         """:meth:`update_sparse`'s blocks applied by the dense numpy :meth:`update_blocks`: the
         reference the fast path is tested against (same arguments, same result), and the fast
         path itself for a stacked step of more than two rows."""
@@ -546,7 +591,7 @@ class KalmanCore:
             R[i, j] = v
         # the innovations are y already: h(x) = 0 in update_blocks' y = z - h(x)
         return self.update_blocks(t, np.array(y, dtype=float), 0.0, _dense_rows(rows, n), R,
-                                  dense)
+                                  dense, fuse)
 
     def _joseph_factored(self, K: np.ndarray, rows, R) -> np.ndarray:
         """(I - K H) P (I - K H)^T + K R K^T, symmetrised; K (n, m), H from sparse ``rows``."""

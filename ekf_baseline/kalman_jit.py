@@ -120,7 +120,7 @@ FP_RADIUS = 4  # m, igvc: the Earth sphere's radius
 FP_MAXSTEP = 5  # s, igvc: longest prediction step
 FP_NOISE = 8  # process noise densities (8 slots), the filter's order (unicycle: set by
 # UnicycleEkf whenever the acceleration-limit densities change)
-FP_SCR = 16  # scratch: y (MAXR), zf (2 MAXB)
+FP_SCR = 16  # scratch: y (MAXR), zf (2 MAXB), fs (MAXB)
 FP_X = 48  # the state x (n,)
 
 # sensor table columns; slot (per kind k) columns at SF_K + SF_KW k, SI_K + SI_KW k
@@ -370,17 +370,20 @@ def _inverse(S, m, Si):
 
 
 @njit(cache=True)
-def _update(fp, ip, W, sf, si, lg, t, H, y, R, blk, nb, nr, Ut, S, Z, zf, zi):
+def _update(fp, ip, W, sf, si, lg, t, H, y, R, blk, nb, nr, Ut, S, Z, zf, zi, fs):
     """KalmanCore.update_blocks (dense reference semantics) of ``nb`` blocks stacked in rows
     0:nr of H (nr, n), y (nr,), R (nr, nr) (block diagonal); ``blk`` (nb, 4) = (row start, row
-    stop, sensor row, kind). Scratch (no allocation per call): Ut (>= nr, n) for (P H^T)^T,
-    S (>= nr, >= nr), Z (4 nr + n, >= max(n, nr)), zf (>= 2 nb), zi (>= 4 nb + nr + 2 n); ``blk``
-    is flat: block b's fields at 4 b .. 4 b + 3.
+    stop, sensor row, kind); ``fs`` (nb,) each block's factor on its R in the fusion
+    (KalmanCore's ``fuse``: 1.0, or a time-correlated GPS fix's inflation). Scratch (no
+    allocation per call): Ut (>= nr, n) for (P H^T)^T, S (>= nr, >= nr), Z (4 nr + n,
+    >= max(n, nr)), zf (>= 2 nb), zi (>= 4 nb + nr + 2 n); ``blk`` is flat: block b's fields at
+    4 b .. 4 b + 3. On return (without DEFER) zi[0:nb] holds the verdicts (0 fused).
 
     Each block is gated on its own against the common prior (its diagonal block of
     S = H P H^T + R), the per-(sensor, kind) streaks are those of KalmanCore._judge, rejected
     blocks are logged first and accepted ones after the update (the reference's order), then
-    one Joseph-form update applies the accepted rows. Returns the module's bits."""
+    one Joseph-form update applies the accepted rows, with R scaled by ``fs`` (S, the NIS and
+    the log keep R). Returns the module's bits."""
     n = ip[IP_N]
     P = W[0:n]
     x = fp[FP_X:FP_X + n]
@@ -504,12 +507,31 @@ def _update(fp, ip, W, sf, si, lg, t, H, y, R, blk, nb, nr, Ut, S, Z, zf, zi):
                 rows[q] = r
                 q += 1
     ma = n_acc_rows
+    # the fusion's R: an accepted block's R times its factor (R is scratch; the log keeps S)
+    scaled = False
+    for b in range(nb):
+        f = fs[b]
+        if verdict[b] == 0 and f != 1.0:
+            scaled = True
+            for r in range(blk[4 * b + 0], blk[4 * b + 1]):
+                for q in range(blk[4 * b + 0], blk[4 * b + 1]):
+                    R[r, q] *= f
     # S of the accepted rows and its inverse: in U^T's rows (U is not needed after K)
     Sa = Z[2 * nr + n:2 * nr + n + ma, 0:ma]
     Si = Z[3 * nr + n:3 * nr + n + ma, 0:ma]
-    for i in range(ma):
-        for j in range(ma):
-            Sa[i, j] = S[rows[i], rows[j]]
+    if scaled:  # H P H^T + f R, as S above
+        for i in range(ma):
+            for j in range(ma):
+                acc = 0.0
+                for c in range(n):
+                    h = H[rows[i], c]
+                    if h != 0.0:
+                        acc += h * Ut[rows[j], c]
+                Sa[i, j] = acc + R[rows[i], rows[j]]
+    else:
+        for i in range(ma):
+            for j in range(ma):
+                Sa[i, j] = S[rows[i], rows[j]]
     _inverse(Sa, ma, Si)
     # K = U S^-1 (n, ma), stored transposed
     Kt = Z[0:ma]
@@ -961,14 +983,14 @@ def _block(blk, r0, m, nb, s, k):
 _ARRAYS = ("float64[::1], int64[::1], float64[:, ::1], float64[:, ::1], int64[:, ::1], "
            "float64[:, ::1], float64, float64")
 _EVENT_SIG = (f"int64({_ARRAYS}, int64, int64, float64, float64, float64, float64, float64, "
-              "float64, int64)")
+              "float64, int64, float64)")
 _STACKED_SIG = f"int64({_ARRAYS}, float64[:, ::1], int64)"
 
 
 @njit(cache=True)
 def _event_scratch(fp, ip, W, n):
     """The event kernels' scratch: in W after P and its two n x n work blocks H, U^T and Z;
-    y, R, S, zf in fp's header; the block table and zi at ip[IP_OFF_ZI]."""
+    y, R, S, zf, fs in fp's header; the block table and zi at ip[IP_OFF_ZI]."""
     H = W[3 * n:3 * n + MAXR]
     Ut = W[3 * n + MAXR:3 * n + 2 * MAXR]
     Z = W[3 * n + 2 * MAXR:4 * n + 6 * MAXR]  # Kt, KRt, Mt, Sa, Si
@@ -977,52 +999,61 @@ def _event_scratch(fp, ip, W, n):
     S = W[4 * n + 7 * MAXR:4 * n + 8 * MAXR]
     y = fp[FP_SCR:FP_SCR + MAXR]
     zf = fp[FP_SCR + MAXR:FP_SCR + MAXR + 2 * MAXB]
+    fs = fp[FP_SCR + MAXR + 2 * MAXB:FP_SCR + MAXR + 3 * MAXB]
     oi = ip[IP_OFF_ZI]
     blk = ip[oi:oi + 4 * MAXB]
     zi = ip[oi + 4 * MAXB:oi + 8 * MAXB + MAXR + 2 * n]
-    return H, Ut, y, R, S, blk, Z, zf, zi
+    return H, Ut, y, R, S, blk, Z, zf, zi, fs
 
 
 @njit(_EVENT_SIG, cache=True)
-def uni_event(fp, ip, W, sf, si, lg, dt, t, typ, s, z0, z1, r0, r1, r01, r10, flags):
+def uni_event(fp, ip, W, sf, si, lg, dt, t, typ, s, z0, z1, r0, r1, r01, r10, flags, rf):
     """One message of the event-driven unicycle EKF: predict by ``dt`` s (if > 0) to the
     message time ``t`` (s), then its update. ``typ`` (T_*), ``s`` the sensor's row; z0, z1 the
     reading(s), r0, r1 their variances, r01, r10 their covariance (GPS); ``flags`` which
-    odometry components are present. Returns the module's bits."""
+    odometry components are present; ``rf`` the factor on R in the fusion (1.0; a
+    time-correlated GPS fix: its inflation; the gate and the log keep R). Returns the module's
+    bits (a single-block message was fused unless REJECTED or DEFER)."""
     if ip[IP_LOGN] + MAXB > ip[IP_LOGCAP]:
         return GROW
     n = ip[IP_N]
     if dt > 0.0:
         _uni_predict(fp, ip, W, n, dt)
-    H, Ut, y, R, S, blk, Z, zf, zi = _event_scratch(fp, ip, W, n)
+    H, Ut, y, R, S, blk, Z, zf, zi, fs = _event_scratch(fp, ip, W, n)
     nr, nb = _uni_model(fp, ip, sf, si, H, y, R, blk, 0, 0, typ, s, z0, z1, r0, r1, r01, r10,
                         flags)
     if nb == 0:
         return 0
-    return _update(fp, ip, W, sf, si, lg, t, H, y, R, blk, nb, nr, Ut, S, Z, zf, zi)
+    for b in range(nb):
+        fs[b] = rf
+    return _update(fp, ip, W, sf, si, lg, t, H, y, R, blk, nb, nr, Ut, S, Z, zf, zi, fs)
 
 
 @njit(_EVENT_SIG, cache=True)
-def igvc_event(fp, ip, W, sf, si, lg, dt, t, typ, s, z0, z1, r0, r1, r01, r10, flags):
+def igvc_event(fp, ip, W, sf, si, lg, dt, t, typ, s, z0, z1, r0, r1, r01, r10, flags, rf):
     """uni_event for the IGVC EKF (its prediction in steps of at most FP_MAXSTEP)."""
     if ip[IP_LOGN] + MAXB > ip[IP_LOGCAP]:
         return GROW
     n = ip[IP_N]
     if dt > 0.0:
         _igvc_predict(fp, ip, W, n, dt)
-    H, Ut, y, R, S, blk, Z, zf, zi = _event_scratch(fp, ip, W, n)
+    H, Ut, y, R, S, blk, Z, zf, zi, fs = _event_scratch(fp, ip, W, n)
     nr, nb = _igvc_model(fp, ip, sf, si, H, y, R, blk, 0, 0, typ, s, z0, z1, r0, r1, r01, r10,
                          flags)
     if nb == 0:
         return 0
-    return _update(fp, ip, W, sf, si, lg, t, H, y, R, blk, nb, nr, Ut, S, Z, zf, zi)
+    for b in range(nb):
+        fs[b] = rf
+    return _update(fp, ip, W, sf, si, lg, t, H, y, R, blk, nb, nr, Ut, S, Z, zf, zi, fs)
 
 
 @njit(_STACKED_SIG, cache=True)
 def uni_stacked(fp, ip, W, sf, si, lg, dt, t, mb, k):
     """One fixed-rate step of the unicycle EKF: predict by ``dt`` s to ``t``, then one stacked
     update from the ``k`` messages in ``mb`` (rows: typ, sensor row, z0, z1, r0, r1, r01, r10,
-    flags), each gated on its own (KalmanCore.update_blocks)."""
+    flags, rf: uni_event's arguments), each gated on its own (KalmanCore.update_blocks). On
+    return without DEFER, a GPS row's flags column says whether its fix was fused (1.0) or
+    not (0.0)."""
     if ip[IP_LOGN] + MAXB * k > ip[IP_LOGCAP]:
         return GROW
     n = ip[IP_N]
@@ -1036,17 +1067,29 @@ def uni_stacked(fp, ip, W, sf, si, lg, dt, t, mb, k):
     S = np.empty((mr, mr))
     blk = np.empty(4 * MAXB * k, np.int64)
     Z = np.empty((4 * mr + n, max(n, mr)))
-    zf = np.empty(2 * MAXB * k)
-    zi = np.empty(4 * MAXB * k + mr + 2 * n, np.int64)
+    # (fs and each message's first block in the same allocations: ~0.1 us each per step)
+    zf = np.empty(3 * MAXB * k)
+    zi = np.empty(4 * MAXB * k + mr + 2 * n + k, np.int64)
+    fs = zf[2 * MAXB * k:]
+    first = zi[4 * MAXB * k + mr + 2 * n:]  # each message's first block (-1: none)
     nr = 0
     nb = 0
     for i in range(k):
+        nb0 = nb
         nr, nb = _uni_model(fp, ip, sf, si, H, y, R, blk, nr, nb, int(mb[i, 0]), int(mb[i, 1]),
                             mb[i, 2], mb[i, 3], mb[i, 4], mb[i, 5], mb[i, 6], mb[i, 7],
                             int(mb[i, 8]))
+        first[i] = nb0 if nb > nb0 else -1
+        for b in range(nb0, nb):
+            fs[b] = mb[i, 9]
     if nb == 0:
         return 0
-    return _update(fp, ip, W, sf, si, lg, t, H[:nr], y, R, blk, nb, nr, Ut, S, Z, zf, zi)
+    code = _update(fp, ip, W, sf, si, lg, t, H[:nr], y, R, blk, nb, nr, Ut, S, Z, zf, zi, fs)
+    if not code & DEFER:
+        for i in range(k):
+            if int(mb[i, 0]) == T_GPS and first[i] >= 0:  # its one block's verdict
+                mb[i, 8] = 1.0 if zi[first[i]] == 0 else 0.0
+    return code
 
 
 @njit("float64[:, ::1](float64[:, ::1], int64, float64)", cache=True)

@@ -101,6 +101,16 @@ present at a step; each measurement is gated on its own with its sensor's chi-sq
 ForwardAccel, landmarks and ground truth are not used (ground truth only for
 ``initial_pose: ground_truth``).
 
+Time-correlated GPS errors. A GPS sensor with ``correlation_time`` tau > 0 has each fix fused
+with R_f = f R, f = ``estimation.gps_correlation.inflation(t - t_last, tau)``, t_last the stamp
+of the last fix of that sensor the filter fused (accepted by the gate or by a lock-out
+recovery, or taken for the initial position; none: f = 1); the gate, the logged innovation
+and NIS, and a recovery's widening keep R (``KalmanCore``'s ``fuse``). In a fixed-rate step
+holding several fixes of one sensor (a rate below the GPS's), a fix's t_last is the previous
+one's in the step, which is gated against the same prior; t_last is then the last fused one's.
+Every path (reference, Python fast, compiled) applies the same factors; tau = 0 leaves the
+arithmetic as without the key, bit for bit.
+
 Stepping. ``cfg.ekf.rate == 'event'``: predict to each message's time and update with it.
 A rate in Hz: messages are buffered and the filter steps at t0 + k / rate, predicting to the step
 time and applying every buffered message in one stacked update (seed 003: "the filter sample time
@@ -136,6 +146,7 @@ from ekf_baseline.calibration import ScaleStates
 from ekf_baseline.kalman import DEFAULT_LOCKOUT_COUNT, DEFAULT_LOCKOUT_TIME, KalmanCore
 from estimation.config import DEFAULT_GATE, Config
 from estimation.estimator import Estimate, Estimator
+from estimation.gps_correlation import inflation as gps_inflation
 from estimation.heading_survey import rotation_fit
 from estimation.measurements import (
     GpsFix,
@@ -165,6 +176,7 @@ _ROWS_XY = (((0, 1.0),), ((1, 1.0),))
 _T_NONE, _T_GYRO, _T_HEAD, _T_ODOM, _T_GPS, _T_WHEELS = (
     jit.T_NONE, jit.T_GYRO, jit.T_HEAD, jit.T_ODOM, jit.T_GPS, jit.T_WHEELS)
 _DEFER = jit.DEFER
+_REJECTED = jit.REJECTED
 POSE_ERRORS = ("se2", "world")  # UnicycleEkf(pose_error=...): module docstring, "Pose error"
 # Longest prediction step (s): a gap between messages (a driver restart, a dropped link) is
 # predicted in steps of at most this. One linearised step over a turn misplaces the noise the
@@ -433,12 +445,13 @@ class _Sensor:
     """Per-sensor settings looked up once: gate, GPS lever arm, bias/offset handling."""
 
     __slots__ = ("gate", "lever", "bias_idx", "bias", "hoff_idx", "hoff", "uses", "rows",
-                 "rows_h", "delay", "row", "use_w", "use_yaw")
+                 "rows_h", "delay", "row", "use_w", "use_yaw", "tau")
 
-    def __init__(self, gate=DEFAULT_GATE, lever=(0.0, 0.0), uses=None, delay=0.0):
+    def __init__(self, gate=DEFAULT_GATE, lever=(0.0, 0.0), uses=None, delay=0.0, tau=0.0):
         self.gate = gate
         self.lever = lever
         self.delay = delay  # s, GPS: the fix is the position this long before its stamp
+        self.tau = tau  # s, GPS: correlation time of its errors (0: white)
         self.bias_idx: int | None = None
         self.bias = 0.0  # rad/s, configured gyro bias when not estimated
         self.hoff_idx: int | None = None
@@ -539,7 +552,8 @@ class UnicycleEkf(Estimator):
                   if s.heading_offset == "estimate" and "yaw" in s.use]
         for s in cfg.sensors:
             info = _Sensor(gate=s.gate, lever=tuple(s.lever_arm), uses=set(s.use),
-                           delay=s.delay)
+                           delay=s.delay,
+                           tau=float(s.correlation_time) if s.kind == "gps" else 0.0)
             if s.kind == "imu":
                 if isinstance(s.gyro_bias, float):
                     info.bias = s.gyro_bias
@@ -562,6 +576,8 @@ class UnicycleEkf(Estimator):
             names.append("hoff" if len(imus_h) == 1 else f"hoff:{s.name}")
             walks.append(s.noise.get("heading_offset_walk", self.noise.heading_offset) ** 2)
         self._walks = tuple(walks)
+        # a GPS sensor with time-correlated errors (module docstring)
+        self._gps_corr = any(s.correlation_time > 0.0 for s in cfg.of_kind("gps"))
         # odometry scale states (ekf_baseline.calibration) when the config states the
         # geometry's uncertainty and a sensor gives odometry
         self._scale = ScaleStates.append_to(cfg, names)
@@ -597,6 +613,11 @@ class UnicycleEkf(Estimator):
             self._mode = "origin"
         self._has_gps = has_gps
         self._pending_pos: tuple[float, float, np.ndarray] | None = None
+        self._pending_fix: tuple[str, float] | None = None  # (sensor, stamp) of _pending_pos
+        # GPS sensor -> stamp of its last fused fix (module docstring, "Time-correlated GPS
+        # errors"); kept for the sensors with a correlation time only
+        self._gps_fused: dict[str, float] = {}
+        self._pair_fix: dict[str, float] = {}  # GPS sensor -> stamp of its last fix in _pairs
         self._pending_head: tuple[float, float] | None = None
         self._aligned = self._mode != "align"
         self._pairs: list[tuple[float, float, float, float, float]] = []  # dr x, y, gps e, n, var
@@ -711,9 +732,12 @@ class UnicycleEkf(Estimator):
                     self._pending_head = (m.yaw - info.hoff, m.var)
             elif isinstance(m, GpsFix) and m.enu is not None and m.status >= 0:
                 self._pending_pos = (m.enu[0], m.enu[1], np.asarray(m.cov)[:2, :2])
+                self._pending_fix = (m.sensor, m.t)
             if self._pending_head is not None and (self._pending_pos or not self._has_gps):
                 px, py, pc = self._pending_pos or (0.0, 0.0, np.diag((1e-6, 1e-6)))
                 self._start(m.t, px, py, self._pending_head[0], pc, self._pending_head[1])
+                if self._pending_pos is not None:  # the position is that fix's
+                    self._fused_fix(*self._pending_fix)
                 # the message that completed the initialisation is not fused a second time
                 return False
             self.log.rejected[(m.sensor, "before_init")] += 1
@@ -752,6 +776,24 @@ class UnicycleEkf(Estimator):
         self._t0 = t
         self._k = 0
         self.log.note(t, f"{self.name}: started ({self._mode}) at ({x:.2f}, {y:.2f}, {psi:.3f})")
+
+    def _fused_fix(self, sensor: str, stamp: float) -> None:
+        """Record that the fix of GPS ``sensor`` stamped ``stamp`` was fused (or gave the
+        initial position): the next fix's inflation counts from it (correlated sensors only)."""
+        if self._sensor(sensor).tau > 0.0:
+            self._gps_fused[sensor] = stamp
+
+    def _gps_factor(self, m: GpsFix, tau: float, prev: dict | None) -> float:
+        """The factor on fix ``m``'s covariance in the fusion (module docstring, "Time-correlated
+        GPS errors"): from its sensor's last fused fix or, with ``prev`` (a fixed-rate step's
+        sensor -> stamp of its previous fix in the step, updated here), that one."""
+        if prev is not None and m.sensor in prev:
+            t_last = prev[m.sensor]
+        else:
+            t_last = self._gps_fused.get(m.sensor, -math.inf)
+        if prev is not None:
+            prev[m.sensor] = m.t
+        return gps_inflation(m.t - t_last, tau)
 
     def _sensor(self, name: str) -> _Sensor:
         info = self._sensors.get(name)
@@ -801,6 +843,9 @@ class UnicycleEkf(Estimator):
         kf.P = P
         self._aligned = True
         self._pairs = []
+        for sensor, stamp in self._pair_fix.items():  # the position is the fixes'
+            self._fused_fix(sensor, stamp)
+        self._pair_fix = {}
         self.log.note(t, f"{self.name}: heading initialised from GPS ({how}); "
                          f"sigma {math.degrees(math.sqrt(th_var)):.1f} deg")
 
@@ -809,7 +854,8 @@ class UnicycleEkf(Estimator):
         buf = self._buf
         self._buf = []
         if self.compiled:
-            packs = [self._pack(m) for m in buf]
+            prev: dict[str, float] = {}
+            packs = [self._pack(m, prev) for m in buf]
             if None not in packs:
                 self._run_stacked(ts, buf, packs)
                 return
@@ -854,11 +900,12 @@ class UnicycleEkf(Estimator):
         nz = self.noise
         return (nz.acc, nz.yaw_acc, nz.pos_long, nz.pos_lat, nz.heading)
 
-    def _pack(self, m):
-        """The kernels' arguments (typ, sensor row, z0, z1, r0, r1, r01, r10, flags) for
+    def _pack(self, m, prev: dict | None = None):
+        """The kernels' arguments (typ, sensor row, z0, z1, r0, r1, r01, r10, flags, rf) for
         message ``m``, or None when it needs the Python path: a heading before the heading is
         known or before its offset is initialised, a GPS fix while aligning or without a
-        position, wheel speeds without the geometry, another message type."""
+        position, wheel speeds without the geometry, another message type. ``rf``: the factor
+        on R in the fusion (a correlated GPS sensor's fix: ``_gps_factor`` with ``prev``)."""
         info = self._sensors.get(m.sensor) or self._sensor(m.sensor)
         row = info.row
         if row is None:
@@ -868,26 +915,27 @@ class UnicycleEkf(Estimator):
         cls = m.__class__
         if cls is GyroYawRate:
             if not info.use_w:
-                return (_T_NONE, row, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0)
-            return (_T_GYRO, row, m.yaw_rate, 0.0, m.var, 0.0, 0.0, 0.0, 0)
+                return (_T_NONE, row, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 1.0)
+            return (_T_GYRO, row, m.yaw_rate, 0.0, m.var, 0.0, 0.0, 0.0, 0, 1.0)
         if cls is Heading:
             if not info.use_yaw:
-                return (_T_NONE, row, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0)
+                return (_T_NONE, row, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 1.0)
             if not self._aligned or (info.hoff_idx is not None
                                      and info.hoff_idx not in self._hoff_ready):
                 return None
-            return (_T_HEAD, row, m.yaw, 0.0, m.var, 0.0, 0.0, 0.0, 0)
+            return (_T_HEAD, row, m.yaw, 0.0, m.var, 0.0, 0.0, 0.0, 0, 1.0)
         if cls is WheelOdometry:
             v, w = m.v, m.yaw_rate
             return (_T_ODOM, row, 0.0 if v is None else v, 0.0 if w is None else w, m.v_var,
-                    m.yaw_rate_var, 0.0, 0.0, (v is not None) | (w is not None) << 1)
+                    m.yaw_rate_var, 0.0, 0.0, (v is not None) | (w is not None) << 1, 1.0)
         if cls is GpsFix:
             if m.enu is None or m.status < 0 or not self._aligned:
                 return None
             (c00, c01, _), (c10, c11, _), _ = m.cov.tolist()
-            return (_T_GPS, row, m.enu[0], m.enu[1], c00, c11, c01, c10, 0)
+            rf = 1.0 if info.tau <= 0.0 else self._gps_factor(m, info.tau, prev)
+            return (_T_GPS, row, m.enu[0], m.enu[1], c00, c11, c01, c10, 0, rf)
         if cls is WheelSpeeds and self._wheel[0] is not None and self._wheel[1] is not None:
-            return (_T_WHEELS, row, m.left, m.right, m.left_var, m.right_var, 0.0, 0.0, 0)
+            return (_T_WHEELS, row, m.left, m.right, m.left_var, m.right_var, 0.0, 0.0, 0, 1.0)
         return None
 
     def _run_event(self, m, p) -> None:
@@ -904,6 +952,9 @@ class UnicycleEkf(Estimator):
         if code & _DEFER:  # predicted; the update needs Python (lock-out, singular S)
             self._apply((m,))
             return
+        if self._gps_corr and p[0] == _T_GPS and not code & _REJECTED:
+            # fused: the next fix's inflation counts from it
+            self._fused_fix(m.sensor, t)
         if self._tw_on:  # what _apply records, for the next prediction's densities
             self._twist_msg(m, self._sensors[m.sensor])
 
@@ -911,7 +962,7 @@ class UnicycleEkf(Estimator):
         """A fixed-rate step at ``ts``: predict and one stacked update in one kernel call."""
         self._gap_steps(ts)
         dt = ts - self.t
-        mb = np.array(packs, dtype=float).reshape(-1, 9)
+        mb = np.array(packs, dtype=float).reshape(-1, 10)
         kf = self.kf
         k = len(packs)
         code = kf.settle(self._uni_stacked(kf.fp, kf.ip, kf.W, kf.sf, kf.si, kf.lg, dt, ts, mb, k),
@@ -920,7 +971,12 @@ class UnicycleEkf(Estimator):
             self.t = ts
         if code & _DEFER:
             self._apply(buf)
-        elif self._tw_on:
+            return
+        if self._gps_corr:  # the kernel's verdicts on the fixes (flags column: fused)
+            for i, p in enumerate(packs):
+                if p[0] == _T_GPS and mb[i, 8] == 1.0:
+                    self._fused_fix(buf[i].sensor, buf[i].t)
+        if self._tw_on:
             sensors = self._sensors
             for m in buf:
                 self._twist_msg(m, sensors[m.sensor])
@@ -1020,6 +1076,8 @@ class UnicycleEkf(Estimator):
         t = self.t
         tw = self._tw_on
         ks = self._ks
+        corr: list[tuple] = []  # correlated GPS fixes: (block index, sensor, stamp, factor)
+        prev: dict[str, float] = {}
         for m in ms:
             info = self._sensors.get(m.sensor) or self._sensor(m.sensor)
             if tw:  # (the sample periods set the densities of the next prediction)
@@ -1081,6 +1139,7 @@ class UnicycleEkf(Estimator):
                 if not self._aligned:
                     self._pairs.append((x[0], x[1], m.enu[0], m.enu[1],
                                         0.5 * float(m.cov[0][0] + m.cov[1][1])))
+                    self._pair_fix[m.sensor] = m.t
                     e0, n0 = self._pairs[0][2], self._pairs[0][3]
                     if math.hypot(m.enu[0] - e0, m.enu[1] - n0) >= self.init_distance:
                         self._align(t)
@@ -1088,6 +1147,9 @@ class UnicycleEkf(Estimator):
                     continue
                 y, rows = self._gps_model(m, info, x)
                 cv = m.cov.tolist()
+                if info.tau > 0.0:
+                    corr.append((len(blocks), m.sensor, m.t,
+                                 self._gps_factor(m, info.tau, prev)))
                 blocks.append((m.sensor, "gps", y, rows,
                                ((cv[0][0], cv[0][1]), (cv[1][0], cv[1][1])), info.gate))
             elif isinstance(m, WheelSpeeds):
@@ -1110,10 +1172,18 @@ class UnicycleEkf(Estimator):
         if blocks:
             xb = kf.x[:3].tolist() if self._lie else None
             # the compiled filter's Python updates (what its kernels defer) are the reference's
-            if self.reference or self.compiled:
-                kf.update_dense(t, blocks)
-            else:
-                kf.update_sparse(t, blocks)
+            update = kf.update_dense if self.reference or self.compiled else kf.update_sparse
+            if not corr:
+                update(t, blocks)
+            else:  # a fix of a GPS with correlated errors: fused with its inflated covariance
+                fuse = [1.0] * len(blocks)
+                for i, _, _, f in corr:
+                    fuse[i] = f
+                update(t, blocks, fuse)
+                verdicts = kf.last_verdicts
+                for i, sensor, stamp, _ in corr:
+                    if verdicts[i]:
+                        self._fused_fix(sensor, stamp)
             if xb is not None:
                 # KalmanCore added the correction K y; its position part is the body-frame rho
                 xa = kf.x.copy()
