@@ -70,6 +70,7 @@ def full_decode(bag: Path, cfg):
         (fixes[0].lat, fixes[0].lon, fixes[0].alt) if fixes else None)
     for f in fixes:
         f.enu = geodesy.geodetic_to_enu(f.lat, f.lon, f.alt, *datum)
+        f.datum = datum
     gt = []
     for g in truth:
         if isinstance(g, GpsFix):
