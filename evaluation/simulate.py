@@ -895,6 +895,8 @@ def sim_config(res: SimResult, landmark_map: str | None = None) -> dict:
                            "gyro_bias": "estimate"}]
     if sc.gps:
         sensors["gps"] = [{"topic": sc.gps.topic, "noise": noise["gps"], "delay": sc.gps.delay}]
+        if sc.gps.correlation_s > 0.0:  # the true error model, as the noise values are
+            sensors["gps"][0]["correlation_time"] = sc.gps.correlation_s
     if sc.landmarks:
         if landmark_map is None:
             raise ValueError("a scenario with landmarks needs the landmark map's file name")
@@ -954,8 +956,8 @@ def _truth_comment(res: SimResult, fmt: str) -> str:
                      f"m), outages {list(g.outages)} s after the start.")
         if g.correlation_s > 0.0:
             lines.append(f"GPS errors are time-correlated: per axis a first-order Gauss-Markov "
-                         f"process, correlation time {g.correlation_s:g} s, stationary std as "
-                         "stated below (the noise: values are the std, not a white model).")
+                         f"process, correlation time {g.correlation_s:g} s (correlation_time below), "
+                         "stationary std as stated below.")
     return "".join(f"# {s}\n" for s in lines)
 
 

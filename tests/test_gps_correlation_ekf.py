@@ -298,7 +298,7 @@ def multipath(tmp_path_factory):
     bag = d / "hm.bag"
     assert simulate(["husky-multipath", "--seed", "1", "-o", str(bag)]) == 0
     raw = yaml.safe_load(bag.with_suffix(".yaml").read_text())
-    assert "correlation_time" not in raw["sensors"]["gps"][0]
+    assert raw["sensors"]["gps"][0]["correlation_time"] == TAU  # the simulator's true model
     out = {}
     for scales in (True, False):
         for tau in (0.0, TAU):

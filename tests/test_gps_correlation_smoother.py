@@ -213,7 +213,7 @@ def test_tau_zero_is_bit_identical_to_no_correlation_time(sample_husky):
 @pytest.fixture(scope="module")
 def multipath(tmp_path_factory):
     """husky-multipath seed 1 cut to 200 s (GPS errors Gauss-Markov, tau 30 s, sigma 1 m;
-    its config states white fixes)."""
+    its config states that correlation time; the test sets 0 and 30 itself)."""
     d = tmp_path_factory.mktemp("hm")
     bag = d / "hm.bag"
     subprocess.run([sys.executable, "-m", "evaluation.cli", "simulate", "husky-multipath",

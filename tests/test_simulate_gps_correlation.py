@@ -177,7 +177,7 @@ def test_dropped_fixes_do_not_change_the_others():
 def test_husky_multipath_is_husky_with_correlated_gps(tmp_path):
     """Same drive, sensors, fixes and stated noise as husky; only the GPS errors differ (the
     first is the same draw: e_0 is the stationary, i.e. white, error). The config states husky's
-    white GPS noise; its header names the correlation time."""
+    GPS noise plus the correlation time (the true error model); its header names it too."""
     a, b = sim.simulate("husky", seed=4), sim.simulate("husky-multipath", seed=4)
     assert b.scenario.duration == a.scenario.duration
     assert dataclasses.replace(b.scenario.gps, correlation_s=0.0) == a.scenario.gps
@@ -189,7 +189,10 @@ def test_husky_multipath_is_husky_with_correlated_gps(tmp_path):
     np.testing.assert_array_equal(a.gps.t, b.gps.t)
     np.testing.assert_array_equal(a.gps.enu[0], b.gps.enu[0])
     assert not np.allclose(a.gps.enu[1:], b.gps.enu[1:])
-    assert sim.sim_config(a) == sim.sim_config(b)
+    ca, cb = sim.sim_config(a), sim.sim_config(b)
+    assert "correlation_time" not in ca["sensors"]["gps"][0]
+    assert cb["sensors"]["gps"][0].pop("correlation_time") == b.scenario.gps.correlation_s
+    assert ca == cb
     assert sim.main(["husky-multipath", "--duration", "20", "-o", str(tmp_path / "m.bag")]) == 0
     head = (tmp_path / "m.yaml").read_text()
     assert f"correlation time {b.scenario.gps.correlation_s:g} s" in head
