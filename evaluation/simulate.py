@@ -956,8 +956,8 @@ def _truth_comment(res: SimResult, fmt: str) -> str:
                      f"m), outages {list(g.outages)} s after the start.")
         if g.correlation_s > 0.0:
             lines.append(f"GPS errors are time-correlated: per axis a first-order Gauss-Markov "
-                         f"process, correlation time {g.correlation_s:g} s (correlation_time below), "
-                         "stationary std as stated below.")
+                         f"process, correlation time {g.correlation_s:g} s (correlation_time "
+                         "below), stationary std as stated below.")
     return "".join(f"# {s}\n" for s in lines)
 
 
