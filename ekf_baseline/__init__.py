@@ -1,3 +1,3 @@
 """The EKFs that the specification documents in shared/seeds describe, with their errors fixed."""
 
-from estimation.config import GIVEN_POSE_STD  # noqa: F401 - shared with the smoother
+from ddfuse.estimation.config import GIVEN_POSE_STD  # noqa: F401 - shared with the smoother

@@ -4,12 +4,12 @@ When the config states how well the robot's nominal geometry is known (robot.whe
 track_width_std), a filter with an odometry source carries k_v and k_w (unitless): the true
 twist is (k_v v, k_w w) of the odometry's (v, w), k_v = true / nominal wheel radius and k_w =
 that times nominal / true track width. Their prior is mean 1 with the covariance of
-``estimation.config.RobotConfig.scale_std``; they are constants (no process noise).
+``ddfuse.estimation.config.RobotConfig.scale_std``; they are constants (no process noise).
 """
 
 from __future__ import annotations
 
-from estimation.config import Config
+from ddfuse.estimation.config import Config
 
 __all__ = ["ScaleStates"]
 

@@ -1,6 +1,6 @@
-"""The Python side of the compiled filter path (kernels: ``ekf_baseline.kalman_jit``).
+"""The Python side of the compiled filter path (kernels: ``ddfuse.ekf_baseline.kalman_jit``).
 
-* :class:`JitKalmanCore` -- a :class:`~ekf_baseline.kalman.KalmanCore` whose state x,
+* :class:`JitKalmanCore` -- a :class:`~ddfuse.ekf_baseline.kalman.KalmanCore` whose state x,
   covariance P, gate streaks, last acceptances and recovery hold-offs live in the arrays the
   kernels update in place. Every KalmanCore method still works on it (x, P are properties over
   those arrays; ``_streak``, ``_last_ok``, ``_holdoff`` are mappings over the sensor table), so
@@ -25,8 +25,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-from ekf_baseline.kalman import (
+from ddfuse.ekf_baseline.kalman import (
     DEFAULT_LOCKOUT_COUNT,
     DEFAULT_LOCKOUT_TIME,
     KalmanCore,
@@ -34,12 +33,12 @@ from ekf_baseline.kalman import (
     _support,
     chi2_threshold,
 )
-from estimation.estimator import EstimatorLog
-from factors.jitcache import guard_cache
+from ddfuse.estimation.estimator import EstimatorLog
+from ddfuse.factors.jitcache import guard_cache
 
 __all__ = ["BufferedLog", "JitKalmanCore", "available", "kernels", "warm_up", "COLD_COMPILE"]
 
-# the kernels' return bits (ekf_baseline.kalman_jit docstring)
+# the kernels' return bits (ddfuse.ekf_baseline.kalman_jit docstring)
 DEFER = 1
 REJECTED = 2
 GROW = 4
@@ -72,18 +71,18 @@ def available() -> bool:
 
 def _guard_cache() -> None:
     """Drop numba's cached kernels when a source they compile changed (numba checks only the
-    time stamp of kalman_jit.py; ``factors.jitcache``)."""
+    time stamp of kalman_jit.py; ``ddfuse.factors.jitcache``)."""
     guard_cache((_ROOT / rel for rel in _KERNEL_SOURCES), _ROOT / "ekf_baseline" / "__pycache__",
                 "kalman_jit")
 
 
 def kernels():
-    """The kernel module ``ekf_baseline.kalman_jit``, imported once (after the cache guard;
+    """The kernel module ``ddfuse.ekf_baseline.kalman_jit``, imported once (after the cache guard;
     importing it compiles the kernels or loads them from numba's cache)."""
     mod = _state.get("mod")
     if mod is None:
         _guard_cache()
-        from ekf_baseline import kalman_jit as mod
+        from ddfuse.ekf_baseline import kalman_jit as mod
         _state["mod"] = mod
     return mod
 

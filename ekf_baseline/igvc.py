@@ -37,7 +37,7 @@ Measurements (seed eq. 17/19, corrected):
 * WheelSpeeds (rad/s) -> (v_l / r, v_r / r).
 * WheelOdometry -> v = (v_l + v_r)/2 and yaw rate (v_r - v_l)/L (seed eqs. 18-19).
 
-Every update goes through ``ekf_baseline.kalman.KalmanCore`` (Joseph form, wrapped angle
+Every update goes through ``ddfuse.ekf_baseline.kalman.KalmanCore`` (Joseph form, wrapped angle
 innovations, per-sensor chi-square gate with lock-out recovery).
 
 Time-correlated GPS errors: a GPS sensor with ``correlation_time`` tau > 0 has each fix fused
@@ -71,17 +71,16 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
-
-from ekf_baseline import GIVEN_POSE_STD
-from ekf_baseline import compiled as jit
-from ekf_baseline import igvc_jacobians as gen
-from ekf_baseline.calibration import ScaleStates
-from ekf_baseline.kalman import KalmanCore
-from estimation import geodesy
-from estimation.config import DEFAULT_GATE, Config, SensorConfig
-from estimation.estimator import Estimate, Estimator
-from estimation.gps_correlation import inflation as gps_inflation
-from estimation.measurements import (
+from ddfuse.ekf_baseline import GIVEN_POSE_STD
+from ddfuse.ekf_baseline import compiled as jit
+from ddfuse.ekf_baseline import igvc_jacobians as gen
+from ddfuse.ekf_baseline.calibration import ScaleStates
+from ddfuse.ekf_baseline.kalman import KalmanCore
+from ddfuse.estimation import geodesy
+from ddfuse.estimation.config import DEFAULT_GATE, Config, SensorConfig
+from ddfuse.estimation.estimator import Estimate, Estimator
+from ddfuse.estimation.gps_correlation import inflation as gps_inflation
+from ddfuse.estimation.measurements import (
     ForwardAccel,
     GpsFix,
     GroundTruthPose,
@@ -129,7 +128,7 @@ _ROWS_W = (((W, 1.0),),)
 _ROWS_A = (((A, 1.0),),)
 _ROWS_PSI = (((PSI, 1.0),),)
 _ROWS_THETA = (((THETA, -1.0),),)  # compass yaw = pi/2 - theta + offset
-# the compiled kernels' message types and return bits (ekf_baseline.compiled)
+# the compiled kernels' message types and return bits (ddfuse.ekf_baseline.compiled)
 _T_GYRO, _T_HEAD, _T_HEAD_POSE, _T_ACCEL, _T_ODOM, _T_WHEELS, _T_GPS = (
     jit.T_GYRO, jit.T_HEAD, jit.T_HEAD_POSE, jit.T_ACCEL, jit.T_ODOM, jit.T_WHEELS, jit.T_GPS)
 _DEFER = jit.DEFER
@@ -746,7 +745,7 @@ class IgvcEkf(Estimator):
 
     # ------------------------------------------------------------------ compiled path
     def _compiled_core(self, x0, P0, angles):
-        """The JitKalmanCore of this filter (ekf_baseline.compiled): F's pattern from the
+        """The JitKalmanCore of this filter (ddfuse.ekf_baseline.compiled): F's pattern from the
         generated model (its ones, its variable entries, the calibration states' identity),
         Q's entries (_Q_INDEX), the random walks."""
         kj = jit.kernels()

@@ -6,7 +6,7 @@ its Jacobian are derived ONCE and printed as plain-``math`` Python into
 ``ekf_baseline/igvc_jacobians.py`` (committed). ``tests/test_igvc_jacobians.py`` re-derives the
 code and fails when the committed file is out of date. Regenerate with::
 
-    python3 -m ekf_baseline.igvc_codegen
+    python3 -m ddfuse.ekf_baseline.igvc_codegen
 
 State (index: symbol, unit), corrected as listed in docs/errata.md "Seed 000":
 
@@ -257,7 +257,7 @@ State order and units: STATE_NAMES; frames and corrections: ekf_baseline/igvc_co
 
 import math
 
-from factors.kinematics import twist_coeffs
+from ddfuse.factors.kinematics import twist_coeffs
 
 # sympy version that printed this file (another version may print equivalent code differently)
 SYMPY_VERSION = {sp.__version__!r}
@@ -280,7 +280,7 @@ def _dense(fv, variable, ones):
     text = head + body
     # the euler model never calls twist_coeffs; import only what is used (ruff F401)
     if "twist_coeffs(" not in body:
-        text = text.replace("from factors.kinematics import twist_coeffs\n", "")
+        text = text.replace("from ddfuse.factors.kinematics import twist_coeffs\n", "")
     return text
 
 

@@ -7,7 +7,7 @@ State order and units: STATE_NAMES; frames and corrections: ekf_baseline/igvc_co
 
 import math
 
-from factors.kinematics import twist_coeffs
+from ddfuse.factors.kinematics import twist_coeffs
 
 # sympy version that printed this file (another version may print equivalent code differently)
 SYMPY_VERSION = '1.14.0'

@@ -26,7 +26,7 @@ API (all arrays are float64 numpy; n = state size, m = measurement size)::
   [-pi, pi)), its covariance S = H P H^T + R and the NIS y^T S^-1 y. With ``gate`` (the sensor's
   chi-square acceptance probability from its config, None = no gate) the update is rejected when
   NIS > chi2.ppf(gate, m). Every update, accepted or rejected, is appended to ``log.innovations``
-  as an :class:`estimation.estimator.Innovation`; a rejection also counts in
+  as an :class:`ddfuse.estimation.estimator.Innovation`; a rejection also counts in
   ``log.rejected[(sensor, 'gate')]``. An accepted update applies the gain K = P H^T S^-1 and the
   Joseph form P <- (I - K H) P (I - K H)^T + K R K^T (stays symmetric PSD even with the rounding
   of K); state components in ``state_angles`` are wrapped after every predict and update.
@@ -34,7 +34,7 @@ API (all arrays are float64 numpy; n = state size, m = measurement size)::
   'nonfinite' / 'singular' and never touch the state.
 * ``fuse`` (update_blocks, update_sparse, update_dense; default None = all 1): per block a
   factor f >= 1 on its R for the fusion only -- a time-correlated GPS fix fused with f R
-  (``estimation.gps_correlation``). The gate, the logged innovation covariance and NIS, and a
+  (``ddfuse.estimation.gps_correlation``). The gate, the logged innovation covariance and NIS, and a
   lock-out recovery's inflation keep R (a fix is judged as one sample of the sensor's error);
   an accepted block's gain and Joseph update use f R (blocks i, j: sqrt(f_i f_j) R_ij off the
   diagonal blocks, which keeps f R exactly on them). After a call with ``fuse``,
@@ -103,11 +103,10 @@ from collections.abc import Callable
 from functools import lru_cache
 
 import numpy as np
-
-from estimation import chi2
-from estimation.config import DEFAULT_LOCKOUT_COUNT, DEFAULT_LOCKOUT_TIME
-from estimation.estimator import EstimatorLog, Innovation
-from estimation.lockout import DEFAULT_RECOVERY_HOLDOFF, inflation
+from ddfuse.estimation import chi2
+from ddfuse.estimation.config import DEFAULT_LOCKOUT_COUNT, DEFAULT_LOCKOUT_TIME
+from ddfuse.estimation.estimator import EstimatorLog, Innovation
+from ddfuse.estimation.lockout import DEFAULT_RECOVERY_HOLDOFF, inflation
 
 __all__ = [
     "KalmanCore",
@@ -188,7 +187,7 @@ class KalmanCore:
         self._streak: dict[tuple[str, str], list] = {}
         self.recoveries: list[tuple[float, str, float]] = []
         # called with this core after a recovery's inflation: a filter with redundant states
-        # re-ties them there (ekf_baseline.igvc)
+        # re-ties them there (ddfuse.ekf_baseline.igvc)
         self.after_inflation: Callable[[KalmanCore], None] | None = None
         # states a recovery does not widen (the odometry scales): the smoother's rule
         # (FixedLagSmoother._widen). Widened with the rest, nothing but the motion observes

@@ -9,10 +9,10 @@ is one call of an entry point below (~0.5 us of call overhead, ~0.3-1 us of arit
 The maths is that of the Python filters, which stay the reference (``reference=True``, the
 dense numpy ``KalmanCore.update_blocks``) and the fallback for what this module does not do.
 Functions not written here but compiled into these kernels (``numba.extending.register_jitable``,
-so they stay plain Python for their other callers): ``factors.kinematics.se2_step_jac``,
-``twist_coeffs``, ``ekf_baseline.unicycle.euler_step_jac``, ``unicycle_process_noise_terms``,
+so they stay plain Python for their other callers): ``ddfuse.factors.kinematics.se2_step_jac``,
+``twist_coeffs``, ``ddfuse.ekf_baseline.unicycle.euler_step_jac``, ``unicycle_process_noise_terms``,
 ``scaled_step_terms`` (prediction with odometry scale states), ``delayed_gps_terms``,
-``ekf_baseline.igvc.igvc_q_values`` and the sympy-generated ``*_step_sparse`` of
+``ddfuse.ekf_baseline.igvc.igvc_q_values`` and the sympy-generated ``*_step_sparse`` of
 ``ekf_baseline/igvc_jacobians.py``.
 
 Every kernel returns a bit set: ``DEFER`` -- a gated block needs what only Python does (a gate
@@ -23,7 +23,7 @@ arrays; ``REJECTED`` -- some block was gate-rejected: its count is pending in th
 (``SI_REJ``) for the caller's ``log.rejected`` Counter; ``GROW`` -- the innovation log has no
 room: nothing was done, grow it and call again.
 
-Arrays (all float64 or int64, C order; layout constants below; ``ekf_baseline.compiled``
+Arrays (all float64 or int64, C order; layout constants below; ``ddfuse.ekf_baseline.compiled``
 builds them):
 
 * ``fp`` (float, 1-D): header (FP_*), then the state x (n,) at ``FP_X``, the F and Q values and
@@ -43,11 +43,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
-from numba.extending import register_jitable
-
-from ekf_baseline import igvc_jacobians as gen
-from ekf_baseline.compiled import (  # noqa: F401 - re-exported: the kernels' codes
+from ddfuse.ekf_baseline import igvc_jacobians as gen
+from ddfuse.ekf_baseline.compiled import (  # noqa: F401 - re-exported: the kernels' codes
     DEFER,
     GROW,
     IGVC_KINDS,
@@ -62,8 +59,8 @@ from ekf_baseline.compiled import (  # noqa: F401 - re-exported: the kernels' co
     T_WHEELS,
     UNI_KINDS,
 )
-from ekf_baseline.igvc import igvc_q_values
-from ekf_baseline.unicycle import (
+from ddfuse.ekf_baseline.igvc import igvc_q_values
+from ddfuse.ekf_baseline.unicycle import (
     delayed_gps_terms,
     euler_step_jac,
     pose_correct,
@@ -71,7 +68,9 @@ from ekf_baseline.unicycle import (
     se2_error_terms,
     unicycle_process_noise_terms,
 )
-from factors.kinematics import se2_step_jac, twist_coeffs
+from ddfuse.factors.kinematics import se2_step_jac, twist_coeffs
+from numba import njit
+from numba.extending import register_jitable
 
 for _f in (twist_coeffs, se2_step_jac, euler_step_jac, unicycle_process_noise_terms,
            scaled_step_terms, delayed_gps_terms, se2_error_terms, pose_correct, igvc_q_values,

@@ -1,6 +1,6 @@
 """Seed 002's EKF: wheel odometry drives the pose, range/bearing sightings of landmarks correct it.
 
-Two filters, both :class:`estimation.estimator.Estimator` s on the shared Kalman core
+Two filters, both :class:`ddfuse.estimation.estimator.Estimator` s on the shared Kalman core
 (``ekf_baseline.kalman``: Joseph update, wrapped bearing innovations, per-sensor chi-square gate
 with lock-out recovery); the seed's errors are listed in docs/errata.md, "Seed 002".
 
@@ -20,7 +20,7 @@ odometry period) until the sample that covers them arrives, then are applied in 
 Holding the LAST sample instead (the seed's zero-order hold) applies every twist one period late.
 Sightings before the first odometry sample are applied at once with the robot at rest; those
 after the last one, in ``finish``, with the last twist held. ``motion='exact'`` moves the pose
-along the constant-twist arc (``factors.kinematics.se2_step_jac``, smooth through zero yaw
+along the constant-twist arc (``ddfuse.factors.kinematics.se2_step_jac``, smooth through zero yaw
 rate); ``'euler'`` is the seed's first-order model x' = x + v cos(psi) dt,
 y' = y + v sin(psi) dt, psi' = psi + w dt.
 
@@ -45,19 +45,18 @@ from __future__ import annotations
 import math
 
 import numpy as np
-
-from ekf_baseline import GIVEN_POSE_STD
-from ekf_baseline.calibration import ScaleStates
-from ekf_baseline.kalman import KalmanCore
-from estimation.config import DEFAULT_GATE, LANDMARK_NOT_IN_MAP, Config, landmark_maps
-from estimation.estimator import Estimate, Estimator
-from estimation.measurements import (
+from ddfuse.ekf_baseline import GIVEN_POSE_STD
+from ddfuse.ekf_baseline.calibration import ScaleStates
+from ddfuse.ekf_baseline.kalman import KalmanCore
+from ddfuse.estimation.config import DEFAULT_GATE, LANDMARK_NOT_IN_MAP, Config, landmark_maps
+from ddfuse.estimation.estimator import Estimate, Estimator
+from ddfuse.estimation.measurements import (
     GroundTruthPose,
     LandmarkObservation,
     WheelOdometry,
     WheelSpeeds,
 )
-from factors.kinematics import se2_step_jac
+from ddfuse.factors.kinematics import se2_step_jac
 
 __all__ = [
     "LandmarkEkf",

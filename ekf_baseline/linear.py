@@ -1,6 +1,6 @@
 """Seed 004's linear Kalman filters, corrected: the 1-D filter and the constant-acceleration model.
 
-Both run on :class:`ekf_baseline.kalman.KalmanCore` (Joseph update, gates, innovation log).
+Both run on :class:`ddfuse.ekf_baseline.kalman.KalmanCore` (Joseph update, gates, innovation log).
 The seed's errors (update without the residual, a process noise that is not a covariance, the
 measurement matrix's shape, R's off-diagonal) are listed in docs/errata.md, "Seed 004".
 
@@ -20,9 +20,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-
-from ekf_baseline.kalman import KalmanCore
-from estimation.estimator import EstimatorLog
+from ddfuse.ekf_baseline.kalman import KalmanCore
+from ddfuse.estimation.estimator import EstimatorLog
 
 __all__ = [
     "Kalman1D",

@@ -1,7 +1,7 @@
 """Seed 003's unicycle EKF (x, y, psi, v, psi_dot) with GPS, wheel speed and gyro, corrected and
 extended for real data.
 
-State (world = local ENU frame; the same names and conventions as ``factors.state``)::
+State (world = local ENU frame; the same names and conventions as ``ddfuse.factors.state``)::
 
     index  name  unit   meaning
     0      x     m      position east
@@ -42,7 +42,7 @@ The calibration states' random-walk densities are the IMU's stated ones (noise.g
 heading_offset_walk) where the config gives them, else ProcessNoise's.
 
 Motion model. Over a step of dt seconds the twist (v, w) is held constant and the pose moves by the
-exact SE(2) constant-twist step ``factors.kinematics.se2_step`` -- the same equations as the
+exact SE(2) constant-twist step ``ddfuse.factors.kinematics.se2_step`` -- the same equations as the
 smoother's motion factor. ``motion="euler"`` selects the seed's first-order step
 x += dt v cos(psi), y += dt v sin(psi), psi += dt w instead (its error is in docs/errata.md).
 v, w, the gyro biases and heading offsets are random walks driven by continuous white noise
@@ -78,7 +78,7 @@ position along an arc off the fix (13 m in the kidnap test). No reset Jacobian i
 after the correction (its effect is second order in the correction). ``estimate()`` reports
 ``pose_cov`` and ``state_cov`` mapped to the world frame to first order (A P A^T) and
 ``pose_error='se2'``, so that a NEES is scored against the filter's own Gaussian:
-xi = Log(X_hat^-1 X_true) with covariance A^-1 pose_cov A^-T (evaluation.metrics.nees_series,
+xi = Log(X_hat^-1 X_true) with covariance A^-1 pose_cov A^-T (ddfuse.evaluation.metrics.nees_series,
 navlie's ``state.minus(truth)``). ``pose_error='world'`` keeps the world-frame error
 (x, y, psi)_true - estimate throughout (the filter before; the same to first order).
 
@@ -139,16 +139,15 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
-
-from ekf_baseline import GIVEN_POSE_STD
-from ekf_baseline import compiled as jit
-from ekf_baseline.calibration import ScaleStates
-from ekf_baseline.kalman import DEFAULT_LOCKOUT_COUNT, DEFAULT_LOCKOUT_TIME, KalmanCore
-from estimation.config import DEFAULT_GATE, Config
-from estimation.estimator import Estimate, Estimator
-from estimation.gps_correlation import inflation as gps_inflation
-from estimation.heading_survey import rotation_fit
-from estimation.measurements import (
+from ddfuse.ekf_baseline import GIVEN_POSE_STD
+from ddfuse.ekf_baseline import compiled as jit
+from ddfuse.ekf_baseline.calibration import ScaleStates
+from ddfuse.ekf_baseline.kalman import DEFAULT_LOCKOUT_COUNT, DEFAULT_LOCKOUT_TIME, KalmanCore
+from ddfuse.estimation.config import DEFAULT_GATE, Config
+from ddfuse.estimation.estimator import Estimate, Estimator
+from ddfuse.estimation.gps_correlation import inflation as gps_inflation
+from ddfuse.estimation.heading_survey import rotation_fit
+from ddfuse.estimation.measurements import (
     GpsFix,
     GroundTruthPose,
     GyroYawRate,
@@ -156,7 +155,7 @@ from estimation.measurements import (
     WheelOdometry,
     WheelSpeeds,
 )
-from factors.kinematics import se2_step_jac, twist_coeffs
+from ddfuse.factors.kinematics import se2_step_jac, twist_coeffs
 
 __all__ = ["ProcessNoise", "UnicycleEkf", "unicycle_process_noise", "euler_step_jac",
            "twist_densities", "scaled_step_terms", "delayed_gps_terms", "se2_error_terms",
@@ -172,7 +171,7 @@ _ROWS_V = (((3, 1.0),),)
 _ROWS_W = (((4, 1.0),),)
 _ROWS_PSI = (((2, 1.0),),)
 _ROWS_XY = (((0, 1.0),), ((1, 1.0),))
-# the compiled kernels' message types and return bits (ekf_baseline.compiled)
+# the compiled kernels' message types and return bits (ddfuse.ekf_baseline.compiled)
 _T_NONE, _T_GYRO, _T_HEAD, _T_ODOM, _T_GPS, _T_WHEELS = (
     jit.T_NONE, jit.T_GYRO, jit.T_HEAD, jit.T_ODOM, jit.T_GPS, jit.T_WHEELS)
 _DEFER = jit.DEFER
@@ -235,7 +234,7 @@ def unicycle_process_noise_terms(
     pos_lat: float, heading: float
 ) -> tuple[float, ...]:
     """:func:`unicycle_process_noise` with the :class:`ProcessNoise` densities as floats (same
-    units), so that the compiled filter (ekf_baseline.kalman_jit) runs this same code."""
+    units), so that the compiled filter (ddfuse.ekf_baseline.kalman_jit) runs this same code."""
     qa = acc * acc
     qal = yaw_acc * yaw_acc
     pl2 = pos_long * pos_long
@@ -288,7 +287,7 @@ def euler_step_jac(
 ) -> tuple[float, float, float, tuple[tuple[float, ...], ...]]:
     """Seed 003's explicit Euler step and its Jacobian (rows x, y, psi; columns x, y, psi, v, w).
 
-    Same return layout as ``factors.kinematics.se2_step_jac``. Position error per step is
+    Same return layout as ``ddfuse.factors.kinematics.se2_step_jac``. Position error per step is
     O(v w dt^2) (the chord is taken along the start heading instead of the mean heading)."""
     c = _cos(psi)
     s = _sin(psi)
@@ -352,7 +351,7 @@ def delayed_gps_terms(
 
     Returns (east, north, de/dpsi, de/du, de/dom, de/dk_v, de/dk_w, dn/dpsi, dn/du, dn/dom,
     dn/dk_v, dn/dk_w); d/dx of east and d/dy of north are 1, the rest 0. Shared by the Python
-    filter and the compiled one (ekf_baseline.kalman_jit)."""
+    filter and the compiled one (ddfuse.ekf_baseline.kalman_jit)."""
     gw = 1.0 if w_true else kw
     ow = 0.0 if w_true else om
     xb, yb, pb, J = se2_step_jac(x, y, psi, kv * u, gw * om, -d)
@@ -578,7 +577,7 @@ class UnicycleEkf(Estimator):
         self._walks = tuple(walks)
         # a GPS sensor with time-correlated errors (module docstring)
         self._gps_corr = any(s.correlation_time > 0.0 for s in cfg.of_kind("gps"))
-        # odometry scale states (ekf_baseline.calibration) when the config states the
+        # odometry scale states (ddfuse.ekf_baseline.calibration) when the config states the
         # geometry's uncertainty and a sensor gives odometry
         self._scale = ScaleStates.append_to(cfg, names)
         self._ks = self._scale.index if self._scale else None
@@ -1195,7 +1194,7 @@ class UnicycleEkf(Estimator):
     def _gps_model(self, m: GpsFix, info: _Sensor, x: list) -> tuple[tuple, tuple]:
         """Innovation (east, north, m) and sparse H rows of a fix: the antenna (lever arm
         rotated by the heading) at the fix's measurement time, ``info.delay`` s before the
-        state's, reached by the exact constant-twist step backwards (factors.kinematics)."""
+        state's, reached by the exact constant-twist step backwards (ddfuse.factors.kinematics)."""
         lx, ly = info.lever
         d = info.delay
         c, s = _cos(x[2]), _sin(x[2])

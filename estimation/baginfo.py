@@ -15,13 +15,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-
-from estimation import heading_survey, ros1_scan, rosmsg
-from estimation.bags import BagStream, Reject, _gps_fix, open_reader
-from estimation.config import parse_config
-from estimation.errors import BagError, DdfuseError
-from estimation.frames import GRAVITY, body_x_tilt, rpy_matrix
-from estimation.geodesy import geodetic_to_enu
+from ddfuse.estimation import heading_survey, ros1_scan, rosmsg
+from ddfuse.estimation.bags import BagStream, Reject, _gps_fix, open_reader
+from ddfuse.estimation.config import parse_config
+from ddfuse.estimation.errors import BagError, DdfuseError
+from ddfuse.estimation.frames import GRAVITY, body_x_tilt, rpy_matrix
+from ddfuse.estimation.geodesy import geodetic_to_enu
 
 
 @dataclass

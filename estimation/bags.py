@@ -13,7 +13,7 @@ counted in ``Stream.rejected`` by (topic, reason), and the stream's ``warnings``
 A bag that breaks off (truncated, or damaged past some point) still gives what was read before:
 the BagError carries it as ``partial``. A ROS1 bag that rosbags cannot open at all because its
 index is missing or damaged (the recorder was killed, the copy was cut) is read from the front
-by ``estimation.ros1_scan`` for that.
+by ``ddfuse.estimation.ros1_scan`` for that.
 """
 
 from __future__ import annotations
@@ -29,11 +29,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-
-from estimation import geodesy, ros1_scan, rosmsg
-from estimation.config import LANDMARK_NOT_IN_MAP, Config, SensorConfig, landmark_maps
-from estimation.errors import BagError
-from estimation.frames import (
+from ddfuse.estimation import geodesy, ros1_scan, rosmsg
+from ddfuse.estimation.config import LANDMARK_NOT_IN_MAP, Config, SensorConfig, landmark_maps
+from ddfuse.estimation.errors import BagError
+from ddfuse.estimation.frames import (
     GRAVITY,
     IDENTITY,
     body_x_tilt,
@@ -43,7 +42,7 @@ from estimation.frames import (
     rotated_variance,
     rpy_matrix,
 )
-from estimation.measurements import (
+from ddfuse.estimation.measurements import (
     ForwardAccel,
     GpsFix,
     GroundTruthPose,
@@ -533,7 +532,7 @@ class BagStream:
     ``ground_truth``; kept as compact arrays, unless ``keep_truth`` is False), ``decode_s``.
 
     A bag that breaks off (truncated, damaged past some point; a ROS1 bag without its index is
-    read from the front by ``estimation.ros1_scan``) ends the iteration early: ``error`` then
+    read from the front by ``ddfuse.estimation.ros1_scan``) ends the iteration early: ``error`` then
     says why, in one line naming the file. Errors that leave nothing to estimate on (a topic
     absent or of the wrong type, a bag that cannot be read at all) raise BagError, at
     construction or, for those only seen at the end of the bag (every message of a topic
@@ -1122,7 +1121,7 @@ def read_stream(bag: str | Path, cfg: Config, progress: Callable[[float], None] 
     ``progress``, if given, is called with the fraction of the bag read so far.
     Raises BagError (naming the file, topic and field) when the bag or a topic cannot be used.
     A bag that breaks off (truncated or damaged; a ROS1 bag without a usable index is read from
-    the front by ``estimation.ros1_scan``) raises BagError saying so, carrying the stream of
+    the front by ``ddfuse.estimation.ros1_scan``) raises BagError saying so, carrying the stream of
     what could be read as ``partial``."""
     bs = BagStream(bag, cfg, reorder_window=reorder_window)
     measurements = []

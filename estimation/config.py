@@ -44,8 +44,7 @@ from pathlib import Path
 from typing import Any
 
 import yaml
-
-from estimation.errors import ConfigError
+from ddfuse.estimation.errors import ConfigError
 
 
 class _Loader(yaml.SafeLoader):
@@ -140,7 +139,7 @@ class SensorConfig:
     lever_arm: tuple[float, float] = (0.0, 0.0)  # m, body frame
     delay: float = 0.0  # s, GPS: a fix is the position this long before its stamp
     # s, GPS: the correlation time of the fixes' errors (first-order Gauss-Markov); 0 = white.
-    # Each fix is fused with its covariance inflated by estimation.gps_correlation.inflation
+    # Each fix is fused with its covariance inflated by ddfuse.estimation.gps_correlation.inflation
     correlation_time: float = 0.0
     joints: tuple[str, str] | None = None  # JointState names of left and right wheel
     map: Path | None = None  # landmark map YAML

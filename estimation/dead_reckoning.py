@@ -2,7 +2,7 @@
 has to beat.
 
 The pose (x, y, yaw in the local frame; m, m, rad) starts at the initial pose and moves by the
-exact constant-twist step (``factors.kinematics.se2_step``) of each odometry sample over the
+exact constant-twist step (``ddfuse.factors.kinematics.se2_step``) of each odometry sample over the
 interval since the previous one: an encoder twist is the mean over its counting interval, so
 sample k covers [t_(k-1), t_k], as a wheel-odometry node integrates it (the simulator's odometry
 pose and ``evaluation.plot_sim.dead_reckoning`` do the same). The first sample only starts the
@@ -16,11 +16,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-
-from estimation.config import Config
-from estimation.estimator import Estimate, Estimator
-from estimation.measurements import WheelOdometry, WheelSpeeds
-from factors.kinematics import se2_step
+from ddfuse.estimation.config import Config
+from ddfuse.estimation.estimator import Estimate, Estimator
+from ddfuse.estimation.measurements import WheelOdometry, WheelSpeeds
+from ddfuse.factors.kinematics import se2_step
 
 __all__ = ["DeadReckoning", "odometry_source"]
 

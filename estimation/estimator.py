@@ -14,8 +14,7 @@ from collections import Counter
 from dataclasses import dataclass, field
 
 import numpy as np
-
-from estimation.measurements import Measurement
+from ddfuse.estimation.measurements import Measurement
 
 
 def wrap_angle(a: float) -> float:
@@ -33,7 +32,7 @@ class Estimate:
     ``state_names`` naming each component (e.g. ('x', 'y', 'yaw', 'v', 'yaw_rate')).
 
     ``pose_error`` names the coordinates in which the estimator's Gaussian describes the pose
-    error (``POSE_ERRORS``; the NEES is scored in them, ``evaluation.metrics.nees_series``):
+    error (``POSE_ERRORS``; the NEES is scored in them, ``ddfuse.evaluation.metrics.nees_series``):
     ``'world'``, e = (x, y, yaw)_true - pose (yaw wrapped), with covariance ``pose_cov``;
     ``'se2'``, SE(2) exponential coordinates of the body-frame error, X_true = X_hat Exp(xi),
     xi = (rho_x m, rho_y m, theta rad) = Log(X_hat^-1 X_true), with covariance
@@ -60,7 +59,7 @@ def nis_band(dim: int) -> tuple[float, float]:
     """The two-sided ``NIS_BAND_P`` chi-square band of one NIS value of dimension ``dim``."""
     b = _BANDS.get(dim)
     if b is None:
-        from estimation import chi2
+        from ddfuse.estimation import chi2
 
         a = (1.0 - NIS_BAND_P) / 2.0
         b = _BANDS[dim] = (chi2.ppf(a, dim), chi2.ppf(1.0 - a, dim))

@@ -2,7 +2,7 @@
 a live robot, whose estimators lag the newest message by a reorder window.
 
 An estimate at t_e is moved to a later t by the exact constant-twist step
-(``factors.kinematics.se2_step``) of each twist sample after t_e, each sample covering the
+(``ddfuse.factors.kinematics.se2_step``) of each twist sample after t_e, each sample covering the
 interval since the previous one (as dead reckoning integrates it), then by the last twist held
 up to t. Its 3x3 world-frame pose covariance (x m, y m, yaw rad) grows to first order,
 P <- J_pose P J_pose^T + J_twist S J_twist^T per step, with S the twist sample's variances. Where
@@ -44,11 +44,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-
-from estimation.config import Config
-from estimation.estimator import Estimate, wrap_angle
-from estimation.measurements import GyroYawRate, WheelOdometry, WheelSpeeds
-from factors.kinematics import se2_step_jac
+from ddfuse.estimation.config import Config
+from ddfuse.estimation.estimator import Estimate, wrap_angle
+from ddfuse.estimation.measurements import GyroYawRate, WheelOdometry, WheelSpeeds
+from ddfuse.factors.kinematics import se2_step_jac
 
 __all__ = ["MAX_CARRY_S", "OdometryTwist", "TwistSample", "carry"]
 

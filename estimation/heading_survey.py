@@ -23,8 +23,7 @@ from array import array
 from dataclasses import dataclass
 
 import numpy as np
-
-from estimation.measurements import GpsFix, Heading, WheelOdometry, WheelSpeeds
+from ddfuse.estimation.measurements import GpsFix, Heading, WheelOdometry, WheelSpeeds
 
 WINDOW_S = 30.0  # s: long enough to average 1 m GPS noise to under a degree at walking speed
 MIN_FIXES = 5

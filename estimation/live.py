@@ -1,7 +1,7 @@
 """ROS messages from a live robot to ddfuse measurements, converted as the bag reader does.
 
 A node's subscriber callback hands each message to ``LiveConverter.convert(topic, msg)`` and
-feeds what it returns to ``evaluation.online.OnlineSession.push`` (or an estimator's
+feeds what it returns to ``ddfuse.evaluation.online.OnlineSession.push`` (or an estimator's
 ``process``)::
 
     conv = LiveConverter(load_config("robot.yaml"))
@@ -15,7 +15,7 @@ feeds what it returns to ``evaluation.online.OnlineSession.push`` (or an estimat
 the object (rosbags' ``__msgtype__``, rospy's ``_type``, rclpy's class) unless ``msgtype`` is
 given; the header stamp from ``sec``/``nanosec`` (ROS 2, rosbags) or ``secs``/``nsecs``
 (rospy). The config's topics, types, noise, mounts, landmark maps and datum apply exactly as to
-a bag (the same converters, ``estimation.bags.converter``; a sighting of a landmark id not in
+a bag (the same converters, ``ddfuse.estimation.bags.converter``; a sighting of a landmark id not in
 the maps is rejected): a GPS fix gets its local ENU position in the config's datum, or in the
 first fix's with ``frame: {datum: first_fix}``. A topic that several
 configured sensors read gives each one's measurements, in the config's order. A message that
@@ -61,8 +61,8 @@ import statistics
 import time
 from collections import Counter
 
-from estimation import geodesy, rosmsg
-from estimation.bags import (
+from ddfuse.estimation import geodesy, rosmsg
+from ddfuse.estimation.bags import (
     ACCEPTED_TYPES,
     STAMP_TOLERANCE,
     UNSET_STAMP,
@@ -72,8 +72,8 @@ from estimation.bags import (
     converter,
     slope_cells,
 )
-from estimation.config import Config, landmark_maps
-from estimation.measurements import GpsFix, Stream
+from ddfuse.estimation.config import Config, landmark_maps
+from ddfuse.estimation.measurements import GpsFix, Stream
 
 __all__ = ["LiveConverter", "message_type"]
 
@@ -119,7 +119,7 @@ class LiveConverter:
             cfg.datum if isinstance(cfg.datum, tuple) else None)
         self.rejected: Counter = Counter()  # (topic, reason) -> messages
         # the landmark sensors' maps, merged: a sighting of an id not in them is rejected as
-        # the bag reader rejects it (estimation.config.LANDMARK_NOT_IN_MAP)
+        # the bag reader rejects it (ddfuse.estimation.config.LANDMARK_NOT_IN_MAP)
         self.landmarks = landmark_maps(cfg)
         # topic -> (kind, key, converter) of every sensor on it, in the config's order: two
         # sensors may read one topic (an IMU's yaw rate twice, under two names), as in a bag

@@ -20,8 +20,7 @@ import math
 from collections.abc import Hashable
 
 import numpy as np
-
-from estimation.config import DEFAULT_LOCKOUT_COUNT, DEFAULT_LOCKOUT_TIME
+from ddfuse.estimation.config import DEFAULT_LOCKOUT_COUNT, DEFAULT_LOCKOUT_TIME
 
 DEFAULT_RECOVERY_HOLDOFF = 10.0  # s before a second recovery of the same measurement; doubles
 MAX_INFLATION = 1e12  # largest covariance scale factor tried by a recovery

@@ -206,7 +206,7 @@ _FINITE = {
 def is_finite(m) -> bool:
     """Whether the numbers an estimator reads from ``m`` are finite (its stamp included; a GPS
     fix's lat, lon, horizontal covariance and ENU position; see ``_FINITE``). The bag reader
-    and ``estimation.live`` reject messages with non-finite fields; a hand-built measurement
+    and ``ddfuse.estimation.live`` reject messages with non-finite fields; a hand-built measurement
     may still hold one, and a NaN handed to gtsam poisons the whole window."""
     check = _FINITE.get(type(m))
     return True if check is None else check(m)

@@ -72,7 +72,7 @@ def _pose_raw(raw: bytes) -> tuple:
 def _stamp(m) -> float:
     s = m.header.stamp
     sec = getattr(s, "sec", None)
-    if sec is None:  # rospy's Time (a live ROS 1 message, estimation.live)
+    if sec is None:  # rospy's Time (a live ROS 1 message, ddfuse.estimation.live)
         return s.secs + s.nsecs * 1e-9
     return sec + s.nanosec * 1e-9
 

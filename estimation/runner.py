@@ -16,10 +16,9 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
-
-from estimation.errors import ConfigError
-from estimation.estimator import Estimate, Estimator, EstimatorLog
-from estimation.measurements import GpsFix, Stream, truth_at_start
+from ddfuse.estimation.errors import ConfigError
+from ddfuse.estimation.estimator import Estimate, Estimator, EstimatorLog
+from ddfuse.estimation.measurements import GpsFix, Stream, truth_at_start
 
 _NAN6 = (math.nan,) * 6
 # the 3x3 positions of the 6 packed values (xx, xy, xyaw, yy, yyaw, yawyaw), row-major
@@ -217,14 +216,14 @@ class _GpsRecorder:
 
 @dataclass
 class RunResult:
-    stream: object  # the Stream or estimation.bags.BagStream that was run
+    stream: object  # the Stream or ddfuse.estimation.bags.BagStream that was run
     runs: dict[str, EstimatorRun]
     gps: GpsTrack
     truth: Trajectory | None = None
     messages: int = 0  # measurements fed (withheld fixes included)
     interrupted: str | None = None  # Ctrl-C ended the run early (run(interruptible=True))
-    # each compass's heading offset against the GPS course (estimation.heading_survey), where
-    # the caller measured it during the run (evaluation.pipeline.run_bag)
+    # each compass's heading offset against the GPS course (ddfuse.estimation.heading_survey), where
+    # the caller measured it during the run (ddfuse.evaluation.pipeline.run_bag)
     offset_surveys: list | None = None
 
 
@@ -361,7 +360,7 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
     delivery may hold older stamps after newer ones, which each estimator handles as it does
     live: the smoother places them by stamp within its lag).
 
-    ``stream`` is a Stream (its list of measurements) or an ``estimation.bags.BagStream``
+    ``stream`` is a Stream (its list of measurements) or an ``ddfuse.estimation.bags.BagStream``
     (measurements decoded as they are fed: memory does not grow with the bag). The estimate of
     each estimator is recorded whenever the stream crosses the next tick of ``output_rate``
     (Hz). An estimator that raises is stopped there and keeps what it had; the others go on.

@@ -2,7 +2,7 @@
 
 Design (from shared/notes/gtsam-smoother-design-study.md, measured there as the fastest that keeps
 velocity and biases as states): one 9-vector key per keyframe,
-``[x, y, psi, v, w, bg, hoff, k_v, k_w]`` (``factors.state``), and few factors per keyframe:
+``[x, y, psi, v, w, bg, hoff, k_v, k_w]`` (``ddfuse.factors.state``), and few factors per keyframe:
 
 * wheel speed and yaw rate between keyframes are folded into one preintegrated factor
   (``factors.preintegration``) with first-order corrections for the gyro bias and the odometry's
@@ -17,7 +17,7 @@ velocity and biases as states): one 9-vector key per keyframe,
   with what the motion does off the keyframe's twist over that time added to the fix's full
   east/north covariance; robust noise from the config), unless its innovation against the
   prediction fails the sensor's chi-square gate (as in the EKF). A gate lock-out
-  (``estimation.lockout``) is recovered from as the EKFs do, by widening the belief until the
+  (``ddfuse.estimation.lockout``) is recovered from as the EKFs do, by widening the belief until the
   fix is ordinary: here a link factor to a new keyframe at the fix (``FixedLagSmoother._widen``).
   A fix that arrives late goes to the window's keyframe nearest its stamp, gated against that
   keyframe's marginal; one older than the newest keyframe minus the lag is dropped and counted.
@@ -26,14 +26,14 @@ velocity and biases as states): one 9-vector key per keyframe,
   while the gate and the logged innovation keep the fix's own (``FixedLagSmoother._gps``);
 * with both a gyro and an odometry yaw rate, the mean gyro rate minus k_w times the mean
   odometry rate over the interval is a measurement of the gyro bias, which the fused rate alone
-  would not carry (``factors.gyro.bias_difference_factor``; its residual is whitened by a
+  would not carry (``ddfuse.factors.gyro.bias_difference_factor``; its residual is whitened by a
   k_w-dependent sigma, since both rates are noisy);
 * the absolute heading samples of the interval, each carried to the keyframe by the
   preintegrated yaw, gated as in the EKFs (``FixedLagSmoother._heading_gate``) and averaged,
   are one heading measurement (with the offset state when ``heading_offset: estimate``, and the
   carried yaw's first-order dependence on the gyro bias and yaw-rate scale,
   ``FixedLagSmoother._pending_heading``); it is linear in the state, so it is a C++ factor
-  (``factors.linear``), not a Python CustomFactor;
+  (``ddfuse.factors.linear``), not a Python CustomFactor;
 * a landmark sighting is a range/bearing (or range-only) factor to the known map position.
 
 Process noise is what the config states, as for the EKFs: the robot's slip densities
@@ -70,9 +70,8 @@ from functools import lru_cache
 
 import gtsam
 import numpy as np
-
-from estimation import chi2, gps_correlation
-from estimation.config import (
+from ddfuse.estimation import chi2, gps_correlation
+from ddfuse.estimation.config import (
     DEFAULT_GATE,
     GIVEN_POSE_STD,
     LANDMARK_NOT_IN_MAP,
@@ -80,9 +79,9 @@ from estimation.config import (
     SensorConfig,
     landmark_maps,
 )
-from estimation.estimator import Estimate, Estimator, Innovation, wrap_angle
-from estimation.lockout import Lockout, inflation
-from estimation.measurements import (
+from ddfuse.estimation.estimator import Estimate, Estimator, Innovation, wrap_angle
+from ddfuse.estimation.lockout import Lockout, inflation
+from ddfuse.estimation.measurements import (
     GpsFix,
     GyroYawRate,
     Heading,
@@ -91,14 +90,14 @@ from estimation.measurements import (
     WheelSpeeds,
     is_finite,
 )
-from estimation.runner import TrackBuilder
-from factors.gps import gps_factor, gps_predict_jacobian
-from factors.gyro import bias_difference_factor
-from factors.kinematics import se2_step, se2_step_jac
-from factors.landmark import range_bearing_factor, range_factor
-from factors.linear import linear_state_factor
-from factors.preintegration import WheelGyroPreintegration, preintegrated_factor
-from factors.state import BG, DIM, HOFF, KV, KW, NAMES, PSI
+from ddfuse.estimation.runner import TrackBuilder
+from ddfuse.factors.gps import gps_factor, gps_predict_jacobian
+from ddfuse.factors.gyro import bias_difference_factor
+from ddfuse.factors.kinematics import se2_step, se2_step_jac
+from ddfuse.factors.landmark import range_bearing_factor, range_factor
+from ddfuse.factors.linear import linear_state_factor
+from ddfuse.factors.preintegration import WheelGyroPreintegration, preintegrated_factor
+from ddfuse.factors.state import BG, DIM, HOFF, KV, KW, NAMES, PSI
 
 _ACCEPT, _REJECT, _RECOVER = 0, 1, 2  # verdicts of the GPS gate (FixedLagSmoother._gate)
 MIN_KEYFRAME_DT = 0.1  # s: closer absolute measurements share a keyframe
@@ -250,7 +249,7 @@ def _robustify(cfg: Config, sensor: SensorConfig, base: gtsam.noiseModel.Base,
     2-D fix would be down-weighted 40 % of the time even when exactly Gaussian.
 
     ``inflated``: the factor f by which ``base``'s covariance is the measurement's own times f
-    (a time-correlated GPS fix, ``estimation.gps_correlation``). The same residual in metres
+    (a time-correlated GPS fix, ``ddfuse.estimation.gps_correlation``). The same residual in metres
     then whitens to 1/sqrt(f) of its norm against the own covariance, so the threshold (the
     gate radius, or a given ``robust_k`` alike) is scaled by 1/sqrt(f): the kernel still gives
     full weight to exactly the residuals the gate accepts (which judges the fix with its own
@@ -281,7 +280,7 @@ def _compiled_preintegration() -> type[WheelGyroPreintegration]:
     Python reference if numba does not import. Imported here, not at module level, so that
     importing the smoother does not load numba."""
     try:
-        from factors import preintegration_jit
+        from ddfuse.factors import preintegration_jit
     except ImportError:
         return WheelGyroPreintegration
     preintegration_jit.warm_up()
@@ -327,7 +326,7 @@ class FixedLagSmoother(Estimator):
                  noise: SmootherNoise | None = None, reference: bool = False,
                  lagged: bool = True) -> None:
         """``reference``: preintegrate with the Python ``WheelGyroPreintegration`` instead of its
-        compiled twin (``factors.preintegration_jit``; the same numbers, for tests).
+        compiled twin (``ddfuse.factors.preintegration_jit``; the same numbers, for tests).
         ``lagged``: whether to output the lagged track (``lagged_estimates``). Its covariances
         are a quarter to a third of the smoother's cost on a 10 s lag (each leaving keyframe's
         marginal walks the window's whole chain of cliques), so a caller that does not use the
@@ -417,7 +416,7 @@ class FixedLagSmoother(Estimator):
         self._pending_cache = None  # (key, (state, pose cov)) of _with_pending_heading
         self._held: list = []  # messages since the last odometry sample, waiting for the next
         self._now = -math.inf  # stamp of the newest message seen
-        self._lockout = Lockout()  # GPS gate streaks per sensor (estimation.lockout)
+        self._lockout = Lockout()  # GPS gate streaks per sensor (ddfuse.estimation.lockout)
         self._landmark_t = -math.inf  # stamp of the newest landmark sighting fused
         # per GPS sensor with a correlation time: the stamps (sorted) of the fixes fused, from
         # the last one before the window's lag on (_gps_inflation, _gps_fused)
@@ -730,7 +729,7 @@ class FixedLagSmoother(Estimator):
         held, given their densities ``qg``, ``qo`` and per-sample variances ``vg``, ``vo`` for
         this step: (gyro part rad/s, odometry part rad/s, per-sample variance, density,
         gyro-bias gain). The gyro part carries the bias with that gain, the odometry part the
-        odometry's yaw-rate scale (``factors.preintegration``)."""
+        odometry's yaw-rate scale (``ddfuse.factors.preintegration``)."""
         wg, wo = self.wg, self.wo
         if wg is not None and wo is not None:
             a = qo / (qo + qg)  # the gyro's weight
@@ -942,7 +941,7 @@ class FixedLagSmoother(Estimator):
     def _gate(self, m: GpsFix | LandmarkObservation, s: SensorConfig, nis: float) -> int:
         """The gate's verdict on a fix or a landmark sighting with innovation ``nis`` (2 dof; a
         range-only sighting 1), as in the EKFs: _ACCEPT, _REJECT (logged, counted) or _RECOVER,
-        a lock-out (``estimation.lockout``) that nothing of the other kind accepted since the
+        a lock-out (``ddfuse.estimation.lockout``) that nothing of the other kind accepted since the
         rejections began contradicts (landmark sightings for the GPS, GPS fixes for the
         landmarks): the estimate, not the sensor, is wrong; the caller widens the belief."""
         gps = isinstance(m, GpsFix)
@@ -970,7 +969,7 @@ class FixedLagSmoother(Estimator):
         """Whether heading sample ``m`` (``u``: its yaw carried back to the newest keyframe)
         passes its sensor's chi-square gate, as in the EKFs: against the keyframe's marginal,
         the yaw preintegrated since it and the sample's own variance. A lock-out (a run of
-        rejections, ``estimation.lockout``) with GPS fixes or landmark sightings fused since
+        rejections, ``ddfuse.estimation.lockout``) with GPS fixes or landmark sightings fused since
         it began means the compass is the outlier (a wrong fixed offset, a magnetic
         disturbance): it stays gated out, with a note. Without them the estimate is lost: the
         belief is widened (``_widen_link``) and the sample used. Before, a compass 0.35 rad off
@@ -1144,7 +1143,7 @@ class FixedLagSmoother(Estimator):
 
     def _landmark(self, m: LandmarkObservation, k: int, dt: float) -> None:
         """A sighting ``dt`` s after keyframe ``k``: a range/bearing (or range) factor from the
-        keyframe pose carried along its twist to the sighting (``factors.landmark``), if it
+        keyframe pose carried along its twist to the sighting (``ddfuse.factors.landmark``), if it
         passes its sensor's chi-square gate as in the landmark EKF (``_gate``; a
         delayed one against its own keyframe's marginal). Before, every sighting was fused,
         the robust kernel its only guard: 5 % misidentified landmarks on seed002 made the
@@ -1193,7 +1192,7 @@ class FixedLagSmoother(Estimator):
                              full: np.ndarray, log: bool = True):
         """Range (and bearing) innovation of a sighting ``dt`` s after a keyframe with state
         ``st`` and marginal ``full`` (DIM, DIM), before it is fused: the model of
-        ``factors.landmark`` (the pose carried along the keyframe's twist), its covariance
+        ``ddfuse.factors.landmark`` (the pose carried along the keyframe's twist), its covariance
         through the carry's Jacobian on pose and twist. Logged for the NIS unless ``log`` is
         False. Returns (nis, y (m,), H (m, DIM), R (m, m)), None on top of the landmark."""
         st = st.tolist() if hasattr(st, "tolist") else list(st)
@@ -1257,7 +1256,7 @@ class FixedLagSmoother(Estimator):
                                              math.sqrt(self._diff_qo / T)))
         if rows:
             # linear in the state: one C++ factor, no Python callback per relinearisation
-            # (factors.linear)
+            # (ddfuse.factors.linear)
             self._add(linear_state_factor(kj, rows, guess))
         self._int_g = self._int_o = self._diff_t = 0.0
         self.pim.reset(guess[BG], guess[KV], guess[KW])

@@ -24,11 +24,10 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-from estimation.bags import BagStream
-from estimation.config import load_config
-from estimation.errors import BagError
-from estimation.runner import run
+from ddfuse.estimation.bags import BagStream
+from ddfuse.estimation.config import load_config
+from ddfuse.estimation.errors import BagError
+from ddfuse.estimation.runner import run
 
 
 def peak_rss_mb() -> float:
@@ -59,7 +58,7 @@ def _one(bag: str, cfg_path: str, name: str, lag: float | None, tracks: list[str
 
 def _measure(bag: str, cfg_path: str, name: str, lag: float | None,
              tracks: list[str] | None) -> dict:
-    from evaluation import estimators as registry
+    from ddfuse.evaluation import estimators as registry
 
     cfg = load_config(cfg_path)
     stream = BagStream(bag, cfg, keep_truth=False).prime()
@@ -118,7 +117,7 @@ def bench_bag(bag: Path, cfg_path: Path, names: list[str] | None = None,
 
     A truncated or damaged bag is benchmarked on what can be read (as ``ddfuse run`` does);
     ``input_error`` then says why it stops early. A bag that cannot be used raises BagError."""
-    from evaluation import estimators as registry
+    from ddfuse.evaluation import estimators as registry
 
     cfg = load_config(cfg_path)
     chosen = registry.select(cfg, names)

@@ -8,7 +8,7 @@ round-robin runs divided by the number of factors. Reference rows: a trivial 1-k
 that reads nothing (the floor of any Python factor) and C++ built-ins. Not a test: timings
 depend on the machine and its load.
 
-Run: ``python3 -m evaluation.bench_factors [repeat]``.
+Run: ``python3 -m ddfuse.evaluation.bench_factors [repeat]``.
 """
 
 from __future__ import annotations
@@ -19,18 +19,17 @@ import timeit
 
 import gtsam
 import numpy as np
-
-from factors.gps import gps_factor
-from factors.gyro import gyro_factor
-from factors.heading import heading_factor
-from factors.landmark import (
+from ddfuse.factors.gps import gps_factor
+from ddfuse.factors.gyro import gyro_factor
+from ddfuse.factors.heading import heading_factor
+from ddfuse.factors.landmark import (
     range_bearing_factor,
     range_bearing_slam_factor,
     range_factor,
 )
-from factors.motion import MotionNoise, motion_factor
-from factors.preintegration import WheelGyroPreintegration, preintegrated_factor
-from factors.wheel import wheel_rates_calib_factor, wheel_rates_factor, wheel_speed_factor
+from ddfuse.factors.motion import MotionNoise, motion_factor
+from ddfuse.factors.preintegration import WheelGyroPreintegration, preintegrated_factor
+from ddfuse.factors.wheel import wheel_rates_calib_factor, wheel_rates_factor, wheel_speed_factor
 
 __all__ = ["bench_factors", "bench_preintegration"]
 

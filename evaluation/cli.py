@@ -14,26 +14,18 @@ import sys
 from pathlib import Path
 
 import yaml
+from ddfuse.estimation.errors import DdfuseError
 
-from estimation.errors import DdfuseError
-
-ROOT = Path(__file__).resolve().parents[1]
+from ddfuse import __version__
 
 
 def data_dir() -> Path:
-    """Where ddfuse's shipped data is (the sample bags and their configs, configs/<stem>.yaml
-    of the known real bags): ``data/`` of the checkout the code runs from (a source tree or an
-    editable install), else the installed package ``ddfuse_data`` that pyproject.toml makes of
-    it (``pip install .``), else ``data/`` beside the packages (where errors then name it)."""
-    if (ROOT / "pyproject.toml").is_file() and (ROOT / "data").is_dir():
-        return ROOT / "data"
-    try:
-        from importlib.resources import files
+    """Where ddfuse's shipped data is: the package ``ddfuse.data`` (the sample bags and their
+    configs, ``configs/<stem>.yaml`` of the known real bags), which is ``data/`` of the checkout
+    in an editable install and a copy in site-packages in a regular one."""
+    from importlib.resources import files
 
-        found = Path(str(files("ddfuse_data")))
-    except (ImportError, TypeError):
-        return ROOT / "data"
-    return found if found.is_dir() else ROOT / "data"
+    return Path(str(files("ddfuse.data")))
 
 
 DATA = data_dir()
@@ -46,8 +38,8 @@ def _fmt(v: float, spec: str = ".2f") -> str:
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
-    from estimation.baginfo import bag_info, offset_surveys, suggest_config
-    from estimation.rosmsg import short_type
+    from ddfuse.estimation.baginfo import bag_info, offset_surveys, suggest_config
+    from ddfuse.estimation.rosmsg import short_type
 
     info = bag_info(args.bag)
     # measured on the sensors suggest_config picks; a bag that breaks off is not read twice
@@ -99,7 +91,7 @@ def _config_for(bag: Path, given: Path | None) -> Path:
 
 def online_header(frame: dict[str, str]) -> str:
     """The column header ``online`` prints, naming the local frame as ``run``'s report does
-    (``frame``: ``evaluation.local_frame.frame`` of the run)."""
+    (``frame``: ``ddfuse.evaluation.local_frame.frame`` of the run)."""
     axes = ("x east, y north, yaw counter-clockwise from east" if frame["kind"] == "enu"
             else "yaw counter-clockwise from x")
     return (f"t = s since the first message; per estimator (x m, y m, yaw deg) in "
@@ -111,8 +103,8 @@ def online_frame(bag: Path, cfg, reorder_window: float | None = None) -> dict[st
     (the datum: the config's or the first GPS fix; the landmark map; the initial pose) as
     ``run`` records them in metrics.json. The bag's start is decoded for the datum (what the
     replay's own stream does before its first message, a few ms)."""
-    from estimation.bags import BagStream
-    from evaluation.local_frame import frame
+    from ddfuse.estimation.bags import BagStream
+    from ddfuse.evaluation.local_frame import frame
 
     stream = BagStream(bag, cfg, reorder_window=reorder_window, keep_truth=False).prime()
     try:
@@ -136,11 +128,10 @@ def cmd_online(args: argparse.Namespace) -> int:
     0 with ERROR in that estimator's row; 2 for bad input (a truncated bag: after the
     replay), 130 for Ctrl-C."""
     import numpy as np
-
-    from estimation.config import load_config
-    from estimation.errors import RunInterrupted
-    from estimation.heading_survey import config_warnings, recorder_for
-    from evaluation.online import ONLINE_TRACKS_REFUSED, replay
+    from ddfuse.estimation.config import load_config
+    from ddfuse.estimation.errors import RunInterrupted
+    from ddfuse.estimation.heading_survey import config_warnings, recorder_for
+    from ddfuse.evaluation.online import ONLINE_TRACKS_REFUSED, replay
 
     for name in args.estimators or ():
         if name in ONLINE_TRACKS_REFUSED:  # before any work
@@ -230,7 +221,7 @@ def cmd_online(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     import json
 
-    from evaluation.bench import bench_bag
+    from ddfuse.evaluation.bench import bench_bag
 
     bags = args.bags or [SAMPLE_BAG]
     if args.json:  # before the benchmarks, not after them
@@ -315,7 +306,7 @@ def _progress() -> _Bars | None:
 
 
 def _render(outdir: Path, bars: _Bars | None) -> Path:
-    from evaluation.report import render_report
+    from ddfuse.evaluation.report import render_report
 
     return render_report(outdir, progress=(lambda f: bars.update("report", f)) if bars
                          else None)
@@ -377,9 +368,9 @@ def check_holdout_sensor(cfg, config: Path, holdout: str | None) -> None:
 def cmd_run(args: argparse.Namespace) -> int:
     import time
 
-    from estimation.config import load_config
-    from estimation.errors import BagError, RunInterrupted
-    from evaluation.pipeline import run_bag
+    from ddfuse.estimation.config import load_config
+    from ddfuse.estimation.errors import BagError, RunInterrupted
+    from ddfuse.evaluation.pipeline import run_bag
 
     check_output_dir(args.outdir, "-o")  # before any work
     bag = args.bag or SAMPLE_BAG
@@ -477,7 +468,7 @@ def int_at_least(minimum: int):
 def estimator_list(text: str) -> list[str]:
     """argparse type of --estimators: comma-separated known estimator (or track) names; an
     empty list is refused (leave the option out for the default set)."""
-    from evaluation.estimators import TRACK_TO_SPEC
+    from ddfuse.evaluation.estimators import TRACK_TO_SPEC
 
     return _estimator_names(text, list(TRACK_TO_SPEC))
 
@@ -486,14 +477,14 @@ def online_estimator_list(text: str) -> list[str]:
     """``estimator_list`` of ``online``: an unknown name is refused with the names online can
     run (not smoother_lagged or batch; asked for, those are refused with the reason by
     ``cmd_online``)."""
-    from evaluation.estimators import TRACK_TO_SPEC
-    from evaluation.online import ONLINE_TRACKS_REFUSED
+    from ddfuse.evaluation.estimators import TRACK_TO_SPEC
+    from ddfuse.evaluation.online import ONLINE_TRACKS_REFUSED
 
     return _estimator_names(text, [n for n in TRACK_TO_SPEC if n not in ONLINE_TRACKS_REFUSED])
 
 
 def _estimator_names(text: str, known: list[str]) -> list[str]:
-    from evaluation.estimators import TRACK_TO_SPEC
+    from ddfuse.evaluation.estimators import TRACK_TO_SPEC
 
     names = [n.strip() for n in text.split(",") if n.strip()]
     if not names:
@@ -510,7 +501,7 @@ def _estimator_names(text: str, known: list[str]) -> list[str]:
 def gps_holdout(text: str) -> str:
     """argparse type of --gps-holdout: ``every:K`` (K >= 2) or ``window:T0:T1`` with
     0 <= T0 < T1, seconds from the bag's first message; returned as given."""
-    from estimation.runner import parse_holdout
+    from ddfuse.estimation.runner import parse_holdout
 
     try:
         parse_holdout(text)
@@ -527,7 +518,7 @@ GPS_HOLDOUT_HELP = ("withhold these GPS fixes from every estimator and score aga
 def simulated_scenario(name: str, duration: float | None):
     """The simulator scenario ``name`` (chosen from its list by argparse) with ``duration``;
     DdfuseError naming --duration when the duration is refused (before any work)."""
-    from evaluation.simulate import get_scenario
+    from ddfuse.evaluation.simulate import get_scenario
 
     try:
         return get_scenario(name, duration)
@@ -604,6 +595,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Pose estimation for differential-drive robots from ROS bags: "
                     "EKF baseline vs GTSAM fixed-lag smoother.")
     p.add_argument("-v", "--verbose", action="store_true", help="log details to stderr")
+    p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
     sp = sub.add_parser("inspect", help="topics, rates, covariance sanity and a suggested config")
@@ -683,8 +675,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 # Sub-commands whose module parses its own arguments (argparse.REMAINDER cannot pass a leading
 # option such as --help through, so they are dispatched before the top-level parser).
-DELEGATED = {"simulate": "evaluation.simulate", "plot-sim": "evaluation.plot_sim",
-             "lag-sweep": "evaluation.lag_sweep", "mc": "evaluation.montecarlo"}
+DELEGATED = {"simulate": "ddfuse.evaluation.simulate", "plot-sim": "ddfuse.evaluation.plot_sim",
+             "lag-sweep": "ddfuse.evaluation.lag_sweep", "mc": "ddfuse.evaluation.montecarlo"}
 
 
 def guarded(func, *args) -> int:

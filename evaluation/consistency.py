@@ -35,9 +35,8 @@ from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
-
-from estimation import chi2
-from estimation.estimator import NIS_BAND_P, InnovationLog
+from ddfuse.estimation import chi2
+from ddfuse.estimation.estimator import NIS_BAND_P, InnovationLog
 
 BAND_P = NIS_BAND_P  # two-sided probability of the band
 PASS_OUTSIDE, WARN_OUTSIDE = 0.10, 0.25
@@ -140,7 +139,7 @@ class InnovationTable:
 
     @classmethod
     def from_innovations(cls, innovations: Iterable) -> InnovationTable:
-        """From an ``estimation.estimator.InnovationLog`` or ``Innovation`` records."""
+        """From an ``ddfuse.estimation.estimator.InnovationLog`` or ``Innovation`` records."""
         if isinstance(innovations, InnovationLog):
             c = innovations.columns()
             return cls(c["t"], c["sensor"], c["kind"], c["nis"], c["dim"], c["accepted"],

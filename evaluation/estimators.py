@@ -5,15 +5,15 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from ekf_baseline.igvc import IgvcEkf
-from ekf_baseline.landmark import LandmarkEkf, LandmarkSlamEkf
-from ekf_baseline.unicycle import UnicycleEkf
-from estimation.config import Config
-from estimation.dead_reckoning import DeadReckoning, odometry_source
-from estimation.estimator import Estimator
-from estimation.measurements import Stream
-from estimation.runner import initial_pose
-from estimation.smoother import BatchSmoother, FixedLagSmoother
+from ddfuse.ekf_baseline.igvc import IgvcEkf
+from ddfuse.ekf_baseline.landmark import LandmarkEkf, LandmarkSlamEkf
+from ddfuse.ekf_baseline.unicycle import UnicycleEkf
+from ddfuse.estimation.config import Config
+from ddfuse.estimation.dead_reckoning import DeadReckoning, odometry_source
+from ddfuse.estimation.estimator import Estimator
+from ddfuse.estimation.measurements import Stream
+from ddfuse.estimation.runner import initial_pose
+from ddfuse.estimation.smoother import BatchSmoother, FixedLagSmoother
 
 
 @dataclass(frozen=True)
@@ -86,7 +86,7 @@ def build(cfg: Config, stream, names: list[str] | str | None = None, *,
           pose: tuple[float, float, float] | None = None,
           tracks: list[str] | None = None) -> dict[str, Estimator]:
     """The named estimators (``select``'s names; default: every default one the config
-    allows), built as ``ddfuse run`` builds them, for ``estimation.runner.run`` or an online
+    allows), built as ``ddfuse run`` builds them, for ``ddfuse.estimation.runner.run`` or an online
     session: the start pose from the config (``initial_pose: ground_truth``: the stream's
     first truth pose) unless ``pose`` (x, y, yaw) is given, the landmark maps and datum from
     ``stream`` (a Stream, or a primed BagStream), the smoother's lag from the config unless

@@ -5,8 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-
-from estimation.runner import Trajectory
+from ddfuse.estimation.runner import Trajectory
 
 CSV_COLUMNS = ["t", "x", "y", "yaw"] + [f"cov_{a}{b}" for a in ("x", "y", "yaw")
                                          for b in ("x", "y", "yaw")]

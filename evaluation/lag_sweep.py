@@ -17,13 +17,13 @@ import math
 import sys
 from pathlib import Path
 
-from estimation.bags import read_stream
-from estimation.config import load_config
-from estimation.errors import BagError
-from estimation.measurements import GpsFix
-from estimation.runner import initial_pose, parse_holdout, run
-from evaluation import estimators as registry
-from evaluation.pipeline import score
+from ddfuse.estimation.bags import read_stream
+from ddfuse.estimation.config import load_config
+from ddfuse.estimation.errors import BagError
+from ddfuse.estimation.measurements import GpsFix
+from ddfuse.estimation.runner import initial_pose, parse_holdout, run
+from ddfuse.evaluation import estimators as registry
+from ddfuse.evaluation.pipeline import score
 
 __all__ = ["lag_sweep", "format_table", "main"]
 
@@ -103,7 +103,7 @@ def _check_scorable(cfg, config, holdout: str | None) -> None:
 def _scored_against(stream, bag, cfg, holdout: str | None) -> str:
     """What the decoded ``stream`` lets the sweep score against: "truth" when it has ground
     truth, else "gps_holdout" when ``holdout`` withholds at least one of its fixes (the rule
-    ``estimation.runner.run`` applies, from the first measurement's stamp); ValueError
+    ``ddfuse.estimation.runner.run`` applies, from the first measurement's stamp); ValueError
     otherwise."""
     if stream.ground_truth:
         return "truth"
@@ -146,7 +146,7 @@ def plain_text(doc: str) -> str:
 
 
 def _main(argv: list[str] | None) -> int:
-    from evaluation.cli import (
+    from ddfuse.evaluation.cli import (
         CONFIG_HELP,
         GPS_HOLDOUT_HELP,
         SAMPLE_BAG,
@@ -200,6 +200,6 @@ def _main(argv: list[str] | None) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """``ddfuse lag-sweep``; a user error ends in one line on stderr and exit code 2."""
-    from evaluation.cli import guarded
+    from ddfuse.evaluation.cli import guarded
 
     return guarded(_main, argv)

@@ -1,6 +1,6 @@
 """Trajectory metrics: pure math on arrays, no I/O or plotting (evo's core/metrics split).
 
-Trajectories are ``estimation.runner.Trajectory``: ``t`` (N,) s, ``pose`` (N, 3) as
+Trajectories are ``ddfuse.estimation.runner.Trajectory``: ``t`` (N,) s, ``pose`` (N, 3) as
 (x m, y m, yaw rad) in the local frame, ``cov`` (N, 3, 3). The semantics follow evo (1.38) so
 that ``evo_ape`` / ``evo_rpe`` on the TUM files ddfuse writes give the same numbers:
 
@@ -28,8 +28,7 @@ import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
-
-from estimation.runner import Trajectory
+from ddfuse.estimation.runner import Trajectory
 
 ALIGNMENTS = ("none", "se2", "origin")
 PAIRINGS = ("nearest", "interpolate")

@@ -2,8 +2,8 @@
 
 For a simulator scenario and N seeds, each seed is simulated and written as a bag with its
 config and landmark map (``evaluation.simulate``) in a temporary directory, read back like any
-bag (``estimation.bags.read_stream``) and run through the normal runner
-(``estimation.runner.run``) with the chosen estimators plus dead reckoning (``dr``: the same
+bag (``ddfuse.estimation.bags.read_stream``) and run through the normal runner
+(``ddfuse.estimation.runner.run``) with the chosen estimators plus dead reckoning (``dr``: the same
 stream's wheel odometry integrated alone). Per seed and estimator it records the position RMSE,
 the dead-reckoning RMSE, the pose NEES and the runtime; across seeds it forms Bar-Shalom's
 average NEES and its chi-square band. Seeds run in local processes (``jobs``).
@@ -41,7 +41,7 @@ about 95 % for a consistent filter.
 
 Library use (a notebook)::
 
-    from evaluation.montecarlo import monte_carlo, to_markdown
+    from ddfuse.evaluation.montecarlo import monte_carlo, to_markdown
     mc = monte_carlo("husky", seeds=range(20), estimators=["ekf", "ekf_igvc"], jobs=2)
     print(to_markdown(mc))
 """
@@ -59,8 +59,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
-
-from estimation import chi2
+from ddfuse.estimation import chi2
 
 __all__ = ["nees_band", "run_seed", "aggregate", "monte_carlo", "to_markdown", "write_report",
            "main"]
@@ -80,7 +79,7 @@ def nees_band(n_runs: int, dim: int, prob: float = 0.95) -> tuple[float, float]:
 
 def default_estimators(cfg) -> list[str]:
     """Every EKF the config's sensors allow."""
-    from evaluation import estimators as registry
+    from ddfuse.evaluation import estimators as registry
 
     return [n for n, s in registry.SPECS.items() if n.startswith("ekf") and s.allowed(cfg)]
 
@@ -90,8 +89,8 @@ def _truth_errors(sim, tr, pose_error: str = "world"
     """Against the exact truth at each estimate's stamp: the position error (m) of every sample,
     and the output tick indices and pose NEES of the samples with a usable covariance, in the
     estimator's error coordinates ``pose_error`` (``metrics.nees_series``)."""
-    from estimation.runner import Trajectory
-    from evaluation import metrics
+    from ddfuse.estimation.runner import Trajectory
+    from ddfuse.evaluation import metrics
 
     t_rel = tr.t - sim.t0
     x, y, yaw, _, _ = sim.truth.at(np.clip(t_rel, 0.0, sim.duration))
@@ -109,8 +108,8 @@ def draw_truth(sc, seed: int):
     N(0, diag(GIVEN_POSE_STD)^2)). Deterministic per seed (its own random stream)."""
     from dataclasses import replace
 
-    from ekf_baseline import GIVEN_POSE_STD
-    from evaluation.simulate import Geometry, _rng
+    from ddfuse.ekf_baseline import GIVEN_POSE_STD
+    from ddfuse.evaluation.simulate import Geometry, _rng
 
     rng = _rng(seed, "mc_truth")
     z = rng.standard_normal(5)
@@ -141,8 +140,8 @@ def _calibration_errors(sim, final) -> dict:
     """Per calibration state an estimator ends the run with (``pipeline.calibration_entries``
     of its final state): the error against the simulation's truth and that error over the
     estimator's sigma."""
-    from estimation.estimator import wrap_angle
-    from evaluation.pipeline import calibration_entries
+    from ddfuse.estimation.estimator import wrap_angle
+    from ddfuse.evaluation.pipeline import calibration_entries
 
     truth = calibration_truth(sim)
     out = {}
@@ -164,10 +163,10 @@ def seed_data(scenario: str, seed: int, duration: float | None = None,
     drawn per seed by ``draw_truth`` unless ``fixed_truth``), written as a bag in a temporary
     directory and read back as a user's bag would be; the pose is the config's initial pose
     plus that error (m, m, rad), None when the config has none."""
-    from estimation.bags import read_stream
-    from estimation.config import load_config
-    from estimation.runner import initial_pose
-    from evaluation.simulate import get_scenario, simulate, write_bag
+    from ddfuse.estimation.bags import read_stream
+    from ddfuse.estimation.config import load_config
+    from ddfuse.estimation.runner import initial_pose
+    from ddfuse.evaluation.simulate import get_scenario, simulate, write_bag
 
     sc = get_scenario(scenario, duration)
     err0 = (0.0, 0.0, 0.0)
@@ -198,8 +197,8 @@ def run_seed(scenario: str, seed: int, estimators: list[str] | None = None,
     'runtime_s', 'error', 'ticks', 'nees', 'calibration'}}, 'dr_rmse_m'}; 'ticks' and 'nees' are
     the per-sample output tick indices and NEES (lists, for the across-run average);
     'calibration' the final calibration states' errors (``_calibration_errors``)."""
-    from estimation.runner import run
-    from evaluation import estimators as registry
+    from ddfuse.estimation.runner import run
+    from ddfuse.evaluation import estimators as registry
 
     sim, cfg, stream, pose, err0 = seed_data(scenario, seed, duration, fixed_truth)
     names = registry.names_list(estimators) if estimators else default_estimators(cfg)
@@ -330,7 +329,7 @@ def monte_carlo(scenario: str, seeds: Iterable[int], estimators: list[str] | Non
     seeds = [int(s) for s in seeds]
     if not seeds:
         raise ValueError("monte_carlo: no seeds")
-    from evaluation.simulate import get_scenario
+    from ddfuse.evaluation.simulate import get_scenario
 
     get_scenario(scenario, duration)  # a bad scenario or duration fails here, not in a worker
     if jobs is not None and jobs < 1:
@@ -361,7 +360,7 @@ def _f(v, spec: str = ".3f") -> str:
 def _run_settings(mc: dict) -> str:
     """How the runs were made, beyond scenario, seeds and duration: where the truth came from
     (--fixed-truth) and the smoother's lag (--lag, s)."""
-    from evaluation.simulate import SMOOTHER_LAG
+    from ddfuse.evaluation.simulate import SMOOTHER_LAG
 
     if mc.get("fixed_truth"):
         truth = ("Truth fixed (--fixed-truth): every seed has the scenario's true geometry and "
@@ -469,7 +468,7 @@ def write_report(mc: dict, outdir: str | Path) -> tuple[Path, Path]:
 def _save_or_show(mc: dict, outdir: Path) -> tuple[Path, Path]:
     """write_report; if that fails after all the runs, the table goes to stdout and the JSON to
     a temporary file, and the one-line error (DdfuseError) names both."""
-    from estimation.errors import DdfuseError
+    from ddfuse.estimation.errors import DdfuseError
 
     try:
         return write_report(mc, outdir)
@@ -488,8 +487,8 @@ def _save_or_show(mc: dict, outdir: Path) -> tuple[Path, Path]:
 
 
 def _main(argv: list[str] | None) -> int:
-    from estimation.errors import DdfuseError
-    from evaluation.cli import (
+    from ddfuse.estimation.errors import DdfuseError
+    from ddfuse.evaluation.cli import (
         DdfuseParser,
         check_output_dir,
         estimator_list,
@@ -497,7 +496,7 @@ def _main(argv: list[str] | None) -> int:
         lag_seconds,
         simulated_scenario,
     )
-    from evaluation.simulate import SCENARIOS, SMOOTHER_LAG
+    from ddfuse.evaluation.simulate import SCENARIOS, SMOOTHER_LAG
 
     ap = DdfuseParser(
         prog="ddfuse mc",
@@ -545,7 +544,7 @@ def _main(argv: list[str] | None) -> int:
 def main(argv: list[str] | None = None) -> int:
     """``ddfuse mc SCENARIO [--seeds N] [--first-seed S] [--duration S] [--estimators LIST]
     [--jobs J] [-o OUTDIR]``; a user error ends in one line on stderr and exit code 2."""
-    from evaluation.cli import guarded
+    from ddfuse.evaluation.cli import guarded
 
     return guarded(_main, argv)
 

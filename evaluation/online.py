@@ -6,7 +6,7 @@ makes them from the ROS messages, checking each topic's stamps against the recei
 ``estimate(name)`` whenever a pose is needed; ``latency_ms()`` gives per-update latency
 percentiles. ``replay`` drives a session from a bag, optionally paced by the header stamps.
 
-The stream semantics are the bag reader's (``estimation.bags.BagStream``):
+The stream semantics are the bag reader's (``ddfuse.estimation.bags.BagStream``):
 
 - Reordering. A session holds each measurement until a newer stamp is ``reorder_window`` s
   past it (``from_config``: the config's ``reorder_window``; the constructor's default 0), then
@@ -24,7 +24,7 @@ The stream semantics are the bag reader's (``estimation.bags.BagStream``):
   estimator (a ``push`` after it raises RuntimeError). ``replay`` reads through ``BagStream``,
   which already reorders and checks stamps (``reorder_window`` there), so its session's own
   window is 0; its ``rejected`` then holds the bag reader's counts (by topic) too.
-- Isolation, as ``estimation.runner.run``: an estimator that raises (in ``process``,
+- Isolation, as ``ddfuse.estimation.runner.run``: an estimator that raises (in ``process``,
   ``estimate`` or ``finish``) is stopped there, never called again, its error kept in
   ``errors[name]`` ("RuntimeError at t=...: ...") and noted in its ``log``; ``estimate(name)``
   then gives its last estimate (or None), and the others go on. ``push`` never raises because
@@ -44,15 +44,14 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
-
-from estimation.bags import BagStream
-from estimation.config import Config
-from estimation.errors import BagError
-from estimation.estimator import Estimate, Estimator
-from estimation.forecast import MAX_CARRY_S, OdometryTwist, carry
-from estimation.measurements import Stream
-from estimation.runner import broken, initial_pose
-from evaluation import estimators as registry
+from ddfuse.estimation.bags import BagStream
+from ddfuse.estimation.config import Config
+from ddfuse.estimation.errors import BagError
+from ddfuse.estimation.estimator import Estimate, Estimator
+from ddfuse.estimation.forecast import MAX_CARRY_S, OdometryTwist, carry
+from ddfuse.estimation.measurements import Stream
+from ddfuse.estimation.runner import broken, initial_pose
+from ddfuse.evaluation import estimators as registry
 
 log = logging.getLogger(__name__)
 
@@ -79,7 +78,7 @@ class OnlineSession:
     measurement it failed on, None in ``finish``; ``why`` "Type: message").
     ``twist``: the odometry ``estimate(name, at=...)`` carries an estimate forward on
     (``from_config``: the config's), at most ``carry_horizon`` s (the reorder window plus
-    ``estimation.forecast.MAX_CARRY_S`` = 5 s)."""
+    ``ddfuse.estimation.forecast.MAX_CARRY_S`` = 5 s)."""
 
     KEEP_PERIOD = 0.1  # s
 
@@ -131,7 +130,7 @@ class OnlineSession:
                     on_stop: Callable[[str, float | None, str], None] | None = None,
                     ) -> OnlineSession:
         """Build the named estimators (``names``: a list, or a comma-separated string as
-        ``evaluation.estimators.names_list`` reads it; default: all the config allows, except
+        ``ddfuse.evaluation.estimators.names_list`` reads it; default: all the config allows, except
         the offline batch). ``stream`` supplies the datum, landmark map and truth-based initial
         pose; ``reorder_window`` (s) defaults to the config's. ValueError for 'smoother_lagged'
         and 'batch' (``ONLINE_TRACKS_REFUSED`` says why), for unknown names, and for a config
@@ -312,14 +311,14 @@ class OnlineSession:
         ``at`` (s, the stamps' clock; e.g. ``session.newest``, or the time now on a live
         robot whose stamps are wall-clock): the estimate carried from its own stamp to ``at``
         on the odometry pushed since, the reorder buffer's included
-        (``estimation.forecast``): the pose "now" although the estimators lag the newest
+        (``ddfuse.estimation.forecast``): the pose "now" although the estimators lag the newest
         message by up to the reorder window. Its covariance grows with the odometry's noise;
         it has no ``state``. Not carried: a stopped estimator's, a session without
         odometry (built without ``twist``), or ``at`` not after the estimate (-inf, i.e.
         ``newest`` before any push, included: the estimate returned then carries its own,
         later stamp ``t``). ValueError for an ``at`` that is not a time (NaN, +inf, not a
         number), or more than ``carry_horizon`` s (the reorder window plus
-        ``estimation.forecast.MAX_CARRY_S`` = 5 s) after the estimate, carried or not (a
+        ``ddfuse.estimation.forecast.MAX_CARRY_S`` = 5 s) after the estimate, carried or not (a
         stopped estimator's included): the carry covers the estimators' lag, it does not
         predict, and a stalled feed or a stopped estimator is to be seen, not answered with
         an old pose."""
@@ -413,7 +412,7 @@ def replay(bag: str | Path, cfg: Config, *, names: list[str] | None = None,
     ``interruptible``, Ctrl-C ends the replay there as the bag's end would, and the session's
     ``interrupted`` says where (the latency figures so far are kept); otherwise it
     propagates. ``observers`` are called with every measurement before the session has it
-    (e.g. ``estimation.heading_survey.OffsetRecorder.add``), outside the latency figures."""
+    (e.g. ``ddfuse.estimation.heading_survey.OffsetRecorder.add``), outside the latency figures."""
     if not (print_every > 0.0 and np.isfinite(print_every)):
         raise ValueError(f"print_every: expected seconds > 0, got {print_every!r}")
     stream = BagStream(bag, cfg, reorder_window=reorder_window, keep_truth=False).prime()

@@ -41,7 +41,7 @@ Per estimator (track), metrics.json holds:
   how closely a track follows the GPS on that time scale;
 * ``gps_outages``: error growth per metre travelled over each GPS outage (``metrics.gps_outages``);
 * ``nis``: per 'sensor kind', NIS consistency and the gate's accept/reject counts
-  (``evaluation.consistency``); ``rejected`` (sensor: reason -> count), ``events`` (the first
+  (``ddfuse.evaluation.consistency``); ``rejected`` (sensor: reason -> count), ``events`` (the first
   ``EVENTS_KEPT``) and ``events_total`` (all of them), ``error``;
 * ``final_state``: the calibration states at the end of the run, ``{"t": s, "states": {name:
   {"value", "sigma"}}}`` (``calibration_states``): gyro bias ``bg`` rad/s, heading offset
@@ -74,16 +74,15 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-
-from estimation import chi2, heading_survey
-from estimation.bags import BagStream
-from estimation.config import DEFAULT_GATE, Config
-from estimation.errors import BagError, RunInterrupted
-from estimation.measurements import Stream
-from estimation.runner import RunResult, Trajectory, initial_pose, parse_holdout, run
-from evaluation import consistency, metrics
-from evaluation import estimators as registry
-from evaluation.results import config_text_of, save_run
+from ddfuse.estimation import chi2, heading_survey
+from ddfuse.estimation.bags import BagStream
+from ddfuse.estimation.config import DEFAULT_GATE, Config
+from ddfuse.estimation.errors import BagError, RunInterrupted
+from ddfuse.estimation.measurements import Stream
+from ddfuse.estimation.runner import RunResult, Trajectory, initial_pose, parse_holdout, run
+from ddfuse.evaluation import consistency, metrics
+from ddfuse.evaluation import estimators as registry
+from ddfuse.evaluation.results import config_text_of, save_run
 
 MAX_DIFF = 0.05  # s: association of estimate and truth stamps (truth at >= 10 Hz)
 RPE_DELTAS = (("1s", 1.0, "s"), ("10m", 10.0, "m"))
@@ -267,7 +266,7 @@ def gps_correlation_warnings(m: dict, cfg: Config) -> list[str]:
     median over the tracks that have one) stay correlated for at least
     ``GPS_CORRELATED_INTERVALS`` fix intervals while every GPS sensor fuses its fixes as
     independent (``correlation_time`` 0): the estimates then follow the GPS's slow wander with
-    over-confident covariances (``estimation.gps_correlation``). The measured time is a lower
+    over-confident covariances (``ddfuse.estimation.gps_correlation``). The measured time is a lower
     bound of the errors' own: a track that follows the GPS takes part of the error with it."""
     gps = cfg.of_kind("gps")
     interval = (m.get("data") or {}).get("gps_fix_interval_s")
@@ -336,7 +335,7 @@ def _gross_outliers(result: RunResult, t: np.ndarray, xy: np.ndarray, cov: np.nd
     live = [r.trajectory for r in result.runs.values() if len(r.trajectory) > 1]
     if not gate or not live or not len(t):
         return np.zeros(len(t), bool)
-    limit = float(chi2.ppf(gate, 2))  # estimation.chi2: scipy.stats's values, not its import
+    limit = float(chi2.ppf(gate, 2))  # ddfuse.estimation.chi2: scipy.stats's values, not its import
     out = _beside_fixes(result, t, xy, cov, limit, used)
     for tr in live:
         if not out.any():
@@ -532,7 +531,7 @@ def _common_ate(tracks: dict[str, Trajectory], truth: Trajectory | None
 def offset_surveys(result: RunResult, cfg: Config,
                    recorder: heading_survey.OffsetRecorder | None = None
                    ) -> list[heading_survey.OffsetSurvey]:
-    """Each compass's heading offset against the GPS course (``estimation.heading_survey``):
+    """Each compass's heading offset against the GPS course (``ddfuse.estimation.heading_survey``):
     from ``recorder`` where it watched the run (a BagStream keeps no measurements), else what
     the result holds (``RunResult.offset_surveys``), else from the run's Stream."""
     if recorder is None and result.offset_surveys is not None:
@@ -589,7 +588,7 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
             lag: float | None = None, holdout: str | None = None,
             progress: Callable[[str, float], None] | None = None,
             reorder_window: float | None = None) -> dict:
-    """Decode ``bag`` as a stream (``estimation.bags.BagStream``: memory bounded however long
+    """Decode ``bag`` as a stream (``ddfuse.estimation.bags.BagStream``: memory bounded however long
     the bag), run the selected estimators on it, write results into ``outdir``; returns the
     metrics dictionary (also written as metrics.json). ``reorder_window`` (s) overrides the
     config's.

@@ -5,7 +5,7 @@ the true path, the GPS fixes (converted back to ENU from their lat/lon; outliers
 landmarks and the sightings' count, and the dead reckoning of the wheel odometry (odometry twist,
 or wheel speeds through the NOMINAL geometry) started from the true initial pose. A second panel
 shows the dead-reckoning position error over time. ``main(argv)`` simulates a scenario and plots
-it: ``python3 -m evaluation.plot_sim husky --seed 0 -o husky.png``.
+it: ``python3 -m ddfuse.evaluation.plot_sim husky --seed 0 -o husky.png``.
 """
 
 from __future__ import annotations
@@ -14,10 +14,9 @@ import sys
 from pathlib import Path
 
 import numpy as np
-
-from estimation.geodesy import geodetic_to_enu
-from evaluation.plots import subplots  # a Figure on its own canvas: the backend left alone
-from evaluation.simulate import SCENARIOS, SimResult, se2_step, simulate, wrap
+from ddfuse.estimation.geodesy import geodetic_to_enu
+from ddfuse.evaluation.plots import subplots  # a Figure on its own canvas: the backend left alone
+from ddfuse.evaluation.simulate import SCENARIOS, SimResult, se2_step, simulate, wrap
 
 
 def dead_reckoning(res: SimResult) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -96,15 +95,14 @@ def plot_sim(res: SimResult, out: str | Path, title: str | None = None) -> Path:
 
 
 def _main(argv: list[str] | None) -> int:
-    from matplotlib.backend_bases import FigureCanvasBase
-
-    from estimation.errors import DdfuseError
-    from evaluation.cli import (
+    from ddfuse.estimation.errors import DdfuseError
+    from ddfuse.evaluation.cli import (
         DdfuseParser,
         check_output_file,
         int_at_least,
         simulated_scenario,
     )
+    from matplotlib.backend_bases import FigureCanvasBase
 
     ap = DdfuseParser(prog="ddfuse plot-sim", description=__doc__.splitlines()[0])
     ap.add_argument("scenario", choices=list(SCENARIOS))
@@ -129,9 +127,9 @@ def _main(argv: list[str] | None) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """``ddfuse plot-sim SCENARIO [--seed N] [--duration S] -o OUT.png`` (also
-    ``python3 -m evaluation.plot_sim``); a user error ends in one line on stderr and exit
+    ``python3 -m ddfuse.evaluation.plot_sim``); a user error ends in one line on stderr and exit
     code 2."""
-    from evaluation.cli import guarded
+    from ddfuse.evaluation.cli import guarded
 
     return guarded(_main, argv)
 

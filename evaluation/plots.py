@@ -26,12 +26,11 @@ from pathlib import Path
 
 import matplotlib.ticker
 import numpy as np
+from ddfuse.evaluation import consistency, metrics
+from ddfuse.evaluation.local_frame import frame  # noqa: F401 - the figures' and report's frame
+from ddfuse.evaluation.results import SavedRun
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
-
-from evaluation import consistency, metrics
-from evaluation.local_frame import frame  # noqa: F401 - the figures' and report's frame
-from evaluation.results import SavedRun
 
 DPI = 100
 _STYLE = {"smoother_lagged": "--", "batch": ":"}
@@ -422,7 +421,7 @@ def nees(series: Mapping[str, Sequence[np.ndarray]], t: Mapping[str, np.ndarray]
 def nis(run: SavedRun) -> Figure | None:
     """NIS of every innovation over time: a row per estimator, a panel per sensor and
     measurement kind, with the 95% band of its dimension (dashed); gate-rejected innovations
-    marked x. Titles carry the verdict (``evaluation.consistency``). None when no estimator
+    marked x. Titles carry the verdict (``ddfuse.evaluation.consistency``). None when no estimator
     logged an innovation (dead reckoning alone)."""
     cols = colors(list(run.tracks))
     owners = [n for n in run.tracks if run.log_owner.get(n, n) == n and len(run.innovations[n])]

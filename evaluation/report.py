@@ -17,9 +17,9 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from evaluation import consistency, metrics, plots
-from evaluation.results import SavedRun, load_run
-from evaluation.verdict import (
+from ddfuse.evaluation import consistency, metrics, plots
+from ddfuse.evaluation.results import SavedRun, load_run
+from ddfuse.evaluation.verdict import (
     CALIBRATION_SIGMAS,
     REJECTED_THROUGHOUT,
     SEES_AFTER,
@@ -218,14 +218,14 @@ def latency_note(name: str, e: dict) -> str:
 
 
 def run_config(run: SavedRun):
-    """The run's ``estimation.config.Config``, parsed back from the config text the run saved
+    """The run's ``ddfuse.estimation.config.Config``, parsed back from the config text the run saved
     (relative landmark maps resolved against the output directory); None when no text was
     saved or it no longer loads here (an absolute map path that is gone, a key this version
     refuses): ``not_run`` then judges on the sensors metrics.json lists."""
     if not run.config_text:
         return None
-    from estimation.config import parse_config_text
-    from estimation.errors import ConfigError
+    from ddfuse.estimation.config import parse_config_text
+    from ddfuse.estimation.errors import ConfigError
 
     try:
         return parse_config_text(run.config_text, "the run's saved config", run.outdir)
@@ -240,8 +240,8 @@ def not_run(m: dict, cfg=None) -> list[tuple[str, str]]:
     (``run_config``); without it, one rebuilt from the sensors metrics.json lists. Results
     written before metrics.json recorded ``estimators_requested`` are judged on the config
     alone."""
-    from estimation.config import Config, RobotConfig, SensorConfig
-    from evaluation.estimators import SPECS
+    from ddfuse.estimation.config import Config, RobotConfig, SensorConfig
+    from ddfuse.evaluation.estimators import SPECS
 
     sensors = (m.get("data") or {}).get("sensors")
     if cfg is None and sensors:

@@ -1,6 +1,6 @@
 """A run's saved results: written by ``ddfuse run``, read back by ``ddfuse report``.
 
-An output directory holds ``metrics.json`` (``evaluation.pipeline``), one ``<track>.tum`` and
+An output directory holds ``metrics.json`` (``ddfuse.evaluation.pipeline``), one ``<track>.tum`` and
 ``<track>.csv`` per estimator track (``evaluation.export``), ``ground_truth.tum``/``.csv`` when
 there is truth, and ``run.npz`` with the rest of what the report shows:
 
@@ -17,11 +17,11 @@ there is truth, and ``run.npz`` with the rest of what the report shows:
   config file's text.
 
 In a notebook, ``SavedRun.from_result(result)`` gives the same ``SavedRun`` for an in-memory
-``RunResult`` (``estimation.runner.run``) without writing anything, so the figures of
-``evaluation.plots`` come straight from it::
+``RunResult`` (``ddfuse.estimation.runner.run``) without writing anything, so the figures of
+``ddfuse.evaluation.plots`` come straight from it::
 
-    from evaluation import plots
-    from evaluation.results import SavedRun
+    from ddfuse.evaluation import plots
+    from ddfuse.evaluation.results import SavedRun
 
     saved = SavedRun.from_result(result, cfg=cfg)   # scores it (pipeline.score) unless given
     plots.trajectories(saved)                       # a Figure: display(fig), or plots.save_png
@@ -35,12 +35,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-
-from estimation import heading_survey
-from estimation.errors import DdfuseError
-from estimation.runner import RunResult, Trajectory
-from evaluation.consistency import InnovationTable
-from evaluation.export import read_csv, write_csv, write_tum
+from ddfuse.estimation import heading_survey
+from ddfuse.estimation.errors import DdfuseError
+from ddfuse.estimation.runner import RunResult, Trajectory
+from ddfuse.evaluation.consistency import InnovationTable
+from ddfuse.evaluation.export import read_csv, write_csv, write_tum
 
 RUN_FILE = "run.npz"
 METRICS_FILE = "metrics.json"
@@ -80,7 +79,7 @@ class SavedRun:
         None.
 
         ``metrics``: the run's metrics dictionary (what ``ddfuse run`` writes as metrics.json);
-        by default ``evaluation.pipeline.score(result)`` with the data facts the figures read
+        by default ``ddfuse.evaluation.pipeline.score(result)`` with the data facts the figures read
         (the local frame, t0): all of them with the run's config ``cfg``
         (``pipeline.data_facts``, and the initial pose), else the stream's start, datum and
         landmarks. ``config_text``: shown by the report (default: ``cfg``'s file)."""
@@ -107,7 +106,7 @@ def config_text_of(cfg) -> str | None:
 def _score(result: RunResult, cfg) -> dict:
     """The metrics dictionary of an in-memory run, as far as ``SavedRun.from_result`` needs
     one (see there)."""
-    from evaluation import pipeline  # it imports this module
+    from ddfuse.evaluation import pipeline  # it imports this module
 
     m = pipeline.score(result, cfg=cfg)  # the GPS antenna (lever arm, delay) as run scores it
     if cfg is not None:

@@ -53,9 +53,8 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-
-from estimation.frames import GRAVITY
-from estimation.geodesy import enu_to_geodetic
+from ddfuse.estimation.frames import GRAVITY
+from ddfuse.estimation.geodesy import enu_to_geodetic
 
 G = GRAVITY  # m/s^2 (the accelerometer's z reading at rest)
 LANDMARK_MSGTYPE = "ddfuse_msgs/msg/LandmarkObservation"
@@ -461,7 +460,7 @@ class SimResult:
 
 
 def wrap(a):
-    """Wrap angles (rad) to [-pi, pi), the convention of estimation.estimator.wrap_angle."""
+    """Wrap angles (rad) to [-pi, pi), the convention of ddfuse.estimation.estimator.wrap_angle."""
     return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
 
 
@@ -1273,8 +1272,8 @@ def _write_messages(writer, topics, ts, mk: _Msgs) -> None:
 
 
 def _main(argv: list[str] | None) -> int:
-    from estimation.errors import DdfuseError
-    from evaluation.cli import (
+    from ddfuse.estimation.errors import DdfuseError
+    from ddfuse.evaluation.cli import (
         DdfuseParser,
         check_output_file,
         int_at_least,
@@ -1335,7 +1334,7 @@ def _main(argv: list[str] | None) -> int:
 def main(argv: list[str] | None = None) -> int:
     """``ddfuse simulate SCENARIO [--seed N] [--duration S] [--format F] -o PATH``; a user error
     ends in one line on stderr and exit code 2."""
-    from evaluation.cli import guarded
+    from ddfuse.evaluation.cli import guarded
 
     return guarded(_main, argv)
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 
-from estimation.estimator import wrap_angle
+from ddfuse.estimation.estimator import wrap_angle
 
 TIE = 0.05  # relative difference under which two scores tie
 # The one tie rule, for the verdict and the report's tables alike (``tie``).
@@ -522,7 +522,7 @@ def _span_lines(m: dict) -> list[str]:
 
 def interruption(error: str | None) -> bool:
     """Whether an estimator's error is a Ctrl-C that caught it (inside an update or its
-    finish), not a failure of its own (``estimation.runner.run``)."""
+    finish), not a failure of its own (``ddfuse.estimation.runner.run``)."""
     return bool(error) and error.startswith("interrupted (Ctrl-C)")
 
 

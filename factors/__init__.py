@@ -1,10 +1,10 @@
 """GTSAM factors for a differential-drive robot. Imports nothing else of ddfuse.
 
 State: one gtsam Vector key per keyframe, the 9-vector [x, y, psi, v, w, bg, hoff, k_v, k_w] of
-``factors.state`` (world = local ENU frame).
+``ddfuse.factors.state`` (world = local ENU frame).
 
 Modules (import them directly; this package imports nothing eagerly so that the pure-math
-``factors.kinematics`` can be used without loading gtsam):
+``ddfuse.factors.kinematics`` can be used without loading gtsam):
 
 * ``kinematics``     exact SE(2) constant-twist step and its Jacobian (no gtsam, no numpy)
 * ``state``          index constants and layout of the state vector

@@ -21,10 +21,9 @@ import math
 
 import gtsam
 import numpy as np
-
-from factors.kinematics import twist_coeffs
-from factors.noise import NoiseLike, as_noise_model
-from factors.state import DIM
+from ddfuse.factors.kinematics import twist_coeffs
+from ddfuse.factors.noise import NoiseLike, as_noise_model
+from ddfuse.factors.state import DIM
 
 __all__ = ["gps_factor", "gps_predict", "gps_predict_jacobian"]
 
@@ -87,7 +86,7 @@ def gps_factor(
     """GPS factor.
 
     Args:
-        key: 9-vector state key (``factors.state``).
+        key: 9-vector state key (``ddfuse.factors.state``).
         east, north: fix position in the local ENU frame, m.
         noise: 2-D noise model or sigma(s), m; pass a robust model for outlier rejection.
         lever_arm: antenna (lx, ly) in the body frame, m.

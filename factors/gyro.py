@@ -15,9 +15,8 @@ import math
 
 import gtsam
 import numpy as np
-
-from factors.noise import NoiseLike, as_noise_model
-from factors.state import BG, DIM, KW, W
+from ddfuse.factors.noise import NoiseLike, as_noise_model
+from ddfuse.factors.state import BG, DIM, KW, W
 
 __all__ = ["bias_difference_factor", "gyro_factor"]
 
@@ -30,7 +29,7 @@ def gyro_factor(key: int, w_meas: float, noise: NoiseLike) -> gtsam.CustomFactor
     """Gyro yaw-rate factor.
 
     Args:
-        key: 9-vector state key (``factors.state``).
+        key: 9-vector state key (``ddfuse.factors.state``).
         w_meas: gyro z reading, rad/s, CCW positive, body frame.
         noise: 1-D noise model or sigma (rad/s).
     """
@@ -63,7 +62,7 @@ def bias_difference_factor(key: int, mean_gyro: float, mean_odo: float, sigma_gy
     consistent); the factor's noise model is unit.
 
     Args:
-        key: 9-vector state key (``factors.state``), at the end of the interval.
+        key: 9-vector state key (``ddfuse.factors.state``), at the end of the interval.
         mean_gyro: mean gyro yaw rate over the interval, rad/s (bias included).
         mean_odo: mean odometry yaw rate over the same time, rad/s (before the k_w scale).
         sigma_gyro, sigma_odo: sigmas of the two means, rad/s (the rates' noise densities over

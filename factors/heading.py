@@ -14,9 +14,8 @@ import math
 
 import gtsam
 import numpy as np
-
-from factors.noise import NoiseLike, as_noise_model
-from factors.state import DIM, HOFF, PSI
+from ddfuse.factors.noise import NoiseLike, as_noise_model
+from ddfuse.factors.state import DIM, HOFF, PSI
 
 __all__ = ["heading_factor"]
 
@@ -35,7 +34,7 @@ def heading_factor(
     """Absolute heading factor.
 
     Args:
-        key: 9-vector state key (``factors.state``).
+        key: 9-vector state key (``ddfuse.factors.state``).
         heading_meas: measured heading, rad, CCW from east (any range; it is wrapped).
         noise: 1-D noise model or sigma (rad); may be robust.
         use_offset: model the sensor's heading offset ``hoff`` (default) or not.

@@ -21,7 +21,7 @@ Two flavours:
 * SLAM (2 keys: the state and a ``gtsam.Point2`` landmark key), Jacobian 2x9 and 2x2.
 
 GTSAM's ``BearingRangeFactor2D`` / ``RangeFactor2D`` need a Pose2 key, so they do not apply to the
-9-vector state (``factors.state``); these CustomFactors implement the same model on it.
+9-vector state (``ddfuse.factors.state``); these CustomFactors implement the same model on it.
 At zero range the bearing and the Jacobians are undefined; the range is floored at 1e-9 m to avoid
 a division by zero, which keeps the factor finite but meaningless there.
 """
@@ -32,10 +32,9 @@ import math
 
 import gtsam
 import numpy as np
-
-from factors.kinematics import se2_step, se2_step_jac
-from factors.noise import NoiseLike, as_noise_model
-from factors.state import DIM
+from ddfuse.factors.kinematics import se2_step, se2_step_jac
+from ddfuse.factors.noise import NoiseLike, as_noise_model
+from ddfuse.factors.state import DIM
 
 __all__ = [
     "range_bearing_factor",

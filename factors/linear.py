@@ -1,7 +1,7 @@
 """Measurements that are linear in one keyframe state, as one C++ factor.
 
 The absolute heading (``factors.heading``: z = wrap(psi [+ hoff])) has a constant Jacobian (the
-gyro-bias difference does not: its sigma depends on k_w, ``factors.gyro``). As Python
+gyro-bias difference does not: its sigma depends on k_w, ``ddfuse.factors.gyro``). As Python
 ``CustomFactor`` it costs a Python callback (and a pybind11 copy of the whole window's Values)
 every time ISAM2 relinearises it. As a ``gtsam.JacobianFactor`` wrapped in a
 ``gtsam.LinearContainerFactor`` it is one factor that ISAM2 relinearises in C++, exactly: for
@@ -21,8 +21,7 @@ from collections.abc import Sequence
 
 import gtsam
 import numpy as np
-
-from factors.state import DIM, HOFF, PSI
+from ddfuse.factors.state import DIM, HOFF, PSI
 
 __all__ = ["heading_row", "linear_state_factor"]
 
@@ -47,7 +46,7 @@ def linear_state_factor(key: int, rows: Sequence[Row],
     """One factor for the linear measurement ``rows`` of the 9-vector state ``key``.
 
     Args:
-        key: the state's key (``factors.state``).
+        key: the state's key (``ddfuse.factors.state``).
         rows: (h, z, sigma, angle) per measurement: error h x - z (wrapped to [-pi, pi) for
             angle rows) with standard deviation sigma, in the units of z.
         lin: (DIM,) the linearisation point (e.g. the keyframe's initial guess); angle rows are

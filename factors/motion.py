@@ -1,6 +1,6 @@
 """Differential-drive motion factor between two consecutive keyframe states (2 keys, 9-D error).
 
-Model (states as in ``factors.state``; i = earlier keyframe, j = later, dt = t_j - t_i > 0)::
+Model (states as in ``ddfuse.factors.state``; i = earlier keyframe, j = later, dt = t_j - t_i > 0)::
 
     twist used for the pose:   vm = a_i v_i + a_j v_j,  wm = a_i w_i + a_j w_j
         twist="mean"  (default): a_i = a_j = 1/2  -> trapezoid on v, w; exact for a constant twist
@@ -28,10 +28,9 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
-
-from factors.kinematics import twist_coeffs
-from factors.noise import NoiseLike, as_noise_model
-from factors.state import DIM
+from ddfuse.factors.kinematics import twist_coeffs
+from ddfuse.factors.noise import NoiseLike, as_noise_model
+from ddfuse.factors.state import DIM
 
 __all__ = ["MotionNoise", "motion_factor", "motion_error"]
 
@@ -134,10 +133,10 @@ def motion_factor(
     """Motion factor between keyframe states ``key_i`` (time t) and ``key_j`` (time t + dt).
 
     Args:
-        key_i, key_j: gtsam keys of 9-vector states (``factors.state`` layout).
+        key_i, key_j: gtsam keys of 9-vector states (``ddfuse.factors.state`` layout).
         dt: t_j - t_i, s, > 0.
         noise: a ``MotionNoise`` (turned into a diagonal model for ``dt``) or any 9-D gtsam noise
-            model / sigmas accepted by ``factors.noise.as_noise_model``.
+            model / sigmas accepted by ``ddfuse.factors.noise.as_noise_model``.
         twist: "mean" (trapezoid, default) or "start"; see the module docstring.
 
     Returns a ``gtsam.CustomFactor`` with the 9-D error of the module docstring.

@@ -11,7 +11,7 @@ the pose of keyframe j expressed in the frame of keyframe i::
     w     = w_gyro - g bg_lin + k_w,lin w_odo           (rad/s)
 
 with ``bg_lin``, ``kv_lin``, ``kw_lin`` the linearisation points of the gyro bias and the
-odometry's speed and yaw-rate scales (``factors.state``: true speed = k_v x odometry speed).
+odometry's speed and yaw-rate scales (``ddfuse.factors.state``: true speed = k_v x odometry speed).
 ``w_gyro`` is the part of the yaw rate that carries the gyro bias with gain g (1 for a raw gyro
 reading, the gyro's weight when a gyro and an odometry yaw rate are fused per sample), ``w_odo``
 the part that carries the odometry's scale (the odometry's weight times its yaw rate; 0 for a
@@ -54,9 +54,8 @@ import math
 
 import gtsam
 import numpy as np
-
-from factors.kinematics import se2_step_jac
-from factors.state import BG, DIM, KV, KW
+from ddfuse.factors.kinematics import se2_step_jac
+from ddfuse.factors.state import BG, DIM, KV, KW
 
 __all__ = ["WheelGyroPreintegration", "preintegrated_factor"]
 
@@ -254,7 +253,7 @@ def preintegrated_factor(
     """Preintegrated wheel+gyro factor between keyframe states ``key_i`` and ``key_j``.
 
     Args:
-        key_i, key_j: 9-vector state keys (``factors.state``).
+        key_i, key_j: 9-vector state keys (``ddfuse.factors.state``).
         pim: the accumulated interval (at least one sample). Its values are copied: the object can
             be reset and reused afterwards.
         gyro_bias_rw: gyro-bias random-walk density, rad/s/sqrt(s).

@@ -1,4 +1,4 @@
-"""Compiled (numba) twin of ``factors.preintegration.WheelGyroPreintegration``.
+"""Compiled (numba) twin of ``ddfuse.factors.preintegration.WheelGyroPreintegration``.
 
 Why: the smoother integrates one held sample per message (16 800 on the 395 s Husky bag); the
 Python ``integrate`` costs ~7 us of interpreter time for ~100 floating-point operations, the
@@ -7,7 +7,7 @@ kernel ~1 us, most of it the call.
 The Python class stays the reference: ``integrate`` below is a line-by-line transcription of
 ``WheelGyroPreintegration.integrate`` (one kernel per Python function, the same operation order,
 so results agree to rounding; ``tests/test_factors_preintegration_jit.py`` holds them to 1e-9),
-and ``se2_step_jac`` / ``twist_coeffs`` of ``factors.kinematics`` are compiled into it
+and ``se2_step_jac`` / ``twist_coeffs`` of ``ddfuse.factors.kinematics`` are compiled into it
 (``register_jitable``: they stay plain Python for their other callers). A change of the
 preintegration's maths goes into both.
 
@@ -22,12 +22,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from ddfuse.factors.jitcache import guard_cache
+from ddfuse.factors.kinematics import se2_step_jac, twist_coeffs
+from ddfuse.factors.preintegration import WheelGyroPreintegration
 from numba import njit
 from numba.extending import register_jitable
-
-from factors.jitcache import guard_cache
-from factors.kinematics import se2_step_jac, twist_coeffs
-from factors.preintegration import WheelGyroPreintegration
 
 __all__ = ["SLOTS", "WheelGyroPreintegrationJit", "integrate", "warm_up"]
 

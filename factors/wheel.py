@@ -20,9 +20,8 @@ from __future__ import annotations
 
 import gtsam
 import numpy as np
-
-from factors.noise import NoiseLike, as_noise_model
-from factors.state import DIM, V, W
+from ddfuse.factors.noise import NoiseLike, as_noise_model
+from ddfuse.factors.state import DIM, V, W
 
 __all__ = [
     "wheel_speed_factor",

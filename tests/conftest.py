@@ -37,8 +37,8 @@ def mrclam_bag() -> Path:
 @pytest.fixture(scope="session")
 def sample_husky():
     """(config, decoded stream) of the project's simulated sample data/sample_husky.bag."""
-    from estimation.bags import read_stream
-    from estimation.config import load_config
+    from ddfuse.estimation.bags import read_stream
+    from ddfuse.estimation.config import load_config
 
     bag, yaml = ROOT / "data" / "sample_husky.bag", ROOT / "data" / "sample_husky.yaml"
     if not bag.is_file():

@@ -8,9 +8,8 @@ import math
 from collections.abc import Callable, Iterator
 
 import numpy as np
-
-from estimation import geodesy
-from estimation.measurements import GpsFix, GyroYawRate, WheelSpeeds
+from ddfuse.estimation import geodesy
+from ddfuse.estimation.measurements import GpsFix, GyroYawRate, WheelSpeeds
 
 
 def straight_drive(datum, yaw: float, v: float, duration: float, rng: np.random.Generator, *,

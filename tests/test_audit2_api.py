@@ -7,11 +7,10 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
-
-from estimation.bags import read_stream
-from estimation.config import load_config
-from estimation.measurements import Stream
-from evaluation.online import OnlineSession
+from ddfuse.estimation.bags import read_stream
+from ddfuse.estimation.config import load_config
+from ddfuse.estimation.measurements import Stream
+from ddfuse.evaluation.online import OnlineSession
 
 ROOT = Path(__file__).resolve().parents[1]
 BAG, CFG = ROOT / "data" / "sample_husky.bag", ROOT / "data" / "sample_husky.yaml"

@@ -10,9 +10,8 @@ import warnings
 from pathlib import Path
 
 import pytest
-
-from evaluation import cli, plots, report
-from evaluation.results import load_run
+from ddfuse.evaluation import cli, plots, report
+from ddfuse.evaluation.results import load_run
 
 ROOT = Path(__file__).resolve().parents[1]
 SEED002 = ROOT / "data" / "sample_seed002.bag"
@@ -64,10 +63,9 @@ def test_events_header_counts_lockout_recoveries_as_accepted_as_the_gating_table
     recovery fuses one. The estimator counts that recovery in log.rejected; the events header
     must not add it to the rejections, or it disagrees with the gating table (audit #5: MRCLAM
     'ekf_landmark: 3 events, 75 rejected' against 72 in the table)."""
+    from ddfuse.ekf_baseline.unicycle import UnicycleEkf
+    from ddfuse.evaluation import consistency
     from test_unicycle import SIM_NOISE, make_cfg, run_filter, simulate
-
-    from ekf_baseline.unicycle import UnicycleEkf
-    from evaluation import consistency
 
     run = simulate(71, kidnap=(40.0, 15.0, -5.0), stand_still=30.0, duration=70.0,
                    gps_sigma=0.3)
@@ -76,7 +74,7 @@ def test_events_header_counts_lockout_recoveries_as_accepted_as_the_gating_table
     run_filter(ekf, run)
     recoveries = len(ekf.kf.recoveries)
     assert recoveries >= 1
-    # what evaluation.pipeline writes into metrics.json for it
+    # what ddfuse.evaluation.pipeline writes into metrics.json for it
     e = {"events": ekf.log.messages,
          "rejected": {f"{s}: {why}": n for (s, why), n in ekf.log.rejected.items()},
          "nis": {label: s.as_dict() for label, s in consistency.nis_by_sensor(
@@ -183,7 +181,7 @@ def test_online_names_the_start_pose_frame_on_jackal(jackal_bag, capsys):
 
 def test_online_frame_is_the_reports_frame(mrclam_bag, jackal_bag, husky_bag, seed002_run):
     """online_frame gives plots.frame the facts run records: the same frame as each report."""
-    from estimation.config import load_config
+    from ddfuse.estimation.config import load_config
 
     for bag, kind in ((mrclam_bag, "map"), (jackal_bag, "start"), (husky_bag, "enu"),
                       (SEED002, "map")):
@@ -198,7 +196,7 @@ def test_lag_sweep_refuses_before_decoding_when_the_config_has_no_truth(tmp_path
     """rl_jackal's config names no ground_truth topic: with no --gps-holdout there is nothing
     to score, said in one line, exit 2, before the bag is opened (here it does not even exist)
     rather than after a table of dashes with exit 0 (audit #8)."""
-    from evaluation.lag_sweep import lag_sweep
+    from ddfuse.evaluation.lag_sweep import lag_sweep
 
     jackal_cfg = ROOT / "data" / "configs" / "rl_jackal.yaml"
     with pytest.raises(ValueError, match="needs ground truth or --gps-holdout") as e:
@@ -231,10 +229,9 @@ def test_lag_sweep_scores_against_what_the_stream_has():
     """_scored_against on decoded streams: the truth when there is some, else the withheld
     fixes (runner's rule: every K-th from the first), else refused."""
     import numpy as np
-
-    from estimation.config import load_config
-    from estimation.measurements import GpsFix, GroundTruthPose, Stream
-    from evaluation.lag_sweep import _scored_against
+    from ddfuse.estimation.config import load_config
+    from ddfuse.estimation.measurements import GpsFix, GroundTruthPose, Stream
+    from ddfuse.evaluation.lag_sweep import _scored_against
 
     cfg = load_config(ROOT / "data" / "configs" / "rl_husky_gps.yaml")
     fixes = [GpsFix(t=float(t), lat=42.0, lon=-71.0, alt=0.0, cov=np.eye(3)) for t in range(4)]
@@ -251,7 +248,7 @@ def test_lag_sweep_scores_against_what_the_stream_has():
 
 def test_run_help_lists_every_estimator_the_parser_accepts(capsys):
     """dr was missing from `run --help` (audit #10): every name --estimators accepts is listed."""
-    from evaluation.estimators import TRACK_TO_SPEC
+    from ddfuse.evaluation.estimators import TRACK_TO_SPEC
 
     with pytest.raises(SystemExit):
         cli.main(["run", "--help"])
@@ -283,7 +280,7 @@ def test_readme_synopsis_has_every_option_of_the_help(command, capsys):
 
 
 def test_readme_says_which_estimators_online_refuses():
-    from evaluation.online import ONLINE_TRACKS_REFUSED
+    from ddfuse.evaluation.online import ONLINE_TRACKS_REFUSED
 
     _, text = _readme_cell("online")
     refused = text.split("Not ")[1].split(":")[0]

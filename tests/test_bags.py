@@ -13,13 +13,12 @@ from pathlib import Path
 import bagwriter as bw
 import numpy as np
 import pytest
-
-from estimation import rosmsg
-from estimation.bags import open_reader, read_stream
-from estimation.config import parse_config
-from estimation.errors import BagError
-from estimation.frames import GRAVITY
-from estimation.measurements import (
+from ddfuse.estimation import rosmsg
+from ddfuse.estimation.bags import open_reader, read_stream
+from ddfuse.estimation.config import parse_config
+from ddfuse.estimation.errors import BagError
+from ddfuse.estimation.frames import GRAVITY
+from ddfuse.estimation.measurements import (
     ForwardAccel,
     GpsFix,
     GroundTruthPose,
@@ -566,7 +565,7 @@ def test_a_broken_stamp_counts_once_per_message_as_live(tmp_path, fmt):
     """An IMU message gives three measurements (yaw rate, yaw, acceleration). Its broken stamp
     was counted three times by the bag reader, once by ``LiveConverter``; now once by both,
     with all three dropped."""
-    from estimation.live import LiveConverter
+    from ddfuse.estimation.live import LiveConverter
 
     n, bad = 30, 15
     recs = []
@@ -1089,7 +1088,7 @@ def test_fast_ros1_path_equals_rosbags_on_mrclam(mrclam_bag):
 def test_a_fix_with_a_nan_stamp_is_named_for_its_stamp_not_its_position():
     import math
 
-    from estimation.bags import Reject, _gps_fix
+    from ddfuse.estimation.bags import Reject, _gps_fix
 
     cov = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 4.0)
     with pytest.raises(Reject, match="non-finite stamp"):

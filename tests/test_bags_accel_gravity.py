@@ -8,12 +8,11 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from ddfuse.estimation.config import ConfigError, parse_config_text
+from ddfuse.estimation.frames import GRAVITY, body_x_tilt, rpy_matrix
+from ddfuse.estimation.live import LiveConverter
+from ddfuse.estimation.measurements import ForwardAccel, GyroYawRate
 from scipy.spatial.transform import Rotation
-
-from estimation.config import ConfigError, parse_config_text
-from estimation.frames import GRAVITY, body_x_tilt, rpy_matrix
-from estimation.live import LiveConverter
-from estimation.measurements import ForwardAccel, GyroYawRate
 
 ACCEL_STD, TILT_STD = 0.05, 0.01
 

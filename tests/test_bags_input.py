@@ -10,11 +10,10 @@ from pathlib import Path
 import bagwriter as bw
 import numpy as np
 import pytest
-
-from estimation.bags import NULL_ISLAND, UNSET_STAMP, BagStream, read_stream
-from estimation.config import parse_config
-from estimation.errors import BagError
-from estimation.measurements import ForwardAccel, GpsFix, GyroYawRate, Heading
+from ddfuse.estimation.bags import NULL_ISLAND, UNSET_STAMP, BagStream, read_stream
+from ddfuse.estimation.config import parse_config
+from ddfuse.estimation.errors import BagError
+from ddfuse.estimation.measurements import ForwardAccel, GpsFix, GyroYawRate, Heading
 
 T0 = 1_600_000_000.0
 PATHS = pytest.mark.parametrize("fmt", ["ros1", "mcap"])

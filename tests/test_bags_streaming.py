@@ -1,5 +1,5 @@
-"""The streaming decoder (estimation.bags.BagStream) against a whole-bag decode, its bounded
-reorder buffer, the runner fed from it, and the compact innovation log (estimation.estimator.
+"""The streaming decoder (ddfuse.estimation.bags.BagStream) against a whole-bag decode, its bounded
+reorder buffer, the runner fed from it, and the compact innovation log (ddfuse.estimation.estimator.
 InnovationLog) against the list of Innovation objects it replaces.
 
 The oracle for the measurement sequence is the decoding ddfuse did before it streamed: every
@@ -18,15 +18,21 @@ from pathlib import Path
 import bagwriter as bw
 import numpy as np
 import pytest
-
-from estimation import geodesy
-from estimation.bags import BagStream, Reject, _sources, open_reader, open_stream, read_stream
-from estimation.config import load_config, parse_config
-from estimation.estimator import Innovation, InnovationLog
-from estimation.measurements import GpsFix, GroundTruthPose
-from estimation.runner import run
-from evaluation import consistency as cs
-from evaluation import estimators as registry
+from ddfuse.estimation import geodesy
+from ddfuse.estimation.bags import (
+    BagStream,
+    Reject,
+    _sources,
+    open_reader,
+    open_stream,
+    read_stream,
+)
+from ddfuse.estimation.config import load_config, parse_config
+from ddfuse.estimation.estimator import Innovation, InnovationLog
+from ddfuse.estimation.measurements import GpsFix, GroundTruthPose
+from ddfuse.estimation.runner import run
+from ddfuse.evaluation import consistency as cs
+from ddfuse.evaluation import estimators as registry
 
 pytest.importorskip("gtsam")
 pytest.importorskip("pymap3d")
@@ -153,7 +159,7 @@ def test_a_message_later_than_the_reorder_window_is_dropped_counted_and_named(
     bag = _disordered(tmp_path, fmt, late=0.8)  # within the 1 s stamp tolerance
     cfg = parse_config(DISORDER_CFG)
     # a window of 0.45 s sorts the odometry (stamped 0.3 s early) but not this one
-    with caplog.at_level(logging.WARNING, logger="estimation.bags"):
+    with caplog.at_level(logging.WARNING, logger="ddfuse.estimation.bags"):
         s = read_stream(bag, cfg, reorder_window=0.45)
     late = {r: n for (tp, r), n in s.rejected.items() if "reorder_window" in r}
     assert sum(late.values()) == 1
@@ -297,8 +303,8 @@ def test_a_saved_run_keeps_the_folded_counts_of_a_thinned_log(tmp_path):
     """run.npz held only the thinned arrays of a long run's log: NIS recomputed from a loaded
     run disagreed with metrics.json (MRCLAM odometry v: 0.001680 from 49720 entries against
     0.001403 from all 75000)."""
-    from evaluation.pipeline import score, write_outputs
-    from evaluation.results import load_run
+    from ddfuse.evaluation.pipeline import score, write_outputs
+    from ddfuse.evaluation.results import load_run
 
     cfg = load_config(SAMPLE_CFG)
     stream = read_stream(SAMPLE, cfg)
@@ -355,8 +361,8 @@ def test_memory_of_a_streamed_run_does_not_grow_with_its_length(tmp_path):
     """Peak RSS of the EKF on a 1 h simulated bag within 8 % of that on a 10 min one, each
     measured by ``ddfuse bench`` in its own child process (libraries ~145 MB; what grows is the
     10 Hz track, 13 floats a sample, and the float32 update timings: ~5 MB per hour)."""
-    from evaluation import simulate
-    from evaluation.bench import bench_bag
+    from ddfuse.evaluation import simulate
+    from ddfuse.evaluation.bench import bench_bag
 
     peaks = {}
     for duration in (600, 3600):

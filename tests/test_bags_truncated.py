@@ -19,13 +19,12 @@ import bagwriter as bw
 import numpy as np
 import pytest
 import yaml
+from ddfuse.estimation import ros1_scan
+from ddfuse.estimation.bags import read_stream
+from ddfuse.estimation.config import load_config, parse_config
+from ddfuse.estimation.errors import BagError
+from ddfuse.evaluation import cli
 from rosbags.rosbag1 import Reader
-
-from estimation import ros1_scan
-from estimation.bags import read_stream
-from estimation.config import load_config, parse_config
-from estimation.errors import BagError
-from evaluation import cli
 
 pytest.importorskip("gtsam")
 pytest.importorskip("pymap3d")
@@ -429,7 +428,7 @@ def test_ddfuse_bench_on_a_truncated_bag_ends_in_one_line_and_nothing_else(tmp_p
     import sys
 
     bag = cut(SAMPLE, SAMPLE.stat().st_size // 2, tmp_path / "half.bag")
-    p = subprocess.run([sys.executable, "-m", "evaluation.cli", "bench", str(bag), "-c",
+    p = subprocess.run([sys.executable, "-m", "ddfuse.evaluation.cli", "bench", str(bag), "-c",
                         str(SAMPLE_CFG), "--estimators", "ekf"], cwd=ROOT,
                        capture_output=True, text=True, timeout=300)
     assert p.returncode == 2

@@ -6,9 +6,8 @@ import os
 from pathlib import Path
 
 import pytest
-
-from estimation.errors import BagError
-from evaluation import bench
+from ddfuse.estimation.errors import BagError
+from ddfuse.evaluation import bench
 
 pytest.importorskip("gtsam")
 
@@ -43,7 +42,7 @@ def test_the_batch_row_says_its_solve_is_in_finish_not_in_the_latencies(capsys, 
     its row is marked and a footnote gives the solve's time (which dwarfs any update)."""
     import json
 
-    from evaluation.cli import main
+    from ddfuse.evaluation.cli import main
 
     out_json = tmp_path / "bench.json"
     assert main(["bench", str(ROOT / "data" / "sample_husky.bag"), "--estimators", "ekf,batch",

@@ -7,9 +7,8 @@ import sys
 
 import numpy as np
 import pytest
+from ddfuse.estimation import chi2
 from scipy.stats import chi2 as scipy_chi2
-
-from estimation import chi2
 
 
 @pytest.mark.parametrize("dof", [1, 2, 3, 4.5, 9, 40, 400, 6000.0])
@@ -31,8 +30,9 @@ def test_ppf_outside_the_domain_is_nan_as_scipy(p, dof):
 
 def test_the_filters_and_consistency_do_not_import_scipy_stats():
     """The point of the module: a run's EKF and scoring modules leave scipy.stats unloaded."""
-    code = ("import sys, ekf_baseline.kalman, evaluation.consistency, estimation.estimator;"
-            "ekf_baseline.kalman.chi2_threshold(0.99, 2);"
+    code = ("import sys, ddfuse.ekf_baseline.kalman, ddfuse.evaluation.consistency, "
+            "ddfuse.estimation.estimator;"
+            "ddfuse.ekf_baseline.kalman.chi2_threshold(0.99, 2);"
             "print('scipy.stats' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True)

@@ -12,8 +12,7 @@ from pathlib import Path
 
 import bagwriter as bw
 import pytest
-
-from evaluation.cli import main
+from ddfuse.evaluation.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
 T0 = 1_600_000_000.0
@@ -123,7 +122,7 @@ def test_inspect_damaged_bag(tmp_path, capsys, fmt):
 def test_command_line_exit_code_and_stderr(tmp_path):
     """The real process: exit status 2, one stderr line, nothing on stdout."""
     p = tmp_path / "nothing_here.bag"
-    r = subprocess.run([sys.executable, "-m", "evaluation.cli", "inspect", str(p)],
+    r = subprocess.run([sys.executable, "-m", "ddfuse.evaluation.cli", "inspect", str(p)],
                        cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert r.returncode == 2
     assert r.stdout == ""
@@ -135,7 +134,7 @@ def test_command_line_run_writes_everything_before_its_fast_exit(tmp_path):
     """The real process ends with os._exit after main: its stdout (piped, so buffered) and
     every output file must be complete, and the exit status main's."""
     out = tmp_path / "out"
-    r = subprocess.run([sys.executable, "-m", "evaluation.cli", "run", "--estimators", "ekf",
+    r = subprocess.run([sys.executable, "-m", "ddfuse.evaluation.cli", "run", "--estimators", "ekf",
                         "--no-report", "-o", str(out)],
                        cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
@@ -151,7 +150,7 @@ def test_command_line_reader_that_stops_early():
     """``ddfuse inspect BAG | head -1``: when the reader has closed the pipe, the program ends
     with status 141 (128 + SIGPIPE) and no traceback, instead of a BrokenPipeError. (``true``
     reads nothing and exits at once, so the first write fails whatever the timing.)"""
-    r = subprocess.run(f"{sys.executable} -m evaluation.cli inspect data/sample_husky.bag "
+    r = subprocess.run(f"{sys.executable} -m ddfuse.evaluation.cli inspect data/sample_husky.bag "
                        "| true; echo \"rc=${PIPESTATUS[0]}\"",
                        shell=True, executable="/bin/bash", cwd=ROOT, capture_output=True,
                        text=True, timeout=120)
@@ -232,7 +231,8 @@ def _not_called(*args, **kwargs):
 
 def test_mc_output_dir_that_is_a_file_fails_before_any_seed(tmp_path, capsys, monkeypatch):
     """It failed in write_report, after every seed had run: a 20-seed run lost."""
-    import evaluation.montecarlo as mc
+    import ddfuse.evaluation.montecarlo as mc
+
 
     monkeypatch.setattr(mc, "monte_carlo", _not_called)
     afile = tmp_path / "afile"
@@ -248,7 +248,7 @@ def test_mc_output_dir_that_is_a_file_fails_before_any_seed(tmp_path, capsys, mo
 
 def test_mc_that_cannot_write_at_the_end_prints_the_table_and_keeps_the_json(
         tmp_path, capsys, monkeypatch):
-    import evaluation.montecarlo as mc
+    import ddfuse.evaluation.montecarlo as mc
 
     outdir = tmp_path / "results"
     real = mc.monte_carlo
@@ -277,7 +277,7 @@ def test_mc_that_cannot_write_at_the_end_prints_the_table_and_keeps_the_json(
 def test_mc_real_process_output_dir_that_is_a_file(tmp_path):
     afile = tmp_path / "afile"
     afile.write_text("")
-    r = subprocess.run([sys.executable, "-m", "evaluation.cli", "mc", "husky", "--seeds", "2",
+    r = subprocess.run([sys.executable, "-m", "ddfuse", "mc", "husky", "--seeds", "2",
                         "--duration", "30", "-o", str(afile)],
                        cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and r.stdout == ""
@@ -286,7 +286,7 @@ def test_mc_real_process_output_dir_that_is_a_file(tmp_path):
 
 def test_lag_sweep_json_in_a_missing_directory_fails_before_the_sweep(tmp_path, capsys,
                                                                       monkeypatch):
-    import evaluation.lag_sweep as ls
+    import ddfuse.evaluation.lag_sweep as ls
 
     monkeypatch.setattr(ls, "lag_sweep", _not_called)
     target = tmp_path / "nonexist_dir" / "x.json"
@@ -301,7 +301,7 @@ def test_lag_sweep_json_in_a_missing_directory_fails_before_the_sweep(tmp_path, 
 
 def test_lag_sweep_json_that_cannot_be_written_after_the_sweep_keeps_the_table(
         tmp_path, capsys, monkeypatch):
-    import evaluation.lag_sweep as ls
+    import ddfuse.evaluation.lag_sweep as ls
 
     sub = tmp_path / "sub"
     sub.mkdir()
@@ -322,11 +322,11 @@ def test_lag_sweep_json_that_cannot_be_written_after_the_sweep_keeps_the_table(
 @pytest.mark.parametrize("command", ["simulate", "plot-sim"])
 def test_simulate_and_plot_sim_output_under_a_file_fail_before_simulating(
         tmp_path, capsys, monkeypatch, command):
-    import evaluation.plot_sim
-    import evaluation.simulate
+    import ddfuse.evaluation.plot_sim
+    import ddfuse.evaluation.simulate
 
-    monkeypatch.setattr(evaluation.simulate, "simulate", _not_called)
-    monkeypatch.setattr(evaluation.plot_sim, "simulate", _not_called)
+    monkeypatch.setattr(ddfuse.evaluation.simulate, "simulate", _not_called)
+    monkeypatch.setattr(ddfuse.evaluation.plot_sim, "simulate", _not_called)
     afile = tmp_path / "afile"
     afile.write_text("")
     target = afile / ("x.bag" if command == "simulate" else "x.png")
@@ -335,9 +335,9 @@ def test_simulate_and_plot_sim_output_under_a_file_fail_before_simulating(
 
 
 def test_plot_sim_refuses_an_image_format_it_cannot_write(tmp_path, capsys, monkeypatch):
-    import evaluation.plot_sim
+    import ddfuse.evaluation.plot_sim
 
-    monkeypatch.setattr(evaluation.plot_sim, "simulate", _not_called)
+    monkeypatch.setattr(ddfuse.evaluation.plot_sim, "simulate", _not_called)
     target = tmp_path / "x.xyz"
     code, out, err = run(["plot-sim", "husky", "-o", str(target)], capsys)
     assert_one_line_error(code, out, err, f"-o {target}: cannot write a .xyz image", "png")
@@ -347,21 +347,21 @@ def test_delegated_commands_report_os_errors_in_one_line_but_not_bugs(tmp_path, 
                                                                       monkeypatch):
     """An OSError while writing (here a refused permission) is one line naming the file; any
     other exception is a bug and keeps its traceback."""
-    import evaluation.plot_sim
+    import ddfuse.evaluation.plot_sim
 
     target = tmp_path / "x.png"
 
     def denied(res, out, title=None):
         raise PermissionError(13, "Permission denied", str(out))
 
-    monkeypatch.setattr(evaluation.plot_sim, "plot_sim", denied)
+    monkeypatch.setattr(ddfuse.evaluation.plot_sim, "plot_sim", denied)
     code, out, err = run(["plot-sim", "husky", "--duration", "20", "-o", str(target)], capsys)
     assert_one_line_error(code, out, err, f"{target}: Permission denied")
 
     def bug(res, out, title=None):
         raise KeyError("a programming error")
 
-    monkeypatch.setattr(evaluation.plot_sim, "plot_sim", bug)
+    monkeypatch.setattr(ddfuse.evaluation.plot_sim, "plot_sim", bug)
     with pytest.raises(KeyError, match="a programming error"):
         main(["plot-sim", "husky", "--duration", "20", "-o", str(target)])
 
@@ -433,7 +433,7 @@ def test_help_texts_are_plain(capsys):
     assert "95% chi-square band" in mc and "%%" not in mc
     assert _help(["plot-sim"], capsys).startswith("usage: ddfuse plot-sim ")
     sweep = _help(["lag-sweep"], capsys)
-    assert "each scored by evaluation.pipeline.score:" in sweep
+    assert "each scored by ddfuse.evaluation.pipeline.score:" in sweep
     assert "withheld by --gps-holdout;" in sweep
     assert "``" not in sweep and ":func:" not in sweep
 

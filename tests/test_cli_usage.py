@@ -10,8 +10,7 @@ import sys
 from pathlib import Path
 
 import pytest
-
-from evaluation.cli import main
+from ddfuse.evaluation.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
 SEED002 = ROOT / "data" / "sample_seed002.bag"
@@ -74,7 +73,7 @@ def test_a_usage_error_is_one_line_naming_the_sub_command(argv, line, capsys):
 
 
 def test_a_usage_error_in_the_real_process():
-    r = subprocess.run([sys.executable, "-m", "evaluation.cli", "run", "--lag", "-3"],
+    r = subprocess.run([sys.executable, "-m", "ddfuse.evaluation.cli", "run", "--lag", "-3"],
                        cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and r.stdout == ""
     assert r.stderr == ("ddfuse: error: run: argument --lag: expected seconds > 0, got '-3' "
@@ -86,9 +85,10 @@ def test_a_usage_error_in_the_real_process():
 def test_run_gps_holdout_without_a_gps_sensor_is_refused_before_decoding(tmp_path, capsys,
                                                                          monkeypatch):
     """It ran and exited 0 with 'withheld no GPS fix (the data span 119.9 s ...)'."""
-    import evaluation.pipeline
+    import ddfuse.evaluation.pipeline
 
-    monkeypatch.setattr(evaluation.pipeline, "run_bag", _not_called)
+
+    monkeypatch.setattr(ddfuse.evaluation.pipeline, "run_bag", _not_called)
     out = tmp_path / "out"
     code = main(["run", str(SEED002), "--gps-holdout", "every:5", "-o", str(out)])
     o, err = capsys.readouterr()
@@ -101,9 +101,9 @@ def test_run_gps_holdout_without_a_gps_sensor_is_refused_before_decoding(tmp_pat
 def test_lag_sweep_gps_holdout_without_a_gps_sensor_is_refused_before_decoding(capsys,
                                                                                monkeypatch):
     """seed002 has ground truth: the sweep ran, scored against the truth, the option ignored."""
-    import evaluation.lag_sweep
+    import ddfuse.evaluation.lag_sweep
 
-    monkeypatch.setattr(evaluation.lag_sweep, "read_stream", _not_called)
+    monkeypatch.setattr(ddfuse.evaluation.lag_sweep, "read_stream", _not_called)
     code = main(["lag-sweep", str(SEED002), "--gps-holdout", "window:10:20"])
     o, err = capsys.readouterr()
     assert code == 2 and o == ""
@@ -114,9 +114,9 @@ def test_lag_sweep_gps_holdout_without_a_gps_sensor_is_refused_before_decoding(c
 # --- C15: the output directory is checked first, naming the option ---------------------------
 
 def test_run_output_dir_that_is_a_file_is_refused_first(tmp_path, capsys, monkeypatch):
-    import evaluation.cli
+    import ddfuse.evaluation.cli
 
-    monkeypatch.setattr(evaluation.cli, "_config_for", _not_called)
+    monkeypatch.setattr(ddfuse.evaluation.cli, "_config_for", _not_called)
     afile = tmp_path / "afile"
     afile.write_text("keep")
     code = main(["run", "-o", str(afile)])

@@ -1,6 +1,6 @@
 """A compass whose configured fixed offset is wrong (0 where it is 0.35 rad) on a GPS without lever
 arm or delay: every estimator keeps it out because the GPS fixes it accepts meanwhile corroborate
-the heading (``ekf_baseline.kalman.CORROBORATED_BY``, ``FixedLagSmoother._heading_gate``).
+the heading (``ddfuse.ekf_baseline.kalman.CORROBORATED_BY``, ``FixedLagSmoother._heading_gate``).
 
 By H columns alone such a GPS never observes the heading, so both EKFs declared themselves lost
 after a second of rejected compass samples, recovered onto the compass and ended 2.66 m off
@@ -13,10 +13,9 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-
-from estimation.bags import read_stream
-from estimation.runner import run
-from evaluation import estimators as registry
+from ddfuse.estimation.bags import read_stream
+from ddfuse.estimation.runner import run
+from ddfuse.evaluation import estimators as registry
 
 
 def _rmse(res, name: str, t_min: float = 20.0) -> float:

@@ -1,4 +1,4 @@
-"""estimation.config: a full config loads with the right values; every validation error is a
+"""ddfuse.estimation.config: a full config loads with the right values; every validation error is a
 ConfigError that names the file and the key path."""
 
 from __future__ import annotations
@@ -9,15 +9,14 @@ from pathlib import Path
 
 import pytest
 import yaml
-
-from estimation.config import (
+from ddfuse.estimation.config import (
     DEFAULT_GATE,
     load_config,
     load_landmark_map,
     parse_config,
     resolve_landmark_maps,
 )
-from estimation.errors import ConfigError
+from ddfuse.estimation.errors import ConfigError
 
 FULL = """\
 sensors:

@@ -6,9 +6,8 @@ from __future__ import annotations
 import math
 
 import pytest
-
-from estimation.config import parse_config, parse_config_text
-from estimation.errors import ConfigError
+from ddfuse.estimation.config import parse_config, parse_config_text
+from ddfuse.estimation.errors import ConfigError
 
 
 def sensor(kind: str, **fields) -> dict:
@@ -93,7 +92,7 @@ def test_a_key_given_twice_a_yaml_error_and_a_directory_are_named(tmp_path):
     """A second `sensors:` block silently replaced the first (PyYAML keeps the last); a YAML
     syntax error said "while parsing a flow node" and not where; `-c` naming a directory said
     "config file not found"."""
-    from estimation.config import load_config
+    from ddfuse.estimation.config import load_config
 
     twice = tmp_path / "twice.yaml"
     twice.write_text("sensors:\n  gps:\n    - topic: /fix\nsensors:\n  odometry:\n"

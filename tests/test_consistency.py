@@ -6,9 +6,8 @@ import math
 
 import numpy as np
 import pytest
-
-from estimation.estimator import Innovation
-from evaluation import consistency as cs
+from ddfuse.estimation.estimator import Innovation
+from ddfuse.evaluation import consistency as cs
 
 
 def test_chi2_band_hand_computed():

@@ -6,11 +6,10 @@ import math
 
 import numpy as np
 import pytest
-
-from estimation.config import parse_config
-from estimation.dead_reckoning import DeadReckoning, odometry_source
-from estimation.measurements import GpsFix, GyroYawRate, WheelOdometry, WheelSpeeds
-from factors.kinematics import se2_step
+from ddfuse.estimation.config import parse_config
+from ddfuse.estimation.dead_reckoning import DeadReckoning, odometry_source
+from ddfuse.estimation.measurements import GpsFix, GyroYawRate, WheelOdometry, WheelSpeeds
+from ddfuse.factors.kinematics import se2_step
 
 
 def _cfg(**robot):
@@ -63,8 +62,8 @@ def test_matches_the_simulators_dead_reckoning():
     evaluation.plot_sim.dead_reckoning (the same odometry integrated from the same start; that
     one applies the first sample over the interval before it, whose opening is given here as a
     sample of its own: the stream filter only starts its clock at the first sample)."""
-    from evaluation.plot_sim import dead_reckoning
-    from evaluation.simulate import simulate
+    from ddfuse.evaluation.plot_sim import dead_reckoning
+    from ddfuse.evaluation.simulate import simulate
 
     res = simulate("husky", seed=3, duration=60.0)
     enc = res.encoders

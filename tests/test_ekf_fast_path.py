@@ -1,5 +1,5 @@
 """The filters' fast paths against their dense numpy reference (``reference=True``): the
-compiled one (numba kernels, ekf_baseline.kalman_jit, the default) and the Python one (sparse
+compiled one (numba kernels, ddfuse.ekf_baseline.kalman_jit, the default) and the Python one (sparse
 float updates, generated sparse Jacobians, float process noise; ``compiled=False``). On streams
 carrying every sensor kind, a heading that crosses +-pi, outliers the gates reject, a GPS jump
 that locks the gate out until a recovery, an odometry yaw rate the gyro keeps contradicting
@@ -14,13 +14,12 @@ import math
 import numpy as np
 import pytest
 from conftest import ROOT, shared_bag
-
-from ekf_baseline import compiled as jit
-from ekf_baseline.igvc import IgvcEkf
-from ekf_baseline.unicycle import UnicycleEkf
-from estimation import geodesy
-from estimation.config import parse_config
-from estimation.measurements import (
+from ddfuse.ekf_baseline import compiled as jit
+from ddfuse.ekf_baseline.igvc import IgvcEkf
+from ddfuse.ekf_baseline.unicycle import UnicycleEkf
+from ddfuse.estimation import geodesy
+from ddfuse.estimation.config import parse_config
+from ddfuse.estimation.measurements import (
     ForwardAccel,
     GpsFix,
     GyroYawRate,
@@ -28,7 +27,7 @@ from estimation.measurements import (
     WheelOdometry,
     WheelSpeeds,
 )
-from factors.kinematics import se2_step
+from ddfuse.factors.kinematics import se2_step
 
 needs_numba = pytest.mark.skipif(not jit.available(), reason="numba not installed")
 # the fast paths under test: the compiled kernels and the Python fast path
@@ -268,8 +267,8 @@ def test_igvc_compiled_lockout_matches_reference(motion):
 
 
 def _husky_slice(seconds: float):
-    from estimation.bags import read_stream
-    from estimation.config import load_config
+    from ddfuse.estimation.bags import read_stream
+    from ddfuse.estimation.config import load_config
 
     cfg = load_config(ROOT / "data" / "configs" / "rl_husky_gps.yaml")
     stream = read_stream(shared_bag("rl_husky_gps.bag"), cfg)
@@ -294,9 +293,9 @@ def test_unicycle_compiled_matches_reference_on_husky_bag(rate):
 def test_unicycle_compiled_matches_reference_on_sample_bag(rate):
     """The simulated sample bag (data/sample_husky.bag) as ddfuse runs it: odometry scale
     states, acceleration limits, gyro bias, compass offset, a delayed GPS."""
-    from estimation.bags import read_stream
-    from estimation.config import load_config
-    from estimation.runner import initial_pose
+    from ddfuse.estimation.bags import read_stream
+    from ddfuse.estimation.config import load_config
+    from ddfuse.estimation.runner import initial_pose
 
     cfg = load_config(ROOT / "data" / "sample_husky.yaml")
     cfg.ekf.rate = rate

@@ -7,9 +7,8 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
-
-from estimation.config import load_config
-from evaluation import estimators as registry
+from ddfuse.estimation.config import load_config
+from ddfuse.evaluation import estimators as registry
 
 ROOT = Path(__file__).resolve().parents[1]
 

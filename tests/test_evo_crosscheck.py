@@ -8,10 +8,9 @@ import math
 
 import numpy as np
 import pytest
-
-from estimation.runner import Trajectory
-from evaluation import metrics
-from evaluation.export import read_tum, write_tum
+from ddfuse.estimation.runner import Trajectory
+from ddfuse.evaluation import metrics
+from ddfuse.evaluation.export import read_tum, write_tum
 
 evo_metrics = pytest.importorskip("evo.core.metrics")
 evo_sync = pytest.importorskip("evo.core.sync")

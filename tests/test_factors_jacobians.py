@@ -10,20 +10,19 @@ import random
 import gtsam
 import numpy as np
 import pytest
-
-from factors.checks import analytic_jacobians, max_jacobian_error, numerical_jacobians
-from factors.gps import gps_factor, gps_predict, gps_predict_jacobian
-from factors.gyro import bias_difference_factor, gyro_factor
-from factors.heading import heading_factor
-from factors.landmark import (
+from ddfuse.factors.checks import analytic_jacobians, max_jacobian_error, numerical_jacobians
+from ddfuse.factors.gps import gps_factor, gps_predict, gps_predict_jacobian
+from ddfuse.factors.gyro import bias_difference_factor, gyro_factor
+from ddfuse.factors.heading import heading_factor
+from ddfuse.factors.landmark import (
     range_bearing_factor,
     range_bearing_slam_factor,
     range_factor,
     range_slam_factor,
 )
-from factors.motion import MotionNoise, motion_factor
-from factors.preintegration import WheelGyroPreintegration, preintegrated_factor
-from factors.wheel import wheel_rates_calib_factor, wheel_rates_factor, wheel_speed_factor
+from ddfuse.factors.motion import MotionNoise, motion_factor
+from ddfuse.factors.preintegration import WheelGyroPreintegration, preintegrated_factor
+from ddfuse.factors.wheel import wheel_rates_calib_factor, wheel_rates_factor, wheel_speed_factor
 
 KI, KJ, KC, KL = 1, 2, 3, 4
 TOL = 1e-6

@@ -1,4 +1,4 @@
-"""factors.linear: the linear factor equals the Python heading factor it replaces (error and
+"""ddfuse.factors.linear: the linear factor equals the Python heading factor it replaces (error and
 linearisation), including across the +-pi wrap."""
 
 import math
@@ -6,10 +6,9 @@ import math
 import gtsam
 import numpy as np
 import pytest
-
-from factors.heading import heading_factor
-from factors.linear import heading_row, linear_state_factor
-from factors.state import DIM, make_state
+from ddfuse.factors.heading import heading_factor
+from ddfuse.factors.linear import heading_row, linear_state_factor
+from ddfuse.factors.state import DIM, make_state
 
 K = 7
 

@@ -6,21 +6,20 @@ import random
 import gtsam
 import numpy as np
 import pytest
-
-from factors.gps import gps_factor, gps_predict
-from factors.gyro import gyro_factor
-from factors.heading import heading_factor
-from factors.kinematics import se2_step
-from factors.landmark import (
+from ddfuse.factors.gps import gps_factor, gps_predict
+from ddfuse.factors.gyro import gyro_factor
+from ddfuse.factors.heading import heading_factor
+from ddfuse.factors.kinematics import se2_step
+from ddfuse.factors.landmark import (
     range_bearing_factor,
     range_bearing_predict,
     range_bearing_slam_factor,
     range_factor,
     range_slam_factor,
 )
-from factors.noise import as_noise_model
-from factors.state import make_state
-from factors.wheel import (
+from ddfuse.factors.noise import as_noise_model
+from ddfuse.factors.state import make_state
+from ddfuse.factors.wheel import (
     body_twist,
     wheel_rates,
     wheel_rates_calib_factor,
@@ -253,9 +252,8 @@ def test_bias_difference_recovers_yaw_rate_scale_without_attenuation():
     var(noise)) (here 0.8, i.e. k_w 0.76 instead of 0.95); the k_w-dependent whitening is
     consistent. Bound: 4 sigma of the estimate's marginal, far below the 0.19 attenuation."""
     import gtsam
-
-    from factors.gyro import bias_difference_factor
-    from factors.state import BG, DIM, KW
+    from ddfuse.factors.gyro import bias_difference_factor
+    from ddfuse.factors.state import BG, DIM, KW
 
     rng = np.random.default_rng(7)
     n, k_true, bg_true, sg, so = 4000, 0.95, 0.012, 0.01, 0.05

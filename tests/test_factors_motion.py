@@ -5,11 +5,10 @@ import math
 import gtsam
 import numpy as np
 import pytest
-
-from factors.gps import gps_factor
-from factors.kinematics import se2_step
-from factors.motion import MotionNoise, motion_error, motion_factor
-from factors.state import DIM, make_state
+from ddfuse.factors.gps import gps_factor
+from ddfuse.factors.kinematics import se2_step
+from ddfuse.factors.motion import MotionNoise, motion_error, motion_factor
+from ddfuse.factors.state import DIM, make_state
 
 
 def truth_states(n, dt, v=1.0, w=0.2, x0=(0.0, 0.0, 0.0), bg=0.01, hoff=-0.05):

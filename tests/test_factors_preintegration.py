@@ -5,12 +5,11 @@ import math
 import gtsam
 import numpy as np
 import pytest
-
-from factors.gps import gps_factor
-from factors.heading import heading_factor
-from factors.kinematics import se2_step
-from factors.preintegration import WheelGyroPreintegration, preintegrated_factor
-from factors.state import DIM, make_state
+from ddfuse.factors.gps import gps_factor
+from ddfuse.factors.heading import heading_factor
+from ddfuse.factors.kinematics import se2_step
+from ddfuse.factors.preintegration import WheelGyroPreintegration, preintegrated_factor
+from ddfuse.factors.state import DIM, make_state
 
 VAR_V = 0.05**2
 VAR_W = 0.01**2

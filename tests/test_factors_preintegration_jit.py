@@ -1,4 +1,4 @@
-"""factors.preintegration_jit: the compiled preintegration equals the Python reference
+"""ddfuse.factors.preintegration_jit: the compiled preintegration equals the Python reference
 (``factors.preintegration.WheelGyroPreintegration``) to 1e-9, and so does the smoother that uses
 it."""
 
@@ -9,11 +9,10 @@ import math
 import gtsam
 import numpy as np
 import pytest
-
-from estimation.smoother import FixedLagSmoother
-from factors.preintegration import WheelGyroPreintegration, preintegrated_factor
-from factors.preintegration_jit import SLOTS, WheelGyroPreintegrationJit
-from factors.state import make_state
+from ddfuse.estimation.smoother import FixedLagSmoother
+from ddfuse.factors.preintegration import WheelGyroPreintegration, preintegrated_factor
+from ddfuse.factors.preintegration_jit import SLOTS, WheelGyroPreintegrationJit
+from ddfuse.factors.state import make_state
 
 
 def _samples(rng, n):
@@ -106,7 +105,7 @@ def test_smoother_with_jit_equals_reference(sample_husky):
 def test_cache_guard_drops_stale_kernels(tmp_path, monkeypatch):
     """numba checks only preintegration_jit.py's time stamp: a change of kinematics.py (compiled
     into the kernel) must drop the cached kernel, an unchanged source tree must keep it."""
-    import factors.preintegration_jit as pj
+    import ddfuse.factors.preintegration_jit as pj
 
     for name in pj._KERNEL_SOURCES:
         (tmp_path / name).write_bytes((pj._HERE / name).read_bytes())

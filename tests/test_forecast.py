@@ -1,4 +1,4 @@
-"""Carrying an estimate forward on the odometry since it (estimation.forecast), and an online
+"""Carrying an estimate forward on the odometry since it (ddfuse.estimation.forecast), and an online
 session's estimate "now" (OnlineSession.estimate(name, at=...))."""
 
 from __future__ import annotations
@@ -8,13 +8,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from estimation.config import load_config
-from estimation.estimator import Estimate
-from estimation.forecast import MAX_CARRY_S, OdometryTwist, TwistSample, carry
-from estimation.measurements import GyroYawRate, WheelOdometry
-from evaluation.online import OnlineSession
-from factors.kinematics import se2_step
+from ddfuse.estimation.config import load_config
+from ddfuse.estimation.estimator import Estimate
+from ddfuse.estimation.forecast import MAX_CARRY_S, OdometryTwist, TwistSample, carry
+from ddfuse.estimation.measurements import GyroYawRate, WheelOdometry
+from ddfuse.evaluation.online import OnlineSession
+from ddfuse.factors.kinematics import se2_step
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -1,4 +1,4 @@
-"""The forecast (``estimation.forecast``) removes the gyro's bias as the estimators do.
+"""The forecast (``ddfuse.estimation.forecast``) removes the gyro's bias as the estimators do.
 
 The audit's case: the yaw rate from a gyro that reads the true rate plus 0.05 rad/s, stated in
 the config as ``gyro_bias: 0.05``; driving straight, a 2 s carry turned the pose by 0.100 rad
@@ -11,13 +11,12 @@ import math
 
 import numpy as np
 import pytest
-
-from ekf_baseline.unicycle import UnicycleEkf
-from estimation.config import Config, RobotConfig, SensorConfig
-from estimation.estimator import Estimate
-from estimation.forecast import OdometryTwist, carry
-from estimation.measurements import GyroYawRate, Heading, WheelOdometry
-from evaluation.online import OnlineSession
+from ddfuse.ekf_baseline.unicycle import UnicycleEkf
+from ddfuse.estimation.config import Config, RobotConfig, SensorConfig
+from ddfuse.estimation.estimator import Estimate
+from ddfuse.estimation.forecast import OdometryTwist, carry
+from ddfuse.estimation.measurements import GyroYawRate, Heading, WheelOdometry
+from ddfuse.evaluation.online import OnlineSession
 
 BIAS = 0.05  # rad/s, the gyro's true bias
 SIG_V, SIG_GYRO, SIG_YAW = 0.02, 0.01, 0.02

@@ -4,8 +4,7 @@ import math
 
 import numpy as np
 import pytest
-
-from estimation import geodesy as g
+from ddfuse.estimation import geodesy as g
 
 pymap3d = pytest.importorskip("pymap3d")
 

@@ -1,4 +1,4 @@
-"""The variance inflation for time-correlated GPS fixes (estimation.gps_correlation)."""
+"""The variance inflation for time-correlated GPS fixes (ddfuse.estimation.gps_correlation)."""
 
 from __future__ import annotations
 
@@ -7,9 +7,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from estimation.config import ConfigError, load_config
-from estimation.gps_correlation import inflation
+from ddfuse.estimation.config import ConfigError, load_config
+from ddfuse.estimation.gps_correlation import inflation
 
 
 def test_inflated_fixes_average_to_the_variance_of_correlated_ones():

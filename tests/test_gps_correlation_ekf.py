@@ -22,14 +22,13 @@ import math
 import numpy as np
 import pytest
 import yaml
+from ddfuse.ekf_baseline.igvc import LAT, LON, IgvcEkf
+from ddfuse.ekf_baseline.unicycle import UnicycleEkf
+from ddfuse.estimation import geodesy
+from ddfuse.estimation.config import load_config, parse_config
+from ddfuse.estimation.gps_correlation import inflation
+from ddfuse.estimation.measurements import GpsFix
 from test_ekf_fast_path import PATHS, _config, _run_both, _stream, needs_numba
-
-from ekf_baseline.igvc import LAT, LON, IgvcEkf
-from ekf_baseline.unicycle import UnicycleEkf
-from estimation import geodesy
-from estimation.config import load_config, parse_config
-from estimation.gps_correlation import inflation
-from estimation.measurements import GpsFix
 
 DATUM = (47.397742, 8.545594, 488.0)
 TAU = 30.0
@@ -291,8 +290,8 @@ def multipath(tmp_path_factory):
     """husky-multipath, seed 1, 400 s (GPS errors Gauss-Markov, tau 30 s, sigma 1 m): 'ekf'
     and 'ekf_igvc' scored with correlation_time 0 and 30, with and without the odometry scale
     states. {(tau, scales): metrics dict}."""
-    from evaluation.pipeline import run_bag
-    from evaluation.simulate import main as simulate
+    from ddfuse.evaluation.pipeline import run_bag
+    from ddfuse.evaluation.simulate import main as simulate
 
     d = tmp_path_factory.mktemp("multipath")
     bag = d / "hm.bag"

@@ -1,5 +1,5 @@
 """The smoother with a GPS sensor's ``correlation_time`` (time-correlated fix errors,
-``estimation.gps_correlation``): each fused fix's factor takes the fix's covariance times
+``ddfuse.estimation.gps_correlation``): each fused fix's factor takes the fix's covariance times
 f = inflation(dt, tau), dt since the previous fused fix of that sensor, its robust threshold
 scaled by 1/sqrt(f); the gate and the logged innovation keep the fix's own covariance; the
 batch solves the same factors; tau = 0 changes nothing."""
@@ -15,13 +15,12 @@ from pathlib import Path
 import gtsam
 import numpy as np
 import pytest
-
-from estimation import chi2
-from estimation.config import DEFAULT_GATE, parse_config_text
-from estimation.gps_correlation import inflation
-from estimation.measurements import GpsFix, WheelOdometry
-from estimation.runner import run
-from estimation.smoother import BatchSmoother, FixedLagSmoother
+from ddfuse.estimation import chi2
+from ddfuse.estimation.config import DEFAULT_GATE, parse_config_text
+from ddfuse.estimation.gps_correlation import inflation
+from ddfuse.estimation.measurements import GpsFix, WheelOdometry
+from ddfuse.estimation.runner import run
+from ddfuse.estimation.smoother import BatchSmoother, FixedLagSmoother
 
 ROOT = Path(__file__).resolve().parents[1]
 SIGMA = 1.0  # m, the hand-built fixes' horizontal sigma
@@ -70,7 +69,7 @@ def _feed(sm, ms):
 def _gps_factors(built) -> list[tuple[np.ndarray, float]]:
     """The GPS factors among ``built``, in build order: (the factor's east/north variances, its
     Huber threshold). On a keyframe a robust prior on the position; off one (a late fix) the
-    motion-compensated ``factors.gps`` CustomFactor (one key, two rows)."""
+    motion-compensated ``ddfuse.factors.gps`` CustomFactor (one key, two rows)."""
     out = []
     for f in built:
         if isinstance(f, gtsam.PriorFactorVector):
@@ -216,7 +215,7 @@ def multipath(tmp_path_factory):
     its config states that correlation time; the test sets 0 and 30 itself)."""
     d = tmp_path_factory.mktemp("hm")
     bag = d / "hm.bag"
-    subprocess.run([sys.executable, "-m", "evaluation.cli", "simulate", "husky-multipath",
+    subprocess.run([sys.executable, "-m", "ddfuse.evaluation.cli", "simulate", "husky-multipath",
                     "--seed", "1", "--duration", "200", "-o", str(bag)], check=True, cwd=ROOT,
                    capture_output=True)
     return bag, d / "hm.yaml"
@@ -227,8 +226,8 @@ def test_correlated_fixes_end_to_end(multipath, tmp_path):
     its covariance becomes honest. Measured (seed 1, 200 s; tau 0 -> 30): filtered ATE 0.468
     -> 0.098 m, NEES 55 -> 1.55; lagged 0.510 -> 0.094 m, NEES 67 -> 1.40 (seeds 2, 3: ATE
     0.71 / 0.88 -> 0.15 / 0.12 m, NEES 109 / 149 -> 1.4 / 1.6)."""
-    from estimation.config import load_config
-    from evaluation.pipeline import run_bag
+    from ddfuse.estimation.config import load_config
+    from ddfuse.evaluation.pipeline import run_bag
 
     bag, yaml = multipath
     cfg = load_config(yaml)

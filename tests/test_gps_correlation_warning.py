@@ -5,9 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-
-from estimation.config import load_config
-from evaluation.pipeline import GPS_CORRELATED_INTERVALS, gps_correlation_warnings
+from ddfuse.estimation.config import load_config
+from ddfuse.evaluation.pipeline import GPS_CORRELATED_INTERVALS, gps_correlation_warnings
 
 
 def _cfg(tmp_path: Path, tau: float | None):

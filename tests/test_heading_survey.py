@@ -9,11 +9,10 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-
-from estimation import heading_survey as hs
-from estimation.baginfo import bag_info, offset_surveys, suggest_config
-from estimation.measurements import Heading
-from evaluation import cli
+from ddfuse.estimation import heading_survey as hs
+from ddfuse.estimation.baginfo import bag_info, offset_surveys, suggest_config
+from ddfuse.estimation.measurements import Heading
+from ddfuse.evaluation import cli
 
 TRUE_OFFSET = 0.35  # rad, the sample's simulated IMU (data/sample_husky.yaml)
 
@@ -186,7 +185,7 @@ def test_gps_errors_correlated_over_30_s_do_not_make_a_constant_offset_wander():
     The windows scatter by more than DRIFT_RAD (each fit follows its window's GPS wander) with
     fit sigmas far smaller than that scatter; independent from window to window, so their
     successive ratio stays near 2 and nothing wanders. rl_husky_gps.bag's offset does."""
-    from evaluation.montecarlo import seed_data
+    from ddfuse.evaluation.montecarlo import seed_data
 
     sim, cfg, stream, _, _ = seed_data("husky-multipath", 1)
     sv = survey(cfg, stream.measurements)

@@ -11,12 +11,10 @@ import math
 
 import numpy as np
 import pytest
-from drives import straight_drive
-
-from ekf_baseline.igvc import IgvcEkf, IgvcNoise
-from estimation import geodesy
-from estimation.config import Config, RobotConfig, SensorConfig
-from estimation.measurements import (
+from ddfuse.ekf_baseline.igvc import IgvcEkf, IgvcNoise
+from ddfuse.estimation import geodesy
+from ddfuse.estimation.config import Config, RobotConfig, SensorConfig
+from ddfuse.estimation.measurements import (
     ForwardAccel,
     GpsFix,
     GroundTruthPose,
@@ -25,7 +23,8 @@ from estimation.measurements import (
     WheelOdometry,
     WheelSpeeds,
 )
-from factors.kinematics import se2_step
+from ddfuse.factors.kinematics import se2_step
+from drives import straight_drive
 
 DATUM = (47.397742, 8.545594, 488.0)
 R_WHEEL, TRACK = 0.165, 0.555
@@ -289,7 +288,7 @@ def test_a_gap_in_the_feed_is_carried_or_restarted_and_the_fixes_reach_x_y_again
     error and sigma are back to their usual size."""
     from dataclasses import replace
 
-    from evaluation import estimators as registry
+    from ddfuse.evaluation import estimators as registry
 
     cfg, stream = sample_husky
     t_cut = stream.t0 + 60.0

@@ -12,11 +12,10 @@ import random
 import numpy as np
 import pytest
 import sympy
-
-from ekf_baseline import igvc_codegen, igvc_jacobians
-from ekf_baseline.igvc import STATE_NAMES, gps_model, heading_model, sphere_radius
-from estimation import geodesy
-from factors.kinematics import SERIES_THRESHOLD
+from ddfuse.ekf_baseline import igvc_codegen, igvc_jacobians
+from ddfuse.ekf_baseline.igvc import STATE_NAMES, gps_model, heading_model, sphere_radius
+from ddfuse.estimation import geodesy
+from ddfuse.factors.kinematics import SERIES_THRESHOLD
 
 RADIUS = sphere_radius(math.radians(45.0))
 LAT, LON, THETA, X, Y, PSI, V, W, VL, VR, A = range(11)
@@ -219,7 +218,7 @@ def test_generated_code_is_up_to_date():
     text = igvc_codegen.generate()
     committed = igvc_codegen.TARGET.read_text()
     if sympy.__version__ == igvc_jacobians.SYMPY_VERSION:
-        assert committed == text, "run: python3 -m ekf_baseline.igvc_codegen"
+        assert committed == text, "run: python3 -m ddfuse.ekf_baseline.igvc_codegen"
         return
     ns: dict = {}
     exec(compile(text, "<generated>", "exec"), ns)  # noqa: S102 - our own generator's output
@@ -237,9 +236,9 @@ def test_measurement_rows_with_calibration_states_match_central_differences():
     """The filter's measurement models as it applies them (IgvcEkf._measurement: innovation and
     sparse H rows) with a gyro-bias, a heading-offset and the odometry-scale states, and a GPS
     fix 0.3 s late: H = -d(innovation)/d(state) by central differences."""
-    from ekf_baseline.igvc import IgvcEkf
-    from estimation.config import parse_config
-    from estimation.measurements import (
+    from ddfuse.ekf_baseline.igvc import IgvcEkf
+    from ddfuse.estimation.config import parse_config
+    from ddfuse.estimation.measurements import (
         ForwardAccel,
         GpsFix,
         GyroYawRate,

@@ -12,13 +12,12 @@ import math
 
 import numpy as np
 import pytest
+from ddfuse.ekf_baseline.igvc import POLE_LIMIT_DEG, IgvcEkf, PolarRegionError
+from ddfuse.ekf_baseline.unicycle import UnicycleEkf
+from ddfuse.estimation.config import Config, RobotConfig, SensorConfig
+from ddfuse.estimation.measurements import GpsFix, Stream
+from ddfuse.estimation.runner import run
 from drives import straight_drive
-
-from ekf_baseline.igvc import POLE_LIMIT_DEG, IgvcEkf, PolarRegionError
-from ekf_baseline.unicycle import UnicycleEkf
-from estimation.config import Config, RobotConfig, SensorConfig
-from estimation.measurements import GpsFix, Stream
-from estimation.runner import run
 
 R_WHEEL, TRACK = 0.165, 0.555
 SIG_WHEEL, SIG_GYRO, SIG_GPS = 0.05, 0.01, 0.5
@@ -122,7 +121,7 @@ def test_just_outside_the_limit_the_filter_runs_and_tracks():
 
 
 def test_the_runner_reports_the_refusal_and_keeps_the_other_estimators():
-    """Through ``estimation.runner.run``: the EKF's row carries the PolarRegionError message;
+    """Through ``ddfuse.estimation.runner.run``: the EKF's row carries the PolarRegionError message;
     the unicycle EKF (local plane, no lat/lon state) runs the whole drive."""
     datum = (90.0 - 11.0 / M_PER_DEG, 0.0, 100.0)
     meas, _ = _drive(datum, yaw=math.pi / 2, v=1.0, duration=20.0)

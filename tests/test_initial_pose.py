@@ -8,11 +8,10 @@ import math
 import bagwriter as bw
 import numpy as np
 import pytest
-
-from estimation.bags import BagStream
-from estimation.config import parse_config
-from estimation.measurements import GroundTruthPose, Stream, WheelOdometry, truth_at_start
-from estimation.runner import initial_pose
+from ddfuse.estimation.bags import BagStream
+from ddfuse.estimation.config import parse_config
+from ddfuse.estimation.measurements import GroundTruthPose, Stream, WheelOdometry, truth_at_start
+from ddfuse.estimation.runner import initial_pose
 
 T0 = 1_600_000_000.0
 

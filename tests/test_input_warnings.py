@@ -6,8 +6,7 @@ from __future__ import annotations
 import json
 
 import bagwriter as bw
-
-from evaluation.cli import main
+from ddfuse.evaluation.cli import main
 
 T0 = 1_700_000_000.0
 CONFIG = {"sensors": {"odometry": [{"topic": "/odom", "noise": {"v": 0.05, "yaw_rate": 0.05}}],

@@ -11,12 +11,11 @@ import bagwriter as bw
 import numpy as np
 import pytest
 import yaml
-
-from estimation.baginfo import GRAVITY, bag_info, imu_mount, suggest_config
-from estimation.bags import read_stream
-from estimation.config import load_config, parse_config
-from estimation.frames import rpy_matrix
-from estimation.measurements import GpsFix, GyroYawRate, LandmarkObservation, WheelOdometry
+from ddfuse.estimation.baginfo import GRAVITY, bag_info, imu_mount, suggest_config
+from ddfuse.estimation.bags import read_stream
+from ddfuse.estimation.config import load_config, parse_config
+from ddfuse.estimation.frames import rpy_matrix
+from ddfuse.estimation.measurements import GpsFix, GyroYawRate, LandmarkObservation, WheelOdometry
 
 T0 = 1_500_000_000.0
 
@@ -317,7 +316,7 @@ def test_bag_info_facts_on_a_synthetic_bag(tmp_path, fmt):
 
 
 def test_inspect_prints_a_loadable_config(tmp_path, capsys):
-    from evaluation.cli import main
+    from ddfuse.evaluation.cli import main
 
     bag, _, _ = _mounted_imu_bag(tmp_path, "ros1", "y_up", n=300)
     assert main(["inspect", str(bag)]) == 0
@@ -339,8 +338,8 @@ def test_suggested_truth_is_a_pose_and_only_a_pose_gives_the_initial_pose(tmp_pa
     suggestion took the last truth topic in name order, the fix, with initial_pose:
     ground_truth, and the run started every estimator at heading 0 with a 0.3 deg sigma (true
     heading 90 deg): NEES 23-81. A fix alone is truth for scoring, not a start pose."""
-    from estimation.errors import ConfigError
-    from estimation.runner import initial_pose
+    from ddfuse.estimation.errors import ConfigError
+    from ddfuse.estimation.runner import initial_pose
 
     recs = [("/odom", bw.odometry(T0 + 0.1 * i, 1.0, 0.0), T0 + 0.1 * i) for i in range(50)]
     recs += [("/ground_truth/fix", bw.navsatfix(T0 + 0.2 * i, 42.0 + 1e-6 * i, -71.0),
@@ -367,7 +366,7 @@ def test_suggested_truth_is_a_pose_and_only_a_pose_gives_the_initial_pose(tmp_pa
         initial_pose("ground_truth", s)
     p = tmp_path / "fix_truth.yaml"
     p.write_text(yaml.safe_dump({**cfg, "initial_pose": "ground_truth"}))
-    from evaluation.cli import main
+    from ddfuse.evaluation.cli import main
 
     assert main(["run", str(bag), "-c", str(p), "-o", str(tmp_path / "out"),
                  "--estimators", "ekf", "--no-report"]) == 2
@@ -387,7 +386,7 @@ def _fix_records(err_east_north: np.ndarray, sigma: float, dt: float = 0.4) -> l
 
 
 def test_fix_scatter_tells_white_gps_errors_from_correlated_ones():
-    from estimation.baginfo import fix_scatter, scatter_correlation_time
+    from ddfuse.estimation.baginfo import fix_scatter, scatter_correlation_time
 
     rng = np.random.default_rng(7)
     n, sigma = 1000, 1.0

@@ -8,9 +8,8 @@ from pathlib import Path
 
 import bagwriter as bw
 import pytest
-
-from estimation.baginfo import bag_info, fix_scatter, suggest_config
-from estimation.errors import BagError
+from ddfuse.estimation.baginfo import bag_info, fix_scatter, suggest_config
+from ddfuse.estimation.errors import BagError
 
 T0 = 1_600_000_000.0
 

@@ -6,10 +6,9 @@ import math
 
 import numpy as np
 import pytest
+from ddfuse.ekf_baseline.kalman import KalmanCore, chi2_threshold
+from ddfuse.estimation.estimator import EstimatorLog
 from scipy.stats import chi2
-
-from ekf_baseline.kalman import KalmanCore, chi2_threshold
-from estimation.estimator import EstimatorLog
 
 
 def _random_spd(rng, n, scale=1.0):

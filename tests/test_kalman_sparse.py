@@ -7,8 +7,7 @@ import math
 
 import numpy as np
 import pytest
-
-from ekf_baseline.kalman import JOSEPH_EXPANDED_MIN, KalmanCore
+from ddfuse.ekf_baseline.kalman import JOSEPH_EXPANDED_MIN, KalmanCore
 
 N = 7
 ANGLES = (2, 6)

@@ -1,12 +1,11 @@
-"""Tests for factors.kinematics: exact SE(2) constant-twist motion."""
+"""Tests for ddfuse.factors.kinematics: exact SE(2) constant-twist motion."""
 
 import math
 import random
 
 import mpmath
 import pytest
-
-from factors.kinematics import (
+from ddfuse.factors.kinematics import (
     SERIES_THRESHOLD,
     se2_increment,
     se2_step,

@@ -3,9 +3,8 @@
 from pathlib import Path
 
 import pytest
-
-from evaluation.cli import main
-from evaluation.lag_sweep import format_table, lag_sweep
+from ddfuse.evaluation.cli import main
+from ddfuse.evaluation.lag_sweep import format_table, lag_sweep
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 

@@ -12,18 +12,17 @@ import random
 
 import numpy as np
 import pytest
-from scipy.stats import chi2
-
-from ekf_baseline.landmark import (
+from ddfuse.ekf_baseline.landmark import (
     LandmarkEkf,
     LandmarkSlamEkf,
     landmark_from_range_bearing,
     motion_step,
     range_bearing,
 )
-from estimation.config import LANDMARK_NOT_IN_MAP, Config, SensorConfig
-from estimation.measurements import LandmarkObservation, WheelOdometry, WheelSpeeds
-from factors.kinematics import se2_step
+from ddfuse.estimation.config import LANDMARK_NOT_IN_MAP, Config, SensorConfig
+from ddfuse.estimation.measurements import LandmarkObservation, WheelOdometry, WheelSpeeds
+from ddfuse.factors.kinematics import se2_step
+from scipy.stats import chi2
 
 SIG_V, SIG_W = 0.15, 0.15  # odometry noise per 50 Hz sample, m/s and rad/s
 SIG_R, SIG_B = 0.1, 0.05  # sighting noise, m and rad
@@ -369,7 +368,7 @@ def test_slam_first_estimates_jacobians_keep_heading_unobservable():
     Jacobians at the first estimates it does not; with them at the current estimates (the
     standard EKF, emulated here by switching the FEJ hooks off) the sightings fake
     information about it -- the known cause of EKF-SLAM's overconfidence."""
-    from ekf_baseline.landmark import _OdometryDrivenEkf
+    from ddfuse.ekf_baseline.landmark import _OdometryDrivenEkf
 
     class StandardSlam(LandmarkSlamEkf):
         def _first_estimates_motion(self, Fp):

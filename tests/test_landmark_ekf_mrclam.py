@@ -13,12 +13,11 @@ import math
 import numpy as np
 import pytest
 from conftest import shared_bag
-
-from ekf_baseline.landmark import LandmarkEkf
-from estimation.bags import read_stream
-from estimation.config import parse_config
-from estimation.errors import BagError
-from estimation.measurements import WheelOdometry
+from ddfuse.ekf_baseline.landmark import LandmarkEkf
+from ddfuse.estimation.bags import read_stream
+from ddfuse.estimation.config import parse_config
+from ddfuse.estimation.errors import BagError
+from ddfuse.estimation.measurements import WheelOdometry
 
 pytestmark = pytest.mark.slow
 
@@ -55,7 +54,7 @@ def streams():
         # CPython reuses the id of a freed bytes object, so about a third of the landmark
         # messages decode as a stale earlier one. The bag itself is fine (stamps = record
         # times). This marks the tests xfail only for that exact symptom.
-        pytest.xfail(f"estimation.bags.read_stream id(raw) decode cache: {e}")
+        pytest.xfail(f"ddfuse.estimation.bags.read_stream id(raw) decode cache: {e}")
 
 
 def _run(cfg, stream, odometry_only=False):

@@ -10,17 +10,16 @@ from pathlib import Path
 
 import bagwriter as bw
 import pytest
-
-from estimation.bags import BagStream, read_stream
-from estimation.config import (
+from ddfuse.estimation.bags import BagStream, read_stream
+from ddfuse.estimation.config import (
     LANDMARK_NOT_IN_MAP,
     landmark_maps,
     load_landmark_map,
     parse_config,
 )
-from estimation.errors import BagError, ConfigError
-from estimation.live import LiveConverter
-from estimation.measurements import LandmarkObservation
+from ddfuse.estimation.errors import BagError, ConfigError
+from ddfuse.estimation.live import LiveConverter
+from ddfuse.estimation.measurements import LandmarkObservation
 
 T0 = 1_600_000_000.0
 PATHS = pytest.mark.parametrize("fmt", ["ros1", "mcap"])  # fast ROS1 decoder, rosbags objects

@@ -6,12 +6,11 @@ import json
 from pathlib import Path
 
 import pytest
+from ddfuse.estimation.bags import read_stream
+from ddfuse.estimation.config import load_config
+from ddfuse.estimation.runner import run
+from ddfuse.evaluation import cli
 from readme import python_block
-
-from estimation.bags import read_stream
-from estimation.config import load_config
-from estimation.runner import run
-from evaluation import cli
 
 pytest.importorskip("gtsam")
 
@@ -44,8 +43,8 @@ def test_the_readmes_library_example_gives_what_ddfuse_run_gives(tmp_path, monke
 def test_a_hand_built_smoother_takes_the_configs_landmark_map():
     """FixedLagSmoother(cfg) ignored the config's map: every sighting 'not in the map', ATE
     8.73 m on the seed002 sample, against 0.012 m built with the map."""
-    from estimation.smoother import FixedLagSmoother
-    from evaluation.pipeline import score
+    from ddfuse.estimation.smoother import FixedLagSmoother
+    from ddfuse.evaluation.pipeline import score
 
     cfg = load_config(ROOT / "data" / "sample_seed002.yaml")
     stream = read_stream(ROOT / "data" / "sample_seed002.bag", cfg)
@@ -57,7 +56,7 @@ def test_a_hand_built_smoother_takes_the_configs_landmark_map():
 def test_an_estimator_that_never_starts_says_why():
     """UnicycleEkf(cfg) with initial_pose: ground_truth waits for a GroundTruthPose among the
     measurements (the runner keeps truth apart): an empty track with error None, before."""
-    from ekf_baseline.unicycle import UnicycleEkf
+    from ddfuse.ekf_baseline.unicycle import UnicycleEkf
 
     cfg = load_config(ROOT / "data" / "sample_husky.yaml")
     assert cfg.initial_pose == "ground_truth"

@@ -6,17 +6,16 @@ import math
 
 import numpy as np
 import pytest
-from scipy.linalg import expm
-from scipy.stats import chi2
-
-from ekf_baseline.kalman import KalmanCore
-from ekf_baseline.linear import (
+from ddfuse.ekf_baseline.kalman import KalmanCore
+from ddfuse.ekf_baseline.linear import (
     ConstantAccelerationKF,
     Kalman1D,
     ca_process_noise,
     ca_transition,
     multiply_gaussians,
 )
+from scipy.linalg import expm
+from scipy.stats import chi2
 
 INCH = 0.0254  # m
 

@@ -10,13 +10,12 @@ from types import ModuleType, SimpleNamespace
 
 import numpy as np
 import pytest
+from ddfuse.estimation.bags import open_reader, read_stream
+from ddfuse.estimation.config import load_config
+from ddfuse.estimation.live import LiveConverter, message_type
+from ddfuse.estimation.measurements import GpsFix, WheelOdometry
+from ddfuse.evaluation.online import OnlineSession
 from readme import python_block
-
-from estimation.bags import open_reader, read_stream
-from estimation.config import load_config
-from estimation.live import LiveConverter, message_type
-from estimation.measurements import GpsFix, WheelOdometry
-from evaluation.online import OnlineSession
 
 ROOT = Path(__file__).resolve().parents[1]
 BAG, CFG = ROOT / "data" / "sample_husky.bag", ROOT / "data" / "sample_husky.yaml"
@@ -174,13 +173,14 @@ def _readme_live_block() -> str:
 def test_the_readmes_live_example_handles_no_estimate_yet(monkeypatch):
     """The example read `.t, .pose` off session.estimate(...), which is None before any data
     and, for the smoother, until it has a heading: copied code crashed with AttributeError."""
-    import estimation.config
-    import estimation.live
+    import ddfuse.estimation.config
+    import ddfuse.estimation.live
+
 
     cfg = replace(load_config(CFG), initial_pose=None)
-    monkeypatch.setattr(estimation.config, "load_config", lambda path: cfg)
+    monkeypatch.setattr(ddfuse.estimation.config, "load_config", lambda path: cfg)
     clock = [0.0]  # received: the record time, as a robot's wall clock would give it
-    monkeypatch.setattr(estimation.live, "time", SimpleNamespace(time=lambda: clock[0]))
+    monkeypatch.setattr(ddfuse.estimation.live, "time", SimpleNamespace(time=lambda: clock[0]))
     ns: dict = {}
     exec(compile(_readme_live_block(), "README.md", "exec"), ns)  # noqa: S102
     pose_now = ns["pose_now"]

@@ -1,11 +1,10 @@
-"""The gate lock-out rule and the recovery's inflation factor (estimation.lockout)."""
+"""The gate lock-out rule and the recovery's inflation factor (ddfuse.estimation.lockout)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from estimation.lockout import MAX_INFLATION, Lockout, inflation
+from ddfuse.estimation.lockout import MAX_INFLATION, Lockout, inflation
 
 
 @pytest.mark.parametrize("seed", range(5))

@@ -4,8 +4,7 @@ smoother, the landmark EKF, dead reckoning and the live forecast share."""
 from __future__ import annotations
 
 import numpy as np
-
-from estimation.measurements import WheelSpeeds
+from ddfuse.estimation.measurements import WheelSpeeds
 
 
 def test_twist_matches_the_kinematics_and_the_sampled_variances():

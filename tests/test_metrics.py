@@ -1,4 +1,4 @@
-"""Trajectory metrics against hand-computed cases (evaluation.metrics)."""
+"""Trajectory metrics against hand-computed cases (ddfuse.evaluation.metrics)."""
 
 from __future__ import annotations
 
@@ -6,9 +6,8 @@ import math
 
 import numpy as np
 import pytest
-
-from estimation.runner import Trajectory
-from evaluation import metrics
+from ddfuse.estimation.runner import Trajectory
+from ddfuse.evaluation import metrics
 
 
 def traj(t, x, y, yaw, cov=None) -> Trajectory:

@@ -7,9 +7,7 @@ import math
 
 import numpy as np
 import pytest
-from scipy.stats import chi2
-
-from evaluation.montecarlo import (
+from ddfuse.evaluation.montecarlo import (
     aggregate,
     draw_truth,
     main,
@@ -17,6 +15,7 @@ from evaluation.montecarlo import (
     nees_band,
     run_seed,
 )
+from scipy.stats import chi2
 
 
 def test_nees_band_values():
@@ -104,7 +103,7 @@ def test_command_writes_json_and_markdown(tmp_path, capsys):
 
 
 def test_runs_with_other_settings_do_not_overwrite_each_other(tmp_path):
-    from evaluation.montecarlo import report_stem
+    from ddfuse.evaluation.montecarlo import report_stem
 
     assert report_stem({"scenario": "husky"}) == "mc_husky"
     assert report_stem({"scenario": "husky", "fixed_truth": True, "lag_s": 30.0}) == \
@@ -144,8 +143,8 @@ def test_truth_is_drawn_per_seed_from_the_stated_priors():
     """The NEES test presumes the truth is a draw from the filters' prior: the true geometry
     from N(nominal, geometry_std^2), the initial pose error from N(0, GIVEN_POSE_STD^2), per
     seed. Standardised draws over 400 seeds: mean and variance inside their 99.9 % bounds."""
-    from ekf_baseline import GIVEN_POSE_STD
-    from evaluation.simulate import get_scenario
+    from ddfuse.ekf_baseline import GIVEN_POSE_STD
+    from ddfuse.evaluation.simulate import get_scenario
 
     sc0 = get_scenario("seed002")
     n = 400
@@ -166,7 +165,7 @@ def test_truth_is_drawn_per_seed_from_the_stated_priors():
 
 
 def test_run_seed_records_the_drawn_or_fixed_truth():
-    from evaluation.simulate import get_scenario
+    from ddfuse.evaluation.simulate import get_scenario
 
     sc = get_scenario("seed002")
     drawn = run_seed("seed002", 3, ["ekf_landmark"], duration=10.0)
@@ -184,9 +183,9 @@ def test_calibration_errors_against_the_simulated_truth():
     geometry, the IMU's heading offset (wrapped), the walking gyro bias at the state's time.
     An estimate that equals the truth has error 0; one 2 sigma off has z = 2."""
 
-    from estimation.estimator import Estimate
-    from evaluation.montecarlo import _calibration_errors, calibration_truth
-    from evaluation.simulate import get_scenario, simulate
+    from ddfuse.estimation.estimator import Estimate
+    from ddfuse.evaluation.montecarlo import _calibration_errors, calibration_truth
+    from ddfuse.evaluation.simulate import get_scenario, simulate
 
     sc, _ = draw_truth(get_scenario("husky", 20.0), 4)
     sim = simulate(sc, seed=4)
@@ -235,7 +234,7 @@ def _fake_mc(fixed_truth=False, lag_s=None, error=None):
 
 def test_markdown_records_fixed_truth_and_lag():
     """Two runs that differ only in --fixed-truth or --lag wrote the same header before."""
-    from evaluation.montecarlo import to_markdown
+    from ddfuse.evaluation.montecarlo import to_markdown
 
     drawn, fixed = to_markdown(_fake_mc()), to_markdown(_fake_mc(fixed_truth=True))
     head = drawn.splitlines()[0]
@@ -248,7 +247,7 @@ def test_markdown_records_fixed_truth_and_lag():
 def test_markdown_calibration_text_follows_fixed_truth_and_names_the_labels():
     """Under --fixed-truth nothing is drawn, so the calibration text must not say so; the
     table's state labels bg and hoff are explained with their units."""
-    from evaluation.montecarlo import to_markdown
+    from ddfuse.evaluation.montecarlo import to_markdown
 
     def cal_text(md):
         return next(line for line in md.splitlines() if line.startswith("Calibration states"))
@@ -263,7 +262,7 @@ def test_markdown_calibration_text_follows_fixed_truth_and_names_the_labels():
 def test_markdown_errors_go_below_the_table_not_into_it():
     """Every table row has the header's 12 cells; the error is listed after the table with its
     seed, on one line, and its estimator's row is marked."""
-    from evaluation.montecarlo import to_markdown
+    from ddfuse.evaluation.montecarlo import to_markdown
 
     md = to_markdown(_fake_mc(error="numerical breakdown at t=209.9:\npose (1e9, 2e9, 0.1)"))
     lines = md.splitlines()
@@ -280,7 +279,7 @@ def test_markdown_errors_go_below_the_table_not_into_it():
 
 
 def test_run_seed_reads_a_string_of_estimator_names_as_the_cli_does():
-    from evaluation.montecarlo import run_seed
+    from ddfuse.evaluation.montecarlo import run_seed
 
     r = run_seed("seed002", 1, "ekf_landmark", duration=20.0)
     assert set(r["estimators"]) == {"ekf_landmark", "dr"}

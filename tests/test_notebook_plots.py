@@ -15,11 +15,10 @@ from pathlib import Path
 import matplotlib.image
 import numpy as np
 import pytest
+from ddfuse.estimation.config import load_config
+from ddfuse.evaluation import pipeline, plots
+from ddfuse.evaluation.results import SavedRun, load_run
 from matplotlib.figure import Figure
-
-from estimation.config import load_config
-from evaluation import pipeline, plots
-from evaluation.results import SavedRun, load_run
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "data"
@@ -56,11 +55,12 @@ def test_importing_and_plotting_leave_the_backend_alone(husky, backend):
     _, out, _, _ = husky
     code = (
         "import sys, matplotlib\n"
-        "import evaluation.plots, evaluation.report, evaluation.results, evaluation.plot_sim\n"
+        "import ddfuse.evaluation.plots, ddfuse.evaluation.report, ddfuse.evaluation.results\n"
+        "import ddfuse.evaluation.plot_sim\n"
         "before = matplotlib.get_backend()\n"
         "pyplot = 'matplotlib.pyplot' in sys.modules\n"
-        "run = evaluation.results.load_run(sys.argv[1])\n"
-        "png = evaluation.plots.save_png(evaluation.plots.trajectories(run))\n"
+        "run = ddfuse.evaluation.results.load_run(sys.argv[1])\n"
+        "png = ddfuse.evaluation.plots.save_png(ddfuse.evaluation.plots.trajectories(run))\n"
         "print(before, pyplot, matplotlib.get_backend(), png[:8] == b'\\x89PNG\\r\\n\\x1a\\n')\n")
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
     env.update(MPLBACKEND=backend, PYTHONPATH=os.pathsep.join(
@@ -157,7 +157,7 @@ def test_notebook_flow_without_a_config(husky):
 
 
 def test_from_result_shows_the_config_that_ran_whatever_it_was_parsed_from(husky, tmp_path):
-    from estimation.config import load_config, parse_config_text
+    from ddfuse.estimation.config import load_config, parse_config_text
 
     _, _, _, result = husky
     text = (DATA / "sample_husky.yaml").read_text()

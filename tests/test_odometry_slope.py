@@ -11,13 +11,12 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from ddfuse.estimation.bags import read_stream
+from ddfuse.estimation.config import ConfigError, load_config, parse_config_text
+from ddfuse.estimation.frames import rpy_matrix
+from ddfuse.estimation.live import LiveConverter
+from ddfuse.estimation.measurements import WheelOdometry
 from scipy.spatial.transform import Rotation
-
-from estimation.bags import read_stream
-from estimation.config import ConfigError, load_config, parse_config_text
-from estimation.frames import rpy_matrix
-from estimation.live import LiveConverter
-from estimation.measurements import WheelOdometry
 
 STAMP = SimpleNamespace(sec=1700000000, nanosec=0)
 
@@ -103,9 +102,9 @@ def test_jackal_lands_where_robot_localizations_3d_ekf_does(jackal_bag):
     3-D EKF on this bag and pins the final position at (1.0255, 3.4334) m (z 0.7408) within
     0.1069 m. The shipped config's slope projection brings both planar estimators there; the
     speed taken as horizontal ended 0.21 m off."""
-    from estimation.runner import run
-    from evaluation.cli import CONFIGS
-    from evaluation.estimators import build
+    from ddfuse.estimation.runner import run
+    from ddfuse.evaluation.cli import CONFIGS
+    from ddfuse.evaluation.estimators import build
 
     cfg = load_config(CONFIGS / "rl_jackal.yaml")
     assert cfg.of_kind("odometry")[0].slope == "/imu/data"

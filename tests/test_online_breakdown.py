@@ -4,12 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from ddfuse.estimation.bags import read_stream
+from ddfuse.estimation.config import load_config
+from ddfuse.estimation.dead_reckoning import DeadReckoning
+from ddfuse.evaluation.online import OnlineSession
 from test_runner_guards import _Diverging
-
-from estimation.bags import read_stream
-from estimation.config import load_config
-from estimation.dead_reckoning import DeadReckoning
-from evaluation.online import OnlineSession
 
 ROOT = Path(__file__).resolve().parents[1]
 

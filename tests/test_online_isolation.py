@@ -8,14 +8,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from estimation.bags import read_stream
-from estimation.config import load_config
-from estimation.estimator import Estimate, Estimator
-from estimation.measurements import GyroYawRate
-from estimation.smoother import FixedLagSmoother
-from evaluation import cli
-from evaluation.online import OnlineSession
+from ddfuse.estimation.bags import read_stream
+from ddfuse.estimation.config import load_config
+from ddfuse.estimation.estimator import Estimate, Estimator
+from ddfuse.estimation.measurements import GyroYawRate
+from ddfuse.estimation.smoother import FixedLagSmoother
+from ddfuse.evaluation import cli
+from ddfuse.evaluation.online import OnlineSession
 
 ROOT = Path(__file__).resolve().parents[1]
 BAG, CFG = ROOT / "data" / "sample_husky.bag", ROOT / "data" / "sample_husky.yaml"
@@ -233,7 +232,7 @@ def test_cli_online_prints_on_its_grid_and_a_heading_sigma_past_180_as_such(caps
     """--every S prints at the first message at or after each t0 + k S (not S after the
     previous print, which loses a message interval each time); a heading sigma over 180 deg
     is printed as >180."""
-    from evaluation import online
+    from ddfuse.evaluation import online
 
     pose_cov = np.diag([1.0, 1.0, 4.0 ** 2])
     real = online.OnlineSession.estimate
@@ -263,7 +262,7 @@ def test_replay_runs_without_full_garbage_collections_and_restores_the_collector
     found it."""
     import gc
 
-    from evaluation.online import replay
+    from ddfuse.evaluation.online import replay
 
     cfg, _ = setup
     seen, frozen = [], []

@@ -11,15 +11,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from estimation.bags import UNSET_STAMP, open_reader, open_stream, read_stream
-from estimation.config import load_config
-from estimation.estimator import Estimate, Estimator
-from estimation.live import LiveConverter
-from estimation.measurements import GpsFix, WheelOdometry
-from estimation.runner import initial_pose, run
-from evaluation import estimators as registry
-from evaluation.online import OnlineSession, replay
+from ddfuse.estimation.bags import UNSET_STAMP, open_reader, open_stream, read_stream
+from ddfuse.estimation.config import load_config
+from ddfuse.estimation.estimator import Estimate, Estimator
+from ddfuse.estimation.live import LiveConverter
+from ddfuse.estimation.measurements import GpsFix, WheelOdometry
+from ddfuse.estimation.runner import initial_pose, run
+from ddfuse.evaluation import estimators as registry
+from ddfuse.evaluation.online import OnlineSession, replay
 
 ROOT = Path(__file__).resolve().parents[1]
 BAG, CFG = ROOT / "data" / "sample_husky.bag", ROOT / "data" / "sample_husky.yaml"

@@ -1,8 +1,9 @@
-"""A regular install (``pip install .``, not ``-e``) ships the sample bags, their configs and
-landmark map, and data/configs/*.yaml as the package ``ddfuse_data``, and the command line
-finds them there. Before, only the four code packages were installed: ``ddfuse run`` said
-'.../site-packages/data/sample_husky.bag: no such bag', and a real bag found no shipped
-config."""
+"""What an install puts on the import path: one top-level package, ``ddfuse``, whose
+sub-packages are the checkout's folders (``ddfuse.estimation`` is ``estimation/``...) and whose
+``ddfuse.data`` ships the sample bags, their configs and landmark map, and data/configs/*.yaml;
+the command line finds them there. Before, ``pip install .`` put four generic top-level packages
+(``estimation``, ``factors``, ``ekf_baseline``, ``evaluation``) into site-packages, two of
+whose names PyPI already has."""
 
 from __future__ import annotations
 
@@ -20,7 +21,7 @@ SHIPPED = ["README.md", "__init__.py", "sample_husky.bag", "sample_husky.yaml",
 
 PROBE = """
 from pathlib import Path
-from evaluation import cli
+from ddfuse.evaluation import cli
 real = Path("rl_husky_gps.bag")
 real.write_bytes(b"")
 print(cli.SAMPLE_BAG, cli.SAMPLE_BAG.is_file())
@@ -50,8 +51,15 @@ def site(tmp_path_factory) -> Path:
     return lib
 
 
+def test_the_install_has_one_top_level_package(site):
+    assert sorted(p.name for p in site.iterdir()) == ["ddfuse"]
+    for sub in ("factors", "estimation", "ekf_baseline", "evaluation"):
+        shipped = {p.name for p in (site / "ddfuse" / sub).glob("*.py")}
+        assert shipped == {p.name for p in (ROOT / sub).glob("*.py")}, sub
+
+
 def test_the_install_ships_the_data(site):
-    data = site / "ddfuse_data"
+    data = site / "ddfuse" / "data"
     shipped = sorted(str(p.relative_to(data)) for p in data.rglob("*") if p.is_file())
     assert shipped == sorted(SHIPPED)
     assert 1_000_000 < sum((data / f).stat().st_size for f in SHIPPED) < 1_300_000
@@ -63,14 +71,61 @@ def test_an_installed_copy_finds_the_sample_and_the_shipped_configs(site, tmp_pa
                        text=True, env={"PYTHONPATH": str(site), "PATH": "/usr/bin:/bin"},
                        timeout=120)
     assert r.returncode == 0, r.stderr
-    data = site / "ddfuse_data"
+    data = site / "ddfuse" / "data"
     assert r.stdout.splitlines() == [f"{data / 'sample_husky.bag'} True",
                                      str(data / "sample_husky.yaml"),
                                      str(data / "configs" / "rl_husky_gps.yaml")]
 
 
 def test_a_checkout_uses_its_own_data():
-    from evaluation import cli
+    from ddfuse.evaluation import cli
 
     assert cli.DATA == ROOT / "data"
     assert cli.SAMPLE_BAG == ROOT / "data" / "sample_husky.bag" and cli.SAMPLE_BAG.is_file()
+
+
+VENV_PROBE = """
+import importlib.util, sys
+import ddfuse
+print(ddfuse.__version__)
+print(ddfuse.__file__)
+print([n for n in ("estimation", "factors", "ekf_baseline", "evaluation", "ddfuse_data")
+       if importlib.util.find_spec(n) is not None])
+"""
+
+
+@pytest.mark.parametrize("editable", [False, True], ids=["regular", "editable"])
+def test_a_fresh_venv_install_exposes_only_ddfuse(tmp_path, editable):
+    """``pip install .`` and ``pip install -e .`` in a new virtual environment (no dependencies,
+    so no network): from another directory ``import ddfuse`` gives the version and none of the
+    checkout's folders is importable as a package of its own."""
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=120)
+    py = venv / "bin" / "python"
+    src = tmp_path / "src"
+    files = subprocess.run(["git", "ls-files", "--cached", "--others", "--exclude-standard"],
+                           cwd=ROOT, capture_output=True, text=True, check=True).stdout.split()
+    for f in files:
+        if (ROOT / f).is_file():
+            (src / f).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy(ROOT / f, src / f)
+    r = subprocess.run([str(py), "-m", "pip", "install", "-q", "--no-deps",
+                        "--no-build-isolation", *(["-e"] if editable else []), str(src)],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    r = subprocess.run([str(py), "-c", VENV_PROBE], cwd=elsewhere, capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    ver, where, leaked = r.stdout.splitlines()
+    assert ver == _project_version()
+    assert (Path(where).parent == src / "ddfuse") == editable
+    assert leaked == "[]"
+
+
+def _project_version() -> str:
+    import re
+
+    return re.search(r'^version = "([^"]+)"', (ROOT / "pyproject.toml").read_text(),
+                     re.M).group(1)

@@ -9,7 +9,7 @@ import re
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("estimation", "factors", "ekf_baseline", "evaluation", "ddfuse_data")
+PACKAGES = ("ddfuse", "estimation", "factors", "ekf_baseline", "evaluation", "data")
 
 # module -> names it has only from Python 3.11
 NEW_IN_311 = {

@@ -8,14 +8,13 @@ import math
 
 import numpy as np
 import pytest
-
-from ekf_baseline.kalman import KalmanCore
-from ekf_baseline.unicycle import UnicycleEkf
-from estimation.bags import read_stream
-from estimation.config import load_config
-from estimation.estimator import EstimatorLog
-from estimation.runner import initial_pose, run
-from evaluation.simulate import simulate, write_bag
+from ddfuse.ekf_baseline.kalman import KalmanCore
+from ddfuse.ekf_baseline.unicycle import UnicycleEkf
+from ddfuse.estimation.bags import read_stream
+from ddfuse.estimation.config import load_config
+from ddfuse.estimation.estimator import EstimatorLog
+from ddfuse.estimation.runner import initial_pose, run
+from ddfuse.evaluation.simulate import simulate, write_bag
 
 
 def _core() -> KalmanCore:

@@ -15,12 +15,11 @@ import matplotlib.colors
 import matplotlib.pyplot as plt
 import numpy as np
 import pytest
-
-from estimation.runner import Trajectory
-from evaluation import cli, plots, report
-from evaluation.estimators import SPECS, TRACK_TO_SPEC
-from evaluation.export import read_csv, write_csv
-from evaluation.results import load_run
+from ddfuse.estimation.runner import Trajectory
+from ddfuse.evaluation import cli, plots, report
+from ddfuse.evaluation.estimators import SPECS, TRACK_TO_SPEC
+from ddfuse.evaluation.export import read_csv, write_csv
+from ddfuse.evaluation.results import load_run
 
 ROOT = Path(__file__).resolve().parents[1]
 PNG = b"\x89PNG\r\n\x1a\n"
@@ -206,8 +205,8 @@ def test_run_on_a_damaged_bag_reports_what_was_read(tmp_path, capsys):
 def test_track_files_are_byte_for_byte_what_savetxt_wrote(tmp_path, n):
     """write_tum/write_csv format all rows in one go; the files must stay exactly those of
     np.savetxt with the formats they always had (NaN and inf included)."""
-    from estimation.runner import Trajectory
-    from evaluation import export
+    from ddfuse.estimation.runner import Trajectory
+    from ddfuse.evaluation import export
 
     rng = np.random.default_rng(n)
     t = 1.7e9 + np.cumsum(rng.random(n))
@@ -514,8 +513,8 @@ def test_jackal_report_without_gps_or_truth(jackal_bag, tmp_path):
 
 
 def test_a_second_run_into_the_same_directory_leaves_no_tracks_of_the_first(tmp_path):
-    from estimation.config import load_config
-    from evaluation import pipeline
+    from ddfuse.estimation.config import load_config
+    from ddfuse.evaluation import pipeline
 
     root = Path(__file__).resolve().parents[1] / "data"
     cfg = load_config(root / "sample_husky.yaml")
@@ -529,7 +528,7 @@ def test_a_second_run_into_the_same_directory_leaves_no_tracks_of_the_first(tmp_
 
 
 def test_heading_error_lines_break_where_the_angle_wraps():
-    from evaluation.plots import _break_wraps
+    from ddfuse.evaluation.plots import _break_wraps
 
     e = np.array([3.0, 3.1, -3.1, -3.0, 0.1, -0.1])
     out = _break_wraps(e)

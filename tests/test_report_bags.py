@@ -5,8 +5,7 @@ from __future__ import annotations
 import json
 
 import pytest
-
-from evaluation import cli
+from ddfuse.evaluation import cli
 
 
 @pytest.mark.slow

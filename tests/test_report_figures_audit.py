@@ -4,11 +4,10 @@ facts, events and warnings headings say what they hold."""
 from __future__ import annotations
 
 import numpy as np
-
-from estimation.runner import Trajectory
-from evaluation import plots, report
-from evaluation.consistency import InnovationTable
-from evaluation.results import SavedRun
+from ddfuse.estimation.runner import Trajectory
+from ddfuse.evaluation import plots, report
+from ddfuse.evaluation.consistency import InnovationTable
+from ddfuse.evaluation.results import SavedRun
 
 
 def _run(metrics: dict, tracks: dict, gps_t=None, gps_xy=None, **kw) -> SavedRun:

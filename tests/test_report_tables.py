@@ -6,7 +6,7 @@ from __future__ import annotations
 import html
 import re
 
-from evaluation import report
+from ddfuse.evaluation import report
 
 
 def _cells(table: str, name: str) -> list[str]:
@@ -48,7 +48,7 @@ def test_the_best_is_marked_on_the_common_stamps_the_verdict_ranks_on():
 def test_one_tie_rule_for_table_and_verdict():
     """0.100 against 0.1053: 5.03 % of the larger, 5.3 % of the smaller. The verdict called it
     a tie (|d|/max <= 5 %), the table did not (v <= 1.05 best). Both now: a tie."""
-    from evaluation.verdict import tie, verdict_lines
+    from ddfuse.evaluation.verdict import tie, verdict_lines
 
     m = {"estimators": {"ekf": _est(ate_rmse_m=0.1053), "smoother": _est(ate_rmse_m=0.1)},
          "lag_s": 10.0}

@@ -9,11 +9,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from estimation.bags import read_stream
-from estimation.config import load_config
-from estimation.dead_reckoning import DeadReckoning
-from estimation.runner import broken, run
+from ddfuse.estimation.bags import read_stream
+from ddfuse.estimation.config import load_config
+from ddfuse.estimation.dead_reckoning import DeadReckoning
+from ddfuse.estimation.runner import broken, run
 
 ROOT = Path(__file__).resolve().parents[1]
 

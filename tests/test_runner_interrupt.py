@@ -9,12 +9,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from estimation.config import load_config
-from estimation.dead_reckoning import DeadReckoning
-from estimation.errors import RunInterrupted
-from estimation.runner import run
-from evaluation import pipeline
+from ddfuse.estimation.config import load_config
+from ddfuse.estimation.dead_reckoning import DeadReckoning
+from ddfuse.estimation.errors import RunInterrupted
+from ddfuse.estimation.runner import run
+from ddfuse.evaluation import pipeline
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -77,7 +76,7 @@ def test_ctrl_c_in_one_finish_keeps_the_others(sample_husky):
 
 
 def test_run_bag_writes_the_results_then_says_it_was_interrupted(tmp_path, monkeypatch, capsys):
-    from evaluation import estimators as registry
+    from ddfuse.evaluation import estimators as registry
 
     monkeypatch.setitem(registry.SPECS, "dr", replace(
         registry.SPECS["dr"], make=lambda cfg, stream, pose, lag, _: _CtrlC(
@@ -92,7 +91,7 @@ def test_run_bag_writes_the_results_then_says_it_was_interrupted(tmp_path, monke
     assert m["estimators"]["ekf"]["ate_rmse_m"] < 0.5  # scored over what it processed
     assert (tmp_path / "ekf.tum").is_file()
     # the command line: the report of what was processed, one line, Ctrl-C's exit code
-    from evaluation import cli
+    from ddfuse.evaluation import cli
 
     out = tmp_path / "cli"
     assert cli.main(["run", "-o", str(out), "--estimators", "ekf,dr"]) == 130
@@ -103,7 +102,7 @@ def test_run_bag_writes_the_results_then_says_it_was_interrupted(tmp_path, monke
 
 def test_online_on_ctrl_c_prints_the_final_estimates_and_the_latency_so_far(
         monkeypatch, capsys):
-    from evaluation import cli, online
+    from ddfuse.evaluation import cli, online
 
     push = online.OnlineSession.push
     calls = []

@@ -6,9 +6,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-
-from estimation.runner import Trajectory
-from evaluation import metrics
+from ddfuse.estimation.runner import Trajectory
+from ddfuse.evaluation import metrics
 
 SIGMA = 1.0  # m per axis, the sample bag's fixes
 RATE = 2.5  # Hz

@@ -6,12 +6,11 @@ import math
 
 import numpy as np
 import pytest
-
-from estimation.estimator import EstimatorLog
-from estimation.measurements import Stream
-from estimation.runner import EstimatorRun, GpsTrack, RunResult, Trajectory
-from evaluation.pipeline import score
-from evaluation.verdict import verdict_lines
+from ddfuse.estimation.estimator import EstimatorLog
+from ddfuse.estimation.measurements import Stream
+from ddfuse.estimation.runner import EstimatorRun, GpsTrack, RunResult, Trajectory
+from ddfuse.evaluation.pipeline import score
+from ddfuse.evaluation.verdict import verdict_lines
 
 SPEED = 1.0  # m/s along a circle of radius 20 m
 
@@ -128,7 +127,7 @@ def test_holdout_scores_the_antenna_with_the_configured_lever_arm_and_delay():
     import copy
     from pathlib import Path
 
-    from estimation.config import load_config
+    from ddfuse.estimation.config import load_config
 
     cfg = copy.deepcopy(load_config(Path(__file__).parent.parent / "data" / "sample_husky.yaml"))
     gps = next(s for s in cfg.sensors if s.kind == "gps")
@@ -254,9 +253,9 @@ def test_the_path_length_from_gps_fixes_is_not_their_noise(sample_husky):
     1 m fixes at 2.5 Hz was 561 m for the sample bag's 117 m drive."""
     from dataclasses import replace as _replace
 
-    from estimation.runner import run
-    from evaluation import metrics
-    from evaluation.pipeline import data_facts
+    from ddfuse.estimation.runner import run
+    from ddfuse.evaluation import metrics
+    from ddfuse.evaluation.pipeline import data_facts
 
     cfg, stream = sample_husky
     res = run(stream, {})

@@ -13,10 +13,9 @@ import time
 
 import numpy as np
 import pytest
-
-from estimation.config import parse_config
-from estimation.geodesy import geodetic_to_enu
-from evaluation import simulate as sim
+from ddfuse.estimation.config import parse_config
+from ddfuse.estimation.geodesy import geodetic_to_enu
+from ddfuse.evaluation import simulate as sim
 
 N = 10_000  # samples per noise check
 
@@ -353,7 +352,7 @@ def test_dead_reckoning_with_perfect_calibration_follows_the_truth():
     """With nominal = true geometry and near-noiseless encoders, the odometry dead reckoning of
     plot_sim reproduces the truth; with the scenario's miscalibration it does not. This ties the
     encoder model (interval means stamped at the interval end) to the truth."""
-    from evaluation.plot_sim import dead_reckoning
+    from ddfuse.evaluation.plot_sim import dead_reckoning
 
     base = sim.get_scenario("husky", duration=120.0)
     exact = dataclasses.replace(
@@ -369,7 +368,7 @@ def test_dead_reckoning_with_perfect_calibration_follows_the_truth():
 
 
 def test_plot_sim_writes_a_png(tmp_path):
-    from evaluation.plot_sim import main
+    from ddfuse.evaluation.plot_sim import main
 
     out = tmp_path / "p.png"
     assert main(["gps-outage", "--duration", "240", "-o", str(out)]) == 0

@@ -12,11 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from rosbags.highlevel import AnyReader
-
-from estimation.bags import read_stream
-from estimation.config import load_config
-from estimation.measurements import (
+from ddfuse.estimation.bags import read_stream
+from ddfuse.estimation.config import load_config
+from ddfuse.estimation.measurements import (
     ForwardAccel,
     GpsFix,
     GyroYawRate,
@@ -25,8 +23,9 @@ from estimation.measurements import (
     WheelOdometry,
     WheelSpeeds,
 )
-from evaluation import cli
-from evaluation import simulate as sim
+from ddfuse.evaluation import cli
+from ddfuse.evaluation import simulate as sim
+from rosbags.highlevel import AnyReader
 
 
 def plain(msg, skip=("seq",)):

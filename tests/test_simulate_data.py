@@ -7,10 +7,9 @@ import shlex
 from pathlib import Path
 
 import pytest
+from ddfuse.estimation.config import load_config
+from ddfuse.evaluation import simulate as sim
 from test_simulate_bags import read_all  # tests/ is on sys.path (no __init__)
-
-from estimation.config import load_config
-from evaluation import simulate as sim
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 

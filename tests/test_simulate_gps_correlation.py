@@ -18,8 +18,7 @@ import math
 
 import numpy as np
 import pytest
-
-from evaluation import simulate as sim
+from ddfuse.evaluation import simulate as sim
 
 TAU = 4.0  # s: correlation time of the long statistics run (L = 10 fixes at 2.5 Hz)
 DURATION = 16_000.0  # s: n = 40 000 fixes, n_eff = 3 990 for the std (5 sd: 5.6 %)
@@ -207,7 +206,7 @@ def test_bad_correlation_time_is_refused(bad):
 
 def test_the_command_lines_offer_the_scenario(tmp_path, capsys):
     """ddfuse simulate and ddfuse mc take the name (mc gets as far as checking the duration)."""
-    from evaluation import montecarlo
+    from ddfuse.evaluation import montecarlo
 
     assert "husky-multipath" in sim.SCENARIOS
     with pytest.raises(SystemExit) as e:

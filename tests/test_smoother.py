@@ -10,12 +10,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from estimation.config import SmootherConfig
-from estimation.measurements import GpsFix, Heading, Stream, WheelOdometry
-from estimation.runner import Trajectory, run
-from estimation.smoother import ODOMETRY_WAIT, BatchSmoother, FixedLagSmoother
-from factors.state import BG, HOFF, KV, KW
+from ddfuse.estimation.config import SmootherConfig
+from ddfuse.estimation.measurements import GpsFix, Heading, Stream, WheelOdometry
+from ddfuse.estimation.runner import Trajectory, run
+from ddfuse.estimation.smoother import ODOMETRY_WAIT, BatchSmoother, FixedLagSmoother
+from ddfuse.factors.state import BG, HOFF, KV, KW
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 GPS_SIGMA = 1.0  # m, stated in data/sample_husky.yaml
@@ -363,7 +362,7 @@ def test_gives_up_when_gtsam_keeps_failing(husky, monkeypatch):
     400 s run, each re-start from a staler estimate: 15 m off at the end). After
     MAX_RECOVERIES + 1 within RECOVERY_WINDOW s the smoother stops with an error that names
     gtsam's reason (its first non-blank line), keeping the window's keyframes."""
-    import estimation.smoother as smoother_module
+    import ddfuse.estimation.smoother as smoother_module
 
     cfg, stream = husky
     real = smoother_module.gtsam.IncrementalFixedLagSmoother
@@ -410,7 +409,7 @@ def test_non_finite_measurements_are_counted_and_never_reach_gtsam(husky):
     """A hand-built measurement with a NaN (the bag reader and the live converter reject such
     messages, a Python caller need not): before, one NaN yaw rate made gtsam's system
     indeterminate at every update until the smoother stopped."""
-    from estimation.measurements import GyroYawRate
+    from ddfuse.estimation.measurements import GyroYawRate
 
     cfg, stream = husky
     ms = stream.measurements
@@ -431,11 +430,11 @@ def test_non_finite_measurements_are_counted_and_never_reach_gtsam(husky):
     assert dirty.log.rejected[("/fix", "nonfinite")] == 1
     assert dirty.log.rejected[("/odom", "nonfinite")] == 1
     # an unused quantity's variance is NaN by design (a v-only odometry): not a fault
-    from estimation.measurements import is_finite
+    from ddfuse.estimation.measurements import is_finite
 
     assert is_finite(WheelOdometry(1.0, 1.0, None, 1e-3, math.nan))
     assert not is_finite(WheelOdometry(1.0, 1.0, None, math.nan, 0.1))
-    from estimation.measurements import GroundTruthPose, LandmarkObservation
+    from ddfuse.estimation.measurements import GroundTruthPose, LandmarkObservation
 
     # range-only sighting (bearing NaN), NavSatFix truth (no yaw), fix without altitude
     assert is_finite(LandmarkObservation(1.0, "a", 2.0, math.nan, 0.01, math.nan, False))
@@ -453,8 +452,8 @@ def test_interval_mean_odometry_is_held_backward():
     accelerating at 0.2 m/s^2 for 10 s covers 10 m; those interval means, each held over its
     own interval, integrate to exactly that. Held forward (each sample over the NEXT interval)
     they would fall a period behind: 0.2 m short at 2 m/s."""
-    from estimation.config import parse_config
-    from estimation.measurements import WheelOdometry
+    from ddfuse.estimation.config import parse_config
+    from ddfuse.estimation.measurements import WheelOdometry
 
     cfg = parse_config({"sensors": {"odometry": [{"topic": "/odom",
                                                   "noise": {"v": 0.01, "yaw_rate": 0.01}}]},
@@ -492,9 +491,9 @@ def test_messages_wait_for_the_odometry_that_covers_them(husky):
 
 def test_odometry_scales_are_estimated(husky_run):
     """The sample's odometry comes from the nominal geometry (r 0.165 m, L 0.555 m) while the
-    robot has r 0.1635 m, L 0.5826 m: k_v = 0.9909, k_w = 0.9440 (factors.state). The last
+    robot has r 0.1635 m, L 0.5826 m: k_v = 0.9909, k_w = 0.9440 (ddfuse.factors.state). The last
     lagged estimate is within 3 sigma of both, and tighter than the prior (1.2 %, 5.5 %)."""
-    from factors.state import KV, KW
+    from ddfuse.factors.state import KV, KW
 
     kv_true = 0.1635 / 0.165
     kw_true = kv_true * 0.555 / 0.5826
@@ -513,7 +512,7 @@ def test_speed_scale_on_the_first_straight_leg_is_the_closed_form_optimum(husky)
     of its sigma at three times on the leg, where the optimum is 1.0007-0.9986 (the unicycle
     EKF, with its own twist model, 1.0019-1.0002; 0.9959-0.9946 before its k_w bias was fixed,
     docs/results/smoother_monte_carlo.md, session 7)."""
-    from estimation.config import GIVEN_POSE_STD
+    from ddfuse.estimation.config import GIVEN_POSE_STD
 
     cfg, stream = husky
     g0 = stream.ground_truth[0]
@@ -819,9 +818,9 @@ def test_hand_built_measurements_it_cannot_use_are_counted_not_raised():
     raised TypeError and KeyError from inside the smoother."""
     import math
 
-    from estimation.config import load_config
-    from estimation.measurements import GpsFix, Heading, WheelOdometry
-    from estimation.smoother import FixedLagSmoother
+    from ddfuse.estimation.config import load_config
+    from ddfuse.estimation.measurements import GpsFix, Heading, WheelOdometry
+    from ddfuse.estimation.smoother import FixedLagSmoother
 
     cfg = load_config(DATA / "sample_husky.yaml")
     sm = FixedLagSmoother(cfg, initial_pose=(0.0, 0.0, 0.0))

@@ -10,11 +10,10 @@ from dataclasses import replace
 import gtsam
 import numpy as np
 import pytest
-
-from estimation.measurements import GpsFix, GyroYawRate, Stream, WheelOdometry
-from estimation.runner import run
-from estimation.smoother import MIN_KEYFRAME_DT, FixedLagSmoother, SmootherNoise
-from factors.state import BG, HOFF, KW
+from ddfuse.estimation.measurements import GpsFix, GyroYawRate, Stream, WheelOdometry
+from ddfuse.estimation.runner import run
+from ddfuse.estimation.smoother import MIN_KEYFRAME_DT, FixedLagSmoother, SmootherNoise
+from ddfuse.factors.state import BG, HOFF, KW
 
 
 def _pose0(stream: Stream) -> tuple[float, float, float]:

@@ -6,9 +6,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-
-from estimation.config import load_config
-from evaluation import pipeline
+from ddfuse.estimation.config import load_config
+from ddfuse.evaluation import pipeline
 
 pytestmark = pytest.mark.slow
 

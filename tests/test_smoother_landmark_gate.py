@@ -1,6 +1,6 @@
 """The smoother gates landmark sightings as the landmark EKF does: a chi-square gate on the
 innovation against the keyframe's marginal (a delayed sighting against its own keyframe's),
-with the shared lock-out rule (``estimation.lockout``): a run of rejections with nothing else
+with the shared lock-out rule (``ddfuse.estimation.lockout``): a run of rejections with nothing else
 to corroborate the estimate widens the belief. Before, the robust kernel was the only guard:
 5 % misidentified landmarks made the lagged output 3x worse."""
 
@@ -12,12 +12,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from estimation.bags import read_stream
-from estimation.config import load_config
-from estimation.measurements import LandmarkObservation, WheelSpeeds
-from estimation.runner import run
-from evaluation.estimators import build
+from ddfuse.estimation.bags import read_stream
+from ddfuse.estimation.config import load_config
+from ddfuse.estimation.measurements import LandmarkObservation, WheelSpeeds
+from ddfuse.estimation.runner import run
+from ddfuse.evaluation.estimators import build
 
 ROOT = Path(__file__).resolve().parents[1]
 BAG, CFG = ROOT / "data" / "sample_seed002.bag", ROOT / "data" / "sample_seed002.yaml"

@@ -8,13 +8,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from ekf_baseline.landmark import LandmarkEkf
-from estimation.bags import read_stream
-from estimation.config import load_config
-from estimation.measurements import LandmarkObservation
-from estimation.runner import initial_pose, run
-from estimation.smoother import FixedLagSmoother
+from ddfuse.ekf_baseline.landmark import LandmarkEkf
+from ddfuse.estimation.bags import read_stream
+from ddfuse.estimation.config import load_config
+from ddfuse.estimation.measurements import LandmarkObservation
+from ddfuse.estimation.runner import initial_pose, run
+from ddfuse.estimation.smoother import FixedLagSmoother
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -43,7 +42,7 @@ def test_smoother_landmark_innovations_on_the_seed002_sample():
 @pytest.mark.parametrize("keyframe", ["rate", "gps"])
 def test_smoother_on_the_seed002_sample_is_as_accurate_as_the_landmark_ekf(keyframe):
     """Rate keyframes (2 Hz) with 10 Hz scans: each sighting is seen from where the robot is at
-    its stamp, up to 0.5 s after the keyframe (``factors.landmark``'s dt). Taken from the
+    its stamp, up to 0.5 s after the keyframe (``ddfuse.factors.landmark``'s dt). Taken from the
     keyframe pose instead, the lagged track was 0.149 m off on this sample (the landmark EKF:
     0.011 m); now 0.009 m, the filtered one 0.012 m. The sample's own config has a keyframe at
     every scan (``gps``; no carry): lagged 0.009 m, filtered 0.012 m. Scored against the truth

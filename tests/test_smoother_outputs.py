@@ -6,11 +6,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from estimation.runner import run
-from estimation.smoother import BatchSmoother, FixedLagSmoother
-from evaluation import estimators as registry
-from evaluation.online import OnlineSession
+from ddfuse.estimation.runner import run
+from ddfuse.estimation.smoother import BatchSmoother, FixedLagSmoother
+from ddfuse.evaluation import estimators as registry
+from ddfuse.evaluation.online import OnlineSession
 
 
 def _pose0(stream):

@@ -8,10 +8,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import pytest
-from scipy.linalg import expm
-from scipy.stats import chi2
-
-from ekf_baseline.unicycle import (
+from ddfuse.ekf_baseline.unicycle import (
     ProcessNoise,
     UnicycleEkf,
     euler_step_jac,
@@ -20,8 +17,8 @@ from ekf_baseline.unicycle import (
     twist_densities,
     unicycle_process_noise,
 )
-from estimation.config import parse_config
-from estimation.measurements import (
+from ddfuse.estimation.config import parse_config
+from ddfuse.estimation.measurements import (
     GpsFix,
     GroundTruthPose,
     GyroYawRate,
@@ -29,8 +26,10 @@ from estimation.measurements import (
     WheelOdometry,
     WheelSpeeds,
 )
-from factors.kinematics import se2_step, se2_step_jac
-from factors.motion import motion_error
+from ddfuse.factors.kinematics import se2_step, se2_step_jac
+from ddfuse.factors.motion import motion_error
+from scipy.linalg import expm
+from scipy.stats import chi2
 
 # Truth model: v and w random walks (white accel / yaw accel), pose by the exact constant-twist
 # step over 2 ms sub-steps. The filter gets the same densities and no extra slip/heading noise.
@@ -212,7 +211,7 @@ def _numeric_jac(f, x, eps=1e-6):
 def _error_chart(pose_error, x0, x1=None):
     """The filter's error coordinates: (to_state(d): the state at error d from x0, and
     error(x): the error of state x from x1). 'world': the difference (heading wrapped);
-    'se2': the pose by X Exp(xi) (ekf_baseline.unicycle.se2_retract / se2_log_error), the
+    'se2': the pose by X Exp(xi) (ddfuse.ekf_baseline.unicycle.se2_retract / se2_log_error), the
     other states by the difference."""
     x0 = np.asarray(x0, dtype=float)
     x1 = x0 if x1 is None else np.asarray(x1, dtype=float)
@@ -851,8 +850,8 @@ def test_dead_reckoning_banana_is_gaussian_in_the_filters_error_coordinates():
     for 2000 draws of the start from the filter's prior the mean NEES it scores is chi2(3) / 1
     (inside the 99.9 % band of the mean of 2000), while the same covariance read as a
     world-frame Gaussian (the world-error filter's, the same to first order) is far off."""
-    from estimation.runner import Trajectory
-    from evaluation import metrics
+    from ddfuse.estimation.runner import Trajectory
+    from ddfuse.evaluation import metrics
 
     s0, s2 = 0.01, 0.5
     quiet = ProcessNoise(acc=1e-4, yaw_acc=1e-4, pos_long=0.0, pos_lat=0.0, heading=0.0)

@@ -6,11 +6,10 @@ import math
 
 import numpy as np
 import pytest
-
-from ekf_baseline.unicycle import UnicycleEkf
-from estimation.bags import read_stream
-from estimation.config import parse_config
-from estimation.measurements import GpsFix, Heading, WheelOdometry
+from ddfuse.ekf_baseline.unicycle import UnicycleEkf
+from ddfuse.estimation.bags import read_stream
+from ddfuse.estimation.config import parse_config
+from ddfuse.estimation.measurements import GpsFix, Heading, WheelOdometry
 
 pytestmark = pytest.mark.slow
 

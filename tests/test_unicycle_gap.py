@@ -8,13 +8,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from ddfuse.ekf_baseline.unicycle import MAX_PREDICT_DT, UnicycleEkf
+from ddfuse.estimation.bags import read_stream
+from ddfuse.estimation.config import load_config
+from ddfuse.estimation.measurements import WheelOdometry
+from ddfuse.estimation.runner import initial_pose
 from test_ekf_fast_path import PATHS, _run_both
-
-from ekf_baseline.unicycle import MAX_PREDICT_DT, UnicycleEkf
-from estimation.bags import read_stream
-from estimation.config import load_config
-from estimation.measurements import WheelOdometry
-from estimation.runner import initial_pose
 
 ROOT = Path(__file__).resolve().parents[1]
 BAG, CFG = ROOT / "data" / "sample_husky.bag", ROOT / "data" / "sample_husky.yaml"

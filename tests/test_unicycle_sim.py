@@ -9,10 +9,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from ekf_baseline.unicycle import UnicycleEkf
-from estimation.config import EkfConfig
-from estimation.measurements import GroundTruthPose
+from ddfuse.ekf_baseline.unicycle import UnicycleEkf
+from ddfuse.estimation.config import EkfConfig
+from ddfuse.estimation.measurements import GroundTruthPose
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 TRUE_HEADING_OFFSET = 0.35  # rad, stated in data/sample_husky.yaml

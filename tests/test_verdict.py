@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from evaluation.verdict import track_kind, verdict_lines
+from ddfuse.evaluation.verdict import track_kind, verdict_lines
 
 
 def _m(scores: dict, key: str = "ate_rmse_m", **top) -> dict:
@@ -212,9 +212,8 @@ def test_tracks_sampled_at_different_stamps_are_ranked_on_common_ones():
 
 def test_common_stamp_ate_interpolates_every_track_at_the_sparsest_ones():
     import numpy as np
-
-    from estimation.runner import Trajectory
-    from evaluation.pipeline import _common_ate
+    from ddfuse.estimation.runner import Trajectory
+    from ddfuse.evaluation.pipeline import _common_ate
 
     def track(t, offset):
         t = np.asarray(t, float)
@@ -240,10 +239,10 @@ def test_withholding_every_fix_says_so_instead_of_grading_estimators_that_never_
     """All fixes withheld: the unicycle EKF (heading offset estimated: no absolute heading
     without GPS) and the smoother never start. The verdict says why there is no score, names
     the hold-out as the cause, and grades no consistency of estimates that do not exist."""
-    from estimation.runner import run
-    from evaluation import estimators as registry
-    from evaluation.pipeline import data_facts, score
-    from evaluation.verdict import verdict_lines
+    from ddfuse.estimation.runner import run
+    from ddfuse.evaluation import estimators as registry
+    from ddfuse.evaluation.pipeline import data_facts, score
+    from ddfuse.evaluation.verdict import verdict_lines
 
     cfg, stream = sample_husky
     truthless = replace(stream, ground_truth=[])
@@ -266,7 +265,7 @@ def test_withholding_every_fix_says_so_instead_of_grading_estimators_that_never_
 
 
 def test_a_drift_that_rounds_to_zero_has_no_sign():
-    from evaluation.verdict import _signed_pct
+    from ddfuse.evaluation.verdict import _signed_pct
 
     assert _signed_pct(-0.0001) == "0.0%" == _signed_pct(0.0003)
     assert _signed_pct(0.012) == "+1.2%" and _signed_pct(-0.012) == "-1.2%"
@@ -318,7 +317,7 @@ def test_residuals_every_estimator_finds_off_alike_are_put_on_the_config():
 def test_best_here_names_no_single_winner_within_the_tie_band():
     """0.0818 against 0.0820 m is 0.2 %, inside TIE: both are named as tied, the next one
     (over TIE from the best) is not."""
-    from evaluation.verdict import TIE
+    from ddfuse.evaluation.verdict import TIE
 
     scores = {"ekf": 0.114, "smoother": 0.101, "smoother_lagged": 0.0820, "batch": 0.0818}
     lines = verdict_lines(_m(scores))
@@ -393,7 +392,7 @@ def test_outage_ends_below_the_noise_and_tracks_that_see_the_later_fixes():
             "smoother_lagged < 0.58 m (unresolved), batch < 0.58 m (unresolved).") in line
     assert "-2.8%" not in line and "0.00 m" not in line
 
-    from evaluation.report import _outage_table
+    from ddfuse.evaluation.report import _outage_table
     table = _outage_table(m)
     assert "<td>&lt; 0.58 (unresolved)</td>" in table and "-2.84" not in table
     assert "– (sees fixes after the outage)" in table

@@ -21,13 +21,12 @@ from pathlib import Path
 
 import gtsam
 import numpy as np
-
-from estimation.bags import read_stream
-from estimation.config import load_config
-from estimation.runner import initial_pose, run
-from evaluation import estimators as registry
-from evaluation.montecarlo import draw_truth
-from evaluation.simulate import get_scenario, simulate, write_bag
+from ddfuse.estimation.bags import read_stream
+from ddfuse.estimation.config import load_config
+from ddfuse.estimation.runner import initial_pose, run
+from ddfuse.evaluation import estimators as registry
+from ddfuse.evaluation.montecarlo import draw_truth
+from ddfuse.evaluation.simulate import get_scenario, simulate, write_bag
 
 
 def main(scenario: str, seed: int, every: int = 20) -> None:

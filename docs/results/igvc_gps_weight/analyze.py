@@ -13,9 +13,8 @@ import math
 import sys
 
 import numpy as np
+from ddfuse.evaluation.montecarlo import calibration_truth
 from harness import build, feed, gps_error_at, make_seed, truth_at, wrap
-
-from evaluation.montecarlo import calibration_truth
 
 
 def diag(sim, d, est=None):

@@ -1,5 +1,5 @@
 """Harness for the scripts of this directory (imported, not run): simulate a seed exactly as
-`evaluation.montecarlo.run_seed` does, run estimators (possibly modified ones) message by
+`ddfuse.evaluation.montecarlo.run_seed` does, run estimators (possibly modified ones) message by
 message, and record per-tick states plus the true GPS error.
 
 The project's code is only imported (the repo root is put on sys.path), never modified.
@@ -15,9 +15,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[3]))  # the repo root
 
-from estimation.measurements import GpsFix  # noqa: E402
-from evaluation import estimators as registry  # noqa: E402
-from evaluation.montecarlo import seed_data  # noqa: E402
+from ddfuse.estimation.measurements import GpsFix  # noqa: E402
+from ddfuse.evaluation import estimators as registry  # noqa: E402
+from ddfuse.evaluation.montecarlo import seed_data  # noqa: E402
 
 RATE = 10.0
 

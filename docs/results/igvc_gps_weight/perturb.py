@@ -13,10 +13,9 @@ import sys
 from dataclasses import replace
 
 import numpy as np
+from ddfuse.estimation import geodesy
+from ddfuse.estimation.measurements import GpsFix
 from harness import build, feed, make_seed
-
-from estimation import geodesy
-from estimation.measurements import GpsFix
 
 
 def perturbed(stream, datum, t_from, de, dn, t_to=np.inf):

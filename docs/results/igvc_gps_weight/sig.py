@@ -8,11 +8,10 @@ in metres, which is what the GPS sees), hoff, k_v, k_w, gyro bias, speed, headin
 import sys
 
 import numpy as np
+from ddfuse.ekf_baseline.igvc import LAT, LON
+from ddfuse.estimation.measurements import GpsFix
 from harness import make_seed
 from variants import VARIANTS
-
-from ekf_baseline.igvc import LAT, LON
-from estimation.measurements import GpsFix
 
 scen = sys.argv[1]
 names = sys.argv[2].split(',')

@@ -11,12 +11,11 @@ import sys
 import time
 
 import numpy as np
+from ddfuse.estimation.runner import run
+from ddfuse.estimation.smoother import FixedLagSmoother
+from ddfuse.evaluation.montecarlo import _truth_errors
 from harness import make_seed
 from variants import VARIANTS, ScaleGps
-
-from estimation.runner import run
-from estimation.smoother import FixedLagSmoother
-from evaluation.montecarlo import _truth_errors
 
 scen = sys.argv[1]
 seeds = [int(x) for x in sys.argv[2].split(',')]

@@ -16,12 +16,11 @@ import sys
 from dataclasses import replace
 
 import numpy as np
+from ddfuse.ekf_baseline.igvc import IgvcEkf, IgvcNoise
+from ddfuse.ekf_baseline.unicycle import ProcessNoise, UnicycleEkf
+from ddfuse.estimation.measurements import ForwardAccel, GpsFix
+from ddfuse.estimation.smoother import FixedLagSmoother
 from harness import feed, make_seed, truth_at
-
-from ekf_baseline.igvc import IgvcEkf, IgvcNoise
-from ekf_baseline.unicycle import ProcessNoise, UnicycleEkf
-from estimation.measurements import ForwardAccel, GpsFix
-from estimation.smoother import FixedLagSmoother
 
 IG_DEFAULT = IgvcNoise(position_psd=0.0, heading_psd=0.0)  # what slip 0/0/0 gives
 

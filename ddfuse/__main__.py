@@ -1,0 +1,5 @@
+"""``python -m ddfuse``: the ``ddfuse`` command."""
+
+from ddfuse.evaluation.cli import entry
+
+entry()
