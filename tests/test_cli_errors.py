@@ -433,7 +433,7 @@ def test_help_texts_are_plain(capsys):
     assert "95% chi-square band" in mc and "%%" not in mc
     assert _help(["plot-sim"], capsys).startswith("usage: ddfuse plot-sim ")
     sweep = _help(["lag-sweep"], capsys)
-    assert "each scored by ddfuse.evaluation.pipeline.score:" in sweep
+    assert "each scored by evaluation.pipeline.score:" in sweep
     assert "withheld by --gps-holdout;" in sweep
     assert "``" not in sweep and ":func:" not in sweep
 

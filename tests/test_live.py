@@ -167,7 +167,8 @@ def test_bad_topics_types_and_fixes():
 
 
 def _readme_live_block() -> str:
-    return python_block(r"On a live robot, `estimation.live.LiveConverter`", "LiveConverter(cfg)")
+    return python_block(r"On a live robot, `ddfuse.estimation.live.LiveConverter`",
+                        "LiveConverter(cfg)")
 
 
 def test_the_readmes_live_example_handles_no_estimate_yet(monkeypatch):
