@@ -114,9 +114,9 @@ def test_lag_sweep_gps_holdout_without_a_gps_sensor_is_refused_before_decoding(c
 # --- C15: the output directory is checked first, naming the option ---------------------------
 
 def test_run_output_dir_that_is_a_file_is_refused_first(tmp_path, capsys, monkeypatch):
-    import ddfuse.evaluation.cli
+    import ddfuse.evaluation.cli.run
 
-    monkeypatch.setattr(ddfuse.evaluation.cli, "_config_for", _not_called)
+    monkeypatch.setattr(ddfuse.evaluation.cli.run, "config_for", _not_called)
     afile = tmp_path / "afile"
     afile.write_text("keep")
     code = main(["run", "-o", str(afile)])
@@ -196,3 +196,23 @@ def test_online_unknown_estimator_lists_only_what_online_runs(capsys):
     assert err == ("ddfuse: error: online: argument --estimators: unknown estimator 'foo' "
                    "(known: ekf, ekf_igvc, ekf_landmark, ekf_slam, smoother, dr) "
                    "(see ddfuse online --help)\n")
+
+
+# --- the program's entry points and its version ---------------------------------------------
+
+def test_version_is_the_installed_packages(capsys):
+    import ddfuse
+
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0
+    assert capsys.readouterr().out == f"ddfuse {ddfuse.__version__}\n"
+
+
+@pytest.mark.parametrize("module", ["ddfuse", "ddfuse.evaluation.cli"])
+def test_python_dash_m_runs_the_command_line(module, tmp_path):
+    import ddfuse
+
+    r = subprocess.run([sys.executable, "-m", module, "--version"], cwd=tmp_path,
+                       capture_output=True, text=True, timeout=120)
+    assert (r.returncode, r.stdout, r.stderr) == (0, f"ddfuse {ddfuse.__version__}\n", "")
