@@ -20,9 +20,9 @@ import numpy as np
 import pytest
 from ddfuse.evaluation import simulate as sim
 from ddfuse.evaluation.cli import main
-from ddfuse.evaluation.simulate.gps import _gauss_markov
-from ddfuse.evaluation.simulate.sensors import _sample_times
-from ddfuse.evaluation.simulate.sidecars import _truth_comment
+from ddfuse.evaluation.simulate.gps import gauss_markov
+from ddfuse.evaluation.simulate.sensors import sample_times
+from ddfuse.evaluation.simulate.sidecars import truth_comment
 
 TAU = 4.0  # s: correlation time of the long statistics run (L = 10 fixes at 2.5 Hz)
 DURATION = 16_000.0  # s: n = 40 000 fixes, n_eff = 3 990 for the std (5 sd: 5.6 %)
@@ -33,7 +33,7 @@ def _old_white_gps(sc, truth, seed):
     stated std from the first draw of the 'gps' stream, then dropouts, outliers, outages."""
     spec = sc.gps
     rng = sim._rng(seed, "gps")
-    tm = _sample_times(rng, spec.rate, sc.duration)
+    tm = sample_times(rng, spec.rate, sc.duration)
     n = len(tm)
     noise = rng.standard_normal((n, 3)) * [spec.horizontal_std, spec.horizontal_std,
                                            spec.vertical_std]
@@ -153,7 +153,7 @@ def test_gauss_markov_on_an_irregular_grid():
     tau, m = 7.0, 40_000
     t = np.array([0.0, 0.3, 2.0]) * tau
     w = np.random.default_rng(0).standard_normal((3, m))
-    e = _gauss_markov(t, w, np.full(m, 1.5), tau)
+    e = gauss_markov(t, w, np.full(m, 1.5), tau)
     np.testing.assert_array_equal(e[0], 1.5 * w[0])  # e_0 from the stationary distribution
     for k in range(3):
         assert abs(np.std(e[k]) / 1.5 - 1) < 5 / math.sqrt(2 * m)
@@ -200,7 +200,7 @@ def test_husky_multipath_is_husky_with_correlated_gps(tmp_path):
     assert main(["simulate", "husky-multipath", "--duration", "20", "-o", str(bag)]) == 0
     head = (tmp_path / "m.yaml").read_text()
     assert f"correlation time {b.scenario.gps.correlation_s:g} s" in head
-    assert "correlation" not in _truth_comment(a, "ros1")
+    assert "correlation" not in truth_comment(a, "ros1")
 
 
 @pytest.mark.parametrize("bad", [-1.0, -1e-9, math.nan, math.inf])

@@ -16,7 +16,7 @@ import numpy as np
 from ddfuse.estimation.geodesy import enu_to_geodetic
 from ddfuse.evaluation.simulate.motion import Truth
 from ddfuse.evaluation.simulate.scenarios import Scenario
-from ddfuse.evaluation.simulate.sensors import _sample_times
+from ddfuse.evaluation.simulate.sensors import sample_times
 
 
 @dataclass
@@ -31,7 +31,7 @@ class GpsData:
     true_enu: np.ndarray  # (n, 3) m, at t_measured
 
 
-def _gauss_markov(t: np.ndarray, w: np.ndarray, std: np.ndarray, tau: float) -> np.ndarray:
+def gauss_markov(t: np.ndarray, w: np.ndarray, std: np.ndarray, tau: float) -> np.ndarray:
     """First-order Gauss-Markov errors at times ``t`` (N,) s from unit white draws ``w`` (N, D):
     e_0 = std w_0 (the stationary distribution), e_k = a_k e_k-1 + sqrt(1 - a_k^2) std w_k with
     a_k = exp(-(t_k - t_k-1) / tau), the exact discretisation over any spacing, so every e_k
@@ -46,16 +46,16 @@ def _gauss_markov(t: np.ndarray, w: np.ndarray, std: np.ndarray, tau: float) -> 
     return e * std
 
 
-def _sim_gps(sc: Scenario, truth: Truth, rng: np.random.Generator) -> GpsData:
+def simulate_gps(sc: Scenario, truth: Truth, rng: np.random.Generator) -> GpsData:
     spec = sc.gps
-    tm = _sample_times(rng, spec.rate, sc.duration)
+    tm = sample_times(rng, spec.rate, sc.duration)
     n = len(tm)
     # Draw every random number for every nominal sample first, so the noise of a fix does not
     # depend on which other fixes were dropped (a correlated error runs over every nominal
     # sample; dropouts and outages remove samples from it).
     std = np.array([spec.horizontal_std, spec.horizontal_std, spec.vertical_std])
     w = rng.standard_normal((n, 3))
-    noise = w * std if spec.correlation_s == 0.0 else _gauss_markov(tm, w, std,
+    noise = w * std if spec.correlation_s == 0.0 else gauss_markov(tm, w, std,
                                                                     spec.correlation_s)
     drop = rng.uniform(size=n) < spec.dropout_prob
     out = rng.uniform(size=n) < spec.outlier_prob

@@ -173,7 +173,7 @@ def _substep_midpoints(duration: float, dt: float) -> np.ndarray:
     return (np.arange(int(round(duration / dt))) + 0.5) * dt
 
 
-def _commands(tr: TrajectorySpec, duration: float, dt: float, rng: np.random.Generator,
+def commands(tr: TrajectorySpec, duration: float, dt: float, rng: np.random.Generator,
               drive_duration: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Commanded (v m/s, w rad/s) at the substep midpoints, for ``duration`` s.
 

@@ -93,16 +93,16 @@ class GroundTruthData:
     fix_alt: np.ndarray  # m
 
 
-def _sample_times(rng: np.random.Generator, rate: float, duration: float) -> np.ndarray:
+def sample_times(rng: np.random.Generator, rate: float, duration: float) -> np.ndarray:
     """Sample instants (s) on the sensor's own clock: a random phase within one period."""
     period = 1.0 / rate
     phase = rng.uniform(0.0, period)
     return phase + np.arange(int(math.floor((duration - phase) / period)) + 1) * period
 
 
-def _sim_encoders(sc: Scenario, truth: Truth, rng: np.random.Generator) -> EncoderData:
+def simulate_encoders(sc: Scenario, truth: Truth, rng: np.random.Generator) -> EncoderData:
     spec = sc.encoders
-    edges = _sample_times(rng, spec.rate, sc.duration)  # t[0] opens the first interval
+    edges = sample_times(rng, spec.rate, sc.duration)  # t[0] opens the first interval
     t = edges[1:]
     dt = np.diff(edges)
     tick = 2.0 * math.pi / spec.counts_per_rev
@@ -127,9 +127,9 @@ def _sim_encoders(sc: Scenario, truth: Truth, rng: np.random.Generator) -> Encod
                        tick=tick, x=np.cumsum(ddx), y=np.cumsum(ddy), yaw=wrap(yaw[1:]))
 
 
-def _sim_imu(sc: Scenario, truth: Truth, rng: np.random.Generator) -> ImuData:
+def simulate_imu(sc: Scenario, truth: Truth, rng: np.random.Generator) -> ImuData:
     spec = sc.imu
-    t = _sample_times(rng, spec.rate, sc.duration)
+    t = sample_times(rng, spec.rate, sc.duration)
     n = len(t)
     _, _, yaw, v, w = truth.at(t)
     steps = np.diff(np.concatenate([[0.0], t]))
@@ -156,14 +156,14 @@ def _landmark_map(sc: Scenario, truth: Truth, rng: np.random.Generator
     return [str(i + 1) for i in range(spec.count)], pos
 
 
-def _sim_landmarks(sc: Scenario, truth: Truth, rng: np.random.Generator,
+def simulate_landmarks(sc: Scenario, truth: Truth, rng: np.random.Generator,
                    map_rng: np.random.Generator, map_truth: Truth | None = None
                    ) -> LandmarkData:
     """Sightings along ``truth`` of the landmarks drawn around ``map_truth``'s path (default
     ``truth``'s)."""
     spec = sc.landmarks
     ids, pos = _landmark_map(sc, truth if map_truth is None else map_truth, map_rng)
-    t = _sample_times(rng, spec.rate, sc.duration)
+    t = sample_times(rng, spec.rate, sc.duration)
     x, y, yaw, _, _ = truth.at(t)
     dx = pos[None, :, 0] - x[:, None]
     dy = pos[None, :, 1] - y[:, None]
@@ -184,7 +184,7 @@ def _sim_landmarks(sc: Scenario, truth: Truth, rng: np.random.Generator,
                         ids=ids, positions=pos, scan_t=t)
 
 
-def _sim_ground_truth(sc: Scenario, truth: Truth) -> GroundTruthData:
+def simulate_ground_truth(sc: Scenario, truth: Truth) -> GroundTruthData:
     t = np.arange(int(math.floor(sc.duration * sc.truth_rate + 1e-9)) + 1) / sc.truth_rate
     x, y, yaw, v, w = truth.at(t)
     if sc.datum is not None:

@@ -78,7 +78,7 @@ def sim_config(res: SimResult, landmark_map: str | None = None) -> dict:
     return cfg
 
 
-def _truth_comment(res: SimResult, fmt: str) -> str:
+def truth_comment(res: SimResult, fmt: str) -> str:
     """Header comment with the true values a config cannot state (for evaluation by eye)."""
     sc = res.scenario
     lines = [
@@ -121,5 +121,5 @@ def write_sidecars(res: SimResult, path: str | Path, fmt: str = "ros1"
     else:
         map_path = None
     cfg = sim_config(res, map_path.name if map_path else None)
-    cfg_path.write_text(_truth_comment(res, fmt) + yaml.safe_dump(cfg, sort_keys=False))
+    cfg_path.write_text(truth_comment(res, fmt) + yaml.safe_dump(cfg, sort_keys=False))
     return cfg_path, map_path

@@ -11,18 +11,18 @@ import zlib
 from dataclasses import dataclass, field
 
 import numpy as np
-from ddfuse.evaluation.simulate.gps import GpsData, _sim_gps
-from ddfuse.evaluation.simulate.motion import Truth, _commands, integrate_truth
+from ddfuse.evaluation.simulate.gps import GpsData, simulate_gps
+from ddfuse.evaluation.simulate.motion import Truth, commands, integrate_truth
 from ddfuse.evaluation.simulate.scenarios import Scenario, get_scenario, with_duration
 from ddfuse.evaluation.simulate.sensors import (
     EncoderData,
     GroundTruthData,
     ImuData,
     LandmarkData,
-    _sim_encoders,
-    _sim_ground_truth,
-    _sim_imu,
-    _sim_landmarks,
+    simulate_encoders,
+    simulate_ground_truth,
+    simulate_imu,
+    simulate_landmarks,
 )
 
 
@@ -87,26 +87,26 @@ def simulate(scenario: str | Scenario, seed: int = 0, duration: float | None = N
         sc = with_duration(sc, duration)
     truth = _drive(sc, seed, sc.duration)
     res = SimResult(scenario=sc, seed=seed, truth=truth,
-                    ground_truth=_sim_ground_truth(sc, truth),
-                    encoders=_sim_encoders(sc, truth, _rng(seed, "encoders")))
+                    ground_truth=simulate_ground_truth(sc, truth),
+                    encoders=simulate_encoders(sc, truth, _rng(seed, "encoders")))
     if sc.imu:
-        res.imu = _sim_imu(sc, truth, _rng(seed, "imu"))
+        res.imu = simulate_imu(sc, truth, _rng(seed, "imu"))
     if sc.gps:
         if sc.datum is None:
             raise ValueError(f"scenario {sc.name}: GPS needs a datum")
-        res.gps = _sim_gps(sc, truth, _rng(seed, "gps"))
+        res.gps = simulate_gps(sc, truth, _rng(seed, "gps"))
     if sc.landmarks:
         # A run cut short of its drive keeps the whole drive's map, so that it is the same world
         # (the map is drawn in the path's bounding box, which a shorter path would shrink).
         drive = sc.drive_duration if sc.drive_duration is not None else sc.duration
         map_truth = truth if drive <= sc.duration else _drive(sc, seed, drive)
-        res.landmarks = _sim_landmarks(sc, truth, _rng(seed, "landmarks"),
+        res.landmarks = simulate_landmarks(sc, truth, _rng(seed, "landmarks"),
                                        _rng(seed, "landmark_map"), map_truth)
     return res
 
 
 def _drive(sc: Scenario, seed: int, duration: float) -> Truth:
     """The true motion of ``sc``'s drive for ``seed``, run for ``duration`` s."""
-    v_cmd, w_cmd = _commands(sc.trajectory, duration, sc.substep, _rng(seed, "trajectory"),
+    v_cmd, w_cmd = commands(sc.trajectory, duration, sc.substep, _rng(seed, "trajectory"),
                              sc.drive_duration)
     return integrate_truth(sc, v_cmd, w_cmd)
