@@ -1,5 +1,5 @@
-"""`ddfuse` on bad input: exit code 2 and exactly one line on stderr naming the file, no
-traceback. (Only `inspect` reads a bag today; `run` with a config will join these cases.)"""
+"""`ddfuse` on bad input: exit code 2 and exactly one line on stderr naming the file, option
+or key, never a traceback; output paths checked before the work; help texts in plain text."""
 
 from __future__ import annotations
 
