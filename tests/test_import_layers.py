@@ -1,7 +1,7 @@
 """The product's import graph, read from the source with ``ast`` (every import, module-level or
-inside a function): no module outside the command line (``evaluation/cli/``) imports it, a
-lower layer never imports a higher one (factors <- estimation <- ekf_baseline <- evaluation <-
-evaluation.cli), and no import cycle."""
+inside a function): no module outside the command line (``evaluation/cli/``) imports it or
+argparse, a lower layer never imports a higher one (factors <- estimation <- ekf_baseline <-
+evaluation <- evaluation.cli), and no import cycle."""
 
 from __future__ import annotations
 
@@ -115,6 +115,15 @@ def test_no_library_module_imports_the_command_line():
     bad = sorted(f"{a} imports {b}" for a, bs in graph().items() if layer(a) < len(LAYERS)
                  for b in bs if layer(b) == len(LAYERS))
     assert not bad
+
+
+def test_argument_parsing_is_only_in_the_command_line():
+    users = sorted(name for name, path in product_modules().items() if layer(name) < len(LAYERS)
+                   and any(isinstance(node, (ast.Import, ast.ImportFrom))
+                           and "argparse" in ([a.name for a in node.names]
+                                              if isinstance(node, ast.Import) else [node.module])
+                           for node in ast.walk(ast.parse(path.read_text()))))
+    assert not users
 
 
 def test_no_module_imports_a_higher_layer():
