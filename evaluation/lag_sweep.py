@@ -2,19 +2,16 @@
 
 One bag is decoded once; the smoother runs over it once per lag (and the EKF once, as the
 reference the smoother should approach as the lag goes to zero), each scored by
-:func:`evaluation.pipeline.score`: position RMSE against truth when the bag has it, else against
-the GPS fixes withheld by ``--gps-holdout``; the 3-dof NEES when there is truth; update latency
-percentiles and the real-time factor.
+:func:`ddfuse.evaluation.pipeline.score`: position RMSE against truth when the bag has it, else
+against the GPS fixes withheld by ``--gps-holdout``; the 3-dof NEES when there is truth; update
+latency percentiles and the real-time factor.
 
-Usage: ``ddfuse lag-sweep [BAG] [-c CONFIG] [--lags 0.5,2,10,30] [--gps-holdout SPEC]
-[--json FILE]``
+The command line is ``ddfuse lag-sweep [BAG] [-c CONFIG] [--lags 0.5,2,10,30]
+[--gps-holdout SPEC] [--json FILE]`` (``evaluation/cli/lag_sweep.py``).
 """
 
 from __future__ import annotations
 
-import json
-import math
-import sys
 from pathlib import Path
 
 from ddfuse.estimation.bags import read_stream
@@ -25,7 +22,7 @@ from ddfuse.estimation.runner import initial_pose, parse_holdout, run
 from ddfuse.evaluation import estimators as registry
 from ddfuse.evaluation.pipeline import score
 
-__all__ = ["lag_sweep", "format_table", "main"]
+__all__ = ["lag_sweep", "format_table"]
 
 DEFAULT_LAGS = (0.5, 2.0, 10.0, 30.0)
 _TRACKS = ("smoother", "smoother_lagged")
@@ -134,72 +131,3 @@ def format_table(rows: list[dict]) -> str:
                    f"{f(u.get('p50'), '.3f')} / {f(u.get('p99'), '.3f')} / "
                    f"{f(u.get('max'), '.2f')} |")
     return "\n".join(out)
-
-
-def plain_text(doc: str) -> str:
-    """Sphinx/reST inline markup as plain text, for --help: ``:func:`a.b` `` -> ``a.b``,
-    double back-quoted literals -> the literal."""
-    import re
-
-    doc = re.sub(r":[a-z]+:`~?([^`]+)`", r"\1", doc)
-    return doc.replace("``", "")
-
-
-def _main(argv: list[str] | None) -> int:
-    from ddfuse.evaluation.cli import (
-        CONFIG_HELP,
-        GPS_HOLDOUT_HELP,
-        SAMPLE_BAG,
-        DdfuseError,
-        DdfuseParser,
-        _config_for,
-        check_output_file,
-        gps_holdout,
-    )
-
-    p = DdfuseParser(prog="ddfuse lag-sweep",
-                                description=plain_text(__doc__.split("\n\n")[1]))
-    p.add_argument("bag", type=Path, nargs="?", help="bag (default: the embedded sample)")
-    p.add_argument("-c", "--config", type=Path, help=CONFIG_HELP)
-    p.add_argument("--lags", default=",".join(f"{x:g}" for x in DEFAULT_LAGS), metavar="S,S,...",
-                   help="comma-separated lags in seconds (default: 0.5,2,10,30)")
-    p.add_argument("--gps-holdout", type=gps_holdout, metavar="every:K|window:T0:T1",
-                   help=GPS_HOLDOUT_HELP)
-    p.add_argument("--json", type=Path, metavar="FILE", help="also write the rows as JSON")
-    args = p.parse_args(argv)
-    try:
-        lags = [float(x) for x in args.lags.split(",") if x.strip()]
-    except ValueError:
-        p.error(f"--lags: expected comma-separated seconds, got {args.lags!r}")
-    if not lags or not all(x > 0 and math.isfinite(x) for x in lags):
-        p.error(f"--lags: every lag must be > 0 s, got {args.lags!r}")
-    if args.json:  # before the sweep, not after it
-        check_output_file(args.json, "--json")
-    bag = args.bag or SAMPLE_BAG
-    damaged = None
-    try:
-        rows = lag_sweep(bag, _config_for(bag, args.config), lags, args.gps_holdout)
-    except ValueError as e:
-        raise DdfuseError(str(e)) from None
-    except BagError as e:
-        if not hasattr(e, "rows"):
-            raise
-        damaged, rows = e, e.rows
-    sys.stdout.write(format_table(rows) + "\n")
-    if args.json:
-        sys.stdout.flush()  # the table stays, whatever happens to the JSON
-        try:
-            args.json.write_text(json.dumps(rows, indent=2) + "\n")
-        except OSError as e:
-            raise DdfuseError(f"--json {args.json}: could not write it ({e.strerror or e}); "
-                              "the table above has the rows") from None
-    if damaged is not None:
-        raise damaged
-    return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``ddfuse lag-sweep``; a user error ends in one line on stderr and exit code 2."""
-    from ddfuse.evaluation.cli import guarded
-
-    return guarded(_main, argv)

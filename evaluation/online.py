@@ -470,3 +470,23 @@ def replay(bag: str | Path, cfg: Config, *, names: list[str] | None = None,
     session.replayed_s = stream.duration
     session.last_t = None if t_last is None else t_last - t0
     return session
+
+
+def online_frame(bag: str | Path, cfg: Config, reorder_window: float | None = None
+                 ) -> dict[str, str]:
+    """``evaluation.local_frame.frame`` of an online replay of ``bag``: the facts it is named from
+    (the datum: the config's or the first GPS fix; the landmark map; the initial pose) as
+    ``run`` records them in metrics.json. The bag's start is decoded for the datum (what the
+    replay's own stream does before its first message, a few ms)."""
+    from ddfuse.evaluation.local_frame import frame
+
+    stream = BagStream(bag, cfg, reorder_window=reorder_window, keep_truth=False).prime()
+    try:
+        ip = cfg.initial_pose
+        facts = {"data": {"datum": list(stream.datum) if stream.datum else None,
+                          "landmarks": len(stream.landmarks)},
+                 "initial_pose": "first ground-truth pose" if ip == "ground_truth"
+                 else list(ip) if ip else None}
+    finally:
+        stream.close()
+    return frame(facts)

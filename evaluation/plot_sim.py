@@ -4,19 +4,18 @@
 the true path, the GPS fixes (converted back to ENU from their lat/lon; outliers marked), the
 landmarks and the sightings' count, and the dead reckoning of the wheel odometry (odometry twist,
 or wheel speeds through the NOMINAL geometry) started from the true initial pose. A second panel
-shows the dead-reckoning position error over time. ``main(argv)`` simulates a scenario and plots
-it: ``python3 -m ddfuse.evaluation.plot_sim husky --seed 0 -o husky.png``.
+shows the dead-reckoning position error over time. The command ``ddfuse plot-sim husky --seed 0
+-o husky.png`` (``evaluation/cli/plot_sim.py``) simulates a scenario and plots it.
 """
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import numpy as np
 from ddfuse.estimation.geodesy import geodetic_to_enu
 from ddfuse.evaluation.plots import subplots  # a Figure on its own canvas: the backend left alone
-from ddfuse.evaluation.simulate import SCENARIOS, SimResult, se2_step, simulate, wrap
+from ddfuse.evaluation.simulate import SimResult, se2_step, wrap
 
 
 def dead_reckoning(res: SimResult) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -92,47 +91,3 @@ def plot_sim(res: SimResult, out: str | Path, title: str | None = None) -> Path:
     fig.tight_layout()
     fig.savefig(out, dpi=110)
     return out
-
-
-def _main(argv: list[str] | None) -> int:
-    from ddfuse.estimation.errors import DdfuseError
-    from ddfuse.evaluation.cli import (
-        DdfuseParser,
-        check_output_file,
-        int_at_least,
-        simulated_scenario,
-    )
-    from matplotlib.backend_bases import FigureCanvasBase
-
-    ap = DdfuseParser(prog="ddfuse plot-sim", description=__doc__.splitlines()[0])
-    ap.add_argument("scenario", choices=list(SCENARIOS))
-    ap.add_argument("--seed", type=int_at_least(0), default=0, help="random seed (default 0)")
-    ap.add_argument("--duration", type=float, default=None, metavar="S",
-                    help="seconds to simulate (default: the scenario's); shorter, the "
-                    "scenario's drive for the seed cut to S s (ddfuse simulate --help)")
-    ap.add_argument("-o", "--output", type=Path, required=True,
-                    help="image path; its extension picks the format (.png, .pdf, .svg...)")
-    args = ap.parse_args(argv)
-    simulated_scenario(args.scenario, args.duration)
-    kinds = FigureCanvasBase.get_supported_filetypes()
-    ext = args.output.suffix[1:].lower()
-    if ext and ext not in kinds:
-        raise DdfuseError(f"-o {args.output}: cannot write a .{ext} image (formats: "
-                          f"{', '.join(sorted(kinds))})")
-    check_output_file(args.output, "-o")  # before simulating
-    res = simulate(args.scenario, seed=args.seed, duration=args.duration)
-    print(f"wrote {plot_sim(res, args.output)}")
-    return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``ddfuse plot-sim SCENARIO [--seed N] [--duration S] -o OUT.png`` (also
-    ``python3 -m ddfuse.evaluation.plot_sim``); a user error ends in one line on stderr and exit
-    code 2."""
-    from ddfuse.evaluation.cli import guarded
-
-    return guarded(_main, argv)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

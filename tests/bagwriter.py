@@ -20,20 +20,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from ddfuse.evaluation.simulate import LANDMARK_MSGDEF, LANDMARK_MSGTYPE
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 FORMATS = ("ros1", "sqlite3", "mcap")
 
-LANDMARK_TYPE = "ddfuse_msgs/msg/LandmarkObservation"
-LANDMARK_MSGDEF = """\
-std_msgs/Header header
-string landmark_id
-float64 range
-float64 bearing
-float64 range_variance
-float64 bearing_variance
-bool has_bearing
-"""
+# ddfuse's own landmark message, as the simulator writes it
+LANDMARK_TYPE = LANDMARK_MSGTYPE
 
 ODOMETRY = "nav_msgs/msg/Odometry"
 IMU = "sensor_msgs/msg/Imu"

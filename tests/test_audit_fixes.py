@@ -11,7 +11,10 @@ from pathlib import Path
 
 import pytest
 from ddfuse.evaluation import cli, plots, report
+from ddfuse.evaluation.cli.run import print_summary
+from ddfuse.evaluation.online import online_frame
 from ddfuse.evaluation.results import load_run
+from ddfuse.evaluation.shipped import config_for
 
 ROOT = Path(__file__).resolve().parents[1]
 SEED002 = ROOT / "data" / "sample_seed002.bag"
@@ -185,11 +188,11 @@ def test_online_frame_is_the_reports_frame(mrclam_bag, jackal_bag, husky_bag, se
 
     for bag, kind in ((mrclam_bag, "map"), (jackal_bag, "start"), (husky_bag, "enu"),
                       (SEED002, "map")):
-        cfg = load_config(cli._config_for(bag, None))
-        assert cli.online_frame(bag, cfg)["kind"] == kind, bag
+        cfg = load_config(config_for(bag, None))
+        assert online_frame(bag, cfg)["kind"] == kind, bag
     m = json.loads((seed002_run / "metrics.json").read_text())
-    cfg = load_config(cli._config_for(SEED002, None))
-    assert cli.online_frame(SEED002, cfg) == plots.frame(m)
+    cfg = load_config(config_for(SEED002, None))
+    assert online_frame(SEED002, cfg) == plots.frame(m)
 
 
 def test_lag_sweep_refuses_before_decoding_when_the_config_has_no_truth(tmp_path, capsys):
@@ -325,7 +328,7 @@ def test_an_estimator_that_never_estimated_gets_no_speed(seed002_run):
             "nees_mean": None, "rtf": 33358.134, "error": "no estimate: it never started"}
     m["estimators"] = {"ekf_landmark": ran, "ekf": dead}
     out = io.StringIO()
-    cli._print_summary(m, out)
+    print_summary(m, out)
     rows = {ln.split()[0]: ln for ln in out.getvalue().splitlines()[2:4]}
     assert "33358" not in rows["ekf"]
     assert rows["ekf"].split("ERROR:")[0].split()[-1] == "-"

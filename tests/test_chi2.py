@@ -50,10 +50,10 @@ def test_a_run_with_the_usual_gates_and_bands_does_not_import_scipy_special():
     """The sample run's filters and scoring ask only for KNOWN quantiles: scipy.special (0.2 s
     of start-up) stays unloaded; an unusual probability still gets its quantile."""
     code = ("import sys\n"
-            "from evaluation import cli\n"
+            "from ddfuse.evaluation import cli\n"
             "cli.main(['run', '-o', sys.argv[1], '--no-report', '--estimators', 'ekf,smoother'])\n"
             "print('scipy.special' in sys.modules)\n"
-            "from estimation import chi2\n"
+            "from ddfuse.estimation import chi2\n"
             "print(chi2.ppf(0.9995, 2), 'scipy.special' in sys.modules)\n")
     import tempfile
 

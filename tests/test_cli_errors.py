@@ -1,5 +1,5 @@
-"""`ddfuse` on bad input: exit code 2 and exactly one line on stderr naming the file, no
-traceback. (Only `inspect` reads a bag today; `run` with a config will join these cases.)"""
+"""`ddfuse` on bad input: exit code 2 and exactly one line on stderr naming the file, option
+or key, never a traceback; output paths checked before the work; help texts in plain text."""
 
 from __future__ import annotations
 
@@ -231,8 +231,7 @@ def _not_called(*args, **kwargs):
 
 def test_mc_output_dir_that_is_a_file_fails_before_any_seed(tmp_path, capsys, monkeypatch):
     """It failed in write_report, after every seed had run: a 20-seed run lost."""
-    import ddfuse.evaluation.montecarlo as mc
-
+    import ddfuse.evaluation.cli.mc as mc
 
     monkeypatch.setattr(mc, "monte_carlo", _not_called)
     afile = tmp_path / "afile"
@@ -248,7 +247,7 @@ def test_mc_output_dir_that_is_a_file_fails_before_any_seed(tmp_path, capsys, mo
 
 def test_mc_that_cannot_write_at_the_end_prints_the_table_and_keeps_the_json(
         tmp_path, capsys, monkeypatch):
-    import ddfuse.evaluation.montecarlo as mc
+    import ddfuse.evaluation.cli.mc as mc
 
     outdir = tmp_path / "results"
     real = mc.monte_carlo
@@ -286,7 +285,7 @@ def test_mc_real_process_output_dir_that_is_a_file(tmp_path):
 
 def test_lag_sweep_json_in_a_missing_directory_fails_before_the_sweep(tmp_path, capsys,
                                                                       monkeypatch):
-    import ddfuse.evaluation.lag_sweep as ls
+    import ddfuse.evaluation.cli.lag_sweep as ls
 
     monkeypatch.setattr(ls, "lag_sweep", _not_called)
     target = tmp_path / "nonexist_dir" / "x.json"
@@ -301,7 +300,7 @@ def test_lag_sweep_json_in_a_missing_directory_fails_before_the_sweep(tmp_path, 
 
 def test_lag_sweep_json_that_cannot_be_written_after_the_sweep_keeps_the_table(
         tmp_path, capsys, monkeypatch):
-    import ddfuse.evaluation.lag_sweep as ls
+    import ddfuse.evaluation.cli.lag_sweep as ls
 
     sub = tmp_path / "sub"
     sub.mkdir()
@@ -322,11 +321,11 @@ def test_lag_sweep_json_that_cannot_be_written_after_the_sweep_keeps_the_table(
 @pytest.mark.parametrize("command", ["simulate", "plot-sim"])
 def test_simulate_and_plot_sim_output_under_a_file_fail_before_simulating(
         tmp_path, capsys, monkeypatch, command):
-    import ddfuse.evaluation.plot_sim
-    import ddfuse.evaluation.simulate
+    import ddfuse.evaluation.cli.plot_sim
+    import ddfuse.evaluation.cli.simulate
 
-    monkeypatch.setattr(ddfuse.evaluation.simulate, "simulate", _not_called)
-    monkeypatch.setattr(ddfuse.evaluation.plot_sim, "simulate", _not_called)
+    monkeypatch.setattr(ddfuse.evaluation.cli.simulate, "simulate", _not_called)
+    monkeypatch.setattr(ddfuse.evaluation.cli.plot_sim, "simulate", _not_called)
     afile = tmp_path / "afile"
     afile.write_text("")
     target = afile / ("x.bag" if command == "simulate" else "x.png")
@@ -335,9 +334,9 @@ def test_simulate_and_plot_sim_output_under_a_file_fail_before_simulating(
 
 
 def test_plot_sim_refuses_an_image_format_it_cannot_write(tmp_path, capsys, monkeypatch):
-    import ddfuse.evaluation.plot_sim
+    import ddfuse.evaluation.cli.plot_sim
 
-    monkeypatch.setattr(ddfuse.evaluation.plot_sim, "simulate", _not_called)
+    monkeypatch.setattr(ddfuse.evaluation.cli.plot_sim, "simulate", _not_called)
     target = tmp_path / "x.xyz"
     code, out, err = run(["plot-sim", "husky", "-o", str(target)], capsys)
     assert_one_line_error(code, out, err, f"-o {target}: cannot write a .xyz image", "png")
@@ -347,21 +346,21 @@ def test_delegated_commands_report_os_errors_in_one_line_but_not_bugs(tmp_path, 
                                                                       monkeypatch):
     """An OSError while writing (here a refused permission) is one line naming the file; any
     other exception is a bug and keeps its traceback."""
-    import ddfuse.evaluation.plot_sim
+    import ddfuse.evaluation.cli.plot_sim
 
     target = tmp_path / "x.png"
 
     def denied(res, out, title=None):
         raise PermissionError(13, "Permission denied", str(out))
 
-    monkeypatch.setattr(ddfuse.evaluation.plot_sim, "plot_sim", denied)
+    monkeypatch.setattr(ddfuse.evaluation.cli.plot_sim, "plot_sim", denied)
     code, out, err = run(["plot-sim", "husky", "--duration", "20", "-o", str(target)], capsys)
     assert_one_line_error(code, out, err, f"{target}: Permission denied")
 
     def bug(res, out, title=None):
         raise KeyError("a programming error")
 
-    monkeypatch.setattr(ddfuse.evaluation.plot_sim, "plot_sim", bug)
+    monkeypatch.setattr(ddfuse.evaluation.cli.plot_sim, "plot_sim", bug)
     with pytest.raises(KeyError, match="a programming error"):
         main(["plot-sim", "husky", "--duration", "20", "-o", str(target)])
 
@@ -433,7 +432,7 @@ def test_help_texts_are_plain(capsys):
     assert "95% chi-square band" in mc and "%%" not in mc
     assert _help(["plot-sim"], capsys).startswith("usage: ddfuse plot-sim ")
     sweep = _help(["lag-sweep"], capsys)
-    assert "each scored by evaluation.pipeline.score:" in sweep
+    assert "each scored by ddfuse.evaluation.pipeline.score:" in sweep
     assert "withheld by --gps-holdout;" in sweep
     assert "``" not in sweep and ":func:" not in sweep
 

@@ -1,6 +1,6 @@
-"""The command line's answers to the third audit's findings: usage errors in one line, the
-output directory checked first, a GPS hold-out without a gps sensor refused before decoding,
-the summary of a truncated run printed before its error line, and the --help texts."""
+"""The command line's usage contract: usage errors in one line, the output directory checked
+first, a GPS hold-out without a gps sensor refused before decoding, the summary of a truncated
+run printed before its error line, the --help texts, --version and ``python -m``."""
 
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ def _usage(argv: list[str], capsys) -> str:
     return err
 
 
-# --- C18: a usage error is one line, 'ddfuse: error: <sub-command>: ...' -----------------------
+# --- a usage error is one line, 'ddfuse: error: <sub-command>: ...' -------------------------------
 
 @pytest.mark.parametrize(("argv", "line"), [
     (["run", "--lag", "-3"],
@@ -80,7 +80,7 @@ def test_a_usage_error_in_the_real_process():
                         "(see ddfuse run --help)\n")
 
 
-# --- C14: --gps-holdout needs a gps sensor ---------------------------------------------------
+# --- --gps-holdout needs a gps sensor -------------------------------------------------------------
 
 def test_run_gps_holdout_without_a_gps_sensor_is_refused_before_decoding(tmp_path, capsys,
                                                                          monkeypatch):
@@ -111,12 +111,12 @@ def test_lag_sweep_gps_holdout_without_a_gps_sensor_is_refused_before_decoding(c
                    f"{SEED002.with_suffix('.yaml')} has no gps sensor\n")
 
 
-# --- C15: the output directory is checked first, naming the option ---------------------------
+# --- the output directory is checked first, naming the option -------------------------------------
 
 def test_run_output_dir_that_is_a_file_is_refused_first(tmp_path, capsys, monkeypatch):
-    import ddfuse.evaluation.cli
+    import ddfuse.evaluation.cli.run
 
-    monkeypatch.setattr(ddfuse.evaluation.cli, "_config_for", _not_called)
+    monkeypatch.setattr(ddfuse.evaluation.cli.run, "config_for", _not_called)
     afile = tmp_path / "afile"
     afile.write_text("keep")
     code = main(["run", "-o", str(afile)])
@@ -137,7 +137,7 @@ def test_report_on_a_file_names_it(tmp_path, capsys):
     assert capsys.readouterr().err == f"ddfuse: error: OUTDIR {afile}: is a file, not a directory\n"
 
 
-# --- C19: a truncated bag: the summary of what was written, then the error line -------------
+# --- a truncated bag: the summary of what was written, then the error line ------------------------
 
 def test_run_on_a_truncated_bag_prints_the_summary_before_the_error(tmp_path, capsys):
     bag = tmp_path / "trunc.bag"
@@ -157,7 +157,7 @@ def test_run_on_a_truncated_bag_prints_the_summary_before_the_error(tmp_path, ca
     assert (out / "metrics.json").is_file()
 
 
-# --- D20: --help -----------------------------------------------------------------------------
+# --- --help ---------------------------------------------------------------------------------------
 
 def _help(argv: list[str], capsys) -> str:
     with pytest.raises(SystemExit) as e:
@@ -196,3 +196,23 @@ def test_online_unknown_estimator_lists_only_what_online_runs(capsys):
     assert err == ("ddfuse: error: online: argument --estimators: unknown estimator 'foo' "
                    "(known: ekf, ekf_igvc, ekf_landmark, ekf_slam, smoother, dr) "
                    "(see ddfuse online --help)\n")
+
+
+# --- the program's entry points and its version ---------------------------------------------------
+
+def test_version_is_the_installed_packages(capsys):
+    import ddfuse
+
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0
+    assert capsys.readouterr().out == f"ddfuse {ddfuse.__version__}\n"
+
+
+@pytest.mark.parametrize("module", ["ddfuse", "ddfuse.evaluation.cli"])
+def test_python_dash_m_runs_the_command_line(module, tmp_path):
+    import ddfuse
+
+    r = subprocess.run([sys.executable, "-m", module, "--version"], cwd=tmp_path,
+                       capture_output=True, text=True, timeout=120)
+    assert (r.returncode, r.stdout, r.stderr) == (0, f"ddfuse {ddfuse.__version__}\n", "")

@@ -290,12 +290,12 @@ def multipath(tmp_path_factory):
     """husky-multipath, seed 1, 400 s (GPS errors Gauss-Markov, tau 30 s, sigma 1 m): 'ekf'
     and 'ekf_igvc' scored with correlation_time 0 and 30, with and without the odometry scale
     states. {(tau, scales): metrics dict}."""
+    from ddfuse.evaluation.cli import main
     from ddfuse.evaluation.pipeline import run_bag
-    from ddfuse.evaluation.simulate import main as simulate
 
     d = tmp_path_factory.mktemp("multipath")
     bag = d / "hm.bag"
-    assert simulate(["husky-multipath", "--seed", "1", "-o", str(bag)]) == 0
+    assert main(["simulate", "husky-multipath", "--seed", "1", "-o", str(bag)]) == 0
     raw = yaml.safe_load(bag.with_suffix(".yaml").read_text())
     assert raw["sensors"]["gps"][0]["correlation_time"] == TAU  # the simulator's true model
     out = {}

@@ -13,6 +13,7 @@ from ddfuse.estimation import heading_survey as hs
 from ddfuse.estimation.baginfo import bag_info, offset_surveys, suggest_config
 from ddfuse.estimation.measurements import Heading
 from ddfuse.evaluation import cli
+from ddfuse.evaluation.shipped import SAMPLE_BAG
 
 TRUE_OFFSET = 0.35  # rad, the sample's simulated IMU (data/sample_husky.yaml)
 
@@ -134,12 +135,12 @@ def test_the_husky_compass_offset_drifts_as_the_bag_notes_say(husky_bag):
 
 
 def test_run_warns_about_a_wrong_fixed_offset_in_its_output_and_report(tmp_path, capsys):
-    cfg_text = (cli.SAMPLE_BAG.with_suffix(".yaml")).read_text()
+    cfg_text = (SAMPLE_BAG.with_suffix(".yaml")).read_text()
     assert "heading_offset: estimate" in cfg_text
     bad = tmp_path / "bad.yaml"
     bad.write_text(cfg_text.replace("heading_offset: estimate", "heading_offset: 0.0"))
     out = tmp_path / "out"
-    assert cli.main(["run", str(cli.SAMPLE_BAG), "-c", str(bad), "-o", str(out),
+    assert cli.main(["run", str(SAMPLE_BAG), "-c", str(bad), "-o", str(out),
                      "--estimators", "ekf"]) == 0
     err = capsys.readouterr().err
     assert "ddfuse: warning: /imu/data: heading_offset is fixed at +0.000 rad" in err
@@ -169,14 +170,14 @@ def test_inspect_without_a_usable_fix_reports_the_bag_and_no_offset(tmp_path, ca
 
 
 def test_online_warns_about_a_wrong_fixed_offset_as_run_does(tmp_path, capsys):
-    cfg_text = cli.SAMPLE_BAG.with_suffix(".yaml").read_text()
+    cfg_text = SAMPLE_BAG.with_suffix(".yaml").read_text()
     bad = tmp_path / "bad.yaml"
     bad.write_text(cfg_text.replace("heading_offset: estimate", "heading_offset: 0.0"))
-    assert cli.main(["online", str(cli.SAMPLE_BAG), "-c", str(bad), "--estimators", "ekf",
+    assert cli.main(["online", str(SAMPLE_BAG), "-c", str(bad), "--estimators", "ekf",
                      "--every", "60"]) == 0
     err = capsys.readouterr().err
     assert "ddfuse: warning: /imu/data: heading_offset is fixed at +0.000 rad" in err
-    assert cli.main(["online", str(cli.SAMPLE_BAG), "--estimators", "ekf", "--every", "60"]) == 0
+    assert cli.main(["online", str(SAMPLE_BAG), "--estimators", "ekf", "--every", "60"]) == 0
     assert "warning" not in capsys.readouterr().err
 
 

@@ -7,10 +7,10 @@ import math
 
 import numpy as np
 import pytest
+from ddfuse.evaluation.cli.mc import main
 from ddfuse.evaluation.montecarlo import (
     aggregate,
     draw_truth,
-    main,
     monte_carlo,
     nees_band,
     run_seed,

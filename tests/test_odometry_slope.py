@@ -103,8 +103,8 @@ def test_jackal_lands_where_robot_localizations_3d_ekf_does(jackal_bag):
     0.1069 m. The shipped config's slope projection brings both planar estimators there; the
     speed taken as horizontal ended 0.21 m off."""
     from ddfuse.estimation.runner import run
-    from ddfuse.evaluation.cli import CONFIGS
     from ddfuse.evaluation.estimators import build
+    from ddfuse.evaluation.shipped import CONFIGS
 
     cfg = load_config(CONFIGS / "rl_jackal.yaml")
     assert cfg.of_kind("odometry")[0].slope == "/imu/data"

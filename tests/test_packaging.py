@@ -21,12 +21,12 @@ SHIPPED = ["README.md", "__init__.py", "sample_husky.bag", "sample_husky.yaml",
 
 PROBE = """
 from pathlib import Path
-from ddfuse.evaluation import cli
+from ddfuse.evaluation import shipped
 real = Path("rl_husky_gps.bag")
 real.write_bytes(b"")
-print(cli.SAMPLE_BAG, cli.SAMPLE_BAG.is_file())
-print(cli._config_for(cli.SAMPLE_BAG, None))
-print(cli._config_for(real, None))
+print(shipped.SAMPLE_BAG, shipped.SAMPLE_BAG.is_file())
+print(shipped.config_for(shipped.SAMPLE_BAG, None))
+print(shipped.config_for(real, None))
 """
 
 
@@ -78,10 +78,11 @@ def test_an_installed_copy_finds_the_sample_and_the_shipped_configs(site, tmp_pa
 
 
 def test_a_checkout_uses_its_own_data():
-    from ddfuse.evaluation import cli
+    from ddfuse.evaluation import shipped
 
-    assert cli.DATA == ROOT / "data"
-    assert cli.SAMPLE_BAG == ROOT / "data" / "sample_husky.bag" and cli.SAMPLE_BAG.is_file()
+    assert shipped.DATA == ROOT / "data"
+    assert shipped.SAMPLE_BAG == ROOT / "data" / "sample_husky.bag"
+    assert shipped.SAMPLE_BAG.is_file()
 
 
 VENV_PROBE = """

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from ddfuse.estimation.runner import Trajectory
 from ddfuse.evaluation import cli, plots, report
+from ddfuse.evaluation.cli.terminal import Bars, progress
 from ddfuse.evaluation.estimators import SPECS, TRACK_TO_SPEC
 from ddfuse.evaluation.export import read_csv, write_csv
 from ddfuse.evaluation.results import load_run
@@ -173,7 +174,7 @@ def test_csv_keeps_epoch_stamps_and_nan(tmp_path):
 
 def test_progress_bars_wait_and_stay_quiet_off_a_terminal(capsys):
     now = [0.0]
-    bars = cli._Bars(delay=2.0, clock=lambda: now[0])
+    bars = Bars(delay=2.0, clock=lambda: now[0])
     bars.update("decode", 0.5)
     assert bars.bar is None  # a short run shows nothing
     now[0] = 3.0
@@ -182,7 +183,7 @@ def test_progress_bars_wait_and_stay_quiet_off_a_terminal(capsys):
     bars.update("estimate", 0.2)
     assert bars.bar is not None and "estimate" in bars.tasks
     bars.stop()
-    assert cli._progress() is None  # pytest's captured output is not a terminal
+    assert progress() is None  # pytest's captured output is not a terminal
 
 
 def test_run_on_a_damaged_bag_reports_what_was_read(tmp_path, capsys):

@@ -368,7 +368,7 @@ def test_dead_reckoning_with_perfect_calibration_follows_the_truth():
 
 
 def test_plot_sim_writes_a_png(tmp_path):
-    from ddfuse.evaluation.plot_sim import main
+    from ddfuse.evaluation.cli.plot_sim import main
 
     out = tmp_path / "p.png"
     assert main(["gps-outage", "--duration", "240", "-o", str(out)]) == 0

@@ -200,22 +200,22 @@ def test_sidecar_paths_and_no_overwrite(tmp_path):
     assert not (tmp_path / "s.mcap").exists()
     assert ((tmp_path / "s.landmarks.yaml").read_text(), (tmp_path / "s.yaml").read_text()) \
         == kept
-    assert sim.main(["seed002", "--seed", "1", "--duration", "10", "--format", "mcap",
+    assert cli.main(["simulate", "seed002", "--seed", "1", "--duration", "10", "--format", "mcap",
                      "-o", str(tmp_path / "s.mcap")]) == 2
 
 
 def test_main_writes_bag_config_and_map(tmp_path, capsys):
     out = tmp_path / "run"
-    assert sim.main(["seed002", "--seed", "2", "--duration", "15", "--format", "mcap",
+    assert cli.main(["simulate", "seed002", "--seed", "2", "--duration", "15", "--format", "mcap",
                      "-o", str(out)]) == 0
     assert (out / "run.mcap").is_file()
     cfg = load_config(tmp_path / "run.yaml")
     assert cfg.of_kind("landmarks")[0].map == tmp_path / "run.landmarks.yaml"
     assert "wrote" in capsys.readouterr().out
-    assert sim.main(["seed002", "--duration", "15", "-o", str(out)]) == 2  # exists
+    assert cli.main(["simulate", "seed002", "--duration", "15", "-o", str(out)]) == 2  # exists
     assert "exists" in capsys.readouterr().err
     with pytest.raises(SystemExit):
-        sim.main(["nope", "-o", str(tmp_path / "z.bag")])
+        cli.main(["simulate", "nope", "-o", str(tmp_path / "z.bag")])
 
 
 def test_storage_file_is_named_after_the_directory_without_its_extension(tmp_path):
@@ -233,7 +233,7 @@ def test_a_path_with_the_storage_extension_names_the_file_in_the_directory(tmp_p
     config is h.yaml beside it, and ddfuse run reads the bag by the directory and the file."""
     out = tmp_path / f"h{ext}"
     inner = out / f"h{ext}"
-    assert sim.main(["husky", "--duration", "10", "--format", fmt, "-o", str(out)]) == 0
+    assert cli.main(["simulate", "husky", "--duration", "10", "--format", fmt, "-o", str(out)]) == 0
     printed = capsys.readouterr().out
     assert sorted(p.name for p in out.iterdir()) == sorted([inner.name, "metadata.yaml"])
     # the sidecar where it always was; no staging directory left behind
@@ -259,7 +259,7 @@ def test_a_path_with_the_storage_extension_names_the_file_in_the_directory(tmp_p
 def test_an_extension_of_another_format_is_refused(tmp_path, capsys, fmt, name):
     """A name that says another format would be read as that one (an mcap directory called
     m.bag is taken for a ROS 1 bag): one line, exit 2, nothing written."""
-    assert sim.main(["husky", "--duration", "10", "--format", fmt, "-o",
+    assert cli.main(["simulate", "husky", "--duration", "10", "--format", fmt, "-o",
                      str(tmp_path / name)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and f"{name}: a name ending in" in err

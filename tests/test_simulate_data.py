@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 from ddfuse.estimation.config import load_config
+from ddfuse.evaluation import cli
 from ddfuse.evaluation import simulate as sim
 from test_simulate_bags import read_all  # tests/ is on sys.path (no __init__)
 
@@ -62,7 +63,7 @@ def test_regenerated_sample_matches_committed(argv, tmp_path):
     assert committed.parts[0] == "data"
     committed = DATA.parent / committed
     fresh = tmp_path / committed.name
-    assert sim.main(argv[:i + 1] + [str(fresh)] + argv[i + 2:]) == 0
+    assert cli.main(["simulate", *argv[:i + 1], str(fresh), *argv[i + 2:]]) == 0
     assert _same(read_all(fresh, skip=()), read_all(committed, skip=()))
     fresh_cfg, fresh_map = sim.sidecar_paths(fresh)
     cfg, lmap = sim.sidecar_paths(committed)

@@ -19,6 +19,10 @@ import math
 import numpy as np
 import pytest
 from ddfuse.evaluation import simulate as sim
+from ddfuse.evaluation.cli import main
+from ddfuse.evaluation.simulate.gps import gauss_markov
+from ddfuse.evaluation.simulate.sensors import sample_times
+from ddfuse.evaluation.simulate.sidecars import truth_comment
 
 TAU = 4.0  # s: correlation time of the long statistics run (L = 10 fixes at 2.5 Hz)
 DURATION = 16_000.0  # s: n = 40 000 fixes, n_eff = 3 990 for the std (5 sd: 5.6 %)
@@ -29,7 +33,7 @@ def _old_white_gps(sc, truth, seed):
     stated std from the first draw of the 'gps' stream, then dropouts, outliers, outages."""
     spec = sc.gps
     rng = sim._rng(seed, "gps")
-    tm = sim._sample_times(rng, spec.rate, sc.duration)
+    tm = sample_times(rng, spec.rate, sc.duration)
     n = len(tm)
     noise = rng.standard_normal((n, 3)) * [spec.horizontal_std, spec.horizontal_std,
                                            spec.vertical_std]
@@ -149,7 +153,7 @@ def test_gauss_markov_on_an_irregular_grid():
     tau, m = 7.0, 40_000
     t = np.array([0.0, 0.3, 2.0]) * tau
     w = np.random.default_rng(0).standard_normal((3, m))
-    e = sim._gauss_markov(t, w, np.full(m, 1.5), tau)
+    e = gauss_markov(t, w, np.full(m, 1.5), tau)
     np.testing.assert_array_equal(e[0], 1.5 * w[0])  # e_0 from the stationary distribution
     for k in range(3):
         assert abs(np.std(e[k]) / 1.5 - 1) < 5 / math.sqrt(2 * m)
@@ -192,10 +196,11 @@ def test_husky_multipath_is_husky_with_correlated_gps(tmp_path):
     assert "correlation_time" not in ca["sensors"]["gps"][0]
     assert cb["sensors"]["gps"][0].pop("correlation_time") == b.scenario.gps.correlation_s
     assert ca == cb
-    assert sim.main(["husky-multipath", "--duration", "20", "-o", str(tmp_path / "m.bag")]) == 0
+    bag = tmp_path / "m.bag"
+    assert main(["simulate", "husky-multipath", "--duration", "20", "-o", str(bag)]) == 0
     head = (tmp_path / "m.yaml").read_text()
     assert f"correlation time {b.scenario.gps.correlation_s:g} s" in head
-    assert "correlation" not in sim._truth_comment(a, "ros1")
+    assert "correlation" not in truth_comment(a, "ros1")
 
 
 @pytest.mark.parametrize("bad", [-1.0, -1e-9, math.nan, math.inf])
@@ -206,13 +211,11 @@ def test_bad_correlation_time_is_refused(bad):
 
 def test_the_command_lines_offer_the_scenario(tmp_path, capsys):
     """ddfuse simulate and ddfuse mc take the name (mc gets as far as checking the duration)."""
-    from ddfuse.evaluation import montecarlo
-
     assert "husky-multipath" in sim.SCENARIOS
     with pytest.raises(SystemExit) as e:
-        sim.main(["--help"])
+        main(["simulate", "--help"])
     assert e.value.code == 0
     assert "husky-multipath:" in capsys.readouterr().out
-    assert montecarlo.main(["husky-multipath", "--duration", "1", "-o", str(tmp_path)]) == 2
+    assert main(["mc", "husky-multipath", "--duration", "1", "-o", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert "--duration 1" in err and "invalid choice" not in err

@@ -1,0 +1,29 @@
+"""The command line's error handling: a user error is one line on stderr and exit code 2."""
+
+from __future__ import annotations
+
+import sys
+
+from ddfuse.estimation.errors import DdfuseError
+
+
+def guarded(func, *args) -> int:
+    """``func(*args)`` with ddfuse's error handling: a DdfuseError, or an OSError on a path
+    (an output directory that is a file, a full disk...), ends in one line on stderr and exit
+    code 2; Ctrl-C in 130. Anything else (a bug) propagates with its traceback."""
+    try:
+        return func(*args) or 0
+    except DdfuseError as e:
+        print(f"ddfuse: error: {e}", file=sys.stderr)
+        return 2
+    except BrokenPipeError:
+        raise  # a reader that stopped early: entry() ends quietly
+    except OSError as e:  # an output path that cannot be written: a directory that is a file...
+        where = f"{e.filename}: " if e.filename else ""
+        what = " (a file where a directory is needed)" if isinstance(
+            e, (FileExistsError, NotADirectoryError)) else ""
+        print(f"ddfuse: error: {where}{e.strerror or e}{what}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt as e:
+        print(f"ddfuse: {e}" if str(e) else "ddfuse: interrupted", file=sys.stderr)
+        return 130

@@ -1,0 +1,154 @@
+"""``ddfuse run [BAG]``: run the estimators side by side on a bag, score them, print the table.
+
+The results (metrics.json, tracks, run.npz) and the HTML report are written by the library
+(``evaluation.pipeline.run_bag``, ``evaluation.report``); this module checks the options before
+any work, prints the summary table and the warnings, and shows progress on a terminal.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from ddfuse.estimation.errors import DdfuseError
+from ddfuse.evaluation.cli.arguments import (
+    CONFIG_HELP,
+    GPS_HOLDOUT_HELP,
+    add_reorder_window,
+    estimator_list,
+    gps_holdout,
+    lag_seconds,
+)
+from ddfuse.evaluation.cli.output_paths import check_output_dir
+from ddfuse.evaluation.cli.report import render
+from ddfuse.evaluation.cli.terminal import fmt, progress
+from ddfuse.evaluation.shipped import SAMPLE_BAG, config_for
+
+
+def add_to(sub) -> None:
+    sp = sub.add_parser("run", help="run the estimators side by side on a bag and score them")
+    sp.add_argument("bag", type=Path, nargs="?",
+                    help=f"bag to run (default: the embedded sample {SAMPLE_BAG.name})")
+    sp.add_argument("-c", "--config", type=Path, help=CONFIG_HELP)
+    sp.add_argument("-o", "--outdir", type=Path, default=Path("ddfuse-out"),
+                    help="output directory (default: ddfuse-out)")
+    sp.add_argument("--estimators", type=estimator_list, metavar="LIST",
+                    help="comma-separated: ekf, ekf_igvc, ekf_landmark, "
+                    "ekf_slam, smoother, smoother_lagged, batch, dr (dead reckoning, by name "
+                    "only; default: all but dr that the config's sensors allow)")
+    sp.add_argument("--lag", type=lag_seconds, metavar="S",
+                    help="smoother lag, s (default: from the config)")
+    sp.add_argument("--gps-holdout", type=gps_holdout, metavar="every:K|window:T0:T1",
+                    help=GPS_HOLDOUT_HELP)
+    add_reorder_window(sp)
+    sp.add_argument("--no-report", action="store_true",
+                    help="write the results (metrics.json, tracks, run.npz) but not the HTML "
+                    "report ('ddfuse report OUTDIR' renders it later)")
+    sp.set_defaults(func=command)
+
+
+def produced_estimates(e: dict) -> bool:
+    """Whether an estimator's metrics.json entry has a track (``samples``: its length; entries
+    written without it are taken to have one)."""
+    return e.get("samples") != 0
+
+
+def print_summary(m: dict, out) -> None:
+    """The table of a run's metrics.json ``m`` (per estimator: final position, ATE, yaw RMSE,
+    NEES, hold-out RMSE, real-time factor) and its wall-time line, to ``out``."""
+    cols = ("final_xy", "ate_rmse_m", "yaw_rmse_deg", "nees_mean", "gps_holdout_rmse_m", "rtf")
+    out.write(f"{m['bag']}: {m['duration_s']:.1f} s, {m['messages']} measurements, "
+              f"decoded in {m['decode_s']:.2f} s\n")
+    out.write("estimator        " + "  ".join(f"{c:>18}" for c in cols) + "\n")
+    for name, e in m["estimators"].items():
+        cells = []
+        for c in cols:
+            v = e[c]
+            if c == "rtf" and not produced_estimates(e):
+                v = None  # the speed of an estimator that never estimated says nothing
+            if c == "final_xy" and v:
+                cells.append(f"({v[0]:.2f}, {v[1]:.2f})")
+            else:
+                cells.append("-" if v is None else f"{v:.3f}")
+        out.write(f"{name:16} " + "  ".join(f"{c:>18}" for c in cells)
+                  + (f"  ERROR: {e['error']}" if e["error"] else "") + "\n")
+    w = m.get("wall_s")
+    if w:
+        est = ", ".join(f"{k} {v:.3f}" for k, v in w["estimators"].items())
+        out.write(f"wall time {fmt(w['total'], '.3f')} s: startup {fmt(w['startup'], '.3f')}, "
+                  f"decode {w['decode']:.3f}, build {w['build']:.3f}, {est}, runner "
+                  f"{w['runner']:.3f}, metrics {w['metrics']:.3f}, write {w['write']:.3f}"
+                  " (to metrics.json; the report after it not included)\n")
+
+
+def _print_written_summary(outdir: Path) -> None:
+    """The summary table of the metrics.json a run stopped short (a damaged bag, Ctrl-C) wrote
+    in ``outdir``, on stdout before the error line (as ``online`` and ``bench`` show what was
+    read); nothing when it cannot be read back."""
+    import json
+
+    try:
+        m = json.loads((Path(outdir) / "metrics.json").read_text())
+        print_summary(m, sys.stdout)
+    except (OSError, ValueError, KeyError, TypeError):
+        return
+    sys.stdout.flush()
+
+
+def check_holdout_sensor(cfg, config: Path, holdout: str | None) -> None:
+    """Before decoding: a GPS hold-out needs a gps sensor in the config; DdfuseError naming
+    the option and the config otherwise (it ran and warned that no fix was withheld)."""
+    if holdout and not cfg.of_kind("gps"):
+        raise DdfuseError(f"--gps-holdout {holdout}: {config} has no gps sensor")
+
+
+def command(args: argparse.Namespace) -> int:
+    import time
+
+    from ddfuse.estimation.config import load_config
+    from ddfuse.estimation.errors import BagError, RunInterrupted
+    from ddfuse.evaluation.pipeline import run_bag
+
+    check_output_dir(args.outdir, "-o")  # before any work
+    bag = args.bag or SAMPLE_BAG
+    config = config_for(bag, args.config)
+    cfg = load_config(config)
+    check_holdout_sensor(cfg, config, args.gps_holdout)  # before decoding
+    bars = progress()
+    try:
+        try:
+            m = run_bag(bag, cfg, args.outdir, names=args.estimators, lag=args.lag,
+                        holdout=args.gps_holdout, progress=bars.update if bars else None,
+                        reorder_window=args.reorder_window)
+        except ValueError as e:
+            raise DdfuseError(str(e)) from None
+        except (BagError, RunInterrupted) as e:
+            # A damaged bag whose readable part was estimated, or a run stopped by Ctrl-C: the
+            # table and the report show that part, then the error line says why it is a part.
+            if getattr(e, "results_written", False):
+                _print_written_summary(args.outdir)
+                if not args.no_report:
+                    render(args.outdir, bars)
+            raise
+        print_summary(m, sys.stdout)
+        for w in m.get("warnings") or ():
+            sys.stderr.write(f"ddfuse: warning: {w}\n")
+        if args.gps_holdout and not m.get("gps_holdout_fixes"):
+            sys.stderr.write(f"ddfuse: warning: --gps-holdout {args.gps_holdout} withheld no GPS "
+                             f"fix (the data span {m.get('duration_s') or 0:.1f} s from the first "
+                             "message): nothing is scored against withheld fixes\n")
+        if args.no_report:
+            sys.stdout.write(f"results in {args.outdir}/ (metrics.json, <estimator>.tum/.csv, "
+                             "run.npz); no report (--no-report)\n")
+            return 0
+        # The report is rendered after the run, so its time is in no estimator's runtime.
+        t_a = time.perf_counter()
+        report = render(args.outdir, bars)
+        report_s = time.perf_counter() - t_a
+    finally:
+        if bars:
+            bars.stop()
+    sys.stdout.write(f"results in {args.outdir}/ (metrics.json, <estimator>.tum/.csv, run.npz); "
+                     f"report {report} ({report_s:.1f} s)\n")
+    return 0

@@ -1,0 +1,237 @@
+"""The simulator's scenarios: the robot, its commanded motion and its sensors, by name.
+
+A ``Scenario`` is frozen data (SI units; times in seconds since the start of the run, angles in
+radians, positions in the local ENU frame about ``datum``); ``SCENARIOS`` names the documented
+ones and ``get_scenario`` gives one, cut (or extended) to another duration.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """Wheel radius and track width (distance between the wheels' contact points), m."""
+
+    wheel_radius: float
+    track_width: float
+
+
+@dataclass(frozen=True)
+class TrajectorySpec:
+    """The commanded motion. ``kind``: 'random', 'figure-eight', 'lawnmower', 'loop-stops'.
+
+    Every kind starts from rest at ``start`` (x m, y m, yaw rad, local frame) and ends at rest;
+    ``ramp`` is the time (s) of the smooth (raised-cosine) speed ramps."""
+
+    kind: str
+    speed: float = 1.0  # m/s, cruise speed
+    ramp: float = 3.0  # s
+    start: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    # random: smooth Gaussian processes, white noise smoothed by a Gaussian kernel of std
+    # corr_time (s): correlation exp(-tau^2 / (4 corr_time^2)), 1/e at 2 corr_time
+    speed_rel_std: float = 0.25  # std of v / speed
+    yaw_rate_std: float = 0.25  # rad/s
+    corr_time: float = 4.0  # s
+    # figure-eight: lemniscate of Gerono x = A sin u, y = A/2 sin 2u (then rotated by start yaw
+    # minus pi/4, its tangent at the crossing)
+    half_width: float = 15.0  # m, A
+    # lawnmower: straight legs joined by half-circle U-turns of radius spacing/2, alternating
+    # (the curvature's 2 m smoothing widens each turn: the legs end up 4.07 m apart at 4.0)
+    leg_length: float = 40.0  # m
+    spacing: float = 4.0  # m, distance between legs
+    # loop-stops: rounded rectangle, stops of stop_time at two metres before each corner
+    loop_size: tuple[float, float] = (30.0, 20.0)  # m, along the start heading, and across it
+    corner_radius: float = 3.0  # m
+    stop_time: float = 6.0  # s
+    smooth_length: float = 2.0  # m, curvature smoothing window (keeps wheel accelerations finite)
+
+
+@dataclass(frozen=True)
+class EncoderSpec:
+    """Wheel encoders, published as JointState (wheel speeds) and/or Odometry (twist)."""
+
+    rate: float = 10.0  # Hz
+    speed_std: float = 0.15  # rad/s, error std of one wheel-speed sample (slip + quantisation)
+    counts_per_rev: int = 2000  # encoder counts per wheel revolution
+    odometry_topic: str | None = "/odom"
+    joint_topic: str | None = None
+    joints: tuple[str, str] = ("left_wheel_joint", "right_wheel_joint")
+
+
+@dataclass(frozen=True)
+class ImuSpec:
+    rate: float = 30.0  # Hz
+    gyro_std: float = 0.01  # rad/s, white noise per sample
+    gyro_bias0: float = 0.01  # rad/s, bias at t = 0
+    gyro_bias_walk: float = 2e-4  # rad/s/sqrt(s), bias random-walk density
+    heading_std: float = 0.02  # rad
+    heading_offset: float = 0.35  # rad, sensor yaw = ENU yaw + offset
+    tilt_std: float = 0.005  # rad, roll/pitch noise of the orientation
+    accel_std: float = 0.05  # m/s^2
+    topic: str = "/imu/data"
+
+
+@dataclass(frozen=True)
+class GpsSpec:
+    rate: float = 2.5  # Hz
+    horizontal_std: float = 1.0  # m, per axis (east, north)
+    vertical_std: float = 2.0  # m
+    delay: float = 0.2  # s, a fix measured at t is stamped t + delay
+    dropout_prob: float = 0.01  # probability that a fix is missing
+    outlier_prob: float = 0.0  # probability that a fix is an outlier
+    outlier_range: tuple[float, float] = (20.0, 60.0)  # m, horizontal outlier offset magnitude
+    outages: tuple[tuple[float, float], ...] = ()  # (start, end) s: no fixes measured inside
+    topic: str = "/fix"
+    # s, correlation time tau of the errors: 0 white; > 0 per axis e_k = a e_k-1 +
+    # sqrt(1 - a^2) std w_k with a = exp(-(t_k - t_k-1) / tau), e_0 ~ N(0, std^2) (stationary)
+    correlation_s: float = 0.0
+
+    def __post_init__(self):
+        if not (math.isfinite(self.correlation_s) and self.correlation_s >= 0.0):
+            raise ValueError("GpsSpec.correlation_s must be a finite number of seconds >= 0 "
+                             f"(0: white errors), got {self.correlation_s!r}")
+
+
+@dataclass(frozen=True)
+class LandmarkSpec:
+    rate: float = 10.0  # Hz, scans
+    count: int = 20
+    range_std: float = 0.1  # m
+    bearing_std: float = 0.05  # rad
+    min_range: float = 0.5  # m
+    max_range: float = 15.0  # m
+    fov: float = math.pi  # rad, full width, centred on body x
+    detect_prob: float = 0.9
+    margin: float = 5.0  # m, landmarks are drawn in the path's bounding box grown by this
+    topic: str = "/landmarks"
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    description: str
+    duration: float  # s
+    trajectory: TrajectorySpec
+    true_geometry: Geometry
+    nominal_geometry: Geometry  # what the config's robot: states
+    encoders: EncoderSpec
+    imu: ImuSpec | None = None
+    gps: GpsSpec | None = None
+    landmarks: LandmarkSpec | None = None
+    datum: tuple[float, float, float] | None = None  # lat deg, lon deg, alt m (WGS-84)
+    truth_rate: float = 20.0  # Hz, /ground_truth
+    truth_fix_rate: float = 5.0  # Hz, /ground_truth/fix (only with a datum)
+    substep: float = 0.01  # s, truth integration step
+    t0_ns: int = 1_700_000_000 * 10**9  # header stamp of t = 0
+    truth_topic: str = "/ground_truth"
+    truth_fix_topic: str = "/ground_truth/fix"
+    # 1-sigma uncertainty of the nominal geometry that the config states (robot.*_std): how
+    # well the scenario's robot is calibrated. The true geometry lies within it.
+    geometry_std: Geometry | None = None
+    # s, the duration the scenario's drive is drawn for: a random drive's commands and the
+    # landmark map (drawn in the path's bounding box) are those of a run of this length, cut at
+    # ``duration`` (see simulate). None: ``duration``. get_scenario and simulate set it to the
+    # scenario's own duration when they replace that, so --duration cuts the documented drive.
+    drive_duration: float | None = None
+
+
+# A field site near Zurich, Switzerland: lat, lon (deg), ellipsoidal altitude (m).
+OUTDOOR_DATUM = (47.397742, 8.545594, 488.0)
+
+_HUSKY_TRUE = Geometry(wheel_radius=0.1635, track_width=0.5826)  # worn tyres, skid-steer track
+_HUSKY_NOMINAL = Geometry(wheel_radius=0.165, track_width=0.555)  # Husky datasheet
+# tyre wear and skid-steer slip: the datasheet radius known to 2 mm, the effective track to 3 cm
+_HUSKY_STD = Geometry(wheel_radius=0.002, track_width=0.03)
+
+
+def _husky(name: str, description: str, trajectory: TrajectorySpec, duration: float = 400.0,
+           gps: GpsSpec | None = None, truth_rate: float = 20.0) -> Scenario:
+    return Scenario(
+        name=name, description=description, duration=duration, trajectory=trajectory,
+        true_geometry=_HUSKY_TRUE, nominal_geometry=_HUSKY_NOMINAL,
+        encoders=EncoderSpec(rate=10.0, speed_std=0.15, counts_per_rev=2000),
+        imu=ImuSpec(), gps=gps or GpsSpec(), datum=OUTDOOR_DATUM, truth_rate=truth_rate,
+        geometry_std=_HUSKY_STD,
+    )
+
+
+_LAWNMOWER = TrajectorySpec("lawnmower", speed=1.0, start=(0.0, 0.0, math.pi / 2))
+
+SCENARIOS: dict[str, Scenario] = {
+    "seed002": Scenario(
+        name="seed002",
+        description="Seed 002: random smooth path, wheel encoders (JointState) and a range "
+        "finder to 20 landmarks, 10 Hz (dt 0.1 s), 2 min, no GPS; the map frame is the local "
+        "frame.",
+        duration=120.0,
+        trajectory=TrajectorySpec("random", speed=0.5, yaw_rate_std=0.3, corr_time=4.0),
+        true_geometry=Geometry(wheel_radius=0.1015, track_width=0.392),
+        nominal_geometry=Geometry(wheel_radius=0.10, track_width=0.40),
+        encoders=EncoderSpec(rate=10.0, speed_std=0.1, counts_per_rev=1024, odometry_topic=None,
+                             joint_topic="/joint_states"),
+        landmarks=LandmarkSpec(),
+        truth_rate=10.0,
+        geometry_std=Geometry(wheel_radius=0.002, track_width=0.01),
+    ),
+    "husky": _husky(
+        "husky", "Husky-like outdoor robot mowing a field (lawnmower legs of 40 m): 10 Hz "
+        "wheel odometry, 30 Hz IMU (heading offset, gyro bias), 2.5 Hz GPS, 400 s.",
+        _LAWNMOWER),
+    # The correlation time is measured on rl_husky_gps.bag (../shared/data): GPS displacement
+    # along the odometry's chord minus the odometry distance (heading from the batch track),
+    # over lags of 1-120 s, fits 2 sigma^2 (1 - exp(-lag / tau)) with tau 26.7 s, sigma 1.7 m;
+    # errors simulated with tau 30 s on the same fix pairs fit a median 27.8 s (90 % of fits
+    # 12-77 s). The fixes' residuals to an estimated track decorrelate faster (3.6-5.2 s, the
+    # report's figure): a track takes up the slow wander. docs/results/smoother_monte_carlo.md
+    "husky-multipath": _husky(
+        "husky-multipath", "husky with time-correlated GPS errors (multipath, atmosphere): "
+        "per axis a Gauss-Markov process of correlation time 30 s (measured on "
+        "rl_husky_gps.bag) with husky's std (1 m horizontal, 2 m vertical); the config states "
+        "husky's white GPS noise.",
+        _LAWNMOWER, gps=GpsSpec(correlation_s=30.0)),
+    "gps-outage": _husky(
+        "gps-outage", "husky with a 60 s GPS outage (150-210 s) and 2 % outlier fixes.",
+        _LAWNMOWER, gps=GpsSpec(outlier_prob=0.02, outages=((150.0, 210.0),))),
+    "long": _husky(
+        "long", "husky sensors on a 30 x 20 m loop with stops at every corner, 2 h (memory and "
+        "speed tests); 0.5 % outlier fixes.",
+        TrajectorySpec("loop-stops", speed=1.0), duration=7200.0,
+        gps=GpsSpec(outlier_prob=0.005), truth_rate=10.0),
+    "figure-eight": _husky(
+        "figure-eight", "husky sensors on a 30 x 15 m figure-eight, 400 s.",
+        TrajectorySpec("figure-eight", speed=1.0, start=(0.0, 0.0, math.pi / 4))),
+    "loop-stops": _husky(
+        "loop-stops", "husky sensors on a 30 x 20 m loop with stops at every corner, 400 s.",
+        TrajectorySpec("loop-stops", speed=1.0)),
+    "random": _husky(
+        "random", "husky sensors on a random smooth path, 400 s.",
+        TrajectorySpec("random", speed=1.0, yaw_rate_std=0.2, corr_time=5.0)),
+}
+
+
+def get_scenario(scenario: str, duration: float | None = None) -> Scenario:
+    """The named scenario, with its duration (s) replaced when given: the same drive cut (or
+    extended) to that duration, see ``with_duration``."""
+    if scenario not in SCENARIOS:
+        raise ValueError(f"unknown scenario {scenario!r}; choose from {', '.join(SCENARIOS)}")
+    sc = SCENARIOS[scenario]
+    if duration is not None:
+        if not duration > 2.0 * sc.trajectory.ramp:
+            raise ValueError(f"duration must exceed {2.0 * sc.trajectory.ramp} s")
+        sc = with_duration(sc, duration)
+    return sc
+
+
+def with_duration(sc: Scenario, duration: float) -> Scenario:
+    """``sc`` run for ``duration`` s, its drive still drawn for its own (drive) duration.
+
+    A shorter run is the first part of the longer drive: the same truth up to ``duration`` minus
+    the trajectory's ramp (where it slows to rest) and the same landmark map. A longer run drives
+    the same path up to the drive duration minus the ramp (the longer run does not slow down
+    there) and then goes on; its landmark map is drawn in its own, larger, bounding box. Sensor
+    samples and noise are drawn for ``duration`` s, so they are not a prefix of the longer run's."""
+    drive = sc.drive_duration if sc.drive_duration is not None else sc.duration
+    return replace(sc, duration=float(duration), drive_duration=drive)
