@@ -16,8 +16,10 @@ from pathlib import Path
 
 import numpy as np
 from ddfuse.estimation import heading_survey, ros1_scan, rosmsg
-from ddfuse.estimation.bags import BagStream, Reject, _gps_fix, open_reader
+from ddfuse.estimation.bag_reader import open_reader
+from ddfuse.estimation.bags import BagStream
 from ddfuse.estimation.config import parse_config
+from ddfuse.estimation.converters import Reject, gps_fix
 from ddfuse.estimation.errors import BagError, DdfuseError
 from ddfuse.estimation.frames import GRAVITY, body_x_tilt, rpy_matrix
 from ddfuse.estimation.geodesy import geodetic_to_enu
@@ -198,7 +200,7 @@ def _usable_fix(rec: tuple) -> bool:
     stamp, latitude/longitude in range, not (0, 0)): one fix at 95 deg latitude made the
     scatter 388 km."""
     try:
-        _gps_fix(rec, "")
+        gps_fix(rec, "")
     except Reject:
         return False
     return rec[0] > 0.0
