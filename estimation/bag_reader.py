@@ -313,14 +313,7 @@ class BagMessages:
                                 f"({st.reason})")
         elif self.scan is not None:
             st = self.scan.status
-            if st.truncated:
-                what = f"bag is truncated: {st.reason}"
-            elif st.reason:
-                what = f"bag is truncated or damaged: its index is unusable and {st.reason}"
-            else:
-                what = ("bag is truncated: it has no index (its recorder did not close it), so "
-                        "the messages it still buffered may be missing")
-            where = f"byte {st.offset} of {st.file_size}"
+            what, where = st.unindexed_end()
             if not st.messages:
                 raise BagError(f"{bag}: {what}; no complete message before {where}")
             missing = [w for w in self.wanted if w[1] not in self.made]

@@ -300,14 +300,7 @@ def _bag_info_unindexed(path: Path, open_error: BagError) -> BagInfo:
     except ros1_scan.ScanError as e:
         raise BagError(f"{open_error}; reading it without the index fails too: {e}") from None
     st = scan.status
-    if st.truncated:
-        what = f"bag is truncated: {st.reason}"
-    elif st.reason:
-        what = f"bag is truncated or damaged: its index is unusable and {st.reason}"
-    else:
-        what = ("bag is truncated: it has no index (its recorder did not close it), so the "
-                "messages it still buffered may be missing")
-    where = f"byte {st.offset} of {st.file_size}"
+    what, where = st.unindexed_end()
     if not st.messages:
         raise BagError(f"{path}: {what}; no complete message before {where}")
     info = _finish(path, infos, recs)
