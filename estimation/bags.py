@@ -29,12 +29,13 @@ import heapq
 import logging
 import math
 from array import array
-from collections import Counter, defaultdict, deque
+from collections import Counter, deque
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
 from ddfuse.estimation import geodesy
+from ddfuse.estimation.bag_drops import TopicDrops
 from ddfuse.estimation.bag_reader import (
     ACCEPTED_TYPES,
     BagMessages,
@@ -43,14 +44,13 @@ from ddfuse.estimation.bag_reader import (
     open_reader,
     sources_of,
 )
-from ddfuse.estimation.config import LANDMARK_NOT_IN_MAP, Config, landmark_maps
+from ddfuse.estimation.config import Config, landmark_maps
 from ddfuse.estimation.converters import (
     NULL_ISLAND,
     Reject,
     converter,
     gps_fix,
     slope_cells,
-    unknown_landmarks_note,
 )
 from ddfuse.estimation.errors import BagError
 from ddfuse.estimation.measurements import GpsFix, GroundTruthPose, Stream, truth_at_start
@@ -69,11 +69,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-# A topic that loses more than this share of its messages (or of its measurements as late: the
-# reorder window too short for it), wholly or in part, gets a warning beside the count in
-# ``rejected``: a run's terminal shows no log.
-WARN_SHARE = 0.1
-_LATE_PREFIX = "arrived after messages stamped up to more than"
 
 
 class BagStream:
@@ -119,16 +114,13 @@ class BagStream:
         self.datum: tuple[float, float, float] | None = (
             cfg.datum if isinstance(cfg.datum, tuple) else None)
         self.landmarks = landmark_maps(cfg, bag)
-        # topic -> ids of its sightings not in the map (dropped as LANDMARK_NOT_IN_MAP)
-        self.unknown_landmarks: defaultdict[str, Counter] = defaultdict(Counter)
-        self.rejected: Counter = Counter()
-        self.late: Counter = Counter()  # topic -> measurements that came too late to reorder
-        self._lateness: dict[str, float] = {}  # topic -> the most a late one lagged the newest
-        self._offered: Counter = Counter()  # topic -> measurements offered to the buffer
-        self._seen: Counter = Counter()
-        # what the run should tell its user (a topic mostly late, a topic without messages):
-        # whole sentences naming the bag and topic, also logged
-        self.warnings: list[str] = []
+        # what was dropped, per topic (``bag_drops``); its counts and warnings are this
+        # stream's ``rejected``, ``late``, ``unknown_landmarks`` and ``warnings``
+        self.drops = drops = TopicDrops(bag, cfg, self.landmarks, self.depth)
+        self.unknown_landmarks = drops.unknown_landmarks
+        self.rejected = drops.rejected
+        self.late = drops.late
+        self.warnings = drops.warnings
         self.t0: float | None = None
         self.t1: float | None = None
         self.count = 0
@@ -230,7 +222,7 @@ class BagStream:
     # --- the pipeline: raw messages -> measurements -> stamp check -> reorder -> out -----------
     def _emitted(self) -> Iterator:
         """Every measurement in stamp order (the generator behind iteration and prime)."""
-        rejected, offered = self.rejected, self._offered
+        rejected, offered = self.rejected, self.drops.offered
         checks: dict[int, StampCheck] = {}
         heap: list = []
         push, pop = heapq.heappush, heapq.heappop
@@ -252,14 +244,14 @@ class BagStream:
             for m in ms:
                 t = m.t
                 if t < released:
-                    self._late(src, t, released, released_newest)
+                    self.drops.count_late(src.topic, t, released, released_newest)
                     continue
                 push(heap, (t, j, seq, m))
                 seq += 1
                 if t > newest:
                     newest = t
 
-        seen = self._seen  # topic -> messages read (per source reading it, as ``rejected``)
+        seen = self.drops.seen  # topic -> messages read (per source reading it, as ``rejected``)
         msgs = self._msgs
         raw_items = msgs.records()
         if msgs.scan is None:
@@ -341,21 +333,6 @@ class BagStream:
     def _source_of(self, index: int) -> Source:
         return next(s for s in self._msgs.sources if s.index == index)
 
-    def _late(self, src: Source, t: float, released: float, newest: float) -> None:
-        """Count a measurement stamped ``t`` that came after ``released`` was passed on, when
-        the newest stamp was ``newest``: a reorder window of ``newest - t`` would have kept
-        it (releases happen at the same messages whatever the window)."""
-        self.late[src.topic] += 1
-        if newest - t > self._lateness.get(src.topic, 0.0):
-            self._lateness[src.topic] = newest - t
-        self.rejected[(src.topic, f"{_LATE_PREFIX} "
-                                  f"reorder_window ({self.depth:g} s) later had been passed on; "
-                                  "raise reorder_window to keep it")] += 1
-        if self.late[src.topic] == 1:
-            log.warning("%s: %s: a message stamped %.3f s before the last one passed on came "
-                        "too late to reorder (reorder_window %g s); dropped and counted",
-                        self.bag, src.topic, released - t, self.depth)
-
     def _out(self, item: tuple):
         """Finish one measurement leaving the reorder buffer: truth goes to the truth arrays,
         a GPS fix gets its ENU position; returns the measurement to pass on, or None."""
@@ -421,12 +398,12 @@ class BagStream:
             self._flush_truth_fixes()
         where, what = self._msgs.end()
         try:
-            self._check_sources(checks)
+            self.drops.check_sources(self._msgs.sources, checks, self.tolerance)
         except BagError as e:
             if where is not None:
                 raise BagError(f"{e} (only up to {where} could be read: {what})") from None
             raise
-        self._warn_rejected()
+        self.drops.warn_rejected()
         for (topic, reason), n in sorted(self.rejected.items()):
             log.warning("%s: %s: %d message(s) rejected: %s", bag, topic, n, reason)
         for w in self.warnings:
@@ -437,68 +414,6 @@ class BagStream:
                           f"({self.duration:.1f} s of data, {where})")
         elif self._msgs.stopped is not None:
             self.error = f"{bag}: {self._msgs.stopped}"
-
-    def _warn_rejected(self) -> None:
-        """The warnings of WARN_SHARE: per topic, each reason that cost more than that share of
-        its messages (a compass without orientation that only a count said was unused), and
-        the measurements dropped as late, with the reorder window that keeps them."""
-        for (topic, reason), n in sorted(self.rejected.items()):
-            total = self._seen[topic]
-            if reason.startswith(_LATE_PREFIX) or not n > WARN_SHARE * total:
-                continue
-            self.warnings.append(f"{self.bag}: topic {topic}: {n} of {total} messages "
-                                 f"({100.0 * n / total:.0f} %) rejected, in whole or in part: "
-                                 f"{reason}{self._reason_note(topic, reason)}")
-        for topic, n in sorted(self.late.items()):
-            total = self._offered[topic]
-            if n > WARN_SHARE * total:
-                lag = self._lateness[topic]
-                self.warnings.append(
-                    f"{self.bag}: topic {topic}: {n} of {total} measurements "
-                    f"({100.0 * n / total:.0f} %) dropped as late: they came up to "
-                    f"{lag:.2f} s behind the newest stamp, beyond reorder_window "
-                    f"({self.depth:g} s); set reorder_window to at least "
-                    f"{math.ceil(lag * 10.0) / 10.0:g} s (or --reorder-window) to keep them")
-
-    def _reason_note(self, topic: str, reason: str) -> str:
-        """More on a rejection ``reason`` of ``topic`` for its warning or error: for sightings
-        not in the map, the map and the ids (``unknown_landmarks_note``); else nothing."""
-        if reason != LANDMARK_NOT_IN_MAP:
-            return ""
-        return "; " + unknown_landmarks_note(self.cfg, self.landmarks,
-                                             self.unknown_landmarks[topic])
-
-    def _check_sources(self, checks: dict[int, StampCheck]) -> None:
-        bag, rejected = self.bag, self.rejected
-        empty = []
-        for src in sorted(self._msgs.sources, key=lambda s: s.index):
-            chk = checks.get(src.index)
-            if chk is None:
-                bad = {r: n for (tp, r), n in rejected.items() if tp == src.topic}
-                if bad:
-                    reason = max(bad.items(), key=lambda x: x[1])[0]
-                    raise BagError(f"{bag}: topic {src.topic} ({src.key}): all "
-                                   f"{sum(bad.values())} messages rejected: {reason}"
-                                   f"{self._reason_note(src.topic, reason)}")
-                empty.append(src)  # a message either converts (a check) or is counted
-                continue
-            if chk.bad:
-                rejected[(src.topic, f"header stamp more than {self.tolerance:g} s off its "
-                                     "topic's clock (time went backwards or jumped)")] += chk.bad
-                if chk.n >= 3 and chk.bad > 0.1 * chk.n:
-                    raise BagError(
-                        f"{bag}: topic {src.topic} ({src.key}): {chk.bad} of {chk.n} stamps "
-                        f"jump by more than {self.tolerance:g} s against the bag's record "
-                        "time; the bag mixes clocks or time goes backwards beyond "
-                        "reorder_window")
-        sensors = [s for s in self._msgs.sources if s.key != "ground_truth"]
-        if sensors and {s.index for s in sensors} <= {s.index for s in empty}:
-            raise BagError(f"{bag}: no configured sensor topic has a message "
-                           f"({', '.join(f'{s.topic} ({s.key})' for s in sensors)}): nothing "
-                           "to estimate from")
-        for src in empty:
-            self.warnings.append(f"{bag}: topic {src.topic} ({src.key}) has no messages; "
-                                 "the run goes on without it")
 
 
 def open_stream(bag: str | Path, cfg: Config, *, reorder_window: float | None = None,
