@@ -16,8 +16,10 @@ from pathlib import Path
 
 import numpy as np
 from ddfuse.estimation import heading_survey, ros1_scan, rosmsg
-from ddfuse.estimation.bags import BagStream, Reject, _gps_fix, open_reader
+from ddfuse.estimation.bag_reader import open_reader
+from ddfuse.estimation.bags import BagStream
 from ddfuse.estimation.config import parse_config
+from ddfuse.estimation.converters import Reject, gps_fix
 from ddfuse.estimation.errors import BagError, DdfuseError
 from ddfuse.estimation.frames import GRAVITY, body_x_tilt, rpy_matrix
 from ddfuse.estimation.geodesy import geodetic_to_enu
@@ -198,7 +200,7 @@ def _usable_fix(rec: tuple) -> bool:
     stamp, latitude/longitude in range, not (0, 0)): one fix at 95 deg latitude made the
     scatter 388 km."""
     try:
-        _gps_fix(rec, "")
+        gps_fix(rec, "")
     except Reject:
         return False
     return rec[0] > 0.0
@@ -298,14 +300,7 @@ def _bag_info_unindexed(path: Path, open_error: BagError) -> BagInfo:
     except ros1_scan.ScanError as e:
         raise BagError(f"{open_error}; reading it without the index fails too: {e}") from None
     st = scan.status
-    if st.truncated:
-        what = f"bag is truncated: {st.reason}"
-    elif st.reason:
-        what = f"bag is truncated or damaged: its index is unusable and {st.reason}"
-    else:
-        what = ("bag is truncated: it has no index (its recorder did not close it), so the "
-                "messages it still buffered may be missing")
-    where = f"byte {st.offset} of {st.file_size}"
+    what, where = st.unindexed_end()
     if not st.messages:
         raise BagError(f"{path}: {what}; no complete message before {where}")
     info = _finish(path, infos, recs)

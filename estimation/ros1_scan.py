@@ -115,6 +115,19 @@ class ScanStatus:
         """The scan read every record up to the end of the file."""
         return not self.reason
 
+    def unindexed_end(self) -> tuple[str, str]:
+        """(what, where) of a bag read without its index, once the scan has ended: why its end
+        may be missing data (a scan that reached the end of the file still lacks what the
+        recorder buffered) and the byte it was read up to."""
+        if self.truncated:
+            what = f"bag is truncated: {self.reason}"
+        elif self.reason:
+            what = f"bag is truncated or damaged: its index is unusable and {self.reason}"
+        else:
+            what = ("bag is truncated: it has no index (its recorder did not close it), so the "
+                    "messages it still buffered may be missing")
+        return what, f"byte {self.offset} of {self.file_size}"
+
 
 class _Incomplete(Exception):
     """The file (or a chunk's data) ends inside a record."""

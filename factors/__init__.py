@@ -6,10 +6,14 @@ State: one gtsam Vector key per keyframe, the 9-vector [x, y, psi, v, w, bg, hof
 Modules (import them directly; this package imports nothing eagerly so that the pure-math
 ``ddfuse.factors.kinematics`` can be used without loading gtsam):
 
-* ``kinematics``     exact SE(2) constant-twist step and its Jacobian (no gtsam, no numpy)
-* ``state``          index constants and layout of the state vector
-* ``motion``         2-key motion factor and its process-noise parameters
-* ``preintegration`` wheel+gyro preintegration and its 2-key factor (the fast path)
-* ``wheel``, ``gyro``, ``heading``, ``gps``, ``landmark``   measurement factors
-* ``noise``          noise-model helper; ``checks``  numerical Jacobian checks
+* ``kinematics``         exact SE(2) constant-twist step and its Jacobian (no gtsam, no numpy)
+* ``state``              index constants and layout of the state vector
+* ``preintegration``     wheel+gyro preintegration and its 2-key motion factor;
+  ``preintegration_jit`` its compiled accumulator (``jitcache`` guards numba's cache)
+* ``gps``                GPS position factor (lever arm, latency) and its prediction
+* ``landmark``           range(-bearing) factors to known landmarks
+* ``linear``             linear rows (heading) folded into one C++ factor; ``heading`` is its
+  CustomFactor reference, kept because tests check ``linear`` against it
+* ``gyro``               gyro-bias factor (gyro vs odometry yaw rate)
+* ``noise``              noise-model helper
 """

@@ -1,12 +1,8 @@
-"""Gyro factors on one keyframe state (rad/s, 1-D errors, linear in the state).
+"""Gyro-bias factor on one keyframe state (rad/s, 1-D error).
 
-``gyro_factor``: a gyro reading z = w + bg, error ``w + bg - z``; the Jacobian is a constant 1x9
-row. ``bias_difference_factor``: the mean gyro reading and the mean odometry yaw rate over the
+``bias_difference_factor``: the mean gyro reading and the mean odometry yaw rate over the
 same interval, z_g - k_w z_o = bg, error ``bg + k_w z_o - z_g`` whitened by its k_w-dependent
-sigma (errors in both rates). When several linear measurements of
-one keyframe are available (gyro, wheel speed), the C++ alternative is to fold them into one
-``PriorFactorVector`` with zero precision on unmeasured rows (the design study's design E); this
-factor exists for clarity, robust noise models and per-measurement residuals.
+sigma (errors in both rates). State layout: ``ddfuse.factors.state``.
 """
 
 from __future__ import annotations
@@ -15,37 +11,10 @@ import math
 
 import gtsam
 import numpy as np
-from ddfuse.factors.noise import NoiseLike, as_noise_model
-from ddfuse.factors.state import BG, DIM, KW, W
+from ddfuse.factors.noise import as_noise_model
+from ddfuse.factors.state import BG, DIM, KW
 
-__all__ = ["bias_difference_factor", "gyro_factor"]
-
-_H = np.zeros((1, DIM))
-_H[0, W] = 1.0
-_H[0, BG] = 1.0
-
-
-def gyro_factor(key: int, w_meas: float, noise: NoiseLike) -> gtsam.CustomFactor:
-    """Gyro yaw-rate factor.
-
-    Args:
-        key: 9-vector state key (``ddfuse.factors.state``).
-        w_meas: gyro z reading, rad/s, CCW positive, body frame.
-        noise: 1-D noise model or sigma (rad/s).
-    """
-    z = float(w_meas)
-    h = _H  # gtsam copies Jacobians and errors into Eigen objects, so buffers can be reused
-    e = np.zeros(1)
-    me = memoryview(e)
-
-    def error(this, values, H):
-        s = values.atVector(key).tolist()
-        if H is not None:
-            H[0] = h
-        me[0] = s[4] + s[5] - z
-        return e
-
-    return gtsam.CustomFactor(as_noise_model(noise, 1), [key], error)
+__all__ = ["bias_difference_factor"]
 
 
 def bias_difference_factor(key: int, mean_gyro: float, mean_odo: float, sigma_gyro: float,

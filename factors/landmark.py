@@ -15,10 +15,7 @@ A sighting ``dt`` seconds from the keyframe (either sign) is compared with the k
 carried along its own constant twist, ``(x, y, psi) <- kinematics.se2_step(x, y, psi, v, w,
 dt)``, as the GPS factor does; the Jacobian then has v and w columns too.
 
-Two flavours:
-
-* known landmark (1 key: the state) — the landmark position is a constant of the factor;
-* SLAM (2 keys: the state and a ``gtsam.Point2`` landmark key), Jacobian 2x9 and 2x2.
+The landmark position is a constant of the factor (known map); one key, the state.
 
 GTSAM's ``BearingRangeFactor2D`` / ``RangeFactor2D`` need a Pose2 key, so they do not apply to the
 9-vector state (``ddfuse.factors.state``); these CustomFactors implement the same model on it.
@@ -39,8 +36,6 @@ from ddfuse.factors.state import DIM
 __all__ = [
     "range_bearing_factor",
     "range_factor",
-    "range_bearing_slam_factor",
-    "range_slam_factor",
     "range_bearing_predict",
 ]
 
@@ -69,30 +64,25 @@ def range_bearing_predict(
 
 
 def _make(
-    keys: list[int],
-    landmark: tuple[float, float] | None,
+    key: int,
+    landmark: tuple[float, float],
     z_range: float,
     z_bearing: float | None,
     sensor_offset: tuple[float, float],
     noise: NoiseLike,
     dt: float = 0.0,
 ) -> gtsam.CustomFactor:
-    key = keys[0]
     dt = float(dt)
-    slam = landmark is None
-    lm_key = keys[1] if slam else None
-    lx0, ly0 = (0.0, 0.0) if slam else (float(landmark[0]), float(landmark[1]))
+    lx, ly = float(landmark[0]), float(landmark[1])
     sx, sy = float(sensor_offset[0]), float(sensor_offset[1])
     zr = float(z_range)
     bearing = z_bearing is not None
     zb = float(z_bearing) if bearing else 0.0
     dim = 2 if bearing else 1
     # gtsam copies Jacobians and errors into Eigen objects, so these buffers are reused; flat
-    # memoryview writes (index DIM r + c, 2 r + c) are ~3x cheaper than numpy item assignment.
+    # memoryview writes (index DIM r + c) are ~3x cheaper than numpy item assignment.
     hs = np.zeros((dim, DIM))
-    hl = np.zeros((dim, 2))
     ms = memoryview(hs.reshape(-1))
-    ml = memoryview(hl.reshape(-1))
     e = np.zeros(dim)
     me = memoryview(e)
     cos = math.cos
@@ -106,10 +96,6 @@ def _make(
         else:
             x, y, psi, v, w = values.atVector(key).tolist()[:5]
             x, y, psi, jac = se2_step_jac(x, y, psi, v, w, dt)
-        if slam:
-            lx, ly = values.atPoint2(lm_key).tolist()
-        else:
-            lx, ly = lx0, ly0
         c = cos(psi)
         s = sin(psi)
         ox = c * sx - s * sy
@@ -142,19 +128,12 @@ def _make(
                     for col in range(5):
                         ms[o + col] = g0 * jac[0][col] + g1 * jac[1][col] + g2 * jac[2][col]
             H[0] = hs
-            if slam:
-                ml[0] = gr_x
-                ml[1] = gr_y
-                if bearing:
-                    ml[2] = gb_x
-                    ml[3] = gb_y
-                H[1] = hl
         me[0] = r - zr
         if bearing:
             me[1] = (atan2(dy, dx) - psi - zb + _PI) % _TWO_PI - _PI
         return e
 
-    return gtsam.CustomFactor(as_noise_model(noise, dim), keys, error)
+    return gtsam.CustomFactor(as_noise_model(noise, dim), [key], error)
 
 
 def range_bearing_factor(
@@ -168,7 +147,7 @@ def range_bearing_factor(
 ) -> gtsam.CustomFactor:
     """Range (m) and bearing (rad) to a known landmark (x, y) in m, sighted ``dt`` s after the
     keyframe; 2-D error, 1 key."""
-    return _make([key], landmark, z_range, z_bearing, sensor_offset, noise, dt)
+    return _make(key, landmark, z_range, z_bearing, sensor_offset, noise, dt)
 
 
 def range_factor(
@@ -181,31 +160,4 @@ def range_factor(
 ) -> gtsam.CustomFactor:
     """Range (m) to a known landmark (x, y) in m, sighted ``dt`` s after the keyframe; 1-D
     error, 1 key."""
-    return _make([key], landmark, z_range, None, sensor_offset, noise, dt)
-
-
-def range_bearing_slam_factor(
-    key: int,
-    landmark_key: int,
-    z_range: float,
-    z_bearing: float,
-    noise: NoiseLike,
-    sensor_offset: tuple[float, float] = (0.0, 0.0),
-    dt: float = 0.0,
-) -> gtsam.CustomFactor:
-    """Range (m) and bearing (rad) to a ``gtsam.Point2`` landmark key, sighted ``dt`` s after
-    the keyframe; 2-D error, 2 keys."""
-    return _make([key, landmark_key], None, z_range, z_bearing, sensor_offset, noise, dt)
-
-
-def range_slam_factor(
-    key: int,
-    landmark_key: int,
-    z_range: float,
-    noise: NoiseLike,
-    sensor_offset: tuple[float, float] = (0.0, 0.0),
-    dt: float = 0.0,
-) -> gtsam.CustomFactor:
-    """Range (m) to a ``gtsam.Point2`` landmark key, sighted ``dt`` s after the keyframe; 1-D
-    error, 2 keys."""
-    return _make([key, landmark_key], None, z_range, None, sensor_offset, noise, dt)
+    return _make(key, landmark, z_range, None, sensor_offset, noise, dt)

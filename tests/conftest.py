@@ -45,3 +45,15 @@ def sample_husky():
         pytest.skip("data/sample_husky.bag not present")
     cfg = load_config(yaml)
     return cfg, read_stream(bag, cfg)
+
+
+@pytest.fixture(scope="session")
+def seed002_run(tmp_path_factory) -> Path:
+    """Output folder of ``ddfuse run`` on the landmark sample data/sample_seed002.bag (wheel
+    speeds with the robot's geometry), ekf_landmark alone; shared read-only by the tests."""
+    from ddfuse.evaluation import cli
+
+    out = tmp_path_factory.mktemp("seed002") / "out"
+    bag = ROOT / "data" / "sample_seed002.bag"
+    assert cli.main(["run", str(bag), "-o", str(out), "--estimators", "ekf_landmark"]) == 0
+    return out

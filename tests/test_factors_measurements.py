@@ -7,34 +7,18 @@ import gtsam
 import numpy as np
 import pytest
 from ddfuse.factors.gps import gps_factor, gps_predict
-from ddfuse.factors.gyro import gyro_factor
 from ddfuse.factors.heading import heading_factor
 from ddfuse.factors.kinematics import se2_step
-from ddfuse.factors.landmark import (
-    range_bearing_factor,
-    range_bearing_predict,
-    range_bearing_slam_factor,
-    range_factor,
-    range_slam_factor,
-)
+from ddfuse.factors.landmark import range_bearing_factor, range_bearing_predict, range_factor
 from ddfuse.factors.noise import as_noise_model
 from ddfuse.factors.state import make_state
-from ddfuse.factors.wheel import (
-    body_twist,
-    wheel_rates,
-    wheel_rates_calib_factor,
-    wheel_rates_factor,
-    wheel_speed_factor,
-)
 
-K, KL, KC = 10, 11, 12
+K, KL = 10, 11
 
 
-def vals(state, **extra):
+def vals(state):
     v = gtsam.Values()
     v.insert(K, np.asarray(state, dtype=float))
-    for key, val in extra.items():
-        v.insert({"lm": KL, "calib": KC}[key], val)
     return v
 
 
@@ -79,45 +63,6 @@ def test_heading_matches_pose_rotation_prior():
         # Rot2 logmap maps to [-pi, pi]; ours to [-pi, pi): compare modulo 2 pi
         d = ours[0] - ref.unwhitenedError(v)[0]
         assert abs(math.remainder(d, 2 * math.pi)) < 1e-12
-
-
-# ---------------------------------------------------------------- gyro, wheels
-
-
-def test_gyro_residual():
-    f = gyro_factor(K, 0.25, 0.01)
-    assert abs(err(f, vals(make_state(w=0.2, bg=0.03)))[0] - (-0.02)) < 1e-15
-
-
-def test_wheel_speed_residual():
-    f = wheel_speed_factor(K, 1.5, 0.05)
-    assert abs(err(f, vals(make_state(v=1.2)))[0] + 0.3) < 1e-15
-
-
-def test_wheel_rates_round_trip_and_residual():
-    r, track = 0.1, 0.5
-    wl, wr = wheel_rates(1.0, 0.4, r, track)
-    assert wl == pytest.approx((1.0 - 0.1) / 0.1) and wr == pytest.approx((1.0 + 0.1) / 0.1)
-    v, w = body_twist(wl, wr, r, track)
-    assert v == pytest.approx(1.0) and w == pytest.approx(0.4)
-    f = wheel_rates_factor(K, wl, wr, r, track, 0.1)
-    np.testing.assert_allclose(err(f, vals(make_state(v=1.0, w=0.4))), [0, 0], atol=1e-14)
-    e = err(f, vals(make_state(v=1.1, w=0.4)))
-    np.testing.assert_allclose(e, [1.0, 1.0], atol=1e-12)
-
-
-def test_wheel_rates_calib_scales():
-    r, track = 0.1, 0.5
-    # the true wheel is 5 % larger and the true track 10 % wider than nominal
-    wl, wr = wheel_rates(1.0, 0.4, r * 1.05, track * 1.1)
-    f = wheel_rates_calib_factor(K, KC, wl, wr, r, track, 0.1)
-    good = vals(make_state(v=1.0, w=0.4), calib=np.array([1.05, 1.1]))
-    np.testing.assert_allclose(err(f, good), [0, 0], atol=1e-13)
-    nominal = vals(make_state(v=1.0, w=0.4), calib=np.array([1.0, 1.0]))
-    assert np.max(np.abs(err(f, nominal))) > 0.3
-    # equals the plain factor at unit scales
-    plain = wheel_rates_factor(K, wl, wr, r, track, 0.1)
-    np.testing.assert_allclose(err(f, nominal), err(plain, nominal), atol=1e-14)
 
 
 # ---------------------------------------------------------------- GPS
@@ -192,14 +137,11 @@ def test_range_bearing_matches_gtsam_bearing_range_factor():
         v.insert(K, gtsam.Pose2(s[0], s[1], s[2]))
         v.insert(KL, gtsam.Point2(*lm))
         eb, er = ref.unwhitenedError(v)
-        known = err(range_bearing_factor(K, lm, zr, zb, unit), vals(s))
-        slam = err(range_bearing_slam_factor(K, KL, zr, zb, unit), vals(s, lm=gtsam.Point2(*lm)))
-        for e in (known, slam):
-            assert abs(e[0] - er) < 1e-10
-            assert abs(math.remainder(e[1] - eb, 2 * math.pi)) < 1e-10
+        e = err(range_bearing_factor(K, lm, zr, zb, unit), vals(s))
+        assert abs(e[0] - er) < 1e-10
+        assert abs(math.remainder(e[1] - eb, 2 * math.pi)) < 1e-10
         r1 = err(range_factor(K, lm, zr, 1.0), vals(s))
-        r2 = err(range_slam_factor(K, KL, zr, 1.0), vals(s, lm=gtsam.Point2(*lm)))
-        assert abs(r1[0] - er) < 1e-10 and abs(r2[0] - er) < 1e-10
+        assert abs(r1[0] - er) < 1e-10
 
 
 def test_bearing_convention_and_sensor_offset():

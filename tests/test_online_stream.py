@@ -23,7 +23,7 @@ from ddfuse.evaluation.online import OnlineSession, replay
 ROOT = Path(__file__).resolve().parents[1]
 BAG, CFG = ROOT / "data" / "sample_husky.bag", ROOT / "data" / "sample_husky.yaml"
 T0 = 1700000000.0  # the sample bag's first stamp
-# the bag reader's reasons (estimation/bags.py: BagStream._late, BagStream._check_sources)
+# the bag reader's reasons (estimation/bag_drops.py: TopicDrops.count_late, .check_sources)
 LATE = ("arrived after messages stamped up to more than reorder_window ({:g} s) later had been "
         "passed on; raise reorder_window to keep it")
 STAMP = "header stamp more than 1 s off its topic's clock (time went backwards or jumped)"

@@ -27,7 +27,7 @@ from ddfuse.estimation.measurements import (
     WheelSpeeds,
 )
 from ddfuse.factors.kinematics import se2_step, se2_step_jac
-from ddfuse.factors.motion import motion_error
+from ddfuse.factors.preintegration import WheelGyroPreintegration, preintegrated_factor
 from scipy.linalg import expm
 from scipy.stats import chi2
 
@@ -545,10 +545,12 @@ def test_process_noise_is_exact_integral_of_linearised_model(dt):
     assert np.linalg.eigvalsh(Q).min() > 0
 
 
-@pytest.mark.parametrize("twist", ["mean", "start"])
-def test_ekf_motion_equals_smoother_motion_factor(twist):
+def test_ekf_motion_equals_smoother_motion_factor():
     """Fed the same state and interval, the EKF's predicted pose is exactly where the smoother's
-    motion factor puts the next keyframe (zero motion residual) for a constant twist."""
+    motion factor (the wheel+gyro preintegration of the same constant speed and yaw rate, bias
+    included) puts the next keyframe: all nine residuals zero."""
+    import gtsam
+
     cfg = make_cfg(initial_pose=(0, 0, 0), gyro_bias="estimate", heading_offset=0.0)
     ekf = UnicycleEkf(cfg)
     ekf.process(GyroYawRate(0.0, 0.0, 1e-4, sensor="/imu"))
@@ -558,7 +560,12 @@ def test_ekf_motion_equals_smoother_motion_factor(twist):
         ekf.kf.x, ekf.t = np.array(si, dtype=float), 0.0
         ekf._predict_to(dt)
         sj = ekf.kf.x.tolist()
-        err = motion_error(si + [0.0, 1.0, 1.0], sj + [0.0, 1.0, 1.0], dt, twist=twist)
+        pim = WheelGyroPreintegration(bg_lin=si[5])
+        pim.integrate(dt, si[3], si[4] + si[5], 1e-4, 1e-4)
+        values = gtsam.Values()
+        values.insert(0, np.array(si + [0.0, 1.0, 1.0]))
+        values.insert(1, np.array(sj + [0.0, 1.0, 1.0]))
+        err = preintegrated_factor(0, 1, pim).unwhitenedError(values)
         np.testing.assert_allclose(err, 0.0, atol=1e-12)
 
 

@@ -1,5 +1,5 @@
-"""The online library API refuses what it cannot do, with an error that says what was wrong
-(audit 2): a truth-started config with no truth, pushes after finish()."""
+"""``OnlineSession`` refuses what it cannot do, with an error that says what was wrong: a
+truth-started config with no truth, pushes after finish()."""
 
 from __future__ import annotations
 

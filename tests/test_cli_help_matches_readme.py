@@ -1,0 +1,65 @@
+"""The command line's --help and the README's command table agree: every estimator and option
+listed, online's refusals named, run's wall-time line where the README says."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+from ddfuse.evaluation import cli
+
+ROOT = Path(__file__).resolve().parents[1]
+SEED002 = ROOT / "data" / "sample_seed002.bag"
+
+
+def test_run_help_lists_every_estimator_the_parser_accepts(capsys):
+    """dr was missing from `run --help`: every name --estimators accepts is listed."""
+    from ddfuse.evaluation.estimators import TRACK_TO_SPEC
+
+    with pytest.raises(SystemExit):
+        cli.main(["run", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    listed = text.split("--estimators LIST comma-separated: ")[1].split(" (")[0]
+    assert [n.strip() for n in listed.split(",")] == list(TRACK_TO_SPEC)
+    assert "default: all but dr" in text
+
+
+def _readme_cell(command: str) -> tuple[str, str]:
+    """(synopsis, description) of ``ddfuse COMMAND`` in the README's command table."""
+    for line in (ROOT / "README.md").read_text().splitlines():
+        if line.startswith(f"| `ddfuse {command} ") or line.startswith(f"| `ddfuse {command}`"):
+            synopsis, text = line[2:].split("` | ", 1)
+            return synopsis, text
+    raise AssertionError(f"no README row for ddfuse {command}")
+
+
+@pytest.mark.parametrize("command", ["run", "online", "lag-sweep", "bench", "report", "inspect"])
+def test_readme_synopsis_has_every_option_of_the_help(command, capsys):
+    """The README's table lacked lag-sweep's -c and online's --reorder-window."""
+    with pytest.raises(SystemExit):
+        cli.main([command, "--help"])
+    usage = " ".join(capsys.readouterr().out.split("\n\n")[0].split())
+    options = set(re.findall(r"\[(-[-\w]+)", usage)) - {"-h"}
+    synopsis, _ = _readme_cell(command)
+    missing = [o for o in options if not re.search(rf"{re.escape(o)}\b", synopsis)]
+    assert not missing, (command, missing, synopsis)
+
+
+def test_readme_says_which_estimators_online_refuses():
+    from ddfuse.evaluation.online import ONLINE_TRACKS_REFUSED
+
+    _, text = _readme_cell("online")
+    refused = text.split("Not ")[1].split(":")[0]
+    assert sorted(re.findall(r"`(\w+)`", refused)) == sorted(ONLINE_TRACKS_REFUSED)
+
+
+def test_readme_places_the_wall_time_line_where_run_prints_it(tmp_path, capsys):
+    """The wall-time split is the summary's second-to-last line, the last one saying where
+    the results are."""
+    assert cli.main(["run", "-o", str(tmp_path / "o"), "--estimators", "ekf",
+                     "--no-report"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert lines[-2].startswith("wall time ") and lines[-1].startswith("results in ")
+    _, text = _readme_cell("run")
+    assert "`wall time` line, the one before the last (`results in ...`)" in text

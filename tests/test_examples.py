@@ -1,0 +1,34 @@
+"""Smoke test of the maintained examples under examples/: each runs on the shipped sample data
+(or a short simulation) and prints its table."""
+
+from __future__ import annotations
+
+import runpy
+from pathlib import Path
+
+import pytest
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+
+
+def _main(name: str):
+    return runpy.run_path(str(EXAMPLES / name), run_name="example")["main"]
+
+
+def test_compare_estimators_on_the_sample_bag(capsys):
+    _main("compare_estimators.py")(["--estimators", "ekf,smoother"])
+    head, *rows = capsys.readouterr().out.strip().splitlines()
+    assert head.split()[:3] == ["estimator", "ATE", "m"]
+    ate = {r.split()[0]: float(r.split()[1]) for r in rows}
+    # metrics.json's figures of ``ddfuse run`` on the sample bag (the smoother gives its lagged
+    # output too)
+    assert ate == {"ekf": pytest.approx(0.114, abs=6e-4),
+                   "smoother": pytest.approx(0.101, abs=6e-4),
+                   "smoother_lagged": pytest.approx(0.088, abs=6e-4)}
+
+
+def test_monte_carlo_of_a_short_scenario(capsys):
+    pytest.importorskip("gtsam")
+    _main("monte_carlo.py")(["husky", "--seeds", "1-2", "--duration", "20"])
+    out = capsys.readouterr().out
+    assert "husky" in out and "ekf" in out and "ANEES" in out
