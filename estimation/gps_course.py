@@ -86,10 +86,8 @@ class GpsCourseStart:
             return None
         f0, f1 = self._fixes
         de, dn = f1.enu[0] - f0.enu[0], f1.enu[1] - f0.enu[1]
-        # the course's direction error is both fixes' errors across the baseline d: stated as
-        # such (a fixed 0.2 rad was 0.30 rad RMS off with 1 m fixes), and with poor fixes the
-        # wait is for a baseline that gives sigma_max (with 2 m fixes 5 m gave 0.79 rad RMS,
-        # 12 % of them beyond 3 sigma)
+        # the course's direction error is both fixes' errors across the baseline d, and with
+        # poor fixes the wait is for a baseline that gives sigma_max
         across = max(f0.cov[0, 0], f0.cov[1, 1]) + max(f1.cov[0, 0], f1.cov[1, 1])
         d = math.hypot(de, dn)
         if d < max(self.distance, math.sqrt(across) / self.sigma_max):

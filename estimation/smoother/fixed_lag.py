@@ -107,8 +107,8 @@ class FixedLagSmoother(Estimator):
         self.keyframe_rate = min(cfg.smoother.keyframe_rate, 1.0 / MIN_KEYFRAME_DT)
         self.kf_policy = cfg.smoother.keyframe
         self.initialised = False
-        self._held: list = []  # messages since the last odometry sample, waiting for the next
-        self._now = -math.inf  # stamp of the newest message seen
+        self.held: list = []  # messages since the last odometry sample, waiting for the next
+        self.now = -math.inf  # stamp of the newest message seen
         log, noise = self.log, self.noise
         self.window = Window(self.lag, keep_all=self.keep_all, lagged=lagged)
         self.twist = HeldTwist(cfg.robot, noise, pim_class, self.fixed_bias)
@@ -119,9 +119,9 @@ class FixedLagSmoother(Estimator):
             est_bias=self.est_bias, est_hoff=self.est_hoff,
             est_scales=self.scale_prior is not None)
         self.gps = GpsFusion(cfg, self.sensors, noise, self.twist, self.window, self.gating, log,
-                             self._flush)
+                             self.flush)
         self.landmark_fusion = LandmarkFusion(cfg, self.sensors, landmarks, self.window,
-                                              self.gating, log, self._flush)
+                                              self.gating, log, self.flush)
         self.init = Initialisation(self)
 
     @property
@@ -150,29 +150,29 @@ class FixedLagSmoother(Estimator):
             else:
                 self.init.uninitialised(m)
             return
-        if m.t - self._now > ODOMETRY_WAIT and math.isfinite(self._now):
+        if m.t - self.now > ODOMETRY_WAIT and math.isfinite(self.now):
             self.init.after_gap(m.t)
             if self.init.restart is not None:
                 self.init.restart_now(m)
                 return
-        self._now = max(self._now, m.t)
+        self.now = max(self.now, m.t)
         if isinstance(m, (WheelOdometry, WheelSpeeds)):
             # Odometry is held BACKWARD over its period (``held_twist``): the messages that
             # arrived inside it are integrated now.
             self.twist.set_odometry(m)
-            self._release_held()
+            self.release_held()
             self._step(m)
             return
         if self.odometry_held_back:
-            self._held.append(m)
-            if m.t - self._held[0].t > ODOMETRY_WAIT:  # odometry stopped: hold the last forward
-                self._release_held()
+            self.held.append(m)
+            if m.t - self.held[0].t > ODOMETRY_WAIT:  # odometry stopped: hold the last forward
+                self.release_held()
             return
         self._step(m)
 
-    def _release_held(self) -> None:
+    def release_held(self) -> None:
         """Use the messages that were waiting for an odometry sample, in order."""
-        held, self._held = self._held, []
+        held, self.held = self.held, []
         for b in held:
             self._step(b)
 
@@ -191,8 +191,8 @@ class FixedLagSmoother(Estimator):
             return
         window = self.window
         if m.t - window.kf_t[window.k] >= 1.0 / self.keyframe_rate and twist.pim.n > 0:
-            self._new_keyframe(m.t)
-            self._flush()
+            self.new_keyframe(m.t)
+            self.flush()
 
     def _absolute(self, m) -> None:
         """A GPS fix or landmark sighting: to the keyframe at its stamp (a new one unless the
@@ -209,7 +209,7 @@ class FixedLagSmoother(Estimator):
             return
         if (m.t - t_kf >= (MIN_KEYFRAME_DT if self.kf_policy == "gps" else 1e9)
                 and self.twist.pim.n > 0):
-            self._new_keyframe(m.t)
+            self.new_keyframe(m.t)
         k = window.k
         # A delayed measurement goes to the keyframe nearest in time inside the window; one
         # older than the lag (gtsam's own cut) is dropped, however near a keyframe it is.
@@ -230,9 +230,9 @@ class FixedLagSmoother(Estimator):
             self.gps.fuse(m, k, dt - self.sensors[m.sensor].delay)
         else:
             self.landmark_fusion.fuse(m, k, dt)
-        self._flush()
+        self.flush()
 
-    def _new_keyframe(self, t: float) -> None:
+    def new_keyframe(self, t: float) -> None:
         """Close the open keyframe interval at ``t`` with a new keyframe: its preintegrated
         factor, initial value (the newest estimate carried by the preintegration), averaged
         heading and gyro-bias factors."""
@@ -271,7 +271,7 @@ class FixedLagSmoother(Estimator):
         twist.reset_difference()
         twist.pim.reset(guess[BG], guess[KV], guess[KW])
 
-    def _flush(self) -> None:
+    def flush(self) -> None:
         """Send the pending factors to gtsam; re-initialise when it fails."""
         error = self.window.flush()
         if error is not None:
@@ -286,7 +286,7 @@ class FixedLagSmoother(Estimator):
         if init.restart is not None:  # a gap ended the window; the new one waits to start
             pose, pos_sigma, psi_sigma, _ = init.restart
             cov = np.diag((pos_sigma ** 2, pos_sigma ** 2, psi_sigma ** 2))
-            return Estimate(init.restart_buf[-1].t if init.restart_buf else self._now, pose,
+            return Estimate(init.restart_buf[-1].t if init.restart_buf else self.now, pose,
                             cov, None, None, NAMES)
         if not self.initialised or self.window.kf_state is None:
             return None
@@ -295,7 +295,7 @@ class FixedLagSmoother(Estimator):
         pim = twist.frozen()
         pose, cov = compose(st, twist.delta(st, pim), pim.covariance, kf_cov)
         t = twist.last_t
-        ahead = self._now - t
+        ahead = self.now - t
         if ahead > 0.0 and twist.v is not None:
             yr = twist.yaw_rate(twist.wg_q, twist.wo_q, twist.wg_var, twist.wo_var)
             if yr is not None:
@@ -303,7 +303,7 @@ class FixedLagSmoother(Estimator):
                 sl = st.tolist()  # Python floats: numpy scalars cost 4 us in se2_step
                 bg, kv, kw = sl[BG], sl[KV], sl[KW]
                 pose, t = se2_step(pose[0], pose[1], pose[2], kv * twist.v,
-                                   wg - gain * bg + kw * wo, ahead), self._now
+                                   wg - gain * bg + kw * wo, ahead), self.now
         return Estimate(t, (pose[0], pose[1], wrap_angle(pose[2])), cov, st.copy(), None, NAMES)
 
     def finish(self) -> None:
@@ -314,14 +314,14 @@ class FixedLagSmoother(Estimator):
             self.log.note(course.buffer[-1].t if course.buffer else 0.0,
                           f"never initialised: {why}")
             return
-        self._release_held()
+        self.release_held()
         # The odometry since the newest keyframe closes the run as a last keyframe, unless it
         # spans less than MIN_KEYFRAME_DT: a preintegrated factor over a few milliseconds has
         # walk sigmas of ~1e-6, and gtsam declared such a system indeterminate.
         window, twist = self.window, self.twist
         if twist.pim.n > 0 and twist.last_t - window.kf_t[window.k] >= MIN_KEYFRAME_DT:
-            self._new_keyframe(twist.last_t)
-            self._flush()
+            self.new_keyframe(twist.last_t)
+            self.flush()
         window.capture_leaving(math.inf, newest=True)
 
     def lagged_estimates(self) -> TrackBuilder | None:

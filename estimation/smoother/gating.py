@@ -71,9 +71,9 @@ class Gating:
         lock-out of ``key`` (a sensor, or (sensor, kind)) recovered: P + (alpha - 1) P_ww, so
         S(alpha) = alpha A + (H P H^T - A + R) with A = H_w P_ww H_w^T. Widened: the pose and
         twist, and with ``calibration`` the gyro bias and heading offset where they are
-        estimated. A state held at its value is never widened: its prior against its 1e-6 walk
-        is what gtsam's Cholesky then refuses at the next short keyframe interval (Husky bag
-        without a compass: the closing keyframe failed). Returns the new keyframe."""
+        estimated; a state held at its value never is (gtsam's Cholesky would refuse its prior
+        against its 1e-6 walk). Returns the new keyframe (docs/design/smoother.md, Gates and
+        lock-outs)."""
         window = self.window
         full = window.full
         w = [0, 1, 2, 3, 4]
@@ -87,16 +87,11 @@ class Gating:
         alpha, rest = inflation(y, A, R + hph - A)
         if alpha <= 1.0 and rest is None:
             # already ordinary against the newest marginal (the gate judged an older one): a
-            # link of only fixed_sigma would tie the keyframes at 1e-4 whatever their sigma (30
-            # m after a heading recovery: gtsam refused that pivot)
+            # link of only fixed_sigma would tie the keyframes whatever their sigma
             self.lockout.recovered(key, t_m)
             return window.k
-        # The GPS widens every estimated state but the odometry scales, as in the EKFs (which
-        # widen all but the scales too): H observes none of them, so alpha is the EKF's.
-        # Widened too, the scales explain the jump: on the Husky bag with a 0.3 m GPS sigma k_v
-        # went to 0.44, then the system was indeterminate. (Widening only x, y, psi, v, w
-        # instead: Husky hold-out 1.001 m lagged, not 0.999, session 5, when the scales still
-        # walked without a configured uncertainty.)
+        # Every estimated state but the odometry scales, as in the EKFs: H observes none of
+        # them, so alpha is the EKF's; widened too, the scales would explain the jump
         q = np.zeros((DIM, DIM))
         ww = np.ix_(w, w)
         q[ww] = (alpha - 1.0) * full[ww]

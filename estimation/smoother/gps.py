@@ -130,9 +130,7 @@ class GpsFusion:
         ``x`` carried ``dt`` s along its constant twist: the fix's own plus what the body's
         motion does off that twist over |dt| -- slip (pose_noise) and the twist's random walk
         (the held-sample densities): along the heading  l^2 |dt| + q_v |dt|^3 / 3, across it
-        t^2 |dt| + v^2 (h^2 |dt|^3 / 3 + q_w |dt|^5 / 20). Without it a fix carried 2 s onto a
-        keyframe (``keyframe: rate`` at 0.5 Hz) was trusted to its 1 m while the carry alone
-        was 0.14 m RMS off with the true twist, 2.5 m at worst at 4 s: NEES 10.6."""
+        t^2 |dt| + v^2 (h^2 |dt|^3 / 3 + q_w |dt|^5 / 20)."""
         cov = np.array(m.cov[:2, :2], dtype=float)
         a = abs(dt)
         if a < 1e-9:
@@ -155,9 +153,9 @@ class GpsFusion:
 
     def _delayed(self, m: GpsFix, s: SensorConfig, k: int, dt: float) -> np.ndarray | None:
         """A fix for an older keyframe ``k`` of the window: gated against that keyframe's
-        marginal, as a fix on time is against the newest's (an outlier 1 s late was fused),
-        and logged for the NIS. The lock-out is left alone: it is about the current estimate.
-        Returns the fix's covariance for the factor, or None when the gate rejects it."""
+        marginal, as a fix on time is against the newest's, and logged for the NIS. The lock-out is
+        left alone: it is about the current estimate. Returns the fix's covariance for the factor,
+        or None when the gate rejects it."""
         try:
             x, full = self.window.estimate_of(k)
         except (RuntimeError, IndexError, ValueError):

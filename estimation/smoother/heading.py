@@ -76,9 +76,7 @@ class HeadingAccumulator:
         rejections, ``ddfuse.estimation.lockout``) with GPS fixes or landmark sightings fused since
         it began means the compass is the outlier (a wrong fixed offset, a magnetic
         disturbance): it stays gated out, with a note. Without them the estimate is lost: the
-        belief is widened (``Gating.widen_link``) and the sample used. Before, a compass 0.35
-        rad off its configured fixed offset was fused whole, dragged the heading 20 deg off and the
-        GPS gate then locked out (3 re-initialisations; 2.6 m against the EKFs' 0.24 m)."""
+        belief is widened (``Gating.widen_link``) and the sample used."""
         window = self.window
         full = window.full
         c = self._gate_terms
@@ -118,8 +116,8 @@ class HeadingAccumulator:
                 if use_offset:
                     H[0, HOFF] = 1.0
                 # the heading is lost, not the calibration: the gyro bias and the offset are
-                # held (widened x8.7e5 with the rest after a 30 s clock step, the offset's prior
-                # against its walk made gtsam's Cholesky refuse the window, see walk_floor)
+                # held (widened, the offset's prior against its walk made gtsam's Cholesky
+                # refuse the window, see walk_floor)
                 gating.widen_link(key, m.t, H, np.array([y]), np.array([[r]]),
                                   "heading sample", calibration=False)
                 return True
@@ -168,12 +166,10 @@ class HeadingAccumulator:
         yaw up to it (``add``), which depends on the gyro bias and the yaw-rate scale:
         u_i = psi + [hoff] + J_i (bg - bg_lin) + K_i (k_w - kw_lin) + noise. So the mean
         measures psi + [hoff] + J bg + K k_w, J, K the means of J_i, K_i; at the closing
-        keyframe, psi_j = psi + dpsi_T + J_T (bg - bg_lin) + ..., with J - J_T, K - K_T. Left
-        out, a bias still uncertain (early in a run) biased the heading: with 2 s keyframe
-        intervals 1.0 deg RMS of yaw error against a stated 0.35 deg (NEES 10.6). The variance:
-        the samples' own var / n plus the mean's share of the integrated yaw noise (white:
-        c_i = var(dpsi_i), Var(mean_i int_0^t_i) = sum_il c_min(i,l) / n^2, and
-        Var(mean_i int_t_i^T) = C_T - sum_il c_max(i,l) / n^2)."""
+        keyframe, psi_j = psi + dpsi_T + J_T (bg - bg_lin) + ..., with J - J_T, K - K_T (left
+        out, an uncertain bias biases the heading). The variance: the samples' own var / n plus the
+        mean's share of the integrated yaw noise (white: c_i = var(dpsi_i), Var(mean_i int_0^t_i) =
+        sum_il c_min(i,l) / n^2, and Var(mean_i int_t_i^T) = C_T - sum_il c_max(i,l) / n^2)."""
         s = self.sensors[self._sensor]
         n = self.n
         z = self._ref + self._sum / n
@@ -205,7 +201,7 @@ class HeadingAccumulator:
         with the heading samples that arrived since it: they become one factor only at the next
         keyframe, but the filtered output should use them now, as the EKFs do. One scalar
         Kalman update with the keyframe's full marginal; the same averaged measurement as that
-        factor (``FixedLagSmoother._new_keyframe``)."""
+        factor (``FixedLagSmoother.new_keyframe``)."""
         window = self.window
         st, full = window.kf_state, window.full
         if not self.n or full is None or full.shape != (DIM, DIM):

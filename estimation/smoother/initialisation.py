@@ -117,11 +117,11 @@ class Initialisation:
         sm.headings.n = 0
         sm.initialised = True
         twist.last_t = t
-        sm._flush()
+        sm.flush()
 
     # --- restart after a gap ----------------------------------------------------------------
     def after_gap(self, t: float) -> None:
-        """No message from ``sm._now`` to ``t``: if the yaw rate held over that gap leaves the
+        """No message from ``sm.now`` to ``t``: if the yaw rate held over that gap leaves the
         heading more uncertain than GAP_HEADING_SIGMA, end the window at the last message and
         start a new one at ``t``, from the last estimate carried over the gap by its twist,
         with the position and heading sigmas the gap leaves and the calibration states as
@@ -129,7 +129,7 @@ class Initialisation:
         gap is linearised at a heading that is unknown): docs/design/smoother.md."""
         sm = self.sm
         tw, window = sm.twist, sm.window
-        gap = t - sm._now
+        gap = t - sm.now
         n, robot = sm.noise, sm.cfg.robot
         yaw = []
         for var, period, w in ((tw.wg_var, tw.wg_T, tw.wg), (tw.wo_var, tw.wo_T, tw.wo)):
@@ -138,10 +138,10 @@ class Initialisation:
                 yaw.append(var * gap * gap + q * gap ** 3 / 3.0)
         if not yaw or min(yaw) < GAP_HEADING_SIGMA ** 2 or tw.v is None:
             return
-        sm._release_held()
+        sm.release_held()
         if tw.pim.n > 0:
-            sm._new_keyframe(tw.last_t)
-        sm._flush()
+            sm.new_keyframe(tw.last_t)
+        sm.flush()
         x, full = window.kf_state, window.full
         if full is None or full.shape != (DIM, DIM):
             return
@@ -164,7 +164,7 @@ class Initialisation:
         window.restart()
         # the held samples described the time before the gap; the next ones start afresh
         tw.forget()
-        sm._held = []
+        sm.held = []
         self.restart = ((px, py, wrap_angle(ppsi)), pos_sigma, min(math.sqrt(psi_var), math.pi),
                         (x[BG:].copy(), calib_cov))
         self.restart_buf = []
@@ -187,7 +187,7 @@ class Initialisation:
             # calibration states kept); no estimate until then
             self.restart, self.restart_buf, self.realign = None, [], (xc, cc)
             sm.headings.latest = None
-            sm._now = -math.inf  # as at the start: no gap to check against until then
+            sm.now = -math.inf  # as at the start: no gap to check against until then
             for b in buf:
                 self.uninitialised(b)
             return
@@ -201,7 +201,7 @@ class Initialisation:
         self.restart, self.restart_buf = None, []
         sm.headings.latest = None  # the pre-gap sample must not set the new keyframe's offset
         self.first_keyframe(buf[0].t, pose, pos_sigma, psi_sigma, calib=(xc, cc))
-        sm._now = buf[0].t
+        sm.now = buf[0].t
         for b in buf:
             sm.process(b)
 
@@ -234,9 +234,8 @@ class Initialisation:
         sig = np.sqrt(np.maximum(np.diag(cov), 1e-6)) * 2.0
         calib = None
         if full is not None and full.shape == (DIM, DIM):
-            # the gyro bias and heading offset as learnt, their sigmas doubled as the pose's;
-            # their priors instead cost 0.7 deg of yaw for seconds and, with an uncertain
-            # heading, fed the next failures
+            # the gyro bias and heading offset as learnt, their sigmas doubled as the pose's
+            # (their priors instead cost yaw and fed the next failures)
             cc = 4.0 * full[BG:, BG:]
             calib = (np.array(state[BG:], dtype=float), 0.5 * (cc + cc.T))
         self.first_keyframe(t, (state[0], state[1], state[2]), float(max(sig[0], sig[1])),

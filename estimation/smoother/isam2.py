@@ -7,18 +7,11 @@ import gtsam
 import numpy as np
 
 # Relinearisation thresholds per state component (m, m, rad, m/s, rad/s, rad/s, rad, 1, 1).
-# Positions
-# and v enter every factor linearly (the GPS prior, the body-frame displacement R(psi)^T dp of the
-# preintegration), so their linearisation point hardly matters; the heading enters through sin
-# and cos, so it keeps a tight 0.05 rad (3 deg). On rl_husky_gps.bag this relinearises ~4x fewer
-# factors than thresholds of 0.1 m / 0.02 rad, with hold-out RMSE unchanged to the millimetre.
+# Positions and v enter every factor linearly, so their linearisation point hardly matters; the
+# heading enters through sin and cos, so it keeps a tight 0.05 rad (3 deg).
 RELINEARIZE = (1.0, 1.0, 0.05, 1.0, 0.1, 0.01, 0.05, 0.01, 0.01)
-# Updates between relinearisation checks (gtsam's default). With 1 (every update), the newest
-# keyframe's first correction is over a threshold at the next update almost always, so each
-# preintegrated factor was linearised ~7.7 times in its window (Python callbacks) and more
-# cliques re-eliminated. With 10 on rl_husky_gps.bag the hold-out RMSE moved 1.483 -> 1.484 m
-# (lagged 1.067 -> 1.066), the simulated husky MC (6 seeds) RMSE 0.10599 -> 0.10599 m and ANEES
-# 3.2004 -> 3.2006.
+# Updates between relinearisation checks (gtsam's default); with 1 each preintegrated factor
+# (a Python callback) was relinearised several times in its window.
 RELINEARIZE_SKIP = 10
 
 

@@ -66,10 +66,8 @@ class SmootherNoise:
     init_hoff_sigma: float = 0.3  # rad when estimated (initialised from the first sample)
     fixed_sigma: float = 1e-4  # prior on a calibration state that is not estimated
     # 1/sqrt(s): random walk of the odometry scales when they are estimated (the config states
-    # the geometry's uncertainty), 0.2 % over 400 s (tyre wear, load); otherwise they are held
-    # at 1 (fixed_rw), as the EKFs hold them. The EKFs' estimated scales are constants; here
-    # 1e-5 already made gtsam's Cholesky declare the first keyframes indeterminate (simulated
-    # husky, seed 1), 3e-5 did not.
+    # the geometry's uncertainty; tyre wear, load); otherwise they are held at 1 (fixed_rw), as
+    # the EKFs hold them. Much less and gtsam's Cholesky refuses the first keyframes.
     scale_rw: float = 1e-4
     # m/s^2/sqrt(Hz), rad/s^2/sqrt(Hz): white accelerations that move the twist away from a held
     # sample once it is older than its period (odometry or gyro stopped, a gap in the feed): the
@@ -127,8 +125,7 @@ def robustify(cfg: Config, sensor: SensorConfig, base: gtsam.noiseModel.Base,
     """``base`` wrapped in the configured M-estimator. gtsam applies it to the norm of the
     whole whitened residual, so the default threshold is that norm at the sensor's chi-square
     gate for ``dim`` components: full weight wherever the EKF's gate would accept the same
-    residual, linear (Huber) or log (Cauchy) growth beyond. With Huber's textbook k = 1.345 a
-    2-D fix would be down-weighted 40 % of the time even when exactly Gaussian.
+    residual, linear (Huber) or log (Cauchy) growth beyond.
 
     ``inflated``: the factor f by which ``base``'s covariance is the measurement's own times f
     (a time-correlated GPS fix, ``ddfuse.estimation.gps_correlation``). The same residual in metres
