@@ -1,6 +1,7 @@
 """A compass whose configured fixed offset is wrong (0 where it is 0.35 rad) on a GPS without lever
 arm or delay: every estimator keeps it out because the GPS fixes it accepts meanwhile corroborate
-the heading (``ddfuse.ekf_baseline.kalman.CORROBORATED_BY``, ``FixedLagSmoother._heading_gate``).
+the heading (``ddfuse.ekf_baseline.kalman.CORROBORATED_BY``,
+``smoother.heading.HeadingAccumulator.gate``).
 
 By H columns alone such a GPS never observes the heading, so both EKFs declared themselves lost
 after a second of rejected compass samples, recovered onto the compass and ended 2.66 m off

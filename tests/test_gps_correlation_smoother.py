@@ -58,8 +58,8 @@ def _drive(fix_t, duration: float, moved: dict | None = None, late: dict | None 
 
 def _feed(sm, ms):
     """Run ``sm`` over ``ms``, capturing every factor it builds: (smoother, [factors])."""
-    built, add = [], sm._add
-    sm._add = lambda f: (built.append(f), add(f))[1]
+    built, add = [], sm.window.add
+    sm.window.add = lambda f: (built.append(f), add(f))[1]
     for m in ms:
         sm.process(m)
     sm.finish()
@@ -136,7 +136,7 @@ def test_a_rejected_fix_does_not_count_as_fused_and_a_late_one_takes_its_nearest
         assert sm.log.rejected[("/fix", "gate")] == 1, (tau, sm.log.rejected)
         bad = [i for i in sm.log.innovations if i.kind == "gps" and i.t == 4.0]
         assert len(bad) == 1 and not bad[0].accepted and bad[0].nis > 400.0, bad
-        assert math.hypot(*sm.kf_state[:2] - (11.0, 0.0)) < 0.5
+        assert math.hypot(*sm.window.kf_state[:2] - (11.0, 0.0)) < 0.5
     # the fused fixes in order of delivery: the late one after 6.4 s
     order = [t for t in fix_t if t not in (4.0, 6.0)]
     order.insert(order.index(6.4) + 1, 6.0)
@@ -155,7 +155,7 @@ def test_a_rejected_fix_does_not_count_as_fused_and_a_late_one_takes_its_nearest
 def test_the_fused_stamps_kept_are_bounded_by_the_lag():
     fix_t = [round(0.4 * i, 1) for i in range(1, 200)]
     sm, _ = _feed(FixedLagSmoother(_cfg(30.0)), _drive(fix_t, 80.0))
-    kept = sm._gps_fused_t["/fix"]
+    kept = sm.gps.fused_t["/fix"]
     assert kept[-1] == fix_t[-1] and len(kept) <= 10.0 / 0.4 + 3, len(kept)
 
 

@@ -34,11 +34,18 @@ def product_modules(root: Path = ROOT) -> dict[str, Path]:
 
 
 def imported(name: str, path: Path, known: dict[str, Path]) -> set[str]:
-    """The product modules ``name`` (at ``path``) imports: ``from a.b import c`` is the module
-    ``a.b.c`` when there is one, else ``a.b``; relative imports are resolved."""
+    """The product modules ``name`` (at ``path``) imports at run time: ``from a.b import c`` is
+    the module ``a.b.c`` when there is one, else ``a.b``; relative imports are resolved; imports
+    under ``if TYPE_CHECKING:`` are left out."""
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     out = set()
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+    tree = ast.parse(path.read_text(), str(path))
+    typing_only = {id(n) for block in ast.walk(tree) if isinstance(block, ast.If)
+                   and ast.unparse(block.test) in ("TYPE_CHECKING", "typing.TYPE_CHECKING")
+                   for stmt in block.body for n in ast.walk(stmt)}
+    for node in ast.walk(tree):
+        if id(node) in typing_only:  # never executed: not an import at run time
+            continue
         if isinstance(node, ast.Import):
             out.update(a.name for a in node.names)
         elif isinstance(node, ast.ImportFrom):
@@ -57,45 +64,21 @@ def graph(root: Path = ROOT) -> dict[str, set[str]]:
 
 
 def cycles(g: dict[str, set[str]]) -> list[set[str]]:
-    """The strongly connected components of ``g`` with a cycle (Tarjan, iterative)."""
-    index: dict[str, int] = {}
-    low: dict[str, int] = {}
-    stack: list[str] = []
-    on_stack: set[str] = set()
-    found = []
-    for start in g:
-        if start in index:
-            continue
-        work = [(start, iter(sorted(g[start])))]
-        index[start] = low[start] = len(index)
-        stack.append(start)
-        on_stack.add(start)
-        while work:
-            v, children = work[-1]
-            w = next(children, None)
-            if w is not None:
-                if w not in index:
-                    index[w] = low[w] = len(index)
-                    stack.append(w)
-                    on_stack.add(w)
-                    work.append((w, iter(sorted(g[w]))))
-                elif w in on_stack:
-                    low[v] = min(low[v], index[w])
-                continue
-            work.pop()
-            if work:
-                low[work[-1][0]] = min(low[work[-1][0]], low[v])
-            if low[v] == index[v]:
-                comp = set()
-                while True:
-                    w = stack.pop()
-                    on_stack.discard(w)
-                    comp.add(w)
-                    if w == v:
-                        break
-                if len(comp) > 1 or v in g[v]:
-                    found.append(comp)
-    return found
+    """The strongly connected components of ``g`` with a cycle (a module importing itself, or
+    two or more importing each other)."""
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    names = sorted(g)
+    at = {n: i for i, n in enumerate(names)}
+    edges = [(at[a], at[b]) for a in names for b in g[a]]
+    rows, cols = zip(*edges, strict=True) if edges else ((), ())
+    m = csr_matrix(([1] * len(edges), (rows, cols)), shape=(len(names), len(names)))
+    _, label = connected_components(m, directed=True, connection="strong")
+    comps: dict[int, set[str]] = {}
+    for n, c in zip(names, label, strict=True):
+        comps.setdefault(int(c), set()).add(n)
+    return [c for c in comps.values() if len(c) > 1 or next(iter(c)) in g[next(iter(c))]]
 
 
 def layer(module: str) -> int:
@@ -146,9 +129,11 @@ def test_a_cycle_and_a_wrong_direction_are_found(tmp_path):
     (tmp_path / "factors" / "b.py").write_text(
         "def f():\n    from ddfuse.factors.a import x\n    from ddfuse.evaluation import c\n")
     (tmp_path / "evaluation" / "c.py").write_text("from . import d\n")
-    (tmp_path / "evaluation" / "d.py").write_text("")
+    (tmp_path / "evaluation" / "d.py").write_text(
+        "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from . import c\n")
     g = graph(tmp_path)
     assert [sorted(c) for c in cycles(g)] == [["ddfuse.factors.a", "ddfuse.factors.b"]]
     assert g["ddfuse.factors.b"] == {"ddfuse.factors.a", "ddfuse.evaluation.c"}
     assert g["ddfuse.evaluation.c"] == {"ddfuse.evaluation.d"}
+    assert g["ddfuse.evaluation.d"] == set()  # for type checkers only: no cycle with c
     assert layer("ddfuse.evaluation.c") > layer("ddfuse.factors.b")

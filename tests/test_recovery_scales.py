@@ -1,5 +1,5 @@
 """A gate lock-out recovery widens the EKF's covariance but not its odometry scale states (as
-the smoother's, ``FixedLagSmoother._widen``): widened, the scales took up a GPS jump and the
+the smoother's, ``smoother.gps.GpsFusion.widen``): widened, the scales took up a GPS jump and the
 filter broke down."""
 
 from __future__ import annotations

@@ -278,9 +278,9 @@ def test_gate_lockout_widens_and_follows_a_persistent_gps_shift(husky, husky_run
     tr = r.runs["smoother"].trajectory
     e, _ = _errors(tr, shifted, t_min=63.0)
     assert float(np.max(np.hypot(e[:, 0], e[:, 1]))) < GPS_SIGMA, e[:5]
-    plain = husky_run.estimators["smoother"].kf_state
-    assert np.allclose(sm.kf_state[[KV, KW]], plain[[KV, KW]], atol=0.01), (
-        sm.kf_state[[KV, KW]], plain[[KV, KW]])
+    plain = husky_run.estimators["smoother"].window.kf_state
+    assert np.allclose(sm.window.kf_state[[KV, KW]], plain[[KV, KW]], atol=0.01), (
+        sm.window.kf_state[[KV, KW]], plain[[KV, KW]])
     lagged = r.runs["smoother_lagged"].trajectory
     assert np.all(np.diff(lagged.t) > 0)  # the widened keyframe is output once
     e, _ = _errors(lagged, shifted, t_min=63.0)
@@ -313,13 +313,13 @@ def test_recovers_when_gtsam_raises(husky):
         def __getattr__(self, name):
             return getattr(self.inner, name)
 
-    failing = sm.smoother = Failing(sm.smoother)
+    failing = sm.window.isam = Failing(sm.window.isam)
     rest = iter(ms[half:])
     for m in rest:  # until the next update (a GPS fix waits for the odometry that covers it)
         sm.process(m)
         if failing.calls:
             break
-    assert failing.calls == 1 and sm.smoother is not failing  # rebuilt
+    assert failing.calls == 1 and sm.window.isam is not failing  # rebuilt
     for m in rest:
         sm.process(m)
     sm.finish()
@@ -362,10 +362,11 @@ def test_gives_up_when_gtsam_keeps_failing(husky, monkeypatch):
     400 s run, each re-start from a staler estimate: 15 m off at the end). After
     MAX_RECOVERIES + 1 within RECOVERY_WINDOW s the smoother stops with an error that names
     gtsam's reason (its first non-blank line), keeping the window's keyframes."""
-    import ddfuse.estimation.smoother as smoother_module
+    import ddfuse.estimation.smoother.window as window_module
+    from ddfuse.estimation.smoother import MAX_RECOVERIES
 
     cfg, stream = husky
-    real = smoother_module.gtsam.IncrementalFixedLagSmoother
+    real = window_module.gtsam.IncrementalFixedLagSmoother
     state = {"fail": False, "raised": 0}
 
     class Flaky:
@@ -382,7 +383,7 @@ def test_gives_up_when_gtsam_keeps_failing(husky, monkeypatch):
         def __getattr__(self, name):
             return getattr(self.inner, name)
 
-    monkeypatch.setattr(smoother_module.gtsam, "IncrementalFixedLagSmoother", Flaky)
+    monkeypatch.setattr(window_module.gtsam, "IncrementalFixedLagSmoother", Flaky)
     sm = FixedLagSmoother(cfg, initial_pose=_pose0(stream))
     ms = stream.measurements
     for m in ms[:len(ms) // 3]:
@@ -394,7 +395,7 @@ def test_gives_up_when_gtsam_keeps_failing(husky, monkeypatch):
                        r"variable\): its system is ill-conditioned"):
         for m in ms[len(ms) // 3:]:
             sm.process(m)
-    assert state["raised"] == smoother_module.MAX_RECOVERIES + 1
+    assert state["raised"] == MAX_RECOVERIES + 1
     assert sm.log.rejected[("smoother", "gtsam error, re-initialised")] == 3
     assert "after gtsam error: Indeterminate linear system" in sm.log.messages[-1]
     assert len(sm.lagged_estimates()) > n_before + 10  # the window at the first failure
@@ -478,15 +479,16 @@ def test_messages_wait_for_the_odometry_that_covers_them(husky):
     i = next(k for k, m in enumerate(ms) if isinstance(m, GpsFix) and k > len(ms) // 2)
     for m in ms[:i]:
         sm.process(m)
-    kf = sm.k
+    kf = sm.window.k
     sm.process(ms[i])
-    assert sm.k == kf and sm.estimate().t == ms[i].t  # waiting, extrapolated to the fix's stamp
+    # waiting, extrapolated to the fix's stamp
+    assert sm.window.k == kf and sm.estimate().t == ms[i].t
     j = i + 1
     while not type(ms[j]).__name__.startswith("Wheel"):
         sm.process(ms[j])
         j += 1
     sm.process(ms[j])
-    assert sm.k == kf + 1  # the odometry sample arrived: the fix's keyframe is made
+    assert sm.window.k == kf + 1  # the odometry sample arrived: the fix's keyframe is made
 
 
 def test_odometry_scales_are_estimated(husky_run):
@@ -579,21 +581,22 @@ def test_filtered_estimate_uses_the_headings_since_the_newest_keyframe(husky):
     ms = stream.measurements
     a = FixedLagSmoother(cfg, initial_pose=_pose0(stream))
     n = 0
-    while n < len(ms) and (ms[n].t - ms[0].t < 20.0 or a._h_n < 6):
+    while n < len(ms) and (ms[n].t - ms[0].t < 20.0 or a.headings.n < 6):
         a.process(ms[n])
         n += 1
-    t_kf = a.kf_t[a.k]
+    t_kf = a.window.kf_t[a.window.k]
     b = FixedLagSmoother(cfg, initial_pose=_pose0(stream))
     for m in ms[:n]:
         b.process(replace(m, yaw=m.yaw + 0.05) if m.t > t_kf and isinstance(m, Heading) else m)
-    assert a.k == b.k and a._h_n == b._h_n >= 6  # the same keyframe, headings pending
-    h, _, var = a._pending_heading()
+    # the same keyframe, headings pending
+    assert a.window.k == b.window.k and a.headings.n == b.headings.n >= 6
+    h, _, var = a.headings.pending()
     # psi + heading offset (heading_offset: estimate), plus the carried yaw's bias and scale
-    assert h[2] == h[HOFF] == 1.0 and h[BG] < 0.0 and var > a._h_var / a._h_n ** 2
-    ph = a._full @ h
+    assert h[2] == h[HOFF] == 1.0 and h[BG] < 0.0 and var > a.headings._var / a.headings.n ** 2
+    ph = a.window.full @ h
     gain_psi = ph[2] / (h @ ph + var)
     # the keyframe's heading moves by exactly the gain times the shift...
-    kf_shift = b._with_pending_heading()[0][2] - a._with_pending_heading()[0][2]
+    kf_shift = b.headings.with_pending()[0][2] - a.headings.with_pending()[0][2]
     assert kf_shift == pytest.approx(gain_psi * 0.05, rel=1e-9)
     assert kf_shift > 0.005  # not a negligible correction
     # ...and the output with it (give or take the bias the update also moves, which turns the
@@ -629,7 +632,7 @@ def test_sparse_keyframes_keep_the_heading(husky):
 def test_a_gap_in_the_feed_is_bridged_consistently(husky, gap, compass):
     """No message at all for ``gap`` s (a driver restart, a dropped link). The held samples
     describe their own 0.1 s period, not the gap, and the twist over the gap is unknown beyond
-    the acceleration limits (``FixedLagSmoother._stale``); a gap that leaves the heading
+    the acceleration limits (``HeldTwist.stale``); a gap that leaves the heading
     unknown ends the window and starts a new one from the carried estimate, its heading from
     the first heading sample (``_restart_after_gap``). Before: after 60 s the first fix's NIS
     was 3160 and it failed the gate; with the density fixed but one window across the gap, the
@@ -809,7 +812,7 @@ def test_a_gps_recovery_leaves_the_states_held_at_their_value_alone(husky):
     run(replace(stream, measurements=ms), {"smoother": est})
     assert est.log.rejected[("/fix", "lockout_recovery")] >= 1, dict(est.log.rejected)
     assert not [r for (_, r) in est.log.rejected if "gtsam" in r], dict(est.log.rejected)
-    assert math.sqrt(est._full[HOFF, HOFF]) < 2e-4  # still held
+    assert math.sqrt(est.window.full[HOFF, HOFF]) < 2e-4  # still held
 
 
 def test_hand_built_measurements_it_cannot_use_are_counted_not_raised():

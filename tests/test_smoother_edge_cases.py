@@ -98,7 +98,7 @@ def test_a_repeated_stamp_leaves_the_sample_periods(sample_husky):
         for m in feed:
             s.process(m)
         s.finish()
-        out[name] = (dict(s.sample_T), s.final_state())
+        out[name] = (dict(s.twist.sample_T), s.final_state())
     periods, end = out["repeated"]
     assert periods == pytest.approx(out["clean"][0], rel=1e-6)
     assert math.sqrt(end.state_cov[KW, KW]) < 1.2 * math.sqrt(out["clean"][1].state_cov[KW, KW])
@@ -115,9 +115,9 @@ def test_a_reinitialisation_keeps_the_calibration(sample_husky):
         s.process(m)
         if m.t - t0 > 60.0:
             break
-    x0, p0 = s.kf_state.copy(), s._full.copy()
-    s._recover("forced")
-    x1, p1 = s.kf_state, s._full
+    x0, p0 = s.window.kf_state.copy(), s.window.full.copy()
+    s.init.recover("forced")
+    x1, p1 = s.window.kf_state, s.window.full
     assert x1[BG] == pytest.approx(x0[BG], abs=1e-9) and x1[HOFF] == pytest.approx(x0[HOFF])
     for i in (BG, HOFF):
         assert p1[i, i] == pytest.approx(4.0 * p0[i, i], rel=1e-6)
@@ -181,8 +181,8 @@ def test_the_gps_course_start_heading_is_as_good_as_stated(sample_husky):
     for seed in range(30):
         s = FixedLagSmoother(cfg)
         got = []
-        start = s._start
-        s._start = lambda t, pose, ps, qs, _f=start, _g=got: (_g.append((t, pose[2], qs)),
+        start = s.init.start
+        s.init.start = lambda t, pose, ps, qs, _f=start, _g=got: (_g.append((t, pose[2], qs)),
                                                              _f(t, pose, ps, qs))
         for m in _redrawn_fixes(stream, 2.0, seed, 40.0):
             s.process(m)
@@ -206,8 +206,8 @@ def test_a_fix_keeps_its_covariance_and_the_carry_adds_to_it(sample_husky):
                                                for x in cfg.sensors]),
                          initial_pose=_pose0(stream))
     added = []
-    add = s._add
-    s._add = lambda f, _a=add: (added.append(f), _a(f))
+    add = s.window.add
+    s.window.add = lambda f, _a=add: (added.append(f), _a(f))
     t0 = stream.measurements[0].t
     for m in ms:
         if m.t - t0 > 20.0:
@@ -225,11 +225,11 @@ def test_a_fix_keeps_its_covariance_and_the_carry_adds_to_it(sample_husky):
     fix = replace(next(m for m in ms if isinstance(m, GpsFix)), cov=np.diag([1.0, 1.0, 4.0]))
     n, robot = s.noise, cfg.robot
     for dt in (0.5, 2.0):
-        c = s._gps_cov(fix, x, dt) - np.eye(2)
-        qv = robot.max_accel ** 2 * s.v_T
+        c = s.gps.carried_cov(fix, x, dt) - np.eye(2)
+        qv = robot.max_accel ** 2 * s.twist.v_T
         assert c[0, 0] == pytest.approx(n.pose_noise[0] ** 2 * dt + qv * dt ** 3 / 3.0)
         assert c[0, 1] == pytest.approx(0.0, abs=1e-15) and c[1, 1] > n.pose_noise[1] ** 2 * dt
-    assert np.all(s._gps_cov(fix, x, 0.0) == fix.cov[:2, :2])
+    assert np.all(s.gps.carried_cov(fix, x, 0.0) == fix.cov[:2, :2])
 
 
 

@@ -1,0 +1,60 @@
+"""The batch smoother: every factor of the run, solved at the end with Levenberg-Marquardt, the
+offline optimum the fixed-lag outputs are compared with. Its trajectory is at the keyframes
+(poses in local ENU, marginal covariances from ``gtsam.Marginals``)."""
+
+from __future__ import annotations
+
+import gtsam
+from ddfuse.estimation.config import Config
+from ddfuse.estimation.estimator import Estimate, wrap_angle
+from ddfuse.estimation.runner import TrackBuilder
+from ddfuse.estimation.smoother.fixed_lag import FixedLagSmoother
+from ddfuse.factors.state import NAMES
+
+
+class BatchSmoother(FixedLagSmoother):
+    """Every factor of the run, solved at the end with Levenberg-Marquardt: the offline optimum
+    the fixed-lag outputs are compared with. Its trajectory is at the keyframes. The factors are
+    the ones the online run builds, so a time-correlated GPS fix is inflated by the f the
+    smoother gave it (for the time since the previous fused fix; a late one's nearest): batch
+    and smoother model the data alike."""
+
+    name = "batch"
+    keep_all = True
+
+    def __init__(self, cfg: Config, **kw) -> None:
+        kw.setdefault("lagged", False)  # its output is the final solve's, not a lagged one
+        super().__init__(cfg, **kw)
+        self._final = TrackBuilder()
+
+    def finish(self) -> None:
+        super().finish()
+        if not self.initialised:
+            return
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(20)
+        params.setRelativeErrorTol(1e-6)
+        try:
+            window = self.window
+            result = gtsam.LevenbergMarquardtOptimizer(window.all_graph, window.all_values,
+                                                       params).optimize()
+            marg = gtsam.Marginals(window.all_graph, result)
+        except RuntimeError as e:
+            self.log.note(self.twist.last_t, f"batch optimisation failed: {e}")
+            return
+        times = {int(window.key(j)): t for j, t in window.all_kf_t.items()}
+        for key, t in sorted(times.items(), key=lambda kv: kv[1]):
+            x = result.atVector(key)
+            cov = marg.marginalCovariance(key)
+            self._final.append(Estimate(t, (float(x[0]), float(x[1]), wrap_angle(float(x[2]))),
+                                        cov[:3, :3].copy(), x.copy(), cov.copy(), NAMES))
+
+    def lagged_estimates(self):  # the batch has no lagged output of its own
+        return None
+
+    def final_estimates(self) -> TrackBuilder:
+        return self._final
+
+    def final_state(self) -> Estimate | None:
+        return self._estimated_only(self._final.last)
+
