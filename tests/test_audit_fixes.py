@@ -7,11 +7,13 @@ from __future__ import annotations
 import json
 import re
 import warnings
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
 from ddfuse.evaluation import cli, plots, report
 from ddfuse.evaluation.results import load_run
+from ddfuse.evaluation.scores import EstimatorScores, RunSummary
 
 ROOT = Path(__file__).resolve().parents[1]
 SEED002 = ROOT / "data" / "sample_seed002.bag"
@@ -34,11 +36,11 @@ def test_not_run_says_dr_is_off_by_default_on_a_wheel_speed_config(seed002_run):
     run = load_run(seed002_run)
     assert [s["kind"] for s in run.metrics["data"]["sensors"]].count("wheels") == 1
     # without the saved config text: judged on metrics.json's sensor list
-    why = dict(report.not_run(run.metrics))["dr"]
+    why = dict(report.not_run(run.summary))["dr"]
     assert why.startswith("off by default, --estimators dr runs it"), why
     cfg = report.run_config(run)
     assert cfg is not None and cfg.robot.wheel_radius == pytest.approx(0.1)
-    assert dict(report.not_run(run.metrics, cfg))["dr"] == why
+    assert dict(report.not_run(run.summary, cfg))["dr"] == why
 
 
 def test_not_run_still_names_a_missing_sensor(seed002_run):
@@ -46,7 +48,7 @@ def test_not_run_still_names_a_missing_sensor(seed002_run):
     without it."""
     run = load_run(seed002_run)
     for cfg in (report.run_config(run), None):
-        assert dict(report.not_run(run.metrics, cfg))["ekf_igvc"].startswith("needs ")
+        assert dict(report.not_run(run.summary, cfg))["ekf_igvc"].startswith("needs ")
 
 
 def test_a_saved_config_that_no_longer_loads_falls_back_to_the_sensor_list(seed002_run):
@@ -83,7 +85,7 @@ def test_events_header_counts_lockout_recoveries_as_accepted_as_the_gating_table
     assert table_rejected >= 4
     # the report's Configuration section with this entry in place of the run's
     run = load_run(seed002_run)
-    run.metrics["estimators"] = {"ekf": e}
+    run.summary = replace(run.summary, estimators={"ekf": EstimatorScores.from_json(e)})
     [head] = re.findall(r"<summary>ekf: (.*?)</summary>", report._config(run))
     assert f"{table_rejected} rejected by the gate" in head, head
     assert f"{recoveries} lock-out recover" in head and "(measurement accepted)" in head
@@ -95,16 +97,17 @@ def test_events_header_of_the_mrclam_counts():
     Husky EKF that waited for its start (other reasons counted apart)."""
     e = {"events": ["a", "b", "c"],
          "rejected": {"/landmarks: gate": 72, "/landmarks: lockout_recovery": 3}}
-    assert report.event_summary(e) == ("3 events, 72 rejected by the gate, 3 lock-out "
-                                       "recoveries (measurement accepted)")
+    assert report.event_summary(EstimatorScores.from_json(e)) == (
+        "3 events, 72 rejected by the gate, 3 lock-out recoveries (measurement accepted)")
     assert report._rejection_lines(e["rejected"]) == [
         "rejected /landmarks: gate: 72",
         "lock-out recovery, measurement accepted /landmarks: 3"]
     e = {"events": ["a"], "rejected": {"/imu/data: before_init": 194, "/fix: gate": 4,
                                        "/fix: lockout_recovery": 1}}
-    assert report.event_summary(e) == ("1 event, 4 rejected by the gate, 194 dropped for other "
-                                       "reasons, 1 lock-out recovery (measurement accepted)")
-    assert report.event_summary({"events": []}) == "0 events"
+    assert report.event_summary(EstimatorScores.from_json(e)) == (
+        "1 event, 4 rejected by the gate, 194 dropped for other reasons, 1 lock-out recovery "
+        "(measurement accepted)")
+    assert report.event_summary(EstimatorScores.from_json({"events": []})) == "0 events"
 
 
 @pytest.fixture(scope="module")
@@ -306,7 +309,8 @@ def test_a_drift_that_rounds_to_zero_has_no_sign():
                                                 "drift_per_m": drift, "reference": "truth"}]}
                         for name, drift in (("ekf_igvc", -0.00002), ("ekf", 0.00002),
                                             ("smoother", 0.0123))}}
-    cells = re.findall(r"<td>([-+]?\d+\.\d\d)</td><td class=\"l\">truth", report._outage_table(m))
+    cells = re.findall(r"<td>([-+]?\d+\.\d\d)</td><td class=\"l\">truth",
+                       report._outage_table(RunSummary.from_json(m)))
     assert cells == ["0.00", "0.00", "+1.23"]
     assert report.signed(-0.004) == "0.00" and report.signed(0.004) == "0.00"
     assert report.signed(-0.006) == "-0.01" and report.signed(0.25) == "+0.25"
@@ -330,5 +334,5 @@ def test_an_estimator_that_never_estimated_gets_no_speed(seed002_run):
     assert "33358" not in rows["ekf"]
     assert rows["ekf"].split("ERROR:")[0].split()[-1] == "-"
     assert f"{ran['rtf']:.3f}" in rows["ekf_landmark"]
-    table = report._summary_table(m)
+    table = report._summary_table(RunSummary.from_json(m))
     assert "33358" not in table and f"{ran['rtf']:.0f}" in table
