@@ -86,11 +86,13 @@ def _tuple(v) -> tuple:
     return tuple(v)
 
 
-def _each(read: Callable) -> Callable:
+def read_each(read: Callable) -> Callable:
+    """A list reader from an item reader (``Record.READ``)."""
     return _opt(lambda v: [read(x) for x in v])
 
 
-def _values(read: Callable) -> Callable:
+def read_values(read: Callable) -> Callable:
+    """A dict reader from a value reader (``Record.READ``; a null value stays None)."""
     return _opt(lambda v: {k: (None if x is None else read(x)) for k, x in v.items()})
 
 
@@ -182,7 +184,7 @@ class FinalState(Record):
 
     t: float | None = None
     states: dict[str, CalibrationState] = field(default_factory=dict)
-    READ: ClassVar = {"states": _values(CalibrationState.from_json)}
+    READ: ClassVar = {"states": read_values(CalibrationState.from_json)}
 
 
 @dataclass(frozen=True)
@@ -221,9 +223,9 @@ class EstimatorScores(Record):
     READ: ClassVar = {
         "final_xy": _tuple, "gps_holdout_span_s": _tuple, "span_s": _tuple,
         "update_ms": UpdateLatency.from_json, "ate": AteScores.from_json,
-        "rpe": _values(RpeScore.from_json), "nees": Consistency.from_json,
-        "gps_holdout_m": Stats.from_json, "gps_outages": _each(OutageDrift.from_json),
-        "nis": _values(SensorNis.from_json), "final_state": FinalState.from_json}
+        "rpe": read_values(RpeScore.from_json), "nees": Consistency.from_json,
+        "gps_holdout_m": Stats.from_json, "gps_outages": read_each(OutageDrift.from_json),
+        "nis": read_values(SensorNis.from_json), "final_state": FinalState.from_json}
     finish_s: float | None = None  # s in finish() alone, where ``ddfuse bench`` measured it
     OMIT_NONE: ClassVar = frozenset({"rpe_note", "finish_s"})
 
@@ -280,7 +282,7 @@ class DataFacts(Record):
     t1: float | None = None
     datum: list[float] | None = None
     heading_offsets: list[dict] | None = None
-    READ: ClassVar = {"sensors": _each(SensorFacts.from_json)}
+    READ: ClassVar = {"sensors": read_each(SensorFacts.from_json)}
 
 
 @dataclass(frozen=True)
@@ -329,8 +331,8 @@ class RunSummary(Record):
     warnings: list[str] = field(default_factory=list)
     wall_s: WallTimes | None = None
     READ: ClassVar = {
-        "gps_outages": _each(Outage.from_json), "gps_antenna": GpsAntenna.from_json,
-        "estimators": _values(EstimatorScores.from_json), "ate_common": CommonSpan.from_json,
+        "gps_outages": read_each(Outage.from_json), "gps_antenna": GpsAntenna.from_json,
+        "estimators": read_values(EstimatorScores.from_json), "ate_common": CommonSpan.from_json,
         "data": DataFacts.from_json, "wall_s": WallTimes.from_json}
 
     @property
