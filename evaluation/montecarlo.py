@@ -8,36 +8,15 @@ stream's wheel odometry integrated alone). Per seed and estimator it records the
 the dead-reckoning RMSE, the pose NEES and the runtime; across seeds it forms Bar-Shalom's
 average NEES and its chi-square band. Seeds run in local processes (``jobs``).
 
-The truth of what the filters are given a prior for is drawn per seed from that prior (the
-NEES test presumes it: Bar-Shalom et al. sec. 5.4.2, x(0) ~ N(x_hat(0), P(0))): the true wheel
-radius and track width from the nominal geometry and the std the simulator states
-(``robot.*_std``), and the initial pose from the true one and ``ekf_baseline.GIVEN_POSE_STD``
-(the estimators start at the drawn pose). With one fixed truth for all seeds, eps_bar(k)
-averages one draw of the scale error (seed 002's is 0.75 / 1.1 sigma), and a filter started at
-the exact pose with P0 > 0 looks conservative wherever that prior is not forgotten (SLAM's
-global frame, a heading only GPS course observes). ``fixed_truth`` restores that.
-
-Errors are taken against the EXACT truth at each estimate's stamp (``SimResult.truth.at``), not
-against the nearest 10-20 Hz ground-truth sample, whose stamp may be 50 ms away.
-
-NEES convention (Bar-Shalom, Li, Kirubarajan, "Estimation with Applications to Tracking and
-Navigation", 2001, sec. 5.4.2). The estimators are scored on the pose (x m, y m, yaw rad),
-d = 3, with the 3 x 3 pose covariance they report (for ekf_igvc, whose state also carries
-lat/lon/theta, and ekf_slam, whose state carries the landmarks, this is the marginal of x, y, psi;
-no estimator here compares a different state), in the coordinates of the error the estimator's
-Gaussian describes (its ``pose_error``, ``metrics.nees_series``): the world-frame difference,
-or for the unicycle EKF, whose pose error is in SE(2) exponential coordinates, the
-body-frame xi = Log(X_hat^-1 X_true) with its own covariance (navlie's
-``state.minus(truth)``). At output tick k (10 Hz from the start of the
-simulated run) the NEES of run i is eps_i(k) = e^T P^-1 e, and the average over the N runs is
-eps_bar(k) = (1/N) sum_i eps_i(k). For a consistent filter N eps_bar(k) ~ chi2(N d), so the
-two-sided 95 % acceptance interval of eps_bar(k) is
-    [chi2.ppf(0.025, N d) / N, chi2.ppf(0.975, N d) / N]
-(``nees_band``). The single figure reported, ANEES, is eps_bar(k) averaged over the ticks that
-every run has, and it is judged against that same per-tick band (the band is not narrowed for
-the time average: successive ticks of one run are strongly correlated, so K ticks are not K
-independent samples). The fraction of ticks with eps_bar(k) inside the band is reported too:
-about 95 % for a consistent filter.
+Each seed's truth of what the filters have a prior for (wheel radius, track width, initial
+pose) is drawn from that prior, as the NEES test presumes (``draw_truth``; ``fixed_truth``: one
+truth for all seeds); errors are taken against the exact simulated truth at each estimate's
+stamp. The NEES is of the pose (x m, y m, yaw rad; d = 3) in each estimator's own error
+coordinates (``metrics.nees_series``); ANEES is the N-run average NEES eps_bar(k) over the
+10 Hz ticks every run has, judged against the per-tick two-sided band
+chi2.ppf([0.025, 0.975], N d) / N (``nees_band``; Bar-Shalom et al. 2001, sec. 5.4.2). The
+drawn truth, the convention and why the band is not narrowed for the time average:
+docs/design/monte-carlo-nees.md.
 
 Library use (a notebook)::
 
@@ -272,7 +251,7 @@ def _calibration_summary(per_run: list[dict[str, CalibrationError]]
 
 
 def aggregate(per_seed: list[SeedRun], prob: float = 0.95) -> dict[str, EstimatorSummary]:
-    """Across-seed statistics per estimator (module docstring for the NEES convention):
+    """Across-seed statistics per estimator (the NEES convention: docs/design/monte-carlo-nees.md):
     runs, rmse_mean/max (m), dr_rmse_mean (m), ratio (DR RMSE / RMSE, of the means) and
     ratio_min (the worst seed), anees, band, anees_in_band, frac_ticks_in_band, runtime_mean (s),
     the per-seed RMSE and mean NEES, and the errors raised."""

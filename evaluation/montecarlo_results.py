@@ -5,7 +5,7 @@
 position RMSE m against the exact truth, mean pose NEES, runtime s, the calibration states'
 final errors) and per estimator the across-seed ``EstimatorSummary`` (average NEES and its
 chi-square band, RMSE against dead reckoning's, the calibration summary). The NEES convention
-is in ``montecarlo``'s module docstring.
+is in docs/design/monte-carlo-nees.md.
 
 ``to_json()`` gives the dictionaries the JSON file holds, keys in the order users already
 read; ``from_json(d)`` reads one back (an absent key: None). A key a record leaves out where

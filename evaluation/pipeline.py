@@ -17,7 +17,8 @@ other value does not.
 Every track is scored in the run's local frame without alignment, on the same withheld fixes
 (those inside every track's span, gross GPS errors left out: ``_gross_outliers``) and ranked on
 the common span (``_common_ate``); a fix is compared with the track's GPS antenna as the
-estimators model it (``gps_antenna``).
+estimators model it (``gps_antenna``). The hold-out rules and the measurements behind them:
+docs/design/gps-holdout-scoring.md.
 """
 
 from __future__ import annotations
@@ -51,6 +52,7 @@ from ddfuse.evaluation.scores import (
     EstimatorScores,
     FinalState,
     GpsAntenna,
+    HeadingOffset,
     RpeScore,
     RunSummary,
     SensorFacts,
@@ -66,9 +68,8 @@ RPE_DELTAS = (("1s", 1.0, "s"), ("10m", 10.0, "m"))
 EVENTS_KEPT = 20  # an estimator's first events kept in metrics.json (events_total: all)
 
 
-# fix intervals: GPS residuals correlated for longer than this many are not white (white fixes
-# measure 0 s on the simulated husky, gps-outage and sample bags; rl_husky_gps.bag 3.6-7.7 s,
-# 9-19 intervals; the simulated husky-multipath, tau 30 s, 15-16 s)
+# fix intervals: GPS residuals correlated for longer than this many are not white (the
+# measured correlation times: docs/design/gps-holdout-scoring.md)
 GPS_CORRELATED_INTERVALS = 5
 
 
@@ -278,9 +279,8 @@ def _gross_outliers(result: RunResult, t: np.ndarray, xy: np.ndarray, cov: np.nd
     and so does the same gate against the used fixes on either side, interpolated in time,
     where no outage lies between them (``_beside_fixes``). The second test is what makes it
     the GPS's error and not the tracks': in a window outage every track may have drifted
-    beyond its own sigma, and those fixes are exactly what the score is for (rl_husky_gps.bag
-    window:150:210: the tracks' gate alone dropped 77 of 150, the outage scores 4.1-4.6 m ->
-    2.2-4.1 m).
+    beyond its own sigma, and those fixes are exactly what the score is for
+    (docs/design/gps-holdout-scoring.md).
     ``used``: the fixes are the used ones themselves (all of them, in order), each tested
     against its neighbours. None with the gate off."""
     gate = antenna.gate
@@ -363,8 +363,8 @@ def score(result: RunResult, decode_s: float = 0.0,
     if common_fixes:
         hold_t, hold_xy, hold_cov = hold_t[covered], hold_xy[covered], hold_cov[covered]
         # A gross GPS error (20-60 m multipath) no estimator comes near dominates every track's
-        # RMSE alike (one 26 m fix: every track 3.42 m, within 0.1 % while their ATEs differ by
-        # 35 %). Left out for every track, counted and said: fixes that every track's GPS gate
+        # RMSE alike (docs/design/gps-holdout-scoring.md). Left out for every track, counted
+        # and said: fixes that every track's GPS gate
         # (the sensor's chi-square probability, on the fix's and the track's own covariance)
         # and the used fixes beside them would reject (``_gross_outliers``).
         out_mask = _gross_outliers(result, hold_t, hold_xy, hold_cov, antenna)
@@ -375,8 +375,7 @@ def score(result: RunResult, decode_s: float = 0.0,
     used_t = result.gps.used_t
     used_xy = result.gps.xy[~result.gps.withheld]
     # the reference interpolates the used fixes: a gross error among them (one 30 m fix puts
-    # 15 m on the withheld fixes beside it; gps-outage seed 7, every:5: 5.39 m against 1.76 m
-    # without the 10 of 674) is left out of it by the same two tests, and counted
+    # 15 m on the withheld fixes beside it) is left out of it by the same two tests, and counted
     ref_out = (_gross_outliers(result, used_t, used_xy, result.gps.cov[~result.gps.withheld],
                                antenna, used=True) if n_held else np.zeros(len(used_t), bool))
     outages = metrics.gps_outages(used_t, stream.t1) if len(used_t) else []
@@ -539,7 +538,7 @@ def data_facts(result: RunResult, cfg: Config,
         path_length_m=num(length) if length is not None else None,
         path_length_from=source, t0=stream.t0, t1=stream.t1,
         datum=list(stream.datum) if stream.datum else None,
-        heading_offsets=[sv.to_dict() for sv in surveys])
+        heading_offsets=[HeadingOffset.from_json(sv.to_dict()) for sv in surveys])
 
 
 def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str] | None = None,

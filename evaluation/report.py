@@ -457,19 +457,18 @@ def _gps_fixes(m: RunSummary) -> str:
 
 
 def _heading_offsets(d: DataFacts) -> str:
-    """Each compass's offset as the GPS course measures it (``estimation.heading_survey``:
-    ``OffsetSurvey.to_dict()``)."""
+    """Each compass's offset as the GPS course measures it (``estimation.heading_survey``)."""
     rows = d.heading_offsets
     if not rows:
         return "not measured: no compass, GPS and odometry speed together"
     out = []
     for r in rows:
-        med = r["median_rad"]
+        med = r.median_rad
         # the windows about the median, so that a range across +-180 deg reads as one
-        dev = [(w["offset_rad"] - med + math.pi) % (2 * math.pi) - math.pi for w in r["windows"]]
-        out.append(f"{html.escape(r['sensor'])}: yaw minus GPS course "
+        dev = [(w.offset_rad - med + math.pi) % (2 * math.pi) - math.pi for w in r.windows]
+        out.append(f"{html.escape(r.sensor)}: yaw minus GPS course "
                    f"{signed(math.degrees(med), '+.1f')}"
-                   f" deg (median of {len(dev)} windows of {r['window_s']:.0f} s), windows "
+                   f" deg (median of {len(dev)} windows of {r.window_s:.0f} s), windows "
                    f"{signed(math.degrees(med + min(dev)), '+.1f')} to "
                    f"{signed(math.degrees(med + max(dev)), '+.1f')}"
                    " deg")

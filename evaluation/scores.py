@@ -4,8 +4,8 @@
 the data facts, warnings, wall times) and one ``EstimatorScores`` per track (ATE, RPE, NEES,
 GPS hold-out, outage drift, NIS per sensor, calibration states). Each record's ``to_json()``
 gives the dictionary metrics.json holds, with the keys and the order users already read
-(docs/design/metrics-json.md says what each key means), and
-``from_json(d)`` reads one back: ``from_json(to_json(x)) == x``, and
+(docs/design/metrics-json.md says what each key means), and ``from_json(d)`` reads one
+back: ``from_json(to_json(x)) == x``, and
 ``to_json(from_json(json.load(f)))`` is the file's content. ``from_json`` takes a partial
 dictionary too (an older metrics.json, a hand-built one in a test): an absent key is None.
 
@@ -41,24 +41,16 @@ def num(v) -> float | None:
     return None if v is None or not math.isfinite(v) else round(float(v), 6)
 
 
-def rounded(v):
-    """``v`` with every float in it ``num``-rounded (dicts, lists and tuples walked; a tuple
-    stays a tuple)."""
-    if isinstance(v, dict):
-        return {k: rounded(x) for k, x in v.items()}
-    if isinstance(v, tuple):
-        return tuple(rounded(x) for x in v)
-    if isinstance(v, list):
-        return [rounded(x) for x in v]
-    if isinstance(v, float):
-        return num(v)
-    return v
+def _rounded(v):
+    if isinstance(v, tuple):  # a chi-square band
+        return tuple(_rounded(x) for x in v)
+    return num(v) if isinstance(v, float) else v
 
 
 def rounded_record(r):
     """A copy of the flat dataclass ``r`` (Stats, Consistency, OutageDrift ...) with its floats
-    rounded (``rounded``)."""
-    return type(r)(**{f.name: rounded(getattr(r, f.name)) for f in fields(r)})
+    (and those in tuple fields) ``num``-rounded, as metrics.json holds them."""
+    return type(r)(**{f.name: _rounded(getattr(r, f.name)) for f in fields(r)})
 
 
 def stats_of(s: Stats, k: float = 1.0) -> Stats | None:
@@ -80,10 +72,6 @@ def to_json(v):
 def _opt(read: Callable) -> Callable:
     """``read`` for a value that may be null."""
     return lambda v: None if v is None else read(v)
-
-
-def _tuple(v) -> tuple:
-    return tuple(v)
 
 
 def read_each(read: Callable) -> Callable:
@@ -221,7 +209,7 @@ class EstimatorScores(Record):
     ate_common_rmse_m: float | None = None
     span_s: tuple[float | None, float | None] | None = None
     READ: ClassVar = {
-        "final_xy": _tuple, "gps_holdout_span_s": _tuple, "span_s": _tuple,
+        "final_xy": tuple, "gps_holdout_span_s": tuple, "span_s": tuple,
         "update_ms": UpdateLatency.from_json, "ate": AteScores.from_json,
         "rpe": read_values(RpeScore.from_json), "nees": Consistency.from_json,
         "gps_holdout_m": Stats.from_json, "gps_outages": read_each(OutageDrift.from_json),
@@ -239,7 +227,7 @@ class GpsAntenna(Record):
     delay_s: float = 0.0
     gate: float | None = None
     note: str | None = None
-    READ: ClassVar = {"lever_arm": _tuple}
+    READ: ClassVar = {"lever_arm": tuple}
 
 
 @dataclass(frozen=True)
@@ -249,7 +237,7 @@ class CommonSpan(Record):
     stamps: int | None = None
     of: str | None = None
     span_s: tuple[float | None, float | None] | None = None
-    READ: ClassVar = {"span_s": _tuple}
+    READ: ClassVar = {"span_s": tuple}
 
 
 @dataclass(frozen=True)
@@ -264,9 +252,36 @@ class SensorFacts(Record):
 
 
 @dataclass(frozen=True)
+class OffsetWindow(Record):
+    """One window of a compass's heading-offset survey: [t0, t1] s, the offset (yaw minus GPS
+    course) and its sigma, rad, the fixes, their extent m and fit residual m."""
+
+    t0: float | None = None
+    t1: float | None = None
+    offset_rad: float | None = None
+    sigma_rad: float | None = None
+    fixes: int | None = None
+    extent_m: float | None = None
+    residual_m: float | None = None
+
+
+@dataclass(frozen=True)
+class HeadingOffset(Record):
+    """A compass's heading offset measured from the GPS course without any estimator
+    (``estimation.heading_survey.OffsetSurvey.to_dict()``): median and spread, rad, over
+    windows of ``window_s`` s."""
+
+    sensor: str | None = None
+    median_rad: float | None = None
+    spread_rad: float | None = None
+    window_s: float | None = None
+    windows: list[OffsetWindow] = field(default_factory=list)
+    READ: ClassVar = {"windows": read_each(OffsetWindow.from_json)}
+
+
+@dataclass(frozen=True)
 class DataFacts(Record):
-    """What the report states about the data (``pipeline.data_facts``); ``heading_offsets``:
-    each compass's ``heading_survey.OffsetSurvey.to_dict()``."""
+    """What the report states about the data (``pipeline.data_facts``)."""
 
     sensors: list[SensorFacts] | None = None
     ground_truth_topic: str | None = None
@@ -281,8 +296,9 @@ class DataFacts(Record):
     t0: float | None = None
     t1: float | None = None
     datum: list[float] | None = None
-    heading_offsets: list[dict] | None = None
-    READ: ClassVar = {"sensors": read_each(SensorFacts.from_json)}
+    heading_offsets: list[HeadingOffset] | None = None
+    READ: ClassVar = {"sensors": read_each(SensorFacts.from_json),
+                      "heading_offsets": read_each(HeadingOffset.from_json)}
 
 
 @dataclass(frozen=True)
