@@ -2,9 +2,9 @@
 
 One bag is decoded once; the smoother runs over it once per lag (and the EKF once, as the
 reference the smoother should approach as the lag goes to zero), each scored by
-:func:`evaluation.pipeline.score`: position RMSE against truth when the bag has it, else against
-the GPS fixes withheld by ``--gps-holdout``; the 3-dof NEES when there is truth; update latency
-percentiles and the real-time factor.
+:func:`ddfuse.evaluation.pipeline.score`: position RMSE against truth when the bag has it, else
+against the GPS fixes withheld by ``--gps-holdout``; the 3-dof NEES when there is truth; update
+latency percentiles and the real-time factor.
 
 Usage: ``ddfuse lag-sweep [BAG] [-c CONFIG] [--lags 0.5,2,10,30] [--gps-holdout SPEC]
 [--json FILE]``
