@@ -8,7 +8,7 @@ leaves matplotlib's backend alone)::
     cfg = ddfuse.load_config("data/sample_husky.yaml")     # a Config
     stream = ddfuse.read_bag("data/sample_husky.bag", cfg)  # time-ordered measurements, SI units
     result = ddfuse.run(stream, ddfuse.build_estimators(cfg, stream, ["ekf", "smoother"]))
-    ddfuse.score(result)["estimators"]["ekf"]["ate_rmse_m"]  # metrics.json's numbers, m
+    ddfuse.score(result).estimators["ekf"].ate_rmse_m  # m; .to_json(): metrics.json's dict
     fig = ddfuse.plots.trajectories(ddfuse.SavedRun.from_result(result, cfg=cfg))
 
 ``ddfuse.run_bag(bag, cfg, outdir)`` does all of ``ddfuse run``: decode, run, score, write.

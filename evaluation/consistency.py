@@ -32,7 +32,7 @@ outside.
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
 from ddfuse.estimation import chi2
@@ -87,6 +87,19 @@ class Consistency:
 
     def as_dict(self) -> dict:
         return asdict(self)
+
+    def to_json(self) -> dict:
+        """``as_dict`` with the band as a list, as metrics.json holds it."""
+        d = asdict(self)
+        d["band"] = None if self.band is None else list(self.band)
+        return d
+
+    @classmethod
+    def from_json(cls, d: dict) -> Consistency:
+        """From ``to_json``'s dictionary (an absent key: None)."""
+        kw = {f.name: d.get(f.name) for f in fields(cls)}
+        kw["band"] = None if kw["band"] is None else tuple(kw["band"])
+        return cls(**kw)
 
 
 def summarize(values: np.ndarray, dofs: np.ndarray | int,
@@ -176,6 +189,16 @@ class SensorNis:
     def as_dict(self) -> dict:
         return {"sensor": self.sensor, "kind": self.kind, "accepted": self.accepted,
                 "rejected": self.rejected, **self.nis.as_dict()}
+
+    def to_json(self) -> dict:
+        """metrics.json's ``nis`` entry: the counts and the consistency in one dictionary."""
+        return {"sensor": self.sensor, "kind": self.kind, "accepted": self.accepted,
+                "rejected": self.rejected, **self.nis.to_json()}
+
+    @classmethod
+    def from_json(cls, d: dict) -> SensorNis:
+        return cls(d.get("sensor"), d.get("kind"), d.get("accepted"), d.get("rejected"),
+                   Consistency.from_json(d))
 
 
 def _summarize_counts(per_dim: dict[int, list]) -> Consistency:

@@ -59,13 +59,12 @@ def lag_sweep(bag: str | Path, config: str | Path, lags=DEFAULT_LAGS, holdout: s
     def add(ests: dict, lag: float | None, tracks) -> None:
         m = score(run(stream, ests, holdout=holdout), cfg=cfg)  # run's antenna model
         for track in tracks:
-            e = m["estimators"][track]
+            e = m.estimators[track]
             rows.append({"estimator": track, "lag_s": lag,
-                         "rmse_m": e["ate_rmse_m"] if against == "truth"
-                         else e["gps_holdout_rmse_m"],
+                         "rmse_m": e.ate_rmse_m if against == "truth" else e.gps_holdout_rmse_m,
                          "score": against,
-                         "nees_mean": e["nees_mean"], "rtf": e["rtf"],
-                         "update_ms": e["update_ms"]})
+                         "nees_mean": e.nees_mean, "rtf": e.rtf,
+                         "update_ms": e.update_ms.to_json() if e.update_ms else None})
 
     if reference:
         ref = registry.SPECS[reference]

@@ -25,7 +25,7 @@ Statistics (``Stats``) are evo's: RMSE, mean, median, std (population), min, max
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 
 import numpy as np
 from ddfuse.estimation.runner import Trajectory
@@ -106,6 +106,13 @@ class Stats:
 
     def as_dict(self) -> dict:
         return asdict(self)
+
+    to_json = as_dict
+
+    @classmethod
+    def from_json(cls, d: dict) -> Stats:
+        """From ``to_json``'s dictionary (an absent key: None)."""
+        return cls(*(d.get(f.name) for f in fields(cls)))
 
 
 @dataclass
@@ -350,6 +357,7 @@ def antenna_xy(est: Trajectory, t: np.ndarray, lever_arm=(0.0, 0.0), delay: floa
     if lx or ly:
         yaw = np.interp(ts, est.t, np.unwrap(est.pose[:, 2]))
         c, s = np.cos(yaw), np.sin(yaw)
+        # lever arm: see factors/gps.py
         xy = xy + np.column_stack([c * lx - s * ly, s * lx + c * ly])
     return xy, inside
 
@@ -551,6 +559,13 @@ class Outage:
     t0: float
     t1: float
 
+    def to_json(self) -> dict:
+        return {"t0": self.t0, "t1": self.t1}
+
+    @classmethod
+    def from_json(cls, d: dict) -> Outage:
+        return cls(d.get("t0"), d.get("t1"))
+
 
 def gps_outages(t_used: np.ndarray, t_end: float, min_gap: float | None = None
                 ) -> list[Outage]:
@@ -646,17 +661,28 @@ class OutageDrift:
 
     t0: float
     t1: float
-    distance_m: float
-    error_start_m: float
-    error_end_m: float
-    error_max_m: float
-    drift_per_m: float | None
-    samples: int
-    reference: str
+    distance_m: float | None = None
+    error_start_m: float | None = None
+    error_end_m: float | None = None
+    error_max_m: float | None = None
+    drift_per_m: float | None = None
+    samples: int | None = None
+    reference: str | None = None  # None: an outage the track could not be scored over
     block_s: float | None = None
     fixes_start: int | None = None
     fixes_end: int | None = None
     error_noise_m: float | None = None
+
+    def to_json(self) -> dict:
+        """metrics.json's entry: every field, or {t0, t1, drift_per_m: None} unscored."""
+        if self.reference is None:
+            return {"t0": self.t0, "t1": self.t1, "drift_per_m": None}
+        return asdict(self)
+
+    @classmethod
+    def from_json(cls, d: dict) -> OutageDrift:
+        """From ``to_json``'s dictionary (an absent key: None)."""
+        return cls(**{f.name: d.get(f.name) for f in fields(cls)})
 
 
 def outage_drift(est: Trajectory, outage: Outage, ref_t: np.ndarray, ref_xy: np.ndarray,

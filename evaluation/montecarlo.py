@@ -8,42 +8,23 @@ stream's wheel odometry integrated alone). Per seed and estimator it records the
 the dead-reckoning RMSE, the pose NEES and the runtime; across seeds it forms Bar-Shalom's
 average NEES and its chi-square band. Seeds run in local processes (``jobs``).
 
-The truth of what the filters are given a prior for is drawn per seed from that prior (the
-NEES test presumes it: Bar-Shalom et al. sec. 5.4.2, x(0) ~ N(x_hat(0), P(0))): the true wheel
-radius and track width from the nominal geometry and the std the simulator states
-(``robot.*_std``), and the initial pose from the true one and ``ekf_baseline.GIVEN_POSE_STD``
-(the estimators start at the drawn pose). With one fixed truth for all seeds, eps_bar(k)
-averages one draw of the scale error (seed 002's is 0.75 / 1.1 sigma), and a filter started at
-the exact pose with P0 > 0 looks conservative wherever that prior is not forgotten (SLAM's
-global frame, a heading only GPS course observes). ``fixed_truth`` restores that.
-
-Errors are taken against the EXACT truth at each estimate's stamp (``SimResult.truth.at``), not
-against the nearest 10-20 Hz ground-truth sample, whose stamp may be 50 ms away.
-
-NEES convention (Bar-Shalom, Li, Kirubarajan, "Estimation with Applications to Tracking and
-Navigation", 2001, sec. 5.4.2). The estimators are scored on the pose (x m, y m, yaw rad),
-d = 3, with the 3 x 3 pose covariance they report (for ekf_igvc, whose state also carries
-lat/lon/theta, and ekf_slam, whose state carries the landmarks, this is the marginal of x, y, psi;
-no estimator here compares a different state), in the coordinates of the error the estimator's
-Gaussian describes (its ``pose_error``, ``metrics.nees_series``): the world-frame difference,
-or for the unicycle EKF, whose pose error is in SE(2) exponential coordinates, the
-body-frame xi = Log(X_hat^-1 X_true) with its own covariance (navlie's
-``state.minus(truth)``). At output tick k (10 Hz from the start of the
-simulated run) the NEES of run i is eps_i(k) = e^T P^-1 e, and the average over the N runs is
-eps_bar(k) = (1/N) sum_i eps_i(k). For a consistent filter N eps_bar(k) ~ chi2(N d), so the
-two-sided 95 % acceptance interval of eps_bar(k) is
-    [chi2.ppf(0.025, N d) / N, chi2.ppf(0.975, N d) / N]
-(``nees_band``). The single figure reported, ANEES, is eps_bar(k) averaged over the ticks that
-every run has, and it is judged against that same per-tick band (the band is not narrowed for
-the time average: successive ticks of one run are strongly correlated, so K ticks are not K
-independent samples). The fraction of ticks with eps_bar(k) inside the band is reported too:
-about 95 % for a consistent filter.
+Each seed's truth of what the filters have a prior for (wheel radius, track width, initial
+pose) is drawn from that prior, as the NEES test presumes (``draw_truth``; ``fixed_truth``: one
+truth for all seeds); errors are taken against the exact simulated truth at each estimate's
+stamp. The NEES is of the pose (x m, y m, yaw rad; d = 3) in each estimator's own error
+coordinates (``metrics.nees_series``); ANEES is the N-run average NEES eps_bar(k) over the
+10 Hz ticks every run has, judged against the per-tick two-sided band
+chi2.ppf([0.025, 0.975], N d) / N (``nees_band``; Bar-Shalom et al. 2001, sec. 5.4.2). The
+drawn truth, the convention and why the band is not narrowed for the time average:
+docs/design/monte-carlo-nees.md.
 
 Library use (a notebook)::
 
     from ddfuse.evaluation.montecarlo import monte_carlo, to_markdown
     mc = monte_carlo("husky", seeds=range(20), estimators=["ekf", "ekf_igvc"], jobs=2)
     print(to_markdown(mc))
+    mc.summary["ekf"].anees                 # typed: evaluation.montecarlo_results
+    mc.to_json()                            # what mc_husky.json holds
 """
 
 from __future__ import annotations
@@ -55,10 +36,19 @@ import tempfile
 import time
 from collections.abc import Iterable
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 from ddfuse.estimation import chi2
+from ddfuse.evaluation.montecarlo_results import (
+    CalibrationError,
+    CalibrationSummary,
+    EstimatorSummary,
+    MonteCarloRun,
+    SeedRun,
+    SeedScores,
+)
 
 __all__ = ["nees_band", "run_seed", "aggregate", "monte_carlo", "to_markdown", "write_report"]
 
@@ -134,7 +124,7 @@ def calibration_truth(sim) -> dict[str, object]:
     return truth
 
 
-def _calibration_errors(sim, final) -> dict:
+def _calibration_errors(sim, final) -> dict[str, CalibrationError]:
     """Per calibration state an estimator ends the run with (``pipeline.calibration_entries``
     of its final state): the error against the simulation's truth and that error over the
     estimator's sigma."""
@@ -150,7 +140,7 @@ def _calibration_errors(sim, final) -> dict:
         if callable(true):
             true = true(final.t - sim.t0)
         err = wrap_angle(value - true) if label == "hoff" else value - true
-        out[label] = {"error": err, "z": err / sigma if sigma else None}
+        out[label] = CalibrationError(err, err / sigma if sigma else None)
     return out
 
 
@@ -183,7 +173,7 @@ def seed_data(scenario: str, seed: int, duration: float | None = None,
 
 def run_seed(scenario: str, seed: int, estimators: list[str] | None = None,
              duration: float | None = None, fixed_truth: bool = False,
-             lag: float | None = None) -> dict:
+             lag: float | None = None) -> SeedRun:
     """Simulate ``scenario`` with ``seed``, write and read it back as a bag in a temporary
     directory, run ``estimators`` (default: every EKF its config allows) and dead reckoning.
 
@@ -191,10 +181,9 @@ def run_seed(scenario: str, seed: int, estimators: list[str] | None = None,
     (``draw_truth``); with it, every seed has the scenario's true geometry and every estimator
     starts at the exact true pose.
 
-    Returns {'seed', 'scenario', 'duration_s', 'estimators': {name: {'rmse_m', 'nees_mean',
-    'runtime_s', 'error', 'ticks', 'nees', 'calibration'}}, 'dr_rmse_m'}; 'ticks' and 'nees' are
-    the per-sample output tick indices and NEES (lists, for the across-run average);
-    'calibration' the final calibration states' errors (``_calibration_errors``)."""
+    Returns the seed's ``SeedRun``: per estimator the RMSE, mean NEES, runtime, error, the
+    per-sample output tick indices and NEES (for the across-run average) and the final
+    calibration states' errors (``_calibration_errors``)."""
     from ddfuse.estimation.runner import run
     from ddfuse.evaluation import estimators as registry
 
@@ -206,38 +195,33 @@ def run_seed(scenario: str, seed: int, estimators: list[str] | None = None,
     built = registry.build(cfg, stream, chosen, lag=lag, pose=pose)
     result = run(stream, built, output_rate=OUTPUT_RATE)
     g = sim.scenario.true_geometry
-    out: dict = {"seed": seed, "scenario": scenario, "duration_s": sim.duration,
-                 "true_geometry": [g.wheel_radius, g.track_width], "initial_error": list(err0),
-                 "estimators": {}}
+    scores = {}
     for name, r in result.runs.items():
         tr = r.trajectory
         if len(tr) == 0:
-            out["estimators"][name] = {"rmse_m": math.nan, "nees_mean": math.nan,
-                                       "runtime_s": r.runtime_s, "error": r.error or "no output",
-                                       "ticks": [], "nees": []}
+            scores[name] = SeedScores(rmse_m=math.nan, nees_mean=math.nan, runtime_s=r.runtime_s,
+                                      error=r.error or "no output", ticks=[], nees=[])
             continue
         pose_error = getattr(built.get(name), "pose_error", "world")
         pos, ticks, nees = _truth_errors(sim, tr, pose_error)
-        out["estimators"][name] = {
-            "pose_error": pose_error,
-            "rmse_m": float(np.sqrt(np.mean(pos * pos))),
-            "nees_mean": float(nees.mean()) if len(nees) else math.nan,
-            "runtime_s": r.runtime_s,
-            "error": r.error,
-            "ticks": ticks.tolist(),
-            "nees": nees.tolist(),
-            "calibration": _calibration_errors(sim, r.final_state),
-        }
-    out["dr_rmse_m"] = out["estimators"]["dr"]["rmse_m"]
-    return out
+        scores[name] = SeedScores(
+            pose_error=pose_error,
+            rmse_m=float(np.sqrt(np.mean(pos * pos))),
+            nees_mean=float(nees.mean()) if len(nees) else math.nan,
+            runtime_s=r.runtime_s,
+            error=r.error,
+            ticks=ticks.tolist(),
+            nees=nees.tolist(),
+            calibration=_calibration_errors(sim, r.final_state))
+    return SeedRun(seed, scenario, sim.duration, [g.wheel_radius, g.track_width], list(err0),
+                   scores, scores["dr"].rmse_m)
 
 
-def _seed_job(args) -> dict:
+def _seed_job(args) -> SeedRun:
     scenario, seed, estimators, duration, fixed_truth, lag = args
     t0 = time.perf_counter()
     res = run_seed(scenario, seed, estimators, duration, fixed_truth, lag)
-    res["wall_s"] = time.perf_counter() - t0
-    return res
+    return replace(res, wall_s=time.perf_counter() - t0)
 
 
 def _bin_means(series: dict[int, float], width: int) -> dict[int, float]:
@@ -248,51 +232,51 @@ def _bin_means(series: dict[int, float], width: int) -> dict[int, float]:
     return {b: float(np.mean(v)) for b, v in bins.items()}
 
 
-def _calibration_summary(per_run: list[dict]) -> dict:
+def _calibration_summary(per_run: list[dict[str, CalibrationError]]
+                         ) -> dict[str, CalibrationSummary]:
     """Per calibration state over the runs that have it (``aggregate`` passes those that did not
     fail): n, the mean and RMS of the final error, and the RMS of error / sigma (about 1 for a
     consistent estimator)."""
     labels = list(dict.fromkeys(label for c in per_run for label in c))
     out = {}
     for label in labels:
-        err = np.array([c[label]["error"] for c in per_run if label in c])
-        z = np.array([c[label]["z"] for c in per_run if label in c and c[label]["z"] is not None])
-        out[label] = {"n": len(err), "error_mean": float(err.mean()),
-                      "error_rms": float(np.sqrt(np.mean(err**2))),
-                      "z_rms": float(np.sqrt(np.mean(z**2))) if len(z) else None}
+        err = np.array([c[label].error for c in per_run if label in c])
+        z = np.array([c[label].z for c in per_run if label in c and c[label].z is not None])
+        out[label] = CalibrationSummary(len(err), float(err.mean()),
+                                        float(np.sqrt(np.mean(err**2))),
+                                        float(np.sqrt(np.mean(z**2))) if len(z) else None)
     return out
 
 
-def aggregate(per_seed: list[dict], prob: float = 0.95) -> dict:
-    """Across-seed statistics per estimator (module docstring for the NEES convention):
+def aggregate(per_seed: list[SeedRun], prob: float = 0.95) -> dict[str, EstimatorSummary]:
+    """Across-seed statistics per estimator (the NEES convention: docs/design/monte-carlo-nees.md):
     runs, rmse_mean/max (m), dr_rmse_mean (m), ratio (DR RMSE / RMSE, of the means) and
     ratio_min (the worst seed), anees, band, anees_in_band, frac_ticks_in_band, runtime_mean (s),
     the per-seed RMSE and mean NEES, and the errors raised."""
-    names = sorted({n for r in per_seed for n in r["estimators"]})
-    out: dict = {}
+    names = sorted({n for r in per_seed for n in r.estimators})
+    out: dict[str, EstimatorSummary] = {}
     for name in names:
-        rows = [(r, r["estimators"][name]) for r in per_seed if name in r["estimators"]]
-        rmse = np.array([e["rmse_m"] for _, e in rows])
-        dr = np.array([r["dr_rmse_m"] for r, _ in rows])
-        entry: dict = {
-            "runs": len(rows),
-            "seeds": [r["seed"] for r, _ in rows],
-            "rmse_m": rmse.tolist(),
-            "rmse_mean": float(np.mean(rmse)),
-            "rmse_max": float(np.max(rmse)),
-            "dr_rmse_mean": float(np.mean(dr)),
-            "ratio": float(np.mean(dr) / np.mean(rmse)),
-            "ratio_min": float(np.min(dr / rmse)),
-            "runtime_mean": float(np.mean([e["runtime_s"] for _, e in rows])),
-            "nees_mean_per_seed": [e["nees_mean"] for _, e in rows],
-            "errors": [e["error"] for _, e in rows if e["error"]],
-            "dim": POSE_DIM,
+        rows = [(r, r.estimators[name]) for r in per_seed if name in r.estimators]
+        rmse = np.array([e.rmse_m for _, e in rows])
+        dr = np.array([r.dr_rmse_m for r, _ in rows])
+        entry = EstimatorSummary(
+            runs=len(rows),
+            seeds=[r.seed for r, _ in rows],
+            rmse_m=rmse.tolist(),
+            rmse_mean=float(np.mean(rmse)),
+            rmse_max=float(np.max(rmse)),
+            dr_rmse_mean=float(np.mean(dr)),
+            ratio=float(np.mean(dr) / np.mean(rmse)),
+            ratio_min=float(np.min(dr / rmse)),
+            runtime_mean=float(np.mean([e.runtime_s for _, e in rows])),
+            nees_mean_per_seed=[e.nees_mean for _, e in rows],
+            errors=[e.error for _, e in rows if e.error],
+            dim=POSE_DIM,
             # a run that broke down ends with meaningless states (k_w -9e20): left out
-            "calibration": _calibration_summary([e.get("calibration") or {} for _, e in rows
-                                                 if not e["error"]]),
-        }
+            calibration=_calibration_summary([e.calibration or {} for _, e in rows
+                                              if not e.error]))
         # N-run average NEES per tick, over the ticks every run has
-        series = [dict(zip(e["ticks"], e["nees"], strict=True)) for _, e in rows]
+        series = [dict(zip(e.ticks, e.nees, strict=True)) for _, e in rows]
         common = sorted(set.intersection(*(set(s) for s in series))) if series else []
         shortest = min((len(x) for x in series), default=0)
         if series and len(common) < 0.5 * shortest:
@@ -306,12 +290,12 @@ def aggregate(per_seed: list[dict], prob: float = 0.95) -> dict:
             eps_bar = np.array([np.mean([s[k] for s in series]) for k in common])
             lo, hi = nees_band(len(rows), POSE_DIM, prob)
             anees = float(eps_bar.mean())
-            entry.update(anees=anees, band=[lo, hi], anees_in_band=bool(lo <= anees <= hi),
-                         frac_ticks_in_band=float(np.mean((eps_bar >= lo) & (eps_bar <= hi))),
-                         ticks=len(common))
+            entry = replace(
+                entry, anees=anees, band=[lo, hi], anees_in_band=bool(lo <= anees <= hi),
+                frac_ticks_in_band=float(np.mean((eps_bar >= lo) & (eps_bar <= hi))),
+                ticks=len(common))
         else:
-            entry.update(anees=None, band=None, anees_in_band=None, frac_ticks_in_band=None,
-                         ticks=0)
+            entry = replace(entry, ticks=0)
         out[name] = entry
     return out
 
@@ -319,11 +303,10 @@ def aggregate(per_seed: list[dict], prob: float = 0.95) -> dict:
 def monte_carlo(scenario: str, seeds: Iterable[int], estimators: list[str] | None = None, *,
                 duration: float | None = None, jobs: int | None = None,
                 prob: float = 0.95, fixed_truth: bool = False,
-                lag: float | None = None) -> dict:
+                lag: float | None = None) -> MonteCarloRun:
     """Run ``seeds`` of ``scenario`` (``jobs`` local processes, default os.cpu_count(); 1 runs
-    in this process) and aggregate. Returns {'scenario', 'seeds', 'duration_s',
-    'estimators_requested', 'per_seed': [run_seed results without the NEES series],
-    'summary': aggregate(...), 'nees_convention': text}."""
+    in this process) and aggregate: the settings, ``per_seed`` (``run_seed``'s results
+    without the NEES series), ``summary`` (``aggregate``) and the NEES convention in words."""
     seeds = [int(s) for s in seeds]
     if not seeds:
         raise ValueError("monte_carlo: no seeds")
@@ -339,63 +322,59 @@ def monte_carlo(scenario: str, seeds: Iterable[int], estimators: list[str] | Non
     else:
         with ProcessPoolExecutor(max_workers=min(jobs, len(args))) as pool:
             per_seed = list(pool.map(_seed_job, args))
-    summary = aggregate(per_seed, prob)
-    lean = [{**r, "estimators": {n: {k: v for k, v in e.items() if k not in ("ticks", "nees")}
-                                 for n, e in r["estimators"].items()}} for r in per_seed]
-    return {"scenario": scenario, "seeds": seeds, "duration_s": per_seed[0]["duration_s"],
-            "estimators_requested": estimators, "fixed_truth": fixed_truth, "lag_s": lag,
-            "per_seed": lean, "summary": summary,
-            "nees_convention": (
-                "pose (x, y, yaw), d = 3; ANEES = mean over 10 Hz ticks of the N-run average "
-                f"NEES; band = chi2.ppf([{(1 - prob) / 2:g}, {1 - (1 - prob) / 2:g}], N d) / N "
-                "(Bar-Shalom et al. 2001, sec. 5.4.2), the per-tick band")}
+    return MonteCarloRun(
+        scenario, seeds, per_seed[0].duration_s, estimators, fixed_truth, lag,
+        [r.lean() for r in per_seed], aggregate(per_seed, prob),
+        "pose (x, y, yaw), d = 3; ANEES = mean over 10 Hz ticks of the N-run average NEES; "
+        f"band = chi2.ppf([{(1 - prob) / 2:g}, {1 - (1 - prob) / 2:g}], N d) / N (Bar-Shalom "
+        "et al. 2001, sec. 5.4.2), the per-tick band")
 
 
 def _f(v, spec: str = ".3f") -> str:
     return "-" if v is None or (isinstance(v, float) and not math.isfinite(v)) else format(v, spec)
 
 
-def _run_settings(mc: dict) -> str:
+def _run_settings(mc: MonteCarloRun) -> str:
     """How the runs were made, beyond scenario, seeds and duration: where the truth came from
     (--fixed-truth) and the smoother's lag (--lag, s)."""
     from ddfuse.evaluation.simulate import SMOOTHER_LAG
 
-    if mc.get("fixed_truth"):
+    if mc.fixed_truth:
         truth = ("Truth fixed (--fixed-truth): every seed has the scenario's true geometry and "
                  "starts the estimators at the exact true pose.")
     else:
         truth = ("Truth drawn per seed from the priors the config states: the true wheel radius "
                  "and track width, and the initial pose error the estimators start with.")
-    lag = mc.get("lag_s")
+    lag = mc.lag_s
     lag_text = (f"Smoother lag {lag:g} s (--lag)." if lag is not None else
                 f"Smoother lag {SMOOTHER_LAG:g} s (the simulated config's).")
     return f"{truth} {lag_text}"
 
 
-def _error_lines(mc: dict) -> list[str]:
+def _error_lines(mc: MonteCarloRun) -> list[str]:
     """One list item per run that stopped with an error, with its seed (from ``per_seed`` when
-    the dict has it, else the summary's errors without seeds)."""
+    the run has it, else the summary's errors without seeds)."""
     found = []
-    for r in mc.get("per_seed") or []:
-        for name, e in sorted(r["estimators"].items()):
-            if e.get("error"):
-                found.append((name, f"seed {r['seed']}", e["error"]))
-    if not mc.get("per_seed"):
-        found = [(name, "a seed", err) for name in sorted(mc["summary"])
-                 for err in mc["summary"][name]["errors"]]
+    for r in mc.per_seed or []:
+        for name, e in sorted(r.estimators.items()):
+            if e.error:
+                found.append((name, f"seed {r.seed}", e.error))
+    if not mc.per_seed:
+        found = [(name, "a seed", err) for name in sorted(mc.summary)
+                 for err in mc.summary[name].errors]
     # one line each: an error text may carry newlines (a traceback's last lines)
     return [f"- {name}, {where}: {' '.join(str(err).split())}" for name, where, err in found]
 
 
-def to_markdown(mc: dict) -> str:
+def to_markdown(mc: MonteCarloRun) -> str:
     """The summary as a markdown table (one row per estimator, dead reckoning last), with the
     run settings above it, the runs that stopped with an error listed below it (their rows are
     marked *), and the calibration states' final errors."""
-    s = mc["summary"]
+    s = mc.summary
     lines = [
-        f"Scenario `{mc['scenario']}`, {len(mc['seeds'])} seeds "
-        f"({mc['seeds'][0]}..{mc['seeds'][-1]}), {mc['duration_s']:g} s each. "
-        f"{_run_settings(mc)} NEES: {mc['nees_convention']}.",
+        f"Scenario `{mc.scenario}`, {len(mc.seeds)} seeds "
+        f"({mc.seeds[0]}..{mc.seeds[-1]}), {mc.duration_s:g} s each. "
+        f"{_run_settings(mc)} NEES: {mc.nees_convention}.",
         "",
         "| estimator | runs | ANEES | 95% band | in band | ticks in band | RMSE mean m | "
         "RMSE max m | DR RMSE m | DR / RMSE | worst seed DR / RMSE | runtime s |",
@@ -403,16 +382,16 @@ def to_markdown(mc: dict) -> str:
     ]
     for name in sorted(s, key=lambda n: (n == "dr", n)):
         e = s[name]
-        band = f"[{e['band'][0]:.3f}, {e['band'][1]:.3f}]" if e["band"] else "-"
-        inb = "-" if e["anees_in_band"] is None else ("yes" if e["anees_in_band"] else "NO")
-        frac = "-" if e["frac_ticks_in_band"] is None else f"{100 * e['frac_ticks_in_band']:.0f}%"
-        ratio = "-" if name == "dr" else _f(e["ratio"], ".1f")
-        worst = "-" if name == "dr" else _f(e["ratio_min"], ".1f")
-        label = f"{name} *" if e["errors"] else name
+        band = f"[{e.band[0]:.3f}, {e.band[1]:.3f}]" if e.band else "-"
+        inb = "-" if e.anees_in_band is None else ("yes" if e.anees_in_band else "NO")
+        frac = "-" if e.frac_ticks_in_band is None else f"{100 * e.frac_ticks_in_band:.0f}%"
+        ratio = "-" if name == "dr" else _f(e.ratio, ".1f")
+        worst = "-" if name == "dr" else _f(e.ratio_min, ".1f")
+        label = f"{name} *" if e.errors else name
         lines.append(
-            f"| {label} | {e['runs']} | {_f(e['anees'])} | {band} | {inb} | {frac} | "
-            f"{_f(e['rmse_mean'])} | {_f(e['rmse_max'])} | {_f(e['dr_rmse_mean'])} | "
-            f"{ratio} | {worst} | {_f(e['runtime_mean'], '.2f')} |")
+            f"| {label} | {e.runs} | {_f(e.anees)} | {band} | {inb} | {frac} | "
+            f"{_f(e.rmse_mean)} | {_f(e.rmse_max)} | {_f(e.dr_rmse_mean)} | "
+            f"{ratio} | {worst} | {_f(e.runtime_mean, '.2f')} |")
     errors = _error_lines(mc)
     if errors:
         # Below the table, not as a row in it: a one-cell row breaks the 12-column table.
@@ -421,43 +400,43 @@ def to_markdown(mc: dict) -> str:
                   "out.", ""]
         lines += errors
     cal = [(name, label, c) for name in sorted(s) for label, c in
-           (s[name].get("calibration") or {}).items()]
+           (s[name].calibration or {}).items()]
     if cal:
         geometry = ("the scenario's true geometry, the same in every seed (--fixed-truth)"
-                    if mc.get("fixed_truth") else "the geometry drawn for each seed")
+                    if mc.fixed_truth else "the geometry drawn for each seed")
         lines += ["", "Calibration states at the end of each run against the simulation's truth: "
                   "k_v, k_w, the odometry's speed and yaw-rate scale factors (k_v = r / r_nominal, "
                   f"k_w = k_v L_nominal / L for wheel radius r, track width L) of {geometry}; "
                   "hoff, the IMU's heading offset (rad); bg, the gyro bias (rad/s) "
                   "at the time of the final state. RMS of error / sigma is about 1 for a "
                   "consistent estimator; the two-sided 95% range for "
-                  f"{len(mc['seeds'])} runs is "
-                  f"[{math.sqrt(chi2.ppf(0.025, len(mc['seeds'])) / len(mc['seeds'])):.2f}, "
-                  f"{math.sqrt(chi2.ppf(0.975, len(mc['seeds'])) / len(mc['seeds'])):.2f}].",
+                  f"{len(mc.seeds)} runs is "
+                  f"[{math.sqrt(chi2.ppf(0.025, len(mc.seeds)) / len(mc.seeds)):.2f}, "
+                  f"{math.sqrt(chi2.ppf(0.975, len(mc.seeds)) / len(mc.seeds)):.2f}].",
                   "", "| estimator | state | runs | error mean | error RMS | RMS error / sigma |",
                   "|---|---|---|---|---|---|"]
-        lines += [f"| {name} | {label} | {c['n']} | {c['error_mean']:+.2e} | "
-                  f"{c['error_rms']:.2e} | {_f(c['z_rms'], '.2f')} |" for name, label, c in cal]
+        lines += [f"| {name} | {label} | {c.n} | {c.error_mean:+.2e} | "
+                  f"{c.error_rms:.2e} | {_f(c.z_rms, '.2f')} |" for name, label, c in cal]
     return "\n".join(lines) + "\n"
 
 
-def report_stem(mc: dict) -> str:
+def report_stem(mc: MonteCarloRun) -> str:
     """``mc_<scenario>``, with ``_fixed-truth`` and ``_lag<S>`` when the run says so: runs of
     one scenario with other settings into one directory do not overwrite each other."""
-    stem = f"mc_{mc['scenario']}"
-    if mc.get("fixed_truth"):
+    stem = f"mc_{mc.scenario}"
+    if mc.fixed_truth:
         stem += "_fixed-truth"
-    if mc.get("lag_s") is not None:
-        stem += f"_lag{mc['lag_s']:g}"
+    if mc.lag_s is not None:
+        stem += f"_lag{mc.lag_s:g}"
     return stem
 
 
-def write_report(mc: dict, outdir: str | Path) -> tuple[Path, Path]:
+def write_report(mc: MonteCarloRun, outdir: str | Path) -> tuple[Path, Path]:
     """Write ``<stem>.json`` and ``<stem>.md`` into ``outdir`` (``report_stem``)."""
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
     j = outdir / f"{report_stem(mc)}.json"
     m = outdir / f"{report_stem(mc)}.md"
-    j.write_text(json.dumps(mc, indent=2, default=float) + "\n")
+    j.write_text(json.dumps(mc.to_json(), indent=2, default=float) + "\n")
     m.write_text(to_markdown(mc))
     return j, m

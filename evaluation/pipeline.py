@@ -1,66 +1,24 @@
 """The main job: read a bag, run the estimators side by side, score them, write the results.
 
-``run_bag`` returns the metrics dictionary that ``OUTDIR/metrics.json`` holds and writes every
-trajectory as ``OUTDIR/<track>.tum`` and ``.csv`` (and ``ground_truth.tum``/``.csv`` when there
-is truth), plus ``OUTDIR/run.npz`` with what the report needs besides (``evaluation.results``).
-Values that cannot be computed (no truth, no hold-out) are None (null in the JSON).
+``run_bag`` decodes a bag as a stream, runs the selected estimators on it, scores them
+(``score``) and writes ``OUTDIR/metrics.json``, every trajectory as ``OUTDIR/<track>.tum`` and
+``.csv`` (and ``ground_truth.tum``/``.csv`` when there is truth), plus ``OUTDIR/run.npz`` with
+what the report needs besides (``evaluation.results``).
 
-Per estimator (track), metrics.json holds:
+``score(result)`` returns the run's scores as typed records (``evaluation.scores.RunSummary``:
+per track ATE, RPE and NEES against the truth, the distance to withheld GPS fixes, the drift
+over GPS outages, NIS per sensor, the calibration states at the end); metrics.json is
+``RunSummary.to_json()``, and ``run_bag`` returns that dictionary. What each key holds, in
+which unit and against what, is in docs/design/metrics-json.md. Values that cannot be computed
+(no truth, no hold-out) are None (null in the JSON); ``decode_s``, ``runtime_s``, ``rtf``,
+``update_ms`` and ``wall_s`` are timings, which differ between runs of the same bag; every
+other value does not.
 
-* ``final_xy`` [m, m]; ``samples``; ``runtime_s`` (wall time in the estimator's calls, decoding
-  excluded), ``rtf`` (data duration / runtime), ``update_ms`` (per-call latency p50/p99/max/mean);
-* against the truth (no alignment, every track in the run's local frame; association within
-  ``MAX_DIFF`` s): ``ate_rmse_m``, ``ate_max_m``, ``yaw_rmse_deg``, ``rpe_rmse_m`` (over 1 s),
-  ``nees_mean``; ``ate_association_rmse_m``, what the nearest-time pairing alone adds
-  (``metrics.association_error``: the truth at its stamp against the truth at the estimate's);
-  and in full ``ate`` {none, se2, origin: {position_m, heading_deg: statistics}, association_m},
-  ``rpe`` {'1s', '10m': {position_m, heading_deg, mean_delta: the pairs' actual mean spacing
-  in s or m, over the nominal one where samples are sparse}} (None, with ``rpe_note`` saying
-  why, for a truth without heading), ``nees`` (consistency summary);
-* against withheld GPS fixes: ``gps_holdout_rmse_m`` and ``gps_holdout_m`` (statistics), every
-  track on the same fixes, those inside every track's span (top level:
-  ``gps_holdout_scored_fixes`` of ``gps_holdout_fixes``); where no withheld fix lies inside
-  every track's span, ``gps_holdout_scored_fixes`` is 0, no track has ``gps_holdout_rmse_m``
-  (nothing to rank on) and ``gps_holdout_m`` holds each track's statistics over the fixes in
-  its own span (``gps_holdout_span_s``, stamps); at the top level
-  ``gps_holdout_interpolation_rmse_m``, the same score of the used fixes linearly
-  interpolated in time (no estimator: the reference to read a track's score against), less
-  the ``gps_holdout_interpolation_outliers`` of them that are gross errors by the test below,
-  each against its two neighbours. A fix is
-  compared with the track's GPS antenna as the estimators model it (top level
-  ``gps_antenna``: the config's lever arm and delay, ``gps_antenna``); withheld fixes that
-  every track's GPS gate and the used fixes beside them would reject (``gps_holdout_outliers``
-  of them: gross GPS errors, ``_gross_outliers``) are left out for every track;
-* ``ate_common_rmse_m``: the RMSE on the tracks' common span (the intersection of their and
-  the truth's spans) at the stamps of the track with the fewest samples in it, every track
-  and the truth interpolated there (``_common_ate``; top level ``ate_common``: how many
-  stamps, whose, and the span): what the verdict ranks on; ``span_s``, the track's first and
-  last stamps;
-* ``gps_residual_corr_s``: how long the used GPS fixes' residuals to the track stay correlated
-  (``metrics.correlation_time``; 0 for white GPS noise): a hold-out of single fixes scores
-  how closely a track follows the GPS on that time scale;
-* ``gps_outages``: error growth per metre travelled over each GPS outage (``metrics.gps_outages``);
-* ``nis``: per 'sensor kind', NIS consistency and the gate's accept/reject counts
-  (``ddfuse.evaluation.consistency``); ``rejected`` (sensor: reason -> count), ``events`` (the first
-  ``EVENTS_KEPT``) and ``events_total`` (all of them), ``error``;
-* ``final_state``: the calibration states at the end of the run, ``{"t": s, "states": {name:
-  {"value", "sigma"}}}`` (``calibration_states``): gyro bias ``bg`` rad/s, heading offset
-  ``hoff`` rad, odometry scales ``k_v``, ``k_w``; a sensor's name after a colon where an
-  estimator has several of a kind; None for an estimator without them.
-
-At the top level, ``data`` holds facts about the data (``data_facts``) and, per compass,
-``heading_offsets``: its heading offset measured from the GPS course without any estimator
-(``estimation.heading_survey``); ``warnings`` lists what those measurements say the config gets
-wrong (a fixed offset far from the measured one, a wandering offset held constant, GPS fixes
-fused as independent while their residuals stay correlated: ``gps_correlation_warnings``).
-``estimators_requested`` is the ``--estimators`` list (None: the default, every
-estimator the config's sensors allow) and ``estimators_run`` what was built from it (a lagged track
-needs the smoother; a name can yield several tracks). ``wall_s`` splits the wall time of the whole
-job (``timing_split``): how long the process ran before ``run_bag`` (interpreter start, imports,
-config), decoding, building the estimators (numba kernels loaded, ISAM2 set up), each estimator's
-calls, the runner's own per-message work, scoring, writing the outputs, and the process's age when
-metrics.json is written. Like ``decode_s``, ``runtime_s``, ``rtf`` and ``update_ms`` these are
-timings: they differ between runs of the same bag, every other value does not.
+Every track is scored in the run's local frame without alignment, on the same withheld fixes
+(those inside every track's span, gross GPS errors left out: ``_gross_outliers``) and ranked on
+the common span (``_common_ate``); a fix is compared with the track's GPS antenna as the
+estimators model it (``gps_antenna``). The hold-out rules and the measurements behind them:
+docs/design/gps-holdout-scoring.md.
 """
 
 from __future__ import annotations
@@ -71,6 +29,7 @@ import os
 import time
 from collections import Counter
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -82,16 +41,35 @@ from ddfuse.estimation.measurements import Stream
 from ddfuse.estimation.runner import RunResult, Trajectory, initial_pose, parse_holdout, run
 from ddfuse.evaluation import consistency, metrics
 from ddfuse.evaluation import estimators as registry
+from ddfuse.evaluation.consistency import SensorNis
 from ddfuse.evaluation.results import config_text_of, save_run
+from ddfuse.evaluation.scores import (
+    AteScore,
+    AteScores,
+    CalibrationState,
+    CommonSpan,
+    DataFacts,
+    EstimatorScores,
+    FinalState,
+    GpsAntenna,
+    HeadingOffset,
+    RpeScore,
+    RunSummary,
+    SensorFacts,
+    UpdateLatency,
+    WallTimes,
+    num,
+    rounded_record,
+    stats_of,
+)
 
 MAX_DIFF = 0.05  # s: association of estimate and truth stamps (truth at >= 10 Hz)
 RPE_DELTAS = (("1s", 1.0, "s"), ("10m", 10.0, "m"))
 EVENTS_KEPT = 20  # an estimator's first events kept in metrics.json (events_total: all)
 
 
-# fix intervals: GPS residuals correlated for longer than this many are not white (white fixes
-# measure 0 s on the simulated husky, gps-outage and sample bags; rl_husky_gps.bag 3.6-7.7 s,
-# 9-19 intervals; the simulated husky-multipath, tau 30 s, 15-16 s)
+# fix intervals: GPS residuals correlated for longer than this many are not white (the
+# measured correlation times: docs/design/gps-holdout-scoring.md)
 GPS_CORRELATED_INTERVALS = 5
 
 
@@ -111,8 +89,8 @@ def process_age() -> float | None:
 
 def timing_split(*, startup: float | None, decode: float, build: float, loop: float,
                  loop_decode: float, runtimes: dict[str, float], scoring: float,
-                 writing: float) -> dict:
-    """The ``wall_s`` dictionary of metrics.json, seconds rounded to 0.1 ms.
+                 writing: float) -> WallTimes:
+    """The ``wall_s`` of metrics.json, seconds rounded to 0.1 ms.
 
     In: ``startup`` (process age when run_bag began; None if unknown), ``decode`` (all of the
     stream's decoding: opening, priming, and the share in the loop), ``build`` (from run_bag's
@@ -128,56 +106,43 @@ def timing_split(*, startup: float | None, decode: float, build: float, loop: fl
     def r4(v: float | None) -> float | None:
         return None if v is None else round(float(v), 4)
 
-    return {"startup": r4(startup), "decode": r4(decode), "build": r4(build),
-            "estimators": {k: r4(v) for k, v in runtimes.items()}, "runner": r4(runner),
-            "metrics": r4(scoring), "write": r4(writing), "total": r4(total)}
+    return WallTimes(r4(startup), r4(decode), r4(build), {k: r4(v) for k, v in runtimes.items()},
+                     r4(runner), r4(scoring), r4(writing), r4(total))
 
 
-def _num(v) -> float | None:
-    return None if v is None or not math.isfinite(v) else round(float(v), 6)
-
-
-def _stats(s: metrics.Stats, k: float = 1.0) -> dict | None:
-    """JSON statistics (rounded; None for an empty series), values times ``k``."""
-    if s.n == 0:
-        return None
-    return {key: (v if key == "n" else _num(v)) for key, v in s.scaled(k).as_dict().items()}
-
-
-def _ape_dict(a: metrics.Ape) -> dict:
-    return {"position_m": _stats(a.position), "heading_deg": _stats(a.heading, math.degrees(1))}
+def _ate_score(a: metrics.Ape) -> AteScore:
+    return AteScore(stats_of(a.position), stats_of(a.heading, math.degrees(1)))
 
 
 def _truth_scores(tr: Trajectory, truth: Trajectory, pose_error: str = "world") -> dict:
-    """ATE (three alignments), RPE and NEES of one track against the truth."""
+    """ATE (three alignments), RPE and NEES of one track against the truth: the
+    ``EstimatorScores`` fields they fill (none without an associated pair)."""
     m: dict = {}
     a = metrics.ape(tr, truth, MAX_DIFF)
     if a.position.n == 0:
         return m
-    m["ate_rmse_m"] = _num(a.position.rmse)
-    m["ate_max_m"] = _num(a.position.max)
-    m["yaw_rmse_deg"] = _num(math.degrees(a.heading.rmse)) if a.heading.n else None
+    m["ate_rmse_m"] = num(a.position.rmse)
+    m["ate_max_m"] = num(a.position.max)
+    m["yaw_rmse_deg"] = num(math.degrees(a.heading.rmse)) if a.heading.n else None
     assoc = metrics.association_error(tr, truth, MAX_DIFF)
-    m["ate_association_rmse_m"] = _num(assoc.rmse)
-    ate = {"none": _ape_dict(a), "pairs": a.position.n, "max_diff_s": MAX_DIFF,
-           "association_m": _stats(assoc)}
+    m["ate_association_rmse_m"] = num(assoc.rmse)
+    aligned = {}
     for how in ("se2", "origin"):
         try:
-            ate[how] = _ape_dict(metrics.ape(tr, truth, MAX_DIFF, how))
+            aligned[how] = _ate_score(metrics.ape(tr, truth, MAX_DIFF, how))
         except ValueError:  # too few distinct positions, or a truth without heading
-            ate[how] = None
-    m["ate"] = ate
+            aligned[how] = None
+    m["ate"] = AteScores(_ate_score(a), a.position.n, MAX_DIFF, stats_of(assoc), **aligned)
     if np.isfinite(truth.pose[:, 2]).any():
         rpe = {}
         for key, delta, unit in RPE_DELTAS:
             pos, yaw = metrics.rpe(tr, truth, delta, MAX_DIFF, unit=unit)
             # the pairs' actual spacing: a keyframe track's 1 s pairs are 1.2 s apart
-            rpe[key] = {"delta": delta, "unit": unit, "mean_delta": _num(
+            rpe[key] = RpeScore(delta, unit, num(
                 metrics.rpe_mean_delta(tr, truth, delta, MAX_DIFF, unit=unit)),
-                "position_m": _stats(pos),
-                "heading_deg": _stats(yaw, math.degrees(1))} if pos.n else None
+                stats_of(pos), stats_of(yaw, math.degrees(1))) if pos.n else None
         m["rpe"] = rpe
-        m["rpe_rmse_m"] = _num(rpe["1s"]["position_m"]["rmse"]) if rpe["1s"] else None
+        m["rpe_rmse_m"] = rpe["1s"].position_m.rmse if rpe["1s"] else None
     else:
         # Position-only truth (NavSatFix): the RPE compares relative poses, the estimate's
         # displacement in its own start frame against the truth's in the truth's, which needs
@@ -187,24 +152,14 @@ def _truth_scores(tr: Trajectory, truth: Trajectory, pose_error: str = "world") 
     ns = metrics.nees_series(tr, truth, MAX_DIFF, pose_error)
     if len(ns.value):
         c = consistency.summarize(ns.value, ns.dof)
-        m["nees_mean"] = _num(c.mean)
-        m["nees"] = _rounded(c.as_dict())
+        m["nees_mean"] = num(c.mean)
+        m["nees"] = rounded_record(c)
     return m
-
-
-def _rounded(d):
-    if isinstance(d, dict):
-        return {k: _rounded(v) for k, v in d.items()}
-    if isinstance(d, list | tuple):
-        return [_rounded(v) for v in d]
-    if isinstance(d, float):
-        return _num(d)
-    return d
 
 
 def _outage_scores(tr: Trajectory, outages: list[metrics.Outage], truth: Trajectory | None,
                    hold_t: np.ndarray, hold_xy: np.ndarray, hold_cov: np.ndarray,
-                   antenna: dict) -> list[dict] | None:
+                   antenna: GpsAntenna) -> list[metrics.OutageDrift] | None:
     """Drift per metre over each outage, against the truth if there is one, else against the
     fixes withheld in it (through block means of them: ``metrics.outage_drift``, with their
     covariances ``hold_cov``; the track's antenna, ``gps_antenna``). None when there are no
@@ -216,12 +171,11 @@ def _outage_scores(tr: Trajectory, outages: list[metrics.Outage], truth: Traject
         if truth is not None:
             d = metrics.outage_drift(tr, o, truth.t, truth.pose[:, :2], "truth")
         else:
-            xy, inside = metrics.antenna_xy(tr, hold_t, antenna["lever_arm"],
-                                            antenna["delay_s"])
+            xy, inside = metrics.antenna_xy(tr, hold_t, antenna.lever_arm, antenna.delay_s)
             xy[~inside] = np.nan
             d = metrics.outage_drift(tr, o, hold_t, hold_xy, "withheld GPS", ref_cov=hold_cov,
                                      est_xy=xy)
-        out.append(_rounded(vars(d)) if d else {"t0": o.t0, "t1": o.t1, "drift_per_m": None})
+        out.append(rounded_record(d) if d else metrics.OutageDrift(o.t0, o.t1))
     return out
 
 
@@ -243,25 +197,25 @@ def calibration_entries(e) -> list[tuple[str, float, float | None]]:
             for i, (name, k) in enumerate(zip(e.state_names, kinds, strict=True)) if k == kind]
 
 
-def calibration_states(e) -> dict | None:
-    """``calibration_entries`` of Estimate ``e`` for metrics.json: {"t": s, "states": {label:
-    {"value": v, "sigma": sd or None}}}, or None without any."""
+def calibration_states(e) -> FinalState | None:
+    """``calibration_entries`` of Estimate ``e`` as metrics.json holds them (``final_state``),
+    or None without any."""
     entries = calibration_entries(e)
     if not entries:
         return None
-    return {"t": _num(e.t), "states": {label: {"value": _num(v), "sigma": _num(sd)}
-                                       for label, v, sd in entries}}
+    return FinalState(num(e.t), {label: CalibrationState(num(v), num(sd))
+                                 for label, v, sd in entries})
 
 
-def _residual_corr(tr: Trajectory, t: np.ndarray, xy: np.ndarray, antenna: dict
+def _residual_corr(tr: Trajectory, t: np.ndarray, xy: np.ndarray, antenna: GpsAntenna
                    ) -> float | None:
     """Correlation time (s) of the used GPS fixes' residuals to track ``tr``'s antenna
     (``metrics.correlation_time``)."""
-    est, inside = metrics.antenna_xy(tr, t, antenna["lever_arm"], antenna["delay_s"])
+    est, inside = metrics.antenna_xy(tr, t, antenna.lever_arm, antenna.delay_s)
     return metrics.correlation_time(t[inside], (xy - est)[inside])
 
 
-def gps_correlation_warnings(m: dict, cfg: Config) -> list[str]:
+def gps_correlation_warnings(m: RunSummary, cfg: Config) -> list[str]:
     """A warning when the used GPS fixes' residuals to the tracks (``gps_residual_corr_s``,
     median over the tracks that have one) stay correlated for at least
     ``GPS_CORRELATED_INTERVALS`` fix intervals while every GPS sensor fuses its fixes as
@@ -269,9 +223,9 @@ def gps_correlation_warnings(m: dict, cfg: Config) -> list[str]:
     over-confident covariances (``ddfuse.estimation.gps_correlation``). The measured time is a lower
     bound of the errors' own: a track that follows the GPS takes part of the error with it."""
     gps = cfg.of_kind("gps")
-    interval = (m.get("data") or {}).get("gps_fix_interval_s")
-    corr = [e["gps_residual_corr_s"] for e in m["estimators"].values()
-            if e.get("gps_residual_corr_s") is not None and not e.get("error")]
+    interval = m.data.gps_fix_interval_s if m.data else None
+    corr = [e.gps_residual_corr_s for e in m.estimators.values()
+            if e.gps_residual_corr_s is not None and not e.error]
     if not gps or not corr or not interval or any(s.correlation_time > 0.0 for s in gps):
         return []
     c = float(np.median(corr))
@@ -288,7 +242,7 @@ def gps_correlation_warnings(m: dict, cfg: Config) -> list[str]:
 
 def _interpolation_rmse(used_t, used_xy, hold_t, hold_xy) -> float | None:
     e = metrics.interpolation_errors(used_t, used_xy, hold_t, hold_xy)
-    return _num(float(np.sqrt(np.mean(e * e)))) if len(e) else None
+    return num(float(np.sqrt(np.mean(e * e)))) if len(e) else None
 
 
 def _pose_error(r) -> str:
@@ -298,40 +252,38 @@ def _pose_error(r) -> str:
     return getattr(r.final_state, "pose_error", None) or "world"
 
 
-def gps_antenna(cfg: Config | None) -> dict:
+def gps_antenna(cfg: Config | None) -> GpsAntenna:
     """The GPS antenna model every track's hold-out is scored with, as the estimators fuse the
-    fixes: {"lever_arm": [x, y] m (body frame), "delay_s": s (a fix is the antenna that long
-    before its stamp), "gate": chi-square probability or None, "note": str or None}. The run's
+    fixes: lever arm (x, y) m (body frame), delay s (a fix is the antenna that long before its
+    stamp), the gate's chi-square probability or None, a note or None. The run's
     fixes do not say which GPS sensor took them: with several whose lever arm or delay differ,
     neither is applied and the note says so. No config: none applied."""
     gps = [s for s in (cfg.sensors if cfg is not None else []) if s.kind == "gps"]
     if not gps:
-        return {"lever_arm": [0.0, 0.0], "delay_s": 0.0, "gate": DEFAULT_GATE,
-                "note": None if cfg is not None else "no config: no lever arm or delay applied"}
+        return GpsAntenna(gate=DEFAULT_GATE, note=None if cfg is not None
+                          else "no config: no lever arm or delay applied")
     models = {(tuple(s.lever_arm), s.delay) for s in gps}
     gates = {s.gate for s in gps}
     gate = gates.pop() if len(gates) == 1 else max((g for g in gates if g), default=None)
     if len(models) > 1:
-        return {"lever_arm": [0.0, 0.0], "delay_s": 0.0, "gate": gate,
-                "note": "GPS sensors with different lever arms or delays: neither applied"}
+        return GpsAntenna(gate=gate, note="GPS sensors with different lever arms or delays: "
+                          "neither applied")
     (lever, delay), = models
-    return {"lever_arm": [float(lever[0]), float(lever[1])], "delay_s": float(delay),
-            "gate": gate, "note": None}
+    return GpsAntenna((float(lever[0]), float(lever[1])), float(delay), gate)
 
 
 def _gross_outliers(result: RunResult, t: np.ndarray, xy: np.ndarray, cov: np.ndarray,
-                    antenna: dict, *, used: bool = False) -> np.ndarray:
+                    antenna: GpsAntenna, *, used: bool = False) -> np.ndarray:
     """Mask of the fixes (``t``, ``xy``, ``cov`` (M, 2, 2)) that are gross GPS errors: every
     track's chi-square gate (``antenna['gate']``, 2 dof, ``metrics.gate_nis``) rejects them,
     and so does the same gate against the used fixes on either side, interpolated in time,
     where no outage lies between them (``_beside_fixes``). The second test is what makes it
     the GPS's error and not the tracks': in a window outage every track may have drifted
-    beyond its own sigma, and those fixes are exactly what the score is for (rl_husky_gps.bag
-    window:150:210: the tracks' gate alone dropped 77 of 150, the outage scores 4.1-4.6 m ->
-    2.2-4.1 m).
+    beyond its own sigma, and those fixes are exactly what the score is for
+    (docs/design/gps-holdout-scoring.md).
     ``used``: the fixes are the used ones themselves (all of them, in order), each tested
     against its neighbours. None with the gate off."""
-    gate = antenna.get("gate")
+    gate = antenna.gate
     live = [r.trajectory for r in result.runs.values() if len(r.trajectory) > 1]
     if not gate or not live or not len(t):
         return np.zeros(len(t), bool)
@@ -340,7 +292,7 @@ def _gross_outliers(result: RunResult, t: np.ndarray, xy: np.ndarray, cov: np.nd
     for tr in live:
         if not out.any():
             break
-        nis = metrics.gate_nis(tr, t, xy, cov, antenna["lever_arm"], antenna["delay_s"])
+        nis = metrics.gate_nis(tr, t, xy, cov, antenna.lever_arm, antenna.delay_s)
         out &= ~(nis <= limit)  # NaN (no estimate there) does not vouch for the fix
     return out
 
@@ -377,8 +329,9 @@ def _beside_fixes(result: RunResult, t: np.ndarray, xy: np.ndarray, cov: np.ndar
 
 
 def score(result: RunResult, decode_s: float = 0.0,
-          pose_errors: dict[str, str] | None = None, cfg: Config | None = None) -> dict:
-    """The metrics dictionary of a run (see module docstring). ``pose_errors``: per track the
+          pose_errors: dict[str, str] | None = None, cfg: Config | None = None) -> RunSummary:
+    """The scores of a run (``scores.RunSummary``; ``score(result).to_json()`` is the metrics
+    dictionary: docs/design/metrics-json.md), up to ``ate_common``. ``pose_errors``: per track the
     coordinates of its pose error (``Estimator.pose_error``), for the NEES; a track not in it
     takes the one its estimates carry (``_pose_error``), so ``score(result)`` on a RunResult
     of ``runner.run`` scores each estimator in its own coordinates, as ``run_bag`` does.
@@ -389,7 +342,7 @@ def score(result: RunResult, decode_s: float = 0.0,
     # score a fix as the estimators fuse it: the antenna at t - delay, lever arm applied (a
     # perfect track otherwise scores the lever arm, 0.5 m, or the motion over the delay)
     antenna = gps_antenna(cfg if cfg is not None else getattr(stream, "cfg", None))
-    lever, delay = antenna["lever_arm"], antenna["delay_s"]
+    lever, delay = antenna.lever_arm, antenna.delay_s
     truth = result.truth
     hold_t, hold_xy = result.gps.held_t, result.gps.held_xy
     hold_cov = result.gps.cov[result.gps.withheld]
@@ -410,8 +363,8 @@ def score(result: RunResult, decode_s: float = 0.0,
     if common_fixes:
         hold_t, hold_xy, hold_cov = hold_t[covered], hold_xy[covered], hold_cov[covered]
         # A gross GPS error (20-60 m multipath) no estimator comes near dominates every track's
-        # RMSE alike (one 26 m fix: every track 3.42 m, within 0.1 % while their ATEs differ by
-        # 35 %). Left out for every track, counted and said: fixes that every track's GPS gate
+        # RMSE alike (docs/design/gps-holdout-scoring.md). Left out for every track, counted
+        # and said: fixes that every track's GPS gate
         # (the sensor's chi-square probability, on the fix's and the track's own covariance)
         # and the used fixes beside them would reject (``_gross_outliers``).
         out_mask = _gross_outliers(result, hold_t, hold_xy, hold_cov, antenna)
@@ -422,85 +375,90 @@ def score(result: RunResult, decode_s: float = 0.0,
     used_t = result.gps.used_t
     used_xy = result.gps.xy[~result.gps.withheld]
     # the reference interpolates the used fixes: a gross error among them (one 30 m fix puts
-    # 15 m on the withheld fixes beside it; gps-outage seed 7, every:5: 5.39 m against 1.76 m
-    # without the 10 of 674) is left out of it by the same two tests, and counted
+    # 15 m on the withheld fixes beside it) is left out of it by the same two tests, and counted
     ref_out = (_gross_outliers(result, used_t, used_xy, result.gps.cov[~result.gps.withheld],
                                antenna, used=True) if n_held else np.zeros(len(used_t), bool))
     outages = metrics.gps_outages(used_t, stream.t1) if len(used_t) else []
-    out: dict = {
-        "bag": stream.source,
-        "duration_s": _num(duration),
-        "decode_s": _num(decode_s),
-        "messages": result.messages,
-        "rejected_messages": {f"{topic}: {reason}": n
-                              for (topic, reason), n in stream.rejected.items()},
-        "has_ground_truth": truth is not None,
-        "gps_holdout_fixes": int(result.gps.withheld.sum()),
-        "gps_holdout_scored_fixes": int(len(hold_t)) if common_fixes else 0,
-        "gps_holdout_outliers": n_outliers,
-        "gps_holdout_interpolation_rmse_m": _interpolation_rmse(
-            used_t[~ref_out], used_xy[~ref_out], hold_t, hold_xy),
-        "gps_holdout_interpolation_outliers": int(ref_out.sum()),
-        "gps_outages": [_rounded(vars(o)) for o in outages],
-        "gps_antenna": antenna,
-        "estimators": {},
-    }
-    for name, r in result.runs.items():
-        tr = r.trajectory
-        upd_ms = r.update_s * 1e3
-        m: dict = {
-            "final_xy": [_num(tr.pose[-1, 0]), _num(tr.pose[-1, 1])] if len(tr) else None,
-            "samples": len(tr),
-            "ate_rmse_m": None, "ate_max_m": None, "ate_association_rmse_m": None,
-            "rpe_rmse_m": None, "yaw_rmse_deg": None,
-            "nees_mean": None, "gps_holdout_rmse_m": None, "gps_holdout_span_s": None,
-            "gps_residual_corr_s": None,
-            "runtime_s": _num(r.runtime_s),
-            "rtf": _num(duration / r.runtime_s) if r.runtime_s > 0 else None,
-            "update_ms": {**{k: _num(float(np.percentile(upd_ms, q)))
-                             for k, q in (("p50", 50), ("p99", 99), ("max", 100))},
-                          "mean": _num(float(upd_ms.mean())), "n": len(upd_ms)}
-            if len(upd_ms) else None,
-            "ate": None, "rpe": None, "nees": None, "gps_holdout_m": None, "gps_outages": None,
-            "nis": {label: _rounded(s.as_dict()) for label, s in consistency.nis_by_sensor(
-                consistency.InnovationTable.from_innovations(r.log.innovations)).items()},
-            "rejected": {f"{s}: {why}": n for (s, why), n in r.log.rejected.items()},
-            "events": r.log.messages[:EVENTS_KEPT],
-            "events_total": len(r.log.messages),  # the report says 'first 20 of N'
-            "error": r.error,
-            "final_state": calibration_states(r.final_state),
-        }
-        # the coordinates the NEES is scored in (the report's NEES plot reads them back)
-        m["pose_error"] = (pose_errors or {}).get(name) or _pose_error(r)
-        if truth is not None and len(tr):
-            m.update(_truth_scores(tr, truth, m["pose_error"]))
-        if len(hold_t) and len(tr) > 1:
-            e = metrics.holdout_errors(tr, *((hold_t, hold_xy) if common_fixes
-                                             else (own_t, own_xy)), lever, delay)
-            if len(e):
-                m["gps_holdout_m"] = _stats(metrics.Stats.of(e))
-                if common_fixes:
-                    m["gps_holdout_rmse_m"] = m["gps_holdout_m"]["rmse"]
-                else:  # the fixes it was scored on: its own span's
-                    m["gps_holdout_span_s"] = [_num(tr.t[0]), _num(tr.t[-1])]
-        if len(tr) > 1:
-            m["gps_outages"] = _outage_scores(tr, outages, truth, hold_t, hold_xy, hold_cov,
-                                              antenna)
-            m["gps_residual_corr_s"] = _num(_residual_corr(tr, used_t, used_xy, antenna))
-        out["estimators"][name] = m
+    ests = {name: _track_scores(r, duration, truth, (pose_errors or {}).get(name),
+                                common_fixes, (hold_t, hold_xy, hold_cov), (own_t, own_xy),
+                                (used_t, used_xy), outages, antenna)
+            for name, r in result.runs.items()}
     # a run that stopped with an error is not ranked: it must not cut everyone's span
     common = _common_ate({n: r.trajectory for n, r in result.runs.items() if r.error is None},
                          truth)
-    out["ate_common"] = common[1] if common else None
-    for name, m in out["estimators"].items():
-        m["ate_common_rmse_m"] = common[0].get(name) if common else None
+    for name, e in ests.items():
         tr = result.runs[name].trajectory
-        m["span_s"] = [_num(tr.t[0]), _num(tr.t[-1])] if len(tr) else None
-    return out
+        ests[name] = replace(e, ate_common_rmse_m=common[0].get(name) if common else None,
+                             span_s=(num(tr.t[0]), num(tr.t[-1])) if len(tr) else None)
+    return RunSummary(
+        bag=stream.source,
+        duration_s=num(duration),
+        decode_s=num(decode_s),
+        messages=result.messages,
+        rejected_messages={f"{topic}: {reason}": n
+                           for (topic, reason), n in stream.rejected.items()},
+        has_ground_truth=truth is not None,
+        gps_holdout_fixes=int(result.gps.withheld.sum()),
+        gps_holdout_scored_fixes=int(len(hold_t)) if common_fixes else 0,
+        gps_holdout_outliers=n_outliers,
+        gps_holdout_interpolation_rmse_m=_interpolation_rmse(
+            used_t[~ref_out], used_xy[~ref_out], hold_t, hold_xy),
+        gps_holdout_interpolation_outliers=int(ref_out.sum()),
+        gps_outages=[rounded_record(o) for o in outages],
+        gps_antenna=antenna,
+        estimators=ests,
+        ate_common=common[1] if common else None)
+
+
+def _track_scores(r, duration: float, truth: Trajectory | None, pose_error: str | None,
+                  common_fixes: bool, held: tuple, own: tuple, used: tuple,
+                  outages: list[metrics.Outage], antenna: GpsAntenna) -> EstimatorScores:
+    """EstimatorRun ``r``'s scores (``score``): ``held`` (t, xy, cov) the withheld fixes it is
+    scored on, ``own`` (t, xy) all withheld fixes (where there are no ``common_fixes``),
+    ``used`` (t, xy) the fixes the estimators received."""
+    tr = r.trajectory
+    upd_ms = r.update_s * 1e3
+    hold_t, hold_xy, hold_cov = held
+    m: dict = {}
+    # the coordinates the NEES is scored in (the report's NEES plot reads them back)
+    m["pose_error"] = pose_error or _pose_error(r)
+    if truth is not None and len(tr):
+        m.update(_truth_scores(tr, truth, m["pose_error"]))
+    if len(hold_t) and len(tr) > 1:
+        e = metrics.holdout_errors(tr, *((hold_t, hold_xy) if common_fixes else own),
+                                   antenna.lever_arm, antenna.delay_s)
+        if len(e):
+            m["gps_holdout_m"] = stats_of(metrics.Stats.of(e))
+            if common_fixes:
+                m["gps_holdout_rmse_m"] = m["gps_holdout_m"].rmse
+            else:  # the fixes it was scored on: its own span's
+                m["gps_holdout_span_s"] = (num(tr.t[0]), num(tr.t[-1]))
+    if len(tr) > 1:
+        m["gps_outages"] = _outage_scores(tr, outages, truth, hold_t, hold_xy, hold_cov,
+                                          antenna)
+        m["gps_residual_corr_s"] = num(_residual_corr(tr, *used, antenna))
+    return EstimatorScores(
+        final_xy=(num(tr.pose[-1, 0]), num(tr.pose[-1, 1])) if len(tr) else None,
+        samples=len(tr),
+        runtime_s=num(r.runtime_s),
+        rtf=num(duration / r.runtime_s) if r.runtime_s > 0 else None,
+        update_ms=UpdateLatency(*(num(float(np.percentile(upd_ms, q))) for q in (50, 99, 100)),
+                                num(float(upd_ms.mean())), len(upd_ms))
+        if len(upd_ms) else None,
+        nis={label: SensorNis(s.sensor, s.kind, s.accepted, s.rejected, rounded_record(s.nis))
+             for label, s in consistency.nis_by_sensor(
+                 consistency.InnovationTable.from_innovations(r.log.innovations)).items()},
+        rejected={f"{s}: {why}": n for (s, why), n in r.log.rejected.items()},
+        events=r.log.messages[:EVENTS_KEPT],
+        events_total=len(r.log.messages),  # the report says 'first 20 of N'
+        error=r.error,
+        final_state=calibration_states(r.final_state),
+        **m)
+
 
 
 def _common_ate(tracks: dict[str, Trajectory], truth: Trajectory | None
-                ) -> tuple[dict[str, float], dict] | None:
+                ) -> tuple[dict[str, float], CommonSpan] | None:
     """Each track's position RMSE against the truth on one time span and one set of stamps,
     what the verdict ranks on. Each track's own ATE averages over its own span and stamps:
     a track that starts late (a filter waiting for its heading) skips the first seconds, often
@@ -508,7 +466,7 @@ def _common_ate(tracks: dict[str, Trajectory], truth: Trajectory | None
     its keyframes (at the fixes), the filters at 10 Hz also between fixes. The span is the
     intersection of the tracks' and the truth's spans, the stamps those of the track with the
     fewest samples in it, each track and the truth linearly interpolated there. Returns
-    ({track: rmse}, {"stamps": n, "of": track, "span_s": [t0, t1]}); None with fewer than two
+    ({track: rmse}, CommonSpan(n stamps, of track, span (t0, t1))); None with fewer than two
     tracks, no truth, or no common span."""
     live = {n: tr for n, tr in tracks.items() if len(tr) > 1}
     if truth is None or len(truth) < 2 or len(live) < 2:
@@ -524,8 +482,8 @@ def _common_ate(tracks: dict[str, Trajectory], truth: Trajectory | None
     rmse = {}
     for n, tr in live.items():
         xy, _ = metrics.interpolate_xy(tr, t)
-        rmse[n] = _num(float(np.sqrt(np.mean(np.sum((xy - g) ** 2, axis=1)))))
-    return rmse, {"stamps": int(len(t)), "of": base, "span_s": [_num(lo), _num(hi)]}
+        rmse[n] = num(float(np.sqrt(np.mean(np.sum((xy - g) ** 2, axis=1)))))
+    return rmse, CommonSpan(int(len(t)), base, (num(lo), num(hi)))
 
 
 def offset_surveys(result: RunResult, cfg: Config,
@@ -546,7 +504,7 @@ def offset_surveys(result: RunResult, cfg: Config,
 
 
 def data_facts(result: RunResult, cfg: Config,
-               surveys: list[heading_survey.OffsetSurvey] | None = None) -> dict:
+               surveys: list[heading_survey.OffsetSurvey] | None = None) -> DataFacts:
     """What the report states about the data: per sensor topic, kind and message counts; GPS
     fixes used and withheld, their median interval (s); landmarks; path length (from the truth,
     else the GPS fixes); each compass's measured heading offset (``surveys``, default
@@ -559,8 +517,7 @@ def data_facts(result: RunResult, cfg: Config,
     sensors = []
     for s in cfg.sensors:
         per_type = {t: n for (name, t), n in counts.items() if name == s.name}
-        sensors.append({"name": s.name, "topic": s.topic, "kind": s.kind, "use": list(s.use),
-                        "measurements": per_type})
+        sensors.append(SensorFacts(s.name, s.topic, s.kind, list(s.use), per_type))
     gps = result.gps
     if result.truth is not None and len(result.truth) > 1:
         length, source = metrics.path_length(result.truth.pose[:, :2]), "ground truth"
@@ -570,18 +527,18 @@ def data_facts(result: RunResult, cfg: Config,
         length, source = metrics.fix_path_length(gps.t, gps.xy, gps.cov), "GPS fixes"
     else:
         length, source = None, None
-    return {"sensors": sensors, "ground_truth_topic": cfg.ground_truth_topic,
-            "ground_truth_samples": len(result.truth) if result.truth is not None else 0,
-            "ground_truth_interval_s": _num(float(np.median(np.diff(result.truth.t))))
-            if result.truth is not None and len(result.truth) > 1 else None,
-            "gps_fixes": len(gps), "gps_fixes_withheld": int(gps.withheld.sum()),
-            "gps_fix_interval_s": _num(float(np.median(np.diff(gps.t)))) if len(gps) > 1
-            else None,
-            "landmarks": len(stream.landmarks),
-            "path_length_m": _num(length) if length is not None else None,
-            "path_length_from": source, "t0": stream.t0, "t1": stream.t1,
-            "datum": list(stream.datum) if stream.datum else None,
-            "heading_offsets": [sv.to_dict() for sv in surveys]}
+    return DataFacts(
+        sensors=sensors, ground_truth_topic=cfg.ground_truth_topic,
+        ground_truth_samples=len(result.truth) if result.truth is not None else 0,
+        ground_truth_interval_s=num(float(np.median(np.diff(result.truth.t))))
+        if result.truth is not None and len(result.truth) > 1 else None,
+        gps_fixes=len(gps), gps_fixes_withheld=int(gps.withheld.sum()),
+        gps_fix_interval_s=num(float(np.median(np.diff(gps.t)))) if len(gps) > 1 else None,
+        landmarks=len(stream.landmarks),
+        path_length_m=num(length) if length is not None else None,
+        path_length_from=source, t0=stream.t0, t1=stream.t1,
+        datum=list(stream.datum) if stream.datum else None,
+        heading_offsets=[HeadingOffset.from_json(sv.to_dict()) for sv in surveys])
 
 
 def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str] | None = None,
@@ -621,28 +578,26 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
         result.runs = {k: v for k, v in result.runs.items() if k in set(names)}
     out = score(result, decode_s,
                 {n: getattr(e, "pose_error", "world") for n, e in ests.items()}, cfg=cfg)
-    out["config"] = str(cfg.path) if cfg.path else None
-    out["initial_pose"] = ("first ground-truth pose" if cfg.initial_pose == "ground_truth"
-                           else list(pose) if pose else None)
-    out["lag_s"] = lag
-    out["estimators_requested"] = list(names) if names else None
-    out["estimators_run"] = chosen
-    out["gps_holdout"] = holdout
-    out["input_error"] = input_error
-    out["interrupted"] = result.interrupted
     surveys = result.offset_surveys = offset_surveys(result, cfg, offsets)
-    out["data"] = data_facts(result, cfg, surveys)
+    out = replace(
+        out, config=str(cfg.path) if cfg.path else None,
+        initial_pose=("first ground-truth pose" if cfg.initial_pose == "ground_truth"
+                      else list(pose) if pose else None),
+        lag_s=lag, estimators_requested=list(names) if names else None, estimators_run=chosen,
+        gps_holdout=holdout, input_error=input_error, interrupted=result.interrupted,
+        data=data_facts(result, cfg, surveys))
     # the reader's (a topic mostly dropped or silent), then the compass offset's
-    out["warnings"] = [*stream.warnings, *heading_survey.config_warnings(surveys, cfg),
-                       *gps_correlation_warnings(out, cfg)]
+    out = replace(out, warnings=[*stream.warnings, *heading_survey.config_warnings(surveys, cfg),
+                                 *gps_correlation_warnings(out, cfg)])
     config_text = config_text_of(cfg)
     t_scored = clock()
     save_run(result, outdir, config_text)
-    out["wall_s"] = timing_split(
+    out = replace(out, wall_s=timing_split(
         startup=startup, decode=decode_s, build=t_built - t_enter - decode_before,
         loop=t_ran - t_built, loop_decode=decode_s - decode_before, runtimes=runtimes,
-        scoring=t_scored - t_ran, writing=clock() - t_scored)
-    _write_metrics(outdir, out)
+        scoring=t_scored - t_ran, writing=clock() - t_scored))
+    metrics_json = out.to_json()
+    _write_metrics(outdir, metrics_json)
     if result.interrupted:
         raise RunInterrupted(f"{result.interrupted}; the results of what was processed are in "
                              f"{outdir}")
@@ -651,14 +606,14 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
                        f"read are in {outdir}")
         err.results_written = True
         raise err
-    return out
+    return metrics_json
 
 
-def write_outputs(result: RunResult, outdir: Path, metrics_dict: dict,
+def write_outputs(result: RunResult, outdir: Path, summary: RunSummary,
                   config_text: str | None = None) -> None:
-    """metrics.json, the trajectories (TUM, CSV) and run.npz into ``outdir``."""
+    """metrics.json (``summary``), the trajectories (TUM, CSV) and run.npz into ``outdir``."""
     save_run(result, outdir, config_text)
-    _write_metrics(outdir, metrics_dict)
+    _write_metrics(outdir, summary.to_json())
 
 
 def _write_metrics(outdir: Path, metrics_dict: dict) -> None:

@@ -18,7 +18,9 @@ from collections.abc import Callable
 from pathlib import Path
 
 from ddfuse.evaluation import consistency, metrics, plots
+from ddfuse.evaluation.metrics import OutageDrift
 from ddfuse.evaluation.results import SavedRun, load_run
+from ddfuse.evaluation.scores import DataFacts, EstimatorScores, RunSummary
 from ddfuse.evaluation.verdict import (
     CALIBRATION_SIGMAS,
     REJECTED_THROUGHOUT,
@@ -71,40 +73,41 @@ def _pct(v: float | None) -> str:
     return _fmt(None if v is None else 100 * v, ".1f")
 
 
-def _get(d: dict | None, *keys):
-    for k in keys:
-        if not isinstance(d, dict):
-            return None
-        d = d.get(k)
-    return d
-
-
 def _verdict_cell(v: str | None) -> str:
     return f'<span class="{v}">{v}</span>' if v else '<span class="na">–</span>'
 
 
-def _summary_table(m: dict, cfg=None) -> str:
+def _se2_rmse(e: EstimatorScores) -> float | None:
+    a = e.ate.se2 if e.ate else None
+    return a.position_m.rmse if a and a.position_m else None
+
+
+def _rpe_rmse(e: EstimatorScores, key: str) -> float | None:
+    r = (e.rpe or {}).get(key)
+    return r.position_m.rmse if r and r.position_m else None
+
+
+def _summary_table(m: RunSummary, cfg=None) -> str:
     """One row per track: scores, consistency, speed. ``cfg``: the run's Config, for the
     estimators not run (``not_run``)."""
-    lag = m.get("lag_s")
-    ests = m["estimators"]
-    common = any(e.get("ate_common_rmse_m") is not None for e in ests.values())
+    lag = m.lag_s
+    ests = m.estimators
+    common = any(e.ate_common_rmse_m is not None for e in ests.values())
     cols = [  # (header, getter, format, lower-is-better column to mark the best of)
         # the verdict ranks on the common stamps: the best is marked there, not on each
         # track's own ATE (other stamps, another span), which may name another winner
-        ("ATE, common stamps [m]", lambda e: e.get("ate_common_rmse_m"), ".3f", True),
-        ("ATE RMSE [m]", lambda e: e.get("ate_rmse_m"), ".3f", not common),
-        ("ATE max [m]", lambda e: e.get("ate_max_m"), ".3f", True),
-        ("ATE SE(2)-aligned RMSE [m]", lambda e: _get(e, "ate", "se2", "position_m", "rmse"),
-         ".3f", True),
-        ("heading RMSE [deg]", lambda e: e.get("yaw_rmse_deg"), ".2f", True),
-        ("RPE 1 s [m]", lambda e: _get(e, "rpe", "1s", "position_m", "rmse"), ".3f", True),
-        ("RPE 10 m [m]", lambda e: _get(e, "rpe", "10m", "position_m", "rmse"), ".3f", True),
-        ("GPS hold-out RMSE [m]", lambda e: e.get("gps_holdout_rmse_m"), ".3f", True),
-        ("NEES mean", lambda e: e.get("nees_mean"), ".2f", False),
-        ("runtime [s]", lambda e: e.get("runtime_s"), ".2f", False),
+        ("ATE, common stamps [m]", lambda e: e.ate_common_rmse_m, ".3f", True),
+        ("ATE RMSE [m]", lambda e: e.ate_rmse_m, ".3f", not common),
+        ("ATE max [m]", lambda e: e.ate_max_m, ".3f", True),
+        ("ATE SE(2)-aligned RMSE [m]", _se2_rmse, ".3f", True),
+        ("heading RMSE [deg]", lambda e: e.yaw_rmse_deg, ".2f", True),
+        ("RPE 1 s [m]", lambda e: _rpe_rmse(e, "1s"), ".3f", True),
+        ("RPE 10 m [m]", lambda e: _rpe_rmse(e, "10m"), ".3f", True),
+        ("GPS hold-out RMSE [m]", lambda e: e.gps_holdout_rmse_m, ".3f", True),
+        ("NEES mean", lambda e: e.nees_mean, ".2f", False),
+        ("runtime [s]", lambda e: e.runtime_s, ".2f", False),
         # no speed for an estimator that never estimated (it only turned measurements away)
-        ("RTF [x]", lambda e: e.get("rtf") if e.get("samples") != 0 else None, ".0f", False),
+        ("RTF [x]", lambda e: e.rtf if e.samples != 0 else None, ".0f", False),
         ("update p50 / p99 [ms]", None, None, False),
     ]
     present = [c for c in cols if c[1] is None or any(c[1](e) is not None for e in ests.values())]
@@ -115,15 +118,15 @@ def _summary_table(m: dict, cfg=None) -> str:
         if lower and vals:
             best[h] = min(vals)
     rows = []
-    offline = [n for n, e in ests.items() if track_kind(n) == "offline" and e.get("update_ms")]
+    offline = [n for n, e in ests.items() if track_kind(n) == "offline" and e.update_ms]
     for name, e in ests.items():
         cells = [f'<td class="l"><b>{html.escape(name)}</b></td>',
                  f'<td class="l">{html.escape(track_kind(name, lag))}</td>']
         for h, get, spec, _ in present:
             if get is None:
-                u = e.get("update_ms") or {}
+                u = e.update_ms
                 star = " *" if name in offline else ""
-                cells.append(f"<td>{_fmt(u.get('p50'))} / {_fmt(u.get('p99'))}{star}</td>")
+                cells.append(f"<td>{_fmt(u and u.p50)} / {_fmt(u and u.p99)}{star}</td>")
                 continue
             v = get(e)
             # the verdict's tie rule: the best and every value that ties with it
@@ -134,9 +137,9 @@ def _summary_table(m: dict, cfg=None) -> str:
             if spacing and v is not None:
                 text += f" ({spacing})"
             if h == "NEES mean" and v is not None:
-                text += f" ({_verdict_cell(_get(e, 'nees', 'verdict'))})"
+                text += f" ({_verdict_cell(e.nees.verdict if e.nees else None)})"
             cells.append(f"<td{cls}>{text}</td>")
-        fx = e.get("final_xy")
+        fx = e.final_xy
         cells.append(f"<td>({fx[0]:.2f}, {fx[1]:.2f})</td>" if fx else "<td>–</td>")
         rows.append("<tr>" + "".join(cells) + "</tr>")
     shown = {c[0] for c in present}
@@ -168,7 +171,7 @@ def _summary_table(m: dict, cfg=None) -> str:
                      "excluded).")
     if "update p50 / p99 [ms]" in shown:
         notes += [latency_note(n, ests[n]) for n in offline]
-    notes.append(f"Final (x, y): the last position in {plots.frame(m)['short']}.")
+    notes.append(f"Final (x, y): the last position in {plots.frame(m.to_json())['short']}.")
     skipped = not_run(m, cfg)
     if skipped:
         notes.append("Not run: " + "; ".join(f"{n}: {why}" for n, why in skipped) + ".")
@@ -177,41 +180,42 @@ def _summary_table(m: dict, cfg=None) -> str:
             f'<p class="note">{html.escape(" ".join(n for n in notes if n))}</p>')
 
 
-# An RPE column's pairs whose mean spacing (metrics ``rpe.<delta>.mean_delta``) differs from
+# An RPE column's pairs whose mean spacing (``RpeScore.mean_delta``) differs from
 # the nominal one by more than this share show it.
 RPE_SPACING_SLACK = 0.05
 _RPE_NOMINAL = {"RPE 1 s [m]": ("1s", 1.0, "s"), "RPE 10 m [m]": ("10m", 10.0, "m")}
 
 
-def _rpe_spacing(e: dict, header: str) -> str:
+def _rpe_spacing(e: EstimatorScores, header: str) -> str:
     """'pairs 1.20 s apart' where the column's pairs are not the nominal distance apart."""
     if header not in _RPE_NOMINAL:
         return ""
     key, nominal, unit = _RPE_NOMINAL[header]
-    d = _get(e, "rpe", key, "mean_delta")
+    r = (e.rpe or {}).get(key)
+    d = r.mean_delta if r else None
     if d is None or abs(d - nominal) <= RPE_SPACING_SLACK * nominal:
         return ""
     return f"pairs {d:.2f} {unit} apart"
 
 
-def finish_seconds(e: dict) -> float | None:
+def finish_seconds(e: EstimatorScores) -> float | None:
     """An offline track's seconds outside its per-message updates: its whole-run solve in
-    finish() (``finish_s`` where metrics.json has it, as ``ddfuse bench`` measures it; else its
-    runtime less the updates' total, the solve and its output calls)."""
-    if e.get("finish_s") is not None:
-        return e["finish_s"]
-    u, rt = e.get("update_ms") or {}, e.get("runtime_s")
-    if rt is None or u.get("mean") is None or u.get("n") is None:
+    finish() (``finish_s`` where ``ddfuse bench`` measured it; else its runtime less the
+    updates' total, the solve and its output calls)."""
+    if e.finish_s is not None:
+        return e.finish_s
+    u, rt = e.update_ms, e.runtime_s
+    if rt is None or u is None or u.mean is None or u.n is None:
         return None
-    return max(rt - u["mean"] * u["n"] / 1e3, 0.0)
+    return max(rt - u.mean * u.n / 1e3, 0.0)
 
 
-def latency_note(name: str, e: dict) -> str:
+def latency_note(name: str, e: EstimatorScores) -> str:
     """The footnote of an offline track's latencies (``ddfuse bench``'s '*')."""
     fin = finish_seconds(e)
     how = "" if fin is None else (
-        f": {fin:.3f} s of its {e['runtime_s']:.2f} s runtime" if e.get("finish_s") is not None
-        else f": {fin:.3f} s of its {e['runtime_s']:.2f} s runtime lie outside its "
+        f": {fin:.3f} s of its {e.runtime_s:.2f} s runtime" if e.finish_s is not None
+        else f": {fin:.3f} s of its {e.runtime_s:.2f} s runtime lie outside its "
         "per-message updates")
     return (f"* {name}: the latencies are of its per-message updates; its whole-run solve "
             f"runs once in finish(), in no latency percentile{how}.")
@@ -233,7 +237,7 @@ def run_config(run: SavedRun):
         return None
 
 
-def not_run(m: dict, cfg=None) -> list[tuple[str, str]]:
+def not_run(m: RunSummary, cfg=None) -> list[tuple[str, str]]:
     """(name, why) of each estimator of the registry (``evaluation.estimators``) that this run
     does not have: not among the estimators asked for, off by default, or not allowed by the
     config (the registry's own rule, ``EstimatorSpec.allowed``). ``cfg``: the run's Config
@@ -243,17 +247,17 @@ def not_run(m: dict, cfg=None) -> list[tuple[str, str]]:
     from ddfuse.estimation.config import Config, RobotConfig, SensorConfig
     from ddfuse.evaluation.estimators import SPECS
 
-    sensors = (m.get("data") or {}).get("sensors")
+    sensors = m.data.sensors if m.data else None
     if cfg is None and sensors:
-        cfg = Config(sensors=[SensorConfig(kind=s["kind"], topic=s["topic"], name=s["name"],
-                                           use=tuple(s["use"])) for s in sensors])
+        cfg = Config(sensors=[SensorConfig(kind=s.kind, topic=s.topic, name=s.name,
+                                           use=tuple(s.use)) for s in sensors])
         if cfg.of_kind("wheels"):
             # parse_config refuses wheel speeds without robot.wheel_radius and track_width, so
             # the run's config had them; metrics.json does not record their values (NaN: given,
             # value unknown), and the rules only ask whether they are there (dr's did not)
             cfg.robot = RobotConfig(wheel_radius=math.nan, track_width=math.nan)
-    ran = set(m.get("estimators") or {})
-    requested = m.get("estimators_requested")
+    ran = set(m.estimators or {})
+    requested = m.estimators_requested
     out = []
     for name, spec in SPECS.items():
         got = ran & set(spec.produces)
@@ -281,12 +285,12 @@ def not_run(m: dict, cfg=None) -> list[tuple[str, str]]:
     return out
 
 
-def _nis_table(m: dict) -> str:
+def _nis_table(m: RunSummary) -> str:
     rows = []
     seen: dict[str, str] = {}
     gated = gate_rejections(m)
-    for name, e in m["estimators"].items():
-        nis = e.get("nis") or {}
+    for name, e in m.estimators.items():
+        nis = e.nis or {}
         key = repr(sorted(nis.items()))
         if not nis:
             continue
@@ -296,46 +300,48 @@ def _nis_table(m: dict) -> str:
             continue
         seen[key] = name
         for label, s in nis.items():
-            band = s.get("band")
+            c = s.nis
+            band = c.band
             topic, kind = _topic_kind(label, s)
-            acc, rej, text = s["accepted"], s["rejected"], html.escape(label)
+            acc, rej, text = s.accepted, s.rejected, html.escape(label)
             if averaged_per_keyframe(name, kind):
                 # one row per keyframe (the samples since the last one averaged): the gate's
                 # decisions are per sample, in the estimator's rejected counts
                 n = sensor_samples(m, topic, kind)
-                rej = (e.get("rejected") or {}).get(f"{topic}: gate", 0)
+                rej = (e.rejected or {}).get(f"{topic}: gate", 0)
                 # the samples it turned away for other reasons (before it started) are none
-                dropped = sum(v for k, v in (e.get("rejected") or {}).items()
+                dropped = sum(v for k, v in (e.rejected or {}).items()
                               if k.rpartition(": ")[0] == topic
                               and _reason(k) not in ("gate", _RECOVERY))
                 acc = "–" if n is None else max(n - rej - dropped, 0)
-                text += (f", averaged per keyframe ({s['accepted'] + s['rejected']} values"
+                text += (f", averaged per keyframe ({s.accepted + s.rejected} values"
                          + (f" of {n} samples" if n is not None else "") + ")")
-            mean = s.get("mean") if s["accepted"] else None  # nothing accepted: no mean
+            mean = c.mean if s.accepted else None  # nothing accepted: no mean
+            g = gated.get(topic)
             verdict = ('<span class="Fail">rejected throughout</span>'
-                       if name in (gated.get(topic) or {}).get("throughout", ())
-                       and kind == gated[topic]["kind"] else _verdict_cell(s.get("verdict")))
+                       if g and name in g.throughout and kind == g.kind
+                       else _verdict_cell(c.verdict))
             rows.append(
                 f'<tr><td class="l"><b>{html.escape(name)}</b></td>'
-                f'<td class="l">{text}</td><td>{_fmt(s.get("dof"), "g")}</td>'
+                f'<td class="l">{text}</td><td>{_fmt(c.dof, "g")}</td>'
                 f"<td>{acc}</td><td>{rej}</td>"
-                f"<td>{_fmt(mean)} / {_fmt(s.get('expected'), 'g')}</td>"
+                f"<td>{_fmt(mean)} / {_fmt(c.expected, 'g')}</td>"
                 f"<td>{f'[{band[0]:.3g}, {band[1]:.3g}]' if band else '–'}</td>"
-                f"<td>{_pct(s.get('below'))}</td><td>{_pct(s.get('above'))}</td>"
+                f"<td>{_pct(c.below)}</td><td>{_pct(c.above)}</td>"
                 f"<td>{verdict}</td></tr>")
         logged = {_topic_kind(label, s)[0] for label, s in nis.items()}
         for topic, info in gated.items():
-            if name in info["by"] and topic not in logged:
+            if name in info.by and topic not in logged:
                 # gated, but no NIS row (the smoother's heading when every sample was rejected)
-                r, tot = info["by"][name]
-                what = f"{topic} {info['kind']}" if info["kind"] else topic
+                r, tot = info.by[name]
+                what = f"{topic} {info.kind}" if info.kind else topic
                 rows.append(
                     f'<tr><td class="l"><b>{html.escape(name)}</b></td>'
                     f'<td class="l">{html.escape(what)} (no NIS logged)</td><td>–</td>'
                     f"<td>{'–' if tot is None else tot - r}</td><td>{r}</td>"
                     + "<td>–</td>" * 4 + "<td>"
                     + ('<span class="Fail">rejected throughout</span>'
-                       if name in info["throughout"] else '<span class="na">–</span>')
+                       if name in info.throughout else '<span class="na">–</span>')
                     + "</td></tr>")
     if not rows:
         return "<p>No innovations were logged.</p>"
@@ -363,8 +369,8 @@ def _nis_table(m: dict) -> str:
             "pessimistic (noise overstated).</p>")
 
 
-def _calibration_table(m: dict) -> str:
-    """Each estimator's calibration states at the end of the run (metrics ``final_state``)."""
+def _calibration_table(m: RunSummary) -> str:
+    """Each estimator's calibration states at the end of the run (``final_state``)."""
     finals = final_states(m)
     if not finals:
         return ""
@@ -374,9 +380,9 @@ def _calibration_table(m: dict) -> str:
         head = calibration_title(label)
         cells = []
         for st in finals.values():
-            s = st.get(label) or {}
-            cells.append("–" if s.get("value") is None
-                         else calibration_value(label, s["value"], s.get("sigma")))
+            s = st.get(label)
+            cells.append("–" if s is None or s.value is None
+                         else calibration_value(label, s.value, s.sigma))
         rows.append(f'<tr><td class="l">{html.escape(head)}</td>'
                     + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
     return ("<h2>Calibration at the end of the run</h2><table><tr><th class='l'>state</th>"
@@ -390,16 +396,16 @@ def _calibration_table(m: dict) -> str:
             "names them).</p>")
 
 
-def _outage_table(m: dict) -> str:
-    outs = m.get("gps_outages") or []
+def _outage_table(m: RunSummary) -> str:
+    outs = m.gps_outages or []
     if not outs:
         return ""
-    t0 = _get(m, "data", "t0") or 0.0
+    t0 = m.t0
     rows = []
     for k, o in enumerate(outs):
-        for name, e in m["estimators"].items():
-            d = (e.get("gps_outages") or [None] * len(outs))[k] or {}
-            drift = outage_drift(d)
+        for name, e in m.estimators.items():
+            d = (e.gps_outages or [None] * len(outs))[k]
+            drift = outage_drift(d) if d else None
             if track_kind(name) != "real time" and d:
                 drift_cell = f'<span class="na">– ({SEES_AFTER})</span>'
             elif drift is not None and math.isfinite(drift):
@@ -407,13 +413,13 @@ def _outage_table(m: dict) -> str:
             else:
                 drift_cell = _fmt(None)
             rows.append(
-                f"<tr><td>{o['t0'] - t0:.1f}–{o['t1'] - t0:.1f}</td>"
-                f'<td class="l">{html.escape(name)}</td><td>{_fmt(d.get("distance_m"), ".1f")}'
+                f"<tr><td>{o.t0 - t0:.1f}–{o.t1 - t0:.1f}</td>"
+                f'<td class="l">{html.escape(name)}</td><td>{_fmt(d and d.distance_m, ".1f")}'
                 f"</td><td>{_outage_error(d, 'start')}</td><td>{_outage_error(d, 'end')}"
-                f"</td><td>{_fmt(d.get('error_max_m'))}</td><td>{drift_cell}"
-                f'</td><td class="l">{html.escape(str(d.get("reference", "–")))}</td></tr>')
-    fixes = any((_get(e, "gps_outages") or [{}])[0].get("block_s")
-                for e in m["estimators"].values() if e.get("gps_outages"))
+                f"</td><td>{_fmt(d and d.error_max_m)}</td><td>{drift_cell}"
+                f'</td><td class="l">{html.escape(str(d and d.reference or "–"))}</td></tr>')
+    fixes = any(e.gps_outages[0] and e.gps_outages[0].block_s
+                for e in m.estimators.values() if e.gps_outages)
     maxnote = (" Max error: the largest distance to a single withheld fix in the outage, that "
                "fix's noise included (start and end are block medians less their noise: "
                "'&lt; X (unresolved)' where that is under the noise X, with no drift)."
@@ -429,46 +435,48 @@ def _outage_table(m: dict) -> str:
             f"dead-reckoned.{maxnote}</p>")
 
 
-def _outage_error(d: dict, which: str) -> str:
+def _outage_error(d: OutageDrift | None, which: str) -> str:
     """An outage's start or end error cell: '< X (unresolved)' below the fixes' noise X."""
+    if d is None:
+        return _fmt(None)
     if unresolved(d, which):
-        return f"&lt; {d['error_noise_m']:.2f} (unresolved)"
-    return _fmt(d.get(f"error_{which}_m"))
+        return f"&lt; {d.error_noise_m:.2f} (unresolved)"
+    return _fmt(d.error_start_m if which == "start" else d.error_end_m)
 
 
-def _gps_fixes(m: dict) -> str:
-    d = m.get("data") or {}
-    n, held = d.get("gps_fixes") or 0, d.get("gps_fixes_withheld") or 0
+def _gps_fixes(m: RunSummary) -> str:
+    d = m.data or DataFacts()
+    n, held = d.gps_fixes or 0, d.gps_fixes_withheld or 0
     if not n:
         return "none"
     if held:
-        return f"{n}, of which {held} withheld ({html.escape(str(m.get('gps_holdout')))})"
-    if m.get("gps_holdout"):
-        return f"{n}, none withheld ({html.escape(str(m['gps_holdout']))} selected none)"
+        return f"{n}, of which {held} withheld ({html.escape(str(m.gps_holdout))})"
+    if m.gps_holdout:
+        return f"{n}, none withheld ({html.escape(str(m.gps_holdout))} selected none)"
     return f"{n}, none withheld (no --gps-holdout)"
 
 
-def _heading_offsets(d: dict) -> str:
+def _heading_offsets(d: DataFacts) -> str:
     """Each compass's offset as the GPS course measures it (``estimation.heading_survey``)."""
-    rows = d.get("heading_offsets")
+    rows = d.heading_offsets
     if not rows:
         return "not measured: no compass, GPS and odometry speed together"
     out = []
     for r in rows:
-        med = r["median_rad"]
+        med = r.median_rad
         # the windows about the median, so that a range across +-180 deg reads as one
-        dev = [(w["offset_rad"] - med + math.pi) % (2 * math.pi) - math.pi for w in r["windows"]]
-        out.append(f"{html.escape(r['sensor'])}: yaw minus GPS course "
+        dev = [(w.offset_rad - med + math.pi) % (2 * math.pi) - math.pi for w in r.windows]
+        out.append(f"{html.escape(r.sensor)}: yaw minus GPS course "
                    f"{signed(math.degrees(med), '+.1f')}"
-                   f" deg (median of {len(dev)} windows of {r['window_s']:.0f} s), windows "
+                   f" deg (median of {len(dev)} windows of {r.window_s:.0f} s), windows "
                    f"{signed(math.degrees(med + min(dev)), '+.1f')} to "
                    f"{signed(math.degrees(med + max(dev)), '+.1f')}"
                    " deg")
     return "; ".join(out)
 
 
-def _warnings(m: dict) -> str:
-    w = m.get("warnings")
+def _warnings(m: RunSummary) -> str:
+    w = m.warnings
     if not w:
         return ""
     items = "".join(f"<li>{html.escape(line)}</li>" for line in w)
@@ -476,59 +484,58 @@ def _warnings(m: dict) -> str:
     return f"<h2>Warnings</h2><div class='verdict'><ul>{items}</ul></div>"
 
 
-def _facts(m: dict) -> str:
-    d = m.get("data") or {}
-    rows = [("bag", html.escape(str(m.get("bag")))),
-            ("duration", f"{_fmt(m.get('duration_s'), '.1f')} s"),
-            ("measurements decoded", f"{m.get('messages')} (decoded in "
-                                     f"{_fmt(m.get('decode_s'), '.2f')} s)"),
-            ("path length", f"{_fmt(d.get('path_length_m'), '.1f')} m"
+def _facts(m: RunSummary) -> str:
+    d = m.data or DataFacts()
+    rows = [("bag", html.escape(str(m.bag))),
+            ("duration", f"{_fmt(m.duration_s, '.1f')} s"),
+            ("measurements decoded", f"{m.messages} (decoded in {_fmt(m.decode_s, '.2f')} s)"),
+            ("path length", f"{_fmt(d.path_length_m, '.1f')} m"
              + (f" (through {metrics.FIX_BLOCK_S:g} s block medians of the GPS fixes)"
-                if d.get("path_length_from") == "GPS fixes" else
-                f" (from the {d['path_length_from']})" if d.get("path_length_from") else "")
-             if d.get("path_length_m") is not None
+                if d.path_length_from == "GPS fixes" else
+                f" (from the {d.path_length_from})" if d.path_length_from else "")
+             if d.path_length_m is not None
              else "not measured: no ground truth or GPS fixes to measure it on"),
-            ("ground truth", f"{html.escape(str(d.get('ground_truth_topic')))}: "
-                             f"{d.get('ground_truth_samples')} samples"
-             if d.get("ground_truth_samples") else "none"),
+            ("ground truth", f"{html.escape(str(d.ground_truth_topic))}: "
+                             f"{d.ground_truth_samples} samples"
+             if d.ground_truth_samples else "none"),
             ("GPS fixes", _gps_fixes(m)),
-            ("landmarks in the map", str(d.get("landmarks", 0))),
+            ("landmarks in the map", str(d.landmarks if d.landmarks is not None else 0)),
             ("heading offset, measured", _heading_offsets(d)),
-            ("local frame", html.escape(plots.frame(m)["text"]))]
-    rej = m.get("rejected_messages") or {}
+            ("local frame", html.escape(plots.frame(m.to_json())["text"]))]
+    rej = m.rejected_messages or {}
     rows.append(("messages dropped as invalid", ", ".join(
         f"{html.escape(k)}: {v}" for k, v in rej.items()) or "none"))
     facts = "".join(f'<tr><td class="l">{k}</td><td class="l">{v}</td></tr>' for k, v in rows)
     srows = "".join(
-        f'<tr><td class="l">{html.escape(s["name"])}</td><td class="l">{html.escape(s["topic"])}'
-        f'</td><td class="l">{html.escape(s["kind"])}</td><td class="l">'
-        f'{html.escape(", ".join(s["use"]))}</td><td class="l">'
-        + html.escape(", ".join(f"{t} {n}" for t, n in s["measurements"].items()) or "none")
-        + "</td></tr>" for s in d.get("sensors") or [])
+        f'<tr><td class="l">{html.escape(s.name)}</td><td class="l">{html.escape(s.topic)}'
+        f'</td><td class="l">{html.escape(s.kind)}</td><td class="l">'
+        f'{html.escape(", ".join(s.use))}</td><td class="l">'
+        + html.escape(", ".join(f"{t} {n}" for t, n in s.measurements.items()) or "none")
+        + "</td></tr>" for s in d.sensors or [])
     return (f"<table>{facts}</table><table><tr><th class='l'>sensor</th><th class='l'>topic</th>"
             "<th class='l'>kind</th><th class='l'>fused</th><th class='l'>measurements</th></tr>"
             f"{srows}</table>")
 
 
 def _config(run: SavedRun) -> str:
-    m = run.metrics
-    rows = [("estimators", ", ".join(m["estimators"])),
+    m = run.summary
+    rows = [("estimators", ", ".join(m.estimators)),
             ("not run", "; ".join(f"{n}: {why}" for n, why in not_run(m, run_config(run)))
              or "–"),
-            ("smoother lag", f"{m.get('lag_s')} s"),
-            ("GPS hold-out", str(m.get("gps_holdout") or "none")),
-            ("initial pose", str(m.get("initial_pose") or "each estimator's default")),
-            ("config file", str(m.get("config") or "–"))]
+            ("smoother lag", f"{m.lag_s} s"),
+            ("GPS hold-out", str(m.gps_holdout or "none")),
+            ("initial pose", str(m.initial_pose or "each estimator's default")),
+            ("config file", str(m.config or "–"))]
     table = "".join(f'<tr><td class="l">{k}</td><td class="l">{html.escape(v)}</td></tr>'
                     for k, v in rows)
     text = html.escape(run.config_text) if run.config_text else "(no config file text saved)"
-    t0 = _get(m, "data", "t0")
+    t0 = m.data.t0 if m.data else None
     events = "".join(
         f"<details><summary>{html.escape(n)}: {event_summary(e)}</summary><pre>"
-        + html.escape("\n".join([relative_event(x, t0) for x in e.get("events") or []]
-                                 + _rejection_lines(e.get("rejected") or {})))
+        + html.escape("\n".join([relative_event(x, t0) for x in e.events or []]
+                                 + _rejection_lines(e.rejected or {})))
         + "</pre></details>"
-        for n, e in m["estimators"].items())
+        for n, e in m.estimators.items())
     when = (" (t: seconds since the first measurement, as in the figures)" if t0 is not None
             else " (t: the bag's time stamps)")
     return (f"<table>{table}</table><pre>{text}</pre><h3>Estimator events{when}</h3>"
@@ -546,16 +553,16 @@ def _reason(key: str) -> str:
     return key.rsplit(": ", 1)[-1]
 
 
-def event_summary(e: dict) -> str:
-    """The events header of one estimator's metrics.json entry: its events, the measurements
+def event_summary(e: EstimatorScores) -> str:
+    """The events header of one estimator's scores: its events, the measurements
     the gate rejected (the gating table's "gate rejected", summed over its sensors), those
     dropped for other reasons, and its gate lock-out recoveries (each fused a measurement)."""
-    rej = e.get("rejected") or {}
+    rej = e.rejected or {}
     gate = sum(v for k, v in rej.items() if _reason(k) == "gate")
     recovered = sum(v for k, v in rej.items() if _reason(k) == _RECOVERY)
     other = sum(rej.values()) - gate - recovered
-    n = len(e.get('events') or [])
-    total = e.get("events_total", n)
+    n = len(e.events or [])
+    total = n if e.events_total is None else e.events_total
     parts = [f"first {n} of {total} events" if total > n
              else f"{n} event{'' if n == 1 else 's'}"]
     if gate:
@@ -620,7 +627,7 @@ def captions(run: SavedRun) -> dict[str, str]:
     each = ("Each estimate on its own, on common axes, "
             + ("over the ground truth (grey band)." if truth else "over the GPS fixes (grey "
                "dots)." if gps else "with no ground truth or GPS to draw behind it."))
-    outages = " Grey spans: GPS outages." if run.metrics.get("gps_outages") else ""
+    outages = " Grey spans: GPS outages." if run.summary.gps_outages else ""
     bare = plots.without_covariance(run)
     not_drawn = (f" Not drawn: {', '.join(bare)} ({'it has' if len(bare) == 1 else 'they have'}"
                  " no covariance)." if bare else "")
@@ -638,8 +645,8 @@ def captions(run: SavedRun) -> dict[str, str]:
                       f"estimate over time, log scales.{not_drawn}{outages}",
         "latency": "Wall time of each process() call (one per measurement), per estimator."
                    + "".join(" " + latency_note(n, e)
-                             for n, e in run.metrics["estimators"].items()
-                             if track_kind(n) == "offline" and e.get("update_ms")
+                             for n, e in run.summary.estimators.items()
+                             if track_kind(n) == "offline" and e.update_ms
                              and n in run.update_s and len(run.update_s[n])),
     }
 
@@ -705,13 +712,13 @@ def make_figures(run: SavedRun, progress: Callable[[float], None] | None = None
 def build_html(run: SavedRun, figures: list[tuple[str, bytes | None, str]],
                render_s: float) -> str:
     """The report page for ``run`` with its rendered ``figures``."""
-    m = run.metrics
-    bag = Path(str(m.get("bag"))).name
+    m = run.summary
+    bag = Path(str(m.bag)).name
     verdict = "".join(f"<li>{html.escape(line)}</li>" for line in verdict_lines(m))
     figs = "".join(_figure(png, cap, name) if png is not None else _no_figure(cap)
                    for name, png, cap in figures)
     stamp = datetime.datetime.now().strftime("%Y-%m-%d %H:%M")
-    t0 = _get(m, "data", "t0")
+    t0 = m.data.t0 if m.data else None
     if t0 is None:
         times = ""
     else:
@@ -723,8 +730,8 @@ def build_html(run: SavedRun, figures: list[tuple[str, bytes | None, str]],
         "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>"
         f"<title>ddfuse report: {html.escape(bag)}</title><style>{_CSS}</style></head><body>"
         f"<h1>ddfuse report: {html.escape(bag)}</h1>"
-        f"<p class='sub'>{_fmt(m.get('duration_s'), '.1f')} s of data, "
-        f"{len(m['estimators'])} estimator outputs. Rendered {stamp} from the results in "
+        f"<p class='sub'>{_fmt(m.duration_s, '.1f')} s of data, "
+        f"{len(m.estimators)} estimator outputs. Rendered {stamp} from the results in "
         f"{html.escape(str(run.outdir))} (figures in {render_s:.1f} s).{times}</p>"
         f"<h2>Verdict</h2><div class='verdict'><ul>{verdict}</ul></div>"
         f"{_warnings(m)}"

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import json
 import zipfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -40,6 +40,7 @@ from ddfuse.estimation.errors import DdfuseError
 from ddfuse.estimation.runner import RunResult, Trajectory
 from ddfuse.evaluation.consistency import InnovationTable
 from ddfuse.evaluation.export import read_csv, write_csv, write_tum
+from ddfuse.evaluation.scores import DataFacts, RunSummary
 
 RUN_FILE = "run.npz"
 METRICS_FILE = "metrics.json"
@@ -54,10 +55,12 @@ class ResultsError(DdfuseError):
 @dataclass
 class SavedRun:
     """A run's results as read back from its output directory (see module docstring), or
-    built in memory from a RunResult (``from_result``; ``outdir`` None)."""
+    built in memory from a RunResult (``from_result``; ``outdir`` None). ``summary``: the
+    scores (metrics.json, ``scores.RunSummary``); ``metrics``: the same as metrics.json's
+    dictionary."""
 
     outdir: Path | None
-    metrics: dict
+    summary: RunSummary  # a metrics.json dictionary given is read into one
     tracks: dict[str, Trajectory]
     truth: Trajectory | None
     gps_t: np.ndarray
@@ -70,25 +73,34 @@ class SavedRun:
     update_s: dict[str, np.ndarray] = field(default_factory=dict)
     config_text: str | None = None
 
+    def __post_init__(self):
+        if isinstance(self.summary, dict):  # a metrics.json dictionary, e.g. a hand-built one
+            self.summary = RunSummary.from_json(self.summary)
+
+    @property
+    def metrics(self) -> dict:
+        """metrics.json's dictionary (``summary.to_json()``, built anew at each call)."""
+        return self.summary.to_json()
+
     @classmethod
-    def from_result(cls, result: RunResult, metrics: dict | None = None, *, cfg=None,
-                    config_text: str | None = None) -> SavedRun:
+    def from_result(cls, result: RunResult, metrics: RunSummary | dict | None = None, *,
+                    cfg=None, config_text: str | None = None) -> SavedRun:
         """What ``load_run`` would read back had ``result`` been saved, without touching disk:
         the arrays ``save_run`` would write into run.npz, read as ``load_run`` reads them, and
         the tracks and truth as they are (the saved CSV rounds to 10 digits). ``outdir`` is
         None.
 
-        ``metrics``: the run's metrics dictionary (what ``ddfuse run`` writes as metrics.json);
-        by default ``ddfuse.evaluation.pipeline.score(result)`` with the data facts the figures read
-        (the local frame, t0): all of them with the run's config ``cfg``
+        ``metrics``: the run's scores (a RunSummary, or the metrics.json dictionary ``ddfuse
+        run`` writes); by default ``ddfuse.evaluation.pipeline.score(result)`` with the data
+        facts the figures read (the local frame, t0): all of them with the run's config ``cfg``
         (``pipeline.data_facts``, and the initial pose), else the stream's start, datum and
         landmarks. ``config_text``: shown by the report (default: ``cfg``'s file)."""
         if metrics is None:
             metrics = _score(result, cfg)
+        elif isinstance(metrics, dict):
+            metrics = RunSummary.from_json(metrics)
         if config_text is None and cfg is not None:
             config_text = config_text_of(cfg)
-        # through JSON, as metrics.json is read back (lists, not tuples; string keys)
-        metrics = json.loads(json.dumps(metrics))
         tracks = {name: r.trajectory for name, r in result.runs.items() if len(r.trajectory)}
         return _from_arrays(None, metrics, _run_arrays(result, config_text), tracks,
                             result.truth)
@@ -103,24 +115,22 @@ def config_text_of(cfg) -> str | None:
     return Path(path).read_text(errors="replace") if path and Path(path).is_file() else None
 
 
-def _score(result: RunResult, cfg) -> dict:
-    """The metrics dictionary of an in-memory run, as far as ``SavedRun.from_result`` needs
-    one (see there)."""
+def _score(result: RunResult, cfg) -> RunSummary:
+    """The scores of an in-memory run, as far as ``SavedRun.from_result`` needs them (see
+    there)."""
     from ddfuse.evaluation import pipeline  # it imports this module
 
     m = pipeline.score(result, cfg=cfg)  # the GPS antenna (lever arm, delay) as run scores it
     if cfg is not None:
         surveys = pipeline.offset_surveys(result, cfg)
-        m["data"] = pipeline.data_facts(result, cfg, surveys)
-        m["warnings"] = heading_survey.config_warnings(surveys, cfg)
         ip = cfg.initial_pose
-        m["initial_pose"] = ("first ground-truth pose" if ip == "ground_truth"
-                             else list(ip) if ip else None)
-    else:
-        st = result.stream
-        m["data"] = {"t0": st.t0, "t1": st.t1, "landmarks": len(st.landmarks),
-                     "datum": list(st.datum) if st.datum else None}
-    return m
+        return replace(m, data=pipeline.data_facts(result, cfg, surveys),
+                       warnings=heading_survey.config_warnings(surveys, cfg),
+                       initial_pose=("first ground-truth pose" if ip == "ground_truth"
+                                     else list(ip) if ip else None))
+    st = result.stream
+    return replace(m, data=DataFacts(t0=st.t0, t1=st.t1, landmarks=len(st.landmarks),
+                                     datum=list(st.datum) if st.datum else None))
 
 
 def _previous_tracks(outdir: Path) -> list[str]:
@@ -196,7 +206,7 @@ def load_run(outdir: str | Path) -> SavedRun:
             raise ResultsError(f"{p}: no saved run results ({what}; 'ddfuse run -o {outdir}' "
                                f"writes them)")
     try:
-        metrics = json.loads(mpath.read_text())
+        summary = RunSummary.from_json(json.loads(mpath.read_text()))
         z = np.load(npath, allow_pickle=False)
         meta = json.loads(str(z["meta"]))
         tracks = {}
@@ -206,12 +216,12 @@ def load_run(outdir: str | Path) -> SavedRun:
                 tracks[name] = read_csv(p)
         tpath = outdir / f"{TRUTH}.csv"
         truth = read_csv(tpath) if tpath.is_file() else None
-        return _from_arrays(outdir, metrics, z, tracks, truth)
+        return _from_arrays(outdir, summary, z, tracks, truth)
     except (OSError, EOFError, ValueError, KeyError, TypeError, zipfile.BadZipFile) as e:
         raise ResultsError(f"{outdir}: damaged run results ({type(e).__name__}: {e})") from None
 
 
-def _from_arrays(outdir: Path | None, metrics: dict, z, tracks: dict[str, Trajectory],
+def _from_arrays(outdir: Path | None, summary: RunSummary, z, tracks: dict[str, Trajectory],
                  truth: Trajectory | None) -> SavedRun:
     """A SavedRun from run.npz's arrays ``z`` (an NpzFile or the dictionary ``_run_arrays``
     gives) and the tracks and truth."""
@@ -228,7 +238,7 @@ def _from_arrays(outdir: Path | None, metrics: dict, z, tracks: dict[str, Trajec
         tables[name] = InnovationTable(*(z[f"innov/{key}/{f}"] for f in _INNOV_FIELDS),
                                        folded=folded, n_thinned=n_thinned)
     return SavedRun(
-        outdir, metrics, tracks, truth, z["gps_t"], z["gps_xy"], z["gps_cov"],
+        outdir, summary, tracks, truth, z["gps_t"], z["gps_xy"], z["gps_cov"],
         z["gps_withheld"],
         {str(i): (float(x), float(y)) for i, (x, y) in zip(z["landmark_ids"],
                                                             z["landmark_xy"], strict=True)},

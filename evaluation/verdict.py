@@ -1,4 +1,4 @@
-"""A short plain-language verdict from a run's metrics dictionary (pure: dict in, text out).
+"""A short plain-language verdict from a run's scores (pure: ``scores.RunSummary`` in, text out).
 
 Which estimator is better on the best score available (position ATE against the truth, else the
 RMSE to withheld GPS fixes), by how much; whether the EKF ties or wins; whether each estimator is
@@ -10,8 +10,12 @@ noise draw or a slightly different tuning changes.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 from ddfuse.estimation.estimator import wrap_angle
+from ddfuse.evaluation.consistency import Consistency, SensorNis
+from ddfuse.evaluation.metrics import OutageDrift
+from ddfuse.evaluation.scores import CalibrationState, EstimatorScores, RunSummary
 
 TIE = 0.05  # relative difference under which two scores tie
 # The one tie rule, for the verdict and the report's tables alike (``tie``).
@@ -27,11 +31,11 @@ CALIBRATION_DISPLAY = {"bg": ("gyro bias", "deg/s", 180.0 / math.pi, ".3f"),
                        "k_w": ("odometry yaw-rate scale k_w", "", 1.0, ".4f")}
 
 
-def final_states(m: dict) -> dict[str, dict]:
-    """Per estimator that has any, its calibration states at the end (metrics
-    ``final_state``): {estimator: {label: {"value", "sigma"}}}."""
-    finals = {n: (e.get("final_state") or {}).get("states") or {}
-              for n, e in m["estimators"].items()}
+def final_states(m: RunSummary) -> dict[str, dict[str, CalibrationState]]:
+    """Per estimator that has any, its calibration states at the end (``final_state``):
+    {estimator: {label: state}}."""
+    finals = {n: e.final_state.states if e.final_state else {}
+              for n, e in m.estimators.items()}
     return {n: st for n, st in finals.items() if st}
 
 
@@ -47,6 +51,8 @@ def calibration_value(label: str, value: float, sigma: float | None) -> str:
     _, _, k, spec = CALIBRATION_DISPLAY.get(label.partition(":")[0], ("", "", 1.0, ".4g"))
     return f"{k * value:{spec}}" + ("" if sigma is None else f" ± {k * sigma:{spec}}")
 OFFLINE = {"batch": "offline: the whole run at once"}
+# the scores a ranking is on (EstimatorScores fields): against the truth, else withheld fixes
+ATE, HOLDOUT = "ate_rmse_m", "gps_holdout_rmse_m"
 
 
 def track_kind(name: str, lag_s: float | None = None) -> str:
@@ -58,50 +64,51 @@ def track_kind(name: str, lag_s: float | None = None) -> str:
     return "real time"
 
 
-def _score(m: dict) -> tuple[str | None, str]:
-    """The metrics key to rank by and a sentence saying what it is."""
-    ests_d = m["estimators"]
+def _score(m: RunSummary) -> tuple[str | None, str]:
+    """The ``EstimatorScores`` field to rank by (``ATE`` or ``HOLDOUT``) and a sentence saying
+    what it is."""
+    ests_d = m.estimators
     ests = ests_d.values()
-    if any(e.get("ate_rmse_m") is not None for e in ests):
-        return "ate_rmse_m", ("Score: RMS position error against the ground truth (ATE, no "
-                              "alignment, lower is better).")
-    if any(e.get("gps_holdout_rmse_m") is not None for e in ests):
-        n, scored = m.get("gps_holdout_fixes"), m.get("gps_holdout_scored_fixes")
-        k = m.get("gps_holdout_outliers") or 0
+    if any(e.ate_rmse_m is not None for e in ests):
+        return ATE, ("Score: RMS position error against the ground truth (ATE, no "
+                     "alignment, lower is better).")
+    if any(e.gps_holdout_rmse_m is not None for e in ests):
+        n, scored = m.gps_holdout_fixes, m.gps_holdout_scored_fixes
+        k = m.gps_holdout_outliers or 0
         which = (f"{n} GPS fixes withheld from every estimator" if scored in (None, n) else
                  f"{scored} of the {n} GPS fixes withheld from every estimator (those at which "
                  "every estimator has an estimate)" if scored + k < n else
                  f"{scored} of the {n} GPS fixes withheld from every estimator")
-        k = m.get("gps_holdout_outliers") or 0
         gross = (f" {k} withheld fix{'es' if k > 1 else ''} that no estimator comes near "
                  f"(beyond every one's GPS gate: gross GPS error{'s' if k > 1 else ''}) "
                  f"{'are' if k > 1 else 'is'} left out for all alike." if k else "")
-        return "gps_holdout_rmse_m", (f"Score: RMS distance to the {which} (no ground truth; "
-                                      "lower is better)." + gross)
-    own = {n: e["gps_holdout_span_s"] for n, e in ests_d.items()
-           if e.get("gps_holdout_span_s") and e.get("gps_holdout_m")}
-    if m.get("gps_holdout_fixes") and m.get("gps_holdout_scored_fixes") == 0 and own:
+        return HOLDOUT, (f"Score: RMS distance to the {which} (no ground truth; "
+                         "lower is better)." + gross)
+    own = {n: e.gps_holdout_span_s for n, e in ests_d.items()
+           if e.gps_holdout_span_s and e.gps_holdout_m}
+    if m.gps_holdout_fixes and m.gps_holdout_scored_fixes == 0 and own:
         # each track could be scored only on the fixes in its own span: not comparable
-        t0 = (m.get("data") or {}).get("t0") or 0.0
-        spans = ", ".join(f"{n} {a - t0:.0f}-{b - t0:.0f} s ({ests_d[n]['gps_holdout_m']['n']} "
+        t0 = m.t0
+        spans = ", ".join(f"{n} {a - t0:.0f}-{b - t0:.0f} s ({ests_d[n].gps_holdout_m.n} "
                           "fixes)" for n, (a, b) in own.items())
         return None, (f"No score: the bag has no ground truth, and none of the "
-                      f"{m['gps_holdout_fixes']} GPS fixes withheld (--gps-holdout "
-                      f"{m.get('gps_holdout')}) lies inside every estimator's span ({spans}), "
+                      f"{m.gps_holdout_fixes} GPS fixes withheld (--gps-holdout "
+                      f"{m.gps_holdout}) lies inside every estimator's span ({spans}), "
                       "so no two estimators can be scored on the same fixes; their distances "
                       "to the fixes in their own spans (gps_holdout_m in metrics.json) are not "
                       "comparable.")
-    if m.get("gps_holdout") and not m.get("gps_holdout_fixes"):
+    if m.gps_holdout and not m.gps_holdout_fixes:
         return None, (f"No score: the bag has no ground truth, and --gps-holdout "
-                      f"{m['gps_holdout']} withheld no GPS fix (its window is outside the "
-                      f"{m.get('duration_s') or 0:.0f} s of data, or the bag has no fixes).")
-    if m.get("gps_holdout"):
-        n = m["gps_holdout_fixes"]
-        used = (m.get("data") or {}).get("gps_fixes", n) - n
+                      f"{m.gps_holdout} withheld no GPS fix (its window is outside the "
+                      f"{m.duration_s or 0:.0f} s of data, or the bag has no fixes).")
+    if m.gps_holdout:
+        n = m.gps_holdout_fixes
+        fixes = m.data.gps_fixes if m.data else None
+        used = (n if fixes is None else fixes) - n
         why = (" Every fix was withheld, so the estimators that start from GPS never did."
                if used <= 0 else "")
         return None, (f"No score: the bag has no ground truth, and no estimator has an estimate "
-                      f"at the {n} GPS fixes --gps-holdout {m['gps_holdout']} withheld.{why}")
+                      f"at the {n} GPS fixes --gps-holdout {m.gps_holdout} withheld.{why}")
     return None, ("No score: the bag has no ground truth and no GPS fixes were withheld "
                   "(run with --gps-holdout every:5, or window:T0:T1 for an outage).")
 
@@ -152,12 +159,12 @@ def _compare(a: str, va: float, b: str, vb: float) -> str:
             f"({100 * rel:.1f}%) lower.")
 
 
-def _direction(s: dict) -> str:
+def _direction(s: Consistency) -> str:
     """Which way a failing consistency summary leans: a mean well over the expected one (or
     only the upper tail off) is over-confidence, well under (or only the lower tail) is
     pessimism; with the mean within [2/3, 1.5] of the expected one it is the tails alone
     (errors not Gaussian), said with their shares."""
-    ratio, above, below = s.get("ratio"), s.get("above") or 0.0, s.get("below") or 0.0
+    ratio, above, below = s.ratio, s.above or 0.0, s.below or 0.0
     if ratio is None:
         return ""
     tail = 0.05  # twice the nominal 2.5% on one side of the 95% band
@@ -180,11 +187,11 @@ _KIND_TYPE = {"heading": "Heading", "gps": "GpsFix", "gyro": "GyroYawRate",
               "accel": "ForwardAccel", "landmark": "LandmarkObservation"}
 
 
-def _topic_kind(label: str, st: dict) -> tuple[str, str]:
+def _topic_kind(label: str, st: SensorNis) -> tuple[str, str]:
     """A NIS row's sensor topic and kind (metrics ``nis`` entries carry them; else from the
     label 'topic kind')."""
     topic, _, kind = label.rpartition(" ")
-    return st.get("sensor") or topic or label, st.get("kind") or kind
+    return st.sensor or topic or label, st.kind or kind
 
 
 def averaged_per_keyframe(name: str, kind: str) -> bool:
@@ -194,69 +201,75 @@ def averaged_per_keyframe(name: str, kind: str) -> bool:
     return kind == "heading" and (name.startswith("smoother") or name in OFFLINE)
 
 
-def sensor_samples(m: dict, topic: str, kind: str | None = None) -> int | None:
+def sensor_samples(m: RunSummary, topic: str, kind: str | None = None) -> int | None:
     """How many measurements of ``kind`` (or of any kind, the most) sensor ``topic`` gave
-    (metrics ``data.sensors``)."""
-    for s in (m.get("data") or {}).get("sensors") or []:
-        if s.get("topic") == topic or s.get("name") == topic:
-            meas = s.get("measurements") or {}
+    (``data.sensors``)."""
+    for s in (m.data.sensors if m.data else None) or []:
+        if s.topic == topic or s.name == topic:
+            meas = s.measurements or {}
             if kind in _KIND_TYPE and _KIND_TYPE[kind] in meas:
                 return int(meas[_KIND_TYPE[kind]])
             return max(meas.values(), default=None)
     return None
 
 
-def gate_rejections(m: dict) -> dict[str, dict]:
-    """Per sensor topic that some estimator's gate rejected samples of (metrics
-    ``rejected['topic: gate']``, counted per sample whatever its NIS rows hold): its gated
-    'kind', and per estimator fusing it (``by``: {track: (rejected, samples)}), with
-    ``throughout`` the tracks that rejected at least REJECTED_THROUGHOUT of them and ``all``
-    whether every track fusing the sensor did."""
-    ests = m["estimators"]
-    out: dict[str, dict] = {}
-    for e in ests.values():
-        for k in e.get("rejected") or {}:
-            topic, _, reason = k.rpartition(": ")
-            if reason == "gate":
-                out.setdefault(topic, {})
-    for topic, info in out.items():
+@dataclass(frozen=True)
+class GateRejection:
+    """What the gates did to one sensor (``gate_rejections``): its gated ``kind`` (None where
+    no NIS row names it), per estimator fusing it ``by`` {track: (rejected, samples)}, the
+    tracks that rejected at least REJECTED_THROUGHOUT of them (``throughout``), and whether
+    every track fusing the sensor did (``everyone``)."""
+
+    kind: str | None
+    by: dict[str, tuple[int, int | None]]
+    throughout: list[str]
+    everyone: bool
+
+
+def gate_rejections(m: RunSummary) -> dict[str, GateRejection]:
+    """Per sensor topic that some estimator's gate rejected samples of (``rejected['topic:
+    gate']``, counted per sample whatever its NIS rows hold): ``GateRejection``."""
+    ests = m.estimators
+    topics = list(dict.fromkeys(topic for e in ests.values() for k in e.rejected or {}
+                                for topic, _, reason in [k.rpartition(": ")] if reason == "gate"))
+    out: dict[str, GateRejection] = {}
+    for topic in topics:
         kind, per_row = None, {}
         for n, e in ests.items():
-            for label, st in (e.get("nis") or {}).items():
+            for label, st in (e.nis or {}).items():
                 t, k = _topic_kind(label, st)
-                if t == topic and (st.get("rejected") or 0) > 0 and not \
-                        averaged_per_keyframe(n, k):
+                if t == topic and (st.rejected or 0) > 0 and not averaged_per_keyframe(n, k):
                     kind = kind or k
-                    per_row[n] = (st.get("accepted") or 0) + st["rejected"]
+                    per_row[n] = (st.accepted or 0) + st.rejected
         n_all = sensor_samples(m, topic, kind)
         by = {}
         for n, e in ests.items():
             fuses = any(_topic_kind(label, st)[0] == topic
-                        for label, st in (e.get("nis") or {}).items()) or any(
-                k.rpartition(": ")[0] == topic for k in e.get("rejected") or {})
-            if not fuses or e.get("samples") == 0:
+                        for label, st in (e.nis or {}).items()) or any(
+                k.rpartition(": ")[0] == topic for k in e.rejected or {})
+            if not fuses or e.samples == 0:
                 continue
-            r = (e.get("rejected") or {}).get(f"{topic}: gate", 0)
+            r = (e.rejected or {}).get(f"{topic}: gate", 0)
             by[n] = (r, per_row.get(n) or n_all)
         thr = [n for n, (r, tot) in by.items() if tot and r >= REJECTED_THROUGHOUT * tot]
-        info.update(kind=kind, by=by, throughout=thr, all=bool(by) and len(thr) == len(by))
+        out[topic] = GateRejection(kind, by, thr, bool(by) and len(thr) == len(by))
     return out
 
 
-def _rejected_throughout(m: dict, name: str) -> dict[tuple[str, str | None], str]:
+def _rejected_throughout(m: RunSummary, name: str) -> dict[tuple[str, str | None], str]:
     """The sensors ``name``'s gate rejected throughout: {(topic, kind or None): 'topic kind
     rejected by the gate throughout (r/N): not fused'}."""
     out = {}
     for topic, info in gate_rejections(m).items():
-        if name in info["throughout"]:
-            r, tot = info["by"][name]
-            what = f"{topic} {info['kind']}" if info["kind"] else topic
-            out[(topic, info["kind"])] = (f"{what} rejected by the gate throughout "
+        if name in info.throughout:
+            r, tot = info.by[name]
+            what = f"{topic} {info.kind}" if info.kind else topic
+            out[(topic, info.kind)] = (f"{what} rejected by the gate throughout "
                                           f"({r}/{tot}): not fused")
     return out
 
 
-def _units(nis: dict) -> dict[tuple[str, str], list[str]]:
+def _units(nis: dict[str, SensorNis]) -> dict[tuple[str, str], list[str]]:
     """What a NIS dictionary tests: (topic, kind group) -> its labels."""
     out: dict[tuple[str, str], list[str]] = {}
     for label, st in nis.items():
@@ -265,16 +278,17 @@ def _units(nis: dict) -> dict[tuple[str, str], list[str]]:
     return out
 
 
-def _gated_units(m: dict | None, name: str) -> set[tuple[str, str]]:
+def _gated_units(m: RunSummary | None, name: str) -> set[tuple[str, str]]:
     """The (topic, kind) a track's gate decided on though it logged no NIS row for them
     (a sensor rejected throughout: ``gate_rejections``)."""
     if not m:
         return set()
-    return {(t, info["kind"]) for t, info in gate_rejections(m).items()
-            if info["kind"] and name in info["by"]}
+    return {(t, info.kind) for t, info in gate_rejections(m).items()
+            if info.kind and name in info.by}
 
 
-def _shown_units(nis: dict, m: dict | None, name: str) -> list[tuple[str, str]]:
+def _shown_units(nis: dict[str, SensorNis], m: RunSummary | None, name: str
+                 ) -> list[tuple[str, str]]:
     """What a track tests, by its own kind names, for its consistency line."""
     own = [_topic_kind(label, st) for label, st in nis.items()]
     return list(dict.fromkeys(own + sorted(_gated_units(m, name) - set(own))))
@@ -291,20 +305,20 @@ def _covered(units) -> str:
 _HEADS = ("consistent", "partly consistent", "not consistent")
 
 
-def _consistency(name: str, e: dict, seen_nis: dict, m: dict | None = None,
+def _consistency(name: str, e: EstimatorScores, seen_nis: dict, m: RunSummary | None = None,
                  others: dict | None = None) -> tuple[str, str | None]:
     """One estimator's consistency in a sentence, and its head ('consistent', 'partly ...',
     None when not measurable). ``others``: {owner: units tested} of the other estimators, to
     say what this one does not test."""
     parts = []
-    nees = e.get("nees")
-    if nees and nees.get("verdict"):
-        v = nees["verdict"]
-        txt = f"NEES {v} (mean {nees['mean']:.2f} for {nees['expected']:g} expected"
+    nees = e.nees
+    if nees and nees.verdict:
+        v = nees.verdict
+        txt = f"NEES {v} (mean {nees.mean:.2f} for {nees.expected:g} expected"
         if v != "Pass":
             txt += f", {_direction(nees)}"
         parts.append(txt + ")")
-    nis = e.get("nis") or {}
+    nis = e.nis or {}
     gone = _rejected_throughout(m, name) if m else {}
     key = repr(sorted(nis.items()))
     judged_nis = {label: st for label, st in nis.items()
@@ -318,17 +332,17 @@ def _consistency(name: str, e: dict, seen_nis: dict, m: dict | None = None,
         parts += list(gone.values())
         by: dict[str, list[str]] = {}
         for label, st in judged_nis.items():
-            v = st.get("verdict")
+            v = st.nis.verdict
             if v is None:
                 continue
             per_kf = (", averaged per keyframe" if averaged_per_keyframe(
                 name, _topic_kind(label, st)[1]) else "")
-            note = (f" ({_direction(st)}, mean/expected {st['ratio']:.2f}{per_kf})"
+            note = (f" ({_direction(st.nis)}, mean/expected {st.nis.ratio:.2f}{per_kf})"
                     if v != "Pass" else (f" ({per_kf[2:]})" if per_kf else ""))
             by.setdefault(v, []).append(label + note)
         parts += [f"NIS {v}: {', '.join(by[v])}" for v in ("Fail", "Warn", "Pass") if v in by]
-    nees_v = (nees or {}).get("verdict")
-    judged = [s.get("verdict") for s in judged_nis.values() if (s or {}).get("verdict")]
+    nees_v = nees.verdict if nees else None
+    judged = [s.nis.verdict for s in judged_nis.values() if s and s.nis.verdict]
     judged += ["Fail"] * len(gone)  # a sensor not fused at all is no consistent one
     fails = judged.count("Fail")
     bad = nees_v in ("Fail", "Warn") or fails > 0
@@ -338,10 +352,10 @@ def _consistency(name: str, e: dict, seen_nis: dict, m: dict | None = None,
         nees_v is None and judged and 2 * fails >= len(judged)) else (
         "partly consistent" if bad else "consistent")
     if not parts:
-        why = ("no covariance to test against the truth" if e.get("ate_rmse_m") is not None
+        why = ("no covariance to test against the truth" if e.ate_rmse_m is not None
                else "no truth")
         return f"{name}: consistency not measurable ({why}, no innovations logged).", None
-    kinds = {s.get("kind") for s in nis.values()}
+    kinds = {s.kind for s in nis.values()}
     dr = (f" It fuses no absolute measurement here ({', '.join(sorted(map(str, kinds)))} "
           "only): it is dead reckoning.") if nis and not kinds & ABSOLUTE_KINDS else ""
     mine = set(_units(nis)) | _gated_units(m, name)
@@ -376,7 +390,7 @@ def _coverage_caution(heads: dict[str, str], units: dict[str, set]) -> str | Non
                if both else "."))
 
 
-def _noise_hints(ests: dict) -> list[str]:
+def _noise_hints(ests: dict[str, EstimatorScores]) -> list[str]:
     """Where two or more estimators test a sensor's residuals (their own NIS, not a lagged or
     batch track's copy) and all find them off in the same direction (NIS Fail, all pessimistic
     or all over-confident), the cause is the config's noise value for that sensor, which they
@@ -385,18 +399,18 @@ def _noise_hints(ests: dict) -> list[str]:
     yaw_rate' in one, 'odom odometry' in another)."""
     tests: dict[str, dict[str, tuple[str | None, list, list]]] = {}
     for e in ests.values():
-        nis = e.get("nis") or {}
-        if e.get("samples") == 0 or not nis:
+        nis = e.nis or {}
+        if e.samples == 0 or not nis:
             continue
         owner = repr(sorted(nis.items()))  # tracks of one filter share its NIS
         for label, st in nis.items():
             topic, kind = _topic_kind(label, st)
-            ok = st.get("verdict") == "Fail" and st.get("ratio") is not None
+            ok = st.nis.verdict == "Fail" and st.nis.ratio is not None
             d, ratios, kinds = tests.setdefault(topic, {}).get(owner, ("", [], []))
             # one row of the sensor not failing, or failing the other way: no config hint
-            new = _direction(st) if ok else None
+            new = _direction(st.nis) if ok else None
             d = new if d in ("", new) else None
-            tests[topic][owner] = (d, ratios + [st["ratio"]] if ok else ratios,
+            tests[topic][owner] = (d, ratios + [st.nis.ratio] if ok else ratios,
                                    kinds + [kind] if ok else kinds)
     by_dir: dict[str, list[str]] = {}
     for topic, owners in tests.items():
@@ -415,18 +429,18 @@ def _noise_hints(ests: dict) -> list[str]:
             "method is better." for d, labels in by_dir.items()]
 
 
-def _gate_lines(m: dict) -> list[str]:
+def _gate_lines(m: RunSummary) -> list[str]:
     """A sensor every estimator fusing it rejected (nearly) throughout: one line for all."""
     out = []
     for topic, info in gate_rejections(m).items():
-        if not info["all"]:
+        if not info.everyone:
             continue
-        counts = {f"{r}/{tot}" for r, tot in info["by"].values()}
+        counts = {f"{r}/{tot}" for r, tot in info.by.values()}
         each = (f"{counts.pop()} each" if len(counts) == 1 else ", ".join(
-            f"{n} {r}/{tot}" for n, (r, tot) in info["by"].items()))
-        what = f"{topic} {info['kind']}" if info["kind"] else topic
-        check = ("heading_offset / noise" if info["kind"] == "heading" else "noise, "
-                 "lever arm / delay" if info["kind"] == "gps" else "noise")
+            f"{n} {r}/{tot}" for n, (r, tot) in info.by.items()))
+        what = f"{topic} {info.kind}" if info.kind else topic
+        check = ("heading_offset / noise" if info.kind == "heading" else "noise, "
+                 "lever arm / delay" if info.kind == "gps" else "noise")
         out.append(f"Every estimator rejected {what} throughout ({each}): nothing of it was "
                    f"fused, alike for all; check the config's {check} for {topic}.")
     return out
@@ -437,16 +451,16 @@ def _gate_lines(m: dict) -> list[str]:
 ASSOCIATION_SHARE = 0.3
 
 
-def _association_caution(m: dict, scored: dict) -> str | None:
+def _association_caution(m: RunSummary, scored: dict) -> str | None:
     """The ATE pairs each estimate with the nearest truth sample (evo's rule); where that
     alone is a sizeable share of a track's ATE (sparse truth, outputs between its samples),
     say so with the figures (``metrics.association_error``)."""
-    ests = m["estimators"]
-    hit = {n: ests[n]["ate_association_rmse_m"] for n in scored
-           if (ests[n].get("ate_association_rmse_m") or 0.0) > ASSOCIATION_SHARE * scored[n]}
+    ests = m.estimators
+    hit = {n: ests[n].ate_association_rmse_m for n in scored
+           if (ests[n].ate_association_rmse_m or 0.0) > ASSOCIATION_SHARE * scored[n]}
     if not hit:
         return None
-    dt = (m.get("data") or {}).get("ground_truth_interval_s")
+    dt = m.data.ground_truth_interval_s if m.data else None
     every = f" every {dt:.3g} s" if dt else ""
     return ("Caution: the truth is sampled" + every + ", and each estimate is paired with the "
             "nearest truth sample (evo's rule, no interpolation). A track exactly on the true "
@@ -462,22 +476,22 @@ def _association_caution(m: dict, scored: dict) -> str | None:
 SPAN_SLACK_S = 1.0
 
 
-def _ranked_scores(m: dict, key: str, scored: dict) -> tuple[dict, str | None]:
+def _ranked_scores(m: RunSummary, key: str, scored: dict) -> tuple[dict, str | None]:
     """The scores to rank on: for the ATE, every track's RMSE on the common span and stamps
     (``pipeline._common_ate``) where all scored tracks have one, with a sentence saying so;
     else the scores themselves."""
-    c = m.get("ate_common")
-    ests = m["estimators"]
-    common = {n: ests[n].get("ate_common_rmse_m") for n in scored}
-    if key != "ate_rmse_m" or not c or None in common.values():
+    c = m.ate_common
+    ests = m.estimators
+    common = {n: ests[n].ate_common_rmse_m for n in scored}
+    if key != ATE or not c or None in common.values():
         return scored, None
-    t0 = (m.get("data") or {}).get("t0") or 0.0
-    span = c.get("span_s")
+    t0 = m.t0
+    span = c.span_s
     # max: t0 and the span come rounded from different places ("-0.0-399.9 s")
     where = (f" within the common span {max(span[0] - t0, 0.0):.1f}-{span[1] - t0:.1f} s"
              if span else "")
-    return common, (f"Ranked on the same moments for every track: the {c['stamps']} stamps of "
-                    f"{c['of']}{where}, every track and the truth interpolated there (each "
+    return common, (f"Ranked on the same moments for every track: the {c.stamps} stamps of "
+                    f"{c.of}{where}, every track and the truth interpolated there (each "
                     "track's own ATE, over all its samples as evo pairs them, is in the "
                     "table).")
 
@@ -494,16 +508,16 @@ def _own_ate_line(scored: dict, ranked: dict, best: str, tied: list[str]) -> str
             + f"; there {own_best} is best, not {best}.")
 
 
-def _span_lines(m: dict) -> list[str]:
+def _span_lines(m: RunSummary) -> list[str]:
     """Tracks whose own span differs from the common one by more than SPAN_SLACK_S: which
     start later or stop earlier than the others, by how much, and what the ranking covers."""
-    c = m.get("ate_common") or {}
-    spans = {n: e["span_s"] for n, e in m["estimators"].items()
-             if e.get("span_s") and e.get("ate_common_rmse_m") is not None}
-    if not c.get("span_s") or len(spans) < 2:
+    c = m.ate_common
+    spans = {n: e.span_s for n, e in m.estimators.items()
+             if e.span_s and e.ate_common_rmse_m is not None}
+    if not c or not c.span_s or len(spans) < 2:
         return []
-    t0 = (m.get("data") or {}).get("t0") or 0.0
-    lo, hi = c["span_s"]
+    t0 = m.t0
+    lo, hi = c.span_s
     first = min(a for a, _ in spans.values())
     last = max(b for _, b in spans.values())
     out = []
@@ -513,7 +527,7 @@ def _span_lines(m: dict) -> list[str]:
                        f"every track is ranked from {lo - t0:.1f} s, so the others' first "
                        f"{a - first:.1f} s, often their worst, count for none.")
         if last - b > SPAN_SLACK_S:
-            why = " (an error: it stopped early)" if m["estimators"][n].get("error") else ""
+            why = " (an error: it stopped early)" if m.estimators[n].error else ""
             out.append(f"{n} ends {last - b:.1f} s before the last track, at {b - t0:.1f} s"
                        f"{why}: every track is ranked only up to {hi - t0:.1f} s; the table's "
                        "ATE covers each track's own span.")
@@ -526,80 +540,79 @@ def interruption(error: str | None) -> bool:
     return bool(error) and error.startswith("interrupted (Ctrl-C)")
 
 
-def _stopped_early(m: dict) -> list[str]:
+def _stopped_early(m: RunSummary) -> list[str]:
     """The tracks left out of the ranking: a real error, or an interruption after which the
     track ends more than SPAN_SLACK_S before the last one (Ctrl-C ends every track at the same
     message; one caught inside its update keeps what it had, which is all of it)."""
-    ests = m["estimators"]
-    ends = [e["span_s"][1] for e in ests.values() if e.get("span_s")]
+    ests = m.estimators
+    ends = [e.span_s[1] for e in ests.values() if e.span_s]
     last = max(ends) if ends else None
     out = []
     for n, e in ests.items():
-        if not e.get("error"):
+        if not e.error:
             continue
-        span = e.get("span_s")
-        if not interruption(e["error"]) or span is None or last is None or (
+        span = e.span_s
+        if not interruption(e.error) or span is None or last is None or (
                 last - span[1] > SPAN_SLACK_S):
             out.append(n)
     return out
 
 
-def unresolved(d: dict, which: str = "end") -> bool:
+def unresolved(d: OutageDrift, which: str = "end") -> bool:
     """Whether an outage's error at its ``which`` ('start' or 'end'), scored through block
     medians of noisy fixes (``metrics.outage_drift``), lies below their noise there: not
     resolved (the value is |median| less the noise, clipped at 0: not an error size)."""
-    v, noise = d.get(f"error_{which}_m"), d.get("error_noise_m")
+    v, noise = (d.error_start_m if which == "start" else d.error_end_m), d.error_noise_m
     return v is not None and noise is not None and v < noise
 
 
-def outage_drift(d: dict) -> float | None:
+def outage_drift(d: OutageDrift) -> float | None:
     """An outage's drift per metre where both its errors are resolved, else None."""
-    if d.get("drift_per_m") is None or unresolved(d, "start") or unresolved(d, "end"):
+    if d.drift_per_m is None or unresolved(d, "start") or unresolved(d, "end"):
         return None
-    return d["drift_per_m"]
+    return d.drift_per_m
 
 
 SEES_AFTER = "sees fixes after the outage"
 
 
-def _outage_lines(m: dict) -> list[str]:
+def _outage_lines(m: RunSummary) -> list[str]:
     """Per GPS outage: the real-time tracks ranked by their error at its end (dead reckoning
     through it), with their drift; the lagged and offline tracks, which see the fixes after
     the outage, named apart and not ranked on drift; unresolved ends said as '< noise'."""
-    ests = m["estimators"]
-    lag = m.get("lag_s")
-    t0 = (m.get("data") or {}).get("t0") or 0.0
+    ests = m.estimators
+    lag = m.lag_s
+    t0 = m.t0
     out = []
-    for o_idx, o in enumerate(m.get("gps_outages") or []):
-        rows = {n: e["gps_outages"][o_idx] for n, e in ests.items()
-                if e.get("gps_outages") and e["gps_outages"][o_idx]
-                and e["gps_outages"][o_idx].get("error_end_m") is not None}
-        if not any(d.get("drift_per_m") is not None for d in rows.values()):
+    for o_idx, o in enumerate(m.gps_outages or []):
+        rows = {n: e.gps_outages[o_idx] for n, e in ests.items()
+                if e.gps_outages and e.gps_outages[o_idx]
+                and e.gps_outages[o_idx].error_end_m is not None}
+        if not any(d.drift_per_m is not None for d in rows.values()):
             continue
         any_d = next(iter(rows.values()))
-        if any_d.get("block_s"):
+        if any_d.block_s:
             # noisy fixes: path and errors from their medians over a few seconds
             # (metrics.outage_drift), less the noise left in those medians
-            how = (f"{any_d['distance_m']:.0f} m travelled by the withheld GPS fixes' medians "
-                   f"over {any_d['block_s']:g} s; start and end errors from the median of the "
-                   f"fixes in its first and last {any_d['block_s']:g} s, less their noise of "
-                   f"{any_d['error_noise_m']:.2f} m")
+            how = (f"{any_d.distance_m:.0f} m travelled by the withheld GPS fixes' medians "
+                   f"over {any_d.block_s:g} s; start and end errors from the median of the "
+                   f"fixes in its first and last {any_d.block_s:g} s, less their noise of "
+                   f"{any_d.error_noise_m:.2f} m")
         else:
-            how = (f"{any_d['distance_m']:.0f} m travelled, scored against the "
-                   f"{any_d['reference']}")
+            how = f"{any_d.distance_m:.0f} m travelled, scored against the {any_d.reference}"
 
         def said(n: str, rows: dict = rows) -> str:
             d = rows[n]
             if unresolved(d):
-                return f"{n} < {d['error_noise_m']:.2f} m (unresolved)"
+                return f"{n} < {d.error_noise_m:.2f} m (unresolved)"
             drift = outage_drift(d)
-            return f"{n} {d['error_end_m']:.2f} m" + (
+            return f"{n} {d.error_end_m:.2f} m" + (
                 f" ({_signed_pct(drift)})" if drift is not None else "")
 
         live = sorted((n for n in rows if track_kind(n) == "real time"),
-                      key=lambda n: rows[n]["error_end_m"])
+                      key=lambda n: rows[n].error_end_m)
         later = [n for n in rows if track_kind(n) != "real time"]
-        text = f"GPS outage {o['t0'] - t0:.0f}-{o['t1'] - t0:.0f} s ({how})"
+        text = f"GPS outage {o.t0 - t0:.0f}-{o.t1 - t0:.0f} s ({how})"
         if live:
             text += (", real-time tracks (dead reckoning through it) by their error at its end, "
                      "with its growth per metre travelled: " + ", ".join(map(said, live)) + ".")
@@ -610,22 +623,22 @@ def _outage_lines(m: dict) -> list[str]:
                      + ", ".join(f"{n}: {track_kind(n, lag)}" for n in later) + "), so its "
                      "error there is smoothed, not dead-reckoned: "
                      + ", ".join(map(said, later)) + ".")
-        if any_d.get("block_s"):
-            text += (f" Errors under {any_d['error_noise_m']:.2f} m are within the fixes' noise "
+        if any_d.block_s:
+            text += (f" Errors under {any_d.error_noise_m:.2f} m are within the fixes' noise "
                      "there: not resolved, and no drift is given for them.")
         out.append(text)
     return out
 
 
-def _holdout_caution(m: dict, best: str) -> str:
+def _holdout_caution(m: RunSummary, best: str) -> str:
     """What a hold-out of single fixes measures, with the GPS residuals' correlation time to
     the best track where the run measured it (``metrics.correlation_time``)."""
     tail = (" Read it with the GPS NIS below, and with a window hold-out (an outage), where "
             "dead reckoning has to carry the estimate.")
-    corr = m["estimators"][best].get("gps_residual_corr_s")
-    interval = (m.get("data") or {}).get("gps_fix_interval_s")
-    interp = m.get("gps_holdout_interpolation_rmse_m")
-    k = m.get("gps_holdout_interpolation_outliers") or 0
+    corr = m.estimators[best].gps_residual_corr_s
+    interval = m.data.gps_fix_interval_s if m.data else None
+    interp = m.gps_holdout_interpolation_rmse_m
+    k = m.gps_holdout_interpolation_outliers or 0
     left = (f" ({k} gross error{'s' if k > 1 else ''} among them left out)" if k else "")
     ref = (f" For reference, the used fixes interpolated in time{left}, no estimator, score "
            f"{interp:.3f} m." if interp is not None else "")
@@ -643,7 +656,7 @@ def _holdout_caution(m: dict, best: str) -> str:
             "less accurate." + ref + tail)
 
 
-def _calibration_gaps(m: dict) -> list[str]:
+def _calibration_gaps(m: RunSummary) -> list[str]:
     """Per calibration state, the pair of estimators whose final values lie furthest apart in
     combined sigmas, where that exceeds CALIBRATION_SIGMAS."""
     finals = final_states(m)
@@ -651,41 +664,44 @@ def _calibration_gaps(m: dict) -> list[str]:
     out = []
     for label in labels:
         have = [(n, st[label]) for n, st in finals.items()
-                if label in st and st[label].get("value") is not None
-                and st[label].get("sigma")]
+                if label in st and st[label].value is not None and st[label].sigma]
         worst = None
         for i, (a, sa) in enumerate(have):
             for b, sb in have[i + 1:]:
-                d = sa["value"] - sb["value"]
+                d = sa.value - sb.value
                 if label.startswith("hoff"):  # an angle: the short way round
                     d = wrap_angle(d)
-                z = abs(d) / math.hypot(sa["sigma"], sb["sigma"])
+                z = abs(d) / math.hypot(sa.sigma, sb.sigma)
                 if z > CALIBRATION_SIGMAS and (worst is None or z > worst[0]):
                     worst = (z, a, sa, b, sb)
         if worst:
             z, a, sa, b, sb = worst
             out.append(
                 f"{a} and {b} end the run with different {calibration_title(label)}: "
-                f"{calibration_value(label, sa['value'], sa['sigma'])} against "
-                f"{calibration_value(label, sb['value'], sb['sigma'])}, "
+                f"{calibration_value(label, sa.value, sa.sigma)} against "
+                f"{calibration_value(label, sb.value, sb.sigma)}, "
                 f"{z:.1f} combined sigmas apart. From the same data that is more than their "
                 "stated uncertainty allows: at least one of them is biased there (see the "
                 "calibration table).")
     return out
 
 
-def verdict_lines(m: dict) -> list[str]:
-    """The verdict as a list of sentences (plain text)."""
-    ests = m["estimators"]
+def verdict_lines(m: RunSummary | dict) -> list[str]:
+    """The verdict as a list of sentences (plain text). ``m``: the run's scores, or a
+    metrics.json dictionary (``RunSummary.from_json``)."""
+    if isinstance(m, dict):
+        m = RunSummary.from_json(m)
+    ests = m.estimators
     key, what = _score(m)
     lines = [what]
-    lag = m.get("lag_s")
+    lag = m.lag_s
     # an estimator that stopped with an error scored only its first part of the run: left out
     # of the ranking (otherwise its first seconds, or the common span cut to them, decide);
     # one that Ctrl-C caught inside an update is no failure: left out only if it ends early
-    halted = [n for n in _stopped_early(m) if key and ests[n].get(key) is not None]
-    if key and len(halted) < sum(e.get(key) is not None for e in ests.values()):
-        own = {n: e[key] for n, e in ests.items() if e.get(key) is not None and n not in halted}
+    halted = [n for n in _stopped_early(m) if key and getattr(ests[n], key) is not None]
+    if key and len(halted) < sum(getattr(e, key) is not None for e in ests.values()):
+        own = {n: getattr(e, key) for n, e in ests.items()
+               if getattr(e, key) is not None and n not in halted}
         scored, how = _ranked_scores(m, key, own)
         if halted:
             how = (how + " " if how else "") + (
@@ -725,26 +741,25 @@ def verdict_lines(m: dict) -> list[str]:
         own_line = _own_ate_line(own, scored, best, tied)
         if own_line:
             lines.append(own_line)
-        if key == "ate_rmse_m":
+        if key == ATE:
             lines += _span_lines(m)
             caution = _association_caution(m, own)
             if caution:
                 lines.append(caution)
-        if key == "gps_holdout_rmse_m" and str(m.get("gps_holdout", "")).startswith("every"):
+        if key == HOLDOUT and str(m.gps_holdout or "").startswith("every"):
             lines.append(_holdout_caution(m, best))
-        elif key == "gps_holdout_rmse_m" and m.get("gps_holdout_interpolation_rmse_m") is not None:
+        elif key == HOLDOUT and m.gps_holdout_interpolation_rmse_m is not None:
             lines.append("For reference, the used fixes interpolated in time across the withheld "
                          "ones (a straight line over an outage), no estimator, score "
-                         f"{m['gps_holdout_interpolation_rmse_m']:.3f} m.")
+                         f"{m.gps_holdout_interpolation_rmse_m:.3f} m.")
     seen: dict = {}
     # an estimator with no estimate has nothing to be consistent about ("stopped early" below)
-    live = {n: e for n, e in ests.items() if e.get("samples") != 0}
+    live = {n: e for n, e in ests.items() if e.samples != 0}
     owners: dict[str, set] = {}
     for n, e in live.items():
-        key = repr(sorted((e.get("nis") or {}).items()))
-        if e.get("nis") and key not in {repr(sorted((live[o].get("nis") or {}).items()))
-                                         for o in owners}:
-            owners[n] = set(_units(e["nis"])) | _gated_units(m, n)
+        key = repr(sorted((e.nis or {}).items()))
+        if e.nis and key not in {repr(sorted((live[o].nis or {}).items())) for o in owners}:
+            owners[n] = set(_units(e.nis)) | _gated_units(m, n)
     heads = {}
     for n, e in live.items():
         text, head = _consistency(n, e, seen, m, owners)
@@ -761,15 +776,15 @@ def verdict_lines(m: dict) -> list[str]:
     stopped = _stopped_early(m)
     for n, e in ests.items():
         if n in stopped:
-            lines.append(f"{n} stopped early: {e['error']}.")
-        elif e.get("error"):
-            lines.append(f"{n}: {e['error']}; its estimate ends with the others' (within "
+            lines.append(f"{n} stopped early: {e.error}.")
+        elif e.error:
+            lines.append(f"{n}: {e.error}; its estimate ends with the others' (within "
                          f"{SPAN_SLACK_S:g} s), so it is ranked: an interruption is no "
                          "failure of the estimator.")
-    if m.get("input_error"):
+    if m.input_error:
         lines.append(f"The bag is damaged; these results cover what could be read: "
-                     f"{m['input_error']}.")
-    if m.get("interrupted"):
-        lines.append(f"The run was stopped early ({m['interrupted']}); these results cover what "
+                     f"{m.input_error}.")
+    if m.interrupted:
+        lines.append(f"The run was stopped early ({m.interrupted}); these results cover what "
                      "was processed.")
     return lines

@@ -18,12 +18,13 @@ from importlib.resources import files
 import ddfuse
 
 
-def compare(bag: str, config: str, names: list[str]) -> dict[str, dict]:
-    """Decode ``bag`` with ``config``, run ``names`` on it; {name: metrics.json entry}."""
+def compare(bag: str, config: str, names: list[str]) -> dict:
+    """Decode ``bag`` with ``config``, run ``names`` on it; {output name: its scores}
+    (``ddfuse.evaluation.scores.EstimatorScores``, what metrics.json holds per estimator)."""
     cfg = ddfuse.load_config(config)
     stream = ddfuse.read_bag(bag, cfg)
     result = ddfuse.run(stream, ddfuse.build_estimators(cfg, stream, names))
-    return ddfuse.score(result)["estimators"]
+    return ddfuse.score(result).estimators
 
 
 def _cell(value, spec: str) -> str:
@@ -40,9 +41,8 @@ def main(argv: list[str] | None = None) -> None:
     scores = compare(args.bag, args.config, args.estimators.split(","))
     print(f"{'estimator':<16} {'ATE m':>8} {'yaw deg':>8} {'NEES':>7} {'time s':>7}")
     for name, s in scores.items():
-        print(f"{name:<16} {_cell(s.get('ate_rmse_m'), '8.3f')} "
-              f"{_cell(s.get('yaw_rmse_deg'), '8.2f')} {_cell(s.get('nees_mean'), '7.2f')} "
-              f"{_cell(s.get('runtime_s'), '7.2f')}")
+        print(f"{name:<16} {_cell(s.ate_rmse_m, '8.3f')} {_cell(s.yaw_rmse_deg, '8.2f')} "
+              f"{_cell(s.nees_mean, '7.2f')} {_cell(s.runtime_s, '7.2f')}")
 
 
 if __name__ == "__main__":

@@ -29,15 +29,15 @@ def test_the_readmes_library_example_gives_what_ddfuse_run_gives(tmp_path, monke
     monkeypatch.chdir(ROOT)
     ns: dict = {}
     exec(compile(_readme_library_block(), "README.md", "exec"), ns)  # noqa: S102
-    lib = ns["score"](ns["result"])["estimators"]
+    lib = ns["score"](ns["result"]).estimators
     assert type(ns["fig"]).__name__ == "Figure" and ns["fig"].axes
     assert cli.main(["run", "-o", str(tmp_path), "--estimators", "ekf,smoother,smoother_lagged",
                      "--no-report"]) == 0
     ran = json.loads((tmp_path / "metrics.json").read_text())["estimators"]
     for name in ("ekf", "smoother", "smoother_lagged"):
-        assert lib[name]["samples"] > 250  # 10 Hz over 120 s
-        assert lib[name]["ate_rmse_m"] == pytest.approx(ran[name]["ate_rmse_m"], abs=1e-6)
-        assert lib[name]["nees_mean"] == pytest.approx(ran[name]["nees_mean"], rel=1e-4)
+        assert lib[name].samples > 250  # 10 Hz over 120 s
+        assert lib[name].ate_rmse_m == pytest.approx(ran[name]["ate_rmse_m"], abs=1e-6)
+        assert lib[name].nees_mean == pytest.approx(ran[name]["nees_mean"], rel=1e-4)
 
 
 def test_a_hand_built_smoother_takes_the_configs_landmark_map():
@@ -50,7 +50,7 @@ def test_a_hand_built_smoother_takes_the_configs_landmark_map():
     stream = read_stream(ROOT / "data" / "sample_seed002.bag", cfg)
     r = run(stream, {"smoother": FixedLagSmoother(cfg)})
     assert not r.runs["smoother"].log.rejected
-    assert score(r)["estimators"]["smoother"]["ate_rmse_m"] < 0.05
+    assert score(r).estimators["smoother"].ate_rmse_m < 0.05
 
 
 def test_an_estimator_that_never_starts_says_why():

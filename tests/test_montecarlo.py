@@ -15,6 +15,7 @@ from ddfuse.evaluation.montecarlo import (
     nees_band,
     run_seed,
 )
+from ddfuse.evaluation.montecarlo_results import MonteCarloRun, SeedRun
 from scipy.stats import chi2
 
 
@@ -43,7 +44,12 @@ def test_nees_band_covers_95_percent_of_consistent_averages(n_runs, dim):
     assert np.mean(avg < lo) == pytest.approx(0.025, abs=0.004)
 
 
+def _seeds(*dicts) -> list[SeedRun]:
+    return [SeedRun.from_json(d) for d in dicts]
+
+
 def _fake_seed(seed, nees_by_tick, rmse, dr):
+    """A seed's results as mc_<scenario>.json holds them (before the series are dropped)."""
     ticks = sorted(nees_by_tick)
     return {"seed": seed, "duration_s": 1.0, "dr_rmse_m": dr, "estimators": {
         "ekf": {"rmse_m": rmse, "nees_mean": float(np.mean([nees_by_tick[k] for k in ticks])),
@@ -58,39 +64,47 @@ def test_aggregate_averages_over_runs_then_ticks():
     dropped), ANEES its mean over those ticks; RMSE and DR statistics per estimator."""
     a = _fake_seed(0, {0: 1.0, 1: 2.0, 2: 6.0, 3: 100.0}, rmse=0.2, dr=2.0)
     b = _fake_seed(1, {0: 3.0, 1: 4.0, 2: 2.0}, rmse=0.4, dr=1.0)
-    s = aggregate([a, b])
+    s = aggregate(_seeds(a, b))
     e = s["ekf"]
     # eps_bar = (2, 3, 4) -> ANEES 3
-    assert e["anees"] == pytest.approx(3.0)
-    assert e["ticks"] == 3
+    assert e.anees == pytest.approx(3.0)
+    assert e.ticks == 3
     lo, hi = nees_band(2, 3)
-    assert e["band"] == [lo, hi] and e["anees_in_band"] is True
-    assert e["frac_ticks_in_band"] == pytest.approx(np.mean([lo <= v <= hi for v in (2, 3, 4)]))
-    assert e["rmse_mean"] == pytest.approx(0.3) and e["rmse_max"] == pytest.approx(0.4)
-    assert e["dr_rmse_mean"] == pytest.approx(1.5)
-    assert e["ratio"] == pytest.approx(1.5 / 0.3) and e["ratio_min"] == pytest.approx(2.5)
-    assert s["dr"]["anees"] is None
+    assert e.band == [lo, hi] and e.anees_in_band is True
+    assert e.frac_ticks_in_band == pytest.approx(np.mean([lo <= v <= hi for v in (2, 3, 4)]))
+    assert e.rmse_mean == pytest.approx(0.3) and e.rmse_max == pytest.approx(0.4)
+    assert e.dr_rmse_mean == pytest.approx(1.5)
+    assert e.ratio == pytest.approx(1.5 / 0.3) and e.ratio_min == pytest.approx(2.5)
+    assert s["dr"].anees is None and s["dr"].ticks == 0
 
 
 def test_gps_scenario_beats_dead_reckoning_and_is_reproducible(tmp_path):
     """Two short husky runs in two processes: the unicycle EKF beats dead reckoning, its NEES
     is finite, and a seed run again gives identical numbers (a different seed does not)."""
     mc = monte_carlo("husky", [0, 1], ["ekf"], duration=40.0, jobs=2)
-    e = mc["summary"]["ekf"]
-    assert e["runs"] == 2 and not e["errors"]
-    assert e["rmse_mean"] < 0.6  # GPS 1 m per axis, 2.5 Hz, fused with odometry and IMU
-    assert e["dr_rmse_mean"] > e["rmse_mean"]
-    assert 0.1 < e["anees"] < 30.0 and e["ticks"] > 300
+    e = mc.summary["ekf"]
+    assert e.runs == 2 and not e.errors
+    assert e.rmse_mean < 0.6  # GPS 1 m per axis, 2.5 Hz, fused with odometry and IMU
+    assert e.dr_rmse_mean > e.rmse_mean
+    assert 0.1 < e.anees < 30.0 and e.ticks > 300
     again = run_seed("husky", 1, ["ekf"], duration=40.0)
-    first = next(r for r in mc["per_seed"] if r["seed"] == 1)
-    assert again["estimators"]["ekf"]["rmse_m"] == first["estimators"]["ekf"]["rmse_m"]
-    assert again["estimators"]["ekf"]["nees_mean"] == first["estimators"]["ekf"]["nees_mean"]
-    assert again["dr_rmse_m"] == first["dr_rmse_m"]
-    other = next(r for r in mc["per_seed"] if r["seed"] == 0)
-    assert other["estimators"]["ekf"]["rmse_m"] != first["estimators"]["ekf"]["rmse_m"]
+    first = next(r for r in mc.per_seed if r.seed == 1)
+    assert again.estimators["ekf"].rmse_m == first.estimators["ekf"].rmse_m
+    assert again.estimators["ekf"].nees_mean == first.estimators["ekf"].nees_mean
+    assert again.dr_rmse_m == first.dr_rmse_m
+    other = next(r for r in mc.per_seed if r.seed == 0)
+    assert other.estimators["ekf"].rmse_m != first.estimators["ekf"].rmse_m
     # each estimator scored in its own error coordinates: the unicycle EKF's SE(2) ones
-    assert first["estimators"]["ekf"]["pose_error"] == "se2"
-    assert first["estimators"]["dr"]["pose_error"] == "world"
+    assert first.estimators["ekf"].pose_error == "se2"
+    assert first.estimators["dr"].pose_error == "world"
+    # per_seed keeps no NEES series; the JSON reads back as the same run
+    assert first.estimators["ekf"].nees is None and again.estimators["ekf"].nees
+    d = json.loads(json.dumps(mc.to_json()))
+    assert "nees" not in d["per_seed"][0]["estimators"]["ekf"]
+    assert list(d) == ["scenario", "seeds", "duration_s", "estimators_requested", "fixed_truth",
+                       "lag_s", "per_seed", "summary", "nees_convention"]
+    # (as text: dead reckoning's NEES is NaN, which equals nothing)
+    assert json.dumps(MonteCarloRun.from_json(d).to_json()) == json.dumps(mc.to_json())
 
 
 def test_command_writes_json_and_markdown(tmp_path, capsys):
@@ -105,8 +119,8 @@ def test_command_writes_json_and_markdown(tmp_path, capsys):
 def test_runs_with_other_settings_do_not_overwrite_each_other(tmp_path):
     from ddfuse.evaluation.montecarlo import report_stem
 
-    assert report_stem({"scenario": "husky"}) == "mc_husky"
-    assert report_stem({"scenario": "husky", "fixed_truth": True, "lag_s": 30.0}) == \
+    assert report_stem(MonteCarloRun(scenario="husky")) == "mc_husky"
+    assert report_stem(MonteCarloRun(scenario="husky", fixed_truth=True, lag_s=30.0)) == \
         "mc_husky_fixed-truth_lag30"
     for extra in ([], ["--fixed-truth"], ["--lag", "2"]):
         assert main(["husky", "--seeds", "1", "--duration", "20", "--jobs", "1",
@@ -134,9 +148,9 @@ def test_aggregate_off_grid_tracks_use_one_second_bins():
     for seed in range(5):
         ticks = np.unique(np.cumsum(rng.integers(3, 6, size=80)))  # ~2.5 Hz, off the grid
         seeds.append(_fake_seed(seed, {int(k): 3.0 for k in ticks}, rmse=0.2, dr=2.0))
-    e = aggregate(seeds)["ekf"]
-    assert e["anees"] == pytest.approx(3.0)
-    assert e["ticks"] >= 25
+    e = aggregate(_seeds(*seeds))["ekf"]
+    assert e.anees == pytest.approx(3.0)
+    assert e.ticks >= 25
 
 
 def test_truth_is_drawn_per_seed_from_the_stated_priors():
@@ -170,12 +184,12 @@ def test_run_seed_records_the_drawn_or_fixed_truth():
     sc = get_scenario("seed002")
     drawn = run_seed("seed002", 3, ["ekf_landmark"], duration=10.0)
     want, err = draw_truth(get_scenario("seed002", 10.0), 3)
-    assert drawn["true_geometry"] == [want.true_geometry.wheel_radius,
-                                      want.true_geometry.track_width]
-    assert drawn["initial_error"] == list(err) and any(err)
+    assert drawn.true_geometry == [want.true_geometry.wheel_radius,
+                                   want.true_geometry.track_width]
+    assert drawn.initial_error == list(err) and any(err)
     fixed = run_seed("seed002", 3, ["ekf_landmark"], duration=10.0, fixed_truth=True)
-    assert fixed["true_geometry"] == [sc.true_geometry.wheel_radius, sc.true_geometry.track_width]
-    assert fixed["initial_error"] == [0.0, 0.0, 0.0]
+    assert fixed.true_geometry == [sc.true_geometry.wheel_radius, sc.true_geometry.track_width]
+    assert fixed.initial_error == [0.0, 0.0, 0.0]
 
 
 def test_calibration_errors_against_the_simulated_truth():
@@ -202,9 +216,9 @@ def test_calibration_errors_against_the_simulated_truth():
     names = ("x", "y", "psi", "v", "w", "bg", "hoff", "k_v", "k_w")
     e = Estimate(t_end, (0.0, 0.0, 0.0), np.eye(3), x, np.diag(sd**2), names)
     got = _calibration_errors(sim, e)
-    assert got["bg"]["error"] == pytest.approx(0.0, abs=1e-15)
-    assert got["hoff"]["error"] == pytest.approx(0.0, abs=1e-12)
-    assert got["k_v"]["z"] == pytest.approx(2.0) and got["k_w"]["z"] == pytest.approx(-0.5)
+    assert got["bg"].error == pytest.approx(0.0, abs=1e-15)
+    assert got["hoff"].error == pytest.approx(0.0, abs=1e-12)
+    assert got["k_v"].z == pytest.approx(2.0) and got["k_w"].z == pytest.approx(-0.5)
     seed002 = simulate(draw_truth(get_scenario("seed002", 10.0), 1)[0], seed=1)
     assert set(calibration_truth(seed002)) == {"k_v", "k_w"}  # no IMU there
 
@@ -215,21 +229,21 @@ def test_the_calibration_summary_leaves_out_runs_that_failed():
     a["estimators"]["ekf"]["calibration"] = {"k_w": {"error": 0.01, "z": 1.0}}
     b["estimators"]["ekf"]["calibration"] = {"k_w": {"error": -9e20, "z": -3e21}}
     b["estimators"]["ekf"]["error"] = "numerical breakdown at t=209.9"
-    c = aggregate([a, b])["ekf"]["calibration"]["k_w"]
-    assert c["n"] == 1 and c["error_mean"] == pytest.approx(0.01) and c["z_rms"] == 1.0
+    c = aggregate(_seeds(a, b))["ekf"].calibration["k_w"]
+    assert c.n == 1 and c.error_mean == pytest.approx(0.01) and c.z_rms == 1.0
 
 
-def _fake_mc(fixed_truth=False, lag_s=None, error=None):
-    """A two-seed mc dict as monte_carlo returns it, without running anything."""
+def _fake_mc(fixed_truth=False, lag_s=None, error=None) -> MonteCarloRun:
+    """A two-seed run as monte_carlo returns it, without running anything."""
     a = _fake_seed(0, {0: 1.0}, rmse=0.2, dr=2.0)
     b = _fake_seed(1, {0: 3.0}, rmse=0.4, dr=1.0)
     for r in (a, b):
         r["estimators"]["ekf"]["calibration"] = {"bg": {"error": 1e-4, "z": 1.0},
                                                  "hoff": {"error": 1e-3, "z": 0.5}}
     b["estimators"]["ekf"]["error"] = error
-    return {"scenario": "husky", "seeds": [0, 1], "duration_s": 1.0, "nees_convention": "x",
-            "fixed_truth": fixed_truth, "lag_s": lag_s, "per_seed": [a, b],
-            "summary": aggregate([a, b])}
+    seeds = _seeds(a, b)
+    return MonteCarloRun("husky", [0, 1], 1.0, None, fixed_truth, lag_s,
+                         [r.lean() for r in seeds], aggregate(seeds), "x")
 
 
 def test_markdown_records_fixed_truth_and_lag():
@@ -282,4 +296,4 @@ def test_run_seed_reads_a_string_of_estimator_names_as_the_cli_does():
     from ddfuse.evaluation.montecarlo import run_seed
 
     r = run_seed("seed002", 1, "ekf_landmark", duration=20.0)
-    assert set(r["estimators"]) == {"ekf_landmark", "dr"}
+    assert set(r.estimators) == {"ekf_landmark", "dr"}

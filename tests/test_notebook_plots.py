@@ -78,14 +78,14 @@ def test_score_takes_each_estimators_pose_error_from_the_result(husky):
     _, _, m, result = husky
     mine = pipeline.score(result)  # no pose_errors: from the result
     for name in m["estimators"]:
-        assert mine["estimators"][name]["pose_error"] == m["estimators"][name]["pose_error"]
+        assert mine.estimators[name].pose_error == m["estimators"][name]["pose_error"]
     assert m["estimators"]["ekf"]["pose_error"] == "se2"
     assert m["estimators"]["smoother"]["pose_error"] == "world"
     ekf = m["estimators"]["ekf"]["nees_mean"]
-    assert mine["estimators"]["ekf"]["nees_mean"] == ekf
+    assert mine.estimators["ekf"].nees_mean == ekf
     # scored in world coordinates (the old default) it differs: the test can tell
     world = pipeline.score(result, pose_errors={"ekf": "world"})
-    assert world["estimators"]["ekf"]["nees_mean"] != ekf
+    assert world.estimators["ekf"].nees_mean != ekf
 
 
 def _figures(run: SavedRun) -> dict[str, bytes]:
@@ -125,7 +125,7 @@ def test_figures_from_an_in_memory_result_equal_the_saved_ones(husky, tmp_path):
                                        getattr(disk.tracks[name], f), rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(mem.truth.pose, disk.truth.pose, rtol=1e-9, atol=1e-12)
     # scored with run's GPS antenna model (the sample config's 0.2 s delay) too
-    assert mem.metrics["gps_antenna"]["delay_s"] == cfg.of_kind("gps")[0].delay == 0.2
+    assert mem.summary.gps_antenna.delay_s == cfg.of_kind("gps")[0].delay == 0.2
     for key in ("estimators", "data", "initial_pose", "gps_outages", "gps_antenna"):
         assert mem.metrics[key] == disk.metrics[key], key
     # Fed the same tracks, the same figures byte for byte: nothing else differs.
@@ -147,9 +147,9 @@ def test_notebook_flow_without_a_config(husky):
     frame and times from the stream; a figure displays as a notebook shows it."""
     _, _, m, result = husky
     run = SavedRun.from_result(result)
-    assert run.metrics["estimators"]["ekf"]["nees_mean"] == m["estimators"]["ekf"]["nees_mean"]
+    assert run.summary.estimators["ekf"].nees_mean == m["estimators"]["ekf"]["nees_mean"]
     assert plots.frame(run.metrics)["kind"] == "enu"
-    assert run.metrics["data"]["t0"] == m["data"]["t0"]
+    assert run.summary.data.t0 == m["data"]["t0"]
     fig = plots.trajectories(run)
     assert isinstance(fig, Figure)
     pylabtools = pytest.importorskip("IPython.core.pylabtools")

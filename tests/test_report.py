@@ -21,6 +21,7 @@ from ddfuse.evaluation.cli.terminal import Bars, progress
 from ddfuse.evaluation.estimators import SPECS, TRACK_TO_SPEC
 from ddfuse.evaluation.export import read_csv, write_csv
 from ddfuse.evaluation.results import load_run
+from ddfuse.evaluation.scores import RunSummary
 
 ROOT = Path(__file__).resolve().parents[1]
 PNG = b"\x89PNG\r\n\x1a\n"
@@ -84,6 +85,15 @@ def test_metrics_json_holds_evo_style_scores_and_consistency(sample_run):
     assert drift["reference"] == "truth" and drift["distance_m"] > 10
     assert m["data"]["path_length_from"] == "ground truth"
     assert m["data"]["gps_fixes_withheld"] == m["gps_holdout_fixes"] > 40
+
+
+def test_metrics_json_is_the_run_summarys_serialisation_byte_for_byte(sample_run):
+    text = (sample_run / "metrics.json").read_text()
+    summary = load_run(sample_run).summary
+    assert json.dumps(summary.to_json(), indent=2) + "\n" == text
+    assert RunSummary.from_json(summary.to_json()) == summary
+    assert summary.estimators["ekf"].ate.none.position_m.rmse == summary.estimators[
+        "ekf"].ate_rmse_m
 
 
 def test_calibration_states_at_the_end_are_reported_and_match_the_simulated_truth(sample_run):
@@ -294,9 +304,9 @@ def test_data_table_names_this_runs_frame_and_omits_what_it_cannot_measure(no_gp
     assert _row(enu, "local frame").startswith(f"ENU about the GPS datum {d['datum'][0]:.6f}°")
     # fixes present, none withheld: said so, not "0 withheld (None)"
     m = {"data": {"gps_fixes": 989, "gps_fixes_withheld": 0}, "gps_holdout": None}
-    assert report._gps_fixes(m) == "989, none withheld (no --gps-holdout)"
+    assert report._gps_fixes(RunSummary.from_json(m)) == "989, none withheld (no --gps-holdout)"
     m = {"data": {"gps_fixes": 989, "gps_fixes_withheld": 197}, "gps_holdout": "every:5"}
-    assert report._gps_fixes(m) == "989, of which 197 withheld (every:5)"
+    assert report._gps_fixes(RunSummary.from_json(m)) == "989, of which 197 withheld (every:5)"
 
 
 def test_frame_of_each_kind_of_run():
@@ -320,27 +330,28 @@ def test_estimators_not_run_are_named_with_the_reason(no_gps_run, sample_run):
     assert "batch: not among the estimators asked for (--estimators ekf,smoother)" in summary
     assert "dr: off by default" in summary
     ran = set(json.loads((no_gps_run / "metrics.json").read_text())["estimators"])
-    assert ran.isdisjoint(n for n, _ in report.not_run(
-        json.loads((no_gps_run / "metrics.json").read_text())))
+    assert ran.isdisjoint(n for n, _ in report.not_run(RunSummary.from_json(
+        json.loads((no_gps_run / "metrics.json").read_text()))))
     # the sample has GPS: ekf_igvc could have run, it was not asked for
     with_gps = json.loads((sample_run / "metrics.json").read_text())
-    assert dict(report.not_run(with_gps))["ekf_igvc"] == \
+    assert dict(report.not_run(RunSummary.from_json(with_gps)))["ekf_igvc"] == \
         "not among the estimators asked for (--estimators ekf,smoother,smoother_lagged)"
     assert with_gps["estimators_requested"] == ["ekf", "smoother", "smoother_lagged"]
     # one estimator's track not asked for, its other one asked for: said, not silently absent
     lagged_only = {**with_gps, "estimators_requested": ["ekf", "smoother_lagged"],
                    "estimators": {k: v for k, v in with_gps["estimators"].items()
                                   if k != "smoother"}}
-    assert dict(report.not_run(lagged_only))["smoother"] == (
+    assert dict(report.not_run(RunSummary.from_json(lagged_only)))["smoother"] == (
         "computed for smoother_lagged (the same estimator) but not asked for (--estimators "
         "ekf,smoother_lagged)")
     # results written before metrics.json recorded the request: judged on the config alone
     del with_gps["estimators_requested"]
-    assert dict(report.not_run(with_gps))["ekf_igvc"] == \
+    assert dict(report.not_run(RunSummary.from_json(with_gps)))["ekf_igvc"] == \
         "not among the estimators asked for (--estimators)"
     # asked for but no track (e.g. the list was edited by hand): not called "not asked for"
     with_gps["estimators_requested"] = ["ekf", "ekf_igvc"]
-    assert dict(report.not_run(with_gps))["ekf_igvc"] == "asked for, but it produced no track"
+    assert dict(report.not_run(RunSummary.from_json(with_gps)))["ekf_igvc"] == \
+        "asked for, but it produced no track"
 
 
 def test_event_times_are_seconds_since_the_first_measurement(no_gps_run):
@@ -385,8 +396,8 @@ def test_error_axes_are_named_by_the_frame(sample_run):
     run = load_run(sample_run)
     fig, _ = plots.errors(run)
     assert fig.axes[0].get_ylabel() == "east error [m]"
-    mapped = replace(run, metrics={**run.metrics, "data": {**run.metrics["data"], "datum": None,
-                                                            "landmarks": 15}})
+    mapped = replace(run, summary=replace(run.summary, data=replace(
+        run.summary.data, datum=None, landmarks=15)))
     fig, caption = plots.errors(mapped)
     assert [ax.get_ylabel() for ax in fig.axes[:2]] == ["x error (map) [m]", "y error (map) [m]"]
     assert "landmark map's frame" in caption
@@ -399,7 +410,7 @@ def test_start_marker_is_the_earliest_position_of_any_source(sample_run):
     gps_first = replace(run, truth=None, tracks=late)
     x, y, whose, t = plots.start_point(gps_first)
     assert whose == "GPS fix" and (x, y) == tuple(run.gps_xy[0])
-    assert t == pytest.approx(run.gps_t[0] - run.metrics["data"]["t0"])
+    assert t == pytest.approx(run.gps_t[0] - run.summary.data.t0)
     fig = plots.trajectories(gps_first)
     [marker] = [ln for ln in fig.axes[0].lines if ln.get_label().startswith("start")]
     assert tuple(marker.get_xydata()[0]) == (x, y)

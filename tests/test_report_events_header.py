@@ -4,10 +4,12 @@ recoveries counted as the gating table counts them."""
 from __future__ import annotations
 
 import re
+from dataclasses import replace
 from pathlib import Path
 
 from ddfuse.evaluation import report
 from ddfuse.evaluation.results import load_run
+from ddfuse.evaluation.scores import EstimatorScores
 
 ROOT = Path(__file__).resolve().parents[1]
 SEED002 = ROOT / "data" / "sample_seed002.bag"
@@ -39,7 +41,7 @@ def test_events_header_counts_lockout_recoveries_as_accepted_as_the_gating_table
     assert table_rejected >= 4
     # the report's Configuration section with this entry in place of the run's
     run = load_run(seed002_run)
-    run.metrics["estimators"] = {"ekf": e}
+    run.summary = replace(run.summary, estimators={"ekf": EstimatorScores.from_json(e)})
     [head] = re.findall(r"<summary>ekf: (.*?)</summary>", report._config(run))
     assert f"{table_rejected} rejected by the gate" in head, head
     assert f"{recoveries} lock-out recover" in head and "(measurement accepted)" in head
@@ -51,13 +53,14 @@ def test_events_header_of_the_mrclam_counts():
     Husky EKF that waited for its start (other reasons counted apart)."""
     e = {"events": ["a", "b", "c"],
          "rejected": {"/landmarks: gate": 72, "/landmarks: lockout_recovery": 3}}
-    assert report.event_summary(e) == ("3 events, 72 rejected by the gate, 3 lock-out "
-                                       "recoveries (measurement accepted)")
+    assert report.event_summary(EstimatorScores.from_json(e)) == (
+        "3 events, 72 rejected by the gate, 3 lock-out recoveries (measurement accepted)")
     assert report._rejection_lines(e["rejected"]) == [
         "rejected /landmarks: gate: 72",
         "lock-out recovery, measurement accepted /landmarks: 3"]
     e = {"events": ["a"], "rejected": {"/imu/data: before_init": 194, "/fix: gate": 4,
                                        "/fix: lockout_recovery": 1}}
-    assert report.event_summary(e) == ("1 event, 4 rejected by the gate, 194 dropped for other "
-                                       "reasons, 1 lock-out recovery (measurement accepted)")
-    assert report.event_summary({"events": []}) == "0 events"
+    assert report.event_summary(EstimatorScores.from_json(e)) == (
+        "1 event, 4 rejected by the gate, 194 dropped for other reasons, 1 lock-out recovery "
+        "(measurement accepted)")
+    assert report.event_summary(EstimatorScores.from_json({"events": []})) == "0 events"

@@ -8,6 +8,7 @@ from ddfuse.estimation.runner import Trajectory
 from ddfuse.evaluation import plots, report
 from ddfuse.evaluation.consistency import InnovationTable
 from ddfuse.evaluation.results import SavedRun
+from ddfuse.evaluation.scores import EstimatorScores, RunSummary
 
 
 def _run(metrics: dict, tracks: dict, gps_t=None, gps_xy=None, **kw) -> SavedRun:
@@ -56,12 +57,14 @@ def test_nis_figure_draws_one_row_for_the_batchs_copy_of_the_smoothers_innovatio
 
 def test_events_say_how_many_were_cut():
     e = {"events": [f"t={i}: e" for i in range(20)], "events_total": 57}
-    assert report.event_summary(e).startswith("first 20 of 57 events")
-    assert report.event_summary({"events": ["a"], "events_total": 1}) == "1 event"
+    assert report.event_summary(EstimatorScores.from_json(e)).startswith("first 20 of 57 events")
+    one = EstimatorScores.from_json({"events": ["a"], "events_total": 1})
+    assert report.event_summary(one) == "1 event"
 
 
 def test_warnings_heading_and_the_gps_path_length_method():
     m = {"warnings": ["/odom: 40% of its messages dropped"], "data": {
         "path_length_m": 346.4, "path_length_from": "GPS fixes"}, "estimators": {}}
-    assert "<h2>Warnings</h2>" in report._warnings(m)
-    assert "346.4 m (through 3 s block medians of the GPS fixes)" in report._facts(m)
+    assert "<h2>Warnings</h2>" in report._warnings(RunSummary.from_json(m))
+    assert "346.4 m (through 3 s block medians of the GPS fixes)" in report._facts(
+        RunSummary.from_json(m))

@@ -22,11 +22,11 @@ def test_not_run_says_dr_is_off_by_default_on_a_wheel_speed_config(seed002_run):
     run = load_run(seed002_run)
     assert [s["kind"] for s in run.metrics["data"]["sensors"]].count("wheels") == 1
     # without the saved config text: judged on metrics.json's sensor list
-    why = dict(report.not_run(run.metrics))["dr"]
+    why = dict(report.not_run(run.summary))["dr"]
     assert why.startswith("off by default, --estimators dr runs it"), why
     cfg = report.run_config(run)
     assert cfg is not None and cfg.robot.wheel_radius == pytest.approx(0.1)
-    assert dict(report.not_run(run.metrics, cfg))["dr"] == why
+    assert dict(report.not_run(run.summary, cfg))["dr"] == why
 
 
 def test_not_run_still_names_a_missing_sensor(seed002_run):
@@ -34,7 +34,7 @@ def test_not_run_still_names_a_missing_sensor(seed002_run):
     without it."""
     run = load_run(seed002_run)
     for cfg in (report.run_config(run), None):
-        assert dict(report.not_run(run.metrics, cfg))["ekf_igvc"].startswith("needs ")
+        assert dict(report.not_run(run.summary, cfg))["ekf_igvc"].startswith("needs ")
 
 
 def test_a_saved_config_that_no_longer_loads_falls_back_to_the_sensor_list(seed002_run):

@@ -7,6 +7,7 @@ import html
 import re
 
 from ddfuse.evaluation import report
+from ddfuse.evaluation.scores import RunSummary
 
 
 def _cells(table: str, name: str) -> list[str]:
@@ -36,7 +37,7 @@ def test_the_best_is_marked_on_the_common_stamps_the_verdict_ranks_on():
         "ekf": _est(ate_rmse_m=0.114, ate_common_rmse_m=0.115),
         "smoother_lagged": _est(ate_rmse_m=0.088, ate_common_rmse_m=0.0850),
         "batch": _est(ate_rmse_m=0.082, ate_common_rmse_m=0.0821)}, "lag_s": 10.0}
-    t = report._summary_table(m)
+    t = report._summary_table(RunSummary.from_json(m))
     heads = _headers(t)
     i, j = heads.index("ATE, common stamps [m]"), heads.index("ATE RMSE [m]")
     assert _cells(t, "batch")[i] == "**0.082**" and _cells(t, "smoother_lagged")[i] == "**0.085**"
@@ -54,11 +55,11 @@ def test_one_tie_rule_for_table_and_verdict():
          "lag_s": 10.0}
     assert tie(0.1, 0.1053 - 0.0004) and not tie(0.1, 0.1054)
     m["estimators"]["ekf"]["ate_rmse_m"] = 0.1049 / 0.9995  # 0.10495: 4.7 % of the larger
-    t = report._summary_table(m)
+    t = report._summary_table(RunSummary.from_json(m))
     assert _cells(t, "ekf")[2].startswith("**")
     assert "tie" in [x for x in verdict_lines(m) if x.startswith("Real-time")][0]
     m["estimators"]["ekf"]["ate_rmse_m"] = 0.1052  # 4.94 % of the larger, 5.2 % of 0.100
-    t = report._summary_table(m)
+    t = report._summary_table(RunSummary.from_json(m))
     assert _cells(t, "ekf")[2] == "**0.105**"
     assert " tie: " in [x for x in verdict_lines(m) if x.startswith("Real-time")][0]
 
@@ -69,7 +70,7 @@ def test_rpe_cells_show_the_pairs_spacing_where_it_is_not_the_nominal_one():
         "ekf": _est(rpe={"1s": {"position_m": {"rmse": 0.024}, "mean_delta": 1.0}}),
         "batch": _est(rpe={"1s": {"position_m": {"rmse": 0.011}, "mean_delta": 1.1997}})},
         "lag_s": 10.0}
-    t = report._summary_table(m)
+    t = report._summary_table(RunSummary.from_json(m))
     k = _headers(t).index("RPE 1 s [m]")
     assert _cells(t, "ekf")[k] == "0.024"
     assert _cells(t, "batch")[k] == "**0.011 (pairs 1.20 s apart)**"
@@ -80,14 +81,14 @@ def test_the_offline_tracks_latency_is_footnoted():
     u = {"p50": 0.001, "p99": 0.574, "mean": 0.0305, "n": 12296}
     m = {"estimators": {"ekf": _est(runtime_s=0.12, update_ms={**u, "p99": 0.037}),
                         "batch": _est(runtime_s=0.70, update_ms=u)}, "lag_s": 10.0}
-    t = report._summary_table(m)
+    t = report._summary_table(RunSummary.from_json(m))
     assert _cells(t, "batch")[-2] == "0.001 / 0.574 *" and _cells(t, "ekf")[-2].endswith("0.037")
     assert ("* batch: the latencies are of its per-message updates; its whole-run solve runs "
             "once in finish(), in no latency percentile: 0.325 s of its 0.70 s runtime lie "
             "outside its per-message updates.") in t
     m["estimators"]["batch"]["finish_s"] = 0.301  # measured, as bench does
     assert "in no latency percentile: 0.301 s of its 0.70 s runtime." in \
-        report._summary_table(m)
+        report._summary_table(RunSummary.from_json(m))
 
 
 def _nis_rows(table: str) -> dict[tuple[str, str], list[str]]:
@@ -120,7 +121,7 @@ def test_nis_table_gate_counts_of_the_smoothers_averaged_heading_and_of_none_acc
         "smoother": _est(nis={"/imu/data heading": _row("/imu/data", "heading", 300, 0, 1.08,
                                                         "Pass")},
                          rejected={"/imu/data: gate": 1})}}
-    rows = _nis_rows(report._nis_table(m))
+    rows = _nis_rows(report._nis_table(RunSummary.from_json(m)))
     cells = rows[("smoother", "/imu/data heading, averaged per keyframe (300 values of 3600 "
                               "samples)")]
     assert cells[1:3] == ["3599", "1"]
@@ -131,7 +132,7 @@ def test_nis_table_gate_counts_of_the_smoothers_averaged_heading_and_of_none_acc
         **_row("/fix", "gps", 297, 0, 2.17, "Pass", 1.08), "dof": 2.0, "expected": 2.0}
     for e in m["estimators"].values():
         e["rejected"] = {"/imu/data: gate": 3600}
-    rows = _nis_rows(report._nis_table(m))
+    rows = _nis_rows(report._nis_table(RunSummary.from_json(m)))
     ekf = rows[("ekf", "/imu/data heading")]
     assert ekf[1:4] == ["0", "3600", "– / 1"] and ekf[-1] == "rejected throughout"
     sm = rows[("smoother", "/imu/data heading (no NIS logged)")]
@@ -142,6 +143,6 @@ def test_averaged_heading_rows_accepted_count_leaves_out_samples_dropped_before_
     m = {"data": _SENSORS, "estimators": {"smoother": _est(
         nis={"/imu/data heading": _row("/imu/data", "heading", 300, 0, 1.08, "Pass")},
         rejected={"/imu/data: gate": 2, "/imu/data: before_init": 195})}}
-    cells = _nis_rows(report._nis_table(m))[
+    cells = _nis_rows(report._nis_table(RunSummary.from_json(m)))[
         ("smoother", "/imu/data heading, averaged per keyframe (300 values of 3600 samples)")]
     assert cells[1:3] == ["3403", "2"]

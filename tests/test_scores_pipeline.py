@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -49,15 +50,14 @@ def test_tracks_without_a_common_withheld_fix_are_not_ranked_on_their_own_ones()
     withheld = np.arange(len(fix_t)) % 5 == 0
     tracks = {"ekf": _track(np.arange(0.0, 50.0, 0.1)),
               "ekf_igvc": _track(np.arange(60.0, 120.0, 0.1), err=3.0)}
-    m = score(_result(tracks, fix_t, fix_xy, withheld))
-    m["gps_holdout"] = "every:5"
-    assert m["gps_holdout_fixes"] == withheld.sum() and m["gps_holdout_scored_fixes"] == 0
+    m = replace(score(_result(tracks, fix_t, fix_xy, withheld)), gps_holdout="every:5")
+    assert m.gps_holdout_fixes == withheld.sum() and m.gps_holdout_scored_fixes == 0
     for n, tr in tracks.items():
-        e = m["estimators"][n]
-        assert e["gps_holdout_rmse_m"] is None
+        e = m.estimators[n]
+        assert e.gps_holdout_rmse_m is None
         own = withheld & (fix_t >= tr.t[0]) & (fix_t <= tr.t[-1])
-        assert e["gps_holdout_m"]["n"] == own.sum()
-        assert e["gps_holdout_span_s"] == pytest.approx([tr.t[0], tr.t[-1]])
+        assert e.gps_holdout_m.n == own.sum()
+        assert e.gps_holdout_span_s == pytest.approx([tr.t[0], tr.t[-1]])
     lines = verdict_lines(m)
     assert lines[0].startswith("No score: the bag has no ground truth, and none of the")
     assert "lies inside every estimator's span" in lines[0] and "not comparable" in lines[0]
@@ -66,8 +66,8 @@ def test_tracks_without_a_common_withheld_fix_are_not_ranked_on_their_own_ones()
     tracks["ekf_igvc"] = _track(np.arange(47.5, 120.0, 0.1), err=3.0)
     m = score(_result(tracks, fix_t, fix_xy, withheld))
     common = withheld & (fix_t >= 47.5) & (fix_t <= tracks["ekf"].t[-1])
-    assert m["gps_holdout_scored_fixes"] == common.sum() > 0
-    assert all(e["gps_holdout_m"]["n"] == common.sum() for e in m["estimators"].values())
+    assert m.gps_holdout_scored_fixes == common.sum() > 0
+    assert all(e.gps_holdout_m.n == common.sum() for e in m.estimators.values())
 
 
 def _truth(t1=120.0) -> Trajectory:
@@ -83,12 +83,12 @@ def test_the_ranking_is_over_the_common_span_and_a_late_start_is_stated():
     late = _track(t[t >= 10.0], 0.3)
     m = score(_result({"early": early, "late": late}, [], np.zeros((0, 2)), [],
                       truth=_truth()))
-    e = m["estimators"]
-    assert e["late"]["ate_rmse_m"] < e["early"]["ate_rmse_m"]  # own spans: late is better
+    e = m.estimators
+    assert e["late"].ate_rmse_m < e["early"].ate_rmse_m  # own spans: late is better
     # the common span [10, 119.9] s: constant offsets of 0.1 and 0.3 m
-    assert m["ate_common"]["span_s"] == pytest.approx([10.0, t[-1]])
-    assert e["early"]["ate_common_rmse_m"] == pytest.approx(0.1, abs=1e-6)
-    assert e["late"]["ate_common_rmse_m"] == pytest.approx(0.3, abs=1e-6)
+    assert m.ate_common.span_s == pytest.approx([10.0, t[-1]])
+    assert e["early"].ate_common_rmse_m == pytest.approx(0.1, abs=1e-6)
+    assert e["late"].ate_common_rmse_m == pytest.approx(0.3, abs=1e-6)
     lines = verdict_lines(m)
     assert lines[1] == "Best here: early with 0.100 m."
     assert any(line.startswith("late starts 10.0 s after the first track (at 10.0 s): every "
@@ -109,10 +109,10 @@ def test_a_track_that_stopped_early_is_not_ranked_and_cuts_no_span():
                   np.zeros((0, 2)), [], truth=_truth())
     res.runs["broken"].error = "RuntimeError at t=20: boom"
     m = score(res)
-    e = m["estimators"]
-    assert e["broken"]["ate_rmse_m"] < e["other"]["ate_rmse_m"] < e["steady"]["ate_rmse_m"]
-    assert m["ate_common"]["span_s"] == pytest.approx([0.0, t[-1]])
-    assert e["broken"]["ate_common_rmse_m"] is None
+    e = m.estimators
+    assert e["broken"].ate_rmse_m < e["other"].ate_rmse_m < e["steady"].ate_rmse_m
+    assert m.ate_common.span_s == pytest.approx([0.0, t[-1]])
+    assert e["broken"].ate_common_rmse_m is None
     lines = verdict_lines(m)
     assert lines[1] == "Best here: other with 0.500 m."
     assert "Not ranked, having stopped with an error (said below): broken." in lines[0]
@@ -140,16 +140,16 @@ def test_holdout_scores_the_antenna_with_the_configured_lever_arm_and_delay():
     res = _result({"exact": exact, "other": _track(exact.t, 0.3)}, fix_t, fix_xy,
                   np.ones(len(fix_t), bool))
     m = score(res, cfg=cfg)
-    assert m["gps_antenna"]["lever_arm"] == [0.5, 0.2] and m["gps_antenna"]["delay_s"] == 0.2
+    assert m.gps_antenna.lever_arm == (0.5, 0.2) and m.gps_antenna.delay_s == 0.2
     # the track's linear interpolation between 0.1 s samples on a 20 m circle: v^2 dt^2 / 8 R
     # of sag, and as much again from the yaw's
-    assert m["estimators"]["exact"]["gps_holdout_rmse_m"] < 2 * (SPEED * 0.1) ** 2 / (8 * 20.0)
-    assert m["estimators"]["other"]["gps_holdout_rmse_m"] == pytest.approx(0.3, abs=1e-3)
+    assert m.estimators["exact"].gps_holdout_rmse_m < 2 * (SPEED * 0.1) ** 2 / (8 * 20.0)
+    assert m.estimators["other"].gps_holdout_rmse_m == pytest.approx(0.3, abs=1e-3)
     # without the model (no config) the exact track scores the lever arm less the 0.2 m
     # driven over the delay along the heading: |(0.5 - 0.2, 0.2)|
     bare = score(res)
-    assert bare["gps_antenna"]["note"].startswith("no config")
-    assert bare["estimators"]["exact"]["gps_holdout_rmse_m"] == pytest.approx(
+    assert bare.gps_antenna.note.startswith("no config")
+    assert bare.estimators["exact"].gps_holdout_rmse_m == pytest.approx(
         math.hypot(0.5 - SPEED * 0.2, 0.2), abs=5e-3)
 
 
@@ -172,7 +172,7 @@ def test_a_gross_gps_error_no_track_comes_near_is_left_out_for_every_track():
     m = score(_result(tracks, fix_t, fix_xy, withheld))
     # independently: the withheld fixes every track's gate (R + P, the default 0.9999)
     # rejects, and the mean of the two used fixes beside them (R + R / 2) rejects
-    limit = chi2.ppf(m["gps_antenna"]["gate"], 2)
+    limit = chi2.ppf(m.gps_antenna.gate, 2)
     rejected = withheld.copy()
     for tr in tracks.values():
         d = tr.pose[np.searchsorted(tr.t, fix_t), :2] - fix_xy
@@ -182,19 +182,19 @@ def test_a_gross_gps_error_no_track_comes_near_is_left_out_for_every_track():
     rejected[i] &= np.sum((fix_xy[i] - between) ** 2, axis=1) / 1.5 > limit
     assert np.flatnonzero(rejected).tolist() == [100]
     held = withheld.sum()
-    assert m["gps_holdout_outliers"] == 1 and m["gps_holdout_scored_fixes"] == held - 1
+    assert m.gps_holdout_outliers == 1 and m.gps_holdout_scored_fixes == held - 1
     for n, tr in tracks.items():
         d = (tr.pose[np.searchsorted(tr.t, fix_t), :2] - fix_xy)[withheld & ~rejected]
         want = math.sqrt(np.mean(np.sum(d * d, axis=1)))
-        assert m["estimators"][n]["gps_holdout_rmse_m"] == pytest.approx(want, abs=1e-5)
-    m["gps_holdout"] = "every:5"
+        assert m.estimators[n].gps_holdout_rmse_m == pytest.approx(want, abs=1e-5)
+    m = replace(m, gps_holdout="every:5")
     assert "1 withheld fix that no estimator comes near" in verdict_lines(m)[0]
     # a 30 s outage over which every track drifts to 20 m with a sigma of 1 m: its fixes are
     # what the score is for, none is left out
     outage = (fix_t >= 40.0) & (fix_t < 70.0)
     far = {n: _track(t, np.where((t >= 40.0) & (t < 70.0), 20.0, 0.1)) for n in ("a", "b")}
     m = score(_result(far, fix_t, _pose(fix_t)[:, :2], outage))
-    assert m["gps_holdout_outliers"] == 0 and m["gps_holdout_scored_fixes"] == outage.sum()
+    assert m.gps_holdout_outliers == 0 and m.gps_holdout_scored_fixes == outage.sum()
 
 
 def test_the_interpolation_reference_leaves_out_gross_errors_among_the_used_fixes():
@@ -213,7 +213,7 @@ def test_the_interpolation_reference_leaves_out_gross_errors_among_the_used_fixe
     t = np.arange(0.0, 120.0, 0.1)
     tracks = {"good": _track(t, 0.0), "fair": _track(t, 0.3)}
     m = score(_result(tracks, fix_t, fix_xy, withheld))
-    assert m["gps_holdout_interpolation_outliers"] == 2
+    assert m.gps_holdout_interpolation_outliers == 2
     keep = ~withheld
     keep[bad] = False
     held = withheld & (fix_t > fix_t[keep][0]) & (fix_t < fix_t[keep][-1])
@@ -225,7 +225,7 @@ def test_the_interpolation_reference_leaves_out_gross_errors_among_the_used_fixe
 
     want = rmse(keep)
     assert want < 2.0
-    assert m["gps_holdout_interpolation_rmse_m"] == pytest.approx(want, abs=1e-5)
+    assert m.gps_holdout_interpolation_rmse_m == pytest.approx(want, abs=1e-5)
     # without the test: every used fix interpolated, the 30 m fixes included
     assert rmse(~withheld) > 1.5 * want
 
@@ -237,15 +237,15 @@ def test_position_only_truth_gives_no_rpe_rather_than_nulls_with_a_pair_count():
     truth = _track(np.arange(0.0, 60.0, 0.2))
     truth.pose[:, 2] = np.nan
     m = score(_result({"ekf": _track(t, 0.2)}, [], np.zeros((0, 2)), [], truth=truth, t1=60.0))
-    e = m["estimators"]["ekf"]
-    assert e["ate_rmse_m"] == pytest.approx(0.2, abs=1e-6)
-    assert e["rpe"] is None and e["rpe_rmse_m"] is None
-    assert "no heading" in e["rpe_note"]
+    e = m.estimators["ekf"]
+    assert e.ate_rmse_m == pytest.approx(0.2, abs=1e-6)
+    assert e.rpe is None and e.rpe_rmse_m is None
+    assert "no heading" in e.rpe_note
     # with the truth's heading the RPE is there, with finite values for every pair it counts
     truth.pose[:, 2] = _pose(truth.t)[:, 2]
     e = score(_result({"ekf": _track(t, 0.2)}, [], np.zeros((0, 2)), [], truth=truth,
-                      t1=60.0))["estimators"]["ekf"]
-    assert e["rpe"]["1s"]["position_m"]["n"] > 0 and e["rpe_rmse_m"] is not None
+                      t1=60.0)).estimators["ekf"]
+    assert e.rpe["1s"].position_m.n > 0 and e.rpe_rmse_m is not None
 
 
 def test_the_path_length_from_gps_fixes_is_not_their_noise(sample_husky):
@@ -262,5 +262,5 @@ def test_the_path_length_from_gps_fixes_is_not_their_noise(sample_husky):
     truth_m = metrics.path_length(res.truth.pose[:, :2])
     res.truth = None
     facts = data_facts(res, _replace(cfg, ground_truth_topic=None), surveys=[])
-    assert facts["path_length_from"] == "GPS fixes"
-    assert facts["path_length_m"] == pytest.approx(truth_m, rel=0.1)
+    assert facts.path_length_from == "GPS fixes"
+    assert facts.path_length_m == pytest.approx(truth_m, rel=0.1)

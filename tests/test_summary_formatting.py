@@ -9,6 +9,7 @@ from pathlib import Path
 
 from ddfuse.evaluation import report
 from ddfuse.evaluation.cli.run import print_summary
+from ddfuse.evaluation.scores import RunSummary
 
 ROOT = Path(__file__).resolve().parents[1]
 SEED002 = ROOT / "data" / "sample_seed002.bag"
@@ -22,7 +23,8 @@ def test_a_drift_that_rounds_to_zero_has_no_sign():
                                                 "drift_per_m": drift, "reference": "truth"}]}
                         for name, drift in (("ekf_igvc", -0.00002), ("ekf", 0.00002),
                                             ("smoother", 0.0123))}}
-    cells = re.findall(r"<td>([-+]?\d+\.\d\d)</td><td class=\"l\">truth", report._outage_table(m))
+    cells = re.findall(r"<td>([-+]?\d+\.\d\d)</td><td class=\"l\">truth",
+                       report._outage_table(RunSummary.from_json(m)))
     assert cells == ["0.00", "0.00", "+1.23"]
     assert report.signed(-0.004) == "0.00" and report.signed(0.004) == "0.00"
     assert report.signed(-0.006) == "-0.01" and report.signed(0.25) == "+0.25"
@@ -46,5 +48,5 @@ def test_an_estimator_that_never_estimated_gets_no_speed(seed002_run):
     assert "33358" not in rows["ekf"]
     assert rows["ekf"].split("ERROR:")[0].split()[-1] == "-"
     assert f"{ran['rtf']:.3f}" in rows["ekf_landmark"]
-    table = report._summary_table(m)
+    table = report._summary_table(RunSummary.from_json(m))
     assert "33358" not in table and f"{ran['rtf']:.0f}" in table

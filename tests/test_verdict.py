@@ -214,6 +214,7 @@ def test_common_stamp_ate_interpolates_every_track_at_the_sparsest_ones():
     import numpy as np
     from ddfuse.estimation.runner import Trajectory
     from ddfuse.evaluation.pipeline import _common_ate
+    from ddfuse.evaluation.scores import CommonSpan
 
     def track(t, offset):
         t = np.asarray(t, float)
@@ -225,12 +226,12 @@ def test_common_stamp_ate_interpolates_every_track_at_the_sparsest_ones():
     dense.pose[::2, 1] = 1.0  # 1 m off at every other sample: at 0.0, 0.2, 0.4, ...
     sparse = track(np.arange(0.05, 10.0, 1.0), 0.0)  # keyframes between the dense samples
     rmse, info = _common_ate({"dense": dense, "sparse": sparse}, truth)
-    assert info == {"stamps": 10, "of": "sparse", "span_s": [0.05, 9.05]}
+    assert info == CommonSpan(stamps=10, of="sparse", span_s=(0.05, 9.05))
     assert rmse["sparse"] == 0.0
     assert abs(rmse["dense"] - 0.5) < 1e-9  # halfway between an off and an on sample
     # same sampling: the samples themselves, every other one 1 m off
     rmse, info = _common_ate({"a": dense, "b": dense}, truth)
-    assert abs(rmse["a"] - np.sqrt(51 / 101)) < 1e-6 and info["stamps"] == 101
+    assert abs(rmse["a"] - np.sqrt(51 / 101)) < 1e-6 and info.stamps == 101
     assert _common_ate({"a": dense, "b": sparse}, None) is None
 
 
@@ -248,14 +249,12 @@ def test_withholding_every_fix_says_so_instead_of_grading_estimators_that_never_
     truthless = replace(stream, ground_truth=[])
     ests = registry.build(cfg, truthless, ["ekf", "smoother"])
     result = run(truthless, ests, holdout="window:0:1000")
-    m = score(result)
-    m["gps_holdout"] = "window:0:1000"
-    m["data"] = data_facts(result, cfg)
-    n = m["gps_holdout_fixes"]
-    assert n == m["data"]["gps_fixes"] > 0
+    m = replace(score(result), gps_holdout="window:0:1000", data=data_facts(result, cfg))
+    n = m.gps_holdout_fixes
+    assert n == m.data.gps_fixes > 0
     for name in ("ekf", "smoother"):
-        assert f"all {n} GPS fixes were withheld (--gps-holdout)" in m["estimators"][name]["error"]
-    assert "never initialised: no GPS fix came" in m["estimators"]["smoother"]["error"]
+        assert f"all {n} GPS fixes were withheld (--gps-holdout)" in m.estimators[name].error
+    assert "never initialised: no GPS fix came" in m.estimators["smoother"].error
     lines = verdict_lines(m)
     assert lines[0].startswith("No score: the bag has no ground truth, and no estimator has an "
                                f"estimate at the {n} GPS fixes")
@@ -393,7 +392,8 @@ def test_outage_ends_below_the_noise_and_tracks_that_see_the_later_fixes():
     assert "-2.8%" not in line and "0.00 m" not in line
 
     from ddfuse.evaluation.report import _outage_table
-    table = _outage_table(m)
+    from ddfuse.evaluation.scores import RunSummary
+    table = _outage_table(RunSummary.from_json(m))
     assert "<td>&lt; 0.58 (unresolved)</td>" in table and "-2.84" not in table
     assert "– (sees fixes after the outage)" in table
     assert "the largest distance to a single withheld fix in the outage, that fix's noise " \

@@ -39,7 +39,7 @@ def _save_or_show(mc: dict, outdir: Path) -> tuple[Path, Path]:
     try:
         fd, kept = tempfile.mkstemp(prefix=f"ddfuse-{report_stem(mc)}-", suffix=".json")
         with os.fdopen(fd, "w") as f:
-            f.write(json.dumps(mc, indent=2, default=float) + "\n")
+            f.write(json.dumps(mc.to_json(), indent=2, default=float) + "\n")
         where = f"the table is above, the JSON in {kept}"
     except OSError:
         where = "the table is above; the JSON could not be kept"
