@@ -427,9 +427,9 @@ def replay(bag: str | Path, cfg: Config, *, names: list[str] | None = None,
     n = 0
     t_last = None
     # As runner.run does: a full collection walks every long-lived object (libraries, the
-    # estimators, their logs) inside whichever update or log compaction it interrupts (74-77
-    # ms on rl_husky_gps.bag, 4 in a replay); what exists now is frozen, automatic collection
-    # is off, and the young generations are collected between messages.
+    # estimators, their logs) inside whichever update or log compaction it interrupts
+    # (docs/design/performance.md); what exists now is frozen, automatic collection is off,
+    # and the young generations are collected between messages.
     gc_was_enabled = gc.isenabled()
     gc.freeze()
     gc.disable()
