@@ -15,8 +15,8 @@ import math
 # The quantiles a run asks for (its gates' usual probabilities and the 95 % consistency band's
 # two tails, 1-3 dof), exactly as the formula below gives them with scipy 1.17
 # (tests/test_chi2.py checks every entry against it): a run then starts without importing
-# scipy.special at all, 0.20-0.23 s of its start-up, most of it scipy's array-API layer cloning
-# numpy (numpy.f2py, charset_normalizer). 1 - 0.975 is a key of its own: the bands compute it.
+# scipy.special, a large share of its start-up (docs/design/performance.md). 1 - 0.975 is a key
+# of its own: the bands compute it.
 KNOWN: dict[tuple[float, float], float] = {
     (0.025, 1): 0.0009820691171752555,
     (0.025, 2): 0.05063561596857975,

@@ -143,8 +143,8 @@ def select(cfg: Config, names: list[str] | str | None) -> list[str]:
     out: list[str] = []
     for n in names:
         # the parameter, not the CLI's --estimators flag: the CLI refuses unknown names itself
-        # (cli.estimator_list), and a disallowed one's "estimators: ..." still reads as its
-        # option
+        # (evaluation.cli.arguments.estimator_list), and a disallowed one's "estimators: ..."
+        # still reads as its option
         if n not in TRACK_TO_SPEC:
             raise ValueError(f"estimators: unknown estimator {n!r} "
                              f"(known: {', '.join(TRACK_TO_SPEC)})")

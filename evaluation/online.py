@@ -156,7 +156,8 @@ class OnlineSession:
         order: dict[str, int] = {}
         for i, s in enumerate(cfg.sensors):
             order.setdefault(s.name, i)
-        # no lagged track online: its covariances would cost the smoother a quarter of its time
+        # no lagged track online: its covariances cost the smoother much of its update time
+        # (docs/design/performance.md)
         tracks = [t for n in chosen for t in registry.SPECS[n].produces
                   if t not in ONLINE_TRACKS_REFUSED]
         return cls(registry.build(cfg, stream, chosen, lag=lag, pose=pose, tracks=tracks),
