@@ -1,8 +1,7 @@
 """Chi-square quantiles without ``scipy.stats``.
 
-Importing ``scipy.stats`` costs 0.6-1.2 s of start-up (it loads every distribution, sparse
-matrices, spatial and optimize), more than a whole EKF run on a 400 s bag, for the few gate
-thresholds and consistency bands ddfuse needs. ``ppf`` computes the quantile the way
+``scipy.stats`` is too heavy an import for the few gate thresholds and consistency bands
+ddfuse needs (docs/design/performance.md). ``ppf`` computes the quantile the way
 ``scipy.stats.chi2.ppf`` does (``2 * gammaincinv(dof / 2, p)``, scipy 1.17's
 ``chi2_gen._ppf``; the scale 1 and location 0 it then applies change no bit), from
 ``scipy.special`` alone; tests/test_chi2.py checks it equals ``chi2.ppf`` value for value.
