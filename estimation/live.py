@@ -29,7 +29,7 @@ bag reader's per-topic stamp check (``ddfuse.estimation.bags._StampCheck``, tole
 max(``STAMP_TOLERANCE`` = 1 s, the config's ``reorder_window``)): a stamp that far off its
 topic's usual stamp-to-receive offset, a stamp of zero or below, or a non-finite one gives no
 measurement and is counted in ``rejected``. Unlike the bag reader, nothing is held back while a
-topic's offset is learnt (``WARMUP_S``). Reordering by stamp is ``OnlineSession``'s.
+topic's offset is learnt (``_StampCheck.WARMUP_S``). Reordering by stamp is ``OnlineSession``'s.
 
 Design notes (the warm-up, clock steps): docs/design/live_input.md"""
 
