@@ -1,10 +1,8 @@
 """Preintegrated wheel-speed + gyro odometry between two keyframes (the fast path).
 
-Accumulation (``WheelGyroPreintegration``)
-------------------------------------------
-Samples (dt, v_meas, w_gyro, var_v, var_w, gain, w_odo) are held constant over their ``dt``
-(zero-order hold) and integrated exactly as constant twists (``kinematics.se2_step_jac``) into
-the pose of keyframe j expressed in the frame of keyframe i::
+Accumulation (``WheelGyroPreintegration``). Samples (dt, v_meas, w_gyro, var_v, var_w, gain, w_odo)
+are held constant over their ``dt`` (zero-order hold) and integrated exactly as constant twists
+(``kinematics.se2_step_jac``) into the pose of keyframe j expressed in the frame of keyframe i::
 
     delta = (dx, dy, dpsi)   m, m, rad;  (dx, dy) along keyframe i's body x (forward) and y (left)
     v     = k_v,lin v_meas                              (m/s)
@@ -20,9 +18,7 @@ increment carries its 3x3 covariance and its Jacobians J_bg, J_kv, J_kw (3-vecto
 first-order correction ``delta(bg, k) = delta + J_bg db + J_kv dk_v + J_kw dk_w``; far from the
 linearisation points (a few sigma of their priors) call ``reintegrate``.
 
-Factor (``preintegrated_factor``, 2 keys i and j, 9-D error)
-------------------------------------------------------------
-::
+Factor (``preintegrated_factor``, 2 keys i and j, 9-D error)::
 
     e[0:2] = R(psi_i)^T (p_j - p_i) - (dx, dy)(bg_i, k_i)       m
     e[2]   = wrap(psi_j - psi_i - dpsi(bg_i, k_i))               rad
