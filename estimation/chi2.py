@@ -1,8 +1,7 @@
 """Chi-square quantiles without ``scipy.stats``.
 
-Importing ``scipy.stats`` costs 0.6-1.2 s of start-up (it loads every distribution, sparse
-matrices, spatial and optimize), more than a whole EKF run on a 400 s bag, for the few gate
-thresholds and consistency bands ddfuse needs. ``ppf`` computes the quantile the way
+``scipy.stats`` is too heavy an import for the few gate thresholds and consistency bands
+ddfuse needs (docs/design/performance.md). ``ppf`` computes the quantile the way
 ``scipy.stats.chi2.ppf`` does (``2 * gammaincinv(dof / 2, p)``, scipy 1.17's
 ``chi2_gen._ppf``; the scale 1 and location 0 it then applies change no bit), from
 ``scipy.special`` alone; tests/test_chi2.py checks it equals ``chi2.ppf`` value for value.
@@ -15,8 +14,8 @@ import math
 # The quantiles a run asks for (its gates' usual probabilities and the 95 % consistency band's
 # two tails, 1-3 dof), exactly as the formula below gives them with scipy 1.17
 # (tests/test_chi2.py checks every entry against it): a run then starts without importing
-# scipy.special at all, 0.20-0.23 s of its start-up, most of it scipy's array-API layer cloning
-# numpy (numpy.f2py, charset_normalizer). 1 - 0.975 is a key of its own: the bands compute it.
+# scipy.special, a large share of its start-up (docs/design/performance.md). 1 - 0.975 is a key
+# of its own: the bands compute it.
 KNOWN: dict[tuple[float, float], float] = {
     (0.025, 1): 0.0009820691171752555,
     (0.025, 2): 0.05063561596857975,

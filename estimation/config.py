@@ -511,7 +511,7 @@ def parse_config_text(text: str, source: str = "<config>", base: Path | None = N
     """Validate a config's YAML text (as a file holds it: 1e-4 is a number here, a string to
     PyYAML's safe loader). Raises ConfigError naming ``source`` and the key."""
     try:
-        # a key given twice (two `gps:` blocks) silently kept only the last: now an error
+        # a key given twice (two `gps:` blocks) is an error: PyYAML would keep only the last
         raw = yaml.load(text, Loader=_UniqueKeyLoader)
     except _DuplicateKey as e:
         raise ConfigError(f"{source}: {e.problem}") from None

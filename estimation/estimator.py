@@ -159,7 +159,7 @@ def _floats(x) -> list[float]:
 
 class InnovationLog:
     """Every innovation an estimator logged, in compact columns: a drop-in for the list of
-    :class:`Innovation` it used to be (``append``, ``len``, indexing, slicing, iteration), whose
+    :class:`Innovation` (``append``, ``len``, indexing, slicing, iteration), whose
     memory does not grow with the length of the run beyond a bound.
 
     Each entry costs a few dozen bytes (stamp, NIS, a code for (sensor, kind, dimension), the

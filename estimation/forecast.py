@@ -5,35 +5,24 @@ An estimate at t_e is moved to a later t by the exact constant-twist step
 (``ddfuse.factors.kinematics.se2_step``) of each twist sample after t_e, each sample covering the
 interval since the previous one (as dead reckoning integrates it), then by the last twist held
 up to t. Its 3x3 world-frame pose covariance (x m, y m, yaw rad) grows to first order,
-P <- J_pose P J_pose^T + J_twist S J_twist^T per step, with S the twist sample's variances. Where
-a sample is held beyond the interval it measures (the stretch after the newest one), its error
-is the same for the whole hold and the twist moves away from it as a random walk of density q
-(the smoother's rule for a held sample, ``FixedLagSmoother._stale``): over a hold of tau the
-integrated error is var tau^2 + q tau^3 / 3, i.e. a twist variance of var + q tau / 3 for the
-step.
+P <- J_pose P J_pose^T + J_twist S J_twist^T per step, with S the twist sample's variances; a
+sample held beyond its interval for tau s steps with a twist variance of var + q tau / 3 (q the
+random-walk density of a held twist, as in the smoother).
 
-The carry is for the last seconds only: the reorder window the estimators lag the newest
-message by (``reorder_window``, 0.5 s in the sample configs) and, on a live robot asked for the
-pose "now", the delivery latency since the newest message. ``carry`` refuses (ValueError) to
-move an estimate more than ``horizon`` s (default ``MAX_CARRY_S`` = 5 s; an online session's is
-its reorder window plus that): further on, the pose is dead reckoning on a twist held far
-beyond its samples, whose first-order covariance no longer describes its error (1e6 s ahead
-gave a pose 1e6 m away with variances of 1e16-1e27 m^2), and a feed stalled that long is a
-fault to see, not to paper over. ``OdometryTwist`` keeps the samples of as long (``keep``).
+``carry`` refuses (ValueError) to move an estimate more than ``horizon`` s (default
+``MAX_CARRY_S`` = 5 s; an online session's is its reorder window plus that): the first-order
+covariance no longer describes the error further on. ``OdometryTwist`` keeps the samples of as
+long (``keep``).
 
-The twist is the odometry's, without a scale calibration. The scale's uncertainty (the
-config's geometry uncertainty, ``robot.scale_std``) is one error for the whole carry, so it
-enters once, through the pose's sensitivity to the speed and yaw-rate scales accumulated over
-the steps, not per step (which would divide it by the number of steps).
+The twist is the odometry's, without a scale calibration; the scale's uncertainty
+(``robot.scale_std``) enters once per carry, through the pose's sensitivity to the speed and
+yaw-rate scales. A gyro's yaw rate has its bias removed as the estimators remove it (gyro = w +
+bias): a configured constant ``gyro_bias`` when the samples are made (``OdometryTwist.push``),
+else (``gyro_bias: estimate``) the estimate's own bias state (``state_names`` 'bg:<sensor>' or
+'bg') in ``carry``, its variance entering once per carry like the scale's. An estimate without
+such a state is carried on the raw rate, bias included.
 
-A gyro's yaw rate has its bias removed as the estimators remove it (gyro = w + bias): a
-configured constant ``gyro_bias`` when the samples are made (``OdometryTwist.push``), else
-(``gyro_bias: estimate``) the estimate's own bias state (``state_names`` 'bg:<sensor>' or 'bg',
-as the EKFs and the smoother name it) in ``carry``: like the scale, one error for the whole
-carry, its variance (``state_cov``, when the estimate gives one) entering through the pose's
-sensitivity to it; its correlation with the pose is not used (first order, over the seconds of
-a carry). An estimate without such a state (a carried one, an estimator that does not estimate
-the bias) is carried on the raw rate, bias included: a straight drive then turns at the bias.
+Design notes (held samples, the horizon, one error per carry): docs/design/forecast.md
 """
 
 from __future__ import annotations

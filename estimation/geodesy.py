@@ -86,7 +86,7 @@ def enu_covariance_is_valid(cov) -> bool:
     """True when an ENU position covariance (3x3, or its 9 entries row-major) is finite,
     symmetric and has a positive definite east/north block: what a NavSatFix must carry to be
     usable without a configured noise (the estimators invert that block; the vertical is
-    unused). Plain floats: the reader calls it per fix, and numpy's isclose cost 70 us."""
+    unused). Plain floats: the reader calls it per fix (docs/design/performance.md)."""
     c = tuple(np.asarray(cov, float).ravel().tolist()) if isinstance(cov, np.ndarray) else cov
     if len(c) != 9 or not all(math.isfinite(v) for v in c) or not (c[0] > 0.0 and c[4] > 0.0):
         return False

@@ -35,10 +35,7 @@ MISMATCH_RAD = 0.1  # a fixed offset this far from the measured one gets a warni
 DRIFT_RAD = 0.1  # windows this far apart (max - min) may mean the offset wanders,
 # if they change slowly rather than scatter: the von Neumann ratio of the windows' offsets (mean
 # squared successive difference over variance) is about 2 for independent scatter and small for
-# a slow change. The fits' own sigmas cannot tell: correlated GPS errors spread the windows by
-# 6-15 deg with fit sigmas of 0.4 deg (the simulator's husky-multipath, a constant offset).
-# Simulated constant offsets, white or 30 s correlated GPS, 60 runs of 13 windows: 1.05-3.3;
-# rl_husky_gps.bag: 0.46.
+# a slow change; the fits' own sigmas cannot tell (figures: docs/design/heading_survey.md)
 WANDER_RATIO = 1.0
 MIN_WANDER_WINDOWS = 4
 

@@ -23,35 +23,15 @@ cannot be used (NO_FIX, non-finite fields, no covariance and no configured noise
 do not fit its type) gives no measurement and is counted in ``rejected`` under its topic and
 reason, as the bag reader counts it.
 
-Broken stamps. ``convert`` also takes the message's receive time (``received``, seconds on the
-clock of the header stamps; default ``time.time()``, the wall clock that stamps a real robot's
-messages) and applies the bag reader's per-topic stamp check (``estimation.bags._StampCheck``,
-tolerance max(``STAMP_TOLERANCE`` = 1 s, the config's ``reorder_window``)): a message whose
-stamp-to-receive offset is further than that from its topic's usual offset (a zero stamp, a
-stamp seconds in the future, a sensor clock that stepped) gives no measurement and is counted
-in ``rejected`` under the bag reader's reason ("header stamp more than 1 s off its topic's clock
-(time went backwards or jumped)"); the first one per topic is logged as a warning. A stamp of
-zero or below (a driver before its clock is set) is rejected and counted so always, also as a
-topic's very first message, before any offset is known; a non-finite one likewise, under
-"non-finite stamp". Replaying
-recorded messages through ``convert``, pass their record time as ``received``: the wall clock
-of a replay that runs faster than the recording is not the clock of the stamps.
+Broken stamps. ``convert`` also takes the message's receive time (``received``, s on the clock
+of the header stamps; default ``time.time()``; in a replay pass the record time) and applies the
+bag reader's per-topic stamp check (``ddfuse.estimation.bags._StampCheck``, tolerance
+max(``STAMP_TOLERANCE`` = 1 s, the config's ``reorder_window``)): a stamp that far off its
+topic's usual stamp-to-receive offset, a stamp of zero or below, or a non-finite one gives no
+measurement and is counted in ``rejected``. Unlike the bag reader, nothing is held back while a
+topic's offset is learnt (``_StampCheck.WARMUP_S``). Reordering by stamp is ``OnlineSession``'s.
 
-The warm-up differs from the bag reader's, which holds a topic's first records back until their
-median offset is known: live, nothing is held back. A topic's first two messages are checked
-against the median offset of the other topics that have one (3 or more messages), and pass
-unchecked when none has; from its third message on, each is checked against the median offset
-of all the topic's messages so far (itself included); after ``_StampCheck.WARMUP`` (15) messages
-or ``WARMUP_S`` (5 s), the check is the bag reader's: against the median of its recent accepted
-offsets, which follows a slow drift. A topic whose stamps step for good (more than the
-tolerance) is rejected from then on, as the bag reader rejects it (there an error when over 10 %
-of a topic's messages): restart the session if its clock was corrected on purpose.
-
-The reordering by header stamp is ``OnlineSession``'s (``reorder_window``; a measurement older
-than one already passed on is dropped there): a converter hands on each message as it comes.
-When the whole clock steps (stamps and receive times alike, e.g. NTP setting the clock back),
-the offsets do not change and the check passes the messages; the session then drops those
-older than what it has passed on."""
+Design notes (the warm-up, clock steps): docs/design/live_input.md"""
 
 from __future__ import annotations
 

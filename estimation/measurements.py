@@ -183,7 +183,7 @@ _isfinite = math.isfinite
 
 # Per kind, whether the numbers an estimator reads are finite: one isfinite of their sum (a
 # NaN or an infinity in any term makes it non-finite; only finite values near 1e308 could
-# overflow it, none a sensor gives). Called for every message: ~0.1 us. What a message leaves
+# overflow it, none a sensor gives): cheap enough for every message. What a message leaves
 # NaN by design is not read: the variance of an odometry quantity not used, a range-only
 # sighting's bearing, a NavSatFix truth's yaw, a fix's altitude (NaN when unknown).
 _FINITE = {

@@ -2,10 +2,9 @@
 
 The ROS1 serialisation of the fixed-layout messages ddfuse reads most (Imu, Odometry, NavSatFix,
 TwistStamped, PoseStamped) is a header followed by packed little-endian fields, so one
-``struct.unpack_from`` replaces rosbags' generic deserialiser (about 20 us per Imu message, which
-alone would cap decoding below the required rate). Every other case (ROS2 CDR, JointState, the
-landmark message) goes through ``rosbags``; tests check that both paths give identical tuples on
-the real bags.
+``struct.unpack_from`` replaces rosbags' generic deserialiser, too slow for the required rate
+(docs/design/performance.md). Every other case (ROS2 CDR, JointState, the landmark message)
+goes through ``rosbags``; tests check that both paths give identical tuples on the real bags.
 
 Each extractor returns a plain tuple whose shape depends on the message type (see EXTRACTORS):
 floats in SI units, ``stamp`` first as float seconds from the header.

@@ -290,7 +290,7 @@ def broken(e: Estimate) -> str | None:
     or heading not finite, a pose variance negative or above MAX_POSE_VARIANCE: the covariance
     has lost positive definiteness or all meaning), else None. NaN variances mean 'no
     covariance' (dead reckoning). Checked at every output tick, outside the timings."""
-    c = e.pose_cov  # item by item: numpy's whole-array calls cost 5 us per output sample
+    c = e.pose_cov  # item by item: whole-array numpy is slower here (docs/design/performance.md)
     d = (float(c[0, 0]), float(c[1, 1]), float(c[2, 2]))
     if math.isfinite(e.pose[0] + e.pose[1] + e.pose[2]) and not any(
             v < 0.0 or v > MAX_POSE_VARIANCE for v in d):  # NaN: both False
@@ -403,6 +403,7 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
     # all, inside whichever update it interrupts. So automatic collection is off during the
     # loop, and _feed collects only the young generations between messages (the estimators
     # make little cyclic garbage); a list-based stream is frozen (skipped by the collector).
+    # Figures: docs/design/performance.md
     gc_was_enabled = gc.isenabled()
     gc.freeze()
     gc.disable()

@@ -91,8 +91,8 @@ def build(cfg: Config, stream, names: list[str] | str | None = None, *,
     first truth pose) unless ``pose`` (x, y, yaw) is given, the landmark maps and datum from
     ``stream`` (a Stream, or a primed BagStream), the smoother's lag from the config unless
     ``lag`` (s). ``tracks``: the output tracks that will be used (default: all of them); the
-    smoother skips its lagged output, a quarter of its cost, when 'smoother_lagged' is not
-    among them."""
+    smoother skips its lagged output (docs/design/performance.md) when 'smoother_lagged' is
+    not among them."""
     chosen = select(cfg, names)
     if pose is None:
         pose = initial_pose(cfg.initial_pose, stream)
@@ -143,8 +143,8 @@ def select(cfg: Config, names: list[str] | str | None) -> list[str]:
     out: list[str] = []
     for n in names:
         # the parameter, not the CLI's --estimators flag: the CLI refuses unknown names itself
-        # (cli.estimator_list), and a disallowed one's "estimators: ..." still reads as its
-        # option
+        # (evaluation.cli.arguments.estimator_list), and a disallowed one's "estimators: ..."
+        # still reads as its option
         if n not in TRACK_TO_SPEC:
             raise ValueError(f"estimators: unknown estimator {n!r} "
                              f"(known: {', '.join(TRACK_TO_SPEC)})")

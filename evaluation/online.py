@@ -156,7 +156,8 @@ class OnlineSession:
         order: dict[str, int] = {}
         for i, s in enumerate(cfg.sensors):
             order.setdefault(s.name, i)
-        # no lagged track online: its covariances would cost the smoother a quarter of its time
+        # no lagged track online: its covariances cost the smoother much of its update time
+        # (docs/design/performance.md)
         tracks = [t for n in chosen for t in registry.SPECS[n].produces
                   if t not in ONLINE_TRACKS_REFUSED]
         return cls(registry.build(cfg, stream, chosen, lag=lag, pose=pose, tracks=tracks),
@@ -427,9 +428,9 @@ def replay(bag: str | Path, cfg: Config, *, names: list[str] | None = None,
     n = 0
     t_last = None
     # As runner.run does: a full collection walks every long-lived object (libraries, the
-    # estimators, their logs) inside whichever update or log compaction it interrupts (74-77
-    # ms on rl_husky_gps.bag, 4 in a replay); what exists now is frozen, automatic collection
-    # is off, and the young generations are collected between messages.
+    # estimators, their logs) inside whichever update or log compaction it interrupts
+    # (docs/design/performance.md); what exists now is frozen, automatic collection is off,
+    # and the young generations are collected between messages.
     gc_was_enabled = gc.isenabled()
     gc.freeze()
     gc.disable()

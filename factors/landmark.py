@@ -80,7 +80,8 @@ def _make(
     zb = float(z_bearing) if bearing else 0.0
     dim = 2 if bearing else 1
     # gtsam copies Jacobians and errors into Eigen objects, so these buffers are reused; flat
-    # memoryview writes (index DIM r + c) are ~3x cheaper than numpy item assignment.
+    # memoryview writes (index DIM r + c) beat numpy item assignment
+    # (docs/design/performance.md)
     hs = np.zeros((dim, DIM))
     ms = memoryview(hs.reshape(-1))
     e = np.zeros(dim)

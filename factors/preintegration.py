@@ -1,10 +1,8 @@
 """Preintegrated wheel-speed + gyro odometry between two keyframes (the fast path).
 
-Accumulation (``WheelGyroPreintegration``)
-------------------------------------------
-Samples (dt, v_meas, w_gyro, var_v, var_w, gain, w_odo) are held constant over their ``dt``
-(zero-order hold) and integrated exactly as constant twists (``kinematics.se2_step_jac``) into
-the pose of keyframe j expressed in the frame of keyframe i::
+Accumulation (``WheelGyroPreintegration``). Samples (dt, v_meas, w_gyro, var_v, var_w, gain, w_odo)
+are held constant over their ``dt`` (zero-order hold) and integrated exactly as constant twists
+(``kinematics.se2_step_jac``) into the pose of keyframe j expressed in the frame of keyframe i::
 
     delta = (dx, dy, dpsi)   m, m, rad;  (dx, dy) along keyframe i's body x (forward) and y (left)
     v     = k_v,lin v_meas                              (m/s)
@@ -15,22 +13,12 @@ odometry's speed and yaw-rate scales (``ddfuse.factors.state``: true speed = k_v
 ``w_gyro`` is the part of the yaw rate that carries the gyro bias with gain g (1 for a raw gyro
 reading, the gyro's weight when a gyro and an odometry yaw rate are fused per sample), ``w_odo``
 the part that carries the odometry's scale (the odometry's weight times its yaw rate; 0 for a
-gyro alone). For every sample, with F and G the Jacobians of the step with respect to the
-running delta and to (v, w)::
+gyro alone); ``var_v`` (m/s)^2 and ``var_w`` (rad/s)^2 are each held sample's variances. The
+increment carries its 3x3 covariance and its Jacobians J_bg, J_kv, J_kw (3-vectors) for the
+first-order correction ``delta(bg, k) = delta + J_bg db + J_kv dk_v + J_kw dk_w``; far from the
+linearisation points (a few sigma of their priors) call ``reintegrate``.
 
-    cov  <- F cov F^T + G_v G_v^T var_v + G_w G_w^T var_w      (3x3, same coordinates as delta)
-    J_bg <- F J_bg - g G_w                                     (3, d delta / d bg)
-    J_kv <- F J_kv + v_meas G_v                                (3, d delta / d k_v)
-    J_kw <- F J_kw + w_odo G_w                                 (3, d delta / d k_w)
-
-``var_v`` (m/s)^2 and ``var_w`` (rad/s)^2 are the variances of each held sample. The first-order
-correction is ``delta(bg, k) = delta + J_bg db + J_kv dk_v + J_kw dk_w`` as in IMU
-preintegration; once the estimates move far from the linearisation points (a few sigma of
-their priors) call ``reintegrate``, which replays the stored samples.
-
-Factor (``preintegrated_factor``, 2 keys i and j, 9-D error)
-------------------------------------------------------------
-::
+Factor (``preintegrated_factor``, 2 keys i and j, 9-D error)::
 
     e[0:2] = R(psi_i)^T (p_j - p_i) - (dx, dy)(bg_i, k_i)       m
     e[2]   = wrap(psi_j - psi_i - dpsi(bg_i, k_i))               rad
@@ -40,12 +28,11 @@ Factor (``preintegrated_factor``, 2 keys i and j, 9-D error)
     e[6]   = wrap(hoff_j - hoff_i)                               rad
     e[7:9] = k_j - k_i                                           1
 
-Rows 3 and 4 tie the keyframe-j twist states to the LAST sample of the interval (speed and raw
-yaw rate, the latter through g_last bg_j), with that sample's variances; they make v_j, w_j
-meaningful without separate wheel/gyro factors at the keyframe. Their small correlation with the
-pose rows (the last sample also enters the delta) is ignored. Rows 5 to 8 are random walks.
-The 9x9 covariance is block diagonal: [cov + extra pose noise, var_v, var_w, q_bg^2 T,
+Rows 3 and 4 tie the keyframe-j twist to the interval's LAST sample; rows 5 to 8 are random
+walks. The 9x9 covariance is block diagonal: [cov + extra pose noise, var_v, var_w, q_bg^2 T,
 q_hoff^2 T, q_k^2 T, q_k^2 T], with T the integrated time.
+
+Design notes and measurements: docs/design/preintegration.md
 """
 
 from __future__ import annotations
@@ -66,7 +53,8 @@ _TWO_PI = 2.0 * math.pi
 class WheelGyroPreintegration:
     """Accumulates wheel speed + gyro samples into an SE(2) increment; see the module docstring.
 
-    All state is plain Python floats so that ``integrate`` stays cheap (a few microseconds).
+    All state is plain Python floats (``__slots__``): ``preintegration_jit`` mirrors it slot by
+    slot.
     """
 
     __slots__ = (
@@ -294,7 +282,7 @@ def preintegrated_factor(
     cos = math.cos
     sin = math.sin
     # Buffers owned by this factor, rewritten in place (gtsam copies them into Eigen objects);
-    # flat memoryview writes are ~3x cheaper than numpy item assignment.
+    # flat memoryview writes are cheaper than numpy item assignment (docs/design/preintegration.md)
     hi = np.zeros((DIM, DIM))
     hi[2, 2] = -1.0
     hi[:3, BG] = (-jx, -jy, -jp)

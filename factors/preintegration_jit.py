@@ -1,20 +1,17 @@
 """Compiled (numba) twin of ``ddfuse.factors.preintegration.WheelGyroPreintegration``.
 
-Why: the smoother integrates one held sample per message (16 800 on the 395 s Husky bag); the
-Python ``integrate`` costs ~7 us of interpreter time for ~100 floating-point operations, the
-kernel ~1 us, most of it the call.
-
 The Python class stays the reference: ``integrate`` below is a line-by-line transcription of
-``WheelGyroPreintegration.integrate`` (one kernel per Python function, the same operation order,
-so results agree to rounding; ``tests/test_factors_preintegration_jit.py`` holds them to 1e-9),
-and ``se2_step_jac`` / ``twist_coeffs`` of ``ddfuse.factors.kinematics`` are compiled into it
-(``register_jitable``: they stay plain Python for their other callers). A change of the
-preintegration's maths goes into both.
+``WheelGyroPreintegration.integrate`` (the same operation order, so results agree to rounding;
+``tests/test_factors_preintegration_jit.py`` holds them to 1e-9), with ``se2_step_jac`` /
+``twist_coeffs`` of ``ddfuse.factors.kinematics`` compiled into it (``register_jitable``). A
+change of the preintegration's maths goes into both.
 
 The running state lives in one float64 array ``s`` (slot indices below, named after the Python
 attributes); ``WheelGyroPreintegrationJit`` exposes it under the reference class's attribute
 names, so everything but ``integrate`` (``delta_at``, ``predict``, ``covariance``,
 ``preintegrated_factor`` ...) is the reference's own code.
+
+Why it exists (per-sample cost on the Husky bag): docs/design/preintegration.md
 """
 
 from __future__ import annotations

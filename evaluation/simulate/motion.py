@@ -184,7 +184,8 @@ def commands(tr: TrajectorySpec, duration: float, dt: float, rng: np.random.Gene
     env = _envelope(tm, duration, tr.ramp)
     if tr.kind == "random":
         # The last midpoint of the drive_duration run, computed as that run computes it, so that
-        # the run of drive_duration s itself draws exactly what it drew before span existed.
+        # the run of drive_duration s itself draws exactly what it would draw without ``span``
+        # (the simulated sample bags stay byte-identical).
         base = _substep_midpoints(drive_duration, dt) if drive_duration is not None else tm
         span = float(base[-1]) if len(base) else 0.0
         g_v, g_w = _smooth_noise(rng, tm, tr.corr_time, count=2, span=span)

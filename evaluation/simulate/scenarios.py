@@ -180,12 +180,8 @@ SCENARIOS: dict[str, Scenario] = {
         "husky", "Husky-like outdoor robot mowing a field (lawnmower legs of 40 m): 10 Hz "
         "wheel odometry, 30 Hz IMU (heading offset, gyro bias), 2.5 Hz GPS, 400 s.",
         _LAWNMOWER),
-    # The correlation time is measured on rl_husky_gps.bag (../shared/data): GPS displacement
-    # along the odometry's chord minus the odometry distance (heading from the batch track),
-    # over lags of 1-120 s, fits 2 sigma^2 (1 - exp(-lag / tau)) with tau 26.7 s, sigma 1.7 m;
-    # errors simulated with tau 30 s on the same fix pairs fit a median 27.8 s (90 % of fits
-    # 12-77 s). The fixes' residuals to an estimated track decorrelate faster (3.6-5.2 s, the
-    # report's figure): a track takes up the slow wander. docs/results/smoother_monte_carlo.md
+    # The 30 s correlation time is measured on rl_husky_gps.bag (../shared/data); how, and why
+    # the report's residual correlation time is shorter: docs/results/smoother_monte_carlo.md
     "husky-multipath": _husky(
         "husky-multipath", "husky with time-correlated GPS errors (multipath, atmosphere): "
         "per axis a Gauss-Markov process of correlation time 30 s (measured on "
