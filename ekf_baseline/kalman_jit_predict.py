@@ -82,6 +82,25 @@ def _propagate_cov(fp, ip, W, n, dt):
 
 
 @njit(cache=True)
+def _put_step_f(fp, ofv, F, ks):
+    """F's pose-row entries from ``scaled_step_terms``' layout (or se2_error_terms' first 12)
+    into fp at ``ofv`` (UnicycleEkf._compiled_core's order), with the scale columns when
+    ``ks`` >= 0; returns the offset after them."""
+    fp[ofv + 1] = F[0]
+    fp[ofv + 2] = F[1]
+    fp[ofv + 3] = F[2]
+    fp[ofv + 5] = F[3]
+    fp[ofv + 6] = F[4]
+    fp[ofv + 7] = F[5]
+    fp[ofv + 9] = F[6]
+    if ks < 0:
+        return ofv + 10
+    for k in range(5):
+        fp[ofv + 10 + k] = F[7 + k]
+    return ofv + 15
+
+
+@njit(cache=True)
 def _uni_predict(fp, ip, W, n, dt):
     """UnicycleEkf._predict_to for dt > 0 s: the constant-twist (or Euler) step of (x, y, psi),
     F (its Jacobian, identity elsewhere), Q (unicycle_process_noise_terms + walks); with the
@@ -90,31 +109,25 @@ def _uni_predict(fp, ip, W, n, dt):
     ofv = ip[lay.IP_OFF_FVAL]
     ks = ip[lay.IP_KS]
     # F's entries in the order UnicycleEkf._compiled_core lays them out: rows 0..2 first
-    if ip[lay.IP_LIE] != 0:  # UnicycleEkf._predict_to's se2 branch
+    lie = ip[lay.IP_LIE] != 0
+    nz = lay.FP_NOISE
+    if lie or ks >= 0:  # UnicycleEkf._predict_step's se2 and scale-state branches
         kv = 1.0 if ks < 0 else x[ks]
         kw = 1.0 if ks < 0 else x[ks + 1]
         x1, y1, p1, F0, q0 = scaled_step_terms(
-            x[0], x[1], x[2], x[3], x[4], kv, kw, dt, ip[lay.IP_MOTION] != 0,
-            fp[lay.FP_NOISE], fp[lay.FP_NOISE + 1], fp[lay.FP_NOISE + 2], fp[lay.FP_NOISE + 3],
-            fp[lay.FP_NOISE + 4], ip[lay.IP_WTRUE] != 0)
-        F, q = se2_error_terms(x[2], p1, F0, q0)
-        fp[ofv + 0] = F[12]
-        fp[ofv + 1] = F[0]
-        fp[ofv + 2] = F[1]
-        fp[ofv + 3] = F[2]
-        fp[ofv + 4] = F[15]
-        fp[ofv + 5] = F[3]
-        fp[ofv + 6] = F[4]
-        fp[ofv + 7] = F[5]
-        fp[ofv + 9] = F[6]
-        o2 = ofv + 10
-        if ks >= 0:
-            for k in range(5):
-                fp[ofv + 10 + k] = F[7 + k]
-            o2 = ofv + 15
-        fp[o2] = F[13]  # the pose block's (0, 1), (1, 0)
-        fp[o2 + 1] = F[14]
-    elif ks < 0:
+            x[0], x[1], x[2], x[3], x[4], kv, kw, dt, ip[lay.IP_MOTION] != 0, fp[nz],
+            fp[nz + 1], fp[nz + 2], fp[nz + 3], fp[nz + 4], ip[lay.IP_WTRUE] != 0)
+        if lie:
+            F, q = se2_error_terms(x[2], p1, F0, q0)
+            fp[ofv + 0] = F[12]
+            fp[ofv + 4] = F[15]
+            o2 = _put_step_f(fp, ofv, F, ks)
+            fp[o2] = F[13]  # the pose block's (0, 1), (1, 0)
+            fp[o2 + 1] = F[14]
+        else:
+            q = q0
+            _put_step_f(fp, ofv, F0, ks)
+    else:
         if ip[lay.IP_MOTION] == 0:
             x1, y1, p1, J = se2_step_jac(x[0], x[1], x[2], x[3], x[4], dt)
         else:
@@ -126,23 +139,8 @@ def _uni_predict(fp, ip, W, n, dt):
         fp[ofv + 6] = J[1][3]
         fp[ofv + 7] = J[1][4]
         fp[ofv + 9] = dt
-        nz = lay.FP_NOISE
         q = unicycle_process_noise_terms(x[2], x[3], dt, fp[nz], fp[nz + 1], fp[nz + 2],
                                          fp[nz + 3], fp[nz + 4])
-    else:  # then the scale columns of x, y, psi
-        x1, y1, p1, F, q = scaled_step_terms(
-            x[0], x[1], x[2], x[3], x[4], x[ks], x[ks + 1], dt, ip[lay.IP_MOTION] != 0,
-            fp[lay.FP_NOISE], fp[lay.FP_NOISE + 1], fp[lay.FP_NOISE + 2], fp[lay.FP_NOISE + 3],
-            fp[lay.FP_NOISE + 4], ip[lay.IP_WTRUE] != 0)
-        fp[ofv + 1] = F[0]
-        fp[ofv + 2] = F[1]
-        fp[ofv + 3] = F[2]
-        fp[ofv + 5] = F[3]
-        fp[ofv + 6] = F[4]
-        fp[ofv + 7] = F[5]
-        fp[ofv + 9] = F[6]
-        for k in range(5):
-            fp[ofv + 10 + k] = F[7 + k]
     oqv = ip[lay.IP_OFF_QVAL]
     for k in range(15):  # the upper triangle, then its off-diagonal entries again (lower)
         fp[oqv + k] = q[k]
