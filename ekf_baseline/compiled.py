@@ -9,7 +9,7 @@
 * :class:`BufferedLog` -- an :class:`~estimation.estimator.EstimatorLog` whose innovations the
   kernels write as rows of a numpy buffer; ``log.innovations`` turns the pending rows into
   Innovation records (in order, before anything appended from Python) whenever it is read.
-* :func:`available` -- whether numba is importable; :func:`warm_up` -- compile (or load from
+* :func:`warm_up` -- compile (or load from
   numba's on-disk cache) the kernels once per process, outside any timed region.
 
 Numba caches compiled kernels next to ``kalman_jit.py`` (``__pycache__``) and checks only that
@@ -36,7 +36,7 @@ from ddfuse.ekf_baseline.kalman import (
 from ddfuse.estimation.estimator import EstimatorLog
 from ddfuse.factors.jitcache import guard_cache
 
-__all__ = ["BufferedLog", "JitKalmanCore", "available", "kernels", "warm_up", "COLD_COMPILE"]
+__all__ = ["BufferedLog", "JitKalmanCore", "kernels", "warm_up", "COLD_COMPILE"]
 
 # the kernels' return bits (ddfuse.ekf_baseline.kalman_jit docstring)
 DEFER = 1
@@ -51,29 +51,21 @@ IGVC_KINDS = ("gyro", "heading", "accel", "odometry", "wheels", "gps")
 
 _ROOT = Path(__file__).resolve().parents[1]
 # every file whose code the kernels compile (kalman_jit's module docstring)
-_KERNEL_SOURCES = ("ekf_baseline/kalman_jit.py", "ekf_baseline/unicycle.py",
-                   "ekf_baseline/igvc.py", "ekf_baseline/igvc_jacobians.py",
-                   "factors/kinematics.py")
+_KERNEL_SOURCES = ("ekf_baseline/kalman_jit.py", "ekf_baseline/kalman_jit_predict.py",
+                   "ekf_baseline/kalman_jit_layout.py", "ekf_baseline/unicycle_motion.py",
+                   "ekf_baseline/unicycle_measurements.py", "ekf_baseline/igvc_model.py",
+                   "ekf_baseline/igvc_measurements.py", "ekf_baseline/igvc_jacobians.py",
+                   "ekf_baseline/kalman.py", "factors/kinematics.py", "estimation/lockout.py")
 _state: dict = {}
 COLD_COMPILE: dict[str, float] = {}  # entry point -> seconds its warm-up took in this process
 
 
-def available() -> bool:
-    """True if numba imports (the compiled path can be used)."""
-    if "ok" not in _state:
-        try:
-            import numba  # noqa: F401
-            _state["ok"] = True
-        except ImportError:
-            _state["ok"] = False
-    return _state["ok"]
-
-
 def _guard_cache() -> None:
     """Drop numba's cached kernels when a source they compile changed (numba checks only the
-    time stamp of kalman_jit.py; ``ddfuse.factors.jitcache``)."""
-    guard_cache((_ROOT / rel for rel in _KERNEL_SOURCES), _ROOT / "ekf_baseline" / "__pycache__",
-                "kalman_jit")
+    time stamp of the file defining each kernel; ``ddfuse.factors.jitcache``)."""
+    sources = [_ROOT / rel for rel in _KERNEL_SOURCES]
+    for stem in ("kalman_jit", "kalman_jit_predict"):
+        guard_cache(sources, _ROOT / "ekf_baseline" / "__pycache__", stem)
 
 
 def kernels():

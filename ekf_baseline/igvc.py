@@ -9,20 +9,12 @@ State (STATE_NAMES, index: meaning, unit)::
     4 y        local ENU north, m               10 a        forward acceleration, m/s^2
     5 psi      yaw, rad, CCW from local east
 
-Frames: the seed's x north / y east with a "left positive" heading is not a consistent frame for
-its own eqs. 6-7; this filter keeps x, y, psi in the project's right-handed local ENU frame
-(x east, y north, psi CCW from east) internally, so ``Estimate.pose`` is (x, y, psi) without a
-conversion. theta stays a compass bearing, as the great-circle formulas (seed eqs. 4-5) need;
-in the ENU frame at the datum theta = pi/2 - psi (the meridian convergence, about
-dlon sin(lat) -- 2e-6 rad at 10 m east at 45 deg -- is ignored).
+Frames: x, y, psi in the local ENU frame (x east, y north, psi CCW from east), so
+``Estimate.pose`` is (x, y, psi); theta a compass bearing, theta = pi/2 - psi at the datum.
 
 Motion models (``motion='euler'`` or ``'icc'``): generated once from sympy in
-``ekf_baseline/igvc_jacobians.py`` (derivation: ``ekf_baseline/igvc_codegen.py``). The seed's
-11-vector is redundant -- (lat, lon) and (x, y) are one position, theta and psi one heading,
-(v, psi_dot) and (v_l, v_r) one twist. The models keep the redundant pairs consistent: the
-wheel speeds are recomputed from (v, psi_dot) every step, and the process noise enters each pair
-through one shared noise source (``IgvcNoise``), so a GPS update of lat/lon moves x/y with it
-through their correlation and a compass update of theta moves psi.
+``ekf_baseline/igvc_jacobians.py`` (``ekf_baseline/igvc_codegen.py``); they keep the redundant
+pairs ((lat, lon) ~ (x, y), theta ~ psi, (v, psi_dot) ~ (v_l, v_r)) consistent.
 
 Measurements (seed eq. 17/19, corrected):
 
@@ -37,46 +29,42 @@ Measurements (seed eq. 17/19, corrected):
 * WheelSpeeds (rad/s) -> (v_l / r, v_r / r).
 * WheelOdometry -> v = (v_l + v_r)/2 and yaw rate (v_r - v_l)/L (seed eqs. 18-19).
 
-Every update goes through ``ddfuse.ekf_baseline.kalman.KalmanCore`` (Joseph form, wrapped angle
-innovations, per-sensor chi-square gate with lock-out recovery).
+Models: ``ddfuse.ekf_baseline.igvc_measurements``. Every update goes through
+``ddfuse.ekf_baseline.kalman.KalmanCore`` (Joseph form, per-sensor chi-square gate with
+lock-out recovery) or the compiled kernels.
 
-Time-correlated GPS errors: a GPS sensor with ``correlation_time`` tau > 0 has each fix fused
-with R_f = f R, f = ``estimation.gps_correlation.inflation(t - t_last, tau)``, t_last the stamp
-of the last fix of that sensor the filter fused (accepted by the gate or by a lock-out
-recovery, or the fix the filter started at; none: f = 1); the gate, the logged innovation and
-NIS, and a recovery's widening keep R (``KalmanCore``'s ``fuse``), as in the unicycle EKF.
-tau = 0 leaves the arithmetic as without the key, bit for bit.
-
-Poles: the (lat, lon) state is singular at a pole (the longitude is undefined there, and every
-lon term carries 1/cos(lat)), so the filter refuses to run within ``POLE_LIMIT_KM`` (about 10
-km) of one, |lat| > ``POLE_LIMIT_DEG`` = 89.91 deg: ``process`` raises ``PolarRegionError``
-(a ValueError) when the datum, the first fix or the state is there, and the runner reports it
-in the estimator's row (errata 000 #37). Use the unicycle EKF or the smoother, whose state is
-the local ENU plane. The limit is where the ignored meridian convergence stops being small
-against the model's own allowance for it: at a distance r from the pole, driving at v turns the
-true bearing against the filter's theta = pi/2 - psi by about v sin(theta) / r rad/s; at r =
-10 km and 1 m/s that is 1e-4 rad/s, already the frame-heading noise the model allows per
-sqrt(s) (``IgvcNoise.frame_heading_psd`` = 1e-8 rad^2/s), and over a 1 km drive it adds up to
-0.1 rad, more than a compass's error. Closer in it grows as 1/r: the sample drive (40 m across)
-re-projected to 100 m from the pole gave ATE 0.40 m and NEES 30 (0.12 m and 3.1 at 10 km and
-at 300 km), at 50 m 2.2 m and NEES 355, and at 11 m the great-circle step's sin(lat) rounded
-to 1 and its Jacobian's 1/sqrt(1 - sin^2 lat) divided by zero. The double-precision
-resolution of that step, R^2 1.1e-16 / r per step (0.5 um at 10 km, 0.4 mm at 11 m), is not
-the binding limit.
+A GPS sensor with ``correlation_time`` > 0 has each fix fused with an inflated R
+(``estimation.gps_correlation``), as in the unicycle EKF. Poles: within ``POLE_LIMIT_KM`` of
+a pole (|lat| > ``POLE_LIMIT_DEG``) ``process`` raises ``PolarRegionError``; why the limit is
+there, and the rest of the design notes: docs/design/igvc_ekf.md.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
-from ddfuse.ekf_baseline import GIVEN_POSE_STD
 from ddfuse.ekf_baseline import compiled as jit
 from ddfuse.ekf_baseline import igvc_jacobians as gen
-from ddfuse.ekf_baseline.calibration import ScaleStates
+from ddfuse.ekf_baseline import igvc_measurements as im
+from ddfuse.ekf_baseline.igvc_compiled import IgvcKernels
+from ddfuse.ekf_baseline.igvc_model import (
+    _Q_INDEX,
+    HALF_PI,
+    LAT,
+    LON,
+    PSI,
+    THETA,
+    IgvcNoise,
+    N,
+    X,
+    Y,
+    igvc_q_values,
+    sphere_radius,
+)
+from ddfuse.ekf_baseline.igvc_start import IgvcStart
 from ddfuse.ekf_baseline.kalman import KalmanCore
-from ddfuse.estimation import geodesy
 from ddfuse.estimation.config import DEFAULT_GATE, Config, SensorConfig
 from ddfuse.estimation.estimator import Estimate, Estimator
 from ddfuse.estimation.gps_correlation import inflation as gps_inflation
@@ -90,19 +78,12 @@ from ddfuse.estimation.measurements import (
     WheelSpeeds,
 )
 
-__all__ = ["IgvcEkf", "IgvcNoise", "PolarRegionError", "POLE_LIMIT_DEG", "STATE_NAMES",
-           "sphere_radius", "gps_model", "heading_model"]
+__all__ = ["IgvcEkf", "IgvcNoise", "PolarRegionError", "POLE_LIMIT_DEG", "STATE_NAMES", "LAT",
+           "LON", "sphere_radius"]
 
 STATE_NAMES = gen.STATE_NAMES
 # the measurement types the filter uses (the others are ignored, before its start too)
 _USED = (GpsFix, WheelOdometry, WheelSpeeds, GyroYawRate, Heading, ForwardAccel)
-LAT, LON, THETA, X, Y, PSI, V, W, VL, VR, A = range(11)
-N = 11
-HALF_PI = 0.5 * math.pi
-# flat indices (row-major, 11 x 11) of the entries of Q that IgvcEkf._q_values gives, in order
-_Q_INDEX = np.ravel_multi_index((
-    [X, Y, LON, LAT, LON, X, LAT, Y, PSI, THETA, PSI, THETA, A, W, VL, VR],
-    [X, Y, LON, LAT, X, LON, Y, LAT, PSI, THETA, THETA, PSI, A, W, VL, VR]), (N, N))
 DEFAULT_TRACK = 0.5  # m, used only for the wheel-speed states when robot.track_width is unset
 FEED_GAP_S = 5.0  # s without any message: a gap in the feed (``IgvcEkf._bridge_gap``)
 GAP_RESTART_STD = 10e3  # m: a gap that leaves the position this uncertain restarts the filter
@@ -123,129 +104,9 @@ class PolarRegionError(ValueError):
 
 _TWO_PI = 2.0 * math.pi
 _POSE_IX = np.ix_((X, Y, PSI), (X, Y, PSI))  # the (x, y, psi) block of P
-# sparse H rows (KalmanCore.update_sparse) of the measurements of single states
-_ROWS_W = (((W, 1.0),),)
-_ROWS_A = (((A, 1.0),),)
-_ROWS_PSI = (((PSI, 1.0),),)
-_ROWS_THETA = (((THETA, -1.0),),)  # compass yaw = pi/2 - theta + offset
-# the compiled kernels' message types and return bits (ddfuse.ekf_baseline.compiled)
-_T_GYRO, _T_HEAD, _T_HEAD_POSE, _T_ACCEL, _T_ODOM, _T_WHEELS, _T_GPS = (
-    jit.T_GYRO, jit.T_HEAD, jit.T_HEAD_POSE, jit.T_ACCEL, jit.T_ODOM, jit.T_WHEELS, jit.T_GPS)
-_DEFER = jit.DEFER
-_REJECTED = jit.REJECTED
 
 
-def sphere_radius(lat_rad: float) -> float:
-    """Radius (m) of the sphere that best fits WGS-84 around latitude ``lat_rad``: the Gaussian
-    mean radius sqrt(M N) of the meridian (M) and prime-vertical (N) radii of curvature.
-
-    The seed's great-circle formulas assume a sphere; with this radius the north and east scale
-    errors against the ellipsoid are equal and opposite, (N - M) / (2 sqrt(M N)), about 0.17 %
-    at 45 deg, instead of up to 0.35 % with the seed's "either value works" polar or equatorial
-    radius."""
-    s2 = math.sin(lat_rad) ** 2
-    w = 1.0 - geodesy.WGS84_E2 * s2
-    m = geodesy.WGS84_A * (1.0 - geodesy.WGS84_E2) / w**1.5
-    n = geodesy.WGS84_A / math.sqrt(w)
-    return math.sqrt(m * n)
-
-
-@dataclass
-class IgvcNoise:
-    """Process noise and initial uncertainty of the 11-state filter (SI units, std devs or PSDs).
-
-    Continuous white-noise spectral densities (variance per second of the random walk they
-    drive): ``jerk_psd`` on a, (m/s^3)^2 s; ``yaw_accel_psd`` on psi_dot, (rad/s^2)^2 s;
-    ``position_psd`` on the position, m^2/s, applied to (x, y) and (lat, lon) alike (Euler and
-    slip errors); ``heading_psd`` on the heading, rad^2/s, applied to psi and theta alike;
-    ``frame_psd``, m^2/s, independent between (lat, lon) and (x, y): the sphere-vs-ellipsoid and
-    meridian-convergence mismatch between the two position representations (it also keeps P
-    positive definite); ``frame_heading_psd``, rad^2/s, likewise between theta and psi (the
-    meridian convergence, d(lon) sin(lat), makes the compass bearing and the local yaw drift
-    apart by ~v tan(lat) / R rad/s). ``slip_var``, (m/s)^2 per step, is the wheel speed's
-    deviation from the body twist (slip); it does not accumulate because the wheel states are
-    recomputed each step.
-    """
-
-    jerk_psd: float = 0.5
-    yaw_accel_psd: float = 0.1
-    position_psd: float = 4e-4
-    heading_psd: float = 2.5e-5
-    frame_psd: float = 1e-6
-    frame_heading_psd: float = 1e-8
-    slip_var: float = 1e-4
-    init_position_std: float = GIVEN_POSE_STD[0]  # m, with an initial pose given
-    init_heading_std: float = GIVEN_POSE_STD[1]  # rad, with an initial pose given
-    init_speed_std: float = 0.5  # m/s
-    init_yaw_rate_std: float = 0.2  # rad/s
-    init_accel_std: float = 0.5  # m/s^2
-    # calibration states (IgvcEkf docstring); walks used when the IMU's config states none
-    gyro_bias_walk: float = 1e-4  # rad/s/sqrt(s)
-    heading_offset_walk: float = 0.02  # rad/sqrt(s)
-    init_bias_std: float = 0.02  # rad/s
-
-
-def gps_model(s: np.ndarray, lever_arm: tuple[float, float], radius: float):
-    """Antenna (lat, lon) predicted from state ``s`` and its Jacobian, both in radians.
-
-    ``lever_arm`` (m) is the antenna's (x forward, y left) position in the body frame; its ENU
-    offset is rotated by psi. Returns (h (2,) = (lat, lon), H (2, 11))."""
-    lat, psi = s[LAT], s[PSI]
-    lx, ly = lever_arm
-    c, sn = math.cos(psi), math.sin(psi)
-    e_off = c * lx - sn * ly  # m, east
-    n_off = sn * lx + c * ly  # m, north
-    cl = math.cos(lat)
-    h = np.array([lat + n_off / radius, s[LON] + e_off / (radius * cl)])
-    H = np.zeros((2, N))
-    H[0, LAT] = 1.0
-    H[0, PSI] = e_off / radius
-    H[1, LON] = 1.0
-    H[1, LAT] = e_off * math.sin(lat) / (radius * cl * cl)
-    H[1, PSI] = -n_off / (radius * cl)
-    return h, H
-
-
-def heading_model(s: np.ndarray, offset: float, local: bool):
-    """Heading sensor reading predicted from ``s`` (rad, wrapped) and its (1, 11) Jacobian.
-
-    Global (compass, seed Theta_g): yaw = pi/2 - theta + offset. Local (``local``, seed
-    Theta_l): yaw = psi + offset."""
-    H = np.zeros((1, N))
-    if local:
-        h = s[PSI] + offset
-        H[0, PSI] = 1.0
-    else:
-        h = HALF_PI - s[THETA] + offset
-        H[0, THETA] = -1.0
-    return np.array([(h + math.pi) % (2.0 * math.pi) - math.pi]), H
-
-
-def igvc_q_values(lat: float, dt: float, radius: float, position_psd: float, frame_psd: float,
-                  heading_psd: float, frame_heading_psd: float, jerk_psd: float,
-                  yaw_accel_psd: float, slip_var: float) -> tuple[float, ...]:
-    """``IgvcEkf.process_noise`` (same model) as the values of Q at the flat indices _Q_INDEX, from
-    the :class:`IgvcNoise` densities as floats (its units; ``lat`` rad, ``dt`` s, ``radius`` m).
-    Plain floats so that the compiled filter (ekf_baseline.kalman_jit) runs this same code."""
-    rc = radius * math.cos(lat)
-    r = radius
-    pos = position_psd * dt
-    frame = frame_psd * dt
-    head = heading_psd * dt
-    fh = frame_heading_psd * dt
-    lon_x = pos / rc
-    lat_y = pos / r
-    return (
-        pos + frame, pos + frame,  # x x, y y
-        pos / rc / rc + frame / rc / rc,  # lon lon
-        pos / r / r + frame / r / r,  # lat lat
-        lon_x, lon_x, lat_y, lat_y,  # lon x, x lon, lat y, y lat
-        head + fh, head + fh, -head, -head,  # psi psi, theta theta, psi theta, theta psi
-        jerk_psd * dt, yaw_accel_psd * dt, slip_var, slip_var,  # a, w, vl, vr
-    )
-
-
-class IgvcEkf(Estimator):
+class IgvcEkf(IgvcStart, IgvcKernels, Estimator):
     """Seed 000's 11-state EKF (module docstring) as an :class:`Estimator`.
 
     Calibration states follow the seed's 11, as in the unicycle EKF: a gyro bias (gyro =
@@ -268,11 +129,9 @@ class IgvcEkf(Estimator):
     it starts at the origin with yaw 0. ``datum`` (lat deg, lon deg, alt m) is the local ENU
     origin (``stream.datum``); default the config's, else the first fix. ``motion`` is 'euler'
     (seed eq. 14) or 'icc' (seed appendix A). Prediction steps are at most ``max_step`` s.
-    ``reference``: run the dense numpy implementation (``process_noise``, ``gps_model``,
-    ``heading_model``, ``KalmanCore.update``) instead of the fast path (generated sparse F,
-    float Q, ``KalmanCore.update_sparse``); the tests compare the two. ``compiled``: each step
-    in the numba kernels of ``ekf_baseline.kalman_jit`` (the generated Jacobian compiled as it
-    is); default when numba is installed and ``reference`` is not set (as UnicycleEkf).
+    ``reference``: run the Python reference (``KalmanCore.update_blocks``) instead of the
+    compiled kernels of ``ekf_baseline.kalman_jit`` (the generated Jacobian compiled as it is;
+    what they defer runs the reference's code on the same arrays), as UnicycleEkf.
     """
 
     name = "igvc_ekf"
@@ -288,7 +147,6 @@ class IgvcEkf(Estimator):
         max_step: float = 0.05,
         course_distance: float = 3.0,
         reference: bool = False,
-        compiled: bool | None = None,
     ) -> None:
         super().__init__()
         if motion not in ("euler", "icc"):
@@ -296,16 +154,11 @@ class IgvcEkf(Estimator):
         self.cfg = cfg
         self.motion = motion
         self.reference = bool(reference)
-        if compiled is None:
-            compiled = not self.reference and jit.available()
-        elif compiled and (self.reference or not jit.available()):
-            raise ValueError("compiled=True needs numba and reference=False")
-        self.compiled = bool(compiled)
+        self.compiled = not self.reference
         if self.compiled:
             jit.warm_up("igvc")  # compile / load the kernels now, not in the first step
             self.log = jit.BufferedLog()
         self._jrows: dict[str, int] = {}  # sensor -> row in the compiled core's sensor table
-        self._step = gen.euler_step if motion == "euler" else gen.icc_step
         self._step_sparse = gen.euler_step_sparse if motion == "euler" else gen.icc_step_sparse
         self._sensor_info: dict[str, tuple] = {}
         # GPS sensors with time-correlated errors: name -> correlation time (s), and the stamp
@@ -364,172 +217,6 @@ class IgvcEkf(Estimator):
                        self.noise.init_heading_std ** 2)
         self._pose_given = initial_pose
 
-    # ------------------------------------------------------------------ initialisation
-    def _calibration_states(self, cfg: Config) -> None:
-        """The states after the seed's 11 (class docstring) and their random-walk densities."""
-        names = list(STATE_NAMES)
-        walks: dict[int, float] = {}  # state index -> variance per second
-        self._bias_idx: dict[str, int] = {}
-        self._hoff_idx: dict[str, int] = {}
-        ns = self.noise
-        # (the reading it corrects, config field, state prefix, its index map, walk key, default)
-        for use, field, prefix, idx, walk, default in (
-                ("yaw_rate", "gyro_bias", "bg", self._bias_idx, "gyro_bias_walk",
-                 ns.gyro_bias_walk),
-                ("yaw", "heading_offset", "hoff", self._hoff_idx, "heading_offset_walk",
-                 ns.heading_offset_walk)):
-            for s in cfg.of_kind("imu"):
-                if use in s.use and getattr(s, field) == "estimate":
-                    idx[s.name] = len(names)
-                    walks[len(names)] = s.noise.get(walk, default) ** 2
-                    names.append(f"{prefix}:{s.name}")
-        self._scale = ScaleStates.append_to(cfg, names)
-        self._ks = self._scale.index if self._scale else None
-        self.state_names = tuple(names)
-        self.n = len(names)
-        self._walks = walks
-        self._hoff_ready: set[int] = set()
-
-    def _init(self, t: float | None, pose, pos_var: float, yaw_var: float) -> None:
-        x, y, yaw = (float(v) for v in pose)
-        if self.datum is not None:
-            lat, lon, _ = geodesy.enu_to_geodetic(x, y, 0.0, *self.datum)
-            lat, lon = math.radians(lat), math.radians(lon)
-        else:
-            # no datum and no GPS: lat/lon are relative to (0, 0) and unobserved
-            lat, lon = y / self.radius, x / self.radius
-        ns = self.noise
-        s0 = np.zeros(N)
-        s0[[LAT, LON, THETA, X, Y, PSI]] = lat, lon, HALF_PI - yaw, x, y, yaw
-        gp = self._position_noise_map(lat)
-        P0 = pos_var * (gp @ gp.T)
-        gh = np.zeros((N, 1))
-        gh[PSI, 0], gh[THETA, 0] = 1.0, -1.0
-        P0 += yaw_var * (gh @ gh.T)
-        P0 += np.diag(self._frame_var(lat, 1.0))
-        P0[V, V] = ns.init_speed_std ** 2
-        P0[W, W] = ns.init_yaw_rate_std ** 2
-        P0[A, A] = ns.init_accel_std ** 2
-        # the wheel speeds are functions of (v, psi_dot), plus slip: s0 -> T s0 maps them
-        T = np.eye(N)
-        T[VL, VL] = T[VR, VR] = 0.0
-        T[VL, V], T[VL, W], T[VR, V], T[VR, W] = 1.0, -0.5 * self.track, 1.0, 0.5 * self.track
-        P0 = T @ P0 @ T.T
-        P0[VL, VL] += ns.slip_var
-        P0[VR, VR] += ns.slip_var
-        # the calibration states: biases about 0, offsets uniform on the circle until the first
-        # reading initialises them, scales about 1
-        n = self.n
-        x0 = np.zeros(n)
-        x0[:N] = s0
-        Pn = np.zeros((n, n))
-        Pn[:N, :N] = P0
-        for i in self._bias_idx.values():
-            Pn[i, i] = ns.init_bias_std ** 2
-        for i in self._hoff_idx.values():
-            Pn[i, i] = math.pi * math.pi / 3.0
-        if self._scale:
-            self._scale.set_prior(x0, Pn)
-        # lon is an angle too: wrapped so that crossing the antimeridian does not leave it
-        # outside [-pi, pi) (the GPS innovation is wrapped as well)
-        angles = (LON, THETA, PSI, *self._hoff_idx.values())
-        if self.compiled:
-            self.kf = self._compiled_core(x0, Pn, angles)
-        else:
-            self.kf = KalmanCore(x0, Pn, self.log, state_angles=angles)
-        self.kf.after_inflation = self._retie_pairs
-        if self._ks is not None:
-            self.kf.held_in_recovery = (self._ks, self._ks + 1)
-        self.t = t
-
-    def _position_noise_map(self, lat: float) -> np.ndarray:
-        """(11, 2) map of an (east, north) position perturbation in metres to the state."""
-        g = np.zeros((N, 2))
-        g[X, 0] = 1.0
-        g[LON, 0] = 1.0 / (self.radius * math.cos(lat))
-        g[Y, 1] = 1.0
-        g[LAT, 1] = 1.0 / self.radius
-        return g
-
-    def _retie_pairs(self, kf: KalmanCore) -> None:
-        """Re-tie the redundant pairs (lat, lon) ~ (x, y) and theta ~ pi/2 - psi after a gate
-        recovery inflated P (``KalmanCore._recover``).
-
-        Their independent part (the frame noise, ``frame_psd``) is tiny and observed by no
-        measurement: the GPS measures lat/lon and reaches x, y only through their correlation.
-        The inflation scales it by alpha (x639 on rl_husky_gps.bag at 54 s) along with the
-        rest, and what is left of it after the next fixes is then never reduced: x, y
-        decorrelated from lat/lon (0.99 -> 0.18 in 20 s) and their sigma grew to 3.5 m for
-        200 s while lat/lon held 0.2 m. So the pair differences are pinned back to the frame
-        noise of one second, a constraint update c(s) = (x - E, y - N, psi + theta - pi/2)
-        with that variance (Joseph form) and no innovation: the means agree to the frame
-        mismatch already, only their errors drifted apart."""
-        P = kf.P
-        lat = float(kf.x[LAT])
-        D = np.zeros((3, self.n))
-        D[0, X], D[0, LON] = 1.0, -self.radius * math.cos(lat)
-        D[1, Y], D[1, LAT] = 1.0, -self.radius
-        D[2, PSI] = D[2, THETA] = 1.0
-        Rc = np.diag((self.noise.frame_psd, self.noise.frame_psd, self.noise.frame_heading_psd))
-        PD = P @ D.T
-        K = np.linalg.solve(D @ PD + Rc, PD.T).T
-        A = np.eye(self.n) - K @ D
-        P_new = A @ P @ A.T + K @ Rc @ K.T
-        kf.P = 0.5 * (P_new + P_new.T)
-
-    def _frame_var(self, lat: float, scale: float) -> np.ndarray:
-        d = np.zeros(N)
-        v = self.noise.frame_psd * scale
-        d[LAT] = v / self.radius**2
-        d[LON] = v / (self.radius * math.cos(lat)) ** 2
-        d[X] = d[Y] = v
-        d[THETA] = d[PSI] = self.noise.frame_heading_psd * scale
-        return d
-
-    def _try_init_without_pose(self, m) -> None:
-        """Start from GPS (position) plus a heading, or at the origin without GPS."""
-        if not self._has_gps:
-            self._init(m.t, self._pose_given or (0.0, 0.0, 0.0),
-                       self.noise.init_position_std ** 2, self.noise.init_heading_std ** 2)
-            return
-        if isinstance(m, Heading) and m.sensor not in self._hoff_idx and m.source != "pose":
-            # a compass with a known offset gives the heading; an estimated offset does not
-            self._heading_init = (m.yaw - self._heading_offset(m.sensor), m.var)
-        if not isinstance(m, GpsFix) or m.status < 0:
-            return
-        if self.datum is None:
-            # the frame the fix's enu is in: a live converter's first fix may have been dropped
-            # before it reached this filter, and the next one is then not the datum
-            self.datum = m.datum if m.datum is not None else (m.lat, m.lon, m.alt)
-            self.radius = sphere_radius(math.radians(self.datum[0]))
-        e, n = self._fix_enu(m)
-        pos_var = 0.5 * float(m.cov[0, 0] + m.cov[1, 1])
-        if self._pose_given is not None:
-            self._init(m.t, self._pose_given, self.noise.init_position_std ** 2,
-                       self.noise.init_heading_std ** 2)
-            return
-        if self._heading_init is not None:
-            self._init(m.t, (e, n, self._heading_init[0]), pos_var, self._heading_init[1])
-            self._fused_fix(m.sensor, m.t)  # the position is this fix's
-            return
-        if self._first_fix is None:
-            self._first_fix = m
-            return
-        e0, n0 = self._fix_enu(self._first_fix)
-        d = math.hypot(e - e0, n - n0)
-        if d >= self.course_distance:
-            # the course over ground from the first fix; assumes the robot drove forward
-            yaw_var = (2.0 * pos_var) / (d * d)
-            self._init(m.t, (e, n, math.atan2(n - n0, e - e0)), pos_var, yaw_var)
-            self._fused_fix(m.sensor, m.t)
-            self.log.note(m.t, f"heading initialised from the GPS course over {d:.1f} m")
-
-    def _fix_enu(self, m: GpsFix) -> tuple[float, float]:
-        if m.enu is not None:
-            return m.enu[0], m.enu[1]
-        e, n, _ = geodesy.geodetic_to_enu(m.lat, m.lon, m.alt, *self.datum)
-        return e, n
-
     # ------------------------------------------------------------------ helpers
     def _sensor(self, name: str) -> SensorConfig | None:
         try:
@@ -546,24 +233,6 @@ class IgvcEkf(Estimator):
         off = s.heading_offset if s is not None else 0.0
         return float(off) if off != "estimate" else 0.0
 
-    def process_noise(self, s: np.ndarray, dt: float) -> np.ndarray:
-        """Discrete process noise Q (11, 11) of one step of ``dt`` s at state ``s`` (see
-        IgvcNoise): shared position noise for (x, y) and (lat, lon), shared heading noise for
-        psi and -theta, jerk on a, angular acceleration on psi_dot, slip on the wheel speeds."""
-        ns = self.noise
-        g = self._position_noise_map(s[LAT])
-        Q = ns.position_psd * dt * (g @ g.T)
-        Q[PSI, PSI] += ns.heading_psd * dt
-        Q[THETA, THETA] += ns.heading_psd * dt
-        Q[PSI, THETA] -= ns.heading_psd * dt
-        Q[THETA, PSI] -= ns.heading_psd * dt
-        Q += np.diag(self._frame_var(s[LAT], dt))
-        Q[A, A] += ns.jerk_psd * dt
-        Q[W, W] += ns.yaw_accel_psd * dt
-        Q[VL, VL] += ns.slip_var
-        Q[VR, VR] += ns.slip_var
-        return Q
-
     def predict_to(self, t: float) -> None:
         """Propagate the state to time ``t`` (s) in steps of at most ``max_step``."""
         kf = self.kf
@@ -572,31 +241,19 @@ class IgvcEkf(Estimator):
             return
         n = max(1, math.ceil(dt_total / self.max_step - 1e-9))
         dt = dt_total / n
-        if self.reference:
-            for _ in range(n):
-                xs = kf.x.tolist()
-                f, F11 = self._step(xs[:N], dt, self.track, self.radius)
-                F = np.eye(self.n)
-                F[:N, :N] = F11
-                Q = np.zeros((self.n, self.n))
-                Q[:N, :N] = self.process_noise(kf.x, dt)
-                for i, q in self._walks.items():
-                    Q[i, i] = q * dt
-                kf.predict(F, Q, list(f) + xs[N:])
-        else:
-            F_flat, Q_flat = self._F.reshape(-1), self._Q.reshape(-1)
-            walks = list(self._walks.values())
-            for _ in range(n):
-                xs = kf.x.tolist()
-                f, fv = self._step_sparse(xs[:N], dt, self.track, self.radius)
-                F_flat[self._F_var] = fv
-                Q_flat[self._q_index] = self._q_values(xs[LAT], dt) + tuple(
-                    [q * dt for q in walks])
-                kf.predict(self._F, self._Q, f + tuple(xs[N:]))
+        F_flat, Q_flat = self._F.reshape(-1), self._Q.reshape(-1)
+        walks = list(self._walks.values())
+        for _ in range(n):
+            xs = kf.x.tolist()
+            f, fv = self._step_sparse(xs[:N], dt, self.track, self.radius)
+            F_flat[self._F_var] = fv
+            Q_flat[self._q_index] = self._q_values(xs[LAT], dt) + tuple(
+                [q * dt for q in walks])
+            kf.predict(self._F, self._Q, f + tuple(xs[N:]))
         self.t = t
 
     def _q_values(self, lat: float, dt: float) -> tuple[float, ...]:
-        """``process_noise`` (same model) as the values of Q at the flat indices _Q_INDEX."""
+        """:func:`igvc_q_values` of this filter's noise densities."""
         ns = self.noise
         return igvc_q_values(lat, dt, self.radius, ns.position_psd, ns.frame_psd, ns.heading_psd,
                              ns.frame_heading_psd, ns.jerk_psd, ns.yaw_accel_psd, ns.slip_var)
@@ -700,20 +357,22 @@ class IgvcEkf(Estimator):
         self._hoff_ready = set()
 
     def _update(self, m) -> None:
-        """The measurement update of ``m`` in Python (after the prediction to m.t)."""
-        block = self._measurement(m)
-        if block is None:
+        """The measurement update of ``m`` in Python (after the prediction to m.t): its rows
+        from ``igvc_measurements`` (the kernels' models) through ``KalmanCore.update_blocks``."""
+        kf = self.kf
+        H = np.zeros((2, self.n))
+        y = np.zeros(2)
+        R = np.zeros((2, 2))
+        kind, nr = self._measurement(m, H, y, R)
+        if not nr:
             return
-        kind, y, rows, R = block
-        blocks = ((m.sensor, kind, y, rows, R, self._info(m.sensor)[0]),)
-        # the compiled filter's Python updates (what its kernels defer) are the reference's
-        update = (self.kf.update_dense if self.reference or self.compiled
-                  else self.kf.update_sparse)
+        blocks = ((m.sensor, kind, 0, nr, (), self._info(m.sensor)[0]),)
+        # the innovations are y already: h(x) = 0 in update_blocks' y = z - h(x)
         if kind != "gps" or m.sensor not in self._gps_tau:
-            update(m.t, blocks)
+            kf.update_blocks(m.t, y[:nr], 0.0, H[:nr], R[:nr, :nr], blocks)
         else:  # a GPS with correlated errors: fused with the fix's inflated covariance
-            update(m.t, blocks, (self._gps_factor(m),))
-            if self.kf.last_verdicts[0]:
+            kf.update_blocks(m.t, y[:nr], 0.0, H[:nr], R[:nr, :nr], blocks, (self._gps_factor(m),))
+            if kf.last_verdicts[0]:
                 self._fused_fix(m.sensor, m.t)
 
     def _gps_factor(self, m: GpsFix) -> float:
@@ -743,79 +402,6 @@ class IgvcEkf(Estimator):
             state_names=self.state_names,
         )
 
-    # ------------------------------------------------------------------ compiled path
-    def _compiled_core(self, x0, P0, angles):
-        """The JitKalmanCore of this filter (ddfuse.ekf_baseline.compiled): F's pattern from the
-        generated model (its ones, its variable entries, the calibration states' identity),
-        Q's entries (_Q_INDEX), the random walks."""
-        kj = jit.kernels()
-        self._igvc_event = kj.igvc_event
-        n = self.n
-        ones, variable = ((gen.EULER_F_ONES, gen.EULER_F_VARIABLE) if self.motion == "euler"
-                          else (gen.ICC_F_ONES, gen.ICC_F_VARIABLE))
-        f_pairs = [divmod(k, N) for k in ones] + [divmod(k, N) for k in variable]
-        f_pairs += [(i, i) for i in range(N, n)]
-        ns = self.noise
-        self._jrows = {}
-        return jit.JitKalmanCore(
-            x0, P0, self.log, state_angles=angles, kinds=jit.IGVC_KINDS, f_pairs=f_pairs,
-            f_variable=range(len(ones), len(ones) + len(variable)),
-            q_pairs=[divmod(int(k), N) for k in _Q_INDEX], walks=list(self._walks.items()),
-            motion=0 if self.motion == "euler" else 1, ks=self._ks,
-            noise=(ns.position_psd, ns.frame_psd, ns.heading_psd, ns.frame_heading_psd,
-                   ns.jerk_psd, ns.yaw_accel_psd, ns.slip_var),
-            params={kj.FP_WHEEL_R: self.wheel_radius, kj.FP_TRACK: self.track,
-                    kj.FP_RADIUS: self.radius, kj.FP_MAXSTEP: self.max_step})
-
-    def _pack(self, m):
-        """The kernels' arguments (typ, sensor row, z0, z1, r0, r1, r01, r10, flags, rf) for
-        message ``m``, or None when it needs the Python path: a heading whose offset is not
-        initialised yet, a fix without a fix, wheel speeds without a wheel radius, another
-        message type. ``rf``: the factor on R in the fusion (``_gps_factor``)."""
-        name = m.sensor
-        row = self._jrows.get(name)
-        if row is None:
-            gate, bias, offset, lever, delay = self._info(name)
-            row = self._jrows[name] = self.kf.sensor_row(
-                name, gate=gate, bias=bias, hoff=offset, lever=lever, delay=delay,
-                bias_idx=self._bias_idx.get(name), hoff_idx=self._hoff_idx.get(name))
-        cls = m.__class__
-        if cls is GyroYawRate:
-            return (_T_GYRO, row, m.yaw_rate, 0.0, m.var, 0.0, 0.0, 0.0, 0, 1.0)
-        if cls is Heading:
-            hi = self._hoff_idx.get(name)
-            if hi is not None and hi not in self._hoff_ready:
-                return None
-            return (_T_HEAD_POSE if m.source == "pose" else _T_HEAD, row, m.yaw, 0.0, m.var,
-                    0.0, 0.0, 0.0, 0, 1.0)
-        if cls is ForwardAccel:
-            return (_T_ACCEL, row, m.accel, 0.0, m.var, 0.0, 0.0, 0.0, 0, 1.0)
-        if cls is WheelOdometry:
-            v, w = m.v, m.yaw_rate
-            return (_T_ODOM, row, 0.0 if v is None else v, 0.0 if w is None else w, m.v_var,
-                    m.yaw_rate_var, 0.0, 0.0, (v is not None) | (w is not None) << 1, 1.0)
-        if cls is WheelSpeeds and self.wheel_radius is not None:
-            return (_T_WHEELS, row, m.left, m.right, m.left_var, m.right_var, 0.0, 0.0, 0, 1.0)
-        if cls is GpsFix and m.status >= 0:
-            (c00, c01, _), (c10, c11, _), _ = m.cov.tolist()
-            return (_T_GPS, row, m.lat, m.lon, c00, c11, c01, c10, 0, self._gps_factor(m))
-        return None
-
-    def _run_event(self, m, p) -> None:
-        """Predict to ``m.t`` and update with ``m`` (packed as ``p``) in one kernel call."""
-        kf = self.kf
-        t = m.t
-        dt = t - self.t
-        code = self._igvc_event(kf.fp, kf.ip, kf.W, kf.sf, kf.si, kf.lg, dt, t, *p)
-        if code:
-            code = kf.settle(code, self._igvc_event, dt, t, *p)
-        if dt > 0.0:
-            self.t = t
-        if code & _DEFER:  # predicted; the update needs Python (lock-out, singular S)
-            self._update(m)
-        elif self._gps_tau and p[0] == _T_GPS and not code & _REJECTED:
-            self._fused_fix(m.sensor, t)  # fused: the next fix's inflation counts from it
-
     # ------------------------------------------------------------------ measurements
     def _info(self, name: str) -> tuple:
         """(gate, gyro bias rad/s, heading offset rad, GPS lever arm m, GPS delay s) of a
@@ -830,97 +416,46 @@ class IgvcEkf(Estimator):
                                               s.delay if s is not None else 0.0)
         return info
 
-    def _measurement(self, m):
-        """The model of measurement ``m`` as (kind, innovation y, sparse H rows, R) for
-        ``KalmanCore.update_sparse`` / ``update_dense``, or None (not used, or used to
-        initialise a heading offset). Models: module docstring; calibration states: class
-        docstring."""
+    def _measurement(self, m, H, y, R) -> tuple[str, int]:
+        """The rows of measurement ``m`` (``igvc_measurements``) written into H (2, n), y, R
+        (2, 2): (kind, number of rows), 0 rows when it is not used (or initialises a heading
+        offset). Models: module docstring; calibration states: class docstring."""
         _gate, bias, offset, lever, delay = self._info(m.sensor)
         x = self.kf.x.tolist()
-        ks = self._ks
+        ks = -1 if self._ks is None else self._ks
         if isinstance(m, GyroYawRate):
-            bi = self._bias_idx.get(m.sensor)
-            if bi is None:
-                return "gyro", (m.yaw_rate - (x[W] + bias),), _ROWS_W, ((m.var,),)
-            return ("gyro", (m.yaw_rate - (x[W] + x[bi]),), (((W, 1.0), (bi, 1.0)),),
-                    ((m.var,),))
+            bi = self._bias_idx.get(m.sensor, -1)
+            return "gyro", im.gyro_rows(x, bi, bias, m.yaw_rate, m.var, H, y, R, 0)
         if isinstance(m, Heading):
-            if m.source == "pose":
-                g, row = x[PSI], [(PSI, 1.0)]
-            else:
-                g, row = HALF_PI - x[THETA], [(THETA, -1.0)]
+            local = m.source == "pose"
             hi = self._hoff_idx.get(m.sensor)
-            if hi is not None:
-                if hi not in self._hoff_ready:
-                    self._init_offset(m, hi, g, row)
-                    return None
-                offset = x[hi]
-                row.append((hi, 1.0))
-            h = (g + offset + math.pi) % _TWO_PI - math.pi
-            return ("heading", ((m.yaw - h + math.pi) % _TWO_PI - math.pi,), (tuple(row),),
-                    ((m.var,),))
+            if hi is not None and hi not in self._hoff_ready:
+                self._init_offset(m, hi, x[PSI] if local else HALF_PI - x[THETA],
+                                  [(PSI, 1.0)] if local else [(THETA, -1.0)])
+                return "heading", 0
+            return "heading", im.heading_rows(x, local, -1 if hi is None else hi, offset, m.yaw,
+                                              m.var, H, y, R, 0)
         if isinstance(m, ForwardAccel):
-            return "accel", (m.accel - x[A],), _ROWS_A, ((m.var,),)
+            return "accel", im.accel_rows(x, m.accel, m.var, H, y, R, 0)
         if isinstance(m, WheelOdometry):
-            return self._odometry_model(m, x, ks)
+            return "odometry", im.odometry_rows(
+                x, ks, self.track, m.v is not None, m.yaw_rate is not None,
+                0.0 if m.v is None else m.v, 0.0 if m.yaw_rate is None else m.yaw_rate,
+                m.v_var, m.yaw_rate_var, H, y, R, 0)
         if isinstance(m, WheelSpeeds):
-            r = self.wheel_radius
-            if r is None:
+            if self.wheel_radius is None:
                 self.log.rejected[(m.sensor, "no_wheel_radius")] += 1
-                return None
-            vl, vr = x[VL], x[VR]
-            if ks is None:
-                return ("wheels", (m.left - vl / r, m.right - vr / r),
-                        (((VL, 1.0 / r),), ((VR, 1.0 / r),)),
-                        ((m.left_var, 0.0), (0.0, m.right_var)))
-            # rim speeds -> (v / k_v, w / k_w) -> wheel speeds through the nominal geometry
-            kv, kw = x[ks], x[ks + 1]
-            a, b = 0.5 / (kv * r), 0.5 / (kw * r)
-            s_, d_ = vl + vr, vr - vl
-            dkv, dkw = -a * s_ / kv, b * d_ / kw
-            return ("wheels", (m.left - (a * s_ - b * d_), m.right - (a * s_ + b * d_)),
-                    (((VL, a + b), (VR, a - b), (ks, dkv), (ks + 1, dkw)),
-                     ((VL, a - b), (VR, a + b), (ks, dkv), (ks + 1, -dkw))),
-                    ((m.left_var, 0.0), (0.0, m.right_var)))
+                return "wheels", 0
+            return "wheels", im.wheel_rows(x, ks, self.wheel_radius, m.left, m.right,
+                                           m.left_var, m.right_var, H, y, R, 0)
         if isinstance(m, GpsFix):
             if m.status < 0:
                 self.log.rejected[(m.sensor, "no_fix")] += 1
-                return None
-            # ~1000 fixes per 400 s: the numpy model costs nothing here
-            z, hx, H = self._gps_metres(m, lever, delay)
-            rows = tuple(tuple((j, float(v)) for j, v in enumerate(row) if v != 0.0)
-                         for row in H.tolist())
-            cv = m.cov
-            return ("gps", (z[0] - hx[0], z[1] - hx[1]), rows,
-                    ((float(cv[0, 0]), float(cv[0, 1])), (float(cv[1, 0]), float(cv[1, 1]))))
-        return None
-
-    def _odometry_model(self, m: WheelOdometry, x: list, ks: int | None):
-        """v = (v_l + v_r) / 2 and yaw rate (v_r - v_l) / L (seed eqs. 18-19), divided by the
-        odometry scales k_v, k_w when they are estimated."""
-        L = self.track
-        kv, kw = (x[ks], x[ks + 1]) if ks is not None else (1.0, 1.0)
-        y, rows, var = [], [], []
-        if m.v is not None:
-            v = 0.5 * (x[VL] + x[VR])
-            y.append(m.v - v / kv)
-            row = [(VL, 0.5 / kv), (VR, 0.5 / kv)]
-            if ks is not None:
-                row.append((ks, -v / (kv * kv)))
-            rows.append(tuple(row))
-            var.append(m.v_var)
-        if m.yaw_rate is not None:
-            w = (x[VR] - x[VL]) / L
-            y.append(m.yaw_rate - w / kw)
-            row = [(VR, 1.0 / (L * kw)), (VL, -1.0 / (L * kw))]
-            if ks is not None:
-                row.append((ks + 1, -w / (kw * kw)))
-            rows.append(tuple(row))
-            var.append(m.yaw_rate_var)
-        if not y:
-            return None
-        R = ((var[0],),) if len(var) == 1 else ((var[0], 0.0), (0.0, var[1]))
-        return "odometry", tuple(y), tuple(rows), R
+                return "gps", 0
+            (c00, c01, _), (c10, c11, _), _ = m.cov.tolist()
+            return "gps", im.gps_rows(x, self.radius, lever[0], lever[1], delay, m.lat, m.lon,
+                                      c00, c11, c01, c10, H, y, R, 0)
+        return "", 0
 
     def _init_offset(self, m: Heading, hi: int, g: float, row: list) -> None:
         """hoff = wrap(z - g(x)), g the reading without its offset (linear: ``row``): variance
@@ -937,40 +472,3 @@ class IgvcEkf(Estimator):
         self._hoff_ready.add(hi)
         self.log.note(m.t, f"heading offset of {m.sensor} initialised to "
                            f"{math.degrees(x[hi]):.1f} deg")
-
-    def _gps_metres(self, m: GpsFix, lever, delay: float = 0.0
-                    ) -> tuple[list, list, np.ndarray]:
-        """The fix (z), its prediction (hx) and Jacobian (H, (2, n)) in metres (east, north)
-        about the current estimate: scaling z, h and H by the same constant leaves gain and NIS
-        unchanged and makes the logged residuals readable. With a ``delay`` (s) the antenna
-        is predicted where it was that long before the state's time: moved back by v delay
-        along the bearing (first order, as the seed's motion model), heading psi - w delay."""
-        x = self.kf.x
-        s = x[:N].copy()
-        J = None
-        if delay:
-            # s_d = s moved back; J = d s_d / d s for the states that move it
-            lat, theta, v, w = s[LAT], s[THETA], s[V], s[W]
-            ct, st_ = math.cos(theta), math.sin(theta)
-            cl = math.cos(lat)
-            R = self.radius
-            s[LAT] = lat - delay * v * ct / R
-            s[LON] = s[LON] - delay * v * st_ / (R * cl)
-            s[PSI] = s[PSI] - delay * w
-            J = np.eye(N)
-            J[LAT, THETA], J[LAT, V] = delay * v * st_ / R, -delay * ct / R
-            J[LON, LAT] = -delay * v * st_ * math.sin(lat) / (R * cl * cl)
-            J[LON, THETA], J[LON, V] = -delay * v * ct / (R * cl), -delay * st_ / (R * cl)
-            J[PSI, W] = -delay
-        h, H = gps_model(s, lever, self.radius)
-        if J is not None:
-            H = H @ J
-        if self.n > N:
-            H = np.hstack([H, np.zeros((2, self.n - N))])
-        lat0, lon0 = x[LAT], x[LON]
-        te, tn = self.radius * math.cos(lat0), self.radius
-        zlat, zlon = math.radians(m.lat), math.radians(m.lon)
-        dlon_z = (zlon - lon0 + math.pi) % (2.0 * math.pi) - math.pi
-        z = [te * dlon_z, tn * (zlat - lat0)]
-        hx = [te * (h[1] - lon0), tn * (h[0] - lat0)]
-        return z, hx, np.vstack([te * H[1], tn * H[0]])

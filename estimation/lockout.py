@@ -53,6 +53,33 @@ def inflation(y: np.ndarray, A: np.ndarray, R: np.ndarray) -> tuple[float, np.nd
     return math.exp(hi), None
 
 
+def gate_streak(rejected: bool, t: float, count: int, first: float, accepted: int
+                ) -> tuple[int, float, int]:
+    """A measurement model's streak after one gate verdict at ``t`` (s): (consecutive
+    rejections, stamp of the first of them, acceptances since the last recovery or
+    corroboration verdict). A new streak is (0, t, 0). Plain floats: the EKF kernels compile
+    this same function."""
+    if rejected:
+        if count == 0:
+            first = t
+        return count + 1, first, accepted
+    return 0, first, accepted + 1
+
+
+def lockout_due(count: int, first: float, t: float, lockout_count: int, lockout_time: float
+                ) -> bool:
+    """True if a streak of ``count`` rejections since ``first`` (s) means a lock-out at ``t``:
+    at least ``lockout_count`` of them spanning at least ``lockout_time`` s."""
+    return count >= lockout_count and t - first >= lockout_time
+
+
+def holdoff_over(held: bool, until: float, accepted: int, lockout_count: int, t: float) -> bool:
+    """True if a recovery of a locked-out model is allowed at ``t`` (s): no hold-off is set
+    (``held``), or the last recovery took (accepted ``lockout_count`` times since; the hold-off
+    is then dropped), or the hold-off ran out (``until``)."""
+    return not held or accepted >= lockout_count or t >= until
+
+
 class Lockout:
     """Gate rejection streaks and recovery hold-offs of an estimator's measurement models, each
     named by a hashable key (a sensor, or (sensor, kind)). Times in seconds (stamps)."""

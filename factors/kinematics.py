@@ -29,6 +29,7 @@ import math
 
 __all__ = [
     "SERIES_THRESHOLD",
+    "antenna_position",
     "twist_coeffs",
     "se2_increment",
     "se2_step",
@@ -48,6 +49,21 @@ _cos = math.cos
 def wrap_angle(a: float) -> float:
     """Wrap an angle (rad) to [-pi, pi); same convention as ``estimation.estimator.wrap_angle``."""
     return (a + _PI) % _TWO_PI - _PI
+
+
+def antenna_position(
+    x: float, y: float, psi: float, lx: float, ly: float
+) -> tuple[float, float, float, float]:
+    """World position of a point fixed on the body (a GPS antenna's lever arm): the body at
+    (x, y) m heading ``psi`` rad (world = local ENU), the point at (lx, ly) m in the body frame
+    (x forward, y left): (x, y) + R(psi) (lx, ly).
+
+    Returns (east, north, d east / d psi, d north / d psi); d / d(x, y) is the identity. With
+    x = y = 0 it is the lever arm's world-frame offset. Plain floats: the EKF kernels compile
+    this same function (``numba.extending.register_jitable``)."""
+    c = _cos(psi)
+    s = _sin(psi)
+    return x + c * lx - s * ly, y + s * lx + c * ly, -s * lx - c * ly, c * lx - s * ly
 
 
 def twist_coeffs(a: float) -> tuple[float, float, float, float]:

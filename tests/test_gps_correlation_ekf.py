@@ -3,11 +3,11 @@
 of the time since that sensor's last FUSED fix; the gate, the logged innovation / NIS and a
 lock-out recovery's widening keep R.
 
-* tau = 0 changes nothing, bit for bit, in every path (reference, Python fast, compiled), and
+* tau = 0 changes nothing, bit for bit, in both paths (reference, compiled), and
   neither does a tau so short that every factor is exactly 1.0 (the fusion machinery itself is
   arithmetically neutral);
-* with tau > 0 the compiled and Python fast paths match the reference to the tolerances of
-  tests/test_ekf_fast_path.py (its ``_run_both``), event-driven and fixed-rate (also a rate
+* with tau > 0 the compiled path matches the reference to the tolerances of
+  tests/test_ekf_compiled.py (its ``_run_both``), event-driven and fixed-rate (also a rate
   below the GPS's: several fixes in one stacked step), with gate outliers and a lock-out;
 * the posterior covariance after a fix is the hand-computed one with f R, the logged NIS uses R,
   a gross outlier is rejected as with white fixes (and does not restart the clock of f), and a
@@ -28,14 +28,13 @@ from ddfuse.estimation import geodesy
 from ddfuse.estimation.config import load_config, parse_config
 from ddfuse.estimation.gps_correlation import inflation
 from ddfuse.estimation.measurements import GpsFix
-from test_ekf_fast_path import PATHS, _config, _run_both, _stream, needs_numba
+from test_ekf_compiled import _config, _run_both, _stream
 
 DATUM = (47.397742, 8.545594, 488.0)
 TAU = 30.0
-# every path of each filter: the dense numpy reference, the Python fast path, the kernels
+# both paths of each filter: the dense numpy reference, the kernels
 ALL_PATHS = [pytest.param({"reference": True}, id="reference"),
-             pytest.param({"compiled": False}, id="python"),
-             pytest.param({"compiled": True}, id="compiled", marks=needs_numba)]
+             pytest.param({}, id="compiled")]
 
 
 def _f(dt: float, tau: float = TAU) -> float:
@@ -92,20 +91,18 @@ def test_white_gps_is_bit_identical_to_no_key(which, kw):
         assert log == l0
 
 
-# ----------------------------------------------------------------------------- fast paths
+# ----------------------------------------------------------------------------- compiled path
 def _final_pos_var(make, stream) -> float:
-    ekf = make(True, False)
+    ekf = make(True)
     for m in stream:
         ekf.process(m)
     ekf.finish()
     return float(np.trace(ekf.estimate().pose_cov[:2, :2]))
 
 
-@pytest.mark.parametrize("compiled", PATHS)
 @pytest.mark.parametrize("estimate_offsets", [True, False])
 @pytest.mark.parametrize("rate", ["event", 10.0, 1.0])
-def test_unicycle_fast_paths_match_reference_with_correlated_gps(rate, estimate_offsets,
-                                                                 compiled):
+def test_unicycle_compiled_matches_reference_with_correlated_gps(rate, estimate_offsets):
     """tau = 30 s, with every 23rd fix 40 m off (gate-rejected: f then counts from the fix
     before it), event by event, at 10 Hz, and at 1 Hz (two or three fixes per stacked step,
     the kernel's verdict per fix)."""
@@ -113,32 +110,29 @@ def test_unicycle_fast_paths_match_reference_with_correlated_gps(rate, estimate_
 
     def make(tau):
         cfg = _with_tau(_config(estimate_offsets, rate), tau)
-        return lambda ref, comp: UnicycleEkf(cfg, reference=ref, compiled=comp)
+        return lambda ref: UnicycleEkf(cfg, reference=ref)
 
-    fast = _run_both(make(TAU), stream, compiled)
+    fast = _run_both(make(TAU), stream)
     assert ("gps", False) in {(i.kind, i.accepted) for i in fast.innovations}
     # the factors were applied: the fixes count for less (f ~ 150 at 2.5 Hz; measured x4.8 to
     # x19 on the final position variance, x2.4 for ekf_igvc's icc without offsets)
     assert _final_pos_var(make(TAU), stream) > 2.0 * _final_pos_var(make(None), stream)
 
 
-@pytest.mark.parametrize("compiled", PATHS)
 @pytest.mark.parametrize(("motion", "estimate_offsets"),
                          [("euler", True), ("icc", False)])
-def test_igvc_fast_paths_match_reference_with_correlated_gps(motion, estimate_offsets,
-                                                             compiled):
+def test_igvc_compiled_matches_reference_with_correlated_gps(motion, estimate_offsets):
     stream = _stream(2)
 
     def make(tau):
         cfg = _with_tau(_config(estimate_offsets), tau)
-        return lambda ref, comp: IgvcEkf(cfg, motion=motion, reference=ref, compiled=comp)
+        return lambda ref: IgvcEkf(cfg, motion=motion, reference=ref)
 
-    fast = _run_both(make(TAU), stream, compiled)
+    fast = _run_both(make(TAU), stream)
     assert ("gps", False) in {(i.kind, i.accepted) for i in fast.innovations}
     assert _final_pos_var(make(TAU), stream) > 2.0 * _final_pos_var(make(None), stream)
 
 
-@needs_numba
 @pytest.mark.parametrize("which", ["event", 10.0, "igvc"])
 def test_compiled_lockout_matches_reference_with_correlated_gps(which):
     """A 25 m GPS jump at 20 s: the gate locks out, Python recovers (widening on R) and fuses
@@ -147,9 +141,9 @@ def test_compiled_lockout_matches_reference_with_correlated_gps(which):
     cfg = _with_tau(_config(False, "event" if which == "igvc" else which), TAU)
     stream = _stream(3, duration=45.0, gps_jump=(20.0, 25.0, -5.0))
     if which == "igvc":
-        fast = _run_both(lambda ref, comp: IgvcEkf(cfg, reference=ref, compiled=comp), stream)
+        fast = _run_both(lambda ref: IgvcEkf(cfg, reference=ref), stream)
     else:
-        fast = _run_both(lambda ref, comp: UnicycleEkf(cfg, reference=ref, compiled=comp),
+        fast = _run_both(lambda ref: UnicycleEkf(cfg, reference=ref),
                          stream)
     assert fast.kf.recoveries
     assert fast.log.rejected[("/fix", "gate")] >= 4

@@ -12,8 +12,8 @@ import random
 import numpy as np
 import pytest
 import sympy
-from ddfuse.ekf_baseline import igvc_codegen, igvc_jacobians
-from ddfuse.ekf_baseline.igvc import STATE_NAMES, gps_model, heading_model, sphere_radius
+from ddfuse.ekf_baseline import igvc_codegen, igvc_jacobians, igvc_measurements
+from ddfuse.ekf_baseline.igvc import STATE_NAMES, sphere_radius
 from ddfuse.estimation import geodesy
 from ddfuse.factors.kinematics import SERIES_THRESHOLD
 
@@ -174,20 +174,50 @@ def test_icc_latlon_follow_the_arc_on_the_ellipsoid():
     assert math.hypot(e - f[X], n - f[Y]) < 3e-3 * step
 
 
+def _rows(model, s, *args):
+    """(innovation y, H) of one ``igvc_measurements`` model at state ``s``."""
+    H, y, R = np.zeros((2, len(s))), np.zeros(2), np.zeros((2, 2))
+    m = model(list(s), *args, H, y, R, 0)
+    return y[:m], H[:m]
+
+
+def _gps(s, lever, lat_deg, lon_deg):
+    return _rows(igvc_measurements.gps_rows, s, RADIUS, lever[0], lever[1], 0.0, lat_deg,
+                 lon_deg, 1.0, 1.0, 0.0, 0.0)
+
+
+def _antenna(s, lever):
+    """The antenna's (lat, lon), rad, from the innovation of a fix at the state's own position
+    (metres about the estimate)."""
+    y, _ = _gps(s, lever, math.degrees(s[LAT]), math.degrees(s[LON]))
+    return s[LAT] - y[1] / RADIUS, s[LON] - y[0] / (RADIUS * math.cos(s[LAT]))
+
+
 @pytest.mark.parametrize("lever", [(0.0, 0.0), (0.4, -0.2)])
 def test_gps_jacobian(lever):
+    """The fix's rows (east, north m about the estimate): H = -d y / d state at a fix on the
+    predicted antenna (where the metric scaling, a constant of the linearisation, has no
+    derivative)."""
     rng = random.Random(21)
     for over in (dict(), dict(psi=math.pi - 1e-9), dict(psi=-math.pi + 1e-9)):
         s = _state(rng, **over)
-        h, H = gps_model(s, lever, RADIUS)
-        out = np.array([RADIUS, RADIUS])
-        num = numeric_jacobian(lambda q: gps_model(q, lever, RADIUS)[0], s, out)
+        zlat, zlon = (math.degrees(a) for a in _antenna(s, lever))
+        y0, H = _gps(s, lever, zlat, zlon)
+        assert np.abs(y0).max() < 1e-6
+        out = np.array([1.0, 1.0])
+        num = numeric_jacobian(lambda q, a=zlat, b=zlon: -_gps(q, lever, a, b)[0], s, out)
         np.testing.assert_allclose(scaled(H, out), num, rtol=0, atol=1e-6)
     # the antenna offset itself: lever arm (1, 0) pointing north moves the antenna 1 m north
     s = _state(rng, psi=math.pi / 2, lat=math.radians(45))
-    h, _ = gps_model(s, (1.0, 0.0), RADIUS)
+    h = _antenna(s, (1.0, 0.0))
     assert (h[0] - s[LAT]) * RADIUS == pytest.approx(1.0, abs=1e-9)
     assert abs(h[1] - s[LON]) < 1e-15
+
+
+def _heading(s, offset, local, z=0.0):
+    """The predicted reading wrap(h(s)) and H from the innovation of a reading ``z``."""
+    y, H = _rows(igvc_measurements.heading_rows, s, local, -1, offset, z, 1.0)
+    return (z - y[0] + math.pi) % (2 * math.pi) - math.pi, H
 
 
 @pytest.mark.parametrize("local", [False, True])
@@ -195,19 +225,18 @@ def test_heading_jacobian_and_wrap(local):
     rng = random.Random(9)
     for over in (dict(), dict(theta=1e-9, psi=math.pi - 1e-9), dict(theta=-1e-9, psi=-math.pi)):
         s = _state(rng, **over)
-        h, H = heading_model(s, 0.3, local)
-        assert -math.pi <= h[0] < math.pi
+        h, H = _heading(s, 0.3, local)
+        assert -math.pi <= h < math.pi
 
-        def fun(q, h0=h[0]):
+        def fun(q, h0=h):
             # unwrap against the centre value: the model wraps, the derivative does not see it
-            return [h0 + ((heading_model(q, 0.3, local)[0][0] - h0 + math.pi)
-                          % (2 * math.pi) - math.pi)]
+            return [h0 + ((_heading(q, 0.3, local)[0] - h0 + math.pi) % (2 * math.pi) - math.pi)]
 
         num = numeric_jacobian(fun, s, np.array([1.0]))
         np.testing.assert_allclose(scaled(H, np.array([1.0])), num, rtol=0, atol=1e-6)
     # a compass reading of east (yaw 0) is a bearing of 90 deg
     s = _state(rng, theta=math.pi / 2)
-    assert heading_model(s, 0.0, False)[0][0] == pytest.approx(0.0, abs=1e-15)
+    assert _heading(s, 0.0, False)[0] == pytest.approx(0.0, abs=1e-15)
 
 
 def test_generated_code_is_up_to_date():
@@ -234,7 +263,7 @@ def test_generated_code_is_up_to_date():
 
 def test_measurement_rows_with_calibration_states_match_central_differences():
     """The filter's measurement models as it applies them (IgvcEkf._measurement: innovation and
-    sparse H rows) with a gyro-bias, a heading-offset and the odometry-scale states, and a GPS
+    H rows) with a gyro-bias, a heading-offset and the odometry-scale states, and a GPS
     fix 0.3 s late: H = -d(innovation)/d(state) by central differences."""
     from ddfuse.ekf_baseline.igvc import IgvcEkf
     from ddfuse.estimation.config import parse_config
@@ -282,15 +311,11 @@ def test_measurement_rows_with_calibration_states_match_central_differences():
         scale = np.concatenate([SCALE, np.ones(4)])
         for m in ms:
             ekf.kf.x = x0.copy()
-            _kind, y0, rows, _R = ekf._measurement(m)
-            H = np.zeros((len(rows), len(names)))
-            for i, row in enumerate(rows):
-                for c, a in row:
-                    H[i, c] += a
+            y0, H = _measured(ekf, m)
 
             def neg_y(x, m=m, y0=y0):
                 ekf.kf.x = x
-                y = np.array(ekf._measurement(m)[1])
+                y = _measured(ekf, m)[0]
                 # unwrap angle innovations against the centre value
                 return -(y0 + (y - y0 + math.pi) % (2 * math.pi) - math.pi)
 
@@ -304,3 +329,10 @@ def test_measurement_rows_with_calibration_states_match_central_differences():
             num = np.array(cols).T
             np.testing.assert_allclose(H / scale, num, rtol=0, atol=1e-6,
                                        err_msg=type(m).__name__)
+
+
+def _measured(ekf, m):
+    """(innovation y, H) of ``ekf._measurement(m)`` at the filter's state."""
+    H, y, R = np.zeros((2, ekf.n)), np.zeros(2), np.zeros((2, 2))
+    _kind, nr = ekf._measurement(m, H, y, R)
+    return y[:nr].copy(), H[:nr].copy()

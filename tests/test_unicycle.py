@@ -357,9 +357,9 @@ def test_unobservable_odometry_scales_do_not_drift():
     np.testing.assert_allclose(np.diag(P)[5:7], [0.02 ** 2, 0.02 ** 2 + 0.025 ** 2], rtol=1e-9)
 
 
-@pytest.mark.parametrize("compiled", [False, True])
+@pytest.mark.parametrize("reference", [True, False])
 @pytest.mark.parametrize("turning", [False, True])
-def test_gyro_and_odometry_yaw_rates_do_not_bias_k_w(turning, compiled):
+def test_gyro_and_odometry_yaw_rates_do_not_bias_k_w(turning, reference):
     """Odometry (v, yaw rate) and a gyro, nominal geometry exact (k_v = k_w = 1), 120 s.
 
     With the odometry-frame yaw rate w_odo as the state and the gyro measured as k_w w_odo,
@@ -374,7 +374,7 @@ def test_gyro_and_odometry_yaw_rates_do_not_bias_k_w(turning, compiled):
                       imu=[{"topic": "/imu", "use": ["yaw_rate"], "gyro_bias": 0.0,
                             "noise": {"yaw_rate": 0.01}}])
     cfg.sensors = [s for s in cfg.sensors if s.kind != "wheels"]
-    ekf = UnicycleEkf(cfg, compiled=compiled)
+    ekf = UnicycleEkf(cfg, reference=reference)
     ms = []
     for k in range(1200):
         t = 0.1 * k + 0.1
@@ -406,21 +406,9 @@ class _Capture:
         self.x = np.array(x, dtype=float)
         self.got = {}
 
-    def update_sparse(self, t, blocks):
-        """Records the innovations y = z - h(x), the dense H and the block-diagonal R."""
-        y = [v for b in blocks for v in b[2]]
-        rows = [r for b in blocks for r in b[3]]
-        H = np.zeros((len(rows), len(self.x)))
-        R = np.zeros((len(rows), len(rows)))
-        i0 = 0
-        for b in blocks:
-            m = len(b[3])
-            R[i0:i0 + m, i0:i0 + m] = b[4]
-            i0 += m
-        for i, row in enumerate(rows):
-            for c, a in row:
-                H[i, c] += a
-        self.got.update(y=np.array(y), H=H, R=R, blocks=blocks)
+    def update_blocks(self, t, z, hx, H, R, blocks, fuse=None):
+        """Records the innovations y = z - h(x), H, R and the blocks."""
+        self.got.update(y=np.array(z - hx), H=np.array(H), R=np.array(R), blocks=blocks)
         return len(blocks)
 
 
@@ -456,9 +444,9 @@ def test_measurement_jacobians_match_central_differences(pose_error, gyro):
                   "track_width_std": 0.02},
         "initial_pose": [0, 0, 0],
     })
-    # the Python measurement models (the compiled kernels' are checked against them in
-    # tests/test_ekf_fast_path.py)
-    ekf = UnicycleEkf(cfg, compiled=False, pose_error=pose_error)
+    # the reference path's update (the compiled kernels' are checked against it in
+    # tests/test_ekf_compiled.py)
+    ekf = UnicycleEkf(cfg, reference=True, pose_error=pose_error)
     calib = ("bg", "hoff") if gyro else ("hoff",)
     assert ekf.state_names == ("x", "y", "psi", "v_odo", "w" if gyro else "w_odo", *calib,
                                "k_v", "k_w")
@@ -868,7 +856,7 @@ def test_dead_reckoning_banana_is_gaussian_in_the_filters_error_coordinates():
     for pe in ("se2", "world"):
         ekf = UnicycleEkf(make_cfg(gps=False, odom_use=("v", "yaw_rate"), imu_use=()),
                           noise=quiet, initial_pose=start, initial_std=(s0, s2),
-                          pose_error=pe, compiled=False)
+                          pose_error=pe, reference=True)
         for k in range(int(T * rate) + 1):
             ekf.process(WheelOdometry(k / rate, v, w, 1e-10, 1e-10, sensor="/odom"))
         finals[pe] = ekf.estimate()

@@ -13,7 +13,7 @@ from ddfuse.estimation.bags import read_stream
 from ddfuse.estimation.config import load_config
 from ddfuse.estimation.measurements import WheelOdometry
 from ddfuse.estimation.runner import initial_pose
-from test_ekf_fast_path import PATHS, _run_both
+from test_ekf_compiled import _run_both
 
 ROOT = Path(__file__).resolve().parents[1]
 BAG, CFG = ROOT / "data" / "sample_husky.bag", ROOT / "data" / "sample_husky.yaml"
@@ -66,11 +66,10 @@ def test_a_gap_while_turning_is_predicted_as_in_fine_steps(data, gap):
     assert lo < 0.5 or hi > 2.0
 
 
-@pytest.mark.parametrize("compiled", PATHS)
 @pytest.mark.parametrize("rate", ["event", 10.0])
-def test_the_compiled_filter_splits_a_gap_as_the_reference(data, compiled, rate):
-    """Every path (the numba kernels, the Python fast path, the reference) predicts a 3.3 s
-    gap in the same equal steps, so they still agree to 1e-9."""
+def test_the_compiled_filter_splits_a_gap_as_the_reference(data, rate):
+    """Both paths (the numba kernels, the reference) predict a 3.3 s gap in the same equal
+    steps, so they still agree to 1e-9."""
     cfg, stream, _, turn = data
     cfg = load_config(CFG)
     cfg.ekf.rate = rate
@@ -78,5 +77,4 @@ def test_the_compiled_filter_splits_a_gap_as_the_reference(data, compiled, rate)
     assert any(b.t - a.t > 3.0 for a, b in zip(ms, ms[1:], strict=False))
     assert 3.0 / MAX_PREDICT_DT > 20
     pose = initial_pose(cfg.initial_pose, stream)
-    _run_both(lambda ref, comp: UnicycleEkf(cfg, initial_pose=pose, reference=ref,
-                                            compiled=comp), ms, compiled=compiled)
+    _run_both(lambda ref: UnicycleEkf(cfg, initial_pose=pose, reference=ref), ms)

@@ -1,6 +1,6 @@
-"""The filters' fast paths against their dense numpy reference (``reference=True``): the
-compiled one (numba kernels, ddfuse.ekf_baseline.kalman_jit, the default) and the Python one (sparse
-float updates, generated sparse Jacobians, float process noise; ``compiled=False``). On streams
+"""The filters' compiled path (numba kernels, ddfuse.ekf_baseline.kalman_jit, the default)
+against their Python reference (``reference=True``: the dense numpy KalmanCore.update_blocks;
+the kernels' update, prediction and log are their own code). On streams
 carrying every sensor kind, a heading that crosses +-pi, outliers the gates reject, a GPS jump
 that locks the gate out until a recovery, an odometry yaw rate the gyro keeps contradicting
 (the corroboration verdict and its hold-off), and on the real Husky bag, every estimate (state
@@ -28,11 +28,6 @@ from ddfuse.estimation.measurements import (
     WheelSpeeds,
 )
 from ddfuse.factors.kinematics import se2_step
-
-needs_numba = pytest.mark.skipif(not jit.available(), reason="numba not installed")
-# the fast paths under test: the compiled kernels and the Python fast path
-PATHS = [pytest.param(True, id="compiled", marks=needs_numba),
-         pytest.param(False, id="python")]
 
 DATUM = (47.397742, 8.545594, 488.0)
 R_WHEEL, TRACK = 0.165, 0.555
@@ -119,11 +114,11 @@ def _config(estimate_offsets: bool, rate="event", accel_limits: tuple | None = N
     })
 
 
-def _run_both(make, stream, compiled=True):
-    """Feed ``stream`` to a fast filter (``compiled`` or the Python fast path) and a reference
-    filter; compare every estimate on the way."""
-    fast, ref = make(False, compiled), make(True, False)
-    assert fast.compiled is compiled and not ref.compiled
+def _run_both(make, stream):
+    """Feed ``stream`` to a compiled filter and a reference filter (``make(reference)``);
+    compare every estimate on the way."""
+    fast, ref = make(False), make(True)
+    assert fast.compiled and not ref.compiled
     n_est = 0
     for m in stream:
         fast.process(m)
@@ -154,23 +149,20 @@ def _run_both(make, stream, compiled=True):
 
 
 def _unicycle(cfg, pose_error="se2"):
-    return lambda ref, compiled: UnicycleEkf(cfg, reference=ref, compiled=compiled,
-                                             pose_error=pose_error)
+    return lambda ref: UnicycleEkf(cfg, reference=ref, pose_error=pose_error)
 
 
 def _igvc(cfg, motion="euler", datum=None):
-    return lambda ref, compiled: IgvcEkf(cfg, motion=motion, reference=ref, compiled=compiled,
-                                         datum=datum)
+    return lambda ref: IgvcEkf(cfg, motion=motion, reference=ref, datum=datum)
 
 
 @pytest.mark.parametrize("pose_error", ["se2", "world"])
-@pytest.mark.parametrize("compiled", PATHS)
 @pytest.mark.parametrize("estimate_offsets", [True, False])
 @pytest.mark.parametrize("rate", ["event", 10.0])
-def test_unicycle_fast_path_matches_reference(estimate_offsets, rate, compiled, pose_error):
+def test_unicycle_compiled_matches_reference(estimate_offsets, rate, pose_error):
     cfg = _config(estimate_offsets, rate)
     stream = _stream(1)
-    fast = _run_both(_unicycle(cfg, pose_error), stream, compiled)
+    fast = _run_both(_unicycle(cfg, pose_error), stream)
     assert fast.pose_error == pose_error and fast.estimate().pose_error == pose_error
     assert len(fast.state_names) == (9 if estimate_offsets else 5)
     kinds = {(i.kind, i.accepted) for i in fast.innovations}
@@ -179,34 +171,30 @@ def test_unicycle_fast_path_matches_reference(estimate_offsets, rate, compiled, 
     assert ("gps", False) in kinds and ("heading", False) in kinds and ("v", False) in kinds
 
 
-@pytest.mark.parametrize("compiled", PATHS)
 @pytest.mark.parametrize("estimate_offsets", [True, False])
 @pytest.mark.parametrize("rate", ["event", 10.0])
-def test_unicycle_fast_path_matches_reference_with_acceleration_limits(estimate_offsets, rate,
-                                                                       compiled):
+def test_unicycle_compiled_matches_reference_with_acceleration_limits(estimate_offsets, rate):
     """The robot's acceleration limits stated: the twist densities follow the observed sample
     periods (twist_densities), at the start and again when odometry and wheel speeds go from
-    10 to 20 Hz at 20 s; the fast paths' predictions use the same densities as the
-    reference's at every step (the compiled one keeps a copy in its arrays)."""
+    10 to 20 Hz at 20 s; the compiled predictions use the same densities as the reference's
+    at every step (the kernels keep a copy in their arrays)."""
     cfg = _config(estimate_offsets, rate, accel_limits=(0.5, 0.4))
     stream = _stream(5, odom_fast_after=20.0)
-    fast = _run_both(_unicycle(cfg), stream, compiled)
+    fast = _run_both(_unicycle(cfg), stream)
     # v: odometry / wheel speeds, now 0.05 s apart; w: also the gyro, 0.04 s
     assert fast.noise.acc == pytest.approx(0.5 * math.sqrt(0.05), rel=1e-6)
     assert fast.noise.yaw_acc == pytest.approx(0.4 * math.sqrt(0.04), rel=1e-6)
-    if compiled:
-        fp = fast.kf.fp
-        assert tuple(fp[fast.kf.kj.FP_NOISE:fast.kf.kj.FP_NOISE + 2]) == \
-            (fast.noise.acc, fast.noise.yaw_acc)
+    fp = fast.kf.fp
+    assert tuple(fp[fast.kf.kj.FP_NOISE:fast.kf.kj.FP_NOISE + 2]) == \
+        (fast.noise.acc, fast.noise.yaw_acc)
 
 
-@pytest.mark.parametrize("compiled", PATHS)
 @pytest.mark.parametrize(("motion", "estimate_offsets"),
                          [("euler", False), ("icc", False), ("euler", True), ("icc", True)])
-def test_igvc_fast_path_matches_reference(motion, estimate_offsets, compiled):
+def test_igvc_compiled_matches_reference(motion, estimate_offsets):
     cfg = _config(estimate_offsets)
     stream = _stream(2)
-    fast = _run_both(_igvc(cfg, motion), stream, compiled)
+    fast = _run_both(_igvc(cfg, motion), stream)
     assert len(fast.state_names) == (15 if estimate_offsets else 11)
     kinds = {(i.kind, i.accepted) for i in fast.innovations}
     assert {k for k, _ in kinds} == {"gyro", "accel", "heading", "odometry", "wheels", "gps"}
@@ -227,7 +215,6 @@ def test_stream_crosses_the_heading_seam():
     assert any(a * b < 0 and abs(a) > 3.0 for a, b in zip(psi[:-1], psi[1:], strict=True))
 
 
-@needs_numba
 @pytest.mark.parametrize("rate", ["event", 10.0])
 def test_unicycle_compiled_lockout_matches_reference(rate):
     """A GPS jump of 25 m at 20 s locks the GPS gate out until the recovery inflates P: the
@@ -236,7 +223,7 @@ def test_unicycle_compiled_lockout_matches_reference(rate):
 
     Calibration states off: with them, heading and compass offset are observed almost only
     through their sum, and after the recovery's ~10^4-fold inflation rounding differences along
-    that direction grow to a few 1e-9 rad in both fast paths (the Python one too), beyond the
+    that direction grow to a few 1e-9 rad, beyond the
     1e-9 compared here. The Husky bag test below covers a recovery with the offsets estimated."""
     cfg = _config(False, rate)
     stream = _stream(3, duration=45.0, gps_jump=(20.0, 25.0, -5.0))
@@ -245,7 +232,6 @@ def test_unicycle_compiled_lockout_matches_reference(rate):
     assert fast.log.rejected[("/fix", "gate")] >= 4
 
 
-@needs_numba
 def test_unicycle_compiled_corroboration_matches_reference():
     """An odometry yaw rate 0.6 rad/s off from 10 s on: odometry and wheel speeds are rejected
     again and again while the gyro is accepted -- KalmanCore's corroboration verdict ('not
@@ -257,7 +243,6 @@ def test_unicycle_compiled_corroboration_matches_reference():
     assert fast.log.rejected[("/odom", "gate")] > 50
 
 
-@needs_numba
 @pytest.mark.parametrize("motion", ["euler", "icc"])
 def test_igvc_compiled_lockout_matches_reference(motion):
     cfg = _config(False)  # (calibration states off: see the unicycle test above)
@@ -276,7 +261,6 @@ def _husky_slice(seconds: float):
     return cfg, stream, [m for m in stream.measurements if m.t <= t_end]
 
 
-@needs_numba
 @pytest.mark.parametrize("rate", ["event", 10.0])
 def test_unicycle_compiled_matches_reference_on_husky_bag(rate):
     """The first 80 s of the real Husky bag (compass offset and gyro bias estimated, the GPS
@@ -288,7 +272,6 @@ def test_unicycle_compiled_matches_reference_on_husky_bag(rate):
     assert fast.kf.recoveries and len(fast.state_names) == 7
 
 
-@needs_numba
 @pytest.mark.parametrize("rate", ["event", 10.0])
 def test_unicycle_compiled_matches_reference_on_sample_bag(rate):
     """The simulated sample bag (data/sample_husky.bag) as ddfuse runs it: odometry scale
@@ -301,20 +284,17 @@ def test_unicycle_compiled_matches_reference_on_sample_bag(rate):
     cfg.ekf.rate = rate
     stream = read_stream(ROOT / "data" / "sample_husky.bag", cfg)
     pose = initial_pose(cfg.initial_pose, stream)
-    fast = _run_both(lambda ref, compiled: UnicycleEkf(cfg, initial_pose=pose, reference=ref,
-                                                       compiled=compiled),
+    fast = _run_both(lambda ref: UnicycleEkf(cfg, initial_pose=pose, reference=ref),
                      stream.measurements)
     assert fast.state_names[-2:] == ("k_v", "k_w") and fast.noise.acc < 1.0
 
 
-@needs_numba
 def test_igvc_compiled_matches_reference_on_husky_bag():
     cfg, stream, ms = _husky_slice(80.0)
     fast = _run_both(_igvc(cfg, datum=stream.datum), ms)
     assert fast.kf.recoveries
 
 
-@needs_numba
 def test_buffered_log_reads_like_a_list():
     """The compiled filter's log: innovations read twice are the same records (the buffer is
     drained once), reading in the middle of a run keeps the records already read in place, and
