@@ -29,6 +29,7 @@ from dataclasses import asdict, dataclass, fields
 
 import numpy as np
 from ddfuse.estimation.runner import Trajectory
+from ddfuse.factors.kinematics import antenna_position
 
 ALIGNMENTS = ("none", "se2", "origin")
 PAIRINGS = ("nearest", "interpolate")
@@ -342,6 +343,10 @@ def interpolate_xy(est: Trajectory, t: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return xy, inside
 
 
+# the estimators' lever-arm equation, element-wise over the fixes' yaws
+_antenna_offsets = np.vectorize(antenna_position, otypes=[float] * 4)
+
+
 def antenna_xy(est: Trajectory, t: np.ndarray, lever_arm=(0.0, 0.0), delay: float = 0.0
                ) -> tuple[np.ndarray, np.ndarray]:
     """Where ``est`` puts a GPS antenna when fixes stamped ``t`` (M,) s were taken: the pose at
@@ -356,9 +361,8 @@ def antenna_xy(est: Trajectory, t: np.ndarray, lever_arm=(0.0, 0.0), delay: floa
     lx, ly = float(lever_arm[0]), float(lever_arm[1])
     if lx or ly:
         yaw = np.interp(ts, est.t, np.unwrap(est.pose[:, 2]))
-        c, s = np.cos(yaw), np.sin(yaw)
-        # lever arm: see factors/gps.py
-        xy = xy + np.column_stack([c * lx - s * ly, s * lx + c * ly])
+        ex, ny, _, _ = _antenna_offsets(0.0, 0.0, yaw, lx, ly)
+        xy = xy + np.column_stack([ex, ny])
     return xy, inside
 
 

@@ -21,7 +21,7 @@ import math
 
 import gtsam
 import numpy as np
-from ddfuse.factors.kinematics import twist_coeffs
+from ddfuse.factors.kinematics import antenna_position, twist_coeffs
 from ddfuse.factors.noise import NoiseLike, as_noise_model
 from ddfuse.factors.state import DIM
 
@@ -41,10 +41,8 @@ def gps_predict(
     cp, sp = math.cos(psi), math.sin(psi)
     x1 = x + cp * d * s - sp * d * c
     y1 = y + sp * d * s + cp * d * c
-    p1 = psi + a
-    lx, ly = lever_arm
-    c1, s1 = math.cos(p1), math.sin(p1)
-    return x1 + c1 * lx - s1 * ly, y1 + s1 * lx + c1 * ly
+    rx, ry, _, _ = antenna_position(0.0, 0.0, psi + a, *lever_arm)
+    return x1 + rx, y1 + ry
 
 
 def gps_predict_jacobian(
@@ -63,8 +61,7 @@ def gps_predict_jacobian(
     d = v * dt
     cp, sp = math.cos(psi), math.sin(psi)
     ex, ey = cp * d * s - sp * d * c, sp * d * s + cp * d * c
-    c1, s1 = math.cos(psi + a), math.sin(psi + a)
-    rx, ry = c1 * lx - s1 * ly, s1 * lx + c1 * ly
+    rx, ry, _, _ = antenna_position(0.0, 0.0, psi + a, lx, ly)
     H = np.zeros((2, DIM))
     H[0, 0] = H[1, 1] = 1.0
     H[0, 2], H[1, 2] = -ey - ry, ex + rx
@@ -102,6 +99,7 @@ def gps_factor(
     model = as_noise_model(noise, 2)
     cos = math.cos
     sin = math.sin
+    antenna = antenna_position
     # gtsam copies Jacobians and errors into Eigen objects, so these buffers are reused; flat
     # memoryview writes (index DIM r + c) beat numpy item assignment (docs/design/performance.md)
     h = np.zeros((2, DIM))
@@ -125,10 +123,7 @@ def gps_factor(
 
             def error(this, values, H):
                 x, y, psi = values.atVector(key).tolist()[:3]
-                c = cos(psi)
-                sn = sin(psi)
-                rx = c * lx - sn * ly
-                ry = sn * lx + c * ly
+                rx, ry, _, _ = antenna(0.0, 0.0, psi, lx, ly)
                 if H is not None:
                     mh[2] = -ry
                     mh[DIM + 2] = rx
@@ -152,11 +147,7 @@ def gps_factor(
         dyb = d * c
         ex = cp * dxb - sp * dyb
         ey = sp * dxb + cp * dyb
-        p1 = psi + a
-        c1 = cos(p1)
-        s1 = sin(p1)
-        rx = c1 * lx - s1 * ly
-        ry = s1 * lx + c1 * ly
+        rx, ry, _, _ = antenna(0.0, 0.0, psi + a, lx, ly)
         if H is not None:
             # through the step, plus the lever arm turning with psi' = psi + w dt
             vs = dt * s
