@@ -96,28 +96,20 @@ class Lockout:
         """The measurement passed the gate: its streak ends."""
         s = self._streak.get(key)
         if s is not None:
-            s[0] = 0
-            s[2] += 1
+            s[:] = gate_streak(False, math.nan, *s)
 
     def rejected(self, key: Hashable, t: float) -> bool:
         """The measurement at ``t`` failed the gate. True if that locks the estimator out and a
         recovery is allowed now (the caller then checks corroboration, and recovers or calls
         :meth:`corroborated`); False for a plain rejection."""
-        s = self._streak.get(key)
-        if s is None:
-            s = self._streak[key] = [0, t, 0]
-        if s[0] == 0:
-            s[1] = t
-        s[0] += 1
-        if s[0] < self.count or t - s[1] < self.time:
+        s = self._streak.setdefault(key, [0, t, 0])
+        s[:] = gate_streak(True, t, *s)
+        if not lockout_due(s[0], s[1], t, self.count, self.time):
             return False
         ho = self._hold.get(key)
-        if ho is None:
-            return True
-        if s[2] >= self.count:  # the last recovery took: this is a new lock-out
+        if ho is not None and s[2] >= self.count:  # the last recovery took: a new lock-out
             del self._hold[key]
-            return True
-        return t >= ho[0]
+        return holdoff_over(ho is not None, ho[0] if ho else 0.0, s[2], self.count, t)
 
     def streak(self, key: Hashable) -> tuple[int, float]:
         """(consecutive rejections, stamp of the first) of ``key``."""
