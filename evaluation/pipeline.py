@@ -8,7 +8,7 @@ what the report needs besides (``evaluation.results``).
 ``score(result)`` returns the run's scores as typed records (``evaluation.scores.RunSummary``:
 per track ATE, RPE and NEES against the truth, the distance to withheld GPS fixes, the drift
 over GPS outages, NIS per sensor, the calibration states at the end); metrics.json is
-``RunSummary.to_json()``, and ``run_bag`` returns that dictionary. What each key holds, in
+``RunSummary.to_json()``, and ``run_bag`` returns the ``RunSummary``. What each key holds, in
 which unit and against what, is in docs/design/metrics-json.md. Values that cannot be computed
 (no truth, no hold-out) are None (null in the JSON); ``decode_s``, ``runtime_s``, ``rtf``,
 ``update_ms`` and ``wall_s`` are timings, which differ between runs of the same bag; every
@@ -544,11 +544,11 @@ def data_facts(result: RunResult, cfg: Config,
 def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str] | None = None,
             lag: float | None = None, holdout: str | None = None,
             progress: Callable[[str, float], None] | None = None,
-            reorder_window: float | None = None) -> dict:
+            reorder_window: float | None = None) -> RunSummary:
     """Decode ``bag`` as a stream (``ddfuse.estimation.bags.BagStream``: memory bounded however long
     the bag), run the selected estimators on it, write results into ``outdir``; returns the
-    metrics dictionary (also written as metrics.json). ``reorder_window`` (s) overrides the
-    config's.
+    run's ``RunSummary`` (written as metrics.json: its ``to_json()``). ``reorder_window`` (s)
+    overrides the config's.
 
     On a damaged or truncated bag the results of what could be read are written, then BagError
     is raised with ``results_written`` set."""
@@ -596,8 +596,7 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
         startup=startup, decode=decode_s, build=t_built - t_enter - decode_before,
         loop=t_ran - t_built, loop_decode=decode_s - decode_before, runtimes=runtimes,
         scoring=t_scored - t_ran, writing=clock() - t_scored))
-    metrics_json = out.to_json()
-    _write_metrics(outdir, metrics_json)
+    _write_metrics(outdir, out.to_json())
     if result.interrupted:
         raise RunInterrupted(f"{result.interrupted}; the results of what was processed are in "
                              f"{outdir}")
@@ -606,7 +605,7 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
                        f"read are in {outdir}")
         err.results_written = True
         raise err
-    return metrics_json
+    return out
 
 
 def write_outputs(result: RunResult, outdir: Path, summary: RunSummary,

@@ -119,9 +119,9 @@ def _finish(fig: Figure) -> Figure:
 
 
 def _t0(run: SavedRun) -> float:
-    data = run.metrics.get("data") or {}
-    if data.get("t0") is not None:
-        return float(data["t0"])
+    data = run.summary.data
+    if data is not None and data.t0 is not None:
+        return float(data.t0)
     starts = [tr.t[0] for tr in run.tracks.values() if len(tr)]
     return float(min(starts)) if starts else 0.0
 
@@ -137,7 +137,7 @@ def without_covariance(run: SavedRun) -> list[str]:
 
 
 def _frame_labels(run: SavedRun) -> tuple[str, str]:
-    f = frame(run.metrics)
+    f = frame(run.summary)
     return f"{f['x']} [m]", f"{f['y']} [m]"
 
 
@@ -170,8 +170,8 @@ def start_point(run: SavedRun) -> tuple[float, float, str, float] | None:
 def _shade_outages(ax, run: SavedRun) -> None:
     """Grey spans over the GPS outages (metrics.json ``gps_outages``, absolute stamps)."""
     t0 = _t0(run)
-    for o in run.metrics.get("gps_outages") or []:
-        ax.axvspan(o["t0"] - t0, o["t1"] - t0, color="0.5", alpha=0.15, lw=0)
+    for o in run.summary.gps_outages or []:
+        ax.axvspan(o.t0 - t0, o.t1 - t0, color="0.5", alpha=0.15, lw=0)
 
 
 def trajectories(run: SavedRun) -> Figure:
@@ -212,7 +212,7 @@ def trajectories(run: SavedRun) -> Figure:
                 label=f"start: first {start[2]} position ({seconds(start[3])} s)")
     ax.set_aspect("equal", adjustable="datalim")
     xl, yl = _frame_labels(run)
-    ax.set(xlabel=xl, ylabel=yl, title=f"Trajectories in {frame(run.metrics)['short']}")
+    ax.set(xlabel=xl, ylabel=yl, title=f"Trajectories in {frame(run.summary)['short']}")
     ax.grid(True, alpha=0.3)
     ax.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=9)
     return _finish(fig)
@@ -298,13 +298,13 @@ def errors(run: SavedRun) -> tuple[Figure | None, str]:
                       "there is nothing to compare the estimates with.")
     cols = colors(names)
     t0 = _t0(run)
-    f = frame(run.metrics)
+    f = frame(run.summary)
     ex, ey = ("east", "north") if f["kind"] == "enu" else ("x", "y")
     where = {"enu": "", "map": " (map)", "truth": " (truth frame)"}.get(f["kind"], " (local)")
     ncol = 3 if truth else 2
-    antenna = run.metrics.get("gps_antenna") or {}
-    lever = antenna.get("lever_arm") or (0.0, 0.0)
-    delay = float(antenna.get("delay_s") or 0.0)
+    antenna = run.summary.gps_antenna
+    lever = (antenna.lever_arm if antenna else None) or (0.0, 0.0)
+    delay = float((antenna.delay_s if antenna else None) or 0.0)
     fig, axes = subplots(len(names), ncol, figsize=(13, 2.1 * len(names) + 0.8),
                              sharex=True, squeeze=False)
     for r, name in enumerate(names):
@@ -343,7 +343,7 @@ def errors(run: SavedRun) -> tuple[Figure | None, str]:
     for ax in axes[-1]:
         ax.set_xlabel("time since the first measurement [s]")
     _finish(fig)
-    outages = " Grey spans: GPS outages." if run.metrics.get("gps_outages") else ""
+    outages = " Grey spans: GPS outages." if run.summary.gps_outages else ""
     # the envelope is promised only for the tracks that have one
     bare = [n for n in names if not has_covariance(run.tracks[n])]
     envelope = len(bare) < len(names)
@@ -418,6 +418,12 @@ def nees(series: Mapping[str, Sequence[np.ndarray]], t: Mapping[str, np.ndarray]
     return _finish(fig)
 
 
+def _nis_of(run: SavedRun, name: str) -> dict[str, consistency.SensorNis]:
+    """Track ``name``'s NIS summary per sensor label (metrics.json ``nis``); {} without one."""
+    e = run.summary.estimators.get(name)
+    return (e.nis if e else None) or {}
+
+
 def nis(run: SavedRun) -> Figure | None:
     """NIS of every innovation over time: a row per estimator, a panel per sensor and
     measurement kind, with the 95% band of its dimension (dashed); gate-rejected innovations
@@ -429,8 +435,7 @@ def nis(run: SavedRun) -> Figure | None:
     # innovations, logged twice) is one row, as in the report's table
     seen: set[str] = set()
     for n in list(owners):
-        key = repr(sorted(((run.metrics.get("estimators", {}).get(n) or {}).get("nis")
-                           or {}).items()))
+        key = repr(sorted(_nis_of(run, n).items()))
         if key != repr([]) and key in seen:
             owners.remove(n)
         seen.add(key)
@@ -446,7 +451,7 @@ def nis(run: SavedRun) -> Figure | None:
         ax.set_axis_off()
     for r, name in enumerate(owners):
         table = run.innovations[name]
-        nis_json = (run.metrics["estimators"].get(name) or {}).get("nis") or {}
+        nis_of = _nis_of(run, name)
         for c, (label, sel) in enumerate(groups[name].items()):
             ax = axes[r, c]
             ax.set_axis_on()
@@ -461,10 +466,11 @@ def nis(run: SavedRun) -> Figure | None:
                     ax.axhline(b, color="k", lw=0.7, ls="--")
             ax.set_yscale("log")
             ax.set_xlim(0, t_end)
-            s = nis_json.get(label) or {}
-            verdict = s.get("verdict") or "too few to judge"
-            detail = (f", {100 * s['outside']:.0f}% outside, mean/exp {s['ratio']:.2f}"
-                      if s.get("outside") is not None and s.get("ratio") is not None else "")
+            sn = nis_of.get(label)
+            s = sn.nis if sn else None
+            verdict = (s.verdict if s else None) or "too few to judge"
+            detail = (f", {100 * s.outside:.0f}% outside, mean/exp {s.ratio:.2f}"
+                      if s and s.outside is not None and s.ratio is not None else "")
             ax.set_title(f"{name}: {label}\n{verdict}{detail}", fontsize=8,
                          color={"Fail": "tab:red", "Warn": "tab:orange"}.get(verdict, "k"))
             ax.grid(True, alpha=0.3)
@@ -538,7 +544,8 @@ def nees_inputs(run: SavedRun) -> tuple[dict, dict, dict]:
         return series, t, dof
     for name, tr in run.tracks.items():
         # in the estimator's own error coordinates, as metrics.json scores it (older runs: world)
-        pe = (run.metrics.get("estimators", {}).get(name) or {}).get("pose_error", "world")
+        e = run.summary.estimators.get(name)
+        pe = e.pose_error if e else "world"
         ns = metrics.nees_series(tr, run.truth, 0.05, pe)
         if len(ns.value):
             series[name], t[name] = [ns.value], ns.t - _t0(run)

@@ -171,7 +171,7 @@ def _summary_table(m: RunSummary, cfg=None) -> str:
                      "excluded).")
     if "update p50 / p99 [ms]" in shown:
         notes += [latency_note(n, ests[n]) for n in offline]
-    notes.append(f"Final (x, y): the last position in {plots.frame(m.to_json())['short']}.")
+    notes.append(f"Final (x, y): the last position in {plots.frame(m)['short']}.")
     skipped = not_run(m, cfg)
     if skipped:
         notes.append("Not run: " + "; ".join(f"{n}: {why}" for n, why in skipped) + ".")
@@ -501,7 +501,7 @@ def _facts(m: RunSummary) -> str:
             ("GPS fixes", _gps_fixes(m)),
             ("landmarks in the map", str(d.landmarks if d.landmarks is not None else 0)),
             ("heading offset, measured", _heading_offsets(d)),
-            ("local frame", html.escape(plots.frame(m.to_json())["text"]))]
+            ("local frame", html.escape(plots.frame(m)["text"]))]
     rej = m.rejected_messages or {}
     rows.append(("messages dropped as invalid", ", ".join(
         f"{html.escape(k)}: {v}" for k, v in rej.items()) or "none"))
@@ -606,7 +606,7 @@ def _no_figure(text: str) -> str:
 
 def captions(run: SavedRun) -> dict[str, str]:
     """The caption of each figure, saying only what this run's figures hold."""
-    f = plots.frame(run.metrics)
+    f = plots.frame(run.summary)
     truth = run.truth is not None and len(run.truth) > 0
     gps = len(run.gps_t) > 0
     withheld = bool(run.gps_withheld.any()) if gps else False

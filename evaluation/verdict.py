@@ -382,7 +382,7 @@ def _coverage_caution(heads: dict[str, str], units: dict[str, set]) -> str | Non
     if not pairs:
         return None
     a, b = pairs[0]
-    both = [u for u in units[a] if u in units[b]]
+    both = sorted(units[a] & units[b])  # a set's order varies per process: the report must not
     return (f"The consistency calls cover different sensors: {a} tests no "
             f"{_covered(sorted(units[b] - units[a]))} residuals, which {b} does, so its "
             f"'{heads[a]}' beside {b}'s '{heads[b]}' is no difference between the methods"

@@ -283,7 +283,7 @@ def test_recovery_widens_on_R_then_fuses_with_inflated_R(kw):
 def multipath(tmp_path_factory):
     """husky-multipath, seed 1, 400 s (GPS errors Gauss-Markov, tau 30 s, sigma 1 m): 'ekf'
     and 'ekf_igvc' scored with correlation_time 0 and 30, with and without the odometry scale
-    states. {(tau, scales): metrics dict}."""
+    states. {(tau, scales): {estimator: (ATE m, NEES)}}."""
     from ddfuse.evaluation.cli import main
     from ddfuse.evaluation.pipeline import run_bag
 
@@ -302,8 +302,7 @@ def multipath(tmp_path_factory):
             p = d / f"tau{tau:g}_{scales}.yaml"
             p.write_text(yaml.safe_dump(c))
             m = run_bag(bag, load_config(p), d / p.stem, names=["ekf", "ekf_igvc"])
-            out[(tau, scales)] = {k: (m["estimators"][k]["ate_rmse_m"],
-                                      m["estimators"][k]["nees_mean"])
+            out[(tau, scales)] = {k: (m.estimators[k].ate_rmse_m, m.estimators[k].nees_mean)
                                   for k in ("ekf", "ekf_igvc")}
     return out
 

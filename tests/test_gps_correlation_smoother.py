@@ -236,7 +236,7 @@ def test_correlated_fixes_end_to_end(multipath, tmp_path):
         c = replace(cfg, sensors=[replace(s, correlation_time=tau) if s.kind == "gps" else s
                                   for s in cfg.sensors])
         m = run_bag(bag, c, tmp_path / f"tau{tau:g}", names=["smoother", "smoother_lagged"])
-        out[tau] = {n: (e["ate_rmse_m"], e["nees_mean"]) for n, e in m["estimators"].items()}
+        out[tau] = {n: (e.ate_rmse_m, e.nees_mean) for n, e in m.estimators.items()}
     for name in ("smoother", "smoother_lagged"):
         (ate0, nees0), (ate30, nees30) = out[0.0][name], out[30.0][name]
         assert ate0 > 0.3 and nees0 > 20.0, (name, out)  # white: follows the wander

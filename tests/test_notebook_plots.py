@@ -32,7 +32,7 @@ BACKENDS = ["pdf"] + (["module://matplotlib_inline.backend_inline"]
 @pytest.fixture(scope="module")
 def husky(tmp_path_factory):
     """run_bag on the sample (ekf, smoother and its lagged track, a 20 s hold-out), with the
-    RunResult it scored: (cfg, outdir, metrics, result)."""
+    RunResult it scored: (cfg, outdir, summary, result)."""
     cfg = load_config(DATA / "sample_husky.yaml")
     out = tmp_path_factory.mktemp("nb") / "out"
     seen = []
@@ -77,11 +77,11 @@ def test_importing_and_plotting_leave_the_backend_alone(husky, backend):
 def test_score_takes_each_estimators_pose_error_from_the_result(husky):
     _, _, m, result = husky
     mine = pipeline.score(result)  # no pose_errors: from the result
-    for name in m["estimators"]:
-        assert mine.estimators[name].pose_error == m["estimators"][name]["pose_error"]
-    assert m["estimators"]["ekf"]["pose_error"] == "se2"
-    assert m["estimators"]["smoother"]["pose_error"] == "world"
-    ekf = m["estimators"]["ekf"]["nees_mean"]
+    for name in m.estimators:
+        assert mine.estimators[name].pose_error == m.estimators[name].pose_error
+    assert m.estimators["ekf"].pose_error == "se2"
+    assert m.estimators["smoother"].pose_error == "world"
+    ekf = m.estimators["ekf"].nees_mean
     assert mine.estimators["ekf"].nees_mean == ekf
     # scored in world coordinates (the old default) it differs: the test can tell
     world = pipeline.score(result, pose_errors={"ekf": "world"})
@@ -147,9 +147,9 @@ def test_notebook_flow_without_a_config(husky):
     frame and times from the stream; a figure displays as a notebook shows it."""
     _, _, m, result = husky
     run = SavedRun.from_result(result)
-    assert run.summary.estimators["ekf"].nees_mean == m["estimators"]["ekf"]["nees_mean"]
-    assert plots.frame(run.metrics)["kind"] == "enu"
-    assert run.summary.data.t0 == m["data"]["t0"]
+    assert run.summary.estimators["ekf"].nees_mean == m.estimators["ekf"].nees_mean
+    assert plots.frame(run.summary)["kind"] == "enu"
+    assert run.summary.data.t0 == m.data.t0
     fig = plots.trajectories(run)
     assert isinstance(fig, Figure)
     pylabtools = pytest.importorskip("IPython.core.pylabtools")

@@ -21,7 +21,7 @@ from ddfuse.evaluation.cli.terminal import Bars, progress
 from ddfuse.evaluation.estimators import SPECS, TRACK_TO_SPEC
 from ddfuse.evaluation.export import read_csv, write_csv
 from ddfuse.evaluation.results import load_run
-from ddfuse.evaluation.scores import RunSummary
+from ddfuse.evaluation.scores import DataFacts, RunSummary
 
 ROOT = Path(__file__).resolve().parents[1]
 PNG = b"\x89PNG\r\n\x1a\n"
@@ -161,9 +161,9 @@ def test_saved_run_round_trip(sample_run):
     run = load_run(sample_run)
     assert list(run.tracks) == ["ekf", "smoother", "smoother_lagged"]
     assert run.log_owner["smoother_lagged"] == "smoother"
-    assert run.gps_withheld.sum() == run.metrics["gps_holdout_fixes"]
+    assert run.gps_withheld.sum() == run.summary.gps_holdout_fixes
     assert len(run.innovations["ekf"]) == sum(
-        s["n"] for s in run.metrics["estimators"]["ekf"]["nis"].values())
+        s.nis.n for s in run.summary.estimators["ekf"].nis.values())
     assert run.truth is not None and run.truth.t[0] > 1.6e9
     # output stamps are distinct (one sample per output tick)
     assert np.all(np.diff(run.tracks["ekf"].t) > 0)
@@ -310,15 +310,24 @@ def test_data_table_names_this_runs_frame_and_omits_what_it_cannot_measure(no_gp
 
 
 def test_frame_of_each_kind_of_run():
-    datum = {"data": {"datum": [47.4, 8.5, 488.0], "landmarks": 0}}
+    def run(datum=None, landmarks=0, initial_pose=None):
+        return RunSummary(data=DataFacts(datum=datum, landmarks=landmarks),
+                          initial_pose=initial_pose)
+
+    datum = run(datum=[47.4, 8.5, 488.0])
     assert plots.frame(datum)["kind"] == "enu" and plots.frame(datum)["x"] == "x east"
-    lm = {"data": {"datum": None, "landmarks": 15}, "initial_pose": "first ground-truth pose"}
+    lm = run(landmarks=15, initial_pose="first ground-truth pose")
     assert plots.frame(lm)["kind"] == "map" and "east" not in plots.frame(lm)["x"]
-    truth = {"data": {"landmarks": 0}, "initial_pose": "first ground-truth pose"}
-    assert plots.frame(truth)["kind"] == "truth"
-    given = {"data": {}, "initial_pose": [1.0, 2.0, math.pi / 2]}
+    assert plots.frame(run(initial_pose="first ground-truth pose"))["kind"] == "truth"
+    given = run(initial_pose=[1.0, 2.0, math.pi / 2])
     assert plots.frame(given)["kind"] == "given" and "90.0°" in plots.frame(given)["text"]
-    assert plots.frame({"data": {}})["kind"] == "start"
+    assert plots.frame(run())["kind"] == "start"
+    assert plots.frame(RunSummary())["kind"] == "start"  # no data facts at all
+    # a metrics.json dictionary (online_frame's facts) is read as its summary
+    assert plots.frame({"data": {"datum": [47.4, 8.5, 488.0], "landmarks": 0}}) == \
+        plots.frame(datum)
+    assert plots.frame({"data": {}, "initial_pose": [1.0, 2.0, math.pi / 2]}) == \
+        plots.frame(given)
 
 
 def test_estimators_not_run_are_named_with_the_reason(no_gps_run, sample_run):

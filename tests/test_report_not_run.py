@@ -20,7 +20,7 @@ def test_not_run_says_dr_is_off_by_default_on_a_wheel_speed_config(seed002_run):
     assert "dr: needs" not in page
     assert "dr: off by default, --estimators dr runs it" in page
     run = load_run(seed002_run)
-    assert [s["kind"] for s in run.metrics["data"]["sensors"]].count("wheels") == 1
+    assert [s.kind for s in run.summary.data.sensors].count("wheels") == 1
     # without the saved config text: judged on metrics.json's sensor list
     why = dict(report.not_run(run.summary))["dr"]
     assert why.startswith("off by default, --estimators dr runs it"), why

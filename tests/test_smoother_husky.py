@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 from ddfuse.estimation.config import load_config
 from ddfuse.evaluation import pipeline
+from ddfuse.evaluation.scores import EstimatorScores
 
 pytestmark = pytest.mark.slow
 
@@ -15,9 +16,9 @@ CONFIG = Path(__file__).resolve().parents[1] / "data" / "configs" / "rl_husky_gp
 NAMES = ["ekf", "smoother", "smoother_lagged"]
 
 
-def _run(bag: Path, out: Path, holdout: str) -> dict:
+def _run(bag: Path, out: Path, holdout: str) -> dict[str, EstimatorScores]:
     m = pipeline.run_bag(bag, load_config(CONFIG), out, names=NAMES, holdout=holdout)
-    return m["estimators"]
+    return m.estimators
 
 
 def test_every_fifth_fix_withheld(husky_bag, tmp_path):
@@ -33,10 +34,10 @@ def test_every_fifth_fix_withheld(husky_bag, tmp_path):
     recovers from its lock-out as the EKF does, once, not the 3 times (16 rejections) of the
     old rule."""
     e = _run(husky_bag, tmp_path, "every:5")
-    assert e["smoother"]["gps_holdout_rmse_m"] <= 2.0
-    assert e["smoother_lagged"]["gps_holdout_rmse_m"] <= 1.014 * 1.01, e["smoother_lagged"]
-    assert e["smoother_lagged"]["gps_holdout_rmse_m"] < e["ekf"]["gps_holdout_rmse_m"]
-    rej = e["smoother"]["rejected"]
+    assert e["smoother"].gps_holdout_rmse_m <= 2.0
+    assert e["smoother_lagged"].gps_holdout_rmse_m <= 1.014 * 1.01, e["smoother_lagged"]
+    assert e["smoother_lagged"].gps_holdout_rmse_m < e["ekf"].gps_holdout_rmse_m
+    rej = e["smoother"].rejected
     assert rej.get("/fix: lockout_recovery", 0) <= 2 and rej.get("/fix: gate", 0) <= 10, rej
 
 
@@ -46,6 +47,6 @@ def test_sixty_second_outage(husky_bag, tmp_path):
     after the outage, ends it closer than the filtered ones."""
     e = _run(husky_bag, tmp_path, "window:150:210")
     for name in NAMES:
-        assert e[name]["gps_holdout_rmse_m"] <= 6.0, (name, e[name]["gps_holdout_rmse_m"])
-    end = {n: e[n]["gps_outages"][0]["error_end_m"] for n in NAMES}
+        assert e[name].gps_holdout_rmse_m <= 6.0, (name, e[name].gps_holdout_rmse_m)
+    end = {n: e[n].gps_outages[0].error_end_m for n in NAMES}
     assert end["smoother_lagged"] < min(end["ekf"], end["smoother"]), end

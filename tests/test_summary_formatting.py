@@ -43,7 +43,7 @@ def test_an_estimator_that_never_estimated_gets_no_speed(seed002_run):
             "nees_mean": None, "rtf": 33358.134, "error": "no estimate: it never started"}
     m["estimators"] = {"ekf_landmark": ran, "ekf": dead}
     out = io.StringIO()
-    print_summary(m, out)
+    print_summary(RunSummary.from_json(m), out)
     rows = {ln.split()[0]: ln for ln in out.getvalue().splitlines()[2:4]}
     assert "33358" not in rows["ekf"]
     assert rows["ekf"].split("ERROR:")[0].split()[-1] == "-"

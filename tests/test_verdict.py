@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from ddfuse.evaluation.verdict import track_kind, verdict_lines
+from ddfuse.evaluation.verdict import _coverage_caution, track_kind, verdict_lines
 
 
 def _m(scores: dict, key: str = "ate_rmse_m", **top) -> dict:
@@ -90,6 +90,17 @@ def test_consistency_sentences():
             "both test (/fix gps) in the NIS table.") in text
     m["estimators"]["ekf"]["nis"] = {"/odom v": {**fail, "kind": "v"}}
     assert "it is dead reckoning" in "\n".join(verdict_lines(m))
+
+
+def test_the_coverage_caution_names_what_both_test_in_sorted_order():
+    """The sensors both estimators test come from sets, whose order varies per process (hash
+    seed): the caution lists them sorted, so a report reads the same at every render."""
+    shared = {(f"/s{i}", k) for i in (5, 1, 7, 3, 0, 6, 2, 4) for k in ("v", "gps")}
+    units = {"smoother": set(shared), "ekf": shared | {("/imu", "gyro")}}
+    heads = {"smoother": "consistent on the sensors it tests", "ekf": "not consistent"}
+    both = ", ".join(f"/s{i} gps and v" for i in range(8))
+    assert _coverage_caution(heads, units).endswith(
+        f"compare them on what both test ({both}) in the NIS table.")
 
 
 def test_heavy_tails_and_kinds():

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ddfuse.estimation.errors import DdfuseError
 from ddfuse.evaluation.cli.arguments import (
@@ -24,6 +25,9 @@ from ddfuse.evaluation.cli.output_paths import check_output_dir
 from ddfuse.evaluation.cli.report import render
 from ddfuse.evaluation.cli.terminal import fmt, progress
 from ddfuse.evaluation.shipped import SAMPLE_BAG, config_for
+
+if TYPE_CHECKING:  # the scores' module loads numpy and scipy: not for `ddfuse --help`
+    from ddfuse.evaluation.scores import EstimatorScores, RunSummary
 
 
 def add_to(sub) -> None:
@@ -48,23 +52,23 @@ def add_to(sub) -> None:
     sp.set_defaults(func=command)
 
 
-def produced_estimates(e: dict) -> bool:
-    """Whether an estimator's metrics.json entry has a track (``samples``: its length; entries
-    written without it are taken to have one)."""
-    return e.get("samples") != 0
+def produced_estimates(e: EstimatorScores) -> bool:
+    """Whether an estimator's scores are of a track (``samples``: its length; scores read
+    from a metrics.json written without it are taken to have one)."""
+    return e.samples != 0
 
 
-def print_summary(m: dict, out) -> None:
-    """The table of a run's metrics.json ``m`` (per estimator: final position, ATE, yaw RMSE,
+def print_summary(m: RunSummary, out) -> None:
+    """The table of a run's summary ``m`` (per estimator: final position, ATE, yaw RMSE,
     NEES, hold-out RMSE, real-time factor) and its wall-time line, to ``out``."""
     cols = ("final_xy", "ate_rmse_m", "yaw_rmse_deg", "nees_mean", "gps_holdout_rmse_m", "rtf")
-    out.write(f"{m['bag']}: {m['duration_s']:.1f} s, {m['messages']} measurements, "
-              f"decoded in {m['decode_s']:.2f} s\n")
+    out.write(f"{m.bag}: {m.duration_s:.1f} s, {m.messages} measurements, "
+              f"decoded in {m.decode_s:.2f} s\n")
     out.write("estimator        " + "  ".join(f"{c:>18}" for c in cols) + "\n")
-    for name, e in m["estimators"].items():
+    for name, e in m.estimators.items():
         cells = []
         for c in cols:
-            v = e[c]
+            v = getattr(e, c)
             if c == "rtf" and not produced_estimates(e):
                 v = None  # the speed of an estimator that never estimated says nothing
             if c == "final_xy" and v:
@@ -72,13 +76,13 @@ def print_summary(m: dict, out) -> None:
             else:
                 cells.append("-" if v is None else f"{v:.3f}")
         out.write(f"{name:16} " + "  ".join(f"{c:>18}" for c in cells)
-                  + (f"  ERROR: {e['error']}" if e["error"] else "") + "\n")
-    w = m.get("wall_s")
+                  + (f"  ERROR: {e.error}" if e.error else "") + "\n")
+    w = m.wall_s
     if w:
-        est = ", ".join(f"{k} {v:.3f}" for k, v in w["estimators"].items())
-        out.write(f"wall time {fmt(w['total'], '.3f')} s: startup {fmt(w['startup'], '.3f')}, "
-                  f"decode {w['decode']:.3f}, build {w['build']:.3f}, {est}, runner "
-                  f"{w['runner']:.3f}, metrics {w['metrics']:.3f}, write {w['write']:.3f}"
+        est = ", ".join(f"{k} {v:.3f}" for k, v in w.estimators.items())
+        out.write(f"wall time {fmt(w.total, '.3f')} s: startup {fmt(w.startup, '.3f')}, "
+                  f"decode {w.decode:.3f}, build {w.build:.3f}, {est}, runner "
+                  f"{w.runner:.3f}, metrics {w.metrics:.3f}, write {w.write:.3f}"
                   " (to metrics.json; the report after it not included)\n")
 
 
@@ -88,10 +92,12 @@ def _print_written_summary(outdir: Path) -> None:
     read); nothing when it cannot be read back."""
     import json
 
+    from ddfuse.evaluation.scores import RunSummary
+
     try:
-        m = json.loads((Path(outdir) / "metrics.json").read_text())
+        m = RunSummary.from_json(json.loads((Path(outdir) / "metrics.json").read_text()))
         print_summary(m, sys.stdout)
-    except (OSError, ValueError, KeyError, TypeError):
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return
     sys.stdout.flush()
 
@@ -132,11 +138,11 @@ def command(args: argparse.Namespace) -> int:
                     render(args.outdir, bars)
             raise
         print_summary(m, sys.stdout)
-        for w in m.get("warnings") or ():
+        for w in m.warnings or ():
             sys.stderr.write(f"ddfuse: warning: {w}\n")
-        if args.gps_holdout and not m.get("gps_holdout_fixes"):
+        if args.gps_holdout and not m.gps_holdout_fixes:
             sys.stderr.write(f"ddfuse: warning: --gps-holdout {args.gps_holdout} withheld no GPS "
-                             f"fix (the data span {m.get('duration_s') or 0:.1f} s from the first "
+                             f"fix (the data span {m.duration_s or 0:.1f} s from the first "
                              "message): nothing is scored against withheld fixes\n")
         if args.no_report:
             sys.stdout.write(f"results in {args.outdir}/ (metrics.json, <estimator>.tum/.csv, "
