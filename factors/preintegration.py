@@ -44,10 +44,42 @@ import numpy as np
 from ddfuse.factors.kinematics import se2_step_jac
 from ddfuse.factors.state import BG, DIM, KV, KW
 
-__all__ = ["WheelGyroPreintegration", "preintegrated_factor"]
+__all__ = ["WheelGyroPreintegration", "integrate_step", "preintegrated_factor"]
 
 _PI = math.pi
 _TWO_PI = 2.0 * math.pi
+
+
+def integrate_step(dx, dy, dpsi, c_xx, c_xy, c_xp, c_yy, c_yp, c_pp, j_x, j_y, j_p, kv_x, kv_y,
+                   kw_x, kw_y, kw_p, bg_lin, kv_lin, kw_lin, dt, v, w_gyro, var_v, var_w, gain,
+                   w_odo):
+    """One sample of the preintegration, in plain floats: the increment (dx, dy m, dpsi rad),
+    its covariance's upper triangle (c_xx ... c_pp), its Jacobians with respect to the gyro bias
+    (j_x, j_y, j_p) and the odometry scales (kv_x, kv_y; kw_x, kw_y, kw_p) before the sample,
+    the linearisation points (bg_lin rad/s, kv_lin, kw_lin), and the sample as
+    :meth:`WheelGyroPreintegration.integrate` takes it. Returns those 17 quantities after it,
+    in the same order. The reference class and the compiled kernel
+    (``ddfuse.factors.preintegration_jit``, ``register_jitable``) both call it."""
+    x1, y1, p1, j = se2_step_jac(dx, dy, dpsi, kv_lin * v,
+                                 w_gyro - gain * bg_lin + kw_lin * w_odo, dt)
+    j0, j1 = j[0], j[1]
+    a = j0[2]  # -(y1 - y): d x1 / d dpsi
+    b = j1[2]  # x1 - x:    d y1 / d dpsi
+    gvx, gvy = j0[3], j1[3]
+    gwx, gwy, gwp = j0[4], j1[4], dt
+    vv = var_v * kv_lin * kv_lin  # the sample's noise, scaled like the speed
+    # F cov F^T with F = [[1, 0, a], [0, 1, b], [0, 0, 1]], then the sample's noise
+    n_xx = c_xx + 2.0 * a * c_xp + a * a * c_pp + gvx * gvx * vv + gwx * gwx * var_w
+    n_xy = c_xy + a * c_yp + b * c_xp + a * b * c_pp + gvx * gvy * vv + gwx * gwy * var_w
+    n_xp = c_xp + a * c_pp + gwx * gwp * var_w
+    n_yy = c_yy + 2.0 * b * c_yp + b * b * c_pp + gvy * gvy * vv + gwy * gwy * var_w
+    n_yp = c_yp + b * c_pp + gwy * gwp * var_w
+    n_pp = c_pp + gwp * gwp * var_w
+    # Jacobians wrt bias and scales: F J + G (d twist / d parameter)
+    return (x1, y1, p1, n_xx, n_xy, n_xp, n_yy, n_yp, n_pp,
+            j_x + (a * j_p - gain * gwx), j_y + (b * j_p - gain * gwy), j_p - gain * gwp,
+            kv_x + v * gvx, kv_y + v * gvy,
+            kw_x + (a * kw_p + w_odo * gwx), kw_y + (b * kw_p + w_odo * gwy), kw_p + w_odo * gwp)
 
 
 class WheelGyroPreintegration:
@@ -107,36 +139,13 @@ class WheelGyroPreintegration:
         yaw-rate scale; their variances (m/s)^2 and (rad/s)^2 over this ``dt``."""
         if self.keep_samples:
             self.samples.append((dt, v, w_gyro, var_v, var_w, gain, w_odo))
-        kv = self.kv_lin
-        x1, y1, p1, j = se2_step_jac(self.dx, self.dy, self.dpsi, kv * v,
-                                     w_gyro - gain * self.bg_lin + self.kw_lin * w_odo, dt)
-        j0, j1 = j[0], j[1]
-        a = j0[2]  # -(y1 - y): d x1 / d dpsi
-        b = j1[2]  # x1 - x:    d y1 / d dpsi
-        gvx, gvy = j0[3], j1[3]
-        gwx, gwy, gwp = j0[4], j1[4], dt
-        vv = var_v * kv * kv  # the sample's noise, scaled like the speed
-        cxx, cxy, cxp = self.c_xx, self.c_xy, self.c_xp
-        cyy, cyp, cpp = self.c_yy, self.c_yp, self.c_pp
-        # F cov F^T with F = [[1, 0, a], [0, 1, b], [0, 0, 1]], then the sample's noise
-        self.c_xx = cxx + 2.0 * a * cxp + a * a * cpp + gvx * gvx * vv + gwx * gwx * var_w
-        self.c_xy = cxy + a * cyp + b * cxp + a * b * cpp + gvx * gvy * vv + gwx * gwy * var_w
-        self.c_xp = cxp + a * cpp + gwx * gwp * var_w
-        self.c_yy = cyy + 2.0 * b * cyp + b * b * cpp + gvy * gvy * vv + gwy * gwy * var_w
-        self.c_yp = cyp + b * cpp + gwy * gwp * var_w
-        self.c_pp = cpp + gwp * gwp * var_w
-        # Jacobians wrt bias and scales: F J + G (d twist / d parameter)
-        jp = self.j_p
-        self.j_x += a * jp - gain * gwx
-        self.j_y += b * jp - gain * gwy
-        self.j_p = jp - gain * gwp
-        self.kv_x += v * gvx
-        self.kv_y += v * gvy
-        kp = self.kw_p
-        self.kw_x += a * kp + w_odo * gwx
-        self.kw_y += b * kp + w_odo * gwy
-        self.kw_p = kp + w_odo * gwp
-        self.dx, self.dy, self.dpsi = x1, y1, p1
+        (self.dx, self.dy, self.dpsi, self.c_xx, self.c_xy, self.c_xp, self.c_yy, self.c_yp,
+         self.c_pp, self.j_x, self.j_y, self.j_p, self.kv_x, self.kv_y, self.kw_x, self.kw_y,
+         self.kw_p) = integrate_step(
+            self.dx, self.dy, self.dpsi, self.c_xx, self.c_xy, self.c_xp, self.c_yy, self.c_yp,
+            self.c_pp, self.j_x, self.j_y, self.j_p, self.kv_x, self.kv_y, self.kw_x, self.kw_y,
+            self.kw_p, self.bg_lin, self.kv_lin, self.kw_lin,
+            dt, v, w_gyro, var_v, var_w, gain, w_odo)
         self.dt_total += dt
         self.last_v = v
         self.last_w_gyro = w_gyro

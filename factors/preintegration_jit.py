@@ -1,10 +1,8 @@
 """Compiled (numba) twin of ``ddfuse.factors.preintegration.WheelGyroPreintegration``.
 
-The Python class stays the reference: ``integrate`` below is a line-by-line transcription of
-``WheelGyroPreintegration.integrate`` (the same operation order, so results agree to rounding;
-``tests/test_factors_preintegration_jit.py`` holds them to 1e-9), with ``se2_step_jac`` /
-``twist_coeffs`` of ``ddfuse.factors.kinematics`` compiled into it (``register_jitable``). A
-change of the preintegration's maths goes into both.
+The arithmetic is written once, in ``ddfuse.factors.preintegration.integrate_step``: the
+reference class calls it in Python, ``integrate`` below compiles it (``register_jitable``, with
+``se2_step_jac`` / ``twist_coeffs`` of ``ddfuse.factors.kinematics``) on the state array.
 
 The running state lives in one float64 array ``s`` (slot indices below, named after the Python
 attributes); ``WheelGyroPreintegrationJit`` exposes it under the reference class's attribute
@@ -21,7 +19,7 @@ from pathlib import Path
 import numpy as np
 from ddfuse.factors.jitcache import guard_cache
 from ddfuse.factors.kinematics import se2_step_jac, twist_coeffs
-from ddfuse.factors.preintegration import WheelGyroPreintegration
+from ddfuse.factors.preintegration import WheelGyroPreintegration, integrate_step
 from numba import njit
 from numba.extending import register_jitable
 
@@ -29,7 +27,7 @@ __all__ = ["SLOTS", "WheelGyroPreintegrationJit", "integrate", "warm_up"]
 
 _HERE = Path(__file__).resolve().parent
 # every file whose code the kernel compiles: numba's cache checks only this file's time stamp
-_KERNEL_SOURCES = ("preintegration_jit.py", "kinematics.py")
+_KERNEL_SOURCES = ("preintegration_jit.py", "preintegration.py", "kinematics.py")
 
 
 def _guard_cache() -> None:
@@ -40,7 +38,7 @@ def _guard_cache() -> None:
 
 _guard_cache()  # before the kernel below is first called (numba loads its cache lazily)
 
-for _f in (twist_coeffs, se2_step_jac):
+for _f in (twist_coeffs, se2_step_jac, integrate_step):
     register_jitable(_f)
 
 # the reference class's float attributes, in array order ("n" is stored as a float)
@@ -57,36 +55,11 @@ def integrate(s, dt, v, w_gyro, var_v, var_w, gain, w_odo):
 
     Arguments and units as there: ``dt`` s, ``v`` m/s, ``w_gyro`` and ``w_odo`` rad/s, ``var_v``
     (m/s)^2, ``var_w`` (rad/s)^2, ``gain`` (share of the gyro bias carried by ``w_gyro``)."""
-    kv = s[KV_LIN]
-    x1, y1, p1, j = se2_step_jac(s[DX], s[DY], s[DPSI], kv * v,
-                                 w_gyro - gain * s[BG_LIN] + s[KW_LIN] * w_odo, dt)
-    j0, j1 = j[0], j[1]
-    a = j0[2]  # -(y1 - y): d x1 / d dpsi
-    b = j1[2]  # x1 - x:    d y1 / d dpsi
-    gvx, gvy = j0[3], j1[3]
-    gwx, gwy, gwp = j0[4], j1[4], dt
-    vv = var_v * kv * kv  # the sample's noise, scaled like the speed
-    cxx, cxy, cxp = s[C_XX], s[C_XY], s[C_XP]
-    cyy, cyp, cpp = s[C_YY], s[C_YP], s[C_PP]
-    # F cov F^T with F = [[1, 0, a], [0, 1, b], [0, 0, 1]], then the sample's noise
-    s[C_XX] = cxx + 2.0 * a * cxp + a * a * cpp + gvx * gvx * vv + gwx * gwx * var_w
-    s[C_XY] = cxy + a * cyp + b * cxp + a * b * cpp + gvx * gvy * vv + gwx * gwy * var_w
-    s[C_XP] = cxp + a * cpp + gwx * gwp * var_w
-    s[C_YY] = cyy + 2.0 * b * cyp + b * b * cpp + gvy * gvy * vv + gwy * gwy * var_w
-    s[C_YP] = cyp + b * cpp + gwy * gwp * var_w
-    s[C_PP] = cpp + gwp * gwp * var_w
-    # Jacobians wrt bias and scales: F J + G (d twist / d parameter)
-    jp = s[J_P]
-    s[J_X] += a * jp - gain * gwx
-    s[J_Y] += b * jp - gain * gwy
-    s[J_P] = jp - gain * gwp
-    s[KV_X] += v * gvx
-    s[KV_Y] += v * gvy
-    kp = s[KW_P]
-    s[KW_X] += a * kp + w_odo * gwx
-    s[KW_Y] += b * kp + w_odo * gwy
-    s[KW_P] = kp + w_odo * gwp
-    s[DX], s[DY], s[DPSI] = x1, y1, p1
+    (s[DX], s[DY], s[DPSI], s[C_XX], s[C_XY], s[C_XP], s[C_YY], s[C_YP], s[C_PP], s[J_X],
+     s[J_Y], s[J_P], s[KV_X], s[KV_Y], s[KW_X], s[KW_Y], s[KW_P]) = integrate_step(
+        s[DX], s[DY], s[DPSI], s[C_XX], s[C_XY], s[C_XP], s[C_YY], s[C_YP], s[C_PP], s[J_X],
+        s[J_Y], s[J_P], s[KV_X], s[KV_Y], s[KW_X], s[KW_Y], s[KW_P], s[BG_LIN], s[KV_LIN],
+        s[KW_LIN], dt, v, w_gyro, var_v, var_w, gain, w_odo)
     s[DT_TOTAL] += dt
     s[LAST_V] = v
     s[LAST_W_GYRO] = w_gyro
