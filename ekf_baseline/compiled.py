@@ -33,26 +33,32 @@ from ddfuse.ekf_baseline.kalman import (
     _support,
     chi2_threshold,
 )
+from ddfuse.ekf_baseline.kernel_codes import (  # noqa: F401 - re-exported for the filters
+    DEFER,
+    GROW,
+    IGVC_KINDS,
+    REJECTED,
+    T_ACCEL,
+    T_GPS,
+    T_GYRO,
+    T_HEAD,
+    T_HEAD_POSE,
+    T_NONE,
+    T_ODOM,
+    T_WHEELS,
+    UNI_KINDS,
+)
 from ddfuse.estimation.estimator import EstimatorLog
 from ddfuse.factors.jitcache import guard_cache
 
 __all__ = ["BufferedLog", "JitKalmanCore", "kernels", "warm_up", "COLD_COMPILE"]
 
-# the kernels' return bits (ddfuse.ekf_baseline.kalman_jit docstring)
-DEFER = 1
-REJECTED = 2
-GROW = 4
-# message types: the kernels' ``typ`` argument
-T_NONE, T_GYRO, T_HEAD, T_ODOM, T_GPS, T_WHEELS, T_ACCEL, T_HEAD_POSE = range(8)
-# measurement kinds (slots per sensor) of the unicycle and of the IGVC filter, in the kernels'
-# K_* / KI_* order
-UNI_KINDS = ("gyro", "heading", "v", "yaw_rate", "wheels", "gps")
-IGVC_KINDS = ("gyro", "heading", "accel", "odometry", "wheels", "gps")
 
 _ROOT = Path(__file__).resolve().parents[1]
 # every file whose code the kernels compile (kalman_jit's module docstring)
 _KERNEL_SOURCES = ("ekf_baseline/kalman_jit.py", "ekf_baseline/kalman_jit_predict.py",
-                   "ekf_baseline/kalman_jit_layout.py", "ekf_baseline/unicycle_motion.py",
+                   "ekf_baseline/kalman_jit_layout.py", "ekf_baseline/kernel_codes.py",
+                   "ekf_baseline/unicycle_motion.py",
                    "ekf_baseline/unicycle_measurements.py", "ekf_baseline/igvc_model.py",
                    "ekf_baseline/igvc_measurements.py", "ekf_baseline/igvc_jacobians.py",
                    "ekf_baseline/kalman.py", "factors/kinematics.py", "estimation/lockout.py")

@@ -45,21 +45,6 @@ import math
 import numpy as np
 from ddfuse.ekf_baseline import igvc_measurements as im
 from ddfuse.ekf_baseline import unicycle_measurements as um
-from ddfuse.ekf_baseline.compiled import (  # noqa: F401 - re-exported: the kernels' codes
-    DEFER,
-    GROW,
-    IGVC_KINDS,
-    REJECTED,
-    T_ACCEL,
-    T_GPS,
-    T_GYRO,
-    T_HEAD,
-    T_HEAD_POSE,
-    T_NONE,
-    T_ODOM,
-    T_WHEELS,
-    UNI_KINDS,
-)
 from ddfuse.ekf_baseline.kalman import block_nis
 from ddfuse.ekf_baseline.kalman_jit_layout import (  # noqa: F401 - the layout
     FP_LASTNIS,
@@ -138,6 +123,21 @@ from ddfuse.ekf_baseline.kalman_jit_layout import (  # noqa: F401 - the layout
     SK_T0,
 )
 from ddfuse.ekf_baseline.kalman_jit_predict import _igvc_predict, _uni_predict, _wrap_states
+from ddfuse.ekf_baseline.kernel_codes import (  # noqa: F401 - re-exported: the kernels' codes
+    DEFER,
+    GROW,
+    IGVC_KINDS,
+    REJECTED,
+    T_ACCEL,
+    T_GPS,
+    T_GYRO,
+    T_HEAD,
+    T_HEAD_POSE,
+    T_NONE,
+    T_ODOM,
+    T_WHEELS,
+    UNI_KINDS,
+)
 from ddfuse.ekf_baseline.unicycle_motion import pose_correct
 from ddfuse.estimation.lockout import gate_streak, holdoff_over, lockout_due
 from numba import njit

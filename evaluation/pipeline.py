@@ -42,7 +42,7 @@ from ddfuse.estimation.runner import RunResult, Trajectory, initial_pose, parse_
 from ddfuse.evaluation import consistency, metrics
 from ddfuse.evaluation import estimators as registry
 from ddfuse.evaluation.consistency import SensorNis
-from ddfuse.evaluation.results import config_text_of, save_run
+from ddfuse.evaluation.run_files import config_text_of, save_run
 from ddfuse.evaluation.scores import (
     AteScore,
     AteScores,

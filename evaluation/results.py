@@ -1,20 +1,6 @@
-"""A run's saved results: written by ``ddfuse run``, read back by ``ddfuse report``.
-
-An output directory holds ``metrics.json`` (``ddfuse.evaluation.pipeline``), one ``<track>.tum`` and
-``<track>.csv`` per estimator track (``evaluation.export``), ``ground_truth.tum``/``.csv`` when
-there is truth, and ``run.npz`` with the rest of what the report shows:
-
-* ``gps_t`` (G,) s, ``gps_xy`` (G, 2) m local ENU, ``gps_cov`` (G, 2, 2) m^2,
-  ``gps_withheld`` (G,) bool: every GPS fix of the stream, marked if withheld from the estimators;
-* ``landmark_ids`` (L,) str, ``landmark_xy`` (L, 2) m: the landmark map;
-* ``update_s/<track>`` (U,) s: wall time of each ``process`` call;
-* ``innov/<log>/{t, sensor, kind, nis, dim, accepted}`` (N,): each estimator's innovation log
-  (``consistency.InnovationTable``), once per estimator (a lagged track shares its filter's);
-  on a long run a thinned subset of the early entries (for the plots) and every recent one,
-  with ``innov/<log>/folded`` (JSON: the exact counts of the thinned groups) and
-  ``n_thinned``, so that ``consistency.nis_by_sensor`` of a loaded table is metrics.json's;
-* ``meta``: JSON text: the tracks in order, which log each track's innovations are in, the
-  config file's text.
+"""A run's saved results read back: ``load_run`` (what ``ddfuse report`` renders) and
+``SavedRun``, also built in memory from a ``RunResult``. The files and their layout:
+``ddfuse.evaluation.run_files``, which writes them.
 
 In a notebook, ``SavedRun.from_result(result)`` gives the same ``SavedRun`` for an in-memory
 ``RunResult`` (``ddfuse.estimation.runner.run``) without writing anything, so the figures of
@@ -39,13 +25,16 @@ from ddfuse.estimation import heading_survey
 from ddfuse.estimation.errors import DdfuseError
 from ddfuse.estimation.runner import RunResult, Trajectory
 from ddfuse.evaluation.consistency import InnovationTable
-from ddfuse.evaluation.export import read_csv, write_csv, write_tum
+from ddfuse.evaluation.export import read_csv
+from ddfuse.evaluation.run_files import (
+    INNOV_FIELDS,
+    METRICS_FILE,
+    RUN_FILE,
+    TRUTH,
+    config_text_of,
+    run_arrays,
+)
 from ddfuse.evaluation.scores import DataFacts, RunSummary
-
-RUN_FILE = "run.npz"
-METRICS_FILE = "metrics.json"
-TRUTH = "ground_truth"
-_INNOV_FIELDS = ("t", "sensor", "kind", "nis", "dim", "accepted")
 
 
 class ResultsError(DdfuseError):
@@ -102,17 +91,8 @@ class SavedRun:
         if config_text is None and cfg is not None:
             config_text = config_text_of(cfg)
         tracks = {name: r.trajectory for name, r in result.runs.items() if len(r.trajectory)}
-        return _from_arrays(None, metrics, _run_arrays(result, config_text), tracks,
+        return _from_arrays(None, metrics, run_arrays(result, config_text), tracks,
                             result.truth)
-
-
-def config_text_of(cfg) -> str | None:
-    """The YAML ``cfg`` was parsed from (``Config.text``), else its file's text as it is now,
-    else None (a config built in code, or parsed under a label that is no file)."""
-    if getattr(cfg, "text", None) is not None:
-        return cfg.text
-    path = getattr(cfg, "path", None)
-    return Path(path).read_text(errors="replace") if path and Path(path).is_file() else None
 
 
 def _score(result: RunResult, cfg) -> RunSummary:
@@ -131,68 +111,6 @@ def _score(result: RunResult, cfg) -> RunSummary:
     st = result.stream
     return replace(m, data=DataFacts(t0=st.t0, t1=st.t1, landmarks=len(st.landmarks),
                                      datum=list(st.datum) if st.datum else None))
-
-
-def _previous_tracks(outdir: Path) -> list[str]:
-    """The track names an earlier run recorded in ``outdir``'s run.npz (none if unreadable)."""
-    try:
-        with np.load(outdir / RUN_FILE) as z:
-            return list(json.loads(str(z["meta"]))["tracks"]) + [TRUTH]
-    except (OSError, ValueError, KeyError, TypeError):
-        return []
-
-
-def save_run(result: RunResult, outdir: Path, config_text: str | None = None) -> None:
-    """Write the trajectories and run.npz of ``result`` into ``outdir`` (which must exist).
-    Track files that an earlier run into the same directory wrote (its run.npz lists them) and
-    this one does not are removed, so the directory holds one run, not a mix."""
-    now = {n for n, r in result.runs.items() if len(r.trajectory)}
-    if result.truth is not None:
-        now.add(TRUTH)
-    for name in _previous_tracks(outdir):
-        if name not in now:
-            for ext in ("tum", "csv"):
-                (outdir / f"{name}.{ext}").unlink(missing_ok=True)
-    for name, r in result.runs.items():
-        if len(r.trajectory):
-            write_tum(outdir / f"{name}.tum", r.trajectory)
-            write_csv(outdir / f"{name}.csv", r.trajectory)
-    if result.truth is not None:
-        write_tum(outdir / f"{TRUTH}.tum", result.truth)
-        write_csv(outdir / f"{TRUTH}.csv", result.truth)
-    np.savez_compressed(outdir / RUN_FILE, **_run_arrays(result, config_text))
-
-
-def _run_arrays(result: RunResult, config_text: str | None) -> dict[str, np.ndarray]:
-    """The arrays of run.npz for ``result`` (module docstring)."""
-    gps = result.gps
-    lm = result.stream.landmarks
-    arrays: dict[str, np.ndarray] = {
-        "gps_t": gps.t,
-        "gps_xy": gps.xy.reshape(-1, 2),
-        "gps_cov": gps.cov.reshape(-1, 2, 2),
-        "gps_withheld": gps.withheld,
-        "landmark_ids": np.array(list(lm), dtype=str),
-        "landmark_xy": np.array(list(lm.values()), float).reshape(-1, 2),
-    }
-    owner: dict[str, str] = {}
-    logs: dict[int, str] = {}  # id(log) -> first track using it
-    for name, r in result.runs.items():
-        key = logs.setdefault(id(r.log), name)
-        owner[name] = key
-        arrays[f"update_s/{name}"] = np.asarray(r.update_s, float)
-        if key == name:
-            table = InnovationTable.from_innovations(r.log.innovations)
-            for f in _INNOV_FIELDS:
-                arrays[f"innov/{name}/{f}"] = getattr(table, f)
-            # a long run's log is thinned: the exact counts of what it no longer holds one by
-            # one, so that NIS from a loaded run equals metrics.json's
-            arrays[f"innov/{name}/folded"] = np.array(json.dumps(
-                [[list(k), [float(x) for x in v]] for k, v in table.folded.items()]))
-            arrays[f"innov/{name}/n_thinned"] = np.array(table.n_thinned)
-    meta = {"tracks": list(result.runs), "log_owner": owner, "config_text": config_text}
-    arrays["meta"] = np.array(json.dumps(meta))
-    return arrays
 
 
 def load_run(outdir: str | Path) -> SavedRun:
@@ -223,7 +141,7 @@ def load_run(outdir: str | Path) -> SavedRun:
 
 def _from_arrays(outdir: Path | None, summary: RunSummary, z, tracks: dict[str, Trajectory],
                  truth: Trajectory | None) -> SavedRun:
-    """A SavedRun from run.npz's arrays ``z`` (an NpzFile or the dictionary ``_run_arrays``
+    """A SavedRun from run.npz's arrays ``z`` (an NpzFile or the dictionary ``run_arrays``
     gives) and the tracks and truth."""
     meta = json.loads(str(z["meta"]))
     owner = meta["log_owner"]
@@ -235,7 +153,7 @@ def _from_arrays(outdir: Path | None, summary: RunSummary, z, tracks: dict[str, 
             folded = {(str(a), str(b), int(c)): v
                       for (a, b, c), v in json.loads(str(z[f"innov/{key}/folded"]))}
         n_thinned = int(z[f"innov/{key}/n_thinned"]) if f"innov/{key}/n_thinned" in z else 0
-        tables[name] = InnovationTable(*(z[f"innov/{key}/{f}"] for f in _INNOV_FIELDS),
+        tables[name] = InnovationTable(*(z[f"innov/{key}/{f}"] for f in INNOV_FIELDS),
                                        folded=folded, n_thinned=n_thinned)
     return SavedRun(
         outdir, summary, tracks, truth, z["gps_t"], z["gps_xy"], z["gps_cov"],

@@ -7,6 +7,7 @@ from pathlib import Path
 import pytest
 from ddfuse.estimation.config import load_config
 from ddfuse.evaluation.pipeline import GPS_CORRELATED_INTERVALS, gps_correlation_warnings
+from ddfuse.evaluation.scores import RunSummary
 
 
 def _cfg(tmp_path: Path, tau: float | None):
@@ -17,11 +18,11 @@ def _cfg(tmp_path: Path, tau: float | None):
     return load_config(p)
 
 
-def _metrics(corr: list, interval: float = 0.4, error: str | None = None) -> dict:
+def _metrics(corr: list, interval: float = 0.4, error: str | None = None) -> RunSummary:
     ests = {f"e{i}": {"gps_residual_corr_s": c, "error": None} for i, c in enumerate(corr)}
     if error:
         ests["stopped"] = {"gps_residual_corr_s": 100.0, "error": error}
-    return {"data": {"gps_fix_interval_s": interval}, "estimators": ests}
+    return RunSummary.from_json({"data": {"gps_fix_interval_s": interval}, "estimators": ests})
 
 
 def test_correlated_residuals_with_white_fixes_warn_with_a_value(tmp_path):

@@ -12,13 +12,6 @@ ROOT = Path(__file__).resolve().parents[1]
 LAYERS = ("factors", "estimation", "ekf_baseline", "evaluation")
 CLI = "ddfuse.evaluation.cli"
 
-# Cycles through imports inside functions, in code other helpers of issue 24 own and are
-# restructuring (the compiled EKF kernels; pipeline <-> results); to be emptied when merged.
-KNOWN_CYCLES = {
-    frozenset({"ddfuse.ekf_baseline.compiled", "ddfuse.ekf_baseline.kalman_jit",
-               "ddfuse.ekf_baseline.igvc", "ddfuse.ekf_baseline.unicycle"}),
-    frozenset({"ddfuse.evaluation.pipeline", "ddfuse.evaluation.results"}),
-}
 
 
 def product_modules(root: Path = ROOT) -> dict[str, Path]:
@@ -116,8 +109,7 @@ def test_no_module_imports_a_higher_layer():
 
 
 def test_no_import_cycle():
-    found = [sorted(c) for c in cycles(graph()) if frozenset(c) not in KNOWN_CYCLES]
-    assert not found
+    assert not [sorted(c) for c in cycles(graph())]
 
 
 def test_a_cycle_and_a_wrong_direction_are_found(tmp_path):
