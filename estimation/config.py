@@ -12,7 +12,7 @@ Shape (every key documented in README.md)::
       landmarks: [{topic: /landmarks, map: some.landmarks.yaml, noise: {range: 0.1, bearing: 0.05}}]
     robot: {wheel_radius: 0.165, track_width: 0.555, wheel_radius_std: 0.002,
             track_width_std: 0.03, slip: {longitudinal: 0.05, lateral: 0.02, heading: 0.01},
-            max_accel: 0.5, max_yaw_accel: 0.5}
+            max_accel: 0.5, max_yaw_accel: 0.5, max_speed: 1.0, max_yaw_rate: 2.0}
     ground_truth: {topic: /ground_truth}
     frame: {datum: first_fix}            # or [lat_deg, lon_deg, alt_m]
     initial_pose: ground_truth           # or [x, y, yaw]; default origin
@@ -29,7 +29,9 @@ uncertainties of the nominal geometry; given, the estimators that can estimate t
 scale errors do. ``robot.slip`` states white-noise densities of the body's motion about its
 twist: longitudinal and lateral velocity (m/sqrt(s)) and yaw rate (rad/sqrt(s)).
 ``robot.max_accel`` (m/s^2) and ``max_yaw_accel`` (rad/s^2) are the largest accelerations the
-base performs (its drive controller's limits). A ``gate`` on
+base performs (its drive controller's limits). ``robot.max_speed`` (m/s) and ``max_yaw_rate``
+(rad/s) are what the robot can physically do (defaults DEFAULT_MAX_SPEED, DEFAULT_MAX_YAW_RATE);
+a sample beyond them is a glitch. A ``gate`` on
 a sensor is the chi-square acceptance probability of its Mahalanobis gate (e.g. 0.9999) or
 ``off``.
 """
@@ -119,6 +121,10 @@ DEFAULT_LOCKOUT_TIME = 1.0  # s
 # heading are taken as known to 1 cm and 5 mrad. A wrong start is caught by the gate's lock-out
 # recovery, not by a wide initial covariance.
 GIVEN_POSE_STD = (0.01, 0.005)
+# The robot's physical limits when the config states none: above any wheeled ground robot's
+# (a car on a motorway, a skid-steer base spinning in place), so only glitches exceed them.
+DEFAULT_MAX_SPEED = 50.0  # m/s
+DEFAULT_MAX_YAW_RATE = 10.0  # rad/s
 
 
 @dataclass
@@ -182,6 +188,22 @@ class RobotConfig:
     # densities from them and its twist sensors' sample periods
     max_accel: float | None = None
     max_yaw_accel: float | None = None
+    # what the robot can physically do: the largest forward speed (m/s, either direction) and
+    # yaw rate (rad/s). A twist sample beyond them is a glitch, rejected before any estimator
+    # (None: DEFAULT_MAX_SPEED / DEFAULT_MAX_YAW_RATE, generous for any wheeled ground robot)
+    max_speed: float | None = None
+    max_yaw_rate: float | None = None
+
+    @property
+    def speed_limit(self) -> float:
+        """The robot's top speed, m/s: the config's ``max_speed`` or DEFAULT_MAX_SPEED."""
+        return DEFAULT_MAX_SPEED if self.max_speed is None else self.max_speed
+
+    @property
+    def yaw_rate_limit(self) -> float:
+        """The robot's top yaw rate, rad/s: the config's ``max_yaw_rate`` or
+        DEFAULT_MAX_YAW_RATE."""
+        return DEFAULT_MAX_YAW_RATE if self.max_yaw_rate is None else self.max_yaw_rate
 
     @property
     def scale_std(self) -> tuple[float, float, float] | None:
@@ -425,7 +447,11 @@ def parse_config(raw: Any, source: str = "<config>", base: Path | None = None) -
     if "robot" in d:
         r = ck.mapping(d["robot"], "robot", ("wheel_radius", "track_width", "wheel_radius_std",
                                              "track_width_std", "slip", "max_accel",
-                                             "max_yaw_accel"))
+                                             "max_yaw_accel", "max_speed", "max_yaw_rate"))
+        for k in ("max_speed", "max_yaw_rate"):
+            if k in r and ck.number(r[k], f"robot.{k}") <= 0.0:
+                raise ck.fail(f"robot.{k}", "must be > 0: a sample beyond it is rejected as "
+                              "impossible for the robot (leave it out for the default)")
         for k in ("max_accel", "max_yaw_accel"):
             if k in r and ck.number(r[k], f"robot.{k}") == 0.0:
                 raise ck.fail(f"robot.{k}", "must be > 0: the twist's process noise is derived "
