@@ -63,7 +63,7 @@ from ddfuse.ekf_baseline.igvc_model import (
     igvc_q_values,
     sphere_radius,
 )
-from ddfuse.ekf_baseline.igvc_start import IgvcStart
+from ddfuse.ekf_baseline.igvc_start import _USED, IgvcStart
 from ddfuse.ekf_baseline.kalman import KalmanCore
 from ddfuse.estimation.config import DEFAULT_GATE, Config, SensorConfig
 from ddfuse.estimation.estimator import Estimate, Estimator
@@ -83,7 +83,6 @@ __all__ = ["IgvcEkf", "IgvcNoise", "PolarRegionError", "POLE_LIMIT_DEG", "STATE_
 
 STATE_NAMES = gen.STATE_NAMES
 # the measurement types the filter uses (the others are ignored, before its start too)
-_USED = (GpsFix, WheelOdometry, WheelSpeeds, GyroYawRate, Heading, ForwardAccel)
 DEFAULT_TRACK = 0.5  # m, used only for the wheel-speed states when robot.track_width is unset
 FEED_GAP_S = 5.0  # s without any message: a gap in the feed (``IgvcEkf._bridge_gap``)
 GAP_RESTART_STD = 10e3  # m: a gap that leaves the position this uncertain restarts the filter
@@ -125,7 +124,9 @@ class IgvcEkf(IgvcStart, IgvcKernels, Estimator):
     at the first GroundTruthPose it is given (pass ``stream.ground_truth[0]`` as initial_pose when
     the ground truth is not in the measurement stream). Without any initial pose and with a GPS
     configured, it starts at the first fix, with the heading from the first usable Heading or,
-    failing that, from the GPS course once the fixes are ``course_distance`` m apart; without GPS
+    failing that, from the GPS course (``ddfuse.estimation.gps_course``, the smoother's start:
+    the fixes' direction less the dead-reckoned turn) once the fixes span ``course_distance`` m,
+    the measurements since its first fix replayed; without GPS
     it starts at the origin with yaw 0. ``datum`` (lat deg, lon deg, alt m) is the local ENU
     origin (``stream.datum``); default the config's, else the first fix. ``motion`` is 'euler'
     (seed eq. 14) or 'icc' (seed appendix A). Prediction steps are at most ``max_step`` s.
@@ -210,7 +211,7 @@ class IgvcEkf(IgvcStart, IgvcKernels, Estimator):
         self.kf: KalmanCore | None = None
         self.t: float | None = None
         self.radius = sphere_radius(math.radians(self.datum[0]) if self.datum else 0.0)
-        self._first_fix: GpsFix | None = None
+        self._course = self._course_start()
         self._heading_init: tuple[float, float] | None = None  # (yaw, var)
         if initial_pose is not None and (self.datum is not None or not self._has_gps):
             self._init(None, initial_pose, self.noise.init_position_std ** 2,
@@ -297,11 +298,13 @@ class IgvcEkf(IgvcStart, IgvcKernels, Estimator):
             if self._wait_truth:
                 self._count_before_init(m)
                 return
-            self._try_init_without_pose(m)
+            replayed = self._try_init_without_pose(m)
             # a datum or start taken from this fix: refused at it, not a message later
             self._check_pole()
             if self.kf is None:
                 self._count_before_init(m)
+                return
+            if replayed:
                 return
             if self.t == m.t and isinstance(m, GpsFix | Heading):
                 return  # the measurement that initialised the filter is not used twice
@@ -350,7 +353,7 @@ class IgvcEkf(IgvcStart, IgvcKernels, Estimator):
                          "it starts again as at the beginning")
         self.kf = None
         self.t = None
-        self._first_fix = None
+        self._course = self._course_start()
         self._heading_init = None
         self._pose_given = None  # the configured start pose was the run's, not this one's
         self._wait_truth = False

@@ -29,7 +29,21 @@ from ddfuse.ekf_baseline.igvc_model import (
 from ddfuse.ekf_baseline.kalman import KalmanCore
 from ddfuse.estimation import geodesy
 from ddfuse.estimation.config import Config
-from ddfuse.estimation.measurements import GpsFix, Heading
+from ddfuse.estimation.gps_course import COURSE_MIN_PSI_SIGMA, GpsCourseStart
+from ddfuse.estimation.measurements import (
+    ForwardAccel,
+    GpsFix,
+    GyroYawRate,
+    Heading,
+    WheelOdometry,
+    WheelSpeeds,
+)
+
+# the measurements the filter fuses (those counted as before_init while it waits)
+_USED = (GpsFix, WheelOdometry, WheelSpeeds, GyroYawRate, Heading, ForwardAccel)
+# s: a fix this long before the first moving odometry sample may start the course's baseline
+# (odometry is held over its period), as in the smoother
+COURSE_ODOMETRY_WAIT = 0.5
 
 __all__ = ["IgvcStart"]
 
@@ -159,17 +173,20 @@ class IgvcStart:
         d[THETA] = d[PSI] = self.noise.frame_heading_psd * scale
         return d
 
-    def _try_init_without_pose(self, m) -> None:
-        """Start from GPS (position) plus a heading, or at the origin without GPS."""
+    def _try_init_without_pose(self, m) -> bool:
+        """Start from GPS (position) plus a heading, or at the origin without GPS. True when a
+        GPS-course start replayed the held measurements, ``m`` with them."""
         if not self._has_gps:
             self._init(m.t, self._pose_given or (0.0, 0.0, 0.0),
                        self.noise.init_position_std ** 2, self.noise.init_heading_std ** 2)
-            return
+            return False
         if isinstance(m, Heading) and m.sensor not in self._hoff_idx and m.source != "pose":
             # a compass with a known offset gives the heading; an estimated offset does not
             self._heading_init = (m.yaw - self._heading_offset(m.sensor), m.var)
         if not isinstance(m, GpsFix) or m.status < 0:
-            return
+            if self._heading_init is None and self._pose_given is None:
+                self._course.add(m)
+            return False
         if self.datum is None:
             # the frame the fix's enu is in: a live converter's first fix may have been dropped
             # before it reached this filter, and the next one is then not the datum
@@ -180,22 +197,40 @@ class IgvcStart:
         if self._pose_given is not None:
             self._init(m.t, self._pose_given, self.noise.init_position_std ** 2,
                        self.noise.init_heading_std ** 2)
-            return
+            return False
         if self._heading_init is not None:
             self._init(m.t, (e, n, self._heading_init[0]), pos_var, self._heading_init[1])
             self._fused_fix(m.sensor, m.t)  # the position is this fix's
-            return
-        if self._first_fix is None:
-            self._first_fix = m
-            return
-        e0, n0 = self._fix_enu(self._first_fix)
-        d = math.hypot(e - e0, n - n0)
-        if d >= self.course_distance:
-            # the course over ground from the first fix; assumes the robot drove forward
-            yaw_var = (2.0 * pos_var) / (d * d)
-            self._init(m.t, (e, n, math.atan2(n - n0, e - e0)), pos_var, yaw_var)
-            self._fused_fix(m.sensor, m.t)
-            self.log.note(m.t, f"heading initialised from the GPS course over {d:.1f} m")
+            return False
+        if m.enu is None:  # a live converter's fix: the course needs it in the local frame
+            m.enu = (e, n, 0.0)
+        got = self._course.add(m)
+        if got is None:
+            return False
+        # the course's first fix starts the filter; what came after it is replayed, ``m`` (the
+        # fix that decided) last. Each held message was counted before_init as it came: the
+        # replayed ones are not
+        rejected = self.log.rejected
+        for b in got.replay:
+            key = (b.sensor, "before_init")
+            if b is not m and isinstance(b, _USED) and rejected.get(key):
+                rejected[key] -= 1
+                if not rejected[key]:
+                    del rejected[key]
+        self._init(got.t, (*got.position, got.heading), got.pos_sigma ** 2, got.psi_sigma ** 2)
+        f0 = next(b for b in got.replay if isinstance(b, GpsFix) and b.t == got.t)
+        self._fused_fix(f0.sensor, got.t)
+        self.log.note(got.t, "heading initialised from the GPS course")
+        for b in got.replay:
+            if b is not f0:
+                self.process(b)
+        return True
+
+    def _course_start(self) -> GpsCourseStart:
+        """A fresh GPS-course start (at the beginning, and again after a restart)."""
+        return GpsCourseStart.for_config(
+            self.cfg, min_psi_sigma=COURSE_MIN_PSI_SIGMA, odometry_wait=COURSE_ODOMETRY_WAIT,
+            distance=self.course_distance)
 
     def _fix_enu(self, m: GpsFix) -> tuple[float, float]:
         if m.enu is not None:

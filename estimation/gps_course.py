@@ -18,7 +18,8 @@ Contract (``GpsCourseStart``):
   relates them to the next).
 
 Only odometry and gyro yaw rates enter the dead reckoning (a fixed gyro bias subtracted); units
-are SI. Design notes: docs/design/smoother.md (Start from the GPS course).
+are SI. Used by the smoother and by the IGVC EKF (``ekf_igvc``) alike. Design notes:
+docs/design/smoother.md (Start from the GPS course), docs/design/igvc_ekf.md.
 """
 
 from __future__ import annotations
@@ -31,6 +32,9 @@ from ddfuse.estimation.measurements import GpsFix, GyroYawRate, WheelOdometry, W
 
 INIT_DISTANCE = 5.0  # m of GPS travel before the heading is taken from the GPS course
 COURSE_SIGMA_MAX = 0.4  # rad: with poor fixes, the travel waits for a course this good
+# rad: the least heading sigma a course start claims (slip and the fixes' correlated errors
+# bend the course more than the fixes' stated sigmas say)
+COURSE_MIN_PSI_SIGMA = 0.2
 
 
 @dataclass(frozen=True)
@@ -65,6 +69,18 @@ class GpsCourseStart:
         self._fixes: tuple[GpsFix, GpsFix] | None = None  # the baseline's first and last fix
         self._moving = False  # whether the buffer holds an odometry speed
         self.last_fix: GpsFix | None = None  # the buffer's last fix
+
+    @classmethod
+    def for_config(cls, cfg, *, min_psi_sigma: float, odometry_wait: float,
+                   distance: float = INIT_DISTANCE) -> GpsCourseStart:
+        """The start for a robot configured by ``cfg`` (a ``Config``): its gyros are the IMUs
+        that use ``yaw_rate``, the bias taken off the first fixed ``gyro_bias`` (0 when every
+        one is estimated), the geometry ``cfg.robot``'s."""
+        imus = [s for s in cfg.of_kind("imu") if "yaw_rate" in s.use]
+        fixed = next((float(s.gyro_bias) for s in imus if s.gyro_bias != "estimate"), 0.0)
+        return cls(gyro_names={s.name for s in imus}, fixed_bias=fixed,
+                   wheel_radius=cfg.robot.wheel_radius, track_width=cfg.robot.track_width,
+                   min_psi_sigma=min_psi_sigma, odometry_wait=odometry_wait, distance=distance)
 
     def add(self, m) -> CourseStart | None:
         """Buffer ``m``; the start once the course is good enough, else None."""

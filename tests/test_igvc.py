@@ -12,8 +12,10 @@ import math
 import numpy as np
 import pytest
 from ddfuse.ekf_baseline.igvc import IgvcEkf, IgvcNoise
+from ddfuse.ekf_baseline.igvc_start import COURSE_ODOMETRY_WAIT
 from ddfuse.estimation import geodesy
 from ddfuse.estimation.config import Config, RobotConfig, SensorConfig
+from ddfuse.estimation.gps_course import COURSE_MIN_PSI_SIGMA, GpsCourseStart
 from ddfuse.estimation.measurements import (
     ForwardAccel,
     GpsFix,
@@ -192,6 +194,29 @@ def test_heading_from_gps_course_without_compass():
     assert any("GPS course" in m for m in ekf.log.messages)
     pos, yaw = _rmse(res, t_from=20.0)
     assert pos < 0.6 * SIG_GPS and yaw < 0.1, (pos, yaw)
+
+
+def test_the_gps_course_start_is_the_smoothers(monkeypatch):
+    """Without a heading sensor the filter starts where and as the smoother does: at the first
+    fix of the course GpsCourseStart decides on, with its heading and sigmas (the fixes'
+    direction less the dead-reckoned turn), not a course over ground of its own."""
+    truth, meas = simulate(3, duration=60.0)
+    meas = [m for m in meas if not isinstance(m, Heading)]
+    cfg = make_cfg(compass=False)
+    course = GpsCourseStart.for_config(cfg, min_psi_sigma=COURSE_MIN_PSI_SIGMA,
+                                       odometry_wait=COURSE_ODOMETRY_WAIT, distance=3.0)
+    got = next(c for c in map(course.add, meas) if c is not None)
+    starts = []
+    init = IgvcEkf._init
+    monkeypatch.setattr(IgvcEkf, "_init", lambda self, *a: (starts.append(a), init(self, *a)))
+    ekf = IgvcEkf(cfg)
+    for m in meas:
+        ekf.process(m)
+    t, pose, pos_var, yaw_var = starts[0]
+    assert t == got.t and pose == (*got.position, got.heading)
+    assert (pos_var, yaw_var) == (got.pos_sigma ** 2, got.psi_sigma ** 2)
+    true_yaw = next(tr[3] for tr in truth if tr[0] >= got.t)
+    assert abs(math.remainder(got.heading - true_yaw, math.tau)) < 3.0 * got.psi_sigma
 
 
 def test_heading_offset_and_gyro_bias_estimated():
@@ -455,7 +480,8 @@ def test_measurements_before_the_start_are_counted_as_before_init(compass):
     """As the unicycle EKF counts them: every used measurement that came before the filter
     could start (here the first fix and a compass reading, or the GPS course) is in
     log.rejected as (sensor, "before_init"), so fed = innovations + before_init per sensor
-    (the fix that starts the filter is neither). They were dropped uncounted: Husky's NIS
+    (the fix that starts the filter is neither; after a GPS-course start the messages since the
+    course's first fix are replayed, so fused, not waited). They were dropped uncounted: Husky's NIS
     table read gyro 11731 of 11865 with nothing in rejected."""
     truth, meas = simulate(3, duration=30.0)
     meas = [m for m in meas if compass or not isinstance(m, Heading)]
@@ -473,11 +499,16 @@ def test_measurements_before_the_start_are_counted_as_before_init(compass):
     logged = {s: sum(i.sensor == s for i in ekf.innovations) for s in fed}
     early = {s: ekf.log.rejected.get((s, "before_init"), 0) for s in fed}
     assert early["imu"] > 0 and early["wheels"] > 0
-    # with a compass the first fix starts it; the GPS course needs the fixes before it too
     before = meas[:meas.index(started)]
-    assert early["gps"] == sum(isinstance(m, GpsFix) for m in before)
-    assert (early["gps"] == 0) if compass else (early["gps"] > 1)
-    assert early["imu"] + early["wheels"] + early["gps"] == len(before)
+    if compass:  # the first fix starts it: everything before it waited
+        assert early["gps"] == 0
+        assert early["imu"] + early["wheels"] + early["gps"] == len(before)
+    else:
+        # the GPS course starts it at the baseline's first fix and replays what came after:
+        # only what came before that fix waited, and the fixes since are fused
+        assert early["imu"] + early["wheels"] + early["gps"] < len(before)
+        assert logged["gps"] > 0 and min(i.t for i in ekf.innovations if i.sensor == "gps") \
+            < started.t
     assert fed["imu"] == logged["imu"] + early["imu"]
     assert fed["wheels"] == logged["wheels"] + early["wheels"]
     assert fed["gps"] == logged["gps"] + early["gps"] + 1
