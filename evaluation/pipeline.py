@@ -23,7 +23,6 @@ docs/design/gps-holdout-scoring.md.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import time
@@ -37,12 +36,13 @@ from ddfuse.estimation import chi2, heading_survey
 from ddfuse.estimation.bags import BagStream
 from ddfuse.estimation.config import DEFAULT_GATE, Config
 from ddfuse.estimation.errors import BagError, RunInterrupted
+from ddfuse.estimation.interrupts import held_signals, interrupt_name
 from ddfuse.estimation.measurements import Stream
 from ddfuse.estimation.runner import RunResult, Trajectory, initial_pose, parse_holdout, run
 from ddfuse.evaluation import consistency, metrics
 from ddfuse.evaluation import estimators as registry
 from ddfuse.evaluation.consistency import SensorNis
-from ddfuse.evaluation.run_files import config_text_of, save_run
+from ddfuse.evaluation.run_files import config_text_of, save_run, write_metrics, writing_run
 from ddfuse.evaluation.scores import (
     AteScore,
     AteScores,
@@ -576,30 +576,38 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
     runtimes = {n: result.runs[n].runtime_s for n in ests if n in result.runs}
     if names:  # keep only the tracks asked for ('smoother_lagged' alone drops 'smoother')
         result.runs = {k: v for k, v in result.runs.items() if k in set(names)}
-    out = score(result, decode_s,
-                {n: getattr(e, "pose_error", "world") for n, e in ests.items()}, cfg=cfg)
-    surveys = result.offset_surveys = offset_surveys(result, cfg, offsets)
-    out = replace(
-        out, config=str(cfg.path) if cfg.path else None,
-        initial_pose=("first ground-truth pose" if cfg.initial_pose == "ground_truth"
-                      else list(pose) if pose else None),
-        lag_s=lag, estimators_requested=list(names) if names else None, estimators_run=chosen,
-        gps_holdout=holdout, input_error=input_error, interrupted=result.interrupted,
-        data=data_facts(result, cfg, surveys))
-    # the reader's (a topic mostly dropped or silent), then the compass offset's
-    out = replace(out, warnings=[*stream.warnings, *heading_survey.config_warnings(surveys, cfg),
-                                 *gps_correlation_warnings(out, cfg)])
-    config_text = config_text_of(cfg)
-    t_scored = clock()
-    save_run(result, outdir, config_text)
-    out = replace(out, wall_s=timing_split(
-        startup=startup, decode=decode_s, build=t_built - t_enter - decode_before,
-        loop=t_ran - t_built, loop_decode=decode_s - decode_before, runtimes=runtimes,
-        scoring=t_scored - t_ran, writing=clock() - t_scored))
-    _write_metrics(outdir, out.to_json())
+    # an interrupt while the results are scored and written is held until they are complete
+    # (a second one acts at once): the run was over, its results are whole
+    with held_signals() as held:
+        out = score(result, decode_s,
+                    {n: getattr(e, "pose_error", "world") for n, e in ests.items()}, cfg=cfg)
+        surveys = result.offset_surveys = offset_surveys(result, cfg, offsets)
+        out = replace(
+            out, config=str(cfg.path) if cfg.path else None,
+            initial_pose=("first ground-truth pose" if cfg.initial_pose == "ground_truth"
+                          else list(pose) if pose else None),
+            lag_s=lag, estimators_requested=list(names) if names else None, estimators_run=chosen,
+            gps_holdout=holdout, input_error=input_error, interrupted=result.interrupted,
+            data=data_facts(result, cfg, surveys))
+        # the reader's (a topic mostly dropped or silent), then the compass offset's
+        out = replace(out, warnings=[*stream.warnings,
+                                     *heading_survey.config_warnings(surveys, cfg),
+                                     *gps_correlation_warnings(out, cfg)])
+        config_text = config_text_of(cfg)
+        t_scored = clock()
+        with writing_run(outdir, f"ddfuse run of {bag}", result):
+            save_run(result, outdir, config_text)
+            out = replace(out, wall_s=timing_split(
+                startup=startup, decode=decode_s, build=t_built - t_enter - decode_before,
+                loop=t_ran - t_built, loop_decode=decode_s - decode_before, runtimes=runtimes,
+                scoring=t_scored - t_ran, writing=clock() - t_scored))
+            write_metrics(outdir, out.to_json())
     if result.interrupted:
         raise RunInterrupted(f"{result.interrupted}; the results of what was processed are in "
                              f"{outdir}")
+    if held:
+        raise RunInterrupted(f"interrupted ({interrupt_name(held[0])}) while the results were "
+                             f"written; they are complete, in {outdir}")
     if input_error:
         err = BagError(f"{input_error}; results for the {stream.duration:.1f} s that could be "
                        f"read are in {outdir}")
@@ -610,10 +618,8 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
 
 def write_outputs(result: RunResult, outdir: Path, summary: RunSummary,
                   config_text: str | None = None) -> None:
-    """metrics.json (``summary``), the trajectories (TUM, CSV) and run.npz into ``outdir``."""
-    save_run(result, outdir, config_text)
-    _write_metrics(outdir, summary.to_json())
-
-
-def _write_metrics(outdir: Path, metrics_dict: dict) -> None:
-    (outdir / "metrics.json").write_text(json.dumps(metrics_dict, indent=2) + "\n")
+    """metrics.json (``summary``), the trajectories (TUM, CSV) and run.npz into ``outdir``
+    (complete, or marked incomplete: ``run_files.writing_run``)."""
+    with writing_run(outdir, "ddfuse.evaluation.pipeline.write_outputs", result):
+        save_run(result, outdir, config_text)
+        write_metrics(outdir, summary.to_json())
