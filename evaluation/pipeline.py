@@ -41,6 +41,7 @@ from ddfuse.estimation.measurements import Stream
 from ddfuse.estimation.runner import RunResult, Trajectory, initial_pose, parse_holdout, run
 from ddfuse.evaluation import consistency, metrics
 from ddfuse.evaluation import estimators as registry
+from ddfuse.evaluation.batch_cost import announce_solve
 from ddfuse.evaluation.consistency import SensorNis
 from ddfuse.evaluation.run_files import config_text_of, save_run, write_metrics, writing_run
 from ddfuse.evaluation.scores import (
@@ -544,11 +545,13 @@ def data_facts(result: RunResult, cfg: Config,
 def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str] | None = None,
             lag: float | None = None, holdout: str | None = None,
             progress: Callable[[str, float], None] | None = None,
-            reorder_window: float | None = None) -> RunSummary:
+            reorder_window: float | None = None,
+            notice: Callable[[str], None] | None = None) -> RunSummary:
     """Decode ``bag`` as a stream (``ddfuse.estimation.bags.BagStream``: memory bounded however long
     the bag), run the selected estimators on it, write results into ``outdir``; returns the
     run's ``RunSummary`` (written as metrics.json: its ``to_json()``). ``reorder_window`` (s)
-    overrides the config's.
+    overrides the config's. ``notice`` is told, before the batch's whole-run solve, that it
+    is the slow part and how long it should take, when that is long (``batch_cost``).
 
     On a damaged or truncated bag the results of what could be read are written, then BagError
     is raised with ``results_written`` set."""
@@ -562,6 +565,8 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
     pose = initial_pose(cfg.initial_pose, stream)
     lag = lag if lag is not None else cfg.smoother.lag
     ests = registry.build(cfg, stream, chosen, lag=lag, pose=pose, tracks=names or None)
+    if notice is not None and "batch" in ests:
+        announce_solve(ests["batch"], notice)
     decode_before = stream.decode_s
     t_built = clock()
     offsets = heading_survey.recorder_for(cfg)

@@ -126,7 +126,8 @@ def command(args: argparse.Namespace) -> int:
         try:
             m = run_bag(bag, cfg, args.outdir, names=args.estimators, lag=args.lag,
                         holdout=args.gps_holdout, progress=bars.update if bars else None,
-                        reorder_window=args.reorder_window)
+                        reorder_window=args.reorder_window,
+                        notice=lambda text: _notice(text, bars))
         except ValueError as e:
             raise DdfuseError(str(e)) from None
         except (BagError, RunInterrupted) as e:
@@ -158,6 +159,15 @@ def command(args: argparse.Namespace) -> int:
     sys.stdout.write(f"results in {args.outdir}/ (metrics.json, <estimator>.tum/.csv, run.npz); "
                      f"report {report} ({report_s:.1f} s)\n")
     return _all_failed(m, args.outdir)
+
+
+def _notice(text: str, bars) -> None:
+    """A line on stderr while the run goes on (above the progress bars on a terminal)."""
+    if bars is not None and bars.bar is not None:
+        bars.bar.console.print(f"ddfuse: {text}", markup=False, highlight=False)
+    else:
+        sys.stderr.write(f"ddfuse: {text}\n")
+        sys.stderr.flush()
 
 
 def _render_or_say(outdir: Path, bars) -> Path:
