@@ -129,8 +129,8 @@ def writing_run(outdir: str | Path, what: str, result: RunResult) -> Iterator[Pa
         raise OutputError.of(outdir, e) from None
     marker = outdir / INCOMPLETE
     started = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC")
-    write_text(marker, f"written by {what}, started {started} (pid {os.getpid()}), which has "
-               "not finished writing its results\n"
+    write_text(marker, f"written by {what} (pid {os.getpid()}, writing since {started}), "
+               "which has not finished writing its results\n"
                "# until this file is gone the results here are incomplete; rerun to replace "
                "them. Files written so far:\n")
     remove_partials(outdir)
