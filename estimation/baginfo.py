@@ -50,6 +50,9 @@ class TopicInfo:
     # the body's forward axis, the suggested mount applied); None without orientation
     slope_excess: float | None = None
     cov_ok: bool = True  # the message covariances are usable as they are
+    # messages of other types on the same topic (type -> count): not in these facts, which
+    # are of ``msgtype`` alone (``count`` counts those)
+    other_types: dict[str, int] = field(default_factory=dict)
 
 
 @dataclass
@@ -230,9 +233,12 @@ def bag_info(path: str | Path) -> BagInfo:
     read = 0
     damage = None
     try:
+        per_type: dict[str, dict[str, int]] = {}  # topic -> message type -> count
         for c in reader.connections:
-            infos.setdefault(c.topic, TopicInfo(c.topic, c.msgtype, 0))
-            infos[c.topic].count += c.msgcount
+            types = per_type.setdefault(c.topic, {})
+            types[c.msgtype] = types.get(c.msgtype, 0) + c.msgcount
+        for topic, types in per_type.items():
+            infos[topic] = _topic_of_types(topic, types)
         if not any(i.count for i in infos.values()):
             raise BagError(f"{path}: the bag has no messages ("
                            + (f"topics {', '.join(sorted(infos))}, each empty"
@@ -241,6 +247,8 @@ def bag_info(path: str | Path) -> BagInfo:
         known = [c for c in reader.connections if c.msgtype in rosmsg.EXTRACTORS]
         for conn, _, raw in reader.messages(connections=known):
             read += 1
+            if conn.msgtype != infos[conn.topic].msgtype:  # a second type on the topic
+                continue
             fast, slow = rosmsg.EXTRACTORS[conn.msgtype]
             try:
                 rec = fast(raw) if fast and not reader.is2 else slow(
@@ -287,7 +295,11 @@ def _bag_info_unindexed(path: Path, open_error: BagError) -> BagInfo:
                                        else get_typestore(Stores.ROS1_NOETIC).fielddefs)
                 continue
             conn = item.conn
-            infos[conn.topic].count += 1
+            info = infos[conn.topic]
+            if conn.msgtype != info.msgtype:  # a second type on the topic: the first one's facts
+                info.other_types[conn.msgtype] = info.other_types.get(conn.msgtype, 0) + 1
+                continue
+            info.count += 1
             if conn.msgtype not in rosmsg.EXTRACTORS:
                 continue
             fast, slow = rosmsg.EXTRACTORS[conn.msgtype]
@@ -309,10 +321,29 @@ def _bag_info_unindexed(path: Path, open_error: BagError) -> BagInfo:
     return info
 
 
+def _topic_of_types(topic: str, types: dict[str, int]) -> TopicInfo:
+    """The TopicInfo of a topic whose connections carry ``types`` (message type -> count):
+    of its most frequent type (the first of equal ones), the others in ``other_types``."""
+    main = max(types, key=lambda k: types[k])
+    return TopicInfo(topic, main, types[main],
+                     other_types={k: n for k, n in types.items() if k != main})
+
+
+def _mixed_types_note(info: TopicInfo) -> str:
+    """What inspect says of a topic that carries messages of several types."""
+    others = ", ".join(f"{n} {rosmsg.short_type(k)}" for k, n in info.other_types.items())
+    return (f"carries messages of {len(info.other_types) + 1} types: {info.count} "
+            f"{rosmsg.short_type(info.msgtype)} and {others} (two publishers on one topic?); "
+            f"these facts are of the {rosmsg.short_type(info.msgtype)} messages alone")
+
+
 def _finish(path: Path, infos: dict[str, TopicInfo], recs: dict[str, list],
             cut_short: bool = False) -> BagInfo:
     """The BagInfo of the records read; ``cut_short``: the reading stopped at damage, so the
     messages of a topic's count that were not read need not be undecodable."""
+    for info in infos.values():
+        if info.other_types:
+            info.notes.append(_mixed_types_note(info))
     for topic, lst in recs.items():
         _summarise(infos[topic], lst)
         undecoded = infos[topic].count - len(lst)

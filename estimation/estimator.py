@@ -14,6 +14,7 @@ from collections import Counter
 from dataclasses import dataclass, field
 
 import numpy as np
+from ddfuse.estimation.interrupts import deliver, held_signals
 from ddfuse.estimation.measurements import Measurement
 
 
@@ -220,10 +221,18 @@ class InnovationLog:
             self.append(inn)
 
     def compact(self) -> None:
-        """Move the entries appended since the last call into the columns."""
-        buf = self._pending
-        if not buf:
+        """Move the entries appended since the last call into the columns. Ctrl-C or SIGTERM
+        arriving meanwhile is held until the columns agree again, then raised (a
+        KeyboardInterrupt cutting it in two left columns of different lengths, and the run's
+        scoring a traceback: ``ddfuse.estimation.interrupts.held_signals``)."""
+        if not self._pending:
             return
+        with held_signals() as held:
+            self._compact()
+        deliver(held)
+
+    def _compact(self) -> None:
+        buf = self._pending
         self._pending = []
         codes, groups = self._codes, self._groups
         res, cov = self._res, self._cov

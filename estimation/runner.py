@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from ddfuse.estimation.errors import ConfigError
 from ddfuse.estimation.estimator import Estimate, Estimator, EstimatorLog
+from ddfuse.estimation.interrupts import deliver, held_signals, interrupt_name
 from ddfuse.estimation.measurements import GpsFix, Stream, truth_at_start
 
 _NAN6 = (math.nan,) * 6
@@ -301,9 +302,11 @@ def broken(e: Estimate) -> str | None:
             "(with sigmas of 1e-9 no recovery from a gate lock-out can reconcile the sensors)")
 
 
-def _never_started(log: EstimatorLog, fixes_withheld: int = 0, fixes_fed: int = 0) -> str:
+def _never_started(log: EstimatorLog, fixes_withheld: int = 0, fixes_fed: int = 0,
+                   cfg=None) -> str:
     """The error of an estimator that was fed measurements and gave no estimate at all;
-    ``fixes_withheld`` / ``fixes_fed``: the run's GPS fixes held out from it / given to it."""
+    ``fixes_withheld`` / ``fixes_fed``: the run's GPS fixes held out from it / given to it;
+    ``cfg``: its Config, if it has one (``Estimator.cfg``), to name what it waited for."""
     waiting = sum(n for (_, why), n in log.rejected.items() if why == "before_init")
     text = "no estimate: it never started"
     if waiting:
@@ -315,10 +318,30 @@ def _never_started(log: EstimatorLog, fixes_withheld: int = 0, fixes_fed: int = 
         # gives no heading) waits for fixes forever
         return text + (f"; all {fixes_withheld} GPS fixes were withheld (--gps-holdout), and "
                        "it takes its start (its heading) from the GPS course")
-    # the usual cause when an estimator is built by hand from a config
-    return text + ("; with initial_pose: ground_truth an EKF waits for a GroundTruthPose "
-                   "measurement unless it is given initial_pose (evaluation.estimators.build "
-                   "passes the stream's first truth pose)" if waiting else "")
+    if not waiting:
+        return text
+    return text + "; " + _start_hint(cfg, fixes_fed)
+
+
+def _start_hint(cfg, fixes_fed: int) -> str:
+    """What an estimator that counted measurements 'before_init' was waiting for, by its
+    config's start (``UnicycleEkf``'s modes): the truth, a compass heading, a GPS fix."""
+    if cfg is None or cfg.initial_pose == "ground_truth":
+        # the usual cause when an estimator is built by hand from a config
+        return ("with initial_pose: ground_truth an EKF waits for a GroundTruthPose measurement "
+                "unless it is given initial_pose (evaluation.estimators.build passes the "
+                "stream's first truth pose)")
+    give = "initial_pose: [x, y, yaw] in the config starts it from a known pose"
+    gps = ", ".join(s.topic for s in cfg.of_kind("gps"))
+    compass = ", ".join(s.topic for s in cfg.of_kind("imu")
+                        if "yaw" in s.use and isinstance(s.heading_offset, float))
+    if gps and not fixes_fed:
+        return f"it takes its start position from the first GPS fix, and no fix of {gps} " \
+               f"reached it; {give}"
+    if compass:
+        return (f"it takes its start heading from the orientation of {compass} (heading_offset "
+                f"given), and none reached it (see the topic's rejected messages); {give}")
+    return f"no measurement it can start from reached it; {give}"
 
 
 def initial_pose(cfg_initial, stream) -> tuple[float, float, float] | None:
@@ -430,32 +453,21 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
                         outputs[i].append(last)
             except Exception as exc:
                 errors[i] = f"{type(exc).__name__} in finish: {exc}"
-            except KeyboardInterrupt:
+            except KeyboardInterrupt as exc:
                 if not interruptible:
                     raise
-                errors[i] = "interrupted (Ctrl-C) in finish"
+                errors[i] = f"interrupted ({interrupt_name(exc)}) in finish"
                 stop.append(f"{name} interrupted in finish")
         totals[i] += clock() - t_a
         est._run_finished = True  # fed to its end: another run() of it is refused
-        est.log.innovations.compact()
-        # a view of the compact array, not a copy
-        upd = np.frombuffer(timings[i], np.float32) if len(timings[i]) else \
-            np.zeros(0, np.float32)
-        # An offline estimator (the batch) gives its whole trajectory only at the end.
-        final = getattr(est, "final_estimates", None)
-        track = final() if callable(final) else outputs[i]
-        if not track and errors[i] is None and fed:
-            held = int(np.count_nonzero(np.frombuffer(gps.held, np.uint8)))
-            errors[i] = _never_started(est.log, held, len(gps.held) - held)
-        runs[name] = EstimatorRun(name, Trajectory.from_estimates(track), upd, totals[i],
-                                  est.log, errors[i], _final_state(est, track))
-        outputs[i] = None
-        lagged = getattr(est, "lagged_estimates", None)
-        lagged = lagged() if callable(lagged) else None
-        if lagged is not None:
-            runs[f"{name}_lagged"] = EstimatorRun(
-                f"{name}_lagged", Trajectory.from_estimates(lagged), upd, totals[i], est.log,
-                errors[i], _final_state(est, lagged))
+        # gathering what the estimator gave is not cut short: an interrupt is held (noted in
+        # ``interrupted`` after it, or raised if not interruptible)
+        with held_signals() as held:
+            _gather(runs, name, est, outputs, i, timings[i], totals[i], errors, fed, gps)
+        if held and interruptible:
+            stop.append(f"interrupted ({interrupt_name(held[0])}) while the results were gathered")
+        elif held:
+            deliver(held)
     if progress is not None:
         progress(1.0)
     truth = None
@@ -466,6 +478,31 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
     elif stream.ground_truth:
         truth = Trajectory.from_ground_truth(stream.ground_truth)
     return RunResult(stream, runs, gps.track(), truth, fed, "; ".join(stop) or None)
+
+
+def _gather(runs: dict, name: str, est: Estimator, outputs: list, i: int, timing: array,
+            total: float, errors: list, fed: int, gps: _GpsRecorder) -> None:
+    """The EstimatorRun(s) of estimator ``i`` of :func:`run` (its output track, or the batch's
+    final one; its lagged track too) into ``runs``."""
+    est.log.innovations.compact()
+    # a view of the compact array, not a copy
+    upd = np.frombuffer(timing, np.float32) if len(timing) else np.zeros(0, np.float32)
+    # An offline estimator (the batch) gives its whole trajectory only at the end.
+    final = getattr(est, "final_estimates", None)
+    track = final() if callable(final) else outputs[i]
+    if not track and errors[i] is None and fed:
+        held = int(np.count_nonzero(np.frombuffer(gps.held, np.uint8)))
+        errors[i] = _never_started(est.log, held, len(gps.held) - held,
+                                   getattr(est, "cfg", None))
+    runs[name] = EstimatorRun(name, Trajectory.from_estimates(track), upd, total,
+                              est.log, errors[i], _final_state(est, track))
+    outputs[i] = None
+    lagged = getattr(est, "lagged_estimates", None)
+    lagged = lagged() if callable(lagged) else None
+    if lagged is not None:
+        runs[f"{name}_lagged"] = EstimatorRun(
+            f"{name}_lagged", Trajectory.from_estimates(lagged), upd, total, est.log,
+            errors[i], _final_state(est, lagged))
 
 
 def _final_state(est: Estimator, track) -> Estimate | None:
@@ -547,14 +584,15 @@ def _feed(meas, n, fraction, select, gps, est_list, alive, errors, outputs, timi
                     outputs[i].append(e)
             busy = None
             done = k + 1
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         if stop is None:
             raise
         at = f"{t_m - t_start:.3f} s after the first measurement" if t_start is not None \
             else "before the first measurement"
+        how = interrupt_name(exc)
         if busy is not None:  # inside an update: that estimator's state is half-updated
             alive[busy] = False
-            errors[busy] = f"interrupted (Ctrl-C) inside an update, {at}"
-        stop.append(f"interrupted (Ctrl-C) after {done} measurements, {at}")
+            errors[busy] = f"interrupted ({how}) inside an update, {at}"
+        stop.append(f"interrupted ({how}) after {done} measurements, {at}")
         return done
     return k + 1

@@ -41,6 +41,7 @@ from pathlib import Path
 
 import numpy as np
 from ddfuse.estimation import chi2
+from ddfuse.evaluation.atomic_files import write_text
 from ddfuse.evaluation.montecarlo_results import (
     CalibrationError,
     CalibrationSummary,
@@ -437,6 +438,6 @@ def write_report(mc: MonteCarloRun, outdir: str | Path) -> tuple[Path, Path]:
     outdir.mkdir(parents=True, exist_ok=True)
     j = outdir / f"{report_stem(mc)}.json"
     m = outdir / f"{report_stem(mc)}.md"
-    j.write_text(json.dumps(mc.to_json(), indent=2, default=float) + "\n")
-    m.write_text(to_markdown(mc))
+    write_text(j, json.dumps(mc.to_json(), indent=2, default=float) + "\n")
+    write_text(m, to_markdown(mc))
     return j, m

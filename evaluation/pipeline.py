@@ -23,7 +23,6 @@ docs/design/gps-holdout-scoring.md.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import time
@@ -37,12 +36,14 @@ from ddfuse.estimation import chi2, heading_survey
 from ddfuse.estimation.bags import BagStream
 from ddfuse.estimation.config import DEFAULT_GATE, Config
 from ddfuse.estimation.errors import BagError, RunInterrupted
+from ddfuse.estimation.interrupts import held_signals, interrupt_name
 from ddfuse.estimation.measurements import Stream
 from ddfuse.estimation.runner import RunResult, Trajectory, initial_pose, parse_holdout, run
 from ddfuse.evaluation import consistency, metrics
 from ddfuse.evaluation import estimators as registry
+from ddfuse.evaluation.batch_cost import announce_solve
 from ddfuse.evaluation.consistency import SensorNis
-from ddfuse.evaluation.run_files import config_text_of, save_run
+from ddfuse.evaluation.run_files import config_text_of, save_run, write_metrics, writing_run
 from ddfuse.evaluation.scores import (
     AteScore,
     AteScores,
@@ -544,11 +545,13 @@ def data_facts(result: RunResult, cfg: Config,
 def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str] | None = None,
             lag: float | None = None, holdout: str | None = None,
             progress: Callable[[str, float], None] | None = None,
-            reorder_window: float | None = None) -> RunSummary:
+            reorder_window: float | None = None,
+            notice: Callable[[str], None] | None = None) -> RunSummary:
     """Decode ``bag`` as a stream (``ddfuse.estimation.bags.BagStream``: memory bounded however long
     the bag), run the selected estimators on it, write results into ``outdir``; returns the
     run's ``RunSummary`` (written as metrics.json: its ``to_json()``). ``reorder_window`` (s)
-    overrides the config's.
+    overrides the config's. ``notice`` is told, before the batch's whole-run solve, that it
+    is the slow part and how long it should take, when that is long (``batch_cost``).
 
     On a damaged or truncated bag the results of what could be read are written, then BagError
     is raised with ``results_written`` set."""
@@ -562,6 +565,8 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
     pose = initial_pose(cfg.initial_pose, stream)
     lag = lag if lag is not None else cfg.smoother.lag
     ests = registry.build(cfg, stream, chosen, lag=lag, pose=pose, tracks=names or None)
+    if notice is not None and "batch" in ests:
+        announce_solve(ests["batch"], notice)
     decode_before = stream.decode_s
     t_built = clock()
     offsets = heading_survey.recorder_for(cfg)
@@ -576,30 +581,38 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
     runtimes = {n: result.runs[n].runtime_s for n in ests if n in result.runs}
     if names:  # keep only the tracks asked for ('smoother_lagged' alone drops 'smoother')
         result.runs = {k: v for k, v in result.runs.items() if k in set(names)}
-    out = score(result, decode_s,
-                {n: getattr(e, "pose_error", "world") for n, e in ests.items()}, cfg=cfg)
-    surveys = result.offset_surveys = offset_surveys(result, cfg, offsets)
-    out = replace(
-        out, config=str(cfg.path) if cfg.path else None,
-        initial_pose=("first ground-truth pose" if cfg.initial_pose == "ground_truth"
-                      else list(pose) if pose else None),
-        lag_s=lag, estimators_requested=list(names) if names else None, estimators_run=chosen,
-        gps_holdout=holdout, input_error=input_error, interrupted=result.interrupted,
-        data=data_facts(result, cfg, surveys))
-    # the reader's (a topic mostly dropped or silent), then the compass offset's
-    out = replace(out, warnings=[*stream.warnings, *heading_survey.config_warnings(surveys, cfg),
-                                 *gps_correlation_warnings(out, cfg)])
-    config_text = config_text_of(cfg)
-    t_scored = clock()
-    save_run(result, outdir, config_text)
-    out = replace(out, wall_s=timing_split(
-        startup=startup, decode=decode_s, build=t_built - t_enter - decode_before,
-        loop=t_ran - t_built, loop_decode=decode_s - decode_before, runtimes=runtimes,
-        scoring=t_scored - t_ran, writing=clock() - t_scored))
-    _write_metrics(outdir, out.to_json())
+    # an interrupt while the results are scored and written is held until they are complete
+    # (a second one acts at once): the run was over, its results are whole
+    with held_signals() as held:
+        out = score(result, decode_s,
+                    {n: getattr(e, "pose_error", "world") for n, e in ests.items()}, cfg=cfg)
+        surveys = result.offset_surveys = offset_surveys(result, cfg, offsets)
+        out = replace(
+            out, config=str(cfg.path) if cfg.path else None,
+            initial_pose=("first ground-truth pose" if cfg.initial_pose == "ground_truth"
+                          else list(pose) if pose else None),
+            lag_s=lag, estimators_requested=list(names) if names else None, estimators_run=chosen,
+            gps_holdout=holdout, input_error=input_error, interrupted=result.interrupted,
+            data=data_facts(result, cfg, surveys))
+        # the reader's (a topic mostly dropped or silent), then the compass offset's
+        out = replace(out, warnings=[*stream.warnings,
+                                     *heading_survey.config_warnings(surveys, cfg),
+                                     *gps_correlation_warnings(out, cfg)])
+        config_text = config_text_of(cfg)
+        t_scored = clock()
+        with writing_run(outdir, f"ddfuse run of {bag}", result):
+            save_run(result, outdir, config_text)
+            out = replace(out, wall_s=timing_split(
+                startup=startup, decode=decode_s, build=t_built - t_enter - decode_before,
+                loop=t_ran - t_built, loop_decode=decode_s - decode_before, runtimes=runtimes,
+                scoring=t_scored - t_ran, writing=clock() - t_scored))
+            write_metrics(outdir, out.to_json())
     if result.interrupted:
         raise RunInterrupted(f"{result.interrupted}; the results of what was processed are in "
                              f"{outdir}")
+    if held:
+        raise RunInterrupted(f"interrupted ({interrupt_name(held[0])}) while the results were "
+                             f"written; they are complete, in {outdir}")
     if input_error:
         err = BagError(f"{input_error}; results for the {stream.duration:.1f} s that could be "
                        f"read are in {outdir}")
@@ -610,10 +623,8 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
 
 def write_outputs(result: RunResult, outdir: Path, summary: RunSummary,
                   config_text: str | None = None) -> None:
-    """metrics.json (``summary``), the trajectories (TUM, CSV) and run.npz into ``outdir``."""
-    save_run(result, outdir, config_text)
-    _write_metrics(outdir, summary.to_json())
-
-
-def _write_metrics(outdir: Path, metrics_dict: dict) -> None:
-    (outdir / "metrics.json").write_text(json.dumps(metrics_dict, indent=2) + "\n")
+    """metrics.json (``summary``), the trajectories (TUM, CSV) and run.npz into ``outdir``
+    (complete, or marked incomplete: ``run_files.writing_run``)."""
+    with writing_run(outdir, "ddfuse.evaluation.pipeline.write_outputs", result):
+        save_run(result, outdir, config_text)
+        write_metrics(outdir, summary.to_json())

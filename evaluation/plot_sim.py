@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 from ddfuse.estimation.geodesy import geodetic_to_enu
+from ddfuse.evaluation.atomic_files import replacing
 from ddfuse.evaluation.plots import subplots  # a Figure on its own canvas: the backend left alone
 from ddfuse.evaluation.simulate import SimResult, se2_step, wrap
 
@@ -89,5 +90,6 @@ def plot_sim(res: SimResult, out: str | Path, title: str | None = None) -> Path:
     ax2.legend(loc="upper left", fontsize=8)
     ax2.set_title("errors against the truth")
     fig.tight_layout()
-    fig.savefig(out, dpi=110)
+    with replacing(out, "wb") as f:  # whole or not at all
+        fig.savefig(f, dpi=110, format=Path(out).suffix.lstrip(".") or None)
     return out

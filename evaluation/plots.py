@@ -27,6 +27,7 @@ from pathlib import Path
 import matplotlib.ticker
 import numpy as np
 from ddfuse.evaluation import consistency, metrics
+from ddfuse.evaluation.atomic_files import write_bytes
 from ddfuse.evaluation.local_frame import frame  # noqa: F401 - the figures' and report's frame
 from ddfuse.evaluation.results import SavedRun
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -80,7 +81,7 @@ def save_png(fig: Figure, path: Path | None = None) -> bytes:
         plt.close(fig)
     data = buf.getvalue()
     if path is not None:
-        Path(path).write_bytes(data)
+        write_bytes(path, data)  # whole or not at all
     return data
 
 

@@ -18,8 +18,10 @@ from collections.abc import Callable
 from pathlib import Path
 
 from ddfuse.evaluation import consistency, metrics, plots
+from ddfuse.evaluation.atomic_files import remove, write_text
 from ddfuse.evaluation.metrics import OutageDrift
 from ddfuse.evaluation.results import SavedRun, load_run
+from ddfuse.evaluation.run_files import PLOTS_DIR, REPORT_FILE
 from ddfuse.evaluation.scores import DataFacts, EstimatorScores, RunSummary
 from ddfuse.evaluation.verdict import (
     CALIBRATION_SIGMAS,
@@ -40,8 +42,6 @@ from ddfuse.evaluation.verdict import (
     unresolved,
     verdict_lines,
 )
-
-REPORT_FILE = "report.html"
 
 _CSS = """
 body{font-family:-apple-system,Segoe UI,Helvetica,Arial,sans-serif;max-width:1400px;
@@ -680,7 +680,7 @@ def make_figures(run: SavedRun, progress: Callable[[float], None] | None = None
     """(name, PNG bytes, caption) of every figure, also written to OUTDIR/plots/; a figure that
     has nothing to show is (name, None, why not: ``why_no_figure``, or the error figure's own
     reason) and no file."""
-    pdir = run.outdir / "plots"
+    pdir = run.outdir / PLOTS_DIR
     pdir.mkdir(exist_ok=True)
     cols = plots.colors(list(run.tracks))
     series, t, dof = plots.nees_inputs(run)
@@ -702,7 +702,7 @@ def make_figures(run: SavedRun, progress: Callable[[float], None] | None = None
         if fig is not None:
             out.append((name, plots.save_png(fig, pdir / f"{name}.png"), caption))
         else:
-            (pdir / f"{name}.png").unlink(missing_ok=True)  # from an earlier rendering
+            remove(pdir / f"{name}.png")  # from an earlier rendering
             out.append((name, None, caption if name == "errors" else why_no_figure(run, name)))
         if progress:
             progress((k + 1) / len(jobs))
@@ -752,6 +752,4 @@ def render_report(outdir: str | Path, progress: Callable[[float], None] | None =
     t_a = time.perf_counter()
     figures = make_figures(run, progress)
     page = build_html(run, figures, time.perf_counter() - t_a)
-    path = run.outdir / REPORT_FILE
-    path.write_text(page, encoding="utf-8")
-    return path
+    return write_text(run.outdir / REPORT_FILE, page)

@@ -27,11 +27,13 @@ from ddfuse.estimation.runner import RunResult, Trajectory
 from ddfuse.evaluation.consistency import InnovationTable
 from ddfuse.evaluation.export import read_csv
 from ddfuse.evaluation.run_files import (
+    INCOMPLETE,
     INNOV_FIELDS,
     METRICS_FILE,
     RUN_FILE,
     TRUTH,
     config_text_of,
+    incomplete_note,
     run_arrays,
 )
 from ddfuse.evaluation.scores import DataFacts, RunSummary
@@ -114,9 +116,14 @@ def _score(result: RunResult, cfg) -> RunSummary:
 
 
 def load_run(outdir: str | Path) -> SavedRun:
-    """Read the results in ``outdir``; ResultsError naming the path if they are absent or
-    unreadable."""
+    """Read the results in ``outdir``; ResultsError naming the path if they are absent,
+    unreadable, or incomplete (the INCOMPLETE marker of a run that did not finish writing
+    them: ``run_files.writing_run``)."""
     outdir = Path(outdir)
+    note = incomplete_note(outdir)
+    if note is not None:
+        raise ResultsError(f"{outdir}: incomplete run results ({INCOMPLETE}: {note}); "
+                           f"run 'ddfuse run -o {outdir}' again")
     mpath, npath = outdir / METRICS_FILE, outdir / RUN_FILE
     for p in (mpath, npath):
         if not p.is_file():

@@ -1,6 +1,15 @@
-"""Writing a run's results: the track files and run.npz of an output directory
-(``ddfuse.evaluation.pipeline.run_bag`` writes metrics.json beside them;
+"""Writing a run's results: the track files, run.npz and metrics.json of an output directory
+(``ddfuse.evaluation.pipeline.run_bag`` writes them through ``writing_run``;
 ``ddfuse.evaluation.results`` reads them back).
+
+A directory is complete or plainly marked incomplete, whatever stops the run (SIGKILL, a full
+disk): ``writing_run`` first writes the marker file ``INCOMPLETE`` (which run, when it started,
+then one line per file written) and removes what the previous run wrote that the new results
+make stale (its metrics.json, report.html and plots/*.png, its track files that this run does
+not write); each file is then written whole or not at all (``evaluation.atomic_files``),
+metrics.json last, and only then is the marker removed. ``load_run`` and ``ddfuse report``
+refuse a directory with the marker in one line. The report (report.html, plots/) is rendered
+from the complete results afterwards: absent until then, never the previous run's.
 
 An output directory holds ``metrics.json`` (``ddfuse.evaluation.pipeline``), one ``<track>.tum`` and
 ``<track>.csv`` per estimator track (``evaluation.export``), ``ground_truth.tum``/``.csv`` when
@@ -21,18 +30,33 @@ there is truth, and ``run.npz`` with the rest of what the report shows:
 
 from __future__ import annotations
 
+import datetime
 import json
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 from ddfuse.estimation.runner import RunResult
+from ddfuse.evaluation.atomic_files import (
+    OutputError,
+    remove,
+    remove_partials,
+    replacing,
+    write_text,
+)
 from ddfuse.evaluation.consistency import InnovationTable
 from ddfuse.evaluation.export import write_csv, write_tum
 
-__all__ = ["METRICS_FILE", "RUN_FILE", "TRUTH", "config_text_of", "save_run"]
+__all__ = ["INCOMPLETE", "METRICS_FILE", "PLOTS_DIR", "REPORT_FILE", "RUN_FILE", "TRUTH",
+           "config_text_of", "incomplete_note", "save_run", "write_metrics", "writing_run"]
 
 RUN_FILE = "run.npz"
 METRICS_FILE = "metrics.json"
+REPORT_FILE = "report.html"
+PLOTS_DIR = "plots"
+INCOMPLETE = "INCOMPLETE"
 TRUTH = "ground_truth"
 INNOV_FIELDS = ("t", "sensor", "kind", "nis", "dim", "accepted")
 
@@ -48,34 +72,114 @@ def config_text_of(cfg) -> str | None:
 
 
 def _previous_tracks(outdir: Path) -> list[str]:
-    """The track names an earlier run recorded in ``outdir``'s run.npz (none if unreadable)."""
+    """The track names an earlier run recorded in ``outdir``'s run.npz, else in its
+    metrics.json (none if neither can be read)."""
     try:
         with np.load(outdir / RUN_FILE) as z:
             return list(json.loads(str(z["meta"]))["tracks"]) + [TRUTH]
     except (OSError, ValueError, KeyError, TypeError):
+        pass
+    try:
+        names = json.loads((outdir / METRICS_FILE).read_text())["estimators"]
+        return [*(str(n) for n in names), TRUTH]
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return []
 
 
+def incomplete_note(outdir: Path) -> str | None:
+    """The first line of ``outdir``'s INCOMPLETE marker (which run, when it started), or None
+    when the directory has no marker."""
+    try:
+        text = (Path(outdir) / INCOMPLETE).read_text(errors="replace")
+    except FileNotFoundError:
+        return None
+    except OSError as e:
+        return f"its marker cannot be read ({e.strerror or e})"
+    return text.splitlines()[0] if text.strip() else "no details"
 
-def save_run(result: RunResult, outdir: Path, config_text: str | None = None) -> None:
-    """Write the trajectories and run.npz of ``result`` into ``outdir`` (which must exist).
-    Track files that an earlier run into the same directory wrote (its run.npz lists them) and
-    this one does not are removed, so the directory holds one run, not a mix."""
+
+def track_names(result: RunResult) -> set[str]:
+    """The tracks ``save_run`` writes for ``result``: those with samples, and the truth."""
     now = {n for n, r in result.runs.items() if len(r.trajectory)}
     if result.truth is not None:
         now.add(TRUTH)
-    for name in _previous_tracks(outdir):
-        if name not in now:
-            for ext in ("tum", "csv"):
-                (outdir / f"{name}.{ext}").unlink(missing_ok=True)
-    for name, r in result.runs.items():
-        if len(r.trajectory):
-            write_tum(outdir / f"{name}.tum", r.trajectory)
-            write_csv(outdir / f"{name}.csv", r.trajectory)
+    return now
+
+
+def _remove_tracks(outdir: Path, names) -> None:
+    for name in names:
+        for ext in ("tum", "csv"):
+            remove(outdir / f"{name}.{ext}")
+
+
+@contextmanager
+def writing_run(outdir: str | Path, what: str, result: RunResult) -> Iterator[Path]:
+    """Write ``result`` (a run's results) into ``outdir`` (made if needed) inside this block,
+    as the module docstring says: on entry the INCOMPLETE marker, naming ``what`` (e.g.
+    'ddfuse run of BAG'), and the previous run's files that these results make stale removed
+    (its metrics.json, report, plots, and its tracks that ``result`` has not); the marker
+    removed when the block ends without an exception (a stop inside it leaves the marker, with
+    the reason appended). The block writes through ``save_run`` and ``write_metrics`` (which
+    note each file in the marker). Yields ``outdir`` as a Path. OSError -> ``OutputError``
+    naming the path."""
+    outdir = Path(outdir)
+    try:
+        outdir.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise OutputError.of(outdir, e) from None
+    marker = outdir / INCOMPLETE
+    started = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC")
+    write_text(marker, f"written by {what} (pid {os.getpid()}, writing since {started}), "
+               "which has not finished writing its results\n"
+               "# until this file is gone the results here are incomplete; rerun to replace "
+               "them. Files written so far:\n")
+    remove_partials(outdir)
+    _remove_tracks(outdir, set(_previous_tracks(outdir)) - track_names(result))
+    for stale in (METRICS_FILE, REPORT_FILE):
+        remove(outdir / stale)
+    if (outdir / PLOTS_DIR).is_dir():
+        for png in (outdir / PLOTS_DIR).glob("*.png"):
+            remove(png)
+    try:
+        yield outdir
+    except BaseException as e:
+        _note(outdir, f"# stopped: {type(e).__name__}: {e}")
+        raise
+    remove(marker)
+
+
+def _note(outdir: Path, line: str) -> None:
+    """Append ``line`` to ``outdir``'s marker, if it is there and can be written."""
+    try:
+        if (outdir / INCOMPLETE).is_file():
+            with open(outdir / INCOMPLETE, "a", encoding="utf-8") as f:
+                f.write(line + "\n")
+    except OSError:
+        pass  # the marker's first line already says the results are incomplete
+
+
+def save_run(result: RunResult, outdir: Path, config_text: str | None = None) -> None:
+    """Write the trajectories and run.npz of ``result`` into ``outdir`` (which must exist),
+    each file whole or not at all; inside ``writing_run``, each is noted in the marker.
+    Track files that an earlier run into the same directory wrote (its run.npz lists them) and
+    this one does not are removed, so the directory holds one run, not a mix."""
+    _remove_tracks(outdir, set(_previous_tracks(outdir)) - track_names(result))
+    tracks = {name: r.trajectory for name, r in result.runs.items() if len(r.trajectory)}
     if result.truth is not None:
-        write_tum(outdir / f"{TRUTH}.tum", result.truth)
-        write_csv(outdir / f"{TRUTH}.csv", result.truth)
-    np.savez_compressed(outdir / RUN_FILE, **run_arrays(result, config_text))
+        tracks[TRUTH] = result.truth
+    for name, tr in tracks.items():
+        for ext, write in (("tum", write_tum), ("csv", write_csv)):
+            write(outdir / f"{name}.{ext}", tr)
+            _note(outdir, f"{name}.{ext}")
+    with replacing(outdir / RUN_FILE, "wb") as f:
+        np.savez_compressed(f, **run_arrays(result, config_text))
+    _note(outdir, RUN_FILE)
+
+
+def write_metrics(outdir: Path, metrics_dict: dict) -> None:
+    """``outdir``/metrics.json, whole or not at all: the last file of a run's results."""
+    write_text(outdir / METRICS_FILE, json.dumps(metrics_dict, indent=2) + "\n")
+    _note(outdir, METRICS_FILE)
 
 
 

@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from ddfuse.estimation.errors import DdfuseError
+from ddfuse.evaluation.atomic_files import write_text
 from ddfuse.evaluation.cli.arguments import CONFIG_HELP, estimator_list, lag_seconds
 from ddfuse.evaluation.cli.output_paths import check_output_file
 from ddfuse.evaluation.cli.terminal import fmt
@@ -49,7 +50,7 @@ def command(args: argparse.Namespace) -> int:
     for w in dict.fromkeys(w for r in results for w in r.get("input_warnings") or ()):
         sys.stderr.write(f"ddfuse: warning: {w}\n")
     if args.json:
-        args.json.write_text(json.dumps(results, indent=2) + "\n")
+        write_text(args.json, json.dumps(results, indent=2) + "\n")
     broken = [r["input_error"] for r in results if r.get("input_error")]
     if broken:  # a truncated or damaged bag: benchmarked on what could be read
         sys.stdout.flush()

@@ -14,6 +14,7 @@ import logging
 import os
 import sys
 
+from ddfuse.estimation.interrupts import terminate_as_interrupt
 from ddfuse.evaluation.cli import bench, inspect, online, report, run
 from ddfuse.evaluation.cli.arguments import DdfuseParser
 from ddfuse.evaluation.cli.guard import guarded
@@ -49,8 +50,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``ddfuse`` with ``argv`` (default: the process's): the exit code (0, 2 for a user error
-    in one line on stderr, 130 for Ctrl-C)."""
+    """``ddfuse`` with ``argv`` (default: the process's): the exit code (``guard``: 0, 2 for a
+    user error in one line on stderr, 3 for a run without any estimate, 130 for Ctrl-C, 143 for
+    SIGTERM)."""
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv and argv[0] in DELEGATED:
         import importlib
@@ -70,6 +72,7 @@ def entry() -> None:
     it); an exception that escapes it ends the process the ordinary way, with its traceback. A
     reader that stops early (``ddfuse inspect BAG | head``) ends it quietly, as it does
     ``cat``."""
+    terminate_as_interrupt()  # SIGTERM (timeout, docker stop) stops a run as Ctrl-C does
     try:
         rc = main()
         logging.shutdown()

@@ -9,6 +9,7 @@ from pathlib import Path
 
 from ddfuse.estimation.errors import BagError, DdfuseError
 from ddfuse.evaluation import lag_sweep as lag_sweep_module
+from ddfuse.evaluation.atomic_files import write_text
 from ddfuse.evaluation.cli.arguments import (
     CONFIG_HELP,
     GPS_HOLDOUT_HELP,
@@ -55,7 +56,7 @@ def _main(argv: list[str] | None) -> int:
     if args.json:
         sys.stdout.flush()  # the table stays, whatever happens to the JSON
         try:
-            args.json.write_text(json.dumps(rows, indent=2) + "\n")
+            write_text(args.json, json.dumps(rows, indent=2) + "\n")
         except OSError as e:
             raise DdfuseError(f"--json {args.json}: could not write it ({e.strerror or e}); "
                               "the table above has the rows") from None

@@ -126,7 +126,8 @@ def command(args: argparse.Namespace) -> int:
         try:
             m = run_bag(bag, cfg, args.outdir, names=args.estimators, lag=args.lag,
                         holdout=args.gps_holdout, progress=bars.update if bars else None,
-                        reorder_window=args.reorder_window)
+                        reorder_window=args.reorder_window,
+                        notice=lambda text: _notice(text, bars))
         except ValueError as e:
             raise DdfuseError(str(e)) from None
         except (BagError, RunInterrupted) as e:
@@ -135,7 +136,7 @@ def command(args: argparse.Namespace) -> int:
             if getattr(e, "results_written", False):
                 _print_written_summary(args.outdir)
                 if not args.no_report:
-                    render(args.outdir, bars)
+                    _render_or_say(args.outdir, bars)
             raise
         print_summary(m, sys.stdout)
         for w in m.warnings or ():
@@ -147,14 +148,48 @@ def command(args: argparse.Namespace) -> int:
         if args.no_report:
             sys.stdout.write(f"results in {args.outdir}/ (metrics.json, <estimator>.tum/.csv, "
                              "run.npz); no report (--no-report)\n")
-            return 0
+            return _all_failed(m, args.outdir)
         # The report is rendered after the run, so its time is in no estimator's runtime.
         t_a = time.perf_counter()
-        report = render(args.outdir, bars)
+        report = _render_or_say(args.outdir, bars)
         report_s = time.perf_counter() - t_a
     finally:
         if bars:
             bars.stop()
     sys.stdout.write(f"results in {args.outdir}/ (metrics.json, <estimator>.tum/.csv, run.npz); "
                      f"report {report} ({report_s:.1f} s)\n")
-    return 0
+    return _all_failed(m, args.outdir)
+
+
+def _notice(text: str, bars) -> None:
+    """A line on stderr while the run goes on (above the progress bars on a terminal)."""
+    if bars is not None and bars.bar is not None:
+        bars.bar.console.print(f"ddfuse: {text}", markup=False, highlight=False)
+    else:
+        sys.stderr.write(f"ddfuse: {text}\n")
+        sys.stderr.flush()
+
+
+def _render_or_say(outdir: Path, bars) -> Path:
+    """The report rendered (``report.render``); Ctrl-C or SIGTERM meanwhile ends the command
+    with a line saying that the results are whole and ``ddfuse report OUTDIR`` renders it."""
+    try:
+        return render(outdir, bars)
+    except KeyboardInterrupt as e:
+        from ddfuse.estimation.interrupts import interrupt_name
+
+        raise KeyboardInterrupt(
+            f"interrupted ({interrupt_name(e)}) while the report was rendered: the results in "
+            f"{outdir}/ are complete; 'ddfuse report {outdir}' renders it") from None
+
+
+def _all_failed(m: RunSummary, outdir: Path) -> int:
+    """0, or ``guard.NO_ESTIMATE`` with a line on stderr when every estimator ended in ERROR
+    (the table's rows say why)."""
+    if not m.estimators or not all(e.error for e in m.estimators.values()):
+        return 0
+    from ddfuse.evaluation.cli.guard import NO_ESTIMATE
+
+    sys.stderr.write(f"ddfuse: error: every estimator ended in ERROR (the rows above say why); "
+                     f"what they had is in {outdir}/\n")
+    return NO_ESTIMATE

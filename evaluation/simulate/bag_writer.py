@@ -18,6 +18,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
+from ddfuse.evaluation.atomic_files import partial_path
 from ddfuse.evaluation.simulate.sidecars import sidecar_paths, write_sidecars
 from ddfuse.evaluation.simulate.simulator import SimResult
 
@@ -282,10 +283,17 @@ def write_bag(res: SimResult, path: str | Path, fmt: str = "ros1", compress: boo
     mk = _Msgs(ts, fmt, res.scenario.t0_ns)
     topics = _topic_messages(res, mk)
     if fmt == "ros1":
-        writer = Writer1(p)
-        if compress:
-            writer.set_compression(Writer1.CompressionFormat.LZ4)
-        _write_messages(writer, topics, ts, mk)
+        # written beside ``p`` and renamed to it: complete, or not at all
+        made = partial_path(p)
+        try:
+            writer = Writer1(made)
+            if compress:
+                writer.set_compression(Writer1.CompressionFormat.LZ4)
+            _write_messages(writer, topics, ts, mk)
+            os.replace(made, p)
+        except BaseException:
+            made.unlink(missing_ok=True)
+            raise
     else:
         # rosbags names the storage file after the directory it makes (<dir>/<dir name>.mcap):
         # the bag is made as a directory named like the file's stem in a temporary directory

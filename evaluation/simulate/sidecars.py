@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+from ddfuse.evaluation.atomic_files import write_text
 from ddfuse.evaluation.simulate.simulator import SimResult
 
 SMOOTHER_LAG = 10.0  # s, the smoother lag of the configs written next to simulated bags
@@ -115,11 +116,11 @@ def write_sidecars(res: SimResult, path: str | Path, fmt: str = "ros1"
         body = {"frame": "local",
                 "landmarks": {i: [float(p[0]), float(p[1])] for i, p in zip(lm.ids, lm.positions,
                                                                             strict=True)}}
-        map_path.write_text(f"# Simulated landmarks (scenario {res.scenario.name}, seed "
+        write_text(map_path, f"# Simulated landmarks (scenario {res.scenario.name}, seed "
                             f"{res.seed}): id -> [x, y] m in the local frame\n"
                             + yaml.safe_dump(body, sort_keys=False))
     else:
         map_path = None
     cfg = sim_config(res, map_path.name if map_path else None)
-    cfg_path.write_text(truth_comment(res, fmt) + yaml.safe_dump(cfg, sort_keys=False))
+    write_text(cfg_path, truth_comment(res, fmt) + yaml.safe_dump(cfg, sort_keys=False))
     return cfg_path, map_path
