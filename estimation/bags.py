@@ -366,6 +366,13 @@ class BagStream:
         self._counts[(m.sensor, type(m))] += 1
         return m
 
+    def _count_damage(self) -> list[str]:
+        """The damaged records the reader read past, warned about and their messages counted
+        (``TopicDrops.count_damage``); returns the warning lines."""
+        lines, lost = self._msgs.damage()
+        self.drops.count_damage(lines, lost)
+        return lines
+
     def _add_truth(self, t: float, x: float, y: float, yaw: float) -> None:
         if self._started and not self.keep_truth:
             return
@@ -397,11 +404,14 @@ class BagStream:
                 self.datum = (f.lat, f.lon, f.alt)
             self._flush_truth_fixes()
         where, what = self._msgs.end()
+        damage = self._count_damage()
         try:
             self.drops.check_sources(self._msgs.sources, checks, self.tolerance)
         except BagError as e:
             if where is not None:
                 raise BagError(f"{e} (only up to {where} could be read: {what})") from None
+            if damage:
+                raise BagError(f"{e}; the bag is damaged: {damage[0]}") from None
             raise
         self.drops.warn_rejected()
         for (topic, reason), n in sorted(self.rejected.items()):
