@@ -19,6 +19,7 @@ from pathlib import Path
 from ddfuse.estimation.bag_reader import Source
 from ddfuse.estimation.config import LANDMARK_NOT_IN_MAP, Config
 from ddfuse.estimation.converters import unknown_landmarks_note
+from ddfuse.estimation.duplicates import DUPLICATE
 from ddfuse.estimation.errors import BagError
 from ddfuse.estimation.stamp_check import StampCheck
 
@@ -33,6 +34,8 @@ WARN_SHARE = 0.1
 LATE_PREFIX = "arrived after messages stamped up to more than"
 # the reason under which messages lost to a damaged record of the bag are counted
 DAMAGED = "lost to a damaged record of the bag (see the warning naming its byte)"
+# reasons with a warning of their own, whatever their share
+QUIET = (DAMAGED, DUPLICATE)
 
 
 class TopicDrops:
@@ -84,7 +87,7 @@ class TopicDrops:
         the measurements dropped as late, with the reorder window that keeps them."""
         for (topic, reason), n in sorted(self.rejected.items()):
             total = self.seen[topic]
-            if reason.startswith(LATE_PREFIX) or reason == DAMAGED or not n > WARN_SHARE * total:
+            if reason.startswith(LATE_PREFIX) or reason in QUIET or not n > WARN_SHARE * total:
                 continue
             self.warnings.append(f"{self.bag}: topic {topic}: {n} of {total} messages "
                                  f"({100.0 * n / total:.0f} %) rejected, in whole or in part: "

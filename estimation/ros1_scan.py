@@ -17,21 +17,31 @@ Every record is ``<header_len u32><header><data_len u32><data>``; a header is a 
 ``<field_len u32>name=value`` fields, little-endian. A connection record's data is itself such a
 field sequence (topic, type, md5sum, message_definition, ...).
 
-``Ros1Scan(path)`` iterates over the file's ``Connection``s (when their record is met, before
-any message on them) and ``Message``s, in file order. It stops at the first record that is
-incomplete (the file ends) or damaged, without raising, and ``Ros1Scan.status`` then says how far
-it got. Of a chunk cut by the end of the file it still yields the complete records that can be
+``Ros1Scan(path, index)`` iterates over the file's ``Connection``s (the index's first, if given;
+else when their record is met, before any message on them) and ``Message``s, in file order. It
+stops at the first record that is incomplete (the file ends), without raising, and
+``Ros1Scan.status`` then says how far it got. It reads past a damaged record (a flipped byte):
+a connection record whose definition is not text is used without it; a chunk with a damaged
+record inside is read at the offsets its index data records give; a chunk whose data cannot be
+decompressed gives what decompresses before the damage; an unparseable record is skipped to
+the next chunk or chunk index record found by its 'op' field. Each is a ``Damage`` in
+``status.damage``, with the messages it cost when the index's chunk infos can count them
+(docs/design/bag_faults.md).
+
+Of a chunk cut by the end of the file it still yields the complete records that can be
 decompressed from the bytes present: all of them for uncompressed chunks, those in its complete
 LZ4 blocks (rosbags writes 64 KiB blocks), none for bz2 unless a whole bz2 block (900 kB of
 records at level 9, more than a recorder's usual chunk) is present.
 
-``estimation.bags.read_stream`` uses the scanner only for bags rosbags cannot open. Messages come
-in file order, not sorted by time across chunks; read_stream sorts by header stamp anyway.
+``estimation.bag_reader.BagMessages`` reads every ROS1 bag with the scanner (with its index
+when it has a usable one). Messages come in file order, which is write order, not sorted by time
+across chunks; the bag stream sorts by header stamp.
 """
 
 from __future__ import annotations
 
 import bz2
+import contextlib
 import struct
 from collections import Counter
 from collections.abc import Iterator
@@ -106,7 +116,7 @@ class Damage:
     offset: int  # byte in the file of the damaged top-level record
     what: str  # which record and what is wrong with it
     resumed: int | None = None  # byte where reading went on; None: nothing readable after it
-    salvaged: int = 0  # messages read from the damaged record before the damage
+    salvaged: int = 0  # messages read from the damaged record all the same
     # connection id -> messages lost, from the index's chunk infos; None: not known (no index)
     lost: Counter | None = None
 
@@ -117,7 +127,7 @@ class Damage:
         else:
             cost = f"{sum(self.lost.values())} messages lost"
         if self.salvaged:
-            cost += f", {self.salvaged} read from it before the damage"
+            cost += f", {self.salvaged} read from it"
         then = (f"; reading went on at byte {self.resumed}" if self.resumed is not None
                 else "; nothing readable after it")
         return f"damaged record at byte {self.offset}: {self.what}: {cost}{then}"
@@ -290,8 +300,53 @@ def _find_record(f, start: int, size: int) -> int | None:
     return None
 
 
-def _all(buf: bytes, needle: bytes) -> Iterator[int]:
-    i = buf.find(needle)
+def _chunk_offsets(f, size: int) -> list[int] | None:
+    """The message offsets (in the decompressed chunk) that the index data records at the file
+    position give, sorted; None if there are none or one is damaged. The file position is left
+    unchanged."""
+    back = f.tell()
+    offsets: list[int] = []
+    try:
+        while _record_at(f, f.tell(), size):
+            head = f.read(4)
+            hdr = f.read(_U32.unpack(head)[0])
+            fields = _fields(hdr, 0, len(hdr))
+            data = f.read(_U32.unpack(f.read(4))[0])
+            if _op(fields) != OP_IDXDATA:
+                break
+            if _u32(fields, "ver") != 1 or len(data) % 12:
+                return None
+            offsets += struct.unpack(f"<{len(data) // 4}I", data)[2::3]
+    except _Damaged:
+        return None
+    finally:
+        f.seek(back)
+    return sorted(offsets) or None
+
+
+def _next_inner_record(buf: bytes, start: int) -> int:
+    """The offset of the first message or connection record at or after ``start`` in the
+    decompressed chunk ``buf`` whose header parses and whose data ends inside the chunk, found
+    by its 'op' field; ``len(buf)`` if there is none."""
+    n = len(buf)
+    hits = sorted(i for needle in (_F_OP, b"\x04\0\0\0op=\x07") for i in _all(buf, needle, start))
+    for q in hits:
+        for p in range(q - 4, max(start, q - 128) - 1, -1):
+            (hlen,) = _U32.unpack_from(buf, p)
+            hend = p + 4 + hlen
+            if not (q < hend and hend + 4 <= n):
+                continue
+            try:
+                _op(_fields(buf, p + 4, hend))
+            except _Damaged:
+                continue
+            if hend + 4 + _U32.unpack_from(buf, hend)[0] <= n:
+                return p
+    return n
+
+
+def _all(buf: bytes, needle: bytes, start: int = 0) -> Iterator[int]:
+    i = buf.find(needle, start)
     while i >= 0:
         yield i
         i = buf.find(needle, i + 1)
@@ -333,6 +388,7 @@ class Ros1Scan:
         self.chunk_counts = None if index is None else index.chunk_counts
         self._chunk_pos = 0  # byte of the chunk being read
         self._got: Counter = Counter()  # connection id -> messages read from that chunk
+        self._inner: list[tuple[int, str]] = []  # that chunk's damaged records: (offset, why)
 
     def _stop(self, reason: str, truncated: bool) -> None:
         self.status.reason = reason
@@ -378,7 +434,7 @@ class Ros1Scan:
                     if op == OP_CHUNK:
                         self._chunk_pos, self._got = pos, Counter()
                         try:
-                            yield from self._chunk(fields, data, dlen)
+                            yield from self._chunk(fields, data, dlen, f)
                         except _Damaged as e:
                             if not self._read_past(f, pos, f"chunk record: {e}", f.tell()):
                                 return
@@ -466,7 +522,7 @@ class Ros1Scan:
             raise _Incomplete(what)
         return fields, data, dlen
 
-    def _chunk(self, fields: dict[str, bytes], data: bytes, dlen: int
+    def _chunk(self, fields: dict[str, bytes], data: bytes, dlen: int, f
                ) -> Iterator[Connection | Message]:
         """The records of a chunk record with header ``fields`` and (compressed) ``data`` of
         declared length ``dlen``. A chunk cut by the end of the file yields the complete records
@@ -494,12 +550,22 @@ class Ros1Scan:
             # what decompresses before the damage is whole: its records are read, then the
             # chunk is reported damaged
             buf = _decompress_head(compression, data)
-            yield from self._chunk_records(buf)
+            yield from self._chunk_records(buf, resync=True)
             raise _Damaged(f"its {compression} data cannot be decompressed: {e}") from None
         if not cut:
-            end = yield from self._chunk_records(buf)
-            if end != len(buf):
-                raise _Damaged(f"the chunk's record at offset {end} runs past its end")
+            # held until the chunk is known whole: a damaged record may swallow the ones after it
+            items = list(self._chunk_records(buf, resync=True))
+            if self._inner:
+                (at, why), more = self._inner[0], len(self._inner) - 1
+                how = ""
+                offsets = _chunk_offsets(f, self.status.file_size)
+                if offsets is not None:
+                    items = self._at_offsets(buf, items, offsets)
+                    how = "; its messages were read at the offsets its index records give"
+                yield from items
+                raise _Damaged(f"its record at offset {at} in the chunk is damaged ({why})"
+                               + (f", and {more} more after it" if more else "") + how)
+            yield from items
             if len(buf) != size:  # the records are whole: the size field is what is damaged
                 st.damage.append(Damage(self._chunk_pos, f"chunk record: it holds {len(buf)} "
                                         f"bytes, its header says {size}", lost=Counter()))
@@ -514,59 +580,98 @@ class Ros1Scan:
                           + (f"{got} messages recovered from it, the rest lost)" if got else
                              "no complete message could be recovered from them)"))
 
-    def _chunk_records(self, buf: bytes):
+    def _at_offsets(self, buf: bytes, items: list, offsets: list[int]) -> list:
+        """The records of the damaged chunk ``buf`` read again at the message ``offsets`` its
+        index data records give: the connections of the first reading ``items``, then each
+        message record that parses at its offset (the others are lost)."""
+        self.status.messages -= sum(self._got.values())
+        self._got = Counter()
+        inner = self._inner
+        out = [c for c in items if type(c) is Connection]
+        n = len(buf)
+        for off in offsets:
+            if off + 8 > n:
+                continue
+            hend = off + 4 + _U32.unpack_from(buf, off)[0]
+            end = hend + 4 + (_U32.unpack_from(buf, hend)[0] if hend + 4 <= n else n)
+            if end > n:
+                continue
+            with contextlib.suppress(_Damaged):
+                out += [m for m in self._chunk_records(buf[off:end]) if type(m) is Message]
+        self._inner = inner
+        return out
+
+    def _chunk_records(self, buf: bytes, resync: bool = False):
         """Yield the connection and message records in the decompressed chunk ``buf`` up to the
-        first incomplete one; returns the offset where it stopped."""
+        first incomplete one; returns the offset where it stopped. ``resync``: ``buf`` is a
+        whole chunk, whose damaged records are noted in ``_inner`` (offset, why) and skipped
+        to the next record found by its 'op' field (as a reader using the index would)."""
         st = self.status
         conns = self.connections
         n = len(buf)
         pos = 0
+        self._inner = []
         while pos + 4 <= n:
-            (hlen,) = _U32.unpack_from(buf, pos)
-            hend = pos + 4 + hlen
-            if hend + 4 > n:
-                break
-            (dlen,) = _U32.unpack_from(buf, hend)
-            dend = hend + 4 + dlen
-            if dend > n:
-                break
-            sec = -1
-            if hlen == _MSG_HLEN:
-                ft, sec, nsec, fc, cid, fo = _MSG_TCO.unpack_from(buf, pos + 4)
-                if not (ft == _F_TIME and fc == _F_CONN and fo == _F_OP):
-                    fo, fc, cid, ft, sec, nsec = _MSG_OCT.unpack_from(buf, pos + 4)
+            try:
+                (hlen,) = _U32.unpack_from(buf, pos)
+                hend = pos + 4 + hlen
+                if hend + 4 > n:
+                    if not resync:
+                        break
+                    raise _Damaged("its header runs past the chunk's end")
+                (dlen,) = _U32.unpack_from(buf, hend)
+                dend = hend + 4 + dlen
+                if dend > n:
+                    if not resync:
+                        break
+                    raise _Damaged("its data runs past the chunk's end")
+                sec = -1
+                if hlen == _MSG_HLEN:
+                    ft, sec, nsec, fc, cid, fo = _MSG_TCO.unpack_from(buf, pos + 4)
                     if not (ft == _F_TIME and fc == _F_CONN and fo == _F_OP):
-                        sec = -1
-            if sec >= 0:  # a message record in one of the usual layouts
-                op = OP_MSGDATA
-            else:
-                fields = _fields(buf, pos + 4, hend)
-                op = _op(fields)
-            if op == OP_MSGDATA:
-                if sec < 0:
-                    cid = _u32(fields, "conn")
-                conn = conns.get(cid)
-                if conn is None:
-                    raise _Damaged(f"message on connection {cid}, which has no record before it")
-                if sec < 0:
-                    t = fields.get("time")
-                    if t is None or len(t) != 8:
-                        raise _Damaged("message record has no 8-byte 'time' field")
-                    sec, nsec = _TIME.unpack(t)
-                st.messages += 1
-                self._got[cid] += 1
-                yield Message(conn, sec * 1_000_000_000 + nsec, buf[hend + 4:dend])
-            elif op == OP_CONNECTION:
-                c, bad = _connection(fields, buf[hend + 4:dend])
-                if bad:
-                    st.damage.append(Damage(self._chunk_pos, f"in its chunk, {bad}",
-                                            lost=Counter()))
-                if conns.get(c.id) != c:  # writers may repeat a connection in later chunks
-                    conns[c.id] = c
-                    yield c
-            else:
-                raise _Damaged(f"unexpected record op {op} inside a chunk")
+                        fo, fc, cid, ft, sec, nsec = _MSG_OCT.unpack_from(buf, pos + 4)
+                        if not (ft == _F_TIME and fc == _F_CONN and fo == _F_OP):
+                            sec = -1
+                if sec >= 0:  # a message record in one of the usual layouts
+                    op = OP_MSGDATA
+                else:
+                    fields = _fields(buf, pos + 4, hend)
+                    op = _op(fields)
+                if op == OP_MSGDATA:
+                    if sec < 0:
+                        cid = _u32(fields, "conn")
+                    conn = conns.get(cid)
+                    if conn is None:
+                        raise _Damaged(f"message on connection {cid}, which has no record "
+                                       "before it")
+                    if sec < 0:
+                        t = fields.get("time")
+                        if t is None or len(t) != 8:
+                            raise _Damaged("message record has no 8-byte 'time' field")
+                        sec, nsec = _TIME.unpack(t)
+                    st.messages += 1
+                    self._got[cid] += 1
+                    yield Message(conn, sec * 1_000_000_000 + nsec, buf[hend + 4:dend])
+                elif op == OP_CONNECTION:
+                    c, bad = _connection(fields, buf[hend + 4:dend])
+                    if bad:
+                        st.damage.append(Damage(self._chunk_pos, f"in its chunk, {bad}",
+                                                lost=Counter()))
+                    if conns.get(c.id) != c:  # writers may repeat a connection in later chunks
+                        conns[c.id] = c
+                        yield c
+                else:
+                    raise _Damaged(f"unexpected record op {op} inside a chunk")
+            except _Damaged as e:
+                if not resync:
+                    raise
+                self._inner.append((pos, str(e)))
+                pos = _next_inner_record(buf, pos + 1)
+                continue
             pos = dend
+        if resync and pos < n:
+            self._inner.append((pos, "a record runs past the chunk's end"))
+            pos = n
         return pos
 
 
