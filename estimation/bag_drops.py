@@ -19,10 +19,11 @@ from pathlib import Path
 from ddfuse.estimation.bag_reader import Source
 from ddfuse.estimation.config import LANDMARK_NOT_IN_MAP, Config
 from ddfuse.estimation.converters import unknown_landmarks_note
+from ddfuse.estimation.duplicates import DUPLICATE
 from ddfuse.estimation.errors import BagError
 from ddfuse.estimation.stamp_check import StampCheck
 
-__all__ = ["LATE_PREFIX", "WARN_SHARE", "TopicDrops"]
+__all__ = ["DAMAGED", "LATE_PREFIX", "WARN_SHARE", "TopicDrops"]
 
 log = logging.getLogger(__name__)
 
@@ -31,6 +32,10 @@ log = logging.getLogger(__name__)
 # ``rejected``: a run's terminal shows no log.
 WARN_SHARE = 0.1
 LATE_PREFIX = "arrived after messages stamped up to more than"
+# the reason under which messages lost to a damaged record of the bag are counted
+DAMAGED = "lost to a damaged record of the bag (see the warning naming its byte)"
+# reasons with a warning of their own, whatever their share
+QUIET = (DAMAGED, DUPLICATE)
 
 
 class TopicDrops:
@@ -68,13 +73,21 @@ class TopicDrops:
                         "too late to reorder (reorder_window %g s); dropped and counted",
                         self.bag, topic, released - t, self.depth)
 
+    def count_damage(self, lines: list[str], lost: Counter) -> None:
+        """The damaged records of the bag (``BagMessages.damage``): each line a warning, the
+        messages lost per topic counted in ``rejected`` under DAMAGED."""
+        self.warnings.extend(lines)
+        for topic, n in sorted(lost.items()):
+            if n:
+                self.rejected[(topic, DAMAGED)] += n
+
     def warn_rejected(self) -> None:
         """The warnings of WARN_SHARE: per topic, each reason that cost more than that share of
         its messages (a compass without orientation that only a count said was unused), and
         the measurements dropped as late, with the reorder window that keeps them."""
         for (topic, reason), n in sorted(self.rejected.items()):
             total = self.seen[topic]
-            if reason.startswith(LATE_PREFIX) or not n > WARN_SHARE * total:
+            if reason.startswith(LATE_PREFIX) or reason in QUIET or not n > WARN_SHARE * total:
                 continue
             self.warnings.append(f"{self.bag}: topic {topic}: {n} of {total} messages "
                                  f"({100.0 * n / total:.0f} %) rejected, in whole or in part: "

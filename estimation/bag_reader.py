@@ -160,15 +160,16 @@ class BagMessages:
         self.used = 0  # messages read on configured topics (bags read by the scanner)
         self.store = None  # the scanner's typestore, made when reading starts
         self.open_error: BagError | None = None
-        index = (ros1_scan.index_connections(bag) if bag.is_file() and ros1_scan.has_magic(bag)
+        index = (ros1_scan.read_index(bag) if bag.is_file() and ros1_scan.has_magic(bag)
                  else None)
         if index is not None:
             # An intact ROS1 bag: its topics are checked against the connections of its index,
             # then it is read from the front by the scanner (rosbags' reader would load the
-            # index of every message first: 90 MB for a 2 h bag).
-            self.sources = sources_of(cfg, index, bag, ros1=True, landmarks=landmarks,
-                                      unknown=unknown)
-            self.scan = ros1_scan.Ros1Scan(bag)
+            # index of every message first: 90 MB for a 2 h bag), which reads past a damaged
+            # record, counting what it cost from the index's chunk infos.
+            self.sources = sources_of(cfg, index.connections, bag, ros1=True,
+                                      landmarks=landmarks, unknown=unknown)
+            self.scan = ros1_scan.Ros1Scan(bag, index)
         else:
             try:
                 self.reader = open_reader(bag)
@@ -298,6 +299,23 @@ class BagMessages:
                            f"{e}") from None
         finally:
             self.frac = 1.0
+
+    def damage(self) -> tuple[list[str], Counter]:
+        """The damaged records of a ROS1 bag read by the scanner: one line each (naming the
+        file, the byte and record, what was damaged, how many messages it cost), and the
+        messages lost per configured topic (connection ids resolved through the connections
+        read; those of topics not configured are left out)."""
+        if self.scan is None:
+            return [], Counter()
+        lines, lost = [], Counter()
+        topics = {s.topic for s in self.sources}
+        for d in self.scan.status.damage:
+            lines.append(f"{self.bag}: {d.line()}")
+            for cid, n in (d.lost or {}).items():
+                conn = self.scan.connections.get(cid)
+                if conn is not None and conn.topic in topics:
+                    lost[conn.topic] += n
+        return lines, lost
 
     def end(self) -> tuple[str | None, str | None]:
         """At the end of the bag: (what cut a bag read without its index short, at which byte),

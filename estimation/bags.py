@@ -14,7 +14,12 @@ counted in ``Stream.rejected`` by (topic, reason), and the stream's ``warnings``
 A bag that breaks off (truncated, or damaged past some point) still gives what was read before:
 the BagError carries it as ``partial``. A ROS1 bag that rosbags cannot open at all because its
 index is missing or damaged (the recorder was killed, the copy was cut) is read from the front
-by ``ddfuse.estimation.ros1_scan`` for that.
+by ``ddfuse.estimation.ros1_scan`` for that. A ROS1 bag with damaged records is read past them:
+each is a warning, its lost messages counted in ``rejected`` (``bag_drops.DAMAGED``).
+
+Time faults (docs/design/bag_faults.md): a recording clock that steps back, seen in a ROS1 bag's
+write order, re-times what follows (``ddfuse.estimation.clock_steps``); an exact duplicate
+message is dropped and counted (``ddfuse.estimation.duplicates``); each says so in a warning.
 
 The parts, each in its module: opening the bag and reading the configured topics' raw messages
 (``ddfuse.estimation.bag_reader``), the message converters per sensor kind
@@ -44,6 +49,7 @@ from ddfuse.estimation.bag_reader import (
     open_reader,
     sources_of,
 )
+from ddfuse.estimation.clock_steps import ClockSteps
 from ddfuse.estimation.config import Config, landmark_maps
 from ddfuse.estimation.converters import (
     NULL_ISLAND,
@@ -52,6 +58,7 @@ from ddfuse.estimation.converters import (
     gps_fix,
     slope_cells,
 )
+from ddfuse.estimation.duplicates import DUPLICATE, Duplicates
 from ddfuse.estimation.errors import BagError
 from ddfuse.estimation.measurements import GpsFix, GroundTruthPose, Stream, truth_at_start
 from ddfuse.estimation.stamp_check import STAMP_TOLERANCE, UNSET_STAMP, StampCheck
@@ -137,6 +144,10 @@ class BagStream:
         self._gps_source = any(w[0] == "gps" for w in wanted)
         self._truth_idx = next((i for i, w in enumerate(wanted) if w[1] == "ground_truth"), -1)
         self._has_truth = self._truth_idx >= 0
+        # the recording clock's backward steps (ROS1: read in write order) and the exact
+        # duplicates found, made when reading starts
+        self.clock_steps: ClockSteps | None = None
+        self.duplicates: Duplicates | None = None
         self._gen = self._emitted()
         self.decode_s += perf_counter() - t_a
 
@@ -256,9 +267,15 @@ class BagStream:
         raw_items = msgs.records()
         if msgs.scan is None:
             deserialize = msgs.reader.deserialize
+        # write order is known only where the scanner reads the file from the front (ROS1)
+        steps = self.clock_steps = ClockSteps(tol) if msgs.scan is not None else None
+        dups = self.duplicates = Duplicates(ros1=msgs.scan is not None or not msgs.reader.is2)
         try:
             for src, rec_ns, raw in raw_items:
                 seen[src.topic] += 1
+                if dups.seen_before(src.index, src.topic, raw):
+                    rejected[(src.topic, DUPLICATE)] += 1
+                    continue
                 if deserialize is None:
                     deserialize = msgs.store.deserialize_ros1
                 try:
@@ -275,6 +292,11 @@ class BagStream:
                     if t_rec <= 0.0 and t_rec > -math.inf:  # non-finite: the converters' reason
                         rejected[(src.topic, UNSET_STAMP)] += 1
                         continue
+                    if steps is not None:
+                        t_new, rt_new = steps.retime(src.topic, t_rec, rec_ns * 1e-9)
+                        if steps.shift:
+                            rec = (t_new, *rec[1:])
+                            rec_ns = round(rt_new * 1e9)
                     out = src.convert(rec)
                 except Reject as e:
                     rejected[(src.topic, str(e))] += 1
@@ -366,6 +388,23 @@ class BagStream:
         self._counts[(m.sensor, type(m))] += 1
         return m
 
+    def _warn_time(self) -> None:
+        """The warnings of a recording clock that stepped back (``clock_steps``) and of exact
+        duplicate messages (``duplicates``), one line each."""
+        steps, dups = self.clock_steps, self.duplicates
+        line = steps.warning(str(self.bag), self.t0) if steps is not None else None
+        if line:
+            self.warnings.append(line)
+        if dups is not None:
+            self.warnings.extend(dups.warnings(str(self.bag), self.drops.seen))
+
+    def _count_damage(self) -> list[str]:
+        """The damaged records the reader read past, warned about and their messages counted
+        (``TopicDrops.count_damage``); returns the warning lines."""
+        lines, lost = self._msgs.damage()
+        self.drops.count_damage(lines, lost)
+        return lines
+
     def _add_truth(self, t: float, x: float, y: float, yaw: float) -> None:
         if self._started and not self.keep_truth:
             return
@@ -397,12 +436,16 @@ class BagStream:
                 self.datum = (f.lat, f.lon, f.alt)
             self._flush_truth_fixes()
         where, what = self._msgs.end()
+        damage = self._count_damage()
         try:
             self.drops.check_sources(self._msgs.sources, checks, self.tolerance)
         except BagError as e:
             if where is not None:
                 raise BagError(f"{e} (only up to {where} could be read: {what})") from None
+            if damage:
+                raise BagError(f"{e}; the bag is damaged: {damage[0]}") from None
             raise
+        self._warn_time()
         self.drops.warn_rejected()
         for (topic, reason), n in sorted(self.rejected.items()):
             log.warning("%s: %s: %d message(s) rejected: %s", bag, topic, n, reason)

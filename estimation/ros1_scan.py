@@ -17,24 +17,35 @@ Every record is ``<header_len u32><header><data_len u32><data>``; a header is a 
 ``<field_len u32>name=value`` fields, little-endian. A connection record's data is itself such a
 field sequence (topic, type, md5sum, message_definition, ...).
 
-``Ros1Scan(path)`` iterates over the file's ``Connection``s (when their record is met, before
-any message on them) and ``Message``s, in file order. It stops at the first record that is
-incomplete (the file ends) or damaged, without raising, and ``Ros1Scan.status`` then says how far
-it got. Of a chunk cut by the end of the file it still yields the complete records that can be
+``Ros1Scan(path, index)`` iterates over the file's ``Connection``s (the index's first, if given;
+else when their record is met, before any message on them) and ``Message``s, in file order. It
+stops at the first record that is incomplete (the file ends), without raising, and
+``Ros1Scan.status`` then says how far it got. It reads past a damaged record (a flipped byte):
+a connection record whose definition is not text is used without it; a chunk with a damaged
+record inside is read at the offsets its index data records give; a chunk whose data cannot be
+decompressed gives what decompresses before the damage; an unparseable record is skipped to
+the next chunk or chunk index record found by its 'op' field. Each is a ``Damage`` in
+``status.damage``, with the messages it cost when the index's chunk infos can count them
+(docs/design/bag_faults.md).
+
+Of a chunk cut by the end of the file it still yields the complete records that can be
 decompressed from the bytes present: all of them for uncompressed chunks, those in its complete
 LZ4 blocks (rosbags writes 64 KiB blocks), none for bz2 unless a whole bz2 block (900 kB of
 records at level 9, more than a recorder's usual chunk) is present.
 
-``estimation.bags.read_stream`` uses the scanner only for bags rosbags cannot open. Messages come
-in file order, not sorted by time across chunks; read_stream sorts by header stamp anyway.
+``estimation.bag_reader.BagMessages`` reads every ROS1 bag with the scanner (with its index
+when it has a usable one). Messages come in file order, which is write order, not sorted by time
+across chunks; the bag stream sorts by header stamp.
 """
 
 from __future__ import annotations
 
 import bz2
+import contextlib
 import struct
+from collections import Counter
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import NamedTuple
 
@@ -99,6 +110,30 @@ class Message(NamedTuple):
 
 
 @dataclass
+class Damage:
+    """A damaged part of a bag that the scan read past (a flipped byte, a garbled record)."""
+
+    offset: int  # byte in the file of the damaged top-level record
+    what: str  # which record and what is wrong with it
+    resumed: int | None = None  # byte where reading went on; None: nothing readable after it
+    salvaged: int = 0  # messages read from the damaged record all the same
+    # connection id -> messages lost, from the index's chunk infos; None: not known (no index)
+    lost: Counter | None = None
+
+    def line(self) -> str:
+        """One line: where, what, and how many messages it cost."""
+        if self.lost is None:
+            cost = "an unknown number of messages lost (the bag has no usable index to count them)"
+        else:
+            cost = f"{sum(self.lost.values())} messages lost"
+        if self.salvaged:
+            cost += f", {self.salvaged} read from it"
+        then = (f"; reading went on at byte {self.resumed}" if self.resumed is not None
+                else "; nothing readable after it")
+        return f"damaged record at byte {self.offset}: {self.what}: {cost}{then}"
+
+
+@dataclass
 class ScanStatus:
     """How far a scan got. Updated while iterating; final once the iteration ends."""
 
@@ -109,6 +144,7 @@ class ScanStatus:
     salvaged: int = 0  # messages yielded from a chunk cut by the end of the file
     reason: str = ""  # why the scan stopped before the end of the file; '' if it did not
     truncated: bool = False  # it stopped because the file ends inside a record
+    damage: list[Damage] = field(default_factory=list)  # damaged records read past
 
     @property
     def complete(self) -> bool:
@@ -170,17 +206,150 @@ def _u32(fields: dict[str, bytes], name: str) -> int:
     return _U32.unpack(v)[0]
 
 
-def _connection(fields: dict[str, bytes], data: bytes) -> Connection:
-    """A Connection from a connection record's header fields and data."""
+def _connection(fields: dict[str, bytes], data: bytes) -> tuple[Connection, str]:
+    """A Connection from a connection record's header fields and data, and what of its record
+    is damaged ('' if nothing). A message definition or md5sum that is not text (a flipped
+    byte) is dropped (''): readers then use the standard definition of the type, and only
+    the topic and type are needed to route messages; without those the record is _Damaged."""
     conn = _u32(fields, "conn")
     info = _fields(data, 0, len(data))
     try:
         topic = (info.get("topic") or fields["topic"]).decode()
-        return Connection(conn, normalize_topic(topic), normalize_msgtype(info["type"].decode()),
-                          info.get("md5sum", b"").decode(),
-                          info.get("message_definition", b"").decode())
-    except (KeyError, UnicodeDecodeError) as e:
-        raise _Damaged(f"connection record {conn} lacks a readable {e} field") from None
+        msgtype = normalize_msgtype(info["type"].decode())
+    except KeyError as e:
+        raise _Damaged(f"connection record {conn} has no {e} field") from None
+    except UnicodeDecodeError:
+        raise _Damaged(f"connection record {conn}: its topic or type is not text") from None
+    text, bad = {}, []
+    for name in ("md5sum", "message_definition"):
+        try:
+            text[name] = info.get(name, b"").decode()
+        except UnicodeDecodeError as e:
+            text[name] = ""
+            bad.append(f"its {name} is not text (byte {e.start} of the field)")
+    return (Connection(conn, normalize_topic(topic), msgtype, text["md5sum"],
+                       text["message_definition"]),
+            f"connection record {conn} ({normalize_topic(topic)}): {'; '.join(bad)}"
+            if bad else "")
+
+
+def _decompress_head(compression: str, data: bytes) -> bytes:
+    """What decompresses of damaged chunk ``data`` before its damage: fed in slices to a
+    streaming decompressor until it fails (LZ4 returns whole blocks, bz2 checks each block's
+    CRC, so what comes out is as written)."""
+    if compression == "none":
+        return data
+    dec = lz4.frame.LZ4FrameDecompressor() if compression == "lz4" else bz2.BZ2Decompressor()
+    out = []
+    step = 1 << 14
+    try:
+        for i in range(0, len(data), step):
+            out.append(dec.decompress(data[i:i + step]))
+    except (RuntimeError, OSError, ValueError, EOFError):
+        pass
+    return b"".join(out)
+
+
+def _record_at(f, pos: int, size: int) -> bool:
+    """Whether a chunk, chunk index, chunk info or connection record whose data fits in the
+    file (``size`` bytes) starts at byte ``pos``; the file position is left unchanged."""
+    back = f.tell()
+    try:
+        f.seek(pos)
+        head = f.read(4)
+        if len(head) < 4:
+            return False
+        (hlen,) = _U32.unpack(head)
+        if not 8 <= hlen <= 4096:
+            return False
+        hdr = f.read(hlen)
+        raw = f.read(4)
+        if len(hdr) < hlen or len(raw) < 4:
+            return False
+        fields = _fields(hdr, 0, hlen)
+        op = _op(fields)
+        if op not in (OP_IDXDATA, OP_CHUNK, OP_CHUNK_INFO, OP_CONNECTION):
+            return False
+        if op == OP_CHUNK and not ("compression" in fields and len(fields.get("size", b"")) == 4):
+            return False
+        return f.tell() + _U32.unpack(raw)[0] <= size
+    except _Damaged:
+        return False
+    finally:
+        f.seek(back)
+
+
+def _find_record(f, start: int, size: int) -> int | None:
+    """The byte of the first chunk or chunk index record at or after ``start`` (``_record_at``),
+    found by its 'op' field; None if there is none. Read in windows: a bag may be large."""
+    window, back = 1 << 20, 128  # bytes; a record header's op field is within 128 bytes
+    pos = start
+    while pos < size:
+        f.seek(max(start, pos - back))
+        base = f.tell()
+        buf = f.read(window + back)
+        hits = sorted(i for needle in (b"\x04\0\0\0op=\x05", b"\x04\0\0\0op=\x04")
+                      for i in _all(buf, needle))
+        for q in hits:
+            for p in range(max(0, q - back), q - 3):
+                if base + p >= start and _record_at(f, base + p, size):
+                    return base + p
+        pos = base + len(buf)
+        if len(buf) < window:
+            break
+    return None
+
+
+def _chunk_offsets(f, size: int) -> list[int] | None:
+    """The message offsets (in the decompressed chunk) that the index data records at the file
+    position give, sorted; None if there are none or one is damaged. The file position is left
+    unchanged."""
+    back = f.tell()
+    offsets: list[int] = []
+    try:
+        while _record_at(f, f.tell(), size):
+            head = f.read(4)
+            hdr = f.read(_U32.unpack(head)[0])
+            fields = _fields(hdr, 0, len(hdr))
+            data = f.read(_U32.unpack(f.read(4))[0])
+            if _op(fields) != OP_IDXDATA:
+                break
+            if _u32(fields, "ver") != 1 or len(data) % 12:
+                return None
+            offsets += struct.unpack(f"<{len(data) // 4}I", data)[2::3]
+    except _Damaged:
+        return None
+    finally:
+        f.seek(back)
+    return sorted(offsets) or None
+
+
+def _next_inner_record(buf: bytes, start: int) -> int:
+    """The offset of the first message or connection record at or after ``start`` in the
+    decompressed chunk ``buf`` whose header parses and whose data ends inside the chunk, found
+    by its 'op' field; ``len(buf)`` if there is none."""
+    n = len(buf)
+    hits = sorted(i for needle in (_F_OP, b"\x04\0\0\0op=\x07") for i in _all(buf, needle, start))
+    for q in hits:
+        for p in range(q - 4, max(start, q - 128) - 1, -1):
+            (hlen,) = _U32.unpack_from(buf, p)
+            hend = p + 4 + hlen
+            if not (q < hend and hend + 4 <= n):
+                continue
+            try:
+                _op(_fields(buf, p + 4, hend))
+            except _Damaged:
+                continue
+            if hend + 4 + _U32.unpack_from(buf, hend)[0] <= n:
+                return p
+    return n
+
+
+def _all(buf: bytes, needle: bytes, start: int = 0) -> Iterator[int]:
+    i = buf.find(needle, start)
+    while i >= 0:
+        yield i
+        i = buf.find(needle, i + 1)
 
 
 def has_magic(path: str | Path) -> bool:
@@ -194,14 +363,32 @@ def has_magic(path: str | Path) -> bool:
     return bool(head) and MAGIC.startswith(head)
 
 
+@dataclass
+class Index:
+    """What a ROS1 bag's index holds that a front-to-back reader needs."""
+
+    connections: list[Connection]
+    # chunk byte -> connection id -> messages in that chunk (the chunk info records); None when
+    # those records cannot be read
+    chunk_counts: dict[int, Counter] | None
+
+
 class Ros1Scan:
     """Iterate over a ROS1 v2.0 bag's connections and messages in file order, without the
     index; see the module docstring. ``status`` tells how far the iteration got."""
 
-    def __init__(self, path: str | Path):
+    def __init__(self, path: str | Path, index: Index | None = None):
+        """``index``: the bag's index (``read_index``), if it has a usable one: its connections
+        are yielded first (a damaged chunk may hold the only other copy of a connection
+        record) and its chunk infos count what a damaged record costs."""
         self.path = Path(path)
         self.status = ScanStatus(file_size=self.path.stat().st_size)
         self.connections: dict[int, Connection] = {}
+        self.index = index
+        self.chunk_counts = None if index is None else index.chunk_counts
+        self._chunk_pos = 0  # byte of the chunk being read
+        self._got: Counter = Counter()  # connection id -> messages read from that chunk
+        self._inner: list[tuple[int, str]] = []  # that chunk's damaged records: (offset, why)
 
     def _stop(self, reason: str, truncated: bool) -> None:
         self.status.reason = reason
@@ -234,6 +421,9 @@ class Ros1Scan:
                 raise ScanError("the bag is encrypted "
                                 f"({fields['encryptor'].decode(errors='replace')!r})")
             st.offset = f.tell()
+            for c in self.index.connections if self.index is not None else ():
+                self.connections[c.id] = c
+                yield c
             while True:
                 pos = f.tell()
                 try:
@@ -242,11 +432,19 @@ class Ros1Scan:
                         return  # end of file exactly between two records
                     op = _op(fields)
                     if op == OP_CHUNK:
-                        yield from self._chunk(fields, data, dlen)
+                        self._chunk_pos, self._got = pos, Counter()
+                        try:
+                            yield from self._chunk(fields, data, dlen, f)
+                        except _Damaged as e:
+                            if not self._read_past(f, pos, f"chunk record: {e}", f.tell()):
+                                return
+                            continue
                         st.chunks += 1
                     elif op == OP_CONNECTION:
                         # The index repeats every connection; a new one here has no messages.
-                        c = _connection(fields, data)
+                        c, bad = _connection(fields, data)
+                        if bad:
+                            st.damage.append(Damage(pos, bad, f.tell(), lost=Counter()))
                         if c.id not in self.connections:
                             self.connections[c.id] = c
                             yield c
@@ -257,9 +455,36 @@ class Ros1Scan:
                                truncated=True)
                     return
                 except _Damaged as e:
-                    self._stop(f"the record at byte {pos} is damaged ({e})", truncated=False)
-                    return
+                    self._got = Counter()
+                    if not self._read_past(f, pos, f"record header: {e}", None):
+                        return
+                    continue
                 st.offset = f.tell()
+
+    def _read_past(self, f, pos: int, what: str, end: int | None) -> bool:
+        """Note the damaged record at byte ``pos`` and move ``f`` to the next record that can
+        be read: its stated ``end``, if a record starts there, else the next chunk or chunk
+        index record found after ``pos``. False (the scan stops) when there is none."""
+        st = self.status
+        if end is None or not _record_at(f, end, self.status.file_size):
+            end = _find_record(f, pos + 1, st.file_size)
+        dmg = Damage(pos, what, end, salvaged=sum(self._got.values()))
+        if self.chunk_counts is not None:
+            dmg.lost = Counter()
+            stop = st.file_size if end is None else end
+            for cpos, counts in self.chunk_counts.items():
+                if pos <= cpos < stop:
+                    dmg.lost.update(counts)
+            dmg.lost.subtract(self._got)
+            dmg.lost = +dmg.lost
+        st.damage.append(dmg)
+        if end is None:
+            self._stop(f"the record at byte {pos} is damaged ({what}) and no readable record "
+                       "follows it", truncated=False)
+            return False
+        f.seek(end)
+        st.offset = end
+        return True
 
     def _record(self, f, read_data: bool | None) -> tuple[dict[str, bytes] | None, bytes, int]:
         """Read the record at the file position: (header fields, data, declared data length).
@@ -297,7 +522,7 @@ class Ros1Scan:
             raise _Incomplete(what)
         return fields, data, dlen
 
-    def _chunk(self, fields: dict[str, bytes], data: bytes, dlen: int
+    def _chunk(self, fields: dict[str, bytes], data: bytes, dlen: int, f
                ) -> Iterator[Connection | Message]:
         """The records of a chunk record with header ``fields`` and (compressed) ``data`` of
         declared length ``dlen``. A chunk cut by the end of the file yields the complete records
@@ -322,13 +547,28 @@ class Ros1Scan:
                 raise _Incomplete(f" (a {compression} chunk with {len(data)} of its {dlen} "
                                   f"bytes, which cannot be decompressed ({e}): its messages "
                                   "are lost)") from None
+            # what decompresses before the damage is whole: its records are read, then the
+            # chunk is reported damaged
+            buf = _decompress_head(compression, data)
+            yield from self._chunk_records(buf, resync=True)
             raise _Damaged(f"its {compression} data cannot be decompressed: {e}") from None
         if not cut:
-            if len(buf) != size:
-                raise _Damaged(f"the chunk holds {len(buf)} bytes, its header says {size}")
-            end = yield from self._chunk_records(buf)
-            if end != len(buf):
-                raise _Damaged(f"the chunk's record at offset {end} runs past its end")
+            # held until the chunk is known whole: a damaged record may swallow the ones after it
+            items = list(self._chunk_records(buf, resync=True))
+            if self._inner:
+                (at, why), more = self._inner[0], len(self._inner) - 1
+                how = ""
+                offsets = _chunk_offsets(f, self.status.file_size)
+                if offsets is not None:
+                    items = self._at_offsets(buf, items, offsets)
+                    how = "; its messages were read at the offsets its index records give"
+                yield from items
+                raise _Damaged(f"its record at offset {at} in the chunk is damaged ({why})"
+                               + (f", and {more} more after it" if more else "") + how)
+            yield from items
+            if len(buf) != size:  # the records are whole: the size field is what is damaged
+                st.damage.append(Damage(self._chunk_pos, f"chunk record: it holds {len(buf)} "
+                                        f"bytes, its header says {size}", lost=Counter()))
             return
         # The output of a cut stream is exactly the start of the chunk's records, so every
         # complete record in it is as good as if the chunk were whole.
@@ -340,64 +580,108 @@ class Ros1Scan:
                           + (f"{got} messages recovered from it, the rest lost)" if got else
                              "no complete message could be recovered from them)"))
 
-    def _chunk_records(self, buf: bytes):
+    def _at_offsets(self, buf: bytes, items: list, offsets: list[int]) -> list:
+        """The records of the damaged chunk ``buf`` read again at the message ``offsets`` its
+        index data records give: the connections of the first reading ``items``, then each
+        message record that parses at its offset (the others are lost)."""
+        self.status.messages -= sum(self._got.values())
+        self._got = Counter()
+        inner = self._inner
+        out = [c for c in items if type(c) is Connection]
+        n = len(buf)
+        for off in offsets:
+            if off + 8 > n:
+                continue
+            hend = off + 4 + _U32.unpack_from(buf, off)[0]
+            end = hend + 4 + (_U32.unpack_from(buf, hend)[0] if hend + 4 <= n else n)
+            if end > n:
+                continue
+            with contextlib.suppress(_Damaged):
+                out += [m for m in self._chunk_records(buf[off:end]) if type(m) is Message]
+        self._inner = inner
+        return out
+
+    def _chunk_records(self, buf: bytes, resync: bool = False):
         """Yield the connection and message records in the decompressed chunk ``buf`` up to the
-        first incomplete one; returns the offset where it stopped."""
+        first incomplete one; returns the offset where it stopped. ``resync``: ``buf`` is a
+        whole chunk, whose damaged records are noted in ``_inner`` (offset, why) and skipped
+        to the next record found by its 'op' field (as a reader using the index would)."""
         st = self.status
         conns = self.connections
         n = len(buf)
         pos = 0
+        self._inner = []
         while pos + 4 <= n:
-            (hlen,) = _U32.unpack_from(buf, pos)
-            hend = pos + 4 + hlen
-            if hend + 4 > n:
-                break
-            (dlen,) = _U32.unpack_from(buf, hend)
-            dend = hend + 4 + dlen
-            if dend > n:
-                break
-            sec = -1
-            if hlen == _MSG_HLEN:
-                ft, sec, nsec, fc, cid, fo = _MSG_TCO.unpack_from(buf, pos + 4)
-                if not (ft == _F_TIME and fc == _F_CONN and fo == _F_OP):
-                    fo, fc, cid, ft, sec, nsec = _MSG_OCT.unpack_from(buf, pos + 4)
+            try:
+                (hlen,) = _U32.unpack_from(buf, pos)
+                hend = pos + 4 + hlen
+                if hend + 4 > n:
+                    if not resync:
+                        break
+                    raise _Damaged("its header runs past the chunk's end")
+                (dlen,) = _U32.unpack_from(buf, hend)
+                dend = hend + 4 + dlen
+                if dend > n:
+                    if not resync:
+                        break
+                    raise _Damaged("its data runs past the chunk's end")
+                sec = -1
+                if hlen == _MSG_HLEN:
+                    ft, sec, nsec, fc, cid, fo = _MSG_TCO.unpack_from(buf, pos + 4)
                     if not (ft == _F_TIME and fc == _F_CONN and fo == _F_OP):
-                        sec = -1
-            if sec >= 0:  # a message record in one of the usual layouts
-                op = OP_MSGDATA
-            else:
-                fields = _fields(buf, pos + 4, hend)
-                op = _op(fields)
-            if op == OP_MSGDATA:
-                if sec < 0:
-                    cid = _u32(fields, "conn")
-                conn = conns.get(cid)
-                if conn is None:
-                    raise _Damaged(f"message on connection {cid}, which has no record before it")
-                if sec < 0:
-                    t = fields.get("time")
-                    if t is None or len(t) != 8:
-                        raise _Damaged("message record has no 8-byte 'time' field")
-                    sec, nsec = _TIME.unpack(t)
-                st.messages += 1
-                yield Message(conn, sec * 1_000_000_000 + nsec, buf[hend + 4:dend])
-            elif op == OP_CONNECTION:
-                c = _connection(fields, buf[hend + 4:dend])
-                if conns.get(c.id) != c:  # writers may repeat a connection in later chunks
-                    conns[c.id] = c
-                    yield c
-            else:
-                raise _Damaged(f"unexpected record op {op} inside a chunk")
+                        fo, fc, cid, ft, sec, nsec = _MSG_OCT.unpack_from(buf, pos + 4)
+                        if not (ft == _F_TIME and fc == _F_CONN and fo == _F_OP):
+                            sec = -1
+                if sec >= 0:  # a message record in one of the usual layouts
+                    op = OP_MSGDATA
+                else:
+                    fields = _fields(buf, pos + 4, hend)
+                    op = _op(fields)
+                if op == OP_MSGDATA:
+                    if sec < 0:
+                        cid = _u32(fields, "conn")
+                    conn = conns.get(cid)
+                    if conn is None:
+                        raise _Damaged(f"message on connection {cid}, which has no record "
+                                       "before it")
+                    if sec < 0:
+                        t = fields.get("time")
+                        if t is None or len(t) != 8:
+                            raise _Damaged("message record has no 8-byte 'time' field")
+                        sec, nsec = _TIME.unpack(t)
+                    st.messages += 1
+                    self._got[cid] += 1
+                    yield Message(conn, sec * 1_000_000_000 + nsec, buf[hend + 4:dend])
+                elif op == OP_CONNECTION:
+                    c, bad = _connection(fields, buf[hend + 4:dend])
+                    if bad:
+                        st.damage.append(Damage(self._chunk_pos, f"in its chunk, {bad}",
+                                                lost=Counter()))
+                    if conns.get(c.id) != c:  # writers may repeat a connection in later chunks
+                        conns[c.id] = c
+                        yield c
+                else:
+                    raise _Damaged(f"unexpected record op {op} inside a chunk")
+            except _Damaged as e:
+                if not resync:
+                    raise
+                self._inner.append((pos, str(e)))
+                pos = _next_inner_record(buf, pos + 1)
+                continue
             pos = dend
+        if resync and pos < n:
+            self._inner.append((pos, "a record runs past the chunk's end"))
+            pos = n
         return pos
 
 
-def index_connections(path: str | Path) -> list[Connection] | None:
-    """The connection records of an intact ROS1 v2.0 bag's index (at the end of the file, at the
-    bag header's ``index_pos``), without reading its chunks or the per-message index: what a
-    reader needs to check topics and types before it scans the bag from the front. None when
-    the bag has no usable index (no ``index_pos``, one past the end of the file, or records
-    there that are not connections), is encrypted or is not a ROS1 v2.0 bag at all."""
+def read_index(path: str | Path) -> Index | None:
+    """The connection and chunk info records of an intact ROS1 v2.0 bag's index (at the end of
+    the file, at the bag header's ``index_pos``), without reading its chunks or the per-message
+    index: what a reader needs to check topics and types before it scans the bag from the
+    front, and to count what a damaged chunk costs. None when the bag has no usable index (no
+    ``index_pos``, one past the end of the file, or records there that are not connections),
+    is encrypted or is not a ROS1 v2.0 bag at all."""
     scan = Ros1Scan(path)
     size = scan.status.file_size
     try:
@@ -409,6 +693,7 @@ def index_connections(path: str | Path) -> list[Connection] | None:
                 return None
             index_pos = fields.get("index_pos")
             conn_count = _u32(fields, "conn_count")
+            chunk_count = _u32(fields, "chunk_count")
             if index_pos is None or len(index_pos) != 8:
                 return None
             (pos,) = struct.unpack("<Q", index_pos)
@@ -420,7 +705,25 @@ def index_connections(path: str | Path) -> list[Connection] | None:
                 fields, data, _ = scan._record(f, read_data=True)
                 if fields is None or _op(fields) != OP_CONNECTION:
                     return None
-                out.append(_connection(fields, data))
-            return out
+                out.append(_connection(fields, data)[0])  # damage: the scan notes it
+            return Index(out, _chunk_infos(f, scan, chunk_count))
     except (OSError, _Incomplete, _Damaged):
         return None
+
+
+def _chunk_infos(f, scan: Ros1Scan, count: int) -> dict[int, Counter] | None:
+    """The ``count`` chunk info records at the file position: chunk byte -> connection id ->
+    messages; None if one is damaged."""
+    out: dict[int, Counter] = {}
+    try:
+        for _ in range(count):
+            fields, data, _ = scan._record(f, read_data=True)
+            if fields is None or _op(fields) != OP_CHUNK_INFO or len(data) % 8 or \
+                    len(fields.get("chunk_pos", b"")) != 8:
+                return None
+            (cpos,) = struct.unpack("<Q", fields["chunk_pos"])
+            pairs = struct.unpack(f"<{len(data) // 4}I", data)
+            out[cpos] = Counter(dict(zip(pairs[::2], pairs[1::2], strict=True)))
+    except (OSError, _Incomplete, _Damaged):
+        return None
+    return out

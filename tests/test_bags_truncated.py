@@ -486,8 +486,7 @@ def test_message_header_fast_path_reads_both_layouts_as_the_field_parser(monkeyp
                 "time": struct.pack("<II", 1_700_000_000 + i, 1000 * i)}
         recs.append(record([field(k.encode(), vals[k]) for k in order], bytes([i]) * (5 + i)))
     buf = b"".join(recs)
-    scan = ros1_scan.Ros1Scan.__new__(ros1_scan.Ros1Scan)
-    scan.status, scan.connections = ros1_scan.ScanStatus(file_size=0), {}
+    scan = ros1_scan.Ros1Scan(SAMPLE)  # its state, without reading the file
 
     def items():
         return [(type(x).__name__, x.time_ns, x.data) if type(x) is ros1_scan.Message
