@@ -46,7 +46,8 @@ class Expect:
     """What a case's run must show.
 
     ``rc``: the allowed exit codes. ``message``: a regex (case-insensitive) that one line of
-    stdout or stderr must match. ``bound``: the name of the accuracy check in the test (see
+    stdout or stderr must match, with the case's name (in its bag's and output's paths) written
+    CASE there. ``bound``: the name of the accuracy check in the test (see
     ``tests/test_hostile_corpus.py``, where each bound is derived), None for none.
     ``absent``: regexes no output line may match. ``xfail``: "<bullet>; fixed by the <branch>
     branch" while ddfuse fails the case. ``counted``: the message may instead be a key of
@@ -374,7 +375,7 @@ def gps_jump_50m_20s(bag: Bag) -> None:
 
 # --- a damaged bag -----------------------------------------------------------------------------
 
-@case(message=r"damaged_connection\.bag\b.*(damag|corrupt|invalid|unreadable|broken)",
+@case(message=r"CASE\.bag\b.*(damag|corrupt|invalid|unreadable|broken)",
       xfail="issue 32: a damaged bag refused for the wrong reason (one flipped byte in a "
       "connection record); fixed by the bagread branch")
 def damaged_connection(bag: Bag) -> None:
