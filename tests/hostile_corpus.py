@@ -8,12 +8,13 @@ same from Python (``tests/test_hostile_corpus.py`` calls it into a temporary fol
 is deterministic: the same bytes every time, no random numbers.
 
 A case is a function that edits the source bag's records in place (``Bag``: its connections and
-``(connection, record time ns, serialised bytes)`` records, with ``edit`` / ``restamp`` to change
-a decoded message), registered with ``@case(...)`` and the expectation its test checks
-(``Expect``): the exit code, a regex one line of the output must match (naming the topic or
-file and what is wrong), the bound on each estimator's error, and, while the fault is not
-handled, the issue bullet and the branch that fixes it (the test is then a strict xfail). Its
-docstring states what ddfuse did with it when the corpus was written (the "before" figures).
+``(connection, record time ns, serialised bytes)`` records, with ``edit`` to change a decoded
+message; a case's ``written`` edits the bytes of the written file), registered with
+``@case(...)`` and the expectation its test checks (``Expect``): the exit code, a regex one line
+of the output must match (naming the topic or file and what is wrong), the bound on each
+estimator's error, and, while the fault is not handled, the issue bullet and the branch that
+fixes it (the test is then a strict xfail). Its docstring states what ddfuse did with it when
+the corpus was written (the "before" figures).
 """
 
 from __future__ import annotations
@@ -71,6 +72,7 @@ class Case:
     command: str = "run"  # or "inspect"
     config: Callable[[dict], None] | None = None  # edits the source config in place
     holdout: str | None = None  # the --gps-holdout of the reference run a bound is taken from
+    written: Callable[[Path], None] | None = None  # edits the written bag file in place
 
     @property
     def doc(self) -> str:
@@ -80,11 +82,12 @@ class Case:
 CASES: dict[str, Case] = {}
 
 
-def case(source: str = "sample", *, command: str = "run", config=None, holdout=None, **expect):
+def case(source: str = "sample", *, command: str = "run", config=None, holdout=None,
+         written=None, **expect):
     """Register the decorated function as a case named after it."""
     def register(make):
         CASES[make.__name__] = Case(make.__name__, source, make, Expect(**expect), command,
-                                    config, holdout)
+                                    config, holdout, written)
         return make
     return register
 
@@ -366,7 +369,8 @@ def gps_jump_50m_20s(bag: Bag) -> None:
     smoother 8.2 km and ERROR, smoother_lagged ERROR, batch ERROR with no track; with the
     window's fixes withheld instead (the bound's reference) ekf 0.129 m, batch 0.086."""
     lo, hi = (bag.t0_ns + round(s * 1e9) for s in JUMP)
-    east = 50.0 / (6378137.0 * math.cos(math.radians(47.397742)))  # rad of longitude
+    # rad of longitude (at the sample's datum latitude, WGS84 equatorial radius)
+    east = 50.0 / (6378137.0 * math.cos(math.radians(47.397742)))
 
     def change(m):
         m.longitude += math.degrees(east)
@@ -377,18 +381,6 @@ def gps_jump_50m_20s(bag: Bag) -> None:
 
 # --- a damaged bag -----------------------------------------------------------------------------
 
-@case(message=r"CASE\.bag\b.*(damag|corrupt|invalid|unreadable|broken)",
-      xfail="issue 32: a damaged bag refused for the wrong reason (one flipped byte in a "
-      "connection record); fixed by the bagread branch")
-def damaged_connection(bag: Bag) -> None:
-    """The first connection record of /fix inside a chunk has one byte of its
-    message_definition text flipped (0x80 set: not UTF-8 any more); every message is intact.
-    Before: exit 2, "ddfuse: error: ...damaged_connection.bag: no configured sensor
-    topic has a message (/odom ..., /imu/data ..., /fix ...): nothing to estimate from"; inspect
-    lists every message."""
-    # the flip is made in the written file (``damage``): the records are the source's
-
-
 def damage(path: Path) -> None:
     """Flip one byte of the message definition in /fix's first connection record (the first
     ``topic=/fix`` field of the file: in the first chunk's connection record)."""
@@ -397,6 +389,17 @@ def damage(path: Path) -> None:
     at = raw.find(b"message_definition=", topic)
     raw[at + len(b"message_definition=") + 10] |= 0x80
     path.write_bytes(bytes(raw))
+
+
+@case(written=damage, message=r"CASE\.bag\b.*(damag|corrupt|invalid|unreadable|broken)",
+      xfail="issue 32: a damaged bag refused for the wrong reason (one flipped byte in a "
+      "connection record); fixed by the bagread branch")
+def damaged_connection(bag: Bag) -> None:
+    """The first connection record of /fix inside a chunk has one byte of its
+    message_definition text flipped (0x80 set: not UTF-8 any more); every message is intact.
+    Before: exit 2, "ddfuse: error: ...damaged_connection.bag: no configured sensor
+    topic has a message (/odom ..., /imu/data ..., /fix ...): nothing to estimate from"; inspect
+    lists every message."""
 
 
 # --- tracebacks, exit codes --------------------------------------------------------------------
@@ -478,8 +481,8 @@ def generate(outdir: Path, names=None, shared_data: Path | None = None) -> dict[
                   src.store)
         c.make(bag)
         out = bag.write(outdir / f"{name}.bag")
-        if c.make is damaged_connection:
-            damage(out)
+        if c.written:
+            c.written(out)
         cfg = yaml.safe_load(config_path.read_text())
         if c.config:
             c.config(cfg)
@@ -491,5 +494,10 @@ def generate(outdir: Path, names=None, shared_data: Path | None = None) -> dict[
 if __name__ == "__main__":
     if len(sys.argv) < 2:
         sys.exit("usage: python tests/hostile_corpus.py OUTDIR [CASE ...]")
-    for name, path in generate(Path(sys.argv[1]), sys.argv[2:] or None).items():
-        print(f"{name}: {path}")
+    names = sys.argv[2:] or list(CASES)
+    if set(names) - set(CASES):
+        sys.exit(f"unknown case(s) {sorted(set(names) - set(CASES))}; cases: {', '.join(CASES)}")
+    written = generate(Path(sys.argv[1]), names)
+    for name in names:
+        print(f"{name}: {written[name]}" if name in written else
+              f"{name}: skipped, {source_paths(CASES[name].source)[0]} not found")
