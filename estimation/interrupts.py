@@ -58,23 +58,28 @@ def interrupt_name(what: BaseException | int) -> str:
 
 @contextmanager
 def held_signals() -> Iterator[list[int]]:
-    """Hold SIGINT and SIGTERM during the block (module docstring); yields the list of the
-    signal numbers held, filled as they come. The handlers are restored on leaving it; nothing
-    held is acted on unless the caller ``deliver``s it."""
+    """Hold SIGINT and SIGTERM during the block (module docstring), each where its handler is
+    a Python one (one that raises: Ctrl-C's, ``terminate_as_interrupt``'s); yields the list of
+    the signal numbers held, filled as they come. The handlers are restored on leaving it;
+    nothing held is acted on unless the caller ``deliver``s it."""
     if threading.current_thread() is not threading.main_thread():
         yield []
         return
     held: list[int] = []
-    previous = {s: signal.getsignal(s) for s in _SIGNALS}
+    # only a signal that raises (a Python handler: Ctrl-C's, terminate_as_interrupt's) is held;
+    # one left to the system (SIGTERM's default: the process ends) keeps its effect
+    previous = {s: h for s in _SIGNALS if callable(h := signal.getsignal(s))}
 
     def hold(signum, frame) -> None:
         if signum in held:  # the second one: act on it now
             _restore(previous)
             signal.raise_signal(signum)
             return
+        if signum == signal.SIGTERM:
+            _received.append(signum)  # the exit code is SIGTERM's, delivered or only noted
         held.append(signum)
 
-    for s in _SIGNALS:
+    for s in previous:
         signal.signal(s, hold)
     try:
         yield held
@@ -84,8 +89,7 @@ def held_signals() -> Iterator[list[int]]:
 
 def _restore(previous: dict) -> None:
     for s, h in previous.items():
-        if h is not None:  # None: a handler not installed from Python; left as it is
-            signal.signal(s, h)
+        signal.signal(s, h)
 
 
 def deliver(held: list[int]) -> None:

@@ -159,3 +159,24 @@ def test_ctrl_c_during_the_report_says_how_to_render_it_later(tmp_path, monkeypa
                        f"results in {out}/ are complete; 'ddfuse report {out}' renders it")
     assert (out / "metrics.json").is_file() and not (out / "report.html").exists()
 
+
+
+def test_sigterm_is_held_only_where_it_would_raise(monkeypatch):
+    """Taken as an interrupt (the command line's handler), SIGTERM is held like Ctrl-C and
+    sets the exit code's flag; left to the system (a library caller), it is not touched."""
+    from ddfuse.estimation import interrupts
+
+    monkeypatch.setattr(interrupts, "_received", [])
+    before = signal.getsignal(signal.SIGTERM)
+    try:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        with held_signals():
+            assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+        interrupts.terminate_as_interrupt()
+        with held_signals() as held:
+            signal.raise_signal(signal.SIGTERM)
+        assert held == [signal.SIGTERM] and interrupts.sigterm_received()
+        with pytest.raises(interrupts.Terminated):
+            interrupts.deliver(held)
+    finally:
+        signal.signal(signal.SIGTERM, before)
