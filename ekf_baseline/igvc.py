@@ -67,6 +67,7 @@ from ddfuse.ekf_baseline.igvc_start import _USED, IgvcStart
 from ddfuse.ekf_baseline.kalman import KalmanCore
 from ddfuse.estimation.config import DEFAULT_GATE, Config, SensorConfig
 from ddfuse.estimation.estimator import Estimate, Estimator
+from ddfuse.estimation.gaps import gap_note, grown_pose_cov, is_gap
 from ddfuse.estimation.gps_correlation import inflation as gps_inflation
 from ddfuse.estimation.measurements import (
     ForwardAccel,
@@ -86,9 +87,6 @@ STATE_NAMES = gen.STATE_NAMES
 DEFAULT_TRACK = 0.5  # m, used only for the wheel-speed states when robot.track_width is unset
 FEED_GAP_S = 5.0  # s without any message: a gap in the feed (``IgvcEkf._bridge_gap``)
 GAP_RESTART_STD = 10e3  # m: a gap that leaves the position this uncertain restarts the filter
-# s: a longer gap restarts it without predicting over it (its 0.05 s steps: 6000 per 300 s;
-# the sample bag's limits give a 450 km position sigma after 300 s)
-GAP_CARRY_MAX_S = 300.0
 # deg: |lat| beyond which the filter refuses to run, about POLE_LIMIT_KM from a pole (module
 # docstring: the meridian convergence the model ignores grows as 1/distance to the pole)
 POLE_LIMIT_DEG = 89.91
@@ -328,29 +326,38 @@ class IgvcEkf(IgvcStart, IgvcKernels, Estimator):
             self.log.rejected[(m.sensor, "before_init")] += 1
 
     def _bridge_gap(self, t: float) -> None:
-        """Carry the filter over a gap in the feed (no message for more than FEED_GAP_S), or
-        restart it when the gap leaves its position unknown (sigma over GAP_RESTART_STD).
+        """Carry the filter over a silence in the feed (no message for more than FEED_GAP_S),
+        or restart it over a gap (``estimation.gaps``: more than GAP_S).
 
-        The jerk-driven model grows the position's variance as dt^5: 50 m of sigma after a 10
-        s gap on the sample bag, 3.5 km after 60 s, 450 km after 300 s. Past a few tens of km
-        the two position representations (lat, lon on the sphere, x, y on the plane) move
-        apart under it, the covariance between them is lost, and the GPS, which measures
-        lat/lon, no longer reaches x, y: their sigma stayed at 2 m after a 300 s gap, 125 m
-        after 900 s, and a day broke the filter; re-tying the pairs (``_retie_pairs``) at
-        such variances loses positive definiteness. A restart starts as the run did (GPS and a
-        heading, or the GPS course), as the smoother starts a new window after a gap that
-        leaves its heading unknown."""
+        A silence up to GAP_S is predicted over. Over a gap the held twist says nothing: the
+        jerk-driven model grew the position's variance as dt^5 (3.5 km of sigma after 60 s on
+        the sample bag, 450 km after 300 s) and its mean went 100 m off. So the filter starts
+        again from the last pose with the covariance the gap rule grows it by
+        (``grown_pose_cov``), the twist as at the start, the calibration states as learnt
+        (their walks over the gap). When that leaves the position sigma over GAP_RESTART_STD
+        and a GPS will give it again, it starts as the run did (GPS and a heading, or the GPS
+        course): past a few tens of km of variance the two position representations (lat, lon
+        on the sphere, x, y on the plane) move apart and the fixes no longer reach x, y."""
         gap = t - self.t
-        if gap <= GAP_CARRY_MAX_S:  # beyond it, not worth its predict steps: restarted anyway
+        if not is_gap(gap):
             self.predict_to(t)
-            sd = math.sqrt(max(float(self.kf.P[X, X]), float(self.kf.P[Y, Y])))
-            if sd <= GAP_RESTART_STD:
-                return
-            why = f"position sigma {sd / 1000.0:.0f} km over it"
-        else:
-            why = f"over {GAP_CARRY_MAX_S:.0f} s"
-        self.log.note(t, f"{self.name}: restarted after a {gap:.1f} s gap in the feed ({why}): "
-                         "it starts again as at the beginning")
+            return
+        kf = self.kf
+        x_old, P_old = kf.x.copy(), kf.P.copy()
+        pose = grown_pose_cov(P_old[_POSE_IX], gap, self.cfg.robot)
+        pos_var = max(float(pose[0, 0]), float(pose[1, 1]))
+        if math.sqrt(pos_var) <= GAP_RESTART_STD or not self._has_gps:
+            self._init(t, (x_old[X], x_old[Y], x_old[PSI]), pos_var, float(pose[2, 2]))
+            x, P = self.kf.x.copy(), self.kf.P.copy()
+            x[N:], P[N:, N:] = x_old[N:], P_old[N:, N:]
+            for i, w in self._walks.items():
+                P[i, i] += w * gap
+            self.kf.x, self.kf.P = x, P
+            self.log.note(t, gap_note(self.name, gap, pose))
+            return
+        self.log.note(t, f"{self.name}: restarted after a {gap:.1f} s gap in the feed "
+                         f"(position sigma {math.sqrt(pos_var) / 1000.0:.0f} km over it): it "
+                         "starts again as at the beginning")
         self.kf = None
         self.t = None
         self._course = self._course_start()

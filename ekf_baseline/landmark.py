@@ -50,6 +50,7 @@ from ddfuse.ekf_baseline.calibration import ScaleStates
 from ddfuse.ekf_baseline.kalman import KalmanCore
 from ddfuse.estimation.config import DEFAULT_GATE, LANDMARK_NOT_IN_MAP, Config, landmark_maps
 from ddfuse.estimation.estimator import Estimate, Estimator
+from ddfuse.estimation.gaps import gap_note, grown_pose_cov, is_gap
 from ddfuse.estimation.measurements import (
     GroundTruthPose,
     LandmarkObservation,
@@ -251,6 +252,9 @@ class _OdometryDrivenEkf(Estimator):
             return
         if self.kf is None:
             return
+        last = self._pending[-1].t if self._pending else self.t
+        if last is not None and is_gap(m.t - last):
+            self._after_gap(m.t)
         if isinstance(m, WheelOdometry):
             self._odometry(m.t, m.v, m.yaw_rate, m.v_var, m.yaw_rate_var, m.sensor)
         elif isinstance(m, WheelSpeeds):
@@ -265,6 +269,27 @@ class _OdometryDrivenEkf(Estimator):
                 self._sighting(m)
             else:
                 self._pending.append(m)
+
+    def _after_gap(self, t: float) -> None:
+        """No message for a gap (``estimation.gaps``) until ``t``: apply the sightings before
+        it, then restart at ``t`` from the last pose with its covariance grown by what the robot
+        could have done in the gap, every cross term with the pose dropped (scales and mapped
+        landmarks keep theirs). The next odometry sample only starts the clock again: held
+        backward over the gap, its twist with the noise of one sample period made the pose
+        over-confident after it (docs/design/gaps.md)."""
+        self._flush()
+        kf = self.kf
+        gap = t - self.t
+        P = kf.P.copy()
+        pose = grown_pose_cov(P[:3, :3], gap, self.cfg.robot)
+        P[:3, :] = 0.0
+        P[:, :3] = 0.0
+        P[:3, :3] = pose
+        kf.P = P
+        self.t = t
+        self._t_odo = None
+        self._pose_prior = kf.x[:3].copy()
+        self.log.note(t, gap_note(self.name, gap, pose))
 
     def _odometry(self, t: float, v, w, v_var: float, w_var: float, sensor: str) -> None:
         """A sample covering (previous sample, t]: the twist of that interval; apply the

@@ -63,6 +63,7 @@ from ddfuse.ekf_baseline.unicycle_motion import (
 from ddfuse.ekf_baseline.unicycle_start import UnicycleStart
 from ddfuse.estimation.config import DEFAULT_GATE, Config
 from ddfuse.estimation.estimator import Estimate, Estimator
+from ddfuse.estimation.gaps import gap_note, grown_pose_cov, is_gap
 from ddfuse.estimation.measurements import (
     GpsFix,
     GroundTruthPose,
@@ -297,6 +298,10 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
             return
         if self.kf is None and not self._try_start(m):
             return
+        if self._aligned and self.t is not None:
+            last = self._buf[-1].t if self._buf else self.t
+            if is_gap(m.t - last):
+                self._after_gap(m.t, last)
         if self.rate is None:
             if self.compiled:
                 p = self._pack(m)
@@ -347,6 +352,30 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
             state_names=self.state_names,
             pose_error=self.pose_error,
         )
+
+    def _after_gap(self, t: float, last: float) -> None:
+        """No message from ``last`` to ``t`` (a gap, ``estimation.gaps``): apply what is
+        buffered (rate mode), then restart at ``t`` from the last pose with its covariance
+        grown by what the robot could have done in the gap; the twist unknown (zero, sigma the
+        robot's limits), the calibration states as learnt with their walks over the gap, every
+        cross term with the pose dropped. The held twist is not predicted over it (that put the
+        track hundreds of metres off; docs/design/gaps.md)."""
+        if self._buf:
+            self._step(self._t0 + self._k / self.rate)
+        kf, robot = self.kf, self.cfg.robot
+        gap = t - self.t
+        x, P = kf.x.copy(), kf.P.copy()
+        pose = grown_pose_cov(P[:3, :3], gap, robot)
+        P[:5, :] = 0.0
+        P[:, :5] = 0.0
+        P[:3, :3] = pose
+        P[3, 3], P[4, 4] = robot.speed_limit ** 2, robot.yaw_rate_limit ** 2
+        for i, w in zip(self._bias_states + self._hoff_states, self._walks, strict=True):
+            P[i, i] += w * gap
+        x[3] = x[4] = 0.0
+        kf.x, kf.P = x, P
+        self.t = t
+        self.log.note(t, gap_note(self.name, gap, pose))
 
     def _sensor(self, name: str) -> _Sensor:
         info = self._sensors.get(name)

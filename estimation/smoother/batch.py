@@ -42,10 +42,10 @@ class BatchSmoother(FixedLagSmoother):
         except RuntimeError as e:
             self.log.note(self.twist.last_t, f"batch optimisation failed: {e}")
             return
-        times = {int(window.key(j)): t for j, t in window.all_kf_t.items()}
-        for key, t in sorted(times.items(), key=lambda kv: kv[1]):
+        for j, t in sorted(window.all_kf_t.items(), key=lambda jt: jt[1]):
+            key = int(window.key(j))
             x = result.atVector(key)
-            cov = marg.marginalCovariance(key)
+            cov = window.with_gauge(j, marg.marginalCovariance(key))
             self._final.append(Estimate(t, (float(x[0]), float(x[1]), wrap_angle(float(x[2]))),
                                         cov[:3, :3].copy(), x.copy(), cov.copy(), NAMES))
 

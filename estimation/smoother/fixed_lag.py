@@ -285,7 +285,8 @@ class FixedLagSmoother(Estimator):
         init = self.init
         if init.restart is not None:  # a gap ended the window; the new one waits to start
             pose, pos_sigma, psi_sigma, _ = init.restart
-            cov = np.diag((pos_sigma ** 2, pos_sigma ** 2, psi_sigma ** 2))
+            gauge = self.window.gauge_var(self.window.k + 1)
+            cov = np.diag((pos_sigma ** 2 + gauge, pos_sigma ** 2 + gauge, psi_sigma ** 2))
             return Estimate(init.restart_buf[-1].t if init.restart_buf else self.now, pose,
                             cov, None, None, NAMES)
         if not self.initialised or self.window.kf_state is None:
@@ -294,6 +295,7 @@ class FixedLagSmoother(Estimator):
         st, kf_cov = self.headings.with_pending()
         pim = twist.frozen()
         pose, cov = compose(st, twist.delta(st, pim), pim.covariance, kf_cov)
+        cov = self.window.with_gauge(self.window.k, cov)
         t = twist.last_t
         ahead = self.now - t
         if ahead > 0.0 and twist.v is not None:

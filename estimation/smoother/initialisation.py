@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from ddfuse.estimation.estimator import wrap_angle
+from ddfuse.estimation.gaps import gap_note, grown_pose_cov, is_gap
 from ddfuse.estimation.gps_course import GpsCourseStart
 from ddfuse.estimation.measurements import Heading
 from ddfuse.estimation.smoother.held_twist import ODOMETRY_WAIT
@@ -121,22 +122,26 @@ class Initialisation:
 
     # --- restart after a gap ----------------------------------------------------------------
     def after_gap(self, t: float) -> None:
-        """No message from ``sm.now`` to ``t``: if the yaw rate held over that gap leaves the
-        heading more uncertain than GAP_HEADING_SIGMA, end the window at the last message and
-        start a new one at ``t``, from the last estimate carried over the gap by its twist,
-        with the position and heading sigmas the gap leaves and the calibration states as
-        learnt (their walks grown over the gap). Why (one preintegrated factor across such a
-        gap is linearised at a heading that is unknown): docs/design/smoother.md."""
+        """No message from ``sm.now`` to ``t``. A gap in the feed (``estimation.gaps``: over
+        GAP_S) ends the window at the last message and starts a new one at ``t`` from the last
+        pose, its covariance grown by what the robot could have done in the gap
+        (``grown_pose_cov``). A shorter silence does so only if the yaw rate held over it leaves
+        the heading more uncertain than GAP_HEADING_SIGMA; the new window then starts from the
+        last estimate carried over it by its twist, with the sigmas it leaves. Either way the
+        calibration states go on as learnt (their walks grown over the gap). Why (one
+        preintegrated factor across such a gap is linearised at a heading that is unknown):
+        docs/design/smoother.md; the gap rule: docs/design/gaps.md."""
         sm = self.sm
         tw, window = sm.twist, sm.window
         gap = t - sm.now
         n, robot = sm.noise, sm.cfg.robot
+        long_gap = is_gap(gap)
         yaw = []
         for var, period, w in ((tw.wg_var, tw.wg_T, tw.wg), (tw.wo_var, tw.wo_T, tw.wo)):
             if w is not None:
                 q = twist_walk(robot.max_yaw_accel, n.yaw_acc, period)
                 yaw.append(var * gap * gap + q * gap ** 3 / 3.0)
-        if not yaw or min(yaw) < GAP_HEADING_SIGMA ** 2 or tw.v is None:
+        if not long_gap and (not yaw or min(yaw) < GAP_HEADING_SIGMA ** 2 or tw.v is None):
             return
         sm.release_held()
         if tw.pim.n > 0:
@@ -145,30 +150,50 @@ class Initialisation:
         x, full = window.kf_state, window.full
         if full is None or full.shape != (DIM, DIM):
             return
-        qv = twist_walk(robot.max_accel, n.acc, tw.v_T)
-        v = float(x[3])
-        grow_pos = tw.v_var * gap * gap + qv * gap ** 3 / 3.0
-        psi_var = float(full[2, 2]) + min(yaw)
-        # a heading this unknown spreads the carried position along the arc of |v| gap
-        pos_sigma = math.sqrt(max(float(full[0, 0]), float(full[1, 1])) + grow_pos
-                              + (v * gap) ** 2 * min(psi_var, 1.0))
-        px, py, ppsi = se2_step(float(x[0]), float(x[1]), float(x[2]), v, float(x[4]), gap)
+        if long_gap:
+            grown = grown_pose_cov(full[:3, :3], gap, robot)
+            px, py, ppsi = float(x[0]), float(x[1]), float(x[2])
+            pos_var, psi_var = max(float(grown[0, 0]), float(grown[1, 1])), float(grown[2, 2])
+            sm.log.note(t, gap_note("smoother", gap, grown) + "; the window ends there")
+        else:
+            qv = twist_walk(robot.max_accel, n.acc, tw.v_T)
+            v = float(x[3])
+            grow_pos = tw.v_var * gap * gap + qv * gap ** 3 / 3.0
+            psi_var = float(full[2, 2]) + min(yaw)
+            # a heading this unknown spreads the carried position along the arc of |v| gap
+            pos_var = (max(float(full[0, 0]), float(full[1, 1])) + grow_pos
+                       + (v * gap) ** 2 * min(psi_var, 1.0))
+            px, py, ppsi = se2_step(float(x[0]), float(x[1]), float(x[2]), v, float(x[4]), gap)
+            sm.log.note(t, f"no message for {gap:.1f} s: the heading after it is unknown (sigma "
+                        f"{math.sqrt(psi_var):.2f} rad); the window ends there and a new one "
+                        f"starts from the estimate carried over the gap (position sigma "
+                        f"{math.sqrt(pos_var):.1f} m)")
         calib_cov = full[BG:, BG:].copy()
         calib_cov[0, 0] += (n.gyro_bias_rw if sm.est_bias else n.fixed_rw) ** 2 * gap
         calib_cov[1, 1] += (n.heading_offset_rw if sm.est_hoff else n.fixed_rw) ** 2 * gap
-        sm.log.note(t, f"no message for {gap:.1f} s: the heading after it is unknown (sigma "
-                    f"{math.sqrt(psi_var):.2f} rad); the window ends there and a new one "
-                    f"starts from the estimate carried over the gap (position sigma "
-                    f"{pos_sigma:.1f} m)")
         window.capture_leaving(math.inf, newest=True)  # the window as it stood: all smoothed
         window.restart()
+        prior_var = pos_var
+        if not self.position_observed:
+            # Nothing measures the position: its grown variance is a pure offset of the new
+            # window, added to every output (``Window.gauge``). In gtsam's prior it stood
+            # beside walks of 1e-4 (a condition of 1e11): indeterminate at the first keyframe,
+            # four re-initialisations and the smoother stopped (rl_jackal.bag, a 15 s gap).
+            prior_var = min(pos_var, max(float(full[0, 0]), float(full[1, 1])))
+            window.add_gauge(window.k + 1, pos_var - prior_var)
         # the held samples described the time before the gap; the next ones start afresh
         tw.forget()
         sm.held = []
-        self.restart = ((px, py, wrap_angle(ppsi)), pos_sigma, min(math.sqrt(psi_var), math.pi),
-                        (x[BG:].copy(), calib_cov))
+        self.restart = ((px, py, wrap_angle(ppsi)), math.sqrt(prior_var),
+                        min(math.sqrt(psi_var), math.pi), (x[BG:].copy(), calib_cov))
         self.restart_buf = []
         sm.initialised = False  # until restart_now: the new window's first keyframe
+
+    @property
+    def position_observed(self) -> bool:
+        """True if a configured sensor measures the position (a GPS, landmarks)."""
+        cfg = self.sm.cfg
+        return bool(cfg.of_kind("gps") or cfg.of_kind("landmarks"))
 
     def restart_now(self, m) -> None:
         """Open the window a gap ended (``after_gap``) at the first message after it, once a

@@ -37,6 +37,9 @@ class Window:
         self.pending_values = gtsam.Values()
         self.pending_stamps: dict[int, float] = {}
         self.scale_belief: tuple[np.ndarray, np.ndarray] | None = None  # (k_v, k_w), 2x2 cov
+        # (first keyframe index, m^2): position variance outside gtsam from that keyframe on,
+        # cumulative (a restart after a gap with nothing measuring the position; add_gauge)
+        self.gauge: list[tuple[int, float]] = []
         if keep_all:
             self.all_graph = gtsam.NonlinearFactorGraph()
             self.all_values = gtsam.Values()
@@ -160,7 +163,7 @@ class Window:
             key = self.key(j)
             try:
                 x = self.isam.calculateEstimateVector(key)
-                cov = self.isam.marginalCovariance(key)
+                cov = self.with_gauge(j, self.isam.marginalCovariance(key))
             except (RuntimeError, IndexError, ValueError):
                 del self.kf_t[j]
                 continue
@@ -168,6 +171,27 @@ class Window:
                 self.kf_t[j], (float(x[0]), float(x[1]), wrap_angle(float(x[2]))),
                 cov[:3, :3].copy(), x.copy(), cov.copy(), NAMES))
             del self.kf_t[j]
+
+    def add_gauge(self, first: int, var: float) -> None:
+        """From keyframe ``first`` on, every output's position carries ``var`` (m^2) more
+        variance than gtsam's marginal: an unobserved offset of the whole window, the grown
+        uncertainty of a restart after a gap that no sensor measures (docs/design/gaps.md)."""
+        self.gauge.append((first, self.gauge_var(first) + var))
+
+    def gauge_var(self, j: int) -> float:
+        """The position variance (m^2) keyframe ``j``'s outputs add to gtsam's marginal."""
+        return next((v for first, v in reversed(self.gauge) if first <= j), 0.0)
+
+    def with_gauge(self, j: int, cov: np.ndarray) -> np.ndarray:
+        """``cov`` (pose first: x, y) with keyframe ``j``'s gauge variance on x and y (a copy
+        when there is one, else ``cov`` itself)."""
+        g = self.gauge_var(j) if self.gauge else 0.0
+        if g == 0.0:
+            return cov
+        cov = cov.copy()
+        cov[0, 0] += g
+        cov[1, 1] += g
+        return cov
 
     def restart(self) -> None:
         """An empty smoother and window (what was pending is dropped)."""
