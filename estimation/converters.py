@@ -19,6 +19,7 @@ converters (``converter``).
 
 from __future__ import annotations
 
+import logging
 import math
 from collections import Counter
 from collections.abc import Callable
@@ -49,6 +50,8 @@ from ddfuse.estimation.measurements import (
 
 __all__ = ["CONVERTERS", "NULL_ISLAND", "Reject", "converter", "gps_fix",
            "ground_truth_converter", "slope_cells", "unknown_landmarks_note"]
+
+log = logging.getLogger(__name__)
 
 NULL_ISLAND = "latitude and longitude both 0: a receiver's placeholder, not a fix"
 
@@ -223,17 +226,30 @@ def _gps_converter(s: SensorConfig, key: str) -> Callable[[tuple], list]:
     h = s.noise.get("horizontal")
     vert = s.noise.get("vertical", 2.0 * h if h else None)
     fixed = np.diag([h * h, h * h, vert * vert]) if h else None
+    floor = s.min_std * s.min_std
+    floored = (f"stated horizontal covariance below the floor ({s.min_std:g} m)^2 "
+               f"({key}.min_std); the fix is used with the floor")
+    warned: list = []  # the first floored fix is logged
 
     def convert(rec: tuple) -> list:
         fix = gps_fix(rec, s.name)
         if fixed is not None:
             fix.cov = fixed.copy()
-        else:
-            if rec[6] == 0:
-                raise Reject(f"position_covariance_type UNKNOWN; set {key}.noise.horizontal")
-            if not geodesy.enu_covariance_is_valid(rec[5]):
-                raise Reject(f"position_covariance unusable (not symmetric positive definite); "
-                             f"set {key}.noise.horizontal")
+            return [fix]
+        if rec[6] == 0:
+            raise Reject(f"position_covariance_type UNKNOWN; set {key}.noise.horizontal")
+        if not geodesy.enu_covariance_is_valid(rec[5]):
+            raise Reject(f"position_covariance unusable (not symmetric positive definite); "
+                         f"set {key}.noise.horizontal")
+        lam, vec = np.linalg.eigh(fix.cov[:2, :2])
+        if lam[0] < floor:
+            if not warned:
+                warned.append(lam[0])
+                log.warning("%s: a fix states a horizontal variance of %g m^2, below the floor "
+                            "(%g m)^2 (%s.min_std); the floor is used and such fixes counted",
+                            s.topic, lam[0], s.min_std, key)
+            fix.cov[:2, :2] = (vec * np.maximum(lam, floor)) @ vec.T
+            raise Reject(floored, kept=[fix])
         return [fix]
 
     return convert

@@ -53,7 +53,9 @@ from ddfuse.estimation.bags import (
     slope_cells,
 )
 from ddfuse.estimation.config import Config, landmark_maps
+from ddfuse.estimation.gps_watch import GpsWatch
 from ddfuse.estimation.measurements import GpsFix, Stream
+from ddfuse.estimation.robot_limits import RobotLimits
 
 __all__ = ["LiveConverter", "message_type"]
 
@@ -110,6 +112,8 @@ class LiveConverter:
                 self._topics.setdefault(topic, []).append(
                     (kind, key, converter(kind, s, key, self.landmarks, slopes=slopes)))
         self._checks: dict[str, _StampCheck] = {}  # topic -> its stamp check
+        self.screen = RobotLimits(cfg, self.rejected)  # what the robot cannot do: rejected
+        self.watch = GpsWatch(cfg)  # GPS against the odometry: disagreements logged
         self._stamp_reason = (f"header stamp more than {self.tolerance:g} s off its topic's "
                               "clock (time went backwards or jumped)")  # the bag reader's text
 
@@ -165,7 +169,12 @@ class LiveConverter:
                     self.datum = (m.lat, m.lon, m.alt)
                 m.enu = geodesy.geodetic_to_enu(m.lat, m.lon, m.alt, *self.datum)
                 m.datum = self.datum
-        return out
+        return [m for m in out if self._plausible(m)]
+
+    def _plausible(self, m) -> bool:
+        ok = self.screen.admit(m)
+        self.watch.feed(m, ok)
+        return ok
 
     def _stamp_ok(self, topic: str, t: float, rt: float) -> bool:
         """The stamp check of one message (stamp ``t``, received at ``rt``) on ``topic``: the
