@@ -20,10 +20,15 @@ Re-anchoring (the last accepted sample could itself be the glitch, or the robot 
 speed faster than the limit says): ``REANCHOR`` consecutive rejected samples of one sensor that
 agree with each other by the same test replace the anchor, the last of them is passed on. For a
 twist sensor this holds whatever the anchor; for GPS only while the anchor is provisional (the
-first fix, or one accepted more than ``GAP_S`` after the one before it): a fix that has been
-confirmed by its successor keeps its place, and a held GPS jump stays rejected until the top
-speed could have carried the robot there. A sample beyond the top speed or yaw rate never
-re-anchors.
+first fix, or one accepted more than ``GAP_S`` after the one before it, until ``REANCHOR`` fixes
+in a row have agreed with it): a confirmed fix keeps its place, and a held GPS jump stays
+rejected while it holds: a fix that goes on the run of rejected fixes (fits its last one, nearer
+to it than to the anchor) is rejected even when the aged anchor's reach would take it, up to
+``HOLD_S``; a run that lasts longer re-anchors (the receiver has said the same for a minute).
+A fix that fits the anchor and not the run ends the jump. Fixes taken after a run of rejected
+ones keep the anchor before the run as the other side: rejected fixes within the top speed's
+reach of it re-anchor too. A sample beyond the top speed
+or yaw rate never re-anchors.
 
 Each rejection is counted in ``rejected[(topic, reason)]`` (``Stream.rejected``); ``warnings()``
 gives one line per topic and reason with the count, the first time, value and limit. Design and
@@ -41,7 +46,7 @@ from ddfuse.estimation.config import Config
 from ddfuse.estimation.measurements import GpsFix, GyroYawRate, WheelOdometry, WheelSpeeds
 
 __all__ = ["DEFAULT_MAX_ACCEL", "DEFAULT_MAX_YAW_ACCEL", "GAP_S", "K_SIGMA", "K_SIGMA_GPS",
-           "REANCHOR", "RobotLimits"]
+           "HOLD_S", "REANCHOR", "RobotLimits"]
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +60,7 @@ K_SIGMA = 6.0  # a twist sample's noise allowance, in its standard deviations
 K_SIGMA_GPS = 6.0  # a fix's noise allowance (2-D: P(|d| > 6 sigma) = exp(-18) = 1.5e-8)
 REANCHOR = 5  # consecutive rejected samples that agree with each other replace the anchor
 GAP_S = 2.0  # s: a fix accepted this long after the one before is provisional
+HOLD_S = 60.0  # s: a held GPS jump stays rejected this long at most, then it is the position
 
 
 @dataclass(slots=True)
@@ -95,8 +101,10 @@ class RobotLimits:
         self.alpha_max = r.max_yaw_accel if r.max_yaw_accel else DEFAULT_MAX_YAW_ACCEL
         self.geometry = (r.wheel_radius, r.track_width)
         self._channels: dict[tuple[str, str], _Channel] = {}
-        self._fix: dict[str, tuple[_Fix, bool]] = {}  # sensor -> (anchor, provisional)
+        # sensor -> (anchor, how many more agreeing fixes confirm it: 0 = confirmed)
+        self._fix: dict[str, tuple[_Fix, int]] = {}
         self._fix_run: dict[str, list[_Fix]] = {}
+        self._before_jump: dict[str, _Fix] = {}  # sensor -> the anchor before a taken jump
         # (topic, reason) -> (first t, value, limit text) for the warnings
         self._first: dict[tuple[str, str], tuple[float, str, str]] = {}
 
@@ -179,20 +187,28 @@ class RobotLimits:
         fix = _Fix(m.t, m.enu[0], m.enu[1], sd)
         prev = self._fix.get(m.sensor)
         if prev is None:
-            self._fix[m.sensor] = (fix, True)
+            self._fix[m.sensor] = (fix, REANCHOR)
             return True
-        anchor, provisional = prev
-        if self._fix_fits(anchor, fix):
-            self._fix[m.sensor] = (fix, fix.t - anchor.t > GAP_S)
-            self._fix_run.pop(m.sensor, None)
-            return True
+        anchor, unconfirmed = prev
         run = self._fix_run.get(m.sensor)
+        if self._fix_fits(anchor, fix) and not self._holds(run, anchor, fix):
+            self._fix[m.sensor] = (fix, REANCHOR if fix.t - anchor.t > GAP_S
+                                   else max(unconfirmed - 1, 0))
+            if self._fix_run.pop(m.sensor, None):
+                self._before_jump.setdefault(m.sensor, anchor)
+            return True
         if run and self._fix_fits(run[-1], fix):
             run.append(fix)
         else:
             run = self._fix_run[m.sensor] = [fix]
-        if provisional and len(run) >= REANCHOR:
-            self._fix[m.sensor] = (fix, False)
+        other = self._before_jump.get(m.sensor)
+        back = other is not None and self._fix_fits(other, fix)  # to the side before a jump
+        if len(run) >= REANCHOR and (unconfirmed or back or fix.t - run[0].t > HOLD_S):
+            if back or unconfirmed:
+                self._before_jump.pop(m.sensor, None)
+            else:  # a jump held past HOLD_S taken: the side before it stays the other one
+                self._before_jump[m.sensor] = anchor
+            self._fix[m.sensor] = (fix, 0)
             del self._fix_run[m.sensor]
             return True
         d = math.hypot(fix.e - anchor.e, fix.n - anchor.n)
@@ -202,6 +218,16 @@ class RobotLimits:
             "explains (robot.max_speed)", m.t,
             f"{d:.1f} m in {dt:.2f} s", f"limit {self.v_max:g} m/s plus {K_SIGMA_GPS:g} sigma of "
             f"the fixes ({anchor.sd:.2g} m, {fix.sd:.2g} m)")
+
+    def _holds(self, run: list[_Fix] | None, anchor: _Fix, fix: _Fix) -> bool:
+        """Whether ``fix``, within reach of ``anchor`` only because the anchor has aged, goes on
+        the rejected ``run`` (a held jump): it fits the run's last fix, nearer than the anchor,
+        and the run is not yet ``HOLD_S`` long."""
+        if not run or fix.t - run[0].t > HOLD_S or not self._fix_fits(run[-1], fix):
+            return False
+        last = run[-1]
+        return math.hypot(fix.e - last.e, fix.n - last.n) < \
+            math.hypot(fix.e - anchor.e, fix.n - anchor.n)
 
     def _fix_fits(self, a: _Fix, b: _Fix) -> bool:
         d = math.hypot(b.e - a.e, b.n - a.n)

@@ -14,7 +14,7 @@ from ddfuse.estimation.bags import BagStream, read_stream
 from ddfuse.estimation.config import load_config, parse_config_text
 from ddfuse.estimation.live import LiveConverter
 from ddfuse.estimation.measurements import GpsFix, GyroYawRate, WheelOdometry, WheelSpeeds
-from ddfuse.estimation.robot_limits import REANCHOR, RobotLimits
+from ddfuse.estimation.robot_limits import HOLD_S, REANCHOR, RobotLimits
 
 ROOT = Path(__file__).resolve().parents[1]
 T0 = 1700000000.0
@@ -145,18 +145,44 @@ def test_a_held_gps_jump_is_rejected_while_the_top_speed_cannot_explain_it():
     assert "topic /fix: 50 sample(s) rejected" in w and "robot.max_speed" in w
 
 
-def test_a_gps_jump_longer_than_the_top_speed_explains_is_taken_and_so_is_the_return():
+def test_a_held_gps_jump_stays_rejected_though_the_aged_anchor_could_reach_it():
     screen, _ = _screen()
-    fixes = _drive(400, v=0.0)
-    for i in range(50, 150):  # 40 s 50 m away: 1.5 m/s explains it after ~28 s
+    fixes = _drive(300, v=0.0)
+    for i in range(50, 150):  # 40 s 50 m away: the top speed reaches it after ~28 s
         fixes[i].enu = (0.0, 50.0, 0.0)
     passed = [screen.admit(f) for f in fixes]
-    # 50 m at 1.5 m/s plus 6 sigma of two 1 m fixes: (50 - 8.5) / 1.5 = 27.7 s
+    assert passed == [i not in range(50, 150) for i in range(300)]
+
+
+def test_a_jump_held_longer_than_hold_s_is_taken_and_the_return_re_anchors():
+    screen, _ = _screen()
+    fixes = _drive(400, v=0.0)
+    for i in range(50, 250):  # 80 s, beyond HOLD_S = 60 s
+        fixes[i].enu = (0.0, 50.0, 0.0)
+    passed = [screen.admit(f) for f in fixes]
     first = passed.index(True, 50)
-    assert first == 49 + 70  # 28 s after the last fix before the jump
-    assert all(passed[first:150])  # the jumped fixes now confirm each other
-    # the screen cannot tell which side is true: the return is a jump as well
-    assert passed.index(True, 150) == 149 + 70 and all(passed[219:])
+    assert first == 50 + round(HOLD_S / 0.4) + 1 and all(passed[first:250])
+    # back where the robot was before the jump: the return re-anchors after REANCHOR fixes
+    assert passed[250:] == [False] * (REANCHOR - 1) + [True] * (150 - REANCHOR + 1)
+
+
+def test_a_jumped_fix_within_the_aged_anchors_reach_is_still_part_of_the_jump():
+    """The robot drives south while the GPS holds 50 m north: late in the jump the jumped fixes
+    come within the top speed's reach of the last fix before it; they go on the held jump and
+    are rejected, and the true fixes after it are taken at once."""
+    screen, _ = _screen()  # 1.5 m/s
+    fixes = [_fix(T0 + 0.4 * i, 0.0, -1.0 * 0.4 * i) for i in range(150)]
+    for i in range(50, 100):  # 20 s
+        fixes[i].enu = (0.0, fixes[i].enu[1] + 50.0, 0.0)
+    passed = [screen.admit(f) for f in fixes]
+    assert passed == [i not in range(50, 100) for i in range(150)]
+
+
+def test_good_fixes_after_a_single_outlier_are_taken():
+    screen, _ = _screen()
+    fixes = _drive(40)
+    fixes[20].enu = (fixes[20].enu[0], 9.5, 0.0)  # just beyond 0.6 + 8.5 m
+    assert [screen.admit(f) for f in fixes] == [i != 20 for i in range(40)]
 
 
 def test_a_glitch_as_the_first_fix_re_anchors():
