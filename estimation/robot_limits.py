@@ -25,9 +25,9 @@ in a row have agreed with it): a confirmed fix keeps its place, and a held GPS j
 rejected while it holds: a fix that goes on the run of rejected fixes (fits its last one, nearer
 to it than to the anchor) is rejected even when the aged anchor's reach would take it, up to
 ``HOLD_S``; a run that lasts longer re-anchors (the receiver has said the same for a minute).
-A fix that fits the anchor and not the run ends the jump. Fixes taken after a run of rejected
-ones keep the anchor before the run as the other side: rejected fixes within the top speed's
-reach of it re-anchor too. A sample beyond the top speed
+A fix that fits the anchor and not the run ends the jump. A jump taken so keeps the anchor
+before it as the other side for ``HOLD_S``: rejected fixes within the top speed's reach of it
+re-anchor too, so the return costs ``REANCHOR`` - 1 fixes. A sample beyond the top speed
 or yaw rate never re-anchors.
 
 Each rejection is counted in ``rejected[(topic, reason)]`` (``Stream.rejected``); ``warnings()``
@@ -104,7 +104,8 @@ class RobotLimits:
         # sensor -> (anchor, how many more agreeing fixes confirm it: 0 = confirmed)
         self._fix: dict[str, tuple[_Fix, int]] = {}
         self._fix_run: dict[str, list[_Fix]] = {}
-        self._before_jump: dict[str, _Fix] = {}  # sensor -> the anchor before a taken jump
+        # sensor -> (the anchor before a jump taken after HOLD_S, when it was taken, s)
+        self._before_jump: dict[str, tuple[_Fix, float]] = {}
         # (topic, reason) -> (first t, value, limit text) for the warnings
         self._first: dict[tuple[str, str], tuple[float, str, str]] = {}
 
@@ -194,20 +195,20 @@ class RobotLimits:
         if self._fix_fits(anchor, fix) and not self._holds(run, anchor, fix):
             self._fix[m.sensor] = (fix, REANCHOR if fix.t - anchor.t > GAP_S
                                    else max(unconfirmed - 1, 0))
-            if self._fix_run.pop(m.sensor, None):
-                self._before_jump.setdefault(m.sensor, anchor)
+            self._fix_run.pop(m.sensor, None)
             return True
         if run and self._fix_fits(run[-1], fix):
             run.append(fix)
         else:
             run = self._fix_run[m.sensor] = [fix]
-        other = self._before_jump.get(m.sensor)
-        back = other is not None and self._fix_fits(other, fix)  # to the side before a jump
+        other, since = self._before_jump.get(m.sensor, (None, 0.0))
+        # back to the side before a jump taken at ``since`` (for HOLD_S after it)
+        back = other is not None and fix.t - since <= HOLD_S and self._fix_fits(other, fix)
         if len(run) >= REANCHOR and (unconfirmed or back or fix.t - run[0].t > HOLD_S):
             if back or unconfirmed:
                 self._before_jump.pop(m.sensor, None)
             else:  # a jump held past HOLD_S taken: the side before it stays the other one
-                self._before_jump[m.sensor] = anchor
+                self._before_jump[m.sensor] = (anchor, fix.t)
             self._fix[m.sensor] = (fix, 0)
             del self._fix_run[m.sensor]
             return True
@@ -221,9 +222,9 @@ class RobotLimits:
 
     def _holds(self, run: list[_Fix] | None, anchor: _Fix, fix: _Fix) -> bool:
         """Whether ``fix``, within reach of ``anchor`` only because the anchor has aged, goes on
-        the rejected ``run`` (a held jump): it fits the run's last fix, nearer than the anchor,
-        and the run is not yet ``HOLD_S`` long."""
-        if not run or fix.t - run[0].t > HOLD_S or not self._fix_fits(run[-1], fix):
+        the rejected ``run`` (a held jump): it fits the run's last fix, nearer than the anchor.
+        (A run longer than ``HOLD_S`` re-anchors in ``_gps``.)"""
+        if not run or not self._fix_fits(run[-1], fix):
             return False
         last = run[-1]
         return math.hypot(fix.e - last.e, fix.n - last.n) < \

@@ -178,6 +178,16 @@ def test_a_jumped_fix_within_the_aged_anchors_reach_is_still_part_of_the_jump():
     assert passed == [i not in range(50, 100) for i in range(150)]
 
 
+def test_an_earlier_outlier_does_not_let_a_later_jump_through():
+    screen, _ = _screen()
+    fixes = _drive(400, v=0.0)
+    fixes[20].enu = (0.0, 30.0, 0.0)
+    for i in range(200, 300):  # 40 s, long after the outlier
+        fixes[i].enu = (0.0, 50.0, 0.0)
+    passed = [screen.admit(f) for f in fixes]
+    assert passed == [i != 20 and i not in range(200, 300) for i in range(400)]
+
+
 def test_good_fixes_after_a_single_outlier_are_taken():
     screen, _ = _screen()
     fixes = _drive(40)
