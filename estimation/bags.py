@@ -60,7 +60,9 @@ from ddfuse.estimation.converters import (
 )
 from ddfuse.estimation.duplicates import DUPLICATE, Duplicates
 from ddfuse.estimation.errors import BagError
+from ddfuse.estimation.gps_watch import GpsWatch
 from ddfuse.estimation.measurements import GpsFix, GroundTruthPose, Stream, truth_at_start
+from ddfuse.estimation.robot_limits import RobotLimits
 from ddfuse.estimation.stamp_check import STAMP_TOLERANCE, UNSET_STAMP, StampCheck
 
 # The names other modules and tests import from here (their homes are the modules above).
@@ -128,6 +130,8 @@ class BagStream:
         self.rejected = drops.rejected
         self.late = drops.late
         self.warnings = drops.warnings
+        self.screen = RobotLimits(cfg, self.rejected)  # what the robot cannot do: rejected
+        self.watch = GpsWatch(cfg)  # GPS against the odometry: disagreements reported
         self.t0: float | None = None
         self.t1: float | None = None
         self.count = 0
@@ -377,6 +381,10 @@ class BagStream:
                 self._flush_truth_fixes()
             m.enu = geodesy.geodetic_to_enu(m.lat, m.lon, m.alt, *self.datum)
             m.datum = self.datum
+        ok = self.screen.admit(m)
+        self.watch.feed(m, ok)
+        if not ok:
+            return None
         t = m.t
         if self.t0 is None:
             self.t0 = t
@@ -447,6 +455,8 @@ class BagStream:
             raise
         self._warn_time()
         self.drops.warn_rejected()
+        self.watch.finish()
+        self.warnings += [f"{bag}: {w}" for w in (*self.screen.warnings(), *self.watch.warnings())]
         for (topic, reason), n in sorted(self.rejected.items()):
             log.warning("%s: %s: %d message(s) rejected: %s", bag, topic, n, reason)
         for w in self.warnings:

@@ -7,7 +7,8 @@ Shape (every key documented in README.md)::
       imu: [{topic: /imu/data, use: [yaw, yaw_rate, accel], mount: {rpy: [r, p, y]},
              noise: {yaw: 0.05, yaw_rate: 0.02, accel: 0.1, gyro_bias_walk: 1e-4,
                      heading_offset_walk: 0.02}, heading_offset: estimate, gyro_bias: estimate}]
-      gps: [{topic: /fix, noise: {horizontal: 1.5}, lever_arm: [0.0, 0.0], delay: 0.0}]
+      gps: [{topic: /fix, noise: {horizontal: 1.5}, lever_arm: [0.0, 0.0], delay: 0.0,
+             min_std: 0.5}]
       wheels: [{topic: /joint_states, joints: [left, right], noise: {speed: 0.1}}]
       landmarks: [{topic: /landmarks, map: some.landmarks.yaml, noise: {range: 0.1, bearing: 0.05}}]
     robot: {wheel_radius: 0.165, track_width: 0.555, wheel_radius_std: 0.002,
@@ -24,14 +25,16 @@ Noise values are standard deviations in SI units (m, rad, m/s, rad/s, m/s^2). An
 ``gyro_bias_walk`` (rad/s/sqrt(s)) and ``heading_offset_walk`` (rad/sqrt(s)) are the random-walk
 densities of an estimated gyro bias and heading offset (0: constant; absent: the estimator's
 default). A GPS ``delay`` (s) says that a fix describes the antenna position that many seconds
-before its stamp. ``robot.wheel_radius_std`` / ``track_width_std`` (m) are the 1-sigma
-uncertainties of the nominal geometry; given, the estimators that can estimate the odometry's
-scale errors do. ``robot.slip`` states white-noise densities of the body's motion about its
-twist: longitudinal and lateral velocity (m/sqrt(s)) and yaw rate (rad/sqrt(s)).
+before its stamp; its ``min_std`` (m) is the smallest horizontal standard deviation a fix's stated
+covariance may claim (default: by the fix's NavSatStatus, DEFAULT_GPS_MIN_STD; below it the
+floor is used, counted and warned about). ``robot.wheel_radius_std`` / ``track_width_std`` (m)
+are the 1-sigma uncertainties of the nominal geometry; given, the estimators that can estimate
+the odometry's scale errors do. ``robot.slip`` states white-noise densities of the body's motion
+about its twist: longitudinal and lateral velocity (m/sqrt(s)) and yaw rate (rad/sqrt(s)).
 ``robot.max_accel`` (m/s^2) and ``max_yaw_accel`` (rad/s^2) are the largest accelerations the
 base performs (its drive controller's limits). ``robot.max_speed`` (m/s) and ``max_yaw_rate``
 (rad/s) are what the robot can physically do (defaults DEFAULT_MAX_SPEED, DEFAULT_MAX_YAW_RATE);
-a sample beyond them is a glitch. A ``gate`` on
+a sample beyond them is a glitch (``ddfuse.estimation.robot_limits``). A ``gate`` on
 a sensor is the chi-square acceptance probability of its Mahalanobis gate (e.g. 0.9999) or
 ``off``.
 """
@@ -125,6 +128,11 @@ GIVEN_POSE_STD = (0.01, 0.005)
 # (a car on a motorway, a skid-steer base spinning in place), so only glitches exceed them.
 DEFAULT_MAX_SPEED = 50.0  # m/s
 DEFAULT_MAX_YAW_RATE = 10.0  # rad/s
+# The best horizontal standard deviation a fix of each NavSatStatus can have (m): a stated
+# covariance below it is a driver's placeholder, not a claim to fuse. Ground-based augmentation
+# (RTK) reaches about 1 cm, satellite-based (SBAS) tens of cm, an unaugmented fix (FIX, and
+# NO_FIX, which is rejected anyway) no better than half a metre: docs/design/plausibility.md
+DEFAULT_GPS_MIN_STD = {-1: 0.5, 0: 0.5, 1: 0.3, 2: 0.01}  # status -> m
 
 
 @dataclass
@@ -147,6 +155,10 @@ class SensorConfig:
     # s, GPS: the correlation time of the fixes' errors (first-order Gauss-Markov); 0 = white.
     # Each fix is fused with its covariance inflated by ddfuse.estimation.gps_correlation.inflation
     correlation_time: float = 0.0
+    # m, GPS: the smallest horizontal standard deviation a fix's stated covariance may claim;
+    # below it the floor is used (None: DEFAULT_GPS_MIN_STD by the fix's status; the converter
+    # counts and warns)
+    min_std: float | None = None
     joints: tuple[str, str] | None = None  # JointState names of left and right wheel
     map: Path | None = None  # landmark map YAML
     map_name: Path | None = None  # the map path as the config gives it
@@ -326,7 +338,7 @@ def _sensor(ck: _Checker, kind: str, i: int, raw: Any, base: Path) -> SensorConf
     allowed = ("topic", "name", "use", "noise", "gate")
     allowed += {
         "imu": ("mount", "heading_offset", "gyro_bias", "accel_gravity"),
-        "gps": ("lever_arm", "delay", "correlation_time"),
+        "gps": ("lever_arm", "delay", "correlation_time", "min_std"),
         "wheels": ("joints",),
         "landmarks": ("map",),
         "odometry": ("mount", "slope"),
@@ -385,6 +397,8 @@ def _sensor(ck: _Checker, kind: str, i: int, raw: Any, base: Path) -> SensorConf
     if "correlation_time" in d:
         s.correlation_time = ck.number(d["correlation_time"], f"{key}.correlation_time",
                                        nonneg=True)
+    if "min_std" in d:
+        s.min_std = ck.number(d["min_std"], f"{key}.min_std", positive=True)
     if kind == "wheels":
         j = d.get("joints")
         if not isinstance(j, list) or len(j) != 2 or not all(isinstance(x, str) for x in j):

@@ -19,13 +19,19 @@ converters (``converter``).
 
 from __future__ import annotations
 
+import logging
 import math
 from collections import Counter
 from collections.abc import Callable
 
 import numpy as np
 from ddfuse.estimation import geodesy, rosmsg
-from ddfuse.estimation.config import LANDMARK_NOT_IN_MAP, Config, SensorConfig
+from ddfuse.estimation.config import (
+    DEFAULT_GPS_MIN_STD,
+    LANDMARK_NOT_IN_MAP,
+    Config,
+    SensorConfig,
+)
 from ddfuse.estimation.frames import (
     GRAVITY,
     IDENTITY,
@@ -49,6 +55,8 @@ from ddfuse.estimation.measurements import (
 
 __all__ = ["CONVERTERS", "NULL_ISLAND", "Reject", "converter", "gps_fix",
            "ground_truth_converter", "slope_cells", "unknown_landmarks_note"]
+
+log = logging.getLogger(__name__)
 
 NULL_ISLAND = "latitude and longitude both 0: a receiver's placeholder, not a fix"
 
@@ -223,17 +231,38 @@ def _gps_converter(s: SensorConfig, key: str) -> Callable[[tuple], list]:
     h = s.noise.get("horizontal")
     vert = s.noise.get("vertical", 2.0 * h if h else None)
     fixed = np.diag([h * h, h * h, vert * vert]) if h else None
+    given = s.min_std
+
+    def floor_of(status: int) -> tuple[float, str]:
+        std = given if given is not None else DEFAULT_GPS_MIN_STD.get(status, 0.01)
+        why = f"{key}.min_std" if given is not None else \
+            f"the default for NavSatStatus {status}; set {key}.min_std"
+        return std, (f"stated horizontal covariance below the floor ({std:g} m)^2 ({why}); "
+                     "the fix is used with the floor")
+
+    floors = {st: floor_of(st) for st in DEFAULT_GPS_MIN_STD}
+    warned: list = []  # the first floored fix is logged
 
     def convert(rec: tuple) -> list:
         fix = gps_fix(rec, s.name)
         if fixed is not None:
             fix.cov = fixed.copy()
-        else:
-            if rec[6] == 0:
-                raise Reject(f"position_covariance_type UNKNOWN; set {key}.noise.horizontal")
-            if not geodesy.enu_covariance_is_valid(rec[5]):
-                raise Reject(f"position_covariance unusable (not symmetric positive definite); "
-                             f"set {key}.noise.horizontal")
+            return [fix]
+        if rec[6] == 0:
+            raise Reject(f"position_covariance_type UNKNOWN; set {key}.noise.horizontal")
+        if not geodesy.enu_covariance_is_valid(rec[5]):
+            raise Reject(f"position_covariance unusable (not symmetric positive definite); "
+                         f"set {key}.noise.horizontal")
+        std, floored = floors.get(fix.status) or floor_of(fix.status)
+        lam, vec = np.linalg.eigh(fix.cov[:2, :2])
+        if lam[0] < std * std:
+            if not warned:
+                warned.append(lam[0])
+                log.warning("%s: a fix states a horizontal variance of %g m^2, below the floor "
+                            "(%g m)^2; the floor is used and such fixes counted", s.topic,
+                            lam[0], std)
+            fix.cov[:2, :2] = (vec * np.maximum(lam, std * std)) @ vec.T
+            raise Reject(floored, kept=[fix])
         return [fix]
 
     return convert

@@ -60,7 +60,9 @@ from ddfuse.estimation.bags import (
 from ddfuse.estimation.clock_steps import ClockSteps
 from ddfuse.estimation.config import Config, landmark_maps
 from ddfuse.estimation.duplicates import DUPLICATE, Duplicates
+from ddfuse.estimation.gps_watch import GpsWatch
 from ddfuse.estimation.measurements import GpsFix, Stream
+from ddfuse.estimation.robot_limits import RobotLimits
 
 __all__ = ["LiveConverter", "message_type"]
 
@@ -122,6 +124,8 @@ class LiveConverter:
         self._steps = ClockSteps(self.tolerance)
         self._dups = Duplicates(ros1=False)
         self._received: Counter = Counter()  # topic -> messages converted
+        self.screen = RobotLimits(cfg, self.rejected)  # what the robot cannot do: rejected
+        self.watch = GpsWatch(cfg)  # GPS against the odometry: disagreements logged
         self._stamp_reason = (f"header stamp more than {self.tolerance:g} s off its topic's "
                               "clock (time went backwards or jumped)")  # the bag reader's text
 
@@ -180,15 +184,22 @@ class LiveConverter:
                     self.datum = (m.lat, m.lon, m.alt)
                 m.enu = geodesy.geodetic_to_enu(m.lat, m.lon, m.alt, *self.datum)
                 m.datum = self.datum
-        return out
+        return [m for m in out if self._plausible(m)]
+
+    def _plausible(self, m) -> bool:
+        ok = self.screen.admit(m)
+        self.watch.feed(m, ok)
+        return ok
 
     @property
     def warnings(self) -> list[str]:
         """What the input did that a user must know, one line each: the receive clock stepped
-        back (the messages after it re-timed), topics with exact duplicate messages (dropped).
+        back (the messages after it re-timed), topics with exact duplicate messages (dropped),
+        samples beyond the robot's limits (rejected), GPS disagreeing with the odometry.
         Each is also logged when it first happens."""
         line = self._steps.warning("live input", None)
-        return ([line] if line else []) + self._dups.warnings("live input", self._received)
+        return (([line] if line else []) + self._dups.warnings("live input", self._received)
+                + self.screen.warnings() + self.watch.warnings())
 
     def _retime_and_dedup(self, topic: str, rec: tuple, rt: float) -> tuple:
         """(extracted record, receive time s) re-timed for the receive clock's backward steps

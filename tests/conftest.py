@@ -57,3 +57,13 @@ def seed002_run(tmp_path_factory) -> Path:
     bag = ROOT / "data" / "sample_seed002.bag"
     assert cli.main(["run", str(bag), "-o", str(out), "--estimators", "ekf_landmark"]) == 0
     return out
+
+
+@pytest.fixture
+def no_plausibility_screen(monkeypatch):
+    """The plausibility screen off, for tests whose synthetic messages encode their index in a
+    twist or a fix (a yaw rate of i rad/s, a GPS track at 80 m/s): beyond any robot, they would
+    be rejected (``ddfuse.estimation.robot_limits``, tested in test_robot_limits.py)."""
+    from ddfuse.estimation.robot_limits import RobotLimits
+
+    monkeypatch.setattr(RobotLimits, "admit", lambda self, m: True)

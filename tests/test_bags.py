@@ -29,6 +29,9 @@ from ddfuse.estimation.measurements import (
     WheelSpeeds,
 )
 
+# messages here encode their index in a twist or a fix, beyond any robot
+pytestmark = pytest.mark.usefixtures("no_plausibility_screen")
+
 gtsam = pytest.importorskip("gtsam")
 pymap3d = pytest.importorskip("pymap3d")
 

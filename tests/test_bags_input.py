@@ -15,6 +15,9 @@ from ddfuse.estimation.config import parse_config
 from ddfuse.estimation.errors import BagError
 from ddfuse.estimation.measurements import ForwardAccel, GpsFix, GyroYawRate, Heading
 
+# messages here encode their index in a twist or a fix, beyond any robot
+pytestmark = pytest.mark.usefixtures("no_plausibility_screen")
+
 T0 = 1_600_000_000.0
 PATHS = pytest.mark.parametrize("fmt", ["ros1", "mcap"])
 IMU_ONLY = {"sensors": {"imu": [{"topic": "/imu", "use": ["yaw_rate"]}]}}

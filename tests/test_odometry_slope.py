@@ -67,6 +67,8 @@ def _speed(conv, v=1.0) -> WheelOdometry:
     return m
 
 
+# every message carries one stamp: speeds of 1 and 2 m/s at one instant, beyond any robot
+@pytest.mark.usefixtures("no_plausibility_screen")
 @pytest.mark.parametrize("mount", [(0.0, 0.0, 0.0), (math.pi / 2, 0.0, 0.0)])
 def test_the_speed_is_projected_with_the_imus_climb_angle(mount):
     conv = LiveConverter(_cfg(mount=mount))

@@ -7,6 +7,7 @@ state (the true geometry, the IMU's offset and bias, the GPS latency and error m
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -60,6 +61,12 @@ def sim_config(res: SimResult, landmark_map: str | None = None) -> dict:
         a_max = float(np.max(np.abs(np.gradient(rate, tr.dt))))
         if a_max > 0.0:  # a drive without any (a short straight one) states no limit
             robot[key] = a_max
+    # what the simulated robot can do: half as much again as the fastest of its motion, rounded
+    # up to 0.1 (the plausibility screen, ddfuse.estimation.robot_limits, rejects beyond it)
+    for key, rate in (("max_speed", tr.v), ("max_yaw_rate", tr.w)):
+        top = float(np.max(np.abs(rate)))
+        if top > 0.0:
+            robot[key] = math.ceil(15.0 * top) / 10.0
     # the simulated body moves exactly with its twist (the encoders' slip noise is in their
     # counts, not in the motion)
     robot["slip"] = {"longitudinal": 0.0, "lateral": 0.0, "heading": 0.0}

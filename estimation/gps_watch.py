@@ -1,0 +1,189 @@
+"""A watch on GPS against the odometry: a sustained disagreement is reported while it lasts.
+
+``GpsWatch(cfg)`` is fed every measurement in stamp order (``feed(m, accepted)``, by the bag
+stream and the live converter, beside ``ddfuse.estimation.robot_limits``), whatever the estimators
+then make of it. It dead-reckons the robot from the accepted twist samples (forward speed from
+the first odometry sensor that uses ``v`` or the first wheel-speed sensor, yaw rate from the
+first gyro, else from that odometry) in a frame of its own, and compares each GPS fix with the
+newest agreeing fix at least ``WINDOW_S`` before it: the distance between the two fixes and the
+dead-reckoned distance over the same interval must agree within
+``K_SIGMA`` sqrt(s_1^2 + s_2^2) + ``REL`` * (dead-reckoned path length) + ``ABS_M``
+(s: each fix's larger horizontal standard deviation, m). Only lengths are compared: they need no
+heading, so the watch needs no estimate and is the same for every estimator.
+
+A fix that does not agree is flagged; it never becomes a reference, so during a held jump the
+reference stays the last fix before it. ``MIN_FIXES`` consecutive flagged fixes make an episode,
+which ends at the last flagged fix before an agreeing one (or at the end of the input):
+``episodes`` lists them (topic, start and end stamp s, fixes, largest disagreement m) and
+``warnings()`` says each in one line. Without a GPS or a speed source the watch is off.
+Design and figures: docs/design/plausibility.md.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import deque
+from dataclasses import dataclass
+
+from ddfuse.estimation.config import Config
+from ddfuse.estimation.measurements import GpsFix, GyroYawRate, WheelOdometry, WheelSpeeds
+
+__all__ = ["ABS_M", "K_SIGMA", "MIN_FIXES", "REL", "WINDOW_S", "Episode", "GpsWatch"]
+
+log = logging.getLogger(__name__)
+
+WINDOW_S = 10.0  # s: a fix is compared with the newest agreeing fix at least this much older
+K_SIGMA = 8.0  # the fixes' noise allowance, in their standard deviations (see the design note)
+REL = 0.1  # the dead reckoning's allowance per metre travelled (scale and heading errors)
+ABS_M = 1.0  # m: and a fixed part (lever arm, the GPS delay's motion)
+MIN_FIXES = 3  # consecutive flagged fixes that make an episode
+
+
+@dataclass
+class Episode:
+    """A sustained disagreement of one GPS topic with the dead reckoning: stamps s, fixes
+    flagged, the largest difference of the two distances (m) and its allowance then (m)."""
+
+    topic: str
+    start: float
+    end: float
+    fixes: int
+    size_m: float
+    allowed_m: float
+
+    def describe(self, t0: float) -> str:
+        return (f"topic {self.topic}: GPS disagreed with the odometry's dead reckoning from "
+                f"t={self.start:.3f} to t={self.end:.3f} ({self.start - t0:.1f}-"
+                f"{self.end - t0:.1f} s into the input, {self.fixes} fixes), by up to "
+                f"{self.size_m:.1f} m where noise and drift explain {self.allowed_m:.1f} m")
+
+
+@dataclass(slots=True)
+class _Ref:
+    t: float
+    e: float
+    n: float
+    sd: float
+    x: float  # the dead reckoning at the fix, m
+    y: float
+    s: float  # its path length, m
+
+
+class GpsWatch:
+    """The watch of one stream (module docstring)."""
+
+    def __init__(self, cfg: Config) -> None:
+        self.topic = {s.name: s.topic for s in cfg.sensors}
+        r = cfg.robot
+        self.geometry = (r.wheel_radius, r.track_width)
+        odo = [s for s in cfg.of_kind("odometry") if "v" in s.use]
+        wheels = [s for s in cfg.of_kind("wheels")] if None not in self.geometry else []
+        self.v_src = odo[0].name if odo else (wheels[0].name if wheels else None)
+        gyros = [s for s in cfg.of_kind("imu") if "yaw_rate" in s.use]
+        w_odo = [s for s in cfg.of_kind("odometry") if "yaw_rate" in s.use]
+        self.w_src = gyros[0].name if gyros else (w_odo[0].name if w_odo else
+                                                  (self.v_src if wheels and not odo else None))
+        self.on = self.v_src is not None and bool(cfg.of_kind("gps"))
+        self.episodes: list[Episode] = []
+        self.t0: float | None = None
+        self._x = self._y = self._s = self._yaw = 0.0
+        self._v = self._w = 0.0
+        self._t: float | None = None  # the dead reckoning's time, s
+        self._refs: dict[str, deque] = {}  # sensor -> agreeing fixes (_Ref), oldest first
+        self._open: dict[str, Episode] = {}  # sensor -> flagged run (an episode once long)
+
+    def feed(self, m, accepted: bool = True) -> None:
+        """Take measurement ``m`` (stamp order); ``accepted``: whether the plausibility screen
+        passed it (a rejected twist sample does not move the dead reckoning)."""
+        if not self.on:
+            return
+        if self.t0 is None:
+            self.t0 = m.t
+        typ = type(m)
+        if typ is GpsFix:
+            if m.enu is not None:
+                self._fix(m)
+            return
+        if not accepted or m.sensor not in (self.v_src, self.w_src):
+            return
+        self._advance(m.t)
+        if typ is WheelOdometry:
+            if m.sensor == self.v_src and m.v is not None:
+                self._v = m.v
+            if m.sensor == self.w_src and m.yaw_rate is not None:
+                self._w = m.yaw_rate
+        elif typ is GyroYawRate:
+            self._w = m.yaw_rate
+        elif typ is WheelSpeeds:
+            v, w, _, _ = m.twist(*self.geometry)
+            self._v = v
+            if m.sensor == self.w_src:
+                self._w = w
+
+    def finish(self) -> None:
+        """At the end of the input: close the open episodes."""
+        for sensor in list(self._open):
+            self._close(sensor)
+
+    def warnings(self) -> list[str]:
+        """One line per episode (``Episode.describe``)."""
+        t0 = self.t0 if self.t0 is not None else 0.0
+        return [e.describe(t0) for e in self.episodes]
+
+    # --- inside ----------------------------------------------------------------------------
+    def _advance(self, t: float) -> None:
+        if self._t is not None and t > self._t:
+            dt = t - self._t
+            # the twist held since the last sample, integrated at the mid heading
+            h = self._yaw + 0.5 * self._w * dt
+            step = self._v * dt
+            self._x += step * math.cos(h)
+            self._y += step * math.sin(h)
+            self._s += abs(step)
+            self._yaw += self._w * dt
+        if self._t is None or t > self._t:
+            self._t = t
+
+    def _fix(self, m: GpsFix) -> None:
+        if self._t is None:
+            return  # no dead reckoning yet
+        self._advance(m.t)
+        c = m.cov
+        now = _Ref(m.t, m.enu[0], m.enu[1], math.sqrt(max(c[0, 0], c[1, 1], 0.0)),
+                   self._x, self._y, self._s)
+        refs = self._refs.setdefault(m.sensor, deque())
+        ref = None
+        while len(refs) >= 2 and refs[1].t <= m.t - WINDOW_S:
+            refs.popleft()  # the newest one at least WINDOW_S old is refs[0]
+        if refs and refs[0].t <= m.t - WINDOW_S:
+            ref = refs[0]
+        if ref is None:
+            refs.append(now)
+            return
+        d_gps = math.hypot(now.e - ref.e, now.n - ref.n)
+        d_dr = math.hypot(now.x - ref.x, now.y - ref.y)
+        allowed = K_SIGMA * math.hypot(now.sd, ref.sd) + REL * (now.s - ref.s) + ABS_M
+        size = abs(d_gps - d_dr)
+        if size <= allowed:
+            refs.append(now)
+            if m.sensor in self._open:
+                self._close(m.sensor)
+            return
+        ep = self._open.get(m.sensor)
+        if ep is None:
+            ep = self._open[m.sensor] = Episode(self.topic.get(m.sensor, m.sensor), m.t, m.t,
+                                                0, 0.0, 0.0)
+        ep.end, ep.fixes = m.t, ep.fixes + 1
+        if size > ep.size_m:
+            ep.size_m, ep.allowed_m = size, allowed
+        if ep.fixes == MIN_FIXES:
+            log.warning("%s: GPS disagrees with the odometry's dead reckoning since t=%.3f "
+                        "(by %.1f m where noise and drift explain %.1f m)", ep.topic, ep.start,
+                        ep.size_m, ep.allowed_m)
+
+    def _close(self, sensor: str) -> None:
+        ep = self._open.pop(sensor)
+        if ep.fixes >= MIN_FIXES:
+            self.episodes.append(ep)
+            log.warning("%s", ep.describe(self.t0 if self.t0 is not None else 0.0))

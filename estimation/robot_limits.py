@@ -1,0 +1,235 @@
+"""The plausibility screen: samples the robot cannot physically produce are rejected before any
+estimator sees them.
+
+``RobotLimits(cfg, rejected)`` is fed every measurement in stamp order (``admit(m)``, True: pass
+it on) by the bag stream (``ddfuse.estimation.bags``) and the live converter
+(``ddfuse.estimation.live``). It rejects, per sensor:
+
+* a twist sample (odometry v and yaw rate; wheel speeds through ``robot.wheel_radius`` and
+  ``track_width``; a gyro's yaw rate) beyond the robot's top speed or yaw rate
+  (``RobotConfig.speed_limit`` m/s, ``yaw_rate_limit`` rad/s) by more than ``K_SIGMA`` of its
+  stated standard deviation;
+* a twist sample whose change since the sensor's last accepted one needs more acceleration than
+  the robot has: |dv| > a_max dt + K_SIGMA sqrt(var_1 + var_2) (``robot.max_accel`` /
+  ``max_yaw_accel`` when given, else ``DEFAULT_MAX_ACCEL`` / ``DEFAULT_MAX_YAW_ACCEL``);
+* a GPS fix further from the sensor's last accepted fix than the top speed explains:
+  distance > v_max dt + K_SIGMA_GPS sqrt(s_1^2 + s_2^2) (s: the larger horizontal standard
+  deviation of each fix's covariance, m).
+
+Re-anchoring (the last accepted sample could itself be the glitch, or the robot really changed
+speed faster than the limit says): ``REANCHOR`` consecutive rejected samples of one sensor that
+agree with each other by the same test replace the anchor, the last of them is passed on. For a
+twist sensor this holds whatever the anchor; for GPS only while the anchor is provisional (the
+first fix, or one accepted more than ``GAP_S`` after the one before it, until ``REANCHOR`` fixes
+in a row have agreed with it): a confirmed fix keeps its place, and a held GPS jump stays
+rejected while it holds: a fix that goes on the run of rejected fixes (fits its last one, nearer
+to it than to the anchor) is rejected even when the aged anchor's reach would take it, up to
+``HOLD_S``; a run that lasts longer re-anchors (the receiver has said the same for a minute).
+A fix that fits the anchor and not the run ends the jump. A jump taken so keeps the anchor
+before it as the other side for ``HOLD_S``: rejected fixes within the top speed's reach of it
+re-anchor too, so the return costs ``REANCHOR`` - 1 fixes. A sample beyond the top speed
+or yaw rate never re-anchors.
+
+Each rejection is counted in ``rejected[(topic, reason)]`` (``Stream.rejected``); ``warnings()``
+gives one line per topic and reason with the count, the first time, value and limit. Design and
+measured figures: docs/design/plausibility.md.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import Counter
+from dataclasses import dataclass
+
+from ddfuse.estimation.config import Config
+from ddfuse.estimation.measurements import GpsFix, GyroYawRate, WheelOdometry, WheelSpeeds
+
+__all__ = ["DEFAULT_MAX_ACCEL", "DEFAULT_MAX_YAW_ACCEL", "GAP_S", "K_SIGMA", "K_SIGMA_GPS",
+           "HOLD_S", "REANCHOR", "RobotLimits"]
+
+log = logging.getLogger(__name__)
+
+# Tyre friction bounds a wheeled robot's acceleration by mu g with mu <= ~1: 2 g leaves room for
+# stamp jitter (the Jackal's odometry shows 0.41 m/s in one 0.02 s period). A differential drive
+# turning on a 0.4 m track with both wheels at that acceleration in opposite directions:
+# 2 a / L = 100 rad/s^2 (the Jackal's gyro shows 26 rad/s^2 between two samples).
+DEFAULT_MAX_ACCEL = 20.0  # m/s^2
+DEFAULT_MAX_YAW_ACCEL = 100.0  # rad/s^2
+K_SIGMA = 6.0  # a twist sample's noise allowance, in its standard deviations
+K_SIGMA_GPS = 6.0  # a fix's noise allowance (2-D: P(|d| > 6 sigma) = exp(-18) = 1.5e-8)
+REANCHOR = 5  # consecutive rejected samples that agree with each other replace the anchor
+GAP_S = 2.0  # s: a fix accepted this long after the one before is provisional
+HOLD_S = 60.0  # s: a held GPS jump stays rejected this long at most, then it is the position
+
+
+@dataclass(slots=True)
+class _Channel:
+    """One checked quantity of one sensor: its anchor (the last accepted value) and the run of
+    rejected samples since (for re-anchoring)."""
+
+    limit: float  # the top value (m/s or rad/s)
+    accel: float  # the top rate of change (m/s^2 or rad/s^2)
+    unit: str
+    t: float = math.nan  # the anchor's stamp, s (NaN: none yet)
+    x: float = 0.0
+    var: float = 0.0
+    run: list | None = None  # rejected (t, x, var) since the anchor, consecutive and agreeing
+
+    def fits(self, t0: float, x0: float, v0: float, t: float, x: float, var: float) -> bool:
+        return abs(x - x0) <= self.accel * abs(t - t0) + K_SIGMA * math.sqrt(v0 + var)
+
+
+@dataclass(slots=True)
+class _Fix:
+    t: float
+    e: float
+    n: float
+    sd: float  # m
+
+
+class RobotLimits:
+    """The screen of one stream (module docstring). ``rejected``: the stream's Counter of
+    (topic, reason) -> count, incremented here."""
+
+    def __init__(self, cfg: Config, rejected: Counter) -> None:
+        r = cfg.robot
+        self.rejected = rejected
+        self.topic = {s.name: s.topic for s in cfg.sensors}
+        self.v_max, self.w_max = r.speed_limit, r.yaw_rate_limit
+        self.a_max = r.max_accel if r.max_accel else DEFAULT_MAX_ACCEL
+        self.alpha_max = r.max_yaw_accel if r.max_yaw_accel else DEFAULT_MAX_YAW_ACCEL
+        self.geometry = (r.wheel_radius, r.track_width)
+        self._channels: dict[tuple[str, str], _Channel] = {}
+        # sensor -> (anchor, how many more agreeing fixes confirm it: 0 = confirmed)
+        self._fix: dict[str, tuple[_Fix, int]] = {}
+        self._fix_run: dict[str, list[_Fix]] = {}
+        # sensor -> (the anchor before a jump taken after HOLD_S, when it was taken, s)
+        self._before_jump: dict[str, tuple[_Fix, float]] = {}
+        # (topic, reason) -> (first t, value, limit text) for the warnings
+        self._first: dict[tuple[str, str], tuple[float, str, str]] = {}
+
+    # --- the entry point -------------------------------------------------------------------
+    def admit(self, m) -> bool:
+        """Whether measurement ``m`` (stamp order per sensor) is plausible; a rejected one is
+        counted. Measurements of other kinds always pass."""
+        typ = type(m)
+        if typ is WheelOdometry:
+            ok = True
+            if m.v is not None:
+                ok = self._twist(m.sensor, "speed", m.t, m.v, m.v_var)
+            if m.yaw_rate is not None:
+                ok = self._twist(m.sensor, "yaw rate", m.t, m.yaw_rate, m.yaw_rate_var) and ok
+            return ok
+        if typ is GyroYawRate:
+            return self._twist(m.sensor, "yaw rate", m.t, m.yaw_rate, m.var)
+        if typ is WheelSpeeds:
+            r, L = self.geometry
+            if r is None or L is None:
+                return True
+            v, w, vv, wv = m.twist(r, L)
+            ok = self._twist(m.sensor, "speed", m.t, v, vv)
+            return self._twist(m.sensor, "yaw rate", m.t, w, wv) and ok
+        if typ is GpsFix and m.enu is not None:
+            return self._gps(m)
+        return True
+
+    def warnings(self) -> list[str]:
+        """One line per (topic, reason) rejected here: the count, the first time, value and
+        limit."""
+        out = []
+        for (topic, reason), (t, value, limit) in sorted(self._first.items()):
+            n = self.rejected[(topic, reason)]
+            out.append(f"topic {topic}: {n} sample(s) rejected as physically implausible: "
+                       f"{reason} (first at t={t:.3f}: {value}; {limit})")
+        return out
+
+    # --- the checks ------------------------------------------------------------------------
+    def _reject(self, sensor: str, reason: str, t: float, value: str, limit: str) -> bool:
+        key = (self.topic.get(sensor, sensor), reason)
+        self.rejected[key] += 1
+        if key not in self._first:
+            self._first[key] = (t, value, limit)
+            log.warning("%s: t=%.3f: %s (%s); rejected and counted", key[0], t, value, limit)
+        return False
+
+    def _twist(self, sensor: str, what: str, t: float, x: float, var: float) -> bool:
+        ch = self._channels.get((sensor, what))
+        if ch is None:
+            ch = self._channels[(sensor, what)] = (
+                _Channel(self.v_max, self.a_max, "m/s") if what == "speed"
+                else _Channel(self.w_max, self.alpha_max, "rad/s"))
+        var = var if var > 0.0 and math.isfinite(var) else 0.0
+        sd = math.sqrt(var)
+        if abs(x) > ch.limit + K_SIGMA * sd:
+            key = "robot.max_speed" if what == "speed" else "robot.max_yaw_rate"
+            return self._reject(sensor, f"{what} beyond the robot's top {what} ({key})", t,
+                                f"{what} {x:.6g} {ch.unit}", f"limit {ch.limit:g} {ch.unit}")
+        if math.isnan(ch.t) or ch.fits(ch.t, ch.x, ch.var, t, x, var):
+            ch.t, ch.x, ch.var, ch.run = t, x, var, None
+            return True
+        run = ch.run
+        if run and ch.fits(*run[-1], t, x, var):
+            run.append((t, x, var))
+        else:
+            run = ch.run = [(t, x, var)]
+        if len(run) >= REANCHOR:  # they agree with each other: the anchor was the odd one
+            ch.t, ch.x, ch.var, ch.run = t, x, var, None
+            return True
+        acc = "robot.max_accel" if what == "speed" else "robot.max_yaw_accel"
+        return self._reject(
+            sensor, f"{what} change faster than the robot can accelerate ({acc})", t,
+            f"{what} {x:.6g} {ch.unit} {t - ch.t:.3f} s after {ch.x:.6g} {ch.unit}",
+            f"limit {ch.accel:g} {ch.unit}/s plus {K_SIGMA:g} sigma")
+
+    def _gps(self, m: GpsFix) -> bool:
+        c = m.cov
+        sd = math.sqrt(max(c[0, 0], c[1, 1], 0.0))
+        fix = _Fix(m.t, m.enu[0], m.enu[1], sd)
+        prev = self._fix.get(m.sensor)
+        if prev is None:
+            self._fix[m.sensor] = (fix, REANCHOR)
+            return True
+        anchor, unconfirmed = prev
+        run = self._fix_run.get(m.sensor)
+        if self._fix_fits(anchor, fix) and not self._holds(run, anchor, fix):
+            self._fix[m.sensor] = (fix, REANCHOR if fix.t - anchor.t > GAP_S
+                                   else max(unconfirmed - 1, 0))
+            self._fix_run.pop(m.sensor, None)
+            return True
+        if run and self._fix_fits(run[-1], fix):
+            run.append(fix)
+        else:
+            run = self._fix_run[m.sensor] = [fix]
+        other, since = self._before_jump.get(m.sensor, (None, 0.0))
+        # back to the side before a jump taken at ``since`` (for HOLD_S after it)
+        back = other is not None and fix.t - since <= HOLD_S and self._fix_fits(other, fix)
+        if len(run) >= REANCHOR and (unconfirmed or back or fix.t - run[0].t > HOLD_S):
+            if back or unconfirmed:
+                self._before_jump.pop(m.sensor, None)
+            else:  # a jump held past HOLD_S taken: the side before it stays the other one
+                self._before_jump[m.sensor] = (anchor, fix.t)
+            self._fix[m.sensor] = (fix, 0)
+            del self._fix_run[m.sensor]
+            return True
+        d = math.hypot(fix.e - anchor.e, fix.n - anchor.n)
+        dt = fix.t - anchor.t
+        return self._reject(
+            m.sensor, "fix further from the last accepted one than the robot's top speed "
+            "explains (robot.max_speed)", m.t,
+            f"{d:.1f} m in {dt:.2f} s", f"limit {self.v_max:g} m/s plus {K_SIGMA_GPS:g} sigma of "
+            f"the fixes ({anchor.sd:.2g} m, {fix.sd:.2g} m)")
+
+    def _holds(self, run: list[_Fix] | None, anchor: _Fix, fix: _Fix) -> bool:
+        """Whether ``fix``, within reach of ``anchor`` only because the anchor has aged, goes on
+        the rejected ``run`` (a held jump): it fits the run's last fix, nearer than the anchor.
+        (A run longer than ``HOLD_S`` re-anchors in ``_gps``.)"""
+        if not run or not self._fix_fits(run[-1], fix):
+            return False
+        last = run[-1]
+        return math.hypot(fix.e - last.e, fix.n - last.n) < \
+            math.hypot(fix.e - anchor.e, fix.n - anchor.n)
+
+    def _fix_fits(self, a: _Fix, b: _Fix) -> bool:
+        d = math.hypot(b.e - a.e, b.n - a.n)
+        return d <= self.v_max * abs(b.t - a.t) + K_SIGMA_GPS * math.hypot(a.sd, b.sd)

@@ -1,0 +1,270 @@
+"""The plausibility screen: twist samples and GPS fixes the robot cannot produce are rejected and
+counted before any estimator, with one warning line per topic; the anchor re-anchors."""
+
+from __future__ import annotations
+
+from collections import Counter
+from pathlib import Path
+
+import bagwriter as bw
+import numpy as np
+import pytest
+from ddfuse.estimation import geodesy
+from ddfuse.estimation.bags import BagStream, read_stream
+from ddfuse.estimation.config import load_config, parse_config_text
+from ddfuse.estimation.live import LiveConverter
+from ddfuse.estimation.measurements import GpsFix, GyroYawRate, WheelOdometry, WheelSpeeds
+from ddfuse.estimation.robot_limits import HOLD_S, REANCHOR, RobotLimits
+
+ROOT = Path(__file__).resolve().parents[1]
+T0 = 1700000000.0
+DATUM = (47.0, 8.0, 400.0)
+
+ODOM_GPS = """
+sensors:
+  odometry: [{topic: /odom, use: [v, yaw_rate], noise: {v: 0.02, yaw_rate: 0.02}}]
+  imu: [{topic: /imu, use: [yaw_rate], noise: {yaw_rate: 0.01}}]
+  gps: [{topic: /fix, noise: {horizontal: 1.0}}]
+  wheels: [{topic: /joints, joints: [l, r], noise: {speed: 0.05}}]
+robot: {wheel_radius: 0.1, track_width: 0.5%s}
+frame: {datum: [47.0, 8.0, 400.0]}
+"""
+
+
+def _screen(robot: str = ", max_speed: 1.5, max_yaw_rate: 2.0"):
+    rejected: Counter = Counter()
+    return RobotLimits(parse_config_text(ODOM_GPS % robot), rejected), rejected
+
+
+def _odo(i: int, v: float, w: float = 0.1) -> WheelOdometry:
+    return WheelOdometry(T0 + 0.1 * i, v, w, 0.02 ** 2, 0.02 ** 2, "/odom")
+
+
+def _fix(t: float, e: float, n: float, sd: float = 1.0) -> GpsFix:
+    f = GpsFix(t, 0.0, 0.0, 0.0, np.diag([sd * sd, sd * sd, 4.0]), 0, "/fix")
+    f.enu = (e, n, 0.0)
+    return f
+
+
+def _speeds(values: list[float]) -> list[WheelOdometry]:
+    return [_odo(i, v) for i, v in enumerate(values)]
+
+
+def test_a_speed_beyond_the_top_speed_is_rejected_and_counted():
+    screen, rejected = _screen()
+    values = [1.0] * 20
+    values[10] = 1e6
+    passed = [screen.admit(m) for m in _speeds(values)]
+    assert passed == [i != 10 for i in range(20)]
+    ((topic, reason), n), = rejected.items()
+    assert (topic, n) == ("/odom", 1) and "robot.max_speed" in reason
+    (w,) = screen.warnings()
+    assert w.startswith("topic /odom: 1 sample(s) rejected") and "speed 1e+06 m/s" in w
+    assert "limit 1.5 m/s" in w and f"t={T0 + 1.0:.3f}" in w
+
+
+def test_one_warning_line_per_topic_and_reason_with_the_count():
+    screen, rejected = _screen()
+    values = [1.0] * 30
+    values[5] = values[15] = values[25] = 1e6
+    for m in _speeds(values):
+        screen.admit(m)
+    (w,) = screen.warnings()
+    assert "3 sample(s)" in w and f"t={T0 + 0.5:.3f}" in w  # the first one's time
+
+
+def test_a_jump_within_the_top_speed_but_beyond_the_acceleration_is_rejected():
+    screen, rejected = _screen("")  # default limits: 50 m/s, 20 m/s^2
+    values = [1.0] * 20
+    values[10] = 20.0
+    assert [screen.admit(m) for m in _speeds(values)] == [i != 10 for i in range(20)]
+    ((_, reason), n), = rejected.items()
+    assert n == 1 and "robot.max_accel" in reason
+
+
+def test_the_configured_max_accel_is_the_acceleration_limit():
+    screen, _ = _screen(", max_accel: 0.5")
+    # 0.3 m/s in 0.1 s is 3 m/s^2: beyond 0.5 m/s^2 plus 6 sigma (0.17 m/s)
+    assert [screen.admit(m) for m in _speeds([1.0, 1.0, 1.3, 1.0])] == [True, True, False, True]
+
+
+def test_a_glitch_as_the_first_sample_re_anchors_after_consecutive_agreeing_ones():
+    screen, rejected = _screen("")
+    values = [20.0] + [1.0] * 10
+    passed = [screen.admit(m) for m in _speeds(values)]
+    # the glitch is the anchor; REANCHOR samples agreeing with each other replace it, the
+    # last of them passed on
+    assert passed == [True] + [False] * (REANCHOR - 1) + [True] * (11 - REANCHOR)
+    assert sum(rejected.values()) == REANCHOR - 1
+
+
+def test_a_real_step_faster_than_the_limit_is_followed_after_the_re_anchor():
+    screen, _ = _screen("")
+    values = [0.0] * 5 + [15.0] * 10  # 150 m/s^2 for one period: beyond the default 20
+    passed = [screen.admit(m) for m in _speeds(values)]
+    assert passed == [True] * 5 + [False] * (REANCHOR - 1) + [True] * (11 - REANCHOR)
+
+
+def test_samples_that_do_not_agree_with_each_other_do_not_re_anchor():
+    screen, _ = _screen("")
+    values = [1.0] * 3 + [20.0, 40.0] * 5 + [1.0]
+    passed = [screen.admit(m) for m in _speeds(values)]
+    assert passed == [True] * 3 + [False] * 10 + [True]
+
+
+def test_a_gyro_rate_beyond_the_top_yaw_rate_is_rejected():
+    screen, rejected = _screen()
+    ms = [GyroYawRate(T0 + 0.02 * i, 30.0 if i == 7 else 0.2, 1e-4, "/imu") for i in range(20)]
+    assert [screen.admit(m) for m in ms] == [i != 7 for i in range(20)]
+    ((topic, reason), n), = rejected.items()
+    assert topic == "/imu" and "robot.max_yaw_rate" in reason and n == 1
+
+
+def test_wheel_speeds_are_screened_through_the_geometry():
+    screen, rejected = _screen()
+    # 10 rad/s on wheels of 0.1 m is 1 m/s; 100 rad/s is 10 m/s
+    ms = [WheelSpeeds(T0 + 0.1 * i, w, w, 0.0025, 0.0025, "/joints")
+          for i, w in enumerate([10.0] * 5 + [100.0] + [10.0] * 5)]
+    assert [screen.admit(m) for m in ms] == [i != 5 for i in range(11)]
+    assert rejected[("/joints", "speed beyond the robot's top speed (robot.max_speed)")] == 1
+
+
+def _drive(n: int, v: float = 1.0, period: float = 0.4) -> list[GpsFix]:
+    return [_fix(T0 + period * i, v * period * i, 0.0) for i in range(n)]
+
+
+def test_a_held_gps_jump_is_rejected_while_the_top_speed_cannot_explain_it():
+    screen, rejected = _screen()  # 1.5 m/s
+    fixes = _drive(150)  # 60 s at 1 m/s, 2.5 Hz
+    jumped = range(50, 100)  # 20 s, 50 m north
+    for i in jumped:
+        fixes[i].enu = (fixes[i].enu[0], 50.0, 0.0)
+    passed = [screen.admit(f) for f in fixes]
+    assert passed == [i not in jumped for i in range(150)]
+    (w,) = screen.warnings()
+    assert "topic /fix: 50 sample(s) rejected" in w and "robot.max_speed" in w
+
+
+def test_a_held_gps_jump_stays_rejected_though_the_aged_anchor_could_reach_it():
+    screen, _ = _screen()
+    fixes = _drive(300, v=0.0)
+    for i in range(50, 150):  # 40 s 50 m away: the top speed reaches it after ~28 s
+        fixes[i].enu = (0.0, 50.0, 0.0)
+    passed = [screen.admit(f) for f in fixes]
+    assert passed == [i not in range(50, 150) for i in range(300)]
+
+
+def test_a_jump_held_longer_than_hold_s_is_taken_and_the_return_re_anchors():
+    screen, _ = _screen()
+    fixes = _drive(400, v=0.0)
+    for i in range(50, 250):  # 80 s, beyond HOLD_S = 60 s
+        fixes[i].enu = (0.0, 50.0, 0.0)
+    passed = [screen.admit(f) for f in fixes]
+    first = passed.index(True, 50)
+    assert first == 50 + round(HOLD_S / 0.4) + 1 and all(passed[first:250])
+    # back where the robot was before the jump: the return re-anchors after REANCHOR fixes
+    assert passed[250:] == [False] * (REANCHOR - 1) + [True] * (150 - REANCHOR + 1)
+
+
+def test_a_jumped_fix_within_the_aged_anchors_reach_is_still_part_of_the_jump():
+    """The robot drives south while the GPS holds 50 m north: late in the jump the jumped fixes
+    come within the top speed's reach of the last fix before it; they go on the held jump and
+    are rejected, and the true fixes after it are taken at once."""
+    screen, _ = _screen()  # 1.5 m/s
+    fixes = [_fix(T0 + 0.4 * i, 0.0, -1.0 * 0.4 * i) for i in range(150)]
+    for i in range(50, 100):  # 20 s
+        fixes[i].enu = (0.0, fixes[i].enu[1] + 50.0, 0.0)
+    passed = [screen.admit(f) for f in fixes]
+    assert passed == [i not in range(50, 100) for i in range(150)]
+
+
+def test_an_earlier_outlier_does_not_let_a_later_jump_through():
+    screen, _ = _screen()
+    fixes = _drive(400, v=0.0)
+    fixes[20].enu = (0.0, 30.0, 0.0)
+    for i in range(200, 300):  # 40 s, long after the outlier
+        fixes[i].enu = (0.0, 50.0, 0.0)
+    passed = [screen.admit(f) for f in fixes]
+    assert passed == [i != 20 and i not in range(200, 300) for i in range(400)]
+
+
+def test_good_fixes_after_a_single_outlier_are_taken():
+    screen, _ = _screen()
+    fixes = _drive(40)
+    fixes[20].enu = (fixes[20].enu[0], 9.5, 0.0)  # just beyond 0.6 + 8.5 m
+    assert [screen.admit(f) for f in fixes] == [i != 20 for i in range(40)]
+
+
+def test_a_glitch_as_the_first_fix_re_anchors():
+    screen, _ = _screen()
+    fixes = _drive(20)
+    fixes[0].enu = (0.0, 80.0, 0.0)
+    assert [screen.admit(f) for f in fixes] == \
+        [True] + [False] * (REANCHOR - 1) + [True] * (20 - REANCHOR)
+
+
+def test_a_fix_after_a_long_outage_is_taken():
+    screen, rejected = _screen()
+    fixes = [*_drive(10), _fix(T0 + 4.0 + 60.0, 70.0, 0.0)]  # 60 s later, 66 m on
+    assert all(screen.admit(f) for f in fixes) and not rejected
+
+
+def test_the_stated_sigma_of_the_fixes_widens_what_is_plausible():
+    screen, _ = _screen()
+    fixes = [_fix(T0, 0.0, 0.0, 3.0), _fix(T0 + 0.4, 20.0, 0.0, 3.0)]  # 6 sigma: 25 m
+    assert all(screen.admit(f) for f in fixes)
+
+
+# --- in the stream, bag and live -------------------------------------------------------------
+
+def _bag(tmp_path: Path, glitch: dict) -> Path:
+    recs = []
+    for i in range(100):
+        t = T0 + 0.1 * i
+        recs.append(("/odom", bw.odometry(t, glitch.get(i, 1.0), 0.1)))
+        if i % 4 == 0:
+            lat, lon, _ = geodesy.enu_to_geodetic(0.1 * i, 0.0, 0.0, *DATUM)
+            recs.append(("/fix", bw.navsatfix(t, lat, lon, DATUM[2])))
+    return bw.write_bag(tmp_path / "g.bag", "ros1", recs)
+
+
+CFG = """
+sensors:
+  odometry: [{topic: /odom, use: [v, yaw_rate], noise: {v: 0.02, yaw_rate: 0.02}}]
+  gps: [{topic: /fix, noise: {horizontal: 1.0}}]
+robot: {max_speed: 1.5}
+frame: {datum: [47.0, 8.0, 400.0]}
+"""
+
+
+def test_the_bag_stream_rejects_counts_and_warns(tmp_path):
+    bag = _bag(tmp_path, {50: 1e6})
+    bs = BagStream(bag, parse_config_text(CFG))
+    out = [m for m in bs if isinstance(m, WheelOdometry)]
+    assert len(out) == 99 and max(m.v for m in out) == 1.0
+    reason = "speed beyond the robot's top speed (robot.max_speed)"
+    assert bs.rejected[("/odom", reason)] == 1
+    (w,) = [w for w in bs.warnings if "physically implausible" in w]
+    assert w.startswith(f"{bag}: topic /odom: 1 sample(s)") and "1e+06 m/s" in w
+    assert "limit 1.5 m/s" in w
+
+
+def test_the_live_converter_rejects_and_counts(tmp_path):
+    bag = _bag(tmp_path, {50: 1e6})
+    cfg = parse_config_text(CFG)
+    conv = LiveConverter(cfg)
+    store = bw.typestore("ros1")
+    passed = []
+    for i in range(100):
+        msg = bw.odometry(T0 + 0.1 * i, 1e6 if i == 50 else 1.0, 0.1).build(store)
+        passed += conv.convert("/odom", msg, received=T0 + 0.1 * i)
+    assert len(passed) == 99
+    assert conv.rejected[("/odom", "speed beyond the robot's top speed (robot.max_speed)")] == 1
+    assert bag.exists()
+
+
+@pytest.mark.parametrize("bag,cfg", [("sample_husky.bag", "sample_husky.yaml"),
+                                     ("sample_seed002.bag", "sample_seed002.yaml")])
+def test_the_clean_sample_bags_lose_nothing_to_the_screen(bag, cfg):
+    s = read_stream(ROOT / "data" / bag, load_config(ROOT / "data" / cfg))
+    assert s.rejected == {}
