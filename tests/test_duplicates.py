@@ -5,7 +5,6 @@ content is kept. Before: fused twice, silently (sample, every sensor message dou
 
 from __future__ import annotations
 
-from dataclasses import replace
 from pathlib import Path
 
 import bagedit
@@ -14,7 +13,6 @@ import pytest
 from ddfuse.estimation.bags import BagStream, read_stream
 from ddfuse.estimation.config import load_config, parse_config
 from ddfuse.estimation.duplicates import DUPLICATE
-from ddfuse.estimation.live import LiveConverter
 from rosbags.highlevel import AnyReader
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -67,24 +65,6 @@ def test_same_stamp_other_content_is_kept_and_a_repeat_is_not(tmp_path, fmt):
     s = read_stream(bag, parse_config(IMU_CFG))
     assert len(s.measurements) == 21
     assert s.rejected == {("/imu", DUPLICATE): 1}
-
-
-def test_live_duplicates_are_dropped_and_counted():
-    cfg = replace(load_config(SAMPLE_CFG), initial_pose=None)
-    conv = LiveConverter(cfg)
-    with AnyReader([SAMPLE]) as reader:
-        conns = [c for c in reader.connections if c.topic == "/imu/data"]
-        got = 0
-        for i, (c, rec_ns, raw) in enumerate(reader.messages(connections=conns)):
-            if i >= 50:
-                break
-            msg = reader.deserialize(raw, c.msgtype)
-            for _ in range(2):
-                got += len(conv.convert("/imu/data", msg, received=rec_ns * 1e-9))
-    assert got == 50 * 3  # each IMU message: three measurements, once
-    assert conv.rejected == {("/imu/data", DUPLICATE): 50}
-    [w] = conv.warnings
-    assert "live input" in w and "/imu/data: 50 of 100" in w
 
 
 @pytest.mark.slow
