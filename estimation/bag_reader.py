@@ -135,6 +135,41 @@ def sources_of(cfg: Config, connections, bag: Path, ros1: bool, landmarks: dict 
     return out
 
 
+def register_definition(store, conn: ros1_scan.Connection, bag: Path) -> str:
+    """Register the type of ``conn`` (a ROS1 connection record) in the rosbags ``store``: the
+    bag's own definition, as AnyReader does, unless it is damaged (it does not parse, or the
+    standard ROS1 Noetic type has the record's md5sum and the bag's definition does not), then
+    the standard one. Returns a warning line when the standard one was used, else ''.
+    BagError naming the topic when neither can be used."""
+    from rosbags.typesys import Stores, TypesysError, get_types_from_msg, get_typestore
+
+    noetic = get_typestore(Stores.ROS1_NOETIC)
+    known = conn.msgtype in noetic.fielddefs
+    if not conn.msgdef:  # none in the bag, or dropped by the scanner as damaged
+        store.register(noetic.fielddefs)
+        return ""
+    why = ""
+    try:
+        types = get_types_from_msg(conn.msgdef, conn.msgtype)
+        own = get_typestore(Stores.EMPTY)
+        own.register(types)
+        if known and conn.md5sum and \
+                own.generate_msgdef(conn.msgtype)[1] != conn.md5sum == \
+                noetic.generate_msgdef(conn.msgtype)[1]:
+            why = "its md5sum is not the record's"
+    except TypesysError as e:
+        why = "it does not parse"  # rosbags' message quotes the whole text, many lines
+        if not known:
+            raise BagError(f"{bag}: topic {conn.topic}: cannot use the bag's definition of "
+                           f"{rosmsg.short_type(conn.msgtype)} ({e})") from None
+    if not why:
+        store.register(types)
+        return ""
+    store.register(noetic.fielddefs)
+    return (f"{bag}: topic {conn.topic}: the bag's definition of "
+            f"{rosmsg.short_type(conn.msgtype)} is damaged ({why}); the standard one is used")
+
+
 class BagMessages:
     """The raw messages of a bag's configured topics, in record order: an intact ROS1 bag read
     from the front by ``ros1_scan`` (its topics checked against its index first), a ROS1 bag
@@ -160,6 +195,7 @@ class BagMessages:
         self.used = 0  # messages read on configured topics (bags read by the scanner)
         self.store = None  # the scanner's typestore, made when reading starts
         self.open_error: BagError | None = None
+        self.notes: list[str] = []  # damaged definitions replaced by the standard ones
         index = (ros1_scan.read_index(bag) if bag.is_file() and ros1_scan.has_magic(bag)
                  else None)
         if index is not None:
@@ -243,7 +279,7 @@ class BagMessages:
         connection record; messages are decoded as on the indexed path (struct extractors on
         the ROS1 bytes where rosmsg has one, else rosbags' deserialiser with the types that the
         bag's own connection records define, as AnyReader does for ROS1 bags)."""
-        from rosbags.typesys import Stores, TypesysError, get_types_from_msg, get_typestore
+        from rosbags.typesys import Stores, get_typestore
 
         bag, scan = self.bag, self.scan
         by_topic: dict[str, list[tuple]] = defaultdict(list)
@@ -269,14 +305,9 @@ class BagMessages:
                                f"{rosmsg.short_type(src.msgtype)} and "
                                f"{rosmsg.short_type(conn.msgtype)}")
             if not src.raw and conn.msgtype not in store.fielddefs:
-                try:
-                    store.register(get_types_from_msg(conn.msgdef, conn.msgtype)
-                                   if conn.msgdef
-                                   else get_typestore(Stores.ROS1_NOETIC).fielddefs)
-                except TypesysError as e:
-                    raise BagError(f"{bag}: topic {conn.topic}: cannot use the bag's "
-                                   f"definition of {rosmsg.short_type(conn.msgtype)} "
-                                   f"({e})") from None
+                note = register_definition(store, conn, bag)
+                if note:
+                    self.notes.append(note)
             return src
 
         st = scan.status
@@ -307,7 +338,7 @@ class BagMessages:
         read; those of topics not configured are left out)."""
         if self.scan is None:
             return [], Counter()
-        lines, lost = [], Counter()
+        lines, lost = list(self.notes), Counter()
         topics = {s.topic for s in self.sources}
         for d in self.scan.status.damage:
             lines.append(f"{self.bag}: {d.line()}")

@@ -31,19 +31,13 @@ class Duplicates:
         self.recent: dict[int, tuple[deque, set]] = {}  # source index -> (keys in order, set)
         self.count: Counter = Counter()
 
-    def seen_before(self, index, topic: str, raw) -> bool:
-        """Whether ``raw`` on source ``index`` (any hashable naming the source) repeats one of
-        its last WINDOW messages; counted under ``topic`` if so. ``raw``: the serialised bytes,
-        or the tuple an extractor gives of a decoded message (the live path: ROS1's seq is
-        not in it); something unhashable never repeats."""
-        if isinstance(raw, (bytes, memoryview)):
-            key = bytes(raw[self.skip:])
-        else:
-            key = raw
-            try:
-                hash(key)
-            except TypeError:
-                return False
+    def seen_before(self, index: int, topic: str, raw) -> bool:
+        """Whether ``raw`` (the serialised bytes) on source ``index`` repeats one of its last
+        WINDOW messages; counted under ``topic`` if so. A message already decoded (not bytes)
+        never does."""
+        if not isinstance(raw, (bytes, memoryview)):
+            return False
+        key = bytes(raw[self.skip:])
         entry = self.recent.get(index)
         if entry is None:
             entry = self.recent[index] = (deque(), set())

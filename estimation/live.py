@@ -32,9 +32,9 @@ measurement and is counted in ``rejected``. Unlike the bag reader, nothing is he
 topic's offset is learnt (``_StampCheck.WARMUP_S``). Reordering by stamp is ``OnlineSession``'s.
 
 A receive clock that steps back (arrival order is write order) re-times the messages after the
-step (``ddfuse.estimation.clock_steps``); an exact duplicate of a message received just before
-on its topic is dropped and counted in ``rejected`` (``ddfuse.estimation.duplicates``); both are
-logged when they happen and listed in ``warnings``.
+step (``ddfuse.estimation.clock_steps``), logged when it happens and listed in ``warnings``.
+Exact duplicate messages are not looked for here (the bag reader drops them): a caller may
+hand the converter one message twice on purpose.
 
 Design notes (the warm-up, clock steps): docs/design/live_input.md, docs/design/bag_faults.md"""
 
@@ -59,7 +59,6 @@ from ddfuse.estimation.bags import (
 )
 from ddfuse.estimation.clock_steps import ClockSteps
 from ddfuse.estimation.config import Config, landmark_maps
-from ddfuse.estimation.duplicates import DUPLICATE, Duplicates
 from ddfuse.estimation.gps_watch import GpsWatch
 from ddfuse.estimation.measurements import GpsFix, Stream
 from ddfuse.estimation.robot_limits import RobotLimits
@@ -119,11 +118,9 @@ class LiveConverter:
                 self._topics.setdefault(topic, []).append(
                     (kind, key, converter(kind, s, key, self.landmarks, slopes=slopes)))
         self._checks: dict[str, _StampCheck] = {}  # topic -> its stamp check
-        # the receive clock stepping back, seen in arrival order, and exact duplicates
-        # (``_retime_and_dedup``); what they did is in ``warnings``
+        # the receive clock stepping back, seen in arrival order (``_retime``); what it did is
+        # in ``warnings``
         self._steps = ClockSteps(self.tolerance)
-        self._dups = Duplicates(ros1=False)
-        self._received: Counter = Counter()  # topic -> messages converted
         self.screen = RobotLimits(cfg, self.rejected)  # what the robot cannot do: rejected
         self.watch = GpsWatch(cfg)  # GPS against the odometry: disagreements logged
         self._stamp_reason = (f"header stamp more than {self.tolerance:g} s off its topic's "
@@ -166,9 +163,7 @@ class LiveConverter:
         except Exception as e:  # as the bag reader counts a message it cannot decode
             self.rejected[(topic, f"cannot decode message: {type(e).__name__}: {e}")] += 1
             return []
-        rec, rt = self._retime_and_dedup(topic, rec, rt)
-        if rec is None:
-            return []
+        rec, rt = self._retime(topic, rec, rt)
         out: list = []
         for _, _, convert in entries:
             try:
@@ -194,24 +189,14 @@ class LiveConverter:
     @property
     def warnings(self) -> list[str]:
         """What the input did that a user must know, one line each: the receive clock stepped
-        back (the messages after it re-timed), topics with exact duplicate messages (dropped),
-        samples beyond the robot's limits (rejected), GPS disagreeing with the odometry.
-        Each is also logged when it first happens."""
+        back (the messages after it re-timed), samples beyond the robot's limits (rejected), GPS
+        disagreeing with the odometry. The clock's is also logged when it happens."""
         line = self._steps.warning("live input", None)
-        return (([line] if line else []) + self._dups.warnings("live input", self._received)
-                + self.screen.warnings() + self.watch.warnings())
+        return ([line] if line else []) + self.screen.warnings() + self.watch.warnings()
 
-    def _retime_and_dedup(self, topic: str, rec: tuple, rt: float) -> tuple:
+    def _retime(self, topic: str, rec: tuple, rt: float) -> tuple:
         """(extracted record, receive time s) re-timed for the receive clock's backward steps
-        so far (``ClockSteps``, arrival order being write order); (None, rt) for an exact
-        duplicate of a message received just before on ``topic``, counted in ``rejected``."""
-        self._received[topic] += 1
-        if self._dups.seen_before(topic, topic, rec):
-            self.rejected[(topic, DUPLICATE)] += 1
-            if self._dups.count[topic] == 1:
-                log.warning("%s: an exact duplicate of a message received before (same header "
-                            "stamp and content); dropped and counted", topic)
-            return None, rt
+        so far (``ClockSteps``, arrival order being write order)."""
         t = rec[0]
         if not t > 0.0:  # an unset or non-finite stamp: the stamp check rejects it as it is
             return rec, rt

@@ -1,15 +1,17 @@
 """Test utility: rewrite a ROS1 bag message by message, keeping its write order, to make the
 time faults of real recordings: the recording clock stepping back (``step_back``) and messages
 recorded twice (``duplicate``). Written uncompressed with rosbags' writer; the connections,
-their definitions and md5sums are the source's.
+their definitions and md5sums are the source's. ``ekf_metrics`` runs the ekf on such a bag.
 """
 
 from __future__ import annotations
 
+import json
 import struct
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
+from ddfuse.evaluation import cli
 from rosbags.rosbag1 import Reader, Writer
 
 Edit = Callable[[str, int, bytes], Iterable[tuple[int, bytes]]]
@@ -63,3 +65,11 @@ def duplicate(src: Path, dest: Path, topics: tuple[str, ...], new_seq: bool = Fa
         return [(t, raw), (t, copy)]
 
     return rewrite(src, dest, edit)
+
+
+def ekf_metrics(bag: Path, cfg: Path, out: Path) -> tuple[dict, list[str]]:
+    """The ekf's metrics and the run's warnings of ``ddfuse run`` on ``bag`` into ``out``."""
+    assert cli.main(["run", str(bag), "-c", str(cfg), "-o", str(out), "--estimators", "ekf",
+                     "--no-report"]) == 0
+    metrics = json.loads((Path(out) / "metrics.json").read_text())
+    return metrics["estimators"]["ekf"], metrics["warnings"]

@@ -142,6 +142,23 @@ def test_a_bag_damaged_everywhere_after_its_start_is_still_an_error(crafted, tmp
     assert str(bad) in str(e.value) and "damaged" in str(e.value)
 
 
+@pytest.mark.parametrize("flip", [(10, 0, "md5sum"), (7, 0, "does not parse")],
+                         ids=["field name", "syntax"])
+def test_a_damaged_definition_is_replaced_by_the_standard_one(tmp_path, flip):
+    """seed002's JointState (read by rosbags' deserialiser, from the definition in the bag's
+    index): 'velocity' -> 'welocity' (parses, md5sum not the record's) or 'float64[]' ->
+    'float64Z]': before, every wheel message failed to decode."""
+    src = ROOT / "data" / "sample_seed002.bag"
+    cfg = load_config(ROOT / "data" / "sample_seed002.yaml")
+    at = src.read_bytes().rindex(b"float64[] velocity")
+    bad = byteflip.flip(src, tmp_path / "bad.bag", at + flip[0], flip[1])
+    clean = [repr(m) for m in BagStream(src, cfg)]
+    bs = BagStream(bad, cfg)
+    assert [repr(m) for m in bs] == clean and not bs.rejected
+    [w] = [w for w in bs.warnings if "definition" in w]
+    assert str(bad) in w and "/joint_states" in w and flip[2] in w and "standard" in w
+
+
 @pytest.mark.slow
 def test_thirty_random_flips_of_the_sample_each_read_or_counted(tmp_path):
     cfg = load_config(SAMPLE_CFG)

@@ -5,8 +5,6 @@ content is kept. Before: fused twice, silently (sample, every sensor message dou
 
 from __future__ import annotations
 
-import json
-from dataclasses import replace
 from pathlib import Path
 
 import bagedit
@@ -15,8 +13,6 @@ import pytest
 from ddfuse.estimation.bags import BagStream, read_stream
 from ddfuse.estimation.config import load_config, parse_config
 from ddfuse.estimation.duplicates import DUPLICATE
-from ddfuse.estimation.live import LiveConverter
-from ddfuse.evaluation import cli
 from rosbags.highlevel import AnyReader
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -71,31 +67,9 @@ def test_same_stamp_other_content_is_kept_and_a_repeat_is_not(tmp_path, fmt):
     assert s.rejected == {("/imu", DUPLICATE): 1}
 
 
-def test_live_duplicates_are_dropped_and_counted():
-    cfg = replace(load_config(SAMPLE_CFG), initial_pose=None)
-    conv = LiveConverter(cfg)
-    with AnyReader([SAMPLE]) as reader:
-        conns = [c for c in reader.connections if c.topic == "/imu/data"]
-        got = 0
-        for i, (c, rec_ns, raw) in enumerate(reader.messages(connections=conns)):
-            if i >= 50:
-                break
-            msg = reader.deserialize(raw, c.msgtype)
-            for _ in range(2):
-                got += len(conv.convert("/imu/data", msg, received=rec_ns * 1e-9))
-    assert got == 50 * 3  # each IMU message: three measurements, once
-    assert conv.rejected == {("/imu/data", DUPLICATE): 50}
-    [w] = conv.warnings
-    assert "live input" in w and "/imu/data: 50 of 100" in w
-
-
 @pytest.mark.slow
 def test_a_doubled_sample_run_scores_as_the_clean_one(doubled, tmp_path):
-    out = {}
-    for name, bag in (("clean", SAMPLE), ("doubled", doubled)):
-        assert cli.main(["run", str(bag), "-c", str(SAMPLE_CFG), "-o", str(tmp_path / name),
-                         "--estimators", "ekf", "--no-report"]) == 0
-        out[name] = json.loads((tmp_path / name / "metrics.json").read_text())
-    ekf = {k: v["estimators"]["ekf"] for k, v in out.items()}
-    assert ekf["doubled"]["nees_mean"] == ekf["clean"]["nees_mean"]
-    assert ekf["doubled"]["ate_rmse_m"] == ekf["clean"]["ate_rmse_m"]
+    clean, _ = bagedit.ekf_metrics(SAMPLE, SAMPLE_CFG, tmp_path / "clean")
+    ekf, warnings = bagedit.ekf_metrics(doubled, SAMPLE_CFG, tmp_path / "doubled")
+    assert ekf["nees_mean"] == clean["nees_mean"] and ekf["ate_rmse_m"] == clean["ate_rmse_m"]
+    assert sum("exact duplicates" in w for w in warnings) == 3
