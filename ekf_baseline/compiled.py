@@ -61,7 +61,8 @@ _KERNEL_SOURCES = ("ekf_baseline/kalman_jit.py", "ekf_baseline/kalman_jit_predic
                    "ekf_baseline/unicycle_motion.py",
                    "ekf_baseline/unicycle_measurements.py", "ekf_baseline/igvc_model.py",
                    "ekf_baseline/igvc_measurements.py", "ekf_baseline/igvc_jacobians.py",
-                   "ekf_baseline/kalman.py", "factors/kinematics.py", "estimation/lockout.py")
+                   "ekf_baseline/kalman.py", "ekf_baseline/joseph.py", "factors/kinematics.py",
+                   "estimation/lockout.py")
 _state: dict = {}
 COLD_COMPILE: dict[str, float] = {}  # entry point -> seconds its warm-up took in this process
 

@@ -29,10 +29,11 @@ API (all arrays are float64 numpy; n = state size, m = measurement size)::
   of K); state components in ``state_angles`` are wrapped after every predict and update.
 * Non-finite z or h(x), or an S that is not positive definite, are rejected with reason
   'nonfinite' / 'singular' and never touch the state.
-* ``fuse`` (update_blocks; default None = all 1): per block a factor f >= 1 on its R in the
-  gain and Joseph update only (a time-correlated GPS fix, ``estimation.gps_correlation``; off
-  the diagonal blocks sqrt(f_i f_j) R_ij); the gate, the log and a recovery keep R. Then
-  ``last_verdicts`` says per block whether it was fused.
+* ``fuse`` (update_blocks; default None = all 1): per block a factor f >= 1 on its noise in
+  the gain and Joseph update only (a time-correlated GPS fix, ``estimation.gps_correlation``);
+  the rule: R_ij between rows of accepted blocks a and b becomes sqrt(f_a f_b) R_ij, which within
+  a block is exactly f_a R_ij. The gate, the log and a recovery keep R. Then ``last_verdicts``
+  says per block whether it was fused.
 
 Gate lock-out (docs/design/ekf_gate_lockout.md): when one (sensor, kind) has had at least
 ``lockout_count`` consecutive gate rejections spanning at least ``lockout_time`` s
@@ -239,7 +240,8 @@ class KalmanCore:
         its R in the update (module docstring); then ``last_verdicts`` says which were fused.
 
         This dense numpy form is the reference the compiled kernels
-        (``ddfuse.ekf_baseline.kalman_jit``) are tested against."""
+        (``ddfuse.ekf_baseline.kalman_jit``, their update ``ddfuse.ekf_baseline.joseph``) are
+        tested against."""
         y = z - hx
         log = self.log
         for _sensor, _kind, i0, _i1, angles, _gate in blocks:
@@ -287,11 +289,10 @@ class KalmanCore:
         else:
             Hk, Rk, yk, PHtk, Sk = H, R, y, PHt, S
         if fuse is not None and any(f != 1.0 for f, k in zip(fuse, keep, strict=True) if k):
-            # the fusion's R: each accepted block's rows and columns by sqrt(f) (its own block
-            # exactly f R: sqrt(f * f) == f in binary floating point)
-            d = np.sqrt(np.array([f for b, k, f in zip(blocks, keep, fuse, strict=True) if k
-                                  for _ in range(b[2], b[3])]))
-            Rk = Rk * np.multiply.outer(d, d)
+            # the fusion's R (module docstring; the kernels' joseph.fuse_noise)
+            fr = np.array([f for b, k, f in zip(blocks, keep, fuse, strict=True) if k
+                           for _ in range(b[2], b[3])])
+            Rk = Rk * np.sqrt(np.multiply.outer(fr, fr))
             Sk = Hk @ PHtk + Rk
         # K = P H^T S^-1. S is symmetric PD (its diagonal blocks were checked above) and small;
         # inv is about half the cost of solve for these sizes and as accurate at these

@@ -11,9 +11,10 @@ The maths is the Python filters': the measurement models (``unicycle_measurement
 ``igvc_jacobians``), the NIS of a block (``kalman.block_nis``) and the gate's lock-out streak
 rule (``ddfuse.estimation.lockout``) are plain-float functions both the reference path and
 these kernels call (compiled here through ``numba.extending.register_jitable``:
-``kalman_jit_layout``). The reference (``reference=True``, the dense numpy
-``KalmanCore.update_blocks``) does the Joseph update with numpy; here it is loops over the
-sparse H. The prediction kernels are in ``kalman_jit_predict``.
+``kalman_jit_layout``). The gain and the factored Joseph update, loops over the sparse H, are
+``ddfuse.ekf_baseline.joseph``'s; the reference (``reference=True``, the dense numpy
+``KalmanCore.update_blocks``) still does them with numpy (docs/design/ekf_kernels.md). The
+prediction kernels are in ``kalman_jit_predict``.
 
 Every kernel returns a bit set: ``DEFER`` -- a gated block needs what only Python does (a gate
 lock-out candidate that may be a recovery or a corroboration verdict, a non-positive-definite S,
@@ -45,6 +46,13 @@ import math
 import numpy as np
 from ddfuse.ekf_baseline import igvc_measurements as im
 from ddfuse.ekf_baseline import unicycle_measurements as um
+from ddfuse.ekf_baseline.joseph import (
+    accepted_rows,
+    cross_and_innovation_cov,
+    fuse_noise,
+    gain,
+    joseph,
+)
 from ddfuse.ekf_baseline.kalman import block_nis
 from ddfuse.ekf_baseline.kalman_jit_layout import (  # noqa: F401 - the layout
     FP_LASTNIS,
@@ -145,68 +153,11 @@ from numba import njit
 
 # ----------------------------------------------------------------------------- update
 @njit(cache=True)
-def _inverse(S, m, Si):
-    """Si <- the inverse of the m x m matrix S: the adjugate for m <= 3 (as KalmanCore), else
-    Gauss-Jordan with partial pivoting."""
-    if m == 1:
-        Si[0, 0] = 1.0 / S[0, 0]
-    elif m == 2:
-        a, b, c, d = S[0, 0], S[0, 1], S[1, 0], S[1, 1]
-        det = a * d - b * c
-        Si[0, 0] = d / det
-        Si[0, 1] = -b / det
-        Si[1, 0] = -c / det
-        Si[1, 1] = a / det
-    elif m == 3:
-        a, b, c = S[0, 0], S[0, 1], S[0, 2]
-        d, e, f = S[1, 0], S[1, 1], S[1, 2]
-        g, h, i = S[2, 0], S[2, 1], S[2, 2]
-        A_ = e * i - f * h
-        B_ = f * g - d * i
-        C_ = d * h - e * g
-        r = 1.0 / (a * A_ + b * B_ + c * C_)
-        Si[0, 0] = A_ * r
-        Si[0, 1] = (c * h - b * i) * r
-        Si[0, 2] = (b * f - c * e) * r
-        Si[1, 0] = B_ * r
-        Si[1, 1] = (a * i - c * g) * r
-        Si[1, 2] = (c * d - a * f) * r
-        Si[2, 0] = C_ * r
-        Si[2, 1] = (b * g - a * h) * r
-        Si[2, 2] = (a * e - b * d) * r
-    else:
-        M = S.copy()
-        for i in range(m):
-            for j in range(m):
-                Si[i, j] = 1.0 if i == j else 0.0
-        for col in range(m):
-            piv = col
-            for r in range(col + 1, m):
-                if abs(M[r, col]) > abs(M[piv, col]):
-                    piv = r
-            if piv != col:
-                for j in range(m):
-                    M[col, j], M[piv, j] = M[piv, j], M[col, j]
-                    Si[col, j], Si[piv, j] = Si[piv, j], Si[col, j]
-            inv = 1.0 / M[col, col]
-            for j in range(m):
-                M[col, j] *= inv
-                Si[col, j] *= inv
-            for r in range(m):
-                if r != col:
-                    fct = M[r, col]
-                    if fct != 0.0:
-                        for j in range(m):
-                            M[r, j] -= fct * M[col, j]
-                            Si[r, j] -= fct * Si[col, j]
-
-
-@njit(cache=True)
 def _update(fp, ip, W, sf, si, lg, t, H, y, R, blk, nb, nr, Ut, S, Z, zf, zi, fs):
-    """KalmanCore.update_blocks (dense reference semantics) of ``nb`` blocks stacked in rows
-    0:nr of H (nr, n), y (nr,), R (nr, nr) (block diagonal); ``blk`` (nb, 4) = (row start, row
-    stop, sensor row, kind); ``fs`` (nb,) each block's factor on its R in the fusion
-    (KalmanCore's ``fuse``: 1.0, or a time-correlated GPS fix's inflation). Scratch (no
+    """KalmanCore.update_blocks of ``nb`` blocks stacked in rows 0:nr of H (nr, n), y (nr,),
+    R (nr, nr) (block diagonal); ``blk`` (nb, 4) = (row start, row stop, sensor row, kind);
+    ``fs`` (nb,) each block's factor on its R in the fusion (KalmanCore's ``fuse``: 1.0, or a
+    time-correlated GPS fix's inflation). Scratch (no
     allocation per call): Ut (>= nr, n) for (P H^T)^T, S (>= nr, >= nr), Z (4 nr + n,
     >= max(n, nr)), zf (>= 2 nb), zi (>= 4 nb + nr + 2 n); ``blk`` is flat: block b's fields at
     4 b .. 4 b + 3. On return (without DEFER) zi[0:nb] holds the verdicts (0 fused).
@@ -214,28 +165,12 @@ def _update(fp, ip, W, sf, si, lg, t, H, y, R, blk, nb, nr, Ut, S, Z, zf, zi, fs
     Each block is gated on its own against the common prior (its diagonal block of
     S = H P H^T + R), the per-(sensor, kind) streaks are those of KalmanCore._judge, rejected
     blocks are logged first and accepted ones after the update (the reference's order), then
-    one Joseph-form update applies the accepted rows, with R scaled by ``fs`` (S, the NIS and
-    the log keep R). Returns the module's bits."""
+    one Joseph-form update applies the accepted rows, with R fused by ``fs``
+    (``joseph.fuse_noise``; S, the NIS and the log keep R). Returns the module's bits."""
     n = ip[IP_N]
     P = W[0:n]
     x = fp[FP_X:FP_X + n]
-    # U = P H^T (stored transposed), S = H U + R
-    for r in range(nr):
-        for i in range(n):
-            acc = 0.0
-            for c in range(n):
-                h = H[r, c]
-                if h != 0.0:
-                    acc += P[i, c] * h
-            Ut[r, i] = acc
-    for r in range(nr):
-        for q in range(nr):
-            acc = 0.0
-            for c in range(n):
-                h = H[r, c]
-                if h != 0.0:
-                    acc += h * Ut[q, c]
-            S[r, q] = acc + R[r, q]
+    cross_and_innovation_cov(P, H, R, nr, n, Ut, S)  # U = P H^T (transposed), S = H U + R
     # gate every block against the prior; streaks simulated on copies (a DEFER must leave them)
     lockn = ip[IP_LOCKN]
     lockt = fp[FP_LOCKT]
@@ -312,117 +247,24 @@ def _update(fp, ip, W, sf, si, lg, t, H, y, R, blk, nb, nr, Ut, S, Z, zf, zi, fs
     ip[IP_LOGN] = ln
     if n_acc_rows == 0:
         return code
-    # the accepted rows
+    # the accepted rows, the fusion's R, the gain and the correction (ekf_baseline.joseph)
+    fuse_noise(R, blk, verdict, fs, nb)
     o = 4 * nb
     rows = zi[o:o + n_acc_rows]
-    cols = zi[o + nr:o + nr + n]
-    inC = zi[o + nr + n:o + nr + 2 * n]
-    q = 0
-    for b in range(nb):
-        if verdict[b] == 0:
-            for r in range(blk[4 * b + 0], blk[4 * b + 1]):
-                rows[q] = r
-                q += 1
-    ma = n_acc_rows
-    # the fusion's R: an accepted block's R times its factor (R is scratch; the log keeps S)
-    scaled = False
-    for b in range(nb):
-        f = fs[b]
-        if verdict[b] == 0 and f != 1.0:
-            scaled = True
-            for r in range(blk[4 * b + 0], blk[4 * b + 1]):
-                for q in range(blk[4 * b + 0], blk[4 * b + 1]):
-                    R[r, q] *= f
-    # S of the accepted rows and its inverse: in U^T's rows (U is not needed after K)
-    Sa = Z[2 * nr + n:2 * nr + n + ma, 0:ma]
-    Si = Z[3 * nr + n:3 * nr + n + ma, 0:ma]
-    if scaled:  # H P H^T + f R, as S above
-        for i in range(ma):
-            for j in range(ma):
-                acc = 0.0
-                for c in range(n):
-                    h = H[rows[i], c]
-                    if h != 0.0:
-                        acc += h * Ut[rows[j], c]
-                Sa[i, j] = acc + R[rows[i], rows[j]]
-    else:
-        for i in range(ma):
-            for j in range(ma):
-                Sa[i, j] = S[rows[i], rows[j]]
-    _inverse(Sa, ma, Si)
-    # K = U S^-1 (n, ma), stored transposed
+    ma = accepted_rows(blk, verdict, nb, rows)
     Kt = Z[0:ma]
-    KRt = Z[nr:nr + ma]
-    Mt = Z[2 * nr:2 * nr + n]
-    for i in range(n):
-        for j in range(ma):
-            acc = 0.0
-            for l in range(ma):
-                acc += Ut[rows[l], i] * Si[l, j]
-            Kt[j, i] = acc
+    dx = W[2 * n]  # B's first row: free until joseph
+    gain(H, y, R, Ut, rows, ma, n, Z[2 * nr + n:2 * nr + n + ma, 0:ma],
+         Z[3 * nr + n:3 * nr + n + ma, 0:ma], Kt, dx)
     px = x[0]
     py = x[1]
     psi0 = x[2]
-    d0 = 0.0
-    d1 = 0.0
     for i in range(n):
-        acc = 0.0
-        for j in range(ma):
-            acc += Kt[j, i] * y[rows[j]]
-        if i == 0:
-            d0 = acc
-        elif i == 1:
-            d1 = acc
-        x[i] += acc
+        x[i] += dx[i]
     if ip[IP_LIE] != 0:  # the body-frame position correction (UnicycleEkf._apply)
-        x[0], x[1] = pose_correct(px, py, psi0, d0, d1)
-    # Joseph form, factored: P <- M P M^T + K R K^T, M = I - K H. M differs from I only in the
-    # columns H observes (support C): A = M P and M A^T are sums over C only
-    nc = 0
-    for c in range(n):
-        for j in range(ma):
-            if H[rows[j], c] != 0.0:
-                cols[nc] = c
-                nc += 1
-                break
-    for i in range(n):  # Mt[q, i] = M[i, C[q]]
-        inC[i] = 0
-        for q2 in range(nc):
-            c = cols[q2]
-            acc = 0.0
-            for j in range(ma):
-                acc += Kt[j, i] * H[rows[j], c]
-            Mt[q2, i] = (1.0 if i == c else 0.0) - acc
-    for q2 in range(nc):
-        inC[cols[q2]] = 1
-    A = W[n:2 * n]
-    B = W[2 * n:3 * n]
-    for i in range(n):
-        keep = inC[i] == 0
-        for jj in range(n):
-            acc = P[i, jj] if keep else 0.0
-            for q2 in range(nc):
-                acc += Mt[q2, i] * P[cols[q2], jj]
-            A[i, jj] = acc
-    # K R K^T
-    for i in range(n):
-        for j in range(ma):
-            acc = 0.0
-            for l in range(ma):
-                acc += Kt[l, i] * R[rows[l], rows[j]]
-            KRt[j, i] = acc
-    for i in range(n):
-        for jj in range(n):
-            acc = 0.0 if inC[jj] else A[i, jj]
-            for q2 in range(nc):
-                acc += A[i, cols[q2]] * Mt[q2, jj]
-            kk = 0.0
-            for l in range(ma):
-                kk += KRt[l, i] * Kt[l, jj]
-            B[i, jj] = acc + kk
-    for i in range(n):
-        for jj in range(n):
-            P[i, jj] = 0.5 * (B[i, jj] + B[jj, i])
+        x[0], x[1] = pose_correct(px, py, psi0, dx[0], dx[1])
+    joseph(P, H, R, rows, ma, n, Kt, Z[nr:nr + ma], Z[2 * nr:2 * nr + n], W[n:2 * n],
+           W[2 * n:3 * n], zi[o + nr:o + nr + n], zi[o + nr + n:o + nr + 2 * n])
     _wrap_states(x, ip)
     # accepted blocks: logged in order, their last acceptance (time, observed columns) kept
     for b in range(nb):

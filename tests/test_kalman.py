@@ -16,11 +16,13 @@ def _random_spd(rng, n, scale=1.0):
     return scale * (A @ A.T + n * np.eye(n))
 
 
-def test_update_matches_information_form():
+@pytest.mark.parametrize("m", [1, 2, 3, 5])
+def test_update_matches_information_form(m):
     """The posterior equals the information-form result (P^-1 + H^T R^-1 H)^-1, independent
-    algebra, and the logged innovation, S and NIS are the textbook ones."""
-    rng = np.random.default_rng(1)
-    n, m = 5, 2
+    algebra, and the logged innovation, S and NIS are the textbook ones; for m = 1..3 rows
+    (S inverted by its adjugate) and 5 (by Gauss-Jordan)."""
+    rng = np.random.default_rng(m)
+    n = 5 if m < 5 else 7
     x0 = rng.normal(size=n)
     P0 = _random_spd(rng, n)
     H = rng.normal(size=(m, n))
@@ -39,6 +41,78 @@ def test_update_matches_information_form():
     y = z - H @ x0
     assert inn.nis == pytest.approx(float(y @ np.linalg.solve(S, y)), rel=1e-10)
     assert np.array_equal(kf.P, kf.P.T)
+
+
+def test_scalar_update_is_the_textbook_formula():
+    """One scalar measurement z = h x + v, v ~ N(0, r): K = P h / s, s = h P h + r,
+    x' = x + K (z - h x), P' = P - K s K^T."""
+    rng = np.random.default_rng(11)
+    n = 6
+    x0 = rng.normal(size=n)
+    P0 = _random_spd(rng, n)
+    h = np.zeros(n)
+    h[[1, 4]] = (0.7, -1.3)  # a sparse row: the update sums over H's support only
+    r, z = 0.2, 0.9
+    kf = KalmanCore(x0, P0)
+    assert kf.update(0.0, "s", "k", [z], [h @ x0], h[None, :], [[r]])
+    s = h @ P0 @ h + r
+    K = P0 @ h / s
+    np.testing.assert_allclose(kf.x, x0 + K * (z - h @ x0), rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(kf.P, P0 - s * np.outer(K, K), rtol=1e-11, atol=1e-12)
+
+
+def test_unobserved_uncorrelated_states_keep_their_covariance_exactly():
+    """States H does not observe and the observed ones are uncorrelated with get no gain: their
+    mean, variances and covariances with each other are bit for bit those before the update."""
+    rng = np.random.default_rng(5)
+    n = 7
+    P0 = np.zeros((n, n))
+    P0[:3, :3] = _random_spd(rng, 3)
+    P0[3:, 3:] = _random_spd(rng, 4)
+    P0 = 0.5 * (P0 + P0.T)
+    x0 = rng.normal(size=n)
+    H = np.zeros((2, n))
+    H[:, :3] = rng.normal(size=(2, 3))
+    kf = KalmanCore(x0, P0)
+    assert kf.update(0.0, "s", "k", H @ x0 + 0.5, H @ x0, H, 0.1 * np.eye(2))
+    assert np.array_equal(kf.P[3:, 3:], P0[3:, 3:])
+    assert np.array_equal(kf.P[3:, :3], np.zeros((4, 3)))
+    assert np.array_equal(kf.x[3:], x0[3:])
+    assert not np.array_equal(kf.P[:3, :3], P0[:3, :3])
+
+
+def test_fused_block_is_the_update_with_its_noise_scaled():
+    """``fuse``: a block fused with factor f is updated exactly as with R f (only the gain and
+    the Joseph update see it; the gate and the log keep R); between two fused blocks the
+    cross-covariance is scaled by sqrt(f_a f_b), i.e. the update with D R D, D = diag(sqrt f)."""
+    rng = np.random.default_rng(3)
+    n = 5
+    x0 = rng.normal(size=n)
+    P0 = _random_spd(rng, n)
+    H = rng.normal(size=(3, n))
+    R = _random_spd(rng, 3, 0.1)
+    R[:2, 2] = R[2, :2] = 0.0
+    z = H @ x0 + 0.3
+    one = (("g", "gps", 0, 2, (), None),)
+    fused = KalmanCore(x0, P0)
+    fused.update_blocks(0.0, z[:2], H[:2] @ x0, H[:2], R[:2, :2], one, fuse=(4.0,))
+    scaled = KalmanCore(x0, P0)
+    scaled.update_blocks(0.0, z[:2], H[:2] @ x0, H[:2], 4.0 * R[:2, :2], one)
+    assert np.array_equal(fused.x, scaled.x) and np.array_equal(fused.P, scaled.P)
+    assert fused.last_verdicts == (True,)
+    np.testing.assert_array_equal(fused.log.innovations[0].cov,
+                                  H[:2] @ P0 @ H[:2].T + R[:2, :2])
+    # two blocks with a cross-covariance
+    R[:2, 2] = R[2, :2] = 0.01
+    two = (("a", "ka", 0, 2, (), None), ("b", "kb", 2, 3, (), None))
+    f = (4.0, 9.0)
+    fused = KalmanCore(x0, P0)
+    fused.update_blocks(0.0, z, H @ x0, H, R.copy(), two, fuse=f)
+    d = np.sqrt([f[0], f[0], f[1]])
+    scaled = KalmanCore(x0, P0)
+    scaled.update_blocks(0.0, z, H @ x0, H, R * np.outer(d, d), two)
+    np.testing.assert_allclose(fused.x, scaled.x, rtol=1e-13, atol=1e-14)
+    np.testing.assert_allclose(fused.P, scaled.P, rtol=1e-12, atol=1e-13)
 
 
 def test_joseph_form_stays_psd_where_simple_form_fails():
