@@ -3,9 +3,11 @@ covariance S = H U + R, the fused measurement noise, the gain K = U S^-1 with th
 correction K y, and the factored Joseph update P <- (I - K H) P (I - K H)^T + K R K^T.
 
 Plain-float loops over index arrays (``numba.extending.register_jitable``): the compiled
-kernels (``ddfuse.ekf_baseline.kalman_jit._update``) compile these functions into their update.
-Every sum over state columns skips H's zeros, so an update costs O(n^2 |C|) for the |C| states H
-observes, not O(n^3) (docs/design/ekf_kernels.md).
+kernels (``ddfuse.ekf_baseline.kalman_jit._update``) compile these functions into their update,
+and :class:`ddfuse.ekf_baseline.kalman.KalmanCore` calls them through the two compiled entry
+points at the bottom (``innovation_cov``, ``apply_update``). Every sum over state columns
+skips H's zeros, so an update costs O(n^2 |C|) for the |C| states H observes, not O(n^3)
+(docs/design/ekf_kernels.md).
 
 Shapes (n = state size, nr = stacked measurement rows, ma = accepted rows, nb = blocks): P (n, n),
 H (>= nr, n), y (>= nr,), R (>= nr, >= nr); ``Ut`` (>= nr, n) holds U transposed; ``blk`` is the
@@ -18,9 +20,11 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+from numba import njit
 from numba.extending import register_jitable
 
-__all__ = ["cross_and_innovation_cov", "fuse_noise", "gain", "joseph"]
+__all__ = ["apply_update", "innovation_cov"]
 
 
 @register_jitable
@@ -202,3 +206,41 @@ def joseph(P, H, R, rows, ma, n, Kt, KRt, Mt, A, B, cols, inC):
     for i in range(n):
         for jj in range(n):
             P[i, jj] = 0.5 * (B[i, jj] + B[jj, i])
+
+
+# ----------------------------------------------------------------------------- entry points
+# (KalmanCore's; C-contiguous float64 arrays, int64 block tables)
+@njit(cache=True)
+def innovation_cov(P, H, R):
+    """(Ut, S): U = P H^T transposed (m, n) and S = H P H^T + R (m, m) of H (m, n)."""
+    nr, n = H.shape
+    Ut = np.empty((nr, n))
+    S = np.empty((nr, nr))
+    cross_and_innovation_cov(P, H, R, nr, n, Ut, S)
+    return Ut, S
+
+
+@njit(cache=True)
+def apply_update(P, H, y, R, Ut, blk, verdict, fs):
+    """(P, dx): the covariance after the update from the accepted blocks (``verdict`` 0) of the
+    stacked rows H (m, n), y (m,), R (m, m), with ``Ut`` from ``innovation_cov`` at this P, and
+    the state correction dx = K y (n,). R is scaled for the fusion in place (``fuse_noise``)."""
+    nr, n = H.shape
+    nb = verdict.shape[0]
+    fuse_noise(R, blk, verdict, fs, nb)
+    rows = np.empty(nr, np.int64)
+    ma = accepted_rows(blk, verdict, nb, rows)
+    Sa = np.empty((ma, ma))
+    Si = np.empty((ma, ma))
+    Kt = np.empty((ma, n))
+    dx = np.empty(n)
+    gain(H, y, R, Ut, rows, ma, n, Sa, Si, Kt, dx)
+    out = P.copy()
+    KRt = np.empty((ma, n))
+    Mt = np.empty((n, n))
+    A = np.empty((n, n))
+    B = np.empty((n, n))
+    cols = np.empty(n, np.int64)
+    inC = np.empty(n, np.int64)
+    joseph(out, H, R, rows, ma, n, Kt, KRt, Mt, A, B, cols, inC)
+    return out, dx

@@ -26,7 +26,9 @@ API (all arrays are float64 numpy; n = state size, m = measurement size)::
   as an :class:`ddfuse.estimation.estimator.Innovation`; a rejection also counts in
   ``log.rejected[(sensor, 'gate')]``. An accepted update applies the gain K = P H^T S^-1 and the
   Joseph form P <- (I - K H) P (I - K H)^T + K R K^T (stays symmetric PSD even with the rounding
-  of K); state components in ``state_angles`` are wrapped after every predict and update.
+  of K), both ``ddfuse.ekf_baseline.joseph``'s, the functions the compiled kernels compile too
+  (docs/design/ekf_kernels.md); state components in ``state_angles`` are wrapped after every
+  predict and update.
 * Non-finite z or h(x), or an S that is not positive definite, are rejected with reason
   'nonfinite' / 'singular' and never touch the state.
 * ``fuse`` (update_blocks; default None = all 1): per block a factor f >= 1 on its noise in
@@ -52,6 +54,7 @@ from collections.abc import Callable
 from functools import lru_cache
 
 import numpy as np
+from ddfuse.ekf_baseline.joseph import apply_update, innovation_cov
 from ddfuse.estimation import chi2
 from ddfuse.estimation.config import DEFAULT_LOCKOUT_COUNT, DEFAULT_LOCKOUT_TIME
 from ddfuse.estimation.estimator import EstimatorLog, Innovation
@@ -105,7 +108,7 @@ class KalmanCore:
 
     __slots__ = (
         "x", "P", "n", "log", "state_angles", "lockout_count", "lockout_time",
-        "recovery_holdoff", "_streak", "_holdoff", "_last_ok", "recoveries", "last_nis", "_eye",
+        "recovery_holdoff", "_streak", "_holdoff", "_last_ok", "recoveries", "last_nis",
         "after_inflation", "held_in_recovery", "last_verdicts",
     )
 
@@ -149,7 +152,6 @@ class KalmanCore:
         self.last_nis = float("nan")
         # per block of the last update given ``fuse``: fused (module docstring)
         self.last_verdicts: tuple[bool, ...] = ()
-        self._eye = np.eye(self.n)
         self._wrap_state()
 
     # ------------------------------------------------------------------ helpers
@@ -239,16 +241,16 @@ class KalmanCore:
         of accepted blocks. Arrays passed in may be modified. ``fuse``: per block the factor on
         its R in the update (module docstring); then ``last_verdicts`` says which were fused.
 
-        This dense numpy form is the reference the compiled kernels
-        (``ddfuse.ekf_baseline.kalman_jit``, their update ``ddfuse.ekf_baseline.joseph``) are
-        tested against."""
+        The gain and the Joseph update are ``ddfuse.ekf_baseline.joseph``'s, the functions the
+        compiled kernels (``ddfuse.ekf_baseline.kalman_jit``) compile into theirs."""
         y = z - hx
         log = self.log
         for _sensor, _kind, i0, _i1, angles, _gate in blocks:
             for a in angles:
                 y[i0 + a] = (y[i0 + a] + _PI) % _TWO_PI - _PI
-        PHt = self.P @ H.T
-        S = H @ PHt + R
+        H = np.ascontiguousarray(H, dtype=float)
+        R = np.ascontiguousarray(R, dtype=float)
+        Ut, S = innovation_cov(self.P, H, R)
         # gate with python floats: per-block numpy calls would dominate the cost of a step
         yl = y.tolist()
         Sl = S.tolist()
@@ -265,8 +267,7 @@ class KalmanCore:
             verdict = self._judge(t, sensor, kind, nis, gate, i1 - i0, (H, i0, i1))
             if verdict == _RECOVER:
                 self._recover(t, sensor, kind, y[i0:i1].copy(), H[i0:i1], R[i0:i1, i0:i1])
-                PHt = self.P @ H.T
-                S = H @ PHt + R
+                Ut, S = innovation_cov(self.P, H, R)
                 Sl = S.tolist()  # the blocks after this one are gated with the inflated P too
                 recovered = True
             elif verdict == _REJECT:
@@ -282,36 +283,20 @@ class KalmanCore:
             self.last_verdicts = tuple(keep)
         if n_acc == 0:
             return 0
-        if n_acc < len(blocks):
-            rows = [i for b, k in zip(blocks, keep, strict=True) if k for i in range(b[2], b[3])]
-            Hk, Rk, yk = H[rows], R[np.ix_(rows, rows)], y[rows]
-            PHtk, Sk = PHt[:, rows], S[np.ix_(rows, rows)]
+        # the kernels' block table (row start, stop, -, -) and verdicts (0 accepted)
+        nb = len(blocks)
+        blk = np.zeros(4 * nb, dtype=np.int64)
+        blk[0::4] = [b[2] for b in blocks]
+        blk[1::4] = [b[3] for b in blocks]
+        rejected = np.array([0 if k else 1 for k in keep], dtype=np.int64)
+        if fuse is None:
+            fs = np.ones(nb)
         else:
-            Hk, Rk, yk, PHtk, Sk = H, R, y, PHt, S
-        if fuse is not None and any(f != 1.0 for f, k in zip(fuse, keep, strict=True) if k):
-            # the fusion's R (module docstring; the kernels' joseph.fuse_noise)
-            fr = np.array([f for b, k, f in zip(blocks, keep, fuse, strict=True) if k
-                           for _ in range(b[2], b[3])])
-            Rk = Rk * np.sqrt(np.multiply.outer(fr, fr))
-            Sk = Hk @ PHtk + Rk
-        # K = P H^T S^-1. S is symmetric PD (its diagonal blocks were checked above) and small;
-        # inv is about half the cost of solve for these sizes and as accurate at these
-        # condition numbers
-        mk = Sk.shape[0]
-        if mk == 1:
-            K = PHtk / Sk[0, 0]
-        elif mk <= 3:
-            K = PHtk @ np.array(_inv_small(Sk.tolist()))
-        else:
-            K = PHtk @ np.linalg.inv(Sk)
-        self.x = self.x + K @ yk
-        # Joseph form in its factored form: the expanded P - K U^T - U K^T + K S K^T is the same
-        # algebra but cancels catastrophically for a precise measurement of an uncertain state
-        IKH = self._eye - K @ Hk
-        P = IKH @ self.P @ IKH.T + K @ Rk @ K.T
-        P += P.T
-        P *= 0.5
-        self.P = P
+            fs = np.array(fuse, dtype=float)
+            R = R.copy()  # apply_update fuses it in place; the caller's may be a constant
+        self.P, dx = apply_update(self.P, H, np.ascontiguousarray(y, dtype=float), R, Ut, blk,
+                                  rejected, fs)
+        self.x = self.x + dx
         if self.state_angles:
             self._wrap_state()
         inns = log.innovations
@@ -512,27 +497,6 @@ def _nis_rows(y, S, i0: int, i1: int) -> float | None:
         return None if nis < 0.0 else nis
     return _nis(np.array(y[i0:i1], dtype=float),
                 np.array([r[i0:i1] for r in S[i0:i1]], dtype=float))
-
-
-def _inv_small(S: list) -> tuple:
-    """Inverse of a 2x2 or 3x3 positive-definite matrix (nested lists) by its adjugate, as
-    nested tuples: a few float operations instead of the several microseconds of LAPACK call
-    overhead."""
-    if len(S) == 2:
-        (a, b), (c, d) = S
-        det = a * d - b * c
-        return ((d / det, -b / det), (-c / det, a / det))
-    (a, b, c), (d, e, f), (g, h, i) = S
-    A = e * i - f * h
-    B = f * g - d * i
-    C = d * h - e * g
-    det = a * A + b * B + c * C
-    r = 1.0 / det
-    return (
-        (A * r, (c * h - b * i) * r, (b * f - c * e) * r),
-        (B * r, (a * i - c * g) * r, (c * d - a * f) * r),
-        (C * r, (b * g - a * h) * r, (a * e - b * d) * r),
-    )
 
 
 def _nis(y: np.ndarray, S: np.ndarray) -> float | None:

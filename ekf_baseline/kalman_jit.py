@@ -11,10 +11,9 @@ The maths is the Python filters': the measurement models (``unicycle_measurement
 ``igvc_jacobians``), the NIS of a block (``kalman.block_nis``) and the gate's lock-out streak
 rule (``ddfuse.estimation.lockout``) are plain-float functions both the reference path and
 these kernels call (compiled here through ``numba.extending.register_jitable``:
-``kalman_jit_layout``). The gain and the factored Joseph update, loops over the sparse H, are
-``ddfuse.ekf_baseline.joseph``'s; the reference (``reference=True``, the dense numpy
-``KalmanCore.update_blocks``) still does them with numpy (docs/design/ekf_kernels.md). The
-prediction kernels are in ``kalman_jit_predict``.
+``kalman_jit_layout``), and so are the gain and the factored Joseph update
+(``ddfuse.ekf_baseline.joseph``, which ``KalmanCore.update_blocks`` calls too). The prediction
+kernels are in ``kalman_jit_predict``; docs/design/ekf_kernels.md.
 
 Every kernel returns a bit set: ``DEFER`` -- a gated block needs what only Python does (a gate
 lock-out candidate that may be a recovery or a corroboration verdict, a non-positive-definite S,

@@ -480,9 +480,8 @@ class LandmarkSlamEkf(_OdometryDrivenEkf):
 
 def _resize(kf: KalmanCore, x: np.ndarray, P: np.ndarray) -> None:
     """Give ``kf`` a larger state (mean ``x``, covariance ``P``), keeping its log, gate streaks
-    and recoveries. KalmanCore has no resize of its own; it caches the identity of its size."""
+    and recoveries. KalmanCore has no resize of its own."""
     n = x.shape[0]
     kf.x = np.array(x, dtype=float)
     kf.P = np.array(P, dtype=float)
     kf.n = n
-    kf._eye = np.eye(n)

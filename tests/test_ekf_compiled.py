@@ -1,6 +1,7 @@
 """The filters' compiled path (numba kernels, ddfuse.ekf_baseline.kalman_jit, the default)
-against their Python reference (``reference=True``: the dense numpy KalmanCore.update_blocks;
-the kernels' update (``ekf_baseline.joseph``), prediction and log are their own code). On streams
+against their Python reference (``reference=True``: KalmanCore's gate, lock-out bookkeeping,
+predict and log; the kernels' prediction, gate bookkeeping and log are their own code, the gain
+and Joseph update are ``ekf_baseline.joseph``'s in both). On streams
 carrying every sensor kind, a heading that crosses +-pi, outliers the gates reject, a GPS jump
 that locks the gate out until a recovery, an odometry yaw rate the gyro keeps contradicting
 (the corroboration verdict and its hold-off), and on the real Husky bag, every estimate (state
