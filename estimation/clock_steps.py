@@ -34,7 +34,10 @@ class ClockSteps:
     ``steps``: (record time s where it stepped, as written; step s) of each;
     ``retimed``: topic -> messages whose stamp was re-timed."""
 
-    __slots__ = ("tolerance", "shift", "newest", "last", "steps", "retimed", "first_stamp")
+    OUTLIER_RUN = 10  # garbled records in a row that are still taken as one outlier
+
+    __slots__ = ("tolerance", "shift", "newest", "last", "steps", "retimed", "first_stamp",
+                 "jumped_from", "since_jump")
 
     def __init__(self, tolerance: float) -> None:
         self.tolerance = tolerance
@@ -44,16 +47,32 @@ class ClockSteps:
         self.steps: list[tuple[float, float]] = []
         self.retimed: Counter = Counter()
         self.first_stamp: float | None = None  # of the first step, re-timed, for the warning
+        # the newest record time before the last forward jump beyond the tolerance, while the
+        # records after it follow it: one garbled record time (a damaged chunk) that the next
+        # record comes back from is an outlier, not a step back
+        self.jumped_from: float | None = None
+        self.since_jump = 0  # records since that jump; past OUTLIER_RUN it was a real one
 
     def retime(self, topic: str, t: float, rt: float) -> tuple[float, float]:
         """(stamp, record time) of a message on ``topic`` with header stamp ``t`` and record
         time ``rt`` (s), read next in write order, re-timed for the steps so far."""
         rt += self.shift
-        if rt < self.newest - self.tolerance:
-            step = self.newest - rt
-            self.steps.append((rt - self.shift, step))
-            self.shift += step
-            rt += step
+        tol = self.tolerance
+        if rt < self.newest - tol:
+            if self.jumped_from is not None and rt >= self.jumped_from - tol:
+                self.newest = self.jumped_from  # the jump was an outlier
+            else:
+                step = self.newest - rt
+                self.steps.append((rt - self.shift, step))
+                self.shift += step
+                rt += step
+            self.jumped_from = None
+        elif rt > self.newest + tol and self.newest > float("-inf"):
+            self.jumped_from, self.since_jump = self.newest, 0
+        elif self.jumped_from is not None:
+            self.since_jump += 1
+            if self.since_jump > self.OUTLIER_RUN:
+                self.jumped_from = None
         if rt > self.newest:
             self.newest = rt
         if self.shift:

@@ -51,6 +51,17 @@ def test_clock_steps_finds_a_backward_record_time_and_retimes_what_follows():
     assert jitter.retime("/a", 4.5, 4.5) == (4.5, 4.5) and not jitter.steps
 
 
+def test_one_garbled_record_time_is_not_a_step():
+    """A record time far ahead (a damaged chunk) that the next record comes back from."""
+    steps = ClockSteps(1.0)
+    out = [steps.retime("/a", t, rt) for t, rt in ((1.0, 1.0), (1.1, 1e6), (1.2, 1.2))]
+    assert out[2] == (1.2, 1.2) and not steps.steps
+    # a forward gap that the records keep, then a real step back, is still a step
+    for t in [5.0 + 0.1 * k for k in range(ClockSteps.OUTLIER_RUN + 2)] + [0.2]:
+        steps.retime("/a", t, t)
+    assert [round(s, 6) for _, s in steps.steps] == [5.9]
+
+
 def test_a_topic_stamped_by_another_clock_keeps_its_stamps():
     steps = ClockSteps(1.0)
     for k in range(3):
