@@ -18,7 +18,7 @@ import numpy as np
 from ddfuse.estimation import heading_survey, ros1_scan, rosmsg
 from ddfuse.estimation.bag_reader import open_reader
 from ddfuse.estimation.bags import BagStream
-from ddfuse.estimation.config import parse_config
+from ddfuse.estimation.config import DEFAULT_GPS_MIN_STD, parse_config
 from ddfuse.estimation.converters import Reject, gps_fix
 from ddfuse.estimation.errors import BagError, DdfuseError
 from ddfuse.estimation.frames import GRAVITY, body_x_tilt, rpy_matrix
@@ -80,6 +80,23 @@ def _diag_summary(name: str, values: list[float]) -> tuple[str, bool]:
     return text, bad == 0
 
 
+def _below_floor(recs: list[tuple]) -> tuple[int, float, float] | None:
+    """Of NavSatFix records (stamp, status, lat, lon, alt, cov9, cov_type): how many state a
+    horizontal variance (the smaller eigenvalue of the east/north block, m^2) under the floor
+    for their status (``DEFAULT_GPS_MIN_STD``), the smallest such variance and its floor (m);
+    None when none does."""
+    n, low = 0, None
+    for r in recs:
+        if r[1] < 0 or r[6] == 0 or not all(map(math.isfinite, r[5])):
+            continue
+        std = DEFAULT_GPS_MIN_STD.get(r[1], DEFAULT_GPS_MIN_STD[0])
+        var = float(np.linalg.eigvalsh(np.reshape(r[5], (3, 3))[:2, :2])[0])
+        if 0.0 < var < std * std:
+            n += 1
+            low = (var, std) if low is None or var < low[0] else low
+    return (n, *low) if n else None
+
+
 def _summarise(info: TopicInfo, recs: list[tuple]) -> None:
     # an unset (zero or negative) or non-finite stamp is no time: as the reader drops such a
     # message, the facts leave it out (one zero stamp made a 30 Hz IMU 3.6e12 Hz)
@@ -134,6 +151,13 @@ def _summarise(info: TopicInfo, recs: list[tuple]) -> None:
                           + (f"; {unusable} more with a position ddfuse drops (latitude/"
                              "longitude out of range or both 0)" if unusable else ""))
         info.cov_ok = ok and 0 not in ctype
+        low = _below_floor(recs)
+        if low:
+            n, var, std = low
+            info.notes.append(
+                f"{n} fix(es) state a horizontal variance below what a receiver of their status "
+                f"can claim (smallest {var:.3g} m^2, floor ({std:g} m)^2): ddfuse fuses them with "
+                "the floor (the GPS sensor's min_std sets it)")
         scatter = fix_scatter(recs)
         if scatter is not None:
             info.notes.append(scatter)

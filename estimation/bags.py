@@ -60,6 +60,7 @@ from ddfuse.estimation.converters import (
 )
 from ddfuse.estimation.duplicates import DUPLICATE, Duplicates
 from ddfuse.estimation.errors import BagError
+from ddfuse.estimation.gaps import gap_warning, is_gap
 from ddfuse.estimation.gps_watch import GpsWatch
 from ddfuse.estimation.measurements import GpsFix, GroundTruthPose, Stream, truth_at_start
 from ddfuse.estimation.robot_limits import RobotLimits
@@ -130,6 +131,7 @@ class BagStream:
         self.rejected = drops.rejected
         self.late = drops.late
         self.warnings = drops.warnings
+        self.gaps: list[tuple[float, float]] = []  # (last stamp before, first after), s
         self.screen = RobotLimits(cfg, self.rejected)  # what the robot cannot do: rejected
         self.watch = GpsWatch(cfg)  # GPS against the odometry: disagreements reported
         self.t0: float | None = None
@@ -390,6 +392,8 @@ class BagStream:
             self.t0 = t
             if len(self._truth[0]) and self._truth[0][-1] >= t - 1e-9:
                 self._truth_found = True
+        if self.t1 is not None and is_gap(t - self.t1):
+            self.gaps.append((self.t1, t))
         if self.t1 is None or t > self.t1:
             self.t1 = t
         self.count += 1
@@ -457,6 +461,8 @@ class BagStream:
         self.drops.warn_rejected()
         self.watch.finish()
         self.warnings += [f"{bag}: {w}" for w in (*self.screen.warnings(), *self.watch.warnings())]
+        if self.gaps:
+            self.warnings.append(gap_warning(str(bag), self.gaps, self.t0))
         for (topic, reason), n in sorted(self.rejected.items()):
             log.warning("%s: %s: %d message(s) rejected: %s", bag, topic, n, reason)
         for w in self.warnings:

@@ -65,3 +65,15 @@ def gap_note(who: str, gap: float, cov: np.ndarray) -> str:
     return (f"{who}: no message for {gap:.1f} s (a gap in the feed, over {GAP_S:g} s): restarted "
             f"from the last pose, position sigma {math.sqrt(max(cov[0, 0], cov[1, 1])):.1f} m, "
             f"heading sigma {math.sqrt(cov[2, 2]):.2f} rad (docs/design/gaps.md)")
+
+
+def gap_warning(source: str, gaps: list[tuple[float, float]], t0: float | None) -> str:
+    """One line for the gaps of an input (``source``, e.g. the bag's path): each (last stamp
+    before, first stamp after), s; times said from ``t0`` (the input's first stamp)."""
+    t0 = gaps[0][0] if t0 is None else t0
+    said = ", ".join(f"{b - a:.1f} s from {a - t0:.1f} s" for a, b in gaps[:3])
+    more = f" and {len(gaps) - 3} more" if len(gaps) > 3 else ""
+    return (f"{source}: {len(gaps)} gap(s) with no message on any sensor topic for more than "
+            f"{GAP_S:g} s ({said}{more} into the input): every estimator restarts after it "
+            "from its last pose, the covariance grown by the robot's limits (robot.max_speed, "
+            "max_yaw_rate), or from the next GPS fix")

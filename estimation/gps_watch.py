@@ -27,6 +27,7 @@ from collections import deque
 from dataclasses import dataclass
 
 from ddfuse.estimation.config import Config
+from ddfuse.estimation.gaps import is_gap
 from ddfuse.estimation.measurements import GpsFix, GyroYawRate, WheelOdometry, WheelSpeeds
 
 __all__ = ["ABS_M", "K_SIGMA", "MIN_FIXES", "REL", "WINDOW_S", "Episode", "GpsWatch"]
@@ -92,6 +93,15 @@ class GpsWatch:
         self._t: float | None = None  # the dead reckoning's time, s
         self._refs: dict[str, deque] = {}  # sensor -> agreeing fixes (_Ref), oldest first
         self._open: dict[str, Episode] = {}  # sensor -> flagged run (an episode once long)
+        self._last: float | None = None  # the last message's stamp, s
+
+    def _restart(self) -> None:
+        """After a gap (``estimation.gaps``): close what is open and dead-reckon afresh."""
+        for sensor in list(self._open):
+            self._close(sensor)
+        self._refs.clear()
+        self._t = None
+        self._v = self._w = 0.0
 
     def feed(self, m, accepted: bool = True) -> None:
         """Take measurement ``m`` (stamp order); ``accepted``: whether the plausibility screen
@@ -100,6 +110,9 @@ class GpsWatch:
             return
         if self.t0 is None:
             self.t0 = m.t
+        if self._last is not None and is_gap(m.t - self._last):
+            self._restart()  # the odometry says nothing about a gap: its dead reckoning ends
+        self._last = m.t
         typ = type(m)
         if typ is GpsFix:
             if m.enu is not None:

@@ -236,12 +236,10 @@ def imu_zero_quaternion(bag: Bag) -> None:
 
 # --- robot limits ------------------------------------------------------------------------------
 
-LIMITS = ("issue 32: one absurd sample (robot limits: top speed, yaw rate, acceleration); "
-          "fixed by the limits branch")
 SPEED_MESSAGE = r"/odom\b.*(speed|velocity|\bv\b|limit|max|absurd|implausible)"
 
 
-@case(message=SPEED_MESSAGE, xfail=LIMITS)
+@case(message=SPEED_MESSAGE)
 def odom_speed_1e6(bag: Bag) -> None:
     """One /odom message (40 s in) with v = 1e6 m/s (a driver glitch).
     Before: exit 0, no warning; smoother 20.4 km ATE (119 km largest) and ERROR, batch
@@ -250,7 +248,7 @@ def odom_speed_1e6(bag: Bag) -> None:
     bag.edit(bag.at(ODOM, 40.0), lambda m: setattr(m.twist.twist.linear, "x", 1e6))
 
 
-@case(message=SPEED_MESSAGE, xfail=LIMITS)
+@case(message=SPEED_MESSAGE)
 def odom_speed_20(bag: Bag) -> None:
     """One /odom message (40 s in) with v = 20 m/s (the robot's top speed is about 1 m/s).
     Before: exit 0, no warning; smoother 1.24 m ATE (clean 0.101), smoother_lagged
@@ -258,8 +256,7 @@ def odom_speed_20(bag: Bag) -> None:
     bag.edit(bag.at(ODOM, 40.0), lambda m: setattr(m.twist.twist.linear, "x", 20.0))
 
 
-@case(message=r"/imu/data\b.*(yaw.?rate|gyro|angular|limit|max|absurd|implausible)",
-      xfail=LIMITS)
+@case(message=r"/imu/data\b.*(yaw.?rate|gyro|angular|limit|max|absurd|implausible)")
 def imu_gyro_30(bag: Bag) -> None:
     """One /imu/data message (40 s in) with angular_velocity.z = 30 rad/s.
     Before: exit 0, no warning; smoother 0.94 m ATE (clean 0.101), smoother_lagged 0.86
@@ -268,7 +265,7 @@ def imu_gyro_30(bag: Bag) -> None:
 
 
 @case("husky", message=r"/husky_velocity_controller/odom\b.*(speed|velocity|\bv\b|limit|max"
-      r"|absurd|implausible)", bound="near_clean_track", xfail=LIMITS)
+      r"|absurd|implausible)", bound="near_clean_track")
 def husky_odom_speed_1e6(bag: Bag) -> None:
     """rl_husky_gps.bag with one odometry message (100 s in) at v = 1e6 m/s.
     Before: exit 0, no warning; the smoother 86 km RMS from its clean track and
@@ -284,7 +281,7 @@ GAP = (30.0, 90.0)
 
 @case(message=r"(gap|hole|silen|outage|no (sensor )?(data|message|measurement)).*\b(59|60)"
       r"(\.\d+)? ?s|\b(59|60)(\.\d+)? ?s.*(gap|hole|silen|outage|no (data|message|measurement))",
-      bound="gap", xfail="issue 32: gaps (a 60 s hole in every sensor); fixed by the gaps branch")
+      bound="gap")
 def gap_60s(bag: Bag) -> None:
     """No message of any sensor (/odom, /imu/data, /fix) from 30 s to 90 s; the ground truth
     goes on (it scores the run).
@@ -301,8 +298,7 @@ def gap_60s(bag: Bag) -> None:
 STEP_AT, STEP_S = 60.0, 10.0
 
 
-@case(message=r"(clock|time|stamp).*(back|jump|step|earlier|decreas)", bound="clock_step",
-      xfail="issue 32: time (the clock stepping back 10 s); fixed by the bagread branch")
+@case(message=r"(clock|time|stamp).*(back|jump|step|earlier|decreas)", bound="clock_step")
 def clock_back_10s(bag: Bag) -> None:
     """The recording clock steps back 10 s at 60 s: every message after it (the ground truth
     too) has its header stamp and record time 10 s earlier, so 10 s of stamps repeat.
@@ -318,8 +314,7 @@ def clock_back_10s(bag: Bag) -> None:
 
 
 @case(message=r"(/odom|/imu/data|/fix)\b.*duplicat|duplicat.*(/odom|/imu/data|/fix)\b",
-      bound="duplicates",
-      xfail="issue 32: time (exact duplicate messages); fixed by the bagread branch")
+      bound="duplicates")
 def duplicates(bag: Bag) -> None:
     """Every sensor message (/odom, /imu/data, /fix) recorded twice, byte for byte.
     Before: exit 0, no warning; ATE as clean (ekf 0.118 m) but NEES ekf 2.89 -> 4.53,
@@ -334,14 +329,12 @@ def duplicates(bag: Bag) -> None:
 
 # --- GPS lies ----------------------------------------------------------------------------------
 
-GPS_LIES = "issue 32: GPS lies ({}); fixed by the limits branch"
 JUMP = (50.0, 70.0)
 
 
 @case(config=_stated_gps_covariance,
       message=r"/fix\b.*(covariance|variance|sigma).*(1e-12|implausib|floor|too small|unrealistic"
-      r"|below)|/fix\b.*floor",
-      xfail=GPS_LIES.format("a stated covariance of 1e-12 m^2"))
+      r"|below)|/fix\b.*floor")
 def gps_covariance_1e_12(bag: Bag) -> None:
     """Every /fix states a position covariance of 1e-12 m^2.
     Before: exit 0, no warning about it; ATE ekf 2.34 m (clean 0.114), ekf_igvc
@@ -352,7 +345,7 @@ def gps_covariance_1e_12(bag: Bag) -> None:
 
 @case(command="inspect",
       message=r"/fix\b.*(implausib|unrealistic|too small|suspicious|floor|below|tiny)",
-      bound=None, xfail=GPS_LIES.format("inspect comments on a covariance of 1e-12 m^2"))
+      bound=None)
 def inspect_gps_covariance_1e_12(bag: Bag) -> None:
     """``inspect`` on the bag whose /fix states 1e-12 m^2.
     Before: "/fix: var east 1e-12; covariance type [2]; 0 NO_FIX of 297" and
@@ -361,8 +354,7 @@ def inspect_gps_covariance_1e_12(bag: Bag) -> None:
 
 
 @case(message=r"/fix\b.*(disagree|jump|inconsistent|odometry|reject|outlier|conflict)",
-      bound="dead_reckoning", holdout=f"window:{JUMP[0]:g}:{JUMP[1]:g}",
-      xfail=GPS_LIES.format("a 50 m jump held 20 s"))
+      bound="dead_reckoning", holdout=f"window:{JUMP[0]:g}:{JUMP[1]:g}")
 def gps_jump_50m_20s(bag: Bag) -> None:
     """Every /fix from 50 s to 70 s is 50 m east of the truth (a multipath lock held 20 s).
     Before: exit 0, no warning; ATE ekf 20.4 m, ekf_igvc 20.5 (largest 52 m),
@@ -391,9 +383,7 @@ def damage(path: Path) -> None:
     path.write_bytes(bytes(raw))
 
 
-@case(written=damage, message=r"CASE\.bag\b.*(damag|corrupt|invalid|unreadable|broken)",
-      xfail="issue 32: a damaged bag refused for the wrong reason (one flipped byte in a "
-      "connection record); fixed by the bagread branch")
+@case(written=damage, message=r"CASE\.bag\b.*(damag|corrupt|invalid|unreadable|broken)")
 def damaged_connection(bag: Bag) -> None:
     """The first connection record of /fix inside a chunk has one byte of its
     message_definition text flipped (0x80 set: not UTF-8 any more); every message is intact.
@@ -406,9 +396,7 @@ def damaged_connection(bag: Bag) -> None:
 
 @case(command="inspect", bound=None, rc=(0, 2),
       message=r"/fix\b.*\b(two|2|both|mixed|several|more than one|differ\w*)\b.*\btypes\b"
-      r"|/fix\b.*NavSatFix.*PoseStamped|/fix\b.*PoseStamped.*NavSatFix",
-      xfail="issue 32: tracebacks still reachable (inspect, a GPS topic with two message "
-      "types); fixed by the outputs branch")
+      r"|/fix\b.*NavSatFix.*PoseStamped|/fix\b.*PoseStamped.*NavSatFix")
 def inspect_gps_two_types(bag: Bag) -> None:
     """/fix carries a second connection of type geometry_msgs/PoseStamped (10 messages, 1 Hz
     from 20 s) beside its NavSatFix.
@@ -436,9 +424,7 @@ def _no_initial_pose(cfg: dict) -> None:
 
 @case(config=_no_initial_pose, bound=None, rc=(1, 2, 3),
       message=r"(every|all|no|none of the) estimators?\b.*(error|fail|never|no estimate|stopped)",
-      absent=(r"initial_pose: ground_truth",),
-      xfail="issue 32: exit codes and hints (every estimator in ERROR exits 0; the hint blames "
-      "initial_pose: ground_truth); fixed by the outputs branch")
+      absent=(r"initial_pose: ground_truth",))
 def every_estimator_error(bag: Bag) -> None:
     """Only the first /fix is kept and the config sets no initial_pose: no estimator can start
     (the heading comes from the GPS course, which one fix cannot give).

@@ -317,8 +317,6 @@ def test_ctrl_c_mid_run_exits_130_and_writes_what_was_estimated(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="issue 32: results half-written (SIGTERM ends the run with "
-                   "exit 143 and writes nothing); fixed by the outputs branch")
 def test_sigterm_mid_run_is_treated_like_ctrl_c(tmp_path):
     """SIGTERM (``timeout``, ``docker stop``, a job scheduler) while the estimators run: as
     Ctrl-C, the results so far written and marked interrupted; exit 130 or 143 (or ended by
@@ -346,8 +344,6 @@ def _no_room():
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="issue 32: results half-written (a full disk names no file "
-                   "and leaves a truncated track); fixed by the outputs branch")
 def test_no_room_for_the_results_names_the_file_and_leaves_nothing_truncated(tmp_path,
                                                                             corpus_dir):
     """A run whose files cannot grow past 200 kB (the full disk of the issue, made by a file
