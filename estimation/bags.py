@@ -160,6 +160,19 @@ class BagStream:
     # --- what is known ---------------------------------------------------------------------
 
     @property
+    def recorded_span(self) -> float | None:
+        """The bag's record-time span from its index (s), known before reading; None when
+        there is no index (a bag read from the front)."""
+        msgs = self._msgs
+        if msgs.scan is not None:
+            index = msgs.scan.index
+            span = index.span if index is not None else None
+            return None if span is None else span[1] - span[0]
+        if msgs.reader is None:
+            return None
+        return max(0.0, (msgs.reader.end_time - msgs.reader.start_time) * 1e-9)
+
+    @property
     def duration(self) -> float:
         return (self.t1 - self.t0) if self.t0 is not None and self.t1 is not None else 0.0
 

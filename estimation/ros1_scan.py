@@ -374,6 +374,8 @@ class Index:
     # chunk byte -> connection id -> messages in that chunk (the chunk info records); None when
     # those records cannot be read
     chunk_counts: dict[int, Counter] | None
+    # the record times the chunk infos span, (first, last) s; None when they cannot be read
+    span: tuple[float, float] | None = None
 
 
 class Ros1Scan:
@@ -709,14 +711,17 @@ def read_index(path: str | Path) -> Index | None:
                 if fields is None or _op(fields) != OP_CONNECTION:
                     return None
                 out.append(_connection(fields, data)[0])  # damage: the scan notes it
-            return Index(out, _chunk_infos(f, scan, chunk_count))
+            span: list[float] = []
+            return Index(out, _chunk_infos(f, scan, chunk_count, span),
+                         (min(span), max(span)) if span else None)
     except (OSError, _Incomplete, _Damaged):
         return None
 
 
-def _chunk_infos(f, scan: Ros1Scan, count: int) -> dict[int, Counter] | None:
+def _chunk_infos(f, scan: Ros1Scan, count: int, span: list[float]) -> dict[int, Counter] | None:
     """The ``count`` chunk info records at the file position: chunk byte -> connection id ->
-    messages; None if one is damaged."""
+    messages; None if one is damaged. Each chunk's start and end record time (s) are appended
+    to ``span``."""
     out: dict[int, Counter] = {}
     try:
         for _ in range(count):
@@ -727,6 +732,10 @@ def _chunk_infos(f, scan: Ros1Scan, count: int) -> dict[int, Counter] | None:
             (cpos,) = struct.unpack("<Q", fields["chunk_pos"])
             pairs = struct.unpack(f"<{len(data) // 4}I", data)
             out[cpos] = Counter(dict(zip(pairs[::2], pairs[1::2], strict=True)))
+            for key in ("start_time", "end_time"):
+                if len(fields.get(key, b"")) == 8:
+                    sec, nsec = struct.unpack("<II", fields[key])
+                    span.append(sec + nsec * 1e-9)
     except (OSError, _Incomplete, _Damaged):
         return None
     return out

@@ -13,10 +13,15 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-# measured (docs/design/outputs.md, "Long bags"): 300 keyframes 4.9 s, 1500 keyframes 97.7 s
-SOLVE_S_PER_1000 = 46.0
-SOLVE_EXPONENT = 1.86
+# measured on a quiet machine (docs/design/outputs.md, "Long bags"): the batch's whole cost,
+# 1500 keyframes 16.5 s, 4500 keyframes 224 s
+SOLVE_S_PER_1000 = 6.3
+SOLVE_EXPONENT = 2.37
 NOTICE_ABOVE_S = 60.0
+# s of bag: above it the default estimator set leaves the batch out (about 1.5 min of solve at
+# 2.5 keyframes/s; a 2 h bag would take over an hour)
+DEFAULT_MAX_SPAN_S = 1200.0
+KEYFRAMES_PER_S = 2.5  # a GPS-keyed window at a 2.5 Hz receiver, for the estimate before reading
 
 
 def solve_seconds(keyframes: int) -> float:
@@ -38,6 +43,16 @@ def solve_notice(keyframes: int) -> str | None:
             f"of this run: about {_duration(s)} (a model measured on simulated bags; "
             "docs/design/outputs.md); Ctrl-C skips it and keeps the other estimators' "
             "results, and --estimators without batch leaves it out")
+
+
+def leave_out_notice(span_s: float, others: list[str]) -> str:
+    """What to tell the user when the default set leaves the batch out of a bag spanning
+    ``span_s`` s (more than ``DEFAULT_MAX_SPAN_S``); ``others``: the estimators that run."""
+    s = solve_seconds(int(span_s * KEYFRAMES_PER_S))
+    return (f"batch: left out of the default estimators: this bag spans {_duration(span_s)} and "
+            f"the batch's whole-run solve grows faster than the bag (about {_duration(s)} here, "
+            f"a model measured on simulated bags; docs/design/outputs.md); ask for it with "
+            f"--estimators {','.join([*others, 'batch'])}")
 
 
 def announce_solve(batch, notice: Callable[[str], None]) -> None:

@@ -41,7 +41,7 @@ from ddfuse.estimation.measurements import Stream
 from ddfuse.estimation.runner import RunResult, Trajectory, initial_pose, parse_holdout, run
 from ddfuse.evaluation import consistency, metrics
 from ddfuse.evaluation import estimators as registry
-from ddfuse.evaluation.batch_cost import announce_solve
+from ddfuse.evaluation.batch_cost import DEFAULT_MAX_SPAN_S, announce_solve, leave_out_notice
 from ddfuse.evaluation.consistency import SensorNis
 from ddfuse.evaluation.run_files import config_text_of, save_run, write_metrics, writing_run
 from ddfuse.evaluation.scores import (
@@ -550,8 +550,10 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
     """Decode ``bag`` as a stream (``ddfuse.estimation.bags.BagStream``: memory bounded however long
     the bag), run the selected estimators on it, write results into ``outdir``; returns the
     run's ``RunSummary`` (written as metrics.json: its ``to_json()``). ``reorder_window`` (s)
-    overrides the config's. ``notice`` is told, before the batch's whole-run solve, that it
-    is the slow part and how long it should take, when that is long (``batch_cost``).
+    overrides the config's. The default set (``names`` None) leaves the batch out of a bag
+    spanning more than ``batch_cost.DEFAULT_MAX_SPAN_S``; ``notice`` is told so, or, before the
+    batch's whole-run solve, that it is the slow part and how long it should take, when that is
+    long (``batch_cost``).
 
     On a damaged or truncated bag the results of what could be read are written, then BagError
     is raised with ``results_written`` set."""
@@ -561,6 +563,11 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
     chosen = registry.select(cfg, names)
     parse_holdout(holdout)  # a bad spec fails before any decoding
     stream = BagStream(bag, cfg, reorder_window=reorder_window).prime()
+    span = stream.recorded_span
+    if names is None and "batch" in chosen and span is not None and span > DEFAULT_MAX_SPAN_S:
+        chosen = [n for n in chosen if n != "batch"]
+        if notice is not None:
+            notice(leave_out_notice(span, chosen))
     outdir.mkdir(parents=True, exist_ok=True)
     pose = initial_pose(cfg.initial_pose, stream)
     lag = lag if lag is not None else cfg.smoother.lag
