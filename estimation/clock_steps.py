@@ -7,7 +7,9 @@ those topics) its header stamp S seconds early, so that, ordered by stamp, the n
 of data interleave with the S seconds before the step: a track that jumps back and forth.
 
 The write order is the evidence: real time never runs backwards, so a record time that goes
-back by more than ``tolerance`` (s) against the newest one written before it is a step. Each
+back by more than ``tolerance`` (s) against the newest one written before it, on its own topic
+too, is a step (a bag written topic by topic, as merging scripts do, goes back only across
+topics). Each
 message read after a step is re-timed by the sum of the steps before it: its record time
 always, its header stamp when that stamp stepped too, i.e. when the re-timed stamp lies nearer
 its topic's previous stamp than the stamp as written (a topic whose stamps come from another
@@ -37,7 +39,7 @@ class ClockSteps:
     OUTLIER_RUN = 10  # garbled records in a row that are still taken as one outlier
 
     __slots__ = ("tolerance", "shift", "newest", "last", "steps", "retimed", "first_stamp",
-                 "jumped_from", "since_jump")
+                 "jumped_from", "since_jump", "topic_rt")
 
     def __init__(self, tolerance: float) -> None:
         self.tolerance = tolerance
@@ -52,13 +54,20 @@ class ClockSteps:
         # record comes back from is an outlier, not a step back
         self.jumped_from: float | None = None
         self.since_jump = 0  # records since that jump; past OUTLIER_RUN it was a real one
+        self.topic_rt: dict[str, float] = {}  # topic -> its newest (re-timed) record time, s
 
     def retime(self, topic: str, t: float, rt: float) -> tuple[float, float]:
         """(stamp, record time) of a message on ``topic`` with header stamp ``t`` and record
         time ``rt`` (s), read next in write order, re-timed for the steps so far."""
         rt += self.shift
         tol = self.tolerance
-        if rt < self.newest - tol:
+        prev = self.topic_rt.get(topic)
+        back = rt < self.newest - tol
+        if back and (prev is None or rt >= prev - tol):
+            # this topic's own record times run on: the bag was written out of time order
+            # (merged topic by topic), not recorded across a step
+            back = False
+        if back:
             if self.jumped_from is not None and rt >= self.jumped_from - tol:
                 self.newest = self.jumped_from  # the jump was an outlier
             else:
@@ -75,6 +84,8 @@ class ClockSteps:
                 self.jumped_from = None
         if rt > self.newest:
             self.newest = rt
+        if prev is None or rt > prev:
+            self.topic_rt[topic] = rt
         if self.shift:
             moved = t + self.shift
             last = self.last.get(topic)

@@ -737,8 +737,9 @@ def _zero_cov_msg(case: str, t: float, zero: bool):
         return "/lm", bw.landmark(t, "7", 2.0, 0.1, range_variance=z)
     if case == "landmark_bearing":
         return "/lm", bw.landmark(t, "7", 2.0, 0.1, bearing_variance=z)
-    if case == "gps":
-        return "/fix", bw.navsatfix(t, 42.0, -71.0, cov=bw.diag(z, z, z))
+    if case == "gps":  # a usable variance above the floor a plain fix may claim (0.5 m)^2
+        v = 0.0 if zero else 1.0
+        return "/fix", bw.navsatfix(t, 42.0, -71.0, cov=bw.diag(v, v, v))
     if case == "gps_unknown_type":
         return "/fix", bw.navsatfix(t, 42.0, -71.0, cov=bw.diag(1, 1, 1),
                                     cov_type=1 if not zero else 0)

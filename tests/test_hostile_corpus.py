@@ -41,6 +41,7 @@ import hashlib
 import json
 import math
 import re
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -267,7 +268,10 @@ def _signal_mid_run(out: Path, sig: int) -> tuple[int, str, bool]:
     master, slave = pty.openpty()
     p = subprocess.Popen([sys.executable, "-m", "ddfuse.evaluation.cli", "run",
                           str(hc.SAMPLE_BAG), "-c", str(hc.SAMPLE_CONFIG), "-o", str(out),
-                          "--no-report"], stdin=subprocess.DEVNULL, stdout=slave, stderr=slave)
+                          "--no-report"], stdin=subprocess.DEVNULL, stdout=slave, stderr=slave,
+                         # Ctrl-C as in a terminal, even when these tests run in the background
+                         # (which leaves SIGINT ignored, and so the child's)
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     os.close(slave)
     buf, sent = b"", False
     try:

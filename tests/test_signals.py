@@ -26,6 +26,15 @@ ROOT = Path(__file__).resolve().parents[1]
 BAG = ROOT / "data" / "sample_husky.bag"
 
 
+@pytest.fixture(autouse=True)
+def _ctrl_c_raises():
+    """Ctrl-C as in a terminal: a process started in the background (``cmd &``, nohup, some CI
+    runners) inherits SIGINT ignored, and Python then never raises KeyboardInterrupt."""
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, old)
+
+
 class _Sigint(float):
     """A residual value whose conversion sends this process SIGINT: Ctrl-C landing inside
     ``InnovationLog.compact``, between its columns' updates."""
