@@ -76,3 +76,15 @@ def test_one_estimator_that_works_keeps_exit_code_0(tmp_path, capsys):
     assert main(["run", str(bag), "-c", str(cfg), "-o", str(tmp_path / "out"),
                  "--estimators", "ekf", "--no-report"]) == 0
     assert "ERROR" not in capsys.readouterr().out
+
+
+def test_online_where_every_estimator_fails_exits_3(tmp_path, capsys):
+    """Before: 0, as if the replay had given estimates."""
+    bag = _bag_without_heading(tmp_path)
+    assert main(["online", str(bag)]) == NO_ESTIMATE
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        "ddfuse: error: every estimator failed or never gave an estimate (the lines above say "
+        "why)")
+    cfg = tmp_path / "noheading.yaml"
+    cfg.write_text(CONFIG + "initial_pose: [0.0, 0.0, 0.0]\n")
+    assert main(["online", str(bag), "-c", str(cfg), "--estimators", "ekf"]) == 0

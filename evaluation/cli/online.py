@@ -29,7 +29,8 @@ def add_to(sub) -> None:
         "current estimates as it goes. An estimator that fails is stopped there (one line says "
         "which, when and why; its last estimate is kept) and the others go on; the exit code "
         "stays 0 then, as for 'run' (whose table shows ERROR in its row). Exit 2: bad input "
-        "(a truncated bag: after replaying what could be read); 130: Ctrl-C.")
+        "(a truncated bag: after replaying what could be read); 3: every estimator failed or "
+        "never gave an estimate; 130: Ctrl-C.")
     sp.add_argument("bag", type=Path, help="bag to replay: ROS1 .bag, ROS2 bag directory or "
                     ".mcap")
     sp.add_argument("-c", "--config", type=Path, help=CONFIG_HELP)
@@ -59,7 +60,7 @@ def command(args: argparse.Namespace) -> int:
     """Exit code 0 when the bag was replayed to its end, also if an estimator failed (it is
     stopped, one line says which, when and why, and its rows say 'stopped'), as ``run`` exits
     0 with ERROR in that estimator's row; 2 for bad input (a truncated bag: after the
-    replay), 130 for Ctrl-C."""
+    replay), 3 when every estimator failed or never gave an estimate, 130 for Ctrl-C."""
     import numpy as np
     from ddfuse.estimation.config import load_config
     from ddfuse.estimation.errors import RunInterrupted
@@ -129,6 +130,14 @@ def command(args: argparse.Namespace) -> int:
         sys.stdout.flush()
         raise DdfuseError(f"{session.input_error}; replayed the "
                           f"{session.replayed_s:.1f} s that could be read")
+    failed = [k for k in session.estimators
+              if k in stopped or session.errors[k] or session.estimate(k) is None]
+    if session.estimators and len(failed) == len(session.estimators):
+        from ddfuse.evaluation.cli.guard import NO_ESTIMATE
+
+        sys.stderr.write("ddfuse: error: every estimator failed or never gave an estimate "
+                         "(the lines above say why)\n")
+        return NO_ESTIMATE
     return 0
 
 
