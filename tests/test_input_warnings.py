@@ -35,7 +35,7 @@ def test_a_topic_mostly_dropped_as_late_is_warned_of_by_run_and_online(tmp_path,
     m = json.loads((out / "metrics.json").read_text())
     (w,) = [w for w in m["warnings"] if "dropped as late" in w]
     assert "/fix" in w and "reorder_window to at least 1.5 s" in w and w in err
-    assert main(["online", str(bag), "-c", str(cfg), "--estimators", "ekf"]) == 0
+    assert main(["online", str(bag), "-c", str(cfg), "--estimators", "ekf"]) == 3
     assert w in capsys.readouterr().err
 
 
