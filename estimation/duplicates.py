@@ -5,7 +5,9 @@ in the filter (NEES 2.7 -> 4.2 on the sample with every sensor message doubled).
 A duplicate is a message on the same source (configured topic) whose serialised bytes equal
 those of one read within ``WINDOW`` messages before it on that source, the ROS1 header's
 ``seq`` left out (a republisher renumbers it): same header stamp, same content. Same stamp
-with different content is not a duplicate and is left alone.
+with different content is not a duplicate and is left alone. A live subscriber has message
+objects, not bytes: there the key is the extracted record (``ddfuse.estimation.rosmsg``: the
+header stamp and every field a converter reads), which leaves ``seq`` out as well.
 """
 
 from __future__ import annotations
@@ -37,7 +39,20 @@ class Duplicates:
         never does."""
         if not isinstance(raw, (bytes, memoryview)):
             return False
-        key = bytes(raw[self.skip:])
+        return self._repeats(index, topic, bytes(raw[self.skip:]))
+
+    def record_seen_before(self, index, topic: str, rec: tuple) -> bool:
+        """Whether the extracted record ``rec`` (a plain tuple of the message's stamp and
+        fields) on source ``index`` repeats one of its last WINDOW records; counted under
+        ``topic`` if so. A field that is not hashable (an array) is compared by its repr."""
+        try:
+            hash(rec)
+            key = rec
+        except TypeError:
+            key = repr(rec)
+        return self._repeats(index, topic, key)
+
+    def _repeats(self, index, topic: str, key) -> bool:
         entry = self.recent.get(index)
         if entry is None:
             entry = self.recent[index] = (deque(), set())

@@ -33,8 +33,9 @@ topic's offset is learnt (``_StampCheck.WARMUP_S``). Reordering by stamp is ``On
 
 A receive clock that steps back (arrival order is write order) re-times the messages after the
 step (``ddfuse.estimation.clock_steps``), logged when it happens and listed in ``warnings``.
-Exact duplicate messages are not looked for here (the bag reader drops them): a caller may
-hand the converter one message twice on purpose.
+An exact duplicate (the same message delivered twice on a topic: two bridges, a republisher;
+same header stamp and content, ``ddfuse.estimation.duplicates``) gives no measurement and is
+counted in ``rejected`` and listed in ``warnings``, as the bag reader drops it.
 
 Design notes (the warm-up, clock steps): docs/design/live_input.md, docs/design/bag_faults.md"""
 
@@ -59,6 +60,7 @@ from ddfuse.estimation.bags import (
 )
 from ddfuse.estimation.clock_steps import ClockSteps
 from ddfuse.estimation.config import Config, landmark_maps
+from ddfuse.estimation.duplicates import DUPLICATE, Duplicates
 from ddfuse.estimation.gps_watch import GpsWatch
 from ddfuse.estimation.measurements import GpsFix, Stream
 from ddfuse.estimation.robot_limits import RobotLimits
@@ -121,6 +123,8 @@ class LiveConverter:
         # the receive clock stepping back, seen in arrival order (``_retime``); what it did is
         # in ``warnings``
         self._steps = ClockSteps(self.tolerance)
+        self.duplicates = Duplicates(ros1=False)
+        self.seen: Counter = Counter()  # topic -> messages handed to ``convert``
         self.screen = RobotLimits(cfg, self.rejected)  # what the robot cannot do: rejected
         self.watch = GpsWatch(cfg)  # GPS against the odometry: disagreements logged
         self._stamp_reason = (f"header stamp more than {self.tolerance:g} s off its topic's "
@@ -163,6 +167,13 @@ class LiveConverter:
         except Exception as e:  # as the bag reader counts a message it cannot decode
             self.rejected[(topic, f"cannot decode message: {type(e).__name__}: {e}")] += 1
             return []
+        self.seen[topic] += 1
+        if self.duplicates.record_seen_before(topic, topic, rec):
+            self.rejected[(topic, DUPLICATE)] += 1
+            if self.duplicates.count[topic] == 1:
+                log.warning("%s: an exact duplicate of a message received just before (same "
+                            "header stamp and content); dropped, each fused once", topic)
+            return []
         rec, rt = self._retime(topic, rec, rt)
         out: list = []
         for _, _, convert in entries:
@@ -190,9 +201,11 @@ class LiveConverter:
     def warnings(self) -> list[str]:
         """What the input did that a user must know, one line each: the receive clock stepped
         back (the messages after it re-timed), samples beyond the robot's limits (rejected), GPS
-        disagreeing with the odometry. The clock's is also logged when it happens."""
+        disagreeing with the odometry, exact duplicates (dropped). The clock's and a topic's
+        first duplicate are also logged when they happen."""
         line = self._steps.warning("live input", None)
-        return ([line] if line else []) + self.screen.warnings() + self.watch.warnings()
+        return (([line] if line else []) + self.duplicates.warnings("live input", self.seen)
+                + self.screen.warnings() + self.watch.warnings())
 
     def _retime(self, topic: str, rec: tuple, rt: float) -> tuple:
         """(extracted record, receive time s) re-timed for the receive clock's backward steps

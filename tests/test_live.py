@@ -223,3 +223,44 @@ def test_ekf_igvc_keeps_the_converters_datum_when_the_first_fix_is_dropped():
         known.push(m)
     a, b = live_session.estimate("ekf_igvc"), known.estimate("ekf_igvc")
     assert a.t == b.t and np.allclose(a.pose, b.pose, atol=1e-6)
+
+
+def test_an_exact_duplicate_message_is_dropped_counted_and_warned_about(caplog):
+    """The same message delivered twice (two bridges, a republisher) is fused once: dropped,
+    counted under its topic and listed in the warnings; the same stamp with other content is
+    not a duplicate."""
+    from types import SimpleNamespace as NS
+
+    from ddfuse.estimation.config import parse_config_text
+    from ddfuse.estimation.duplicates import DUPLICATE
+    from ddfuse.estimation.live import LiveConverter
+
+    cfg = parse_config_text("""
+sensors:
+  odometry:
+  - topic: /odom
+    use: [v, yaw_rate]
+    noise: {v: 0.1, yaw_rate: 0.05}
+""", "dup.yaml")
+
+    def odom(v, sec):
+        vec = NS
+        return NS(__msgtype__="nav_msgs/msg/Odometry",
+                  header=NS(stamp=NS(sec=sec, nanosec=0)),
+                  pose=NS(pose=NS(position=vec(x=0.0, y=0.0, z=0.0),
+                                  orientation=vec(x=0.0, y=0.0, z=0.0, w=1.0)),
+                          covariance=[0.0] * 36),
+                  twist=NS(twist=NS(linear=vec(x=v, y=0.0, z=0.0),
+                                    angular=vec(x=0.0, y=0.0, z=0.1)),
+                           covariance=[0.0] * 36))
+
+    conv = LiveConverter(cfg)
+    t0 = 1_700_000_000
+    got = [conv.convert("/odom", odom(v, t0 + k), received=t0 + k)
+           for k, v in [(0, 1.0), (1, 1.0), (1, 1.0), (1, 1.1), (2, 1.0), (2, 1.0)]]
+    assert [len(g) for g in got] == [1, 1, 0, 1, 1, 0]
+    assert conv.rejected[("/odom", DUPLICATE)] == 2
+    assert conv.warnings == ["live input: topic /odom: 2 of 6 messages are exact duplicates of "
+                             "one read just before (same header stamp and content); dropped, "
+                             "each fused once"]
+    assert sum("exact duplicate" in r.getMessage() for r in caplog.records) == 1

@@ -50,10 +50,11 @@ def _imu(q, ocov0=1e-4):
         linear_acceleration_covariance=[0.0] * 9)
 
 
-def _odom(v, w=0.2):
+def _odom(v, w=0.2, nanosec=0):
     vec = SimpleNamespace
+    stamp = SimpleNamespace(sec=STAMP.sec, nanosec=nanosec)
     return SimpleNamespace(
-        __msgtype__="nav_msgs/msg/Odometry", header=SimpleNamespace(stamp=STAMP),
+        __msgtype__="nav_msgs/msg/Odometry", header=SimpleNamespace(stamp=stamp),
         pose=SimpleNamespace(pose=SimpleNamespace(position=vec(x=0.0, y=0.0, z=0.0),
                                                   orientation=vec(x=0.0, y=0.0, z=0.0, w=1.0)),
                              covariance=[0.0] * 36),
@@ -62,8 +63,11 @@ def _odom(v, w=0.2):
                               covariance=[0.0] * 36))
 
 
+_ODOM_NS = iter(range(0, 10**9, 10**7))  # each speed 10 ms after the last: never a duplicate
+
+
 def _speed(conv, v=1.0) -> WheelOdometry:
-    (m,) = conv.convert("/odom", _odom(v), received=STAMP.sec)
+    (m,) = conv.convert("/odom", _odom(v, nanosec=next(_ODOM_NS)), received=STAMP.sec)
     return m
 
 
