@@ -15,7 +15,7 @@ Shape (every key documented in README.md)::
             track_width_std: 0.03, slip: {longitudinal: 0.05, lateral: 0.02, heading: 0.01},
             max_accel: 0.5, max_yaw_accel: 0.5, max_speed: 1.0, max_yaw_rate: 2.0}
     ground_truth: {topic: /ground_truth}
-    frame: {datum: first_fix}            # or [lat_deg, lon_deg, alt_m]
+    frame: {datum: first_fix, local: map, base: base_link}  # datum or [lat_deg, lon_deg, alt_m]
     initial_pose: ground_truth           # or [x, y, yaw]; default origin
     smoother: {lag: 10.0, keyframe: gps, robust: huber}
     ekf: {rate: event}
@@ -236,6 +236,10 @@ class Config:
     robot: RobotConfig = field(default_factory=RobotConfig)
     ground_truth_topic: str | None = None
     datum: str | tuple[float, float, float] = "first_fix"
+    # REP-105 frame names of the estimates sent out (ROS messages, estimates.mcap, live view):
+    # the local ENU frame the poses are in, and the robot's base frame
+    local_frame: str = "map"
+    base_frame: str = "base_link"
     initial_pose: str | tuple[float, float, float] | None = None
     smoother: SmootherConfig = field(default_factory=SmootherConfig)
     ekf: EkfConfig = field(default_factory=EkfConfig)
@@ -488,7 +492,16 @@ def parse_config(raw: Any, source: str = "<config>", base: Path | None = None) -
         g = ck.mapping(d["ground_truth"], "ground_truth", ("topic",))
         cfg.ground_truth_topic = ck.string(g.get("topic"), "ground_truth.topic")
     if "frame" in d:
-        f = ck.mapping(d["frame"], "frame", ("datum",))
+        f = ck.mapping(d["frame"], "frame", ("datum", "local", "base"))
+        for key, attr in (("local", "local_frame"), ("base", "base_frame")):
+            if key in f:
+                name = ck.string(f[key], f"frame.{key}")
+                if not name or name.startswith("/") or any(c.isspace() for c in name):
+                    raise ck.fail(f"frame.{key}", f"a tf2 frame id has no leading '/' and no "
+                                  f"spaces, got {name!r}")
+                setattr(cfg, attr, name)
+        if cfg.local_frame == cfg.base_frame:
+            raise ck.fail("frame", f"local and base name the same frame {cfg.local_frame!r}")
         datum = f.get("datum", "first_fix")
         if datum == "first_fix":
             cfg.datum = "first_fix"

@@ -464,3 +464,18 @@ def test_exponents_without_a_dot_are_numbers(tmp_path):
                  "      noise: {yaw_rate: 1e-4x}\n")
     with pytest.raises(ConfigError, match=r"sensors.imu\[0\].noise.yaw_rate: must be a number"):
         load_config(p)
+
+
+def test_frame_names_default_to_rep105_and_are_checked():
+    from ddfuse.estimation.config import ConfigError, parse_config_text
+
+    base = "sensors: {odometry: [{topic: /odom, noise: {v: 0.1, yaw_rate: 0.1}}]}\n"
+    cfg = parse_config_text(base, "f.yaml")
+    assert (cfg.local_frame, cfg.base_frame) == ("map", "base_link")
+    cfg = parse_config_text(base + "frame: {local: odom, base: base_footprint}\n", "f.yaml")
+    assert (cfg.local_frame, cfg.base_frame) == ("odom", "base_footprint")
+    with pytest.raises(ConfigError, match=r"f\.yaml: frame\.base: a tf2 frame id has no "
+                                          r"leading '/'"):
+        parse_config_text(base + "frame: {base: /base_link}\n", "f.yaml")
+    with pytest.raises(ConfigError, match=r"frame: local and base name the same frame"):
+        parse_config_text(base + "frame: {local: a, base: a}\n", "f.yaml")
