@@ -24,6 +24,8 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import yaml
+
 __all__ = ["WriteOrder"]
 
 STORAGES = ("sqlite3", "mcap")
@@ -41,8 +43,6 @@ class WriteOrder:
     def of(cls, directory: Path) -> tuple[WriteOrder | None, str]:
         """(the write-order reading of the ROS 2 bag in ``directory``, with its metadata.yaml,
         '') or (None, why its storage cannot be read that way: module docstring)."""
-        import yaml
-
         try:
             meta = yaml.safe_load((Path(directory) / "metadata.yaml").read_text())
             info = meta["rosbag2_bagfile_information"]
