@@ -19,6 +19,7 @@ from pathlib import Path
 import bagedit
 import numpy as np
 import pytest
+import yaml
 from ddfuse.estimation import ros2_write_order
 from ddfuse.estimation.bags import BagStream, read_stream
 from ddfuse.estimation.clock_steps import ClockSteps
@@ -154,30 +155,27 @@ SPEED = 1.0  # m/s, the husky scenario's top speed (its 40 m lawnmower legs)
 
 
 def step_back_ros2(src: Path, dest: Path, fmt: str, at_s: float, by_s: float, *,
-                   compression: str | None = None, lag_s: dict[str, float] | None = None
-                   ) -> Path:
+                   compression: str | None = None, lag_s: dict[str, float] | None = None,
+                   split_s: float | None = None) -> Path:
     """A copy of the ROS2 bag ``src`` (written in record-time order, as the simulator writes)
     in which the recording clock stepped back by ``by_s`` s when ``at_s`` s had been recorded:
     the record time and header stamp of every message after it ``by_s`` s earlier, written
     in the order recorded. ``compression``: rosbags' mode ('storage': zstd MCAP chunks, as
     ros2 bag record writes them, the default for MCAP; 'message': zstd per message; 'none', the
     default for sqlite3). ``lag_s``: topic -> s its messages reach the writer late (their
-    record times kept), as a recorder's threads deliver them."""
-    from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StoragePlugin, Writer
+    record times kept), as a recorder's threads deliver them. ``split_s``: the recording split
+    into two files there (s of recording, as ``ros2 bag record --max-bag-duration`` does)."""
+    from rosbags.rosbag2 import Reader
 
     lag = {topic: round(s * 1e9) for topic, s in (lag_s or {}).items()}
-    store = make_typestore(SIM_FORMAT[fmt])
-    writer = Writer(dest, version=9, storage_plugin=StoragePlugin.SQLITE3 if fmt == "sqlite3"
-                    else StoragePlugin.MCAP)
-    compression = compression or ("none" if fmt == "sqlite3" else "storage")
-    if compression != "none":
-        writer.set_compression(CompressionMode[compression.upper()], CompressionFormat.ZSTD)
-    with Reader(src) as r, writer:
+    out: list[list] = [[]]  # the messages of each file, in the order written
+    with Reader(src) as r:
         cut, by = r.start_time + round(at_s * 1e9), round(by_s * 1e9)
-        conns = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=store)
-                 for c in r.connections}
-        written = sorted(r.messages(), key=lambda m: m[1] + lag.get(m[0].topic, 0))
-        for c, t, raw in written:
+        split = None if split_s is None else r.start_time + round(split_s * 1e9)
+        topics = [(c.topic, c.msgtype) for c in r.connections]
+        for c, t, raw in sorted(r.messages(), key=lambda m: m[1] + lag.get(m[0].topic, 0)):
+            if split is not None and t >= split and len(out) == 1:
+                out.append([])
             if t >= cut:
                 # every message here begins with a std_msgs/Header, after CDR's 4-byte
                 # encapsulation: int32 sec, uint32 nanosec, little-endian
@@ -185,7 +183,50 @@ def step_back_ros2(src: Path, dest: Path, fmt: str, at_s: float, by_s: float, *,
                 sec, nsec = struct.unpack_from("<iI", raw, 4)
                 struct.pack_into("<iI", raw, 4, *divmod(sec * 10**9 + nsec - by, 10**9))
                 t -= by
-            writer.write(conns[c.id], t, bytes(raw))
+            out[-1].append(((c.topic, c.msgtype), t, bytes(raw)))
+    compression = compression or ("none" if fmt == "sqlite3" else "storage")
+    if len(out) == 1:
+        return _write_ros2(dest, fmt, topics, out[0], compression)
+    # rosbags writes one file per bag: the parts are written as bags, then their files moved
+    # into one directory whose metadata.yaml lists both, in the order written
+    parts = [_write_ros2(dest.with_name(f"{dest.name}_{i}"), fmt, topics, msgs, compression)
+             for i, msgs in enumerate(out)]
+    metas = [yaml.safe_load((p / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+             for p in parts]
+    meta = metas[0]
+    dest.mkdir()
+    for p, m in zip(parts, metas, strict=True):
+        for name in m["relative_file_paths"]:
+            (p / name).rename(dest / name)
+    meta["relative_file_paths"] = [n for m in metas for n in m["relative_file_paths"]]
+    meta["files"] = [f for m in metas for f in m["files"]]
+    meta["message_count"] = sum(m["message_count"] for m in metas)
+    for k, tm in enumerate(meta["topics_with_message_count"]):
+        tm["message_count"] = sum(m["topics_with_message_count"][k]["message_count"]
+                                  for m in metas)
+    end = max(m["starting_time"]["nanoseconds_since_epoch"] + m["duration"]["nanoseconds"]
+              for m in metas)
+    start = min(m["starting_time"]["nanoseconds_since_epoch"] for m in metas)
+    meta["starting_time"]["nanoseconds_since_epoch"] = start
+    meta["duration"]["nanoseconds"] = end - start
+    (dest / "metadata.yaml").write_text(yaml.safe_dump({"rosbag2_bagfile_information": meta}))
+    return dest
+
+
+def _write_ros2(dest: Path, fmt: str, topics: list, msgs: list, compression: str) -> Path:
+    """A ROS2 bag at ``dest`` with a connection per (topic, type) of ``topics`` (all of them,
+    in that order) and ``msgs``, ((topic, type), record time ns, CDR bytes), in their order."""
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
+
+    store = make_typestore(SIM_FORMAT[fmt])
+    writer = Writer(dest, version=9, storage_plugin=StoragePlugin.SQLITE3 if fmt == "sqlite3"
+                    else StoragePlugin.MCAP)
+    if compression != "none":
+        writer.set_compression(CompressionMode[compression.upper()], CompressionFormat.ZSTD)
+    with writer:
+        conns = {k: writer.add_connection(k[0], k[1], typestore=store) for k in topics}
+        for k, t, raw in msgs:
+            writer.write(conns[k], t, raw)
     return dest
 
 
@@ -233,6 +274,21 @@ def test_a_ros2_bag_whose_clock_stepped_back_gives_the_clean_stream_and_one_warn
     assert abs(float(re.search(r" at t=([\d.]+) s", w).group(1)) - STEP_AT) < 0.1
     for topic in ("/odom", "/imu/data", "/fix"):
         assert topic in w
+
+
+@pytest.mark.parametrize("fmt", ROS2)
+def test_a_ros2_recording_split_in_two_files_is_read_file_after_file(fmt, ros2_bags, tmp_path):
+    """Split at 30 s, the clock stepping back in the second file: found, and the stream is the
+    clean one."""
+    clean_bag, _ = ros2_bags[fmt]
+    bag = step_back_ros2(clean_bag, tmp_path / "split", fmt, STEP_AT, STEP, split_s=30.0)
+    assert len(ros2_write_order.WriteOrder.of(bag)[0].files) == 2
+    cfg = load_config(SAMPLE_CFG)
+    bs = BagStream(bag, cfg)
+    t = np.array([m.t for m in bs])
+    clean = read_stream(clean_bag, cfg).measurements
+    assert len(t) == len(clean) and np.max(np.abs(t - [m.t for m in clean])) < 0.05
+    assert [w for w in bs.warnings if "stepped back by 9.9" in w]
 
 
 @pytest.mark.parametrize("fmt", ROS2)
