@@ -14,7 +14,7 @@ compressed per file or per message (``compression_mode`` set; rosbags decompress
 storage plugin other than sqlite3 and mcap, a metadata.yaml that does not parse. A message is
 matched to its connection by topic name and type; one of an unconfigured topic is never read.
 MCAP chunks compressed with zstd or lz4 (``ros2 bag record``'s default) are read: the ``mcap``
-package decompresses them.
+package decompresses them with its dependencies zstandard and lz4 (without them, the sorted read).
 """
 
 from __future__ import annotations
@@ -55,6 +55,12 @@ class WriteOrder:
             return None, f"storage plugin {storage!r}"
         if compressed:
             return None, f"compressed per {str(info['compression_mode']).lower()}"
+        if storage == "mcap":
+            try:  # the mcap package's own dependencies, which rosbags' reader does not need
+                import lz4.frame  # noqa: F401
+                import zstandard  # noqa: F401
+            except ImportError:
+                return None, "the mcap package cannot decompress chunks (zstandard or lz4 absent)"
         return cls(storage, files), ""
 
     def messages(self, connections: Sequence) -> Iterator[tuple[object, int, bytes]]:

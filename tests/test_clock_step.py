@@ -13,6 +13,7 @@ import math
 import pickle
 import re
 import struct
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -334,6 +335,20 @@ def test_a_ros2_bag_written_a_few_ms_out_of_record_order_gives_the_sorted_stream
     assert bs.clock_steps is not None and not bs.clock_steps.steps
     _sorted_read(monkeypatch)
     assert _same(written, read_stream(clean_bag, cfg).measurements)
+
+
+def test_an_mcap_bag_without_the_mcap_packages_decompressors_is_read_sorted(ros2_bags,
+                                                                           monkeypatch):
+    """Not a damaged bag for want of zstandard (its chunks are zstd): rosbags reads it."""
+    clean_bag, _ = ros2_bags["mcap"]
+    monkeypatch.setitem(sys.modules, "zstandard", None)  # its import fails
+    assert ros2_write_order.WriteOrder.of(clean_bag)[0] is None
+    cfg = load_config(SAMPLE_CFG)
+    bs = BagStream(clean_bag, cfg)
+    ms = list(bs)
+    assert bs.clock_steps is None and bs._msgs.stopped is None
+    monkeypatch.delitem(sys.modules, "zstandard")
+    assert _same(ms, read_stream(clean_bag, cfg).measurements)
 
 
 def test_a_ros2_bag_compressed_per_message_is_read_sorted_as_before(ros2_bags, tmp_path):
