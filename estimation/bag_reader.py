@@ -6,9 +6,12 @@ AnyReader. ``configured_topics`` lists (kind, config key, sensor, topic) of a co
 it is absent or of a type its kind does not accept, ``ACCEPTED_TYPES``) and with its extractor
 (``ddfuse.estimation.rosmsg``: struct extractors on ROS1 bytes where there is one) and converter
 (``ddfuse.estimation.converters``). ``BagMessages`` yields (source, record time ns, raw message)
-in record order, reading an intact ROS1 bag from the front with ``ddfuse.estimation.ros1_scan``
-(no index loaded), a ROS1 bag whose index is missing or damaged the same way, and every other
-bag through AnyReader; storage that fails part way ends the reading early, saying why.
+in write order where the storage keeps it: an intact ROS1 bag read from the front with
+``ddfuse.estimation.ros1_scan`` (no index loaded), a ROS1 bag whose index is missing or damaged
+the same way, a ROS2 sqlite3 or MCAP bag read by ``ddfuse.estimation.ros2_write_order`` (opened
+and decoded by AnyReader); every other bag (a ROS2 bag compressed per file or message) through
+AnyReader, sorted by record time. Storage that fails part way ends the reading early, saying
+why.
 Ordering by stamp, stamp checks and the datum are ``ddfuse.estimation.bags``'.
 """
 
@@ -24,6 +27,7 @@ from ddfuse.estimation import ros1_scan, rosmsg
 from ddfuse.estimation.config import Config, SensorConfig
 from ddfuse.estimation.converters import converter, ground_truth_converter, slope_cells
 from ddfuse.estimation.errors import BagError
+from ddfuse.estimation.ros2_write_order import WriteOrder
 
 __all__ = ["ACCEPTED_TYPES", "BagMessages", "Source", "configured_topics", "make_source",
            "open_reader", "sources_of"]
@@ -171,12 +175,14 @@ def register_definition(store, conn: ros1_scan.Connection, bag: Path) -> str:
 
 
 class BagMessages:
-    """The raw messages of a bag's configured topics, in record order: an intact ROS1 bag read
-    from the front by ``ros1_scan`` (its topics checked against its index first), a ROS1 bag
-    whose index is missing or damaged the same way (``indexed`` False), anything else through
-    rosbags' AnyReader. ``sources``: one ``Source`` per configured topic, ``index`` its place in
-    the config's order (BagError at construction if one is absent or of a wrong type; on a bag
-    without index, when its connection record is read). ``frac``: the share read, 0..1;
+    """The raw messages of a bag's configured topics: an intact ROS1 bag read from the front by
+    ``ros1_scan`` (its topics checked against its index first), a ROS1 bag whose index is missing or
+    damaged the same way (``indexed`` False), both in write order; a ROS2 sqlite3 or MCAP bag opened
+    by rosbags' AnyReader and read in write order (``write_order``), anything else through AnyReader
+    in record-time order. ``in_write_order``: the order is the one the recorder wrote, which shows a
+    recording clock that stepped back. ``sources``: one ``Source`` per configured topic, ``index``
+    its place in the config's order (BagError at construction if one is absent or of a wrong type;
+    on a bag without index, when its connection record is read). ``frac``: the share read, 0..1;
     ``stopped``: why reading ended early on damaged storage, else None."""
 
     def __init__(self, bag: Path, cfg: Config, landmarks: dict | None,
@@ -196,6 +202,7 @@ class BagMessages:
         self.store = None  # the scanner's typestore, made when reading starts
         self.open_error: BagError | None = None
         self.notes: list[str] = []  # damaged definitions replaced by the standard ones
+        self.write_order: WriteOrder | None = None  # a ROS2 bag's storage read in write order
         index = (ros1_scan.read_index(bag) if bag.is_file() and ros1_scan.has_magic(bag)
                  else None)
         if index is not None:
@@ -223,8 +230,17 @@ class BagMessages:
                 except BagError:
                     self.reader.close()
                     raise
+                if self.reader.is2:
+                    self.write_order, why = WriteOrder.of(bag.parent if bag.is_file() else bag)
+                    if why:
+                        log.info("%s: read in record-time order (%s): a recording clock that "
+                                 "stepped back cannot be seen", bag, why)
         for i, src in enumerate(self.sources):
             src.index = i
+
+    @property
+    def in_write_order(self) -> bool:
+        return self.scan is not None or self.write_order is not None
 
     def close(self) -> None:
         if self.reader is not None:
@@ -249,9 +265,11 @@ class BagMessages:
             expected[c.topic] += c.msgcount
         self._read_counts: Counter = Counter()
         read_counts = self._read_counts
+        items = (reader.messages(connections=conns) if self.write_order is None
+                 else self.write_order.messages(conns))
         try:
             try:
-                for i, (conn, rec_ns, raw) in enumerate(reader.messages(connections=conns)):
+                for i, (conn, rec_ns, raw) in enumerate(items):
                     if i % 2000 == 0:
                         self.frac = (rec_ns - start) / span
                     for src in by_topic[conn.topic]:

@@ -17,9 +17,10 @@ index is missing or damaged (the recorder was killed, the copy was cut) is read 
 by ``ddfuse.estimation.ros1_scan`` for that. A ROS1 bag with damaged records is read past them:
 each is a warning, its lost messages counted in ``rejected`` (``bag_drops.DAMAGED``).
 
-Time faults (docs/design/bag_faults.md): a recording clock that steps back, seen in a ROS1 bag's
-write order, re-times what follows (``ddfuse.estimation.clock_steps``); an exact duplicate
-message is dropped and counted (``ddfuse.estimation.duplicates``); each says so in a warning.
+Time faults (docs/design/bag_faults.md): a recording clock that steps back, seen in a bag's write
+order (ROS1, ROS2 sqlite3 and MCAP), re-times what follows (``ddfuse.estimation.clock_steps``); an
+exact duplicate message is dropped and counted (``ddfuse.estimation.duplicates``); each says so in a
+warning.
 
 The parts, each in its module: opening the bag and reading the configured topics' raw messages
 (``ddfuse.estimation.bag_reader``), the message converters per sensor kind
@@ -286,8 +287,9 @@ class BagStream:
         raw_items = msgs.records()
         if msgs.scan is None:
             deserialize = msgs.reader.deserialize
-        # write order is known only where the scanner reads the file from the front (ROS1)
-        steps = self.clock_steps = ClockSteps(tol) if msgs.scan is not None else None
+        # write order is known where the file is read from the front (ROS1, ROS2 sqlite3 and
+        # MCAP without per-file or per-message compression)
+        steps = self.clock_steps = ClockSteps(tol) if msgs.in_write_order else None
         dups = self.duplicates = Duplicates(ros1=msgs.scan is not None or not msgs.reader.is2)
         try:
             for src, rec_ns, raw in raw_items:

@@ -16,11 +16,12 @@ its topic's previous stamp than the stamp as written (a topic whose stamps come 
 clock, a GPS receiver's, keeps them). With the step measured as the jump of the record time
 (exact to one message interval of the busiest topic, a few ms), the re-timed stream is the
 one that would have been recorded without the step: nothing is dropped. Figures:
-docs/design/clock_steps.md.
+docs/design/bag_faults.md.
 
-Used by the bag reader on ROS1 bags (read in file order, which is write order: ``ros1_scan``)
-and by the live converter (arrival order). rosbags returns ROS2 (sqlite3, MCAP) messages sorted
-by record time, which hides the write order: those bags are not covered.
+Used by the bag reader on the bags it reads in write order: ROS1 (file order: ``ros1_scan``),
+ROS2 sqlite3 (row order) and MCAP (file order: ``ros2_write_order``); and by the live converter
+(arrival order). A ROS2 bag compressed per file or per message, or of another storage plugin,
+is read through rosbags sorted by record time, which hides the write order: not covered.
 """
 
 from __future__ import annotations

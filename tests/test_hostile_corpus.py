@@ -1,5 +1,6 @@
 """Issue 32's hostile-input corpus (``tests/hostile_corpus.py``), run through the real command
-line: for each case the exit code, no traceback, the one-line message naming the topic or file
+line (each case a ROS1 bag, or a ROS2 sqlite3 or MCAP bag where its storage matters: the clock
+step): for each case the exit code, no traceback, the one-line message naming the topic or file
 and what is wrong, no NaN or Inf in metrics.json or any track, every estimator's error within a
 bound derived from the case, and nothing that the clean bag's run computed lost (every
 estimator of the clean run listed, with a track to the end of the data) or inconsistent (each
@@ -194,9 +195,10 @@ def test_hostile_case_exits_cleanly_names_the_fault_and_keeps_a_sane_track(name,
     else:
         p = _ddfuse("run", bag, "-c", bag.with_suffix(".yaml"), "-o", out, "--no-report")
     text = p.stdout + p.stderr
-    # the case's name is in its paths ("clock_back_10s"): only ddfuse's words may match (the
-    # paths' occurrences go, not the same word in a message: "duplicates")
-    lines = [re.sub(rf"(?<![\w-]){re.escape(name)}(?=\.bag|\.yaml|/)", "CASE", ln)
+    # the case's name is in its paths ("clock_back_10s"; a ROS2 bag is a directory named so,
+    # "clock_back_10s_mcap: ..."): only ddfuse's words may match (the paths' occurrences go,
+    # not the same word in a message: "duplicates")
+    lines = [re.sub(rf"(?<![\w-]){re.escape(name)}(?=\.bag|\.yaml|/|:|\s|$)", "CASE", ln)
              .replace(f"out-{name}", "out-CASE") for ln in text.splitlines()]
     if c.expect.counted and (out / "metrics.json").is_file():
         lines += list(_metrics(out)["rejected_messages"])
