@@ -133,6 +133,47 @@ def test_smoother_fuses_a_fix_within_its_lag_and_drops_one_older(husky):
     assert len(sm.innovations) == n
 
 
+def test_smoother_uses_a_fix_late_within_the_odometry_period_as_if_on_time(husky):
+    """A fix that comes after a gyro/heading sample but before the next odometry sample
+    (odometry is held backward over its period, so the messages wait for it) joins the held
+    messages at its stamp: the smoother is then exactly the one fed in order."""
+    cfg, stream = husky
+    ms = stream.measurements
+    t0 = ms[0].t
+    i = next(i for i, m in enumerate(ms) if isinstance(m, GpsFix) and m.t - t0 > 20.0
+             and not isinstance(ms[i + 1], (WheelOdometry, GpsFix)))
+    j = next(j for j in range(i + 1, len(ms)) if isinstance(ms[j], WheelOdometry))
+    late_order = ms[:i] + ms[i + 1:i + 2] + [ms[i]] + ms[i + 2:j + 20]
+    assert late_order[i].t > late_order[i + 1].t  # the fix comes after a later stamp
+    ests = {}
+    for label, order in (("in order", ms[:j + 20]), ("late", late_order)):
+        sm = ests[label] = registry.build(cfg, stream, ["smoother"])["smoother"]
+        for m in order:
+            sm.process(m)
+    a, b = ests["in order"].estimate(), ests["late"].estimate()
+    assert a.t == b.t and a.pose == b.pose and np.array_equal(a.pose_cov, b.pose_cov)
+
+
+def test_smoother_fuses_a_late_landmark_sighting_into_the_window(seed002):
+    """A sighting withheld and given 3 s late goes to the keyframe nearest its stamp: its
+    innovation is logged at its stamp, and nothing is rejected as older than the lag."""
+    cfg, stream = seed002
+    sm = registry.build(cfg, stream, ["smoother"])["smoother"]
+    t0 = stream.measurements[0].t
+    held = next(m for m in stream.measurements
+                if m.sensor == "/landmarks" and m.t - t0 > 20.0)
+    for m in stream.measurements:
+        if m.t > held.t + 3.0:
+            break
+        if m is not held:
+            sm.process(m)
+    n = len(sm.innovations)
+    sm.process(held)
+    assert len(sm.innovations) == n + 1
+    assert sm.innovations[-1].t == held.t and sm.innovations[-1].sensor == held.sensor
+    assert not any("lag" in reason or "late" in reason for _, reason in sm.rejected)
+
+
 def test_session_gives_a_late_fix_to_the_smoother_and_counts_it_dropped_for_the_ekfs(husky):
     """Pushed 2 s after its time (window 0.5 s), a fix goes to the smoother (used) and is
     dropped for each EKF; one older than the smoother's lag is dropped for every estimator
