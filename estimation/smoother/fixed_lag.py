@@ -202,7 +202,14 @@ class FixedLagSmoother(Estimator):
         if not isinstance(m, (GpsFix, LandmarkObservation)):
             self.in_order(m)  # raises: it cannot be used that late
         if not self.initialised:
-            # the start (GPS course, first keyframe) is built from the messages in order
+            init = self.init
+            if (isinstance(m, GpsFix) and self.has_gps and init.restart is None
+                    and (self.given_pose is None or init.realign is not None)):
+                # the GPS course waiting for its baseline (``Initialisation.uninitialised``):
+                # the fix goes to its place in the buffer, read and replayed in stamp order
+                init.uninitialised(m)
+                return
+            # a restart after a gap starts from the messages in order
             self.log.rejected[(m.sensor, "late, before the window started")] += 1
             return
         if self.odometry_held_back and m.t >= self.twist.last_t:
