@@ -290,6 +290,7 @@ class IgvcEkf(IgvcStart, IgvcKernels, Estimator):
                     self._init(m.t, self._pose_given, self.noise.init_position_std ** 2,
                                self.noise.init_heading_std ** 2)
             return
+        self.in_order(m)  # no history: a stale measurement is refused, not fused as current
         if self.kf is not None and self.t is not None and m.t - self.t > FEED_GAP_S:
             self._bridge_gap(m.t)
         if self.kf is None:

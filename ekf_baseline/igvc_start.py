@@ -221,6 +221,9 @@ class IgvcStart:
         f0 = next(b for b in got.replay if isinstance(b, GpsFix) and b.t == got.t)
         self._fused_fix(f0.sensor, got.t)
         self.log.note(got.t, "heading initialised from the GPS course")
+        # the held messages, in stamp order, are processed now: older than m, which came in
+        # order, so the stamp-order check starts again with them
+        self.newest_t = -math.inf
         for b in got.replay:
             if b is not f0:
                 self.process(b)

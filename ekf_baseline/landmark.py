@@ -250,6 +250,7 @@ class _OdometryDrivenEkf(Estimator):
                 self._wait_truth = False
                 self.t = m.t
             return
+        self.in_order(m)  # no history: a stale measurement is refused, not fused as current
         if self.kf is None:
             return
         last = self._pending[-1].t if self._pending else self.t

@@ -296,6 +296,7 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
             return
         if not isinstance(m, _USED):
             return
+        self.in_order(m)  # no history: a stale measurement is refused, not fused as current
         if self.kf is None and not self._try_start(m):
             return
         if self._aligned and self.t is not None:

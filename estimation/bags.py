@@ -91,7 +91,9 @@ class BagStream:
     is ``reorder_window`` seconds past it (default: the config's ``reorder_window``), then
     passes it on; a measurement that arrives after later-stamped ones were passed on is dropped
     and counted in ``rejected`` under its topic ("arrived ... later than reorder_window"), and a
-    warning names the topic. Each topic's broken stamps are dropped as ``StampCheck`` says.
+    warning names the topic; with ``pass_late`` it is passed on at once instead, out of stamp
+    order, and counted in ``passed_late`` (the GPS watch, a report on the stream in stamp
+    order, does not see it). Each topic's broken stamps are dropped as ``StampCheck`` says.
     Measurements with equal stamps keep the order of a stable sort by (source, record order).
 
     Known before iterating (``prime`` decodes ahead as far as needed, holding what it read):
@@ -110,7 +112,7 @@ class BagStream:
     PRIME_SPAN = 30.0  # s of data past t0 that prime() reads ahead looking for the truth
 
     def __init__(self, bag: str | Path, cfg: Config, *, reorder_window: float | None = None,
-                 keep_truth: bool = True) -> None:
+                 keep_truth: bool = True, pass_late: bool = False) -> None:
         from time import perf_counter
 
         t_a = perf_counter()
@@ -122,6 +124,10 @@ class BagStream:
             raise BagError(f"{bag}: reorder window must be >= 0 s, got {self.depth!r}")
         self.tolerance = max(STAMP_TOLERANCE, self.depth)
         self.keep_truth = keep_truth
+        # pass a late measurement on at once, out of stamp order, instead of dropping it: for
+        # a consumer that decides per estimator what it can still use (OnlineSession)
+        self.pass_late = pass_late
+        self.passed_late: Counter = Counter()  # topic -> late measurements passed on
         self.datum: tuple[float, float, float] | None = (
             cfg.datum if isinstance(cfg.datum, tuple) else None)
         self.landmarks = landmark_maps(cfg, bag)
@@ -267,6 +273,7 @@ class BagStream:
         released_newest = -math.inf
         warming: set[int] = set()  # sources still in their stamp check's warm-up
         last_raw, last_msg = None, None
+        late_out: deque = deque()  # pass_late: late measurements to pass on now
 
         def admit(ms: list, j: int, src: Source) -> None:
             """Into the reorder buffer, or dropped as late: measurements of source ``j``."""
@@ -275,7 +282,11 @@ class BagStream:
             for m in ms:
                 t = m.t
                 if t < released:
-                    self.drops.count_late(src.topic, t, released, released_newest)
+                    if self.pass_late:
+                        self.passed_late[src.topic] += 1
+                        late_out.append((t, j, -1, m))
+                    else:
+                        self.drops.count_late(src.topic, t, released, released_newest)
                     continue
                 push(heap, (t, j, seq, m))
                 seq += 1
@@ -351,6 +362,10 @@ class BagStream:
                                 admit(ms, j, self._source_of(j))
                 if passed is not None:
                     admit(passed, idx, src)
+                while late_out:
+                    m = self._out(late_out.popleft(), late=True)
+                    if m is not None:
+                        yield m
                 if not warming:
                     cut = newest - depth
                     while heap and heap[0][0] < cut:
@@ -363,6 +378,10 @@ class BagStream:
             for j in sorted(warming):
                 for _, _, ms in checks[j].end_warmup(tol):
                     admit(ms, j, self._source_of(j))
+            while late_out:
+                m = self._out(late_out.popleft(), late=True)
+                if m is not None:
+                    yield m
             while heap:
                 item = pop(heap)
                 released = item[0]
@@ -376,9 +395,10 @@ class BagStream:
     def _source_of(self, index: int) -> Source:
         return next(s for s in self._msgs.sources if s.index == index)
 
-    def _out(self, item: tuple):
-        """Finish one measurement leaving the reorder buffer: truth goes to the truth arrays,
-        a GPS fix gets its ENU position; returns the measurement to pass on, or None."""
+    def _out(self, item: tuple, late: bool = False):
+        """Finish one measurement leaving the reorder buffer (``late``: passed on out of
+        order, ``pass_late``): truth goes to the truth arrays, a GPS fix gets its ENU
+        position; returns the measurement to pass on, or None."""
         m = item[3]
         if item[1] == self._truth_idx:
             if type(m) is GpsFix:
@@ -399,7 +419,8 @@ class BagStream:
             m.enu = geodesy.geodetic_to_enu(m.lat, m.lon, m.alt, *self.datum)
             m.datum = self.datum
         ok = self.screen.admit(m)
-        self.watch.feed(m, ok)
+        if not late:
+            self.watch.feed(m, ok)
         if not ok:
             return None
         t = m.t

@@ -58,6 +58,7 @@ class DeadReckoning(Estimator):
     def process(self, m) -> None:
         if m.sensor != self.source:
             return
+        self.in_order(m)  # a stale sample is refused, not silently skipped
         if isinstance(m, WheelOdometry):
             if m.v is None or m.yaw_rate is None:
                 return

@@ -406,23 +406,65 @@ class EstimatorLog:
             self.messages.append("... (further notes dropped)")
 
 
+# s: how much older than the newest processed a stamp may be and still count as in order: a
+# nanosecond, ROS's stamp resolution (stamps computed in floating point, e.g. k * period, may
+# differ from an equal one in the last bits)
+IN_ORDER_TOLERANCE = 1e-9
+
+
+class LateMeasurement(ValueError):
+    """A measurement older than the newest one an estimator has processed, given to an
+    estimator that cannot use it that late (``Estimator.late_horizon``): fusing it as current
+    would be wrong, so it is refused (docs/design/late_data.md)."""
+
+
 class Estimator(ABC):
     """Base class for every estimator.
 
     Subclasses implement ``process`` and ``estimate``. ``finish`` is called once after the last
     measurement (a smoother flushes its window there). Measurements an estimator cannot use
-    (ground truth, a sensor type it does not model) are ignored, not rejected."""
+    (ground truth, a sensor type it does not model) are ignored, not rejected.
+
+    Late data: ``late_horizon(m)`` says how far (s) behind the newest stamp processed a
+    measurement like ``m`` may come and still be used correctly; 0 for an estimator without
+    history (every EKF), which raises ``LateMeasurement`` (a ValueError) for an older one
+    (``in_order``) rather than fuse it as current."""
 
     name: str = "estimator"
     # the coordinates of its pose error, as Estimate.pose_error (the NEES is scored in them)
     pose_error: str = "world"
+    # s: the newest stamp processed (in_order); -inf before the first
+    newest_t: float = -math.inf
 
     def __init__(self) -> None:
         self.log = EstimatorLog()
 
     @abstractmethod
     def process(self, m: Measurement) -> None:
-        """Consume one measurement. Measurements arrive in non-decreasing time order."""
+        """Consume one measurement. Measurements arrive in non-decreasing time order, but for
+        those up to ``late_horizon(m)`` s late; an older one raises ``LateMeasurement``."""
+
+    def late_horizon(self, m: Measurement) -> float:
+        """How late (s behind the newest stamp this estimator has processed) measurement ``m``
+        may be and still be used correctly: 0 here, for an estimator that keeps no history
+        (it can only fuse a measurement at its current state)."""
+        return 0.0
+
+    def in_order(self, m: Measurement) -> None:
+        """Record ``m``'s stamp as the newest processed; ``LateMeasurement`` naming the sensor,
+        the stamp and the newest stamp when ``m`` is older (it would be fused as current).
+        Equal stamps (to ``IN_ORDER_TOLERANCE``) are in order; a NaN stamp is left to the
+        caller's checks."""
+        t, newest = m.t, self.newest_t
+        if t < newest - IN_ORDER_TOLERANCE:
+            raise LateMeasurement(
+                f"{self.name}: {type(m).__name__} from sensor {m.sensor!r} stamped "
+                f"t={t:.6f} s is {newest - t:.3f} s older than the newest measurement it has "
+                f"processed (t={newest:.6f} s); it keeps no history to put it in and will not "
+                "fuse it as current: feed measurements in stamp order (OnlineSession drops "
+                "and counts such a one)")
+        if t > newest:
+            self.newest_t = t
 
     @abstractmethod
     def estimate(self) -> Estimate | None:

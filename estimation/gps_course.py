@@ -24,6 +24,7 @@ docs/design/smoother.md (Start from the GPS course), docs/design/igvc_ekf.md.
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass
 
@@ -83,8 +84,12 @@ class GpsCourseStart:
                    min_psi_sigma=min_psi_sigma, odometry_wait=odometry_wait, distance=distance)
 
     def add(self, m) -> CourseStart | None:
-        """Buffer ``m``; the start once the course is good enough, else None."""
-        self.buffer.append(m)
+        """Buffer ``m``; the start once the course is good enough, else None. The buffer is
+        read in stamp order: a late ``m`` (a smoother's late fix) goes to its place."""
+        if self.buffer and m.t < self.buffer[-1].t:
+            bisect.insort(self.buffer, m, key=lambda b: b.t)
+        else:
+            self.buffer.append(m)
         # The buffer's first and last fix (no rescan per message). The window starts at a fix
         # that odometry covers: from odometry_wait before the first sample on (held back over
         # its period); an earlier one has no motion to relate it to the next.

@@ -11,19 +11,27 @@ The stream semantics are the bag reader's (``ddfuse.estimation.bags.BagStream``)
 - Reordering. A session holds each measurement until a newer stamp is ``reorder_window`` s
   past it (``from_config``: the config's ``reorder_window``; the constructor's default 0), then
   passes it on, in stamp order (equal stamps: the config's sensor order, then arrival order).
-  A measurement older than one already passed on is dropped for every estimator and counted in
-  ``rejected`` under (its sensor's name, by default the topic; the bag reader's reason "arrived
-  after messages stamped up to more than reorder_window (... s) later had been passed on;
-  ..."), the first per sensor logged as a warning: no estimator is ever handed a measurement
-  older than one it has processed. So when the whole clock steps back (stamps and receive times
-  alike, which the converter's stamp check cannot see), what comes in the next seconds is
-  dropped until the stamps pass the last one passed on. A window of 0 passes each measurement
+- Late data (docs/design/late_data.md). A measurement older than one already passed on
+  (``released_t``) goes, at once, to each running estimator that can still use it that late
+  (``released_t - m.t <= est.late_horizon(m)``: the smoother takes a GPS fix or landmark
+  sighting up to its lag late, into the keyframe nearest its stamp), counted in
+  ``late_used[name][sensor]``; every other estimator (the EKFs: no history) drops it, counted
+  in ``late_dropped[name][sensor]``. One that no estimator takes is also counted in ``late``
+  and in ``rejected`` under (its sensor's name, by default the topic; the bag reader's reason
+  "arrived after messages stamped up to more than reorder_window (... s) later had been passed
+  on; ..."), the first per sensor logged as a warning: no estimator is ever handed a
+  measurement older than one it has processed unless it says it can use it. So when the whole
+  clock steps back (stamps and receive times alike, which the converter's stamp check cannot
+  see), what comes in the next seconds is dropped until the stamps pass the last one passed
+  on. A window of 0 passes each measurement
   straight on (no latency), still dropping the older ones. The estimates lag the newest stamp
   by up to the window (``estimate(name, at=t)`` carries one to t on the odometry pushed since,
   the buffer's included); ``flush()`` passes on what is held, ``finish()`` flushes and ends every
   estimator (a ``push`` after it raises RuntimeError). ``replay`` reads through ``BagStream``,
-  which already reorders and checks stamps (``reorder_window`` there), so its session's own
-  window is 0; its ``rejected`` then holds the bag reader's counts (by topic) too.
+  which already reorders and checks stamps (``reorder_window`` there) and passes a late
+  measurement on out of order (``pass_late``), so its session's own window is 0 and the late
+  one reaches the session as late; its ``rejected`` then holds the bag reader's other counts
+  (by topic) too.
 - Isolation, as ``ddfuse.estimation.runner.run``: an estimator that raises (in ``process``,
   ``estimate`` or ``finish``) is stopped there, never called again, its error kept in
   ``errors[name]`` ("RuntimeError at t=...: ...") and noted in its ``log``; ``estimate(name)``
@@ -96,7 +104,11 @@ class OnlineSession:
         self.errors: dict[str, str | None] = {n: None for n in estimators}
         self.stopped_t: dict[str, float | None] = {}  # name -> stamp it stopped at (None: finish)
         self.rejected: Counter = Counter()  # (sensor, reason) -> measurements dropped
-        self.late: Counter = Counter()  # sensor -> measurements that came too late to reorder
+        self.late: Counter = Counter()  # sensor -> too late for every estimator: dropped
+        # name -> Counter(sensor -> n): late measurements the estimator used / dropped
+        self.late_used: dict[str, Counter] = {n: Counter() for n in estimators}
+        self.late_dropped: dict[str, Counter] = {n: Counter() for n in estimators}
+        self._warned_late: set[str] = set()  # sensors whose late measurements were warned of
         self.released_t = -math.inf  # the stamp of the last measurement passed on
         self.on_stop = on_stop
         self.input_error: str | None = None  # set by replay when the bag breaks off
@@ -119,9 +131,9 @@ class OnlineSession:
         self._last: dict[str, Estimate | None] = {n: None for n in estimators}
         self._next_keep = -math.inf
         self.finished = False  # set by finish(): no push after it
-        self._late_reason = (f"arrived after messages stamped up to more than reorder_window "
-                             f"({window:g} s) later had been passed on; raise reorder_window "
-                             "to keep it")  # the bag reader's text
+        # s: the reorder window a late measurement missed, for what is said of it: the
+        # session's own, or (replay) the bag reader's that reorders for it
+        self.late_window = window
 
     @classmethod
     def from_config(cls, cfg: Config, names: list[str] | str | None = None, *,
@@ -180,7 +192,7 @@ class OnlineSession:
                                "new session to go on")
         t = m.t
         if not (t >= self.released_t and math.isfinite(t)):  # older than what was passed on
-            self._drop(m)
+            self._late(m)
             return
         if self._twist is not None:
             self._twist.push(m)
@@ -226,29 +238,52 @@ class OnlineSession:
             self.released_t = item[0]
             self._apply(item[3])
 
-    def _drop(self, m) -> None:
+    def _late(self, m) -> None:
+        """A measurement older than the last one passed on: to each running estimator that
+        can use it that late, dropped for the others; each counted (module docstring)."""
         sensor = m.sensor
         if not math.isfinite(m.t):
             self.rejected[(sensor, "non-finite stamp")] += 1
             return
-        self.late[sensor] += 1
-        self.rejected[(sensor, self._late_reason)] += 1
-        if self.late[sensor] == 1:
+        behind = self.released_t - m.t  # s
+        takers, dropped = [], []
+        for name, est in self.estimators.items():
+            if self.errors[name] is None:
+                (takers if behind <= est.late_horizon(m) else dropped).append(name)
+        for name in dropped:
+            self.late_dropped[name][sensor] += 1
+        for name in self._feed(m, takers):
+            self.late_used[name][sensor] += 1
+        if not takers:
+            self.late[sensor] += 1
+            # the bag reader's text
+            self.rejected[(sensor, f"arrived after messages stamped up to more than "
+                                   f"reorder_window ({self.late_window:g} s) later had been "
+                                   "passed on; raise reorder_window to keep it")] += 1
+        if dropped and sensor not in self._warned_late:
+            self._warned_late.add(sensor)
+            given = f"; used by {', '.join(takers)}" if takers else ""
             log.warning("%s: a measurement stamped %.3f s before the last one passed on came "
-                        "too late to reorder (reorder_window %g s); dropped and counted",
-                        sensor, self.released_t - m.t, self.reorder_window)
+                        "after the reorder window (%g s): dropped and counted for %s (later "
+                        "than each can use: late_horizon)%s", sensor, behind, self.late_window,
+                        ", ".join(dropped), given)
 
     def _apply(self, m) -> None:
         """One measurement into every running estimator, each isolated from the others."""
-        clock = time.perf_counter
-        errors = self.errors
         if m.t >= self._next_keep:  # before the update: what a failure inside it leaves
             self._keep(m.t)
+        self._feed(m, [n for n in self.estimators if self.errors[n] is None])
+
+    def _feed(self, m, names: list[str]) -> list[str]:
+        """``m`` into the estimators ``names``, each timed and isolated from the others;
+        returns those that took it without failing."""
+        clock = time.perf_counter
+        errors = self.errors
+        took = []
         busy = None
         try:
-            for name, est in self.estimators.items():
-                if errors[name] is not None:
-                    continue
+            for name in names:
+                est = self.estimators[name]
                 busy = name
                 t0 = clock()
                 try:
@@ -256,6 +291,7 @@ class OnlineSession:
                 except Exception as exc:  # one estimator failing must not stop the others
                     self._stop(name, m.t, exc)
                     continue
+                took.append(name)
                 s = self.update_s[name]
                 t1 = clock()
                 s.append(t1 - t0)
@@ -271,6 +307,7 @@ class OnlineSession:
                 if self.on_stop is not None:
                     self.on_stop(busy, m.t, "interrupted (Ctrl-C) inside an update")
             raise
+        return took
 
     def _keep(self, t: float) -> None:
         """Keep every running estimator's estimate (the one a failure would leave)."""
@@ -378,6 +415,13 @@ class OnlineSession:
         self._stop(name, t, FloatingPointError(f"numerical breakdown: {bad}"))
         return False
 
+    def late_counts(self) -> dict[str, dict[str, dict[str, int]]]:
+        """Per estimator, the late measurements (older than one already passed on) it used and
+        dropped, by sensor: ``{name: {"used": {sensor: n}, "dropped": {sensor: n}}}``."""
+        return {n: {"used": dict(sorted(self.late_used[n].items())),
+                    "dropped": dict(sorted(self.late_dropped[n].items()))}
+                for n in self.estimators}
+
     def latency_ms(self) -> dict[str, dict[str, float]]:
         """Per-estimator update latency p50 / p99 / max, ms (NaN without updates), and outside
         them the innovation log's compaction every 1000 updates: ``compact_max`` ms (NaN
@@ -416,7 +460,8 @@ def replay(bag: str | Path, cfg: Config, *, names: list[str] | None = None,
     (e.g. ``ddfuse.estimation.heading_survey.OffsetRecorder.add``), outside the latency figures."""
     if not (print_every > 0.0 and np.isfinite(print_every)):
         raise ValueError(f"print_every: expected seconds > 0, got {print_every!r}")
-    stream = BagStream(bag, cfg, reorder_window=reorder_window, keep_truth=False).prime()
+    stream = BagStream(bag, cfg, reorder_window=reorder_window, keep_truth=False,
+                       pass_late=True).prime()
     t0 = stream.t0 if stream.t0 is not None else 0.0
     stop_hook = None
     if on_stop is not None:
@@ -424,6 +469,7 @@ def replay(bag: str | Path, cfg: Config, *, names: list[str] | None = None,
             on_stop(name, None if t is None else t - t0, why)
     session = OnlineSession.from_config(cfg, names, stream=stream, reorder_window=0.0,
                                         on_stop=stop_hook)
+    session.late_window = stream.depth
     wall0, next_print = time.perf_counter(), t0
     n = 0
     t_last = None

@@ -24,11 +24,12 @@ docs/design/smoother.md.
 
 from __future__ import annotations
 
+import bisect
 import math
 
 import numpy as np
 from ddfuse.estimation.config import Config, SensorConfig, landmark_maps
-from ddfuse.estimation.estimator import Estimate, Estimator, wrap_angle
+from ddfuse.estimation.estimator import IN_ORDER_TOLERANCE, Estimate, Estimator, wrap_angle
 from ddfuse.estimation.measurements import (
     GpsFix,
     GyroYawRate,
@@ -130,6 +131,9 @@ class FixedLagSmoother(Estimator):
 
     # --- measurement handling ---------------------------------------------------------------
     def process(self, m) -> None:
+        """Consume one measurement: in stamp order, but for a GPS fix or a landmark sighting up
+        to the lag late (``late_horizon``, ``_late``); an older one of another kind raises
+        ``LateMeasurement``."""
         if self.stopped is not None:
             # kf_t was emptied when it stopped: say why, not KeyError
             raise RuntimeError(f"the smoother stopped earlier: {self.stopped}")
@@ -144,6 +148,16 @@ class FixedLagSmoother(Estimator):
         if isinstance(m, GpsFix) and (m.enu is None or m.status < 0):
             self.log.rejected[(m.sensor, "no_fix" if m.status < 0 else "no_enu")] += 1
             return
+        if m.t < self.newest_t - IN_ORDER_TOLERANCE:
+            self._late(m)
+            return
+        if m.t > self.newest_t:
+            self.newest_t = m.t
+        self.take(m)
+
+    def take(self, m) -> None:
+        """``process`` past its checks: also what ``Initialisation`` replays of the messages it
+        held (older than the newest processed, and in order among themselves)."""
         if not self.initialised:
             if self.init.restart is not None:
                 self.init.restart_now(m)
@@ -170,6 +184,39 @@ class FixedLagSmoother(Estimator):
             return
         self._step(m)
 
+    def late_horizon(self, m) -> float:
+        """How late (s behind the newest stamp processed) ``m`` may come: the lag for a GPS fix
+        or a landmark sighting (it goes to the window's keyframe nearest its stamp; older than
+        the lag it is dropped and counted), 0 for the rest. Wheel odometry and gyro samples
+        are preintegrated in stamp order and heading samples averaged into the open keyframe
+        interval, carried by its preintegrated yaw: one older than the newest stamp belongs to
+        an interval already integrated or closed, and putting it there would mean
+        re-integrating the window."""
+        return self.lag if isinstance(m, (GpsFix, LandmarkObservation)) else 0.0
+
+    def _late(self, m) -> None:
+        """A measurement older than the newest processed (``late_horizon``): a GPS fix or a
+        landmark sighting waits with the held messages when its stamp is past the integrated
+        odometry (as it would have on time), else goes to the window's keyframe nearest its
+        stamp (``_absolute``); anything else raises ``LateMeasurement``."""
+        if not isinstance(m, (GpsFix, LandmarkObservation)):
+            self.in_order(m)  # raises: it cannot be used that late
+        if not self.initialised:
+            init = self.init
+            if (isinstance(m, GpsFix) and self.has_gps and init.restart is None
+                    and (self.given_pose is None or init.realign is not None)):
+                # the GPS course waiting for its baseline (``Initialisation.uninitialised``):
+                # the fix goes to its place in the buffer, read and replayed in stamp order
+                init.uninitialised(m)
+                return
+            # a restart after a gap starts from the messages in order
+            self.log.rejected[(m.sensor, "late, before the window started")] += 1
+            return
+        if self.odometry_held_back and m.t >= self.twist.last_t:
+            bisect.insort(self.held, m, key=lambda b: b.t)
+            return
+        self._absolute(m, late=True)
+
     def release_held(self) -> None:
         """Use the messages that were waiting for an odometry sample, in order."""
         held, self.held = self.held, []
@@ -194,10 +241,12 @@ class FixedLagSmoother(Estimator):
             self.new_keyframe(m.t)
             self.flush()
 
-    def _absolute(self, m) -> None:
+    def _absolute(self, m, late: bool = False) -> None:
         """A GPS fix or landmark sighting: to the keyframe at its stamp (a new one unless the
         newest is within MIN_KEYFRAME_DT, or with ``keyframe: rate`` the newest), or, when it
-        comes late, the window's keyframe nearest its stamp; dropped when older than the lag."""
+        comes late, the window's keyframe nearest its stamp; dropped when older than the lag.
+        ``late``: it came after later messages were processed (``_late``): the odometry is
+        integrated past its stamp, so no keyframe is made at it."""
         window = self.window
         kf_t = window.kf_t
         t_kf = kf_t[window.k]
@@ -207,7 +256,7 @@ class FixedLagSmoother(Estimator):
             # indeterminate)
             self.log.rejected[(m.sensor, "before odometry began")] += 1
             return
-        if (m.t - t_kf >= (MIN_KEYFRAME_DT if self.kf_policy == "gps" else 1e9)
+        if (not late and m.t - t_kf >= (MIN_KEYFRAME_DT if self.kf_policy == "gps" else 1e9)
                 and self.twist.pim.n > 0):
             self.new_keyframe(m.t)
         k = window.k

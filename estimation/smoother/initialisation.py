@@ -62,7 +62,7 @@ class Initialisation:
         if sm.given_pose is not None and self.realign is None:
             self.start(m.t, tuple(sm.given_pose), sm.noise.init_pos_sigma,
                        sm.noise.init_given_psi_sigma)
-            sm.process(m)
+            sm.take(m)
             return
         if not sm.has_gps:
             psi = 0.0
@@ -70,7 +70,7 @@ class Initialisation:
                 s = sm.sensors[m.sensor]
                 psi = wrap_angle(m.yaw - float(s.heading_offset))
             self.start(m.t, (0.0, 0.0, psi), sm.noise.init_pos_sigma, 0.05 if psi else 1e-3)
-            sm.process(m)
+            sm.take(m)
             return
         got = self.course.add(m)
         if got is None:
@@ -80,7 +80,7 @@ class Initialisation:
         self.start(got.t, (got.position[0], got.position[1], got.heading), got.pos_sigma,
                    got.psi_sigma)
         for b in got.replay:
-            sm.process(b)
+            sm.take(b)
 
     def start(self, t: float, pose, pos_sigma: float, psi_sigma: float) -> None:
         self.sm.twist.last_t = t
@@ -228,7 +228,7 @@ class Initialisation:
         self.first_keyframe(buf[0].t, pose, pos_sigma, psi_sigma, calib=(xc, cc))
         sm.now = buf[0].t
         for b in buf:
-            sm.process(b)
+            sm.take(b)
 
     # --- re-initialisation after a gtsam error ----------------------------------------------
     def recover(self, reason: str) -> None:

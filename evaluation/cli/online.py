@@ -160,6 +160,15 @@ def _print_latency(session, stopped: dict[str, float | None]) -> None:
         print("outside them, the innovation log's compaction every 1000 updates (max ms): "
               + ", ".join(f"{n} {q['compact_max']:.3f} ({q['compactions']} x)"
                           for n, q in compact.items()))
+    late = session.late_counts()
+    if any(c["used"] or c["dropped"] for c in late.values()):
+        # the smoother can put a late fix into a past keyframe, an EKF cannot
+        print("late measurements (stamped before one already passed on), per estimator: "
+              "used / dropped, by sensor")
+        for name, c in late.items():
+            used, dropped = (", ".join(f"{s} {n}" for s, n in c[k].items()) or "-"
+                             for k in ("used", "dropped"))
+            print(f"  {name:16} used {used}  dropped {dropped}")
     if session.rejected:
         print("dropped and counted, per topic and reason:")
         for (topic, reason), n in sorted(session.rejected.items()):
