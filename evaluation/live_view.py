@@ -53,6 +53,8 @@ from ddfuse.estimation.estimate_msgs import (
 )
 from ddfuse.estimation.estimator import Estimate
 from ddfuse.estimation.measurements import GpsFix
+from ddfuse.estimation.runner import Trajectory
+from ddfuse.evaluation.metrics import interpolate_xy
 
 log = logging.getLogger(__name__)
 
@@ -149,6 +151,7 @@ class _Listener:
 
     def __init__(self) -> None:
         self.topics: Counter = Counter()
+        self.total = 0  # subscriptions now, all clients
         self._clients: Counter = Counter()
         self._lock = threading.Lock()
 
@@ -156,6 +159,7 @@ class _Listener:
         try:
             with self._lock:
                 self.topics[channel.topic] += 1
+                self.total += 1
                 self._clients[client.id] += 1
                 first = self._clients[client.id] == 1
             if first:
@@ -167,6 +171,7 @@ class _Listener:
         try:
             with self._lock:
                 self.topics[channel.topic] -= 1
+                self.total -= 1
                 self._clients[client.id] -= 1
                 left = self._clients[client.id] == 0
             if left:
@@ -242,6 +247,10 @@ class LiveView:
     def url(self) -> str:
         """The address a Foxglove client opens: ``ws://HOST:PORT``."""
         return f"ws://{self.host}:{self.port}"
+
+    def watched(self) -> bool:
+        """Whether any client subscribes to anything now (a feed can skip its work if not)."""
+        return self._listener.total > 0
 
     def subscribed_topics(self) -> list[str]:
         """The topics some client subscribes to now, sorted."""
@@ -338,31 +347,36 @@ class LiveView:
 
     def _send_estimate(self, name: str, e: Estimate, datum) -> None:
         ch = self._channels_of(name)
+        send = [c.has_sinks() for c in (ch.pose, ch.odom, ch.tf, ch.cov, ch.fix)]
+        if not any(send):  # nobody looks: nothing is built
+            return
         m = self._m
         ts, ns = self._stamp(e.t)
-        o = odometry_of(e, self.local_frame, self.base_frame)
-        pose = self._pose(o.position, o.orientation)
-        if ch.pose.has_sinks():
-            ch.pose.log(m.PoseInFrame(timestamp=ts, frame_id=o.frame_id, pose=pose),
+        # the pose as tf broadcasts it (no covariance: cheaper than odometry_of)
+        tr = transform_of(e, self.local_frame, f"{name}/{self.base_frame}")
+        pose = self._pose(tr.translation, tr.rotation)
+        if send[0]:
+            ch.pose.log(m.PoseInFrame(timestamp=ts, frame_id=tr.frame_id, pose=pose),
                         log_time=ns)
-        if ch.odom.has_sinks():
+        if send[1]:
+            o = odometry_of(e, self.local_frame, self.base_frame)
             ch.odom.log(m.Odometry(
-                timestamp=ts, frame_id=o.frame_id, body_frame_id=o.child_frame_id, pose=pose,
+                timestamp=ts, frame_id=o.frame_id, body_frame_id=o.child_frame_id,
+                pose=self._pose(o.position, o.orientation),
                 linear_velocity=m.Vector3(x=o.linear[0], y=o.linear[1], z=o.linear[2]),
                 angular_velocity=m.Vector3(x=o.angular[0], y=o.angular[1], z=o.angular[2]),
                 pose_covariance=list(o.pose_covariance),
                 velocity_covariance=list(o.twist_covariance)), log_time=ns)
-        if ch.tf.has_sinks():
-            tr = transform_of(e, self.local_frame, f"{name}/{self.base_frame}")
+        if send[2]:
             ch.tf.log(m.FrameTransform(
                 timestamp=ts, parent_frame_id=tr.frame_id, child_frame_id=tr.child_frame_id,
                 translation=m.Vector3(x=tr.translation[0], y=tr.translation[1],
                                       z=tr.translation[2]),
                 rotation=m.Quaternion(x=tr.rotation[0], y=tr.rotation[1], z=tr.rotation[2],
                                       w=tr.rotation[3])), log_time=ns)
-        if ch.cov.has_sinks():
-            self._send_ellipse(name, ch, e, o.position, ts, ns)
-        if datum is not None and ch.fix.has_sinks():
+        if send[3]:
+            self._send_ellipse(name, ch, e, tr.translation, ts, ns)
+        if send[4] and datum is not None:
             ch.fix.log(self._location(fix_of(e, datum, self.base_frame), ts, ch.color),
                        log_time=ns)
 
@@ -471,8 +485,6 @@ class ReplayFeed:
 
     def __init__(self, view: LiveView, cfg: Config,
                  truth: tuple[np.ndarray, np.ndarray] | None = None) -> None:
-        from ddfuse.estimation.runner import Trajectory
-
         self.view = view
         self.datum = cfg.datum if isinstance(cfg.datum, tuple) else None
         self._truth = None
@@ -511,21 +523,21 @@ class ReplayFeed:
             if self.datum is None:
                 self.datum = m.datum
             view.fix(m)
+        watched = view.watched()  # nobody looks: no estimate is asked for
         tr = self._truth
         if tr is not None:
             i = self._ti
             while i < len(tr.t) and tr.t[i] <= m.t:
-                view.truth(float(tr.t[i]), tr.pose[i])
+                if watched:
+                    view.truth(float(tr.t[i]), tr.pose[i])
                 i += 1
             self._ti = i
         for name in session.estimators:
-            if self._gate.due(name, m.t):  # before the estimate: the smoother's costs
+            if watched and self._gate.due(name, m.t):  # before the estimate: its cost
                 self._send(session, name)
-            self._send_nis(session, name)
+            self._send_nis(session, name, watched)
 
     def _send(self, session, name: str) -> None:
-        from ddfuse.evaluation.metrics import interpolate_xy
-
         e = session.estimate(name)
         if e is None:
             return
@@ -536,10 +548,10 @@ class ReplayFeed:
                    else None)
             self.view.scores(name, e.t, err, None)
 
-    def _send_nis(self, session, name: str) -> None:
+    def _send_nis(self, session, name: str, watched: bool = True) -> None:
         inn = session.estimators[name].log.innovations
         i, n = self._logged.get(name, 0), len(inn)
-        for k in range(i, n):
+        for k in range(i, n if watched else i):
             try:
                 u = inn[k]
             except IndexError:  # folded into the log's summary meanwhile

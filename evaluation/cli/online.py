@@ -153,9 +153,15 @@ def command(args: argparse.Namespace) -> int:
 def _live_view(args: argparse.Namespace, cfg):
     """The Foxglove live view of ``online --foxglove`` and its feed (the bag's ground truth read
     ahead: the replay keeps none)."""
+    from ddfuse.evaluation import estimators as registry
     from ddfuse.evaluation.live_view import LiveView, ReplayFeed, read_truth
+    from ddfuse.evaluation.online import ONLINE_TRACKS_REFUSED as refused
 
-    view = LiveView(cfg, args.estimators or (), port=args.foxglove)
+    # the session's tracks, advertised before any client connects (foxglove-sdk 0.30 refused
+    # a subscription to a channel created while a client was connected, now and then)
+    names = [t for n in registry.select(cfg, args.estimators) if n not in refused
+             for t in registry.SPECS[n].produces if t not in refused]
+    view = LiveView(cfg, names, port=args.foxglove)
     sys.stderr.write(f"ddfuse: live view on {view.url} (Foxglove: Open connection, Foxglove "
                      "WebSocket, that address)\n")
     return view, ReplayFeed(view, cfg, read_truth(args.bag, cfg))
