@@ -481,7 +481,9 @@ class ReplayFeed:
     truth's x/y interpolated at the estimate's stamp, ``evaluation.metrics.interpolate_xy``;
     None outside the truth's span); and the NIS of every update the estimator logged since,
     read from its innovation log (the values the run's NIS tables count, not recomputed).
-    ``truth``: ``read_truth``'s arrays, or None. Never raises: a failure is logged once."""
+    ``truth``: ``read_truth``'s arrays, or None. While no client subscribes, only the GPS fixes
+    go to the view (which drops them) and nothing is asked of the session; a client that comes
+    gets what follows, not the backlog. Never raises: a failure is logged once."""
 
     def __init__(self, view: LiveView, cfg: Config,
                  truth: tuple[np.ndarray, np.ndarray] | None = None) -> None:
@@ -494,6 +496,7 @@ class ReplayFeed:
         self._ti = 0  # the next truth sample to send
         self._gate = RateGate()
         self._logged: dict[str, int] = {}  # estimator -> innovations already sent
+        self._idle = True  # no client was subscribed at the last measurement
         self._failed = False
 
     def __call__(self, session, m) -> None:
@@ -523,19 +526,26 @@ class ReplayFeed:
             if self.datum is None:
                 self.datum = m.datum
             view.fix(m)
-        watched = view.watched()  # nobody looks: no estimate is asked for
+        if not view.watched():  # nobody looks: nothing is asked of the session
+            self._idle = True
+            return
         tr = self._truth
+        if self._idle:  # a client came: from now on, not the backlog
+            self._idle = False
+            if tr is not None:
+                self._ti = int(np.searchsorted(tr.t, m.t, side="left"))
+            self._logged = {n: len(est.log.innovations)
+                            for n, est in session.estimators.items()}
         if tr is not None:
             i = self._ti
             while i < len(tr.t) and tr.t[i] <= m.t:
-                if watched:
-                    view.truth(float(tr.t[i]), tr.pose[i])
+                view.truth(float(tr.t[i]), tr.pose[i])
                 i += 1
             self._ti = i
         for name in session.estimators:
-            if watched and self._gate.due(name, m.t):  # before the estimate: its cost
+            if self._gate.due(name, m.t):  # before the estimate: its cost
                 self._send(session, name)
-            self._send_nis(session, name, watched)
+            self._send_nis(session, name)
 
     def _send(self, session, name: str) -> None:
         e = session.estimate(name)
@@ -548,10 +558,10 @@ class ReplayFeed:
                    else None)
             self.view.scores(name, e.t, err, None)
 
-    def _send_nis(self, session, name: str, watched: bool = True) -> None:
+    def _send_nis(self, session, name: str) -> None:
         inn = session.estimators[name].log.innovations
         i, n = self._logged.get(name, 0), len(inn)
-        for k in range(i, n if watched else i):
+        for k in range(i, n):
             try:
                 u = inn[k]
             except IndexError:  # folded into the log's summary meanwhile
