@@ -209,6 +209,10 @@ def test_last_pose_and_odometry_equal_the_sessions_final_estimate(live_replay):
         pos, q = p.pose.position, p.pose.orientation
         assert np.allclose([pos.x, pos.y, pos.z], o.position, atol=1e-6)
         assert np.allclose([q.x, q.y, q.z, q.w], o.orientation, atol=1e-9)
+        poses = client.decoded(f"/ddfuse/{n}/pose")
+        span = e.t - stamp_s(poses[0][1].timestamp)
+        # RATE_HZ per second of stamps, none lost on the way (a backlog of 1024 per client)
+        assert RATE_HZ * span * 0.95 <= len(poses) <= RATE_HZ * span + 2
         _, od = client.decoded(f"/ddfuse/{n}/odom")[-1]
         assert od.body_frame_id == cfg.base_frame
         assert np.allclose(list(od.pose_covariance), o.pose_covariance, rtol=1e-12, atol=0)
@@ -275,10 +279,13 @@ def test_scores_carry_the_logged_nis_and_the_error_against_truth(live_replay):
         # every GPS update's NIS (2.5 Hz, under the rate) is sent
         gps_logged = int(np.sum(cols["sensor"] == "gps"))
         assert sum(1 for s in sent if s["kind"].startswith("gps/")) == gps_logged
-        # at most RATE_HZ per second of stamps per (estimator, kind)
+        # at most RATE_HZ per second of stamps per (estimator, kind), at least one per 50 ms
+        # step for the 100 Hz IMU's
         for kind in {s["kind"] for s in sent}:
             t = np.array([s["t"] for s in sent if s["kind"] == kind])
-            assert np.all(np.diff(t) >= 1.0 / RATE_HZ - 1e-9)
+            assert len(t) <= RATE_HZ * (t[-1] - t[0]) + 2
+        imu = np.array([s["t"] for s in sent if s["kind"].startswith("imu/")])
+        assert len(imu) == 0 or len(imu) >= 0.95 * RATE_HZ * (imu[-1] - imu[0])
 
 
 def rotated_cov(a: float, b: float, angle: float) -> np.ndarray:
