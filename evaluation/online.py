@@ -442,7 +442,8 @@ def replay(bag: str | Path, cfg: Config, *, names: list[str] | None = None,
            on_print: Callable[[float, dict[str, Estimate | None]], None] | None = None,
            reorder_window: float | None = None, interruptible: bool = False,
            on_stop: Callable[[str, float | None, str], None] | None = None,
-           observers: Sequence[Callable[[object], None]] = ()) -> OnlineSession:
+           observers: Sequence[Callable[[object], None]] = (),
+           on_update: Callable[[OnlineSession, object], None] | None = None) -> OnlineSession:
     """Replay a bag into an OnlineSession, one message at a time, decoding it as it goes
     (``estimation.bags.BagStream``, which reorders by stamp within ``reorder_window`` and drops
     broken stamps; the session itself then passes each measurement straight on). With
@@ -457,7 +458,9 @@ def replay(bag: str | Path, cfg: Config, *, names: list[str] | None = None,
     ``interruptible``, Ctrl-C ends the replay there as the bag's end would, and the session's
     ``interrupted`` says where (the latency figures so far are kept); otherwise it
     propagates. ``observers`` are called with every measurement before the session has it
-    (e.g. ``ddfuse.estimation.heading_survey.OffsetRecorder.add``), outside the latency figures."""
+    (e.g. ``ddfuse.estimation.heading_survey.OffsetRecorder.add``), outside the latency figures;
+    ``on_update(session, m)`` after the session has it (e.g. ``evaluation.live_view.ReplayFeed``,
+    which reads the estimates and the estimators' logs)."""
     if not (print_every > 0.0 and np.isfinite(print_every)):
         raise ValueError(f"print_every: expected seconds > 0, got {print_every!r}")
     stream = BagStream(bag, cfg, reorder_window=reorder_window, keep_truth=False,
@@ -491,6 +494,8 @@ def replay(bag: str | Path, cfg: Config, *, names: list[str] | None = None,
             session.push(m)
             n += 1  # counted once fed: Ctrl-C during the pacing sleep left it unfed
             t_last = m.t
+            if on_update is not None:
+                on_update(session, m)
             if n % 1000 == 0:
                 gc.collect(1)
             if on_print is not None and m.t >= next_print:

@@ -59,6 +59,30 @@ def add_reorder_window(sp: argparse.ArgumentParser) -> None:
                     "reorder_window, 0.5 s)")
 
 
+FOXGLOVE_PORT = 8765  # Foxglove's default WebSocket port
+
+
+def port_number(text: str) -> int:
+    """argparse type of a TCP port: 0..65535 (0: a free one)."""
+    try:
+        v = int(text)
+    except ValueError:
+        v = -1
+    if not 0 <= v <= 65535:
+        raise argparse.ArgumentTypeError(f"expected a port 0..65535 (0: a free one), got "
+                                         f"{text!r}")
+    return v
+
+
+def add_foxglove(sp: argparse.ArgumentParser) -> None:
+    sp.add_argument("--foxglove", type=port_number, nargs="?", const=FOXGLOVE_PORT,
+                    metavar="PORT",
+                    help="serve the estimates live over the Foxglove WebSocket protocol on "
+                    f"127.0.0.1:PORT (default {FOXGLOVE_PORT}; 0: a free one): in Foxglove, "
+                    "Open connection, ws://127.0.0.1:PORT; needs the live extra (pip install "
+                    "'ddfuse[live]')")
+
+
 def lag_seconds(text: str) -> float:
     """argparse type of a smoother lag: seconds > 0 (the config's smoother.lag rule)."""
     try:

@@ -14,6 +14,7 @@ from pathlib import Path
 from ddfuse.estimation.errors import DdfuseError
 from ddfuse.evaluation.cli.arguments import (
     CONFIG_HELP,
+    add_foxglove,
     add_reorder_window,
     lag_seconds,
     online_estimator_list,
@@ -30,7 +31,8 @@ def add_to(sub) -> None:
         "which, when and why; its last estimate is kept) and the others go on; the exit code "
         "stays 0 then, as for 'run' (whose table shows ERROR in its row). Exit 2: bad input "
         "(a truncated bag: after replaying what could be read); 3: every estimator failed or "
-        "never gave an estimate; 130: Ctrl-C.")
+        "never gave an estimate; 130: Ctrl-C. With --foxglove, the view keeps serving after the "
+        "end until Ctrl-C, which then ends it with the exit code the replay had.")
     sp.add_argument("bag", type=Path, help="bag to replay: ROS1 .bag, ROS2 bag directory or "
                     ".mcap")
     sp.add_argument("-c", "--config", type=Path, help=CONFIG_HELP)
@@ -44,6 +46,7 @@ def add_to(sub) -> None:
                     help="print the current estimates every S > 0 seconds of data (default 1); "
                     "the final ones are always printed")
     add_reorder_window(sp)
+    add_foxglove(sp)
     sp.set_defaults(func=command)
 
 
@@ -109,13 +112,16 @@ def command(args: argparse.Namespace) -> int:
               f"on): {one_line(why)}", flush=True)
 
     offsets = recorder_for(cfg)
+    view, feed = _live_view(args, cfg) if args.foxglove is not None else (None, None)
     try:
         session = replay(args.bag, cfg, names=args.estimators, realtime=args.realtime,
                          print_every=args.every, on_print=show,
                          reorder_window=args.reorder_window, interruptible=True,
-                         on_stop=on_stop, observers=(offsets.add,))
+                         on_stop=on_stop, observers=(offsets.add,), on_update=feed)
     except ValueError as e:
         raise DdfuseError(str(e)) from None
+    if feed is not None:
+        feed.finish(session)
     # as run warns: the reader's (a topic mostly dropped), a wrong compass offset
     for w in [*session.input_warnings, *config_warnings(offsets.surveys(), cfg)]:
         sys.stderr.write(f"ddfuse: warning: {w}\n")
@@ -123,6 +129,9 @@ def command(args: argparse.Namespace) -> int:
         show(session.last_t, {k: session.estimate(k) for k in session.estimators},
              final="interrupted" if session.interrupted else True)
     _print_latency(session, stopped)
+    if view is not None:
+        _serve_until_interrupt(view, held=not session.interrupted,
+                               resend=lambda: feed.finish(session))
     if session.interrupted:
         sys.stdout.flush()
         raise RunInterrupted(session.interrupted)
@@ -139,6 +148,43 @@ def command(args: argparse.Namespace) -> int:
                          "(the lines above say why)\n")
         return NO_ESTIMATE
     return 0
+
+
+def _live_view(args: argparse.Namespace, cfg):
+    """The Foxglove live view of ``online --foxglove`` and its feed (the bag's ground truth read
+    ahead: the replay keeps none)."""
+    from ddfuse.evaluation import estimators as registry
+    from ddfuse.evaluation.live_view import LiveView, ReplayFeed, read_truth
+    from ddfuse.evaluation.online import ONLINE_TRACKS_REFUSED as refused
+
+    # the session's tracks, advertised before any client connects (foxglove-sdk 0.30 refused
+    # a subscription to a channel created while a client was connected, now and then)
+    names = [t for n in registry.select(cfg, args.estimators) if n not in refused
+             for t in registry.SPECS[n].produces if t not in refused]
+    view = LiveView(cfg, names, port=args.foxglove)
+    sys.stderr.write(f"ddfuse: live view on {view.url} (Foxglove: Open connection, Foxglove "
+                     "WebSocket, that address)\n")
+    return view, ReplayFeed(view, cfg, read_truth(args.bag, cfg))
+
+
+def _serve_until_interrupt(view, held: bool, resend) -> None:
+    """After the replay: keep serving the last estimates until Ctrl-C (``held``; not after a
+    Ctrl-C that ended the replay), sent again every second (``resend``) for a client that
+    connects after the end, then stop the server."""
+    import time
+
+    try:
+        if held:
+            sys.stderr.write(f"ddfuse: the replay has ended; still serving on {view.url} "
+                             "(Ctrl-C to end)\n")
+            sys.stderr.flush()
+            while True:
+                time.sleep(1.0)
+                resend()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        view.close()
 
 
 def _print_latency(session, stopped: dict[str, float | None]) -> None:
