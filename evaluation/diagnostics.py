@@ -44,14 +44,20 @@ class TopicClock:
     """Receive times of the configured topics: the last one and those of the last
     ``RATE_WINDOW_S`` s (s on the receive clock)."""
 
-    def __init__(self, topics: list[str], timeout: float, start: float) -> None:
+    def __init__(self, topics: list[str], timeout: float, start: float | None = None) -> None:
         self.timeout = timeout
-        self.start = start
+        self.start = start  # set by the first ``at`` when None
         self.last: dict[str, float | None] = {t: None for t in topics}
         self.recent: dict[str, deque] = {t: deque() for t in topics}
         self.received: Counter = Counter()
 
+    def at(self, now: float) -> None:
+        """Start the clocks at ``now`` unless started."""
+        if self.start is None:
+            self.start = now
+
     def seen(self, topic: str, rt: float) -> None:
+        self.at(rt)
         if topic not in self.last:
             return
         self.last[topic] = rt

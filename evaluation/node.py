@@ -87,12 +87,13 @@ class NodeCore:
     """What ``ddfuse node`` does between its subscribers and its publishers (module docstring).
     ``names``: the estimators, as ``OnlineSession.from_config`` takes them (default: all the
     config allows online); the smoother's lagged track is produced too. ``now``: the receive
-    clock at the start (s), from which a topic that never publishes turns stale.
+    clock at the start (s), from which a topic that never publishes turns stale (None: the
+    first time ``receive`` or ``diagnostics`` is given).
     ``keep_measurements``: keep what is fused, for ``write_results``. ValueError for a config
     ``ddfuse node`` cannot run (``initial_pose: ground_truth``, unknown estimators, ``node.tf``
     naming an estimator that does not run)."""
 
-    def __init__(self, cfg: Config, names: list[str] | None = None, *, now: float = 0.0,
+    def __init__(self, cfg: Config, names: list[str] | None = None, *, now: float | None = None,
                  keep_measurements: bool = False) -> None:
         self.cfg = cfg
         self.names = names
@@ -112,7 +113,7 @@ class NodeCore:
         else:
             self.tf_name = tf
 
-    def _start(self, now: float) -> None:
+    def _start(self, now: float | None) -> None:
         nc = self.cfg.node
         self.conv = LiveConverter(self.cfg)
         self.session = OnlineSession.from_config(self.cfg, self.names, stream=self.conv.stream())
@@ -151,7 +152,10 @@ class NodeCore:
     def receive(self, topic: str, msg, received: float, msgtype: str | None = None
                 ) -> list[Publish]:
         """Take one message of ``topic`` received at ``received`` (s, the clock of the header
-        stamps); returns what is due for publishing now. Never raises for the message."""
+        stamps); returns what is due for publishing now. Never raises for the message; after
+        ``finish`` it is ignored."""
+        if self.session.finished:
+            return []
         if self._last_rt is not None and received < self._last_rt - self.conv.tolerance:
             self.reset(f"the receive clock jumped back by {self._last_rt - received:.3f} s "
                        "(a simulated clock restarted, or a bag played in a loop)", received)
@@ -160,7 +164,7 @@ class NodeCore:
         try:
             ms = self.conv.convert(topic, msg, msgtype, received=received)
         except ValueError as e:
-            self._callback_error(topic, str(e))
+            self.refuse(topic, str(e))
             return []
         for m in ms:
             self.session.push(m)
@@ -168,7 +172,9 @@ class NodeCore:
             self.measurements += ms
         return self.due(received)
 
-    def _callback_error(self, topic: str, what: str) -> None:
+    def refuse(self, topic: str, what: str) -> None:
+        """Count a message of ``topic`` that could not be taken (``what``: why, one line),
+        logged the first time for that topic and reason."""
         self.callback_errors[(topic, what)] += 1
         if self.callback_errors[(topic, what)] == 1:
             log.error("%s: %s; its messages are dropped and counted", topic, what)
@@ -228,6 +234,7 @@ class NodeCore:
     def diagnostics(self, now: float, force: bool = False) -> Publish | None:
         """The diagnostics at ``now`` (receive clock) when ``node.diagnostics_period`` has
         passed since the last, a topic has turned stale since, or ``force``; else None."""
+        self.clock.at(now)
         stale = self.clock.stale(now)
         fresh_stale = stale - self._stale
         self._stale = stale
