@@ -14,7 +14,7 @@ import socket
 import subprocess
 import sys
 import time
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 
 import numpy as np
@@ -68,9 +68,9 @@ class Ros:
         self.wait(self.master.is_online, 30, "roscore to answer")
 
     def start(self, name: str, argv: list[str]) -> subprocess.Popen:
-        out = open(self.tmp / f"{name}.log", "wb")
-        p = subprocess.Popen(argv, env=self.env, stdout=out, stderr=subprocess.STDOUT,
-                             stdin=subprocess.DEVNULL, start_new_session=True)
+        with open(self.tmp / f"{name}.log", "wb") as out:  # the child keeps its own handle
+            p = subprocess.Popen(argv, env=self.env, stdout=out, stderr=subprocess.STDOUT,
+                                 stdin=subprocess.DEVNULL, start_new_session=True)
         self.procs.append(p)
         return p
 
@@ -104,10 +104,8 @@ class Ros:
                     os.killpg(p.pid, signal.SIGINT)
                     p.wait(10)
                 except (ProcessLookupError, subprocess.TimeoutExpired):
-                    try:
+                    with suppress(ProcessLookupError):
                         os.killpg(p.pid, signal.SIGKILL)
-                    except ProcessLookupError:
-                        pass
                     p.wait()
 
 
@@ -138,8 +136,8 @@ def play_through_node(r: Ros, bag: Path, outdir: Path, rate: float,
                    timeout=30)
     r.wait(lambda: all(r.subscribed("/ddfuse", t) for t in BAG_COUNTS), 120,
            "ddfuse node to subscribe\n" + r.log("node"))
-    recorder = r.start("record", ["rosbag", "record", "-O", str(rec), "-e", "/ddfuse/.*|/diagnostics",
-                       "__name:=ddfuse_rec"])
+    recorder = r.start("record", ["rosbag", "record", "-O", str(rec), "-e",
+                                  "/ddfuse/.*|/diagnostics", "__name:=ddfuse_rec"])
     r.wait(lambda: r.has_node("/ddfuse_rec"), 30, "rosbag record to start")
     cpu0, wall0 = cpu_seconds(node.pid), time.monotonic()
     argv = ["rosbag", "play", "-q", "--clock", "-r", str(rate), str(bag)]
