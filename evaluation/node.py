@@ -89,13 +89,15 @@ class NodeCore:
     config allows online); the smoother's lagged track is produced too. ``now``: the receive
     clock at the start (s), from which a topic that never publishes turns stale (None: the
     first time ``receive`` or ``diagnostics`` is given).
-    ``keep_measurements``: keep what is fused, for ``write_results``. ValueError for a config
+    ``keep_measurements``: keep what is fused, for ``write_results``. ``reorder_window`` (s):
+    the converter's and the session's, instead of the config's. ValueError for a config
     ``ddfuse node`` cannot run (``initial_pose: ground_truth``, unknown estimators, ``node.tf``
     naming an estimator that does not run)."""
 
     def __init__(self, cfg: Config, names: list[str] | None = None, *, now: float | None = None,
-                 keep_measurements: bool = False) -> None:
+                 keep_measurements: bool = False, reorder_window: float | None = None) -> None:
         self.cfg = cfg
+        self.reorder_window = reorder_window
         self.names = names
         self.keep_measurements = keep_measurements
         self.resets = 0
@@ -115,8 +117,9 @@ class NodeCore:
 
     def _start(self, now: float | None) -> None:
         nc = self.cfg.node
-        self.conv = LiveConverter(self.cfg)
-        self.session = OnlineSession.from_config(self.cfg, self.names, stream=self.conv.stream())
+        self.conv = LiveConverter(self.cfg, reorder_window=self.reorder_window)
+        self.session = OnlineSession.from_config(self.cfg, self.names, stream=self.conv.stream(),
+                                                 reorder_window=self.reorder_window)
         smoother = self.session.estimators.get("smoother")
         if smoother is not None:
             # from_config builds it without its lagged output (the online replay shows none);

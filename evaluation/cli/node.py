@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 
 from ddfuse.estimation.errors import DdfuseError
-from ddfuse.evaluation.cli.arguments import online_estimator_list
+from ddfuse.evaluation.cli.arguments import add_reorder_window, online_estimator_list
 from ddfuse.evaluation.cli.output_paths import check_output_dir
 
 
@@ -35,6 +35,7 @@ def add_to(sub) -> None:
     sp.add_argument("-o", "--outdir", type=Path,
                     help="on Ctrl-C, write the results 'run' writes (metrics.json, tracks, "
                     "run.npz) for what the node fused, into this directory")
+    add_reorder_window(sp)
     sp.add_argument("--name", default="ddfuse", help="ROS node name (default: ddfuse)")
     sp.set_defaults(func=command)
 
@@ -49,7 +50,8 @@ def command(args: argparse.Namespace) -> int:
         check_output_dir(args.outdir, "-o")  # before any work
     cfg = load_config(args.config)
     try:
-        core = NodeCore(cfg, args.estimators, keep_measurements=args.outdir is not None)
+        core = NodeCore(cfg, args.estimators, keep_measurements=args.outdir is not None,
+                        reorder_window=args.reorder_window)
     except ValueError as e:
         raise DdfuseError(str(e)) from None
     node = Ros1Node(core, args.name)
