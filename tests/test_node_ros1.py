@@ -43,6 +43,10 @@ def _ros():
         pytest.skip(str(e))
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -69,8 +73,11 @@ class Ros:
 
     def start(self, name: str, argv: list[str]) -> subprocess.Popen:
         with open(self.tmp / f"{name}.log", "wb") as out:  # the child keeps its own handle
+            # SIGINT as a terminal's Ctrl-C: not left ignored by a shell that started the
+            # tests in the background
             p = subprocess.Popen(argv, env=self.env, stdout=out, stderr=subprocess.STDOUT,
-                                 stdin=subprocess.DEVNULL, start_new_session=True)
+                                 stdin=subprocess.DEVNULL, start_new_session=True,
+                                 preexec_fn=_default_sigint)
         self.procs.append(p)
         return p
 
@@ -232,3 +239,21 @@ def test_node_on_ros1_agrees_with_run_and_misses_no_message(husky_bag, tmp_path)
     assert st["ddfuse: node"]["late_dropped"] == "0"
     assert st["ddfuse: node"]["callback_errors"] == "0"
     assert all(math.isfinite(v) and v > 0 for v in p99.values())
+
+
+def test_a_configured_topic_of_the_wrong_type_is_one_error_line_at_subscribe_time(tmp_path):
+    with ros_master(tmp_path) as r:
+        # /fix advertised as Odometry (latched), before the node starts
+        r.start("pub", ["rostopic", "pub", "-l", "/fix", "nav_msgs/Odometry", "{}"])
+        r.wait(lambda: ["/fix", "nav_msgs/Odometry"] in [list(x) for x in
+                                                          r.master.getPublishedTopics("")],
+               30, "rostopic pub to advertise /fix")
+        node = r.start("node", [str(Path(sys.executable).with_name("ddfuse")), "node", "-c",
+                                str(HUSKY_CONFIG)])
+        rc = node.wait(120)
+        out = r.log("node")
+    assert rc == 2, out
+    assert out.strip().splitlines()[-1] == (
+        f"ddfuse: error: topic /fix carries nav_msgs/Odometry, but sensors.gps[0] "
+        f"({HUSKY_CONFIG}) needs sensor_msgs/NavSatFix"), out
+    assert "Traceback" not in out
