@@ -40,7 +40,7 @@ from ddfuse.estimation.interrupts import deliver, held_signals, interrupt_name
 from ddfuse.evaluation.diagnostics import Status
 from ddfuse.evaluation.node import NodeCore, Publish
 
-__all__ = ["Ros1Node", "import_ros1"]
+__all__ = ["Ros1Node", "check_master", "import_ros1"]
 
 log = logging.getLogger(__name__)
 
@@ -84,6 +84,15 @@ def _modules() -> SimpleNamespace:
         NavSatStatus=NavSatStatus, TFMessage=TFMessage)
 
 
+def check_master(name: str = "ddfuse") -> None:
+    """DdfuseError in one line when no ROS master answers at ROS_MASTER_URI (rospy would
+    wait for one without a word)."""
+    rosgraph = import_ros1().rosgraph
+    if not rosgraph.Master(f"/{name}").is_online():
+        raise DdfuseError(f"no ROS master answers at ROS_MASTER_URI="
+                          f"{rosgraph.get_master_uri()}: start roscore (or set ROS_MASTER_URI)")
+
+
 class Ros1Node:
     """``core`` on ROS 1 as node ``name`` (module docstring). DdfuseError when no ROS master
     answers at ROS_MASTER_URI, or a configured topic is advertised with a type its sensor
@@ -91,10 +100,7 @@ class Ros1Node:
 
     def __init__(self, core: NodeCore, name: str = "ddfuse") -> None:
         ros = self.ros = import_ros1()
-        uri = ros.rosgraph.get_master_uri()
-        if not ros.rosgraph.Master(f"/{name}").is_online():
-            raise DdfuseError(f"no ROS master answers at ROS_MASTER_URI={uri}: start roscore "
-                              "(or set ROS_MASTER_URI)")
+        check_master(name)
         self.core = core
         self._queue: queue.SimpleQueue = queue.SimpleQueue()  # (receive time, topic, msg)
         self._classes: dict[str, type] = {}
@@ -167,6 +173,14 @@ class Ros1Node:
             why = f"interrupted ({interrupt_name(e)})"
         for sub in self._subscribers:
             sub.unregister()
+        # what had arrived before the end is taken too: it was seen
+        with held_signals():
+            while True:
+                try:
+                    rt, topic, msg = self._queue.get_nowait()
+                except queue.Empty:
+                    break
+                self._take(rt if rt > 0.0 else rospy.get_time(), topic, msg)
         self._publish(self.core.finish())
         self._publish([self.core.diagnostics(rospy.get_time(), force=True)])
         return why

@@ -143,7 +143,8 @@ def play_through_node(r: Ros, bag: Path, outdir: Path, rate: float,
                             str(window)])
     subprocess.run(["rosparam", "set", "/use_sim_time", "true"], env=r.env, check=True,
                    timeout=30)
-    r.wait(lambda: all(r.subscribed("/ddfuse", t) for t in BAG_COUNTS), 120,
+    # a fresh checkout's first EKF compiles its numba kernels first (about a minute)
+    r.wait(lambda: all(r.subscribed("/ddfuse", t) for t in BAG_COUNTS), 300,
            "ddfuse node to subscribe\n" + r.log("node"))
     recorder = r.start("record", ["rosbag", "record", "-O", str(rec), "-e",
                                   "/ddfuse/.*|/diagnostics", "__name:=ddfuse_rec"])
@@ -257,3 +258,15 @@ def test_a_configured_topic_of_the_wrong_type_is_one_error_line_at_subscribe_tim
         f"ddfuse: error: topic /fix carries nav_msgs/Odometry, but sensors.gps[0] "
         f"({HUSKY_CONFIG}) needs sensor_msgs/NavSatFix"), out
     assert "Traceback" not in out
+
+
+def test_without_a_ros_master_the_node_says_so_in_one_line(tmp_path):
+    _ros()
+    env = {**os.environ, "ROS_MASTER_URI": f"http://127.0.0.1:{_free_port()}",
+           "ROS_HOME": str(tmp_path), "ROS_LOG_DIR": str(tmp_path)}
+    p = subprocess.run([str(Path(sys.executable).with_name("ddfuse")), "node", "-c",
+                        str(HUSKY_CONFIG)], env=env, capture_output=True, text=True, timeout=300)
+    assert p.returncode == 2, p.stderr
+    assert p.stderr.strip().splitlines() == [
+        f"ddfuse: error: no ROS master answers at ROS_MASTER_URI={env['ROS_MASTER_URI']}: "
+        "start roscore (or set ROS_MASTER_URI)"]

@@ -44,11 +44,12 @@ def command(args: argparse.Namespace) -> int:
     from ddfuse.estimation.config import load_config
     from ddfuse.evaluation.cli.online import _print_latency
     from ddfuse.evaluation.node import NodeCore
-    from ddfuse.evaluation.ros1_transport import Ros1Node
+    from ddfuse.evaluation.ros1_transport import Ros1Node, check_master
 
     if args.outdir is not None:
         check_output_dir(args.outdir, "-o")  # before any work
     cfg = load_config(args.config)
+    check_master(args.name)  # before the estimators are built (their kernels load)
     try:
         core = NodeCore(cfg, args.estimators, keep_measurements=args.outdir is not None,
                         reorder_window=args.reorder_window)
