@@ -206,8 +206,8 @@ def test_node_on_ros1_agrees_with_run_and_misses_no_message(husky_bag, tmp_path)
         p = m.pose.pose.position
         d = math.hypot(p.x - off[i, 1], p.y - off[i, 2])
         d_end = math.hypot(p.x - off[-1, 1], p.y - off[-1, 2])
-        figures[name] = (round(d, 3), round(stamp - off[i, 0], 3), round(d_end, 3),
-                         round(off[-1, 0] - stamp, 3))
+        figures[name] = (round(d, 3), round(float(stamp - off[i, 0]), 3), round(d_end, 3),
+                         round(float(off[-1, 0] - stamp), 3))
         assert abs(stamp - off[i, 0]) < 0.06, (name, stamp, off[i, 0])
         if name in ("ekf", "smoother"):
             assert d < 0.5, (name, figures)
