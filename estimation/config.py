@@ -20,6 +20,7 @@ Shape (every key documented in README.md)::
     smoother: {lag: 10.0, keyframe: gps, robust: huber}
     ekf: {rate: event}
     reorder_window: 0.5
+    node: {rate: 20, tf: smoother, diagnostics_period: 1.0, topic_timeout: 2.0, nis_window: 30}
 
 Noise values are standard deviations in SI units (m, rad, m/s, rad/s, m/s^2). An IMU's
 ``gyro_bias_walk`` (rad/s/sqrt(s)) and ``heading_offset_walk`` (rad/sqrt(s)) are the random-walk
@@ -186,6 +187,19 @@ class EkfConfig:
 
 
 @dataclass
+class NodeConfig:
+    """``ddfuse node``'s publishing (evaluation/node.py)."""
+
+    rate: float = 20.0  # Hz of the receive clock: each estimator's estimate published
+    # the estimator whose pose is broadcast as the TF local -> base; None: the smoother when
+    # it runs, else the first; 'none': no TF
+    tf: str | None = None
+    diagnostics_period: float = 1.0  # s between /diagnostics messages
+    topic_timeout: float = 2.0  # s of silence after which a configured topic is stale
+    nis_window: float = 30.0  # s of stamps the diagnostics' NIS verdict is taken over
+
+
+@dataclass
 class RobotConfig:
     wheel_radius: float | None = None  # m
     track_width: float | None = None  # m
@@ -244,6 +258,7 @@ class Config:
     smoother: SmootherConfig = field(default_factory=SmootherConfig)
     ekf: EkfConfig = field(default_factory=EkfConfig)
     reorder_window: float = 0.5  # s: messages older than this behind the newest are an error
+    node: NodeConfig = field(default_factory=NodeConfig)
     path: Path | None = None  # the file, or the label the config was parsed under
     text: str | None = None  # the YAML it was parsed from (load_config, parse_config_text)
 
@@ -431,7 +446,7 @@ def parse_config(raw: Any, source: str = "<config>", base: Path | None = None) -
     base = base or Path.cwd()
     top = (
         "sensors", "robot", "ground_truth", "frame", "initial_pose", "smoother", "ekf",
-        "reorder_window",
+        "reorder_window", "node",
     )
     d = ck.mapping(raw if raw is not None else {}, "", top)
     sensors_raw = ck.mapping(d.get("sensors") or {}, "sensors", SENSOR_KINDS)
@@ -543,7 +558,18 @@ def parse_config(raw: Any, source: str = "<config>", base: Path | None = None) -
                             else ck.number(rate, "ekf.rate", positive=True))
     if "reorder_window" in d:
         cfg.reorder_window = ck.number(d["reorder_window"], "reorder_window", nonneg=True)
+    if "node" in d:
+        cfg.node = _node(ck, d["node"])
     return cfg
+
+
+def _node(ck: _Checker, raw: Any) -> NodeConfig:
+    n = ck.mapping(raw, "node", ("rate", "tf", "diagnostics_period", "topic_timeout",
+                                 "nis_window"))
+    nc = NodeConfig(**{k: ck.number(n[k], f"node.{k}", positive=True) for k in n if k != "tf"})
+    if n.get("tf") is not None:
+        nc.tf = ck.string(n["tf"], "node.tf")
+    return nc
 
 
 def load_config(path: str | Path) -> Config:
