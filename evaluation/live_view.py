@@ -566,6 +566,8 @@ class ReplayFeed:
     def _send_nis(self, session, name: str) -> None:
         inn = session.estimators[name].log.innovations
         i, n = self._logged.get(name, 0), len(inn)
+        if i > n:  # a new session (the node restarted its estimators): its log from the start
+            i = 0
         for k in range(i, n):
             try:
                 u = inn[k]

@@ -36,6 +36,7 @@ from __future__ import annotations
 import logging
 import math
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -89,14 +90,17 @@ class NodeCore:
     config allows online); the smoother's lagged track is produced too. ``now``: the receive
     clock at the start (s), from which a topic that never publishes turns stale (None: the
     first time ``receive`` or ``diagnostics`` is given).
-    ``keep_measurements``: keep what is fused, for ``write_results``. ``reorder_window`` (s):
-    the converter's and the session's, instead of the config's. ValueError for a config
-    ``ddfuse node`` cannot run (``initial_pose: ground_truth``, unknown estimators, ``node.tf``
-    naming an estimator that does not run)."""
+    ``keep_measurements``: keep what is fused, for ``write_results``. ``on_update(session, m)``:
+    called after each measurement is pushed (``live_view.ReplayFeed``; it must not raise).
+    ``reorder_window`` (s): the converter's and the session's, instead of the config's.
+    ValueError for a config ``ddfuse node`` cannot run (``initial_pose: ground_truth``,
+    unknown estimators, ``node.tf`` naming an estimator that does not run)."""
 
     def __init__(self, cfg: Config, names: list[str] | None = None, *, now: float | None = None,
-                 keep_measurements: bool = False, reorder_window: float | None = None) -> None:
+                 keep_measurements: bool = False, reorder_window: float | None = None,
+                 on_update: Callable | None = None) -> None:
         self.cfg = cfg
+        self.on_update = on_update  # (session, measurement) after each push: the live view
         self.reorder_window = reorder_window
         self.names = names
         self.keep_measurements = keep_measurements
@@ -171,6 +175,8 @@ class NodeCore:
             return []
         for m in ms:
             self.session.push(m)
+            if self.on_update is not None:
+                self.on_update(self.session, m)
         if self.keep_measurements:
             self.measurements += ms
         return self.due(received)

@@ -192,3 +192,41 @@ def test_node_tf_must_name_a_running_estimator(cfg):
 def test_node_config_errors_name_the_key(node, key):
     with pytest.raises(ConfigError, match=rf"^<config>: {key}: "):
         parse_config({"sensors": {"gps": [{"topic": "/fix"}]}, "node": node})
+
+
+@pytest.mark.integration
+def test_node_feeds_the_foxglove_live_view_with_its_session(cfg, messages):
+    """``node --foxglove``: the core's on_update hook drives the live view's feed; a real
+    WebSocket client gets each estimator's poses, the last one the node's final estimate."""
+    pytest.importorskip("foxglove")
+    from ddfuse.evaluation.live_view import LiveView, ReplayFeed
+    from test_live_view import Client, stamp_s, wait_for
+
+    names = ["ekf", "smoother"]
+    view = LiveView(cfg, names, port=0)
+    client = Client(view.url)
+    try:
+        wait_for(lambda: {f"/ddfuse/{n}/pose" for n in names} <= client.subscribed,
+                 "the subscriptions")
+        wait_for(lambda: {f"/ddfuse/{n}/pose" for n in names} <= set(view.subscribed_topics()),
+                 "the server to see them")
+        feed = ReplayFeed(view, cfg)
+        core = NodeCore(cfg, names, on_update=feed)
+        _feed(core, messages)
+        core.finish()
+        feed.finish(core.session)
+        finals = {n: core.session.estimate(n) for n in names}
+        wait_for(lambda: all(
+            (p := client.last(f"/ddfuse/{n}/pose")) is not None
+            and abs(stamp_s(p.timestamp) - finals[n].t) < 1e-6 for n in names),
+            "the final poses")
+        for n in names:
+            poses = client.decoded(f"/ddfuse/{n}/pose")
+            assert len(poses) > 100  # the whole drive, rate-limited, not just the end
+            last = poses[-1][1]
+            assert (last.pose.position.x, last.pose.position.y) == pytest.approx(
+                finals[n].pose[:2], abs=1e-6)
+    finally:
+        client.close()
+        view.close()
+    assert client.error is None, client.error

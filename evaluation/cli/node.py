@@ -10,7 +10,11 @@ import sys
 from pathlib import Path
 
 from ddfuse.estimation.errors import DdfuseError
-from ddfuse.evaluation.cli.arguments import add_reorder_window, online_estimator_list
+from ddfuse.evaluation.cli.arguments import (
+    add_foxglove,
+    add_reorder_window,
+    online_estimator_list,
+)
 from ddfuse.evaluation.cli.output_paths import check_output_dir
 
 
@@ -36,13 +40,14 @@ def add_to(sub) -> None:
                     help="on Ctrl-C, write the results 'run' writes (metrics.json, tracks, "
                     "run.npz) for what the node fused, into this directory")
     add_reorder_window(sp)
+    add_foxglove(sp)
     sp.add_argument("--name", default="ddfuse", help="ROS node name (default: ddfuse)")
     sp.set_defaults(func=command)
 
 
 def command(args: argparse.Namespace) -> int:
     from ddfuse.estimation.config import load_config
-    from ddfuse.evaluation.cli.online import _print_latency
+    from ddfuse.evaluation.cli.online import _print_latency, live_view
     from ddfuse.evaluation.node import NodeCore
     from ddfuse.evaluation.ros1_transport import Ros1Node, check_master
 
@@ -50,19 +55,29 @@ def command(args: argparse.Namespace) -> int:
         check_output_dir(args.outdir, "-o")  # before any work
     cfg = load_config(args.config)
     check_master(args.name)  # before the estimators are built (their kernels load)
+    view, feed = ((None, None) if args.foxglove is None
+                  else live_view(cfg, args.estimators, args.foxglove))
     try:
         core = NodeCore(cfg, args.estimators, keep_measurements=args.outdir is not None,
-                        reorder_window=args.reorder_window)
-    except ValueError as e:
+                        reorder_window=args.reorder_window, on_update=feed)
+        node = Ros1Node(core, args.name)
+    except (ValueError, DdfuseError) as e:
+        if view is not None:
+            view.close()
+        if isinstance(e, DdfuseError):
+            raise
         raise DdfuseError(str(e)) from None
-    node = Ros1Node(core, args.name)
     _log_to_stderr()
     print(f"ddfuse node {args.name}: {', '.join(core.session.estimators)} on "
           f"{', '.join(core.topics)}; Ctrl-C ends it", flush=True)
     try:
         why = node.spin()
+        if feed is not None:
+            feed.finish(core.session)
     finally:
         node.close()
+        if view is not None:
+            view.close()
     print(f"ddfuse node: {why}; {core.resets} resets", flush=True)
     _print_latency(core.session, {n: t for n, t in core.session.stopped_t.items()})
     for w in core.conv.warnings:

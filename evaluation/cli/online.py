@@ -112,7 +112,8 @@ def command(args: argparse.Namespace) -> int:
               f"on): {one_line(why)}", flush=True)
 
     offsets = recorder_for(cfg)
-    view, feed = _live_view(args, cfg) if args.foxglove is not None else (None, None)
+    view, feed = ((None, None) if args.foxglove is None
+                  else live_view(cfg, args.estimators, args.foxglove, args.bag))
     try:
         session = replay(args.bag, cfg, names=args.estimators, realtime=args.realtime,
                          print_every=args.every, on_print=show,
@@ -150,21 +151,21 @@ def command(args: argparse.Namespace) -> int:
     return 0
 
 
-def _live_view(args: argparse.Namespace, cfg):
-    """The Foxglove live view of ``online --foxglove`` and its feed (the bag's ground truth read
-    ahead: the replay keeps none)."""
+def live_view(cfg, estimators, port: int, bag=None):
+    """The Foxglove live view of ``--foxglove`` (``online``, ``node``) on ``port`` and its feed;
+    with ``bag``, the bag's ground truth read ahead (the replay keeps none)."""
     from ddfuse.evaluation import estimators as registry
     from ddfuse.evaluation.live_view import LiveView, ReplayFeed, read_truth
     from ddfuse.evaluation.online import ONLINE_TRACKS_REFUSED as refused
 
     # the session's tracks, advertised before any client connects (foxglove-sdk 0.30 refused
     # a subscription to a channel created while a client was connected, now and then)
-    names = [t for n in registry.select(cfg, args.estimators) if n not in refused
+    names = [t for n in registry.select(cfg, estimators) if n not in refused
              for t in registry.SPECS[n].produces if t not in refused]
-    view = LiveView(cfg, names, port=args.foxglove)
+    view = LiveView(cfg, names, port=port)
     sys.stderr.write(f"ddfuse: live view on {view.url} (Foxglove: Open connection, Foxglove "
                      "WebSocket, that address)\n")
-    return view, ReplayFeed(view, cfg, read_truth(args.bag, cfg))
+    return view, ReplayFeed(view, cfg, read_truth(bag, cfg) if bag is not None else None)
 
 
 def _serve_until_interrupt(view, held: bool, resend) -> None:
