@@ -27,7 +27,9 @@ and float64 block are overwritten row by row with numpy (``CdrLayout``); tests p
 
 from __future__ import annotations
 
+import math
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
@@ -63,6 +65,7 @@ NAVSATFIX = "sensor_msgs/msg/NavSatFix"
 TFMESSAGE = "tf2_msgs/msg/TFMessage"
 _FIX_KNOWN = 3  # sensor_msgs/NavSatFix COVARIANCE_TYPE_KNOWN
 _CHUNK = 4 << 20  # bytes per MCAP chunk: fewer, better compressed chunks than the 1 MB default
+_BLOCK = 20_000  # messages encoded at a time (~10 MB of CDR)
 
 
 def topic_of(track: str, kind: str) -> str:
@@ -140,52 +143,75 @@ def layout(typename: str, frame_id: str, child_frame_id: str = "") -> CdrLayout:
     raise ValueError(f"no CDR layout for {typename}")
 
 
-def _odometry(track, local: str, base: str) -> tuple[np.ndarray, np.ndarray]:
-    p = pose_columns(track.t, track.pose, track.cov)
-    n = len(p.stamp)
-    floats = np.hstack([p.position, p.orientation, p.pose_covariance, np.zeros((n, 6)),
-                        np.broadcast_to(UNKNOWN_TWIST_COVARIANCE, (n, 36))])
-    return layout(ODOMETRY, local, base).encode(p.stamp, floats)
+@dataclass(frozen=True)
+class _Source:
+    """One topic's messages, encoded a block at a time: ``t`` (N,) s their stamps (sorted),
+    ``encode(i0, i1)`` -> (log times ns, CDR rows) of messages i0..i1-1."""
+
+    topic: str
+    typename: str
+    t: np.ndarray
+    encode: Callable[[int, int], tuple[np.ndarray, np.ndarray]]
 
 
-def _transforms(track, local: str, base: str) -> tuple[np.ndarray, np.ndarray]:
-    p = pose_columns(track.t, track.pose, track.cov)
-    return layout(TFMESSAGE, local, base).encode(p.stamp,
-                                                  np.hstack([p.position, p.orientation]))
+def _odometry(track, local: str, base: str) -> Callable:
+    def encode(i0: int, i1: int):
+        p = pose_columns(track.t[i0:i1], track.pose[i0:i1], track.cov[i0:i1])
+        n = i1 - i0
+        floats = np.hstack([p.position, p.orientation, p.pose_covariance, np.zeros((n, 6)),
+                            np.broadcast_to(UNKNOWN_TWIST_COVARIANCE, (n, 36))])
+        return layout(ODOMETRY, local, base).encode(p.stamp, floats)
+    return encode
 
 
-def _fixes(track, datum, base: str) -> tuple[np.ndarray, np.ndarray]:
-    f = fix_columns(track.t, track.pose, track.cov, datum)
-    floats = np.column_stack([f.latitude, f.longitude, f.altitude, f.position_covariance])
-    return layout(NAVSATFIX, base).encode(f.stamp, floats, np.ones(len(f.stamp), np.intp))
+def _transforms(track, local: str, base: str) -> Callable:
+    def encode(i0: int, i1: int):
+        p = pose_columns(track.t[i0:i1], track.pose[i0:i1], track.cov[i0:i1])
+        return layout(TFMESSAGE, local, base).encode(
+            p.stamp, np.hstack([p.position, p.orientation]))
+    return encode
 
 
-def _gps(gps, keep: np.ndarray, base: str) -> tuple[np.ndarray, np.ndarray]:
-    """The fixes ``keep`` selects, as the estimators were given them."""
-    floats = np.column_stack([gps.lla[keep], gps.enu_cov[keep].reshape(-1, 9)])
-    status = np.clip(gps.status[keep].astype(np.intp), -1, 2) + 1
-    return layout(NAVSATFIX, base).encode(gps.t[keep], floats, status)
+def _fixes(track, datum, base: str) -> Callable:
+    def encode(i0: int, i1: int):
+        f = fix_columns(track.t[i0:i1], track.pose[i0:i1], track.cov[i0:i1], datum)
+        floats = np.column_stack([f.latitude, f.longitude, f.altitude, f.position_covariance])
+        return layout(NAVSATFIX, base).encode(f.stamp, floats, np.ones(i1 - i0, np.intp))
+    return encode
 
 
-def _topics(result, local: str, base: str) -> list[tuple[str, str, tuple]]:
-    """(topic, type, (log times, messages)) of every topic ``result`` has data for."""
+def _gps(gps, keep: np.ndarray, base: str) -> Callable:
+    """The fixes ``keep`` (indices) selects, as the estimators were given them."""
+    def encode(i0: int, i1: int):
+        k = keep[i0:i1]
+        floats = np.column_stack([gps.lla[k], gps.enu_cov[k].reshape(-1, 9)])
+        status = np.clip(gps.status[k].astype(np.intp), -1, 2) + 1
+        return layout(NAVSATFIX, base).encode(gps.t[k], floats, status)
+    return encode
+
+
+def _sources(result, local: str, base: str) -> list[_Source]:
+    """Every topic ``result`` has data for (module docstring)."""
     tracks = {n: r.trajectory for n, r in result.runs.items() if len(r.trajectory)}
     datum = getattr(result.stream, "datum", None)
     out = []
     for name, tr in tracks.items():
-        out.append((topic_of(name, "odom"), ODOMETRY, _odometry(tr, local, base)))
+        out.append(_Source(topic_of(name, "odom"), ODOMETRY, tr.t, _odometry(tr, local, base)))
         if datum is not None:
-            out.append((topic_of(name, "fix"), NAVSATFIX, _fixes(tr, datum, base)))
+            out.append(_Source(topic_of(name, "fix"), NAVSATFIX, tr.t, _fixes(tr, datum, base)))
     if (tf := tf_track(tracks)) is not None:
-        out.append((TF_TOPIC, TFMESSAGE, _transforms(tracks[tf], local, base)))
+        out.append(_Source(TF_TOPIC, TFMESSAGE, tracks[tf].t,
+                           _transforms(tracks[tf], local, base)))
     if result.truth is not None and len(result.truth):
-        out.append((TRUTH_TOPIC, ODOMETRY, _odometry(result.truth, local, base)))
+        out.append(_Source(TRUTH_TOPIC, ODOMETRY, result.truth.t,
+                           _odometry(result.truth, local, base)))
     gps = result.gps
     if len(gps) and gps.lla is not None:
         held = np.asarray(gps.withheld, bool)
-        for topic, keep in ((GPS_TOPIC, ~held), (GPS_WITHHELD_TOPIC, held)):
-            if keep.any():
-                out.append((topic, NAVSATFIX, _gps(gps, keep, base)))
+        for topic, keep in ((GPS_TOPIC, np.flatnonzero(~held)),
+                            (GPS_WITHHELD_TOPIC, np.flatnonzero(held))):
+            if len(keep):
+                out.append(_Source(topic, NAVSATFIX, gps.t[keep], _gps(gps, keep, base)))
     return out
 
 
@@ -194,17 +220,14 @@ def write_estimates(path: str | Path, result, *, local_frame: str = "map",
     """Write ``result``'s (a ``RunResult``) estimates, ground truth and GPS fixes to ``path``
     as the module docstring says: ROS 2 CDR in MCAP (profile ros2, ros2msg schemas, zstd
     chunks), messages in log-time order; whole or not at all (``atomic_files.replacing``:
-    OutputError naming the path). Returns the path."""
+    OutputError naming the path). Encoded ``_BLOCK`` messages at a time: memory stays a few
+    MB however long the run. Returns the path."""
     from mcap.writer import CompressionType, Writer
 
-    topics = _topics(result, local_frame, base_frame)
+    sources = _sources(result, local_frame, base_frame)
     ts = typestore()
-    log_ns = np.concatenate([ns for _, _, (ns, _) in topics] or [np.zeros(0, np.int64)])
-    channel = np.concatenate([np.full(len(ns), i) for i, (_, _, (ns, _)) in enumerate(topics)]
-                             or [np.zeros(0, int)])
-    index = np.concatenate([np.arange(len(ns)) for _, _, (ns, _) in topics]
-                           or [np.zeros(0, int)])
-    order = np.argsort(log_ns, kind="stable")
+    stamps = np.sort(np.concatenate([s.t for s in sources] or [np.zeros(0)]))
+    edges = [*stamps[::_BLOCK][1:].tolist(), math.inf]
     path = Path(path)
     with replacing(path, "wb") as f:
         # no CRCs: they cost a third of the writer's time per message, and the file is written
@@ -213,17 +236,38 @@ def write_estimates(path: str | Path, result, *, local_frame: str = "map",
         w.start(profile="ros2", library="ddfuse")
         schemas: dict[str, int] = {}
         ids = []
-        for topic, typename, _ in topics:
-            if typename not in schemas:
-                text = ts.generate_msgdef(typename, ros_version=2)[0]
-                schemas[typename] = w.register_schema(typename, "ros2msg", text.encode())
-            ids.append(w.register_channel(topic, "cdr", schemas[typename]))
-        data = [m.tobytes() for _, _, (_, m) in topics]
-        size = [m.shape[1] for _, _, (_, m) in topics]
-        add = w.add_message
-        for k, c, i in zip(log_ns[order].tolist(), channel[order].tolist(),
-                           index[order].tolist(), strict=True):
-            a = i * size[c]
-            add(ids[c], k, data[c][a:a + size[c]], k, i + 1)
+        for s in sources:
+            if s.typename not in schemas:
+                text = ts.generate_msgdef(s.typename, ros_version=2)[0]
+                schemas[s.typename] = w.register_schema(s.typename, "ros2msg", text.encode())
+            ids.append(w.register_channel(s.topic, "cdr", schemas[s.typename]))
+        start = [0] * len(sources)
+        for edge in edges:
+            _write_block(w, ids, sources, start, edge)
         w.finish()
     return path
+
+
+def _write_block(w, ids: list[int], sources: list[_Source], start: list[int],
+                 edge: float) -> None:
+    """Add every message stamped before ``edge`` from ``start`` on (updated), in log-time
+    order (a stable sort: equal stamps keep the sources' order)."""
+    blocks = []
+    for c, s in enumerate(sources):
+        i0, i1 = start[c], int(np.searchsorted(s.t, edge, side="left"))
+        if i1 > i0:
+            ns, rows = s.encode(i0, i1)
+            blocks.append((c, i0, ns, rows.tobytes(), rows.shape[1]))
+        start[c] = i1
+    if not blocks:
+        return
+    log_ns = np.concatenate([b[2] for b in blocks])
+    which = np.concatenate([np.full(len(b[2]), k) for k, b in enumerate(blocks)])
+    index = np.concatenate([np.arange(len(b[2])) for b in blocks])
+    order = np.argsort(log_ns, kind="stable")
+    add = w.add_message
+    for ns, k, i in zip(log_ns[order].tolist(), which[order].tolist(), index[order].tolist(),
+                        strict=True):
+        c, i0, _, data, size = blocks[k]
+        a = i * size
+        add(ids[c], ns, data[a:a + size], ns, i0 + i + 1)
