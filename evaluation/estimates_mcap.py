@@ -14,12 +14,12 @@ Topics (header stamps and log times are the estimates' times: the bag's header-s
 * ``/tf`` ``tf2_msgs/msg/TFMessage``: local -> base for one track (``tf_track``).
 * ``/ddfuse/ground_truth/odom``: the ground truth, when the run has it (covariance NaN: none).
 * ``/ddfuse/gps/fix`` and ``/ddfuse/gps/fix_withheld``: the GPS fixes the estimators were
-  given and those ``--gps-holdout`` withheld, one message per fix, with the fix's own
-  lat/lon/alt, ENU covariance and status.
+  given and those ``--gps-holdout`` withheld, one message per fix: its header stamp,
+  lat/lon/alt and status, and the ENU covariance the estimators used.
 
 Every field comes from ``ddfuse.estimation.estimate_msgs`` (``pose_columns``,
 ``fix_columns``: the columns ``odometry_of``/``fix_of``/``transform_of`` give one by one).
-Messages are encoded a whole track at a time: each type's CDR bytes are rosbags' own
+Messages are encoded ``_BLOCK`` at a time, as numpy columns: each type's CDR bytes are rosbags' own
 serialisation of one message built by ``evaluation.ros_messages`` (the template), whose stamp
 and float64 block are overwritten row by row with numpy (``CdrLayout``); tests pin the bytes to
 ``serialize_cdr`` of ``odometry_of``/``fix_of``/``transform_of``'s messages.
