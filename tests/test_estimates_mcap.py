@@ -340,12 +340,10 @@ def test_converted_to_a_ros1_bag_rosbag_reads_it(sample_run, tmp_path):
 
 def test_the_writer_takes_an_empty_run(tmp_path):
     """No tracks, no truth, no fixes (a run stopped before any estimate): a valid, empty file."""
-    from types import SimpleNamespace
+    from ddfuse.estimation.measurements import Stream
+    from ddfuse.estimation.runner import run
 
-    from ddfuse.estimation.runner import GpsTrack
-
-    empty = GpsTrack(np.zeros(0), np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros(0, bool))
-    result = SimpleNamespace(runs={}, truth=None, gps=empty, stream=SimpleNamespace(datum=None))
+    result = run(Stream([]), {})
     msgs, _ = _rosbags_read(write_estimates(tmp_path / ESTIMATES_FILE, result))
     assert not msgs
 
@@ -360,3 +358,14 @@ def test_the_file_is_the_same_whatever_the_encoding_block(sample_run, tmp_path, 
     small = write_estimates(tmp_path / ESTIMATES_FILE, result, local_frame=cfg.local_frame,
                             base_frame=cfg.base_frame)
     assert len(result.truth) > 777 and small.read_bytes() == path.read_bytes()
+
+
+def test_a_run_without_a_datum_has_no_fix_topics(tmp_path):
+    """seed002's sample: wheels and landmarks, no GPS, so no datum: the poses (odom, /tf,
+    truth) only, in the landmark map's frame."""
+    out = tmp_path / "out"
+    assert main(["run", str(ROOT / "data" / "sample_seed002.bag"), "-c",
+                 str(ROOT / "data" / "sample_seed002.yaml"), "-o", str(out), "--estimators",
+                 "dr", "--no-report"]) == 0
+    msgs, _ = _rosbags_read(out / ESTIMATES_FILE)
+    assert set(msgs) == {"/ddfuse/dr/odom", TF_TOPIC, TRUTH_TOPIC}
