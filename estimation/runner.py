@@ -172,12 +172,18 @@ class EstimatorRun:
 @dataclass
 class GpsTrack:
     """Every GPS fix of a run, in stream order, as arrays: ``t`` (G,) s, ``xy`` (G, 2) m local
-    ENU, ``cov`` (G, 2, 2) m^2, ``withheld`` (G,) bool (held out from every estimator)."""
+    ENU, ``cov`` (G, 2, 2) m^2, ``withheld`` (G,) bool (held out from every estimator); the
+    fixes as the estimators were given them (for ``estimates.mcap``): ``lla`` (G, 3) (lat deg,
+    lon deg, alt m), ``enu_cov`` (G, 3, 3) m^2 (east, north, up), ``status`` (G,) int
+    (NavSatStatus.status); None where the track was built without them."""
 
     t: np.ndarray
     xy: np.ndarray
     cov: np.ndarray
     withheld: np.ndarray
+    lla: np.ndarray | None = None
+    enu_cov: np.ndarray | None = None
+    status: np.ndarray | None = None
 
     @property
     def held_t(self) -> np.ndarray:
@@ -196,23 +202,27 @@ class GpsTrack:
 
 
 class _GpsRecorder:
-    __slots__ = ("t", "xy", "cov", "held")
+    __slots__ = ("t", "xy", "cov", "held", "lla", "status")
 
     def __init__(self) -> None:
         self.t, self.xy, self.cov, self.held = array("d"), array("d"), array("d"), array("B")
+        self.lla, self.status = array("d"), array("b")
 
     def add(self, f: GpsFix, withheld: bool) -> None:
         self.t.append(f.t)
         self.xy.extend(f.enu[:2] if f.enu is not None else (math.nan, math.nan))
-        c = f.cov
-        self.cov.extend((c[0, 0], c[0, 1], c[1, 0], c[1, 1]))
+        self.cov.extend(np.asarray(f.cov, float).ravel().tolist())
         self.held.append(withheld)
+        self.lla.extend((f.lat, f.lon, f.alt))
+        self.status.append(f.status)
 
     def track(self) -> GpsTrack:
         n = len(self.t)
+        cov = np.array(self.cov, float).reshape(n, 3, 3)
         return GpsTrack(np.array(self.t, float), np.array(self.xy, float).reshape(n, 2),
-                        np.array(self.cov, float).reshape(n, 2, 2),
-                        np.array(self.held, bool))
+                        cov[:, :2, :2].copy(), np.array(self.held, bool),
+                        np.array(self.lla, float).reshape(n, 3), cov,
+                        np.array(self.status, np.int8))
 
 
 @dataclass

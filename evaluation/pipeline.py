@@ -608,7 +608,7 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
         config_text = config_text_of(cfg)
         t_scored = clock()
         with writing_run(outdir, f"ddfuse run of {bag}", result):
-            save_run(result, outdir, config_text)
+            save_run(result, outdir, config_text, frames=(cfg.local_frame, cfg.base_frame))
             out = replace(out, wall_s=timing_split(
                 startup=startup, decode=decode_s, build=t_built - t_enter - decode_before,
                 loop=t_ran - t_built, loop_decode=decode_s - decode_before, runtimes=runtimes,
@@ -629,9 +629,11 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
 
 
 def write_outputs(result: RunResult, outdir: Path, summary: RunSummary,
-                  config_text: str | None = None) -> None:
-    """metrics.json (``summary``), the trajectories (TUM, CSV) and run.npz into ``outdir``
-    (complete, or marked incomplete: ``run_files.writing_run``)."""
+                  config_text: str | None = None, cfg: Config | None = None) -> None:
+    """metrics.json (``summary``), the trajectories (TUM, CSV), estimates.mcap (in ``cfg``'s
+    frames, else map/base_link) and run.npz into ``outdir`` (complete, or marked incomplete:
+    ``run_files.writing_run``)."""
+    frames = (cfg.local_frame, cfg.base_frame) if cfg is not None else ("map", "base_link")
     with writing_run(outdir, "ddfuse.evaluation.pipeline.write_outputs", result):
-        save_run(result, outdir, config_text)
+        save_run(result, outdir, config_text, frames=frames)
         write_metrics(outdir, summary.to_json())

@@ -13,7 +13,8 @@ from the complete results afterwards: absent until then, never the previous run'
 
 An output directory holds ``metrics.json`` (``ddfuse.evaluation.pipeline``), one ``<track>.tum`` and
 ``<track>.csv`` per estimator track (``evaluation.export``), ``ground_truth.tum``/``.csv`` when
-there is truth, and ``run.npz`` with the rest of what the report shows:
+there is truth, ``estimates.mcap`` (the tracks, truth and GPS fixes as ROS 2 messages:
+``evaluation.estimates_mcap``), and ``run.npz`` with the rest of what the report shows:
 
 * ``gps_t`` (G,) s, ``gps_xy`` (G, 2) m local ENU, ``gps_cov`` (G, 2, 2) m^2,
   ``gps_withheld`` (G,) bool: every GPS fix of the stream, marked if withheld from the estimators;
@@ -47,6 +48,7 @@ from ddfuse.evaluation.atomic_files import (
     write_text,
 )
 from ddfuse.evaluation.consistency import InnovationTable
+from ddfuse.evaluation.estimates_mcap import ESTIMATES_FILE, write_estimates
 from ddfuse.evaluation.export import write_csv, write_tum
 
 __all__ = ["INCOMPLETE", "METRICS_FILE", "PLOTS_DIR", "REPORT_FILE", "RUN_FILE", "TRUTH",
@@ -135,7 +137,7 @@ def writing_run(outdir: str | Path, what: str, result: RunResult) -> Iterator[Pa
                "them. Files written so far:\n")
     remove_partials(outdir)
     _remove_tracks(outdir, set(_previous_tracks(outdir)) - track_names(result))
-    for stale in (METRICS_FILE, REPORT_FILE):
+    for stale in (METRICS_FILE, REPORT_FILE, ESTIMATES_FILE):
         remove(outdir / stale)
     if (outdir / PLOTS_DIR).is_dir():
         for png in (outdir / PLOTS_DIR).glob("*.png"):
@@ -158,8 +160,10 @@ def _note(outdir: Path, line: str) -> None:
         pass  # the marker's first line already says the results are incomplete
 
 
-def save_run(result: RunResult, outdir: Path, config_text: str | None = None) -> None:
-    """Write the trajectories and run.npz of ``result`` into ``outdir`` (which must exist),
+def save_run(result: RunResult, outdir: Path, config_text: str | None = None, *,
+             frames: tuple[str, str] = ("map", "base_link")) -> None:
+    """Write the trajectories, estimates.mcap (``evaluation.estimates_mcap``, in ``frames``:
+    the local and base frame ids) and run.npz of ``result`` into ``outdir`` (which must exist),
     each file whole or not at all; inside ``writing_run``, each is noted in the marker.
     Track files that an earlier run into the same directory wrote (its run.npz lists them) and
     this one does not are removed, so the directory holds one run, not a mix."""
@@ -171,6 +175,9 @@ def save_run(result: RunResult, outdir: Path, config_text: str | None = None) ->
         for ext, write in (("tum", write_tum), ("csv", write_csv)):
             write(outdir / f"{name}.{ext}", tr)
             _note(outdir, f"{name}.{ext}")
+    write_estimates(outdir / ESTIMATES_FILE, result, local_frame=frames[0],
+                    base_frame=frames[1])
+    _note(outdir, ESTIMATES_FILE)
     with replacing(outdir / RUN_FILE, "wb") as f:
         np.savez_compressed(f, **run_arrays(result, config_text))
     _note(outdir, RUN_FILE)

@@ -73,8 +73,8 @@ def test_a_run_after_one_with_a_report_leaves_no_stale_report(tmp_path, capsys):
     (out / "metrics.json").write_text(json.dumps({"estimators": {"smoother": {}}}))
     assert _run(out, "--no-report") == 0
     names = sorted(p.name for p in out.iterdir())
-    assert names == ["dr.csv", "dr.tum", "ground_truth.csv", "ground_truth.tum", "metrics.json",
-                     "plots", "run.npz"]
+    assert names == ["dr.csv", "dr.tum", "estimates.mcap", "ground_truth.csv",
+                     "ground_truth.tum", "metrics.json", "plots", "run.npz"]
     assert not list((out / "plots").iterdir())
     assert json.loads((out / "metrics.json").read_text())["estimators_run"] == ["dr"]
     assert load_run(out).tracks.keys() == {"dr"}

@@ -147,7 +147,7 @@ def command(args: argparse.Namespace) -> int:
                              "message): nothing is scored against withheld fixes\n")
         if args.no_report:
             sys.stdout.write(f"results in {args.outdir}/ (metrics.json, <estimator>.tum/.csv, "
-                             "run.npz); no report (--no-report)\n")
+                             "estimates.mcap, run.npz); no report (--no-report)\n")
             return _all_failed(m, args.outdir)
         # The report is rendered after the run, so its time is in no estimator's runtime.
         t_a = time.perf_counter()
@@ -156,8 +156,8 @@ def command(args: argparse.Namespace) -> int:
     finally:
         if bars:
             bars.stop()
-    sys.stdout.write(f"results in {args.outdir}/ (metrics.json, <estimator>.tum/.csv, run.npz); "
-                     f"report {report} ({report_s:.1f} s)\n")
+    sys.stdout.write(f"results in {args.outdir}/ (metrics.json, <estimator>.tum/.csv, "
+                     f"estimates.mcap, run.npz); report {report} ({report_s:.1f} s)\n")
     return _all_failed(m, args.outdir)
 
 
