@@ -23,7 +23,7 @@ import numpy as np
 from ddfuse.estimation import geodesy
 from ddfuse.estimation.estimator import Estimate
 
-__all__ = ["FixColumns", "FixOut", "OdometryOut", "PLANAR_VARIANCE", "PoseColumns",
+__all__ = ["tf_source", "FixColumns", "FixOut", "OdometryOut", "PLANAR_VARIANCE", "PoseColumns",
            "TWIST_UNKNOWN_VARIANCE", "TransformOut", "UNKNOWN_TWIST_COVARIANCE", "fix_columns",
            "fix_covariances", "fix_of", "odometry_of", "pose_columns", "pose_covariances",
            "transform_of", "yaw_quaternion", "yaw_quaternions"]
@@ -89,6 +89,18 @@ class TransformOut:
     child_frame_id: str
     translation: tuple[float, float, float]
     rotation: tuple[float, float, float, float]
+
+
+def tf_source(names, choice: str | None = None) -> str | None:
+    """Of the estimators ``names``, the one whose pose is broadcast as the TF local -> base
+    (the node, estimates.mcap): ``choice`` (config ``node.tf``; 'none' for no TF) when it is
+    among them, else the smoother when it runs, else the first; None for no names."""
+    names = list(names)
+    if choice == "none":
+        return None
+    if choice in names:
+        return choice
+    return "smoother" if "smoother" in names else (names[0] if names else None)
 
 
 def yaw_quaternion(yaw: float) -> tuple[float, float, float, float]:

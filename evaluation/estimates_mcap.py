@@ -11,7 +11,9 @@ Topics (header stamps and log times are the estimates' times: the bag's header-s
   ``UNKNOWN_TWIST_COVARIANCE``.
 * ``/ddfuse/<track>/fix`` ``sensor_msgs/msg/NavSatFix``: the same samples in lat/lon, when
   the run has a datum.
-* ``/tf`` ``tf2_msgs/msg/TFMessage``: local -> base for one track (``tf_track``).
+* ``/tf`` ``tf2_msgs/msg/TFMessage``: local -> base for one track
+  (``estimate_msgs.tf_source``: ``tf``, the config's ``node.tf``, else the smoother, else the
+  first).
 * ``/ddfuse/ground_truth/odom``: the ground truth, when the run has it (covariance NaN: none).
 * ``/ddfuse/gps/fix`` and ``/ddfuse/gps/fix_withheld``: the GPS fixes the estimators were
   given and those ``--gps-holdout`` withheld, one message per fix: its header stamp,
@@ -42,6 +44,7 @@ from ddfuse.estimation.estimate_msgs import (
     TransformOut,
     fix_columns,
     pose_columns,
+    tf_source,
 )
 from ddfuse.evaluation.atomic_files import replacing
 from ddfuse.evaluation.ros_messages import (
@@ -53,7 +56,7 @@ from ddfuse.evaluation.ros_messages import (
 )
 
 __all__ = ["ESTIMATES_FILE", "GPS_TOPIC", "GPS_WITHHELD_TOPIC", "TF_TOPIC", "TRUTH_TOPIC",
-           "CdrLayout", "layout", "tf_track", "topic_of", "write_estimates"]
+           "CdrLayout", "layout", "topic_of", "write_estimates"]
 
 ESTIMATES_FILE = "estimates.mcap"
 TF_TOPIC = "/tf"
@@ -71,13 +74,6 @@ _BLOCK = 20_000  # messages encoded at a time (~10 MB of CDR)
 def topic_of(track: str, kind: str) -> str:
     """``/ddfuse/<track>/<kind>`` (kind 'odom' or 'fix')."""
     return f"/ddfuse/{track}/{kind}"
-
-
-def tf_track(names) -> str | None:
-    """The track whose pose goes on /tf: the smoother when it ran, else the first (the node's
-    rule); None for no tracks."""
-    names = list(names)
-    return "smoother" if "smoother" in names else (names[0] if names else None)
 
 
 @dataclass(frozen=True)
@@ -190,7 +186,7 @@ def _gps(gps, keep: np.ndarray, base: str) -> Callable:
     return encode
 
 
-def _sources(result, local: str, base: str) -> list[_Source]:
+def _sources(result, local: str, base: str, tf: str | None) -> list[_Source]:
     """Every topic ``result`` has data for (module docstring)."""
     tracks = {n: r.trajectory for n, r in result.runs.items() if len(r.trajectory)}
     datum = getattr(result.stream, "datum", None)
@@ -199,7 +195,7 @@ def _sources(result, local: str, base: str) -> list[_Source]:
         out.append(_Source(topic_of(name, "odom"), ODOMETRY, tr.t, _odometry(tr, local, base)))
         if datum is not None:
             out.append(_Source(topic_of(name, "fix"), NAVSATFIX, tr.t, _fixes(tr, datum, base)))
-    if (tf := tf_track(tracks)) is not None:
+    if (tf := tf_source(tracks, tf)) is not None:
         out.append(_Source(TF_TOPIC, TFMESSAGE, tracks[tf].t,
                            _transforms(tracks[tf], local, base)))
     if result.truth is not None and len(result.truth):
@@ -216,7 +212,7 @@ def _sources(result, local: str, base: str) -> list[_Source]:
 
 
 def write_estimates(path: str | Path, result, *, local_frame: str = "map",
-                    base_frame: str = "base_link") -> Path:
+                    base_frame: str = "base_link", tf: str | None = None) -> Path:
     """Write ``result``'s (a ``RunResult``) estimates, ground truth and GPS fixes to ``path``
     as the module docstring says: ROS 2 CDR in MCAP (profile ros2, ros2msg schemas, zstd
     chunks), messages in log-time order; whole or not at all (``atomic_files.replacing``:
@@ -224,7 +220,7 @@ def write_estimates(path: str | Path, result, *, local_frame: str = "map",
     MB however long the run. Returns the path."""
     from mcap.writer import CompressionType, Writer
 
-    sources = _sources(result, local_frame, base_frame)
+    sources = _sources(result, local_frame, base_frame, tf)
     ts = typestore()
     stamps = np.sort(np.concatenate([s.t for s in sources] or [np.zeros(0)]))
     edges = [*stamps[::_BLOCK][1:].tolist(), math.inf]

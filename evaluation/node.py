@@ -43,7 +43,7 @@ from pathlib import Path
 from ddfuse.estimation import rosmsg
 from ddfuse.estimation.bag_reader import ACCEPTED_TYPES, configured_topics
 from ddfuse.estimation.config import Config
-from ddfuse.estimation.estimate_msgs import fix_of, odometry_of, transform_of
+from ddfuse.estimation.estimate_msgs import fix_of, odometry_of, tf_source, transform_of
 from ddfuse.estimation.live import LiveConverter, message_type
 from ddfuse.estimation.measurements import Stream
 from ddfuse.evaluation.diagnostics import (
@@ -109,15 +109,10 @@ class NodeCore:
         self._start(now)
         tf = cfg.node.tf
         run = list(self.session.estimators)
-        if tf is None:
-            self.tf_name = "smoother" if "smoother" in run else (run[0] if run else None)
-        elif tf == "none":
-            self.tf_name = None
-        elif tf not in run:
+        if tf not in (None, "none", *run):
             raise ValueError(f"{cfg.path or 'config'}: node.tf: {tf!r} does not run here "
                              f"(running: {', '.join(run) or 'none'}; or 'none' for no TF)")
-        else:
-            self.tf_name = tf
+        self.tf_name = tf_source(run, tf)
 
     def _start(self, now: float | None) -> None:
         nc = self.cfg.node
@@ -302,5 +297,5 @@ class NodeCore:
                           initial_pose=list(pose) if pose else None, lag_s=cfg.smoother.lag,
                           estimators_run=names, data=data_facts(result, cfg),
                           warnings=self.conv.warnings)
-        write_outputs(result, Path(outdir), summary, config_text_of(cfg))
+        write_outputs(result, Path(outdir), summary, config_text_of(cfg), cfg=cfg)
         return summary

@@ -608,7 +608,8 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
         config_text = config_text_of(cfg)
         t_scored = clock()
         with writing_run(outdir, f"ddfuse run of {bag}", result):
-            save_run(result, outdir, config_text, frames=(cfg.local_frame, cfg.base_frame))
+            save_run(result, outdir, config_text, frames=(cfg.local_frame, cfg.base_frame),
+                     tf=cfg.node.tf)
             out = replace(out, wall_s=timing_split(
                 startup=startup, decode=decode_s, build=t_built - t_enter - decode_before,
                 loop=t_ran - t_built, loop_decode=decode_s - decode_before, runtimes=runtimes,
@@ -635,5 +636,6 @@ def write_outputs(result: RunResult, outdir: Path, summary: RunSummary,
     ``run_files.writing_run``)."""
     frames = (cfg.local_frame, cfg.base_frame) if cfg is not None else ("map", "base_link")
     with writing_run(outdir, "ddfuse.evaluation.pipeline.write_outputs", result):
-        save_run(result, outdir, config_text, frames=frames)
+        save_run(result, outdir, config_text, frames=frames,
+                 tf=cfg.node.tf if cfg is not None else None)
         write_metrics(outdir, summary.to_json())

@@ -161,12 +161,13 @@ def _note(outdir: Path, line: str) -> None:
 
 
 def save_run(result: RunResult, outdir: Path, config_text: str | None = None, *,
-             frames: tuple[str, str] = ("map", "base_link")) -> None:
+             frames: tuple[str, str] = ("map", "base_link"), tf: str | None = None) -> None:
     """Write the trajectories, estimates.mcap (``evaluation.estimates_mcap``, in ``frames``:
-    the local and base frame ids) and run.npz of ``result`` into ``outdir`` (which must exist),
-    each file whole or not at all; inside ``writing_run``, each is noted in the marker.
-    Track files that an earlier run into the same directory wrote (its run.npz lists them) and
-    this one does not are removed, so the directory holds one run, not a mix."""
+    the local and base frame ids; ``tf`` the config's ``node.tf``) and run.npz of ``result``
+    into ``outdir`` (which must exist), each file whole or not at all; inside ``writing_run``,
+    each is noted in the marker. Track files that an earlier run into the same directory wrote
+    (its run.npz lists them) and this one does not are removed, so the directory holds one
+    run, not a mix."""
     _remove_tracks(outdir, set(_previous_tracks(outdir)) - track_names(result))
     tracks = {name: r.trajectory for name, r in result.runs.items() if len(r.trajectory)}
     if result.truth is not None:
@@ -176,7 +177,7 @@ def save_run(result: RunResult, outdir: Path, config_text: str | None = None, *,
             write(outdir / f"{name}.{ext}", tr)
             _note(outdir, f"{name}.{ext}")
     write_estimates(outdir / ESTIMATES_FILE, result, local_frame=frames[0],
-                    base_frame=frames[1])
+                    base_frame=frames[1], tf=tf)
     _note(outdir, ESTIMATES_FILE)
     with replacing(outdir / RUN_FILE, "wb") as f:
         np.savez_compressed(f, **run_arrays(result, config_text))

@@ -76,3 +76,14 @@ def test_the_transform_is_the_robots_pose():
     t = transform_of(_estimate(), "map", "base_link")
     assert t.translation == (3.0, -4.0, 0.0)
     assert t.rotation == odometry_of(_estimate(), "map", "base_link").orientation
+
+
+def test_the_tf_source_is_the_configured_estimator_else_the_smoother_else_the_first():
+    from ddfuse.estimation.estimate_msgs import tf_source
+
+    assert tf_source(["ekf", "smoother"]) == "smoother"
+    assert tf_source(["ekf", "ekf_igvc"]) == "ekf"
+    assert tf_source(["ekf", "smoother"], "ekf") == "ekf"
+    assert tf_source(["ekf", "smoother"], "none") is None
+    assert tf_source(["batch", "smoother"], "ekf") == "smoother"  # not run: the default rule
+    assert tf_source([]) is None
