@@ -51,6 +51,7 @@ class TopicDrops:
         self.unknown_landmarks: defaultdict[str, Counter] = defaultdict(Counter)
         self.rejected: Counter = Counter()
         self.late: Counter = Counter()  # topic -> measurements that came too late to reorder
+        self.passed_late: Counter = Counter()  # topic -> of them, passed on out of order
         self.lateness: dict[str, float] = {}  # topic -> the most a late one lagged the newest
         self.offered: Counter = Counter()  # topic -> measurements offered to the buffer
         self.seen: Counter = Counter()  # topic -> messages read (per source reading it)
@@ -72,6 +73,14 @@ class TopicDrops:
             log.warning("%s: %s: a message stamped %.3f s before the last one passed on came "
                         "too late to reorder (reorder_window %g s); dropped and counted",
                         self.bag, topic, released - t, self.depth)
+
+    def count_passed_late(self, topic: str, t: float, newest: float) -> None:
+        """Count a measurement stamped ``t`` that came too late to reorder and is passed on out
+        of order (``BagStream(pass_late=True)``: each estimator decides whether it can use it
+        that late), when the newest stamp was ``newest``."""
+        self.passed_late[topic] += 1
+        if newest - t > self.lateness.get(topic, 0.0):
+            self.lateness[topic] = newest - t
 
     def count_damage(self, lines: list[str], lost: Counter) -> None:
         """The damaged records of the bag (``BagMessages.damage``): each line a warning, the
@@ -102,6 +111,18 @@ class TopicDrops:
                     f"{lag:.2f} s behind the newest stamp, beyond reorder_window "
                     f"({self.depth:g} s); set reorder_window to at least "
                     f"{math.ceil(lag * 10.0) / 10.0:g} s (or --reorder-window) to keep them")
+        for topic, n in sorted(self.passed_late.items()):
+            total = self.offered[topic]
+            if n > WARN_SHARE * total:
+                lag = self.lateness[topic]
+                self.warnings.append(
+                    f"{self.bag}: topic {topic}: {n} of {total} measurements "
+                    f"({100.0 * n / total:.0f} %) came late: up to {lag:.2f} s behind the newest "
+                    f"stamp, beyond reorder_window ({self.depth:g} s); passed on to each "
+                    "estimator that can use them that late, dropped by the others (counted per "
+                    f"estimator); set reorder_window to at least "
+                    f"{math.ceil(lag * 10.0) / 10.0:g} s (or --reorder-window) to give every "
+                    "estimator them in order")
 
     def reason_note(self, topic: str, reason: str) -> str:
         """More on a rejection ``reason`` of ``topic`` for its warning or error: for sightings

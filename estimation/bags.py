@@ -127,7 +127,6 @@ class BagStream:
         # pass a late measurement on at once, out of stamp order, instead of dropping it: for
         # a consumer that decides per estimator what it can still use (OnlineSession)
         self.pass_late = pass_late
-        self.passed_late: Counter = Counter()  # topic -> late measurements passed on
         self.datum: tuple[float, float, float] | None = (
             cfg.datum if isinstance(cfg.datum, tuple) else None)
         self.landmarks = landmark_maps(cfg, bag)
@@ -135,6 +134,7 @@ class BagStream:
         # stream's ``rejected``, ``late``, ``unknown_landmarks`` and ``warnings``
         self.drops = drops = TopicDrops(bag, cfg, self.landmarks, self.depth)
         self.unknown_landmarks = drops.unknown_landmarks
+        self.passed_late = drops.passed_late  # topic -> late measurements passed on
         self.rejected = drops.rejected
         self.late = drops.late
         self.warnings = drops.warnings
@@ -283,7 +283,7 @@ class BagStream:
                 t = m.t
                 if t < released:
                     if self.pass_late:
-                        self.passed_late[src.topic] += 1
+                        self.drops.count_passed_late(src.topic, t, released_newest)
                         late_out.append((t, j, -1, m))
                     else:
                         self.drops.count_late(src.topic, t, released, released_newest)
