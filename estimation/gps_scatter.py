@@ -92,8 +92,8 @@ class FixScatter:
                  "the GPS NIS and a longer outage (--gps-holdout window:T0:T1)")
         if self.recommended:
             text += (f". A first-order Gauss-Markov error of the stated sigma with these "
-                     f"neighbours has a correlation time of {self.correlation_time:.0f} s: "
-                     f"correlation_time: {self.recommended}")
+                     f"neighbours has a correlation time of {self.correlation_time:.0f} s "
+                     f"(correlation_time: {self.recommended} in the suggested config)")
         return text
 
     def source(self) -> str:
@@ -109,7 +109,7 @@ class FixScatter:
         ``configured`` (s), when it disagrees with the recommendation (module docstring);
         None when it agrees."""
         rec = self.recommended
-        if configured <= 0.0 and rec == 0:
+        if rec == 0 and (configured <= 0.0 or self.correlated):  # correlated: no time to give
             return None
         if configured > 0.0 and rec and 1.0 / AGREEMENT <= configured / rec <= AGREEMENT:
             return None

@@ -89,3 +89,13 @@ def test_no_advice_without_fixes_or_with_two_receivers(tmp_path):
     assert gps_correlation_warnings(_cfg(tmp_path, None, receivers=2), track) == []
     empty = GpsTrack(np.zeros(0), np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros(0, bool))
     assert gps_correlation_warnings(_cfg(tmp_path, None), empty) == []
+
+
+def test_noise_free_fixes_give_no_time_and_no_advice(tmp_path):
+    """Fixes that miss their neighbours by nothing are correlated beyond any time the scatter
+    can give: the config's value is left alone."""
+    track = _track(np.zeros((N, 2)))
+    sc = fix_scatter(track.t, track.xy, np.full(N, SIGMA**2))
+    assert sc.correlated and sc.correlation_time is None and sc.recommended == 0
+    assert gps_correlation_warnings(_cfg(tmp_path, 30), track) == []
+    assert gps_correlation_warnings(_cfg(tmp_path, None), track) == []
