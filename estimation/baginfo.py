@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from ddfuse.estimation import heading_survey, ros1_scan, rosmsg
+from ddfuse.estimation import gps_scatter, heading_survey, ros1_scan, rosmsg
 from ddfuse.estimation.bag_reader import open_reader
 from ddfuse.estimation.bags import BagStream
 from ddfuse.estimation.config import DEFAULT_GPS_MIN_STD, parse_config
@@ -23,6 +23,7 @@ from ddfuse.estimation.converters import Reject, gps_fix
 from ddfuse.estimation.errors import BagError, DdfuseError
 from ddfuse.estimation.frames import GRAVITY, body_x_tilt, rpy_matrix
 from ddfuse.estimation.geodesy import geodetic_to_enu
+from ddfuse.estimation.gps_scatter import FixScatter
 
 
 @dataclass
@@ -53,6 +54,8 @@ class TopicInfo:
     # messages of other types on the same topic (type -> count): not in these facts, which
     # are of ``msgtype`` alone (``count`` counts those)
     other_types: dict[str, int] = field(default_factory=dict)
+    # For NavSatFix: how well neighbouring fixes predict each (its correlation_time rule)
+    scatter: FixScatter | None = None
 
 
 @dataclass
@@ -158,68 +161,45 @@ def _summarise(info: TopicInfo, recs: list[tuple]) -> None:
                 f"{n} fix(es) state a horizontal variance below what a receiver of their status "
                 f"can claim (smallest {var:.3g} m^2, floor ({std:g} m)^2): ddfuse fuses them with "
                 "the floor (the GPS sensor's min_std sets it)")
-        scatter = fix_scatter(recs)
-        if scatter is not None:
-            info.notes.append(scatter)
+        info.scatter = fix_scatter(recs, info.cov_ok)
+        if info.scatter is not None:
+            info.notes.append(info.scatter.describe())
     elif mt == rosmsg.LANDMARK:
         ids = sorted({r[1] for r in recs}, key=lambda s: (len(s), s))
         info.notes.append(f"{len(ids)} landmark ids: {', '.join(ids)}")
 
 
-# Fix-to-fix scatter this far below what white errors of the stated sigma give means the errors
-# are correlated in time (rl_husky_gps.bag: 0.11 m against 0.98 m)
-CORRELATED_SCATTER = 1.0 / 3.0
+# m: the GPS noise the suggested config states for a topic whose covariances are unusable
+SUGGESTED_GPS_SIGMA = 2.0
 
 
-def fix_scatter(recs: list[tuple]) -> str | None:
-    """How well the neighbouring fixes predict each fix (NavSatFix records (t, status, lat,
-    lon, alt, cov9, cov_type)): the RMS per axis (m) of each fix minus the time interpolation of
-    its two neighbours, against what white errors of the stated median sigma give (sqrt(1.5)
-    sigma for evenly spaced fixes; the robot's motion adds millimetres). None with fewer than
-    10 usable fixes."""
-    ok = [r for r in recs if _usable_fix(r) and math.isfinite(r[5][0]) and r[5][0] > 0.0]
-    if len(ok) < 10:
+def _fused_variance(rec: tuple, cov_ok: bool) -> float:
+    """The per-axis horizontal variance (m^2) a NavSatFix record is fused with under the
+    suggested config: ``SUGGESTED_GPS_SIGMA`` squared when the topic's covariances are not
+    usable, else half the trace of its stated horizontal covariance with the converter's
+    default floor for its status (``DEFAULT_GPS_MIN_STD``) on each eigenvalue."""
+    if not cov_ok:
+        return SUGGESTED_GPS_SIGMA ** 2
+    if not all(map(math.isfinite, rec[5])):
+        return math.nan
+    std = DEFAULT_GPS_MIN_STD.get(rec[1], 0.01)
+    lam = np.linalg.eigvalsh(np.reshape(rec[5], (3, 3))[:2, :2])
+    return float(np.maximum(lam, std * std).mean())
+
+
+def fix_scatter(recs: list[tuple], cov_ok: bool = True) -> FixScatter | None:
+    """How well the neighbouring fixes predict each fix (``estimation.gps_scatter``), of the
+    NavSatFix records (t, status, lat, lon, alt, cov9, cov_type) the reader would take, each
+    with the variance the suggested config fuses it with (``_fused_variance``); None with too
+    few fixes."""
+    ok = [r for r in recs if _usable_fix(r)]
+    if len(ok) < gps_scatter.MIN_FIXES:
         return None
-    ok.sort(key=lambda r: r[0])
     t = np.array([r[0] for r in ok])
-    lat, lon, alt = (np.array([r[k] for r in ok]) for k in (2, 3, 4))
-    e, n, _ = geodetic_to_enu(lat, lon, np.zeros_like(alt), lat[0], lon[0], 0.0)
-    p = np.column_stack([e, n])
-    span = t[2:] - t[:-2]
-    good = span > 0
-    w = ((t[1:-1] - t[:-2])[good] / span[good])[:, None]
-    miss = p[1:-1][good] - (p[:-2][good] + w * (p[2:][good] - p[:-2][good]))
-    rms = math.sqrt(float((miss * miss).mean()))  # the mean over both axes: per axis
-    sigma = math.sqrt(float(np.median([r[5][0] for r in ok])))
-    white = math.sqrt(1.5) * sigma
-    text = (f"the interpolation of the neighbouring fixes predicts a fix to {rms:.2f} m RMS per "
-            f"axis; white errors of the stated median sigma {sigma:.2f} m would give "
-            f"{white:.2f} m")
-    if rms < CORRELATED_SCATTER * white:
-        tau = scatter_correlation_time(rms, sigma, float(np.median(np.diff(t))))
-        text += (": the errors are correlated in time (the stated covariance is their slow "
-                 "wander), so a hold-out of single fixes rewards following the GPS; read it with "
-                 "the GPS NIS and a longer outage (--gps-holdout window:T0:T1)")
-        if tau is not None:
-            text += (f". If the stated sigma is their stationary one, a first-order Gauss-Markov "
-                     f"error with these neighbours has a correlation time of {tau:.0f} s "
-                     "(the GPS sensor's correlation_time; `run` measures one from the "
-                     "estimators' residuals)")
-    return text
-
-
-def scatter_correlation_time(rms: float, sigma: float, dt: float) -> float | None:
-    """The correlation time (s) of a first-order Gauss-Markov error of stationary sigma whose
-    fixes, ``dt`` s apart, miss the interpolation of their neighbours by ``rms`` per axis: that
-    miss has variance sigma^2 (1 - rho)(3 - rho) / 2 with rho = exp(-dt / tau) (1.5 sigma^2 for
-    white errors). None when the scatter is that of white errors or more, or none at all."""
-    r = (rms / sigma) ** 2
-    if not (0.0 < r < 1.5 and dt > 0.0):
-        return None
-    rho = 2.0 - math.sqrt(1.0 + 2.0 * r)
-    if rho >= 1.0:  # no scatter to float precision: a noise-free track, no time to give
-        return None
-    return -dt / math.log(rho)
+    lat, lon = (np.array([r[k] for r in ok]) for k in (2, 3))
+    e, n, _ = geodetic_to_enu(lat, lon, np.zeros_like(lat), lat[0], lon[0], 0.0)
+    var = [_fused_variance(r, cov_ok) for r in ok]
+    return gps_scatter.fix_scatter(t, np.column_stack([e, n]), np.array(var))
 
 
 def _usable_fix(rec: tuple) -> bool:
@@ -554,7 +534,9 @@ def suggest_config(info: BagInfo, surveys: list | tuple = ()) -> dict:
         elif t.msgtype == rosmsg.NAVSATFIX:
             s = {"topic": t.topic, "lever_arm": [0.0, 0.0]}
             if not t.cov_ok:
-                s["noise"] = {"horizontal": 2.0}
+                s["noise"] = {"horizontal": SUGGESTED_GPS_SIGMA}
+            if t.scatter is not None and t.scatter.recommended:
+                s["correlation_time"] = t.scatter.recommended
             sensors.setdefault("gps", []).append(s)
         elif t.msgtype == rosmsg.LANDMARK:
             guess = info.path.with_suffix(".landmarks.yaml")

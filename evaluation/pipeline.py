@@ -32,13 +32,20 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from ddfuse.estimation import chi2, heading_survey
+from ddfuse.estimation import chi2, gps_scatter, heading_survey
 from ddfuse.estimation.bags import BagStream
 from ddfuse.estimation.config import DEFAULT_GATE, Config
 from ddfuse.estimation.errors import BagError, RunInterrupted
 from ddfuse.estimation.interrupts import held_signals, interrupt_name
 from ddfuse.estimation.measurements import Stream
-from ddfuse.estimation.runner import RunResult, Trajectory, initial_pose, parse_holdout, run
+from ddfuse.estimation.runner import (
+    GpsTrack,
+    RunResult,
+    Trajectory,
+    initial_pose,
+    parse_holdout,
+    run,
+)
 from ddfuse.evaluation import consistency, metrics
 from ddfuse.evaluation import estimators as registry
 from ddfuse.evaluation.batch_cost import DEFAULT_MAX_SPAN_S, announce_solve, leave_out_notice
@@ -67,11 +74,6 @@ from ddfuse.evaluation.scores import (
 MAX_DIFF = 0.05  # s: association of estimate and truth stamps (truth at >= 10 Hz)
 RPE_DELTAS = (("1s", 1.0, "s"), ("10m", 10.0, "m"))
 EVENTS_KEPT = 20  # an estimator's first events kept in metrics.json (events_total: all)
-
-
-# fix intervals: GPS residuals correlated for longer than this many are not white (the
-# measured correlation times: docs/design/gps-holdout-scoring.md)
-GPS_CORRELATED_INTERVALS = 5
 
 
 def process_age() -> float | None:
@@ -216,29 +218,17 @@ def _residual_corr(tr: Trajectory, t: np.ndarray, xy: np.ndarray, antenna: GpsAn
     return metrics.correlation_time(t[inside], (xy - est)[inside])
 
 
-def gps_correlation_warnings(m: RunSummary, cfg: Config) -> list[str]:
-    """A warning when the used GPS fixes' residuals to the tracks (``gps_residual_corr_s``,
-    median over the tracks that have one) stay correlated for at least
-    ``GPS_CORRELATED_INTERVALS`` fix intervals while every GPS sensor fuses its fixes as
-    independent (``correlation_time`` 0): the estimates then follow the GPS's slow wander with
-    over-confident covariances (``ddfuse.estimation.gps_correlation``). The measured time is a lower
-    bound of the errors' own: a track that follows the GPS takes part of the error with it."""
-    gps = cfg.of_kind("gps")
-    interval = m.data.gps_fix_interval_s if m.data else None
-    corr = [e.gps_residual_corr_s for e in m.estimators.values()
-            if e.gps_residual_corr_s is not None and not e.error]
-    if not gps or not corr or not interval or any(s.correlation_time > 0.0 for s in gps):
+def gps_correlation_warnings(cfg: Config, gps: GpsTrack) -> list[str]:
+    """The advice of ``ddfuse.estimation.gps_scatter`` (the rule `inspect` suggests a GPS
+    sensor's ``correlation_time`` by) when the config's value disagrees with what the run's GPS
+    fixes ``gps`` (withheld ones too: the data's, whatever the hold-out) give. With more than
+    one GPS sensor the fixes are not told apart by receiver: no advice."""
+    sensors = cfg.of_kind("gps")
+    if len(sensors) != 1 or len(gps) == 0:
         return []
-    c = float(np.median(corr))
-    if c < GPS_CORRELATED_INTERVALS * interval:
-        return []
-    topics = ", ".join(s.topic for s in gps)
-    return [f"{topics}: the GPS residuals to the tracks stay correlated for {c:.1f} s (median "
-            f"of {len(corr)} track{'s' if len(corr) > 1 else ''}), {c / interval:.0f} fix "
-            f"intervals of {interval:.2g} s, but the fixes are fused as independent: every "
-            "estimate follows the GPS's slow wander and is over-confident about it; set "
-            f"correlation_time: {math.ceil(c)} under the GPS sensor (a lower bound: a track "
-            "that follows the GPS shortens its residuals' correlation)"]
+    scatter = gps_scatter.fix_scatter(gps.t, gps.xy, np.trace(gps.cov, axis1=1, axis2=2) / 2.0)
+    advice = scatter.advice(sensors[0].topic, sensors[0].correlation_time) if scatter else None
+    return [advice] if advice else []
 
 
 def _interpolation_rmse(used_t, used_xy, hold_t, hold_xy) -> float | None:
@@ -604,7 +594,7 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
         # the reader's (a topic mostly dropped or silent), then the compass offset's
         out = replace(out, warnings=[*stream.warnings,
                                      *heading_survey.config_warnings(surveys, cfg),
-                                     *gps_correlation_warnings(out, cfg)])
+                                     *gps_correlation_warnings(cfg, result.gps)])
         config_text = config_text_of(cfg)
         t_scored = clock()
         with writing_run(outdir, f"ddfuse run of {bag}", result):

@@ -86,8 +86,8 @@ def test_inspect_truncated_bag(tmp_path, capsys, fmt):
         code, out, err = run(["inspect", str(cut)], capsys)
         assert code == 2 and err.startswith("ddfuse: error: ") and err.strip().count("\n") == 0
         assert str(cut) in err and "truncated" in err and "Traceback" not in err
-        row = next(line for line in out.splitlines() if line.startswith("/imu"))
-        assert 0 < int(row.split()[2]) < 3000
+        row = next(line for line in out.splitlines() if line.startswith("# /imu"))
+        assert 0 < int(row.split()[3]) < 3000
         assert "# suggested config" in out
     else:
         assert_one_line_error(*run(["inspect", str(cut)], capsys), str(cut))
@@ -114,7 +114,7 @@ def test_inspect_damaged_bag(tmp_path, capsys, fmt):
     if fmt == "ros1":
         # a ROS1 bag is read from the front up to the damage: the facts of what was read, then
         # the one error line
-        assert out.startswith(f"bag: {bad}") and "/imu" in out
+        assert out.startswith(f"# bag: {bad}") and "/imu" in out
         out = ""
     assert_one_line_error(code, out, err, str(bad))
 

@@ -1,51 +1,101 @@
-"""The run's warning when the GPS residuals stay correlated but the fixes are fused as white."""
+"""The GPS correlation_time rule (``estimation.gps_scatter``) as the run applies it: a warning
+when the config's correlation_time disagrees with what the run's fixes' scatter gives."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 from ddfuse.estimation.config import load_config
-from ddfuse.evaluation.pipeline import GPS_CORRELATED_INTERVALS, gps_correlation_warnings
-from ddfuse.evaluation.scores import RunSummary
+from ddfuse.estimation.gps_scatter import AGREEMENT, fix_scatter
+from ddfuse.estimation.runner import GpsTrack
+from ddfuse.evaluation.pipeline import gps_correlation_warnings
+
+N, DT, SIGMA = 1000, 0.4, 1.0
 
 
-def _cfg(tmp_path: Path, tau: float | None):
+def _cfg(tmp_path: Path, tau: float | None, receivers: int = 1):
     p = tmp_path / "c.yaml"
     extra = "" if tau is None else f"\n      correlation_time: {tau}"
-    p.write_text("sensors:\n  odometry:\n    - topic: /odom\n  gps:\n    - topic: /fix" + extra
-                 + "\n")
+    gps = "".join(f"\n    - topic: /fix{k or ''}" + extra for k in range(receivers))
+    p.write_text("sensors:\n  odometry:\n    - topic: /odom\n  gps:" + gps + "\n")
     return load_config(p)
 
 
-def _metrics(corr: list, interval: float = 0.4, error: str | None = None) -> RunSummary:
-    ests = {f"e{i}": {"gps_residual_corr_s": c, "error": None} for i, c in enumerate(corr)}
-    if error:
-        ests["stopped"] = {"gps_residual_corr_s": 100.0, "error": error}
-    return RunSummary.from_json({"data": {"gps_fix_interval_s": interval}, "estimators": ests})
+def _errors(tau: float | None, seed: int = 7) -> np.ndarray:
+    """(N, 2) per-axis errors of std SIGMA: white (tau None) or first-order Gauss-Markov."""
+    rng = np.random.default_rng(seed)
+    w = SIGMA * rng.standard_normal((N, 2))
+    if tau is None:
+        return w
+    a = math.exp(-DT / tau)
+    e = np.zeros((N, 2))
+    e[0] = w[0]
+    for i in range(1, N):
+        e[i] = a * e[i - 1] + math.sqrt(1 - a * a) * w[i]
+    return e
 
 
-def test_correlated_residuals_with_white_fixes_warn_with_a_value(tmp_path):
-    """rl_husky_gps.bag's figures: 5.2 and 5.4 s at 0.4 s; the median rounded up is offered."""
-    (w,) = gps_correlation_warnings(_metrics([5.168, 5.396]), _cfg(tmp_path, None))
-    assert w.startswith("/fix: the GPS residuals to the tracks stay correlated for 5.3 s "
-                        "(median of 2 tracks), 13 fix intervals of 0.4 s")
-    assert "set correlation_time: 6 under the GPS sensor" in w
-    # a stopped estimator's residuals are not the data's
-    (w,) = gps_correlation_warnings(_metrics([5.168, 5.396], error="boom"), _cfg(tmp_path, None))
-    assert "for 5.3 s (median of 2 tracks)" in w
+def _track(err: np.ndarray, withheld: np.ndarray | None = None) -> GpsTrack:
+    """Fixes of a robot driving east at 1 m/s with errors ``err``, stated sigma SIGMA."""
+    t = 1000.0 + DT * np.arange(N)
+    xy = np.column_stack([DT * np.arange(N), np.zeros(N)]) + err
+    cov = np.tile(np.eye(2) * SIGMA**2, (N, 1, 1))
+    return GpsTrack(t, xy, cov, np.zeros(N, bool) if withheld is None else withheld)
 
 
-@pytest.mark.parametrize("corr, tau", [
-    ([0.0, 0.0], None),  # white fixes (the simulated husky, gps-outage, the sample bag)
-    ([GPS_CORRELATED_INTERVALS * 0.4 * 0.99], None),  # just short of the threshold
-    ([5.2, 5.4], 6.0),  # already modelled
-    ([], None),  # no track measured it
+def test_correlated_fixes_fused_as_white_warn_with_the_value_inspect_suggests(tmp_path):
+    track = _track(_errors(30.0))
+    sc = fix_scatter(track.t, track.xy, np.full(N, SIGMA**2))
+    assert sc.recommended == pytest.approx(30, rel=0.2)
+    (w,) = gps_correlation_warnings(_cfg(tmp_path, None), track)
+    assert w.startswith(f"/fix: the neighbouring fixes predict a fix to {sc.rms:.2f} m per axis, "
+                        f"against 1.22 m for white errors of the stated sigma 1.00 m")
+    assert "the fixes are fused as independent" in w
+    assert w.endswith(f"set correlation_time: {sc.recommended} under the GPS sensor "
+                      "(`ddfuse inspect` suggests the same)")
+    # the data's number, whatever the hold-out withholds
+    held = np.zeros(N, bool)
+    held[::5] = True
+    assert gps_correlation_warnings(_cfg(tmp_path, None), _track(_errors(30.0), held)) == [w]
+
+
+def test_a_value_more_than_the_agreement_off_is_corrected(tmp_path):
+    track = _track(_errors(30.0))
+    rec = fix_scatter(track.t, track.xy, np.full(N, SIGMA**2)).recommended
+    (w,) = gps_correlation_warnings(_cfg(tmp_path, 5), track)
+    assert f"but correlation_time is 5 s; set correlation_time: {rec} under" in w
+    assert gps_correlation_warnings(_cfg(tmp_path, rec * AGREEMENT * 0.99), track) == []
+    assert len(gps_correlation_warnings(_cfg(tmp_path, rec * AGREEMENT * 1.01), track)) == 1
+    # white errors with a correlation_time: every fix discounted for nothing
+    (w,) = gps_correlation_warnings(_cfg(tmp_path, 30), _track(_errors(None)))
+    assert "not correlated over several fixes, but correlation_time is 30 s" in w
+    assert w.endswith("set correlation_time: 0 under the GPS sensor")
+
+
+@pytest.mark.parametrize("tau_true, tau_cfg", [
+    (None, None),  # white fixes (the simulated husky, gps-outage, the sample bag)
+    (30.0, 30.0),  # modelled
+    (30.0, 20.0),  # within the agreement
 ])
-def test_no_warning(tmp_path, corr, tau):
-    assert gps_correlation_warnings(_metrics(corr), _cfg(tmp_path, tau)) == []
+def test_no_warning(tmp_path, tau_true, tau_cfg):
+    assert gps_correlation_warnings(_cfg(tmp_path, tau_cfg), _track(_errors(tau_true))) == []
 
 
-def test_just_over_the_threshold_warns(tmp_path):
-    c = GPS_CORRELATED_INTERVALS * 0.4 * 1.01
-    assert len(gps_correlation_warnings(_metrics([c]), _cfg(tmp_path, None))) == 1
+def test_no_advice_without_fixes_or_with_two_receivers(tmp_path):
+    track = _track(_errors(30.0))
+    assert gps_correlation_warnings(_cfg(tmp_path, None, receivers=2), track) == []
+    empty = GpsTrack(np.zeros(0), np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros(0, bool))
+    assert gps_correlation_warnings(_cfg(tmp_path, None), empty) == []
+
+
+def test_noise_free_fixes_give_no_time_and_no_advice(tmp_path):
+    """Fixes that miss their neighbours by nothing are correlated beyond any time the scatter
+    can give: the config's value is left alone."""
+    track = _track(np.zeros((N, 2)))
+    sc = fix_scatter(track.t, track.xy, np.full(N, SIGMA**2))
+    assert sc.correlated and sc.correlation_time is None and sc.recommended == 0
+    assert gps_correlation_warnings(_cfg(tmp_path, 30), track) == []
+    assert gps_correlation_warnings(_cfg(tmp_path, None), track) == []

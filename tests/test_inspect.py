@@ -322,9 +322,8 @@ def test_inspect_prints_a_loadable_config(tmp_path, capsys):
     assert main(["inspect", str(bag)]) == 0
     out = capsys.readouterr().out
     assert "/imu" in out and "sensor_msgs/Imu" in out and "/odom" in out
-    text = out.split("# suggested config", 1)[1].split("\n", 1)[1]
     p = tmp_path / "from_cli.yaml"
-    p.write_text(text)
+    p.write_text(out)  # the facts are YAML comments: `ddfuse inspect BAG > from_cli.yaml`
     cfg = load_config(p)
     assert cfg.of_kind("imu")[0].mount_rpy == pytest.approx((math.pi / 2, 0.0, 0.0), abs=1e-3)
     s = read_stream(bag, cfg)
@@ -386,14 +385,15 @@ def _fix_records(err_east_north: np.ndarray, sigma: float, dt: float = 0.4) -> l
 
 
 def test_fix_scatter_tells_white_gps_errors_from_correlated_ones():
-    from ddfuse.estimation.baginfo import fix_scatter, scatter_correlation_time
+    from ddfuse.estimation.baginfo import fix_scatter
+    from ddfuse.estimation.gps_scatter import scatter_correlation_time
 
     rng = np.random.default_rng(7)
     n, sigma = 1000, 1.0
     white = fix_scatter(_fix_records(sigma * rng.standard_normal((n, 2)), sigma))
-    rms = float(white.split("predicts a fix to ")[1].split(" m")[0])
-    assert abs(rms - math.sqrt(1.5) * sigma) < 0.1  # 1.22 m; 3 % sampling spread at n = 1000
-    assert "correlated" not in white
+    assert abs(white.rms - math.sqrt(1.5) * sigma) < 0.1  # 1.22 m; 3 % spread at n = 1000
+    assert not white.correlated and white.recommended == 0
+    assert "correlated" not in white.describe()
     # Gauss-Markov errors of the same sigma, correlation time 30 s (the husky-multipath model)
     a = math.exp(-0.4 / 30.0)
     e = np.zeros((n, 2))
@@ -401,11 +401,11 @@ def test_fix_scatter_tells_white_gps_errors_from_correlated_ones():
     for i in range(1, n):
         e[i] = a * e[i - 1] + math.sqrt(1 - a * a) * sigma * rng.standard_normal(2)
     gm = fix_scatter(_fix_records(e, sigma))
-    assert "the errors are correlated in time" in gm
+    assert gm.correlated and "the errors are correlated in time" in gm.describe()
     # the correlation time those neighbours give back (the scatter's 2000 misses: ~5 %)
-    tau = float(gm.split("has a correlation time of ")[1].split(" s")[0])
-    assert tau == pytest.approx(30.0, rel=0.2)
-    assert "correlation time of" not in white
+    assert gm.correlation_time == pytest.approx(30.0, rel=0.2)
+    assert gm.recommended == round(gm.correlation_time)
+    assert f"correlation_time: {gm.recommended}" in gm.describe()
     assert fix_scatter(_fix_records(e[:9], sigma)) is None  # too few to say
     # the model's own miss, exactly: sigma^2 (1 - rho)(3 - rho) / 2
     assert scatter_correlation_time(math.sqrt((1 - a) * (3 - a) / 2), 1.0, 0.4) == \
@@ -418,5 +418,7 @@ def test_the_husky_gps_errors_are_found_correlated(husky_bag):
     about 0.16 m (0.11 per axis), far below the stated sigma of 0.8-1.7 m."""
     fix = topic(bag_info(husky_bag), "/fix")
     (note,) = [n for n in fix.notes if "neighbouring fixes" in n]
-    rms = float(note.split("predicts a fix to ")[1].split(" m")[0])
-    assert 0.08 <= rms <= 0.16 and "the errors are correlated in time" in note
+    assert 0.08 <= fix.scatter.rms <= 0.16 and "the errors are correlated in time" in note
+    # stated sigma 0.80 m, fixes every 0.4 s: a Gauss-Markov error of 19.1 s, suggested as 19
+    assert fix.scatter.correlation_time == pytest.approx(19.07, abs=0.01)
+    assert fix.scatter.recommended == 19 and "correlation_time: 19" in note

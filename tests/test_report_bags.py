@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import pytest
 from ddfuse.evaluation import cli
@@ -25,8 +26,9 @@ def test_husky_report_with_gps_holdout(husky_bag, tmp_path):
         assert e["ate_rmse_m"] is None and e["nees"] is None
         assert 0.3 < e["gps_holdout_rmse_m"] < 5.0
         assert e["nis"]["/fix gps"]["n"] > 700
-        # the receiver's error wanders over seconds (session 6: 3.8-7.9 s against every track)
-        assert 2.0 < e["gps_residual_corr_s"] < 15.0
+        # the receiver's error wanders over seconds (every track: 3.8-7.9 s with the fixes fused
+        # as white, 10.6-18.7 s with the shipped correlation_time of 19 s)
+        assert 2.0 < e["gps_residual_corr_s"] < 25.0
     assert m["data"]["gps_fix_interval_s"] == pytest.approx(0.4, abs=0.01)
     # the data README: the neighbouring fixes predict a fix to about 0.16 m
     assert m["gps_holdout_interpolation_rmse_m"] == pytest.approx(0.16, abs=0.03)
@@ -36,7 +38,8 @@ def test_husky_report_with_gps_holdout(husky_bag, tmp_path):
     assert 180 < scored < 197
     assert {m["estimators"][n]["gps_holdout_m"]["n"] for n in ("ekf", "smoother")} == {scored}
     assert f"Score: RMS distance to the {scored} of the 197 GPS fixes withheld" in page
-    assert "Caution: the GPS residuals to ekf stay correlated for" in page
+    # of the best track (the smoother since the shipped correlation_time of 19 s)
+    assert re.search(r"Caution: the GPS residuals to (ekf|smoother) stay correlated for", page)
     assert page.count("data:image/png;base64,") == 6  # no NEES figure without truth
 
 

@@ -1,4 +1,10 @@
-"""``ddfuse inspect BAG``: topics, rates, covariance sanity and a suggested config."""
+"""``ddfuse inspect BAG [-o FILE.yaml]``: topics, rates, covariance sanity and a suggested config.
+
+Stdout is one YAML document: every fact line is a comment ("# "), the suggested config follows,
+so ``ddfuse inspect BAG > cfg.yaml`` is a config that loads, with the facts its noise values are
+to be reviewed against kept above it. With ``-o`` the config alone (its comments included) is
+written to the file, whole or not at all, and stdout keeps the facts.
+"""
 
 from __future__ import annotations
 
@@ -13,39 +19,66 @@ from ddfuse.evaluation.cli.terminal import fmt
 def add_to(sub) -> None:
     sp = sub.add_parser("inspect", help="topics, rates, covariance sanity and a suggested config")
     sp.add_argument("bag", type=Path, help="ROS1 .bag, ROS2 bag directory or .mcap")
+    sp.add_argument("-o", "--output", type=Path, metavar="FILE.yaml",
+                    help="write the suggested config to FILE.yaml (stdout keeps the facts)")
     sp.set_defaults(func=command)
 
 
 def command(args: argparse.Namespace) -> int:
-    import yaml
     from ddfuse.estimation.baginfo import bag_info, offset_surveys, suggest_config
     from ddfuse.estimation.rosmsg import short_type
+    from ddfuse.evaluation.atomic_files import replacing
 
     info = bag_info(args.bag)
     # measured on the sensors suggest_config picks; a bag that breaks off is not read twice
     surveys = [] if info.error else offset_surveys(args.bag, suggest_config(info))
-    out = sys.stdout
-    out.write(f"bag: {info.path}\n")
-    out.write(f"time span: {info.t0:.3f} .. {info.t1:.3f} s (header stamps), "
-              f"duration {info.duration:.1f} s\n\n")
+    lines = [f"bag: {info.path}",
+             f"time span: {info.t0:.3f} .. {info.t1:.3f} s (header stamps), "
+             f"duration {info.duration:.1f} s", ""]
     rows = [("topic", "type", "count", "rate Hz", "median dt s", "span s", "out of order")]
     for t in info.topics:
         rows.append((t.topic, short_type(t.msgtype), str(t.count), fmt(t.rate_hz),
                      fmt(t.median_dt, ".4f"), fmt(t.t1 - t.t0, ".1f"), str(t.out_of_order)))
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
     for r in rows:
-        out.write("  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip() + "\n")
-    out.write("\n")
+        lines.append("  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip())
+    lines.append("")
     for t in info.topics:
-        for note in t.notes:
-            out.write(f"{t.topic}: {note}\n")
+        lines += [f"{t.topic}: {note}" for note in t.notes]
     for sv in surveys:
-        out.write(f"{sv.sensor}: {sv.describe()}"
-                  + (": it wanders (heading_offset_walk below)\n" if sv.wanders else "\n"))
-    out.write("\n# suggested config (review the noise values; they are starting points)\n")
-    out.write(yaml.safe_dump(suggest_config(info, surveys), sort_keys=False,
-                             default_flow_style=None))
+        lines.append(f"{sv.sensor}: {sv.describe()}"
+                     + (": it wanders (heading_offset_walk below)" if sv.wanders else ""))
+    lines.append("")
+    text = config_text(suggest_config(info, surveys), info)
+    out = sys.stdout
+    out.write("".join(f"# {line}\n" if line else "#\n" for line in lines))
+    if args.output is not None:
+        with replacing(args.output) as f:
+            f.write(f"# suggested by ddfuse inspect {info.path} (review the noise values; they "
+                    "are starting points)\n" + text)
+        out.write(f"# suggested config written to {args.output}\n")
+    else:
+        out.write("# suggested config (review the noise values; they are starting points)\n"
+                  + text)
     if info.error:  # a truncated ROS1 bag: the facts are of what could be read
         out.flush()
         raise DdfuseError(info.error)
     return 0
+
+
+def config_text(tree: dict, info) -> str:
+    """Config ``tree`` as YAML, each GPS sensor's suggested ``correlation_time`` with a comment
+    above it saying where the value comes from (its topic's ``scatter`` in BagInfo ``info``)."""
+    import yaml
+
+    sources = {t.topic: t.scatter.source() for t in info.topics
+               if t.scatter is not None and t.scatter.recommended}
+    out, topic = [], None
+    for line in yaml.safe_dump(tree, sort_keys=False, default_flow_style=None).splitlines():
+        key = line.lstrip(" -")
+        if key.startswith("topic: "):
+            topic = key[len("topic: "):]
+        elif key.startswith("correlation_time: ") and topic in sources:
+            out.append(" " * (len(line) - len(key)) + f"# correlation_time {sources[topic]}")
+        out.append(line)
+    return "\n".join(out) + "\n"
