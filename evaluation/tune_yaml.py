@@ -42,7 +42,7 @@ def tuned_text(original: str, result: TuneResult, bag: str, date: str) -> str:
         data = CommentedMap()
     notes: dict[tuple[int, object], tuple[CommentedMap, object, list[str]]] = {}
     for t in result.tuned:
-        if t.value is None:
+        if t.value is None or t.status == "not informed":
             continue
         path = _path(t.param.key)
         node, anchor = data, None  # anchor: (mapping, key) of the innermost block-style key

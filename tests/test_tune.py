@@ -102,6 +102,12 @@ def _result(cfg, stream) -> TuneResult:
     return TuneResult("ekf", tuned)
 
 
+def raw_sensor(text: str, kind: str) -> dict:
+    import yaml
+
+    return yaml.safe_load(text)["sensors"][kind][0]
+
+
 def test_the_tuned_config_loads_keeps_the_original_keys_and_marks_the_values(tmp_path):
     from importlib.resources import files
 
@@ -116,7 +122,9 @@ def test_the_tuned_config_loads_keeps_the_original_keys_and_marks_the_values(tmp
     path = tmp_path / "tuned.yaml"
     path.write_text(out)
     new = load_config(path)
+    # the values not informed are not written: their keys stay as they were
     assert new.sensor("/imu/data").noise == {"yaw": 0.0123, "yaw_rate": 0.02}
+    assert "noise" not in raw_sensor(out, "gps")
     assert new.robot.slip == {"longitudinal": 0.2}
     assert (new.robot.max_speed, new.robot.max_yaw_rate) == (1.5, 3.0)
     assert new.smoother.lag == 10.0 and new.sensor("/imu/data").heading_offset == "estimate"

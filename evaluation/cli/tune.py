@@ -75,7 +75,7 @@ def format_report(result, before, after, holdout: str | None) -> str:
     lines = [f"tuned on the {result.estimator} EKF's innovations ({result.innovations}): "
              f"{result.runs} runs, {result.iterations} iterations, {result.wall_s:.1f} s",
              "",
-             f"{'value':44} {'before':>10} {'after':>10} {'+-%':>6}  status",
+             f"{'value':56} {'before':>10} {'after':>10} {'+-%':>6}  status",
              ]
     for t in result.tuned:
         p = t.param
@@ -83,7 +83,7 @@ def format_report(result, before, after, holdout: str | None) -> str:
         now = fmt(t.value, ".3g") if t.value is not None else "-"
         se = fmt(100.0 * t.se_log, ".0f") if t.se_log is not None and t.value is not None \
             else ""
-        lines.append(f"{p.key + ' [' + p.unit + ']':44} {was:>10} {now:>10} {se:>6}  "
+        lines.append(f"{p.key + ' [' + p.unit + ']':56} {was:>10} {now:>10} {se:>6}  "
                      f"{t.status}")
     notes = [f"  {t.param.key}: {t.reason}" for t in result.tuned if t.reason]
     if notes:
@@ -91,15 +91,15 @@ def format_report(result, before, after, holdout: str | None) -> str:
     if result.pairs:
         lines += ["", "pairs the data do not tell apart (correlation of the estimates):"]
         lines += [f"  {a} / {b}: {r:+.2f}" for a, b, r in result.pairs]
-    lines += ["", f"{'NIS mean / expected':44} {'before':>16} {'after':>16}"]
+    lines += ["", f"{'NIS mean / expected':56} {'before':>16} {'after':>16}"]
     for label in sorted(set(before.nis) | set(after.nis)):
         cells = []
         for c in (before, after):
             s = c.nis.get(label)
             cells.append("-" if s is None else
                          f"{fmt(s.nis.ratio, '.3f')} {s.nis.verdict or '-'}")
-        lines.append(f"{label:44} {cells[0]:>16} {cells[1]:>16}")
+        lines.append(f"{label:56} {cells[0]:>16} {cells[1]:>16}")
     if holdout:
         b, a = fmt(before.holdout_rmse_m, ".3f"), fmt(after.holdout_rmse_m, ".3f")
-        lines.append(f"{'GPS hold-out RMSE (' + holdout + '), m':44} {b:>16} {a:>16}")
+        lines.append(f"{'GPS hold-out RMSE (' + holdout + '), m':56} {b:>16} {a:>16}")
     return "\n".join(lines)
