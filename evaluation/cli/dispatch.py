@@ -1,7 +1,7 @@
 """The ``ddfuse`` program: the top-level parser, ``main(argv)`` and the console script ``entry``.
 
-``inspect``, ``run``, ``report``, ``online``, ``node``, ``bench`` and ``tune`` are sub-parsers of the
-top-level parser (each command module's ``add_to``); ``simulate``, ``plot-sim``, ``lag-sweep``
+``inspect``, ``run``, ``report``, ``online``, ``node``, ``bench`` and ``tune`` are sub-parsers of
+the top-level parser (each command module's ``add_to``); ``simulate``, ``plot-sim``, ``lag-sweep``
 and ``mc`` parse their own arguments (their module's ``main(argv)``), dispatched before the
 top-level parser because argparse.REMAINDER cannot pass a leading option such as --help
 through.
