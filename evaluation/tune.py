@@ -170,9 +170,11 @@ class TuneResult:
         return [t.value for t in self.tuned]
 
 
-def _information(base: np.ndarray, bumped: list[np.ndarray], step: float) -> np.ndarray | None:
-    """J' J from the per-innovation forward differences (None when a run logged a different
-    number of innovations, e.g. a lock-out that one value set triggered)."""
+def information(base: np.ndarray, bumped: list[np.ndarray], step: float) -> np.ndarray | None:
+    """The information on the log values, J' J (n x n), from the innovations' terms of L at the
+    values (``base``, (N,)) and with value i's log moved by ``step`` (``bumped[i]``, (N,)):
+    J[k, i] = (bumped[i][k] - base[k]) / step. None when a run logged a different number of
+    innovations (e.g. a lock-out that one value set triggered)."""
     if any(len(b) != len(base) for b in bumped):
         return None
     J = np.stack([(b - base) / step for b in bumped], axis=1)
@@ -212,7 +214,7 @@ def _search(problem: Problem, ev: Evaluator, progress, t_start: float) -> TuneRe
     say("information at the start", 0.0)
     runs = ev.many([list(np.exp(x0))] + [list(np.exp(x0 + STEP * e)) for e in np.eye(n)])
     base0 = runs[0]
-    info0 = _information(base0, runs[1:], STEP)
+    info0 = information(base0, runs[1:], STEP)
     free = np.ones(n, bool)
     tuned: list[Tuned | None] = [None] * n
     if info0 is not None:
@@ -264,7 +266,7 @@ def _search(problem: Problem, ev: Evaluator, progress, t_start: float) -> TuneRe
         xs = opt.x
         if last.get("x") is None or not np.allclose(last["x"], xs):
             fun(xs)
-        info = _information(last["base"], last["bumped"], STEP)
+        info = information(last["base"], last["bumped"], STEP)
         cov = np.linalg.pinv(info) if info is not None else None
         for k, i in enumerate(idx):
             p = params[i]
@@ -285,15 +287,8 @@ def _search(problem: Problem, ev: Evaluator, progress, t_start: float) -> TuneRe
                                                     f"{BOUND:g}): the data want it larger")
             tuned[i] = Tuned(p, float(np.exp(xs[k])), status, reason, se,
                              float(info[k, k]) if info is not None else None)
-        pairs = []
-        if cov is not None:
-            d = np.sqrt(np.maximum(np.diag(cov), 1e-300))
-            corr = cov / np.outer(d, d)
-            for a in range(len(idx)):
-                for b in range(a + 1, len(idx)):
-                    if abs(corr[a, b]) > PAIR_CORRELATION:
-                        pairs.append((params[idx[a]].label, params[idx[b]].label,
-                                      float(corr[a, b])))
+        pairs = correlated_pairs(cov, [params[i].label for i in idx]) if cov is not None \
+            else []
         nll1 = last["f"]
         iterations = int(opt.nit)
     else:
@@ -301,6 +296,17 @@ def _search(problem: Problem, ev: Evaluator, progress, t_start: float) -> TuneRe
     say("maximum likelihood", 1.0)
     return TuneResult(problem.estimator, tuned, pairs, nll0, nll1, len(base0), ev.runs,
                       iterations, time.perf_counter() - t_start, message)
+
+
+def correlated_pairs(cov: np.ndarray, labels: list[str],
+                     threshold: float = PAIR_CORRELATION) -> list[tuple[str, str, float]]:
+    """The pairs of estimates whose correlation in ``cov`` (the inverse of the information,
+    n x n, in ``labels``' order) is beyond ``threshold`` in magnitude: (label a, label b,
+    correlation), the values the data do not tell apart."""
+    d = np.sqrt(np.maximum(np.diag(cov), 1e-300))
+    corr = cov / np.outer(d, d)
+    return [(labels[a], labels[b], float(corr[a, b])) for a in range(len(labels))
+            for b in range(a + 1, len(labels)) if abs(corr[a, b]) > threshold]
 
 
 def _uninformed_reason(p: Param, info: float, where: str) -> str:

@@ -10,7 +10,7 @@ import pytest
 from ddfuse.estimation.bags import read_stream
 from ddfuse.estimation.config import load_config
 from ddfuse.evaluation.cli import main
-from ddfuse.evaluation.tune import Tuned, TuneResult, tune
+from ddfuse.evaluation.tune import Tuned, TuneResult, correlated_pairs, information, tune
 from ddfuse.evaluation.tune_params import Applier, parameters
 from ddfuse.evaluation.tune_yaml import tuned_text
 
@@ -163,3 +163,27 @@ def test_cli_refuses_a_holdout_without_gps(tmp_path, capsys):
                  "--gps-holdout", "every:5"])
     assert code == 2
     assert "has no gps sensor" in capsys.readouterr().err
+
+
+def test_two_values_with_the_same_effect_are_reported_as_a_pair():
+    # per-innovation scores (J) where gyro noise and slip move the innovations alike (gyro
+    # noise vs heading slip, both widening the yaw-rate innovations): J'J's inverse correlates
+    # them; the GPS, with its own innovations, stays apart
+    rng = np.random.default_rng(1)
+    n = 400
+    gyro = rng.normal(size=n)
+    gps = np.zeros(n)
+    gps[::4] = rng.normal(size=n // 4)
+    slip = 0.9 * gyro + 0.05 * rng.normal(size=n)
+    base = rng.normal(size=n)
+    step = 0.02
+    bumped = [base + step * col for col in (gyro, slip, gps)]
+    info = information(base, bumped, step)
+    np.testing.assert_allclose(info[0, 0], gyro @ gyro, rtol=1e-9)
+    pairs = correlated_pairs(np.linalg.inv(info), ["gyro", "slip", "gps"])
+    assert [(a, b) for a, b, _ in pairs] == [("gyro", "slip")]
+    assert pairs[0][2] < -0.9  # their estimates trade off: one up, the other down
+
+
+def test_runs_of_different_lengths_give_no_information():
+    assert information(np.zeros(5), [np.zeros(5), np.zeros(4)], 0.02) is None
