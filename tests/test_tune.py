@@ -187,3 +187,17 @@ def test_two_values_with_the_same_effect_are_reported_as_a_pair():
 
 def test_runs_of_different_lengths_give_no_information():
     assert information(np.zeros(5), [np.zeros(5), np.zeros(4)], 0.02) is None
+
+
+def test_the_log_keeps_each_innovations_log_det_for_the_likelihood():
+    from ddfuse.estimation.estimator import InnovationLog
+
+    log = InnovationLog(keep=1 << 20)
+    S2 = np.array([[2.0, 0.3], [0.3, 0.5]])
+    log.add(0.0, "/fix", "gps", np.array([1.0, -1.0]), S2, 3.0)
+    log.add(0.1, "/imu", "gyro", (0.2,), ((0.04,),), 1.0, accepted=False)
+    h = log.held_log_det()
+    np.testing.assert_allclose(h["log_det"], [np.log(np.linalg.det(S2)), np.log(0.04)],
+                               rtol=1e-12)
+    assert h["accepted"].tolist() == [True, False] and h["nis"].tolist() == [3.0, 1.0]
+    assert [h["groups"][g] for g in h["group"]] == [("/fix", "gps", 2), ("/imu", "gyro", 1)]
