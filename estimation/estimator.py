@@ -373,6 +373,31 @@ class InnovationLog:
                 "accepted": np.concatenate([np.frombuffer(self._sacc, np.uint8),
                                             np.frombuffer(self._acc, np.uint8)]).astype(bool)}
 
+    def held_log_det(self) -> dict[str, np.ndarray]:
+        """The entries still held (not folded; all of them in a log made with a ``keep`` above
+        its length), oldest first, for sums over every innovation (the innovations' likelihood,
+        ``ddfuse.evaluation.tune``): ``group`` (N,) int, an index into ``groups`` (a list of
+        (sensor, kind, dim)), ``nis`` (N,), ``accepted`` (N,) bool and ``log_det`` (N,), the
+        natural log of det S of each entry (-inf / nan where S is not positive definite)."""
+        self.compact()
+        g = np.frombuffer(self._g, np.uint16).astype(int)
+        dim = np.array([d for _, _, d in self._groups] or [0], dtype=int)[g] if len(g) else g
+        cov = np.frombuffer(self._cov, float)
+        off = np.frombuffer(self._coff, np.uint32).astype(np.int64)
+        log_det = np.full(len(g), np.nan)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            one = dim == 1
+            log_det[one] = np.log(cov[off[one]])
+            two = dim == 2
+            o = off[two]
+            log_det[two] = np.log(cov[o] * cov[o + 3] - cov[o + 1] * cov[o + 2])
+            for i in np.flatnonzero(dim > 2).tolist():
+                m = int(dim[i])
+                sign, ld = np.linalg.slogdet(cov[off[i]:off[i] + m * m].reshape(m, m))
+                log_det[i] = ld if sign > 0 else np.nan
+        return {"group": g, "groups": list(self._groups), "nis": np.frombuffer(self._nis).copy(),
+                "accepted": np.frombuffer(self._acc, np.uint8).astype(bool), "log_det": log_det}
+
     def folded_by_group(self) -> dict[tuple[str, str, int], list]:
         """(sensor, kind, dim) -> [count, accepted, finite count, NIS sum, below, above] of the
         folded entries (empty until the log first folds)."""

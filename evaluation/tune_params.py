@@ -1,0 +1,200 @@
+"""The noise values ``ddfuse tune`` estimates: which a config and its bag have, where each one
+lives in the config, and how a set of values is put into a config and a stream's measurements.
+
+A parameter is one standard deviation (SI units, as the config states noise) or one process
+noise density:
+
+* per sensor and measured quantity, the config's ``sensors.<kind>[i].noise.<key>``: odometry
+  ``v`` and ``yaw_rate`` (m/s, rad/s), wheels ``speed`` (rad/s), IMU ``yaw`` (rad),
+  ``yaw_rate`` (rad/s) and ``accel`` (m/s^2), GPS ``horizontal`` (m), landmarks ``range`` (m)
+  and ``bearing`` (rad), for the quantities the sensor's ``use`` fuses;
+* the IMU's ``gyro_bias_walk`` (rad/s/sqrt(s)) and ``heading_offset_walk`` (rad/sqrt(s)) where
+  the config estimates the bias / offset;
+* ``robot.slip.longitudinal``, ``lateral`` (m/sqrt(s)) and ``heading`` (rad/sqrt(s)).
+
+A measurement's noise is fixed when the stream is read (``estimation.converters``: the
+config's value, else the message's covariance), so a set of values is applied to the config (for
+the process noise, which the estimators read when built) and to the variances of the stream's
+measurements alike, in place.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from ddfuse.ekf_baseline.unicycle_motion import ProcessNoise
+from ddfuse.estimation.config import Config
+from ddfuse.estimation.measurements import (
+    ForwardAccel,
+    GpsFix,
+    GyroYawRate,
+    Heading,
+    LandmarkObservation,
+    Stream,
+    WheelOdometry,
+    WheelSpeeds,
+)
+
+# (kind, noise key) -> (measurement class, its variance attributes, the ``use`` it needs)
+_MEASURED = {
+    ("odometry", "v"): (WheelOdometry, ("v_var",), "v"),
+    ("odometry", "yaw_rate"): (WheelOdometry, ("yaw_rate_var",), "yaw_rate"),
+    ("wheels", "speed"): (WheelSpeeds, ("left_var", "right_var"), "speeds"),
+    ("imu", "yaw"): (Heading, ("var",), "yaw"),
+    ("imu", "yaw_rate"): (GyroYawRate, ("var",), "yaw_rate"),
+    ("imu", "accel"): (ForwardAccel, ("var",), "accel"),
+    ("gps", "horizontal"): (GpsFix, ("cov",), "position"),
+    ("landmarks", "range"): (LandmarkObservation, ("range_var",), "range"),
+    ("landmarks", "bearing"): (LandmarkObservation, ("bearing_var",), "bearing"),
+}
+SLIP_KEYS = ("longitudinal", "lateral", "heading")
+_DEFAULTS = ProcessNoise()
+# the unicycle EKF's densities where the config states none (ekf_baseline.unicycle_motion)
+_DEFAULT_WALK = {"gyro_bias_walk": _DEFAULTS.gyro_bias,
+                 "heading_offset_walk": _DEFAULTS.heading_offset}
+_DEFAULT_SLIP = {"longitudinal": _DEFAULTS.pos_long, "lateral": _DEFAULTS.pos_lat,
+                 "heading": _DEFAULTS.heading}
+# where a config states a density of 0 (none), the search starts here, in the density's unit
+ZERO_START = 1e-3
+
+
+@dataclass
+class Param:
+    """One tunable value. ``key`` is its place in the config as a dotted path
+    (``sensors.imu[0].noise.yaw_rate``, ``robot.slip.heading``); ``label`` names it for people
+    (``/imu/data yaw_rate``); ``start`` is where the search starts (std or density, SI);
+    ``before`` is the config's value (None: the config states none: the messages' covariance
+    or the estimator's default, ``source`` says which); ``unit`` for tables."""
+
+    key: str
+    label: str
+    start: float
+    before: float | None
+    source: str  # 'config', 'messages' (median of the stream's) or 'default'
+    unit: str
+    sensor: str | None = None  # the sensor's name (its noise or walk), None for the slip
+    kind: str = ""  # sensor kind, or 'slip' / 'walk'
+    noise_key: str = ""
+
+
+_UNITS = {"accel": "m/s^2", "v": "m/s", "yaw_rate": "rad/s", "speed": "rad/s", "yaw": "rad",
+          "horizontal": "m",
+          "range": "m", "bearing": "rad", "gyro_bias_walk": "rad/s/sqrt(s)",
+          "heading_offset_walk": "rad/sqrt(s)", "longitudinal": "m/sqrt(s)",
+          "lateral": "m/sqrt(s)", "heading": "rad/sqrt(s)"}
+
+
+def _median_std(stream: Stream, sensor: str, cls, attr: str) -> float | None:
+    """The median standard deviation the stream's measurements of ``sensor`` state."""
+    if attr == "cov":
+        v = [0.5 * (m.cov[0, 0] + m.cov[1, 1]) for m in stream.measurements
+             if type(m) is cls and m.sensor == sensor]
+    else:
+        v = [getattr(m, attr) for m in stream.measurements
+             if type(m) is cls and m.sensor == sensor and getattr(m, attr) is not None]
+    v = [x for x in v if x is not None and np.isfinite(x) and x > 0.0]
+    return float(np.sqrt(np.median(v))) if v else None
+
+
+def parameters(cfg: Config, stream: Stream) -> list[Param]:
+    """The values ``cfg`` and ``stream`` allow tuning, in config order: each sensor's noise for
+    the quantities it uses and that the stream has messages of, its walks where estimated, then
+    the robot's slip."""
+    out: list[Param] = []
+    index: dict[str, int] = {}
+    for s in cfg.sensors:
+        i = index.get(s.kind, 0)
+        index[s.kind] = i + 1
+        base = f"sensors.{s.kind}[{i}].noise"
+        for (kind, key), (cls, attrs, use) in _MEASURED.items():
+            if kind != s.kind or use not in s.use:
+                continue
+            before = s.noise.get(key)
+            start, source = before, "config"
+            if before is None:
+                start, source = _median_std(stream, s.name, cls, attrs[0]), "messages"
+                if start is None:
+                    continue  # no message of this sensor: nothing to tune it on
+            out.append(Param(f"{base}.{key}", f"{s.name} {key}", start, before, source,
+                             _UNITS[key], s.name, s.kind, key))
+        if s.kind == "imu":
+            for key, wanted, use in (("gyro_bias_walk", s.gyro_bias, "yaw_rate"),
+                                     ("heading_offset_walk", s.heading_offset, "yaw")):
+                if wanted != "estimate" or use not in s.use:
+                    continue
+                before = s.noise.get(key)
+                start, source = (before, "config") if before is not None else (
+                    _DEFAULT_WALK[key], "default")
+                out.append(Param(f"{base}.{key}", f"{s.name} {key}", start or ZERO_START,
+                                 before, source, _UNITS[key], s.name, "walk", key))
+    for key in SLIP_KEYS:
+        before = cfg.robot.slip.get(key)
+        start, source = (before, "config") if before is not None else (_DEFAULT_SLIP[key],
+                                                                        "default")
+        out.append(Param(f"robot.slip.{key}", f"robot slip {key}", start or ZERO_START, before,
+                         source, _UNITS[key], None, "slip", key))
+    return out
+
+
+class Applier:
+    """Puts a set of values into ``cfg`` (the process noise, read when an estimator is built)
+    and the variances of ``stream``'s measurements, in place. A value of None leaves what was
+    read: the config's, or each message's own covariance."""
+
+    def __init__(self, cfg: Config, stream: Stream, params: list[Param]) -> None:
+        self.cfg, self.stream, self.params = cfg, stream, params
+        by_sensor: dict[tuple, list] = {}
+        for m in stream.measurements:
+            by_sensor.setdefault((type(m), m.sensor), []).append(m)
+        self._targets: list[tuple[list, tuple[str, ...]]] = []
+        for p in params:
+            if p.kind in ("slip", "walk"):
+                self._targets.append(([], ()))
+                continue
+            cls, attrs, _ = _MEASURED[(p.kind, p.noise_key)]
+            self._targets.append((by_sensor.get((cls, p.sensor), []), attrs))
+        # the messages' own values, to restore a parameter set back to None
+        self._read = [[tuple(_get(m, a) for a in attrs) for m in ms] for ms, attrs in
+                      self._targets]
+        self._noise0 = {s.name: dict(s.noise) for s in cfg.sensors}
+        self._slip0 = dict(cfg.robot.slip)
+
+    def apply(self, values: list[float | None]) -> None:
+        """Set every parameter to its value in ``values`` (same order as the params)."""
+        cfg = self.cfg
+        slip = dict(self._slip0)
+        for s in cfg.sensors:
+            s.noise = dict(self._noise0[s.name])
+        for p, v, (ms, attrs), read in zip(self.params, values, self._targets, self._read,
+                                           strict=True):
+            if p.kind == "slip":
+                if v is not None:
+                    slip[p.noise_key] = float(v)
+                continue
+            sensor = cfg.sensor(p.sensor)
+            if v is not None:
+                sensor.noise[p.noise_key] = float(v)
+            if not ms:
+                continue
+            if v is None:
+                for m, old in zip(ms, read, strict=True):
+                    for a, x in zip(attrs, old, strict=True):
+                        setattr(m, a, x)
+            elif attrs == ("cov",):
+                vert = sensor.noise.get("vertical", 2.0 * v)
+                cov = np.diag([v * v, v * v, vert * vert])
+                for m in ms:
+                    m.cov = cov.copy()
+            else:
+                var = float(v) * float(v)
+                for a in attrs:
+                    for m in ms:
+                        setattr(m, a, var)
+        cfg.robot.slip = slip
+
+
+def _get(m, attr: str):
+    v = getattr(m, attr)
+    return v.copy() if isinstance(v, np.ndarray) else v
+

@@ -1,0 +1,203 @@
+"""``ddfuse tune``: maximum likelihood of the EKF's innovations on a simulated bag whose config
+states the true noise, started 3x off; the written config; the command line."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from ddfuse.estimation.bags import read_stream
+from ddfuse.estimation.config import load_config
+from ddfuse.evaluation.cli import main
+from ddfuse.evaluation.tune import Tuned, TuneResult, correlated_pairs, information, tune
+from ddfuse.evaluation.tune_params import Applier, parameters
+from ddfuse.evaluation.tune_yaml import tuned_text
+
+# The values the unicycle EKF's innovations inform on a simulated Husky drive (GPS 2.5 Hz,
+# compass and gyro 30 Hz, odometry 10 Hz): the GPS's horizontal noise, the compass's, the
+# odometry's yaw rate (docs/design/tuning.md has every value's figures).
+INFORMED = ("sensors.gps[0].noise.horizontal", "sensors.imu[0].noise.yaw",
+            "sensors.odometry[0].noise.yaw_rate")
+# Bound on |log(tuned / true)|: the fewest-sampled of them is the GPS, N = 2.5 Hz x 40 s = 100
+# fixes; a standard deviation estimated from N Gaussian samples has a relative standard error
+# of 1 / sqrt(2 N) = 0.071, and 4 of those (0.28) leaves a chance of 6e-5 of failing.
+BOUND = 4.0 / math.sqrt(2 * 100)
+
+
+@pytest.fixture(scope="module")
+def sim_bag(tmp_path_factory):
+    bag = tmp_path_factory.mktemp("tune") / "husky.bag"
+    assert main(["simulate", "husky", "--seed", "3", "--duration", "40", "-o", str(bag)]) == 0
+    return bag, bag.with_suffix(".yaml")
+
+
+@pytest.fixture(scope="module", params=[3.0, 1.0 / 3.0], ids=["3x_over", "3x_under"])
+def tuned_sim(request, sim_bag):
+    bag, yaml = sim_bag
+    cfg = load_config(yaml)
+    stream = read_stream(bag, cfg)
+    truth = {p.key: p.before for p in parameters(cfg, stream)}
+    start = {k: v * request.param for k, v in truth.items() if v}
+    return truth, tune(cfg, stream, start=start, jobs=1), cfg, stream
+
+
+@pytest.mark.slow
+def test_tune_recovers_the_true_noise_from_3x_off(tuned_sim):
+    truth, result, _, _ = tuned_sim
+    got = {t.param.key: t for t in result.tuned}
+    for key in INFORMED:
+        assert got[key].status == "tuned", (key, got[key].reason)
+        assert abs(math.log(got[key].value / truth[key])) < BOUND, (key, got[key].value,
+                                                                   truth[key])
+
+
+@pytest.mark.slow
+def test_a_value_the_data_do_not_inform_stays_and_says_why(tuned_sim):
+    # the simulated robot does not slip (slip 0 in its config) and the unicycle EKF does not
+    # fuse the accelerometer: nothing in the innovations depends on either
+    truth, result, _, _ = tuned_sim
+    got = {t.param.key: t for t in result.tuned}
+    for key in ("sensors.imu[0].noise.accel", "robot.slip.lateral"):
+        assert got[key].status == "not informed"
+        assert got[key].value == truth[key]
+        assert "do not inform" in got[key].reason
+
+
+@pytest.mark.slow
+def test_tune_leaves_the_config_and_stream_as_read(tuned_sim):
+    _, _, cfg, stream = tuned_sim
+    assert cfg.sensor("/fix").noise == {"horizontal": 1.0, "vertical": 2.0}
+    fix = next(m for m in stream.measurements if m.sensor == "/fix")
+    assert fix.cov[0, 0] == 1.0
+
+
+def test_applier_sets_and_restores_the_measurement_variances(sample_husky):
+    cfg, stream = sample_husky
+    params = parameters(cfg, stream)
+    ap = Applier(cfg, stream, params)
+    gyro = next(m for m in stream.measurements if type(m).__name__ == "GyroYawRate")
+    was, slip = gyro.var, dict(cfg.robot.slip)
+    vals = [None] * len(params)
+    i = next(k for k, p in enumerate(params) if p.key == "sensors.imu[0].noise.yaw_rate")
+    j = next(k for k, p in enumerate(params) if p.key == "robot.slip.heading")
+    vals[i], vals[j] = 0.5, 0.25
+    ap.apply(vals)
+    assert gyro.var == 0.25 and cfg.robot.slip["heading"] == 0.25
+    assert cfg.of_kind("imu")[0].noise["yaw_rate"] == 0.5
+    ap.apply([None] * len(params))
+    assert gyro.var == was and cfg.robot.slip == slip
+
+
+def _result(cfg, stream) -> TuneResult:
+    params = parameters(cfg, stream)
+    tuned = []
+    for p in params:
+        if p.key == "sensors.imu[0].noise.yaw":
+            tuned.append(Tuned(p, 0.0123456, "tuned"))
+        elif p.key == "robot.slip.longitudinal":
+            tuned.append(Tuned(p, 0.2, "at upper bound"))
+        else:
+            tuned.append(Tuned(p, p.before, "not informed", "no data"))
+    return TuneResult("ekf", tuned)
+
+
+def raw_sensor(text: str, kind: str) -> dict:
+    import yaml
+
+    return yaml.safe_load(text)["sensors"][kind][0]
+
+
+def test_the_tuned_config_loads_keeps_the_original_keys_and_marks_the_values(tmp_path):
+    from importlib.resources import files
+
+    from ddfuse.data import configs
+
+    src = files(configs) / "rl_husky_gps.yaml"
+    text = src.read_text()
+    cfg = load_config(src)
+    from ddfuse.estimation.measurements import Stream
+
+    out = tuned_text(text, _result(cfg, Stream([])), "rl_husky_gps.bag", "2026-12-02")
+    path = tmp_path / "tuned.yaml"
+    path.write_text(out)
+    new = load_config(path)
+    # the values not informed are not written: their keys stay as they were
+    assert new.sensor("/imu/data").noise == {"yaw": 0.0123, "yaw_rate": 0.02}
+    assert "noise" not in raw_sensor(out, "gps")
+    assert new.robot.slip == {"longitudinal": 0.2}
+    assert (new.robot.max_speed, new.robot.max_yaw_rate) == (1.5, 3.0)
+    assert new.smoother.lag == 10.0 and new.sensor("/imu/data").heading_offset == "estimate"
+    # the original's comments are kept, the tuned values are marked
+    assert "The IMU is mounted with its y axis up" in out
+    assert "What a Clearpath Husky can do" in out
+    assert out.count("ddfuse tune, rl_husky_gps.bag, 2026-12-02") == 2
+    import yaml
+
+    raw = yaml.safe_load(text)
+    assert set(yaml.safe_load(out)) == set(raw)
+
+
+@pytest.mark.slow
+def test_cli_prints_the_table_and_writes_the_tuned_config(sim_bag, tmp_path, capsys):
+    bag, _ = sim_bag
+    out = tmp_path / "tuned.yaml"
+    assert main(["tune", str(bag), "-o", str(out), "--gps-holdout", "every:5",
+                 "--jobs", "1"]) == 0
+    text = capsys.readouterr().out
+    for row in ("sensors.gps[0].noise.horizontal [m]", "NIS mean / expected", "/fix gps",
+                "GPS hold-out RMSE (every:5), m", "not informed"):
+        assert row in text
+    cfg = load_config(out)
+    assert np.isfinite(cfg.sensor("/fix").noise["horizontal"])
+    assert "ddfuse tune" in out.read_text()
+
+
+def test_cli_refuses_a_holdout_without_gps(tmp_path, capsys):
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("sensors:\n  odometry:\n    - topic: /odom\n      use: [v, yaw_rate]\n")
+    code = main(["tune", str(root / "data" / "sample_husky.bag"), "-c", str(cfg),
+                 "--gps-holdout", "every:5"])
+    assert code == 2
+    assert "has no gps sensor" in capsys.readouterr().err
+
+
+def test_two_values_with_the_same_effect_are_reported_as_a_pair():
+    # per-innovation scores (J) where gyro noise and slip move the innovations alike (gyro
+    # noise vs heading slip, both widening the yaw-rate innovations): J'J's inverse correlates
+    # them; the GPS, with its own innovations, stays apart
+    rng = np.random.default_rng(1)
+    n = 400
+    gyro = rng.normal(size=n)
+    gps = np.zeros(n)
+    gps[::4] = rng.normal(size=n // 4)
+    slip = 0.9 * gyro + 0.05 * rng.normal(size=n)
+    base = rng.normal(size=n)
+    step = 0.02
+    bumped = [base + step * col for col in (gyro, slip, gps)]
+    info = information(base, bumped, step)
+    np.testing.assert_allclose(info[0, 0], gyro @ gyro, rtol=1e-9)
+    pairs = correlated_pairs(np.linalg.inv(info), ["gyro", "slip", "gps"])
+    assert [(a, b) for a, b, _ in pairs] == [("gyro", "slip")]
+    assert pairs[0][2] < -0.9  # their estimates trade off: one up, the other down
+
+
+def test_runs_of_different_lengths_give_no_information():
+    assert information(np.zeros(5), [np.zeros(5), np.zeros(4)], 0.02) is None
+
+
+def test_the_log_keeps_each_innovations_log_det_for_the_likelihood():
+    from ddfuse.estimation.estimator import InnovationLog
+
+    log = InnovationLog(keep=1 << 20)
+    S2 = np.array([[2.0, 0.3], [0.3, 0.5]])
+    log.add(0.0, "/fix", "gps", np.array([1.0, -1.0]), S2, 3.0)
+    log.add(0.1, "/imu", "gyro", (0.2,), ((0.04,),), 1.0, accepted=False)
+    h = log.held_log_det()
+    np.testing.assert_allclose(h["log_det"], [np.log(np.linalg.det(S2)), np.log(0.04)],
+                               rtol=1e-12)
+    assert h["accepted"].tolist() == [True, False] and h["nis"].tolist() == [3.0, 1.0]
+    assert [h["groups"][g] for g in h["group"]] == [("/fix", "gps", 2), ("/imu", "gyro", 1)]
