@@ -101,28 +101,23 @@ class TopicDrops:
             self.warnings.append(f"{self.bag}: topic {topic}: {n} of {total} messages "
                                  f"({100.0 * n / total:.0f} %) rejected, in whole or in part: "
                                  f"{reason}{self.reason_note(topic, reason)}")
-        for topic, n in sorted(self.late.items()):
-            total = self.offered[topic]
-            if n > WARN_SHARE * total:
+        # what happened to the late ones, and what a wider reorder window would do
+        fates = ((self.late, "dropped as late: they came up to", "to keep them"),
+                 (self.passed_late, "came late: up to", "to give every estimator them in order"))
+        for counts, what, gain in fates:
+            for topic, n in sorted(counts.items()):
+                total = self.offered[topic]
+                if not n > WARN_SHARE * total:
+                    continue
                 lag = self.lateness[topic]
+                passed = (" passed on to each estimator that can use them that late, dropped "
+                          "by the others (counted per estimator);" if counts is self.passed_late
+                          else "")
                 self.warnings.append(
                     f"{self.bag}: topic {topic}: {n} of {total} measurements "
-                    f"({100.0 * n / total:.0f} %) dropped as late: they came up to "
-                    f"{lag:.2f} s behind the newest stamp, beyond reorder_window "
-                    f"({self.depth:g} s); set reorder_window to at least "
-                    f"{math.ceil(lag * 10.0) / 10.0:g} s (or --reorder-window) to keep them")
-        for topic, n in sorted(self.passed_late.items()):
-            total = self.offered[topic]
-            if n > WARN_SHARE * total:
-                lag = self.lateness[topic]
-                self.warnings.append(
-                    f"{self.bag}: topic {topic}: {n} of {total} measurements "
-                    f"({100.0 * n / total:.0f} %) came late: up to {lag:.2f} s behind the newest "
-                    f"stamp, beyond reorder_window ({self.depth:g} s); passed on to each "
-                    "estimator that can use them that late, dropped by the others (counted per "
-                    f"estimator); set reorder_window to at least "
-                    f"{math.ceil(lag * 10.0) / 10.0:g} s (or --reorder-window) to give every "
-                    "estimator them in order")
+                    f"({100.0 * n / total:.0f} %) {what} {lag:.2f} s behind the newest stamp, "
+                    f"beyond reorder_window ({self.depth:g} s);{passed} set reorder_window to "
+                    f"at least {math.ceil(lag * 10.0) / 10.0:g} s (or --reorder-window) {gain}")
 
     def reason_note(self, topic: str, reason: str) -> str:
         """More on a rejection ``reason`` of ``topic`` for its warning or error: for sightings
