@@ -197,8 +197,8 @@ def test_hostile_case_exits_cleanly_names_the_fault_and_keeps_a_sane_track(name,
     text = p.stdout + p.stderr
     # the case's name is in its paths ("clock_back_10s"; a ROS2 bag is a directory named so,
     # "clock_back_10s_mcap: ..."): only ddfuse's words may match (the paths' occurrences go,
-    # not the same word in a message: "duplicates")
-    lines = [re.sub(rf"(?<![\w-]){re.escape(name)}(?=\.bag|\.yaml|/|:|\s|$)", "CASE", ln)
+    # not the same word in a message: "exact duplicates of"; a path's component follows a /)
+    lines = [re.sub(rf"(?<=/){re.escape(name)}(?=\.bag|\.yaml|/|:|\s|$)", "CASE", ln)
              .replace(f"out-{name}", "out-CASE") for ln in text.splitlines()]
     if c.expect.counted and (out / "metrics.json").is_file():
         lines += list(_metrics(out)["rejected_messages"])
