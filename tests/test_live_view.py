@@ -398,7 +398,10 @@ def test_online_foxglove_serves_the_replay_until_ctrl_c(tmp_path):
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     proc = subprocess.Popen([sys.executable, "-m", "ddfuse.evaluation.cli", "online", str(BAG),
                              "--foxglove", "0", "--estimators", "ekf", "--every", "1000"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+                            # Ctrl-C as a terminal's: a test run in the background inherits
+                            # SIGINT ignored, which exec keeps, and the child would not see it
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     client = None
     try:
         line = proc.stderr.readline()
