@@ -18,10 +18,13 @@ from collections.abc import Callable
 SOLVE_S_PER_1000 = 6.3
 SOLVE_EXPONENT = 2.37
 NOTICE_ABOVE_S = 60.0
-# s of bag: above it the default estimator set leaves the batch out (about 1.5 min of solve at
-# 2.5 keyframes/s; a 2 h bag would take over an hour)
-DEFAULT_MAX_SPAN_S = 1200.0
 KEYFRAMES_PER_S = 2.5  # a GPS-keyed window at a 2.5 Hz receiver, for the estimate before reading
+# s: the longest whole-run solve the default estimator set waits for; the bag span (s) whose
+# estimated solve it is (about 34 min of bag) is where the default set leaves the batch out (a
+# 2 h bag would take over an hour; mrclam1's 25 min, about 2 min, keeps it)
+DEFAULT_MAX_SOLVE_S = 300.0
+DEFAULT_MAX_SPAN_S = (1000.0 * (DEFAULT_MAX_SOLVE_S / SOLVE_S_PER_1000) ** (1.0 / SOLVE_EXPONENT)
+                      / KEYFRAMES_PER_S)
 
 
 def solve_seconds(keyframes: int) -> float:
