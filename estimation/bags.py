@@ -194,7 +194,9 @@ class BagStream:
     def truth_arrays(self) -> tuple[np.ndarray, np.ndarray]:
         """The ground truth so far: stamps (N,) s and poses (N, 3) (x m, y m, yaw rad; yaw NaN
         for a NavSatFix truth), in stamp order."""
-        t, x, y, yaw = (np.array(a, float) for a in self._truth)
+        # the shortest column: a Ctrl-C inside _add_truth leaves the others one longer
+        n = min(len(a) for a in self._truth)
+        t, x, y, yaw = (np.array(a[:n], float) for a in self._truth)
         return t, np.column_stack([x, y, yaw]) if len(t) else np.zeros((0, 3))
 
     @property

@@ -54,10 +54,13 @@ class TrackBuilder:
         self.last: Estimate | None = None
 
     def append(self, e: Estimate) -> None:
-        self._t.append(e.t)
-        self._pose.extend(e.pose)
         c = e.pose_cov
-        self._cov.extend(_NAN6 if c is None else _pack(c))
+        packed = _NAN6 if c is None else _pack(c)
+        # The stamp goes in last: it is what counts a row, so a Ctrl-C between these lines
+        # leaves a pose or covariance without its stamp, which the readers cut off.
+        self._cov.extend(packed)
+        self._pose.extend(e.pose)
+        self._t.append(e.t)
         self.last = e
 
     def extend(self, estimates: Iterable[Estimate]) -> None:
@@ -78,7 +81,7 @@ class TrackBuilder:
             i += n
         if not 0 <= i < n:
             raise IndexError("track index out of range")
-        if i == n - 1 and self.last is not None:
+        if i == n - 1 and self.last is not None and self.last.t == self._t[i]:
             return self.last
         return Estimate(self._t[i], tuple(self._pose[3 * i:3 * i + 3]),
                         unpack_cov(np.array(self._cov[6 * i:6 * i + 6]))[0])
@@ -93,8 +96,8 @@ class TrackBuilder:
         if not n:
             return Trajectory(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 3)))
         return _PackedTrajectory(np.frombuffer(self._t, float),
-                                 np.frombuffer(self._pose, float).reshape(n, 3),
-                                 packed=np.frombuffer(self._cov, float).reshape(n, 6))
+                                 np.frombuffer(self._pose, float)[:3 * n].reshape(n, 3),
+                                 packed=np.frombuffer(self._cov, float)[:6 * n].reshape(n, 6))
 
 
 @dataclass
@@ -209,20 +212,23 @@ class _GpsRecorder:
         self.lla, self.status = array("d"), array("b")
 
     def add(self, f: GpsFix, withheld: bool) -> None:
-        self.t.append(f.t)
-        self.xy.extend(f.enu[:2] if f.enu is not None else (math.nan, math.nan))
-        self.cov.extend(np.asarray(f.cov, float).ravel().tolist())
+        xy = f.enu[:2] if f.enu is not None else (math.nan, math.nan)
+        cov = np.asarray(f.cov, float).ravel().tolist()
+        # The stamp goes in last (it counts the rows; see TrackBuilder.append).
+        self.xy.extend(xy)
+        self.cov.extend(cov)
         self.held.append(withheld)
         self.lla.extend((f.lat, f.lon, f.alt))
         self.status.append(f.status)
+        self.t.append(f.t)
 
     def track(self) -> GpsTrack:
         n = len(self.t)
-        cov = np.array(self.cov, float).reshape(n, 3, 3)
-        return GpsTrack(np.array(self.t, float), np.array(self.xy, float).reshape(n, 2),
-                        cov[:, :2, :2].copy(), np.array(self.held, bool),
-                        np.array(self.lla, float).reshape(n, 3), cov,
-                        np.array(self.status, np.int8))
+        cov = np.array(self.cov[:9 * n], float).reshape(n, 3, 3)
+        return GpsTrack(np.array(self.t, float), np.array(self.xy[:2 * n], float).reshape(n, 2),
+                        cov[:, :2, :2].copy(), np.array(self.held[:n], bool),
+                        np.array(self.lla[:3 * n], float).reshape(n, 3), cov,
+                        np.array(self.status[:n], np.int8))
 
 
 @dataclass

@@ -261,17 +261,27 @@ def test_every_case_states_its_before_figures_and_what_fixes_it():
 
 # --- a signal in the middle of a run -----------------------------------------------------------
 
-def _signal_mid_run(out: Path, sig: int) -> tuple[int, str, bool]:
-    """``ddfuse run`` on the sample bag with its output on a pseudo-terminal, sent ``sig`` as
-    soon as its progress bar ("decode + estimate", shown after 2 s and until the estimators are
-    done) appears: (exit code, output without its terminal escapes, whether it was sent)."""
+@pytest.fixture(scope="module")
+def long_drive(tmp_path_factory) -> Path:
+    """The husky scenario's whole 400 s drive: its decode + estimate lasts ~10 s here, where the
+    sample's 2.3 s ended before the progress bar (shown after 2 s) on a fast, idle machine."""
+    bag = tmp_path_factory.mktemp("long") / "husky.bag"
+    subprocess.run([sys.executable, "-m", "ddfuse.evaluation.cli", "simulate", "husky", "-o",
+                    str(bag)], check=True, capture_output=True)
+    return bag
+
+
+def _signal_mid_run(bag: Path, out: Path, sig: int) -> tuple[int, str, bool]:
+    """``ddfuse run`` on ``bag`` with its output on a pseudo-terminal, sent ``sig`` as soon as
+    its progress bar ("decode + estimate", shown after 2 s and until the estimators are done)
+    appears: (exit code, output without its terminal escapes, whether it was sent)."""
     import os
     import pty
     import select
 
     master, slave = pty.openpty()
     p = subprocess.Popen([sys.executable, "-m", "ddfuse.evaluation.cli", "run",
-                          str(hc.SAMPLE_BAG), "-c", str(hc.SAMPLE_CONFIG), "-o", str(out),
+                          str(bag), "-c", str(bag.with_suffix(".yaml")), "-o", str(out),
                           "--no-report"], stdin=subprocess.DEVNULL, stdout=slave, stderr=slave,
                          # Ctrl-C as in a terminal, even when these tests run in the background
                          # (which leaves SIGINT ignored, and so the child's)
@@ -314,18 +324,18 @@ def _check_interrupted_run_kept_its_results(out: Path, rc: int, text: str, sent:
 
 
 @pytest.mark.slow
-def test_ctrl_c_mid_run_exits_130_and_writes_what_was_estimated(tmp_path):
+def test_ctrl_c_mid_run_exits_130_and_writes_what_was_estimated(tmp_path, long_drive):
     """Ctrl-C (SIGINT) while the estimators run: exit 130, a line saying so, metrics.json marked
     interrupted, each track the one it scores (already so; the reference for SIGTERM)."""
     import signal
 
     out = tmp_path / "out"
-    rc, text, sent = _signal_mid_run(out, signal.SIGINT)
+    rc, text, sent = _signal_mid_run(long_drive, out, signal.SIGINT)
     _check_interrupted_run_kept_its_results(out, rc, text, sent, (130,))
 
 
 @pytest.mark.slow
-def test_sigterm_mid_run_is_treated_like_ctrl_c(tmp_path):
+def test_sigterm_mid_run_is_treated_like_ctrl_c(tmp_path, long_drive):
     """SIGTERM (``timeout``, ``docker stop``, a job scheduler) while the estimators run: as
     Ctrl-C, the results so far written and marked interrupted; exit 130 or 143 (or ended by
     the signal re-raised once the results are written: -15 to its parent).
@@ -333,7 +343,7 @@ def test_sigterm_mid_run_is_treated_like_ctrl_c(tmp_path):
     import signal
 
     out = tmp_path / "out"
-    rc, text, sent = _signal_mid_run(out, signal.SIGTERM)
+    rc, text, sent = _signal_mid_run(long_drive, out, signal.SIGTERM)
     _check_interrupted_run_kept_its_results(out, rc, text, sent, (130, 143, -signal.SIGTERM))
 
 
