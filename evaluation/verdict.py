@@ -109,6 +109,10 @@ def _score(m: RunSummary) -> tuple[str | None, str]:
                if used <= 0 else "")
         return None, (f"No score: the bag has no ground truth, and no estimator has an estimate "
                       f"at the {n} GPS fixes --gps-holdout {m.gps_holdout} withheld.{why}")
+    if m.data is not None and m.data.gps_fixes == 0:
+        return None, ("No score: the bag has neither ground truth nor GPS fixes, so nothing "
+                      "tells which estimate is right; compare the final positions and the "
+                      "tracks.")
     return None, ("No score: the bag has no ground truth and no GPS fixes were withheld "
                   "(run with --gps-holdout every:5, or window:T0:T1 for an outage).")
 

@@ -64,6 +64,16 @@ def test_no_score_without_truth_or_holdout():
         "GPS fix (its window is outside the 395 s of data, or the bag has no fixes).")
 
 
+def test_no_score_on_a_bag_without_gps_suggests_no_gps_holdout():
+    """rl_jackal.bag (no GPS, no truth): --gps-holdout would error out there, so it is not
+    suggested."""
+    m = _m({"ekf": None, "smoother": None}, data={"gps_fixes": 0})
+    m["gps_holdout_fixes"] = 0
+    line = verdict_lines(m)[0]
+    assert line.startswith("No score: the bag has neither ground truth nor GPS fixes")
+    assert "--gps-holdout" not in line
+
+
 def test_consistency_sentences():
     m = _m({"ekf": 0.2, "smoother": 0.3, "smoother_lagged": 0.25})
     fail = {"kind": "gyro", "verdict": "Fail", "ratio": 0.05, "below": 0.4, "above": 0.0}
