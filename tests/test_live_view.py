@@ -411,7 +411,17 @@ def test_online_foxglove_serves_the_replay_until_ctrl_c(tmp_path):
         held = proc.stderr.readline()
         assert "still serving" in held, held
         wait_for(lambda: client.last("/ddfuse/ekf/pose"), "a pose")
-        time.sleep(0.5)
+        # the replay has ended; on a loaded machine the client is still taking its poses:
+        # Ctrl-C only once none has come for a second
+        count = [-1, time.monotonic()]
+
+        def settled() -> bool:
+            n = len(client.decoded("/ddfuse/ekf/pose"))
+            if n != count[0]:
+                count[:] = [n, time.monotonic()]
+            return time.monotonic() - count[1] > 1.0
+
+        wait_for(settled, "the client to have taken every pose", timeout=60)
         proc.send_signal(signal.SIGINT)
         out, _ = proc.communicate(timeout=30)
         assert proc.returncode == 0
