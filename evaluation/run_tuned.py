@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 from ddfuse.estimation.config import Config, parse_config_text
-from ddfuse.estimation.errors import DdfuseError
+from ddfuse.estimation.errors import BagError, DdfuseError
 from ddfuse.estimation.interrupts import deliver, held_signals, interrupt_name
 from ddfuse.evaluation.atomic_files import write_text
 from ddfuse.evaluation.pipeline import run_bag
@@ -80,7 +80,7 @@ def tune_on_bag(bag: str | Path, cfg: Config, *, holdout: str | None = None,
     try:
         stream = read_stream(bag, cfg, progress=lambda f: say("read", f),
                              reorder_window=reorder_window)
-    except DdfuseError as e:
+    except BagError as e:
         return Tuning(None, why_not=f"the bag could not be read whole to tune on ({e})")
     try:
         result = tune(cfg, stream, holdout=holdout, jobs=jobs, progress=say)

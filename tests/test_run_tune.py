@@ -271,3 +271,17 @@ def test_ctrl_c_while_tuning_exits_130_and_writes_nothing(static_bag, tmp_path, 
     assert code == 130
     assert err == "ddfuse: interrupted (Ctrl-C) while tuning: nothing written\n"
     assert not out.exists() and stdout == ""
+
+
+def test_a_bag_that_cannot_be_read_whole_is_not_tuned_and_tuning_json_says_why(tmp_path):
+    root = Path(__file__).resolve().parents[1] / "data"
+    bag = tmp_path / "cut.bag"
+    bag.write_bytes((root / "sample_husky.bag").read_bytes()[:300_000])  # breaks off
+    bag.with_suffix(".yaml").write_text((root / "sample_husky.yaml").read_text())
+    out = tmp_path / "out"
+    code, _, err = _main(["run", str(bag), "--tune", "-o", str(out), "--estimators", "ekf",
+                          "--no-report"])
+    assert code == 2 and "bag is truncated" in err  # the run's own error, after its results
+    t = json.loads((out / "tuning.json").read_text())
+    assert not t["applied"] and t["why_not"].startswith("the bag could not be read whole")
+    assert (out / "metrics.json").is_file() and not (out / "tuned.yaml").exists()
