@@ -105,8 +105,9 @@ def _comparison_table(shipped: RunSummary, tuned: RunSummary) -> str:
     for n in names:
         for e in (shipped.estimators[n], tuned.estimators[n]):
             sensors += [k for k in (e.nis or {}) if k not in sensors]
+    nees = any(r.estimators[n].nees_mean is not None for r in (shipped, tuned) for n in names)
     head = (f"<th>{html.escape(label)} [m], given</th><th>tuned</th>" if label else "")
-    head += "<th>NEES mean, given</th><th>tuned</th>"
+    head += "<th>NEES mean, given</th><th>tuned</th>" if nees else ""
     head += "".join(f"<th>NIS {html.escape(k)}: given → tuned</th>" for k in sensors)
     best_t = min(t_scores.values()) if t_scores else None
     rows = []
@@ -117,7 +118,7 @@ def _comparison_table(shipped: RunSummary, tuned: RunSummary) -> str:
             cls = ' class="best"' if best_t is not None and t_scores.get(n) == best_t else ""
             cells += [f"<td>{_n(s_scores.get(n), '.3f')}</td>",
                       f"<td{cls}>{_n(t_scores.get(n), '.3f')}</td>"]
-        for e in (a, b):
+        for e in (a, b) if nees else ():
             cells.append(f"<td>{_n(e.nees_mean, '.2f')} "
                          f"{_v(e.nees.verdict if e.nees else None)}</td>")
         na, nb = _nis_verdicts(a), _nis_verdicts(b)
@@ -129,10 +130,13 @@ def _comparison_table(shipped: RunSummary, tuned: RunSummary) -> str:
             rb, vb = nb.get(k, (None, None))
             cells.append(f"<td>{_n(ra, '.3f')} {_v(va)} → {_n(rb, '.3f')} {_v(vb)}</td>")
         rows.append("<tr>" + "".join(cells) + "</tr>")
+    note = ("NIS: mean over expected per sensor (1 is consistent) with its verdict. "
+            + ("NEES mean against the truth with its verdict (expected: the pose's dimension). "
+               if nees else "No NEES: the bag has no ground truth. ")
+            + ("Green bold: the best score with the tuned config." if label else
+               "No score: neither ground truth nor withheld GPS fixes."))
     return (f"<table><tr><th class='l'>estimator</th>{head}</tr>{''.join(rows)}</table>"
-            '<p class="note">NIS: mean over expected per sensor (1 is consistent) with its '
-            "verdict; NEES mean against the truth with its verdict (expected: the pose's "
-            "dimension). Green bold: the best score with the tuned config.</p>")
+            f'<p class="note">{html.escape(note)}</p>')
 
 
 def _order(sc: dict[str, float]) -> list[str]:
@@ -225,8 +229,9 @@ def change_line(t: dict, tuned: RunSummary, shipped: RunSummary | None) -> str:
     parts = []
     if label and best in t_sc:
         parts.append(f"{label} {_plain(s_sc.get(best), '.3f')} -> {_plain(t_sc[best], '.3f')} m")
-    parts.append(f"NEES {_plain(a.nees_mean if a else None, '.2f')} -> "
-                 f"{_plain(b.nees_mean, '.2f')}")
+    if b.nees_mean is not None or (a is not None and a.nees_mean is not None):
+        parts.append(f"NEES {_plain(a.nees_mean if a else None, '.2f')} -> "
+                     f"{_plain(b.nees_mean, '.2f')}")
     parts.append(f"NIS Fail on {_fail_count(a) if a else '-'} -> {_fail_count(b)} of "
                  f"{len(b.nis or {})} sensors")
     return f"tuning: {what}; for {best} (best with it): " + ", ".join(parts)

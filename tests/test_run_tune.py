@@ -285,3 +285,27 @@ def test_a_bag_that_cannot_be_read_whole_is_not_tuned_and_tuning_json_says_why(t
     t = json.loads((out / "tuning.json").read_text())
     assert not t["applied"] and t["why_not"].startswith("the bag could not be read whole")
     assert (out / "metrics.json").is_file() and not (out / "tuned.yaml").exists()
+
+
+def _holdout_summary(**rmse: float) -> RunSummary:
+    from ddfuse.evaluation.scores import EstimatorScores
+
+    return RunSummary(gps_holdout="every:5", gps_holdout_fixes=40, gps_holdout_scored_fixes=40,
+                      estimators={n: EstimatorScores(samples=100, gps_holdout_rmse_m=v)
+                                  for n, v in rmse.items()})
+
+
+def test_without_truth_the_section_ranks_on_the_holdout_and_shows_no_nees():
+    from ddfuse.evaluation.report_tuning import _comparison_table, change_line, ranking_sentence
+
+    given, tuned = _holdout_summary(ekf=2.0, smoother=1.5), _holdout_summary(ekf=1.0,
+                                                                             smoother=1.2)
+    assert ranking_sentence(given, tuned) == (
+        "The ranking on GPS hold-out RMSE changed (rank given → tuned): ekf 2 → 1; "
+        "smoother 1 → 2. The best is now ekf (1.000 m), was smoother (1.500 m).")
+    assert "the same with both configs: smoother, ekf" in ranking_sentence(given, given)
+    table = _comparison_table(given, tuned)
+    assert "NEES" not in table.split("</tr>")[0] and "No NEES: the bag has no ground truth" in table
+    line = change_line({"applied": True, "values": [{"status": "tuned"}]}, tuned, given)
+    assert line == ("tuning: 1 value tuned (tuned.yaml, tuning.json); for ekf (best with it): "
+                    "GPS hold-out RMSE 2.000 -> 1.000 m, NIS Fail on 0 -> 0 of 0 sensors")
