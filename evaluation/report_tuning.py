@@ -40,9 +40,13 @@ def shipped_summary(outdir: Path) -> tuple[RunSummary | None, str | None]:
     if (d / INCOMPLETE).exists():
         return None, f"its results in {SHIPPED_DIR}/ are incomplete (the run was stopped)"
     try:
-        return RunSummary.from_json(json.loads((d / METRICS_FILE).read_text())), None
+        m = RunSummary.from_json(json.loads((d / METRICS_FILE).read_text()))
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return None, f"{SHIPPED_DIR}/{METRICS_FILE} is missing or cannot be read"
+    if m.interrupted:
+        return None, (f"was stopped early ({m.interrupted}): its results in {SHIPPED_DIR}/ "
+                      "cover part of the bag only")
+    return m, None
 
 
 def scores(m: RunSummary) -> tuple[str | None, dict[str, float]]:

@@ -219,7 +219,8 @@ def static_bag(tmp_path) -> Path:
 
 class _Bars:
     """Progress bars as the command line sees them (``terminal.Bars``' interface): records the
-    stages; at ``interrupt_at`` it raises SIGINT, as Ctrl-C on the terminal would."""
+    stages; at the first update of stage ``interrupt_at`` it raises SIGINT, as Ctrl-C on the
+    terminal would."""
 
     def __init__(self, interrupt_at: str | None = None) -> None:
         self.bar, self.stages, self.interrupt_at = None, [], interrupt_at
@@ -228,6 +229,7 @@ class _Bars:
         if stage not in self.stages:
             self.stages.append(stage)
         if stage == self.interrupt_at:
+            self.interrupt_at = None  # once, as one Ctrl-C
             signal.raise_signal(signal.SIGINT)
 
     def stop(self) -> None:
@@ -309,3 +311,22 @@ def test_without_truth_the_section_ranks_on_the_holdout_and_shows_no_nees():
     line = change_line({"applied": True, "values": [{"status": "tuned"}]}, tuned, given)
     assert line == ("tuning: 1 value tuned (tuned.yaml, tuning.json); for ekf (best with it): "
                     "GPS hold-out RMSE 2.000 -> 1.000 m, NIS Fail on 0 -> 0 of 0 sensors")
+
+
+@pytest.mark.slow
+def test_ctrl_c_in_the_given_configs_run_keeps_the_tuned_results_and_the_report_says_so(
+        tmp_path, monkeypatch):
+    bag = tmp_path / "husky.bag"
+    assert main(["simulate", "husky", "--seed", "4", "--duration", "15", "-o", str(bag)]) == 0
+    off = _off_config(bag.with_suffix(".yaml"), tmp_path / "off.yaml")
+    bars = _Bars(interrupt_at="given config: decode + estimate")
+    monkeypatch.setattr("ddfuse.evaluation.cli.run.progress", lambda: bars)
+    out = tmp_path / "out"
+    code, _, err = _main(["run", str(bag), "-c", str(off), "--tune", "-o", str(out),
+                          "--estimators", "ekf"])
+    assert code == 130 and "interrupted" in err, err
+    assert _summary(out / "metrics.json").interrupted is None  # the tuned run is whole
+    assert _summary(out / "shipped" / "metrics.json").interrupted
+    items = section((out / "report.html").read_text()).items
+    assert any(x.startswith("No side-by-side scores: the given config's run was stopped early")
+               for x in items)
