@@ -29,7 +29,7 @@ import numpy as np
 from ddfuse.estimation.config import Config, parse_config_text
 from ddfuse.estimation.errors import BagError, DdfuseError
 from ddfuse.estimation.interrupts import deliver, held_signals, interrupt_name
-from ddfuse.evaluation.atomic_files import write_text
+from ddfuse.evaluation.atomic_files import remove, write_text
 from ddfuse.evaluation.pipeline import run_bag
 from ddfuse.evaluation.scores import RunSummary, num
 from ddfuse.evaluation.tune import MIN_INFORMATION, Check, TuneResult, check, tune
@@ -177,19 +177,21 @@ def _write_tuning(outdir: Path, tuning: Tuning, bag: str | Path, config: Path | 
     outdir.mkdir(parents=True, exist_ok=True)
     tuned_path = outdir / TUNED_CONFIG
     run_config = str(tuned_path) if tuning.applied else (str(cfg.path) if cfg.path else None)
+    record = tuning_json(tuning, bag=str(bag), config=str(config) if config else None,
+                         holdout=holdout, run_config=run_config)
     with held_signals() as held:
-        tuned = None
         if tuning.applied:
             date = datetime.date.today().isoformat()
             write_tuned(config, tuned_path, tuning.result, Path(bag).name, date)
-            base = Path(config).parent if config else None
-            tuned = parse_config_text(tuned_path.read_text(encoding="utf-8"), str(tuned_path),
-                                      base)
-        record = tuning_json(tuning, bag=str(bag), config=str(config) if config else None,
-                             holdout=holdout, run_config=run_config)
+        else:
+            remove(tuned_path)  # an earlier --tune run's: not this run's config
         write_text(outdir / TUNING_FILE, json.dumps(record, indent=1) + "\n")
     deliver(held)
-    return tuned, record
+    if not tuning.applied:
+        return None, record
+    base = Path(config).parent if config else None
+    return parse_config_text(tuned_path.read_text(encoding="utf-8"), str(tuned_path),
+                             base), record
 
 
 def run_tuned(bag: str | Path, config: Path | None, cfg: Config, outdir: str | Path, *,

@@ -242,6 +242,8 @@ def test_a_bag_with_nothing_to_tune_runs_with_the_given_config_and_says_why(
     bars = _Bars()
     monkeypatch.setattr("ddfuse.evaluation.cli.run.progress", lambda: bars)
     out = tmp_path / "out"
+    out.mkdir()
+    (out / "tuned.yaml").write_text("an earlier --tune run's")
     code, _, err = _main(["run", str(static_bag), "--tune", "-o", str(out),
                           "--estimators", "ekf"])
     assert code == 0
