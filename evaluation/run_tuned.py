@@ -91,8 +91,9 @@ def tune_on_bag(bag: str | Path, cfg: Config, *, holdout: str | None = None,
         return Tuning(result, why_not=(
             f"no value is informed by the data (each has under {MIN_INFORMATION:g} of "
             f"Fisher information on its log over the {result.innovations} innovations of "
-            f"the {result.estimator} EKF: the bag is too short or too static, or no sensor "
-            "sees it; each value's reason is in tuning.json)"))
+            f"the {result.estimator} EKF: the bag is too short or too static, no sensor ties "
+            "the innovations to it, or the EKF's own twist random walk explains them; each "
+            "value's reason is in tuning.json)"))
     say("before / after", 0.0)
     before = check(cfg, stream, [None] * len(result.tuned), estimator=result.estimator,
                    holdout=holdout, params=[t.param for t in result.tuned])
