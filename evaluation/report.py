@@ -20,6 +20,7 @@ from pathlib import Path
 from ddfuse.evaluation import consistency, metrics, plots
 from ddfuse.evaluation.atomic_files import remove, write_text
 from ddfuse.evaluation.metrics import OutageDrift
+from ddfuse.evaluation.report_tuning import tuning_section
 from ddfuse.evaluation.results import SavedRun, load_run
 from ddfuse.evaluation.run_files import PLOTS_DIR, REPORT_FILE
 from ddfuse.evaluation.scores import DataFacts, EstimatorScores, RunSummary
@@ -736,6 +737,7 @@ def build_html(run: SavedRun, figures: list[tuple[str, bytes | None, str]],
         f"<h2>Verdict</h2><div class='verdict'><ul>{verdict}</ul></div>"
         f"{_warnings(m)}"
         f"<h2>Summary</h2>{_summary_table(m, run_config(run))}"
+        f"{tuning_section(run.outdir, m) if run.outdir else ''}"
         f"<h2>Consistency and gating per sensor</h2>{_nis_table(m)}"
         f"{_calibration_table(m)}"
         f"{_outage_table(m)}"

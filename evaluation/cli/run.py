@@ -46,6 +46,12 @@ def add_to(sub) -> None:
     sp.add_argument("--gps-holdout", type=gps_holdout, metavar="every:K|window:T0:T1",
                     help=GPS_HOLDOUT_HELP)
     add_reorder_window(sp)
+    sp.add_argument("--tune", action="store_true",
+                    help="first tune the config's noise values on the bag (as 'ddfuse tune', "
+                    "the --gps-holdout fixes kept out of the fit), then run with the config "
+                    "as given and with the tuned one: the tuned run's results, tuned.yaml and "
+                    "tuning.json in OUTDIR, the given config's in OUTDIR/shipped; the report "
+                    "says what tuning changed")
     sp.add_argument("--no-report", action="store_true",
                     help="write the results (metrics.json, tracks, run.npz) but not the HTML "
                     "report ('ddfuse report OUTDIR' renders it later)")
@@ -122,12 +128,20 @@ def command(args: argparse.Namespace) -> int:
     cfg = load_config(config)
     check_holdout_sensor(cfg, config, args.gps_holdout)  # before decoding
     bars = progress()
+    tuned = None
     try:
         try:
-            m = run_bag(bag, cfg, args.outdir, names=args.estimators, lag=args.lag,
-                        holdout=args.gps_holdout, progress=bars.update if bars else None,
-                        reorder_window=args.reorder_window,
-                        notice=lambda text: _notice(text, bars))
+            options = dict(names=args.estimators, lag=args.lag, holdout=args.gps_holdout,
+                           progress=bars.update if bars else None,
+                           reorder_window=args.reorder_window,
+                           notice=lambda text: _notice(text, bars))
+            if args.tune:
+                from ddfuse.evaluation.run_tuned import run_tuned
+
+                tuned = run_tuned(bag, config, cfg, args.outdir, **options)
+                m = tuned.run
+            else:
+                m = run_bag(bag, cfg, args.outdir, **options)
         except ValueError as e:
             raise DdfuseError(str(e)) from None
         except (BagError, RunInterrupted) as e:
@@ -141,6 +155,8 @@ def command(args: argparse.Namespace) -> int:
         print_summary(m, sys.stdout)
         for w in m.warnings or ():
             sys.stderr.write(f"ddfuse: warning: {w}\n")
+        if tuned is not None:
+            _say_tuning(tuned, args.outdir)
         if args.gps_holdout and not m.gps_holdout_fixes:
             sys.stderr.write(f"ddfuse: warning: --gps-holdout {args.gps_holdout} withheld no GPS "
                              f"fix (the data span {m.duration_s or 0:.1f} s from the first "
@@ -151,6 +167,8 @@ def command(args: argparse.Namespace) -> int:
             return _all_failed(m, args.outdir)
         # The report is rendered after the run, so its time is in no estimator's runtime.
         t_a = time.perf_counter()
+        if tuned is not None and tuned.shipped is not None:
+            _render_or_say(args.outdir / SHIPPED, bars)
         report = _render_or_say(args.outdir, bars)
         report_s = time.perf_counter() - t_a
     finally:
@@ -159,6 +177,23 @@ def command(args: argparse.Namespace) -> int:
     sys.stdout.write(f"results in {args.outdir}/ (metrics.json, <estimator>.tum/.csv, "
                      f"estimates.mcap, run.npz); report {report} ({report_s:.1f} s)\n")
     return _all_failed(m, args.outdir)
+
+
+SHIPPED = "shipped"  # run_tuned.SHIPPED_DIR, without loading the library for --help
+
+
+def _say_tuning(tuned, outdir: Path) -> None:
+    """After ``run --tune``: what tuning changed for the best estimator in one line
+    (``report_tuning.change_line``) and where the two runs' results are."""
+    from ddfuse.evaluation.report_tuning import change_line
+
+    line = change_line(tuned.record, tuned.run, tuned.shipped)
+    if not tuned.tuning.applied:
+        sys.stderr.write(f"ddfuse: warning: {line}\n")
+        return
+    sys.stdout.write(f"{line}\n")
+    sys.stdout.write(f"the tuned config's results are these, in {outdir}/ (with tuned.yaml, "
+                     f"tuning.json); the given config's in {outdir / SHIPPED}/\n")
 
 
 def _notice(text: str, bars) -> None:
