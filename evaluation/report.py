@@ -46,13 +46,14 @@ from ddfuse.evaluation.verdict import (
 
 _CSS = """
 body{font-family:-apple-system,Segoe UI,Helvetica,Arial,sans-serif;max-width:1400px;
-margin:1.5em auto;padding:0 1em;color:#222;line-height:1.4}
+box-sizing:border-box;margin:1.5em auto;padding:0 1em;color:#222;line-height:1.4}
 h1{font-size:1.6em;margin-bottom:.2em}h2{border-bottom:1px solid #ccc;padding-bottom:.2em;
 margin-top:1.8em}.sub{color:#666;margin-top:0}
 table{border-collapse:collapse;margin:.6em 0;font-size:.88em}
-th,td{border:1px solid #ddd;padding:.25em .55em;text-align:right;white-space:nowrap}
+th,td{border:1px solid #ddd;padding:.25em .45em;text-align:right;white-space:nowrap}
 th{background:#f3f3f3;white-space:normal;max-width:7.5em;vertical-align:bottom}
-td.l,th.l{text-align:left}tr:nth-child(even) td{background:#fafafa}
+td.l,th.l{text-align:left}td.l{white-space:normal;min-width:6em}
+tr:nth-child(even) td{background:#fafafa}
 .verdict{background:#f4f8ff;border-left:4px solid #3b73d1;padding:.5em 1em;margin:1em 0}
 .verdict li{margin:.25em 0}.best{font-weight:bold;color:#0a6b2c}
 .Pass{color:#0a6b2c;font-weight:bold}.Warn{color:#b36b00;font-weight:bold}
