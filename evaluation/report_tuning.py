@@ -132,7 +132,8 @@ def _comparison_table(shipped: RunSummary, tuned: RunSummary) -> str:
                 continue
             ra, va = na.get(k, (None, None))
             rb, vb = nb.get(k, (None, None))
-            cells.append(f"<td>{_n(ra, '.3f')} {_v(va)} → {_n(rb, '.3f')} {_v(vb)}</td>")
+            # two lines per cell: one line per sensor would not fit a 1400 px window
+            cells.append(f"<td>{_n(ra, '.3f')} {_v(va)}<br>→ {_n(rb, '.3f')} {_v(vb)}</td>")
         rows.append("<tr>" + "".join(cells) + "</tr>")
     note = ("NIS: mean over expected per sensor (1 is consistent) with its verdict. "
             + ("NEES mean against the truth with its verdict (expected: the pose's dimension). "

@@ -67,3 +67,39 @@ def test_the_reader_sees_the_winner_with_the_score_metrics_json_has(page, sample
                     ".find(e => e.innerText.startsWith('Best here')); "
                     "return r ? r.getBoundingClientRect().top : null })()")
     assert top is not None and top < 900, top
+
+
+def test_what_tuning_changed_is_visible_and_fits(tmp_path):
+    """``run --tune`` on a 30 s simulated drive whose config states the GPS noise 3x too
+    large: the section is on the page, its table shows the GPS value before and after, and it
+    fits the window."""
+    import yaml
+    from ddfuse.evaluation import cli
+
+    bag = tmp_path / "husky.bag"
+    assert cli.main(["simulate", "husky", "--seed", "3", "--duration", "30", "-o", str(bag)]) == 0
+    d = yaml.safe_load(bag.with_suffix(".yaml").read_text())
+    d["sensors"]["gps"][0]["noise"]["horizontal"] *= 3.0
+    off = tmp_path / "off.yaml"
+    off.write_text(yaml.safe_dump(d, sort_keys=False))
+    out = tmp_path / "out"
+    assert cli.main(["run", str(bag), "-c", str(off), "--tune", "-o", str(out),
+                     "--estimators", "ekf,smoother"]) == 0
+    with Page(out / "report.html") as p:
+        width, scroll = p.eval("[window.innerWidth, document.documentElement.scrollWidth]")
+        assert scroll <= width, f"the page scrolls sideways: {scroll} px wide"
+        section = p.eval("(() => { const h = [...document.querySelectorAll('h2')]"
+                         ".find(e => e.innerText.startsWith('What tuning changed')); if (!h) "
+                         "return null; let e = h.nextElementSibling; while (e && e.tagName "
+                         "!= 'TABLE') e = e.nextElementSibling; return [h.getBoundingClientRect()"
+                         ".height, [...e.rows].map(r => [...r.cells].map(c => c.innerText))] "
+                         "})()")
+    assert section is not None, "no 'What tuning changed' heading"
+    height, rows = section
+    assert height > 0
+    gps = next((r for r in rows if r[0].startswith("sensors.gps[0].noise.horizontal")), None)
+    assert gps is not None, rows
+    true = yaml.safe_load(bag.with_suffix(".yaml").read_text())["sensors"]["gps"][0]["noise"]
+    # the config's value as given, and the tuned one nearer the simulator's truth than it
+    assert float(gps[1]) == pytest.approx(3 * true["horizontal"], rel=1e-3), gps
+    assert abs(float(gps[2]) - true["horizontal"]) < abs(float(gps[1]) - true["horizontal"]), gps

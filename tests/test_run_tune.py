@@ -129,13 +129,15 @@ class _Section(HTMLParser):
             self.tables[-1].append([])
         elif self.inside and tag in ("td", "th", "li"):
             self.cell = []
+        elif tag == "br" and self.cell is not None:
+            self.cell.append(" ")
 
     def handle_endtag(self, tag):
         if tag == "h2":
             self.inside = "".join(self.heading) == "What tuning changed"
             self.heading = None
         elif self.inside and tag in ("td", "th"):
-            self.tables[-1][-1].append("".join(self.cell).strip())
+            self.tables[-1][-1].append(" ".join("".join(self.cell).split()))
             self.cell = None
         elif self.inside and tag == "li":
             self.items.append("".join(self.cell).strip())
