@@ -46,8 +46,10 @@ import math
 
 import numpy as np
 from ddfuse.ekf_baseline import GIVEN_POSE_STD
+from ddfuse.ekf_baseline import compiled as jit
 from ddfuse.ekf_baseline.calibration import ScaleStates
 from ddfuse.ekf_baseline.kalman import KalmanCore
+from ddfuse.ekf_baseline.landmark_compiled import LandmarkKernels, warm_up
 from ddfuse.ekf_baseline.landmark_model import (
     MIN_RANGE,
     odometry_step,
@@ -139,8 +141,13 @@ class _OdometryDrivenEkf(Estimator):
         initial_pose: tuple[float, float, float] | None,
         motion: str,
         init_std: tuple[float, float, float],
+        compiled: bool = False,
     ) -> None:
         super().__init__()
+        self.compiled = bool(compiled)
+        if self.compiled:
+            warm_up()  # compile / load the kernels now, not in the first step
+            self.log = jit.BufferedLog()
         if motion not in ("exact", "euler"):
             raise ValueError(f"motion must be 'exact' or 'euler', got {motion!r}")
         self.cfg = cfg
@@ -181,7 +188,10 @@ class _OdometryDrivenEkf(Estimator):
             x0 = np.concatenate([x0, [1.0, 1.0]])
             P0 = np.pad(P0, ((0, 2), (0, 2)))
             self._scale.set_prior(x0, P0)
-        self.kf = KalmanCore(x0, P0, self.log, state_angles=(2,))
+        if self.compiled:
+            self.kf = self._compiled_core(x0, P0)
+        else:
+            self.kf = KalmanCore(x0, P0, self.log, state_angles=(2,))
 
     def _gate(self, sensor: str) -> float | None:
         return self._gates.get(sensor, DEFAULT_GATE)
@@ -194,6 +204,12 @@ class _OdometryDrivenEkf(Estimator):
             return
         dt = t - self.t
         if dt <= 0.0:
+            return
+        if self.compiled:  # (inline: ~0.3 us a call of 3 us per odometry sample)
+            kf, tau = self.kf, self.tau
+            self._lm_predict(kf.fp, kf.ip, kf.W, dt, self.v, self.w, self.v_var, self.w_var,
+                             dt if tau is None else tau)
+            self.t = t
             return
         kf = self.kf
         x = kf.x.tolist()
@@ -305,7 +321,8 @@ class _OdometryDrivenEkf(Estimator):
             self._set_control(t, v, w, v_var, w_var, sensor)
             return
         self._set_control(t, v, w, v_var, w_var, sensor)
-        self._flush()
+        if self._pending:
+            self._flush()
         self.predict_to(t)
 
     def _flush(self) -> None:
@@ -362,14 +379,19 @@ class _OdometryDrivenEkf(Estimator):
         )
 
 
-class LandmarkEkf(_OdometryDrivenEkf):
+class LandmarkEkf(LandmarkKernels, _OdometryDrivenEkf):
     """Seed 002's EKF localising in a known landmark map.
 
     ``landmarks`` maps id -> (x, y) (m, map/local frame); default: the maps of the config's
     landmark sensors. ``initial_pose`` (x, y, psi) overrides the config's; with 'ground_truth'
     in the config the filter starts at the first GroundTruthPose it is given (or pass
     ``stream.ground_truth[0]``'s pose). ``init_std`` are the initial standard deviations of
-    (x m, y m, psi rad). ``motion`` is 'exact' (constant-twist arc) or 'euler' (the seed's)."""
+    (x m, y m, psi rad). ``motion`` is 'exact' (constant-twist arc) or 'euler' (the seed's).
+    ``compiled`` (default): the prediction and the sightings run in the numba kernels of
+    ``ekf_baseline.kalman_jit`` (``landmark_compiled``; what they defer -- a gate lock-out's
+    recovery, a singular S, a landmark at the body origin -- in the Python update on the same
+    arrays); False: all in Python (numpy). The tests compare the two
+    (tests/test_landmark_compiled.py; docs/design/ekf_kernels.md)."""
 
     name = "landmark_ekf"
 
@@ -381,8 +403,10 @@ class LandmarkEkf(_OdometryDrivenEkf):
         landmarks: dict[str, tuple[float, float]] | None = None,
         motion: str = "exact",
         init_std: tuple[float, float, float] = _GIVEN_STD,
+        compiled: bool = True,
     ) -> None:
-        super().__init__(cfg, initial_pose=initial_pose, motion=motion, init_std=init_std)
+        super().__init__(cfg, initial_pose=initial_pose, motion=motion, init_std=init_std,
+                         compiled=compiled)
         if landmarks is None:
             landmarks = landmark_maps(cfg)
         self.landmarks = {str(k): (float(v[0]), float(v[1])) for k, v in landmarks.items()}
@@ -393,7 +417,10 @@ class LandmarkEkf(_OdometryDrivenEkf):
             # the bag reader drops these already; fed directly, counted under its reason
             self.log.rejected[(m.sensor, LANDMARK_NOT_IN_MAP)] += 1
             return
-        self._measure(m, lm, None)
+        if self.compiled:
+            self._sighting_compiled(m, lm)
+        else:
+            self._measure(m, lm, None)
 
     def estimate(self) -> Estimate | None:
         return self._pose_estimate(("x", "y", "yaw"))
