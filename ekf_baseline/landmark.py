@@ -77,6 +77,7 @@ _PI = math.pi
 _TWO_PI = 2.0 * math.pi
 _GIVEN_STD = (GIVEN_POSE_STD[0], GIVEN_POSE_STD[0], GIVEN_POSE_STD[1])  # x, y, psi
 TAU_BOUNDS = (1e-3, 0.5)  # s: the odometry sample period is clamped to this range
+_TAU_LO, _TAU_HI = TAU_BOUNDS
 
 
 def _wrap(a: float) -> float:
@@ -259,8 +260,10 @@ class _OdometryDrivenEkf(Estimator):
             self.log.rejected[key] += 1
         self.v, self.v_var = (v, v_var) if v is not None else (0.0, 1.0)
         self.w, self.w_var = (w, w_var) if w is not None else (0.0, 1.0)
-        if self._t_odo is not None and t > self._t_odo:
-            self.tau = min(max(t - self._t_odo, TAU_BOUNDS[0]), TAU_BOUNDS[1])
+        t_odo = self._t_odo
+        if t_odo is not None and t > t_odo:  # clamped to TAU_BOUNDS (no min/max: ~0.1 us)
+            d = t - t_odo
+            self.tau = _TAU_LO if d < _TAU_LO else _TAU_HI if d > _TAU_HI else d
         self._t_odo = t
 
     # ------------------------------------------------------------------ Estimator

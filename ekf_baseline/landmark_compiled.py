@@ -13,6 +13,8 @@ import time
 
 import numpy as np
 from ddfuse.ekf_baseline import compiled as jit
+from ddfuse.estimation.gaps import is_gap
+from ddfuse.estimation.measurements import WheelOdometry
 
 __all__ = ["LandmarkKernels", "landmark_core", "warm_up"]
 
@@ -66,6 +68,24 @@ class LandmarkKernels:
         self._lm_predict, self._lm_sighting = kf.kj.lm_predict, kf.kj.lm_sighting
         self._rows: dict[str, int] = {}  # sensor -> its row in kf's sensor table
         return kf
+
+    def process(self, m) -> None:
+        """The filter's ``process``; compiled, an odometry sample with no sighting waiting, in
+        stamp order and after no gap (all but ~6 % of the messages on mrclam1_robot1.bag) takes
+        the general path's steps without its dispatch: ~1.5 of its ~2.5 us were Python calls."""
+        if (self.compiled and m.__class__ is WheelOdometry and not self._pending
+                and self._t_odo is not None and m.t > self._t_odo and m.t >= self.newest_t
+                and not is_gap(m.t - self.t)):
+            self.newest_t = t = m.t  # (in order: Estimator.in_order's bookkeeping)
+            self._set_control(t, m.v, m.yaw_rate, m.v_var, m.yaw_rate_var, m.sensor)
+            dt = t - self.t
+            if dt > 0.0:  # predict_to's compiled branch (tau: set, as t > the last sample's)
+                kf = self.kf
+                self._lm_predict(kf.fp, kf.ip, kf.W, dt, self.v, self.w, self.v_var,
+                                 self.w_var, self.tau)
+                self.t = t
+            return
+        super().process(m)
 
     def _sighting_compiled(self, m, landmark) -> None:
         """Sighting ``m`` of the known ``landmark`` (x, y) m in the kernel, or in Python when
