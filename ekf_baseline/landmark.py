@@ -38,6 +38,11 @@ noise (longitudinal, lateral) and yaw-rate noise over every step, rotated into t
 
 Observation (LandmarkObservation): range r = |l - p| (m) and bearing b = atan2(l - p) - psi
 (rad, body frame, CCW from forward x), or the range alone when ``has_bearing`` is False.
+
+The motion and observation models are ``ekf_baseline.landmark_model``'s plain-float functions.
+LandmarkEkf runs its prediction and sightings in compiled kernels on them by default
+(``ekf_baseline.landmark_compiled``; docs/design/ekf_kernels.md); LandmarkSlamEkf, whose state
+grows, in Python.
 """
 
 from __future__ import annotations
