@@ -1,14 +1,16 @@
-"""Compiled (numba) hot path of the unicycle EKF and the 11-state IGVC EKF: prediction, the
-measurement models, the gate with its lock-out bookkeeping, the Joseph-form update and the
-innovation log, on preallocated arrays updated in place.
+"""Compiled (numba) hot path of the unicycle EKF, the 11-state IGVC EKF and the known-map
+landmark EKF (``lm_predict``, ``lm_sighting``; ``ekf_baseline.landmark_compiled``):
+prediction, the measurement models, the gate with its lock-out bookkeeping, the Joseph-form
+update and the innovation log, on preallocated arrays updated in place.
 
 Why: in Python every filter step costs ~20-40 us of interpreter and numpy call overhead for a
 few hundred floating-point operations (docs/results/ekf_speed.md). Here one ``process(m)``
 is one call of an entry point below (~0.5 us of call overhead, ~0.3-1 us of arithmetic).
 
 The maths is the Python filters': the measurement models (``unicycle_measurements``,
-``igvc_measurements``), the motion models (``unicycle_motion``, ``igvc_model``, the generated
-``igvc_jacobians``), the NIS of a block (``kalman.block_nis``) and the gate's lock-out streak
+``igvc_measurements``, ``landmark_model``), the motion models (``unicycle_motion``,
+``igvc_model``, the generated ``igvc_jacobians``, ``landmark_model``), the NIS of a block
+(``kalman.block_nis``) and the gate's lock-out streak
 rule (``ddfuse.estimation.lockout``) are plain-float functions both the reference path and
 these kernels call (compiled here through ``numba.extending.register_jitable``:
 ``kalman_jit_layout``), and so are the gain and the factored Joseph update
