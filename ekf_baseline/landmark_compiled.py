@@ -72,7 +72,7 @@ class LandmarkKernels:
     def process(self, m) -> None:
         """The filter's ``process``; compiled, an odometry sample with no sighting waiting, in
         stamp order and after no gap (71 651 of the 79 771 messages of mrclam1_robot1.bag) takes
-        the general path's steps without its dispatch: ~1.5 of its ~2.5 us were Python calls."""
+        the general path's steps without its dispatch (~1 us of the ~3 us a sample cost)."""
         if (self.compiled and m.__class__ is WheelOdometry and not self._pending
                 and self._t_odo is not None and m.t > self._t_odo and m.t >= self.newest_t
                 and not is_gap(m.t - self.t)):
