@@ -37,6 +37,7 @@ from ddfuse.ekf_baseline.kernel_codes import (  # noqa: F401 - re-exported for t
     DEFER,
     GROW,
     IGVC_KINDS,
+    LANDMARK_KINDS,
     REJECTED,
     T_ACCEL,
     T_GPS,
@@ -61,6 +62,7 @@ _KERNEL_SOURCES = ("ekf_baseline/kalman_jit.py", "ekf_baseline/kalman_jit_predic
                    "ekf_baseline/unicycle_motion.py",
                    "ekf_baseline/unicycle_measurements.py", "ekf_baseline/igvc_model.py",
                    "ekf_baseline/igvc_measurements.py", "ekf_baseline/igvc_jacobians.py",
+                   "ekf_baseline/landmark_model.py",
                    "ekf_baseline/kalman.py", "ekf_baseline/joseph.py", "factors/kinematics.py",
                    "estimation/lockout.py")
 _state: dict = {}
@@ -89,7 +91,8 @@ def kernels():
 def warm_up(which: str) -> None:
     """Compile or load the kernels of ``which`` ('unicycle' or 'igvc') once per process, on a
     tiny input, so that the first filter step does not pay for it. The seconds it took are in
-    COLD_COMPILE[which] (a cold compile when numba's cache was empty)."""
+    COLD_COMPILE[which] (a cold compile when numba's cache was empty). The landmark EKF's:
+    ``ekf_baseline.landmark_compiled.warm_up``."""
     if which in COLD_COMPILE:
         return
     t0 = time.perf_counter()

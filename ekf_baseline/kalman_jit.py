@@ -1,14 +1,16 @@
-"""Compiled (numba) hot path of the unicycle EKF and the 11-state IGVC EKF: prediction, the
-measurement models, the gate with its lock-out bookkeeping, the Joseph-form update and the
-innovation log, on preallocated arrays updated in place.
+"""Compiled (numba) hot path of the unicycle EKF, the 11-state IGVC EKF and the known-map
+landmark EKF (``lm_predict``, ``lm_sighting``; ``ekf_baseline.landmark_compiled``):
+prediction, the measurement models, the gate with its lock-out bookkeeping, the Joseph-form
+update and the innovation log, on preallocated arrays updated in place.
 
 Why: in Python every filter step costs ~20-40 us of interpreter and numpy call overhead for a
 few hundred floating-point operations (docs/results/ekf_speed.md). Here one ``process(m)``
 is one call of an entry point below (~0.5 us of call overhead, ~0.3-1 us of arithmetic).
 
 The maths is the Python filters': the measurement models (``unicycle_measurements``,
-``igvc_measurements``), the motion models (``unicycle_motion``, ``igvc_model``, the generated
-``igvc_jacobians``), the NIS of a block (``kalman.block_nis``) and the gate's lock-out streak
+``igvc_measurements``, ``landmark_model``), the motion models (``unicycle_motion``,
+``igvc_model``, the generated ``igvc_jacobians``, ``landmark_model``), the NIS of a block
+(``kalman.block_nis``) and the gate's lock-out streak
 rule (``ddfuse.estimation.lockout``) are plain-float functions both the reference path and
 these kernels call (compiled here through ``numba.extending.register_jitable``:
 ``kalman_jit_layout``), and so are the gain and the factored Joseph update
@@ -44,6 +46,7 @@ import math
 
 import numpy as np
 from ddfuse.ekf_baseline import igvc_measurements as im
+from ddfuse.ekf_baseline import landmark_model as lmm
 from ddfuse.ekf_baseline import unicycle_measurements as um
 from ddfuse.ekf_baseline.joseph import (
     accepted_rows,
@@ -85,6 +88,7 @@ from ddfuse.ekf_baseline.kalman_jit_layout import (  # noqa: F401 - the layout
     IP_OFF_WALK,
     IP_OFF_WALKV,
     IP_OFF_ZI,
+    IP_SLIP,
     IP_WTRUE,
     K_GPS,
     K_GYRO,
@@ -98,6 +102,7 @@ from ddfuse.ekf_baseline.kalman_jit_layout import (  # noqa: F401 - the layout
     KI_HEAD,
     KI_ODOM,
     KI_WHEELS,
+    KL_LANDMARK,
     LG_COLS,
     MAXANG,
     MAXB,
@@ -129,11 +134,17 @@ from ddfuse.ekf_baseline.kalman_jit_layout import (  # noqa: F401 - the layout
     SK_OKT,
     SK_T0,
 )
-from ddfuse.ekf_baseline.kalman_jit_predict import _igvc_predict, _uni_predict, _wrap_states
+from ddfuse.ekf_baseline.kalman_jit_predict import (
+    _igvc_predict,
+    _lm_predict,
+    _uni_predict,
+    _wrap_states,
+)
 from ddfuse.ekf_baseline.kernel_codes import (  # noqa: F401 - re-exported: the kernels' codes
     DEFER,
     GROW,
     IGVC_KINDS,
+    LANDMARK_KINDS,
     REJECTED,
     T_ACCEL,
     T_GPS,
@@ -407,8 +418,9 @@ def _block(blk, r0, m, nb, s, k):
 # ----------------------------------------------------------------------------- entry points
 # explicit signatures: arguments are converted to these types (an int reading, a bool flag),
 # never compiled again for another combination of argument types
-_ARRAYS = ("float64[::1], int64[::1], float64[:, ::1], float64[:, ::1], int64[:, ::1], "
-           "float64[:, ::1], float64, float64")
+_TABLES = ("float64[::1], int64[::1], float64[:, ::1], float64[:, ::1], int64[:, ::1], "
+           "float64[:, ::1]")  # fp, ip, W, sf, si, lg
+_ARRAYS = f"{_TABLES}, float64, float64"
 _EVENT_SIG = (f"int64({_ARRAYS}, int64, int64, float64, float64, float64, float64, float64, "
               "float64, int64, float64)")
 _STACKED_SIG = f"int64({_ARRAYS}, float64[:, ::1], int64)"
@@ -517,6 +529,35 @@ def uni_stacked(fp, ip, W, sf, si, lg, dt, t, mb, k):
             if int(mb[i, 0]) == T_GPS and first[i] >= 0:  # its one block's verdict
                 mb[i, 8] = 1.0 if zi[first[i]] == 0 else 0.0
     return code
+
+
+@njit("void(float64[::1], int64[::1], float64[:, ::1], float64, float64, float64, float64, "
+      "float64, float64)", cache=True)
+def lm_predict(fp, ip, W, dt, v, w, v_var, w_var, tau):
+    """The landmark EKF's prediction by ``dt`` s (> 0) with the odometry's twist (v m/s,
+    w rad/s), its variances and sample period ``tau`` s (``kalman_jit_predict._lm_predict``)."""
+    _lm_predict(fp, ip, W, ip[IP_N], dt, v, w, v_var, w_var, tau)
+
+
+@njit(f"int64({_TABLES}, float64, int64, float64, float64, int64, float64, float64, "
+      "float64, float64)", cache=True)
+def lm_sighting(fp, ip, W, sf, si, lg, t, s, lx, ly, bearing, zr, zb, rr, rb):
+    """One sighting at ``t`` (s) by the sensor of row ``s`` of the known landmark (lx, ly) m:
+    range ``zr`` (m, variance ``rr``) and, when ``bearing`` != 0, bearing ``zb`` (rad, variance
+    ``rb``) (``landmark_model.landmark_rows``), gated and fused as the landmark EKF's
+    KalmanCore.update (kind 'landmark'). No prediction. Returns the module's bits; DEFER also
+    when the landmark is at the body origin (the Python path counts it as degenerate)."""
+    if ip[IP_LOGN] + MAXB > ip[IP_LOGCAP]:
+        return GROW
+    n = ip[IP_N]
+    H, Ut, y, R, S, blk, Z, zf, zi, fs = _event_scratch(fp, ip, W, n)
+    _zero_rows(H, R, 0, MAXR)
+    m = lmm.landmark_rows(fp[FP_X:FP_X + n], lx, ly, bearing != 0, zr, zb, rr, rb, H, y, R, 0)
+    if m == 0:
+        return DEFER
+    nr, nb = _block(blk, 0, m, 0, s, KL_LANDMARK)
+    fs[0] = 1.0
+    return _update(fp, ip, W, sf, si, lg, t, H, y, R, blk, nb, nr, Ut, S, Z, zf, zi, fs)
 
 
 @njit("float64[:, ::1](float64[:, ::1], int64, float64)", cache=True)

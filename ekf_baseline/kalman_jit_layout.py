@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from ddfuse.ekf_baseline import igvc_jacobians as gen
 from ddfuse.ekf_baseline import igvc_measurements as im
+from ddfuse.ekf_baseline import landmark_model as lmm
 from ddfuse.ekf_baseline import unicycle_measurements as um
 from ddfuse.ekf_baseline.igvc_model import igvc_q_values
 from ddfuse.ekf_baseline.kalman import block_nis
@@ -27,7 +28,9 @@ for _f in (twist_coeffs, se2_step_jac, antenna_position, euler_step_jac,
            igvc_q_values, gen.euler_step_sparse, gen.icc_step_sparse, um.delayed_gps_terms,
            um.gyro_rows, um.heading_rows, um.speed_rows, um.yaw_rate_rows, um.gps_rows,
            um.wheel_rows, im.gyro_rows, im.heading_rows, im.accel_rows, im.odometry_rows,
-           im.wheel_rows, im.gps_rows, block_nis, gate_streak, lockout_due, holdoff_over):
+           im.wheel_rows, im.gps_rows, block_nis, gate_streak, lockout_due, holdoff_over,
+           lmm.range_bearing_terms, lmm.landmark_rows, lmm.odometry_step,
+           lmm.odometry_noise_terms):
     register_jitable(_f)
 
 
@@ -58,6 +61,8 @@ IP_LIE = 19  # unicycle: 1 when the pose error is in SE(2) exponential coordinat
 # the position correction by pose_correct
 IP_WTRUE = 20  # unicycle with scale states: 1 when state 4 is the true yaw rate (a gyro is
 # fused), 0 when it is the odometry's (UnicycleEkf._w_true)
+IP_SLIP = 21  # landmark EKF: 1 when the robot's slip (FP_NOISE: longitudinal, lateral m^2/s,
+# heading rad^2/s) is stated
 IP_ANG = 24  # angle state indices (up to 8)
 MAXANG = 8
 IP_OFF_ZI = 15  # offset in ip of the event kernels' block table (MAXB, 4), then int scratch
@@ -92,3 +97,5 @@ LG_COLS = 12
 # kinds (slots, UNI_KINDS / IGVC_KINDS) of the unicycle filter, and of the igvc filter
 K_GYRO, K_HEAD, K_V, K_YAWRATE, K_WHEELS, K_GPS = range(6)
 KI_GYRO, KI_HEAD, KI_ACCEL, KI_ODOM, KI_WHEELS, KI_GPS = range(6)
+# the landmark EKF's one kind (LANDMARK_KINDS)
+KL_LANDMARK = 0

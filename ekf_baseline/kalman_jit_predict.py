@@ -1,7 +1,8 @@
 """The compiled EKF kernels' prediction (numba): the sparse covariance propagation and the
-unicycle and IGVC steps, on the arrays of ``ddfuse.ekf_baseline.kalman_jit`` (its module
-docstring), called by its entry points. The models are the Python filters' own functions
-(``unicycle_motion``, ``igvc_jacobians``, ``igvc_model``), compiled as they are."""
+unicycle, IGVC and landmark EKFs' steps, on the arrays of ``ddfuse.ekf_baseline.kalman_jit``
+(its module docstring), called by its entry points. The models are the Python filters' own
+functions (``unicycle_motion``, ``igvc_jacobians``, ``igvc_model``, ``landmark_model``),
+compiled as they are."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import math
 
 from ddfuse.ekf_baseline import igvc_jacobians as gen
 from ddfuse.ekf_baseline import kalman_jit_layout as lay
+from ddfuse.ekf_baseline import landmark_model as lmm
 from ddfuse.ekf_baseline.igvc_model import igvc_q_values
 from ddfuse.ekf_baseline.unicycle_motion import (
     euler_step_jac,
@@ -185,3 +187,46 @@ def _igvc_predict(fp, ip, W, n, dt_total):
             x[k] = f[k]
         _wrap_states(x, ip)
         _propagate_cov(fp, ip, W, n, dt)
+
+
+@njit(cache=True)
+def _lm_predict(fp, ip, W, n, dt, v, w, v_var, w_var, tau):
+    """The landmark EKF's predict_to for dt > 0 s (``ekf_baseline.landmark``): the pose moved
+    by the odometry's twist (v m/s, w rad/s) times the scale states (IP_KS >= 0) or 1
+    (``landmark_model.odometry_step``; IP_MOTION 1: Euler), F its Jacobian (with the scale
+    states' columns) and Q ``landmark_model.odometry_noise_terms`` of the odometry's variances
+    (v_var, w_var) held for its period ``tau`` s and the slip (IP_SLIP, FP_NOISE). F's and Q's
+    entries in LandmarkKernels._compiled_core's order."""
+    x = fp[lay.FP_X:lay.FP_X + n]
+    ks = ip[lay.IP_KS]
+    kv = 1.0
+    kw = 1.0
+    if ks >= 0:
+        kv = x[ks]
+        kw = x[ks + 1]
+    psi = x[2]
+    x1, y1, p1, J = lmm.odometry_step(x[0], x[1], psi, kv * v, kw * w, dt,
+                                      ip[lay.IP_MOTION] != 0)
+    nz = lay.FP_NOISE
+    q = lmm.odometry_noise_terms(J, kv, kw, v_var, w_var, tau, dt, psi, fp[nz], fp[nz + 1],
+                                 fp[nz + 2], ip[lay.IP_SLIP] != 0)
+    ofv = ip[lay.IP_OFF_FVAL]
+    fp[ofv + 1] = J[0][2]
+    fp[ofv + 3] = J[1][2]
+    if ks >= 0:  # d pose1 / d (k_v, k_w)
+        fp[ofv + 5] = J[0][3] * v
+        fp[ofv + 6] = J[0][4] * w
+        fp[ofv + 7] = J[1][3] * v
+        fp[ofv + 8] = J[1][4] * w
+        fp[ofv + 9] = J[2][4] * w
+    oqv = ip[lay.IP_OFF_QVAL]
+    for k in range(6):  # the upper triangle, then (1, 0), (2, 0), (2, 1)
+        fp[oqv + k] = q[k]
+    fp[oqv + 6] = q[1]
+    fp[oqv + 7] = q[2]
+    fp[oqv + 8] = q[4]
+    x[0] = x1
+    x[1] = y1
+    x[2] = _wrap(p1)  # (landmark.motion_step's wrap, then KalmanCore.predict's)
+    _wrap_states(x, ip)
+    _propagate_cov(fp, ip, W, n, dt)

@@ -13,3 +13,4 @@ T_NONE, T_GYRO, T_HEAD, T_ODOM, T_GPS, T_WHEELS, T_ACCEL, T_HEAD_POSE = range(8)
 # K_* / KI_* order
 UNI_KINDS = ("gyro", "heading", "v", "yaw_rate", "wheels", "gps")
 IGVC_KINDS = ("gyro", "heading", "accel", "odometry", "wheels", "gps")
+LANDMARK_KINDS = ("landmark",)

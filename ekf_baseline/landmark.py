@@ -38,6 +38,11 @@ noise (longitudinal, lateral) and yaw-rate noise over every step, rotated into t
 
 Observation (LandmarkObservation): range r = |l - p| (m) and bearing b = atan2(l - p) - psi
 (rad, body frame, CCW from forward x), or the range alone when ``has_bearing`` is False.
+
+The motion and observation models are ``ekf_baseline.landmark_model``'s plain-float functions.
+LandmarkEkf runs its prediction and sightings in compiled kernels on them by default
+(``ekf_baseline.landmark_compiled``; docs/design/ekf_kernels.md); LandmarkSlamEkf, whose state
+grows, in Python.
 """
 
 from __future__ import annotations
@@ -46,8 +51,15 @@ import math
 
 import numpy as np
 from ddfuse.ekf_baseline import GIVEN_POSE_STD
+from ddfuse.ekf_baseline import compiled as jit
 from ddfuse.ekf_baseline.calibration import ScaleStates
 from ddfuse.ekf_baseline.kalman import KalmanCore
+from ddfuse.ekf_baseline.landmark_compiled import LandmarkKernels, warm_up
+from ddfuse.ekf_baseline.landmark_model import (
+    MIN_RANGE,
+    odometry_step,
+    range_bearing_terms,
+)
 from ddfuse.estimation.config import DEFAULT_GATE, LANDMARK_NOT_IN_MAP, Config, landmark_maps
 from ddfuse.estimation.estimator import Estimate, Estimator
 from ddfuse.estimation.gaps import gap_note, grown_pose_cov, is_gap
@@ -57,7 +69,6 @@ from ddfuse.estimation.measurements import (
     WheelOdometry,
     WheelSpeeds,
 )
-from ddfuse.factors.kinematics import se2_step_jac
 
 __all__ = [
     "LandmarkEkf",
@@ -70,8 +81,8 @@ __all__ = [
 _PI = math.pi
 _TWO_PI = 2.0 * math.pi
 _GIVEN_STD = (GIVEN_POSE_STD[0], GIVEN_POSE_STD[0], GIVEN_POSE_STD[1])  # x, y, psi
-MIN_RANGE = 1e-6  # m: a sighting from (or a landmark at) the body origin has no bearing
 TAU_BOUNDS = (1e-3, 0.5)  # s: the odometry sample period is clamped to this range
+_TAU_LO, _TAU_HI = TAU_BOUNDS
 
 
 def _wrap(a: float) -> float:
@@ -79,38 +90,32 @@ def _wrap(a: float) -> float:
 
 
 def motion_step(pose, v: float, w: float, dt: float, motion: str = "exact"):
-    """Pose after ``dt`` s of constant (v m/s, w rad/s) from ``pose`` (x m, y m, psi rad).
+    """Pose after ``dt`` s of constant (v m/s, w rad/s) from ``pose`` (x m, y m, psi rad)
+    (``landmark_model.odometry_step``).
 
     Returns (pose1 (3,), F (3, 3) = d pose1 / d pose, G (3, 2) = d pose1 / d (v, w)); psi1 is
     wrapped to [-pi, pi)."""
-    x, y, psi = pose
-    if motion == "exact":
-        x1, y1, p1, J = se2_step_jac(x, y, psi, v, w, dt)
-        J = np.array(J)
-        return np.array([x1, y1, _wrap(p1)]), J[:, :3], J[:, 3:]
-    if motion == "euler":
-        c, s = math.cos(psi), math.sin(psi)
-        F = np.array([[1.0, 0.0, -v * s * dt], [0.0, 1.0, v * c * dt], [0.0, 0.0, 1.0]])
-        G = np.array([[c * dt, 0.0], [s * dt, 0.0], [0.0, dt]])
-        return np.array([x + v * c * dt, y + v * s * dt, _wrap(psi + w * dt)]), F, G
-    raise ValueError(f"motion must be 'exact' or 'euler', got {motion!r}")
+    if motion not in ("exact", "euler"):
+        raise ValueError(f"motion must be 'exact' or 'euler', got {motion!r}")
+    x1, y1, p1, J = odometry_step(pose[0], pose[1], pose[2], v, w, dt, motion == "euler")
+    J = np.array(J)
+    return np.array([x1, y1, _wrap(p1)]), J[:, :3], J[:, 3:]
 
 
 def range_bearing(pose, landmark, with_bearing: bool = True):
-    """Predicted (range m, bearing rad) of ``landmark`` (x, y) from ``pose`` (x, y, psi).
+    """Predicted (range m, bearing rad) of ``landmark`` (x, y) from ``pose`` (x, y, psi)
+    (``landmark_model.range_bearing_terms``).
 
     Returns (h (m,), Hp (m, 3) = dh/d pose, Hl (m, 2) = dh/d landmark), m = 2, or 1 (range
     only) without ``with_bearing``; the bearing is wrapped to [-pi, pi). Raises ValueError when
     the landmark is at the body origin (range < MIN_RANGE), where the bearing is undefined."""
-    dx = landmark[0] - pose[0]
-    dy = landmark[1] - pose[1]
-    q = dx * dx + dy * dy
-    r = math.sqrt(q)
+    r, b, ar, br, aq, bq = range_bearing_terms(float(pose[0]), float(pose[1]), float(pose[2]),
+                                               float(landmark[0]), float(landmark[1]))
     if r < MIN_RANGE:
         raise ValueError("landmark at the body origin")
-    Hl = np.array([[dx / r, dy / r], [-dy / q, dx / q]])
-    Hp = np.array([[-dx / r, -dy / r, 0.0], [dy / q, -dx / q, -1.0]])
-    h = np.array([r, _wrap(math.atan2(dy, dx) - pose[2])])
+    Hl = np.array([[ar, br], [-aq, bq]])
+    Hp = np.array([[-ar, -br, 0.0], [aq, -bq, -1.0]])
+    h = np.array([r, b])
     if not with_bearing:
         return h[:1], Hp[:1], Hl[:1]
     return h, Hp, Hl
@@ -142,8 +147,13 @@ class _OdometryDrivenEkf(Estimator):
         initial_pose: tuple[float, float, float] | None,
         motion: str,
         init_std: tuple[float, float, float],
+        compiled: bool = False,
     ) -> None:
         super().__init__()
+        self.compiled = bool(compiled)
+        if self.compiled:
+            warm_up()  # compile / load the kernels now, not in the first step
+            self.log = jit.BufferedLog()
         if motion not in ("exact", "euler"):
             raise ValueError(f"motion must be 'exact' or 'euler', got {motion!r}")
         self.cfg = cfg
@@ -184,7 +194,10 @@ class _OdometryDrivenEkf(Estimator):
             x0 = np.concatenate([x0, [1.0, 1.0]])
             P0 = np.pad(P0, ((0, 2), (0, 2)))
             self._scale.set_prior(x0, P0)
-        self.kf = KalmanCore(x0, P0, self.log, state_angles=(2,))
+        if self.compiled:
+            self.kf = self._compiled_core(x0, P0)
+        else:
+            self.kf = KalmanCore(x0, P0, self.log, state_angles=(2,))
 
     def _gate(self, sensor: str) -> float | None:
         return self._gates.get(sensor, DEFAULT_GATE)
@@ -198,18 +211,32 @@ class _OdometryDrivenEkf(Estimator):
         dt = t - self.t
         if dt <= 0.0:
             return
+        if self.compiled:  # (inline: ~0.3 us a call of 3 us per odometry sample)
+            kf, tau = self.kf, self.tau
+            self._lm_predict(kf.fp, kf.ip, kf.W, dt, self.v, self.w, self.v_var, self.w_var,
+                             dt if tau is None else tau)
+            self.t = t
+            return
         kf = self.kf
-        kv, kw = (float(kf.x[3]), float(kf.x[4])) if self.n_base == 5 else (1.0, 1.0)
-        pose1, Fp, G = motion_step(kf.x[:3], kv * self.v, kw * self.w, dt, self.motion)
+        x = kf.x.tolist()
+        kv, kw = (x[3], x[4]) if self.n_base == 5 else (1.0, 1.0)
+        x1, y1, p1, J = odometry_step(x[0], x[1], x[2], kv * self.v, kw * self.w, dt,
+                                      self.motion == "euler")
+        J = np.array(J)
+        Fp, G = J[:, :3], J[:, 3:]
         self._first_estimates_motion(Fp)
         tau = self.tau if self.tau is not None else dt
+        # numpy's products, not landmark_model.odometry_noise_terms (the kernels' Q): summed in
+        # another order, they move ekf_slam's track on mrclam1_robot1.bag by 1e-8
+        # (docs/design/ekf_kernels.md)
         Qp = (G * np.array([kv * kv * self.v_var, kw * kw * self.w_var])) @ G.T * (tau / dt)
         if self._slip is not None:
             ql, qt, qh = self._slip
-            c, sn = math.cos(float(kf.x[2])), math.sin(float(kf.x[2]))
+            c, sn = math.cos(x[2]), math.sin(x[2])
             Qp = Qp + dt * np.array(((c * c * ql + sn * sn * qt, c * sn * (ql - qt), 0.0),
                                      (c * sn * (ql - qt), sn * sn * ql + c * c * qt, 0.0),
                                      (0.0, 0.0, qh)))
+        pose1 = (x1, y1, _wrap(p1))
         n = kf.n
         if n == 3:
             F, Q = Fp, Qp
@@ -220,9 +247,9 @@ class _OdometryDrivenEkf(Estimator):
                 F[:3, 3:5] = G * np.array([self.v, self.w])  # d pose1 / d (k_v, k_w)
             Q = np.zeros((n, n))
             Q[:3, :3] = Qp
-        x1 = kf.x.copy()
-        x1[:3] = pose1
-        kf.predict(F, Q, x1)
+        xn = kf.x.copy()
+        xn[:3] = pose1
+        kf.predict(F, Q, xn)
         self.t = t
         self._pose_prior = kf.x[:3].copy()
 
@@ -238,8 +265,10 @@ class _OdometryDrivenEkf(Estimator):
             self.log.rejected[key] += 1
         self.v, self.v_var = (v, v_var) if v is not None else (0.0, 1.0)
         self.w, self.w_var = (w, w_var) if w is not None else (0.0, 1.0)
-        if self._t_odo is not None and t > self._t_odo:
-            self.tau = min(max(t - self._t_odo, TAU_BOUNDS[0]), TAU_BOUNDS[1])
+        t_odo = self._t_odo
+        if t_odo is not None and t > t_odo:  # clamped to TAU_BOUNDS (no min/max: ~0.1 us)
+            d = t - t_odo
+            self.tau = _TAU_LO if d < _TAU_LO else _TAU_HI if d > _TAU_HI else d
         self._t_odo = t
 
     # ------------------------------------------------------------------ Estimator
@@ -300,7 +329,8 @@ class _OdometryDrivenEkf(Estimator):
             self._set_control(t, v, w, v_var, w_var, sensor)
             return
         self._set_control(t, v, w, v_var, w_var, sensor)
-        self._flush()
+        if self._pending:
+            self._flush()
         self.predict_to(t)
 
     def _flush(self) -> None:
@@ -357,14 +387,19 @@ class _OdometryDrivenEkf(Estimator):
         )
 
 
-class LandmarkEkf(_OdometryDrivenEkf):
+class LandmarkEkf(LandmarkKernels, _OdometryDrivenEkf):
     """Seed 002's EKF localising in a known landmark map.
 
     ``landmarks`` maps id -> (x, y) (m, map/local frame); default: the maps of the config's
     landmark sensors. ``initial_pose`` (x, y, psi) overrides the config's; with 'ground_truth'
     in the config the filter starts at the first GroundTruthPose it is given (or pass
     ``stream.ground_truth[0]``'s pose). ``init_std`` are the initial standard deviations of
-    (x m, y m, psi rad). ``motion`` is 'exact' (constant-twist arc) or 'euler' (the seed's)."""
+    (x m, y m, psi rad). ``motion`` is 'exact' (constant-twist arc) or 'euler' (the seed's).
+    ``compiled`` (default): the prediction and the sightings run in the numba kernels of
+    ``ekf_baseline.kalman_jit`` (``landmark_compiled``; what they defer -- a gate lock-out's
+    recovery, a singular S, a landmark at the body origin -- in the Python update on the same
+    arrays); False: all in Python (numpy). The tests compare the two
+    (tests/test_landmark_compiled.py; docs/design/ekf_kernels.md)."""
 
     name = "landmark_ekf"
 
@@ -376,8 +411,10 @@ class LandmarkEkf(_OdometryDrivenEkf):
         landmarks: dict[str, tuple[float, float]] | None = None,
         motion: str = "exact",
         init_std: tuple[float, float, float] = _GIVEN_STD,
+        compiled: bool = True,
     ) -> None:
-        super().__init__(cfg, initial_pose=initial_pose, motion=motion, init_std=init_std)
+        super().__init__(cfg, initial_pose=initial_pose, motion=motion, init_std=init_std,
+                         compiled=compiled)
         if landmarks is None:
             landmarks = landmark_maps(cfg)
         self.landmarks = {str(k): (float(v[0]), float(v[1])) for k, v in landmarks.items()}
@@ -388,7 +425,10 @@ class LandmarkEkf(_OdometryDrivenEkf):
             # the bag reader drops these already; fed directly, counted under its reason
             self.log.rejected[(m.sensor, LANDMARK_NOT_IN_MAP)] += 1
             return
-        self._measure(m, lm, None)
+        if self.compiled:
+            self._sighting_compiled(m, lm)
+        else:
+            self._measure(m, lm, None)
 
     def estimate(self) -> Estimate | None:
         return self._pose_estimate(("x", "y", "yaw"))
