@@ -267,6 +267,9 @@ def _husky_slice(seconds: float, white_gps: bool = False):
     return cfg, stream, [m for m in stream.measurements if m.t <= t_end]
 
 
+# slow: the agreement the synthetic streams (lock-out and recovery, every sensor kind), the
+# sample bag and test_gps_correlation_ekf (correlated fixes) check, on 80 s of real data
+@pytest.mark.slow
 @pytest.mark.parametrize("rate, white_gps", [("event", True), (10.0, True), ("event", False)])
 def test_unicycle_compiled_matches_reference_on_husky_bag(rate, white_gps):
     """The first 80 s of the real Husky bag (compass offset and gyro bias estimated, the GPS
@@ -297,6 +300,7 @@ def test_unicycle_compiled_matches_reference_on_sample_bag(rate):
     assert fast.state_names[-2:] == ("k_v", "k_w") and fast.noise.acc < 1.0
 
 
+@pytest.mark.slow  # test_igvc_compiled_matches_reference(_lockout)'s agreement on real data
 def test_igvc_compiled_matches_reference_on_husky_bag():
     cfg, stream, ms = _husky_slice(80.0)
     fast = _run_both(_igvc(cfg, datum=stream.datum), ms)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
 from ddfuse.evaluation import cli, plots
 from ddfuse.evaluation.online import online_frame
 from ddfuse.evaluation.shipped import config_for
@@ -19,6 +20,15 @@ def _online_header(bag: Path, capsys) -> str:
     return capsys.readouterr().out.splitlines()[0]
 
 
+def test_online_names_the_landmark_maps_frame_on_the_seed002_sample(capsys):
+    """The landmark sample has no GPS: the frame is the landmark map's, as run's report says,
+    not ENU."""
+    head = _online_header(SEED002, capsys)
+    assert "ENU" not in head and "east" not in head
+    assert "in the landmark map's frame (yaw counter-clockwise from x)" in head
+
+
+@pytest.mark.slow  # the seed002 test above on 25 min of real data (30 s here)
 def test_online_names_the_landmark_maps_frame_on_mrclam(mrclam_bag, capsys):
     """MRCLAM has no GPS: the frame is the landmark map's, as run's report says, not ENU
    ."""

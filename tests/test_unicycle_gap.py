@@ -69,11 +69,13 @@ def test_a_gap_while_turning_is_predicted_as_in_fine_steps(data, gap):
 @pytest.mark.parametrize("rate", ["event", 10.0])
 def test_the_compiled_filter_splits_a_gap_as_the_reference(data, rate):
     """Both paths (the numba kernels, the reference) predict a 3.3 s gap in the same equal
-    steps, so they still agree to 1e-9."""
+    steps, so they still agree to 1e-9 (over the 15 s after it: the whole sample's agreement
+    is test_ekf_compiled's)."""
     cfg, stream, _, turn = data
     cfg = load_config(CFG)
     cfg.ekf.rate = rate
-    ms = [m for m in stream.measurements if not turn < m.t < turn + 3.3]
+    ms = [m for m in stream.measurements
+          if m.t < turn + 3.3 + 15.0 and not turn < m.t < turn + 3.3]
     assert any(b.t - a.t > 3.0 for a, b in zip(ms, ms[1:], strict=False))
     assert 3.0 / MAX_PREDICT_DT > 20
     pose = initial_pose(cfg.initial_pose, stream)
