@@ -23,6 +23,10 @@ with Applications to Tracking and Navigation*, 2001, sec. 6.5.3):
 A g-h pair chosen by hand has no such tie to the noise: it is stable for 0 < g, 0 < h < 4 - 2g,
 and its error then depends on how far it is from the Kalata pair (docs/design/gh_filter.md).
 
+The same holds one order up: seed 004's constant-acceleration filter
+(``linear.ConstantAccelerationKF``, state (p, v, a)) tends to the g-h-k filter of
+:func:`ghk_gains` (:class:`GHKFilter`; the acceleration moves by 2 k r / dt^2).
+
 Pure math: the plots are in ``ddfuse.evaluation.gh_figure``; the Kalman filter is
 :class:`ddfuse.ekf_baseline.kalman.KalmanCore`, as in ``linear.py``.
 """
@@ -34,6 +38,7 @@ from collections.abc import Sequence
 
 import numpy as np
 from ddfuse.ekf_baseline.kalman import KalmanCore
+from ddfuse.ekf_baseline.linear import ca_process_noise, ca_transition
 from scipy.linalg import solve_discrete_are
 
 __all__ = [
@@ -44,6 +49,9 @@ __all__ = [
     "steady_state_gain",
     "cv_kalman",
     "cv_track",
+    "GHKFilter",
+    "ghk_gains",
+    "ca_track",
 ]
 
 _H = np.array([[1.0, 0.0]])
@@ -135,4 +143,43 @@ def cv_track(rng: np.random.Generator, n: int, dt: float, accel_std: float, meas
     for k in range(n):
         x = F @ x + G * (accel_std * rng.normal())
         truth[k] = x
+    return truth, truth[:, 0] + meas_std * rng.normal(size=n)
+
+
+class GHKFilter:
+    """The g-h-k filter of a 1-D constant-acceleration state (x m, dx m/s, ddx m/s^2): fixed
+    gains g, h, k; the residual r moves x by g r, dx by h r / dt and ddx by 2 k r / dt^2."""
+
+    def __init__(self, x0: Sequence[float], g: float, h: float, k: float) -> None:
+        self.x = np.asarray(x0, dtype=float).copy()
+        self.g, self.h, self.k = float(g), float(h), float(k)
+
+    def step(self, z: float, dt: float) -> np.ndarray:
+        """Predict ``dt`` s ahead and fuse the position ``z`` (m); returns (x, dx, ddx)."""
+        xp = ca_transition(dt) @ self.x
+        r = z - xp[0]
+        self.x = xp + r * np.array([self.g, self.h / dt, 2.0 * self.k / (dt * dt)])
+        return self.x.copy()
+
+
+def ghk_gains(dt: float, jerk_psd: float, meas_std: float) -> tuple[float, float, float]:
+    """The steady-state (g, h, k) of ``linear.ConstantAccelerationKF``'s one-axis model (white
+    jerk of density ``jerk_psd``, m^2/s^5; readings of ``meas_std`` m): its Kalman gain tends
+    to (g, h / dt, 2 k / dt^2)."""
+    K = steady_state_gain(ca_transition(dt), np.array([[1.0, 0.0, 0.0]]),
+                          ca_process_noise(dt, jerk_psd), np.array([[meas_std * meas_std]]))
+    return float(K[0, 0]), float(K[1, 0] * dt), float(K[2, 0] * dt * dt / 2.0)
+
+
+def ca_track(rng: np.random.Generator, n: int, dt: float, jerk_psd: float, meas_std: float,
+             x0: Sequence[float] = (0.0, 1.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
+    """A truth drawn from ``linear.ConstantAccelerationKF``'s one-axis model and its position
+    readings: (n, 3) true (x, dx, ddx) at steps 1..n and the (n,) readings (m)."""
+    F, Q = ca_transition(dt), ca_process_noise(dt, jerk_psd)
+    w = rng.multivariate_normal(np.zeros(3), Q, size=n)
+    x = np.asarray(x0, dtype=float)
+    truth = np.empty((n, 3))
+    for i in range(n):
+        x = F @ x + w[i]
+        truth[i] = x
     return truth, truth[:, 0] + meas_std * rng.normal(size=n)
