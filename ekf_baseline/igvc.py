@@ -127,7 +127,8 @@ class IgvcEkf(IgvcStart, IgvcKernels, Estimator):
     the measurements since its first fix replayed; without GPS
     it starts at the origin with yaw 0. ``datum`` (lat deg, lon deg, alt m) is the local ENU
     origin (``stream.datum``); default the config's, else the first fix. ``motion`` is 'euler'
-    (seed eq. 14) or 'icc' (seed appendix A). Prediction steps are at most ``max_step`` s.
+    (seed eq. 14) or 'icc' (seed appendix A); default the config's ``ekf_igvc.motion``.
+    Prediction steps are at most ``max_step`` s.
     ``reference``: run the Python reference (``KalmanCore.update_blocks``) instead of the
     compiled kernels of ``ekf_baseline.kalman_jit`` (the generated Jacobian compiled as it is;
     what they defer runs the reference's code on the same arrays), as UnicycleEkf.
@@ -141,13 +142,14 @@ class IgvcEkf(IgvcStart, IgvcKernels, Estimator):
         *,
         initial_pose: tuple[float, float, float] | None = None,
         datum: tuple[float, float, float] | None = None,
-        motion: str = "euler",
+        motion: str | None = None,
         noise: IgvcNoise | None = None,
         max_step: float = 0.05,
         course_distance: float = 3.0,
         reference: bool = False,
     ) -> None:
         super().__init__()
+        motion = cfg.ekf_igvc.motion if motion is None else motion
         if motion not in ("euler", "icc"):
             raise ValueError(f"motion must be 'euler' or 'icc', got {motion!r}")
         self.cfg = cfg

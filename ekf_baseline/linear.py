@@ -83,7 +83,9 @@ class Kalman1D:
         """Fuse a direct measurement ``z`` (m) of the state; returns False if gated out.
 
         The gain is var / (var + meas_var), the seed's formula; the state moves by the gain
-        times the residual z - x (the seed's pseudocode forgets the residual)."""
+        times the residual z - x (the seed's pseudocode forgets the residual). ``z`` is an
+        absolute position: an encoder *increment* since the last step is the motion input
+        (``predict``'s velocity = increment / dt), not a measurement (errata 004 #15)."""
         r = self.meas_var if meas_var is None else meas_var
         return self.kf.update(self.t, self.sensor, "position", [z], [self.x], self._one,
                               [[r]], gate=self.gate)

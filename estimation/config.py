@@ -19,6 +19,7 @@ Shape (every key documented in README.md)::
     initial_pose: ground_truth           # or [x, y, yaw]; default origin
     smoother: {lag: 10.0, keyframe: gps, robust: huber}
     ekf: {rate: event}
+    ekf_igvc: {motion: euler}            # or icc: seed 000's exact arc (appendix A)
     reorder_window: 0.5
     node: {rate: 20, tf: smoother, diagnostics_period: 1.0, topic_timeout: 2.0, nis_window: 30}
 
@@ -187,6 +188,13 @@ class EkfConfig:
 
 
 @dataclass
+class IgvcConfig:
+    """``ekf_igvc``: seed 000's 11-state EKF (ekf_baseline/igvc.py)."""
+
+    motion: str = "euler"  # 'euler' (seed eq. 14) or 'icc' (the appendix's exact arc)
+
+
+@dataclass
 class NodeConfig:
     """``ddfuse node``'s publishing (evaluation/node.py)."""
 
@@ -257,6 +265,7 @@ class Config:
     initial_pose: str | tuple[float, float, float] | None = None
     smoother: SmootherConfig = field(default_factory=SmootherConfig)
     ekf: EkfConfig = field(default_factory=EkfConfig)
+    ekf_igvc: IgvcConfig = field(default_factory=IgvcConfig)
     reorder_window: float = 0.5  # s: messages older than this behind the newest are an error
     node: NodeConfig = field(default_factory=NodeConfig)
     path: Path | None = None  # the file, or the label the config was parsed under
@@ -446,7 +455,7 @@ def parse_config(raw: Any, source: str = "<config>", base: Path | None = None) -
     base = base or Path.cwd()
     top = (
         "sensors", "robot", "ground_truth", "frame", "initial_pose", "smoother", "ekf",
-        "reorder_window", "node",
+        "ekf_igvc", "reorder_window", "node",
     )
     d = ck.mapping(raw if raw is not None else {}, "", top)
     sensors_raw = ck.mapping(d.get("sensors") or {}, "sensors", SENSOR_KINDS)
@@ -556,6 +565,11 @@ def parse_config(raw: Any, source: str = "<config>", base: Path | None = None) -
         rate = e.get("rate", "event")
         cfg.ekf = EkfConfig(rate="event" if rate == "event"
                             else ck.number(rate, "ekf.rate", positive=True))
+    if "ekf_igvc" in d:
+        g = ck.mapping(d["ekf_igvc"] or {}, "ekf_igvc", ("motion",))
+        if "motion" in g:
+            cfg.ekf_igvc = IgvcConfig(motion=ck.choice(g["motion"], "ekf_igvc.motion",
+                                                       ("euler", "icc")))
     if "reorder_window" in d:
         cfg.reorder_window = ck.number(d["reorder_window"], "reorder_window", nonneg=True)
     if "node" in d:

@@ -519,11 +519,20 @@ def _facts(m: RunSummary) -> str:
             f"{srows}</table>")
 
 
+def estimator_options(cfg) -> str:
+    """The estimator options in effect (the config's ``ekf`` and ``ekf_igvc`` keys, defaults
+    included), e.g. "ekf.rate: event; ekf_igvc.motion: icc"; "–" without a saved config."""
+    if cfg is None:
+        return "–"
+    return f"ekf.rate: {cfg.ekf.rate}; ekf_igvc.motion: {cfg.ekf_igvc.motion}"
+
+
 def _config(run: SavedRun) -> str:
     m = run.summary
+    cfg = run_config(run)
     rows = [("estimators", ", ".join(m.estimators)),
-            ("not run", "; ".join(f"{n}: {why}" for n, why in not_run(m, run_config(run)))
-             or "–"),
+            ("not run", "; ".join(f"{n}: {why}" for n, why in not_run(m, cfg)) or "–"),
+            ("estimator options", estimator_options(cfg)),
             ("smoother lag", f"{m.lag_s} s"),
             ("GPS hold-out", str(m.gps_holdout or "none")),
             ("initial pose", str(m.initial_pose or "each estimator's default")),
