@@ -253,3 +253,18 @@ def test_the_twist_walk_is_a_parameter_starting_where_the_ekf_is(sim_bag):
     assert speed.start == pytest.approx(cfg.robot.max_accel * math.sqrt(0.1), rel=0.01)
     assert yaw.start == pytest.approx(cfg.robot.max_yaw_accel * math.sqrt(1 / 30), rel=0.01)
     assert yaw.unit == "rad/s/sqrt(s)"
+
+
+@pytest.mark.slow
+def test_a_value_the_data_drive_to_nothing_is_kept_small_not_put_back(sim_bag):
+    # the simulated robot does not slip: a heading slip of 0.05 rad/sqrt(s) widens the compass's
+    # S (0.05^2 / 30 Hz against its 0.02^2) and is informed at the start; the likelihood drives
+    # it down until it no longer shows. Putting the 0.05 back would undo the fit.
+    bag, yaml = sim_bag
+    cfg = load_config(yaml)
+    stream = read_stream(bag, cfg)
+    cfg.robot.slip = {**cfg.robot.slip, "heading": 0.05}
+    result = tune(cfg, stream, jobs=1)
+    got = {t.param.key: t for t in result.tuned}["robot.slip.heading"]
+    assert got.status == "negligible", (got.status, got.value, got.reason)
+    assert got.value < 0.005 and "no longer affects" in got.reason
