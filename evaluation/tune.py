@@ -54,6 +54,7 @@ AT_BOUND = 0.01  # a log value this close to a bound is at it
 # a value informed at the start that the search drove this factor down, to where it no longer
 # shows in the innovations, is kept there ('negligible'), not put back to the config's
 NEGLIGIBLE = 10.0
+PROCESS_NOISE = ("slip", "walk", "twist")  # Param kinds that are process noise densities
 MAX_ITER = 10  # candidate steps of one pass of the search (each one run per free value + 1)
 TRUST_START = 1.5  # the first step's largest change of a log value (a factor 4.5)
 TRUST_MAX = 3.0  # the trust radius on the log values never grows beyond this
@@ -151,8 +152,8 @@ class Tuned:
     the config had it (``status`` 'not informed'); ``status``: 'tuned', 'not informed',
     'at lower bound', 'at upper bound'; ``reason`` in words; ``se_log``: the standard error of
     its log (a relative standard error, to first order), None when not computed. Status
-    'negligible': informed at the start, driven down NEGLIGIBLE-fold or more to where the
-    innovations no longer show it; ``value`` is that small value."""
+    'negligible': a process noise informed at the start, driven down NEGLIGIBLE-fold or more
+    to where the innovations no longer show it; ``value`` is that small value."""
 
     param: Param
     value: float | None
@@ -327,9 +328,12 @@ def _search(problem: Problem, ev: Evaluator, progress, t_start: float) -> TuneRe
         p = params[i]
         se = float(math.sqrt(max(cov[k, k], 0.0)))
         status, reason = "tuned", ""
-        if info[k, k] < MIN_INFORMATION and xa[i] < x0[i] - math.log(NEGLIGIBLE):
-            # the data drove it down until it no longer shows in the innovations: the
-            # config's value (informed, and worse) must not come back; the small one stands
+        if info[k, k] < MIN_INFORMATION and xa[i] < x0[i] - math.log(NEGLIGIBLE) and \
+                p.kind in PROCESS_NOISE:
+            # process noise the data drove down until it no longer shows in the innovations:
+            # the config's value (informed, and worse) must not come back; the small one
+            # stands. (A measurement noise driven so low is not believed: it would make every
+            # estimator trust that sensor without limit; the config's stands, below.)
             tuned[i] = Tuned(p, float(np.exp(xa[i])), "negligible", (
                 f"the data want it at least {NEGLIGIBLE:g}x below its start, where it no longer "
                 f"affects the innovations (information {info[k, k]:.3g} on its log); kept "
