@@ -55,11 +55,13 @@ AT_BOUND = 0.01  # a log value this close to a bound is at it
 # shows in the innovations, is kept there ('negligible'), not put back to the config's
 NEGLIGIBLE = 10.0
 PROCESS_NOISE = ("slip", "walk", "twist")  # Param kinds that are process noise densities
-MAX_ITER = 10  # candidate steps of one pass of the search (each one run per free value + 1)
+MAX_ITER = 12  # iterations of one pass of the search (each 3 + p runs, p the free values)
+SHORT = 1.0 / 3.0  # the shortened scoring step, a fraction of the full one
 TRUST_START = 1.5  # the first step's largest change of a log value (a factor 4.5)
 TRUST_MAX = 3.0  # the trust radius on the log values never grows beyond this
 STOP_STEP = 0.01  # the search stops when a step changes no value by more than 1 %
-STOP_NLL = 1.0  # ... or lowers L by under this (nats: gate flips make L rough by about as much)
+STOP_NLL = 1.0  # ... or the scoring step predicts a decrease of L under this (nats: gate flips
+# make L rough by about as much)
 
 
 def tuning_estimator(cfg: Config) -> str:
@@ -367,29 +369,40 @@ def _scoring(values_at, derivs_at, x: np.ndarray, f: float, J: np.ndarray,
     ``hi``]. ``values_at(xs)``: L at each of the points xs (run in parallel);
     ``derivs_at(x)``: (J, F) at x (None, None where a run logged other innovations).
 
-    Each iteration takes two Levenberg-Marquardt damped steps, (H + mu diag(H)) d = -J' 1:
-    scoring (H = F'F, the expected information through the innovations' covariances) and
-    BHHH (H = J'J, the outer product of the scores); each capped at the trust radius and
-    projected onto the bounds. Both are run (in parallel) and the lower L taken when it is
+    Each iteration takes Levenberg-Marquardt damped steps, (H + mu diag(H)) d = -J' 1:
+    scoring (H = F'F, the expected information through the innovations' covariances), a
+    third of it, and BHHH (H = J'J, the outer product of the scores); each capped at the
+    trust radius and projected onto the bounds. They are run (in parallel) and the lowest L
+    taken when it is
     lower than here, then its p derivative runs; else the radius shrinks and mu grows. Scoring
     is the better step where the covariances carry the information (noise values far off: the
     scores' outer product is then inflated by the misfit and BHHH creeps), BHHH where the
     innovations' means do (process noise that moves the estimate). Stops when no step changes
-    a value by STOP_STEP (relative), an accepted one lowers L by under STOP_NLL, or after
-    MAX_ITER iterations. Returns the best point, its L and J, the accepted iterations and why
-    it stopped."""
+    a value by STOP_STEP (relative), the scoring step predicts a decrease of L under STOP_NLL
+    (not on a small accepted decrease: a short BHHH step lowers L a little far from the
+    optimum too), or after MAX_ITER iterations. Returns the best point, its L and J, the
+    accepted iterations and why it stopped."""
     radius, mu, iterations = TRUST_START, 0.0, 0
     for tried in range(MAX_ITER):
         g = J.sum(axis=0)
+        # scoring's step, a third of it (values that share innovations make F'F nearly
+        # singular and the full step overshoots along that direction), and BHHH's
+        steps = [_step(F.T @ F, g, mu, x, lo, hi, radius)] if F is not None else []
+        steps += [x + SHORT * (steps[0] - x)] if steps else []
+        steps += [_step(J.T @ J, g, mu, x, lo, hi, radius)]
+        # the decrease of L the first (scoring's) step predicts, to first order
+        predicted = -0.5 * float(g @ (steps[0] - x))
         cands = []
-        for H in ([F.T @ F] if F is not None else []) + [J.T @ J]:
-            xn = _step(H, g, mu, x, lo, hi, radius)
+        for xn in steps:
             moved = float(np.max(np.abs(xn - x))) if len(x) else 0.0
             if moved >= STOP_STEP and not any(np.allclose(xn, c) for c, _ in cands):
                 cands.append((xn, moved))
         if not cands:
             return x, f, J, iterations, (f"converged: the step changes no value by more than "
                                          f"{100 * STOP_STEP:g} %")
+        if predicted < STOP_NLL:
+            return x, f, J, iterations, (f"converged: the step would lower L by {predicted:.3g}"
+                                         f" (under {STOP_NLL:g})")
         fs = values_at([c for c, _ in cands])
         say("maximum likelihood", min((tried + 1) / MAX_ITER, 0.99))
         best = int(np.argmin(fs))
@@ -397,12 +410,8 @@ def _scoring(values_at, derivs_at, x: np.ndarray, f: float, J: np.ndarray,
         Jn, Fn = derivs_at(xn) if fs[best] < f else (None, None)
         if Jn is not None:
             iterations += 1
-            x, J, F, drop = xn, Jn, Fn, f - fs[best]
-            f = fs[best]
+            x, J, F, f = xn, Jn, Fn, fs[best]
             radius, mu = min(2.0 * max(radius, moved), TRUST_MAX), mu / 4.0
-            if drop < STOP_NLL:
-                return x, f, J, iterations, (f"converged: L changed by {drop:.3g} (under "
-                                             f"{STOP_NLL:g})")
         else:
             radius, mu = 0.25 * max(m for _, m in cands), max(4.0 * mu, 1e-3)
     return x, f, J, iterations, f"stopped after {MAX_ITER} iterations"
