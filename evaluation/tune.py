@@ -60,7 +60,7 @@ SHORT = 1.0 / 3.0  # the shortened scoring step, a fraction of the full one
 TRUST_START = 1.5  # the first step's largest change of a log value (a factor 4.5)
 TRUST_MAX = 3.0  # the trust radius on the log values never grows beyond this
 STOP_STEP = 0.01  # the search stops when a step changes no value by more than 1 %
-STOP_NLL = 1.0  # ... or the scoring step predicts a decrease of L under this (nats: gate flips
+STOP_NLL = 1.0  # ... or no step predicts a decrease of L of this (nats: gate flips
 # make L rough by about as much)
 
 
@@ -378,7 +378,7 @@ def _scoring(values_at, derivs_at, x: np.ndarray, f: float, J: np.ndarray,
     is the better step where the covariances carry the information (noise values far off: the
     scores' outer product is then inflated by the misfit and BHHH creeps), BHHH where the
     innovations' means do (process noise that moves the estimate). Stops when no step changes
-    a value by STOP_STEP (relative), the scoring step predicts a decrease of L under STOP_NLL
+    a value by STOP_STEP (relative), no step predicts a decrease of L of STOP_NLL
     (not on a small accepted decrease: a short BHHH step lowers L a little far from the
     optimum too), or after MAX_ITER iterations. Returns the best point, its L and J, the
     accepted iterations and why it stopped."""
@@ -390,8 +390,10 @@ def _scoring(values_at, derivs_at, x: np.ndarray, f: float, J: np.ndarray,
         steps = [_step(F.T @ F, g, mu, x, lo, hi, radius)] if F is not None else []
         steps += [x + SHORT * (steps[0] - x)] if steps else []
         steps += [_step(J.T @ J, g, mu, x, lo, hi, radius)]
-        # the decrease of L the first (scoring's) step predicts, to first order
-        predicted = -0.5 * float(g @ (steps[0] - x))
+        # the largest decrease of L a step predicts (its quadratic model's, at the optimum of
+        # that model: half the first-order decrease); pinv of a nearly singular F'F can give a
+        # scoring step almost across the gradient, so not the scoring step's alone
+        predicted = max(-0.5 * float(g @ (xn - x)) for xn in steps)
         cands = []
         for xn in steps:
             moved = float(np.max(np.abs(xn - x))) if len(x) else 0.0
@@ -401,8 +403,8 @@ def _scoring(values_at, derivs_at, x: np.ndarray, f: float, J: np.ndarray,
             return x, f, J, iterations, (f"converged: the step changes no value by more than "
                                          f"{100 * STOP_STEP:g} %")
         if predicted < STOP_NLL:
-            return x, f, J, iterations, (f"converged: the step would lower L by {predicted:.3g}"
-                                         f" (under {STOP_NLL:g})")
+            return x, f, J, iterations, (f"converged: no step would lower L by more than "
+                                         f"{predicted:.3g} (under {STOP_NLL:g})")
         fs = values_at([c for c, _ in cands])
         say("maximum likelihood", min((tried + 1) / MAX_ITER, 0.99))
         best = int(np.argmin(fs))
