@@ -390,10 +390,11 @@ def _scoring(values_at, derivs_at, x: np.ndarray, f: float, J: np.ndarray,
         steps = [_step(F.T @ F, g, mu, x, lo, hi, radius)] if F is not None else []
         steps += [x + SHORT * (steps[0] - x)] if steps else []
         steps += [_step(J.T @ J, g, mu, x, lo, hi, radius)]
-        # the largest decrease of L a step predicts (its quadratic model's, at the optimum of
-        # that model: half the first-order decrease); pinv of a nearly singular F'F can give a
-        # scoring step almost across the gradient, so not the scoring step's alone
-        predicted = max(-0.5 * float(g @ (xn - x)) for xn in steps)
+        # the largest decrease of L a quadratic model predicts at its optimum, 0.5 g' H^-1 g,
+        # undamped and uncapped (a radius shrunk by rough L must not read as convergence);
+        # the largest of the two models' (pinv of a nearly singular F'F can point across g)
+        predicted = max(0.5 * float(g @ np.linalg.pinv(H) @ g) for H in
+                        ([F.T @ F] if F is not None else []) + [J.T @ J])
         cands = []
         for xn in steps:
             moved = float(np.max(np.abs(xn - x))) if len(x) else 0.0
