@@ -182,6 +182,10 @@ class IgvcEkf(IgvcStart, IgvcKernels, Estimator):
             if "heading" in slip:
                 ns = replace(ns, heading_psd=slip["heading"] ** 2)
             self.noise = ns
+        if "yaw_rate" in cfg.robot.twist_walk and noise is None:
+            # the robot's stated yaw-rate walk; its speed is driven by jerk on an acceleration
+            # state, which robot.twist_walk.speed (a walk of the speed itself) does not describe
+            self.noise = replace(self.noise, yaw_accel_psd=cfg.robot.twist_walk["yaw_rate"] ** 2)
         self._calibration_states(cfg)
         n = self.n
         ones, variable = ((gen.EULER_F_ONES, gen.EULER_F_VARIABLE) if motion == "euler"

@@ -169,9 +169,15 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
             self.noise = replace(self.noise, pos_long=slip.get("longitudinal", self.noise.pos_long),
                                  pos_lat=slip.get("lateral", self.noise.pos_lat),
                                  heading=slip.get("heading", self.noise.heading))
-        # the robot's stated acceleration limits set the twist random walks (twist_densities)
+        # the robot's stated twist walk sets the twist's random walks; else its stated
+        # acceleration limits do (twist_densities), per component
         r = cfg.robot
-        self._amax = (r.max_accel, r.max_yaw_accel) if noise is None else (None, None)
+        tw = r.twist_walk if noise is None else {}
+        if tw:
+            self.noise = replace(self.noise, acc=tw.get("speed", self.noise.acc),
+                                 yaw_acc=tw.get("yaw_rate", self.noise.yaw_acc))
+        self._amax = (None, None) if noise is not None else (
+            None if "speed" in tw else r.max_accel, None if "yaw_rate" in tw else r.max_yaw_accel)
         self._tw_last: dict[tuple[str, int], float] = {}  # (sensor, 3 v / 4 w): last stamp
         self._tw_period: dict[int, dict[str, float]] = {3: {}, 4: {}}  # per sensor, s
         self._tw_on = self._amax != (None, None)

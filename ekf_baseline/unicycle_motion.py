@@ -35,8 +35,9 @@ class ProcessNoise:
     acc: m/s^2/sqrt(Hz) -- white forward acceleration driving v. 1.0: a ground robot changes its
         speed by ~1 m/s within ~1 s.
     yaw_acc: rad/s^2/sqrt(Hz) -- white yaw acceleration driving w; same reasoning, ~1 rad/s in 1 s.
-        When the config states the robot's acceleration limits (robot.max_accel,
-        max_yaw_accel), UnicycleEkf replaces both by :func:`twist_densities` of them.
+        When the config states the twist's walk (robot.twist_walk: speed, yaw_rate, the same
+        units), UnicycleEkf takes them; else, when it states the robot's acceleration limits
+        (robot.max_accel, max_yaw_accel), :func:`twist_densities` of them.
     pos_long, pos_lat: m/sqrt(s) -- white body-frame velocity error on the position (wheel slip,
         the twist not being constant within a step); lateral smaller for a non-holonomic base.
     heading: rad/sqrt(s) -- white yaw-rate error on the heading.

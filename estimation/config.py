@@ -13,7 +13,8 @@ Shape (every key documented in README.md)::
       landmarks: [{topic: /landmarks, map: some.landmarks.yaml, noise: {range: 0.1, bearing: 0.05}}]
     robot: {wheel_radius: 0.165, track_width: 0.555, wheel_radius_std: 0.002,
             track_width_std: 0.03, slip: {longitudinal: 0.05, lateral: 0.02, heading: 0.01},
-            max_accel: 0.5, max_yaw_accel: 0.5, max_speed: 1.0, max_yaw_rate: 2.0}
+            max_accel: 0.5, max_yaw_accel: 0.5, max_speed: 1.0, max_yaw_rate: 2.0,
+            twist_walk: {speed: 0.3, yaw_rate: 0.3}}
     ground_truth: {topic: /ground_truth}
     frame: {datum: first_fix, local: map, base: base_link}  # datum or [lat_deg, lon_deg, alt_m]
     initial_pose: ground_truth           # or [x, y, yaw]; default origin
@@ -34,11 +35,15 @@ are the 1-sigma uncertainties of the nominal geometry; given, the estimators tha
 the odometry's scale errors do. ``robot.slip`` states white-noise densities of the body's motion
 about its twist: longitudinal and lateral velocity (m/sqrt(s)) and yaw rate (rad/sqrt(s)).
 ``robot.max_accel`` (m/s^2) and ``max_yaw_accel`` (rad/s^2) are the largest accelerations the
-base performs (its drive controller's limits). ``robot.max_speed`` (m/s) and ``max_yaw_rate``
-(rad/s) are what the robot can physically do (defaults DEFAULT_MAX_SPEED, DEFAULT_MAX_YAW_RATE);
-a sample beyond them is a glitch (``ddfuse.estimation.robot_limits``). A ``gate`` on
-a sensor is the chi-square acceptance probability of its Mahalanobis gate (e.g. 0.9999) or
-``off``.
+base performs (its drive controller's limits). ``robot.twist_walk`` states the process noise of
+the twist itself, the white-acceleration densities of the random walks of the forward speed
+(``speed``, m/s/sqrt(s)) and yaw rate (``yaw_rate``, rad/s/sqrt(s)) between twist samples;
+absent, the estimators derive them from ``max_accel`` / ``max_yaw_accel`` and the samples'
+period (or their defaults), as before the key existed. ``robot.max_speed`` (m/s) and
+``max_yaw_rate`` (rad/s) are what the robot can physically do (defaults DEFAULT_MAX_SPEED,
+DEFAULT_MAX_YAW_RATE); a sample beyond them is a glitch (``ddfuse.estimation.robot_limits``).
+A ``gate`` on a sensor is the chi-square acceptance probability of its Mahalanobis gate (e.g.
+0.9999) or ``off``.
 """
 
 from __future__ import annotations
@@ -207,6 +212,10 @@ class NodeConfig:
     nis_window: float = 30.0  # s of stamps the diagnostics' NIS verdict is taken over
 
 
+# robot.twist_walk's keys: the forward speed's and the yaw rate's random-walk densities
+TWIST_WALK_KEYS = ("speed", "yaw_rate")
+
+
 @dataclass
 class RobotConfig:
     wheel_radius: float | None = None  # m
@@ -222,6 +231,11 @@ class RobotConfig:
     # densities from them and its twist sensors' sample periods
     max_accel: float | None = None
     max_yaw_accel: float | None = None
+    # the twist's own process noise: white-acceleration densities of the random walks of the
+    # forward speed ('speed', m/s/sqrt(s)) and yaw rate ('yaw_rate', rad/s/sqrt(s)); a key
+    # absent: derived from max_accel / max_yaw_accel and the samples' period, else the
+    # estimator's default. The glitch screen's limits stay max_accel / max_yaw_accel.
+    twist_walk: dict[str, float] = field(default_factory=dict)
     # what the robot can physically do: the largest forward speed (m/s, either direction) and
     # yaw rate (rad/s). A twist sample beyond them is a glitch, rejected before any estimator
     # (None: DEFAULT_MAX_SPEED / DEFAULT_MAX_YAW_RATE, generous for any wheeled ground robot)
@@ -489,7 +503,8 @@ def parse_config(raw: Any, source: str = "<config>", base: Path | None = None) -
     if "robot" in d:
         r = ck.mapping(d["robot"], "robot", ("wheel_radius", "track_width", "wheel_radius_std",
                                              "track_width_std", "slip", "max_accel",
-                                             "max_yaw_accel", "max_speed", "max_yaw_rate"))
+                                             "max_yaw_accel", "max_speed", "max_yaw_rate",
+                                             "twist_walk"))
         for k in ("max_speed", "max_yaw_rate"):
             if k in r and ck.number(r[k], f"robot.{k}") <= 0.0:
                 raise ck.fail(f"robot.{k}", "must be > 0: a sample beyond it is rejected as "
@@ -502,7 +517,16 @@ def parse_config(raw: Any, source: str = "<config>", base: Path | None = None) -
         cfg.robot = RobotConfig(**{
             k: ck.number(r[k], f"robot.{k}", positive=k in ("wheel_radius", "track_width"),
                          nonneg=True)
-            for k in r if k != "slip"})
+            for k in r if k not in ("slip", "twist_walk")})
+        if "twist_walk" in r:
+            tw = ck.mapping(r["twist_walk"], "robot.twist_walk", TWIST_WALK_KEYS)
+            cfg.robot.twist_walk = {k: ck.number(v, f"robot.twist_walk.{k}") for k, v in
+                                    tw.items()}
+            for k, v in cfg.robot.twist_walk.items():
+                if v <= 0.0:
+                    raise ck.fail(f"robot.twist_walk.{k}", f"must be > 0, got {v:g}: it is the "
+                                  "density of the twist's random walk, and 0 would hold the "
+                                  "twist fixed (leave it out for the estimators' default)")
         if "slip" in r:
             slip = ck.mapping(r["slip"], "robot.slip", ("longitudinal", "lateral", "heading"))
             cfg.robot.slip = {k: ck.number(v, f"robot.slip.{k}", nonneg=True)

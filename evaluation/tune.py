@@ -9,9 +9,11 @@ innovation nu_k and its covariance S_k; the objective is their negative log-like
 
 c_k the chi-square(dim) 0.9999 quantile, the default gate: a gate-rejected innovation costs as
 much as one at the gate, so one gross outlier does not set a noise value, and a too small value
-gains nothing by having the gate reject what it cannot explain. L is minimised with L-BFGS-B
-within bounds (a factor ``BOUND`` either side of the start), its gradient by forward differences
-in log space, the runs of a gradient in parallel (a process pool over the cores). The tuning
+gains nothing by having the gate reject what it cannot explain. L is minimised by scoring
+(Gauss-Newton on the likelihood with the outer product of the per-innovation gradients as its
+Hessian: BHHH), Levenberg-Marquardt damped, within a trust region and bounds (a factor ``BOUND``
+either side of the start) in log space; the per-innovation gradients by forward differences,
+the p + 1 runs of one iterate in parallel (a process pool over the cores). The tuning
 estimator is the unicycle ``ekf`` (compiled, 0.4 s over rl_husky_gps.bag's 395 s), or
 ``ekf_landmark`` when the config has landmarks (the unicycle EKF does not fuse them). GPS fixes
 of a hold-out are withheld from the runs, so from the fit.
@@ -42,7 +44,6 @@ from ddfuse.estimation.runner import run
 from ddfuse.evaluation.consistency import InnovationTable, SensorNis, nis_by_sensor
 from ddfuse.evaluation.estimators import build
 from ddfuse.evaluation.tune_params import Applier, Param, parameters
-from scipy.optimize import minimize
 
 GATE_P = 0.9999  # the innovations' NIS is clipped at this chi-square quantile
 BOUND = 100.0  # the search stays within start / BOUND .. start * BOUND
@@ -50,9 +51,17 @@ STEP = 0.02  # forward-difference step on the log of a value (2 %: gate flips ma
 MIN_INFORMATION = 40.0  # Fisher information on a log value below which the data do not inform it
 PAIR_CORRELATION = 0.9  # |correlation| of two estimates beyond which the pair is reported
 AT_BOUND = 0.01  # a log value this close to a bound is at it
-MAX_ITER = 40
-MAX_FUN = 30  # objective evaluations (each one run per free value + 1) the search may take
-FTOL = 1e-6  # relative change of L at which the search stops
+# a value informed at the start that the search drove this factor down, to where it no longer
+# shows in the innovations, is kept there ('negligible'), not put back to the config's
+NEGLIGIBLE = 10.0
+PROCESS_NOISE = ("slip", "walk", "twist")  # Param kinds that are process noise densities
+MAX_ITER = 12  # iterations of one pass of the search (each 3 + p runs, p the free values)
+SHORT = 1.0 / 3.0  # the shortened scoring step, a fraction of the full one
+TRUST_START = 1.5  # the first step's largest change of a log value (a factor 4.5)
+TRUST_MAX = 3.0  # the trust radius on the log values never grows beyond this
+STOP_STEP = 0.01  # the search stops when a step changes no value by more than 1 %
+STOP_NLL = 1.0  # ... or no step predicts a decrease of L of this (nats: gate flips
+# make L rough by about as much)
 
 
 def tuning_estimator(cfg: Config) -> str:
@@ -83,15 +92,20 @@ class Problem:
         return est, result
 
     def terms(self, values: list[float | None]) -> np.ndarray:
-        """Each innovation's term of L (module docstring), in log order; a term whose S is not
-        positive definite or whose NIS is not finite is 0."""
+        """(2, N), in log order: row 0 each innovation's term of L (module docstring), row 1
+        its log det S_k times sqrt(1 / (2 dim)), whose derivatives' outer products sum to the
+        expected (Fisher) information of the values through S (``_search``). A term whose S is
+        not positive definite or whose NIS is not finite is 0."""
         est, _ = self.run(values)
         h = est.log.innovations.held_log_det()
         dims = np.array([d for _, _, d in h["groups"]] or [1])[h["group"]]
         clip = np.array([chi2.ppf(GATE_P, int(d)) for d in range(1, 5)])[np.clip(dims, 1, 4) - 1]
         t = 0.5 * (h["log_det"] + np.minimum(h["nis"], clip))
-        t[~np.isfinite(t)] = 0.0
-        return t
+        ld = h["log_det"] * np.sqrt(0.5 / np.maximum(dims, 1))
+        bad = ~np.isfinite(t) | ~np.isfinite(ld)
+        t[bad] = 0.0
+        ld[bad] = 0.0
+        return np.vstack([t, ld])
 
 
 _WORKER: Problem | None = None
@@ -139,7 +153,9 @@ class Tuned:
     """One parameter's outcome. ``value`` is the tuned value (SI), or None where it was left as
     the config had it (``status`` 'not informed'); ``status``: 'tuned', 'not informed',
     'at lower bound', 'at upper bound'; ``reason`` in words; ``se_log``: the standard error of
-    its log (a relative standard error, to first order), None when not computed."""
+    its log (a relative standard error, to first order), None when not computed. Status
+    'negligible': a process noise informed at the start, driven down NEGLIGIBLE-fold or more
+    to where the innovations no longer show it; ``value`` is that small value."""
 
     param: Param
     value: float | None
@@ -170,15 +186,23 @@ class TuneResult:
         return [t.value for t in self.tuned]
 
 
-def information(base: np.ndarray, bumped: list[np.ndarray], step: float) -> np.ndarray | None:
-    """The information on the log values, J' J (n x n), from the innovations' terms of L at the
-    values (``base``, (N,)) and with value i's log moved by ``step`` (``bumped[i]``, (N,)):
-    J[k, i] = (bumped[i][k] - base[k]) / step. None when a run logged a different number of
-    innovations (e.g. a lock-out that one value set triggered)."""
+def jacobian(base: np.ndarray, bumped: list[np.ndarray], step: float) -> np.ndarray | None:
+    """Per innovation, the gradient of its term of L in the log values, J (N x n), from the
+    terms at the values (``base``, (N,)) and with value i's log moved by ``step``
+    (``bumped[i]``, (N,)): J[k, i] = (bumped[i][k] - base[k]) / step. None when a run logged a
+    different number of innovations (e.g. a lock-out that one value set triggered)."""
     if any(len(b) != len(base) for b in bumped):
         return None
-    J = np.stack([(b - base) / step for b in bumped], axis=1)
-    return J.T @ J
+    if not bumped:
+        return np.zeros((len(base), 0))
+    return np.stack([(b - base) / step for b in bumped], axis=1)
+
+
+def information(base: np.ndarray, bumped: list[np.ndarray], step: float) -> np.ndarray | None:
+    """The information on the log values, J' J (n x n; :func:`jacobian`'s J), None where
+    :func:`jacobian` is."""
+    J = jacobian(base, bumped, step)
+    return None if J is None else J.T @ J
 
 
 def tune(cfg: Config, stream: Stream, *, holdout: str | None = None,
@@ -212,90 +236,212 @@ def _search(problem: Problem, ev: Evaluator, progress, t_start: float) -> TuneRe
     x0 = np.log([p.start for p in params])
     say = progress or (lambda stage, f: None)
     say("information at the start", 0.0)
-    runs = ev.many([list(np.exp(x0))] + [list(np.exp(x0 + STEP * e)) for e in np.eye(n)])
-    base0 = runs[0]
-    info0 = information(base0, runs[1:], STEP)
-    free = np.ones(n, bool)
-    tuned: list[Tuned | None] = [None] * n
-    if info0 is not None:
-        for i, p in enumerate(params):
-            if info0[i, i] < MIN_INFORMATION:
-                free[i] = False
-                tuned[i] = Tuned(p, p.before, "not informed",
-                                 _uninformed_reason(p, info0[i, i], "at the start"),
-                                 information=float(info0[i, i]))
-    idx = np.flatnonzero(free)
-    fixed_values = [p.before for p in params]  # the config's (None: the messages' / default)
-    n_terms = max(len(base0), 1)
-    cache: dict[tuple, tuple[float, np.ndarray]] = {}
-    last: dict = {}
-    it = [0]
+    seen: dict[tuple, np.ndarray] = {}  # log values -> the terms of L there
 
-    def full(xf: np.ndarray) -> list[float | None]:
-        vals = list(fixed_values)
-        for k, i in enumerate(idx):
-            vals[i] = float(np.exp(xf[k]))
-        return vals
-
-    def fun(xf: np.ndarray):
-        key = tuple(np.round(xf, 12))
-        if key in cache:
-            return cache[key]
-        sets = [full(xf)] + [full(xf + STEP * e) for e in np.eye(len(idx))]
+    def run_at(xa: np.ndarray, which):
+        """The terms at ``xa`` (every value's log; a frozen value at its start) and, for the
+        values ``which``, J's columns and those of the Fisher information's factor (None where
+        a run logged other innovations); the terms at ``xa`` are run once."""
+        key = tuple(np.round(xa, 12))
+        sets = [] if key in seen else [list(np.exp(xa))]
+        sets += [list(np.exp(xa + STEP * np.eye(n)[i])) for i in which]
         res = ev.many(sets)
-        f = float(res[0].sum())
-        g = np.array([(float(r.sum()) - f) / STEP for r in res[1:]])
-        last.update(x=xf.copy(), base=res[0], bumped=res[1:], f=f)
-        cache[key] = out = (f / n_terms, g / n_terms)
-        return out
+        if key not in seen:
+            seen[key] = res.pop(0)
+        base = seen[key]
+        return (base[0], jacobian(base[0], [r[0] for r in res], STEP),
+                jacobian(base[1], [r[1] for r in res], STEP))
 
-    def step_done(_xk) -> None:
-        it[0] += 1
-        say("maximum likelihood", min(it[0] / MAX_ITER, 0.99))
-
-    lo, hi = x0[idx] - math.log(BOUND), x0[idx] + math.log(BOUND)
-    message = "nothing to tune: no value is informed by the data"
+    base0, J0, F0 = run_at(x0, range(n))
     nll0 = float(base0.sum())
-    if len(idx):
-        say("maximum likelihood", 0.0)
-        opt = minimize(fun, x0[idx], jac=True, method="L-BFGS-B",
-                       bounds=list(zip(lo, hi, strict=True)), callback=step_done,
-                       options={"maxiter": MAX_ITER, "maxfun": MAX_FUN, "ftol": FTOL,
-                                "gtol": 1e-6})
-        message = str(opt.message)
-        xs = opt.x
-        if last.get("x") is None or not np.allclose(last["x"], xs):
-            fun(xs)
-        info = information(last["base"], last["bumped"], STEP)
-        cov = np.linalg.pinv(info) if info is not None else None
-        for k, i in enumerate(idx):
-            p = params[i]
-            se = float(math.sqrt(max(cov[k, k], 0.0))) if cov is not None else None
-            status, reason = "tuned", ""
-            if info is not None and info[k, k] < MIN_INFORMATION:
-                # informed at the start, not where the search ended (a value whose effect
-                # another one's took over): the data do not fix it, the config's stands
-                tuned[i] = Tuned(p, p.before, "not informed",
-                                 _uninformed_reason(p, info[k, k], "at the optimum"), se,
-                                 float(info[k, k]))
-                continue
-            if xs[k] - lo[k] < AT_BOUND:
-                status, reason = "at lower bound", (f"at the search's lower bound (start / "
-                                                    f"{BOUND:g}): the data want it smaller")
-            elif hi[k] - xs[k] < AT_BOUND:
-                status, reason = "at upper bound", (f"at the search's upper bound (start x "
-                                                    f"{BOUND:g}): the data want it larger")
-            tuned[i] = Tuned(p, float(np.exp(xs[k])), status, reason, se,
-                             float(info[k, k]) if info is not None else None)
-        pairs = correlated_pairs(cov, [params[i].label for i in idx]) if cov is not None \
-            else []
-        nll1 = last["f"]
-        iterations = int(opt.nit)
-    else:
-        pairs, nll1, iterations = [], nll0, 0
+    info0 = np.zeros(n) if J0 is None else np.sum(J0 * J0, axis=0)
+    free = info0 >= MIN_INFORMATION if J0 is not None else np.ones(n, bool)
+    lo_all, hi_all = x0 - math.log(BOUND), x0 + math.log(BOUND)
+    xa = x0.copy()
+    J = np.zeros((1, n))
+    iterations, message = 0, "nothing to tune: no value is informed by the data"
+    info_frozen = info0.copy()
+    say("maximum likelihood", 0.0)
+    first = True
+    for _ in range(2):  # a second pass where a value frozen at the start is informed now
+        idx = np.flatnonzero(free)
+        if not len(idx):
+            break
+
+        def full(xf: np.ndarray, idx=idx) -> np.ndarray:
+            xn = xa.copy()
+            xn[idx] = xf
+            return xn
+
+        def values_at(xfs: list[np.ndarray]) -> list[float]:
+            xns = [full(xf) for xf in xfs]
+            keys = [tuple(np.round(xn, 12)) for xn in xns]
+            todo = [(k, xn) for k, xn in zip(keys, xns, strict=True) if k not in seen]
+            for (k, _), r in zip(todo, ev.many([list(np.exp(xn)) for _, xn in todo]),
+                                 strict=True):
+                seen[k] = r
+            return [float(seen[k][0].sum()) for k in keys]
+
+        def derivs_at(xf: np.ndarray, idx=idx):
+            _, Jn, Fn = run_at(full(xf), idx)
+            return Jn, Fn
+
+        if first and J0 is not None and F0 is not None:  # the start's runs: the first iterate
+            f, J, F = nll0, J0[:, idx], F0[:, idx]
+        else:
+            f = values_at([xa[idx]])[0]
+            J, F = derivs_at(xa[idx])
+        first = False
+        if J is None:  # runs at the start logged different innovations: no J to step with
+            break
+        x, f, J, its, message = _scoring(values_at, derivs_at, xa[idx], f, J, F, lo_all[idx],
+                                         hi_all[idx], say)
+        xa[idx] = x
+        iterations += its
+        frozen = np.flatnonzero(~free)
+        if not len(frozen) or J0 is None:
+            break
+        _, Jf, _ = run_at(xa, frozen)  # the frozen values' information where it ended
+        if Jf is None:
+            break
+        info_frozen[frozen] = np.sum(Jf * Jf, axis=0)
+        now = frozen[info_frozen[frozen] >= MIN_INFORMATION]
+        if not len(now):
+            break
+        free[now] = True
+    idx = np.flatnonzero(free)
+    f = float(seen[tuple(np.round(xa, 12))][0].sum())
+    if J.shape[1] != len(idx):  # a value freed on the last pass: J over every free one
+        _, J, _ = run_at(xa, idx)
+    tuned: list[Tuned | None] = [None] * n
+    for i in np.flatnonzero(~free):
+        where = "at the start" if info_frozen[i] == info0[i] else "at the start and where " \
+            "the search ended"
+        tuned[i] = Tuned(params[i], params[i].before, "not informed",
+                         _uninformed_reason(params[i], info_frozen[i], where),
+                         information=float(info_frozen[i]))
+    if not len(idx):
+        say("maximum likelihood", 1.0)
+        return TuneResult(problem.estimator, tuned, [], nll0, nll0, len(base0), ev.runs, 0,
+                          time.perf_counter() - t_start, message)
+    info = J.T @ J
+    cov = np.linalg.pinv(info)
+    for k, i in enumerate(idx):
+        p = params[i]
+        se = float(math.sqrt(max(cov[k, k], 0.0)))
+        status, reason = "tuned", ""
+        if info[k, k] < MIN_INFORMATION and xa[i] < x0[i] - math.log(NEGLIGIBLE) and \
+                p.kind in PROCESS_NOISE:
+            # process noise the data drove down until it no longer shows in the innovations:
+            # the config's value (informed, and worse) must not come back; the small one
+            # stands. (A measurement noise driven so low is not believed: it would make every
+            # estimator trust that sensor without limit; the config's stands, below.)
+            tuned[i] = Tuned(p, float(np.exp(xa[i])), "negligible", (
+                f"the data want it at least {NEGLIGIBLE:g}x below its start, where it no longer "
+                f"affects the innovations (information {info[k, k]:.3g} on its log); kept "
+                "there"), se, float(info[k, k]))
+            continue
+        if info[k, k] < MIN_INFORMATION:
+            # informed at the start, not where the search ended (a value whose effect another
+            # one's took over): the data do not fix it, the config's stands
+            tuned[i] = Tuned(p, p.before, "not informed",
+                             _uninformed_reason(p, info[k, k], "at the optimum"), se,
+                             float(info[k, k]))
+            continue
+        if xa[i] - lo_all[i] < AT_BOUND:
+            status, reason = "at lower bound", (f"at the search's lower bound (start / "
+                                                f"{BOUND:g}): the data want it smaller")
+        elif hi_all[i] - xa[i] < AT_BOUND:
+            status, reason = "at upper bound", (f"at the search's upper bound (start x "
+                                                f"{BOUND:g}): the data want it larger")
+        tuned[i] = Tuned(p, float(np.exp(xa[i])), status, reason, se, float(info[k, k]))
+    pairs = correlated_pairs(cov, [params[i].label for i in idx])
     say("maximum likelihood", 1.0)
-    return TuneResult(problem.estimator, tuned, pairs, nll0, nll1, len(base0), ev.runs,
+    return TuneResult(problem.estimator, tuned, pairs, nll0, f, len(base0), ev.runs,
                       iterations, time.perf_counter() - t_start, message)
+
+
+def _scoring(values_at, derivs_at, x: np.ndarray, f: float, J: np.ndarray,
+             F: np.ndarray | None, lo: np.ndarray, hi: np.ndarray, say
+             ) -> tuple[np.ndarray, float, np.ndarray, int, str]:
+    """Minimise L from log values ``x`` with L = ``f``, the per-innovation gradient ``J``
+    (N x n) and the Fisher information's factor ``F`` (N x n, or None) there, within [``lo``,
+    ``hi``]. ``values_at(xs)``: L at each of the points xs (run in parallel);
+    ``derivs_at(x)``: (J, F) at x (None, None where a run logged other innovations).
+
+    Each iteration takes Levenberg-Marquardt damped steps, (H + mu diag(H)) d = -J' 1:
+    scoring (H = F'F, the expected information through the innovations' covariances), a
+    third of it, and BHHH (H = J'J, the outer product of the scores); each capped at the
+    trust radius and projected onto the bounds. They are run (in parallel) and the lowest L
+    taken when it is
+    lower than here, then its p derivative runs; else the radius shrinks and mu grows. Scoring
+    is the better step where the covariances carry the information (noise values far off: the
+    scores' outer product is then inflated by the misfit and BHHH creeps), BHHH where the
+    innovations' means do (process noise that moves the estimate). Stops when no step changes
+    a value by STOP_STEP (relative), no step predicts a decrease of L of STOP_NLL
+    (not on a small accepted decrease: a short BHHH step lowers L a little far from the
+    optimum too), or after MAX_ITER iterations. Returns the best point, its L and J, the
+    accepted iterations and why it stopped."""
+    radius, mu, iterations = TRUST_START, 0.0, 0
+    for tried in range(MAX_ITER):
+        g = J.sum(axis=0)
+        # scoring's step, a third of it (values that share innovations make F'F nearly
+        # singular and the full step overshoots along that direction), and BHHH's
+        steps = [_step(F.T @ F, g, mu, x, lo, hi, radius)] if F is not None else []
+        steps += [x + SHORT * (steps[0] - x)] if steps else []
+        steps += [_step(J.T @ J, g, mu, x, lo, hi, radius)]
+        # the largest decrease of L a quadratic model predicts at its optimum, 0.5 g' H^-1 g,
+        # undamped and uncapped (a radius shrunk by rough L must not read as convergence);
+        # the largest of the two models' (pinv of a nearly singular F'F can point across g)
+        predicted = max(0.5 * float(g @ np.linalg.pinv(H) @ g) for H in
+                        ([F.T @ F] if F is not None else []) + [J.T @ J])
+        cands = []
+        for xn in steps:
+            moved = float(np.max(np.abs(xn - x))) if len(x) else 0.0
+            if moved >= STOP_STEP and not any(np.allclose(xn, c) for c, _ in cands):
+                cands.append((xn, moved))
+        if not cands:
+            return x, f, J, iterations, (f"converged: the step changes no value by more than "
+                                         f"{100 * STOP_STEP:g} %")
+        if predicted < STOP_NLL:
+            return x, f, J, iterations, (f"converged: no step would lower L by more than "
+                                         f"{predicted:.3g} (under {STOP_NLL:g})")
+        fs = values_at([c for c, _ in cands])
+        say("maximum likelihood", min((tried + 1) / MAX_ITER, 0.99))
+        best = int(np.argmin(fs))
+        xn, moved = cands[best]
+        Jn, Fn = derivs_at(xn) if fs[best] < f else (None, None)
+        if Jn is not None:
+            iterations += 1
+            x, J, F, f = xn, Jn, Fn, fs[best]
+            radius, mu = min(2.0 * max(radius, moved), TRUST_MAX), mu / 4.0
+        else:
+            radius, mu = 0.25 * max(m for _, m in cands), max(4.0 * mu, 1e-3)
+    return x, f, J, iterations, f"stopped after {MAX_ITER} iterations"
+
+
+def _step(H: np.ndarray, g: np.ndarray, mu: float, x: np.ndarray, lo: np.ndarray,
+          hi: np.ndarray, radius: float) -> np.ndarray:
+    """The damped step from ``x`` for curvature ``H`` and gradient ``g``: a value at a bound
+    that the step pushes further out stays there; the largest change capped at ``radius``;
+    the result projected onto [``lo``, ``hi``]."""
+    d = _damped_step(H, g, mu)
+    out = ((x - lo < AT_BOUND) & (d < 0)) | ((hi - x < AT_BOUND) & (d > 0))
+    if out.any():
+        keep = ~out
+        d = np.zeros_like(d)
+        if keep.any():
+            d[keep] = _damped_step(H[np.ix_(keep, keep)], g[keep], mu)
+    big = float(np.max(np.abs(d))) if len(d) else 0.0
+    if big > radius:
+        d *= radius / big
+    return np.clip(x + d, lo, hi)
+
+
+def _damped_step(H: np.ndarray, g: np.ndarray, mu: float) -> np.ndarray:
+    """The Levenberg-Marquardt step -(H + mu diag(H))^-1 g (pseudo-inverse: a singular H)."""
+    A = H + mu * np.diag(np.diag(H))
+    return -np.linalg.pinv(A) @ g
 
 
 def correlated_pairs(cov: np.ndarray, labels: list[str],
@@ -312,7 +458,9 @@ def correlated_pairs(cov: np.ndarray, labels: list[str],
 def _uninformed_reason(p: Param, info: float, where: str) -> str:
     """Why the data leave ``p`` as it was, in words."""
     what = {"slip": "the motion the robot's twist does not explain",
-            "walk": "how the calibration drifts"}.get(p.kind, f"{p.sensor}'s {p.noise_key}")
+            "walk": "how the calibration drifts",
+            "twist": "how the twist changes between its samples"}.get(
+                p.kind, f"{p.sensor}'s {p.noise_key}")
     return (f"the data do not inform it (information {info:.3g} on its log {where}, under "
             f"{MIN_INFORMATION:g}: too few innovations that depend on {what}: a bag too "
             "short or too static, or no sensor that sees it); left as the config has it")

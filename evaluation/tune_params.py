@@ -10,7 +10,11 @@ noise density:
   and ``bearing`` (rad), for the quantities the sensor's ``use`` fuses;
 * the IMU's ``gyro_bias_walk`` (rad/s/sqrt(s)) and ``heading_offset_walk`` (rad/sqrt(s)) where
   the config estimates the bias / offset;
-* ``robot.slip.longitudinal``, ``lateral`` (m/sqrt(s)) and ``heading`` (rad/sqrt(s)).
+* ``robot.slip.longitudinal``, ``lateral`` (m/sqrt(s)) and ``heading`` (rad/sqrt(s));
+* ``robot.twist_walk.speed`` (m/s/sqrt(s)) and ``yaw_rate`` (rad/s/sqrt(s)), the twist's own
+  random walk, where a sensor measures that component of the twist. Where the config states
+  none, the search starts from what the EKF uses then: ``robot.max_accel`` sqrt(T) (T the
+  shortest median sample period of the sensors measuring it), else its default density.
 
 A measurement's noise is fixed when the stream is read (``estimation.converters``: the
 config's value, else the message's covariance), so a set of values is applied to the config (for
@@ -49,12 +53,14 @@ _MEASURED = {
     ("landmarks", "bearing"): (LandmarkObservation, ("bearing_var",), "bearing"),
 }
 SLIP_KEYS = ("longitudinal", "lateral", "heading")
+TWIST_KEYS = ("speed", "yaw_rate")
 _DEFAULTS = ProcessNoise()
 # the unicycle EKF's densities where the config states none (ekf_baseline.unicycle_motion)
 _DEFAULT_WALK = {"gyro_bias_walk": _DEFAULTS.gyro_bias,
                  "heading_offset_walk": _DEFAULTS.heading_offset}
 _DEFAULT_SLIP = {"longitudinal": _DEFAULTS.pos_long, "lateral": _DEFAULTS.pos_lat,
                  "heading": _DEFAULTS.heading}
+_DEFAULT_TWIST = {"speed": _DEFAULTS.acc, "yaw_rate": _DEFAULTS.yaw_acc}
 # where a config states a density of 0 (none), the search starts here, in the density's unit
 ZERO_START = 1e-3
 
@@ -71,10 +77,12 @@ class Param:
     label: str
     start: float
     before: float | None
-    source: str  # 'config', 'messages' (median of the stream's) or 'default'
+    # 'config', 'messages' (median of the stream's), 'default' or 'max_accel' (the twist walk
+    # the robot's acceleration limit gives)
+    source: str
     unit: str
-    sensor: str | None = None  # the sensor's name (its noise or walk), None for the slip
-    kind: str = ""  # sensor kind, or 'slip' / 'walk'
+    sensor: str | None = None  # the sensor's name (its noise or walk), None for the robot's
+    kind: str = ""  # sensor kind, or 'slip' / 'walk' / 'twist'
     noise_key: str = ""
 
 
@@ -82,7 +90,8 @@ _UNITS = {"accel": "m/s^2", "v": "m/s", "yaw_rate": "rad/s", "speed": "rad/s", "
           "horizontal": "m",
           "range": "m", "bearing": "rad", "gyro_bias_walk": "rad/s/sqrt(s)",
           "heading_offset_walk": "rad/sqrt(s)", "longitudinal": "m/sqrt(s)",
-          "lateral": "m/sqrt(s)", "heading": "rad/sqrt(s)"}
+          "lateral": "m/sqrt(s)", "heading": "rad/sqrt(s)", "twist speed": "m/s/sqrt(s)",
+          "twist yaw_rate": "rad/s/sqrt(s)"}
 
 
 def _median_std(stream: Stream, sensor: str, cls, attr: str) -> float | None:
@@ -134,6 +143,47 @@ def parameters(cfg: Config, stream: Stream) -> list[Param]:
                                                                         "default")
         out.append(Param(f"robot.slip.{key}", f"robot slip {key}", start or ZERO_START, before,
                          source, _UNITS[key], None, "slip", key))
+    periods = _twist_periods(cfg, stream)
+    limits = {"speed": cfg.robot.max_accel, "yaw_rate": cfg.robot.max_yaw_accel}
+    for key in TWIST_KEYS:
+        if periods[key] is None:
+            continue  # nothing measures it: the walk only widens an unobserved state
+        before = cfg.robot.twist_walk.get(key)
+        if before is not None:
+            start, source = before, "config"
+        elif limits[key]:
+            start, source = limits[key] * float(np.sqrt(periods[key])), "max_accel"
+        else:
+            start, source = _DEFAULT_TWIST[key], "default"
+        out.append(Param(f"robot.twist_walk.{key}", f"robot twist_walk {key}", start, before,
+                         source, _UNITS[f"twist {key}"], None, "twist", key))
+    return out
+
+
+def _twist_periods(cfg: Config, stream: Stream) -> dict[str, float | None]:
+    """Per twist component ('speed', 'yaw_rate'), the shortest median sample period (s) of
+    the stream's measurements of it (odometry, wheel speeds, a fused gyro), as the unicycle
+    EKF's twist_densities takes it; None where nothing measures it."""
+    gyros = {s.name for s in cfg.of_kind("imu") if "yaw_rate" in s.use}
+    stamps: dict[tuple[str, str], list[float]] = {}
+    for m in stream.measurements:
+        comps = ()
+        if type(m) is WheelOdometry:
+            comps = (("speed",) if m.v is not None else ()) + (
+                ("yaw_rate",) if m.yaw_rate is not None else ())
+        elif type(m) is WheelSpeeds:
+            comps = ("speed", "yaw_rate")
+        elif type(m) is GyroYawRate and m.sensor in gyros:
+            comps = ("yaw_rate",)
+        for c in comps:
+            stamps.setdefault((c, m.sensor), []).append(m.t)
+    out: dict[str, float | None] = {k: None for k in TWIST_KEYS}
+    for (c, _), ts in stamps.items():
+        d = np.diff(np.asarray(ts, float))
+        d = d[d > 0.0]
+        if len(d):
+            T = float(np.median(d))
+            out[c] = T if out[c] is None else min(out[c], T)
     return out
 
 
@@ -149,7 +199,7 @@ class Applier:
             by_sensor.setdefault((type(m), m.sensor), []).append(m)
         self._targets: list[tuple[list, tuple[str, ...]]] = []
         for p in params:
-            if p.kind in ("slip", "walk"):
+            if p.kind in ("slip", "walk", "twist"):
                 self._targets.append(([], ()))
                 continue
             cls, attrs, _ = _MEASURED[(p.kind, p.noise_key)]
@@ -159,18 +209,19 @@ class Applier:
                       self._targets]
         self._noise0 = {s.name: dict(s.noise) for s in cfg.sensors}
         self._slip0 = dict(cfg.robot.slip)
+        self._twist0 = dict(cfg.robot.twist_walk)
 
     def apply(self, values: list[float | None]) -> None:
         """Set every parameter to its value in ``values`` (same order as the params)."""
         cfg = self.cfg
-        slip = dict(self._slip0)
+        slip, twist = dict(self._slip0), dict(self._twist0)
         for s in cfg.sensors:
             s.noise = dict(self._noise0[s.name])
         for p, v, (ms, attrs), read in zip(self.params, values, self._targets, self._read,
                                            strict=True):
-            if p.kind == "slip":
+            if p.kind in ("slip", "twist"):
                 if v is not None:
-                    slip[p.noise_key] = float(v)
+                    (slip if p.kind == "slip" else twist)[p.noise_key] = float(v)
                 continue
             sensor = cfg.sensor(p.sensor)
             if v is not None:
@@ -192,6 +243,7 @@ class Applier:
                     for m in ms:
                         setattr(m, a, var)
         cfg.robot.slip = slip
+        cfg.robot.twist_walk = twist
 
 
 def _get(m, attr: str):

@@ -10,18 +10,30 @@ import pytest
 from ddfuse.estimation.bags import read_stream
 from ddfuse.estimation.config import load_config
 from ddfuse.evaluation.cli import main
-from ddfuse.evaluation.tune import Tuned, TuneResult, correlated_pairs, information, tune
+from ddfuse.evaluation.tune import (
+    STOP_NLL,
+    STOP_STEP,
+    Tuned,
+    TuneResult,
+    _scoring,
+    correlated_pairs,
+    information,
+    tune,
+)
 from ddfuse.evaluation.tune_params import Applier, parameters
 from ddfuse.evaluation.tune_yaml import tuned_text
 
 # The values the unicycle EKF's innovations inform on a simulated Husky drive (GPS 2.5 Hz,
 # compass and gyro 30 Hz, odometry 10 Hz): the GPS's horizontal noise, the compass's, the
-# odometry's yaw rate (docs/design/tuning.md has every value's figures).
+# odometry's yaw rate, and the gyro's once the twist's random walk (robot.twist_walk) is tuned
+# with it (docs/design/tuning.md has every value's figures).
 INFORMED = ("sensors.gps[0].noise.horizontal", "sensors.imu[0].noise.yaw",
-            "sensors.odometry[0].noise.yaw_rate")
+            "sensors.odometry[0].noise.yaw_rate", "sensors.imu[0].noise.yaw_rate")
 # Bound on |log(tuned / true)|: the fewest-sampled of them is the GPS, N = 2.5 Hz x 40 s = 100
 # fixes; a standard deviation estimated from N Gaussian samples has a relative standard error
-# of 1 / sqrt(2 N) = 0.071, and 4 of those (0.28) leaves a chance of 6e-5 of failing.
+# of 1 / sqrt(2 N) = 0.071, and 4 of those (0.28) leaves a chance of 6e-5 of failing. The gyro
+# shares its innovations' S with the twist walk: its standard error in the fit is 0.06 (the
+# fit's own +-), so 4 of those is inside the same bound.
 BOUND = 4.0 / math.sqrt(2 * 100)
 
 
@@ -201,3 +213,63 @@ def test_the_log_keeps_each_innovations_log_det_for_the_likelihood():
                                rtol=1e-12)
     assert h["accepted"].tolist() == [True, False] and h["nis"].tolist() == [3.0, 1.0]
     assert [h["groups"][g] for g in h["group"]] == [("/fix", "gps", 2), ("/imu", "gyro", 1)]
+
+
+def test_scoring_finds_the_maximum_likelihood_of_a_variance_from_far_off():
+    # N samples of N(0, sigma^2): L(log s) = sum 0.5 (log s^2 + y^2 / s^2); its minimum is the
+    # sample RMS. Per sample d/dlog s is 1 - y^2 / s^2 (J), and the Fisher factor's
+    # d(sqrt(1/2) log s^2)/dlog s = sqrt(2) (F): scoring from 30x too large or too small, and
+    # BHHH alone from 1.5x off (far off, the misfit inflates J'J and BHHH creeps: why the
+    # search takes the scoring step too), reach it to within the stopping rule's reach
+    rng = np.random.default_rng(3)
+    y = 0.2 * rng.normal(size=500)
+    rms = math.sqrt(float(np.mean(y * y)))
+
+    def values_at(xs):
+        return [float(np.sum(0.5 * (2 * x[0] + y * y * np.exp(-2 * x[0])))) for x in xs]
+
+    def derivs_at(x, fisher=True):
+        J = (1.0 - y * y * np.exp(-2 * x[0]))[:, None]
+        return J, (np.full((len(y), 1), math.sqrt(2.0)) if fisher else None)
+
+    for start, fisher in ((30.0 * rms, True), (rms / 30.0, True), (1.5 * rms, False)):
+        x0 = np.array([math.log(start)])
+        J, F = derivs_at(x0, fisher)
+        x, f, _, its, why = _scoring(values_at, lambda x, k=fisher: derivs_at(x, k), x0,
+                                     values_at([x0])[0], J, F, x0 - math.log(100.0),
+                                     x0 + math.log(100.0), lambda *a: None)
+        # the search stops when a step would gain under STOP_NLL: L's curvature in log s is
+        # the information 2 N, so that leaves x within sqrt(2 STOP_NLL / (2 N)) (+ a last step)
+        bound = math.sqrt(2.0 * STOP_NLL / (2.0 * len(y))) + STOP_STEP
+        assert abs(x[0] - math.log(rms)) < bound, (start, fisher, math.exp(x[0]), why)
+        # (the predicted gain is the quadratic model's, BHHH's J'J off by the misfit: 2x)
+        assert f <= values_at([np.array([math.log(rms)])])[0] + 2.0 * STOP_NLL
+
+
+def test_the_twist_walk_is_a_parameter_starting_where_the_ekf_is(sim_bag):
+    # the simulated config states the acceleration limits, no twist walk: the EKF's densities
+    # are then a_max sqrt(T), T the sample period of what measures v (odometry, 10 Hz) and w
+    # (the gyro, 30 Hz); the search starts there, and the config's value is "none"
+    bag, yaml = sim_bag
+    cfg = load_config(yaml)
+    params = {p.key: p for p in parameters(cfg, read_stream(bag, cfg))}
+    speed, yaw = params["robot.twist_walk.speed"], params["robot.twist_walk.yaw_rate"]
+    assert speed.before is None and speed.source == "max_accel"
+    assert speed.start == pytest.approx(cfg.robot.max_accel * math.sqrt(0.1), rel=0.01)
+    assert yaw.start == pytest.approx(cfg.robot.max_yaw_accel * math.sqrt(1 / 30), rel=0.01)
+    assert yaw.unit == "rad/s/sqrt(s)"
+
+
+@pytest.mark.slow
+def test_a_value_the_data_drive_to_nothing_is_kept_small_not_put_back(sim_bag):
+    # the simulated robot does not slip: a heading slip of 0.05 rad/sqrt(s) widens the compass's
+    # S (0.05^2 / 30 Hz against its 0.02^2) and is informed at the start; the likelihood drives
+    # it down until it no longer shows. Putting the 0.05 back would undo the fit.
+    bag, yaml = sim_bag
+    cfg = load_config(yaml)
+    stream = read_stream(bag, cfg)
+    cfg.robot.slip = {**cfg.robot.slip, "heading": 0.05}
+    result = tune(cfg, stream, jobs=1)
+    got = {t.param.key: t for t in result.tuned}["robot.slip.heading"]
+    assert got.status == "negligible", (got.status, got.value, got.reason)
+    assert got.value < 0.005 and "no longer affects" in got.reason

@@ -138,9 +138,10 @@ class GpsFusion:
         nz, robot = self.noise, self.cfg.robot
         pl, pt, ph = nz.pose_noise
         tw = self.twist
-        qv = twist_walk(robot.max_accel, nz.acc, tw.v_T)
+        qv = twist_walk(robot.max_accel, nz.acc, tw.v_T, robot.twist_walk.get("speed"))
         qw = twist_walk(robot.max_yaw_accel, nz.yaw_acc,
-                         tw.wg_T if tw.wg is not None else tw.wo_T)
+                         tw.wg_T if tw.wg is not None else tw.wo_T,
+                         robot.twist_walk.get("yaw_rate"))
         v = float(x[3])
         along = pl * pl * a + qv * a ** 3 / 3.0
         across = pt * pt * a + v * v * (ph * ph * a ** 3 / 3.0 + qw * a ** 5 / 20.0)

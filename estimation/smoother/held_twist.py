@@ -121,23 +121,24 @@ class HeldTwist:
         return period
 
     def stale(self, var: float, period: float, acc: float | None, default: float,
-               span: tuple[float, float], a: float, b: float) -> tuple[float, float]:
+              span: tuple[float, float], a: float, b: float,
+              stated: float | None = None) -> tuple[float, float]:
         """What holding a sample over [a, b] outside ``span`` (the time it measures the twist
         over) adds: (density to add to its var * period for this step, (unit)^2 s; its variance
         as a measurement of the twist at b, (unit)^2).
 
         Outside its span the sample's error e (variance ``var``) no longer averages out with the
         next sample's: it is the same for the whole hold, and the twist itself moves away from
-        the sample as a random walk with the acceleration density q (``acc``^2 ``period`` from
-        the robot's acceleration limit ``acc``, else ``default``^2, as the EKFs' twist
-        densities). Integrated over an age tau outside the span, the error is
-        var tau^2 + q tau^3 / 3; a step adds the difference between its ends' ages, as a
-        density over the step (before the span for odometry held backward over a gap, after it
-        for a sample held forward). Zero inside the span."""
+        the sample as a random walk with the acceleration density q (``stated``^2, the config's
+        robot.twist_walk; else ``acc``^2 ``period`` from the robot's acceleration limit
+        ``acc``; else ``default``^2, as the EKFs' twist densities). Integrated over an age tau
+        outside the span, the error is var tau^2 + q tau^3 / 3; a step adds the difference
+        between its ends' ages, as a density over the step (before the span for odometry held
+        backward over a gap, after it for a sample held forward). Zero inside the span."""
         since, until = span
         if since <= a and b <= until:
             return 0.0, var
-        q = twist_walk(acc, default, period)
+        q = twist_walk(acc, default, period, stated)
 
         def grown(tau: float) -> float:
             return var * tau * tau + q * tau ** 3 / 3.0
@@ -190,11 +191,13 @@ class HeldTwist:
             v_var, vo, vg = self.v_var, self.wo_var, self.wg_var
         else:
             robot, n = self.robot, self.noise
-            qv, v_var = self.stale(self.v_var, self.v_T, robot.max_accel, n.acc, sv, a, t)
+            tw = robot.twist_walk
+            qv, v_var = self.stale(self.v_var, self.v_T, robot.max_accel, n.acc, sv, a, t,
+                                   tw.get("speed"))
             qo, vo = self.stale(self.wo_var, self.wo_T, robot.max_yaw_accel, n.yaw_acc, so,
-                                 a, t) if self.wo is not None else (0.0, 0.0)
+                                 a, t, tw.get("yaw_rate")) if self.wo is not None else (0.0, 0.0)
             qg, vg = self.stale(self.wg_var, self.wg_T, robot.max_yaw_accel, n.yaw_acc, sg,
-                                 a, t) if self.wg is not None else (0.0, 0.0)
+                                 a, t, tw.get("yaw_rate")) if self.wg is not None else (0.0, 0.0)
         fresh = qo == qg == 0.0
         yr = self.yaw_rate(self.wg_q + qg, self.wo_q + qo, vg, vo)
         if yr is not None:

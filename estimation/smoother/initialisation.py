@@ -139,7 +139,8 @@ class Initialisation:
         yaw = []
         for var, period, w in ((tw.wg_var, tw.wg_T, tw.wg), (tw.wo_var, tw.wo_T, tw.wo)):
             if w is not None:
-                q = twist_walk(robot.max_yaw_accel, n.yaw_acc, period)
+                q = twist_walk(robot.max_yaw_accel, n.yaw_acc, period,
+                               robot.twist_walk.get("yaw_rate"))
                 yaw.append(var * gap * gap + q * gap ** 3 / 3.0)
         if not long_gap and (not yaw or min(yaw) < GAP_HEADING_SIGMA ** 2 or tw.v is None):
             return
@@ -156,7 +157,7 @@ class Initialisation:
             pos_var, psi_var = max(float(grown[0, 0]), float(grown[1, 1])), float(grown[2, 2])
             sm.log.note(t, gap_note("smoother", gap, grown) + "; the window ends there")
         else:
-            qv = twist_walk(robot.max_accel, n.acc, tw.v_T)
+            qv = twist_walk(robot.max_accel, n.acc, tw.v_T, robot.twist_walk.get("speed"))
             v = float(x[3])
             grow_pos = tw.v_var * gap * gap + qv * gap ** 3 / 3.0
             psi_var = float(full[2, 2]) + min(yaw)

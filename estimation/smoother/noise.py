@@ -71,8 +71,9 @@ class SmootherNoise:
     scale_rw: float = 1e-4
     # m/s^2/sqrt(Hz), rad/s^2/sqrt(Hz): white accelerations that move the twist away from a held
     # sample once it is older than its period (odometry or gyro stopped, a gap in the feed): the
-    # EKFs' default (ProcessNoise.acc, yaw_acc); with robot.max_accel / max_yaw_accel the
-    # density is a_max sqrt(T), T the sample's period, as the EKFs take it (twist_densities)
+    # EKFs' default (ProcessNoise.acc, yaw_acc); robot.twist_walk's when stated; else with
+    # robot.max_accel / max_yaw_accel the density is a_max sqrt(T), T the sample's period, as
+    # the EKFs take it (twist_densities)
     acc: float = 1.0
     yaw_acc: float = 1.0
 
@@ -101,10 +102,14 @@ class SmootherNoise:
 
 
 
-def twist_walk(a_max: float | None, default: float, period: float) -> float:
+def twist_walk(a_max: float | None, default: float, period: float,
+               stated: float | None = None) -> float:
     """Density ((unit/s)^2 per s) of the random walk that moves the twist away from a held
-    sample: a_max^2 period from the robot's acceleration limit (the EKFs' twist_densities:
-    Bar-Shalom's a_max sqrt(T)), else the default density squared."""
+    sample: the config's ``robot.twist_walk`` density squared (``stated``, unit/s/sqrt(s)),
+    else a_max^2 period from the robot's acceleration limit (the EKFs' twist_densities:
+    Bar-Shalom's a_max sqrt(T)), else the default density squared -- the EKFs' order."""
+    if stated is not None:
+        return stated * stated
     return a_max * a_max * period if a_max is not None else default * default
 
 

@@ -73,7 +73,8 @@ def format_report(result, before, after, holdout: str | None) -> str:
     then NIS mean / expected per sensor with its verdict before and after, the hold-out
     score, the pairs the data do not tell apart, and what the search took."""
     lines = [f"tuned on the {result.estimator} EKF's innovations ({result.innovations}): "
-             f"{result.runs} runs, {result.iterations} iterations, {result.wall_s:.1f} s",
+             f"{result.runs} runs, {result.iterations} iterations, {result.wall_s:.1f} s"
+             + (f" ({result.message})" if result.message else ""),
              "",
              f"{'value':56} {'before':>10} {'after':>10} {'+-%':>6}  status",
              ]
