@@ -605,6 +605,31 @@ def test_filtered_estimate_uses_the_headings_since_the_newest_keyframe(husky):
     assert shift == pytest.approx(kf_shift, rel=0.2)
 
 
+def test_the_pending_headings_update_is_the_dense_kalman_update(husky):
+    """``with_pending`` works on the few non-zeros of h in Python floats; it is the dense
+    scalar update x + P h (z - h x) / s, pose block of P - P h h^T P / s (symmetrised)."""
+    cfg, stream = husky
+    ms = stream.measurements
+    sm = FixedLagSmoother(cfg, initial_pose=_pose0(stream))
+    checked = 0
+    for m in ms:
+        sm.process(m)
+        if sm.headings.n >= 2 and sm.window.full is not None and checked < 40:
+            x, p = sm.headings.with_pending()
+            h, z, var = sm.headings.pending()
+            full, st = sm.window.full, sm.window.kf_state
+            ph = full @ h
+            s = h @ ph + var
+            want_x = st + ph * math.remainder(z - h @ st, math.tau) / s
+            sym = 0.5 * (full + full.T)
+            want_p = sym[:3, :3] - np.outer(ph[:3], ph[:3]) / s
+            np.testing.assert_allclose(x, want_x, rtol=1e-12, atol=1e-15)
+            np.testing.assert_allclose(p, want_p, rtol=1e-12, atol=1e-15)
+            assert np.count_nonzero(h) >= 2  # psi and the offset, at least
+            checked += 1
+    assert checked == 40
+
+
 
 
 def test_sparse_keyframes_keep_the_heading(husky):

@@ -211,19 +211,20 @@ class HeadingAccumulator:
         if self._cache is not None and self._cache[0] == key:
             return self._cache[1]
         h, z, var = self.pending()
-        # Python floats over h's few non-zeros (psi, offset, bias, scale): numpy on 9-vectors
-        # cost 10-20 us here, per output sample
-        f = full.tolist()
+        # Python floats over h's few non-zeros (psi, offset, bias, scale), only their rows of
+        # the marginal: numpy on 9-vectors cost 10-20 us here, per output sample
         x = st.tolist()
-        ph = [0.0] * DIM
-        pred = 0.0
-        for i, c in enumerate(h.tolist()):
-            if c != 0.0:
-                ph = [a + c * b for a, b in zip(ph, f[i], strict=True)]
-                pred += c * x[i]
-        s = sum(c * a for c, a in zip(h.tolist(), ph, strict=True)) + var
+        nz = [(i, c) for i, c in enumerate(h.tolist()) if c != 0.0]
+        i, c = nz[0]
+        ph = [c * b for b in full[i].tolist()]
+        pred = c * x[i]
+        for i, c in nz[1:]:
+            ph = [a + c * b for a, b in zip(ph, full[i].tolist(), strict=True)]
+            pred += c * x[i]
+        s = sum(c * ph[i] for i, c in nz) + var
         g = wrap_angle(z - pred) / s  # innovation over its variance
         x = np.array([xi + pi * g for xi, pi in zip(x, ph, strict=True)])
+        f = full[:3, :3].tolist()
         p = np.array([[0.5 * (f[i][j] + f[j][i]) - ph[i] * ph[j] / s for j in range(3)]
                       for i in range(3)])
         out = (x, p)
