@@ -44,7 +44,9 @@ def sim_bag(tmp_path_factory):
     return bag, bag.with_suffix(".yaml")
 
 
-@pytest.fixture(scope="module", params=[3.0, 1.0 / 3.0], ids=["3x_over", "3x_under"])
+# 4x under, not 3x: the search first scales the measurement noise by 1, 3 or 9
+# (tune.START_SCALES), and from exactly 1/3 the scan alone would land on the truth
+@pytest.fixture(scope="module", params=[3.0, 0.25], ids=["3x_over", "4x_under"])
 def tuned_sim(request, sim_bag):
     bag, yaml = sim_bag
     cfg = load_config(yaml)
