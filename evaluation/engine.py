@@ -16,6 +16,7 @@ docs/design/fleet.md says why and what a cluster needs.
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
@@ -70,6 +71,7 @@ class Engine:
         self.timeout = timeout
         self.client = None
         self.cluster = None
+        self._quiet = None
         self.kind = ("dask" if scheduler else "serial" if self.jobs == 1
                      else "dask-local" if dask_available() else "processes")
         if scheduler and not dask_available():
@@ -95,11 +97,20 @@ class Engine:
             import dask
             from distributed import Client, LocalCluster
 
+            # Dask's INFO lines (scheduler start, workers joining, closing) reach the root
+            # logger's handler: not ours to show; a task's failure is its Outcome
+            dlog = logging.getLogger("distributed")
+            self._quiet = (dlog, dlog.level)
+            dlog.setLevel(logging.ERROR)
+
             # a worker that dies mid-task: its task is tried once more, then reported failed
             with dask.config.set({"distributed.scheduler.allowed-failures": RETRIES}):
-                self.cluster = LocalCluster(n_workers=self.jobs, threads_per_worker=1,
-                                            processes=True, dashboard_address=None,
-                                            host="127.0.0.1")
+                # no dashboard; its HTTP server (there without one) on a free port, not
+                # 8787, which another cluster on the machine may hold
+                self.cluster = LocalCluster(
+                    n_workers=self.jobs, threads_per_worker=1, processes=True,
+                    dashboard_address=None, host="127.0.0.1", silence_logs=logging.ERROR,
+                    scheduler_kwargs={"dashboard_address": "127.0.0.1:0"})
             self.client = Client(self.cluster)
         return self
 
@@ -117,7 +128,9 @@ class Engine:
             self.client.close()
         if self.cluster is not None:
             self.cluster.close()
-        self.client = self.cluster = None
+        if self._quiet is not None:
+            self._quiet[0].setLevel(self._quiet[1])
+        self.client = self.cluster = self._quiet = None
 
     def map(self, fn: Callable[[Any], Any], tasks: Iterable[Any]) -> Iterator[Outcome]:
         """``fn(task)`` for every task, an Outcome each as it completes (any order). ``fn``

@@ -12,24 +12,10 @@ from ddfuse.evaluation.cli.arguments import (
     GPS_HOLDOUT_HELP,
     estimator_list,
     gps_holdout,
-    int_at_least,
 )
+from ddfuse.evaluation.cli.engine_options import add_scheduler
 from ddfuse.evaluation.cli.output_paths import check_output_dir
 from ddfuse.evaluation.cli.terminal import fmt
-
-SCHEDULER_HELP = ("a running Dask scheduler, e.g. tcp://10.0.0.5:8786 (needs the scale extra: "
-                  "pip install 'ddfuse[scale]'; the workers need the same ddfuse version and "
-                  "the bags at the same paths); default: local processes")
-
-
-def add_scheduler(sp: argparse.ArgumentParser) -> None:
-    """--scheduler, --scheduler-timeout and --jobs, as every command that fans out takes them."""
-    sp.add_argument("--scheduler", metavar="ADDRESS", help=SCHEDULER_HELP)
-    sp.add_argument("--scheduler-timeout", type=float, default=10.0, metavar="S",
-                    help="seconds to wait for the scheduler to answer (default 10)")
-    sp.add_argument("--jobs", type=int_at_least(1), metavar="N",
-                    help="local worker processes without --scheduler (default: the machine's "
-                    "cores; 1: in this process)")
 
 
 def add_to(sub) -> None:
