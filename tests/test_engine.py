@@ -71,3 +71,15 @@ def test_local_cluster_gives_each_result_and_reports_a_worker_that_died_twice():
     assert "math domain error" in got[1][1]
     got = _outcomes(Engine(jobs=2), os._exit, [3])
     assert got[0][0] is None and "KilledWorker" in got[0][1]
+
+
+def test_mc_with_an_unreachable_scheduler_is_one_line_and_exit_2(capsys):
+    pytest.importorskip("distributed")
+    from ddfuse.evaluation.cli import main
+
+    address = f"tcp://127.0.0.1:{_closed_port()}"
+    assert main(["mc", "husky", "--seeds", "2", "--duration", "20", "--scheduler", address,
+                 "--scheduler-timeout", "1"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"ddfuse: error: --scheduler {address}: no Dask scheduler answered")
+    assert err.count("\n") == 1

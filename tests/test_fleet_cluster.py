@@ -1,4 +1,4 @@
-"""ddfuse fleet gives the same numbers, to the last digit, run serially in this process, on a
+"""ddfuse fleet and mc give the same numbers, to the last digit, run serially in this process, on a
 Dask LocalCluster and on a scheduler with two workers started here as separate processes
 (``dask scheduler`` / ``dask worker`` on 127.0.0.1, torn down at the end); only the timing
 fields (``fleet.TIMING_KEYS``) differ."""
@@ -19,6 +19,7 @@ from ddfuse.evaluation.fleet import TIMING_KEYS
 pytestmark = pytest.mark.integration
 START_TIMEOUT_S = 120.0  # the scheduler and both workers up; bounded whatever the load
 ESTIMATORS = "ekf,ekf_igvc,smoother,smoother_lagged"
+MC_TIMING = frozenset({"runtime_s", "runtime_mean", "wall_s"})
 
 
 def _without_timing(v, outdir: str):
@@ -41,10 +42,11 @@ def _stop(procs: list[subprocess.Popen]) -> None:
             p.wait(timeout=20)
 
 
-@pytest.fixture
-def scheduler(tmp_path):
+@pytest.fixture(scope="module")
+def scheduler(tmp_path_factory):
     """The address of a scheduler with two single-threaded worker processes on 127.0.0.1."""
     distributed = pytest.importorskip("distributed")
+    tmp_path = tmp_path_factory.mktemp("dask")
     sfile = tmp_path / "scheduler.json"
     log = open(tmp_path / "dask.log", "w")  # noqa: SIM115 - closed at teardown
     common = dict(stdout=log, stderr=subprocess.STDOUT, start_new_session=True, cwd=tmp_path)
@@ -73,7 +75,7 @@ def test_fleet_numbers_are_the_same_serially_on_local_processes_and_on_a_cluster
         scheduler, tmp_path):
     bags = tmp_path / "bags"
     for seed in (1, 2, 3):
-        assert main(["simulate", "husky", "--seed", str(seed), "--duration", "20", "-o",
+        assert main(["simulate", "random", "--seed", str(seed), "--duration", "30", "-o",
                      str(bags / f"drive{seed}.bag")]) == 0
     runs = {"serial": ["--jobs", "1"], "local": ["--jobs", "2"],
             "cluster": ["--scheduler", scheduler]}
@@ -93,3 +95,19 @@ def test_fleet_numbers_are_the_same_serially_on_local_processes_and_on_a_cluster
             ref = (tmp_path / "serial" / f"drive{seed}" / track).read_bytes()
             for name in ("local", "cluster"):
                 assert (tmp_path / name / f"drive{seed}" / track).read_bytes() == ref
+
+
+def test_mc_numbers_are_the_same_in_this_process_and_on_a_cluster(scheduler, tmp_path):
+    from ddfuse.evaluation.montecarlo import monte_carlo
+
+    def numbers(mc) -> str:  # as JSON text: dead reckoning's NEES is NaN, never == itself
+        def strip(v):
+            if isinstance(v, dict):
+                return {k: strip(x) for k, x in v.items() if k not in MC_TIMING}
+            return [strip(x) for x in v] if isinstance(v, list) else v
+
+        return json.dumps(strip(mc.to_json()), sort_keys=True)
+
+    kw = dict(estimators=["ekf", "ekf_igvc"], duration=20.0)
+    serial = numbers(monte_carlo("husky", [0, 1, 2], jobs=1, **kw))
+    assert numbers(monte_carlo("husky", [0, 1, 2], scheduler=scheduler, **kw)) == serial
