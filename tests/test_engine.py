@@ -83,3 +83,19 @@ def test_mc_with_an_unreachable_scheduler_is_one_line_and_exit_2(capsys):
     err = capsys.readouterr().err
     assert err.startswith(f"ddfuse: error: --scheduler {address}: no Dask scheduler answered")
     assert err.count("\n") == 1
+
+
+def _sweep_numbers(rows: list[dict]) -> list[dict]:
+    return [{k: v for k, v in r.items() if k not in ("rtf", "update_ms")} for r in rows]
+
+
+def test_lag_sweep_points_on_worker_processes_give_the_rows_of_the_serial_sweep(monkeypatch):
+    from ddfuse.evaluation.lag_sweep import lag_sweep
+    from ddfuse.evaluation.shipped import DATA
+
+    monkeypatch.setattr(engine, "dask_available", lambda: False)
+    bag, cfg = DATA / "sample_husky.bag", DATA / "sample_husky.yaml"
+    serial = lag_sweep(bag, cfg, (0.5, 10.0))
+    with Engine(jobs=2) as eng:
+        spread = lag_sweep(bag, cfg, (0.5, 10.0), engine=eng)
+    assert len(serial) == 5 and _sweep_numbers(spread) == _sweep_numbers(serial)

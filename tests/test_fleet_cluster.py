@@ -111,3 +111,17 @@ def test_mc_numbers_are_the_same_in_this_process_and_on_a_cluster(scheduler, tmp
     kw = dict(estimators=["ekf", "ekf_igvc"], duration=20.0)
     serial = numbers(monte_carlo("husky", [0, 1, 2], jobs=1, **kw))
     assert numbers(monte_carlo("husky", [0, 1, 2], scheduler=scheduler, **kw)) == serial
+
+
+def test_lag_sweep_rows_are_the_same_in_this_process_and_on_a_cluster(scheduler):
+    from ddfuse.evaluation.engine import Engine
+    from ddfuse.evaluation.lag_sweep import lag_sweep
+    from ddfuse.evaluation.shipped import DATA
+
+    def numbers(rows):
+        return [{k: v for k, v in r.items() if k not in ("rtf", "update_ms")} for r in rows]
+
+    bag, cfg = DATA / "sample_husky.bag", DATA / "sample_husky.yaml"
+    serial = lag_sweep(bag, cfg, (0.5, 10.0))
+    with Engine(scheduler) as eng:
+        assert numbers(lag_sweep(bag, cfg, (0.5, 10.0), engine=eng)) == numbers(serial)
