@@ -21,6 +21,15 @@ def sim_bag(tmp_path_factory) -> Path:
     return out
 
 
+@pytest.fixture(scope="module")
+def sim_mcap(tmp_path_factory) -> Path:
+    """The same drive as a ROS 2 bag directory holding an MCAP file (config beside it)."""
+    out = tmp_path_factory.mktemp("sim") / "drive2"
+    assert main(["simulate", "husky", "--seed", "1", "--duration", "10", "--format", "mcap",
+                 "-o", str(out)]) == 0
+    return out
+
+
 def _copy(bag: Path, to: Path, config: bool = True) -> Path:
     to.parent.mkdir(parents=True, exist_ok=True)
     shutil.copy(bag, to)
@@ -52,9 +61,11 @@ def test_bags_of_the_same_name_get_distinct_output_names():
     assert output_names(bags) == ["a__x", "b__x", "y", "z_bag", "z_mcap"]
 
 
-def test_a_failing_bag_or_one_without_config_is_a_row_and_the_others_run(sim_bag, tmp_path,
-                                                                          capsys):
+def test_a_failing_bag_or_one_without_config_is_a_row_and_the_others_run(sim_bag, sim_mcap,
+                                                                          tmp_path, capsys):
     bags = tmp_path / "bags"
+    shutil.copytree(sim_mcap, bags / "ros2" / "drive2")
+    shutil.copy(sim_mcap.with_suffix(".yaml"), bags / "ros2" / "drive2.yaml")
     _copy(sim_bag, bags / "a" / "drive.bag")
     _copy(sim_bag, bags / "b" / "drive.bag")
     _copy(sim_bag, bags / "unconfigured_drive.bag", config=False)
@@ -65,12 +76,12 @@ def test_a_failing_bag_or_one_without_config_is_a_row_and_the_others_run(sim_bag
                  "--jobs", "1"]) == 0
     doc = json.loads((out / "fleet.json").read_text())
     by_bag = {b["bag"]: b for b in doc["bags"]}
-    assert set(by_bag) == {"a__drive", "b__drive", "unconfigured_drive", "broken"}
-    assert (doc["bags_total"], doc["bags_ran"], doc["bags_failed"]) == (4, 2, 2)
+    assert set(by_bag) == {"a__drive", "b__drive", "unconfigured_drive", "broken", "drive2"}
+    assert (doc["bags_total"], doc["bags_ran"], doc["bags_failed"]) == (5, 3, 2)
     assert "no config given (-c)" in by_bag["unconfigured_drive"]["error"]
     assert str(broken) in by_bag["broken"]["error"]
     assert "\n" not in by_bag["broken"]["error"]
-    for name in ("a__drive", "b__drive"):
+    for name in ("a__drive", "b__drive", "drive2"):
         assert (out / name / "metrics.json").is_file()
         assert by_bag[name]["error"] is None and by_bag[name]["score"] == "ate"
         assert sorted(by_bag[name]["ranking"]) == ["ekf", "smoother"]
@@ -82,11 +93,11 @@ def test_a_failing_bag_or_one_without_config_is_a_row_and_the_others_run(sim_bag
     metrics = json.loads((out / "a__drive" / "metrics.json").read_text())
     assert a["ate_rmse_m"] == metrics["estimators"]["ekf"]["ate_rmse_m"]
     assert a["nees_verdict"] == metrics["estimators"]["ekf"]["nees"]["verdict"]
-    assert doc["estimators"][by_bag["a__drive"]["ranking"][0]]["scored"] == 2
+    assert doc["estimators"][by_bag["a__drive"]["ranking"][0]]["scored"] == 3
     cap = capsys.readouterr()
-    assert "ddfuse: fleet: 4 bags on this process (--jobs 1)" in cap.err
-    assert "ddfuse: fleet: 4/4 bags done" in cap.err
-    assert "2 of 4 bags ran" in cap.out
+    assert "ddfuse: fleet: 5 bags on this process (--jobs 1)" in cap.err
+    assert "ddfuse: fleet: 5/5 bags done" in cap.err
+    assert "3 of 5 bags ran" in cap.out
 
 
 def test_exit_2_when_no_bag_ran(sim_bag, tmp_path, capsys):
