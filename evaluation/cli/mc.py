@@ -85,7 +85,8 @@ def _main(argv: list[str] | None) -> int:
     jobs = min(args.jobs or os.cpu_count() or 1, args.seeds)
     try:
         with Engine(args.scheduler, jobs, timeout=args.scheduler_timeout) as engine:
-            sys.stderr.write(f"ddfuse: mc: {args.seeds} seeds on {engine.backend}\n")
+            if engine.kind != "serial":
+                sys.stderr.write(f"ddfuse: mc: {args.seeds} seeds on {engine.backend}\n")
             mc = monte_carlo(args.scenario,
                              range(args.first_seed, args.first_seed + args.seeds),
                              args.estimators, duration=args.duration, engine=engine,
