@@ -70,7 +70,10 @@ def command(args: argparse.Namespace) -> int:
 
     check_output_dir(args.outdir, "-o")
     jobs = plan(args.paths, args.outdir, args.config, args.estimators, args.gps_holdout)
-    engine = Engine(args.scheduler, args.jobs, timeout=args.scheduler_timeout)
+    import os
+
+    workers = min(args.jobs or os.cpu_count() or 1, len(jobs))  # no idle worker to start
+    engine = Engine(args.scheduler, workers, timeout=args.scheduler_timeout)
     with engine:
         sys.stderr.write(f"ddfuse: fleet: {len(jobs)} bags on {engine.backend}\n")
         doc = run_fleet(jobs, args.outdir, engine, progress=_say_progress)
