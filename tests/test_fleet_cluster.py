@@ -77,6 +77,8 @@ def test_fleet_numbers_are_the_same_serially_on_local_processes_and_on_a_cluster
     for seed in (1, 2, 3):
         assert main(["simulate", "random", "--seed", str(seed), "--duration", "30", "-o",
                      str(bags / f"drive{seed}.bag")]) == 0
+    (bags / "broken.bag").write_bytes(b"not a bag")  # its error row the same everywhere
+    (bags / "broken.yaml").write_bytes((bags / "drive1.yaml").read_bytes())
     runs = {"serial": ["--jobs", "1"], "local": ["--jobs", "2"],
             "cluster": ["--scheduler", scheduler]}
     docs = {}
@@ -86,8 +88,9 @@ def test_fleet_numbers_are_the_same_serially_on_local_processes_and_on_a_cluster
                      *opts]) == 0
         doc = json.loads((out / "fleet.json").read_text())
         docs[name] = _without_timing(doc, str(out))
-    assert docs["serial"]["bags_ran"] == 3 and len(docs["serial"]["rows"]) == 3 * 4
-    assert all(r["score_m"] is not None for r in docs["serial"]["rows"])
+    assert docs["serial"]["bags_ran"] == 3 and len(docs["serial"]["rows"]) == 3 * 4 + 1
+    assert all(r["score_m"] is not None for r in docs["serial"]["rows"] if r["estimator"])
+    assert "broken.bag" in docs["serial"]["bags"][0]["error"]
     assert docs["local"] == docs["serial"]
     assert docs["cluster"] == docs["serial"]
     for seed in (1, 2, 3):  # the tracks too, byte for byte
