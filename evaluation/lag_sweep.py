@@ -29,11 +29,15 @@ _TRACKS = ("smoother", "smoother_lagged")
 
 
 def lag_sweep(bag: str | Path, config: str | Path, lags=DEFAULT_LAGS, holdout: str | None = None,
-              reference: str | None = "ekf") -> list[dict]:
+              reference: str | None = "ekf", engine=None) -> list[dict]:
     """Rows ``{"estimator", "lag_s", "rmse_m", "score", "nees_mean", "rtf", "update_ms"}``, one
     per (lag, smoother track) plus one for ``reference`` (lag None). ``score`` says what the
     RMSE is against: "truth" or "gps_holdout". A truncated or damaged bag is swept on what
     could be read; its BagError is raised after the sweep, with the rows as ``rows``.
+
+    ``engine``: an entered ``engine.Engine`` that runs each lag (and the reference) as its own
+    task, each decoding the bag where it runs (the same rows; timing fields aside); None or a
+    serial one decodes the bag once here and runs them in turn.
 
     A sweep with nothing to score against (no ground truth and no ``holdout``, or a hold-out
     that withholds no fix) raises ValueError saying so: before decoding when the config
@@ -45,37 +49,75 @@ def lag_sweep(bag: str | Path, config: str | Path, lags=DEFAULT_LAGS, holdout: s
             raise ValueError(f"{config}: {name} needs {registry.SPECS[name].needs}, which the "
                              "config does not have")
     _check_scorable(cfg, config, holdout)
-    damaged = None
+    points = ([(reference, None)] if reference else []) + [("smoother", float(x)) for x in lags]
+    if engine is not None and engine.kind != "serial":
+        return _on_engine(engine, [(str(bag), str(config), holdout, n, lag) for n, lag in points])
+    stream, damaged = _decode(bag, cfg)
+    against = _scored_against(stream, bag, cfg, holdout)
+    pose = initial_pose(cfg.initial_pose, stream)
+    rows = [r for name, lag in points
+            for r in _point_rows(stream, cfg, holdout, against, pose, name, lag)]
+    if damaged is not None:
+        raise _swept_damaged(damaged, rows)
+    return rows
+
+
+def _decode(bag, cfg):
+    """(stream, None), or (what could be read, its BagError) for a damaged bag."""
     try:
-        stream = read_stream(bag, cfg)
+        return read_stream(bag, cfg), None
     except BagError as e:
         if e.partial is None or not e.partial.measurements:
             raise
-        damaged, stream = e, e.partial
+        return e.partial, e
+
+
+def _swept_damaged(damaged: BagError | str, rows: list[dict]) -> BagError:
+    err = BagError(f"{damaged}; swept on what could be read")
+    err.rows = rows
+    return err
+
+
+def _point_rows(stream, cfg, holdout, against: str, pose, name: str,
+                lag: float | None) -> list[dict]:
+    """The rows of one point of the sweep: ``name`` (the smoother with ``lag``, or the
+    reference estimator) run over ``stream`` and scored."""
+    spec = registry.SPECS[name]
+    ests = {name: spec.build(cfg, stream, pose, lag)}
+    m = score(run(stream, ests, holdout=holdout), cfg=cfg)  # run's antenna model
+    rows = []
+    for track in (_TRACKS if name == "smoother" else spec.produces):
+        e = m.estimators[track]
+        rows.append({"estimator": track, "lag_s": lag,
+                     "rmse_m": e.ate_rmse_m if against == "truth" else e.gps_holdout_rmse_m,
+                     "score": against,
+                     "nees_mean": e.nees_mean, "rtf": e.rtf,
+                     "update_ms": e.update_ms.to_json() if e.update_ms else None})
+    return rows
+
+
+def sweep_point(task: tuple) -> tuple[list[dict], str | None]:
+    """One point of the sweep on a worker: ``task`` = (bag, config, holdout, name, lag); its
+    rows and the bag's damage (one line) or None. ValueError as ``lag_sweep``'s."""
+    bag, config, holdout, name, lag = task
+    cfg = load_config(config)
+    stream, damaged = _decode(bag, cfg)
     against = _scored_against(stream, bag, cfg, holdout)
     pose = initial_pose(cfg.initial_pose, stream)
-    rows: list[dict] = []
+    rows = _point_rows(stream, cfg, holdout, against, pose, name, lag)
+    return rows, None if damaged is None else str(damaged)
 
-    def add(ests: dict, lag: float | None, tracks) -> None:
-        m = score(run(stream, ests, holdout=holdout), cfg=cfg)  # run's antenna model
-        for track in tracks:
-            e = m.estimators[track]
-            rows.append({"estimator": track, "lag_s": lag,
-                         "rmse_m": e.ate_rmse_m if against == "truth" else e.gps_holdout_rmse_m,
-                         "score": against,
-                         "nees_mean": e.nees_mean, "rtf": e.rtf,
-                         "update_ms": e.update_ms.to_json() if e.update_ms else None})
 
-    if reference:
-        ref = registry.SPECS[reference]
-        add({reference: ref.build(cfg, stream, pose, None)}, None, ref.produces)
-    spec = registry.SPECS["smoother"]
-    for lag in lags:
-        add({"smoother": spec.build(cfg, stream, pose, float(lag))}, float(lag), _TRACKS)
+def _on_engine(engine, tasks: list[tuple]) -> list[dict]:
+    done: dict[int, tuple] = {}
+    for o in engine.map(sweep_point, tasks):
+        if o.error is not None:
+            raise ValueError(o.error.removeprefix("ValueError: "))
+        done[o.index] = o.value
+    rows = [r for i in range(len(tasks)) for r in done[i][0]]
+    damaged = next((d for _, d in done.values() if d), None)
     if damaged is not None:
-        err = BagError(f"{damaged}; swept on what could be read")
-        err.rows = rows
-        raise err
+        raise _swept_damaged(damaged, rows)
     return rows
 
 

@@ -6,7 +6,8 @@ bag (``ddfuse.estimation.bags.read_stream``) and run through the normal runner
 (``ddfuse.estimation.runner.run``) with the chosen estimators plus dead reckoning (``dr``: the same
 stream's wheel odometry integrated alone). Per seed and estimator it records the position RMSE,
 the dead-reckoning RMSE, the pose NEES and the runtime; across seeds it forms Bar-Shalom's
-average NEES and its chi-square band. Seeds run in local processes (``jobs``).
+average NEES and its chi-square band. Seeds run on ``engine.Engine``: local processes (``jobs``)
+or a Dask scheduler (``scheduler``).
 
 Each seed's truth of what the filters have a prior for (wheel radius, track width, initial
 pose) is drawn from that prior, as the NEES test presumes (``draw_truth``; ``fixed_truth``: one
@@ -35,7 +36,6 @@ import os
 import tempfile
 import time
 from collections.abc import Iterable
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 
@@ -304,10 +304,15 @@ def aggregate(per_seed: list[SeedRun], prob: float = 0.95) -> dict[str, Estimato
 def monte_carlo(scenario: str, seeds: Iterable[int], estimators: list[str] | None = None, *,
                 duration: float | None = None, jobs: int | None = None,
                 prob: float = 0.95, fixed_truth: bool = False,
-                lag: float | None = None) -> MonteCarloRun:
-    """Run ``seeds`` of ``scenario`` (``jobs`` local processes, default os.cpu_count(); 1 runs
-    in this process) and aggregate: the settings, ``per_seed`` (``run_seed``'s results
-    without the NEES series), ``summary`` (``aggregate``) and the NEES convention in words."""
+                lag: float | None = None, scheduler: str | None = None,
+                engine=None) -> MonteCarloRun:
+    """Run ``seeds`` of ``scenario`` on ``engine`` (an entered ``engine.Engine``; default one
+    made from ``scheduler`` and ``jobs``: a Dask scheduler, else ``jobs`` local processes,
+    default os.cpu_count(); 1 runs in this process) and aggregate: the settings, ``per_seed``
+    (``run_seed``'s results without the NEES series), ``summary`` (``aggregate``) and the NEES
+    convention in words. A seed that fails raises ValueError naming it."""
+    from ddfuse.evaluation.engine import Engine
+
     seeds = [int(s) for s in seeds]
     if not seeds:
         raise ValueError("monte_carlo: no seeds")
@@ -316,13 +321,17 @@ def monte_carlo(scenario: str, seeds: Iterable[int], estimators: list[str] | Non
     get_scenario(scenario, duration)  # a bad scenario or duration fails here, not in a worker
     if jobs is not None and jobs < 1:
         raise ValueError(f"jobs: expected at least 1 process, got {jobs}")
-    jobs = jobs or os.cpu_count() or 1
     args = [(scenario, s, estimators, duration, fixed_truth, lag) for s in seeds]
-    if jobs == 1:
-        per_seed = [_seed_job(a) for a in args]
-    else:
-        with ProcessPoolExecutor(max_workers=min(jobs, len(args))) as pool:
-            per_seed = list(pool.map(_seed_job, args))
+    if engine is None:
+        jobs = min(jobs or os.cpu_count() or 1, len(args))
+        with Engine(scheduler, jobs) as own:
+            return monte_carlo(scenario, seeds, estimators, duration=duration, prob=prob,
+                               fixed_truth=fixed_truth, lag=lag, engine=own)
+    per_seed: list[SeedRun | None] = [None] * len(args)
+    for o in engine.map(_seed_job, args):
+        if o.error is not None:
+            raise ValueError(f"seed {seeds[o.index]}: {o.error}")
+        per_seed[o.index] = o.value
     return MonteCarloRun(
         scenario, seeds, per_seed[0].duration_s, estimators, fixed_truth, lag,
         [r.lean() for r in per_seed], aggregate(per_seed, prob),

@@ -52,7 +52,8 @@ def _usage(argv: list[str], capsys) -> str:
      "(see ddfuse online --help)"),
     (["frob"],
      "ddfuse: error: argument command: invalid choice: 'frob' (choose from 'inspect', 'run', "
-     "'report', 'online', 'node', 'bench', 'tune', 'simulate', 'plot-sim', 'lag-sweep', 'mc') "
+     "'report', 'online', 'node', 'bench', 'tune', 'fleet', 'compare', 'simulate', 'plot-sim', "
+     "'lag-sweep', 'mc') "
      "(see ddfuse --help)"),
     # the sub-commands that parse their own arguments
     (["lag-sweep", "--lags", "x"],

@@ -1,10 +1,10 @@
 """The ``ddfuse`` program: the top-level parser, ``main(argv)`` and the console script ``entry``.
 
-``inspect``, ``run``, ``report``, ``online``, ``node``, ``bench`` and ``tune`` are sub-parsers of
-the top-level parser (each command module's ``add_to``); ``simulate``, ``plot-sim``, ``lag-sweep``
-and ``mc`` parse their own arguments (their module's ``main(argv)``), dispatched before the
-top-level parser because argparse.REMAINDER cannot pass a leading option such as --help
-through.
+``inspect``, ``run``, ``report``, ``online``, ``node``, ``bench``, ``tune``, ``fleet`` and
+``compare`` are sub-parsers of the top-level parser (each command module's ``add_to``);
+``simulate``, ``plot-sim``, ``lag-sweep`` and ``mc`` parse their own arguments (their module's
+``main(argv)``), dispatched before the top-level parser because argparse.REMAINDER cannot pass
+a leading option such as --help through.
 The layout and its reasons: docs/design/command_line.md.
 """
 
@@ -16,7 +16,17 @@ import os
 import sys
 
 from ddfuse.estimation.interrupts import terminate_as_interrupt
-from ddfuse.evaluation.cli import bench, inspect, node, online, report, run, tune
+from ddfuse.evaluation.cli import (
+    bench,
+    compare,
+    fleet,
+    inspect,
+    node,
+    online,
+    report,
+    run,
+    tune,
+)
 from ddfuse.evaluation.cli.arguments import DdfuseParser
 from ddfuse.evaluation.cli.guard import guarded
 
@@ -43,7 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-v", "--verbose", action="store_true", help="log details to stderr")
     p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
-    for command in (inspect, run, report, online, node, bench, tune):
+    for command in (inspect, run, report, online, node, bench, tune, fleet, compare):
         command.add_to(sub)
     for name, (_, text) in DELEGATED.items():
         sub.add_parser(name, help=text)

@@ -15,8 +15,10 @@ from ddfuse.evaluation.cli.arguments import (
     GPS_HOLDOUT_HELP,
     DdfuseParser,
     gps_holdout,
+    int_at_least,
     plain_text,
 )
+from ddfuse.evaluation.cli.engine_options import add_scheduler
 from ddfuse.evaluation.cli.guard import guarded
 from ddfuse.evaluation.cli.output_paths import check_output_file
 from ddfuse.evaluation.lag_sweep import DEFAULT_LAGS, format_table, lag_sweep
@@ -33,6 +35,10 @@ def _main(argv: list[str] | None) -> int:
     p.add_argument("--gps-holdout", type=gps_holdout, metavar="every:K|window:T0:T1",
                    help=GPS_HOLDOUT_HELP)
     p.add_argument("--json", type=Path, metavar="FILE", help="also write the rows as JSON")
+    add_scheduler(p, jobs=False)
+    p.add_argument("--jobs", type=int_at_least(1), default=1, metavar="N",
+                   help="local worker processes, each point (lag) of the sweep its own task "
+                   "that decodes the bag (default 1: decoded once, the points in turn here)")
     args = p.parse_args(argv)
     try:
         lags = [float(x) for x in args.lags.split(",") if x.strip()]
@@ -44,8 +50,15 @@ def _main(argv: list[str] | None) -> int:
         check_output_file(args.json, "--json")
     bag = args.bag or SAMPLE_BAG
     damaged = None
+    from ddfuse.evaluation.engine import Engine
+
     try:
-        rows = lag_sweep(bag, config_for(bag, args.config), lags, args.gps_holdout)
+        with Engine(args.scheduler, args.jobs, timeout=args.scheduler_timeout) as engine:
+            if engine.kind != "serial":
+                sys.stderr.write(f"ddfuse: lag-sweep: {len(lags) + 1} runs on "
+                                 f"{engine.backend}\n")
+            rows = lag_sweep(bag, config_for(bag, args.config), lags, args.gps_holdout,
+                             engine=engine)
     except ValueError as e:
         raise DdfuseError(str(e)) from None
     except BagError as e:
@@ -67,5 +80,6 @@ def _main(argv: list[str] | None) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """``ddfuse lag-sweep [BAG] [-c CONFIG] [--lags 0.5,2,10,30] [--gps-holdout SPEC]
-    [--json FILE]``; a user error ends in one line on stderr and exit code 2."""
+    [--json FILE] [--scheduler ADDRESS] [--jobs N]``; a user error ends in one line on stderr
+    and exit code 2."""
     return guarded(_main, argv)

@@ -21,6 +21,7 @@ from ddfuse.evaluation.cli.arguments import (
     lag_seconds,
     simulated_scenario,
 )
+from ddfuse.evaluation.cli.engine_options import add_scheduler
 from ddfuse.evaluation.cli.guard import guarded
 from ddfuse.evaluation.cli.output_paths import check_output_dir
 from ddfuse.evaluation.montecarlo import monte_carlo, report_stem, to_markdown, write_report
@@ -64,6 +65,7 @@ def _main(argv: list[str] | None) -> int:
                     "config allows); dead reckoning always runs")
     ap.add_argument("--jobs", type=int_at_least(1), default=None,
                     help="local processes, >= 1 (default: os.cpu_count())")
+    add_scheduler(ap, jobs=False)
     ap.add_argument("--fixed-truth", action="store_true",
                     help="every seed with the scenario's true geometry and the exact true "
                     "initial pose (default: both drawn per seed from the priors the config "
@@ -78,10 +80,17 @@ def _main(argv: list[str] | None) -> int:
     simulated_scenario(args.scenario, args.duration)
     # before any seed runs: an output directory that cannot be made fails now, not at the end
     check_output_dir(args.outdir, "-o")
+    from ddfuse.evaluation.engine import Engine
+
+    jobs = min(args.jobs or os.cpu_count() or 1, args.seeds)
     try:
-        mc = monte_carlo(args.scenario, range(args.first_seed, args.first_seed + args.seeds),
-                         args.estimators, duration=args.duration, jobs=args.jobs,
-                         fixed_truth=args.fixed_truth, lag=args.lag)
+        with Engine(args.scheduler, jobs, timeout=args.scheduler_timeout) as engine:
+            if engine.kind != "serial":
+                sys.stderr.write(f"ddfuse: mc: {args.seeds} seeds on {engine.backend}\n")
+            mc = monte_carlo(args.scenario,
+                             range(args.first_seed, args.first_seed + args.seeds),
+                             args.estimators, duration=args.duration, engine=engine,
+                             fixed_truth=args.fixed_truth, lag=args.lag)
     except ValueError as e:
         raise DdfuseError(str(e)) from None
     j, m = _save_or_show(mc, args.outdir)
@@ -92,5 +101,6 @@ def _main(argv: list[str] | None) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """``ddfuse mc SCENARIO [--seeds N] [--first-seed S] [--duration S] [--estimators LIST]
-    [--jobs J] [-o OUTDIR]``; a user error ends in one line on stderr and exit code 2."""
+    [--jobs J] [--scheduler ADDRESS] [-o OUTDIR]``; a user error ends in one line on stderr
+    and exit code 2."""
     return guarded(_main, argv)

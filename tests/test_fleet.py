@@ -1,0 +1,137 @@
+"""ddfuse fleet: bags found in directories, each in its own output folder, a failing bag a row
+of its own while the others run, the ranking per bag and the wins across bags."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import socket
+from pathlib import Path
+
+import pytest
+from ddfuse.evaluation.cli import main
+from ddfuse.evaluation.fleet import bag_standing, find_bags, output_names, standings
+
+
+@pytest.fixture(scope="module")
+def sim_bag(tmp_path_factory) -> Path:
+    """A 10 s simulated husky drive (bag and config beside it)."""
+    out = tmp_path_factory.mktemp("sim") / "drive.bag"
+    assert main(["simulate", "husky", "--seed", "1", "--duration", "10", "-o", str(out)]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def sim_mcap(tmp_path_factory) -> Path:
+    """The same drive as a ROS 2 bag directory holding an MCAP file (config beside it)."""
+    out = tmp_path_factory.mktemp("sim") / "drive2"
+    assert main(["simulate", "husky", "--seed", "1", "--duration", "10", "--format", "mcap",
+                 "-o", str(out)]) == 0
+    return out
+
+
+def _copy(bag: Path, to: Path, config: bool = True) -> Path:
+    to.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copy(bag, to)
+    if config:
+        shutil.copy(bag.with_suffix(".yaml"), to.with_suffix(".yaml"))
+    return to
+
+
+def test_a_directory_without_bags_is_one_line_and_exit_2(tmp_path, capsys):
+    (tmp_path / "notes.txt").write_text("no bag here")
+    assert main(["fleet", str(tmp_path), "-o", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err == f"ddfuse: error: {tmp_path}: no bags in it (ROS1 .bag, .mcap, ROS 2 bag " \
+                  "directories with metadata.yaml)\n"
+    assert not (tmp_path / "out").exists()
+
+
+def test_bags_are_found_in_subfolders_and_ros2_directories_are_not_entered(tmp_path):
+    for p in ("a/x.bag", "b/x.bag", "b/y.mcap", "r2/metadata.yaml", "r2/r2_0.mcap", "c.txt"):
+        (tmp_path / p).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / p).write_text("")
+    assert find_bags([tmp_path]) == [tmp_path / "a/x.bag", tmp_path / "b/x.bag",
+                                     tmp_path / "b/y.mcap", tmp_path / "r2"]
+
+
+def test_bags_of_the_same_name_get_distinct_output_names():
+    bags = [Path("/d/a/x.bag"), Path("/d/b/x.bag"), Path("/d/b/y.bag"), Path("/e/z.bag"),
+            Path("/e/z.mcap")]
+    assert output_names(bags) == ["a__x", "b__x", "y", "z_bag", "z_mcap"]
+
+
+def test_a_failing_bag_or_one_without_config_is_a_row_and_the_others_run(sim_bag, sim_mcap,
+                                                                          tmp_path, capsys):
+    bags = tmp_path / "bags"
+    shutil.copytree(sim_mcap, bags / "ros2" / "drive2")
+    shutil.copy(sim_mcap.with_suffix(".yaml"), bags / "ros2" / "drive2.yaml")
+    _copy(sim_bag, bags / "a" / "drive.bag")
+    _copy(sim_bag, bags / "b" / "drive.bag")
+    _copy(sim_bag, bags / "unconfigured_drive.bag", config=False)
+    broken = _copy(sim_bag, bags / "broken.bag")
+    broken.write_bytes(b"not a bag at all")
+    out = tmp_path / "out"
+    assert main(["fleet", str(bags), "-o", str(out), "--estimators", "ekf,smoother",
+                 "--jobs", "1"]) == 0
+    doc = json.loads((out / "fleet.json").read_text())
+    by_bag = {b["bag"]: b for b in doc["bags"]}
+    assert set(by_bag) == {"a__drive", "b__drive", "unconfigured_drive", "broken", "drive2"}
+    assert (doc["bags_total"], doc["bags_ran"], doc["bags_failed"]) == (5, 3, 2)
+    assert "no config given (-c)" in by_bag["unconfigured_drive"]["error"]
+    assert str(broken) in by_bag["broken"]["error"]
+    assert "\n" not in by_bag["broken"]["error"]
+    for name in ("a__drive", "b__drive", "drive2"):
+        assert (out / name / "metrics.json").is_file()
+        assert by_bag[name]["error"] is None and by_bag[name]["score"] == "ate"
+        assert sorted(by_bag[name]["ranking"]) == ["ekf", "smoother"]
+    rows = {(r["bag"], r["estimator"]): r for r in doc["rows"]}
+    assert rows[("broken", None)]["error"] == by_bag["broken"]["error"]
+    # the same bag twice: the same scores, and the same rows as its metrics.json
+    a, b = rows[("a__drive", "ekf")], rows[("b__drive", "ekf")]
+    assert a["score_m"] == b["score_m"] is not None
+    metrics = json.loads((out / "a__drive" / "metrics.json").read_text())
+    assert a["ate_rmse_m"] == metrics["estimators"]["ekf"]["ate_rmse_m"]
+    assert a["nees_verdict"] == metrics["estimators"]["ekf"]["nees"]["verdict"]
+    assert doc["estimators"][by_bag["a__drive"]["ranking"][0]]["scored"] == 3
+    cap = capsys.readouterr()
+    assert "ddfuse: fleet: 5 bags on this process (--jobs 1)" in cap.err
+    assert "ddfuse: fleet: 5/5 bags done" in cap.err
+    assert "3 of 5 bags ran" in cap.out
+
+
+def test_exit_2_when_no_bag_ran(sim_bag, tmp_path, capsys):
+    _copy(sim_bag, tmp_path / "bags" / "unconfigured_drive.bag", config=False)
+    assert main(["fleet", str(tmp_path / "bags"), "-o", str(tmp_path / "out"),
+                 "--jobs", "1"]) == 2
+    assert "0 of 1 bags ran" in capsys.readouterr().out
+    assert json.loads((tmp_path / "out" / "fleet.json").read_text())["bags_failed"] == 1
+
+
+def test_an_unreachable_scheduler_is_one_line_and_exit_2(sim_bag, tmp_path, capsys):
+    pytest.importorskip("distributed")
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        address = f"tcp://127.0.0.1:{s.getsockname()[1]}"
+    assert main(["fleet", str(sim_bag), "-o", str(tmp_path / "out"), "--scheduler", address,
+                 "--scheduler-timeout", "1"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"ddfuse: error: --scheduler {address}: no Dask scheduler answered "
+                          "within 1 s") and err.count("\n") == 1
+
+
+def _rows(**scores):
+    return [{"estimator": n, "score_m": v, "error": None} for n, v in scores.items()]
+
+
+def test_the_ranking_names_a_winner_with_its_margin_or_the_tie_for_first():
+    won = bag_standing(_rows(ekf=1.0, smoother=0.5, batch=None))
+    assert won == {"ranking": ["smoother", "ekf"], "winner": "smoother", "tied": [],
+                   "margin_m": 0.5, "margin_pct": 50.0}
+    tied = bag_standing(_rows(ekf=1.0, smoother=0.98, batch=2.0))
+    assert tied["winner"] is None and tied["tied"] == ["smoother", "ekf"]
+    table = standings([won, tied, bag_standing(_rows(ekf=0.3, smoother=0.4))])
+    assert list(table) == ["ekf", "smoother", "batch"]
+    assert table["ekf"] == {"scored": 3, "wins": 1, "tied_first": 1, "mean_margin_m": 0.1,
+                            "max_margin_m": 0.1, "mean_margin_pct": 25.0}
+    assert table["smoother"]["wins"] == 1 and table["smoother"]["mean_margin_m"] == 0.5
