@@ -67,3 +67,15 @@ def no_plausibility_screen(monkeypatch):
     from ddfuse.estimation.robot_limits import RobotLimits
 
     monkeypatch.setattr(RobotLimits, "admit", lambda self, m: True)
+
+
+@pytest.fixture
+def ctrl_c_raises():
+    """Ctrl-C as in a terminal: a process started in the background (``cmd &``, nohup, some CI
+    runners) or a pytest-xdist worker has SIGINT ignored, and Python then never raises
+    KeyboardInterrupt."""
+    import signal
+
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, old)

@@ -219,6 +219,11 @@ def static_bag(tmp_path) -> Path:
     return bag
 
 
+@pytest.fixture(autouse=True)
+def _ctrl_c(ctrl_c_raises):
+    """_Bars' SIGINT raises KeyboardInterrupt here, also in an xdist worker."""
+
+
 class _Bars:
     """Progress bars as the command line sees them (``terminal.Bars``' interface): records the
     stages; at the first update of stage ``interrupt_at`` it raises SIGINT, as Ctrl-C on the

@@ -26,13 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 BAG = ROOT / "data" / "sample_husky.bag"
 
 
-@pytest.fixture(autouse=True)
-def _ctrl_c_raises():
-    """Ctrl-C as in a terminal: a process started in the background (``cmd &``, nohup, some CI
-    runners) inherits SIGINT ignored, and Python then never raises KeyboardInterrupt."""
-    old = signal.signal(signal.SIGINT, signal.default_int_handler)
-    yield
-    signal.signal(signal.SIGINT, old)
+pytestmark = pytest.mark.usefixtures("ctrl_c_raises")
 
 
 class _Sigint(float):

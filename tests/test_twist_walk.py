@@ -73,7 +73,7 @@ def test_the_smoother_ages_a_held_sample_with_the_stated_walk():
         tw.set_odometry(WheelOdometry(0.0, 1.0, 0.1, 1e-4, 1e-4, sensor="/odom"))
         tw.last_t = 0.0
         tw.advance(1.0)
-        return tw.pim.last_var_v
+        return tw.frozen().last_var_v
 
     assert held_var({"max_accel": 0.5, "twist_walk": {"speed": 0.3}}) == \
         pytest.approx(1e-4 + 0.3 ** 2, rel=1e-9)
