@@ -192,6 +192,15 @@ def commands(tr: TrajectorySpec, duration: float, dt: float, rng: np.random.Gene
         v = tr.speed * np.clip(1.0 + tr.speed_rel_std * g_v, 0.2, 1.8) * env
         # Yaw rate scaled by the envelope too, so the robot does not turn on the spot at rest.
         return v, tr.yaw_rate_std * g_w * env
+    if tr.kind == "wheel-steps":
+        # One (left, right) draw per hold period, row by row, for the whole drive: a shorter run
+        # sees the same wheel speeds as the drive it is cut from.
+        span = max(duration, drive_duration or 0.0)
+        lo, hi = tr.wheel_speeds
+        wheels = rng.uniform(lo, hi, size=(int(math.ceil(span / tr.hold)) + 1, 2))
+        k = np.minimum((tm / tr.hold).astype(np.int64), len(wheels) - 1)
+        left, right = wheels[k, 0], wheels[k, 1]
+        return 0.5 * (left + right) * env, (right - left) / tr.track_width * env
     if tr.kind == "figure-eight":
         v = tr.speed * env
         s_grid, kappa, period = _lemniscate_curvature(tr.half_width)

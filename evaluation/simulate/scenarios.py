@@ -21,7 +21,8 @@ class Geometry:
 
 @dataclass(frozen=True)
 class TrajectorySpec:
-    """The commanded motion. ``kind``: 'random', 'figure-eight', 'lawnmower', 'loop-stops'.
+    """The commanded motion. ``kind``: 'random', 'figure-eight', 'lawnmower', 'loop-stops',
+    'wheel-steps'.
 
     Every kind starts from rest at ``start`` (x m, y m, yaw rad, local frame) and ends at rest;
     ``ramp`` is the time (s) of the smooth (raised-cosine) speed ramps."""
@@ -47,6 +48,13 @@ class TrajectorySpec:
     corner_radius: float = 3.0  # m
     stop_time: float = 6.0  # s
     smooth_length: float = 2.0  # m, curvature smoothing window (keeps wheel accelerations finite)
+    # wheel-steps (seed 002's published simulation): each wheel's rim speed drawn uniformly in
+    # wheel_speeds (m/s) afresh every ``hold`` s and held; the body twist is v = (l + r)/2,
+    # w = (r - l)/track_width (m, the robot's true track). The speed jumps at every step: the
+    # motion is not smooth and its accelerations are bounded only by the integration substep.
+    wheel_speeds: tuple[float, float] = (5.0, 15.0)  # m/s
+    hold: float = 0.1  # s
+    track_width: float = 2.0  # m
 
 
 @dataclass(frozen=True)
@@ -59,6 +67,7 @@ class EncoderSpec:
     odometry_topic: str | None = "/odom"
     joint_topic: str | None = None
     joints: tuple[str, str] = ("left_wheel_joint", "right_wheel_joint")
+    phase: float | None = None  # s, of the sample clock; None: random (see sample_times)
 
 
 @dataclass(frozen=True)
@@ -106,6 +115,10 @@ class LandmarkSpec:
     fov: float = math.pi  # rad, full width, centred on body x
     detect_prob: float = 0.9
     margin: float = 5.0  # m, landmarks are drawn in the path's bounding box grown by this
+    # m: when set, landmarks are drawn uniformly in the square of this half-width centred on the
+    # start position instead (seed 002's published simulation: +-300)
+    area: float | None = None
+    phase: float | None = None  # s, of the scan clock; None: random (see sample_times)
     topic: str = "/landmarks"
 
 
@@ -175,6 +188,30 @@ SCENARIOS: dict[str, Scenario] = {
         landmarks=LandmarkSpec(),
         truth_rate=10.0,
         geometry_std=Geometry(wheel_radius=0.002, track_width=0.01),
+    ),
+    # What seed 002's published code ran (its run.py and robotcar.py, 2015): wheel rim speeds
+    # uniform in 5-15 m/s redrawn every 0.1 s, track 2 m, wheel radius 0.5 m, per-wheel speed
+    # noise 0.4 m/s (0.8 rad/s), 20 landmarks uniform in +-300 m, every one sighted at every
+    # step with range and bearing noise 0.4 m and 0.4 rad. Units: the code's "units" read as m.
+    # How it compares with seed002 and the blog's 3.45: docs/results/seed002_blog.md
+    "seed002-blog": Scenario(
+        name="seed002-blog",
+        description="Seed 002 as its published code simulates it: wheel speeds uniform in "
+        "5-15 m/s redrawn every 0.1 s (track 2 m), wheel speed noise 0.4 m/s, 20 landmarks "
+        "uniform in +-300 m all sighted at 10 Hz with range/bearing noise 0.4 m / 0.4 rad, "
+        "2 min, no GPS.",
+        duration=120.0,
+        trajectory=TrajectorySpec("wheel-steps", ramp=0.1, wheel_speeds=(5.0, 15.0), hold=0.1,
+                                  track_width=2.0),
+        true_geometry=Geometry(wheel_radius=0.5, track_width=2.0),
+        nominal_geometry=Geometry(wheel_radius=0.5, track_width=2.0),
+        # encoders and range finder sampled in step with the wheel commands, as in the code
+        encoders=EncoderSpec(rate=10.0, speed_std=0.8, counts_per_rev=2**20,
+                             odometry_topic=None, joint_topic="/joint_states", phase=0.0),
+        landmarks=LandmarkSpec(count=20, range_std=0.4, bearing_std=0.4, min_range=0.0,
+                               max_range=1e4, fov=2.0 * math.pi, detect_prob=1.0, area=300.0,
+                               phase=0.0),
+        truth_rate=10.0,
     ),
     "husky": _husky(
         "husky", "Husky-like outdoor robot mowing a field (lawnmower legs of 40 m): 10 Hz "

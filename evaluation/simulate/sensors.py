@@ -93,16 +93,19 @@ class GroundTruthData:
     fix_alt: np.ndarray  # m
 
 
-def sample_times(rng: np.random.Generator, rate: float, duration: float) -> np.ndarray:
-    """Sample instants (s) on the sensor's own clock: a random phase within one period."""
+def sample_times(rng: np.random.Generator, rate: float, duration: float,
+                 phase: float | None = None) -> np.ndarray:
+    """Sample instants (s) on the sensor's own clock: a random phase within one period, or the
+    given ``phase`` (s), e.g. 0 for a sensor sampled in step with the commands."""
     period = 1.0 / rate
-    phase = rng.uniform(0.0, period)
+    drawn = rng.uniform(0.0, period)  # drawn either way: the stream's later draws stay the same
+    phase = drawn if phase is None else phase
     return phase + np.arange(int(math.floor((duration - phase) / period)) + 1) * period
 
 
 def simulate_encoders(sc: Scenario, truth: Truth, rng: np.random.Generator) -> EncoderData:
     spec = sc.encoders
-    edges = sample_times(rng, spec.rate, sc.duration)  # t[0] opens the first interval
+    edges = sample_times(rng, spec.rate, sc.duration, spec.phase)  # t[0] opens the first interval
     t = edges[1:]
     dt = np.diff(edges)
     tick = 2.0 * math.pi / spec.counts_per_rev
@@ -148,8 +151,13 @@ def simulate_imu(sc: Scenario, truth: Truth, rng: np.random.Generator) -> ImuDat
 
 def _landmark_map(sc: Scenario, truth: Truth, rng: np.random.Generator
                   ) -> tuple[list[str], np.ndarray]:
-    """Landmarks uniformly in the path's bounding box grown by the margin (m)."""
+    """Landmarks uniformly in the path's bounding box grown by the margin (m), or in the square
+    of half-width ``area`` (m) about the start position where the spec sets one."""
     spec = sc.landmarks
+    if spec.area is not None:
+        start = np.array([truth.x[0], truth.y[0]])
+        pos = start + spec.area * rng.uniform(-1.0, 1.0, size=(spec.count, 2))
+        return [str(i + 1) for i in range(spec.count)], pos
     lo = np.array([truth.x.min(), truth.y.min()]) - spec.margin
     hi = np.array([truth.x.max(), truth.y.max()]) + spec.margin
     pos = lo + (hi - lo) * rng.uniform(size=(spec.count, 2))
@@ -163,7 +171,7 @@ def simulate_landmarks(sc: Scenario, truth: Truth, rng: np.random.Generator,
     ``truth``'s)."""
     spec = sc.landmarks
     ids, pos = _landmark_map(sc, truth if map_truth is None else map_truth, map_rng)
-    t = sample_times(rng, spec.rate, sc.duration)
+    t = sample_times(rng, spec.rate, sc.duration, spec.phase)
     x, y, yaw, _, _ = truth.at(t)
     dx = pos[None, :, 0] - x[:, None]
     dy = pos[None, :, 1] - y[:, None]
