@@ -175,3 +175,15 @@ def test_the_screenshot_script(tmp_path):
     assert Image.open(png).size[0] == 1000
     committed = ROOT / "docs" / "report.png"
     assert committed.stat().st_size < 150_000 and "(docs/report.png)" in README.read_text()
+
+
+def test_the_readme_stays_short_and_its_links_resolve():
+    """Under 12 kB (issue 29; the rest is in docs/), and every file or folder it names
+    (docs/..., tests/..., data/, .ci/run, ...) is in the checkout."""
+    text = README.read_text()
+    assert len(text.encode()) < 12_000
+    named = set(re.findall(r"`((?:docs|tests|data|examples|\.ci)/[^`\s]*)`", text))
+    named |= set(re.findall(r"\]\(((?:docs)/[^)]+)\)", text))
+    assert {"docs/cli.md", "docs/api.md", "docs/methods.md", "docs/specification.md",
+            "docs/errata.md", "docs/report.png", "docs/design/fleet.md"} <= named
+    assert [p for p in named if not (ROOT / p).exists()] == []
