@@ -1,5 +1,6 @@
-"""The command line's --help and the README's command table agree: every estimator and option
-listed, online's refusals named, run's wall-time line where the README says."""
+"""The command line's --help and the command table of the CLI reference the README links
+(docs/cli.md) agree: every estimator and option listed, online's refusals named, run's wall-time
+line where the reference says."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import pytest
 from ddfuse.evaluation import cli
 
 ROOT = Path(__file__).resolve().parents[1]
+CLI_DOC = ROOT / "docs" / "cli.md"  # the README's "Command line" link
 SEED002 = ROOT / "data" / "sample_seed002.bag"
 
 
@@ -26,17 +28,33 @@ def test_run_help_lists_every_estimator_the_parser_accepts(capsys):
 
 
 def _readme_cell(command: str) -> tuple[str, str]:
-    """(synopsis, description) of ``ddfuse COMMAND`` in the README's command table."""
-    for line in (ROOT / "README.md").read_text().splitlines():
+    """(synopsis, description) of ``ddfuse COMMAND`` in docs/cli.md's command table."""
+    for line in CLI_DOC.read_text().splitlines():
         if line.startswith(f"| `ddfuse {command} ") or line.startswith(f"| `ddfuse {command}`"):
             synopsis, text = line[2:].split("` | ", 1)
             return synopsis, text
-    raise AssertionError(f"no README row for ddfuse {command}")
+    raise AssertionError(f"no {CLI_DOC.name} row for ddfuse {command}")
 
 
-@pytest.mark.parametrize("command", ["run", "online", "lag-sweep", "bench", "report", "inspect"])
+COMMANDS = ["inspect", "run", "report", "online", "node", "bench", "tune", "fleet", "compare",
+            "simulate", "plot-sim", "lag-sweep", "mc"]
+
+
+def test_the_reference_covers_every_command_of_the_parser(capsys):
+    """COMMANDS (the rows checked below) are the parser's commands, and docs/cli.md has a row
+    for each."""
+    with pytest.raises(SystemExit):
+        cli.main(["--help"])
+    choices = re.search(r"\{([\w,-]+)\}", capsys.readouterr().out).group(1).split(",")
+    assert choices == COMMANDS
+    for command in COMMANDS:
+        _readme_cell(command)
+
+
+@pytest.mark.parametrize("command", COMMANDS)
 def test_readme_synopsis_has_every_option_of_the_help(command, capsys):
-    """The README's table lacked lag-sweep's -c and online's --reorder-window."""
+    """The table lacked lag-sweep's -c and online's --reorder-window; every command's row is
+    checked (it was six of them)."""
     with pytest.raises(SystemExit):
         cli.main([command, "--help"])
     usage = " ".join(capsys.readouterr().out.split("\n\n")[0].split())
