@@ -12,7 +12,9 @@ on the horizontal when the config names an IMU's ``slope``), ``imu`` (Imu -> Hea
 GyroYawRate, ForwardAccel with gravity removed unless ``accel_gravity: level``), ``gps``
 (NavSatFix -> GpsFix, geodetic; ENU is set by the reader once the datum is known), ``wheels``
 (JointState -> WheelSpeeds, rad/s), ``landmarks`` (range m / bearing rad sightings, checked
-against the map) and the ground truth (pose or NavSatFix). The bag reader
+against the map), ``magnetometer`` (MagneticField -> global Heading,
+``ddfuse.estimation.magnetometer``), ``local_heading`` (an orientation without north -> local
+Heading, ``ddfuse.estimation.local_heading``) and the ground truth (pose or NavSatFix). The bag reader
 (``ddfuse.estimation.bags``) and the live converter (``ddfuse.estimation.live``) use the same
 converters (``converter``).
 """
@@ -357,6 +359,12 @@ def converter(kind: str, s: SensorConfig, key: str, landmarks: dict | None = Non
         return _landmarks_converter(s, key, landmarks, unknown)
     if kind in ("odometry", "imu"):
         return CONVERTERS[kind](s, key, slopes)
+    if kind == "magnetometer":  # imported here: those modules take Reject from this one
+        from ddfuse.estimation.magnetometer import magnetometer_converter
+        return magnetometer_converter(s, key)
+    if kind == "local_heading":
+        from ddfuse.estimation.local_heading import local_heading_converter
+        return local_heading_converter(s, key)
     return CONVERTERS[kind](s, key)
 
 
