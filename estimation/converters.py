@@ -14,8 +14,8 @@ GyroYawRate, ForwardAccel with gravity removed unless ``accel_gravity: level``),
 (JointState -> WheelSpeeds, rad/s), ``landmarks`` (range m / bearing rad sightings, checked
 against the map), ``magnetometer`` (MagneticField -> global Heading,
 ``ddfuse.estimation.magnetometer``), ``local_heading`` (an orientation without north -> local
-Heading, ``ddfuse.estimation.local_heading``) and the ground truth (pose or NavSatFix). The bag reader
-(``ddfuse.estimation.bags``) and the live converter (``ddfuse.estimation.live``) use the same
+Heading, ``ddfuse.estimation.local_heading``) and the ground truth (pose or NavSatFix). The bag
+reader (``ddfuse.estimation.bags``) and the live converter (``ddfuse.estimation.live``) use the same
 converters (``converter``).
 """
 
@@ -44,6 +44,8 @@ from ddfuse.estimation.frames import (
     rotated_variance,
     rpy_matrix,
 )
+from ddfuse.estimation.local_heading import local_heading_converter
+from ddfuse.estimation.magnetometer import magnetometer_converter
 from ddfuse.estimation.measurements import (
     ForwardAccel,
     GpsFix,
@@ -54,6 +56,7 @@ from ddfuse.estimation.measurements import (
     WheelOdometry,
     WheelSpeeds,
 )
+from ddfuse.estimation.reject import Reject
 
 __all__ = ["CONVERTERS", "NULL_ISLAND", "Reject", "converter", "gps_fix",
            "ground_truth_converter", "slope_cells", "unknown_landmarks_note"]
@@ -61,15 +64,6 @@ __all__ = ["CONVERTERS", "NULL_ISLAND", "Reject", "converter", "gps_fix",
 log = logging.getLogger(__name__)
 
 NULL_ISLAND = "latitude and longitude both 0: a receiver's placeholder, not a fix"
-
-
-class Reject(Exception):
-    """A single message that cannot be used; its text is the counted reason. ``kept``: the
-    measurements of the message's other fields, used all the same (a part rejected)."""
-
-    def __init__(self, reason: str, kept: list | None = None):
-        super().__init__(reason)
-        self.kept = kept or []
 
 
 def _var(sensor: SensorConfig, key: str, name: str, noise_key: str, value: float | None) -> float:
@@ -337,6 +331,8 @@ CONVERTERS = {
     "gps": _gps_converter,
     "wheels": _wheels_converter,
     "landmarks": _landmarks_converter,
+    "magnetometer": magnetometer_converter,
+    "local_heading": local_heading_converter,
 }
 
 
@@ -359,12 +355,6 @@ def converter(kind: str, s: SensorConfig, key: str, landmarks: dict | None = Non
         return _landmarks_converter(s, key, landmarks, unknown)
     if kind in ("odometry", "imu"):
         return CONVERTERS[kind](s, key, slopes)
-    if kind == "magnetometer":  # imported here: those modules take Reject from this one
-        from ddfuse.estimation.magnetometer import magnetometer_converter
-        return magnetometer_converter(s, key)
-    if kind == "local_heading":
-        from ddfuse.estimation.local_heading import local_heading_converter
-        return local_heading_converter(s, key)
     return CONVERTERS[kind](s, key)
 
 

@@ -20,6 +20,7 @@ from collections.abc import Callable
 from ddfuse.estimation.config import SensorConfig
 from ddfuse.estimation.frames import IDENTITY, body_yaw, rpy_matrix
 from ddfuse.estimation.measurements import Heading
+from ddfuse.estimation.reject import Reject
 
 __all__ = ["local_heading_converter"]
 
@@ -28,8 +29,6 @@ def local_heading_converter(s: SensorConfig, key: str) -> Callable[[tuple], list
     """The converter of local heading ``s`` (config key ``key``): a record of an Odometry
     (t, position, quaternion, ...; 6 fields), an Imu (t, quaternion, orientation covariance,
     ...; 7) or a PoseStamped (t, position, quaternion; 3) -> one Heading (source 'pose')."""
-    from ddfuse.estimation.converters import Reject
-
     mount = IDENTITY if s.mount_rpy == (0.0, 0.0, 0.0) else rpy_matrix(*s.mount_rpy)
     std = s.noise.get("yaw")
     fixed = None if std is None else std * std

@@ -29,6 +29,7 @@ from collections.abc import Callable
 from ddfuse.estimation.config import SensorConfig
 from ddfuse.estimation.frames import IDENTITY, rotate, rpy_matrix
 from ddfuse.estimation.measurements import Heading
+from ddfuse.estimation.reject import Reject
 
 __all__ = ["MIN_HORIZONTAL_FIELD", "body_field", "magnetic_yaw", "magnetometer_converter"]
 
@@ -59,8 +60,6 @@ def body_field(yaw, field_enu: tuple[float, float, float]):
 def magnetometer_converter(s: SensorConfig, key: str) -> Callable[[tuple], list]:
     """The converter of magnetometer ``s`` (config key ``key``): a MagneticField record (t s,
     field (x, y, z) T, covariance 9-tuple T^2) -> one global Heading (source 'compass')."""
-    from ddfuse.estimation.converters import Reject
-
     mount = IDENTITY if s.mount_rpy == (0.0, 0.0, 0.0) else rpy_matrix(*s.mount_rpy)
     hx, hy, hz = s.hard_iron
     decl = s.declination

@@ -1,8 +1,8 @@
 """Field extraction from ROS messages: a fast path for ROS1 raw bytes, and rosbags' objects.
 
 The ROS1 serialisation of the fixed-layout messages ddfuse reads most (Imu, Odometry, NavSatFix,
-TwistStamped, PoseStamped, MagneticField) is a header followed by packed little-endian fields, so one
-``struct.unpack_from`` replaces rosbags' generic deserialiser, too slow for the required rate
+TwistStamped, PoseStamped, MagneticField) is a header followed by packed little-endian fields, so
+one ``struct.unpack_from`` replaces rosbags' generic deserialiser, too slow for the required rate
 (docs/design/performance.md). Every other case (ROS2 CDR, JointState, the landmark message)
 goes through ``rosbags``; tests check that both paths give identical tuples on the real bags.
 

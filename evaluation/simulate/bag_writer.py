@@ -1,10 +1,10 @@
 """A simulated run as a ROS1 bag, or a ROS 2 bag directory (sqlite3 or MCAP storage).
 
 Messages are the standard ROS types (nav_msgs/Odometry, sensor_msgs/JointState, Imu,
-MagneticField, NavSatFix) plus ``ddfuse_msgs/msg/LandmarkObservation``, stamped ``Scenario.t0_ns`` + the
-sample time, written in stamp order with the record time equal to the header stamp. The
-covariances written are the true noise variances (axes a planar robot does not have get 1e6,
-as in the MRCLAM bag). Byte-identical output for a given result.
+MagneticField, NavSatFix) plus ``ddfuse_msgs/msg/LandmarkObservation``, stamped
+``Scenario.t0_ns`` + the sample time, written in stamp order with the record time equal to
+the header stamp. The covariances written are the true noise variances (axes a planar robot
+does not have get 1e6, as in the MRCLAM bag). Byte-identical output for a given result.
 """
 
 from __future__ import annotations
