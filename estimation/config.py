@@ -509,8 +509,19 @@ def _magnetometer(ck: _Checker, key: str, d: dict, s: SensorConfig) -> None:
 def _one_heading_per_reading(ck: _Checker, cfg: Config) -> None:
     """Refuse two heading rows from one orientation topic (an IMU's yaw as the global heading
     Theta_g and again as a local heading Theta_l): one reading fused twice with independent
-    errors counts it twice (errata 000 #40, docs/design/sensors.md)."""
+    errors counts it twice (errata 000 #40, docs/design/sensors.md). Likewise an odometry's
+    pose yaw as a local heading beside the same odometry's yaw rate: the pose is the twist
+    integrated."""
     seen: dict[str, str] = {}
+    for s in cfg.of_kind("local_heading"):
+        twist = next((o for o in cfg.of_kind("odometry")
+                      if o.topic == s.topic and "yaw_rate" in o.use), None)
+        if twist is not None:
+            raise ck.fail("sensors.local_heading", (
+                f"{s.topic}'s pose yaw is the integral of the yaw rate {twist.name!r} already "
+                "fuses: its errors are that twist's, summed, not independent of it; use the "
+                f"odometry's yaw_rate or its pose as a local heading, not both "
+                "(docs/design/sensors.md)"))
     for s in cfg.heading_sensors():
         other = seen.setdefault(s.topic, s.name)
         if other != s.name:

@@ -39,13 +39,25 @@ def test_one_orientation_is_one_heading_row_not_theta_g_and_theta_l():
     assert s.heading_offset == "estimate" and once.heading_sensors() == [s]
 
 
+def test_an_odometry_pose_beside_its_own_yaw_rate_is_refused():
+    """The odometry's pose yaw is its yaw rate integrated: fusing both counts the same
+    encoder errors twice (as errata 000 #40 for one magnetometer)."""
+    text = BASE.replace("use: [yaw, yaw_rate]", "use: [yaw_rate]") + \
+        "  local_heading: [{topic: /odom, name: odom_yaw, noise: {yaw: 0.05}}]\n"
+    with pytest.raises(ConfigError, match=r"sensors.local_heading: /odom's pose yaw is the "
+                                          r"integral of the yaw rate '/odom' already fuses"):
+        parse_config_text(text, "h.yaml")
+
+
 def test_an_odometry_pose_is_read_as_a_local_heading(tmp_path):
     """The /odom pose's orientation (the encoders' dead-reckoned yaw in the odom frame) as a
-    Heading of source 'pose', equal to the simulator's; without noise.yaw (an Odometry's pose
-    covariance is not read) every message is dropped: the bag error names the key to set."""
+    Heading of source 'pose', equal to the simulator's (the odometry fusing only its speed);
+    without noise.yaw (an Odometry's pose covariance is not read) every message is dropped:
+    the bag error names the key to set."""
     res = simulate("husky", seed=2, duration=20.0)
     bag, _, _ = write_bag(res, tmp_path / "h.bag")
-    text = BASE.replace("use: [yaw, yaw_rate]", "use: [yaw_rate]") + \
+    text = BASE.replace("use: [yaw, yaw_rate]", "use: [yaw_rate]").replace(
+        "{topic: /odom}", "{topic: /odom, use: [v]}") + \
         "  local_heading: [{topic: /odom, name: odom_yaw, noise: {yaw: 0.05}}]\n"
     st = read_stream(bag, parse_config_text(text, "h.yaml"))
     h = [m for m in st.measurements if isinstance(m, Heading) and m.sensor == "odom_yaw"]
