@@ -11,6 +11,9 @@ Shape (every key documented in README.md)::
              min_std: 0.5}]
       wheels: [{topic: /joint_states, joints: [left, right], noise: {speed: 0.1}}]
       landmarks: [{topic: /landmarks, map: some.landmarks.yaml, noise: {range: 0.1, bearing: 0.05}}]
+      magnetometer: [{topic: /imu/mag, declination: 0.052, hard_iron: [0.0, 0.0, 0.0],
+                      noise: {field: 3.0e-7}, heading_offset: 0.0}]
+      local_heading: [{topic: /vo/pose, noise: {yaw: 0.02}, heading_offset: estimate}]
     robot: {wheel_radius: 0.165, track_width: 0.555, wheel_radius_std: 0.002,
             track_width_std: 0.03, slip: {longitudinal: 0.05, lateral: 0.02, heading: 0.01},
             max_accel: 0.5, max_yaw_accel: 0.5, max_speed: 1.0, max_yaw_rate: 2.0,
@@ -44,6 +47,13 @@ period (or their defaults), as before the key existed. ``robot.max_speed`` (m/s)
 DEFAULT_MAX_YAW_RATE); a sample beyond them is a glitch (``ddfuse.estimation.robot_limits``).
 A ``gate`` on a sensor is the chi-square acceptance probability of its Mahalanobis gate (e.g.
 0.9999) or ``off``.
+
+A ``magnetometer`` (sensor_msgs/MagneticField) is a global heading: ``declination`` in rad (east
+of true north positive), ``hard_iron`` in T (sensor frame), ``noise.field`` T per axis or
+``noise.yaw`` rad (else the message's covariance). A ``local_heading`` (the orientation of an
+Odometry, Imu or PoseStamped with no north reference) is a heading in the robot's start frame,
+its ``heading_offset`` 'estimate' unless given. One orientation topic gives one heading only
+(docs/design/sensors.md).
 """
 
 from __future__ import annotations
