@@ -14,6 +14,7 @@ from ddfuse.estimation.config import ConfigError, parse_config_text
 from ddfuse.estimation.live import LiveConverter
 from ddfuse.estimation.magnetometer import body_field, magnetic_yaw
 from ddfuse.estimation.measurements import Heading
+from ddfuse.evaluation.estimators import build
 from ddfuse.evaluation.simulate import MagnetometerSpec, simulate, write_bag
 from ddfuse.evaluation.simulate.scenarios import earth_field
 from sensor_runs import errors, sim_bag, variant
@@ -118,6 +119,31 @@ sensors:
     (h,) = out
     assert h.source == "compass" and h.yaw == pytest.approx(math.pi / 2)
     assert h.var == pytest.approx(var, rel=1e-9)
+
+
+def test_a_declination_left_out_is_the_offset_an_estimator_finds(tmp_path):
+    """With the declination left out (0) and heading_offset: estimate, the magnetometer reads
+    psi + D: the unicycle EKF's and ekf_igvc's offset states converge to the declination left
+    out (0.052 rad) within 3 of their sigmas and 0.01 rad (odometry, gyro, GPS; 60 s)."""
+    res = simulate("husky-magnetometer", seed=5, duration=60.0)
+    bag, cfg_path, _ = write_bag(res, tmp_path / "m.bag")
+    spec = MagnetometerSpec()
+    text = cfg_path.read_text().replace(f"declination: {spec.declination}", "declination: 0.0")
+    # estimated, as the constant it is (its random walk 0, as the IMU's offset is stated)
+    text = text.replace("    heading_offset: 0.0\n", "    heading_offset: estimate\n")
+    text = text.replace("      field: 3.0e-07\n", "      field: 3.0e-07\n      heading_offset_walk: 0.0\n")
+    text = text.replace("    - yaw\n    - yaw_rate\n", "    - yaw_rate\n")  # the IMU: no yaw
+    cfg = parse_config_text(text, str(cfg_path))
+    assert cfg.sensor("/imu/mag").heading_offset == "estimate"
+    assert "yaw" not in cfg.sensor("/imu/data").use
+    stream = read_stream(bag, cfg)
+    for name, est in build(cfg, stream, ["ekf", "ekf_igvc"]).items():
+        for m in stream.measurements:
+            est.process(m)
+        e = est.estimate()
+        i = next(k for k, s in enumerate(e.state_names) if s.startswith("hoff"))
+        err = e.state[i] - spec.declination
+        assert abs(err) < min(3.0 * math.sqrt(e.state_cov[i, i]), 0.01), (name, err)
 
 
 @pytest.mark.slow
