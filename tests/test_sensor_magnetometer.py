@@ -131,7 +131,8 @@ def test_a_declination_left_out_is_the_offset_an_estimator_finds(tmp_path):
     text = cfg_path.read_text().replace(f"declination: {spec.declination}", "declination: 0.0")
     # estimated, as the constant it is (its random walk 0, as the IMU's offset is stated)
     text = text.replace("    heading_offset: 0.0\n", "    heading_offset: estimate\n")
-    text = text.replace("      field: 3.0e-07\n", "      field: 3.0e-07\n      heading_offset_walk: 0.0\n")
+    text = text.replace("      field: 3.0e-07\n",
+                        "      field: 3.0e-07\n      heading_offset_walk: 0.0\n")
     text = text.replace("    - yaw\n    - yaw_rate\n", "    - yaw_rate\n")  # the IMU: no yaw
     cfg = parse_config_text(text, str(cfg_path))
     assert cfg.sensor("/imu/mag").heading_offset == "estimate"
