@@ -65,7 +65,7 @@ class IgvcStart:
                  ns.gyro_bias_walk),
                 ("yaw", "heading_offset", "hoff", self._hoff_idx, "heading_offset_walk",
                  ns.heading_offset_walk)):
-            for s in cfg.of_kind("imu"):
+            for s in cfg.of_kind("imu") if use == "yaw_rate" else cfg.heading_sensors():
                 if use in s.use and getattr(s, field) == "estimate":
                     idx[s.name] = len(names)
                     walks[len(names)] = s.noise.get(walk, default) ** 2

@@ -61,7 +61,7 @@ from ddfuse.ekf_baseline.unicycle_motion import (
     unicycle_process_noise,
 )
 from ddfuse.ekf_baseline.unicycle_start import UnicycleStart
-from ddfuse.estimation.config import DEFAULT_GATE, Config
+from ddfuse.estimation.config import DEFAULT_GATE, HEADING_KINDS, Config
 from ddfuse.estimation.estimator import Estimate, Estimator
 from ddfuse.estimation.gaps import gap_note, grown_pose_cov, is_gap
 from ddfuse.estimation.measurements import (
@@ -193,13 +193,12 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
         self._sensors: dict[str, _Sensor] = {}
         imus_b = [s for s in cfg.of_kind("imu")
                   if s.gyro_bias == "estimate" and "yaw_rate" in s.use]
-        imus_h = [s for s in cfg.of_kind("imu")
-                  if s.heading_offset == "estimate" and "yaw" in s.use]
+        imus_h = [s for s in cfg.heading_sensors() if s.heading_offset == "estimate"]
         for s in cfg.sensors:
             info = _Sensor(gate=s.gate, lever=tuple(s.lever_arm), uses=set(s.use),
                            delay=s.delay,
                            tau=float(s.correlation_time) if s.kind == "gps" else 0.0)
-            if s.kind == "imu":
+            if s.kind in HEADING_KINDS:
                 if isinstance(s.gyro_bias, float):
                     info.bias = s.gyro_bias
                 if isinstance(s.heading_offset, float):
@@ -242,7 +241,7 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
         self._initial_pose = initial_pose
         has_gps = bool(cfg.of_kind("gps"))
         known_heading = any(
-            "yaw" in s.use and isinstance(s.heading_offset, float) for s in cfg.of_kind("imu")
+            isinstance(s.heading_offset, float) for s in cfg.heading_sensors()
         )
         if initial_pose is not None:
             self._mode = "pose"

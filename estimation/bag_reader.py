@@ -40,6 +40,9 @@ ACCEPTED_TYPES = {
     "gps": (rosmsg.NAVSATFIX,),
     "wheels": (rosmsg.JOINT_STATE,),
     "landmarks": (rosmsg.LANDMARK,),
+    "magnetometer": (rosmsg.MAGNETIC_FIELD,),
+    # an orientation without a north reference: an odometry's pose, an IMU's, a pose
+    "local_heading": (rosmsg.ODOMETRY, rosmsg.IMU, rosmsg.POSE_STAMPED),
     "ground_truth": (rosmsg.ODOMETRY, rosmsg.POSE_STAMPED, rosmsg.NAVSATFIX),
 }
 

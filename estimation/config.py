@@ -11,6 +11,9 @@ Shape (every key documented in README.md)::
              min_std: 0.5}]
       wheels: [{topic: /joint_states, joints: [left, right], noise: {speed: 0.1}}]
       landmarks: [{topic: /landmarks, map: some.landmarks.yaml, noise: {range: 0.1, bearing: 0.05}}]
+      magnetometer: [{topic: /imu/mag, declination: 0.052, hard_iron: [0.0, 0.0, 0.0],
+                      noise: {field: 3.0e-7}, heading_offset: 0.0}]
+      local_heading: [{topic: /vo/pose, noise: {yaw: 0.02}, heading_offset: estimate}]
     robot: {wheel_radius: 0.165, track_width: 0.555, wheel_radius_std: 0.002,
             track_width_std: 0.03, slip: {longitudinal: 0.05, lateral: 0.02, heading: 0.01},
             max_accel: 0.5, max_yaw_accel: 0.5, max_speed: 1.0, max_yaw_rate: 2.0,
@@ -44,6 +47,13 @@ period (or their defaults), as before the key existed. ``robot.max_speed`` (m/s)
 DEFAULT_MAX_YAW_RATE); a sample beyond them is a glitch (``ddfuse.estimation.robot_limits``).
 A ``gate`` on a sensor is the chi-square acceptance probability of its Mahalanobis gate (e.g.
 0.9999) or ``off``.
+
+A ``magnetometer`` (sensor_msgs/MagneticField) is a global heading: ``declination`` in rad (east
+of true north positive), ``hard_iron`` in T (sensor frame), ``noise.field`` T per axis or
+``noise.yaw`` rad (else the message's covariance). A ``local_heading`` (the orientation of an
+Odometry, Imu or PoseStamped with no north reference) is a heading in the robot's start frame,
+its ``heading_offset`` 'estimate' unless given. One orientation topic gives one heading only
+(docs/design/sensors.md).
 """
 
 from __future__ import annotations
@@ -103,13 +113,16 @@ class _UniqueKeyLoader(_Loader):
         return super().construct_mapping(node, deep=deep)
 
 
-SENSOR_KINDS = ("odometry", "imu", "gps", "wheels", "landmarks")
+SENSOR_KINDS = ("odometry", "imu", "gps", "wheels", "landmarks", "magnetometer",
+                "local_heading")
 USES = {
     "odometry": ("v", "yaw_rate"),
     "imu": ("yaw", "yaw_rate", "accel"),
     "gps": ("position",),
     "wheels": ("speeds",),
     "landmarks": ("range", "bearing"),
+    "magnetometer": ("yaw",),
+    "local_heading": ("yaw",),
 }
 NOISE_KEYS = {
     "odometry": ("v", "yaw_rate"),
@@ -117,7 +130,13 @@ NOISE_KEYS = {
     "gps": ("horizontal", "vertical"),
     "wheels": ("speed",),
     "landmarks": ("range", "bearing"),
+    # field: T per axis (the heading's variance follows from the horizontal field); yaw: rad,
+    # stated directly instead
+    "magnetometer": ("field", "yaw", "heading_offset_walk"),
+    "local_heading": ("yaw", "heading_offset_walk"),
 }
+# the sensor kinds whose messages become Heading measurements (with ``yaw`` in their use)
+HEADING_KINDS = ("imu", "magnetometer", "local_heading")
 WALK_KEYS = ("gyro_bias_walk", "heading_offset_walk")  # noise keys that may be 0 (constant)
 DEFAULT_GATE = 0.9999
 # Gate lock-out rule shared by the EKFs (ekf_baseline.kalman) and the smoother's GPS gate: this
@@ -173,6 +192,11 @@ class SensorConfig:
     # odometry: the name of the IMU sensor whose orientation gives the climb angle, by which
     # the forward speed is projected onto the horizontal plane (None: taken as horizontal)
     slope: str | None = None
+    # magnetometer: the declination, rad, east of true north positive (magnetic north lies
+    # this far clockwise of true north), and the hard-iron offset (x, y, z), T, in the sensor
+    # frame: subtracted from each reading (ddfuse.estimation.magnetometer)
+    declination: float = 0.0
+    hard_iron: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 @dataclass
@@ -288,6 +312,12 @@ class Config:
     def of_kind(self, kind: str) -> list[SensorConfig]:
         return [s for s in self.sensors if s.kind == kind]
 
+    def heading_sensors(self) -> list[SensorConfig]:
+        """The sensors that give Heading measurements, in config order: IMUs using ``yaw``
+        (orientation, global heading), magnetometers (global heading, Theta_g) and local
+        headings (Theta_l)."""
+        return [s for s in self.sensors if s.kind in HEADING_KINDS and "yaw" in s.use]
+
     def sensor(self, name: str) -> SensorConfig:
         for s in self.sensors:
             if s.name == name:
@@ -384,6 +414,8 @@ def _sensor(ck: _Checker, kind: str, i: int, raw: Any, base: Path) -> SensorConf
         "wheels": ("joints",),
         "landmarks": ("map",),
         "odometry": ("mount", "slope"),
+        "magnetometer": ("mount", "heading_offset", "declination", "hard_iron"),
+        "local_heading": ("mount", "heading_offset"),
     }.get(kind, ())
     d = ck.mapping(raw, key, allowed)
     if "topic" not in d:
@@ -427,6 +459,11 @@ def _sensor(ck: _Checker, kind: str, i: int, raw: Any, base: Path) -> SensorConf
         s.slope = ck.string(d["slope"], f"{key}.slope")  # checked against the IMUs below
     if "heading_offset" in d:
         s.heading_offset = ck.estimate_or_number(d["heading_offset"], f"{key}.heading_offset")
+    elif kind == "local_heading":
+        # a heading in the robot's start frame: its offset to ENU is the start's unknown yaw
+        s.heading_offset = "estimate"
+    if kind == "magnetometer":
+        _magnetometer(ck, key, d, s)
     if "gyro_bias" in d:
         s.gyro_bias = ck.estimate_or_number(d["gyro_bias"], f"{key}.gyro_bias")
     if "accel_gravity" in d:
@@ -463,6 +500,47 @@ def _sensor(ck: _Checker, kind: str, i: int, raw: Any, base: Path) -> SensorConf
     return s
 
 
+def _magnetometer(ck: _Checker, key: str, d: dict, s: SensorConfig) -> None:
+    """A magnetometer's declination (rad) and hard-iron offset (T) into ``s``."""
+    if "declination" in d:
+        s.declination = ck.number(d["declination"], f"{key}.declination")
+        if abs(s.declination) > math.pi:
+            raise ck.fail(f"{key}.declination", f"{s.declination:g} is beyond pi: the "
+                          f"declination is in radians ({s.declination:g} deg would be "
+                          f"{math.radians(s.declination):.4f})")
+    if "hard_iron" in d:
+        s.hard_iron = ck.vector(d["hard_iron"], f"{key}.hard_iron", 3)
+        if any(abs(v) > 1e-3 for v in s.hard_iron):
+            raise ck.fail(f"{key}.hard_iron", f"{list(s.hard_iron)} is beyond 1 mT: the offset "
+                          "is in tesla, as sensor_msgs/MagneticField (the earth's field is "
+                          "25-65 uT; 30 uT is 3e-5)")
+
+
+def _one_heading_per_reading(ck: _Checker, cfg: Config) -> None:
+    """Refuse two heading rows from one orientation topic (an IMU's yaw as the global heading
+    Theta_g and again as a local heading Theta_l): one reading fused twice with independent
+    errors counts it twice (errata 000 #40, docs/design/sensors.md). Likewise an odometry's
+    pose yaw as a local heading beside the same odometry's yaw rate: the pose is the twist
+    integrated."""
+    seen: dict[str, str] = {}
+    for s in cfg.of_kind("local_heading"):
+        twist = next((o for o in cfg.of_kind("odometry")
+                      if o.topic == s.topic and "yaw_rate" in o.use), None)
+        if twist is not None:
+            raise ck.fail("sensors.local_heading", (
+                f"{s.topic}'s pose yaw is the integral of the yaw rate {twist.name!r} already "
+                "fuses: its errors are that twist's, summed, not independent of it; use the "
+                f"odometry's yaw_rate or its pose as a local heading, not both "
+                "(docs/design/sensors.md)"))
+    for s in cfg.heading_sensors():
+        other = seen.setdefault(s.topic, s.name)
+        if other != s.name:
+            raise ck.fail(f"sensors.{s.kind}", (
+                f"{s.topic} gives a heading to {other!r} and again to {s.name!r}: one reading "
+                "would be fused twice as if its errors were independent (seed 000's Theta_g and "
+                "Theta_l from one sensor, errata 000 #40); configure it once"))
+
+
 def parse_config(raw: Any, source: str = "<config>", base: Path | None = None) -> Config:
     """Validate a YAML tree (as loaded) into a Config. Relative paths resolve against ``base``."""
     ck = _Checker(source)
@@ -487,6 +565,7 @@ def parse_config(raw: Any, source: str = "<config>", base: Path | None = None) -
     if dup:
         raise ck.fail("sensors", f"sensor name {sorted(dup)[0]!r} used twice; give each a 'name'")
     cfg = Config(sensors=sensors, path=Path(source) if source != "<config>" else None)
+    _one_heading_per_reading(ck, cfg)
     for kind in ("odometry",):
         for i, s in enumerate(cfg.of_kind(kind)):
             if s.slope is None:

@@ -12,8 +12,10 @@ on the horizontal when the config names an IMU's ``slope``), ``imu`` (Imu -> Hea
 GyroYawRate, ForwardAccel with gravity removed unless ``accel_gravity: level``), ``gps``
 (NavSatFix -> GpsFix, geodetic; ENU is set by the reader once the datum is known), ``wheels``
 (JointState -> WheelSpeeds, rad/s), ``landmarks`` (range m / bearing rad sightings, checked
-against the map) and the ground truth (pose or NavSatFix). The bag reader
-(``ddfuse.estimation.bags``) and the live converter (``ddfuse.estimation.live``) use the same
+against the map), ``magnetometer`` (MagneticField -> global Heading,
+``ddfuse.estimation.magnetometer``), ``local_heading`` (an orientation without north -> local
+Heading, ``ddfuse.estimation.local_heading``) and the ground truth (pose or NavSatFix). The bag
+reader (``ddfuse.estimation.bags``) and the live converter (``ddfuse.estimation.live``) use the same
 converters (``converter``).
 """
 
@@ -42,6 +44,8 @@ from ddfuse.estimation.frames import (
     rotated_variance,
     rpy_matrix,
 )
+from ddfuse.estimation.local_heading import local_heading_converter
+from ddfuse.estimation.magnetometer import magnetometer_converter
 from ddfuse.estimation.measurements import (
     ForwardAccel,
     GpsFix,
@@ -52,6 +56,7 @@ from ddfuse.estimation.measurements import (
     WheelOdometry,
     WheelSpeeds,
 )
+from ddfuse.estimation.reject import Reject
 
 __all__ = ["CONVERTERS", "NULL_ISLAND", "Reject", "converter", "gps_fix",
            "ground_truth_converter", "slope_cells", "unknown_landmarks_note"]
@@ -59,15 +64,6 @@ __all__ = ["CONVERTERS", "NULL_ISLAND", "Reject", "converter", "gps_fix",
 log = logging.getLogger(__name__)
 
 NULL_ISLAND = "latitude and longitude both 0: a receiver's placeholder, not a fix"
-
-
-class Reject(Exception):
-    """A single message that cannot be used; its text is the counted reason. ``kept``: the
-    measurements of the message's other fields, used all the same (a part rejected)."""
-
-    def __init__(self, reason: str, kept: list | None = None):
-        super().__init__(reason)
-        self.kept = kept or []
 
 
 def _var(sensor: SensorConfig, key: str, name: str, noise_key: str, value: float | None) -> float:
@@ -335,6 +331,8 @@ CONVERTERS = {
     "gps": _gps_converter,
     "wheels": _wheels_converter,
     "landmarks": _landmarks_converter,
+    "magnetometer": magnetometer_converter,
+    "local_heading": local_heading_converter,
 }
 
 

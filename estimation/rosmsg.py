@@ -1,8 +1,8 @@
 """Field extraction from ROS messages: a fast path for ROS1 raw bytes, and rosbags' objects.
 
 The ROS1 serialisation of the fixed-layout messages ddfuse reads most (Imu, Odometry, NavSatFix,
-TwistStamped, PoseStamped) is a header followed by packed little-endian fields, so one
-``struct.unpack_from`` replaces rosbags' generic deserialiser, too slow for the required rate
+TwistStamped, PoseStamped, MagneticField) is a header followed by packed little-endian fields, so
+one ``struct.unpack_from`` replaces rosbags' generic deserialiser, too slow for the required rate
 (docs/design/performance.md). Every other case (ROS2 CDR, JointState, the landmark message)
 goes through ``rosbags``; tests check that both paths give identical tuples on the real bags.
 
@@ -22,6 +22,7 @@ _IMU = struct.Struct("<4d9d3d9d3d9d")
 _FIX = struct.Struct("<bH3d9dB")
 _TWIST = struct.Struct("<6d")
 _POSE = struct.Struct("<7d")
+_MAG = struct.Struct("<3d9d")  # magnetic_field, magnetic_field_covariance
 
 ODOMETRY = "nav_msgs/msg/Odometry"
 IMU = "sensor_msgs/msg/Imu"
@@ -30,6 +31,7 @@ TWIST_STAMPED = "geometry_msgs/msg/TwistStamped"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 JOINT_STATE = "sensor_msgs/msg/JointState"
 LANDMARK = "ddfuse_msgs/msg/LandmarkObservation"
+MAGNETIC_FIELD = "sensor_msgs/msg/MagneticField"
 
 
 def _header(raw: bytes) -> tuple[float, int]:
@@ -66,6 +68,12 @@ def _pose_raw(raw: bytes) -> tuple:
     t, off = _header(raw)
     v = _POSE.unpack_from(raw, off)
     return (t, v[0:3], v[3:7])
+
+
+def _mag_raw(raw: bytes) -> tuple:
+    t, off = _header(raw)
+    v = _MAG.unpack_from(raw, off)
+    return (t, v[0:3], v[3:12])
 
 
 def _stamp(m) -> float:
@@ -112,6 +120,10 @@ def _pose_obj(m) -> tuple:
     return (_stamp(m), _xyz(m.pose.position), _quat(m.pose.orientation))
 
 
+def _mag_obj(m) -> tuple:
+    return (_stamp(m), _xyz(m.magnetic_field), _floats(m.magnetic_field_covariance))
+
+
 def _joint_obj(m) -> tuple:
     return (_stamp(m), tuple(m.name), _floats(m.velocity))
 
@@ -130,6 +142,7 @@ EXTRACTORS: dict[str, tuple[Callable[[bytes], tuple] | None, Callable[[object], 
     POSE_STAMPED: (_pose_raw, _pose_obj),  # (t, position, quat)
     JOINT_STATE: (None, _joint_obj),  # (t, names, velocities)
     LANDMARK: (None, _landmark_obj),  # (t, id, range, bearing, range_var, bearing_var, has_b)
+    MAGNETIC_FIELD: (_mag_raw, _mag_obj),  # (t, field3 T, cov9 T^2)
 }
 
 

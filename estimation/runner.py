@@ -349,8 +349,8 @@ def _start_hint(cfg, fixes_fed: int) -> str:
                 "stream's first truth pose)")
     give = "initial_pose: [x, y, yaw] in the config starts it from a known pose"
     gps = ", ".join(s.topic for s in cfg.of_kind("gps"))
-    compass = ", ".join(s.topic for s in cfg.of_kind("imu")
-                        if "yaw" in s.use and isinstance(s.heading_offset, float))
+    compass = ", ".join(s.topic for s in cfg.heading_sensors()
+                        if isinstance(s.heading_offset, float))
     if gps and not fixes_fed:
         return f"it takes its start position from the first GPS fix, and no fix of {gps} " \
                f"reached it; {give}"

@@ -92,7 +92,7 @@ class FixedLagSmoother(Estimator):
         self.est_bias = any(s.gyro_bias == "estimate" for s in imus)
         self.fixed_bias = next((float(s.gyro_bias) for s in imus if s.gyro_bias != "estimate"),
                                0.0)
-        heads = [s for s in cfg.of_kind("imu") if "yaw" in s.use]
+        heads = cfg.heading_sensors()
         self.heading_sensors = bool(heads)
         self.est_hoff = any(s.heading_offset == "estimate" for s in heads)
         # odometry scale states, as in the EKFs (ekf_baseline.calibration): estimated when the

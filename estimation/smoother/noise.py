@@ -92,8 +92,8 @@ class SmootherNoise:
         imus = cfg.of_kind("imu")
         bg = [s.noise["gyro_bias_walk"] for s in imus
               if "yaw_rate" in s.use and "gyro_bias_walk" in s.noise]
-        ho = [s.noise["heading_offset_walk"] for s in imus
-              if "yaw" in s.use and "heading_offset_walk" in s.noise]
+        ho = [s.noise["heading_offset_walk"] for s in cfg.heading_sensors()
+              if "heading_offset_walk" in s.noise]
         return replace(n, pose_noise=pn,
                        gyro_bias_rw=max(bg[0], WALK_FLOOR[0], walk_floor(n.init_bg_sigma))
                        if bg else n.gyro_bias_rw,

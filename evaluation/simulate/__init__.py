@@ -11,8 +11,8 @@ Deterministic per seed, each sensor with its own random stream. One module per j
 
 * ``scenarios``: the named scenarios (robot geometry, trajectory, sensor specifications);
 * ``motion``: the truth drive (commands along the path, exact SE(2) integration);
-* ``sensors``: wheel encoders, IMU, landmark sightings, ground truth; ``gps``: the GPS fixes
-  and their white or Gauss-Markov errors;
+* ``sensors``: wheel encoders, IMU, magnetometer, landmark sightings, ground truth; ``gps``: the
+  GPS fixes and their white or Gauss-Markov errors;
 * ``simulator``: ``simulate`` and its ``SimResult``;
 * ``sidecars``: the config and landmark map written beside a bag;
 * ``bag_writer``: the messages and the bag (ROS1 file, ROS 2 directory with sqlite3 or MCAP).
@@ -41,6 +41,7 @@ from ddfuse.evaluation.simulate.scenarios import (
     GpsSpec,
     ImuSpec,
     LandmarkSpec,
+    MagnetometerSpec,
     Scenario,
     TrajectorySpec,
     get_scenario,
@@ -52,6 +53,7 @@ from ddfuse.evaluation.simulate.sensors import (
     GroundTruthData,
     ImuData,
     LandmarkData,
+    MagnetometerData,
 )
 from ddfuse.evaluation.simulate.sidecars import (
     SMOOTHER_LAG,
@@ -67,7 +69,8 @@ __all__ = [
     "FORMATS", "G", "LANDMARK_MSGDEF", "LANDMARK_MSGTYPE", "OUTDOOR_DATUM", "SCENARIOS",
     "SMOOTHER_LAG", "SUFFIXES", "UNUSED_VAR", "EncoderData", "EncoderSpec", "Geometry",
     "GpsData", "GpsSpec", "GroundTruthData", "ImuData", "ImuSpec", "LandmarkData",
-    "LandmarkSpec", "Scenario", "SimResult", "TrajectorySpec", "Truth", "_rng",
+    "LandmarkSpec", "MagnetometerData", "MagnetometerSpec", "Scenario", "SimResult",
+    "TrajectorySpec", "Truth", "_rng",
     "check_bag_path", "get_scenario", "integrate_truth", "make_typestore", "se2_step",
     "sidecar_paths", "sim_config", "simulate", "storage_file", "with_duration", "wrap",
     "write_bag", "write_sidecars",

@@ -1,10 +1,10 @@
 """A simulated run as a ROS1 bag, or a ROS 2 bag directory (sqlite3 or MCAP storage).
 
 Messages are the standard ROS types (nav_msgs/Odometry, sensor_msgs/JointState, Imu,
-NavSatFix) plus ``ddfuse_msgs/msg/LandmarkObservation``, stamped ``Scenario.t0_ns`` + the
-sample time, written in stamp order with the record time equal to the header stamp. The
-covariances written are the true noise variances (axes a planar robot does not have get 1e6,
-as in the MRCLAM bag). Byte-identical output for a given result.
+MagneticField, NavSatFix) plus ``ddfuse_msgs/msg/LandmarkObservation``, stamped
+``Scenario.t0_ns`` + the sample time, written in stamp order with the record time equal to
+the header stamp. The covariances written are the true noise variances (axes a planar robot
+does not have get 1e6, as in the MRCLAM bag). Byte-identical output for a given result.
 """
 
 from __future__ import annotations
@@ -169,6 +169,20 @@ def _topic_messages(res: SimResult, mk: _Msgs) -> list[tuple[str, str, Iterator]
                     linear_acceleration_covariance=acov)
 
         out.append((spec.topic, "sensor_msgs/msg/Imu", imus()))
+
+    if res.magnetometer is not None:
+        mag, spec = res.magnetometer, sc.magnetometer
+        mcov = _diag([spec.noise_std**2] * 3, 3)
+
+        def fields():
+            M = T["sensor_msgs/msg/MagneticField"]
+            for k in range(len(mag.t)):
+                ns = mk.ns(mag.t[k])
+                yield ns, M(header=mk.header(ns, "imu_link", k),
+                            magnetic_field=mk.vec(*mag.field[k]),
+                            magnetic_field_covariance=mcov)
+
+        out.append((spec.topic, "sensor_msgs/msg/MagneticField", fields()))
 
     if res.gps is not None:
         gps, spec = res.gps, sc.gps

@@ -11,6 +11,8 @@ random stream (``simulator._rng``). Times are seconds since the start of the run
 * IMU: gyro z = true yaw rate + bias + white noise, the bias a random walk; orientation = true
   yaw + constant offset + noise (roll and pitch: small noise about the true zero);
   linear_acceleration = (dv/dt, v w, g) + white noise (specific force on flat ground).
+* Magnetometer: the earth's field rotated into the level body at the true yaw, plus the
+  hard-iron offset and white noise (``simulate_magnetometer``).
 * Landmarks: range and bearing (body frame, CCW from x) from the body origin to every known
   landmark inside [min_range, max_range] and the field of view, each detected with probability
   ``detect_prob``, with white Gaussian noise.
@@ -64,6 +66,13 @@ class ImuData:
     true_yaw_rate: np.ndarray
     true_yaw: np.ndarray  # rad, wrapped
     true_accel: np.ndarray  # (n, 3)
+
+
+@dataclass
+class MagnetometerData:
+    t: np.ndarray  # s
+    field: np.ndarray  # (n, 3) T, measured, sensor frame (hard iron and noise included)
+    true_yaw: np.ndarray  # rad, wrapped
 
 
 @dataclass
@@ -147,6 +156,19 @@ def simulate_imu(sc: Scenario, truth: Truth, rng: np.random.Generator) -> ImuDat
     acc = true_acc + spec.accel_std * rng.standard_normal((n, 3))
     return ImuData(t=t, yaw_rate=gz, gyro_xy=gxy, bias=bias, yaw=yaw_m, roll=roll, pitch=pitch,
                    accel=acc, true_yaw_rate=w, true_yaw=wrap(yaw), true_accel=true_acc)
+
+
+def simulate_magnetometer(sc: Scenario, truth: Truth, rng: np.random.Generator
+                          ) -> MagnetometerData:
+    """The earth's field in the level body at the true yaw, plus hard iron and white noise."""
+    from ddfuse.estimation.magnetometer import body_field
+
+    spec = sc.magnetometer
+    t = sample_times(rng, spec.rate, sc.duration)
+    _, _, yaw, _, _ = truth.at(t)
+    b = np.stack(body_field(yaw, spec.field), axis=1) + np.asarray(spec.hard_iron)
+    b = b + spec.noise_std * rng.standard_normal(b.shape)
+    return MagnetometerData(t=t, field=b, true_yaw=wrap(yaw))
 
 
 def _landmark_map(sc: Scenario, truth: Truth, rng: np.random.Generator

@@ -40,6 +40,11 @@ def sim_config(res: SimResult, landmark_map: str | None = None) -> dict:
         sensors["imu"] = [{"topic": sc.imu.topic, "use": ["yaw", "yaw_rate", "accel"],
                            "noise": noise["imu"], "heading_offset": "estimate",
                            "gyro_bias": "estimate"}]
+    if sc.magnetometer:
+        m = sc.magnetometer
+        sensors["magnetometer"] = [{"topic": m.topic, "noise": noise["magnetometer"],
+                                    "declination": m.declination,
+                                    "hard_iron": list(m.hard_iron), "heading_offset": 0.0}]
     if sc.gps:
         sensors["gps"] = [{"topic": sc.gps.topic, "noise": noise["gps"], "delay": sc.gps.delay}]
         if sc.gps.correlation_s > 0.0:  # the true error model, as the noise values are

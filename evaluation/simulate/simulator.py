@@ -19,10 +19,12 @@ from ddfuse.evaluation.simulate.sensors import (
     GroundTruthData,
     ImuData,
     LandmarkData,
+    MagnetometerData,
     simulate_encoders,
     simulate_ground_truth,
     simulate_imu,
     simulate_landmarks,
+    simulate_magnetometer,
 )
 
 
@@ -39,6 +41,7 @@ class SimResult:
     imu: ImuData | None = None
     gps: GpsData | None = None
     landmarks: LandmarkData | None = None
+    magnetometer: MagnetometerData | None = None
     extras: dict = field(default_factory=dict)
 
     @property
@@ -68,6 +71,8 @@ class SimResult:
                           "heading_offset_walk": 0.0}
         if sc.gps:
             out["gps"] = {"horizontal": sc.gps.horizontal_std, "vertical": sc.gps.vertical_std}
+        if sc.magnetometer:
+            out["magnetometer"] = {"field": sc.magnetometer.noise_std}
         if sc.landmarks:
             out["landmarks"] = {"range": sc.landmarks.range_std,
                                 "bearing": sc.landmarks.bearing_std}
@@ -95,6 +100,8 @@ def simulate(scenario: str | Scenario, seed: int = 0, duration: float | None = N
         if sc.datum is None:
             raise ValueError(f"scenario {sc.name}: GPS needs a datum")
         res.gps = simulate_gps(sc, truth, _rng(seed, "gps"))
+    if sc.magnetometer:
+        res.magnetometer = simulate_magnetometer(sc, truth, _rng(seed, "magnetometer"))
     if sc.landmarks:
         # A run cut short of its drive keeps the whole drive's map, so that it is the same world
         # (the map is drawn in the path's bounding box, which a shorter path would shrink).
