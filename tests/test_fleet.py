@@ -3,6 +3,7 @@ of its own while the others run, the ranking per bag and the wins across bags.""
 
 from __future__ import annotations
 
+import html
 import json
 import shutil
 import socket
@@ -73,7 +74,7 @@ def test_a_failing_bag_or_one_without_config_is_a_row_and_the_others_run(sim_bag
     broken.write_bytes(b"not a bag at all")
     out = tmp_path / "out"
     assert main(["fleet", str(bags), "-o", str(out), "--estimators", "ekf,smoother",
-                 "--jobs", "1"]) == 0
+                 "--jobs", "1", "--no-report"]) == 0
     doc = json.loads((out / "fleet.json").read_text())
     by_bag = {b["bag"]: b for b in doc["bags"]}
     assert set(by_bag) == {"a__drive", "b__drive", "unconfigured_drive", "broken", "drive2"}
@@ -83,6 +84,7 @@ def test_a_failing_bag_or_one_without_config_is_a_row_and_the_others_run(sim_bag
     assert "\n" not in by_bag["broken"]["error"]
     for name in ("a__drive", "b__drive", "drive2"):
         assert (out / name / "metrics.json").is_file()
+        assert not (out / name / "report.html").exists() and by_bag[name]["report"] is None
         assert by_bag[name]["error"] is None and by_bag[name]["score"] == "ate"
         assert sorted(by_bag[name]["ranking"]) == ["ekf", "smoother"]
     rows = {(r["bag"], r["estimator"]): r for r in doc["rows"]}
@@ -98,6 +100,26 @@ def test_a_failing_bag_or_one_without_config_is_a_row_and_the_others_run(sim_bag
     assert "ddfuse: fleet: 5 bags on this process (--jobs 1)" in cap.err
     assert "ddfuse: fleet: 5/5 bags done" in cap.err
     assert "3 of 5 bags ran" in cap.out
+
+
+def test_each_bag_gets_its_report_and_the_fleet_page_links_it_and_shows_the_failure(
+        sim_bag, tmp_path):
+    bags = tmp_path / "bags"
+    _copy(sim_bag, bags / "drive.bag")
+    _copy(sim_bag, bags / "broken.bag").write_bytes(b"not a bag at all")
+    out = tmp_path / "out"
+    assert main(["fleet", str(bags), "-o", str(out), "--estimators", "ekf,smoother",
+                 "--jobs", "1"]) == 0
+    doc = json.loads((out / "fleet.json").read_text())
+    by_bag = {b["bag"]: b for b in doc["bags"]}
+    assert by_bag["drive"]["report"] == "drive/report.html"
+    assert by_bag["broken"]["report"] is None
+    report = (out / "drive" / "report.html").read_text()
+    assert "<h1>ddfuse report: drive.bag</h1>" in report
+    page = (out / "fleet.html").read_text()
+    assert '<a href="drive/report.html">drive</a>' in page
+    assert html.escape(by_bag["broken"]["error"]) in page
+    assert "http://" not in page and "https://" not in page and "<script" not in page
 
 
 def test_exit_2_when_no_bag_ran(sim_bag, tmp_path, capsys):
