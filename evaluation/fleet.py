@@ -161,7 +161,7 @@ def run_one(job: BagJob) -> dict:
         return {"rows": [], "error": " ".join(str(e).split()),
                 "wall_s": time.perf_counter() - t0, "report": False}
     rows, error = rows_of(m), None
-    del m  # the tracks' summary: not kept while the report renders from the files
+    del m  # the summary is not held while the report renders from the files
     if job.report:
         from ddfuse.evaluation.report import render_report
 

@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 from ddfuse.evaluation.cli import main
 from ddfuse.evaluation.fleet import bag_standing, find_bags, output_names, standings
+from ddfuse.evaluation.fleet_page import fleet_html
 
 
 @pytest.fixture(scope="module")
@@ -157,3 +158,21 @@ def test_the_ranking_names_a_winner_with_its_margin_or_the_tie_for_first():
     assert table["ekf"] == {"scored": 3, "wins": 1, "tied_first": 1, "mean_margin_m": 0.1,
                             "max_margin_m": 0.1, "mean_margin_pct": 25.0}
     assert table["smoother"]["wins"] == 1 and table["smoother"]["mean_margin_m"] == 0.5
+
+
+def test_the_fleet_page_names_a_tie_and_what_a_bag_is_scored_on():
+    rows = [{"bag": "held", "estimator": n, "score": "holdout", "score_m": v, "ate_rmse_m": None,
+             "gps_holdout_rmse_m": v, "nees_mean": None, "nees_verdict": None,
+             "nis_verdicts": {"/fix gps": "Warn"}, "rtf": 40.0, "error": None}
+            for n, v in (("ekf", 1.0), ("smoother", 0.98))]
+    bag = {"bag": "held", "path": "/d/held.bag", "error": None, "report": None,
+           "score": "holdout", "wall_s": 1.0, **bag_standing(rows)}
+    doc = {"engine": "this process (--jobs 1)", "bags_total": 1, "bags_ran": 1,
+           "bags_failed": 0, "estimators": standings([bag]), "bags": [bag], "rows": rows,
+           "wall_s": 1.0}
+    page = fleet_html(doc, stamp="then")
+    assert "<td class='l'>tie: smoother, ekf</td>" in page
+    assert page.count("GPS hold-out</td>") == 3  # the bag's row and both estimators'
+    assert "1 bag without an outright winner" in page
+    assert '/fix gps <span class="Warn">Warn</span>' in page
+    assert "<a href" not in page  # no report rendered, no link
