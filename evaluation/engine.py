@@ -256,8 +256,9 @@ class SharedMap:
             self._scattered = engine.client.scatter(obj, broadcast=True, hash=False)
 
     def map(self, tasks: Iterable[Any]) -> list[Any]:
-        """``fn(obj, task)`` for each task, in the tasks' order. TaskFailed (one line) for a
-        task that raised, or whose worker died, on both tries."""
+        """``fn(obj, task)`` for each task, in the tasks' order. On workers, TaskFailed (one
+        line) for a task that raised or whose worker died (on Dask: on both tries); in this
+        process (serial), ``fn``'s own exception."""
         tasks = list(tasks)
         if self._pool is not None:  # not retried: a worker that dies breaks the pool
             try:
