@@ -139,3 +139,16 @@ def test_shared_map_on_a_local_cluster_scatters_once_and_keeps_the_order():
                            "ZeroDivisionError")
     with Engine(jobs=2) as eng, eng.shared(operator.truediv, 1.0) as sm, failed:
         sm.map([2.0, 0.0, 4.0])
+
+
+def test_tune_with_an_unreachable_scheduler_is_one_line_and_exit_2_before_reading(capsys):
+    pytest.importorskip("distributed")
+    from ddfuse.evaluation.cli import main
+    from ddfuse.evaluation.shipped import DATA
+
+    address = f"tcp://127.0.0.1:{_closed_port()}"
+    assert main(["tune", str(DATA / "sample_husky.bag"), "--scheduler", address,
+                 "--scheduler-timeout", "1"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"ddfuse: error: --scheduler {address}: no Dask scheduler answered")
+    assert err.count("\n") == 1
