@@ -6,6 +6,9 @@ processes (Dask installed, the ``scale`` extra), the standard library's ProcessP
 (Dask not installed), or this process alone (``jobs`` 1, no scheduler). ``Engine.backend`` says
 which in one line. ``Engine.map(fn, tasks)`` yields one ``Outcome`` per task in the order the
 tasks complete, so a caller keeps what it needs of each result and drops the rest.
+``Engine.shared(fn, obj)`` is for many rounds of small tasks over one large object (tuning's
+runs over one stream): ``obj`` goes to each worker once (forked into local processes, scattered
+to Dask workers) and ``fn(obj, task)`` runs there, the results in the tasks' order.
 
 Every backend runs the same ``fn`` on the same task, so a deterministic ``fn`` gives the same
 result on any of them (tests/test_fleet_cluster.py checks it to the last digit). A task whose
@@ -18,13 +21,15 @@ from __future__ import annotations
 
 import logging
 import os
+import threading
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
 from ddfuse.estimation.errors import DdfuseError
 
-__all__ = ["CONNECT_TIMEOUT_S", "SCALE_HINT", "Engine", "Outcome", "dask_available"]
+__all__ = ["CONNECT_TIMEOUT_S", "SCALE_HINT", "Engine", "Outcome", "SharedMap", "TaskFailed",
+           "dask_available"]
 
 CONNECT_TIMEOUT_S = 10.0  # waiting for a --scheduler to answer before giving up
 SCALE_HINT = "pip install 'ddfuse[scale]'"
@@ -39,6 +44,10 @@ class Outcome:
     index: int
     value: Any = None
     error: str | None = None
+
+
+class TaskFailed(DdfuseError):
+    """A task of ``SharedMap.map`` failed on every try (one line: which and why)."""
 
 
 def dask_available() -> bool:
@@ -61,19 +70,23 @@ class Engine:
 
     ``scheduler``: a Dask scheduler address (``tcp://host:8786``) or None; ``jobs``: worker
     processes when no scheduler is given (default: the CPU count); ``timeout``: s to wait for
-    the scheduler. DdfuseError, one line, for an unreachable scheduler or ``scheduler`` without
-    Dask installed."""
+    the scheduler; ``fork``: without a scheduler, the local processes are the standard
+    library's, forked from this one, even with Dask installed (for ``shared`` work over an
+    object this process holds: a fork hands it over as it is, where a LocalCluster would start
+    in seconds and be sent it). DdfuseError, one line, for an unreachable scheduler or
+    ``scheduler`` without Dask installed."""
 
     def __init__(self, scheduler: str | None = None, jobs: int | None = None,
-                 timeout: float = CONNECT_TIMEOUT_S) -> None:
+                 timeout: float = CONNECT_TIMEOUT_S, fork: bool = False) -> None:
         self.scheduler = scheduler
         self.jobs = max(1, jobs or os.cpu_count() or 1)
         self.timeout = timeout
         self.client = None
         self.cluster = None
         self._quiet = None
+        self.fork = fork
         self.kind = ("dask" if scheduler else "serial" if self.jobs == 1
-                     else "dask-local" if dask_available() else "processes")
+                     else "dask-local" if dask_available() and not fork else "processes")
         if scheduler and not dask_available():
             raise DdfuseError(f"--scheduler {scheduler}: needs Dask; {SCALE_HINT}")
 
@@ -85,6 +98,8 @@ class Engine:
             return f"Dask scheduler {self.scheduler} ({n} workers)"
         if self.kind == "dask-local":
             return f"Dask LocalCluster, {self.jobs} worker processes"
+        if self.kind == "processes" and self.fork:
+            return f"local processes (standard library, {self.jobs}, forked from this one)"
         if self.kind == "processes":
             return (f"local processes (standard library, {self.jobs}; Dask not installed: "
                     f"{SCALE_HINT})")
@@ -193,3 +208,91 @@ class Engine:
                         continue
                     del pending[i]
                     yield Outcome(i, value)
+
+    def shared(self, fn: Callable[[Any, Any], Any], obj: Any) -> SharedMap:
+        """A :class:`SharedMap` running ``fn(obj, task)`` on this engine's workers, ``obj``
+        sent to each once; close it (or use it as a context manager) when done."""
+        return SharedMap(self, fn, obj)
+
+
+# On a worker: one task over a shared object at a time, as a worker thread of a user's
+# multi-threaded Dask worker would otherwise change the object under another's feet
+_SHARED_LOCK = threading.Lock()
+_SHARED: tuple[Callable, Any] | None = None  # a forked pool worker's (fn, obj)
+
+
+def _with_shared(fn, obj, task):
+    with _SHARED_LOCK:
+        return fn(obj, task)
+
+
+def _set_forked(fn, obj) -> None:
+    global _SHARED
+    _SHARED = (fn, obj)
+
+
+def _call_forked(task):
+    return _with_shared(*_SHARED, task)
+
+
+class SharedMap:
+    """``fn(obj, task)`` for batches of tasks on an engine's workers, ``obj`` handed to each
+    worker once: in this process (serial), forked into the standard library's pool (the pool
+    kept for every batch), or scattered to every Dask worker (a LocalCluster's or a
+    scheduler's). ``fn`` and the tasks must pickle on a Dask engine, ``obj`` too. ``obj``
+    may be changed by ``fn``: each worker has its own copy, one task at a time."""
+
+    def __init__(self, engine: Engine, fn: Callable[[Any, Any], Any], obj: Any) -> None:
+        self.engine, self.fn, self.obj = engine, fn, obj
+        self._pool = self._scattered = None
+        if engine.kind == "processes":
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            ctx = multiprocessing.get_context("fork" if engine.fork else None)
+            self._pool = ProcessPoolExecutor(engine.jobs, mp_context=ctx,
+                                             initializer=_set_forked, initargs=(fn, obj))
+        elif engine.kind != "serial":
+            self._scattered = engine.client.scatter(obj, broadcast=True, hash=False)
+
+    def map(self, tasks: Iterable[Any]) -> list[Any]:
+        """``fn(obj, task)`` for each task, in the tasks' order. On workers, TaskFailed (one
+        line) for a task that raised or whose worker died (on Dask: on both tries); in this
+        process (serial), ``fn``'s own exception."""
+        tasks = list(tasks)
+        if self._pool is not None:  # not retried: a worker that dies breaks the pool
+            try:
+                return list(self._pool.map(_call_forked, tasks))
+            except Exception as e:  # noqa: BLE001 - one line, as on Dask
+                raise TaskFailed(f"a task of {len(tasks)} failed on {self.engine.backend}: "
+                                 f"{_one_line(e)}") from None
+        if self._scattered is None:
+            return [self.fn(self.obj, t) for t in tasks]
+        client = self.engine.client
+        futures = [client.submit(_with_shared, self.fn, self._scattered, t, pure=False,
+                                 retries=RETRIES) for t in tasks]
+        try:
+            out = []
+            for i, f in enumerate(futures):
+                try:
+                    out.append(f.result())
+                except Exception as e:  # noqa: BLE001 - named with its task, one line
+                    raise TaskFailed(f"task {i + 1} of {len(tasks)} failed on "
+                                     f"{self.engine.backend}: {_one_line(e)}") from None
+            return out
+        finally:
+            for f in futures:
+                f.release()
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown()
+        if self._scattered is not None:
+            self._scattered.release()
+        self._pool = self._scattered = None
+
+    def __enter__(self) -> SharedMap:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -3,8 +3,10 @@
 ``find_bags(paths)`` lists the bags given or found under directories (a ROS1 ``.bag``, a ROS 2
 bag directory with ``metadata.yaml``, an ``.mcap`` file); ``output_names`` gives each its own
 folder under OUTDIR (two ``x.bag`` in different folders: ``a__x`` and ``b__x``);
-``run_fleet`` runs each bag as ``ddfuse run BAG --no-report`` would (its config found by
-``shipped.config_for``) on an ``engine.Engine`` and writes ``OUTDIR/fleet.json``.
+``run_fleet`` runs each bag as ``ddfuse run BAG`` would (its config found by
+``shipped.config_for``; its results and, unless told not to, its report.html in its folder,
+written by the worker) on an ``engine.Engine`` and writes ``OUTDIR/fleet.json`` and
+``OUTDIR/fleet.html`` (``evaluation.fleet_page``).
 
 The driver keeps per bag its rows (one per estimator: score, NEES/NIS verdicts, real-time
 factor, error), never a track, so its memory does not grow with the bags' length. The score
@@ -26,6 +28,7 @@ from pathlib import Path
 from ddfuse.estimation.errors import DdfuseError
 from ddfuse.evaluation.atomic_files import write_text
 from ddfuse.evaluation.engine import Engine
+from ddfuse.evaluation.fleet_page import write_fleet_page
 
 __all__ = ["TIMING_KEYS", "BagJob", "find_bags", "output_names", "run_fleet", "run_one",
            "standings"]
@@ -92,7 +95,8 @@ def output_names(bags: Sequence[Path]) -> list[str]:
 class BagJob:
     """One bag's run as a worker receives it (paths, not bytes: the worker reads the bag where
     the driver found it): the bag, its config (None: ``error`` says why), its output folder,
-    the estimators (None: the config's default) and the GPS hold-out spec."""
+    the estimators (None: the config's default), the GPS hold-out spec and whether the
+    worker renders the bag's report.html after its run."""
 
     name: str
     bag: str
@@ -101,6 +105,7 @@ class BagJob:
     names: tuple[str, ...] | None = None
     holdout: str | None = None
     error: str | None = None
+    report: bool = True
 
 
 def _verdict_of(c) -> str | None:
@@ -134,16 +139,18 @@ def rows_of(m) -> list[dict]:
 
 
 def run_one(job: BagJob) -> dict:
-    """Run one bag (on a worker): ``{"rows": [...], "error": None | one line, "wall_s"}``; the
-    bag's results (metrics.json, tracks, run.npz) go to ``job.outdir``. An error in the input
-    (no config, a damaged bag, a bad config) is the result's ``error``, not an exception."""
+    """Run one bag (on a worker): ``{"rows": [...], "error": None | one line, "wall_s",
+    "report": True when report.html was rendered}``; the bag's results (metrics.json, tracks,
+    run.npz) and report go to ``job.outdir``. An error in the input (no config, a damaged bag,
+    a bad config) is the result's ``error``, not an exception; so is a report that could not
+    be rendered after a run that could (its rows are kept)."""
     from ddfuse.estimation.config import load_config
     from ddfuse.estimation.errors import BagError
     from ddfuse.evaluation.pipeline import run_bag
 
     t0 = time.perf_counter()
     if job.error:
-        return {"rows": [], "error": job.error, "wall_s": 0.0}
+        return {"rows": [], "error": job.error, "wall_s": 0.0, "report": False}
     try:
         cfg = load_config(Path(job.config))
         if job.holdout and not cfg.of_kind("gps"):
@@ -152,8 +159,18 @@ def run_one(job: BagJob) -> dict:
                     holdout=job.holdout)
     except (DdfuseError, BagError, ValueError, OSError) as e:
         return {"rows": [], "error": " ".join(str(e).split()),
-                "wall_s": time.perf_counter() - t0}
-    return {"rows": rows_of(m), "error": None, "wall_s": time.perf_counter() - t0}
+                "wall_s": time.perf_counter() - t0, "report": False}
+    rows, error = rows_of(m), None
+    del m  # the summary is not held while the report renders from the files
+    if job.report:
+        from ddfuse.evaluation.report import render_report
+
+        try:
+            render_report(job.outdir)
+        except (DdfuseError, ValueError, OSError) as e:
+            error = "report not rendered: " + " ".join(str(e).split())
+    return {"rows": rows, "error": error, "wall_s": time.perf_counter() - t0,
+            "report": job.report and error is None}
 
 
 def _tie(a: float, b: float) -> bool:
@@ -210,10 +227,11 @@ def standings(bags: list[dict]) -> dict[str, dict]:
 
 
 def plan(paths: Iterable[str | Path], outdir: Path, config: Path | None = None,
-         names: Sequence[str] | None = None, holdout: str | None = None) -> list[BagJob]:
+         names: Sequence[str] | None = None, holdout: str | None = None,
+         report: bool = True) -> list[BagJob]:
     """The jobs for the bags in ``paths``: each bag's config (``config`` for all, else
-    ``shipped.config_for``'s rule; a bag without one is a job carrying that error) and its
-    output folder ``outdir/<name>``."""
+    ``shipped.config_for``'s rule; a bag without one is a job carrying that error), its
+    output folder ``outdir/<name>`` and whether its report is rendered."""
     from ddfuse.evaluation.shipped import config_for
 
     bags = find_bags(paths)
@@ -224,7 +242,7 @@ def plan(paths: Iterable[str | Path], outdir: Path, config: Path | None = None,
         except DdfuseError as e:
             cfg, err = None, str(e)
         jobs.append(BagJob(name, str(bag), cfg, str(outdir / name),
-                           tuple(names) if names else None, holdout, err))
+                           tuple(names) if names else None, holdout, err, report))
     return jobs
 
 
@@ -234,14 +252,17 @@ Progress = Callable[[int, int, float | None, str, str | None], None]
 def run_fleet(jobs: list[BagJob], outdir: Path, engine: Engine,
               progress: Progress | None = None) -> dict:
     """Run ``jobs`` on ``engine`` (entered by the caller), write ``outdir/fleet.json`` and
-    return its content. ``progress(done, total, seconds_left, bag, error)`` after each bag
-    (seconds left: None until a bag is done; the mean so far times those left, divided over
-    the workers as they share them)."""
+    ``outdir/fleet.html`` and return fleet.json's content. ``progress(done, total,
+    seconds_left, bag, error)`` after each bag (seconds left: None until a bag is done; the
+    mean so far times those left, divided over the workers as they share them)."""
+    from ddfuse.evaluation.run_files import REPORT_FILE  # numpy and the writers: not at import
+
     t0 = time.perf_counter()
     results: dict[int, dict] = {}
     total = len(jobs)
     for o in engine.map(run_one, jobs):
-        r = o.value if o.error is None else {"rows": [], "error": o.error, "wall_s": None}
+        r = o.value if o.error is None else {"rows": [], "error": o.error, "wall_s": None,
+                                             "report": False}
         results[o.index] = r
         if progress is not None:
             done = len(results)
@@ -255,6 +276,7 @@ def run_fleet(jobs: list[BagJob], outdir: Path, engine: Engine,
             rows.append({"bag": job.name, "estimator": None, "error": r["error"]})
         bags.append({"bag": job.name, "path": job.bag, "config": job.config,
                      "outdir": job.outdir, "error": r["error"],
+                     "report": f"{job.name}/{REPORT_FILE}" if r["report"] else None,
                      "score": next((x["score"] for x in r["rows"]), None),
                      **bag_standing(r["rows"]),
                      "wall_s": None if r["wall_s"] is None else round(r["wall_s"], 3)})
@@ -264,4 +286,5 @@ def run_fleet(jobs: list[BagJob], outdir: Path, engine: Engine,
            "rows": rows, "wall_s": round(time.perf_counter() - t0, 3)}
     outdir.mkdir(parents=True, exist_ok=True)
     write_text(outdir / FLEET_JSON, json.dumps(doc, indent=1) + "\n")
+    write_fleet_page(doc, outdir)
     return doc

@@ -19,6 +19,9 @@ from pathlib import Path
 
 from ddfuse.evaluation import consistency, metrics, plots
 from ddfuse.evaluation.atomic_files import remove, write_text
+from ddfuse.evaluation.html_style import CSS as _CSS
+from ddfuse.evaluation.html_style import fmt as _fmt
+from ddfuse.evaluation.html_style import verdict_cell as _verdict_cell
 from ddfuse.evaluation.metrics import OutageDrift
 from ddfuse.evaluation.report_tuning import tuning_section
 from ddfuse.evaluation.results import SavedRun, load_run
@@ -44,39 +47,9 @@ from ddfuse.evaluation.verdict import (
     verdict_lines,
 )
 
-_CSS = """
-body{font-family:-apple-system,Segoe UI,Helvetica,Arial,sans-serif;max-width:1400px;
-box-sizing:border-box;margin:1.5em auto;padding:0 1em;color:#222;line-height:1.4}
-h1{font-size:1.6em;margin-bottom:.2em}h2{border-bottom:1px solid #ccc;padding-bottom:.2em;
-margin-top:1.8em}.sub{color:#666;margin-top:0}
-table{border-collapse:collapse;margin:.6em 0;font-size:.88em}
-th,td{border:1px solid #ddd;padding:.25em .45em;text-align:right;white-space:nowrap}
-th{background:#f3f3f3;white-space:normal;max-width:7.5em;vertical-align:bottom}
-td.l,th.l{text-align:left}td.l{white-space:normal;min-width:6em}
-tr:nth-child(even) td{background:#fafafa}
-.verdict{background:#f4f8ff;border-left:4px solid #3b73d1;padding:.5em 1em;margin:1em 0}
-.verdict li{margin:.25em 0}.best{font-weight:bold;color:#0a6b2c}
-.Pass{color:#0a6b2c;font-weight:bold}.Warn{color:#b36b00;font-weight:bold}
-.Fail{color:#c0211b;font-weight:bold}.na{color:#999}
-figure{margin:1em 0}figure img{max-width:100%;border:1px solid #eee}
-figcaption{color:#555;font-size:.9em;max-width:1100px}
-pre{background:#f6f6f6;padding:.7em;overflow-x:auto;font-size:.85em}
-.note{color:#555;font-size:.88em;max-width:1100px}
-"""
-
-
-def _fmt(v, spec: str = ".3f") -> str:
-    if v is None or (isinstance(v, float) and not math.isfinite(v)):
-        return '<span class="na">–</span>'
-    return format(v, spec)
-
 
 def _pct(v: float | None) -> str:
     return _fmt(None if v is None else 100 * v, ".1f")
-
-
-def _verdict_cell(v: str | None) -> str:
-    return f'<span class="{v}">{v}</span>' if v else '<span class="na">–</span>'
 
 
 def _se2_rmse(e: EstimatorScores) -> float | None:

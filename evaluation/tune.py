@@ -13,7 +13,7 @@ gains nothing by having the gate reject what it cannot explain. L is minimised b
 (Gauss-Newton on the likelihood with the outer product of the per-innovation gradients as its
 Hessian: BHHH), Levenberg-Marquardt damped, within a trust region and bounds (a factor ``BOUND``
 either side of the start) in log space; the per-innovation gradients by forward differences,
-the p + 1 runs of one iterate in parallel (a process pool over the cores). The tuning
+the p + 1 runs of one iterate in parallel (on ``engine.Engine``'s workers). The tuning
 estimator is the unicycle ``ekf`` (compiled, 0.4 s over rl_husky_gps.bag's 395 s), or
 ``ekf_landmark`` when the config has landmarks (the unicycle EKF does not fuse them). GPS fixes
 of a hold-out are withheld from the runs, so from the fit.
@@ -29,6 +29,7 @@ error. Design and figures: docs/design/tuning.md.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import time
@@ -42,6 +43,7 @@ from ddfuse.estimation.estimator import InnovationLog
 from ddfuse.estimation.measurements import Stream
 from ddfuse.estimation.runner import run
 from ddfuse.evaluation.consistency import InnovationTable, SensorNis, nis_by_sensor
+from ddfuse.evaluation.engine import Engine
 from ddfuse.evaluation.estimators import build
 from ddfuse.evaluation.tune_params import Applier, Param, parameters
 
@@ -109,44 +111,28 @@ class Problem:
         return np.vstack([t, ld])
 
 
-_WORKER: Problem | None = None
-
-
-def _init_worker(problem: Problem) -> None:
-    global _WORKER
-    _WORKER = problem
-
-
-def _worker_terms(values: list[float | None]) -> np.ndarray:
-    return _WORKER.terms(values)
+def _terms(problem: Problem, values: list[float | None]) -> np.ndarray:
+    return problem.terms(values)
 
 
 class Evaluator:
-    """Runs ``Problem.terms`` for many value sets, on ``jobs`` processes (forked: each has the
-    stream as read), counting the runs."""
+    """Runs ``Problem.terms`` for many value sets on an ``engine.Engine`` (this process,
+    processes forked from it, each with the stream as read, or a Dask cluster, the problem sent
+    to each worker once), counting the runs."""
 
-    def __init__(self, problem: Problem, jobs: int) -> None:
-        self.problem, self.jobs, self.runs = problem, jobs, 0
-        self.pool = None
-        if jobs > 1:
-            import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor
-
+    def __init__(self, problem: Problem, engine: Engine) -> None:
+        self.problem, self.runs = problem, 0
+        if engine.kind == "processes":
             problem.terms([None] * len(problem.params))  # kernels loaded before the fork
             self.runs += 1
-            self.pool = ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("fork"),
-                                            initializer=_init_worker, initargs=(problem,))
+        self.tasks = engine.shared(_terms, problem)
 
     def many(self, value_sets: list[list[float | None]]) -> list[np.ndarray]:
         self.runs += len(value_sets)
-        if self.pool is None:
-            return [self.problem.terms(v) for v in value_sets]
-        return list(self.pool.map(_worker_terms, value_sets))
+        return self.tasks.map(value_sets)
 
     def close(self) -> None:
-        if self.pool is not None:
-            self.pool.shutdown()
-            self.pool = None
+        self.tasks.close()
 
 
 @dataclass
@@ -208,13 +194,15 @@ def information(base: np.ndarray, bumped: list[np.ndarray], step: float) -> np.n
 
 def tune(cfg: Config, stream: Stream, *, holdout: str | None = None,
          estimator: str | None = None, jobs: int | None = None,
-         start: dict[str, float] | None = None,
+         engine: Engine | None = None, start: dict[str, float] | None = None,
          progress: Callable[[str, float], None] | None = None) -> TuneResult:
     """Tune the noise values of ``cfg`` on ``stream`` (module docstring). ``cfg`` and the
     stream's variances are changed while it runs and left as the config had them. ``start``:
     labels or keys of parameters -> the value to start from instead of the config's (tests,
-    and the measurements of docs/design/tuning.md start 3x off). ``jobs``: processes (default:
-    the cores). ``progress(stage, fraction)`` is called as it goes."""
+    and the measurements of docs/design/tuning.md start 3x off). ``engine``: where the runs go
+    (an entered ``engine.Engine``, e.g. a Dask scheduler's); without one, ``jobs`` processes
+    forked from this one (default: the cores, at most 2). ``progress(stage, fraction)`` is
+    called as it goes."""
     t_start = time.perf_counter()
     params = parameters(cfg, stream)
     for p in params:
@@ -222,13 +210,16 @@ def tune(cfg: Config, stream: Stream, *, holdout: str | None = None,
             p.start = float(start.get(p.key, start.get(p.label)))
     name = estimator or tuning_estimator(cfg)
     problem = Problem(cfg, stream, params, name, holdout)
-    jobs = jobs or min(2, os.cpu_count() or 1)
-    ev = Evaluator(problem, jobs)
-    try:
-        return _search(problem, ev, progress, t_start)
-    finally:
-        ev.close()
-        problem.applier.apply([None] * len(params))
+    with contextlib.ExitStack() as stack:
+        if engine is None:
+            jobs = jobs or min(2, os.cpu_count() or 1)
+            engine = stack.enter_context(Engine(jobs=jobs, fork=True))
+        ev = Evaluator(problem, engine)
+        try:
+            return _search(problem, ev, progress, t_start)
+        finally:
+            ev.close()
+            problem.applier.apply([None] * len(params))
 
 
 def _search(problem: Problem, ev: Evaluator, progress, t_start: float) -> TuneResult:

@@ -4,13 +4,14 @@ error, an unreachable scheduler is one line, and a worker that dies is retried, 
 from __future__ import annotations
 
 import math
+import operator
 import os
 import socket
 
 import pytest
 from ddfuse.estimation.errors import DdfuseError
 from ddfuse.evaluation import engine
-from ddfuse.evaluation.engine import Engine
+from ddfuse.evaluation.engine import Engine, TaskFailed
 
 
 def _outcomes(eng: Engine, fn, tasks) -> dict[int, tuple]:
@@ -99,3 +100,55 @@ def test_lag_sweep_points_on_worker_processes_give_the_rows_of_the_serial_sweep(
     with Engine(jobs=2) as eng:
         spread = lag_sweep(bag, cfg, (0.5, 10.0), engine=eng)
     assert len(serial) == 5 and _sweep_numbers(spread) == _sweep_numbers(serial)
+
+
+def _shared_results(eng: Engine, obj, tasks):
+    with eng, eng.shared(operator.mul, obj) as sm:
+        first = sm.map(tasks)
+        return first, sm.map(reversed(tasks))  # the pool or the scattered object reused
+
+
+def test_shared_map_gives_results_in_the_tasks_order_in_this_process_and_forked():
+    tasks = [float(k) for k in range(12)]
+    for eng in (Engine(jobs=1), Engine(jobs=2, fork=True)):
+        first, second = _shared_results(eng, 2.5, tasks)
+        assert first == [2.5 * t for t in tasks], eng.backend
+        assert second == [2.5 * t for t in reversed(tasks)], eng.backend
+    assert "forked" in Engine(jobs=2, fork=True).backend
+
+
+def test_a_shared_map_task_that_fails_is_one_line_naming_the_backend():
+    with Engine(jobs=2, fork=True) as eng, eng.shared(operator.truediv, 1.0) as sm:
+        assert sm.map([2.0, 4.0]) == [0.5, 0.25]
+        with pytest.raises(TaskFailed) as e:
+            sm.map([2.0, 0.0, 4.0])
+    assert "ZeroDivisionError" in str(e.value) and "forked" in str(e.value)
+    assert "\n" not in str(e.value)
+
+
+@pytest.mark.integration
+def test_shared_map_on_a_local_cluster_scatters_once_and_keeps_the_order():
+    pytest.importorskip("distributed")
+    tasks = [float(k) for k in range(12)]
+    eng = Engine(jobs=2)
+    assert eng.kind == "dask-local"
+    first, second = _shared_results(eng, 2.5, tasks)
+    assert first == [2.5 * t for t in tasks]
+    assert second == [2.5 * t for t in reversed(tasks)]
+    failed = pytest.raises(TaskFailed, match=r"task 2 of 3 failed on Dask LocalCluster.*"
+                           "ZeroDivisionError")
+    with Engine(jobs=2) as eng, eng.shared(operator.truediv, 1.0) as sm, failed:
+        sm.map([2.0, 0.0, 4.0])
+
+
+def test_tune_with_an_unreachable_scheduler_is_one_line_and_exit_2_before_reading(capsys):
+    pytest.importorskip("distributed")
+    from ddfuse.evaluation.cli import main
+    from ddfuse.evaluation.shipped import DATA
+
+    address = f"tcp://127.0.0.1:{_closed_port()}"
+    assert main(["tune", str(DATA / "sample_husky.bag"), "--scheduler", address,
+                 "--scheduler-timeout", "1"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"ddfuse: error: --scheduler {address}: no Dask scheduler answered")
+    assert err.count("\n") == 1

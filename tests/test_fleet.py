@@ -3,6 +3,7 @@ of its own while the others run, the ranking per bag and the wins across bags.""
 
 from __future__ import annotations
 
+import html
 import json
 import shutil
 import socket
@@ -11,6 +12,7 @@ from pathlib import Path
 import pytest
 from ddfuse.evaluation.cli import main
 from ddfuse.evaluation.fleet import bag_standing, find_bags, output_names, standings
+from ddfuse.evaluation.fleet_page import fleet_html
 
 
 @pytest.fixture(scope="module")
@@ -73,7 +75,7 @@ def test_a_failing_bag_or_one_without_config_is_a_row_and_the_others_run(sim_bag
     broken.write_bytes(b"not a bag at all")
     out = tmp_path / "out"
     assert main(["fleet", str(bags), "-o", str(out), "--estimators", "ekf,smoother",
-                 "--jobs", "1"]) == 0
+                 "--jobs", "1", "--no-report"]) == 0
     doc = json.loads((out / "fleet.json").read_text())
     by_bag = {b["bag"]: b for b in doc["bags"]}
     assert set(by_bag) == {"a__drive", "b__drive", "unconfigured_drive", "broken", "drive2"}
@@ -83,6 +85,7 @@ def test_a_failing_bag_or_one_without_config_is_a_row_and_the_others_run(sim_bag
     assert "\n" not in by_bag["broken"]["error"]
     for name in ("a__drive", "b__drive", "drive2"):
         assert (out / name / "metrics.json").is_file()
+        assert not (out / name / "report.html").exists() and by_bag[name]["report"] is None
         assert by_bag[name]["error"] is None and by_bag[name]["score"] == "ate"
         assert sorted(by_bag[name]["ranking"]) == ["ekf", "smoother"]
     rows = {(r["bag"], r["estimator"]): r for r in doc["rows"]}
@@ -98,6 +101,25 @@ def test_a_failing_bag_or_one_without_config_is_a_row_and_the_others_run(sim_bag
     assert "ddfuse: fleet: 5 bags on this process (--jobs 1)" in cap.err
     assert "ddfuse: fleet: 5/5 bags done" in cap.err
     assert "3 of 5 bags ran" in cap.out
+
+
+def test_each_bag_gets_its_report_and_the_fleet_page_links_it_and_shows_the_failure(
+        sim_bag, tmp_path):
+    bags = tmp_path / "bags"
+    _copy(sim_bag, bags / "drive.bag")
+    _copy(sim_bag, bags / "broken.bag").write_bytes(b"not a bag at all")
+    out = tmp_path / "out"
+    assert main(["fleet", str(bags), "-o", str(out), "--estimators", "ekf", "--jobs", "1"]) == 0
+    doc = json.loads((out / "fleet.json").read_text())
+    by_bag = {b["bag"]: b for b in doc["bags"]}
+    assert by_bag["drive"]["report"] == "drive/report.html"
+    assert by_bag["broken"]["report"] is None
+    report = (out / "drive" / "report.html").read_text()
+    assert "<h1>ddfuse report: drive.bag</h1>" in report
+    page = (out / "fleet.html").read_text()
+    assert '<a href="drive/report.html">drive</a>' in page
+    assert html.escape(by_bag["broken"]["error"]) in page
+    assert "http://" not in page and "https://" not in page and "<script" not in page
 
 
 def test_exit_2_when_no_bag_ran(sim_bag, tmp_path, capsys):
@@ -135,3 +157,21 @@ def test_the_ranking_names_a_winner_with_its_margin_or_the_tie_for_first():
     assert table["ekf"] == {"scored": 3, "wins": 1, "tied_first": 1, "mean_margin_m": 0.1,
                             "max_margin_m": 0.1, "mean_margin_pct": 25.0}
     assert table["smoother"]["wins"] == 1 and table["smoother"]["mean_margin_m"] == 0.5
+
+
+def test_the_fleet_page_names_a_tie_and_what_a_bag_is_scored_on():
+    rows = [{"bag": "held", "estimator": n, "score": "holdout", "score_m": v, "ate_rmse_m": None,
+             "gps_holdout_rmse_m": v, "nees_mean": None, "nees_verdict": None,
+             "nis_verdicts": {"/fix gps": "Warn"}, "rtf": 40.0, "error": None}
+            for n, v in (("ekf", 1.0), ("smoother", 0.98))]
+    bag = {"bag": "held", "path": "/d/held.bag", "error": None, "report": None,
+           "score": "holdout", "wall_s": 1.0, **bag_standing(rows)}
+    doc = {"engine": "this process (--jobs 1)", "bags_total": 1, "bags_ran": 1,
+           "bags_failed": 0, "estimators": standings([bag]), "bags": [bag], "rows": rows,
+           "wall_s": 1.0}
+    page = fleet_html(doc, stamp="then")
+    assert "<td class='l'>tie: smoother, ekf</td>" in page
+    assert page.count("GPS hold-out</td>") == 3  # the bag's row and both estimators'
+    assert "1 bag without an outright winner" in page
+    assert '/fix gps <span class="Warn">Warn</span>' in page
+    assert "<a href" not in page  # no report rendered, no link

@@ -1,5 +1,6 @@
-"""``ddfuse fleet BAG_OR_DIR...``: every bag run as ``ddfuse run --no-report`` would, on local
-processes or a Dask cluster (``evaluation.engine``), and one summary (``evaluation.fleet``)."""
+"""``ddfuse fleet BAG_OR_DIR...``: every bag run as ``ddfuse run`` would (its report rendered by
+the worker, unless --no-report), on local processes or a Dask cluster (``evaluation.engine``),
+and one summary (``evaluation.fleet``: fleet.json, fleet.html)."""
 
 from __future__ import annotations
 
@@ -28,12 +29,15 @@ def add_to(sub) -> None:
                     help="one config for every bag (default: each bag's own; " +
                     CONFIG_HELP.removeprefix("config YAML (default: "))
     sp.add_argument("-o", "--outdir", type=Path, default=Path("ddfuse-fleet"),
-                    help="output directory: OUTDIR/<bag>/ per bag, OUTDIR/fleet.json "
-                    "(default: ddfuse-fleet)")
+                    help="output directory: OUTDIR/<bag>/ per bag (as ddfuse run's -o), "
+                    "OUTDIR/fleet.json and OUTDIR/fleet.html (default: ddfuse-fleet)")
     sp.add_argument("--estimators", type=estimator_list, metavar="LIST",
                     help="comma-separated estimator names, as ddfuse run's")
     sp.add_argument("--gps-holdout", type=gps_holdout, metavar="every:K|window:T0:T1",
                     help=GPS_HOLDOUT_HELP)
+    sp.add_argument("--no-report", action="store_true",
+                    help="write each bag's results (metrics.json, tracks, run.npz) but not its "
+                    "HTML report ('ddfuse report OUTDIR/<bag>' renders it later)")
     add_scheduler(sp)
     sp.set_defaults(func=command)
 
@@ -67,9 +71,11 @@ def print_standings(doc: dict, out) -> None:
 def command(args: argparse.Namespace) -> int:
     from ddfuse.evaluation.engine import Engine
     from ddfuse.evaluation.fleet import FLEET_JSON, plan, run_fleet
+    from ddfuse.evaluation.fleet_page import FLEET_HTML
 
     check_output_dir(args.outdir, "-o")
-    jobs = plan(args.paths, args.outdir, args.config, args.estimators, args.gps_holdout)
+    jobs = plan(args.paths, args.outdir, args.config, args.estimators, args.gps_holdout,
+                report=not args.no_report)
     import os
 
     workers = min(args.jobs or os.cpu_count() or 1, len(jobs))  # no idle worker to start
@@ -80,5 +86,5 @@ def command(args: argparse.Namespace) -> int:
     print_standings(doc, sys.stdout)
     sys.stdout.write(f"{doc['bags_ran']} of {doc['bags_total']} bags ran in {doc['wall_s']:.1f} "
                      f"s; per bag results in {args.outdir}/<bag>/, the summary in "
-                     f"{args.outdir / FLEET_JSON}\n")
+                     f"{args.outdir / FLEET_JSON} and {args.outdir / FLEET_HTML}\n")
     return 0 if doc["bags_ran"] else 2

@@ -4,12 +4,14 @@ a before / after table, and the tuned config written."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime
 import sys
 from pathlib import Path
 
 from ddfuse.estimation.errors import DdfuseError
 from ddfuse.evaluation.cli.arguments import CONFIG_HELP, GPS_HOLDOUT_HELP, gps_holdout
+from ddfuse.evaluation.cli.engine_options import add_scheduler
 from ddfuse.evaluation.cli.output_paths import check_output_file
 from ddfuse.evaluation.cli.terminal import fmt, progress
 
@@ -26,6 +28,7 @@ def add_to(sub) -> None:
     sp.add_argument("--jobs", type=int, default=None, metavar="J",
                     help="processes for the estimator runs (default: the machine's cores, "
                     "at most 2)")
+    add_scheduler(sp, jobs=False)
     sp.set_defaults(func=command)
 
 
@@ -46,10 +49,11 @@ def command(args: argparse.Namespace) -> int:
         raise DdfuseError(f"--gps-holdout {args.gps_holdout}: {config} has no gps sensor")
     bars = progress()
     try:
-        stream = read_stream(args.bag, cfg,
-                             progress=(lambda f: bars.update("read", f)) if bars else None)
-        result = tune(cfg, stream, holdout=args.gps_holdout, jobs=args.jobs,
-                      progress=bars.update if bars else None)
+        with _engine(args) as engine:  # an unreachable scheduler said before the bag is read
+            stream = read_stream(args.bag, cfg, progress=(lambda f: bars.update("read", f))
+                                 if bars else None)
+            result = tune(cfg, stream, holdout=args.gps_holdout, jobs=args.jobs,
+                          engine=engine, progress=bars.update if bars else None)
         if bars:
             bars.update("before / after", 0.0)
         before = check(cfg, stream, [None] * len(result.tuned), estimator=result.estimator,
@@ -66,6 +70,20 @@ def command(args: argparse.Namespace) -> int:
         write_tuned(config, args.output, result, Path(args.bag).name, date)
         sys.stdout.write(f"tuned config written to {args.output}\n")
     return 0
+
+
+@contextlib.contextmanager
+def _engine(args: argparse.Namespace):
+    """The --scheduler's engine, entered, with its one line on stderr; None without one (tune
+    then forks its own --jobs processes)."""
+    if not args.scheduler:
+        yield None
+        return
+    from ddfuse.evaluation.engine import Engine
+
+    with Engine(args.scheduler, timeout=args.scheduler_timeout) as engine:
+        sys.stderr.write(f"ddfuse: tune: the runs on {engine.backend}\n")
+        yield engine
 
 
 def format_report(result, before, after, holdout: str | None) -> str:
