@@ -19,6 +19,7 @@ from pathlib import Path
 
 from ddfuse.evaluation import consistency, metrics, plots
 from ddfuse.evaluation.atomic_files import remove, write_text
+from ddfuse.evaluation.headline import headline
 from ddfuse.evaluation.metrics import OutageDrift
 from ddfuse.evaluation.report_tuning import tuning_section
 from ddfuse.evaluation.results import SavedRun, load_run
@@ -36,6 +37,7 @@ from ddfuse.evaluation.verdict import (
     final_states,
     gate_rejections,
     outage_drift,
+    ranking,
     sensor_samples,
     signed,
     tie,
@@ -55,7 +57,9 @@ th{background:#f3f3f3;white-space:normal;max-width:7.5em;vertical-align:bottom}
 td.l,th.l{text-align:left}td.l{white-space:normal;min-width:6em}
 tr:nth-child(even) td{background:#fafafa}
 .verdict{background:#f4f8ff;border-left:4px solid #3b73d1;padding:.5em 1em;margin:1em 0}
-.verdict li{margin:.25em 0}.best{font-weight:bold;color:#0a6b2c}
+.verdict li{margin:.25em 0}.verdict summary{cursor:pointer;font-weight:bold}
+.headline{background:#eef6ee;border-left:4px solid #0a6b2c;padding:.3em 1em;margin:.6em 0;
+font-size:1.05em}.headline p{margin:.35em 0}.best{font-weight:bold;color:#0a6b2c}
 .Pass{color:#0a6b2c;font-weight:bold}.Warn{color:#b36b00;font-weight:bold}
 .Fail{color:#c0211b;font-weight:bold}.na{color:#999}
 figure{margin:1em 0}figure img{max-width:100%;border:1px solid #eee}
@@ -90,7 +94,8 @@ def _rpe_rmse(e: EstimatorScores, key: str) -> float | None:
 
 
 def _summary_table(m: RunSummary, cfg=None) -> str:
-    """One row per track: scores, consistency, speed. ``cfg``: the run's Config, for the
+    """One row per track, in the verdict's ranking (``verdict.ranking``; unranked tracks last):
+    scores, consistency, speed. ``cfg``: the run's Config, for the
     estimators not run (``not_run``)."""
     lag = m.lag_s
     ests = m.estimators
@@ -121,7 +126,9 @@ def _summary_table(m: RunSummary, cfg=None) -> str:
             best[h] = min(vals)
     rows = []
     offline = [n for n, e in ests.items() if track_kind(n) == "offline" and e.update_ms]
-    for name, e in ests.items():
+    order = ranking(m).order  # the verdict's ranking, as the terminal's table
+    for name in order + [n for n in ests if n not in order]:
+        e = ests[name]
         cells = [f'<td class="l"><b>{html.escape(name)}</b></td>',
                  f'<td class="l">{html.escape(track_kind(name, lag))}</td>']
         for h, get, spec, _ in present:
@@ -726,6 +733,9 @@ def build_html(run: SavedRun, figures: list[tuple[str, bytes | None, str]],
     m = run.summary
     bag = Path(str(m.bag)).name
     verdict = "".join(f"<li>{html.escape(line)}</li>" for line in verdict_lines(m))
+    # the winner's line in bold: the first thing read
+    top = "".join(f"<p><b>{html.escape(line)}</b></p>" if k == 0 else
+                  f"<p>{html.escape(line)}</p>" for k, line in enumerate(headline(m).lines()))
     figs = "".join(_figure(png, cap, name) if png is not None else _no_figure(cap)
                    for name, png, cap in figures)
     stamp = datetime.datetime.now().strftime("%Y-%m-%d %H:%M")
@@ -741,10 +751,13 @@ def build_html(run: SavedRun, figures: list[tuple[str, bytes | None, str]],
         "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>"
         f"<title>ddfuse report: {html.escape(bag)}</title><style>{_CSS}</style></head><body>"
         f"<h1>ddfuse report: {html.escape(bag)}</h1>"
+        f"<div class='headline' id='headline'>{top}</div>"
         f"<p class='sub'>{_fmt(m.duration_s, '.1f')} s of data, "
         f"{len(m.estimators)} estimator outputs. Rendered {stamp} from the results in "
         f"{html.escape(str(run.outdir))} (figures in {render_s:.1f} s).{times}</p>"
-        f"<h2>Verdict</h2><div class='verdict'><ul>{verdict}</ul></div>"
+        "<details class='verdict'><summary>The verdict in full: the method, each "
+        "estimator's consistency per sensor, caveats</summary>"
+        f"<ul>{verdict}</ul></details>"
         f"{_warnings(m)}"
         f"<h2>Summary</h2>{_summary_table(m, run_config(run))}"
         f"{tuning_section(run.outdir, m) if run.outdir else ''}"
