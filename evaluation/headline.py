@@ -173,15 +173,18 @@ def _has_gps(m: RunSummary) -> bool:
 
 def _failing(m: RunSummary) -> list[str]:
     """The tracks with a failing consistency test that points at the config's noise: NEES
-    Fail, a sensor rejected throughout, or a NIS Fail other than a rate sensor's low NIS
-    (``verdict.low_rate_nis``, the process noise) beside a NEES that does not fail."""
+    Fail, a sensor rejected throughout, or a NIS Fail of its own (not a copy of another
+    track's) other than a rate sensor's low NIS beside a NEES that does not fail
+    (``verdict.low_rate_nis``: the process noise)."""
     rate = {(n, lab) for n, lab, _ in low_rate_nis(m)}
-    out = []
+    out, seen = [], set()
     for n, e in m.estimators.items():
-        nees = e.nees.verdict if e.nees else None
-        explained = nees in ("Pass", "Warn")
-        if e.samples != 0 and (nees == "Fail" or _rejected_throughout(m, n) or any(
-                st.nis.verdict == "Fail" and not (explained and (n, lab) in rate)
+        key = repr(sorted((e.nis or {}).items()))
+        own = key not in seen  # a copy of another track's NIS (the same filter) fails with it
+        seen.add(key)
+        if e.samples != 0 and ((e.nees and e.nees.verdict == "Fail")
+                               or _rejected_throughout(m, n) or own and any(
+                st.nis.verdict == "Fail" and (n, lab) not in rate
                 for lab, st in (e.nis or {}).items())):
             out.append(n)
     return out
@@ -248,4 +251,5 @@ def headline(m: RunSummary | dict) -> Headline:
             f"{n} {lab}" for n, lab, _ in rate) + "): the motion model's process noise, sized "
             "for the largest accelerations, not the sensor noise (see the verdict).")
     return Headline(r.figure, tuple(order), tied, margin_m, margin_rel, realtime, tuple(words),
-                    basis, cmd, why, None if order else r.what, caveat)
+                    basis, cmd, why, None if order else r.what.removeprefix("No score: "),
+                    caveat)

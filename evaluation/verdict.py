@@ -440,13 +440,18 @@ RATE_KINDS = {"v", "yaw_rate", "odometry", "gyro", "accel", "wheels"}
 
 def low_rate_nis(m: RunSummary) -> list[tuple[str, str, float]]:
     """(track, NIS label, mean/expected) of every rate-sensor NIS row (``RATE_KINDS``) that
-    fails pessimistic, of the tracks that log their own innovations (not a copy)."""
+    fails pessimistic, of the tracks that log their own innovations (not a copy) and whose
+    pose NEES against the truth does not fail (the pose covariance is right: what is off is
+    the prediction of the twist alone). Without truth nothing tells that from overstated
+    sensor noise: none."""
     out, seen = [], set()
     for n, e in m.estimators.items():
         key = repr(sorted((e.nis or {}).items()))
         if e.samples == 0 or not e.nis or key in seen:
             continue
         seen.add(key)
+        if not (e.nees and e.nees.verdict in ("Pass", "Warn")):
+            continue
         for label, st in e.nis.items():
             c = st.nis
             if (_topic_kind(label, st)[1] in RATE_KINDS and c.verdict == "Fail"
@@ -462,7 +467,8 @@ def process_noise_line(m: RunSummary) -> str | None:
     if not rows:
         return None
     return ("Low NIS on rate sensors (" + ", ".join(f"{n} {lab} {r:.2f}" for n, lab, r in rows)
-            + " of the expected) is the motion model, not the sensors: a speed or yaw-rate "
+            + " of the expected) beside a NEES that passes is the motion model, not the "
+            "sensors: a speed or yaw-rate "
             "innovation is mostly the predicted change of the twist since the last sample, "
             "whose process noise (robot.twist_walk; absent, sized from robot.max_accel / "
             "max_yaw_accel, the largest accelerations) a drive that mostly accelerates less "
