@@ -22,6 +22,7 @@ import io
 import math
 import zlib
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import matplotlib.ticker
@@ -34,6 +35,11 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 DPI = 100
+# Figure width [in]: at DPI, the report's content width in a 1 400 px window (1 368 px less
+# the scroll bar), so that a figure is shown at its own size and a font of MIN_PT points is
+# MIN_PT points on the page; narrower windows scale the page's figures down alike.
+PAGE_W = 13.5
+MIN_PT = 9.0  # the smallest font in any figure
 _STYLE = {"smoother_lagged": "--", "batch": ":"}
 
 
@@ -109,12 +115,29 @@ def label_log_axis(axis) -> None:
     axis.set_major_formatter(matplotlib.ticker.FuncFormatter(_plain))
 
 
+def legible(fig: Figure, min_pt: float = MIN_PT) -> None:
+    """Every text of ``fig`` (tick labels, titles, legends, annotations) at least ``min_pt``
+    points."""
+    from matplotlib.text import Text
+
+    for ax in fig.axes:
+        for axis in (ax.xaxis, ax.yaxis):
+            ticks = axis.get_major_ticks()
+            if ticks and ticks[0].label1.get_fontsize() < min_pt:
+                axis.set_tick_params(which="both", labelsize=min_pt)
+    for t in fig.findobj(Text):
+        if t.get_fontsize() < min_pt:
+            t.set_fontsize(min_pt)
+
+
 def _finish(fig: Figure) -> Figure:
-    """Label the ticks of log axes (``label_log_axis``), then lay the figure out tightly."""
+    """Label the ticks of log axes (``label_log_axis``), fonts at least MIN_PT (``legible``),
+    then lay the figure out tightly."""
     for ax in fig.axes:
         for axis in (ax.xaxis, ax.yaxis):
             if axis.get_scale() == "log":
                 label_log_axis(axis)
+    legible(fig)
     fig.tight_layout()
     return fig
 
@@ -187,8 +210,9 @@ def trajectories(run: SavedRun) -> Figure:
     # Size the plot to the path's shape (equal axes), plus room for the legend on the right.
     span = np.ptp(xy, axis=0) if len(xy) else np.ones(2)
     aspect = float(np.clip((span[0] + 1e-9) / (span[1] + 1e-9), 0.5, 2.0))
-    height = 7.5 if aspect < 1.4 else 6.0
-    fig, ax = subplots(figsize=(min(height * aspect + 3.8, 14.0), height))
+    # the page's width: the plot as wide as its height allows, the legend beside it
+    height = float(np.clip((PAGE_W - 3.8) / aspect, 5.5, 8.0))
+    fig, ax = subplots(figsize=(PAGE_W, height))
     if run.truth is not None and len(run.truth):
         # A wide pale band under the estimates: it stays visible where they follow it closely.
         ax.plot(run.truth.pose[:, 0], run.truth.pose[:, 1], "-", color="k", lw=5, alpha=0.2,
@@ -211,12 +235,186 @@ def trajectories(run: SavedRun) -> Figure:
     if start is not None:
         ax.plot(start[0], start[1], "o", color="k", ms=7,
                 label=f"start: first {start[2]} position ({seconds(start[3])} s)")
+    mark_zooms(ax, run, zoom_windows(run))
     ax.set_aspect("equal", adjustable="datalim")
     xl, yl = _frame_labels(run)
     ax.set(xlabel=xl, ylabel=yl, title=f"Trajectories in {frame(run.summary)['short']}")
     ax.grid(True, alpha=0.3)
     ax.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=9)
     return _finish(fig)
+
+
+@dataclass(frozen=True)
+class Zoom:
+    """A stretch of the run the report draws close up (``trajectory_zooms``): its ``label``
+    on the overview, its time span [s since the first measurement] (what is drawn), why it was
+    chosen, and for a moment the box about it: ``center`` (x, y) [m] and ``half_m``."""
+
+    label: str
+    t0: float
+    t1: float
+    why: str
+    center: tuple[float, float] | None = None
+    half_m: float | None = None
+
+
+ZOOM_HALF_S = 10.0  # a zoom on a moment draws this many seconds either side of it
+# ... in a box this many times the distance it is about (a spread, an error), at least 1 m:
+# the distance a tenth of the box, large enough to see
+ZOOM_SCALE = 5.0
+MAX_ZOOMS = 3
+
+
+def _spread(run: SavedRun, names: list[str]) -> tuple[float, float, np.ndarray] | None:
+    """(stamp, metres, their mean position) of the largest distance between any two tracks at
+    one moment, on a grid over the span they share; None with fewer than two or no shared
+    span."""
+    trs = [run.tracks[n] for n in names]
+    lo, hi = max(tr.t[0] for tr in trs), min(tr.t[-1] for tr in trs)
+    if len(trs) < 2 or not hi > lo:
+        return None
+    g = np.linspace(lo, hi, 2000)
+    xy = np.stack([np.column_stack([np.interp(g, tr.t, tr.pose[:, 0]),
+                                    np.interp(g, tr.t, tr.pose[:, 1])]) for tr in trs])
+    d = np.nan_to_num(np.linalg.norm(xy[:, None] - xy[None], axis=-1).max(axis=(0, 1)))
+    k = int(np.argmax(d))
+    return float(g[k]), float(d[k]), xy[:, k].mean(axis=0).astype(float)
+
+
+def zoom_windows(run: SavedRun) -> list[Zoom]:
+    """Up to MAX_ZOOMS stretches worth a close look, in this order: the GPS outages (a
+    --gps-holdout window, or a gap in the fixes of 5 s or more), the moment the estimators
+    disagree most, the moment of the largest error of any track against the truth; a stretch
+    mostly covered by an earlier one is left out."""
+    t0 = _t0(run)
+    names = [n for n, tr in run.tracks.items() if len(tr) > 1]
+    if not names:
+        return []
+    end = max(float(run.tracks[n].t[-1]) for n in names) - t0
+    cands = []
+    for o in run.summary.gps_outages or []:
+        what = ("GPS hold-out window" if str(run.summary.gps_holdout or "").startswith("window")
+                else "GPS outage")
+        cands.append((o.t0 - t0, o.t1 - t0, f"{what}: dead reckoning carries each estimate",
+                      None, None))
+    spread = _spread(run, names)
+    if spread and spread[1] > 0:
+        tm = spread[0] - t0
+        cands.append((tm - ZOOM_HALF_S, tm + ZOOM_HALF_S,
+                      f"the estimators disagree most: {spread[1]:.2f} m apart at {tm:.0f} s",
+                      tuple(map(float, spread[2])), max(ZOOM_SCALE * spread[1], 1.0)))
+    if run.truth is not None and len(run.truth) > 1:
+        worst = None
+        for n in names:
+            tr = run.tracks[n]
+            ex = np.interp(tr.t, run.truth.t, run.truth.pose[:, 0]) - tr.pose[:, 0]
+            ey = np.interp(tr.t, run.truth.t, run.truth.pose[:, 1]) - tr.pose[:, 1]
+            inside = (tr.t >= run.truth.t[0]) & (tr.t <= run.truth.t[-1])
+            e = np.where(inside, np.hypot(ex, ey), 0.0)
+            k = int(np.nanargmax(e)) if np.isfinite(e).any() else 0
+            if worst is None or e[k] > worst[0]:
+                worst = (float(e[k]), n, float(tr.t[k]) - t0, tuple(map(float, tr.pose[k, :2])))
+        if worst and worst[0] > 0:
+            tm = worst[2]
+            cands.append((tm - ZOOM_HALF_S, tm + ZOOM_HALF_S,
+                          f"the largest error against the truth: {worst[1]} {worst[0]:.2f} m "
+                          f"at {tm:.0f} s", worst[3], max(ZOOM_SCALE * worst[0], 1.0)))
+    out: list[Zoom] = []
+    for a, b, why, center, half in cands:
+        a, b = max(a, 0.0), min(b, end)
+        if b <= a or any(min(b, z.t1) - max(a, z.t0) > 0.5 * (b - a) for z in out):
+            continue
+        out.append(Zoom("ABC"[len(out)], a, b, why, center, half))
+        if len(out) == MAX_ZOOMS:
+            break
+    return out
+
+
+def _window_xy(run: SavedRun, z: Zoom) -> list[tuple[str, np.ndarray]]:
+    """(whose, positions) of the truth, the GPS fixes and each track within zoom ``z``."""
+    t0 = _t0(run)
+    out = []
+    srcs = ([("truth", run.truth.t, run.truth.pose[:, :2])] if run.truth is not None else []) + [
+        ("gps", run.gps_t, run.gps_xy.reshape(-1, 2))] + [
+        (n, tr.t, tr.pose[:, :2]) for n, tr in run.tracks.items()]
+    for whose, t, xy in srcs:
+        sel = (t - t0 >= z.t0) & (t - t0 <= z.t1)
+        if sel.any():
+            out.append((whose, xy[sel]))
+    return out
+
+
+def _zoom_box(run: SavedRun, z: Zoom) -> tuple[float, float, float, float] | None:
+    """(x0, x1, y0, y1) [m] of what zoom ``z`` shows: the estimates and the truth in its span
+    with a margin (a fix or two far off would make the zoom no zoom); a moment's box about
+    it."""
+    if z.center is not None:
+        (x, y), h = z.center, z.half_m
+        return x - h, x + h, y - h, y + h
+    pts = [xy for whose, xy in _window_xy(run, z) if whose != "gps"]
+    xy = np.concatenate(pts) if pts else np.zeros((0, 2))
+    xy = xy[np.isfinite(xy).all(axis=1)]
+    if not len(xy):
+        return None
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    pad = np.maximum(0.1 * (hi - lo), 0.5)
+    return lo[0] - pad[0], hi[0] + pad[0], lo[1] - pad[1], hi[1] + pad[1]
+
+
+def trajectory_zooms(run: SavedRun, zooms: list[Zoom] | None = None) -> Figure | None:
+    """The stretches of ``zoom_windows`` close up, side by side: in each, only what lies in
+    its time span (the truth, the fixes used and withheld, every track); None without any."""
+    import textwrap
+
+    zooms = zoom_windows(run) if zooms is None else zooms
+    boxes = [(z, _zoom_box(run, z)) for z in zooms]
+    boxes = [(z, b) for z, b in boxes if b]
+    if not boxes:
+        return None
+    cols = colors(list(run.tracks))
+    fig, axes = subplots(1, len(boxes), figsize=(PAGE_W, 5.2), squeeze=False)
+    xl, yl = _frame_labels(run)
+    for ax, (z, box) in zip(axes[0], boxes, strict=True):
+        for whose, xy in _window_xy(run, z):
+            if whose == "truth":
+                ax.plot(xy[:, 0], xy[:, 1], "-", color="k", lw=5, alpha=0.2,
+                        solid_capstyle="round", label="ground truth")
+            elif whose != "gps":
+                ax.plot(xy[:, 0], xy[:, 1], _STYLE.get(whose, "-"), color=cols[whose], lw=1.3,
+                        label=whose)
+        t = run.gps_t - _t0(run)
+        sel = (t >= z.t0) & (t <= z.t1)
+        for held, style in ((False, dict(marker=".", color="0.45", ms=4, ls="none")),
+                            (True, dict(marker="o", mfc="none", mec="tab:red", ms=6,
+                                        ls="none"))):
+            k = sel & (run.gps_withheld == held)
+            if k.any():
+                ax.plot(run.gps_xy[k, 0], run.gps_xy[k, 1], **style)
+        ax.set_xlim(box[0], box[1])
+        ax.set_ylim(box[2], box[3])
+        ax.set_aspect("equal", adjustable="box")  # the box's limits kept, the panel shaped
+        ax.set_title(f"{z.label}: {z.t0:.0f}-{z.t1:.0f} s\n"
+                     + textwrap.fill(z.why, int(100 / len(boxes))), fontsize=MIN_PT,
+                     loc="left")
+        ax.set_xlabel(xl)
+        ax.grid(True, alpha=0.3)
+    axes[0, 0].set_ylabel(yl)
+    axes[0, -1].legend(loc="best", fontsize=MIN_PT)
+    return _finish(fig)
+
+
+def mark_zooms(ax, run: SavedRun, zooms: list[Zoom]) -> None:
+    """The zooms' boxes (``_zoom_box``) on the overview, each with its label."""
+    from matplotlib.patches import Rectangle
+
+    for z in zooms:
+        box = _zoom_box(run, z)
+        if box is None:
+            continue
+        ax.add_patch(Rectangle((box[0], box[2]), box[1] - box[0], box[3] - box[2], fill=False,
+                               ec="k", lw=1.0, ls="--", zorder=5))
+        ax.text(box[0], box[3], f" {z.label}", va="bottom", ha="left", fontsize=MIN_PT + 1,
+                fontweight="bold", zorder=5)
 
 
 def trajectories_each(run: SavedRun) -> Figure:
@@ -234,7 +432,8 @@ def trajectories_each(run: SavedRun) -> Figure:
     xy = xy[np.isfinite(xy).all(axis=1)]
     span = np.ptp(xy, axis=0) if len(xy) else np.ones(2)
     aspect = float(np.clip((span[0] + 1e-9) / (span[1] + 1e-9), 0.6, 1.6))
-    fig, axes = subplots(nrow, ncol, figsize=(3.9 * aspect * ncol + 0.8, 4.3 * nrow),
+    fig, axes = subplots(nrow, ncol, figsize=(PAGE_W, (PAGE_W - 0.8) / ncol / aspect * nrow
+                                              + 0.5 * nrow),
                              sharex=True, sharey=True, squeeze=False)
     for ax in axes.flat[len(names):]:
         ax.set_axis_off()
@@ -264,7 +463,9 @@ def trajectories_each(run: SavedRun) -> Figure:
     return _finish(fig)
 
 
-def _envelope(ax, t, err, sigma3, color, label):
+def _envelope(ax, t, err, sigma3, color, label) -> float:
+    """An error series with its ±3σ band; the half-height of the y range it needs: its errors'
+    99.5th percentile or the settled envelope (the band's 90th percentile), set on ``ax``."""
     if np.isfinite(sigma3).any():  # no covariance (dead reckoning): no "±3σ" in the legend
         ax.fill_between(t, -sigma3, sigma3, color=color, alpha=0.18, lw=0, label="±3σ")
     ax.plot(t, err, "-", color=color, lw=0.9, label=label)
@@ -274,6 +475,30 @@ def _envelope(ax, t, err, sigma3, color, label):
     lim = max(np.percentile(e, 99.5) if len(e) else 0.0, np.percentile(s, 90) if len(s) else 0.0)
     if lim > 0:
         ax.set_ylim(-1.15 * lim, 1.15 * lim)
+    return float(lim)
+
+
+# A track whose error panels need more than this many times the y range of the others' (dead
+# reckoning beside fused estimates) keeps its own scale: on the shared one the others would be
+# flat lines.
+OWN_SCALE = 4.0
+
+
+def _share_rows(axes, lims: dict[str, list[float]]) -> list[str]:
+    """One y range per column for the rows of ``axes`` ({track: per-column half-heights}, in
+    row order), but for the tracks that need over OWN_SCALE times the median row's: those keep
+    their own, and are returned."""
+    names = list(lims)
+    need = {n: max(v) for n, v in lims.items()}
+    mid = float(np.median(list(need.values())))
+    own = [n for n in names if mid > 0 and need[n] > OWN_SCALE * mid] if len(names) > 2 else []
+    shared = [k for k, n in enumerate(names) if n not in own]
+    for c in range(axes.shape[1]):
+        lim = max((lims[names[k]][c] for k in shared), default=0.0)
+        if lim > 0:
+            for k in shared:
+                axes[k, c].set_ylim(-1.15 * lim, 1.15 * lim)
+    return own
 
 
 def _break_wraps(a: np.ndarray) -> np.ndarray:
@@ -306,8 +531,9 @@ def errors(run: SavedRun) -> tuple[Figure | None, str]:
     antenna = run.summary.gps_antenna
     lever = (antenna.lever_arm if antenna else None) or (0.0, 0.0)
     delay = float((antenna.delay_s if antenna else None) or 0.0)
-    fig, axes = subplots(len(names), ncol, figsize=(13, 2.1 * len(names) + 0.8),
+    fig, axes = subplots(len(names), ncol, figsize=(PAGE_W, 2.1 * len(names) + 0.8),
                              sharex=True, squeeze=False)
+    lims: dict[str, list[float]] = {}
     for r, name in enumerate(names):
         tr = run.tracks[name]
         if truth:
@@ -333,7 +559,7 @@ def errors(run: SavedRun) -> tuple[Figure | None, str]:
             ax = axes[r, c]
             with np.errstate(invalid="ignore"):
                 s3 = 3.0 * np.sqrt(np.where(var >= 0, var, np.nan)) * k
-            _envelope(ax, t, e * k, s3, cols[name], name)
+            lims.setdefault(name, []).append(_envelope(ax, t, e * k, s3, cols[name], name))
             _shade_outages(ax, run)
             ax.set_ylabel(ylabel, fontsize=8)
             ax.grid(True, alpha=0.3)
@@ -343,6 +569,7 @@ def errors(run: SavedRun) -> tuple[Figure | None, str]:
                 ax.legend(loc="upper right", fontsize=8)
     for ax in axes[-1]:
         ax.set_xlabel("time since the first measurement [s]")
+    own = _share_rows(axes, lims)
     _finish(fig)
     outages = " Grey spans: GPS outages." if run.summary.gps_outages else ""
     # the envelope is promised only for the tracks that have one
@@ -353,11 +580,15 @@ def errors(run: SavedRun) -> tuple[Figure | None, str]:
         has = "has" if len(bare) == 1 else "have"
         none = (f" {_listed(bare)} {has} no covariance, so no envelope." if envelope
                 else f" No envelope: {_listed(bare)} {has} no covariance.")
+    scale = (" Each column's y axis is the same for every estimator" + (
+        f", but for {_listed(own)}, whose errors need over {OWN_SCALE:g} times the others' "
+        "range (on theirs the others would be flat lines): on its own scale." if own else ".")
+        if len(names) > 1 else "")
     if truth:
         caption = (f"Errors against the ground truth (no alignment; x, y in {f['short']})"
                    + (" with each estimator's own ±3σ envelope: a consistent estimator stays "
                       "inside it about 99% of the time." if envelope else ".")
-                   + f"{none}{outages}")
+                   + f"{none}{outages}{scale}")
     else:
         which = ("used and withheld" if run.gps_withheld.any()
                  else "all of them fused by the estimators, so not an independent score")
@@ -369,7 +600,7 @@ def errors(run: SavedRun) -> tuple[Figure | None, str]:
                    f"({which}) in {f['short']}{at}"
                    + ("; the envelope is ±3σ of the estimate's and the fix's covariance "
                       "together." if envelope else ".")
-                   + f"{none}{outages}")
+                   + f"{none}{outages}{scale}")
     return fig, caption
 
 
@@ -387,7 +618,7 @@ def nees(series: Mapping[str, Sequence[np.ndarray]], t: Mapping[str, np.ndarray]
     several runs (Monte Carlo) their average is drawn with the band of an N-run average
     (``consistency.chi2_band(dof, N)``). ``dof[name]`` is the NEES dimension."""
     names = [n for n in series if series[n] and min(len(r) for r in series[n])]
-    fig, axes = subplots(max(len(names), 1), 1, figsize=(13, 1.9 * max(len(names), 1) + 0.8),
+    fig, axes = subplots(max(len(names), 1), 1, figsize=(PAGE_W, 1.9 * max(len(names), 1) + 0.8),
                              sharex=True, squeeze=False)
     cols = colours or colors(names)
     for ax, name in zip(axes[:, 0], names, strict=False):
@@ -446,8 +677,8 @@ def nis(run: SavedRun) -> Figure | None:
     ncol = max((len(g) for g in groups.values()), default=1)
     t0 = _t0(run)
     t_end = max((float(run.innovations[n].t.max()) - t0 for n in owners), default=1.0)
-    fig, axes = subplots(max(len(owners), 1), ncol, figsize=(3.2 * ncol + 0.4,
-                             2.4 * max(len(owners), 1) + 0.3), squeeze=False)
+    fig, axes = subplots(max(len(owners), 1), ncol, figsize=(PAGE_W,
+                             2.6 * max(len(owners), 1) + 0.3), squeeze=False)
     for ax in axes.flat:
         ax.set_axis_off()
     for r, name in enumerate(owners):
@@ -491,7 +722,7 @@ def covariance(run: SavedRun) -> Figure | None:
     drawn = {name: tr for name, tr in run.tracks.items() if has_covariance(tr)}
     if not drawn:
         return None
-    fig, (a1, a2) = subplots(2, 1, figsize=(13, 6.5), sharex=True)
+    fig, (a1, a2) = subplots(2, 1, figsize=(PAGE_W, 6.5), sharex=True)
     for name, tr in drawn.items():
         t = tr.t - t0
         a1.plot(t, tr.cov[:, 0, 0] + tr.cov[:, 1, 1], _STYLE.get(name, "-"), color=cols[name],
@@ -518,7 +749,7 @@ def latency(run: SavedRun) -> Figure | None:
     names = [n for n in run.tracks if run.log_owner.get(n, n) == n and len(run.update_s[n])]
     if not names:
         return None
-    fig, axes = subplots(max(len(names), 1), 1, figsize=(11, 1.5 * max(len(names), 1) + 1),
+    fig, axes = subplots(max(len(names), 1), 1, figsize=(PAGE_W, 1.5 * max(len(names), 1) + 1),
                              sharex=True, squeeze=False)
     all_ms = np.concatenate([run.update_s[n] * 1e3 for n in names])
     lo = max(float(all_ms[all_ms > 0].min()) if (all_ms > 0).any() else 1e-3, 1e-4)

@@ -62,7 +62,7 @@ tr:nth-child(even) td{background:#fafafa}
 font-size:1.05em}.headline p{margin:.35em 0}.best{font-weight:bold;color:#0a6b2c}
 .Pass{color:#0a6b2c;font-weight:bold}.Warn{color:#b36b00;font-weight:bold}
 .Fail{color:#c0211b;font-weight:bold}.na{color:#999}
-figure{margin:1em 0}figure img{max-width:100%;border:1px solid #eee}
+figure{margin:1em 0}figure img{width:100%;height:auto;border:1px solid #eee}
 figcaption{color:#555;font-size:.9em;max-width:1100px}
 pre{background:#f6f6f6;padding:.7em;overflow-x:auto;font-size:.85em}
 .note{color:#555;font-size:.88em;max-width:1100px}
@@ -622,8 +622,10 @@ def _no_figure(text: str) -> str:
     return f'<p class="note">{html.escape(text)}</p>'
 
 
-def captions(run: SavedRun) -> dict[str, str]:
-    """The caption of each figure, saying only what this run's figures hold."""
+def captions(run: SavedRun, zooms: list | None = None) -> dict[str, str]:
+    """The caption of each figure, saying only what this run's figures hold. ``zooms``: the
+    close-ups drawn (``plots.zoom_windows``)."""
+    zooms = plots.zoom_windows(run) if zooms is None else zooms
     f = plots.frame(run.summary)
     truth = run.truth is not None and len(run.truth) > 0
     gps = len(run.gps_t) > 0
@@ -641,7 +643,13 @@ def captions(run: SavedRun) -> dict[str, str]:
                 + (f"; black dot: the start, the earliest position drawn (the first {start[2]} "
                    f"position, {plots.seconds(start[3])} s after the first measurement)"
                    if start else "")
-                + ".")
+                + "."
+                + (" Dashed boxes: the close-ups below (" + ", ".join(z.label for z in zooms)
+                   + ")." if zooms else ""))
+    zoomed = ("Close-ups of the overview's dashed boxes, each showing only what lies in its "
+              "time span: " + "; ".join(f"{z.label}, {z.t0:.0f}-{z.t1:.0f} s: {z.why}"
+                                       for z in zooms)
+              + ". Grey dots: GPS fixes used; red circles: withheld." if zooms else "")
     each = ("Each estimate on its own, on common axes, "
             + ("over the ground truth (grey band)." if truth else "over the GPS fixes (grey "
                "dots)." if gps else "with no ground truth or GPS to draw behind it."))
@@ -651,6 +659,7 @@ def captions(run: SavedRun) -> dict[str, str]:
                  " no covariance)." if bare else "")
     return {
         "trajectories": overview,
+        "trajectory_zooms": zoomed,
         "trajectories_each": each,
         "nees": "Pose NEES against the truth with its 95% chi-square band: a consistent "
                 "estimator stays inside about 95% of the time around the dashed expected value; "
@@ -680,6 +689,7 @@ def why_no_figure(run: SavedRun, name: str) -> str:
     return {
         "trajectories_each": f"No per-estimator trajectory figure: {names[0]} is the only "
                              "estimate, drawn above.",
+        "trajectory_zooms": "No close-ups: no stretch of the tracks to zoom on.",
         "nees": "No NEES figure: the bag has no ground truth to score the covariance against."
                 if run.truth is None or not len(run.truth) else
                 f"No NEES figure: {', '.join(bare)} {'has' if len(bare) == 1 else 'have'} no "
@@ -703,9 +713,11 @@ def make_figures(run: SavedRun, progress: Callable[[float], None] | None = None
     cols = plots.colors(list(run.tracks))
     series, t, dof = plots.nees_inputs(run)
     err_fig, err_caption = plots.errors(run)
-    cap = captions(run)
+    zooms = plots.zoom_windows(run)
+    cap = captions(run, zooms)
     jobs = [
         ("trajectories", lambda: plots.trajectories(run), cap["trajectories"]),
+        ("trajectory_zooms", lambda: plots.trajectory_zooms(run, zooms), cap["trajectory_zooms"]),
         ("trajectories_each", lambda: plots.trajectories_each(run) if len(run.tracks) > 1
          else None, cap["trajectories_each"]),
         ("errors", lambda: err_fig, err_caption),
