@@ -265,10 +265,19 @@ ZOOM_SCALE = 5.0
 MAX_ZOOMS = 3
 
 
-def _spread(run: SavedRun, names: list[str]) -> tuple[float, float, np.ndarray] | None:
-    """(stamp, metres, their mean position) of the largest distance between any two tracks at
-    one moment, on a grid over the span they share; None with fewer than two or no shared
-    span."""
+def _outside(t: np.ndarray, taken: list[Zoom]) -> np.ndarray:
+    """Which stamps ``t`` [s since the first measurement] lie in none of the ``taken`` zooms."""
+    ok = np.ones(len(t), bool)
+    for z in taken:
+        ok &= (t < z.t0) | (t > z.t1)
+    return ok
+
+
+def _spread(run: SavedRun, names: list[str], taken: list[Zoom]
+            ) -> tuple[float, float, tuple[float, float]] | None:
+    """(s since the first measurement, metres, their mean position) of the largest distance
+    between any two tracks at one moment outside the ``taken`` zooms, on a grid over the span
+    they share; None with fewer than two tracks or no such moment."""
     trs = [run.tracks[n] for n in names]
     lo, hi = max(tr.t[0] for tr in trs), min(tr.t[-1] for tr in trs)
     if len(trs) < 2 or not hi > lo:
@@ -277,56 +286,69 @@ def _spread(run: SavedRun, names: list[str]) -> tuple[float, float, np.ndarray] 
     xy = np.stack([np.column_stack([np.interp(g, tr.t, tr.pose[:, 0]),
                                     np.interp(g, tr.t, tr.pose[:, 1])]) for tr in trs])
     d = np.nan_to_num(np.linalg.norm(xy[:, None] - xy[None], axis=-1).max(axis=(0, 1)))
+    d[~_outside(g - _t0(run), taken)] = 0.0
     k = int(np.argmax(d))
-    return float(g[k]), float(d[k]), xy[:, k].mean(axis=0).astype(float)
+    if d[k] <= 0:
+        return None
+    cx, cy = xy[:, k].mean(axis=0)
+    return float(g[k]) - _t0(run), float(d[k]), (float(cx), float(cy))
+
+
+def _worst_error(run: SavedRun, names: list[str], taken: list[Zoom]
+                 ) -> tuple[float, str, float, tuple[float, float]] | None:
+    """(metres, track, s since the first measurement, its position) of the largest error of
+    any track against the truth (interpolated) outside the ``taken`` zooms; None without."""
+    if run.truth is None or len(run.truth) < 2:
+        return None
+    worst = None
+    for n in names:
+        tr = run.tracks[n]
+        e = np.hypot(np.interp(tr.t, run.truth.t, run.truth.pose[:, 0]) - tr.pose[:, 0],
+                     np.interp(tr.t, run.truth.t, run.truth.pose[:, 1]) - tr.pose[:, 1])
+        ok = (tr.t >= run.truth.t[0]) & (tr.t <= run.truth.t[-1]) & _outside(
+            tr.t - _t0(run), taken) & np.isfinite(e)
+        if not ok.any():
+            continue
+        k = int(np.flatnonzero(ok)[np.argmax(e[ok])])
+        if worst is None or e[k] > worst[0]:
+            worst = (float(e[k]), n, float(tr.t[k]) - _t0(run),
+                     (float(tr.pose[k, 0]), float(tr.pose[k, 1])))
+    return worst if worst and worst[0] > 0 else None
 
 
 def zoom_windows(run: SavedRun) -> list[Zoom]:
     """Up to MAX_ZOOMS stretches worth a close look, in this order: the GPS outages (a
-    --gps-holdout window, or a gap in the fixes of 5 s or more), the moment the estimators
-    disagree most, the moment of the largest error of any track against the truth; a stretch
-    mostly covered by an earlier one is left out."""
+    --gps-holdout window, or a gap in the fixes of 5 s or more), then outside those the moment
+    the estimators disagree most, then outside all these the moment of the largest error of
+    any track against the truth."""
     t0 = _t0(run)
     names = [n for n, tr in run.tracks.items() if len(tr) > 1]
     if not names:
         return []
     end = max(float(run.tracks[n].t[-1]) for n in names) - t0
-    cands = []
-    for o in run.summary.gps_outages or []:
-        what = ("GPS hold-out window" if str(run.summary.gps_holdout or "").startswith("window")
-                else "GPS outage")
-        cands.append((o.t0 - t0, o.t1 - t0, f"{what}: dead reckoning carries each estimate",
-                      None, None))
-    spread = _spread(run, names)
-    if spread and spread[1] > 0:
-        tm = spread[0] - t0
-        cands.append((tm - ZOOM_HALF_S, tm + ZOOM_HALF_S,
-                      f"the estimators disagree most: {spread[1]:.2f} m apart at {tm:.0f} s",
-                      tuple(map(float, spread[2])), max(ZOOM_SCALE * spread[1], 1.0)))
-    if run.truth is not None and len(run.truth) > 1:
-        worst = None
-        for n in names:
-            tr = run.tracks[n]
-            ex = np.interp(tr.t, run.truth.t, run.truth.pose[:, 0]) - tr.pose[:, 0]
-            ey = np.interp(tr.t, run.truth.t, run.truth.pose[:, 1]) - tr.pose[:, 1]
-            inside = (tr.t >= run.truth.t[0]) & (tr.t <= run.truth.t[-1])
-            e = np.where(inside, np.hypot(ex, ey), 0.0)
-            k = int(np.nanargmax(e)) if np.isfinite(e).any() else 0
-            if worst is None or e[k] > worst[0]:
-                worst = (float(e[k]), n, float(tr.t[k]) - t0, tuple(map(float, tr.pose[k, :2])))
-        if worst and worst[0] > 0:
-            tm = worst[2]
-            cands.append((tm - ZOOM_HALF_S, tm + ZOOM_HALF_S,
-                          f"the largest error against the truth: {worst[1]} {worst[0]:.2f} m "
-                          f"at {tm:.0f} s", worst[3], max(ZOOM_SCALE * worst[0], 1.0)))
     out: list[Zoom] = []
-    for a, b, why, center, half in cands:
+
+    def add(a: float, b: float, why: str, center=None, half=None) -> None:
         a, b = max(a, 0.0), min(b, end)
-        if b <= a or any(min(b, z.t1) - max(a, z.t0) > 0.5 * (b - a) for z in out):
-            continue
-        out.append(Zoom("ABC"[len(out)], a, b, why, center, half))
-        if len(out) == MAX_ZOOMS:
-            break
+        if b > a and len(out) < MAX_ZOOMS:
+            out.append(Zoom("ABC"[len(out)], a, b, why, center, half))
+
+    window = str(run.summary.gps_holdout or "").startswith("window")
+    for o in run.summary.gps_outages or []:
+        add(o.t0 - t0, o.t1 - t0, ("GPS hold-out window" if window else "GPS outage")
+            + ": dead reckoning carries each estimate")
+    spread = _spread(run, names, out)
+    if spread:
+        tm, d, center = spread
+        add(tm - ZOOM_HALF_S, tm + ZOOM_HALF_S,
+            f"the estimators disagree most: {d:.2f} m apart at {tm:.0f} s", center,
+            max(ZOOM_SCALE * d, 1.0))
+    worst = _worst_error(run, names, out)
+    if worst:
+        e, n, tm, center = worst
+        add(tm - ZOOM_HALF_S, tm + ZOOM_HALF_S,
+            f"the largest error against the truth: {n} {e:.2f} m at {tm:.0f} s", center,
+            max(ZOOM_SCALE * e, 1.0))
     return out
 
 
