@@ -63,7 +63,7 @@ def test_the_reader_sees_the_winner_and_margin_first(page, sample_report):
                     "const r = h.getBoundingClientRect(); return [r.top, r.bottom, h.innerText,"
                     " h.previousElementSibling.tagName] })()")
     top, bottom, text, before = box
-    assert before == "H1" and 0 < top and bottom < 900, box
+    assert before == "H1" and top > 0 and bottom < 900, box
     first = text.splitlines()[0]
     best = re.match(r"Best: (\w+)[^,]*, ATE on common stamps ([0-9.]+) m", first)
     assert best, first
