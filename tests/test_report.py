@@ -49,10 +49,10 @@ def test_run_writes_a_self_contained_report(sample_run):
     assert not re.search(r'(src|href)="(?!data:image/png;base64,)', page)
     assert "http://" not in page and "https://" not in page
     imgs = _images(page)
-    assert len(imgs) == 7 and all(i.startswith(PNG) for i in imgs)
+    assert len(imgs) == 8 and all(i.startswith(PNG) for i in imgs)
     assert sorted(p.name for p in (sample_run / "plots").iterdir()) == sorted(
-        f"{n}.png" for n in ("trajectories", "trajectories_each", "errors", "nees", "nis",
-                             "covariance", "latency"))
+        f"{n}.png" for n in ("trajectories", "trajectory_zooms", "trajectories_each", "errors",
+                             "nees", "nis", "covariance", "latency"))
     m = json.loads((sample_run / "metrics.json").read_text())
     for name in ("ekf", "smoother", "smoother_lagged"):
         assert f"<b>{name}</b>" in page
