@@ -17,7 +17,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from ddfuse.evaluation import consistency, metrics, plots
+from ddfuse.evaluation import close_ups, consistency, metrics, plots
 from ddfuse.evaluation.atomic_files import remove, write_text
 from ddfuse.evaluation.headline import headline
 from ddfuse.evaluation.metrics import OutageDrift
@@ -624,8 +624,8 @@ def _no_figure(text: str) -> str:
 
 def captions(run: SavedRun, zooms: list | None = None) -> dict[str, str]:
     """The caption of each figure, saying only what this run's figures hold. ``zooms``: the
-    close-ups drawn (``plots.zoom_windows``)."""
-    zooms = plots.zoom_windows(run) if zooms is None else zooms
+    close-ups drawn (``close_ups.zoom_windows``)."""
+    zooms = close_ups.zoom_windows(run) if zooms is None else zooms
     f = plots.frame(run.summary)
     truth = run.truth is not None and len(run.truth) > 0
     gps = len(run.gps_t) > 0
@@ -713,11 +713,13 @@ def make_figures(run: SavedRun, progress: Callable[[float], None] | None = None
     cols = plots.colors(list(run.tracks))
     series, t, dof = plots.nees_inputs(run)
     err_fig, err_caption = plots.errors(run)
-    zooms = plots.zoom_windows(run)
+    zooms = close_ups.zoom_windows(run)
     cap = captions(run, zooms)
     jobs = [
-        ("trajectories", lambda: plots.trajectories(run), cap["trajectories"]),
-        ("trajectory_zooms", lambda: plots.trajectory_zooms(run, zooms), cap["trajectory_zooms"]),
+        ("trajectories", lambda: close_ups.mark_zooms(plots.trajectories(run), run, zooms),
+         cap["trajectories"]),
+        ("trajectory_zooms", lambda: close_ups.trajectory_zooms(run, zooms),
+         cap["trajectory_zooms"]),
         ("trajectories_each", lambda: plots.trajectories_each(run) if len(run.tracks) > 1
          else None, cap["trajectories_each"]),
         ("errors", lambda: err_fig, err_caption),

@@ -296,7 +296,8 @@ def test_no_error_figure_without_gps_or_truth_and_the_report_says_why(no_gps_run
     assert not (no_gps_run / "plots" / "errors.png").exists()
     assert 'alt="errors"' not in page
     assert "No error figure: the bag has neither ground truth nor GPS fixes" in page
-    assert len(_images(page)) == 5  # trajectories, each, nis, covariance, latency
+    # trajectories, the close-up where they disagree most, each, nis, covariance, latency
+    assert len(_images(page)) == 6
 
 
 def test_data_table_names_this_runs_frame_and_omits_what_it_cannot_measure(no_gps_run, sample_run):

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from ddfuse.estimation.runner import Trajectory
-from ddfuse.evaluation import plots, report
+from ddfuse.evaluation import close_ups, plots, report
 from ddfuse.evaluation.consistency import InnovationTable
 from ddfuse.evaluation.results import SavedRun
 from matplotlib.text import Text
@@ -51,7 +51,7 @@ def run() -> SavedRun:
 
 def test_every_figure_is_page_wide_and_no_font_is_under_9_pt(run):
     figures = [(name, fig) for name, fig in (
-        ("trajectories", plots.trajectories(run)), ("zooms", plots.trajectory_zooms(run)),
+        ("trajectories", plots.trajectories(run)), ("zooms", close_ups.trajectory_zooms(run)),
         ("each", plots.trajectories_each(run)), ("errors", plots.errors(run)[0]),
         ("nees", plots.nees(*plots.nees_inputs(run))), ("nis", plots.nis(run)),
         ("covariance", plots.covariance(run)), ("latency", plots.latency(run)))]
@@ -87,7 +87,7 @@ def test_a_track_far_off_the_others_keeps_its_own_scale_and_the_caption_says_so(
 
 
 def test_close_ups_on_the_outage_the_largest_disagreement_and_the_largest_error(run):
-    zooms = plots.zoom_windows(run)
+    zooms = close_ups.zoom_windows(run)
     assert [z.label for z in zooms] == ["A", "B", "C"]
     a, b, c = zooms
     assert (a.t0, a.t1) == (45.0, 55.0) and a.why.startswith("GPS hold-out window")
@@ -97,10 +97,13 @@ def test_close_ups_on_the_outage_the_largest_disagreement_and_the_largest_error(
     assert b.center[0] == pytest.approx(30.0, abs=0.2) and b.half_m >= 5 * 0.4
     # the largest error, ekf's at 30 s, is B's: C is the largest outside A and B, batch's
     assert c.why.startswith("the largest error against the truth: batch 0.19 m at 70 s")
-    fig = plots.trajectory_zooms(run, zooms)
+    fig = close_ups.trajectory_zooms(run, zooms)
     assert len(fig.axes) == 3
     assert fig.axes[1].get_xlim() == pytest.approx((b.center[0] - b.half_m,
                                                     b.center[0] + b.half_m))
+    overview = close_ups.mark_zooms(plots.trajectories(run), run, zooms)
+    labels = [t.get_text().strip() for t in overview.axes[0].texts]
+    assert labels == ["A", "B", "C"] and len(overview.axes[0].patches) == 3
     cap = report.captions(run, zooms)
     assert "A, 45-55 s: GPS hold-out window" in cap["trajectory_zooms"]
     assert "Dashed boxes: the close-ups below (A, B, C)." in cap["trajectories"]
