@@ -27,7 +27,7 @@ from ddfuse.evaluation.cli.terminal import fmt, headline_text, progress, table
 from ddfuse.evaluation.shipped import SAMPLE_BAG, config_for
 
 if TYPE_CHECKING:  # the scores' module loads numpy and scipy: not for `ddfuse --help`
-    from ddfuse.evaluation.scores import EstimatorScores, RunSummary
+    from ddfuse.evaluation.scores import RunSummary
 
 
 def add_to(sub) -> None:
@@ -56,12 +56,6 @@ def add_to(sub) -> None:
                     help="write the results (metrics.json, tracks, run.npz) but not the HTML "
                     "report ('ddfuse report OUTDIR' renders it later)")
     sp.set_defaults(func=command)
-
-
-def produced_estimates(e: EstimatorScores) -> bool:
-    """Whether an estimator's scores are of a track (``samples``: its length; scores read
-    from a metrics.json written without it are taken to have one)."""
-    return e.samples != 0
 
 
 # The short table's columns (metrics.json keys) after the one ranked on, each shown where some
@@ -96,7 +90,7 @@ def print_summary(m: RunSummary, out, headline: bool = True) -> None:
             cells.append(f"ERROR: {e.error}")
         rows.append(cells)
     header = ["rank", "estimator", "output", *cols, "final_xy"]
-    width = max(len(r) for r in [header, *rows])
+    width = max(len(row) for row in [header, *rows])
     out.write(table(header + [""] * (width - len(header)),
                     [c + [""] * (width - len(c)) for c in rows], left=3))
     if ranked:
