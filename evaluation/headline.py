@@ -195,7 +195,9 @@ def next_step(m: RunSummary, scored: bool) -> tuple[str | None, str]:
     for its config): a GPS hold-out where nothing scores the tracks and the bag has fixes;
     ``ddfuse tune`` where a consistency test fails (``_failing``); a GPS outage (``window:``)
     where the bag has GPS and the run had none; else, with a smoother and a score,
-    ``ddfuse lag-sweep``."""
+    ``ddfuse lag-sweep``; none where no estimator produced an estimate."""
+    if not any(e.samples != 0 for e in m.estimators.values()):
+        return None, ""  # nothing estimated: the errors in the table say what to fix first
     args = _bag_args(m)
     has_gps = _has_gps(m)
     if not scored and has_gps and not m.gps_holdout:

@@ -160,3 +160,12 @@ def test_a_config_not_beside_the_bag_is_passed_with_c():
     m = _run({"ekf": 0.5, "smoother": 0.2}, ekf={"nees": _nees(20.0, "Fail")})
     m = RunSummary.from_json({**m.to_json(), "config": "/elsewhere/my config.yaml"})
     assert _next(m) == ["ddfuse", "tune", "/data/b.bag", "-c", "/elsewhere/my config.yaml"]
+
+
+def test_no_next_command_when_no_estimator_estimated():
+    m = _run({"ekf": 1.0}, truth=False)
+    m = RunSummary.from_json({**m.to_json(), "estimators": {
+        "ekf": {"samples": 0, "error": "no estimate: it never started"}}})
+    h = headline(m)
+    assert h.next_command is None and not any(x.startswith("Next:") for x in h.lines())
+    assert h.consistency == (("ekf", "no estimate"),)
