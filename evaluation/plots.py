@@ -247,18 +247,19 @@ def trajectories_each(run: SavedRun) -> Figure:
     overview's lines overlap where the estimates agree; here each can be read alone."""
     cols = colors(list(run.tracks))
     names = [n for n, tr in run.tracks.items() if len(tr)]
-    ncol = min(3, max(len(names), 1))
-    nrow = max(math.ceil(len(names) / ncol), 1)
-    # Panels shaped like the path (equal axes), so that a tall path leaves no wide gaps.
+    # Panels shaped like the path (equal axes): a tall path's side by side (up to 5 in a
+    # row), each at most 5.5 in tall, so that the page-wide figure stays within a screen
     pts = [run.tracks[n].pose[:, :2] for n in names] + [run.gps_xy.reshape(-1, 2)]
     if run.truth is not None:
         pts.append(run.truth.pose[:, :2])
     xy = np.concatenate(pts)
     xy = xy[np.isfinite(xy).all(axis=1)]
     span = np.ptp(xy, axis=0) if len(xy) else np.ones(2)
-    aspect = float(np.clip((span[0] + 1e-9) / (span[1] + 1e-9), 0.6, 1.6))
-    fig, axes = subplots(nrow, ncol, figsize=(PAGE_W, (PAGE_W - 0.8) / ncol / aspect * nrow
-                                              + 0.5 * nrow),
+    aspect = float(np.clip((span[0] + 1e-9) / (span[1] + 1e-9), 0.2, 5.0))
+    ncol = min(5 if aspect < 0.8 else 3, max(len(names), 1))
+    nrow = max(math.ceil(len(names) / ncol), 1)
+    row_in = min((PAGE_W - 0.8) / ncol / aspect, 5.5) + 0.6
+    fig, axes = subplots(nrow, ncol, figsize=(PAGE_W, row_in * nrow),
                              sharex=True, sharey=True, squeeze=False)
     for ax in axes.flat[len(names):]:
         ax.set_axis_off()

@@ -473,16 +473,18 @@ def test_log_axes_carry_tick_labels_when_they_span_under_a_decade(sample_run):
 
 def test_every_column_of_the_panels_has_x_tick_labels(sample_run):
     run = load_run(sample_run)
-    four = {**run.tracks, "batch": run.tracks["smoother"]}  # 2 rows x 3, the last row of 1
-    fig = plots.trajectories_each(replace(run, tracks=four))
+    # six panels of the tall path: 5 in the first row, 1 in the second
+    six = {**run.tracks, "batch": run.tracks["smoother"], "dr": run.tracks["ekf"],
+           "ekf_igvc": run.tracks["ekf"]}
+    fig = plots.trajectories_each(replace(run, tracks=six))
     axes = [ax for ax in fig.axes if ax.axison]
-    assert len(axes) == 4
+    assert len(axes) == 6
     bottoms = {}
     for ax in axes:  # the lowest drawn panel of each column
         col = round(ax.get_position().x0, 2)
         if col not in bottoms or ax.get_position().y0 < bottoms[col].get_position().y0:
             bottoms[col] = ax
-    assert len(bottoms) == 3
+    assert len(bottoms) == 5
     for ax in bottoms.values():
         assert len(_visible_labels(fig, ax, "x")) >= 2, ax.get_title()
         assert ax.get_xlabel() == "x east [m]"
