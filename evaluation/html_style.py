@@ -19,10 +19,12 @@ th{background:#f3f3f3;white-space:normal;max-width:7.5em;vertical-align:bottom}
 td.l,th.l{text-align:left}td.l{white-space:normal;min-width:6em}
 tr:nth-child(even) td{background:#fafafa}
 .verdict{background:#f4f8ff;border-left:4px solid #3b73d1;padding:.5em 1em;margin:1em 0}
-.verdict li{margin:.25em 0}.best{font-weight:bold;color:#0a6b2c}
+.verdict li{margin:.25em 0}.verdict summary{cursor:pointer;font-weight:bold}
+.headline{background:#eef6ee;border-left:4px solid #0a6b2c;padding:.3em 1em;margin:.6em 0;
+font-size:1.05em}.headline p{margin:.35em 0}.best{font-weight:bold;color:#0a6b2c}
 .Pass{color:#0a6b2c;font-weight:bold}.Warn{color:#b36b00;font-weight:bold}
 .Fail{color:#c0211b;font-weight:bold}.na{color:#999}
-figure{margin:1em 0}figure img{max-width:100%;border:1px solid #eee}
+figure{margin:1em 0}figure img{width:100%;height:auto;border:1px solid #eee}
 figcaption{color:#555;font-size:.9em;max-width:1100px}
 pre{background:#f6f6f6;padding:.7em;overflow-x:auto;font-size:.85em}
 .note{color:#555;font-size:.88em;max-width:1100px}

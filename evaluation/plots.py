@@ -34,6 +34,11 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 DPI = 100
+# Figure width [in]: at DPI, the report's content width in a 1 400 px window (1 368 px less
+# the scroll bar), so that a figure is shown at its own size and a font of MIN_PT points is
+# MIN_PT points on the page; narrower windows scale the page's figures down alike.
+PAGE_W = 13.5
+MIN_PT = 9.0  # the smallest font in any figure
 _STYLE = {"smoother_lagged": "--", "batch": ":"}
 
 
@@ -109,12 +114,29 @@ def label_log_axis(axis) -> None:
     axis.set_major_formatter(matplotlib.ticker.FuncFormatter(_plain))
 
 
+def legible(fig: Figure, min_pt: float = MIN_PT) -> None:
+    """Every text of ``fig`` (tick labels, titles, legends, annotations) at least ``min_pt``
+    points."""
+    from matplotlib.text import Text
+
+    for ax in fig.axes:
+        for axis in (ax.xaxis, ax.yaxis):
+            ticks = axis.get_major_ticks()
+            if ticks and ticks[0].label1.get_fontsize() < min_pt:
+                axis.set_tick_params(which="both", labelsize=min_pt)
+    for t in fig.findobj(Text):
+        if t.get_fontsize() < min_pt:
+            t.set_fontsize(min_pt)
+
+
 def _finish(fig: Figure) -> Figure:
-    """Label the ticks of log axes (``label_log_axis``), then lay the figure out tightly."""
+    """Label the ticks of log axes (``label_log_axis``), fonts at least MIN_PT (``legible``),
+    then lay the figure out tightly."""
     for ax in fig.axes:
         for axis in (ax.xaxis, ax.yaxis):
             if axis.get_scale() == "log":
                 label_log_axis(axis)
+    legible(fig)
     fig.tight_layout()
     return fig
 
@@ -187,8 +209,9 @@ def trajectories(run: SavedRun) -> Figure:
     # Size the plot to the path's shape (equal axes), plus room for the legend on the right.
     span = np.ptp(xy, axis=0) if len(xy) else np.ones(2)
     aspect = float(np.clip((span[0] + 1e-9) / (span[1] + 1e-9), 0.5, 2.0))
-    height = 7.5 if aspect < 1.4 else 6.0
-    fig, ax = subplots(figsize=(min(height * aspect + 3.8, 14.0), height))
+    # the page's width: the plot as wide as its height allows, the legend beside it
+    height = float(np.clip((PAGE_W - 3.8) / aspect, 5.5, 8.0))
+    fig, ax = subplots(figsize=(PAGE_W, height))
     if run.truth is not None and len(run.truth):
         # A wide pale band under the estimates: it stays visible where they follow it closely.
         ax.plot(run.truth.pose[:, 0], run.truth.pose[:, 1], "-", color="k", lw=5, alpha=0.2,
@@ -224,17 +247,19 @@ def trajectories_each(run: SavedRun) -> Figure:
     overview's lines overlap where the estimates agree; here each can be read alone."""
     cols = colors(list(run.tracks))
     names = [n for n, tr in run.tracks.items() if len(tr)]
-    ncol = min(3, max(len(names), 1))
-    nrow = max(math.ceil(len(names) / ncol), 1)
-    # Panels shaped like the path (equal axes), so that a tall path leaves no wide gaps.
+    # Panels shaped like the path (equal axes): a tall path's side by side (up to 5 in a
+    # row), each at most 5.5 in tall, so that the page-wide figure stays within a screen
     pts = [run.tracks[n].pose[:, :2] for n in names] + [run.gps_xy.reshape(-1, 2)]
     if run.truth is not None:
         pts.append(run.truth.pose[:, :2])
     xy = np.concatenate(pts)
     xy = xy[np.isfinite(xy).all(axis=1)]
     span = np.ptp(xy, axis=0) if len(xy) else np.ones(2)
-    aspect = float(np.clip((span[0] + 1e-9) / (span[1] + 1e-9), 0.6, 1.6))
-    fig, axes = subplots(nrow, ncol, figsize=(3.9 * aspect * ncol + 0.8, 4.3 * nrow),
+    aspect = float(np.clip((span[0] + 1e-9) / (span[1] + 1e-9), 0.2, 5.0))
+    ncol = min(5 if aspect < 0.8 else 3, max(len(names), 1))
+    nrow = max(math.ceil(len(names) / ncol), 1)
+    row_in = min((PAGE_W - 0.8) / ncol / aspect, 5.5) + 0.6
+    fig, axes = subplots(nrow, ncol, figsize=(PAGE_W, row_in * nrow),
                              sharex=True, sharey=True, squeeze=False)
     for ax in axes.flat[len(names):]:
         ax.set_axis_off()
@@ -264,7 +289,9 @@ def trajectories_each(run: SavedRun) -> Figure:
     return _finish(fig)
 
 
-def _envelope(ax, t, err, sigma3, color, label):
+def _envelope(ax, t, err, sigma3, color, label) -> float:
+    """An error series with its ±3σ band; the half-height of the y range it needs: its errors'
+    99.5th percentile or the settled envelope (the band's 90th percentile), set on ``ax``."""
     if np.isfinite(sigma3).any():  # no covariance (dead reckoning): no "±3σ" in the legend
         ax.fill_between(t, -sigma3, sigma3, color=color, alpha=0.18, lw=0, label="±3σ")
     ax.plot(t, err, "-", color=color, lw=0.9, label=label)
@@ -274,6 +301,30 @@ def _envelope(ax, t, err, sigma3, color, label):
     lim = max(np.percentile(e, 99.5) if len(e) else 0.0, np.percentile(s, 90) if len(s) else 0.0)
     if lim > 0:
         ax.set_ylim(-1.15 * lim, 1.15 * lim)
+    return float(lim)
+
+
+# A track whose error panels need more than this many times the y range of the others' (dead
+# reckoning beside fused estimates) keeps its own scale: on the shared one the others would be
+# flat lines.
+OWN_SCALE = 4.0
+
+
+def _share_rows(axes, lims: dict[str, list[float]]) -> list[str]:
+    """One y range per column for the rows of ``axes`` ({track: per-column half-heights}, in
+    row order), but for the tracks that need over OWN_SCALE times the median row's: those keep
+    their own, and are returned."""
+    names = list(lims)
+    need = {n: max(v) for n, v in lims.items()}
+    mid = float(np.median(list(need.values())))
+    own = [n for n in names if mid > 0 and need[n] > OWN_SCALE * mid] if len(names) > 2 else []
+    shared = [k for k, n in enumerate(names) if n not in own]
+    for c in range(axes.shape[1]):
+        lim = max((lims[names[k]][c] for k in shared), default=0.0)
+        if lim > 0:
+            for k in shared:
+                axes[k, c].set_ylim(-1.15 * lim, 1.15 * lim)
+    return own
 
 
 def _break_wraps(a: np.ndarray) -> np.ndarray:
@@ -306,8 +357,9 @@ def errors(run: SavedRun) -> tuple[Figure | None, str]:
     antenna = run.summary.gps_antenna
     lever = (antenna.lever_arm if antenna else None) or (0.0, 0.0)
     delay = float((antenna.delay_s if antenna else None) or 0.0)
-    fig, axes = subplots(len(names), ncol, figsize=(13, 2.1 * len(names) + 0.8),
+    fig, axes = subplots(len(names), ncol, figsize=(PAGE_W, 2.1 * len(names) + 0.8),
                              sharex=True, squeeze=False)
+    lims: dict[str, list[float]] = {}
     for r, name in enumerate(names):
         tr = run.tracks[name]
         if truth:
@@ -333,7 +385,7 @@ def errors(run: SavedRun) -> tuple[Figure | None, str]:
             ax = axes[r, c]
             with np.errstate(invalid="ignore"):
                 s3 = 3.0 * np.sqrt(np.where(var >= 0, var, np.nan)) * k
-            _envelope(ax, t, e * k, s3, cols[name], name)
+            lims.setdefault(name, []).append(_envelope(ax, t, e * k, s3, cols[name], name))
             _shade_outages(ax, run)
             ax.set_ylabel(ylabel, fontsize=8)
             ax.grid(True, alpha=0.3)
@@ -343,6 +395,7 @@ def errors(run: SavedRun) -> tuple[Figure | None, str]:
                 ax.legend(loc="upper right", fontsize=8)
     for ax in axes[-1]:
         ax.set_xlabel("time since the first measurement [s]")
+    own = _share_rows(axes, lims)
     _finish(fig)
     outages = " Grey spans: GPS outages." if run.summary.gps_outages else ""
     # the envelope is promised only for the tracks that have one
@@ -353,11 +406,15 @@ def errors(run: SavedRun) -> tuple[Figure | None, str]:
         has = "has" if len(bare) == 1 else "have"
         none = (f" {_listed(bare)} {has} no covariance, so no envelope." if envelope
                 else f" No envelope: {_listed(bare)} {has} no covariance.")
+    scale = (" Each column's y axis is the same for every estimator" + (
+        f", but for {_listed(own)}, whose errors need over {OWN_SCALE:g} times the others' "
+        "range (on theirs the others would be flat lines): on its own scale." if own else ".")
+        if len(names) > 1 else "")
     if truth:
         caption = (f"Errors against the ground truth (no alignment; x, y in {f['short']})"
                    + (" with each estimator's own ±3σ envelope: a consistent estimator stays "
                       "inside it about 99% of the time." if envelope else ".")
-                   + f"{none}{outages}")
+                   + f"{none}{outages}{scale}")
     else:
         which = ("used and withheld" if run.gps_withheld.any()
                  else "all of them fused by the estimators, so not an independent score")
@@ -369,7 +426,7 @@ def errors(run: SavedRun) -> tuple[Figure | None, str]:
                    f"({which}) in {f['short']}{at}"
                    + ("; the envelope is ±3σ of the estimate's and the fix's covariance "
                       "together." if envelope else ".")
-                   + f"{none}{outages}")
+                   + f"{none}{outages}{scale}")
     return fig, caption
 
 
@@ -387,7 +444,7 @@ def nees(series: Mapping[str, Sequence[np.ndarray]], t: Mapping[str, np.ndarray]
     several runs (Monte Carlo) their average is drawn with the band of an N-run average
     (``consistency.chi2_band(dof, N)``). ``dof[name]`` is the NEES dimension."""
     names = [n for n in series if series[n] and min(len(r) for r in series[n])]
-    fig, axes = subplots(max(len(names), 1), 1, figsize=(13, 1.9 * max(len(names), 1) + 0.8),
+    fig, axes = subplots(max(len(names), 1), 1, figsize=(PAGE_W, 1.9 * max(len(names), 1) + 0.8),
                              sharex=True, squeeze=False)
     cols = colours or colors(names)
     for ax, name in zip(axes[:, 0], names, strict=False):
@@ -446,8 +503,8 @@ def nis(run: SavedRun) -> Figure | None:
     ncol = max((len(g) for g in groups.values()), default=1)
     t0 = _t0(run)
     t_end = max((float(run.innovations[n].t.max()) - t0 for n in owners), default=1.0)
-    fig, axes = subplots(max(len(owners), 1), ncol, figsize=(3.2 * ncol + 0.4,
-                             2.4 * max(len(owners), 1) + 0.3), squeeze=False)
+    fig, axes = subplots(max(len(owners), 1), ncol, figsize=(PAGE_W,
+                             2.6 * max(len(owners), 1) + 0.3), squeeze=False)
     for ax in axes.flat:
         ax.set_axis_off()
     for r, name in enumerate(owners):
@@ -491,7 +548,7 @@ def covariance(run: SavedRun) -> Figure | None:
     drawn = {name: tr for name, tr in run.tracks.items() if has_covariance(tr)}
     if not drawn:
         return None
-    fig, (a1, a2) = subplots(2, 1, figsize=(13, 6.5), sharex=True)
+    fig, (a1, a2) = subplots(2, 1, figsize=(PAGE_W, 6.5), sharex=True)
     for name, tr in drawn.items():
         t = tr.t - t0
         a1.plot(t, tr.cov[:, 0, 0] + tr.cov[:, 1, 1], _STYLE.get(name, "-"), color=cols[name],
@@ -518,7 +575,7 @@ def latency(run: SavedRun) -> Figure | None:
     names = [n for n in run.tracks if run.log_owner.get(n, n) == n and len(run.update_s[n])]
     if not names:
         return None
-    fig, axes = subplots(max(len(names), 1), 1, figsize=(11, 1.5 * max(len(names), 1) + 1),
+    fig, axes = subplots(max(len(names), 1), 1, figsize=(PAGE_W, 1.5 * max(len(names), 1) + 1),
                              sharex=True, squeeze=False)
     all_ms = np.concatenate([run.update_s[n] * 1e3 for n in names])
     lo = max(float(all_ms[all_ms > 0].min()) if (all_ms > 0).any() else 1e-3, 1e-4)

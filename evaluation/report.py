@@ -17,8 +17,9 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from ddfuse.evaluation import consistency, metrics, plots
+from ddfuse.evaluation import close_ups, consistency, metrics, plots
 from ddfuse.evaluation.atomic_files import remove, write_text
+from ddfuse.evaluation.headline import headline
 from ddfuse.evaluation.html_style import CSS as _CSS
 from ddfuse.evaluation.html_style import fmt as _fmt
 from ddfuse.evaluation.html_style import verdict_cell as _verdict_cell
@@ -39,6 +40,7 @@ from ddfuse.evaluation.verdict import (
     final_states,
     gate_rejections,
     outage_drift,
+    ranking,
     sensor_samples,
     signed,
     tie,
@@ -63,7 +65,8 @@ def _rpe_rmse(e: EstimatorScores, key: str) -> float | None:
 
 
 def _summary_table(m: RunSummary, cfg=None) -> str:
-    """One row per track: scores, consistency, speed. ``cfg``: the run's Config, for the
+    """One row per track, in the verdict's ranking (``verdict.ranking``; unranked tracks last):
+    scores, consistency, speed. ``cfg``: the run's Config, for the
     estimators not run (``not_run``)."""
     lag = m.lag_s
     ests = m.estimators
@@ -94,7 +97,9 @@ def _summary_table(m: RunSummary, cfg=None) -> str:
             best[h] = min(vals)
     rows = []
     offline = [n for n, e in ests.items() if track_kind(n) == "offline" and e.update_ms]
-    for name, e in ests.items():
+    order = ranking(m).order  # the verdict's ranking, as the terminal's table
+    for name in order + [n for n in ests if n not in order]:
+        e = ests[name]
         cells = [f'<td class="l"><b>{html.escape(name)}</b></td>',
                  f'<td class="l">{html.escape(track_kind(name, lag))}</td>']
         for h, get, spec, _ in present:
@@ -588,8 +593,10 @@ def _no_figure(text: str) -> str:
     return f'<p class="note">{html.escape(text)}</p>'
 
 
-def captions(run: SavedRun) -> dict[str, str]:
-    """The caption of each figure, saying only what this run's figures hold."""
+def captions(run: SavedRun, zooms: list | None = None) -> dict[str, str]:
+    """The caption of each figure, saying only what this run's figures hold. ``zooms``: the
+    close-ups drawn (``close_ups.zoom_windows``)."""
+    zooms = close_ups.zoom_windows(run) if zooms is None else zooms
     f = plots.frame(run.summary)
     truth = run.truth is not None and len(run.truth) > 0
     gps = len(run.gps_t) > 0
@@ -607,7 +614,13 @@ def captions(run: SavedRun) -> dict[str, str]:
                 + (f"; black dot: the start, the earliest position drawn (the first {start[2]} "
                    f"position, {plots.seconds(start[3])} s after the first measurement)"
                    if start else "")
-                + ".")
+                + "."
+                + (" Dashed boxes: the close-ups below (" + ", ".join(z.label for z in zooms)
+                   + ")." if zooms else ""))
+    zoomed = ("Close-ups of the overview's dashed boxes, each showing only what lies in its "
+              "time span: " + "; ".join(f"{z.label}, {z.t0:.0f}-{z.t1:.0f} s: {z.why}"
+                                       for z in zooms)
+              + ". Grey dots: GPS fixes used; red circles: withheld." if zooms else "")
     each = ("Each estimate on its own, on common axes, "
             + ("over the ground truth (grey band)." if truth else "over the GPS fixes (grey "
                "dots)." if gps else "with no ground truth or GPS to draw behind it."))
@@ -617,6 +630,7 @@ def captions(run: SavedRun) -> dict[str, str]:
                  " no covariance)." if bare else "")
     return {
         "trajectories": overview,
+        "trajectory_zooms": zoomed,
         "trajectories_each": each,
         "nees": "Pose NEES against the truth with its 95% chi-square band: a consistent "
                 "estimator stays inside about 95% of the time around the dashed expected value; "
@@ -646,6 +660,7 @@ def why_no_figure(run: SavedRun, name: str) -> str:
     return {
         "trajectories_each": f"No per-estimator trajectory figure: {names[0]} is the only "
                              "estimate, drawn above.",
+        "trajectory_zooms": "No close-ups: no stretch of the tracks to zoom on.",
         "nees": "No NEES figure: the bag has no ground truth to score the covariance against."
                 if run.truth is None or not len(run.truth) else
                 f"No NEES figure: {', '.join(bare)} {'has' if len(bare) == 1 else 'have'} no "
@@ -669,9 +684,13 @@ def make_figures(run: SavedRun, progress: Callable[[float], None] | None = None
     cols = plots.colors(list(run.tracks))
     series, t, dof = plots.nees_inputs(run)
     err_fig, err_caption = plots.errors(run)
-    cap = captions(run)
+    zooms = close_ups.zoom_windows(run)
+    cap = captions(run, zooms)
     jobs = [
-        ("trajectories", lambda: plots.trajectories(run), cap["trajectories"]),
+        ("trajectories", lambda: close_ups.mark_zooms(plots.trajectories(run), run, zooms),
+         cap["trajectories"]),
+        ("trajectory_zooms", lambda: close_ups.trajectory_zooms(run, zooms),
+         cap["trajectory_zooms"]),
         ("trajectories_each", lambda: plots.trajectories_each(run) if len(run.tracks) > 1
          else None, cap["trajectories_each"]),
         ("errors", lambda: err_fig, err_caption),
@@ -699,6 +718,9 @@ def build_html(run: SavedRun, figures: list[tuple[str, bytes | None, str]],
     m = run.summary
     bag = Path(str(m.bag)).name
     verdict = "".join(f"<li>{html.escape(line)}</li>" for line in verdict_lines(m))
+    # the winner's line in bold: the first thing read
+    top = "".join(f"<p><b>{html.escape(line)}</b></p>" if k == 0 else
+                  f"<p>{html.escape(line)}</p>" for k, line in enumerate(headline(m).lines()))
     figs = "".join(_figure(png, cap, name) if png is not None else _no_figure(cap)
                    for name, png, cap in figures)
     stamp = datetime.datetime.now().strftime("%Y-%m-%d %H:%M")
@@ -714,10 +736,13 @@ def build_html(run: SavedRun, figures: list[tuple[str, bytes | None, str]],
         "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>"
         f"<title>ddfuse report: {html.escape(bag)}</title><style>{_CSS}</style></head><body>"
         f"<h1>ddfuse report: {html.escape(bag)}</h1>"
+        f"<div class='headline' id='headline'>{top}</div>"
         f"<p class='sub'>{_fmt(m.duration_s, '.1f')} s of data, "
         f"{len(m.estimators)} estimator outputs. Rendered {stamp} from the results in "
         f"{html.escape(str(run.outdir))} (figures in {render_s:.1f} s).{times}</p>"
-        f"<h2>Verdict</h2><div class='verdict'><ul>{verdict}</ul></div>"
+        "<details class='verdict'><summary>The verdict in full: the method, each "
+        "estimator's consistency per sensor, caveats</summary>"
+        f"<ul>{verdict}</ul></details>"
         f"{_warnings(m)}"
         f"<h2>Summary</h2>{_summary_table(m, run_config(run))}"
         f"{tuning_section(run.outdir, m) if run.outdir else ''}"

@@ -10,7 +10,7 @@ noise draw or a slightly different tuning changes.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from ddfuse.estimation.estimator import wrap_angle
 from ddfuse.evaluation.consistency import Consistency, SensorNis
@@ -433,6 +433,49 @@ def _noise_hints(ests: dict[str, EstimatorScores]) -> list[str]:
             "method is better." for d, labels in by_dir.items()]
 
 
+# NIS kinds of a rate measurement (speed, yaw rate, acceleration): their innovation is mostly
+# the predicted change of the twist since the last sample, whose spread is the process noise.
+RATE_KINDS = {"v", "yaw_rate", "odometry", "gyro", "accel", "wheels"}
+
+
+def low_rate_nis(m: RunSummary) -> list[tuple[str, str, float]]:
+    """(track, NIS label, mean/expected) of every rate-sensor NIS row (``RATE_KINDS``) that
+    fails pessimistic, of the tracks that log their own innovations (not a copy) and whose
+    pose NEES against the truth does not fail (the pose covariance is right: what is off is
+    the prediction of the twist alone). Without truth nothing tells that from overstated
+    sensor noise: none."""
+    out, seen = [], set()
+    for n, e in m.estimators.items():
+        key = repr(sorted((e.nis or {}).items()))
+        if e.samples == 0 or not e.nis or key in seen:
+            continue
+        seen.add(key)
+        if not (e.nees and e.nees.verdict in ("Pass", "Warn")):
+            continue
+        for label, st in e.nis.items():
+            c = st.nis
+            if (_topic_kind(label, st)[1] in RATE_KINDS and c.verdict == "Fail"
+                    and _direction(c) == "pessimistic"):
+                out.append((n, label, c.ratio))
+    return out
+
+
+def process_noise_line(m: RunSummary) -> str | None:
+    """One line on rate sensors whose NIS fails pessimistic: the likely cause is the process
+    noise of the twist (the motion model), not the sensor's noise; None without such rows."""
+    rows = low_rate_nis(m)
+    if not rows:
+        return None
+    return ("Low NIS on rate sensors (" + ", ".join(f"{n} {lab} {r:.2f}" for n, lab, r in rows)
+            + " of the expected) beside a NEES that passes is the motion model, not the "
+            "sensors: a speed or yaw-rate "
+            "innovation is mostly the predicted change of the twist since the last sample, "
+            "whose process noise (robot.twist_walk; absent, sized from robot.max_accel / "
+            "max_yaw_accel, the largest accelerations) a drive that mostly accelerates less "
+            "never uses; the config's sensor noise can be the true one (as on the simulated "
+            "sample bag) and this NIS still fail.")
+
+
 def _gate_lines(m: RunSummary) -> list[str]:
     """A sensor every estimator fusing it rejected (nearly) throughout: one line for all."""
     out = []
@@ -690,33 +733,74 @@ def _calibration_gaps(m: RunSummary) -> list[str]:
     return out
 
 
+@dataclass(frozen=True)
+class Ranking:
+    """What a run's tracks are ranked on and their order (lower is better). ``key``: the
+    ``EstimatorScores`` field of each track's own score (``ATE`` or ``HOLDOUT``), None when
+    nothing scores them; ``what``: a sentence saying what the score is (or why there is none);
+    ``how``: how the ranking is taken (common stamps, tracks left out), or None; ``own``: each
+    ranked track's own score [m]; ``scored``: the scores ranked on [m] (``own``, or for the ATE
+    every track's RMSE on the common stamps, ``EstimatorScores.ate_common_rmse_m``);
+    ``halted``: the tracks left out, having stopped with an error."""
+
+    key: str | None
+    what: str
+    how: str | None = None
+    own: dict[str, float] = field(default_factory=dict)
+    scored: dict[str, float] = field(default_factory=dict)
+    halted: tuple[str, ...] = ()
+
+    @property
+    def figure(self) -> str | None:
+        """The ``EstimatorScores`` field of the figures ranked on (``scored``)."""
+        if not self.scored:
+            return None
+        return "ate_common_rmse_m" if self.scored is not self.own else self.key
+
+    @property
+    def order(self) -> list[str]:
+        """The ranked tracks, best first."""
+        return sorted(self.scored, key=self.scored.get)
+
+    @property
+    def tied(self) -> list[str]:
+        """The best track and every one that ties with it (``TIE_RULE``), best first."""
+        order = self.order
+        return [n for n in order if _tie(self.scored[order[0]], self.scored[n])]
+
+
+def ranking(m: RunSummary) -> Ranking:
+    """The run's ranking: the score ``_score`` chooses, on the common stamps where every ranked
+    track has them (``_ranked_scores``); the tracks that stopped with an error left out."""
+    ests = m.estimators
+    key, what = _score(m)
+    # an estimator that stopped with an error scored only its first part of the run: left out
+    # of the ranking (otherwise its first seconds, or the common span cut to them, decide);
+    # one that Ctrl-C caught inside an update is no failure: left out only if it ends early
+    halted = [n for n in _stopped_early(m) if key and getattr(ests[n], key) is not None]
+    if not key or len(halted) >= sum(getattr(e, key) is not None for e in ests.values()):
+        return Ranking(key, what)
+    own = {n: getattr(e, key) for n, e in ests.items()
+           if getattr(e, key) is not None and n not in halted}
+    scored, how = _ranked_scores(m, key, own)
+    if halted:
+        how = (how + " " if how else "") + (
+            "Not ranked, having stopped with an error (said below): " + ", ".join(halted) + ".")
+    return Ranking(key, what, how, own, scored, tuple(halted))
+
+
 def verdict_lines(m: RunSummary | dict) -> list[str]:
     """The verdict as a list of sentences (plain text). ``m``: the run's scores, or a
     metrics.json dictionary (``RunSummary.from_json``)."""
     if isinstance(m, dict):
         m = RunSummary.from_json(m)
     ests = m.estimators
-    key, what = _score(m)
-    lines = [what]
+    r = ranking(m)
+    key = r.key
+    lines = [r.what + (" " + r.how if r.how else "")]
     lag = m.lag_s
-    # an estimator that stopped with an error scored only its first part of the run: left out
-    # of the ranking (otherwise its first seconds, or the common span cut to them, decide);
-    # one that Ctrl-C caught inside an update is no failure: left out only if it ends early
-    halted = [n for n in _stopped_early(m) if key and getattr(ests[n], key) is not None]
-    if key and len(halted) < sum(getattr(e, key) is not None for e in ests.values()):
-        own = {n: getattr(e, key) for n, e in ests.items()
-               if getattr(e, key) is not None and n not in halted}
-        scored, how = _ranked_scores(m, key, own)
-        if halted:
-            how = (how + " " if how else "") + (
-                "Not ranked, having stopped with an error (said below): "
-                + ", ".join(halted) + ".")
-        if how:
-            lines[0] += " " + how
-        ranked = sorted(scored, key=scored.get)
-        best = ranked[0]
-        # tracks within TIE of the best tie with it: no single winner among them
-        tied = [n for n in ranked if _tie(scored[best], scored[n])]
+    if r.scored:
+        own, scored, ranked, best, tied = r.own, r.scored, r.order, r.order[0], r.tied
 
         def named(n: str) -> str:
             kind = track_kind(n, lag)
@@ -775,6 +859,9 @@ def verdict_lines(m: RunSummary | dict) -> list[str]:
         lines.append(caution)
     lines += _gate_lines(m)
     lines += _noise_hints(ests)
+    rate = process_noise_line(m)
+    if rate:
+        lines.append(rate)
     lines += _outage_lines(m)
     lines += _calibration_gaps(m)
     stopped = _stopped_early(m)

@@ -49,10 +49,10 @@ def test_run_writes_a_self_contained_report(sample_run):
     assert not re.search(r'(src|href)="(?!data:image/png;base64,)', page)
     assert "http://" not in page and "https://" not in page
     imgs = _images(page)
-    assert len(imgs) == 7 and all(i.startswith(PNG) for i in imgs)
+    assert len(imgs) == 8 and all(i.startswith(PNG) for i in imgs)
     assert sorted(p.name for p in (sample_run / "plots").iterdir()) == sorted(
-        f"{n}.png" for n in ("trajectories", "trajectories_each", "errors", "nees", "nis",
-                             "covariance", "latency"))
+        f"{n}.png" for n in ("trajectories", "trajectory_zooms", "trajectories_each", "errors",
+                             "nees", "nis", "covariance", "latency"))
     m = json.loads((sample_run / "metrics.json").read_text())
     for name in ("ekf", "smoother", "smoother_lagged"):
         assert f"<b>{name}</b>" in page
@@ -296,7 +296,8 @@ def test_no_error_figure_without_gps_or_truth_and_the_report_says_why(no_gps_run
     assert not (no_gps_run / "plots" / "errors.png").exists()
     assert 'alt="errors"' not in page
     assert "No error figure: the bag has neither ground truth nor GPS fixes" in page
-    assert len(_images(page)) == 5  # trajectories, each, nis, covariance, latency
+    # trajectories, the close-up where they disagree most, each, nis, covariance, latency
+    assert len(_images(page)) == 6
 
 
 def test_data_table_names_this_runs_frame_and_omits_what_it_cannot_measure(no_gps_run, sample_run):
@@ -472,16 +473,18 @@ def test_log_axes_carry_tick_labels_when_they_span_under_a_decade(sample_run):
 
 def test_every_column_of_the_panels_has_x_tick_labels(sample_run):
     run = load_run(sample_run)
-    four = {**run.tracks, "batch": run.tracks["smoother"]}  # 2 rows x 3, the last row of 1
-    fig = plots.trajectories_each(replace(run, tracks=four))
+    # six panels of the tall path: 5 in the first row, 1 in the second
+    six = {**run.tracks, "batch": run.tracks["smoother"], "dr": run.tracks["ekf"],
+           "ekf_igvc": run.tracks["ekf"]}
+    fig = plots.trajectories_each(replace(run, tracks=six))
     axes = [ax for ax in fig.axes if ax.axison]
-    assert len(axes) == 4
+    assert len(axes) == 6
     bottoms = {}
     for ax in axes:  # the lowest drawn panel of each column
         col = round(ax.get_position().x0, 2)
         if col not in bottoms or ax.get_position().y0 < bottoms[col].get_position().y0:
             bottoms[col] = ax
-    assert len(bottoms) == 3
+    assert len(bottoms) == 5
     for ax in bottoms.values():
         assert len(_visible_labels(fig, ax, "x")) >= 2, ax.get_title()
         assert ax.get_xlabel() == "x east [m]"

@@ -40,7 +40,7 @@ def test_husky_report_with_gps_holdout(husky_bag, tmp_path):
     assert f"Score: RMS distance to the {scored} of the 197 GPS fixes withheld" in page
     # of the best track (the smoother since the shipped correlation_time of 19 s)
     assert re.search(r"Caution: the GPS residuals to (ekf|smoother) stay correlated for", page)
-    assert page.count("data:image/png;base64,") == 6  # no NEES figure without truth
+    assert page.count("data:image/png;base64,") == 7  # no NEES figure without truth
 
 
 @pytest.mark.slow

@@ -23,11 +23,11 @@ from ddfuse.evaluation.cli.arguments import (
 )
 from ddfuse.evaluation.cli.output_paths import check_output_dir
 from ddfuse.evaluation.cli.report import render
-from ddfuse.evaluation.cli.terminal import fmt, progress
+from ddfuse.evaluation.cli.terminal import fmt, headline_text, progress, table
 from ddfuse.evaluation.shipped import SAMPLE_BAG, config_for
 
 if TYPE_CHECKING:  # the scores' module loads numpy and scipy: not for `ddfuse --help`
-    from ddfuse.evaluation.scores import EstimatorScores, RunSummary
+    from ddfuse.evaluation.scores import RunSummary
 
 
 def add_to(sub) -> None:
@@ -58,31 +58,44 @@ def add_to(sub) -> None:
     sp.set_defaults(func=command)
 
 
-def produced_estimates(e: EstimatorScores) -> bool:
-    """Whether an estimator's scores are of a track (``samples``: its length; scores read
-    from a metrics.json written without it are taken to have one)."""
-    return e.samples != 0
+# The short table's columns (metrics.json keys) after the one ranked on, each shown where some
+# estimator has a value; the speed (rtf) is in the report, with its definition.
+SUMMARY_COLUMNS = ("ate_rmse_m", "yaw_rmse_deg", "nees_mean", "gps_holdout_rmse_m")
 
 
-def print_summary(m: RunSummary, out) -> None:
-    """The table of a run's summary ``m`` (per estimator: final position, ATE, yaw RMSE,
-    NEES, hold-out RMSE, real-time factor) and its wall-time line, to ``out``."""
-    cols = ("final_xy", "ate_rmse_m", "yaw_rmse_deg", "nees_mean", "gps_holdout_rmse_m", "rtf")
+def print_summary(m: RunSummary, out, headline: bool = True) -> None:
+    """The table of a run's summary ``m`` to ``out``: one row per estimator ranked on the
+    verdict's score (``verdict.ranking``, its column first; unranked rows last), its other
+    scores where any estimator has them and its final position; the wall-time line; then the
+    headline (``evaluation.headline``) where ``headline``."""
+    from ddfuse.evaluation.headline import headline as make_headline
+    from ddfuse.evaluation.verdict import ranking, track_kind
+
+    r = ranking(m)
+    ranked = r.figure
+    cols = ([ranked] if ranked else []) + [c for c in SUMMARY_COLUMNS if c != ranked and any(
+        getattr(e, c) is not None for e in m.estimators.values())]
+    names = r.order + [n for n in m.estimators if n not in r.scored]
     out.write(f"{m.bag}: {m.duration_s:.1f} s, {m.messages} measurements, "
               f"decoded in {m.decode_s:.2f} s\n")
-    out.write("estimator        " + "  ".join(f"{c:>18}" for c in cols) + "\n")
-    for name, e in m.estimators.items():
-        cells = []
-        for c in cols:
-            v = getattr(e, c)
-            if c == "rtf" and not produced_estimates(e):
-                v = None  # the speed of an estimator that never estimated says nothing
-            if c == "final_xy" and v:
-                cells.append(f"({v[0]:.2f}, {v[1]:.2f})")
-            else:
-                cells.append("-" if v is None else f"{v:.3f}")
-        out.write(f"{name:16} " + "  ".join(f"{c:>18}" for c in cells)
-                  + (f"  ERROR: {e.error}" if e.error else "") + "\n")
+    rows = []
+    for k, name in enumerate(names):
+        e = m.estimators[name]
+        rank = str(k + 1) if name in r.scored else "-"
+        cells = [rank, name, track_kind(name, m.lag_s)]
+        cells += ["-" if getattr(e, c) is None else f"{getattr(e, c):.3f}" for c in cols]
+        v = e.final_xy
+        cells.append(f"({v[0]:.2f}, {v[1]:.2f})" if v and None not in v else "-")
+        if e.error:
+            cells.append(f"ERROR: {e.error}")
+        rows.append(cells)
+    header = ["rank", "estimator", "output", *cols, "final_xy"]
+    width = max(len(row) for row in [header, *rows])
+    out.write(table(header + [""] * (width - len(header)),
+                    [c + [""] * (width - len(c)) for c in rows], left=3))
+    if ranked:
+        out.write(f"ranked on {ranked} (the verdict's score, m, lower is better); columns are "
+                  "metrics.json keys; speeds (rtf) in metrics.json and the report\n")
     w = m.wall_s
     if w:
         est = ", ".join(f"{k} {v:.3f}" for k, v in w.estimators.items())
@@ -90,6 +103,8 @@ def print_summary(m: RunSummary, out) -> None:
                   f"decode {w.decode:.3f}, build {w.build:.3f}, {est}, runner "
                   f"{w.runner:.3f}, metrics {w.metrics:.3f}, write {w.write:.3f}"
                   " (to metrics.json; the report after it not included)\n")
+    if headline:
+        out.write(headline_text(make_headline(m).lines()))
 
 
 def _print_written_summary(outdir: Path) -> None:

@@ -52,3 +52,18 @@ class Bars:
 def progress() -> Bars | None:
     """Progress bars on a terminal; None (no output at all) when output is redirected."""
     return Bars() if sys.stdout.isatty() and sys.stderr.isatty() else None
+
+
+def headline_text(lines: list[str]) -> str:
+    """A run's headline (``evaluation.headline.Headline.lines``) for the terminal: a rule,
+    then the lines as the report shows them (unwrapped: a terminal wraps them itself)."""
+    return "---- headline " + "-" * 46 + "\n" + "\n".join(lines) + "\n"
+
+
+def table(header: list[str], rows: list[list[str]], left: int = 1) -> str:
+    """Columns as wide as their widest cell, two spaces apart; the first ``left`` columns
+    aligned left, the others right."""
+    widths = [max(len(r[k]) for r in [header, *rows]) for k in range(len(header))]
+    return "".join("  ".join(c.ljust(w) if k < left else c.rjust(w)
+                             for k, (c, w) in enumerate(zip(r, widths, strict=True))).rstrip()
+                   + "\n" for r in [header, *rows])

@@ -1,0 +1,171 @@
+"""The headline (evaluation/headline.py) on constructed runs whose numbers are known: the
+winner and its margin are the verdict's ranking, the consistency words follow the NEES / NIS
+verdicts, and the next command is one that works for the run's config."""
+
+from __future__ import annotations
+
+import shlex
+
+import pytest
+from ddfuse.evaluation.headline import consistency_word, headline
+from ddfuse.evaluation.scores import RunSummary
+from ddfuse.evaluation.verdict import TIE, tie
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+NAMES = ["ekf", "ekf_igvc", "smoother", "smoother_lagged", "batch"]
+
+
+def _nees(mean: float, verdict: str | None) -> dict:
+    return {"n": 300, "dof": 3, "mean": mean, "expected": 3.0, "ratio": mean / 3.0,
+            "band": [2.5, 3.5], "below": 0.02, "above": 0.02, "outside": 0.04,
+            "verdict": verdict}
+
+
+def _nis(ratio: float, verdict: str, kind: str, topic: str = "/odom") -> dict:
+    return {"sensor": topic, "kind": kind, "accepted": 600, "rejected": 0,
+            "n": 600, "dof": 1, "mean": ratio, "expected": 1.0, "ratio": ratio,
+            "band": [0.001, 5.0], "below": 0.02, "above": 0.02, "outside": 0.04,
+            "verdict": verdict}
+
+
+def _run(scores: dict[str, float], *, truth: bool = True, common: bool = True,
+         gps_fixes: int = 300, gps_sensor: bool = True, holdout: str | None = None,
+         **est) -> RunSummary:
+    """A RunSummary of tracks with the given scores [m]: ATE (and the same on the common
+    stamps) with truth, else GPS hold-out RMSE."""
+    ests = {}
+    for n, v in scores.items():
+        e = {"samples": 500, "span_s": [0.0, 100.0], **est.get(n, {})}
+        if truth:
+            e["ate_rmse_m"] = v * 1.01  # own stamps: a little off the common ones
+            if common:
+                e["ate_common_rmse_m"] = v
+        else:
+            e["gps_holdout_rmse_m"] = v
+        ests[n] = e
+    sensors = [{"name": "odom", "topic": "/odom", "kind": "odometry", "use": ["v"]}]
+    if gps_sensor:
+        sensors.append({"name": "fix", "topic": "/fix", "kind": "gps", "use": ["xy"]})
+    return RunSummary.from_json({
+        "bag": "/data/b.bag", "config": "/data/b.yaml", "duration_s": 120.0, "lag_s": 10.0,
+        "estimators": ests, "gps_holdout": holdout,
+        "gps_holdout_fixes": 60 if holdout else None,
+        "ate_common": {"stamps": 300, "of": "ekf", "span_s": [0.0, 100.0]}
+        if truth and common else None,
+        "data": {"t0": 0.0, "gps_fixes": gps_fixes, "sensors": sensors,
+                 "ground_truth_samples": 1000 if truth else 0}})
+
+
+scores = st.dictionaries(st.sampled_from(NAMES), st.floats(0.01, 5.0), min_size=2,
+                         max_size=5)
+
+
+@settings(max_examples=60, deadline=None)
+@given(scores, st.booleans(), st.booleans())
+def test_the_winner_and_margin_are_the_lowest_score_and_the_gap_to_the_first_not_tied(
+        s, truth, common):
+    h = headline(_run(s, truth=truth, common=common))
+    order = sorted(s, key=s.get)
+    assert [p.name for p in h.order] == order
+    assert h.score == ("ate_common_rmse_m" if truth and common else
+                       "ate_rmse_m" if truth else "gps_holdout_rmse_m")
+    own = {n: v * (1.01 if truth and not common else 1.0) for n, v in s.items()}
+    best = order[0]
+    tied = [n for n in order if tie(own[best], own[n])]
+    assert h.tied == len(tied) and order[:h.tied] == tied
+    first = h.lines()[0]
+    assert first.startswith(f"Best: {best}") and f"{own[best]:.3f} m" in first
+    rest = [n for n in order if n not in tied]
+    if rest:
+        assert h.margin_m == pytest.approx(own[rest[0]] - own[best])
+        assert h.margin_rel == pytest.approx(1 - own[best] / own[rest[0]])
+        assert h.margin_rel > TIE
+        assert f"{h.margin_m:.3f} m ({100 * h.margin_rel:.0f}%) lower than the next, " \
+               f"{rest[0]}" in first
+    else:
+        assert h.margin_m is None and "lower than" not in first
+
+
+def test_an_offline_winner_is_followed_by_the_best_real_time_track():
+    h = headline(_run({"batch": 0.08, "smoother_lagged": 0.2, "smoother": 0.3, "ekf": 0.5}))
+    lines = h.lines()
+    assert lines[0].startswith("Best: batch (offline), ATE on common stamps 0.080 m; "
+                               "0.120 m (60%) lower than the next, smoother_lagged "
+                               "(lagged by 10 s) 0.200 m.")
+    assert lines[1] == ("Best in real time: smoother 0.300 m, 0.200 m (40%) lower than the "
+                        "next, ekf 0.500 m.")
+
+
+def test_no_score_says_why_and_names_no_winner():
+    h = headline(RunSummary.from_json({"bag": "j.bag", "estimators": {"ekf": {"samples": 10}},
+                                       "data": {"gps_fixes": 0, "sensors": []}}))
+    assert h.best is None and h.lines()[0].startswith(
+        "No winner: the bag has neither ground truth nor GPS fixes")
+
+
+@pytest.mark.parametrize("nees, nis, word", [
+    (("Pass", 3.1), None, "consistent"),
+    (("Fail", 12.0), None, "over-confident"),
+    (("Warn", 1.8), None, "mildly under-confident"),
+    (None, [(0.2, "Fail", "v"), (1.0, "Pass", "gps")], "under-confident"),
+    (None, [(9.0, "Fail", "gps"), (0.1, "Fail", "v")], "mixed"),
+    (None, [(1.0, "Pass", "gps")], "consistent"),
+    (None, None, "not checked"),
+])
+def test_one_consistency_word_from_the_nees_else_the_nis(nees, nis, word):
+    e = {}
+    if nees:
+        e["nees"] = _nees(nees[1], nees[0])
+    if nis:
+        e["nis"] = {f"/t{k} {kind}": _nis(r, v, kind, f"/t{k}")
+                    for k, (r, v, kind) in enumerate(nis)}
+    m = _run({"ekf": 0.1, "smoother": 0.2}, ekf=e)
+    assert consistency_word("ekf", m.estimators["ekf"], m, copied=False) == word
+    assert dict(headline(m).consistency)["ekf"] == word
+
+
+def _next(m: RunSummary) -> list[str]:
+    h = headline(m)
+    return shlex.split(h.next_command) if h.next_command else []
+
+
+def test_without_truth_a_gps_hold_out_is_suggested_only_where_there_is_gps():
+    no_truth = _run({"ekf": 1.0}, truth=False)
+    no_truth = RunSummary.from_json({**no_truth.to_json(), "estimators": {
+        "ekf": {"samples": 100}, "smoother": {"samples": 100}}})
+    assert _next(no_truth)[:5] == ["ddfuse", "run", "/data/b.bag", "--gps-holdout", "every:5"]
+    jackal = RunSummary.from_json({**no_truth.to_json(), "data": {
+        "gps_fixes": 0, "sensors": [{"name": "o", "topic": "/odom", "kind": "odometry"}]}})
+    assert "--gps-holdout" not in _next(jackal)
+
+
+def test_a_consistency_failure_suggests_tune_with_the_runs_hold_out():
+    m = _run({"ekf": 0.5, "smoother": 0.2}, truth=False, holdout="every:5",
+             ekf={"nis": {"/fix gps": _nis(8.0, "Fail", "gps", "/fix")}})
+    assert _next(m) == ["ddfuse", "tune", "/data/b.bag", "--gps-holdout", "every:5"]
+
+
+def test_a_low_rate_nis_beside_a_passing_nees_is_explained_not_tuned():
+    m = _run({"ekf": 0.12, "smoother": 0.1},
+             ekf={"nees": _nees(2.9, "Pass"), "nis": {"/odom v": _nis(0.19, "Fail", "v")}})
+    h = headline(m)
+    assert "ekf /odom v" in h.caveat and "process noise" in h.caveat
+    cmd = _next(m)
+    assert cmd[:3] == ["ddfuse", "run", "/data/b.bag"] and cmd[3:5] == [
+        "--gps-holdout", "window:48:78"]
+
+
+def test_a_config_not_beside_the_bag_is_passed_with_c():
+    m = _run({"ekf": 0.5, "smoother": 0.2}, ekf={"nees": _nees(20.0, "Fail")})
+    m = RunSummary.from_json({**m.to_json(), "config": "/elsewhere/my config.yaml"})
+    assert _next(m) == ["ddfuse", "tune", "/data/b.bag", "-c", "/elsewhere/my config.yaml"]
+
+
+def test_no_next_command_when_no_estimator_estimated():
+    m = _run({"ekf": 1.0}, truth=False)
+    m = RunSummary.from_json({**m.to_json(), "estimators": {
+        "ekf": {"samples": 0, "error": "no estimate: it never started"}}})
+    h = headline(m)
+    assert h.next_command is None and not any(x.startswith("Next:") for x in h.lines())
+    assert h.consistency == (("ekf", "no estimate"),)
