@@ -114,8 +114,8 @@ class IgvcEkf(IgvcStart, IgvcKernels, Estimator):
     speeds report v / k_v, psi_dot / k_w) when the config states the geometry's uncertainty.
     A GPS sensor's ``delay`` is compensated: the antenna is predicted at t - delay (first
     order: moved back by v delay along the bearing). The config's robot.slip replaces the
-    position and heading noise densities (isotropic here: the mean of the along- and
-    across-track variances).
+    position and heading noise densities (isotropic here: the larger of the along- and
+    across-track variances, ``IgvcNoise``).
 
     ``initial_pose`` (x, y, yaw) in the local ENU frame (m, m, rad) overrides the config's
     ``initial_pose``; with 'ground_truth' in the config and no ``initial_pose`` the filter starts
@@ -171,14 +171,15 @@ class IgvcEkf(IgvcStart, IgvcKernels, Estimator):
         slip = cfg.robot.slip
         if slip and noise is None:
             # the robot's stated slip replaces the defaults; the position noise here is
-            # isotropic: the mean of the along- and across-track variances (same trace)
+            # isotropic: the larger of the along- and across-track variances, which it covers
+            # in every direction (IgvcNoise; errata 000 #42)
             ns = self.noise
             long_, lat_ = slip.get("longitudinal"), slip.get("lateral")
             if long_ is not None or lat_ is not None:
                 d = math.sqrt(ns.position_psd)
                 long_ = d if long_ is None else long_
                 lat_ = d if lat_ is None else lat_
-                ns = replace(ns, position_psd=0.5 * (long_ * long_ + lat_ * lat_))
+                ns = replace(ns, position_psd=max(long_ * long_, lat_ * lat_))
             if "heading" in slip:
                 ns = replace(ns, heading_psd=slip["heading"] ** 2)
             self.noise = ns

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from ddfuse.ekf_baseline import GIVEN_POSE_STD
+from ddfuse.ekf_baseline.unicycle_motion import ProcessNoise
 from ddfuse.estimation import geodesy
 
 __all__ = ["IgvcNoise", "igvc_q_values", "sphere_radius", "LAT", "LON", "THETA", "X", "Y", "PSI",
@@ -57,12 +58,18 @@ class IgvcNoise:
     apart by ~v tan(lat) / R rad/s). ``slip_var``, (m/s)^2 per step, is the wheel speed's
     deviation from the body twist (slip); it does not accumulate because the wheel states are
     recomputed each step.
+
+    The body-slip densities default to the unicycle EKF's (``unicycle_motion.ProcessNoise``:
+    one robot, one statement of how far its motion departs from its twist): ``heading_psd`` is
+    its heading density squared, ``position_psd`` its *longitudinal* density squared -- the
+    isotropic density that covers the larger, along-track one in every direction (errata 000
+    #42: the lower mean of along- and across-track left the filter overconfident along track).
     """
 
     jerk_psd: float = 0.5
     yaw_accel_psd: float = 0.1
-    position_psd: float = 4e-4
-    heading_psd: float = 2.5e-5
+    position_psd: float = ProcessNoise.pos_long ** 2
+    heading_psd: float = ProcessNoise.heading ** 2
     frame_psd: float = 1e-6
     frame_heading_psd: float = 1e-8
     slip_var: float = 1e-4

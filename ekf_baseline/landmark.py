@@ -83,6 +83,8 @@ _TWO_PI = 2.0 * math.pi
 _GIVEN_STD = (GIVEN_POSE_STD[0], GIVEN_POSE_STD[0], GIVEN_POSE_STD[1])  # x, y, psi
 TAU_BOUNDS = (1e-3, 0.5)  # s: the odometry sample period is clamped to this range
 _TAU_LO, _TAU_HI = TAU_BOUNDS
+# rad: the sigma of a heading uniform on the circle, pi / sqrt(3); LandmarkSlamEkf is lost beyond
+LOST_HEADING_STD = _PI / math.sqrt(3.0)
 
 
 def _wrap(a: float) -> float:
@@ -466,6 +468,75 @@ class LandmarkSlamEkf(_OdometryDrivenEkf):
         Fp[1, 2] += d[0]
 
     def _sighting(self, m: LandmarkObservation) -> None:
+        """Use sighting ``m`` (update or augment); if that leaves the filter lost
+        (:meth:`_lost_after`), restart it from its pose before the sighting (:meth:`_restart`)."""
+        kf = self.kf
+        pose, pose_cov = kf.x[:3].copy(), kf.P[:3, :3].copy()
+        singular = self.log.rejected.get((m.sensor, "singular"), 0)
+        try:
+            self._use_sighting(m)
+        except (np.linalg.LinAlgError, FloatingPointError, ZeroDivisionError,
+                OverflowError) as exc:
+            self._restart(m, pose, pose_cov, f"{type(exc).__name__}: {exc}")
+            return
+        why = self._lost_after(m.sensor, singular)
+        if why:
+            self._restart(m, pose, pose_cov, why)
+
+    def _lost_after(self, sensor: str, singular: int) -> str | None:
+        """Why the filter is lost after a sighting of ``sensor`` (``singular``: its count of
+        non-positive-definite innovation covariances before it), or None. Lost: a state or
+        covariance entry not finite, an innovation covariance or P not positive definite, or
+        the heading's sigma beyond LOST_HEADING_STD, where a heading is known no better than
+        uniform on the circle and the linearisation about it means nothing (the gate's lock-out
+        recovery inflates all of P; repeated on a landmark sighted under a wrong id it compounded
+        to a pose sigma of 1e8 m on mrclam1_robot1.bag with two ids swapped)."""
+        kf = self.kf
+        if not (np.isfinite(kf.x).all() and np.isfinite(kf.P).all()):
+            return "a state or covariance entry is not finite"
+        if self.log.rejected.get((sensor, "singular"), 0) > singular:
+            return "innovation covariance not positive definite"
+        if kf.P[2, 2] > LOST_HEADING_STD ** 2:
+            return (f"heading sigma {math.sqrt(kf.P[2, 2]):.2f} rad, more than a heading "
+                    "uniform on the circle")
+        try:
+            np.linalg.cholesky(kf.P)
+        except np.linalg.LinAlgError:
+            return "covariance not positive definite"
+        return None
+
+    def _restart(self, m: LandmarkObservation, pose, pose_cov, why: str) -> None:
+        """Start again from ``pose`` (x, y, psi) with covariance ``pose_cov``, the filter's
+        before sighting ``m`` made it lost (``why``), with a new, empty map: the landmarks
+        are added again as they are sighted. The map is dropped with the state because what
+        broke it -- a landmark sighted under another's id, a compounded inflation -- is in
+        the map's covariance too, and keeping it broke the filter again at the next sighting.
+        Logged as a note and counted as (sensor, 'restart') in ``log.rejected``."""
+        dropped = len(self.slots)
+        pose = np.asarray(pose, dtype=float)
+        ok = np.isfinite(pose).all() and np.isfinite(pose_cov).all()
+        if not ok:  # nothing trustworthy before it either: the last estimate's pose, unknown
+            pose = np.zeros(3)
+        scales = self.kf.x[3:5].copy() if self.n_base == 5 else None
+        self._start(pose)
+        if ok:
+            P = self.kf.P
+            P[:3, :3] = 0.5 * (pose_cov + pose_cov.T)
+            try:
+                np.linalg.cholesky(P)
+            except np.linalg.LinAlgError:
+                P[:3, :3] = np.diag(np.square(self.init_std))
+        if scales is not None and np.isfinite(scales).all():
+            self.kf.x[3:5] = scales
+        self.slots.clear()
+        self.first_estimate.clear()
+        self.log.rejected[(m.sensor, "restart")] += 1
+        self.log.note(m.t, f"{self.name}: lost at a sighting of landmark {m.landmark_id} "
+                           f"({why}); restarted from its pose before it ({pose[0]:.2f}, "
+                           f"{pose[1]:.2f} m, {math.degrees(pose[2]):.1f} deg) with a new "
+                           f"map ({dropped} landmarks dropped)")
+
+    def _use_sighting(self, m: LandmarkObservation) -> None:
         i = self.slots.get(m.landmark_id)
         if i is not None:
             self._measure(m, self.kf.x[i:i + 2], [i, i + 1],

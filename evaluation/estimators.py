@@ -126,6 +126,20 @@ def names_list(names, what: str = "estimators") -> list[str] | None:
     return out
 
 
+def left_out(cfg: Config) -> list[str]:
+    """Why the default set leaves out an estimator the config's sensors nearly allow, one line
+    each, for the terminal: ekf_slam with landmark sensors that give range only -- one range
+    cannot place a new landmark, so it would reject every sighting (as 'range_only_unmapped')
+    and dead-reckon; ekf_landmark, which knows the map, uses them."""
+    marks = cfg.of_kind("landmarks")
+    if not (_motion(cfg) and marks) or SPECS["ekf_slam"].allowed(cfg):
+        return []
+    topics = ", ".join(s.topic for s in marks)
+    return [f"ekf_slam left out: the landmark sensors ({topics}) give range only (use: "
+            "[range]), and EKF-SLAM cannot place a new landmark from one range (it would reject "
+            "every sighting and dead-reckon); ekf_landmark, which knows the map, uses them"]
+
+
 def select(cfg: Config, names: list[str] | str | None) -> list[str]:
     """Estimator names to build for ``names`` (a list, or a comma-separated string as
     ``names_list`` reads it; tracks such as 'smoother_lagged' map to their estimator);

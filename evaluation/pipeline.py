@@ -541,7 +541,8 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
     the bag), run the selected estimators on it, write results into ``outdir``; returns the
     run's ``RunSummary`` (written as metrics.json: its ``to_json()``). ``reorder_window`` (s)
     overrides the config's. The default set (``names`` None) leaves the batch out of a bag
-    spanning more than ``batch_cost.DEFAULT_MAX_SPAN_S``; ``notice`` is told so, or, before the
+    spanning more than ``batch_cost.DEFAULT_MAX_SPAN_S``; ``notice`` is told so (and why it leaves
+out an estimator the sensors nearly allow: ``estimators.left_out``), or, before the
     batch's whole-run solve, that it is the slow part and how long it should take, when that is
     long (``batch_cost``).
 
@@ -552,6 +553,9 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
     outdir = Path(outdir)
     chosen = registry.select(cfg, names)
     parse_holdout(holdout)  # a bad spec fails before any decoding
+    if names is None and notice is not None:
+        for text in registry.left_out(cfg):
+            notice(text)
     stream = BagStream(bag, cfg, reorder_window=reorder_window).prime()
     span = stream.recorded_span
     if names is None and "batch" in chosen and span is not None and span > DEFAULT_MAX_SPAN_S:
