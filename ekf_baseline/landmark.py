@@ -299,10 +299,6 @@ class _OdometryDrivenEkf(Estimator):
             if self._t_odo is None:  # no odometry yet: at rest
                 self.predict_to(m.t)
                 self._sighting(m)
-            elif m.t <= self._t_odo and not self._pending:
-                # stamped with the last odometry sample (in order, it cannot be earlier): that
-                # sample covers it, so it needs no wait for the next one
-                self._sighting(m)
             else:
                 self._pending.append(m)
 

@@ -534,36 +534,6 @@ def _final_state(est: Estimator, track) -> Estimate | None:
     return e if e is not None and e.state is not None else None
 
 
-def _record(est_list, alive, errors, outputs, timings, totals, t: float) -> None:
-    """Each live estimator's estimate into its track, at the output tick crossed at stamp ``t``
-    (s); its cost joins the last update's timing (the update that completed the tick)."""
-    clock = time.perf_counter
-    for i, est in enumerate(est_list):
-        if not alive[i]:
-            continue
-        t_a = clock()
-        try:
-            e = est.estimate()
-        except Exception as exc:  # one estimator failing must not end the run
-            alive[i] = False
-            errors[i] = f"{type(exc).__name__} at t={t:.3f}: {exc}"
-            est.log.note(t, f"stopped: {errors[i]}")
-            continue
-        dt = clock() - t_a
-        if timings[i]:
-            timings[i][-1] += dt
-        totals[i] += dt
-        if e is None:
-            continue
-        bad = broken(e)
-        if bad:  # never recorded: the track keeps what it had
-            alive[i] = False
-            errors[i] = f"numerical breakdown at t={t:.3f}: {bad}"
-            est.log.note(t, f"stopped: {errors[i]}")
-            continue
-        outputs[i].append(e)
-
-
 def _feed(meas, n, fraction, select, gps, est_list, alive, errors, outputs, timings, totals,
           period, progress, stop: list[str] | None = None, observers: tuple = ()) -> int:
     """The measurement loop of :func:`run` (see there); returns how many measurements came.
@@ -576,7 +546,6 @@ def _feed(meas, n, fraction, select, gps, est_list, alive, errors, outputs, timi
     done = 0  # measurements every estimator has had
     t_m = math.nan
     busy = None  # the estimator inside an update
-    due = None  # stamp of the tick crossed, recorded once the messages of that stamp are in
     try:
         for k, m in enumerate(meas):
             if k % 1000 == 0:
@@ -590,11 +559,6 @@ def _feed(meas, n, fraction, select, gps, est_list, alive, errors, outputs, timi
                 if progress is not None:
                     progress(fraction() if fraction is not None else k / max(n, 1))
             t_m = m.t
-            if due is not None and t_m != due:
-                # the messages sharing the tick's stamp are all in: now the estimates at it
-                # (cleared first: an interrupt inside the recording does not record again)
-                t_due, due = due, None
-                _record(est_list, alive, errors, outputs, timings, totals, t_due)
             if t_start is None:
                 t_start = t_m
             for ob in observers:
@@ -605,13 +569,10 @@ def _feed(meas, n, fraction, select, gps, est_list, alive, errors, outputs, timi
                 if held:
                     done = k + 1
                     continue
-            if t_m >= next_tick:
-                # Recorded after the last message of this stamp (a wheel sample and the scan
-                # stamped with it, the fields of one IMU message), not after the first: the
-                # track at the stamp then holds every measurement of it. The next tick is on the
-                # grid, or one period after a gap; never m.t itself, which recorded the same
-                # stamp again for each message sharing it.
-                due = t_m
+            record = t_m >= next_tick
+            if record:
+                # The next tick on the grid, or one period after a gap; never m.t itself,
+                # which recorded the same stamp again for each message sharing it (IMU fields).
                 next_tick = next_tick + period if next_tick + period > t_m else t_m + period
             for i, est in enumerate(est_list):
                 if not alive[i]:
@@ -620,6 +581,7 @@ def _feed(meas, n, fraction, select, gps, est_list, alive, errors, outputs, timi
                 t_a = clock()
                 try:
                     est.process(m)
+                    e = est.estimate() if record else None
                 except Exception as exc:  # one estimator failing must not end the run
                     alive[i] = False
                     errors[i] = f"{type(exc).__name__} at t={t_m:.3f}: {exc}"
@@ -628,16 +590,19 @@ def _feed(meas, n, fraction, select, gps, est_list, alive, errors, outputs, timi
                 dt = clock() - t_a
                 timings[i].append(dt)
                 totals[i] += dt
+                if e is not None:
+                    bad = broken(e)
+                    if bad:  # never recorded: the track keeps what it had
+                        alive[i] = False
+                        errors[i] = f"numerical breakdown at t={t_m:.3f}: {bad}"
+                        est.log.note(t_m, f"stopped: {errors[i]}")
+                        continue
+                    outputs[i].append(e)
             busy = None
             done = k + 1
-        if due is not None:
-            t_due, due = due, None
-            _record(est_list, alive, errors, outputs, timings, totals, t_due)
     except KeyboardInterrupt as exc:
         if stop is None:
             raise
-        if due is not None and busy is None:  # between messages: the tick's estimates stand
-            _record(est_list, alive, errors, outputs, timings, totals, due)
         at = f"{t_m - t_start:.3f} s after the first measurement" if t_start is not None \
             else "before the first measurement"
         how = interrupt_name(exc)
