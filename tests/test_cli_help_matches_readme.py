@@ -73,11 +73,15 @@ def test_readme_says_which_estimators_online_refuses():
 
 
 def test_readme_places_the_wall_time_line_where_run_prints_it(tmp_path, capsys):
-    """The wall-time split is the summary's second-to-last line, the last one saying where
-    the results are."""
+    """The wall-time split follows the table, the headline follows it, and the last line
+    says where the results are."""
     assert cli.main(["run", "-o", str(tmp_path / "o"), "--estimators", "ekf",
                      "--no-report"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
-    assert lines[-2].startswith("wall time ") and lines[-1].startswith("results in ")
+    wall = [i for i, s in enumerate(lines) if s.startswith("wall time ")]
+    head = [i for i, s in enumerate(lines) if s.startswith("Best: ")]
+    assert len(wall) == 1 and len(head) == 1 and wall[0] < head[0]
+    assert lines[-1].startswith("results in ")
     _, text = _readme_cell("run")
-    assert "`wall time` line, the one before the last (`results in ...`)" in text
+    assert "`wall time` line, right after the table (before the headline and the last line, " \
+        "`results in ...`)" in text

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import argparse
 import os
+import textwrap
 from pathlib import Path
 
 from ddfuse.estimation.errors import DdfuseError
@@ -22,9 +24,14 @@ from ddfuse.evaluation.simulate import (
 def _main(argv: list[str] | None) -> int:
     ap = DdfuseParser(
         prog="ddfuse simulate",
-        description="Simulate a differential-drive robot and write a bag with ground truth, "
-        "plus the ddfuse config (and landmark map) next to it.",
-        epilog="Scenarios: " + "; ".join(f"{k}: {v.description}" for k, v in SCENARIOS.items()),
+        description=textwrap.fill(
+            "Simulate a differential-drive robot and write a bag with ground truth, plus the "
+            "ddfuse config (and landmark map) next to it.", 78),
+        # one scenario per paragraph, never broken inside a name (husky-multipath)
+        epilog="Scenarios:\n" + "\n".join(
+            textwrap.fill(f"{k}: {v.description}", 78, subsequent_indent="  ",
+                          break_on_hyphens=False) for k, v in SCENARIOS.items()),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     ap.add_argument("scenario", choices=list(SCENARIOS))
     ap.add_argument("--seed", type=int_at_least(0), default=0, help="random seed (default 0)")
