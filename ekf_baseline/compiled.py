@@ -66,6 +66,7 @@ _KERNEL_SOURCES = ("ekf_baseline/kalman_jit.py", "ekf_baseline/kalman_jit_predic
                    "ekf_baseline/kalman.py", "ekf_baseline/joseph.py", "factors/kinematics.py",
                    "estimation/lockout.py")
 _state: dict = {}
+UNICYCLE_ENTRIES = ("uni_event", "uni_stacked", "world_cov")  # what the unicycle EKF calls
 COLD_COMPILE: dict[str, float] = {}  # entry point -> seconds its warm-up took in this process
 
 
@@ -104,8 +105,10 @@ def warm_up(which: str) -> None:
     args = (core.fp, core.ip, core.W, core.sf, core.si, core.lg, 0.0, 0.0, T_NONE, row,
             0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0, 1.0)
     if which == "igvc":
+        kj.ready("igvc_event")
         kj.igvc_event(*args)
     else:
+        kj.ready(*UNICYCLE_ENTRIES)
         kj.uni_event(*args)
         kj.uni_stacked(core.fp, core.ip, core.W, core.sf, core.si, core.lg, 0.0, 0.0,
                        np.zeros((1, 10)), 0)
