@@ -20,7 +20,8 @@ from pathlib import Path
 
 __all__ = ["NOTICE_AFTER_S", "compiling", "guard_cache"]
 
-NOTICE_AFTER_S = 1.0  # a compile (or cache load) longer than this is announced
+NOTICE_AFTER_S = 3.0  # s: a compile longer than this is announced (a cache load is ~0.1-0.3 s
+# of CPU, up to ~2 s of wall time on a loaded machine; a cold compile tens of seconds)
 
 
 def _stderr(line: str) -> None:
