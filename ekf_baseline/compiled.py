@@ -66,6 +66,8 @@ _KERNEL_SOURCES = ("ekf_baseline/kalman_jit.py", "ekf_baseline/kalman_jit_predic
                    "ekf_baseline/kalman.py", "ekf_baseline/joseph.py", "factors/kinematics.py",
                    "estimation/lockout.py")
 _state: dict = {}
+# what the unicycle EKF calls; at a fixed rate (``ekf.rate``) also uni_stacked
+UNICYCLE_ENTRIES = ("uni_event", "world_cov")
 COLD_COMPILE: dict[str, float] = {}  # entry point -> seconds its warm-up took in this process
 
 
@@ -89,7 +91,8 @@ def kernels():
 
 
 def warm_up(which: str) -> None:
-    """Compile or load the kernels of ``which`` ('unicycle' or 'igvc') once per process, on a
+    """Compile or load the kernels of ``which`` ('unicycle', 'unicycle_stacked': its fixed-rate
+    step, or 'igvc') once per process, on a
     tiny input, so that the first filter step does not pay for it. The seconds it took are in
     COLD_COMPILE[which] (a cold compile when numba's cache was empty). The landmark EKF's:
     ``ekf_baseline.landmark_compiled.warm_up``."""
@@ -104,11 +107,15 @@ def warm_up(which: str) -> None:
     args = (core.fp, core.ip, core.W, core.sf, core.si, core.lg, 0.0, 0.0, T_NONE, row,
             0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0, 1.0)
     if which == "igvc":
+        kj.ready("igvc_event")
         kj.igvc_event(*args)
-    else:
-        kj.uni_event(*args)
+    elif which == "unicycle_stacked":
+        kj.ready("uni_stacked")
         kj.uni_stacked(core.fp, core.ip, core.W, core.sf, core.si, core.lg, 0.0, 0.0,
                        np.zeros((1, 10)), 0)
+    else:
+        kj.ready(*UNICYCLE_ENTRIES)
+        kj.uni_event(*args)
     COLD_COMPILE[which] = time.perf_counter() - t0
 
 

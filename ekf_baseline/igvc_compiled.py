@@ -35,6 +35,7 @@ class IgvcKernels:
         generated model (its ones, its variable entries, the calibration states' identity),
         Q's entries (_Q_INDEX), the random walks."""
         kj = jit.kernels()
+        kj.ready("igvc_event")
         self._igvc_event = kj.igvc_event
         n = self.n
         ones, variable = ((gen.EULER_F_ONES, gen.EULER_F_VARIABLE) if self.motion == "euler"

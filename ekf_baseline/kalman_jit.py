@@ -158,6 +158,7 @@ from ddfuse.ekf_baseline.kernel_codes import (  # noqa: F401 - re-exported: the 
 )
 from ddfuse.ekf_baseline.unicycle_motion import pose_correct
 from ddfuse.estimation.lockout import gate_streak, holdoff_over, lockout_due
+from ddfuse.factors.jitcache import compiling
 from numba import njit
 
 
@@ -417,7 +418,38 @@ def _block(blk, r0, m, nb, s, k):
 
 # ----------------------------------------------------------------------------- entry points
 # explicit signatures: arguments are converted to these types (an int reading, a bool flag),
-# never compiled again for another combination of argument types
+# never compiled again for another combination of argument types. Each entry point is compiled
+# (or loaded from numba's cache) by ``ready`` when a filter that calls it is built, not when this
+# module is imported: a run compiles only its filters' kernels (a cold compile of all of them
+# takes tens of seconds).
+_SIGNATURES: dict[str, str] = {}
+
+
+def _entry(sig: str):
+    """``njit(sig, cache=True)``, compiled on ``ready(name)`` rather than here; called before
+    that it raises numba's TypeError (no matching definition), never compiles for other types."""
+    def deco(f):
+        _SIGNATURES[f.__name__] = sig
+        d = njit(cache=True)(f)
+        d._can_compile = False  # disable_compile() refuses a dispatcher without a signature yet
+        return d
+    return deco
+
+
+def ready(*names: str) -> None:
+    """Compile, or load from numba's cache, the entry points ``names`` for their signatures
+    (once per process; what ``njit(sig)`` does at import)."""
+    todo = [name for name in names if not globals()[name].signatures]
+    if not todo:
+        return
+    with compiling(f"the EKF kernels {', '.join(todo)}"):
+        for name in todo:
+            d = globals()[name]
+            d._can_compile = True
+            d.compile(_SIGNATURES[name])
+            d.disable_compile()
+
+
 _TABLES = ("float64[::1], int64[::1], float64[:, ::1], float64[:, ::1], int64[:, ::1], "
            "float64[:, ::1]")  # fp, ip, W, sf, si, lg
 _ARRAYS = f"{_TABLES}, float64, float64"
@@ -445,7 +477,7 @@ def _event_scratch(fp, ip, W, n):
     return H, Ut, y, R, S, blk, Z, zf, zi, fs
 
 
-@njit(_EVENT_SIG, cache=True)
+@_entry(_EVENT_SIG)
 def uni_event(fp, ip, W, sf, si, lg, dt, t, typ, s, z0, z1, r0, r1, r01, r10, flags, rf):
     """One message of the event-driven unicycle EKF: predict by ``dt`` s (if > 0) to the
     message time ``t`` (s), then its update. ``typ`` (T_*), ``s`` the sensor's row; z0, z1 the
@@ -468,7 +500,7 @@ def uni_event(fp, ip, W, sf, si, lg, dt, t, typ, s, z0, z1, r0, r1, r01, r10, fl
     return _update(fp, ip, W, sf, si, lg, t, H, y, R, blk, nb, nr, Ut, S, Z, zf, zi, fs)
 
 
-@njit(_EVENT_SIG, cache=True)
+@_entry(_EVENT_SIG)
 def igvc_event(fp, ip, W, sf, si, lg, dt, t, typ, s, z0, z1, r0, r1, r01, r10, flags, rf):
     """uni_event for the IGVC EKF (its prediction in steps of at most FP_MAXSTEP)."""
     if ip[IP_LOGN] + MAXB > ip[IP_LOGCAP]:
@@ -486,7 +518,7 @@ def igvc_event(fp, ip, W, sf, si, lg, dt, t, typ, s, z0, z1, r0, r1, r01, r10, f
     return _update(fp, ip, W, sf, si, lg, t, H, y, R, blk, nb, nr, Ut, S, Z, zf, zi, fs)
 
 
-@njit(_STACKED_SIG, cache=True)
+@_entry(_STACKED_SIG)
 def uni_stacked(fp, ip, W, sf, si, lg, dt, t, mb, k):
     """One fixed-rate step of the unicycle EKF: predict by ``dt`` s to ``t``, then one stacked
     update from the ``k`` messages in ``mb`` (rows: typ, sensor row, z0, z1, r0, r1, r01, r10,
@@ -531,16 +563,16 @@ def uni_stacked(fp, ip, W, sf, si, lg, dt, t, mb, k):
     return code
 
 
-@njit("void(float64[::1], int64[::1], float64[:, ::1], float64, float64, float64, float64, "
-      "float64, float64)", cache=True)
+@_entry("void(float64[::1], int64[::1], float64[:, ::1], float64, float64, float64, float64, "
+        "float64, float64)")
 def lm_predict(fp, ip, W, dt, v, w, v_var, w_var, tau):
     """The landmark EKF's prediction by ``dt`` s (> 0) with the odometry's twist (v m/s,
     w rad/s), its variances and sample period ``tau`` s (``kalman_jit_predict._lm_predict``)."""
     _lm_predict(fp, ip, W, ip[IP_N], dt, v, w, v_var, w_var, tau)
 
 
-@njit(f"int64({_TABLES}, float64, int64, float64, float64, int64, float64, float64, "
-      "float64, float64)", cache=True)
+@_entry(f"int64({_TABLES}, float64, int64, float64, float64, int64, float64, float64, "
+        "float64, float64)")
 def lm_sighting(fp, ip, W, sf, si, lg, t, s, lx, ly, bearing, zr, zb, rr, rb):
     """One sighting at ``t`` (s) by the sensor of row ``s`` of the known landmark (lx, ly) m:
     range ``zr`` (m, variance ``rr``) and, when ``bearing`` != 0, bearing ``zb`` (rad, variance
@@ -560,7 +592,7 @@ def lm_sighting(fp, ip, W, sf, si, lg, t, s, lx, ly, bearing, zr, zb, rr, rb):
     return _update(fp, ip, W, sf, si, lg, t, H, y, R, blk, nb, nr, Ut, S, Z, zf, zi, fs)
 
 
-@njit("float64[:, ::1](float64[:, ::1], int64, float64)", cache=True)
+@_entry("float64[:, ::1](float64[:, ::1], int64, float64)")
 def world_cov(W, n, psi):
     """UnicycleEkf.estimate's covariance for the se2 pose error: A P A^T (P = W[0:n]),
     A = I with R(psi) in its (x, y) block, the first-order world-frame image of the body-frame

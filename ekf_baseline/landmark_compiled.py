@@ -31,6 +31,7 @@ def landmark_core(x0, P0, log: jit.BufferedLog | None, *, euler: bool = False,
     nonzeros, then d pose / d (k_v, k_w) and the scales' identity), Q's pose block; ``slip``:
     the robot's (longitudinal, lateral, heading) variance densities, or None."""
     kj = jit.kernels()
+    kj.ready("lm_predict", "lm_sighting")
     n = len(x0)
     if n not in (3, 5):
         raise ValueError(f"a landmark EKF's state has 3 or 5 components, got {n}")

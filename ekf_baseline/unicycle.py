@@ -184,6 +184,8 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
         self._step_jac = se2_step_jac if motion == "exact" else euler_step_jac
         self.motion = motion
         self.rate = None if cfg.ekf.rate == "event" else float(cfg.ekf.rate)
+        if self.compiled and self.rate is not None:
+            jit.warm_up("unicycle_stacked")  # the fixed-rate step's kernel
         self.init_distance = float(init_distance)
         self.initial_std = initial_std
         self.v_std0, self.w_std0, self.bias_std0 = v_std0, w_std0, bias_std0

@@ -26,6 +26,7 @@ class UnicycleKernels:
         """The JitKalmanCore of this filter (ekf_baseline.compiled): F's pattern (identity plus
         the pose rows of the motion Jacobian), Q's entries, the random walks, the sensors."""
         kj = jit.kernels()
+        kj.ready(*jit.UNICYCLE_ENTRIES, *(() if self.rate is None else ("uni_stacked",)))
         self._uni_event, self._uni_stacked = kj.uni_event, kj.uni_stacked
         n = self.n
         # F: rows 0..2 in the order uni_predict fills them (with scale states their columns of

@@ -12,16 +12,22 @@ CSV_COLUMNS = ["t", "x", "y", "yaw"] + [f"cov_{a}{b}" for a in ("x", "y", "yaw")
                                          for b in ("x", "y", "yaw")]
 
 
+_CHUNK = 4096  # rows formatted per ``%``: a few MB of Python floats at a time, whatever the length
+
+
 def _write_rows(path: Path, rows: np.ndarray, fmt: str, header: str | None = None) -> None:
     """What ``np.savetxt(path, rows, fmt=fmt, header=header, comments="")`` writes, byte for
-    byte, formatted in one ``%`` over all rows instead of one per row (4x faster); whole or
-    not at all (``atomic_files.replacing``)."""
+    byte, formatted in one ``%`` per ``_CHUNK`` rows instead of one per row (4x faster) and
+    written as it goes, so that a long track's text is never in memory whole; whole or not at
+    all (``atomic_files.replacing``)."""
     n, k = rows.shape
-    text = ((fmt + "\n") * n) % tuple(rows.ravel().tolist()) if n else ""
     with replacing(path) as f:
         if header is not None:
             f.write(header + "\n")
-        f.write(text)
+        line = fmt + "\n"
+        for a in range(0, n, _CHUNK):
+            part = rows[a:a + _CHUNK]
+            f.write((line * len(part)) % tuple(part.ravel().tolist()))
 
 
 def write_tum(path: Path, traj: Trajectory) -> None:

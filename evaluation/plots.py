@@ -79,7 +79,8 @@ def save_png(fig: Figure, path: Path | None = None) -> bytes:
     """The figure as PNG bytes (also written to ``path`` if given). A figure that pyplot
     manages (one a caller made with ``plt.subplots``) is closed there."""
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=DPI)
+    # zlib level 3, not PIL's 6: half the encoding time, files within a few % of the size
+    fig.savefig(buf, format="png", dpi=DPI, pil_kwargs={"compress_level": 3})
     if getattr(fig.canvas, "manager", None) is not None:
         import matplotlib.pyplot as plt  # already imported: it made the figure
 
@@ -583,7 +584,10 @@ def latency(run: SavedRun) -> Figure | None:
     for ax, n in zip(axes[:, 0], names, strict=False):
         ms = run.update_s[n] * 1e3
         p50, p99 = np.percentile(ms, [50, 99])
-        ax.hist(np.maximum(ms, lo), bins=bins, color=cols[n], alpha=0.75)
+        # One filled step outline, not a bar patch per bin (80 patches a row cost more than
+        # the rest of the figure); it covers the same pixels.
+        counts, _ = np.histogram(np.maximum(ms, lo), bins=bins)
+        ax.stairs(counts, bins, fill=True, color=cols[n], alpha=0.75, lw=0)
         for q, ls in ((p50, "-"), (p99, "--")):
             ax.axvline(q, color="k", lw=0.9, ls=ls)
         ax.set_yscale("log")

@@ -14,8 +14,8 @@ import math
 from pathlib import Path
 
 from ddfuse.evaluation.run_files import INCOMPLETE, METRICS_FILE
-from ddfuse.evaluation.run_tuned import SHIPPED_DIR, TUNED_CONFIG, read_tuning
 from ddfuse.evaluation.scores import RunSummary
+from ddfuse.evaluation.tuning_files import SHIPPED_DIR, TUNED_CONFIG, read_tuning
 from ddfuse.evaluation.verdict import HOLDOUT, _ranked_scores, _score
 
 __all__ = ["change_line", "scores", "shipped_summary", "tuning_section"]

@@ -33,13 +33,11 @@ from ddfuse.evaluation.atomic_files import remove, write_text
 from ddfuse.evaluation.pipeline import run_bag
 from ddfuse.evaluation.scores import RunSummary, num
 from ddfuse.evaluation.tune import MIN_INFORMATION, Check, TuneResult, check, tune
+from ddfuse.evaluation.tuning_files import SHIPPED_DIR, TUNED_CONFIG, TUNING_FILE, read_tuning
 
 __all__ = ["SHIPPED_DIR", "TUNED_CONFIG", "TUNING_FILE", "TunedRuns", "Tuning", "read_tuning",
            "run_tuned", "tune_on_bag", "tuning_json"]
 
-SHIPPED_DIR = "shipped"  # OUT/shipped/: the run with the config as given
-TUNED_CONFIG = "tuned.yaml"
-TUNING_FILE = "tuning.json"
 
 Progress = Callable[[str, float], None]
 
@@ -143,16 +141,6 @@ def tuning_json(tuning: Tuning, *, bag: str, config: str | None, holdout: str | 
         "before": num(tuning.before.holdout_rmse_m) if tuning.before else None,
         "after": num(tuning.after.holdout_rmse_m) if tuning.after else None}
     return out
-
-
-def read_tuning(outdir: str | Path) -> dict | None:
-    """``outdir``/tuning.json as a dictionary; None when there is none or it cannot be read
-    (a directory of a run without ``--tune``)."""
-    try:
-        d = json.loads((Path(outdir) / TUNING_FILE).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None
-    return d if isinstance(d, dict) else None
 
 
 @dataclass

@@ -4,16 +4,57 @@ numba re-validates a cached kernel only by the time stamp and size of the file t
 not of the modules whose functions it compiles in (``register_jitable``, ``njit`` callees). A
 change to one of those would silently keep running the old machine code. ``guard_cache`` keeps a
 hash of every source beside the cache and drops the module's cached kernels when it changes; call
-it before the kernels are first compiled or loaded.
+it before the kernels are first compiled or loaded. ``compiling`` says on the terminal what a
+slow compile is doing.
 """
 
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Iterable
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["guard_cache"]
+__all__ = ["NOTICE_AFTER_S", "compiling", "guard_cache"]
+
+NOTICE_AFTER_S = 3.0  # s: a compile longer than this is announced (a cache load is ~0.1-0.3 s
+# of CPU, up to ~2 s of wall time on a loaded machine; a cold compile tens of seconds)
+
+
+def _stderr(line: str) -> None:
+    sys.stderr.write(line + "\n")
+    sys.stderr.flush()
+
+
+_notice: list[Callable[[str], None]] = [_stderr]  # where compiling writes its lines
+
+
+@contextmanager
+def compiling(what: str) -> Iterator[None]:
+    """Around numba compiling (or loading from its cache) the kernels ``what``: when it takes
+    longer than NOTICE_AFTER_S s (a cold compile: the first run after installing or changing
+    the package, tens of seconds), one line says what is being compiled, and one when it is
+    done, with the seconds it took. Loading from the cache (~0.1 s) says nothing."""
+    t0 = time.perf_counter()
+    said = threading.Event()
+
+    def announce() -> None:
+        said.set()
+        _notice[0](f"ddfuse: compiling {what} (numba, once: the compiled code is cached for "
+                   "the next runs) ...")
+
+    timer = threading.Timer(NOTICE_AFTER_S, announce)
+    timer.daemon = True
+    timer.start()
+    try:
+        yield
+    finally:
+        timer.cancel()
+        if said.is_set():
+            _notice[0](f"ddfuse: compiled {what} in {time.perf_counter() - t0:.0f} s")
 
 
 def guard_cache(sources: Iterable[Path], cache: Path, stem: str) -> None:

@@ -17,7 +17,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from ddfuse.factors.jitcache import guard_cache
+from ddfuse.factors.jitcache import compiling, guard_cache
 from ddfuse.factors.kinematics import se2_step_jac, twist_coeffs
 from ddfuse.factors.preintegration import WheelGyroPreintegration, integrate_step
 from numba import njit
@@ -77,7 +77,8 @@ def warm_up() -> None:
     """Compile the kernel (or load it from numba's cache) once per process, so that an
     estimator's first measurement does not pay for it (~1 s cold, ~0.1 s from the cache)."""
     if not _warm:
-        integrate(np.zeros(SIZE), 0.1, 1.0, 0.1, 1e-4, 1e-4, 1.0, 0.0)
+        with compiling("the smoother's preintegration kernel"):
+            integrate(np.zeros(SIZE), 0.1, 1.0, 0.1, 1e-4, 1e-4, 1.0, 0.0)
         _warm.append(True)
 
 
