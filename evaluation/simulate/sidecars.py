@@ -37,13 +37,22 @@ def sim_config(res: SimResult, landmark_map: str | None = None) -> dict:
         sensors["wheels"] = [{"topic": sc.encoders.joint_topic,
                               "joints": list(sc.encoders.joints), "noise": noise["wheels"]}]
     if sc.imu:
-        sensors["imu"] = [{"topic": sc.imu.topic, "use": ["yaw", "yaw_rate", "accel"],
-                           "noise": noise["imu"], "heading_offset": "estimate",
-                           "gyro_bias": "estimate"}]
+        imu = {"topic": sc.imu.topic, "use": list(sc.imu.use), "noise": noise["imu"]}
+        if "yaw" in sc.imu.use:
+            imu["heading_offset"] = "estimate"
+        imu["gyro_bias"] = "estimate"
+        if "yaw" not in sc.imu.use:  # a gyro alone: no orientation noise, no offset walk
+            imu["noise"] = {k: v for k, v in noise["imu"].items()
+                            if k not in ("yaw", "heading_offset_walk")
+                            and (k != "accel" or "accel" in sc.imu.use)}
+        sensors["imu"] = [imu]
     if sc.gps:
         sensors["gps"] = [{"topic": sc.gps.topic, "noise": noise["gps"], "delay": sc.gps.delay}]
         if sc.gps.correlation_s > 0.0:  # the true error model, as the noise values are
             sensors["gps"][0]["correlation_time"] = sc.gps.correlation_s
+        elif sc.gps.urban is not None:  # the open sky's wander; the stated noise stays the
+            # receiver's optimistic one (docs/design/urban_gps.md)
+            sensors["gps"][0]["correlation_time"] = sc.gps.urban.base_tau_s
     if sc.landmarks:
         if landmark_map is None:
             raise ValueError("a scenario with landmarks needs the landmark map's file name")
