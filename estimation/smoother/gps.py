@@ -33,7 +33,7 @@ from ddfuse.factors.state import DIM, PSI
 
 # A run of fixes a robust model takes for outliers this long (s) and this many is a
 # disagreement of GPS and odometry, said once (GpsFusion._outlier_run)
-DISAGREE_S = 30.0
+DISAGREE_S = 10.0
 DISAGREE_FIXES = 10
 
 
@@ -131,17 +131,22 @@ class GpsFusion:
         factor, outlier = self.robust.factor(self.window.key(k), m.enu[0], m.enu[1], cov, r, f,
                                              s.lever_arm, dt, y, s_inn)
         if logged:
-            self.robust.scale.add(m.t, inn.nis)
             if outlier:
                 inn.accepted = False
                 self.log.rejected[(m.sensor, "outlier")] += 1
-        self._outlier_run(m, outlier)
+            else:  # learnt from the fixes taken for inliers: outliers cannot inflate it
+                self.robust.scale.add(m.t, inn.nis)
+        if self._outlier_run(m, outlier):
+            return  # a disagreement said: the odometry is followed, the outlier not fused
         self.window.add(factor)
 
-    def _outlier_run(self, m: GpsFix, outlier: bool) -> None:
+    def _outlier_run(self, m: GpsFix, outlier: bool) -> bool:
         """A run of fixes the model takes for outliers over DISAGREE_S s or more (a wrong datum, a
         spoofed receiver, a long canyon) is said once, with what the estimate follows; its end,
-        when a fix agrees again, too."""
+        when a fix agrees again, too. Returns True while such a run goes on: its outliers are
+        no longer fused, so that their sum cannot drag the estimate (the outlier component or
+        the kernel's tail still pulls) -- until a fix agrees again, judged against the
+        odometry's growing uncertainty."""
         run = self.outlier_run.get(m.sensor)
         if outlier:
             if run is None:
@@ -152,11 +157,13 @@ class GpsFusion:
                 self.log.note(m.t, f"{m.sensor}: GPS and odometry disagree: {run[1]} fixes "
                               f"over {m.t - run[0]:.1f} s taken for outliers by the "
                               f"{self.cfg.gps.model} model; following the odometry")
-        elif run is not None:
+            return run[2]
+        if run is not None:
             if run[2]:
                 self.log.note(m.t, f"{m.sensor}: GPS agrees with the odometry again after "
                               f"{run[1]} outliers over {m.t - run[0]:.1f} s; following the GPS")
             del self.outlier_run[m.sensor]
+        return False
 
     def inflation(self, m: GpsFix) -> float:
         """The factor f (>= 1) by which fix ``m``'s covariance is inflated for fusion

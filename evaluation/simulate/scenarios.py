@@ -190,6 +190,9 @@ class Scenario:
     # ``duration`` (see simulate). None: ``duration``. get_scenario and simulate set it to the
     # scenario's own duration when they replace that, so --duration cuts the documented drive.
     drive_duration: float | None = None
+    # the slip densities the written config states (robot.slip: longitudinal, lateral m/sqrt(s),
+    # heading rad/sqrt(s)); None: 0, the simulated body moves exactly with its twist
+    config_slip: tuple[float, float, float] | None = None
 
 
 # A field site near Zurich, Switzerland: lat, lon (deg), ellipsoidal altitude (m).
@@ -278,6 +281,9 @@ SCENARIOS: dict[str, Scenario] = {
         datum=OUTDOOR_DATUM,
         truth_rate=10.0,
         geometry_std=Geometry(wheel_radius=0.003, track_width=0.03),
+        # at 10 m/s a slip of 0 (floored at 1e-3 m/sqrt(s)) makes the smoother's motion factors
+        # too stiff for gtsam's Cholesky (docs/design/urban_gps.md); a car's tyres slip
+        config_slip=(0.05, 0.02, 0.01),
     ),
 }
 

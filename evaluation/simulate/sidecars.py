@@ -78,7 +78,8 @@ def sim_config(res: SimResult, landmark_map: str | None = None) -> dict:
             robot[key] = math.ceil(15.0 * top) / 10.0
     # the simulated body moves exactly with its twist (the encoders' slip noise is in their
     # counts, not in the motion)
-    robot["slip"] = {"longitudinal": 0.0, "lateral": 0.0, "heading": 0.0}
+    slip = sc.config_slip or (0.0, 0.0, 0.0)
+    robot["slip"] = dict(zip(("longitudinal", "lateral", "heading"), slip, strict=True))
     cfg: dict = {
         "sensors": sensors,
         "robot": robot,
