@@ -38,18 +38,20 @@ def _score(sim, r, pose_error):
             "rejected": rej, "error": r.error}
 
 
-def run_seed(seed: int, models: list[str], duration: float | None = None) -> dict:
-    """One seed of ``urban``: the EKFs once, the smoother and batch per GPS model."""
+def run_seed(seed: int, models: list[str], duration: float | None = None,
+             scenario: str = "urban") -> dict:
+    """One seed of ``scenario``: the EKFs once, the smoother and batch per GPS model."""
     from ddfuse.estimation.runner import run
     from ddfuse.evaluation import estimators as registry
     from ddfuse.evaluation.montecarlo import OUTPUT_RATE, seed_data
 
-    sim, cfg, stream, pose, _ = seed_data("urban", seed, duration)
+    sim, cfg, stream, pose, _ = seed_data(scenario, seed, duration)
     g = sim.gps
     e = g.enu[:, :2] - g.true_enu[:, :2]
     out = {"seed": seed, "raw_gps_rmse_m": float(np.sqrt(np.mean(np.sum(e * e, axis=1)))),
            "fixes": int(len(g.t)),
-           "environment": {str(k): int(np.sum(g.environment == k)) for k in range(4)},
+           "environment": ({str(k): int(np.sum(g.environment == k)) for k in range(4)}
+                           if g.environment is not None else None),
            "runs": {}}
     jobs = [("", cfg, list(EKFS) + ["dr"])]
     jobs += [(m, replace(cfg, gps=replace(cfg.gps, model=m)), list(SMOOTHERS)) for m in models]
@@ -66,6 +68,37 @@ def run_seed(seed: int, models: list[str], duration: float | None = None) -> dic
     return out
 
 
+def table(results: list[dict]) -> str:
+    """The markdown table of docs/results/urban.md: per estimator (and model) over the seeds,
+    the mean position RMSE, its mean ratio to the seed's raw GPS RMSE and to the seed's best
+    EKF, the largest final error over the RMSE, the mean of the per-seed mean NEES (d = 3), the
+    fixes rejected or taken for outliers per seed, and the runs that stopped."""
+    names = sorted({n for r in results for n in r["runs"]}, key=lambda n: (
+        n.split("[")[0] != "dr", "[" in n, n.split("[")[-1], n))
+    raw = np.array([r["raw_gps_rmse_m"] for r in results])
+    best_ekf = np.array([min(r["runs"][e]["rmse_m"] for e in EKFS if e in r["runs"])
+                         for r in results])
+    rows = ["| estimator [gps.model] | RMSE m (mean, max) | / raw GPS | / best EKF | "
+            "final / RMSE (max) | NEES mean (median) | GPS rejected or outliers / seed | "
+            "stopped |", "|---|---|---|---|---|---|---|---|"]
+    for n in names:
+        rm = np.array([r["runs"][n]["rmse_m"] for r in results if n in r["runs"]])
+        fin = np.array([r["runs"][n]["final_m"] for r in results if n in r["runs"]])
+        ne = np.array([r["runs"][n]["nees"] for r in results if n in r["runs"]])
+        has = np.array([n in r["runs"] for r in results])
+        rej = [sum(v for k, v in r["runs"][n]["rejected"].items()
+                   if k.split(": ")[-1] in ("gate", "outlier")) for r in results if n in r["runs"]]
+        stopped = sum(1 for r in results if n in r["runs"] and r["runs"][n]["error"])
+        rows.append(
+            f"| {n} | {np.nanmean(rm):.2f}, {np.nanmax(rm):.2f} | "
+            f"{np.nanmean(rm / raw[has]):.2f} | {np.nanmean(rm / best_ekf[has]):.2f} | "
+            f"{np.nanmax(fin / rm):.2f} | {np.nanmean(ne):.1f} ({np.nanmedian(ne):.1f}) | "
+            f"{np.mean(rej):.0f} | {stopped} |")
+    head = (f"{len(results)} seeds ({', '.join(str(r['seed']) for r in results)}); raw GPS "
+            f"RMSE {raw.mean():.2f} m mean ({raw.min():.2f}-{raw.max():.2f}).")
+    return head + "\n\n" + "\n".join(rows) + "\n"
+
+
 def _seeds(text: str) -> list[int]:
     out = []
     for part in text.split(","):
@@ -79,8 +112,20 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", default="0-19")
     ap.add_argument("--models", default="default,cauchy,maxmix")
     ap.add_argument("--duration", type=float, default=None)
+    ap.add_argument("--scenario", default="urban")
     ap.add_argument("--json", required=True)
+    ap.add_argument("--table", action="store_true",
+                    help="print the table of the results in --json (other --json files may "
+                    "follow as arguments) and stop")
+    ap.add_argument("more", nargs="*", help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
+    if a.table:
+        results = []
+        for path in [a.json, *a.more]:
+            with open(path) as f:
+                results += json.load(f)
+        print(table(sorted(results, key=lambda r: r["seed"])))
+        return 0
     models = [m for m in a.models.split(",") if m]
     results = []
     try:
@@ -92,7 +137,7 @@ def main(argv=None) -> int:
     for seed in _seeds(a.seeds):
         if seed in done:
             continue
-        results.append(run_seed(seed, models, a.duration))
+        results.append(run_seed(seed, models, a.duration, a.scenario))
         with open(a.json, "w") as f:  # after every seed: an interrupted study keeps its seeds
             json.dump(results, f, indent=1)
         print(f"seed {seed} done", file=sys.stderr, flush=True)

@@ -266,7 +266,7 @@ SCENARIOS: dict[str, Scenario] = {
     "urban": Scenario(
         name="urban",
         description="A car in a city, 10 min at 5-15 m/s: 20 Hz wheel odometry, a 50 Hz gyro "
-        "(no heading), 5 Hz GPS whose error is urban (docs/design/urban_gps.md): a few metres "
+        "(no heading), 2 Hz GPS whose error is urban (docs/design/urban_gps.md): a few metres "
         "in the open, street canyons (35 % of the time) with multipath bursts of 10-40 m over "
         "2-10 s and NLOS jumps of 20-80 m, bridges without fixes; the receiver states 1.5 m.",
         duration=600.0,
@@ -276,7 +276,7 @@ SCENARIOS: dict[str, Scenario] = {
         nominal_geometry=Geometry(wheel_radius=0.31, track_width=1.55),
         encoders=EncoderSpec(rate=20.0, speed_std=0.15, counts_per_rev=2048),
         imu=ImuSpec(rate=50.0, use=("yaw_rate",)),
-        gps=GpsSpec(rate=5.0, horizontal_std=1.5, vertical_std=3.0, delay=0.1,
+        gps=GpsSpec(rate=2.0, horizontal_std=1.5, vertical_std=3.0, delay=0.1,
                     dropout_prob=0.01, urban=UrbanGpsSpec()),
         datum=OUTDOOR_DATUM,
         truth_rate=10.0,
