@@ -122,11 +122,12 @@ def test_robust_factor_scales_the_stated_part_only():
     r = np.diag([1.0, 1.0])
     carry = np.diag([0.5, 0.0])
     f, outlier = rg.factor(KEY, 0.0, 0.0, r + carry, r, 1.0, (0.0, 0.0), 0.0,
-                           np.array((1.0, 0.0)), r)
+                           np.array((1.0, 0.0)), r, 18.4)
     cov = np.linalg.inv(f.noiseModel().noise().R().T @ f.noiseModel().noise().R())
     np.testing.assert_allclose(cov, 4.0 * r + carry)
     assert not outlier
-    _, outlier = rg.factor(KEY, 0.0, 0.0, r, r, 1.0, (0.0, 0.0), 0.0, np.array((30.0, 0.0)), r)
+    _, outlier = rg.factor(KEY, 0.0, 0.0, r, r, 1.0, (0.0, 0.0), 0.0, np.array((30.0, 0.0)), r,
+                           18.4)  # NIS 225 / 4 against the gate's 18.4
     assert outlier
 
 
@@ -170,3 +171,29 @@ def test_a_gps_wrong_for_minutes_is_said_and_the_odometry_followed(model):
     est = sm.estimate()
     assert abs(est.pose[1]) < 15.0 and abs(est.pose[0] - v * 100.0) < 5.0
     assert sm.log.rejected[("gps", "outlier")] >= 250  # 60 s of 5 Hz fixes, taken for outliers
+
+
+def test_the_trajectory_figure_marks_the_fixes_taken_for_outliers():
+    """Fixes 2-3 s of a straight drive moved 40 m east (a multipath burst): the smoother under
+    the Cauchy model takes them for outliers, and ``plots.gps_outliers`` finds exactly those
+    fixes among the run's for the trajectory figure."""
+    from ddfuse.estimation.measurements import Stream
+    from ddfuse.estimation.runner import run
+    from ddfuse.evaluation.plots import gps_outliers
+    from ddfuse.evaluation.results import SavedRun
+
+    rng = np.random.default_rng(2)
+
+    def burst(t, e, n):
+        return (e + 40.0, n) if 12.0 <= t < 14.0 else (e, n)
+
+    ms = list(straight_drive(DATUM, 0.0, 2.0, 20.0, rng, r_wheel=R_WHEEL, sig_wheel=0.1,
+                             sig_gyro=0.01, sig_gps=1.0, fix_hook=burst))
+    sm = FixedLagSmoother(_cfg("cauchy"), initial_pose=(0.0, 0.0, 0.0), lag=5.0)
+    result = run(Stream(ms, datum=DATUM, t0=0.0, t1=20.0), {"smoother": sm})
+    saved = SavedRun.from_result(result)
+    mask, who = gps_outliers(saved)
+    assert who == "smoother"
+    moved = (saved.gps_t >= 12.0) & (saved.gps_t < 14.0)
+    assert moved.sum() == 10
+    np.testing.assert_array_equal(mask, moved)

@@ -20,7 +20,7 @@ from collections.abc import Callable
 import gtsam
 import numpy as np
 from ddfuse.estimation import gps_correlation
-from ddfuse.estimation.config import Config, SensorConfig
+from ddfuse.estimation.config import DEFAULT_GATE, Config, SensorConfig
 from ddfuse.estimation.estimator import EstimatorLog, Innovation
 from ddfuse.estimation.measurements import GpsFix
 from ddfuse.estimation.smoother.gating import RECOVER, REJECT, Gating
@@ -128,8 +128,9 @@ class GpsFusion:
             y, s_inn = np.asarray(inn.residual, float), np.asarray(inn.cov, float)
         else:  # a late fix older than the smoother's solution: nothing to judge it against
             y, s_inn = np.zeros(2), cov
+        gate = gate_radius(s.gate if s.gate is not None else DEFAULT_GATE, 2) ** 2
         factor, outlier = self.robust.factor(self.window.key(k), m.enu[0], m.enu[1], cov, r, f,
-                                             s.lever_arm, dt, y, s_inn)
+                                             s.lever_arm, dt, y, s_inn, gate)
         if logged:
             if outlier:
                 inn.accepted = False

@@ -92,8 +92,8 @@ class RobustGps:
         self.k = gm.k if gm.k is not None else KERNEL_K.get(gm.model, 0.0)
 
     def factor(self, key: int, e: float, n: float, cov: np.ndarray, r: np.ndarray, f: float,
-               lever: tuple[float, float], dt: float, y: np.ndarray, s_inn: np.ndarray
-               ) -> tuple[gtsam.NonlinearFactor, bool]:
+               lever: tuple[float, float], dt: float, y: np.ndarray, s_inn: np.ndarray,
+               gate_nis: float) -> tuple[gtsam.NonlinearFactor, bool]:
         """The factor of a fix at (``e``, ``n``) m on ``key``, and whether the model takes it
         for an outlier at the prediction. ``cov`` (2, 2) m^2: the fix's stated covariance
         ``r`` plus the motion carry (``GpsFusion.carried_cov``); ``f``: its inflation for time
@@ -101,7 +101,9 @@ class RobustGps:
         kernel's constant is divided by sqrt(f) (DCS's squared one by f), so it acts on the
         same residuals in metres as without the inflation. ``y`` (2,) m and ``s_inn`` (2, 2)
         m^2: the innovation against the newest keyframe and its covariance with the stated
-        ``r``, for the outlier verdict (weight under 1/2; maxmix: the outlier component)."""
+        ``r``, for the outlier verdict: its NIS with the learned scale beyond ``gate_nis`` (the
+        sensor's chi-square gate: what an EKF's gate would reject; the kernels weight such a
+        fix at most 0.2), for maxmix the outlier component the likelier."""
         s2 = self.scale.factor
         c = cov + (s2 * f - 1.0) * r
         s_y = s_inn + (s2 - 1.0) * r
@@ -114,6 +116,5 @@ class RobustGps:
         base = (gtsam.noiseModel.Diagonal.Variances(np.array((c[0, 0], c[1, 1])))
                 if c[0, 1] == 0.0 else gtsam.noiseModel.Gaussian.Covariance(c))
         k = self.k / (f if self.gm.model == "dcs" else math.sqrt(f))
-        whitened = math.sqrt(max(float(y @ np.linalg.solve(s_y, y)), 0.0))
-        outlier = kernel_weight(self.gm.model, self.k, whitened) < 0.5
+        outlier = float(y @ np.linalg.solve(s_y, y)) > gate_nis
         return gps_factor(key, e, n, robust_model(self.gm.model, k, base), lever, dt), outlier
