@@ -2,8 +2,8 @@
 smoother and batch under each GPS model of ``gps.model``. A script, not a test; its table is
 docs/results/urban.md.
 
-    python -m ddfuse.evaluation.urban_study --seeds 0-19 --models default,cauchy,maxmix \\
-        --json docs/results/urban.json
+    python examples/urban_study.py --seeds 0-19 --models default,cauchy --json urban.json
+    python examples/urban_study.py --json urban.json --table
 
 Per seed and estimator: position RMSE against the truth (m, at the 10 Hz outputs), the final
 position error (m), the mean pose NEES (d = 3) and the GPS fixes the estimator rejected or took
@@ -13,10 +13,8 @@ per estimator run are recorded, not wall time.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
-import sys
 import time
 from dataclasses import replace
 
@@ -99,50 +97,24 @@ def table(results: list[dict]) -> str:
     return head + "\n\n" + "\n".join(rows) + "\n"
 
 
-def _seeds(text: str) -> list[int]:
-    out = []
-    for part in text.split(","):
-        a, _, b = part.partition("-")
-        out += list(range(int(a), int(b) + 1)) if b else [int(a)]
-    return out
-
-
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seeds", default="0-19")
-    ap.add_argument("--models", default="default,cauchy,maxmix")
-    ap.add_argument("--duration", type=float, default=None)
-    ap.add_argument("--scenario", default="urban")
-    ap.add_argument("--json", required=True)
-    ap.add_argument("--table", action="store_true",
-                    help="print the table of the results in --json (other --json files may "
-                    "follow as arguments) and stop")
-    ap.add_argument("more", nargs="*", help=argparse.SUPPRESS)
-    a = ap.parse_args(argv)
-    if a.table:
-        results = []
-        for path in [a.json, *a.more]:
-            with open(path) as f:
-                results += json.load(f)
-        print(table(sorted(results, key=lambda r: r["seed"])))
-        return 0
-    models = [m for m in a.models.split(",") if m]
+def run_study(seeds: list[int], models: list[str], path: str, duration: float | None = None,
+              scenario: str = "urban", done=None) -> list[dict]:
+    """``run_seed`` for each seed not yet in the JSON file ``path``, the file rewritten after
+    every seed (an interrupted study keeps its seeds); ``done(seed)`` is called after each.
+    Returns every seed's record."""
     results = []
     try:
-        with open(a.json) as f:
+        with open(path) as f:
             results = json.load(f)
     except (OSError, ValueError):
         pass
-    done = {r["seed"] for r in results}
-    for seed in _seeds(a.seeds):
-        if seed in done:
+    have = {r["seed"] for r in results}
+    for seed in seeds:
+        if seed in have:
             continue
-        results.append(run_seed(seed, models, a.duration, a.scenario))
-        with open(a.json, "w") as f:  # after every seed: an interrupted study keeps its seeds
+        results.append(run_seed(seed, models, duration, scenario))
+        with open(path, "w") as f:
             json.dump(results, f, indent=1)
-        print(f"seed {seed} done", file=sys.stderr, flush=True)
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+        if done is not None:
+            done(seed)
+    return results
