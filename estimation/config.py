@@ -22,6 +22,7 @@ Shape (every key documented in README.md)::
     frame: {datum: first_fix, local: map, base: base_link}  # datum or [lat_deg, lon_deg, alt_m]
     initial_pose: ground_truth           # or [x, y, yaw]; default origin
     smoother: {lag: 10.0, keyframe: gps, robust: huber}
+    gps: {model: default}                # or gaussian, cauchy, geman_mcclure, dcs, maxmix
     ekf: {rate: event}
     ekf_igvc: {motion: euler}            # or icc: seed 000's exact arc (appendix A)
     reorder_window: 0.5
@@ -211,6 +212,33 @@ class SmootherConfig:
     robust_k: float | None = None
 
 
+# the GPS error models of the top-level ``gps`` key (GpsModelConfig; docs/design/urban_gps.md)
+GPS_MODELS = ("default", "gaussian", "cauchy", "geman_mcclure", "dcs", "maxmix")
+
+
+@dataclass
+class GpsModelConfig:
+    """``gps: {model: ..., ...}``: how the smoother and the batch model a GPS fix's error
+    (docs/design/urban_gps.md says when to use which). 'default': today's, the fix's stated
+    covariance under ``smoother.robust``'s kernel behind the chi-square gate; 'gaussian': the
+    same without a kernel; 'cauchy', 'geman_mcclure', 'dcs': that M-estimator, and 'maxmix':
+    an inlier/outlier max-mixture factor, each instead of the gate, with the stated covariance
+    scaled by a factor learned from the fixes' innovations (``scale_window`` s of them)."""
+
+    model: str = "default"
+    scale_window: float = 60.0  # s of innovations the scale is learned from; 0: stated as is
+    # the kernel's constant on the whitened residual norm (None: the model's default,
+    # estimation.smoother.gps_models.KERNEL_K)
+    k: float | None = None
+    outlier_std: float = 30.0  # m per axis: maxmix's outlier component, added to the inlier's
+    outlier_weight: float = 0.1  # maxmix: prior probability of an outlier
+
+    @property
+    def robust(self) -> bool:
+        """True for the models that replace the gate."""
+        return self.model not in ("default", "gaussian")
+
+
 @dataclass
 class EkfConfig:
     rate: str | float = "event"  # 'event' (update per message) or a fixed rate in Hz
@@ -302,6 +330,7 @@ class Config:
     base_frame: str = "base_link"
     initial_pose: str | tuple[float, float, float] | None = None
     smoother: SmootherConfig = field(default_factory=SmootherConfig)
+    gps: GpsModelConfig = field(default_factory=GpsModelConfig)
     ekf: EkfConfig = field(default_factory=EkfConfig)
     ekf_igvc: IgvcConfig = field(default_factory=IgvcConfig)
     reorder_window: float = 0.5  # s: messages older than this behind the newest are an error
@@ -547,7 +576,7 @@ def parse_config(raw: Any, source: str = "<config>", base: Path | None = None) -
     base = base or Path.cwd()
     top = (
         "sensors", "robot", "ground_truth", "frame", "initial_pose", "smoother", "ekf",
-        "ekf_igvc", "reorder_window", "node",
+        "ekf_igvc", "reorder_window", "node", "gps",
     )
     d = ck.mapping(raw if raw is not None else {}, "", top)
     sensors_raw = ck.mapping(d.get("sensors") or {}, "sensors", SENSOR_KINDS)
@@ -663,6 +692,8 @@ def parse_config(raw: Any, source: str = "<config>", base: Path | None = None) -
         if s.get("robust_k") is not None:
             sc.robust_k = ck.number(s["robust_k"], "smoother.robust_k", positive=True)
         cfg.smoother = sc
+    if "gps" in d:
+        cfg.gps = _gps_model(ck, d["gps"])
     if "ekf" in d:
         e = ck.mapping(d["ekf"], "ekf", ("rate",))
         rate = e.get("rate", "event")
@@ -678,6 +709,26 @@ def parse_config(raw: Any, source: str = "<config>", base: Path | None = None) -
     if "node" in d:
         cfg.node = _node(ck, d["node"])
     return cfg
+
+
+def _gps_model(ck: _Checker, raw: Any) -> GpsModelConfig:
+    g = ck.mapping(raw if raw is not None else {}, "gps",
+                   ("model", "scale_window", "k", "outlier_std", "outlier_weight"))
+    gm = GpsModelConfig()
+    if "model" in g:
+        gm.model = ck.choice(g["model"], "gps.model", GPS_MODELS)
+    if "scale_window" in g:
+        gm.scale_window = ck.number(g["scale_window"], "gps.scale_window", nonneg=True)
+    if g.get("k") is not None:
+        gm.k = ck.number(g["k"], "gps.k", positive=True)
+    if "outlier_std" in g:
+        gm.outlier_std = ck.number(g["outlier_std"], "gps.outlier_std", positive=True)
+    if "outlier_weight" in g:
+        w = ck.number(g["outlier_weight"], "gps.outlier_weight")
+        if not 0.0 < w < 1.0:
+            raise ck.fail("gps.outlier_weight", f"must be a probability in (0, 1), got {w!r}")
+        gm.outlier_weight = w
+    return gm
 
 
 def _node(ck: _Checker, raw: Any) -> NodeConfig:

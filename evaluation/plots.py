@@ -198,6 +198,30 @@ def _shade_outages(ax, run: SavedRun) -> None:
         ax.axvspan(o.t0 - t0, o.t1 - t0, color="0.5", alpha=0.15, lw=0)
 
 
+def gps_outliers(run: SavedRun) -> tuple[np.ndarray, str]:
+    """Which GPS fixes (a mask over ``run.gps_t``) an estimator's gate rejected or its robust
+    GPS model (``gps.model``) took for outliers, and that estimator: the smoother's track
+    when it ran (its lagged output's too), else the first with GPS innovations. The fixes are
+    matched by stamp to the innovations not accepted (every one is kept, docs/design/
+    urban_gps.md)."""
+    none = np.zeros(len(run.gps_t), dtype=bool)
+    names = sorted((n for n in run.tracks if n in run.innovations),
+                   key=lambda n: (not n.startswith("smoother"), list(run.tracks).index(n)))
+    for name in names:
+        table = run.innovations[name]
+        gps = table.kind == "gps"
+        if not gps.any():
+            continue
+        t_rej = np.sort(table.t[gps & ~table.accepted])
+        if not len(t_rej):
+            return none, name
+        i = np.clip(np.searchsorted(t_rej, run.gps_t), 1, len(t_rej)) - 1
+        j = np.clip(i + 1, 0, len(t_rej) - 1)
+        d = np.minimum(np.abs(t_rej[i] - run.gps_t), np.abs(t_rej[j] - run.gps_t))
+        return d < 1e-6, name
+    return none, ""
+
+
 def trajectories(run: SavedRun) -> Figure:
     """Every track on the local plane with the truth, the GPS fixes (withheld ones marked) and
     the landmarks."""
@@ -225,6 +249,11 @@ def trajectories(run: SavedRun) -> Figure:
             w = run.gps_withheld
             ax.plot(run.gps_xy[w, 0], run.gps_xy[w, 1], "o", mfc="none", mec="tab:red", ms=5,
                     mew=1.0, label=f"GPS fixes withheld, scored ({w.sum()})")
+        out, who = gps_outliers(run)
+        if out.any():
+            ax.plot(run.gps_xy[out, 0], run.gps_xy[out, 1], "x", color="tab:red", ms=4,
+                    mew=0.8, label=f"GPS fixes rejected or taken for outliers by {who} "
+                    f"({out.sum()})")
     if run.landmarks:
         xy = np.array(list(run.landmarks.values()))
         ax.plot(xy[:, 0], xy[:, 1], "^", mfc="none", mec="k", ms=8, label="landmarks")

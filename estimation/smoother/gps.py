@@ -7,7 +7,8 @@ the configured robust kernel. It is gated first (``Gating``): against the newest
 marginal, or for a late fix against its own keyframe's. With the sensor's ``correlation_time``
 (``ddfuse.estimation.gps_correlation``) the factor's covariance is the fix's own inflated by f
 for the time since the sensor's previous fused fix, while the gate and the logged innovation
-keep the fix's own. Design notes: docs/design/smoother.md (GPS fusion).
+keep the fix's own. With a robust ``gps.model`` (``gps_models``) the model judges the fix
+instead of the gate. Design notes: docs/design/smoother.md (GPS fusion), urban_gps.md.
 """
 
 from __future__ import annotations
@@ -19,15 +20,21 @@ from collections.abc import Callable
 import gtsam
 import numpy as np
 from ddfuse.estimation import gps_correlation
-from ddfuse.estimation.config import Config, SensorConfig
+from ddfuse.estimation.config import DEFAULT_GATE, Config, SensorConfig
 from ddfuse.estimation.estimator import EstimatorLog, Innovation
 from ddfuse.estimation.measurements import GpsFix
 from ddfuse.estimation.smoother.gating import RECOVER, REJECT, Gating
+from ddfuse.estimation.smoother.gps_models import RobustGps
 from ddfuse.estimation.smoother.held_twist import HeldTwist
 from ddfuse.estimation.smoother.noise import SmootherNoise, gate_radius, robustify, twist_walk
 from ddfuse.estimation.smoother.window import Window
 from ddfuse.factors.gps import gps_factor, gps_predict_jacobian
 from ddfuse.factors.state import DIM, PSI
+
+# A run of fixes a robust model takes for outliers this long (s) and this many is a
+# disagreement of GPS and odometry, said once (GpsFusion._outlier_run)
+DISAGREE_S = 10.0
+DISAGREE_FIXES = 10
 
 
 class GpsFusion:
@@ -45,15 +52,23 @@ class GpsFusion:
         self.tau = {s.name: s.correlation_time for s in cfg.of_kind("gps")
                     if s.correlation_time > 0.0}
         self.fused_t: dict[str, list[float]] = {}  # per sensor: stamps (sorted) of fused fixes
+        # the config's robust GPS model (gps.model), None for 'default' and 'gaussian'
+        self.robust = RobustGps(cfg.gps) if cfg.gps.robust else None
+        # per sensor: [stamp of the first of the current run of outliers, fixes in it, noted]
+        self.outlier_run: dict[str, list] = {}
 
     def fuse(self, m: GpsFix, k: int, dt: float) -> None:
         """Fix ``m`` on keyframe ``k``, ``dt`` s after it (the sensor's delay taken off)."""
         s = self.sensors[m.sensor]
         e, n = m.enu[0], m.enu[1]
         window = self.window
+        n_inn = len(self.log.innovations)
         if k == window.k and window.kf_state is not None:
             cov = self.carried_cov(m, window.kf_state, dt)
             nis = self.innovation(m, s.lever_arm, dt, cov)
+            if self.robust is not None:  # the model, not the gate, judges the fix
+                self._fuse_robust(m, s, k, dt, cov, n_inn)
+                return
             verdict = self.gating.verdict(m, s, nis)
             if verdict == REJECT:
                 return
@@ -62,6 +77,9 @@ class GpsFusion:
         else:
             cov = self._delayed(m, s, k, dt)
             if cov is None:
+                return
+            if self.robust is not None:
+                self._fuse_robust(m, s, k, dt, cov, n_inn)
                 return
         # Time-correlated errors (the sensor's correlation_time): the factor takes the fix's
         # own covariance times f for the time since the previous fused fix (what the motion
@@ -91,6 +109,62 @@ class GpsFusion:
                      if cov[0, 1] == 0.0 else gtsam.noiseModel.Gaussian.Covariance(cov))
             self.window.add(gps_factor(self.window.key(k), e, n,
                                        robustify(self.cfg, s, model, 2, f), s.lever_arm, dt))
+
+    def _fuse_robust(self, m: GpsFix, s: SensorConfig, k: int, dt: float, cov: np.ndarray,
+                     n_inn: int) -> None:
+        """Fix ``m`` on keyframe ``k`` under the config's robust model (``gps_models``): no gate;
+        the stated covariance scaled by the learned factor; an outlier verdict logged (the
+        innovation marked not accepted, counted as 'outlier') and a long run of them said
+        (``_outlier_run``)."""
+        f = 1.0
+        if m.sensor in self.tau:
+            f = self.inflation(m)
+            self.record_fused(m)
+        r = np.asarray(m.cov[:2, :2], dtype=float)
+        cov = cov + (f - 1.0) * r
+        logged = len(self.log.innovations) > n_inn
+        if logged:
+            inn = self.log.innovations[-1]
+            y, s_inn = np.asarray(inn.residual, float), np.asarray(inn.cov, float)
+        else:  # a late fix older than the smoother's solution: nothing to judge it against
+            y, s_inn = np.zeros(2), cov
+        gate = gate_radius(s.gate if s.gate is not None else DEFAULT_GATE, 2) ** 2
+        factor, outlier = self.robust.factor(self.window.key(k), m.enu[0], m.enu[1], cov, r, f,
+                                             s.lever_arm, dt, y, s_inn, gate)
+        if logged:
+            if outlier:
+                inn.accepted = False
+                self.log.rejected[(m.sensor, "outlier")] += 1
+            else:  # learnt from the fixes taken for inliers: outliers cannot inflate it
+                self.robust.scale.add(m.t, inn.nis)
+        if self._outlier_run(m, outlier):
+            return  # a disagreement said: the odometry is followed, the outlier not fused
+        self.window.add(factor)
+
+    def _outlier_run(self, m: GpsFix, outlier: bool) -> bool:
+        """A run of fixes the model takes for outliers over DISAGREE_S s or more (a wrong datum, a
+        spoofed receiver, a long canyon) is said once, with what the estimate follows; its end,
+        when a fix agrees again, too. Returns True while such a run goes on: its outliers are
+        no longer fused, so that their sum cannot drag the estimate (the outlier component or
+        the kernel's tail still pulls) -- until a fix agrees again, judged against the
+        odometry's growing uncertainty."""
+        run = self.outlier_run.get(m.sensor)
+        if outlier:
+            if run is None:
+                run = self.outlier_run[m.sensor] = [m.t, 0, False]
+            run[1] += 1
+            if not run[2] and m.t - run[0] >= DISAGREE_S and run[1] >= DISAGREE_FIXES:
+                run[2] = True
+                self.log.note(m.t, f"{m.sensor}: GPS and odometry disagree: {run[1]} fixes "
+                              f"over {m.t - run[0]:.1f} s taken for outliers by the "
+                              f"{self.cfg.gps.model} model; following the odometry")
+            return run[2]
+        if run is not None:
+            if run[2]:
+                self.log.note(m.t, f"{m.sensor}: GPS agrees with the odometry again after "
+                              f"{run[1]} outliers over {m.t - run[0]:.1f} s; following the GPS")
+            del self.outlier_run[m.sensor]
+        return False
 
     def inflation(self, m: GpsFix) -> float:
         """The factor f (>= 1) by which fix ``m``'s covariance is inflated for fusion
@@ -164,7 +238,8 @@ class GpsFusion:
             return self.carried_cov(m, self.window.kf_state, dt)
         cov = self.carried_cov(m, x, dt)
         nis = self.innovation(m, s.lever_arm, dt, cov, x, full)
-        if s.gate is not None and nis > gate_radius(s.gate, 2) ** 2:
+        if (self.robust is None and s.gate is not None
+                and nis > gate_radius(s.gate, 2) ** 2):
             self.log.rejected[(m.sensor, "gate")] += 1
             self.log.innovations[-1].accepted = False
             return None

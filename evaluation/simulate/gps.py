@@ -4,8 +4,9 @@ A fix measured at t is the truth at t + noise (horizontal, vertical std), option
 (tens of metres, added on top), random dropouts, outage windows, and a constant latency: it is
 stamped t + delay. The noise is white (``GpsSpec.correlation_s`` 0) or, per axis, a first-order
 Gauss-Markov process of that correlation time with the same stationary std (a receiver's
-multipath and atmospheric error wanders slowly). Positions are ENU metres about the datum,
-converted to WGS-84 latitude and longitude (deg) and ellipsoidal altitude (m).
+multipath and atmospheric error wanders slowly), or with ``GpsSpec.urban`` the urban model of
+``urban_gps`` (canyons, multipath bursts, NLOS jumps, bridges). Positions are ENU metres about
+the datum, converted to WGS-84 latitude and longitude (deg) and ellipsoidal altitude (m).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from ddfuse.estimation.geodesy import enu_to_geodetic
 from ddfuse.evaluation.simulate.motion import Truth
 from ddfuse.evaluation.simulate.scenarios import Scenario
 from ddfuse.evaluation.simulate.sensors import sample_times
+from ddfuse.evaluation.simulate.urban_gps import MULTIPATH, urban_errors
 
 
 @dataclass
@@ -29,6 +31,8 @@ class GpsData:
     alt: np.ndarray  # m
     outlier: np.ndarray  # bool
     true_enu: np.ndarray  # (n, 3) m, at t_measured
+    # urban scenarios: per fix its environment (urban_gps.OPEN, CANYON, MULTIPATH, NLOS)
+    environment: np.ndarray | None = None
 
 
 def gauss_markov(t: np.ndarray, w: np.ndarray, std: np.ndarray, tau: float) -> np.ndarray:
@@ -69,7 +73,18 @@ def simulate_gps(sc: Scenario, truth: Truth, rng: np.random.Generator) -> GpsDat
     keep = ~drop & (tm + spec.delay <= sc.duration)
     for a, b in spec.outages:
         keep &= ~((tm >= a) & (tm < b))
+    env = None
+    if spec.urban is not None:
+        # drawn after everything above, so the other scenarios' streams are unchanged
+        u = urban_errors(tm, sc.duration, spec.urban, rng)
+        enu = true_enu.copy()
+        enu[:, :2] += u.error
+        enu[:, 2] += noise[:, 2]
+        keep &= ~u.bridge
+        out = out | (u.label >= MULTIPATH)
+        env = u.label[keep]
     enu, true_enu, tm, out = enu[keep], true_enu[keep], tm[keep], out[keep]
     lat, lon, alt = enu_to_geodetic(enu[:, 0], enu[:, 1], enu[:, 2], *sc.datum)
     return GpsData(t=tm + spec.delay, t_measured=tm, enu=enu, lat=np.asarray(lat),
-                   lon=np.asarray(lon), alt=np.asarray(alt), outlier=out, true_enu=true_enu)
+                   lon=np.asarray(lon), alt=np.asarray(alt), outlier=out, true_enu=true_enu,
+                   environment=env)

@@ -81,6 +81,57 @@ class ImuSpec:
     tilt_std: float = 0.005  # rad, roll/pitch noise of the orientation
     accel_std: float = 0.05  # m/s^2
     topic: str = "/imu/data"
+    # what the written config uses of it: a car's gyro alone is ("yaw_rate",)
+    use: tuple[str, ...] = ("yaw", "yaw_rate", "accel")
+
+
+@dataclass(frozen=True)
+class UrbanGpsSpec:
+    """The urban GPS error model (``evaluation/simulate/urban_gps.py``; statistics and why:
+    docs/design/urban_gps.md). Stretches of open sky and street canyon alternate in time (each
+    exponentially long); the error is a Gauss-Markov wander (per axis, ``base_tau_s``) of std
+    ``open_std`` or ``canyon_std``, plus in a canyon multipath bursts (Poisson onsets at
+    ``burst_rate`` per canyon second, each a held offset of uniform ``burst_range`` m in a
+    random direction, lasting uniform ``burst_length_s``, wobbling by a fifth of it with
+    correlation time ``burst_tau_s``) and NLOS jumps (a fix starts one with probability
+    ``nlos_prob``, held for a geometric number of fixes of mean ``nlos_mean_fixes``, of uniform
+    ``nlos_range`` m). Bridges (Poisson at ``bridge_rate`` per second, uniform
+    ``bridge_length_s`` long) are outages. The stated covariance is GpsSpec.horizontal_std."""
+
+    canyon_fraction: float = 0.35  # of the time
+    canyon_mean_s: float = 60.0  # s, mean length of a canyon stretch
+    open_std: float = 2.0  # m per axis
+    canyon_std: float = 4.0  # m per axis
+    base_tau_s: float = 10.0  # s
+    burst_rate: float = 1.0 / 20.0  # 1/s of canyon
+    burst_length_s: tuple[float, float] = (2.0, 10.0)  # s
+    burst_range: tuple[float, float] = (10.0, 40.0)  # m
+    burst_tau_s: float = 2.0  # s
+    nlos_prob: float = 0.02  # per canyon fix
+    nlos_mean_fixes: float = 3.0
+    nlos_range: tuple[float, float] = (20.0, 80.0)  # m
+    bridge_rate: float = 1.0 / 120.0  # 1/s
+    bridge_length_s: tuple[float, float] = (3.0, 15.0)  # s
+
+    def __post_init__(self):
+        for name in ("canyon_fraction", "nlos_prob"):
+            v = getattr(self, name)
+            if not 0.0 <= v < 1.0:
+                raise ValueError(f"UrbanGpsSpec.{name} must be in [0, 1), got {v!r}")
+        for name in ("canyon_mean_s", "open_std", "canyon_std", "base_tau_s", "burst_tau_s",
+                     "nlos_mean_fixes"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0.0):
+                raise ValueError(f"UrbanGpsSpec.{name} must be a number > 0, got {v!r}")
+        for name in ("burst_rate", "bridge_rate"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0.0):
+                raise ValueError(f"UrbanGpsSpec.{name} must be a rate >= 0 (1/s), got {v!r}")
+        for name in ("burst_length_s", "burst_range", "nlos_range", "bridge_length_s"):
+            lo, hi = getattr(self, name)
+            if not (0.0 <= lo <= hi and math.isfinite(hi)):
+                raise ValueError(f"UrbanGpsSpec.{name} must be [low, high] with 0 <= low <= "
+                                 f"high, got {getattr(self, name)!r}")
 
 
 @dataclass(frozen=True)
@@ -124,6 +175,9 @@ class GpsSpec:
     # s, correlation time tau of the errors: 0 white; > 0 per axis e_k = a e_k-1 +
     # sqrt(1 - a^2) std w_k with a = exp(-(t_k - t_k-1) / tau), e_0 ~ N(0, std^2) (stationary)
     correlation_s: float = 0.0
+    # the urban error model instead of the white / Gauss-Markov noise above (horizontal_std is
+    # then only what the receiver states)
+    urban: UrbanGpsSpec | None = None
 
     def __post_init__(self):
         if not (math.isfinite(self.correlation_s) and self.correlation_s >= 0.0):
@@ -177,6 +231,9 @@ class Scenario:
     # ``duration`` (see simulate). None: ``duration``. get_scenario and simulate set it to the
     # scenario's own duration when they replace that, so --duration cuts the documented drive.
     drive_duration: float | None = None
+    # the slip densities the written config states (robot.slip: longitudinal, lateral m/sqrt(s),
+    # heading rad/sqrt(s)); None: 0, the simulated body moves exactly with its twist
+    config_slip: tuple[float, float, float] | None = None
 
 
 # A field site near Zurich, Switzerland: lat, lon (deg), ellipsoidal altitude (m).
@@ -285,6 +342,29 @@ SCENARIOS: dict[str, Scenario] = {
     "random": _husky(
         "random", "husky sensors on a random smooth path, 400 s.",
         TrajectorySpec("random", speed=1.0, yaw_rate_std=0.2, corr_time=5.0)),
+    # A car in a city: docs/design/urban_gps.md
+    "urban": Scenario(
+        name="urban",
+        description="A car in a city, 10 min at 5-15 m/s: 20 Hz wheel odometry, a 50 Hz gyro "
+        "(no heading), 2 Hz GPS whose error is urban (docs/design/urban_gps.md): a few metres "
+        "in the open, street canyons (35 % of the time) with multipath bursts of 10-40 m over "
+        "2-10 s and NLOS jumps of 20-80 m, bridges without fixes; the receiver states 1.5 m.",
+        duration=600.0,
+        trajectory=TrajectorySpec("random", speed=10.0, ramp=5.0, speed_rel_std=0.25,
+                                  yaw_rate_std=0.08, corr_time=8.0),
+        true_geometry=Geometry(wheel_radius=0.3075, track_width=1.58),
+        nominal_geometry=Geometry(wheel_radius=0.31, track_width=1.55),
+        encoders=EncoderSpec(rate=20.0, speed_std=0.15, counts_per_rev=2048),
+        imu=ImuSpec(rate=50.0, use=("yaw_rate",)),
+        gps=GpsSpec(rate=2.0, horizontal_std=1.5, vertical_std=3.0, delay=0.1,
+                    dropout_prob=0.01, urban=UrbanGpsSpec()),
+        datum=OUTDOOR_DATUM,
+        truth_rate=10.0,
+        geometry_std=Geometry(wheel_radius=0.003, track_width=0.03),
+        # at 10 m/s a slip of 0 (floored at 1e-3 m/sqrt(s)) makes the smoother's motion factors
+        # too stiff for gtsam's Cholesky (docs/design/urban_gps.md); a car's tyres slip
+        config_slip=(0.05, 0.02, 0.01),
+    ),
 }
 
 

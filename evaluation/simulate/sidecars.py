@@ -37,9 +37,15 @@ def sim_config(res: SimResult, landmark_map: str | None = None) -> dict:
         sensors["wheels"] = [{"topic": sc.encoders.joint_topic,
                               "joints": list(sc.encoders.joints), "noise": noise["wheels"]}]
     if sc.imu:
-        sensors["imu"] = [{"topic": sc.imu.topic, "use": ["yaw", "yaw_rate", "accel"],
-                           "noise": noise["imu"], "heading_offset": "estimate",
-                           "gyro_bias": "estimate"}]
+        imu = {"topic": sc.imu.topic, "use": list(sc.imu.use), "noise": noise["imu"]}
+        if "yaw" in sc.imu.use:
+            imu["heading_offset"] = "estimate"
+        imu["gyro_bias"] = "estimate"
+        if "yaw" not in sc.imu.use:  # a gyro alone: no orientation noise, no offset walk
+            imu["noise"] = {k: v for k, v in noise["imu"].items()
+                            if k not in ("yaw", "heading_offset_walk")
+                            and (k != "accel" or "accel" in sc.imu.use)}
+        sensors["imu"] = [imu]
     if sc.magnetometer:
         m = sc.magnetometer
         sensors["magnetometer"] = [{"topic": m.topic, "noise": noise["magnetometer"],
@@ -49,6 +55,9 @@ def sim_config(res: SimResult, landmark_map: str | None = None) -> dict:
         sensors["gps"] = [{"topic": sc.gps.topic, "noise": noise["gps"], "delay": sc.gps.delay}]
         if sc.gps.correlation_s > 0.0:  # the true error model, as the noise values are
             sensors["gps"][0]["correlation_time"] = sc.gps.correlation_s
+        elif sc.gps.urban is not None:  # the open sky's wander; the stated noise stays the
+            # receiver's optimistic one (docs/design/urban_gps.md)
+            sensors["gps"][0]["correlation_time"] = sc.gps.urban.base_tau_s
     if sc.landmarks:
         if landmark_map is None:
             raise ValueError("a scenario with landmarks needs the landmark map's file name")
@@ -74,7 +83,8 @@ def sim_config(res: SimResult, landmark_map: str | None = None) -> dict:
             robot[key] = math.ceil(15.0 * top) / 10.0
     # the simulated body moves exactly with its twist (the encoders' slip noise is in their
     # counts, not in the motion)
-    robot["slip"] = {"longitudinal": 0.0, "lateral": 0.0, "heading": 0.0}
+    slip = sc.config_slip or (0.0, 0.0, 0.0)
+    robot["slip"] = dict(zip(("longitudinal", "lateral", "heading"), slip, strict=True))
     cfg: dict = {
         "sensors": sensors,
         "robot": robot,
