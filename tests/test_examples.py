@@ -32,3 +32,17 @@ def test_monte_carlo_of_a_short_scenario(capsys):
     _main("monte_carlo.py")(["husky", "--seeds", "1-2", "--duration", "20"])
     out = capsys.readouterr().out
     assert "husky" in out and "ekf" in out and "ANEES" in out
+
+
+@pytest.mark.slow
+def test_urban_study_of_one_short_seed(tmp_path, capsys):
+    """The urban GPS study (docs/results/urban.md) on one 60 s seed: it writes a result per
+    seed and model, and the table prints a row for it."""
+    pytest.importorskip("gtsam")
+    out = tmp_path / "urban.json"
+    main = _main("urban_study.py")
+    assert main(["--seeds", "3", "--models", "default,cauchy", "--duration", "60",
+                 "--json", str(out)]) == 0
+    assert main(["--json", str(out), "--table"]) == 0
+    text = capsys.readouterr().out
+    assert "3" in text and "cauchy" in text
