@@ -51,7 +51,7 @@ def one(scenario: str, seed: int, factor: float, duration: float, jobs: int) -> 
         cfg = load_config(bag.with_suffix(".yaml"))
         stream = read_stream(bag, cfg)
         truth = {p.label: p.before for p in parameters(cfg, stream)
-                 if p.kind not in PROCESS and p.before is not None}
+                 if p.kind not in PROCESS + ("corr",) and p.before is not None}
         c0 = _cpu()
         res = tune(cfg, stream, start={k: v * factor for k, v in truth.items()}, jobs=jobs)
         cpu = _cpu() - c0
