@@ -55,8 +55,6 @@ AT_BOUND = 0.01  # a log value this close to a bound is at it
 # shows in the innovations, is kept there ('negligible'), not put back to the config's
 NEGLIGIBLE = 10.0
 PROCESS_NOISE = ("slip", "walk", "twist")  # Param kinds that are process noise densities
-NOT_SEARCHED = ("corr",)  # Param kinds set by a rule beside the likelihood (GPS correlation time)
-GPS_ROUNDS = 3  # at most this many more searches for a GPS correlation time that moved
 START_SCALES = (1.0, 3.0, 9.0)  # common factors on the measurement noise tried first
 MAX_ITER = 12  # iterations of one pass of the search (each 3 + p runs, p the free values)
 SHORT = 1.0 / 3.0  # the shortened scoring step, a fraction of the full one
@@ -227,16 +225,7 @@ def tune(cfg: Config, stream: Stream, *, holdout: str | None = None,
     jobs = jobs or min(2, os.cpu_count() or 1)
     ev = Evaluator(problem, jobs)
     try:
-        result = _search(problem, ev, progress, t_start)
-        iterations, rounds = result.iterations, 0
-        while rounds < GPS_ROUNDS and _gps_correlation(problem, result):
-            rounds += 1  # the search again, from where it ended, with the new correlation time
-            nll0 = result.nll_start
-            result = _search(problem, ev, progress, t_start)
-            iterations += result.iterations
-            result.nll_start, result.iterations = nll0, iterations
-        _gps_correlation_tuned(problem, result, rounds)
-        return result
+        return _search(problem, ev, progress, t_start)
     finally:
         ev.close()
         problem.applier.apply([None] * len(params))
@@ -245,9 +234,7 @@ def tune(cfg: Config, stream: Stream, *, holdout: str | None = None,
 def _search(problem: Problem, ev: Evaluator, progress, t_start: float) -> TuneResult:
     params = problem.params
     n = len(params)
-    with np.errstate(divide="ignore"):  # a correlation time of 0 (white): log -inf, exp 0
-        x0 = np.log([p.start for p in params])
-    search = np.array([p.kind not in NOT_SEARCHED for p in params], bool)
+    x0 = np.log([p.start for p in params])
     say = progress or (lambda stage, f: None)
     say("information at the start", 0.0)
     seen: dict[tuple, np.ndarray] = {}  # log values -> the terms of L there
@@ -267,10 +254,9 @@ def _search(problem: Problem, ev: Evaluator, progress, t_start: float) -> TuneRe
                 jacobian(base[1], [r[1] for r in res], STEP))
 
     xs, nll0 = _scaled_start(params, x0, ev, seen)
-    base0, J0, F0 = run_at(xs, np.flatnonzero(search))
-    J0, F0 = _widen(J0, search), _widen(F0, search)
+    base0, J0, F0 = run_at(xs, range(n))
     info0 = np.zeros(n) if J0 is None else np.sum(J0 * J0, axis=0)
-    free = (info0 >= MIN_INFORMATION if J0 is not None else np.ones(n, bool)) & search
+    free = info0 >= MIN_INFORMATION if J0 is not None else np.ones(n, bool)
     lo_all, hi_all = x0 - math.log(BOUND), x0 + math.log(BOUND)
     xa = xs.copy()
     J = np.zeros((1, n))
@@ -313,7 +299,7 @@ def _search(problem: Problem, ev: Evaluator, progress, t_start: float) -> TuneRe
                                          hi_all[idx], say)
         xa[idx] = x
         iterations += its
-        frozen = np.flatnonzero(~free & search)
+        frozen = np.flatnonzero(~free)
         if not len(frozen) or J0 is None:
             break
         _, Jf, _ = run_at(xa, frozen)  # the frozen values' information where it ended
@@ -329,9 +315,7 @@ def _search(problem: Problem, ev: Evaluator, progress, t_start: float) -> TuneRe
     if J.shape[1] != len(idx):  # a value freed on the last pass: J over every free one
         _, J, _ = run_at(xa, idx)
     tuned: list[Tuned | None] = [None] * n
-    for i in np.flatnonzero(~search):  # set beside the search (_gps_correlation_tuned)
-        tuned[i] = Tuned(params[i], params[i].before, "not informed", "")
-    for i in np.flatnonzero(~free & search):
+    for i in np.flatnonzero(~free):
         where = "at the start" if info_frozen[i] == info0[i] else "at the start and where " \
             "the search ended"
         tuned[i] = Tuned(params[i], params[i].before, "not informed",
@@ -386,86 +370,13 @@ def _scaled_start(params: list[Param], x0: np.ndarray, ev: Evaluator, seen: dict
     then follows other sensors and L has a local minimum there that the scoring steps do not
     leave (measured: GPS 29-65 % low, landmarks 60-70 % low from /3). Values too large have
     no such trap, so the scan only looks upwards. The runs go into ``seen``."""
-    meas = np.array([p.kind not in PROCESS_NOISE + NOT_SEARCHED for p in params], float)
+    meas = np.array([p.kind not in PROCESS_NOISE for p in params], float)
     scales = START_SCALES if meas.any() else (1.0,)
     cands = [x0 + math.log(k) * meas for k in scales]
     for c, r in zip(cands, ev.many([list(np.exp(c)) for c in cands]), strict=True):
         seen[tuple(np.round(c, 12))] = r
     nll = [float(seen[tuple(np.round(c, 12))][0].sum()) for c in cands]
     return cands[int(np.argmin(nll))], nll[0]
-
-
-def _widen(J: np.ndarray | None, cols: np.ndarray) -> np.ndarray | None:
-    """``J`` (N x cols.sum()) as N x len(cols), zero in the columns ``cols`` leaves out."""
-    if J is None:
-        return None
-    out = np.zeros((J.shape[0], len(cols)))
-    out[:, cols] = J
-    return out
-
-
-def _gps_fixes(problem: Problem, sensor: str) -> tuple[np.ndarray, np.ndarray]:
-    """Stamps (N,) s and east/north (N, 2) m of ``sensor``'s fixes that the runs fuse (the
-    hold-out's withheld fixes left out, as ``runner.run`` selects them)."""
-    from ddfuse.estimation.measurements import GpsFix
-    from ddfuse.estimation.runner import parse_holdout
-
-    ms = problem.stream.measurements
-    fixes = [m for m in ms if type(m) is GpsFix]
-    select = parse_holdout(problem.holdout)
-    held = select(fixes, ms[0].t) if select is not None and ms else set()
-    keep = [f for i, f in enumerate(fixes) if i not in held and f.sensor == sensor and
-            f.enu is not None]
-    return (np.array([f.t for f in keep], float),
-            np.array([f.enu[:2] for f in keep], float).reshape(len(keep), 2))
-
-
-def _gps_correlation(problem: Problem, result: TuneResult) -> bool:
-    """Set each GPS sensor's correlation time by ``estimation.gps_scatter``'s rule (the one
-    ``ddfuse run`` warns by) at the horizontal sigma the search found; where it disagrees with
-    the one the search ran with, every parameter's start is put where the search ended (the
-    correlation time at the rule's) and True returned: the search is run again."""
-    from ddfuse.estimation.gps_scatter import fix_scatter
-
-    params, moved = problem.params, False
-    for i, p in enumerate(params):
-        if p.kind != "corr":
-            continue
-        sig = next((t for t in result.tuned if t.param.sensor == p.sensor and
-                    t.param.noise_key == "horizontal"), None)
-        if sig is None:
-            continue
-        sigma = sig.value if sig.value is not None else sig.param.start
-        t, xy = _gps_fixes(problem, p.sensor)
-        scatter = fix_scatter(t, xy, np.full(len(t), sigma * sigma))
-        if scatter is None or scatter.advice(p.sensor, p.start) is None:
-            continue
-        moved = True
-        for q, tq in zip(params, result.tuned, strict=True):
-            if tq.value is not None and tq.status != "not informed" and q.kind != "corr":
-                q.start = tq.value
-        params[i].start = float(scatter.recommended)
-    return moved
-
-
-def _gps_correlation_tuned(problem: Problem, result: TuneResult, rounds: int) -> None:
-    """Each GPS correlation time's entry in ``result``: the value the last search ran with,
-    'tuned' when it differs from the config's, with how it was set."""
-    for k, t in enumerate(result.tuned):
-        p = t.param
-        if p.kind != "corr":
-            continue
-        if p.start == p.before:
-            result.tuned[k] = Tuned(p, None, "not informed", (
-                "the GPS fixes' scatter at the tuned horizontal sigma agrees with it (estimation."
-                "gps_scatter, the rule `ddfuse run` warns by); left as the config has it"))
-            continue
-        why = (f"from the GPS fixes' scatter at the tuned horizontal sigma (estimation."
-               f"gps_scatter, the rule `ddfuse run` warns by); the search run again {rounds} "
-               "time(s) with it")
-        if rounds == GPS_ROUNDS:
-            why += f"; still moving after {GPS_ROUNDS} rounds"
-        result.tuned[k] = Tuned(p, p.start, "tuned", why)
 
 
 def _scoring(values_at, derivs_at, x: np.ndarray, f: float, J: np.ndarray,

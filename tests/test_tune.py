@@ -276,28 +276,3 @@ def test_a_value_the_data_drive_to_nothing_is_kept_small_not_put_back(sim_bag):
     assert got.status == "negligible", (got.status, got.value, got.reason)
     assert got.value < 0.005 and "no longer affects" in got.reason
 
-
-@pytest.mark.slow
-def test_a_tuned_gps_correlation_time_agrees_with_the_scatter_rule(tmp_path):
-    """husky-multipath (Gauss-Markov GPS errors, 30 s) with its config's white GPS: the tuned
-    config's correlation_time is the one the fixes' scatter gives at the tuned sigma, the rule
-    `ddfuse run` warns by, so a run of the tuned config does not warn."""
-    from ddfuse.estimation.gps_scatter import fix_scatter
-    from ddfuse.estimation.measurements import GpsFix
-
-    bag = tmp_path / "mp.bag"
-    assert main(["simulate", "husky-multipath", "--seed", "1", "--duration", "90", "-o",
-                 str(bag)]) == 0
-    cfg = load_config(bag.with_suffix(".yaml"))
-    assert cfg.sensor("/fix").correlation_time == 0.0
-    stream = read_stream(bag, cfg)
-    result = tune(cfg, stream, jobs=1)
-    got = {t.param.key: t for t in result.tuned}
-    tau = got["sensors.gps[0].correlation_time"]
-    sigma = got["sensors.gps[0].noise.horizontal"].value
-    assert tau.status == "tuned" and tau.value > 0.0, tau.reason
-    fixes = [m for m in stream.measurements if type(m) is GpsFix]
-    scatter = fix_scatter(np.array([f.t for f in fixes]), np.array([f.enu[:2] for f in fixes]),
-                          np.full(len(fixes), sigma * sigma))
-    assert scatter.advice("/fix", tau.value) is None
-    assert cfg.sensor("/fix").correlation_time == 0.0  # the config as read
