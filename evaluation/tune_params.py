@@ -11,6 +11,8 @@ noise density:
 * the IMU's ``gyro_bias_walk`` (rad/s/sqrt(s)) and ``heading_offset_walk`` (rad/sqrt(s)) where
   the config estimates the bias / offset;
 * ``robot.slip.longitudinal``, ``lateral`` (m/sqrt(s)) and ``heading`` (rad/sqrt(s));
+* a landmark sensor's ``correlation_time`` (s, kind 'corr'): not searched by the likelihood
+  but set by the sightings' neighbour scatter at the tuned bearing sigma (``evaluation.tune``);
 * ``robot.twist_walk.speed`` (m/s/sqrt(s)) and ``yaw_rate`` (rad/s/sqrt(s)), the twist's own
   random walk, where a sensor measures that component of the twist. Where the config states
   none, the search starts from what the EKF uses then: ``robot.max_accel`` sqrt(T) (T the
@@ -129,6 +131,11 @@ def parameters(cfg: Config, stream: Stream) -> list[Param]:
                     continue  # no message of this sensor: nothing to tune it on
             out.append(Param(f"{base}.{key}", f"{s.name} {key}", start, before, source,
                              _UNITS[key], s.name, s.kind, key))
+            if (kind, key) == ("landmarks", "bearing"):
+                tau = float(s.correlation_time)
+                out.append(Param(f"sensors.landmarks[{i}].correlation_time",
+                                 f"{s.name} correlation_time", tau, tau, "config", "s",
+                                 s.name, "corr", "correlation_time"))
         if s.kind == "imu":
             for key, wanted, use in (("gyro_bias_walk", s.gyro_bias, "yaw_rate"),
                                      ("heading_offset_walk", s.heading_offset, "yaw")):
@@ -201,7 +208,7 @@ class Applier:
             by_sensor.setdefault((type(m), m.sensor), []).append(m)
         self._targets: list[tuple[list, tuple[str, ...]]] = []
         for p in params:
-            if p.kind in ("slip", "walk", "twist"):
+            if p.kind in ("slip", "walk", "twist", "corr"):
                 self._targets.append(([], ()))
                 continue
             cls, attrs, _ = _MEASURED[(p.kind, p.noise_key)]
@@ -212,6 +219,7 @@ class Applier:
         self._noise0 = {s.name: dict(s.noise) for s in cfg.sensors}
         self._slip0 = dict(cfg.robot.slip)
         self._twist0 = dict(cfg.robot.twist_walk)
+        self._tau0 = {s.name: s.correlation_time for s in cfg.sensors}
 
     def apply(self, values: list[float | None]) -> None:
         """Set every parameter to its value in ``values`` (same order as the params)."""
@@ -219,8 +227,13 @@ class Applier:
         slip, twist = dict(self._slip0), dict(self._twist0)
         for s in cfg.sensors:
             s.noise = dict(self._noise0[s.name])
+            s.correlation_time = self._tau0[s.name]
         for p, v, (ms, attrs), read in zip(self.params, values, self._targets, self._read,
                                            strict=True):
+            if p.kind == "corr":
+                if v is not None:
+                    cfg.sensor(p.sensor).correlation_time = float(v)
+                continue
             if p.kind in ("slip", "twist"):
                 if v is not None:
                     (slip if p.kind == "slip" else twist)[p.noise_key] = float(v)
