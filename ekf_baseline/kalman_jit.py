@@ -572,12 +572,14 @@ def lm_predict(fp, ip, W, dt, v, w, v_var, w_var, tau):
 
 
 @_entry(f"int64({_TABLES}, float64, int64, float64, float64, int64, float64, float64, "
-        "float64, float64)")
-def lm_sighting(fp, ip, W, sf, si, lg, t, s, lx, ly, bearing, zr, zb, rr, rb):
+        "float64, float64, float64)")
+def lm_sighting(fp, ip, W, sf, si, lg, t, s, lx, ly, bearing, zr, zb, rr, rb, rf):
     """One sighting at ``t`` (s) by the sensor of row ``s`` of the known landmark (lx, ly) m:
     range ``zr`` (m, variance ``rr``) and, when ``bearing`` != 0, bearing ``zb`` (rad, variance
     ``rb``) (``landmark_model.landmark_rows``), gated and fused as the landmark EKF's
-    KalmanCore.update (kind 'landmark'). No prediction. Returns the module's bits; DEFER also
+    KalmanCore.update (kind 'landmark'); ``rf`` the factor on R in the fusion (1.0; a
+    time-correlated sighting: ``estimation.landmark_correlation``; the gate and the log keep
+    R). No prediction. Returns the module's bits; DEFER also
     when the landmark is at the body origin (the Python path counts it as degenerate)."""
     if ip[IP_LOGN] + MAXB > ip[IP_LOGCAP]:
         return GROW
@@ -588,7 +590,7 @@ def lm_sighting(fp, ip, W, sf, si, lg, t, s, lx, ly, bearing, zr, zb, rr, rb):
     if m == 0:
         return DEFER
     nr, nb = _block(blk, 0, m, 0, s, KL_LANDMARK)
-    fs[0] = 1.0
+    fs[0] = rf
     return _update(fp, ip, W, sf, si, lg, t, H, y, R, blk, nb, nr, Ut, S, Z, zf, zi, fs)
 
 

@@ -63,6 +63,7 @@ from ddfuse.ekf_baseline.landmark_model import (
 from ddfuse.estimation.config import DEFAULT_GATE, LANDMARK_NOT_IN_MAP, Config, landmark_maps
 from ddfuse.estimation.estimator import Estimate, Estimator
 from ddfuse.estimation.gaps import gap_note, grown_pose_cov, is_gap
+from ddfuse.estimation.landmark_correlation import SightingClock
 from ddfuse.estimation.measurements import (
     GroundTruthPose,
     LandmarkObservation,
@@ -159,6 +160,7 @@ class _OdometryDrivenEkf(Estimator):
         if motion not in ("exact", "euler"):
             raise ValueError(f"motion must be 'exact' or 'euler', got {motion!r}")
         self.cfg = cfg
+        self._clock = SightingClock(cfg)  # a correlated sensor's factor on R (fusion only)
         self.motion = motion
         self.init_std = tuple(float(s) for s in init_std)
         self.kf: KalmanCore | None = None
@@ -350,10 +352,11 @@ class _OdometryDrivenEkf(Estimator):
         raise NotImplementedError
 
     def _measure(self, m: LandmarkObservation, landmark, lcols: list[int] | None,
-                 jac_at=None) -> None:
+                 jac_at=None, fuse: float = 1.0) -> None:
         """Update with one sighting of ``landmark`` (x, y); ``lcols`` its state columns (SLAM).
         ``jac_at`` = (pose, landmark): where the Jacobians are evaluated, if not at the
-        current estimate (first-estimates Jacobians)."""
+        current estimate (first-estimates Jacobians). ``fuse``: the factor on R in the gain and
+        Joseph update (``estimation.landmark_correlation``; the gate and the log keep R)."""
         kf = self.kf
         try:
             h, Hp, Hl = range_bearing(kf.x[:3], landmark, m.has_bearing)
@@ -371,7 +374,13 @@ class _OdometryDrivenEkf(Estimator):
             z, R, angles = [m.range, m.bearing], np.diag([m.range_var, m.bearing_var]), (1,)
         else:
             z, R, angles = [m.range], np.array([[m.range_var]]), ()
-        kf.update(m.t, m.sensor, "landmark", z, h, H, R, angles=angles, gate=self._gate(m.sensor))
+        if fuse == 1.0:
+            kf.update(m.t, m.sensor, "landmark", z, h, H, R, angles=angles,
+                      gate=self._gate(m.sensor))
+        else:
+            kf.update_blocks(m.t, np.asarray(z, float), h, H, R,
+                             ((m.sensor, "landmark", 0, k, angles, self._gate(m.sensor)),),
+                             fuse=(fuse,))
 
     def _pose_estimate(self, names: tuple[str, ...]) -> Estimate | None:
         if self.kf is None:
@@ -427,10 +436,11 @@ class LandmarkEkf(LandmarkKernels, _OdometryDrivenEkf):
             # the bag reader drops these already; fed directly, counted under its reason
             self.log.rejected[(m.sensor, LANDMARK_NOT_IN_MAP)] += 1
             return
+        f = self._clock.factor(m)
         if self.compiled:
-            self._sighting_compiled(m, lm)
+            self._sighting_compiled(m, lm, f)
         else:
-            self._measure(m, lm, None)
+            self._measure(m, lm, None, fuse=f)
 
     def estimate(self) -> Estimate | None:
         return self._pose_estimate(("x", "y", "yaw"))
@@ -538,9 +548,10 @@ class LandmarkSlamEkf(_OdometryDrivenEkf):
 
     def _use_sighting(self, m: LandmarkObservation) -> None:
         i = self.slots.get(m.landmark_id)
+        f = self._clock.factor(m)
         if i is not None:
             self._measure(m, self.kf.x[i:i + 2], [i, i + 1],
-                          jac_at=(self._pose_prior, self.first_estimate[m.landmark_id]))
+                          jac_at=(self._pose_prior, self.first_estimate[m.landmark_id]), fuse=f)
             return
         if not m.has_bearing:
             self.log.rejected[(m.sensor, "range_only_unmapped")] += 1

@@ -55,7 +55,7 @@ def warm_up() -> None:
     row = kf.sensor_row("warm-up", gate=None)
     kf.kj.lm_predict(kf.fp, kf.ip, kf.W, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0)
     kf.kj.lm_sighting(kf.fp, kf.ip, kf.W, kf.sf, kf.si, kf.lg, 0.0, row, 1.0, 1.0, 1, 1.0, 0.0,
-                      1.0, 1.0)
+                      1.0, 1.0, 1.0)
     jit.COLD_COMPILE["landmark"] = time.perf_counter() - t0
 
 
@@ -88,21 +88,21 @@ class LandmarkKernels:
             return
         super().process(m)
 
-    def _sighting_compiled(self, m, landmark) -> None:
+    def _sighting_compiled(self, m, landmark, fuse: float = 1.0) -> None:
         """Sighting ``m`` of the known ``landmark`` (x, y) m in the kernel, or in Python when
-        the kernel defers it."""
+        the kernel defers it; ``fuse`` the factor on R in the fusion (``_measure``'s)."""
         kf = self.kf
         row = self._rows.get(m.sensor)
         if row is None:
             row = self._rows[m.sensor] = kf.sensor_row(m.sensor, gate=self._gate(m.sensor))
         if m.has_bearing:
             args = (m.t, row, landmark[0], landmark[1], 1, m.range, m.bearing, m.range_var,
-                    m.bearing_var)
+                    m.bearing_var, fuse)
         else:
-            args = (m.t, row, landmark[0], landmark[1], 0, m.range, 0.0, m.range_var, 0.0)
+            args = (m.t, row, landmark[0], landmark[1], 0, m.range, 0.0, m.range_var, 0.0, fuse)
         sighting = self._lm_sighting
         code = sighting(kf.fp, kf.ip, kf.W, kf.sf, kf.si, kf.lg, *args)
         if code:
             code = kf.settle(code, sighting, *args)
         if code & _DEFER:
-            self._measure(m, landmark, None)
+            self._measure(m, landmark, None, fuse=fuse)

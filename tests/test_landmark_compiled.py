@@ -134,3 +134,20 @@ def test_compiled_path_matches_python_with_wheel_odometry_input(seed002):
     a, b = _lockstep(cfg, pose, lmap, odo)
     assert a.n_base == 3
     _same_logs(a, b)
+
+
+def test_compiled_path_matches_python_with_correlated_sightings(seed002):
+    """A landmark sensor's correlation_time: both paths fuse each sighting with R times the
+    same factor (the gate and the log keep R), and the filter is less sure than fusing the
+    same sightings as white."""
+    cfg, pose, lmap, meas = seed002
+    sensor = next(m.sensor for m in meas if isinstance(m, LandmarkObservation))
+    sensors = [dataclasses.replace(s, correlation_time=2.0) if s.name == sensor else s
+               for s in cfg.sensors]
+    a, b = _lockstep(dataclasses.replace(cfg, sensors=sensors), pose, lmap, meas)
+    _same_logs(a, b)
+    white = LandmarkEkf(cfg, initial_pose=pose, landmarks=lmap, compiled=True)
+    for m in meas:
+        white.process(m)
+    white.finish()
+    assert np.trace(a.kf.P[:2, :2]) > 1.5 * np.trace(white.kf.P[:2, :2])

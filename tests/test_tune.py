@@ -275,3 +275,4 @@ def test_a_value_the_data_drive_to_nothing_is_kept_small_not_put_back(sim_bag):
     got = {t.param.key: t for t in result.tuned}["robot.slip.heading"]
     assert got.status == "negligible", (got.status, got.value, got.reason)
     assert got.value < 0.005 and "no longer affects" in got.reason
+

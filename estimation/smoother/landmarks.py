@@ -14,6 +14,7 @@ from collections.abc import Callable
 import numpy as np
 from ddfuse.estimation.config import LANDMARK_NOT_IN_MAP, Config, SensorConfig
 from ddfuse.estimation.estimator import EstimatorLog, Innovation, wrap_angle
+from ddfuse.estimation.landmark_correlation import SightingClock
 from ddfuse.estimation.measurements import LandmarkObservation
 from ddfuse.estimation.smoother.gating import RECOVER, REJECT, Gating
 from ddfuse.estimation.smoother.noise import gate_radius, robust
@@ -33,6 +34,7 @@ class LandmarkFusion:
         failure), before a lock-out's widening."""
         self.cfg, self.sensors, self.landmarks = cfg, sensors, landmarks
         self.window, self.gating, self.log, self.flush = window, gating, log, flush
+        self.clock = SightingClock(cfg)  # a correlated sensor's factor on R (the factor only)
 
     def fuse(self, m: LandmarkObservation, k: int, dt: float) -> None:
         """A sighting ``dt`` s after keyframe ``k``: a range/bearing (or range) factor from the
@@ -44,6 +46,8 @@ class LandmarkFusion:
             self.log.rejected[(m.sensor, LANDMARK_NOT_IN_MAP)] += 1
             return
         s = self.sensors[m.sensor]
+        # the factor's sigma times sqrt(f) (estimation.landmark_correlation); the gate keeps R
+        wide = math.sqrt(self.clock.factor(m))
         window = self.window
         if k == window.k and window.kf_state is not None:
             inn = self.innovation(m, lm, dt, window.kf_state, window.newest_marginal())
@@ -67,12 +71,12 @@ class LandmarkFusion:
                 self.log.innovations[-1].accepted = False
                 return
         if m.has_bearing:
-            sig = (math.sqrt(m.range_var), math.sqrt(m.bearing_var))
+            sig = (wide * math.sqrt(m.range_var), wide * math.sqrt(m.bearing_var))
             f = range_bearing_factor(window.key(k), lm, m.range, m.bearing,
                                      robust(self.cfg, s, sig), dt=dt)
         else:
             f = range_factor(window.key(k), lm, m.range,
-                             robust(self.cfg, s, (math.sqrt(m.range_var),)), dt=dt)
+                             robust(self.cfg, s, (wide * math.sqrt(m.range_var),)), dt=dt)
         window.add(f)
         self.gating.landmark_t = m.t
 

@@ -1,0 +1,157 @@
+"""Does ``ddfuse tune`` recover the true noise? Simulated bags whose config states the noise
+they were drawn with, every measurement noise value started 3x too large or 3x too small, the
+tuned value's error against the truth (the issue's 20-seed table, docs/design/tuning.md).
+
+    python examples/tune_recovery.py run OUT.jsonl [--scenarios husky seed002] [--seeds 1-20]
+        [--duration 120] [--jobs 1]
+    python examples/tune_recovery.py table OUT.jsonl
+
+``run`` appends one JSON line per (scenario, seed, start) to OUT.jsonl and skips those already
+there, so it can be stopped and resumed; ``table`` prints the markdown tables (per run, and per
+value the median, the worst and how many of the runs are within 20 %). CPU seconds are this
+process's and its workers' (``time.process_time`` does not see forked workers:
+``os.times``' children).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+TARGET = 0.20  # the issue's: each noise value within 20 % of the truth
+PROCESS = ("slip", "walk", "twist")
+
+
+def _cpu() -> float:
+    t = os.times()
+    return t.user + t.system + t.children_user + t.children_system
+
+
+def one(scenario: str, seed: int, factor: float, duration: float, jobs: int) -> dict:
+    """Simulate, tune from every stated measurement noise times ``factor``, and return the
+    tuned values against the truth."""
+    import subprocess
+    import sys
+
+    from ddfuse.estimation.bags import read_stream
+    from ddfuse.estimation.config import load_config
+    from ddfuse.evaluation.tune import tune
+    from ddfuse.evaluation.tune_params import parameters
+
+    with tempfile.TemporaryDirectory() as tmp:
+        bag = Path(tmp) / f"{scenario}_{seed}.bag"
+        ddfuse = Path(sys.executable).with_name("ddfuse")
+        subprocess.run([str(ddfuse), "simulate", scenario, "--seed", str(seed), "--duration",
+                        str(duration), "-o", str(bag)], check=True, capture_output=True)
+        cfg = load_config(bag.with_suffix(".yaml"))
+        stream = read_stream(bag, cfg)
+        truth = {p.label: p.before for p in parameters(cfg, stream)
+                 if p.kind not in PROCESS + ("corr",) and p.before is not None}
+        c0 = _cpu()
+        res = tune(cfg, stream, start={k: v * factor for k, v in truth.items()}, jobs=jobs)
+        cpu = _cpu() - c0
+    rows = {}
+    for t in res.tuned:
+        if t.param.label in truth:
+            v = t.value
+            rows[t.param.label] = {"truth": truth[t.param.label], "tuned": v,
+                                   "status": t.status,
+                                   "error": None if v is None or t.status == "not informed"
+                                   else v / truth[t.param.label] - 1.0}
+    return {"scenario": scenario, "seed": seed, "factor": factor, "values": rows,
+            "runs": res.runs, "iterations": res.iterations, "cpu_s": cpu,
+            "pairs": res.pairs, "message": res.message,
+            "others": {t.param.label: [t.value, t.status] for t in res.tuned
+                       if t.param.label not in truth}}
+
+
+def _seeds(spec: str) -> list[int]:
+    a, _, b = spec.partition("-")
+    return list(range(int(a), int(b or a) + 1))
+
+
+def run(out: Path, scenarios: list[str], seeds: list[int], duration: float, jobs: int) -> None:
+    done = set()
+    if out.exists():
+        for line in out.read_text().splitlines():
+            r = json.loads(line)
+            done.add((r["scenario"], r["seed"], r["factor"]))
+    for seed in seeds:
+        for scenario in scenarios:
+            for factor in (3.0, 1.0 / 3.0):
+                if (scenario, seed, factor) in done:
+                    continue
+                r = one(scenario, seed, factor, duration, jobs)
+                with out.open("a") as f:
+                    f.write(json.dumps(r) + "\n")
+                errs = {k: (None if v["error"] is None else round(100 * v["error"], 1))
+                        for k, v in r["values"].items()}
+                print(scenario, seed, "x3" if factor > 1 else "/3", errs,
+                      f"{r['runs']} runs {r['cpu_s']:.0f} s CPU", flush=True)
+
+
+def _cell(v: dict | None) -> str:
+    if v is None:
+        return ""
+    if v["error"] is None:
+        return "n.i."
+    mark = "" if v["status"] == "tuned" else f" ({v['status']})"
+    return f"{100 * v['error']:+.1f} %{mark}"
+
+
+def table(out: Path) -> str:
+    rows = [json.loads(line) for line in out.read_text().splitlines()]
+    lines = []
+    for scenario in sorted({r["scenario"] for r in rows}):
+        rs = sorted((r for r in rows if r["scenario"] == scenario),
+                    key=lambda r: (r["seed"], -r["factor"]))
+        labels = list(dict.fromkeys(k for r in rs for k in r["values"]))
+        lines += [f"**{scenario}**", "",
+                  "| seed, start | " + " | ".join(labels) + " | runs | CPU |",
+                  "|---" * (len(labels) + 3) + "|"]
+        for r in rs:
+            start = "x3" if r["factor"] > 1 else "/3"
+            lines.append(f"| {r['seed']}, {start} | "
+                         + " | ".join(_cell(r["values"].get(k)) for k in labels)
+                         + f" | {r['runs']} | {r['cpu_s']:.0f} s |")
+        lines += ["", "| start | value | within 20 % | not informed | median error | "
+                  "worst |", "|---|---|---|---|---|---|"]
+        for start, sel in (("x3", lambda f: f > 1), ("/3", lambda f: f < 1)):
+            for k in labels:
+                vs = [r["values"][k] for r in rs if sel(r["factor"]) and k in r["values"]]
+                e = np.array([v["error"] for v in vs if v["error"] is not None])
+                ni = sum(v["error"] is None for v in vs)
+                within = int(np.sum(np.abs(e) <= TARGET))
+                med = f"{100 * np.median(e):+.1f} %" if len(e) else ""
+                worst = f"{100 * e[np.argmax(np.abs(e))]:+.1f} %" if len(e) else ""
+                lines.append(f"| {start} | {k} | {within} of {len(vs)} | {ni} | {med} | "
+                             f"{worst} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    r = sub.add_parser("run")
+    r.add_argument("out", type=Path)
+    r.add_argument("--scenarios", nargs="+", default=["husky", "seed002"])
+    r.add_argument("--seeds", default="1-20")
+    r.add_argument("--duration", type=float, default=120.0)
+    r.add_argument("--jobs", type=int, default=1)
+    t = sub.add_parser("table")
+    t.add_argument("out", type=Path)
+    a = ap.parse_args()
+    if a.cmd == "run":
+        run(a.out, a.scenarios, _seeds(a.seeds), a.duration, a.jobs)
+    else:
+        print(table(a.out))
+
+
+if __name__ == "__main__":
+    main()
