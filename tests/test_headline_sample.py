@@ -80,3 +80,17 @@ def test_the_next_command_runs(demo, tmp_path):
     if args[0] == "run" and "--gps-holdout" in args:
         m = json.loads((Path(args[args.index("-o") + 1]) / "metrics.json").read_text())
         assert m["gps_holdout_fixes"] > 0 and m["gps_outages"]
+
+
+def test_report_prints_the_runs_headline(demo):
+    """``ddfuse report OUTDIR`` re-renders the page and prints the headline ``run`` printed."""
+    from ddfuse.evaluation import cli
+
+    out, stdout = demo
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        assert cli.main(["report", str(out)]) == 0
+    printed = buf.getvalue().splitlines()
+    start = printed.index(next(ln for ln in printed if ln.startswith("---- headline ")))
+    assert printed[start + 1:-1] == _terminal_headline(stdout)
+    assert printed[-1] == str(out / "report.html")

@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 
 SCHEDULER_HELP = ("a running Dask scheduler, e.g. tcp://10.0.0.5:8786 (needs the scale extra: "
-                  "pip install 'ddfuse[scale]'; the workers need the same ddfuse version and "
-                  "the inputs at the same paths); default: local processes")
+                  "pip install 'ddfuse[scale]'; the workers need the same ddfuse version, and for "
+                  "fleet and lag-sweep the bags at the same paths); default: local processes")
 
 
 def add_scheduler(sp: argparse.ArgumentParser, jobs: bool = True) -> None:

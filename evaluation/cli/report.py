@@ -33,5 +33,13 @@ def command(args: argparse.Namespace) -> int:
     finally:
         if bars:
             bars.stop()
+    # the same headline as run's, read back from the metrics the report was rendered from
+    import json
+
+    from ddfuse.evaluation.cli.terminal import headline_text
+    from ddfuse.evaluation.headline import headline
+    from ddfuse.evaluation.scores import RunSummary
+    summary = RunSummary.from_json(json.loads((args.outdir / "metrics.json").read_text()))
+    sys.stdout.write(headline_text(headline(summary).lines()))
     sys.stdout.write(f"{path}\n")
     return 0
