@@ -127,7 +127,10 @@ def test_report_re_renders_from_saved_results_only(sample_run, tmp_path, capsys)
     (copy / "report.html").unlink()
     shutil.rmtree(copy / "plots")
     assert cli.main(["report", str(copy)]) == 0
-    assert capsys.readouterr().out.strip() == str(copy / "report.html")
+    # the run's headline, then the page's path last
+    out = capsys.readouterr().out.strip().splitlines()
+    assert out[0].startswith("---- headline ") and out[1].startswith("Best: ")
+    assert out[-1] == str(copy / "report.html")
     again = (copy / "report.html").read_text()
     assert _images(again) == _images(first)
     strip = re.compile(r"<p class='sub'>.*?</p>")
