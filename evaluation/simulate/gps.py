@@ -17,7 +17,7 @@ import numpy as np
 from ddfuse.estimation.geodesy import enu_to_geodetic
 from ddfuse.evaluation.simulate.motion import Truth
 from ddfuse.evaluation.simulate.scenarios import Scenario
-from ddfuse.evaluation.simulate.sensors import sample_times
+from ddfuse.evaluation.simulate.sensors import gauss_markov, sample_times
 from ddfuse.evaluation.simulate.urban_gps import MULTIPATH, urban_errors
 
 
@@ -33,21 +33,6 @@ class GpsData:
     true_enu: np.ndarray  # (n, 3) m, at t_measured
     # urban scenarios: per fix its environment (urban_gps.OPEN, CANYON, MULTIPATH, NLOS)
     environment: np.ndarray | None = None
-
-
-def gauss_markov(t: np.ndarray, w: np.ndarray, std: np.ndarray, tau: float) -> np.ndarray:
-    """First-order Gauss-Markov errors at times ``t`` (N,) s from unit white draws ``w`` (N, D):
-    e_0 = std w_0 (the stationary distribution), e_k = a_k e_k-1 + sqrt(1 - a_k^2) std w_k with
-    a_k = exp(-(t_k - t_k-1) / tau), the exact discretisation over any spacing, so every e_k
-    has std ``std`` (D,) and corr(e_j, e_k) = exp(-|t_k - t_j| / tau)."""
-    a = np.exp(-np.diff(t) / tau)
-    b = np.sqrt(1.0 - a * a)
-    e = np.empty_like(w)
-    if len(t):
-        e[0] = w[0]
-    for k in range(1, len(t)):
-        e[k] = a[k - 1] * e[k - 1] + b[k - 1] * w[k]
-    return e * std
 
 
 def simulate_gps(sc: Scenario, truth: Truth, rng: np.random.Generator) -> GpsData:

@@ -102,6 +102,21 @@ class GroundTruthData:
     fix_alt: np.ndarray  # m
 
 
+def gauss_markov(t: np.ndarray, w: np.ndarray, std: np.ndarray, tau: float) -> np.ndarray:
+    """First-order Gauss-Markov errors at times ``t`` (N,) s from unit white draws ``w`` (N, D):
+    e_0 = std w_0 (the stationary distribution), e_k = a_k e_k-1 + sqrt(1 - a_k^2) std w_k with
+    a_k = exp(-(t_k - t_k-1) / tau), the exact discretisation over any spacing, so every e_k
+    has std ``std`` (D,) and corr(e_j, e_k) = exp(-|t_k - t_j| / tau)."""
+    a = np.exp(-np.diff(t) / tau)
+    b = np.sqrt(1.0 - a * a)
+    e = np.empty_like(w)
+    if len(t):
+        e[0] = w[0]
+    for k in range(1, len(t)):
+        e[k] = a[k - 1] * e[k - 1] + b[k - 1] * w[k]
+    return e * std
+
+
 def sample_times(rng: np.random.Generator, rate: float, duration: float,
                  phase: float | None = None) -> np.ndarray:
     """Sample instants (s) on the sensor's own clock: a random phase within one period, or the

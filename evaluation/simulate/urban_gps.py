@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from ddfuse.evaluation.simulate.scenarios import UrbanGpsSpec
+from ddfuse.evaluation.simulate.sensors import gauss_markov
 
 OPEN, CANYON, MULTIPATH, NLOS = 0, 1, 2, 3  # environment of a fix (UrbanErrors.label)
 
@@ -57,18 +58,6 @@ def _events(rng: np.random.Generator, spans: list[tuple[float, float]], rate: fl
     return ev
 
 
-def _gm(t: np.ndarray, w: np.ndarray, tau: float) -> np.ndarray:
-    """Unit-variance first-order Gauss-Markov series at ``t`` from white draws ``w`` (n, d)."""
-    a = np.exp(-np.diff(t) / tau)
-    b = np.sqrt(1.0 - a * a)
-    e = np.empty_like(w)
-    if len(t):
-        e[0] = w[0]
-    for k in range(1, len(t)):
-        e[k] = a[k - 1] * e[k - 1] + b[k - 1] * w[k]
-    return e
-
-
 def urban_errors(tm: np.ndarray, duration: float, u: UrbanGpsSpec,
                  rng: np.random.Generator) -> UrbanErrors:
     """The urban errors at nominal fix times ``tm`` (n,) s of a run of ``duration`` s."""
@@ -79,10 +68,10 @@ def urban_errors(tm: np.ndarray, duration: float, u: UrbanGpsSpec,
         in_canyon |= (tm >= a) & (tm < b)
     # the receiver's ordinary error: a slow wander, larger in a canyon
     std = np.where(in_canyon, u.canyon_std, u.open_std)[:, None]
-    err = _gm(tm, rng.standard_normal((n, 2)), u.base_tau_s) * std
+    err = gauss_markov(tm, rng.standard_normal((n, 2)), 1.0, u.base_tau_s) * std
     label = np.where(in_canyon, CANYON, OPEN)
     # multipath: a reflected path's offset, held over the burst with a wobble of a fifth of it
-    wobble = _gm(tm, rng.standard_normal((n, 2)), u.burst_tau_s)
+    wobble = gauss_markov(tm, rng.standard_normal((n, 2)), 1.0, u.burst_tau_s)
     for a, b in _events(rng, canyons, u.burst_rate, u.burst_length_s):
         mag, ang = rng.uniform(*u.burst_range), rng.uniform(-np.pi, np.pi)
         sel = (tm >= a) & (tm < b) & in_canyon
