@@ -13,6 +13,7 @@ import json
 import math
 from pathlib import Path
 
+from ddfuse.evaluation.html_style import fmt
 from ddfuse.evaluation.run_files import INCOMPLETE, METRICS_FILE
 from ddfuse.evaluation.scores import RunSummary
 from ddfuse.evaluation.tuning_files import SHIPPED_DIR, TUNED_CONFIG, read_tuning
@@ -24,9 +25,7 @@ _WRAP = ' style="white-space:normal;max-width:40em"'  # the long reasons wrap in
 
 
 def _n(v, spec: str = ".3g") -> str:
-    if v is None or (isinstance(v, float) and not math.isfinite(v)):
-        return '<span class="na">–</span>'
-    return format(v, spec)
+    return fmt(v, spec)
 
 
 def _v(verdict: str | None) -> str:
