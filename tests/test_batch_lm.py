@@ -27,7 +27,7 @@ def _gtsam_lm(graph, values, params):
 
 
 def _max_diff(a: gtsam.Values, b: gtsam.Values) -> float:
-    return max(float(np.max(np.abs(a.atVector(k) - b.atVector(k)))) for k in a)
+    return max(float(np.max(np.abs(a.atVector(k) - b.atVector(k)))) for k in a.keys())  # noqa: SIM118
 
 
 def _range_factor(ka: int, kb: int, r: float, sigma: float, robust: bool) -> gtsam.CustomFactor:

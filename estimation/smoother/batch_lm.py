@@ -66,7 +66,7 @@ def levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values
     _check(params)
     ordering = gtsam.Ordering.ColamdNonlinearFactorGraph(graph)  # gtsam's ensureHasOrdering
     zero = initial.zeroVectors()
-    dims = [(int(k), zero.at(k).shape[0]) for k in initial]
+    dims = [(int(k), zero.at(k).shape[0]) for k in initial.keys()]  # noqa: SIM118 (Values: no __iter__)
     lam, factor = params.getlambdaInitial(), params.getlambdaFactor()
     upper, lower = params.getlambdaUpperBound(), params.getlambdaLowerBound()
     rel_tol, abs_tol = params.getRelativeErrorTol(), params.getAbsoluteErrorTol()
