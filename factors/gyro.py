@@ -18,7 +18,7 @@ __all__ = ["bias_difference_factor"]
 
 
 def bias_difference_factor(key: int, mean_gyro: float, mean_odo: float, sigma_gyro: float,
-                           sigma_odo: float) -> gtsam.CustomFactor:
+                           sigma_odo: float, record: list | None = None) -> gtsam.CustomFactor:
     """The gyro bias seen as the difference of two yaw rates held over the same interval.
 
     Both means are noisy: the odometry rate is a regressor with errors (errors-in-variables).
@@ -36,6 +36,9 @@ def bias_difference_factor(key: int, mean_gyro: float, mean_odo: float, sigma_gy
         mean_odo: mean odometry yaw rate over the same time, rad/s (before the k_w scale).
         sigma_gyro, sigma_odo: sigmas of the two means, rad/s (the rates' noise densities over
             the interval's duration, square-rooted).
+        record: when given, ``(factor, (zg, zo, vg, vo))`` is appended to it (the means and the
+            variances; the batch evaluates these factors together with numpy:
+            ``estimation.smoother.batch_factors``).
     """
     zg, zo = float(mean_gyro), float(mean_odo)
     vg, vo = float(sigma_gyro) ** 2, float(sigma_odo) ** 2
@@ -59,4 +62,7 @@ def bias_difference_factor(key: int, mean_gyro: float, mean_odo: float, sigma_gy
         me[0] = r / sd
         return e
 
-    return gtsam.CustomFactor(as_noise_model(1.0, 1), [key], error)
+    factor = gtsam.CustomFactor(as_noise_model(1.0, 1), [key], error)
+    if record is not None:
+        record.append((factor, (zg, zo, vg, vo)))
+    return factor

@@ -47,6 +47,9 @@ from ddfuse.factors.state import BG, DIM, KV, KW
 __all__ = ["WheelGyroPreintegration", "integrate_step", "preintegrated_factor"]
 
 _PI = math.pi
+# what ``preintegrated_factor(record=...)`` records, in order (the names of its closure)
+RECORD_FIELDS = ("ddx", "ddy", "ddp", "jx", "jy", "jp", "vx", "vy", "wx", "wy", "wp", "bl", "kvl",
+                 "kwl", "zv", "zw", "zo", "zg")
 _TWO_PI = 2.0 * math.pi
 
 
@@ -246,6 +249,7 @@ def preintegrated_factor(
     pose_noise: tuple[float, float, float] = (0.01, 0.01, 0.001),
     noise: gtsam.noiseModel.Base | None = None,
     scale_rw: float = 1e-5,
+    record: list | None = None,
 ) -> gtsam.CustomFactor:
     """Preintegrated wheel+gyro factor between keyframe states ``key_i`` and ``key_j``.
 
@@ -261,6 +265,9 @@ def preintegrated_factor(
         noise: a 9-D noise model that replaces the computed one (e.g. robust), optional.
         scale_rw: random-walk density of the odometry scales, 1/sqrt(s): constants in truth, a
             floor that keeps the covariance invertible.
+        record: when given, ``(factor, noise model, constants)`` is appended to it, the
+            constants in the order of ``RECORD_FIELDS`` (the batch evaluates these factors
+            together with numpy: ``estimation.smoother.batch_factors``).
 
     Returns a ``gtsam.CustomFactor`` with the 9-D error of the module docstring.
     """
@@ -347,4 +354,8 @@ def preintegrated_factor(
         me[8] = kwj - kwi
         return e
 
-    return gtsam.CustomFactor(noise, [key_i, key_j], error)
+    factor = gtsam.CustomFactor(noise, [key_i, key_j], error)
+    if record is not None:
+        record.append((factor, noise, (ddx, ddy, ddp, jx, jy, jp, vx, vy, wx, wy, wp, bl, kvl,
+                                       kwl, zv, zw, zo, zg)))
+    return factor

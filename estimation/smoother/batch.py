@@ -8,6 +8,7 @@ import gtsam
 from ddfuse.estimation.config import Config
 from ddfuse.estimation.estimator import Estimate, wrap_angle
 from ddfuse.estimation.runner import TrackBuilder
+from ddfuse.estimation.smoother.batch_factors import VectorisedGraph
 from ddfuse.estimation.smoother.batch_lm import levenberg_marquardt
 from ddfuse.estimation.smoother.fixed_lag import FixedLagSmoother
 from ddfuse.factors.state import NAMES
@@ -37,10 +38,13 @@ class BatchSmoother(FixedLagSmoother):
         params.setRelativeErrorTol(1e-6)
         try:
             window = self.window
-            # gtsam's LM, iterated from Python: its own optimizer would hand every CustomFactor
-            # callback a copy of the whole run's Values (batch_lm's docstring)
-            result = levenberg_marquardt(window.all_graph, window.all_values, params).values
-            marg = gtsam.Marginals(window.all_graph, result)
+            # gtsam's LM iterated from Python (its own optimizer would hand every CustomFactor
+            # callback a copy of the whole run's Values), with the preintegrated and
+            # bias-difference factors evaluated together with numpy (batch_lm, batch_factors)
+            system = VectorisedGraph(window.all_graph, self.factor_record)
+            result = levenberg_marquardt(window.all_graph, window.all_values, params,
+                                         system).values
+            marg = gtsam.Marginals(system.linearize(result), result)
         except RuntimeError as e:
             self.log.note(self.twist.last_t, f"batch optimisation failed: {e}")
             return

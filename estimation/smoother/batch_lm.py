@@ -58,11 +58,13 @@ def _damping(dims: list[tuple[int, int]], lam: float) -> gtsam.GaussianFactorGra
 
 
 def levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values,
-                        params: gtsam.LevenbergMarquardtParams) -> LmResult:
+                        params: gtsam.LevenbergMarquardtParams, system=None) -> LmResult:
     """Minimise ``graph``'s error from ``initial`` as gtsam's ``LevenbergMarquardtOptimizer``
     with ``params`` does (isotropic damping, fixed lambda factor, multifrontal Cholesky in COLAMD
     order; ValueError for other params). A system that cannot be solved at any lambda is not an
-    error: as gtsam, it stops at ``lambdaUpperBound`` with the values it has."""
+    error: as gtsam, it stops at ``lambdaUpperBound`` with the values it has. ``system``: what
+    linearises ``graph`` and evaluates its error (``linearize(values)``, ``error(values)``, e.g.
+    ``batch_factors.VectorisedGraph``); by default ``graph`` itself."""
     _check(params)
     ordering = gtsam.Ordering.ColamdNonlinearFactorGraph(graph)  # gtsam's ensureHasOrdering
     zero = initial.zeroVectors()
@@ -71,12 +73,13 @@ def levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values
     upper, lower = params.getlambdaUpperBound(), params.getlambdaLowerBound()
     rel_tol, abs_tol = params.getRelativeErrorTol(), params.getAbsoluteErrorTol()
     max_iter = params.getMaxIterations()
-    values, error, iterations, rejected = initial, graph.error(initial), 0, 0
+    system = graph if system is None else system
+    values, error, iterations, rejected = initial, system.error(initial), 0, 0
     if error <= params.getErrorTol() or iterations >= max_iter:
         return LmResult(values, iterations, error, lam)
     while True:
         current = error
-        linear = graph.linearize(values)
+        linear = system.linearize(values)
         old_linear = linear.error(zero)
         while True:  # tryLambda until it returns true
             damped = gtsam.GaussianFactorGraph()
@@ -91,7 +94,7 @@ def levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values
                 change_linear = old_linear - linear.error(delta)
                 if change_linear >= 0.0:
                     new_values = values.retract(delta)
-                    new_error = graph.error(new_values)
+                    new_error = system.error(new_values)
                     change = error - new_error
                     if change_linear > np.finfo(float).eps * old_linear:
                         success = change / change_linear > MIN_MODEL_FIDELITY

@@ -112,6 +112,8 @@ class FixedLagSmoother(Estimator):
         self.now = -math.inf  # stamp of the newest message seen
         log, noise = self.log, self.noise
         self.window = Window(self.lag, keep_all=self.keep_all, lagged=lagged)
+        # the batch's record of its preintegrated and bias-difference factors (batch_factors)
+        self.factor_record: list | None = [] if self.keep_all else None
         self.twist = HeldTwist(cfg.robot, noise, pim_class, self.fixed_bias)
         self.gating = Gating(self.window, noise, log, est_bias=self.est_bias,
                              est_hoff=self.est_hoff)
@@ -296,7 +298,7 @@ class FixedLagSmoother(Estimator):
             gyro_bias_rw=n.gyro_bias_rw if self.est_bias else n.fixed_rw,
             heading_offset_rw=headings.offset_walk(),
             pose_noise=n.pose_noise,
-            scale_rw=self._scale_rw))
+            scale_rw=self._scale_rw, record=self.factor_record))
         kf_state = window.kf_state
         guess = pim.predict(kf_state)
         pose, cov = compose(kf_state, twist.delta(kf_state, pim), pim.covariance, window.kf_cov)
@@ -313,7 +315,7 @@ class FixedLagSmoother(Estimator):
         if diff is not None:
             # mean gyro - k_w x mean odometry yaw rate over the interval: a measurement of the
             # gyro bias (not a linear row: its sigma depends on k_w, errors in both rates)
-            window.add(bias_difference_factor(kj, *diff))
+            window.add(bias_difference_factor(kj, *diff, record=self.factor_record))
         if rows:
             # linear in the state: one C++ factor, no Python callback per relinearisation
             window.add(linear_state_factor(kj, rows, guess))
