@@ -111,6 +111,7 @@ def levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values
             if lam >= upper:
                 break
         decrease = current - error
-        converged = (rel_tol and decrease / current <= rel_tol) or decrease <= abs_tol
+        converged = current == 0.0 or (rel_tol and decrease / current <= rel_tol) \
+            or decrease <= abs_tol
         if iterations >= max_iter or converged or not math.isfinite(current):
             return LmResult(values, iterations, error, lam, rejected)
