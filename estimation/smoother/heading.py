@@ -234,16 +234,27 @@ class HeadingAccumulator:
         # the marginal: numpy on 9-vectors cost 10-20 us here, per output sample
         x = st.tolist()
         nz = [(i, c) for i, c in terms if c != 0.0]
-        i, c = nz[0]
-        ph = [c * b for b in f[i]]
-        pred = c * x[i]
-        for i, c in nz[1:]:
-            ph = [a + c * b for a, b in zip(ph, f[i], strict=True)]
-            pred += c * x[i]
-        s = sum(c * ph[i] for i, c in nz) + var
+        if len(nz) == 4:  # psi, bias, offset, scale (the Husky's): one pass, the same sums
+            (i0, c0), (i1, c1), (i2, c2), (i3, c3) = nz
+            ph = [c0 * a + c1 * b + c2 * c + c3 * d
+                  for a, b, c, d in zip(f[i0], f[i1], f[i2], f[i3], strict=True)]
+            pred = c0 * x[i0] + c1 * x[i1] + c2 * x[i2] + c3 * x[i3]
+            s = 0.0 + c0 * ph[i0] + c1 * ph[i1] + c2 * ph[i2] + c3 * ph[i3] + var
+        else:
+            i, c = nz[0]
+            ph = [c * b for b in f[i]]
+            pred = c * x[i]
+            for i, c in nz[1:]:
+                ph = [a + c * b for a, b in zip(ph, f[i], strict=True)]
+                pred += c * x[i]
+            s = sum(c * ph[i] for i, c in nz) + var
         g = wrap_angle(z - pred) / s  # innovation over its variance
         x = np.array([xi + pi * g for xi, pi in zip(x, ph, strict=True)])
-        p = np.array([[sym[i][j] - ph[i] * ph[j] / s for j in range(3)] for i in range(3)])
+        p0, p1, p2 = ph[0], ph[1], ph[2]
+        (s00, s01, s02), (_, s11, s12), (_, _, s22) = sym
+        p01, p02, p12 = s01 - p0 * p1 / s, s02 - p0 * p2 / s, s12 - p1 * p2 / s
+        p = np.array(((s00 - p0 * p0 / s, p01, p02), (p01, s11 - p1 * p1 / s, p12),
+                      (p02, p12, s22 - p2 * p2 / s)))
         out = (x, p)
         self._cache = (key, out)
         return out
