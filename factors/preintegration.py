@@ -181,6 +181,12 @@ class WheelGyroPreintegration:
                 self.dy + self.j_y * db + self.kv_y * dv + self.kw_y * dw,
                 self.dpsi + self.j_p * db + self.kw_p * dw)
 
+    def yaw_terms(self) -> tuple[float, float, float, float]:
+        """(dpsi rad, j_p, kw_p, c_pp rad^2): the preintegrated yaw, its first-order terms in
+        the gyro bias and the yaw-rate scale, and its variance (what a heading sample carried
+        back to keyframe i reads)."""
+        return self.dpsi, self.j_p, self.kw_p, self.c_pp
+
     def partial(self, bg: float, kv: float, kw: float) -> tuple[tuple[float, float, float],
                                                                 list[list[float]]]:
         """``delta_at(bg, kv, kw)`` and ``covariance`` as three row lists, together: what an

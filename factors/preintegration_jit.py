@@ -122,6 +122,11 @@ class WheelGyroPreintegrationJit(WheelGyroPreintegration):
         integrate(self.s, float(dt), float(v), float(w_gyro), float(var_v), float(var_w),
                   float(gain), float(w_odo))
 
+    def yaw_terms(self) -> tuple[float, float, float, float]:
+        """As ``WheelGyroPreintegration.yaw_terms``, from one read of the array."""
+        s = self.s.tolist()
+        return s[DPSI], s[J_P], s[KW_P], s[C_PP]
+
     def partial(self, bg: float, kv: float, kw: float) -> tuple[tuple[float, float, float],
                                                                 list[list[float]]]:
         """As ``WheelGyroPreintegration.partial``, from one read of the array."""

@@ -50,9 +50,9 @@ class HeadingAccumulator:
         left out."""
         self.latest = m
         if self.n == 0 or m.sensor == self._sensor:
-            pim = self.twist.pim
-            u = m.yaw - pim.dpsi  # carried back to the interval's start
-            if not self.gate(m, u):
+            dpsi, j_p, kw_p, c = self.twist.pim.yaw_terms()
+            u = m.yaw - dpsi  # carried back to the interval's start
+            if not self.gate(m, u, c):
                 return False
             if self.n == 0:
                 self._sensor, self._ref, self._sum, self._var = m.sensor, u, 0.0, 0.0
@@ -62,18 +62,18 @@ class HeadingAccumulator:
             # what the carried yaw depends on: the gyro bias and yaw-rate scale (first
             # order), and the yaw noise integrated up to the sample (its index-weighted
             # sum gives the mean's variance, ``pending``)
-            self._jb += pim.j_p
-            self._jk += pim.kw_p
-            c = pim.c_pp
+            self._jb += j_p
+            self._jk += kw_p
             self._c1 += c
             self._c2 += self.n * c
             self.n += 1
         return True
 
-    def gate(self, m: Heading, u: float) -> bool:
-        """Whether heading sample ``m`` (``u``: its yaw carried back to the newest keyframe)
-        passes its sensor's chi-square gate, as in the EKFs: against the keyframe's marginal,
-        the yaw preintegrated since it and the sample's own variance. A lock-out (a run of
+    def gate(self, m: Heading, u: float, c_pp: float) -> bool:
+        """Whether heading sample ``m`` (``u``: its yaw carried back to the newest keyframe,
+        ``c_pp`` rad^2 the variance of the yaw preintegrated since it) passes its sensor's
+        chi-square gate, as in the EKFs: against the keyframe's marginal, the yaw
+        preintegrated since it and the sample's own variance. A lock-out (a run of
         rejections, ``ddfuse.estimation.lockout``) with GPS fixes or landmark sightings fused since
         it began means the compass is the outlier (a wrong fixed offset, a magnetic
         disturbance): it stays gated out, with a note. Without them the estimate is lost: the
@@ -102,7 +102,7 @@ class HeadingAccumulator:
         _, _, pred, hph, offset, rad2, use_offset = c
         if rad2 == math.inf:  # no gate for this sensor (or no marginal yet)
             return True
-        r = m.var + self.twist.pim.c_pp
+        r = m.var + c_pp
         y = (u - offset - pred + math.pi) % (2.0 * math.pi) - math.pi  # wrap_angle, inlined
         key = (m.sensor, "heading")
         if y * y <= rad2 * (hph + r):
