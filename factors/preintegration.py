@@ -184,6 +184,21 @@ class WheelGyroPreintegration:
                 self.dy + self.j_y * db + self.kv_y * dv + self.kw_y * dw,
                 self.dpsi + self.j_p * db + self.kw_p * dw)
 
+    def yaw_terms(self) -> tuple[float, float, float, float]:
+        """(dpsi rad, j_p, kw_p, c_pp rad^2): the preintegrated yaw, its first-order terms in
+        the gyro bias and the yaw-rate scale, and its variance (what a heading sample carried
+        back to keyframe i reads)."""
+        return self.dpsi, self.j_p, self.kw_p, self.c_pp
+
+    def partial(self, bg: float, kv: float, kw: float) -> tuple[tuple[float, float, float],
+                                                                list[list[float]]]:
+        """``delta_at(bg, kv, kw)`` and ``covariance`` as three row lists, together: what an
+        output between keyframes composes with the keyframe (one read of the compiled twin's
+        array instead of a ``frozen`` copy)."""
+        return self.delta_at(bg, kv, kw), [[self.c_xx, self.c_xy, self.c_xp],
+                                           [self.c_xy, self.c_yy, self.c_yp],
+                                           [self.c_xp, self.c_yp, self.c_pp]]
+
     @property
     def bias_jacobian(self) -> tuple[float, float, float]:
         """d(dx, dy, dpsi)/d bg, in (m, m, rad) per rad/s."""

@@ -122,6 +122,24 @@ class WheelGyroPreintegrationJit(WheelGyroPreintegration):
         integrate(self.s, float(dt), float(v), float(w_gyro), float(var_v), float(var_w),
                   float(gain), float(w_odo))
 
+    def yaw_terms(self) -> tuple[float, float, float, float]:
+        """As ``WheelGyroPreintegration.yaw_terms``, from one read of the array."""
+        s = self.s.tolist()
+        return s[DPSI], s[J_P], s[KW_P], s[C_PP]
+
+    def partial(self, bg: float, kv: float, kw: float) -> tuple[tuple[float, float, float],
+                                                                list[list[float]]]:
+        """As ``WheelGyroPreintegration.partial``, from one read of the array."""
+        s = self.s.tolist()
+        db = bg - s[BG_LIN]
+        dv = kv - s[KV_LIN]
+        dw = kw - s[KW_LIN]
+        cxy, cxp, cyp = s[C_XY], s[C_XP], s[C_YP]
+        return ((s[DX] + s[J_X] * db + s[KV_X] * dv + s[KW_X] * dw,
+                 s[DY] + s[J_Y] * db + s[KV_Y] * dv + s[KW_Y] * dw,
+                 s[DPSI] + s[J_P] * db + s[KW_P] * dw),
+                [[s[C_XX], cxy, cxp], [cxy, s[C_YY], cyp], [cxp, cyp, s[C_PP]]])
+
     def frozen(self) -> WheelGyroPreintegration:
         """The current interval as a reference-class object (a copy, plain float attributes):
         for code that reads many attributes (``preintegrated_factor``, ``predict``, ``delta_at``,

@@ -61,6 +61,31 @@ def test_integrate_equals_reference(seed):
     assert jit.n == 0 and jit.last_gain == 1.0 and jit.kv_lin == 1.05
 
 
+@pytest.mark.parametrize("seed", range(2))
+def test_one_read_accessors_equal_the_frozen_copy(seed):
+    """``partial`` and ``yaw_terms`` (what the filtered output and each heading sample read, one
+    array read instead of a ``frozen`` copy or a property per attribute) give bit for bit what
+    the copy's ``delta_at``, ``covariance`` and attributes give, and the reference's to 1e-9."""
+    rng = np.random.default_rng(10 + seed)
+    ref = WheelGyroPreintegration(0.003, keep_samples=False, kv_lin=1.02, kw_lin=0.97)
+    jit = WheelGyroPreintegrationJit(0.003, keep_samples=False, kv_lin=1.02, kw_lin=0.97)
+    for s in _samples(rng, 50):
+        ref.integrate(*s)
+        jit.integrate(*s)
+    bg, kv, kw = 0.0041, 1.013, 0.982
+    frozen = jit.frozen()
+    delta, cov = jit.partial(bg, kv, kw)
+    assert delta == frozen.delta_at(bg, kv, kw)
+    assert cov == frozen.covariance.tolist()
+    assert jit.yaw_terms() == (frozen.dpsi, frozen.j_p, frozen.kw_p, frozen.c_pp)
+    ref_delta, ref_cov = ref.partial(bg, kv, kw)
+    assert ref_delta == ref.delta_at(bg, kv, kw)
+    np.testing.assert_allclose(delta, ref_delta, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(cov, ref_cov, rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(jit.yaw_terms(), ref.yaw_terms(), rtol=1e-9, atol=1e-15)
+    assert abs(delta[0] - jit.dx) > 0.0  # the bias and scales moved the increment
+
+
 def test_factor_from_jit_equals_factor_from_reference():
     rng = np.random.default_rng(9)
     ref = WheelGyroPreintegration(0.003, keep_samples=False, kv_lin=1.02, kw_lin=0.97)

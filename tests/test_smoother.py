@@ -605,12 +605,15 @@ def test_filtered_estimate_uses_the_headings_since_the_newest_keyframe(husky):
     assert shift == pytest.approx(kf_shift, rel=0.2)
 
 
-def test_the_pending_headings_update_is_the_dense_kalman_update(husky):
-    """``with_pending`` works on the few non-zeros of h in Python floats; it is the dense
-    scalar update x + P h (z - h x) / s, pose block of P - P h h^T P / s (symmetrised)."""
+@pytest.mark.parametrize("est_scales", [True, False])
+def test_the_pending_headings_update_is_the_dense_kalman_update(husky, est_scales):
+    """``with_pending`` works on the few non-zeros of h in Python floats (one pass when they are
+    psi, bias, offset and scale, a loop otherwise); it is the dense scalar update
+    x + P h (z - h x) / s, pose block of P - P h h^T P / s (symmetrised)."""
     cfg, stream = husky
     ms = stream.measurements
     sm = FixedLagSmoother(cfg, initial_pose=_pose0(stream))
+    sm.headings.est_scales = est_scales  # without the scale's term: the loop
     checked = 0
     for m in ms:
         sm.process(m)
@@ -625,7 +628,7 @@ def test_the_pending_headings_update_is_the_dense_kalman_update(husky):
             want_p = sym[:3, :3] - np.outer(ph[:3], ph[:3]) / s
             np.testing.assert_allclose(x, want_x, rtol=1e-12, atol=1e-15)
             np.testing.assert_allclose(p, want_p, rtol=1e-12, atol=1e-15)
-            assert np.count_nonzero(h) >= 2  # psi and the offset, at least
+            assert np.count_nonzero(h) == (4 if est_scales else 3)  # psi, offset, bias[, k_w]
             checked += 1
     assert checked == 40
 

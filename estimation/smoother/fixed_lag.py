@@ -344,8 +344,7 @@ class FixedLagSmoother(Estimator):
             return None
         twist = self.twist
         st, kf_cov = self.headings.with_pending()
-        pim = twist.frozen()
-        pose, cov = compose(st, twist.delta(st, pim), pim.covariance, kf_cov)
+        pose, cov = compose(st, *twist.partial(st), kf_cov)
         cov = self.window.with_gauge(self.window.k, cov)
         t = twist.last_t
         ahead = self.now - t

@@ -41,6 +41,7 @@ class HeadingAccumulator:
         self._sensor, self._ref, self._sum, self._var = "", 0.0, 0.0, 0.0
         self._jb = self._jk = self._c1 = self._c2 = 0.0
         self._cache = None  # (key, (state, pose cov)) of with_pending
+        self._rows = None  # (marginal, its rows as lists, symmetrised pose block): with_pending
         self._gate_terms: tuple | None = None  # the gate's per-keyframe terms (gate)
 
     def add(self, m: Heading) -> bool:
@@ -49,9 +50,9 @@ class HeadingAccumulator:
         left out."""
         self.latest = m
         if self.n == 0 or m.sensor == self._sensor:
-            pim = self.twist.pim
-            u = m.yaw - pim.dpsi  # carried back to the interval's start
-            if not self.gate(m, u):
+            dpsi, j_p, kw_p, c = self.twist.pim.yaw_terms()
+            u = m.yaw - dpsi  # carried back to the interval's start
+            if not self.gate(m, u, c):
                 return False
             if self.n == 0:
                 self._sensor, self._ref, self._sum, self._var = m.sensor, u, 0.0, 0.0
@@ -61,18 +62,18 @@ class HeadingAccumulator:
             # what the carried yaw depends on: the gyro bias and yaw-rate scale (first
             # order), and the yaw noise integrated up to the sample (its index-weighted
             # sum gives the mean's variance, ``pending``)
-            self._jb += pim.j_p
-            self._jk += pim.kw_p
-            c = pim.c_pp
+            self._jb += j_p
+            self._jk += kw_p
             self._c1 += c
             self._c2 += self.n * c
             self.n += 1
         return True
 
-    def gate(self, m: Heading, u: float) -> bool:
-        """Whether heading sample ``m`` (``u``: its yaw carried back to the newest keyframe)
-        passes its sensor's chi-square gate, as in the EKFs: against the keyframe's marginal,
-        the yaw preintegrated since it and the sample's own variance. A lock-out (a run of
+    def gate(self, m: Heading, u: float, c_pp: float) -> bool:
+        """Whether heading sample ``m`` (``u``: its yaw carried back to the newest keyframe,
+        ``c_pp`` rad^2 the variance of the yaw preintegrated since it) passes its sensor's
+        chi-square gate, as in the EKFs: against the keyframe's marginal, the yaw
+        preintegrated since it and the sample's own variance. A lock-out (a run of
         rejections, ``ddfuse.estimation.lockout``) with GPS fixes or landmark sightings fused since
         it began means the compass is the outlier (a wrong fixed offset, a magnetic
         disturbance): it stays gated out, with a note. Without them the estimate is lost: the
@@ -101,7 +102,7 @@ class HeadingAccumulator:
         _, _, pred, hph, offset, rad2, use_offset = c
         if rad2 == math.inf:  # no gate for this sensor (or no marginal yet)
             return True
-        r = m.var + self.twist.pim.c_pp
+        r = m.var + c_pp
         y = (u - offset - pred + math.pi) % (2.0 * math.pi) - math.pi  # wrap_angle, inlined
         key = (m.sensor, "heading")
         if y * y <= rad2 * (hph + r):
@@ -170,6 +171,16 @@ class HeadingAccumulator:
         out, an uncertain bias biases the heading). The variance: the samples' own var / n plus the
         mean's share of the integrated yaw noise (white: c_i = var(dpsi_i), Var(mean_i int_0^t_i) =
         sum_il c_min(i,l) / n^2, and Var(mean_i int_t_i^T) = C_T - sum_il c_max(i,l) / n^2)."""
+        terms, z, var = self.terms(closing)
+        h = np.zeros(DIM)
+        for i, c in terms:
+            h[i] = c
+        return h, z, var
+
+    def terms(self, closing=None) -> tuple[list[tuple[int, float]], float, float]:
+        """``pending``'s measurement with h as its (index, coefficient) pairs in index order
+        (psi, then the gyro bias, offset and yaw-rate scale when they are in it): the few
+        entries ``with_pending`` works on, without a dense h."""
         s = self.sensors[self._sensor]
         n = self.n
         z = self._ref + self._sum / n
@@ -182,19 +193,19 @@ class HeadingAccumulator:
             z += pim.dpsi
             jb, jk = jb - pim.j_p, jk - pim.kw_p
             carried = pim.c_pp - (2.0 * c2 + c1) / (n * n)
-        h = np.zeros(DIM)
-        h[PSI] = 1.0
+        terms = [(PSI, 1.0)]
+        if self.est_bias:
+            terms.append((BG, jb))
         if s.heading_offset == "estimate":
-            h[HOFF] = 1.0
+            terms.append((HOFF, 1.0))
         else:
             z -= float(s.heading_offset)
         if self.est_bias:
-            h[BG] = jb
             z += jb * pim.bg_lin
         if self.est_scales:
-            h[KW] = jk
+            terms.append((KW, jk))
             z += jk * pim.kw_lin
-        return h, z, self._var / (n * n) + max(carried, 0.0)
+        return terms, z, self._var / (n * n) + max(carried, 0.0)
 
     def with_pending(self) -> tuple[np.ndarray, np.ndarray]:
         """The newest keyframe's state and 3x3 pose covariance, updated (outside the graph)
@@ -210,23 +221,40 @@ class HeadingAccumulator:
         key = (self.n, window.k, id(st), id(full))
         if self._cache is not None and self._cache[0] == key:
             return self._cache[1]
-        h, z, var = self.pending()
+        rows = self._rows
+        if rows is None or rows[0] is not full:
+            # the marginal's rows as Python floats and its symmetrised pose block, once per
+            # update of the keyframe, not per output sample
+            f = full.tolist()
+            rows = self._rows = (full, f, [[0.5 * (f[i][j] + f[j][i]) for j in range(3)]
+                                           for i in range(3)])
+        _, f, sym = rows
+        terms, z, var = self.terms()
         # Python floats over h's few non-zeros (psi, offset, bias, scale), only their rows of
         # the marginal: numpy on 9-vectors cost 10-20 us here, per output sample
         x = st.tolist()
-        nz = [(i, c) for i, c in enumerate(h.tolist()) if c != 0.0]
-        i, c = nz[0]
-        ph = [c * b for b in full[i].tolist()]
-        pred = c * x[i]
-        for i, c in nz[1:]:
-            ph = [a + c * b for a, b in zip(ph, full[i].tolist(), strict=True)]
-            pred += c * x[i]
-        s = sum(c * ph[i] for i, c in nz) + var
+        nz = [(i, c) for i, c in terms if c != 0.0]
+        if len(nz) == 4:  # psi, bias, offset, scale (the Husky's): one pass, the same sums
+            (i0, c0), (i1, c1), (i2, c2), (i3, c3) = nz
+            ph = [c0 * a + c1 * b + c2 * c + c3 * d
+                  for a, b, c, d in zip(f[i0], f[i1], f[i2], f[i3], strict=True)]
+            pred = c0 * x[i0] + c1 * x[i1] + c2 * x[i2] + c3 * x[i3]
+            s = 0.0 + c0 * ph[i0] + c1 * ph[i1] + c2 * ph[i2] + c3 * ph[i3] + var
+        else:
+            i, c = nz[0]
+            ph = [c * b for b in f[i]]
+            pred = c * x[i]
+            for i, c in nz[1:]:
+                ph = [a + c * b for a, b in zip(ph, f[i], strict=True)]
+                pred += c * x[i]
+            s = sum(c * ph[i] for i, c in nz) + var
         g = wrap_angle(z - pred) / s  # innovation over its variance
         x = np.array([xi + pi * g for xi, pi in zip(x, ph, strict=True)])
-        f = full[:3, :3].tolist()
-        p = np.array([[0.5 * (f[i][j] + f[j][i]) - ph[i] * ph[j] / s for j in range(3)]
-                      for i in range(3)])
+        p0, p1, p2 = ph[0], ph[1], ph[2]
+        (s00, s01, s02), (_, s11, s12), (_, _, s22) = sym
+        p01, p02, p12 = s01 - p0 * p1 / s, s02 - p0 * p2 / s, s12 - p1 * p2 / s
+        p = np.array(((s00 - p0 * p0 / s, p01, p02), (p01, s11 - p1 * p1 / s, p12),
+                      (p02, p12, s22 - p2 * p2 / s)))
         out = (x, p)
         self._cache = (key, out)
         return out

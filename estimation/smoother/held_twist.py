@@ -232,6 +232,12 @@ class HeldTwist:
             f.last_var_v, f.last_var_w = self._last_vars
         return f
 
+    def partial(self, st) -> tuple[tuple[float, float, float], list[list[float]]]:
+        """The open interval's increment at the biases and scales of state ``st`` and its 3x3
+        covariance (row lists): ``delta(st, frozen())`` and ``frozen().covariance`` without the
+        copy."""
+        return self.pim.partial(float(st[BG]), float(st[KV]), float(st[KW]))
+
     def delta(self, st, pim=None) -> tuple[float, float, float]:
         """The partial preintegrated increment at the biases and scales of state ``st``."""
         pim = self.pim if pim is None else pim

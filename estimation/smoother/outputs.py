@@ -16,14 +16,15 @@ from ddfuse.factors.state import BG, DIM, HOFF, KV, NAMES
 
 def compose(state, delta, pim_cov, pose_cov):
     """Pose of (state's pose) (+) delta and its 3x3 world-frame covariance J P J^T + R C R^T,
-    with J the Jacobian of the composition wrt the keyframe pose and R the keyframe rotation.
-    Scalar arithmetic: called for every output sample."""
+    with J the Jacobian of the composition wrt the keyframe pose and R the keyframe rotation;
+    ``pim_cov`` (3, 3) an array or three row lists. Scalar arithmetic: called for every output
+    sample."""
     x, y, psi = float(state[0]), float(state[1]), float(state[2])
     dx, dy, dp = delta
     c, s = math.cos(psi), math.sin(psi)
     a, b = -s * dx - c * dy, c * dx - s * dy  # d(position)/d psi
     p = pose_cov.tolist()
-    q = pim_cov.tolist()
+    q = pim_cov if isinstance(pim_cov, list) else pim_cov.tolist()
     # J P J^T with J = [[1, 0, a], [0, 1, b], [0, 0, 1]]
     p00 = p[0][0] + 2 * a * p[0][2] + a * a * p[2][2]
     p01 = p[0][1] + a * p[1][2] + b * p[0][2] + a * b * p[2][2]
