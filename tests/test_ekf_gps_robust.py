@@ -145,3 +145,35 @@ def test_on_a_burst_an_ekf_with_the_model_beats_itself_without(cls, reference):
             assert any("following the odometry" in n for n in ekf.log.messages)
     assert worst["cauchy"] < worst["default"]
     assert worst["cauchy"] < 0.5 * off
+
+
+def test_the_trajectory_figure_marks_the_ekfs_outliers_beside_the_smoothers():
+    """Fixes 12-14 s of a straight drive moved 40 m east: the EKF under the Cauchy model takes
+    each of them for an outlier (and none before the burst), ``plots.gps_outliers`` finds them
+    for it, and the trajectory figure draws its marks beside the smoother's."""
+    from ddfuse.estimation.measurements import Stream
+    from ddfuse.estimation.runner import run
+    from ddfuse.estimation.smoother.fixed_lag import FixedLagSmoother
+    from ddfuse.evaluation.plots import gps_outliers, trajectories
+    from ddfuse.evaluation.results import SavedRun
+
+    rng = np.random.default_rng(2)
+
+    def burst(t, e, n):
+        return (e + 40.0, n) if 12.0 <= t < 14.0 else (e, n)
+
+    ms = list(straight_drive(DATUM, 0.0, 2.0, 20.0, rng, r_wheel=R_WHEEL, sig_wheel=0.1,
+                             sig_gyro=0.01, sig_gps=1.0, fix_hook=burst))
+    cfg = _cfg("cauchy")
+    result = run(Stream(ms, datum=DATUM, t0=0.0, t1=20.0), {
+        "smoother": FixedLagSmoother(cfg, initial_pose=(0.0, 0.0, 0.0), lag=5.0),
+        "ekf": UnicycleEkf(cfg, initial_pose=(0.0, 0.0, 0.0))})
+    saved = SavedRun.from_result(result)
+    mask, who = gps_outliers(saved, only="ekf")
+    assert who == "ekf"
+    moved = (saved.gps_t >= 12.0) & (saved.gps_t < 14.0)
+    assert mask[moved].all() and not mask[saved.gps_t < 12.0].any()
+    fig = trajectories(saved)
+    labels = [h.get_label() for h in fig.axes[0].get_lines()]
+    assert any(lb.startswith("GPS fixes rejected or taken for outliers by ekf") for lb in labels)
+    assert any("by smoother" in lb for lb in labels)
