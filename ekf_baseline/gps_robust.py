@@ -8,13 +8,16 @@ Per GPS sensor, :class:`EkfRobustGps` judges each fix's innovation (y (2,) m, it
   (``estimation.gps_scale.GpsScale``, the smoother's rule);
 * the fix is fused with R s^2 / w, w the weight of the model's M-estimator
   (``kernel_weight``; 'maxmix' uses Cauchy's) at the NIS against S with the scaled R: the
-  filter's analogue of an iteratively re-weighted factor; 1 / w is bounded by ``MAX_FACTOR``;
+  filter's analogue of an iteratively re-weighted factor; 1 / w is bounded by ``MAX_FACTOR``.
+  A fix whose scaled NIS is beyond the sensor's gate is not fused at all: a filter cannot
+  take a fix back, and one 50 m jump fused at weight 0.1 after an outage moved it 15 m;
 * a sliding-window chi-square test: over the fixes of the last ``fault_window`` s (at least
   ``MIN_WINDOW_FIXES``), the sum of their scaled NIS, each capped at the sensor's gate (one
-  gross jump counts as one rejected fix, not as a hundred), beyond chi-square(2 N)'s
-  ``WINDOW_PROB`` quantile declares the GPS faulty: its fixes are not fused, the filter
-  dead-reckons, its covariance grows, and the GPS is re-admitted at the first fix whose window
-  is consistent again;
+  gross jump counts as one rejected fix, not as a hundred), beyond chi-square(2 N_eff)'s
+  ``WINDOW_PROB`` quantile (scaled to the N fixes; N_eff = 1 + span / tau independent fixes
+  for a sensor whose ``correlation_time`` tau is stated, else N) declares the GPS faulty: its
+  fixes are not fused, the filter dead-reckons, its covariance grows, and the GPS is
+  re-admitted at the first fix whose window is consistent again;
 * bounded: if the window is still inconsistent ``fault_hold`` s after the GPS was declared
   faulty, the filter takes itself for lost -- P is inflated so the fix is ordinary (the gate
   lock-out's recovery, ``KalmanCore``) and the GPS followed again; the next hold doubles until
@@ -46,7 +49,8 @@ class EkfRobustGps:
     """One GPS sensor's robust model in an EKF (module docstring). ``gm``: the config's
     ``gps``; ``gate``: the sensor's chi-square acceptance probability (None: 0.9999)."""
 
-    def __init__(self, sensor: str, gm: GpsModelConfig, gate: float | None) -> None:
+    def __init__(self, sensor: str, gm: GpsModelConfig, gate: float | None,
+                 tau: float = 0.0) -> None:
         self.sensor = sensor
         self.model = gm.model if gm.model in KERNEL_K else "cauchy"
         self.k = gm.k if gm.k is not None else KERNEL_K[self.model]
@@ -54,6 +58,7 @@ class EkfRobustGps:
         self.gate_nis = chi2.ppf(0.9999 if gate is None else gate, 2)
         self.window = float(gm.fault_window)
         self.hold = float(gm.fault_hold)
+        self.tau = float(tau)
         self._hold_now = self.hold
         self._win: deque[tuple[float, float]] = deque()  # (stamp, capped scaled NIS)
         self._sum = 0.0
@@ -87,17 +92,18 @@ class EkfRobustGps:
                     f"{self.window:.0f} s inconsistent (window chi-square {self._sum:.0f} > "
                     f"{self._limit():.0f}); following the odometry")))
                 return EXCLUDE, f, True
-            if not outlier:
-                # the NIS with the stated R: the scale is learned from the inliers only
-                self.scale.add(t, _nis2(y, S))
-            return FUSE, f, outlier
+            if outlier:  # beyond the gate: not fused (a filter cannot take it back)
+                return EXCLUDE, f, True
+            # the NIS with the stated R: the scale is learned from the inliers only
+            self.scale.add(t, _nis2(y, S))
+            return FUSE, f, False
         if not faulty:
             self._end(t, "consistent", (
                 f"{self.sensor}: GPS agrees with the odometry again after "
                 f"{t - self.faulty_since:.1f} s ({self._excluded} fixes not fused); "
                 "following the GPS"))
             self._hold_now = self.hold
-            return FUSE, f, outlier
+            return (EXCLUDE, f, True) if outlier else (FUSE, f, False)
         if t - self.faulty_since >= self._hold_now:
             self._end(t, "recovered", (
                 f"{self.sensor}: GPS inconsistent for {t - self.faulty_since:.1f} s "
@@ -115,8 +121,19 @@ class EkfRobustGps:
         self.notes.append((t, note))
         self.faulty_since = None
 
+    def _n_eff(self) -> float:
+        """The window's number of independent fixes: with the sensor's correlation time tau,
+        1 + span / tau (at most the fixes)."""
+        n = len(self._win)
+        if self.tau <= 0.0 or n < 2:
+            return float(n)
+        return min(float(n), 1.0 + (self._win[-1][0] - self._win[0][0]) / self.tau)
+
     def _limit(self) -> float:
-        return chi2.ppf(WINDOW_PROB, 2 * len(self._win))
+        """The window's NIS sum beyond which it is inconsistent: chi-square(2 N_eff)'s
+        WINDOW_PROB quantile, scaled from N_eff to the window's N fixes."""
+        n_eff = self._n_eff()
+        return chi2.ppf(WINDOW_PROB, 2.0 * n_eff) * len(self._win) / n_eff
 
     def _window_add(self, t: float, nis: float) -> bool:
         """Add a capped NIS at ``t``; True if the window's fixes are inconsistent."""
@@ -140,7 +157,8 @@ def robust_spec(cfg) -> tuple | None:
     ``gps.model`` is a robust one."""
     if not cfg.gps.robust:
         return None
-    return cfg.gps, tuple((s.name, s.gate) for s in cfg.of_kind("gps"))
+    return cfg.gps, tuple((s.name, s.gate, float(s.correlation_time))
+                          for s in cfg.of_kind("gps"))
 
 
 def robust_judges(spec: tuple | None) -> dict:
@@ -149,4 +167,4 @@ def robust_judges(spec: tuple | None) -> dict:
     if spec is None:
         return {}
     gm, sensors = spec
-    return {(name, "gps"): EkfRobustGps(name, gm, gate) for name, gate in sensors}
+    return {(name, "gps"): EkfRobustGps(name, gm, gate, tau) for name, gate, tau in sensors}

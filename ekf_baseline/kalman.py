@@ -37,6 +37,13 @@ API (all arrays are float64 numpy; n = state size, m = measurement size)::
   a block is exactly f_a R_ij. The gate, the log and a recovery keep R. Then ``last_verdicts``
   says per block whether it was fused.
 
+``robust`` maps a (sensor, kind) to a model that replaces its gate (the EKFs' robust GPS model,
+``ddfuse.ekf_baseline.gps_robust``: ``judge(t, y, S, R) -> (verdict, f, outlier)``): a block it
+excludes is logged not accepted; one it fuses has its R multiplied by f (with ``fuse``'s
+factor); an outlier it fuses down-weighted is logged not accepted all the same and counted as
+``(sensor, 'outlier')``; on its RECOVER P is inflated as on a lock-out (below) and the block
+fused.
+
 Gate lock-out (docs/design/ekf_gate_lockout.md): when one (sensor, kind) has had at least
 ``lockout_count`` consecutive gate rejections spanning at least ``lockout_time`` s
 (``ddfuse.estimation.lockout``), the core either finds the filter corroborated on the states

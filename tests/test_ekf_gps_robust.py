@@ -47,8 +47,8 @@ def _feed(model, t0, t1, rate, rng, offset=0.0):
 
 def test_window_declares_a_faulty_stretch_and_readmits_the_gps():
     """Consistent fixes are fused; a 6 s stretch of fixes 25 m off is declared faulty within
-    the window and its fixes not fused (after the first ones, down-weighted); once the
-    stretch has left the window the GPS is re-admitted, and the fault is said both ways."""
+    the window and none of its fixes fused (beyond the gate); once the stretch has left the
+    window the GPS is re-admitted, and the fault is said both ways."""
     rng = np.random.default_rng(4)
     m = _model(fault_window=5.0)
     before = _feed(m, 0.0, 60.0, 2.0, rng)
@@ -57,14 +57,12 @@ def test_window_declares_a_faulty_stretch_and_readmits_the_gps():
     after = _feed(m, 66.0, 100.0, 2.0, rng)
     tripped = [t for t, v in burst if v[0] == EXCLUDE]
     assert tripped and tripped[0] < 60.0 + 5.0
-    assert all(v[0] == EXCLUDE for t, v in burst if t >= tripped[0])
-    assert all(v[2] for _, v in burst)  # every burst fix is an outlier
-    fused_before_trip = [v[1] for t, v in burst if t < tripped[0]]
-    assert all(f > 10.0 for f in fused_before_trip)  # down-weighted by the kernel
+    assert all(v[0] == EXCLUDE and v[2] for _, v in burst)  # every burst fix an outlier
     readmit = next(t for t, v in after if v[0] == FUSE)
     assert readmit <= 66.0 + 5.0 + 1.0
     assert all(v[0] == FUSE for t, v in after if t > readmit)
     assert len(m.faults) == 1 and m.faults[0][3] == "consistent"
+    assert 60.0 <= m.faults[0][0] < 65.0 and m.faults[0][1] == readmit
     assert any("disagree" in n and "following the odometry" in n for _, n in m.notes)
     assert any("agrees" in n and "following the GPS" in n for _, n in m.notes)
 
@@ -83,6 +81,24 @@ def test_a_gps_wrong_for_good_is_followed_after_a_bounded_hold_that_doubles():
     second_ex = next(t for t, v in wrong if v[0] == EXCLUDE and t > rec[0])
     assert len(rec) >= 2 and 40.0 <= rec[1] - second_ex <= 41.0
     assert all(how == "recovered" for *_, how in m.faults)
+
+
+def test_a_moderate_outlier_is_fused_down_weighted_a_gross_one_not_at_all():
+    m = _model()
+    verdict, f, outlier = m.judge(0.0, [6.0, 0.0], S, R)  # NIS 9: inside the gate
+    assert verdict == FUSE and f > 1.5 and not outlier
+    verdict, f, outlier = m.judge(0.5, [12.0, 0.0], S, R)  # NIS 36: beyond it
+    assert verdict == EXCLUDE and outlier
+
+
+def test_correlated_fixes_need_a_larger_window_sum_to_be_faulty():
+    """With a stated correlation time the window holds fewer independent fixes: a run of
+    moderately inconsistent fixes that trips the white sensor's test does not trip it."""
+    verdicts = {}
+    for tau in (0.0, 10.0):
+        m = EkfRobustGps("gps", GpsModelConfig(model="cauchy", fault_window=5.0), None, tau)
+        verdicts[tau] = [m.judge(t, [5.0, 0.0], S, R)[0] for t in np.arange(0.0, 5.0, 0.5)]
+    assert EXCLUDE in verdicts[0.0] and EXCLUDE not in verdicts[10.0]
 
 
 @pytest.mark.parametrize("model", ["cauchy", "geman_mcclure", "dcs", "maxmix"])
