@@ -24,8 +24,9 @@ Per GPS sensor, :class:`EkfRobustGps` judges each fix's innovation (y (2,) m, it
   a re-admission on a consistent window.
 
 A fix whose scaled NIS is beyond the gate, or that comes while the GPS is faulty, is an outlier:
-counted as ``(sensor, 'outlier')`` and its innovation logged not accepted (fused down-weighted
-or not at all), as the smoother's models do. The verdicts are said in the log.
+counted as ``(sensor, 'outlier')`` and its innovation logged not accepted (it is not fused), as
+the smoother's models count theirs. The verdicts are said in the log (``notes``, which
+``KalmanCore`` moves to its log).
 """
 
 from __future__ import annotations
