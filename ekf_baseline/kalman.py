@@ -279,6 +279,7 @@ class KalmanCore:
             judge = self.robust.get((sensor, kind)) if self.robust else None
             if judge is not None:
                 verdict, f, outlier = self._robust(t, judge, sensor, kind, yl, Sl, R, i0, i1)
+                self.last_nis = nis
                 if verdict == _EXCLUDE:
                     log.innovations.append(_FloatInnovation(
                         t, sensor, kind, tuple(yl[i0:i1]), _block_of(Sl, i0, i1), nis, False))
@@ -392,7 +393,6 @@ class KalmanCore:
         _RB_FUSE or _RB_RECOVER, factor on R, outlier?); outliers counted, its notes logged."""
         Rl = R[i0:i1, i0:i1].tolist()
         verdict, f, outlier = judge.judge(t, yl[i0:i1], [r[i0:i1] for r in Sl[i0:i1]], Rl)
-        self.last_nis = float("nan")
         if outlier:
             self.log.rejected[(sensor, "outlier")] += 1
         for tn, text in judge.notes:
