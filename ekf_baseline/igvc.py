@@ -48,6 +48,7 @@ import numpy as np
 from ddfuse.ekf_baseline import compiled as jit
 from ddfuse.ekf_baseline import igvc_jacobians as gen
 from ddfuse.ekf_baseline import igvc_measurements as im
+from ddfuse.ekf_baseline.gps_robust import robust_spec
 from ddfuse.ekf_baseline.igvc_compiled import IgvcKernels
 from ddfuse.ekf_baseline.igvc_model import (
     _Q_INDEX,
@@ -162,6 +163,8 @@ class IgvcEkf(IgvcStart, IgvcKernels, Estimator):
         self._jrows: dict[str, int] = {}  # sensor -> row in the compiled core's sensor table
         self._step_sparse = gen.euler_step_sparse if motion == "euler" else gen.icc_step_sparse
         self._sensor_info: dict[str, tuple] = {}
+        # a robust GPS model (gps.model; ekf_baseline.gps_robust): its fixes take the Python path
+        self._robust = robust_spec(cfg)
         # GPS sensors with time-correlated errors: name -> correlation time (s), and the stamp
         # of each one's last fused fix (module docstring)
         self._gps_tau = {s.name: float(s.correlation_time) for s in cfg.of_kind("gps")

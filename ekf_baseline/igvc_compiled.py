@@ -83,7 +83,7 @@ class IgvcKernels:
                     m.yaw_rate_var, 0.0, 0.0, (v is not None) | (w is not None) << 1, 1.0)
         if cls is WheelSpeeds and self.wheel_radius is not None:
             return (_T_WHEELS, row, m.left, m.right, m.left_var, m.right_var, 0.0, 0.0, 0, 1.0)
-        if cls is GpsFix and m.status >= 0:
+        if cls is GpsFix and m.status >= 0 and self._robust is None:
             (c00, c01, _), (c10, c11, _), _ = m.cov.tolist()
             return (_T_GPS, row, m.lat, m.lon, c00, c11, c01, c10, 0, self._gps_factor(m))
         return None

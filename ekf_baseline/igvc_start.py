@@ -10,6 +10,7 @@ import math
 import numpy as np
 from ddfuse.ekf_baseline import igvc_jacobians as gen
 from ddfuse.ekf_baseline.calibration import ScaleStates
+from ddfuse.ekf_baseline.gps_robust import robust_judges
 from ddfuse.ekf_baseline.igvc_model import (
     HALF_PI,
     LAT,
@@ -125,6 +126,7 @@ class IgvcStart:
         else:
             self.kf = KalmanCore(x0, Pn, self.log, state_angles=angles)
         self.kf.after_inflation = self._retie_pairs
+        self.kf.robust = robust_judges(self._robust)
         if self._ks is not None:
             self.kf.held_in_recovery = (self._ks, self._ks + 1)
         self.t = t

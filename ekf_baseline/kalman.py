@@ -37,6 +37,13 @@ API (all arrays are float64 numpy; n = state size, m = measurement size)::
   a block is exactly f_a R_ij. The gate, the log and a recovery keep R. Then ``last_verdicts``
   says per block whether it was fused.
 
+``robust`` maps a (sensor, kind) to a model that replaces its gate (the EKFs' robust GPS model,
+``ddfuse.ekf_baseline.gps_robust``: ``judge(t, y, S, R) -> (verdict, f, outlier)``): a block it
+excludes is logged not accepted; one it fuses has its R multiplied by f (with ``fuse``'s
+factor); an outlier it fuses down-weighted is logged not accepted all the same and counted as
+``(sensor, 'outlier')``; on its RECOVER P is inflated as on a lock-out (below) and the block
+fused.
+
 Gate lock-out (docs/design/ekf_gate_lockout.md): when one (sensor, kind) has had at least
 ``lockout_count`` consecutive gate rejections spanning at least ``lockout_time`` s
 (``ddfuse.estimation.lockout``), the core either finds the filter corroborated on the states
@@ -109,7 +116,7 @@ class KalmanCore:
     __slots__ = (
         "x", "P", "n", "log", "state_angles", "lockout_count", "lockout_time",
         "recovery_holdoff", "_streak", "_holdoff", "_last_ok", "recoveries", "last_nis",
-        "after_inflation", "held_in_recovery", "last_verdicts",
+        "after_inflation", "held_in_recovery", "last_verdicts", "robust",
     )
 
     def __init__(
@@ -152,6 +159,9 @@ class KalmanCore:
         self.last_nis = float("nan")
         # per block of the last update given ``fuse``: fused (module docstring)
         self.last_verdicts: tuple[bool, ...] = ()
+        # (sensor, kind) -> its robust model (ekf_baseline.gps_robust.EkfRobustGps: judge(t, y,
+        # S, R)), which replaces the gate for that measurement
+        self.robust: dict = {}
         self._wrap_state()
 
     # ------------------------------------------------------------------ helpers
@@ -257,12 +267,37 @@ class KalmanCore:
         keep: list[bool] = []
         nis_list: list[float] = []
         recovered = False
+        rfac: list[float] | None = None  # per block the robust model's factor on R
+        marked: set[int] = set()  # blocks fused down-weighted as outliers: logged not accepted
         for sensor, kind, i0, i1, _angles, gate in blocks:
             nis = _nis_rows(yl, Sl, i0, i1)
             if nis is None or not math.isfinite(nis):
                 self._unusable(t, sensor, kind, nis, yl[i0:i1])
                 keep.append(False)
                 nis_list.append(math.nan)
+                continue
+            judge = self.robust.get((sensor, kind)) if self.robust else None
+            if judge is not None:
+                verdict, f, outlier = self._robust(t, judge, sensor, kind, yl, Sl, R, i0, i1)
+                self.last_nis = nis
+                if verdict == _EXCLUDE:
+                    log.innovations.append(_FloatInnovation(
+                        t, sensor, kind, tuple(yl[i0:i1]), _block_of(Sl, i0, i1), nis, False))
+                    keep.append(False)
+                    nis_list.append(nis)
+                    continue
+                if verdict == _RB_RECOVER:
+                    self._recover(t, sensor, kind, y[i0:i1].copy(), H[i0:i1],
+                                  R[i0:i1, i0:i1] * f, robust=True)
+                    Ut, S = innovation_cov(self.P, H, R)
+                    Sl = S.tolist()
+                    recovered = True
+                rfac = rfac or [1.0] * len(blocks)
+                rfac[len(keep)] = f
+                if outlier:
+                    marked.add(len(keep))
+                keep.append(True)
+                nis_list.append(nis)
                 continue
             verdict = self._judge(t, sensor, kind, nis, gate, i1 - i0, (H, i0, i1))
             if verdict == _RECOVER:
@@ -289,10 +324,12 @@ class KalmanCore:
         blk[0::4] = [b[2] for b in blocks]
         blk[1::4] = [b[3] for b in blocks]
         rejected = np.array([0 if k else 1 for k in keep], dtype=np.int64)
-        if fuse is None:
+        if fuse is None and rfac is None:
             fs = np.ones(nb)
         else:
-            fs = np.array(fuse, dtype=float)
+            fs = np.ones(nb) if fuse is None else np.array(fuse, dtype=float)
+            if rfac is not None:
+                fs *= rfac
             R = R.copy()  # apply_update fuses it in place; the caller's may be a constant
         self.P, dx = apply_update(self.P, H, np.ascontiguousarray(y, dtype=float), R, Ut, blk,
                                   rejected, fs)
@@ -301,13 +338,16 @@ class KalmanCore:
             self._wrap_state()
         inns = log.innovations
         last_ok = self._last_ok
-        for (sensor, kind, i0, i1, _a, _g), k, nis in zip(blocks, keep, nis_list, strict=True):
+        for i, ((sensor, kind, i0, i1, _a, _g), k, nis) in enumerate(
+                zip(blocks, keep, nis_list, strict=True)):
             if k:
-                last_ok[(sensor, kind)] = (t, (H, i0, i1))
                 if recovered:
                     nis = _nis_rows(yl, Sl, i0, i1)
+                out = i in marked
+                if not out:
+                    last_ok[(sensor, kind)] = (t, (H, i0, i1))
                 inns.append(_FloatInnovation(t, sensor, kind, tuple(yl[i0:i1]),
-                                             _block_of(Sl, i0, i1), nis, True))
+                                             _block_of(Sl, i0, i1), nis, not out))
         return n_acc
 
     # ------------------------------------------------------------------ gate
@@ -346,6 +386,19 @@ class KalmanCore:
             streak[0], streak[1], streak[2] = gate_streak(False, t, streak[0], streak[1],
                                                           streak[2])
         return _ACCEPT
+
+    def _robust(self, t: float, judge, sensor: str, kind: str, yl: list, Sl: list, R, i0: int,
+                i1: int) -> tuple[int, float, bool]:
+        """The robust model's verdict on rows i0:i1 (ekf_baseline.gps_robust): (_EXCLUDE,
+        _RB_FUSE or _RB_RECOVER, factor on R, outlier?); outliers counted, its notes logged."""
+        Rl = R[i0:i1, i0:i1].tolist()
+        verdict, f, outlier = judge.judge(t, yl[i0:i1], [r[i0:i1] for r in Sl[i0:i1]], Rl)
+        if outlier:
+            self.log.rejected[(sensor, "outlier")] += 1
+        for tn, text in judge.notes:
+            self.log.note(tn, text)
+        judge.notes.clear()
+        return verdict, f, outlier
 
     # ------------------------------------------------------------------ recovery
     def _holdoff_over(self, t: float, key: tuple[str, str], streak: list) -> bool:
@@ -390,9 +443,10 @@ class KalmanCore:
         )
         return False
 
-    def _recover(self, t, sensor, kind, y, H, R) -> None:
+    def _recover(self, t, sensor, kind, y, H, R, robust: bool = False) -> None:
         """Inflate P so that innovation ``y`` (m,) of block (H (m, n), R (m, m)) is ordinary
-        (NIS = m)."""
+        (NIS = m). ``robust``: asked by a robust model (its own hold-off and note; counted
+        as a recovery all the same)."""
         P = self.P
         alpha, rest = inflation(y, H @ P @ H.T, R)
         held = self.held_in_recovery
@@ -409,6 +463,11 @@ class KalmanCore:
         self._symmetrize()
         if self.after_inflation is not None:
             self.after_inflation(self)
+        if robust:
+            self.recoveries.append((t, sensor, alpha))
+            self.log.rejected[(sensor, "lockout_recovery")] += 1
+            self.log.note(t, f"{sensor}/{kind}: covariance inflated x{alpha:.3g}")
+            return
         key = (sensor, kind)
         streak = self._streak[key]
         wait = self._holdoff.get(key, (0.0, self.recovery_holdoff / 2.0))[1] * 2.0
@@ -426,6 +485,8 @@ class KalmanCore:
 
 
 _ACCEPT, _REJECT, _RECOVER = 0, 1, 2  # verdicts of KalmanCore._judge
+# verdicts of a robust model (ekf_baseline.gps_robust: FUSE, EXCLUDE, RECOVER)
+_RB_FUSE, _EXCLUDE, _RB_RECOVER = 0, 1, 2
 
 
 class _FloatInnovation(Innovation):

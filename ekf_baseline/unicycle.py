@@ -46,6 +46,7 @@ from ddfuse.ekf_baseline import GIVEN_POSE_STD
 from ddfuse.ekf_baseline import compiled as jit
 from ddfuse.ekf_baseline import unicycle_measurements as um
 from ddfuse.ekf_baseline.calibration import ScaleStates
+from ddfuse.ekf_baseline.gps_robust import robust_spec
 from ddfuse.ekf_baseline.kalman import DEFAULT_LOCKOUT_COUNT, DEFAULT_LOCKOUT_TIME, KalmanCore
 from ddfuse.ekf_baseline.unicycle_compiled import UnicycleKernels
 from ddfuse.ekf_baseline.unicycle_measurements import delayed_gps_terms
@@ -222,6 +223,8 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
         self._walks = tuple(walks)
         # a GPS sensor with time-correlated errors (module docstring)
         self._gps_corr = any(s.correlation_time > 0.0 for s in cfg.of_kind("gps"))
+        # a robust GPS model (gps.model; ekf_baseline.gps_robust): its fixes take the Python path
+        self._robust = robust_spec(cfg)
         # odometry scale states (ddfuse.ekf_baseline.calibration) when the config states the
         # geometry's uncertainty and a sensor gives odometry
         self._scale = ScaleStates.append_to(cfg, names)

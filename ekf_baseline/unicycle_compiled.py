@@ -89,7 +89,7 @@ class UnicycleKernels:
             return (_T_ODOM, row, 0.0 if v is None else v, 0.0 if w is None else w, m.v_var,
                     m.yaw_rate_var, 0.0, 0.0, (v is not None) | (w is not None) << 1, 1.0)
         if cls is GpsFix:
-            if m.enu is None or m.status < 0 or not self._aligned:
+            if m.enu is None or m.status < 0 or not self._aligned or self._robust is not None:
                 return None
             (c00, c01, _), (c10, c11, _), _ = m.cov.tolist()
             rf = 1.0 if info.tau <= 0.0 else self._gps_factor(m, info.tau, prev)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from ddfuse.ekf_baseline.gps_robust import robust_judges
 from ddfuse.ekf_baseline.kalman import KalmanCore
 from ddfuse.estimation.gps_correlation import inflation as gps_inflation
 from ddfuse.estimation.heading_survey import rotation_fit
@@ -84,6 +85,7 @@ class UnicycleStart:
                                  lockout_count=self._lockout[0], lockout_time=self._lockout[1])
         if self._ks is not None:
             self.kf.held_in_recovery = (self._ks, self._ks + 1)
+        self.kf.robust = robust_judges(self._robust)
         self.t = t
         self._t0 = t
         self._k = 0

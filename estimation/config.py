@@ -220,8 +220,10 @@ GPS_MODELS = ("default", "gaussian", "cauchy", "geman_mcclure", "dcs", "maxmix")
 @dataclass
 class GpsModelConfig:
     """``gps: {model: ..., ...}``: how the smoother and the batch model a GPS fix's error
-    (docs/design/urban_gps.md says when to use which). 'default': today's, the fix's stated
-    covariance under ``smoother.robust``'s kernel behind the chi-square gate; 'gaussian': the
+    (docs/design/urban_gps.md says when to use which), and the EKFs under a robust model
+    (every model but 'default' and 'gaussian': ekf_baseline/gps_robust.py). 'default':
+    today's, the fix's stated covariance under ``smoother.robust``'s kernel behind the chi-square
+    gate; 'gaussian': the
     same without a kernel; 'cauchy', 'geman_mcclure', 'dcs': that M-estimator, and 'maxmix':
     an inlier/outlier max-mixture factor, each instead of the gate, with the stated covariance
     scaled by a factor learned from the fixes' innovations (``scale_window`` s of them)."""
@@ -233,6 +235,11 @@ class GpsModelConfig:
     k: float | None = None
     outlier_std: float = 30.0  # m per axis: maxmix's outlier component, added to the inlier's
     outlier_weight: float = 0.1  # maxmix: prior probability of an outlier
+    # the EKFs under a robust model (ekf_baseline/gps_robust.py): the sliding window of the
+    # chi-square test that declares the GPS faulty (s), and how long it may stay faulty
+    # before the filter takes itself for lost (s, doubling while that recurs)
+    fault_window: float = 5.0
+    fault_hold: float = 30.0
 
     @property
     def robust(self) -> bool:
@@ -714,7 +721,8 @@ def parse_config(raw: Any, source: str = "<config>", base: Path | None = None) -
 
 def _gps_model(ck: _Checker, raw: Any) -> GpsModelConfig:
     g = ck.mapping(raw if raw is not None else {}, "gps",
-                   ("model", "scale_window", "k", "outlier_std", "outlier_weight"))
+                   ("model", "scale_window", "k", "outlier_std", "outlier_weight",
+                    "fault_window", "fault_hold"))
     gm = GpsModelConfig()
     if "model" in g:
         gm.model = ck.choice(g["model"], "gps.model", GPS_MODELS)
@@ -724,6 +732,9 @@ def _gps_model(ck: _Checker, raw: Any) -> GpsModelConfig:
         gm.k = ck.number(g["k"], "gps.k", positive=True)
     if "outlier_std" in g:
         gm.outlier_std = ck.number(g["outlier_std"], "gps.outlier_std", positive=True)
+    for key in ("fault_window", "fault_hold"):
+        if key in g:
+            setattr(gm, key, ck.number(g[key], f"gps.{key}", positive=True))
     if "outlier_weight" in g:
         w = ck.number(g["outlier_weight"], "gps.outlier_weight")
         if not 0.0 < w < 1.0:

@@ -198,14 +198,15 @@ def _shade_outages(ax, run: SavedRun) -> None:
         ax.axvspan(o.t0 - t0, o.t1 - t0, color="0.5", alpha=0.15, lw=0)
 
 
-def gps_outliers(run: SavedRun) -> tuple[np.ndarray, str]:
+def gps_outliers(run: SavedRun, only: str | None = None) -> tuple[np.ndarray, str]:
     """Which GPS fixes (a mask over ``run.gps_t``) an estimator's gate rejected or its robust
-    GPS model (``gps.model``) took for outliers, and that estimator: the smoother's track
-    when it ran (its lagged output's too), else the first with GPS innovations. The fixes are
-    matched by stamp to the innovations not accepted (every one is kept, docs/design/
-    urban_gps.md)."""
+    GPS model (``gps.model``) took for outliers, and that estimator: ``only``, else the
+    smoother's track when it ran (its lagged output's too), else the first with GPS
+    innovations. The fixes are matched by stamp to the innovations not accepted (every one is
+    kept, docs/design/urban_gps.md)."""
     none = np.zeros(len(run.gps_t), dtype=bool)
-    names = sorted((n for n in run.tracks if n in run.innovations),
+    names = sorted((n for n in run.tracks if n in run.innovations
+                    and (only is None or n == only)),
                    key=lambda n: (not n.startswith("smoother"), list(run.tracks).index(n)))
     for name in names:
         table = run.innovations[name]
@@ -254,6 +255,15 @@ def trajectories(run: SavedRun) -> Figure:
             ax.plot(run.gps_xy[out, 0], run.gps_xy[out, 1], "x", color="tab:red", ms=4,
                     mew=0.8, label=f"GPS fixes rejected or taken for outliers by {who} "
                     f"({out.sum()})")
+        # and the first EKF's, when the marks above are another estimator's: where a filter
+        # and a smoother judged the fixes differently (docs/design/urban_gps.md)
+        ekf = next((n for n in run.tracks if n.startswith("ekf") and n != who
+                    and n in run.innovations), None)
+        out_e = gps_outliers(run, only=ekf)[0] if ekf is not None else out[:0]
+        if out_e.any():
+            ax.plot(run.gps_xy[out_e, 0], run.gps_xy[out_e, 1], "+", color=cols[ekf], ms=6,
+                    mew=0.8, label=f"GPS fixes rejected or taken for outliers by {ekf} "
+                    f"({out_e.sum()})")
     if run.landmarks:
         xy = np.array(list(run.landmarks.values()))
         ax.plot(xy[:, 0], xy[:, 1], "^", mfc="none", mec="k", ms=8, label="landmarks")

@@ -37,8 +37,10 @@ def _score(sim, r, pose_error):
 
 
 def run_seed(seed: int, models: list[str], duration: float | None = None,
-             scenario: str = "urban") -> dict:
-    """One seed of ``scenario``: the EKFs once, the smoother and batch per GPS model."""
+             scenario: str = "urban", estimators: list[str] | None = None) -> dict:
+    """One seed of ``scenario``: the EKFs and dead reckoning under the config's own model, the
+    smoother and batch per GPS model, and the EKFs again under each robust one (their model:
+    ekf_baseline/gps_robust.py); ``estimators``: only these (None: all)."""
     from ddfuse.estimation.runner import run
     from ddfuse.evaluation import estimators as registry
     from ddfuse.evaluation.montecarlo import OUTPUT_RATE, seed_data
@@ -52,8 +54,13 @@ def run_seed(seed: int, models: list[str], duration: float | None = None,
                            if g.environment is not None else None),
            "runs": {}}
     jobs = [("", cfg, list(EKFS) + ["dr"])]
-    jobs += [(m, replace(cfg, gps=replace(cfg.gps, model=m)), list(SMOOTHERS)) for m in models]
+    for m in models:
+        c = replace(cfg, gps=replace(cfg.gps, model=m))
+        jobs.append((m, c, list(SMOOTHERS) + (list(EKFS) if c.gps.robust else [])))
     for model, c, names in jobs:
+        names = [n for n in names if estimators is None or n in estimators]
+        if not names:
+            continue
         built = registry.build(c, stream, registry.select(c, names), pose=pose)
         t0 = time.process_time()
         result = run(stream, built, output_rate=OUTPUT_RATE)
@@ -69,13 +76,14 @@ def run_seed(seed: int, models: list[str], duration: float | None = None,
 def table(results: list[dict]) -> str:
     """The markdown table of docs/results/urban.md: per estimator (and model) over the seeds,
     the mean position RMSE, its mean ratio to the seed's raw GPS RMSE and to the seed's best
-    EKF, the largest final error over the RMSE, the mean of the per-seed mean NEES (d = 3), the
+    EKF (any EKF run of the seed, under any model), the largest final error over the RMSE, the
+    mean of the per-seed mean NEES (d = 3), the
     fixes rejected or taken for outliers per seed, and the runs that stopped."""
     names = sorted({n for r in results for n in r["runs"]}, key=lambda n: (
         n.split("[")[0] != "dr", "[" in n, n.split("[")[-1], n))
     raw = np.array([r["raw_gps_rmse_m"] for r in results])
-    best_ekf = np.array([min(r["runs"][e]["rmse_m"] for e in EKFS if e in r["runs"])
-                         for r in results])
+    best_ekf = np.array([min(v["rmse_m"] for n, v in r["runs"].items()
+                             if n.split("[")[0] in EKFS) for r in results])
     rows = ["| estimator [gps.model] | RMSE m (mean, max) | / raw GPS | / best EKF | "
             "final / RMSE (max) | NEES mean (median) | GPS rejected or outliers / seed | "
             "stopped |", "|---|---|---|---|---|---|---|---|"]
@@ -97,8 +105,20 @@ def table(results: list[dict]) -> str:
     return head + "\n\n" + "\n".join(rows) + "\n"
 
 
+def merge(results: list[dict]) -> list[dict]:
+    """The records of several studies joined per seed (their runs together), by seed."""
+    out: dict[int, dict] = {}
+    for r in results:
+        if r["seed"] in out:
+            out[r["seed"]]["runs"].update(r["runs"])
+        else:
+            out[r["seed"]] = {**r, "runs": dict(r["runs"])}
+    return [out[s] for s in sorted(out)]
+
+
 def run_study(seeds: list[int], models: list[str], path: str, duration: float | None = None,
-              scenario: str = "urban", done=None) -> list[dict]:
+              scenario: str = "urban", done=None, estimators: list[str] | None = None
+              ) -> list[dict]:
     """``run_seed`` for each seed not yet in the JSON file ``path``, the file rewritten after
     every seed (an interrupted study keeps its seeds); ``done(seed)`` is called after each.
     Returns every seed's record."""
@@ -112,7 +132,7 @@ def run_study(seeds: list[int], models: list[str], path: str, duration: float | 
     for seed in seeds:
         if seed in have:
             continue
-        results.append(run_seed(seed, models, duration, scenario))
+        results.append(run_seed(seed, models, duration, scenario, estimators))
         with open(path, "w") as f:
             json.dump(results, f, indent=1)
         if done is not None:

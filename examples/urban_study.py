@@ -4,6 +4,9 @@ the EKFs, and the smoother and batch under each GPS model; its table is docs/res
     python examples/urban_study.py --seeds 0-19 --models default,cauchy --json urban.json
     python examples/urban_study.py --json urban.json --table [more.json ...]
     python examples/urban_study.py --scenario husky --seeds 0-4 --json husky.json
+    python examples/urban_study.py --models cauchy --estimators ekf,ekf_igvc --json e.json
+
+(--table joins the files' records per seed: several studies of the same seeds.)
 """
 
 from __future__ import annotations
@@ -12,7 +15,7 @@ import argparse
 import json
 import sys
 
-from ddfuse.evaluation.urban_study import run_study, table
+from ddfuse.evaluation.urban_study import merge, run_study, table
 
 
 def _seeds(text: str) -> list[int]:
@@ -29,6 +32,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--models", default="default,cauchy")
     ap.add_argument("--duration", type=float, default=None)
     ap.add_argument("--scenario", default="urban")
+    ap.add_argument("--estimators", default=None,
+                    help="comma-separated: only these (e.g. ekf,ekf_igvc); default all")
     ap.add_argument("--json", required=True)
     ap.add_argument("--table", action="store_true",
                     help="print the table of the results in --json (and in the files after it)")
@@ -39,10 +44,11 @@ def main(argv: list[str] | None = None) -> int:
         for path in [a.json, *a.more]:
             with open(path) as f:
                 results += json.load(f)
-        print(table(sorted(results, key=lambda r: r["seed"])))
+        print(table(merge(results)))
         return 0
     run_study(_seeds(a.seeds), [m for m in a.models.split(",") if m], a.json, a.duration,
-              a.scenario, done=lambda s: print(f"seed {s} done", file=sys.stderr, flush=True))
+              a.scenario, done=lambda s: print(f"seed {s} done", file=sys.stderr, flush=True),
+              estimators=a.estimators.split(",") if a.estimators else None)
     return 0
 
 
