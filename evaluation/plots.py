@@ -512,21 +512,27 @@ def _nis_of(run: SavedRun, name: str) -> dict[str, consistency.SensorNis]:
     return (e.nis if e else None) or {}
 
 
-def nis(run: SavedRun) -> Figure | None:
-    """NIS of every innovation over time: a row per estimator, a panel per sensor and
-    measurement kind, with the 95% band of its dimension (dashed); gate-rejected innovations
-    marked x. Titles carry the verdict (``ddfuse.evaluation.consistency``). None when no estimator
-    logged an innovation (dead reckoning alone)."""
-    cols = colors(list(run.tracks))
+def nis_rows(run: SavedRun) -> list[str]:
+    """The tracks ``nis`` draws a row for: those that logged innovations of their own, less
+    a track whose NIS summary is another's (the batch's is the smoother's: the same
+    innovations, logged twice), as in the report's table."""
     owners = [n for n in run.tracks if run.log_owner.get(n, n) == n and len(run.innovations[n])]
-    # a track whose NIS summary is another's (the batch's is the smoother's: the same
-    # innovations, logged twice) is one row, as in the report's table
     seen: set[str] = set()
     for n in list(owners):
         key = repr(sorted(_nis_of(run, n).items()))
         if key != repr([]) and key in seen:
             owners.remove(n)
         seen.add(key)
+    return owners
+
+
+def nis(run: SavedRun) -> Figure | None:
+    """NIS of every innovation over time: a row per estimator, a panel per sensor and
+    measurement kind, with the 95% band of its dimension (dashed); gate-rejected innovations
+    marked x. Titles carry the verdict (``ddfuse.evaluation.consistency``). None when no estimator
+    logged an innovation (dead reckoning alone)."""
+    cols = colors(list(run.tracks))
+    owners = nis_rows(run)
     if not owners:
         return None
     groups = {n: run.innovations[n].groups() for n in owners}

@@ -17,16 +17,17 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from ddfuse.evaluation import close_ups, consistency, metrics, plots
-from ddfuse.evaluation.atomic_files import remove, write_text
+from ddfuse.evaluation import close_ups, consistency, figure_helper, metrics, plots
+from ddfuse.evaluation.atomic_files import write_text
 from ddfuse.evaluation.headline import headline
 from ddfuse.evaluation.html_style import CSS as _CSS
 from ddfuse.evaluation.html_style import fmt as _fmt
 from ddfuse.evaluation.html_style import verdict_cell as _verdict_cell
 from ddfuse.evaluation.metrics import OutageDrift
+from ddfuse.evaluation.report_figures import make_figures
 from ddfuse.evaluation.report_tuning import tuning_section
 from ddfuse.evaluation.results import SavedRun, load_run
-from ddfuse.evaluation.run_files import PLOTS_DIR, REPORT_FILE
+from ddfuse.evaluation.run_files import REPORT_FILE
 from ddfuse.evaluation.scores import DataFacts, EstimatorScores, RunSummary
 from ddfuse.evaluation.verdict import (
     CALIBRATION_SIGMAS,
@@ -674,44 +675,6 @@ def why_no_figure(run: SavedRun, name: str) -> str:
     }.get(name, f"No {name} figure: nothing to draw.")
 
 
-def make_figures(run: SavedRun, progress: Callable[[float], None] | None = None
-                 ) -> list[tuple[str, bytes | None, str]]:
-    """(name, PNG bytes, caption) of every figure, also written to OUTDIR/plots/; a figure that
-    has nothing to show is (name, None, why not: ``why_no_figure``, or the error figure's own
-    reason) and no file."""
-    pdir = run.outdir / PLOTS_DIR
-    pdir.mkdir(exist_ok=True)
-    cols = plots.colors(list(run.tracks))
-    series, t, dof = plots.nees_inputs(run)
-    err_fig, err_caption = plots.errors(run)
-    zooms = close_ups.zoom_windows(run)
-    cap = captions(run, zooms)
-    jobs = [
-        ("trajectories", lambda: close_ups.mark_zooms(plots.trajectories(run), run, zooms),
-         cap["trajectories"]),
-        ("trajectory_zooms", lambda: close_ups.trajectory_zooms(run, zooms),
-         cap["trajectory_zooms"]),
-        ("trajectories_each", lambda: plots.trajectories_each(run) if len(run.tracks) > 1
-         else None, cap["trajectories_each"]),
-        ("errors", lambda: err_fig, err_caption),
-        ("nees", lambda: plots.nees(series, t, dof, cols) if series else None, cap["nees"]),
-        ("nis", lambda: plots.nis(run), cap["nis"]),
-        ("covariance", lambda: plots.covariance(run), cap["covariance"]),
-        ("latency", lambda: plots.latency(run), cap["latency"]),
-    ]
-    out: list[tuple[str, bytes | None, str]] = []
-    for k, (name, make, caption) in enumerate(jobs):
-        fig = make()
-        if fig is not None:
-            out.append((name, plots.save_png(fig, pdir / f"{name}.png"), caption))
-        else:
-            remove(pdir / f"{name}.png")  # from an earlier rendering
-            out.append((name, None, caption if name == "errors" else why_no_figure(run, name)))
-        if progress:
-            progress((k + 1) / len(jobs))
-    return out
-
-
 def build_html(run: SavedRun, figures: list[tuple[str, bytes | None, str]],
                render_s: float) -> str:
     """The report page for ``run`` with its rendered ``figures``."""
@@ -755,11 +718,23 @@ def build_html(run: SavedRun, figures: list[tuple[str, bytes | None, str]],
         "</body></html>\n")
 
 
-def render_report(outdir: str | Path, progress: Callable[[float], None] | None = None) -> Path:
+def render_report(outdir: str | Path, progress: Callable[[float], None] | None = None,
+                  helper: figure_helper.Helper | None = None) -> Path:
     """Render ``outdir``/report.html from the saved results in ``outdir``; returns its path.
-    Raises ``results.ResultsError`` (one line, naming the path) when there are none."""
-    run = load_run(outdir)
-    t_a = time.perf_counter()
-    figures = make_figures(run, progress)
-    page = build_html(run, figures, time.perf_counter() - t_a)
-    return write_text(run.outdir / REPORT_FILE, page)
+    Raises ``results.ResultsError`` (one line, naming the path) when there are none.
+
+    Part of the figures is drawn in a second process (``figure_helper``): ``helper``, one the
+    caller started for ``outdir`` before importing this module, else one started here where
+    it is worth it (``figure_helper.wanted``). It is ended before this returns."""
+    own = helper is None
+    if own:
+        helper = figure_helper.start(Path(outdir), figure_helper.LATE_START_S)
+    try:
+        run = load_run(outdir)
+        t_a = time.perf_counter()
+        figures = make_figures(run, progress, helper)
+        page = build_html(run, figures, time.perf_counter() - t_a)
+        return write_text(run.outdir / REPORT_FILE, page)
+    finally:
+        if helper is not None:
+            helper.close()
