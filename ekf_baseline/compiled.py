@@ -50,9 +50,9 @@ from ddfuse.ekf_baseline.kernel_codes import (  # noqa: F401 - re-exported for t
     UNI_KINDS,
 )
 from ddfuse.estimation.estimator import EstimatorLog
-from ddfuse.factors.jitcache import guard_cache
+from ddfuse.factors.jitcache import guard_cache, on_cold_cache
 
-__all__ = ["BufferedLog", "JitKalmanCore", "kernels", "warm_up", "COLD_COMPILE"]
+__all__ = ["BufferedLog", "JitKalmanCore", "kernels", "usable", "warm_up", "COLD_COMPILE"]
 
 
 _ROOT = Path(__file__).resolve().parents[1]
@@ -88,6 +88,32 @@ def kernels():
         from ddfuse.ekf_baseline import kalman_jit as mod
         _state["mod"] = mod
     return mod
+
+
+_ENTRIES = {"unicycle": UNICYCLE_ENTRIES, "unicycle_stacked": ("uni_stacked",),
+            "igvc": ("igvc_event",)}
+
+
+def usable(*which: str) -> bool:
+    """Whether the kernels of ``which`` (``warm_up``'s names) are ready for a filter to use:
+    loaded from numba's cache, or compiled now (``warm_up``) unless the cold-cache policy is
+    "reference" (``factors.jitcache.on_cold_cache``). Then a kernel missing from the cache
+    makes this False (the filter runs its Python reference path), and a background process
+    compiles the missing kernels for the next runs (``kernel_build``; said on the terminal)."""
+    if on_cold_cache() == "compile" or all(w in COLD_COMPILE for w in which):
+        for w in which:
+            warm_up(w)
+        return True
+    kj = kernels()
+    missing = [n for w in which for n in _ENTRIES[w] if not kj.load_cached(n)]
+    if missing:
+        from ddfuse.ekf_baseline.kernel_build import build_in_background
+
+        build_in_background(missing)
+        return False
+    for w in which:
+        warm_up(w)  # loaded: runs the tiny input only
+    return True
 
 
 def warm_up(which: str) -> None:
