@@ -9,7 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from ddfuse.ekf_baseline import compiled, kernel_build
+from ddfuse.ekf_baseline import compiled
 from ddfuse.ekf_baseline.igvc import IgvcEkf
 from ddfuse.ekf_baseline.unicycle import UnicycleEkf
 from ddfuse.estimation.config import load_config
@@ -30,7 +30,7 @@ def cold(monkeypatch):
     kj = compiled.kernels()
     monkeypatch.setattr(compiled, "COLD_COMPILE", {})
     monkeypatch.setattr(kj, "load_cached", lambda *names: False)
-    monkeypatch.setattr(kernel_build, "build_in_background", lambda names: asked.append(names))
+    monkeypatch.setattr(compiled, "build_in_background", lambda names: asked.append(names))
     was = jitcache.on_cold_cache()
     yield asked
     jitcache.on_cold_cache(was)
@@ -66,12 +66,12 @@ def test_an_explicit_reference_filter_asks_for_nothing(cold):
 
 def test_the_background_build_is_started_once_and_said(monkeypatch):
     started, said = [], []
-    monkeypatch.setattr(kernel_build, "_started", set())
-    monkeypatch.setattr(kernel_build.subprocess, "Popen",
+    monkeypatch.setattr(compiled, "_started", set())
+    monkeypatch.setattr(compiled.subprocess, "Popen",
                         lambda args, **kw: started.append((args, kw)))
     monkeypatch.setattr(jitcache, "_notice", [said.append])
-    kernel_build.build_in_background(["uni_event", "world_cov"])
-    kernel_build.build_in_background(["uni_event"])
+    compiled.build_in_background(["uni_event", "world_cov"])
+    compiled.build_in_background(["uni_event"])
     assert len(started) == 1 and len(said) == 1
     args, kw = started[0]
     assert args[1:] == ["-m", "ddfuse.ekf_baseline.kernel_build", "uni_event", "world_cov"]
