@@ -21,6 +21,8 @@ changed.
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -50,9 +52,10 @@ from ddfuse.ekf_baseline.kernel_codes import (  # noqa: F401 - re-exported for t
     UNI_KINDS,
 )
 from ddfuse.estimation.estimator import EstimatorLog
-from ddfuse.factors.jitcache import guard_cache
+from ddfuse.factors import jitcache
+from ddfuse.factors.jitcache import guard_cache, on_cold_cache
 
-__all__ = ["BufferedLog", "JitKalmanCore", "kernels", "warm_up", "COLD_COMPILE"]
+__all__ = ["BufferedLog", "JitKalmanCore", "kernels", "usable", "warm_up", "COLD_COMPILE"]
 
 
 _ROOT = Path(__file__).resolve().parents[1]
@@ -88,6 +91,57 @@ def kernels():
         from ddfuse.ekf_baseline import kalman_jit as mod
         _state["mod"] = mod
     return mod
+
+
+_ENTRIES = {"unicycle": UNICYCLE_ENTRIES, "unicycle_stacked": ("uni_stacked",),
+            "igvc": ("igvc_event",)}
+
+
+def usable(*which: str) -> bool:
+    """Whether the kernels of ``which`` (``warm_up``'s names) are ready for a filter to use:
+    loaded from numba's cache, or compiled now (``warm_up``) unless the cold-cache policy is
+    "reference" (``factors.jitcache.on_cold_cache``). Then a kernel missing from the cache
+    makes this False (the filter runs its Python reference path), and a background process
+    compiles the missing kernels for the next runs (``kernel_build``; said on the terminal)."""
+    if on_cold_cache() == "compile" or all(w in COLD_COMPILE for w in which):
+        for w in which:
+            warm_up(w)
+        return True
+    kj = kernels()
+    missing = [n for w in which for n in _ENTRIES[w] if not kj.load_cached(n)]
+    if missing:
+        build_in_background(missing)
+        return False
+    for w in which:
+        warm_up(w)  # loaded: runs the tiny input only
+    return True
+
+
+BUILD_MODULE = "ddfuse.ekf_baseline.kernel_build"  # python -m: the background build
+_started: set[str] = set()  # the kernels this process has asked a background build for
+
+
+def build_in_background(names: list[str]) -> None:
+    """Start the background build of the entry points ``names`` (once per process each), and
+    say so on the terminal (through ``jitcache``'s notice, above any progress bars)."""
+    todo = [n for n in names if n not in _started]
+    if not todo:
+        return
+    _started.update(todo)
+    try:
+        subprocess.Popen([sys.executable, "-m", BUILD_MODULE, *todo],
+                         stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                         stderr=subprocess.DEVNULL, start_new_session=True, close_fds=True)
+    except OSError as e:
+        jitcache._notice[0](f"ddfuse: the EKF kernels {', '.join(todo)} are not compiled, and "
+                            f"no background process could compile them ({e}): this run uses "
+                            "the Python reference filters (the same estimates, slower)")
+        return
+    jitcache._notice[0](
+        f"ddfuse: the EKF kernels {', '.join(todo)} are not compiled yet (first run after "
+        "installing or updating ddfuse): this run uses the Python reference filters (the same "
+        "estimates to 1e-9, slower), while a background process compiles the kernels (numba, "
+        "about half a minute of CPU) for the next runs")
 
 
 def warm_up(which: str) -> None:

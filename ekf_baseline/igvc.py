@@ -155,10 +155,10 @@ class IgvcEkf(IgvcStart, IgvcKernels, Estimator):
             raise ValueError(f"motion must be 'euler' or 'icc', got {motion!r}")
         self.cfg = cfg
         self.motion = motion
-        self.reference = bool(reference)
-        self.compiled = not self.reference
+        # compiled or loaded now, not in the first step; or the reference path (jit.usable)
+        self.compiled = not reference and jit.usable("igvc")
+        self.reference = not self.compiled
         if self.compiled:
-            jit.warm_up("igvc")  # compile / load the kernels now, not in the first step
             self.log = jit.BufferedLog()
         self._jrows: dict[str, int] = {}  # sensor -> row in the compiled core's sensor table
         self._step_sparse = gen.euler_step_sparse if motion == "euler" else gen.icc_step_sparse

@@ -450,6 +450,34 @@ def ready(*names: str) -> None:
             d.disable_compile()
 
 
+def load_cached(*names: str) -> bool:
+    """Load the entry points ``names`` from numba's cache where it holds them, never compiling
+    (what ``ready`` does first, numba's ``Dispatcher.compile`` up to its cache lookup); whether
+    all of them are now ready. False also where numba's internals differ from those this
+    mirrors (the caller then compiles)."""
+    from numba.core import sigutils
+    from numba.core.compiler_lock import global_compiler_lock
+
+    for name in names:
+        d = globals()[name]
+        if d.signatures:
+            continue
+        sig = _SIGNATURES[name]
+        try:
+            with global_compiler_lock:
+                args, _ = sigutils.normalize_signature(sig)
+                if d.overloads.get(tuple(args)) is not None:
+                    continue
+                cres = d._cache.load_overload(sig, d.targetctx)
+                if cres is None:
+                    return False
+                d.targetctx.insert_user_function(cres.entry_point, cres.fndesc, [cres.library])
+                d.add_overload(cres)
+        except AttributeError:  # another numba's internals
+            return False
+    return True
+
+
 _TABLES = ("float64[::1], int64[::1], float64[:, ::1], float64[:, ::1], int64[:, ::1], "
            "float64[:, ::1]")  # fp, ip, W, sf, si, lg
 _ARRAYS = f"{_TABLES}, float64, float64"

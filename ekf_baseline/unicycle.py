@@ -156,10 +156,12 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
             raise ValueError(f"pose_error must be one of {POSE_ERRORS}, got {pose_error!r}")
         self.pose_error = pose_error
         self._lie = pose_error == "se2"
-        self.reference = bool(reference)
-        self.compiled = not self.reference
+        # the kernels compiled or loaded now, not in the first step; on a cold cache under the
+        # "reference" policy (ddfuse run), the Python reference path instead (jit.usable)
+        kernels = ("unicycle",) if cfg.ekf.rate == "event" else ("unicycle", "unicycle_stacked")
+        self.compiled = not reference and jit.usable(*kernels)
+        self.reference = not self.compiled
         if self.compiled:
-            jit.warm_up("unicycle")  # compile / load the kernels now, not in the first step
             self.log = jit.BufferedLog()
         if motion not in ("exact", "euler"):
             raise ValueError(f"motion must be 'exact' or 'euler', got {motion!r}")
@@ -185,8 +187,6 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
         self._step_jac = se2_step_jac if motion == "exact" else euler_step_jac
         self.motion = motion
         self.rate = None if cfg.ekf.rate == "event" else float(cfg.ekf.rate)
-        if self.compiled and self.rate is not None:
-            jit.warm_up("unicycle_stacked")  # the fixed-rate step's kernel
         self.init_distance = float(init_distance)
         self.initial_std = initial_std
         self.v_std0, self.w_std0, self.bias_std0 = v_std0, w_std0, bias_std0

@@ -4,16 +4,14 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-from ddfuse.ekf_baseline.igvc import IgvcEkf
-from ddfuse.ekf_baseline.landmark import LandmarkEkf, LandmarkSlamEkf
-from ddfuse.ekf_baseline.unicycle import UnicycleEkf
 from ddfuse.estimation.config import Config
-from ddfuse.estimation.dead_reckoning import DeadReckoning, odometry_source
-from ddfuse.estimation.estimator import Estimator
-from ddfuse.estimation.measurements import Stream
-from ddfuse.estimation.runner import initial_pose
-from ddfuse.estimation.smoother import BatchSmoother, FixedLagSmoother
+from ddfuse.estimation.dead_reckoning import odometry_source
+
+if TYPE_CHECKING:
+    from ddfuse.estimation.estimator import Estimator
+    from ddfuse.estimation.measurements import Stream
 
 
 @dataclass(frozen=True)
@@ -43,37 +41,78 @@ def _motion(cfg: Config) -> bool:
     return bool(cfg.of_kind("odometry") or cfg.of_kind("wheels"))
 
 
+# The estimators' classes are imported when one is built: the registry's names and rules
+# (the report's "not run" list, the CLI's checks) then load no gtsam, numba or scipy.
+def _ekf(cfg, st, pose, lag, _):
+    from ddfuse.ekf_baseline.unicycle import UnicycleEkf
+
+    return UnicycleEkf(cfg, initial_pose=pose)
+
+
+def _ekf_igvc(cfg, st, pose, lag, _):
+    from ddfuse.ekf_baseline.igvc import IgvcEkf
+
+    return IgvcEkf(cfg, initial_pose=pose, datum=st.datum)
+
+
+def _ekf_landmark(cfg, st, pose, lag, _):
+    from ddfuse.ekf_baseline.landmark import LandmarkEkf
+
+    return LandmarkEkf(cfg, initial_pose=pose, landmarks=st.landmarks)
+
+
+def _ekf_slam(cfg, st, pose, lag, _):
+    from ddfuse.ekf_baseline.landmark import LandmarkSlamEkf
+
+    return LandmarkSlamEkf(cfg, initial_pose=pose)
+
+
+def _smoother(cfg, st, pose, lag, tracks):
+    from ddfuse.estimation.smoother import FixedLagSmoother
+
+    return FixedLagSmoother(cfg, initial_pose=pose, landmarks=st.landmarks, lag=lag,
+                            lagged="smoother_lagged" in tracks)
+
+
+def _batch(cfg, st, pose, lag, _):
+    from ddfuse.estimation.smoother import BatchSmoother
+
+    return BatchSmoother(cfg, initial_pose=pose, landmarks=st.landmarks, lag=lag)
+
+
+def _dr(cfg, st, pose, lag, _):
+    from ddfuse.estimation.dead_reckoning import DeadReckoning
+
+    return DeadReckoning(cfg, initial_pose=pose)
+
+
 SPECS: dict[str, EstimatorSpec] = {s.name: s for s in (
     EstimatorSpec("ekf", "unicycle EKF (seed 003) with gyro-bias and heading-offset states",
-                  _motion, lambda cfg, st, pose, lag, _: UnicycleEkf(cfg, initial_pose=pose),
+                  _motion, _ekf,
                   ("ekf",), "an odometry or wheels sensor"),
     EstimatorSpec("ekf_igvc", "11-state GPS-guided EKF (seed 000)",
                   lambda cfg: _motion(cfg) and bool(cfg.of_kind("gps")),
-                  lambda cfg, st, pose, lag, _: IgvcEkf(cfg, initial_pose=pose, datum=st.datum),
+                  _ekf_igvc,
                   ("ekf_igvc",), "an odometry or wheels sensor, and gps"),
     EstimatorSpec("ekf_landmark", "range/bearing EKF in the known landmark map (seed 002)",
                   lambda cfg: _motion(cfg) and bool(cfg.of_kind("landmarks")),
-                  lambda cfg, st, pose, lag, _: LandmarkEkf(cfg, initial_pose=pose,
-                                                         landmarks=st.landmarks),
+                  _ekf_landmark,
                   ("ekf_landmark",), "an odometry or wheels sensor, and landmarks"),
     EstimatorSpec("ekf_slam", "EKF-SLAM, landmarks augmented into the state (seed 002)",
                   # range alone cannot place a new landmark: every sighting would be rejected
                   lambda cfg: _motion(cfg) and any("bearing" in s.use
                                                    for s in cfg.of_kind("landmarks")),
-                  lambda cfg, st, pose, lag, _: LandmarkSlamEkf(cfg, initial_pose=pose),
+                  _ekf_slam,
                   ("ekf_slam",), "an odometry or wheels sensor, and landmarks with bearing"),
     EstimatorSpec("smoother", "ISAM2 fixed-lag smoother: filtered and lagged outputs",
-                  _motion, lambda cfg, st, pose, lag, tracks: FixedLagSmoother(
-                      cfg, initial_pose=pose, landmarks=st.landmarks, lag=lag,
-                      lagged="smoother_lagged" in tracks),
+                  _motion, _smoother,
                   ("smoother", "smoother_lagged"), "an odometry or wheels sensor"),
     EstimatorSpec("batch", "Levenberg-Marquardt over the whole run (offline reference)",
-                  _motion, lambda cfg, st, pose, lag, _: BatchSmoother(
-                      cfg, initial_pose=pose, landmarks=st.landmarks, lag=lag),
+                  _motion, _batch,
                   ("batch",), "an odometry or wheels sensor"),
     EstimatorSpec("dr", "dead reckoning: the wheel odometry integrated alone (baseline)",
                   lambda cfg: odometry_source(cfg) is not None,
-                  lambda cfg, st, pose, lag, _: DeadReckoning(cfg, initial_pose=pose),
+                  _dr,
                   ("dr",), "an odometry sensor using v and yaw_rate, or wheels with the "
                   "robot's geometry",
                   default=False),
@@ -93,6 +132,8 @@ def build(cfg: Config, stream, names: list[str] | str | None = None, *,
     ``lag`` (s). ``tracks``: the output tracks that will be used (default: all of them); the
     smoother skips its lagged output (docs/design/performance.md) when 'smoother_lagged' is
     not among them."""
+    from ddfuse.estimation.runner import initial_pose
+
     chosen = select(cfg, names)
     if pose is None:
         pose = initial_pose(cfg.initial_pose, stream)

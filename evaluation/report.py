@@ -17,16 +17,23 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from ddfuse.evaluation import close_ups, consistency, metrics, plots
-from ddfuse.evaluation.atomic_files import remove, write_text
+from ddfuse.evaluation import consistency, figure_helper, metrics, plots
+from ddfuse.evaluation.atomic_files import write_text
 from ddfuse.evaluation.headline import headline
 from ddfuse.evaluation.html_style import CSS as _CSS
 from ddfuse.evaluation.html_style import fmt as _fmt
 from ddfuse.evaluation.html_style import verdict_cell as _verdict_cell
 from ddfuse.evaluation.metrics import OutageDrift
+from ddfuse.evaluation.report_figures import (  # noqa: F401 - the report's figures and captions
+    captions,
+    finish_seconds,
+    latency_note,
+    make_figures,
+    why_no_figure,
+)
 from ddfuse.evaluation.report_tuning import tuning_section
 from ddfuse.evaluation.results import SavedRun, load_run
-from ddfuse.evaluation.run_files import PLOTS_DIR, REPORT_FILE
+from ddfuse.evaluation.run_files import REPORT_FILE
 from ddfuse.evaluation.scores import DataFacts, EstimatorScores, RunSummary
 from ddfuse.evaluation.verdict import (
     CALIBRATION_SIGMAS,
@@ -176,29 +183,6 @@ def _rpe_spacing(e: EstimatorScores, header: str) -> str:
     if d is None or abs(d - nominal) <= RPE_SPACING_SLACK * nominal:
         return ""
     return f"pairs {d:.2f} {unit} apart"
-
-
-def finish_seconds(e: EstimatorScores) -> float | None:
-    """An offline track's seconds outside its per-message updates: its whole-run solve in
-    finish() (``finish_s`` where ``ddfuse bench`` measured it; else its runtime less the
-    updates' total, the solve and its output calls)."""
-    if e.finish_s is not None:
-        return e.finish_s
-    u, rt = e.update_ms, e.runtime_s
-    if rt is None or u is None or u.mean is None or u.n is None:
-        return None
-    return max(rt - u.mean * u.n / 1e3, 0.0)
-
-
-def latency_note(name: str, e: EstimatorScores) -> str:
-    """The footnote of an offline track's latencies (``ddfuse bench``'s '*')."""
-    fin = finish_seconds(e)
-    how = "" if fin is None else (
-        f": {fin:.3f} s of its {e.runtime_s:.2f} s runtime" if e.finish_s is not None
-        else f": {fin:.3f} s of its {e.runtime_s:.2f} s runtime lie outside its "
-        "per-message updates")
-    return (f"* {name}: the latencies are of its per-message updates; its whole-run solve "
-            f"runs once in finish(), in no latency percentile{how}.")
 
 
 def run_config(run: SavedRun):
@@ -593,125 +577,6 @@ def _no_figure(text: str) -> str:
     return f'<p class="note">{html.escape(text)}</p>'
 
 
-def captions(run: SavedRun, zooms: list | None = None) -> dict[str, str]:
-    """The caption of each figure, saying only what this run's figures hold. ``zooms``: the
-    close-ups drawn (``close_ups.zoom_windows``)."""
-    zooms = close_ups.zoom_windows(run) if zooms is None else zooms
-    f = plots.frame(run.summary)
-    truth = run.truth is not None and len(run.truth) > 0
-    gps = len(run.gps_t) > 0
-    withheld = bool(run.gps_withheld.any()) if gps else False
-    behind = [w for w, ok in (("the ground truth (grey band)", truth),
-                              ("the GPS fixes (grey dots" + ("; red circles: withheld from "
-                               "the estimators and used to score them)" if withheld else ")"),
-                               gps),
-                              ("the landmarks (triangles)", bool(run.landmarks))) if ok]
-    start = plots.start_point(run)
-    overview = (f"Every estimate in {f['short']} (x, y in m)"
-                + (f" with {', '.join(behind[:-1])} and {behind[-1]}" if len(behind) > 1
-                   else f" with {behind[0]}" if behind else
-                   ", with nothing to compare it with (no ground truth, GPS or landmarks)")
-                + (f"; black dot: the start, the earliest position drawn (the first {start[2]} "
-                   f"position, {plots.seconds(start[3])} s after the first measurement)"
-                   if start else "")
-                + "."
-                + (" Dashed boxes: the close-ups below (" + ", ".join(z.label for z in zooms)
-                   + ")." if zooms else ""))
-    zoomed = ("Close-ups of the overview's dashed boxes, each showing only what lies in its "
-              "time span: " + "; ".join(f"{z.label}, {z.t0:.0f}-{z.t1:.0f} s: {z.why}"
-                                       for z in zooms)
-              + ". Grey dots: GPS fixes used; red circles: withheld." if zooms else "")
-    each = ("Each estimate on its own, on common axes, "
-            + ("over the ground truth (grey band)." if truth else "over the GPS fixes (grey "
-               "dots)." if gps else "with no ground truth or GPS to draw behind it."))
-    outages = " Grey spans: GPS outages." if run.summary.gps_outages else ""
-    bare = plots.without_covariance(run)
-    not_drawn = (f" Not drawn: {', '.join(bare)} ({'it has' if len(bare) == 1 else 'they have'}"
-                 " no covariance)." if bare else "")
-    return {
-        "trajectories": overview,
-        "trajectory_zooms": zoomed,
-        "trajectories_each": each,
-        "nees": "Pose NEES against the truth with its 95% chi-square band: a consistent "
-                "estimator stays inside about 95% of the time around the dashed expected value; "
-                f"above it, the estimator is over-confident, below it, pessimistic.{not_drawn}",
-        "nis": "NIS of each innovation per estimator and sensor with the 95% band of its "
-               "dimension (dashed)" + ("; red x: rejected by the gate." if any(
-                   (~run.innovations[n].accepted).any() for n in run.innovations
-                   if len(run.innovations[n])) else "; the gate rejected none."),
-        "covariance": "Trace of the position covariance [m²] and heading sigma [deg] of each "
-                      f"estimate over time, log scales.{not_drawn}{outages}",
-        "latency": "Wall time of each process() call (one per measurement), per estimator."
-                   + "".join(" " + latency_note(n, e)
-                             for n, e in run.summary.estimators.items()
-                             if track_kind(n) == "offline" and e.update_ms
-                             and n in run.update_s and len(run.update_s[n])),
-    }
-
-
-def why_no_figure(run: SavedRun, name: str) -> str:
-    """The note the report shows in place of figure ``name`` when the run holds nothing for it
-    (its plots function returned None)."""
-    names = [n for n, tr in run.tracks.items() if len(tr)]
-    if not names:
-        return f"No {name} figure: no estimator produced a track."
-    bare = plots.without_covariance(run)
-    dr = "; dead reckoning (dr) fuses none" if "dr" in names else ""
-    return {
-        "trajectories_each": f"No per-estimator trajectory figure: {names[0]} is the only "
-                             "estimate, drawn above.",
-        "trajectory_zooms": "No close-ups: no stretch of the tracks to zoom on.",
-        "nees": "No NEES figure: the bag has no ground truth to score the covariance against."
-                if run.truth is None or not len(run.truth) else
-                f"No NEES figure: {', '.join(bare)} {'has' if len(bare) == 1 else 'have'} no "
-                "covariance." if len(bare) == len(names) else
-                "No NEES figure: no estimate overlaps the ground truth in time.",
-        "nis": f"No NIS figure: no estimator logged an innovation, a measurement compared with "
-               f"its prediction{dr}.",
-        "covariance": f"No covariance figure: {', '.join(bare)} "
-                      f"{'has' if len(bare) == 1 else 'have'} no covariance.",
-        "latency": "No update-latency figure: no update was timed.",
-    }.get(name, f"No {name} figure: nothing to draw.")
-
-
-def make_figures(run: SavedRun, progress: Callable[[float], None] | None = None
-                 ) -> list[tuple[str, bytes | None, str]]:
-    """(name, PNG bytes, caption) of every figure, also written to OUTDIR/plots/; a figure that
-    has nothing to show is (name, None, why not: ``why_no_figure``, or the error figure's own
-    reason) and no file."""
-    pdir = run.outdir / PLOTS_DIR
-    pdir.mkdir(exist_ok=True)
-    cols = plots.colors(list(run.tracks))
-    series, t, dof = plots.nees_inputs(run)
-    err_fig, err_caption = plots.errors(run)
-    zooms = close_ups.zoom_windows(run)
-    cap = captions(run, zooms)
-    jobs = [
-        ("trajectories", lambda: close_ups.mark_zooms(plots.trajectories(run), run, zooms),
-         cap["trajectories"]),
-        ("trajectory_zooms", lambda: close_ups.trajectory_zooms(run, zooms),
-         cap["trajectory_zooms"]),
-        ("trajectories_each", lambda: plots.trajectories_each(run) if len(run.tracks) > 1
-         else None, cap["trajectories_each"]),
-        ("errors", lambda: err_fig, err_caption),
-        ("nees", lambda: plots.nees(series, t, dof, cols) if series else None, cap["nees"]),
-        ("nis", lambda: plots.nis(run), cap["nis"]),
-        ("covariance", lambda: plots.covariance(run), cap["covariance"]),
-        ("latency", lambda: plots.latency(run), cap["latency"]),
-    ]
-    out: list[tuple[str, bytes | None, str]] = []
-    for k, (name, make, caption) in enumerate(jobs):
-        fig = make()
-        if fig is not None:
-            out.append((name, plots.save_png(fig, pdir / f"{name}.png"), caption))
-        else:
-            remove(pdir / f"{name}.png")  # from an earlier rendering
-            out.append((name, None, caption if name == "errors" else why_no_figure(run, name)))
-        if progress:
-            progress((k + 1) / len(jobs))
-    return out
-
-
 def build_html(run: SavedRun, figures: list[tuple[str, bytes | None, str]],
                render_s: float) -> str:
     """The report page for ``run`` with its rendered ``figures``."""
@@ -755,11 +620,23 @@ def build_html(run: SavedRun, figures: list[tuple[str, bytes | None, str]],
         "</body></html>\n")
 
 
-def render_report(outdir: str | Path, progress: Callable[[float], None] | None = None) -> Path:
+def render_report(outdir: str | Path, progress: Callable[[float], None] | None = None,
+                  helper: figure_helper.Helper | None = None) -> Path:
     """Render ``outdir``/report.html from the saved results in ``outdir``; returns its path.
-    Raises ``results.ResultsError`` (one line, naming the path) when there are none."""
-    run = load_run(outdir)
-    t_a = time.perf_counter()
-    figures = make_figures(run, progress)
-    page = build_html(run, figures, time.perf_counter() - t_a)
-    return write_text(run.outdir / REPORT_FILE, page)
+    Raises ``results.ResultsError`` (one line, naming the path) when there are none.
+
+    Part of the figures is drawn in a second process (``figure_helper``): ``helper``, one the
+    caller started for ``outdir`` before importing this module, else one started here where
+    it is worth it (``figure_helper.wanted``). It is ended before this returns."""
+    own = helper is None
+    if own:
+        helper = figure_helper.start(Path(outdir), figure_helper.LATE_START_S)
+    try:
+        run = load_run(outdir)
+        t_a = time.perf_counter()
+        figures = make_figures(run, progress, helper)
+        page = build_html(run, figures, time.perf_counter() - t_a)
+        return write_text(run.outdir / REPORT_FILE, page)
+    finally:
+        if helper is not None:
+            helper.close()

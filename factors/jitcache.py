@@ -18,7 +18,7 @@ from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["NOTICE_AFTER_S", "compiling", "guard_cache"]
+__all__ = ["NOTICE_AFTER_S", "compiling", "guard_cache", "on_cold_cache"]
 
 NOTICE_AFTER_S = 3.0  # s: a compile longer than this is announced (a cache load is ~0.1-0.3 s
 # of CPU, up to ~2 s of wall time on a loaded machine; a cold compile tens of seconds)
@@ -30,6 +30,23 @@ def _stderr(line: str) -> None:
 
 
 _notice: list[Callable[[str], None]] = [_stderr]  # where compiling writes its lines
+
+# What the EKFs do when their kernels are not in numba's cache (``ekf_baseline.compiled.usable``):
+# "compile" them then and there (the library's default: tens of seconds, announced), or
+# "reference": run the Python reference path this time (the same estimates to 1e-9, slower)
+# while a background process compiles the kernels into the cache for the next runs
+# (``ddfuse run`` chooses this: docs/design/performance.md).
+_policy = {"cold": "compile"}
+
+
+def on_cold_cache(policy: str | None = None) -> str:
+    """The policy for kernels missing from numba's cache ("compile" or "reference"), set to
+    ``policy`` when given."""
+    if policy is not None:
+        if policy not in ("compile", "reference"):
+            raise ValueError(f"on_cold_cache: 'compile' or 'reference', got {policy!r}")
+        _policy["cold"] = policy
+    return _policy["cold"]
 
 
 @contextmanager

@@ -18,11 +18,20 @@ def add_to(sub) -> None:
 
 
 def render(outdir: Path, bars: Bars | None) -> Path:
-    """The report of ``outdir`` rendered, with a 'report' progress bar when ``bars``."""
-    from ddfuse.evaluation.report import render_report
+    """The report of ``outdir`` rendered, with a 'report' progress bar when ``bars``. The
+    figures' second process (``figure_helper``) is started first, so that its imports run
+    beside this process's."""
+    from ddfuse.evaluation import figure_helper
 
-    return render_report(outdir, progress=(lambda f: bars.update("report", f)) if bars
-                         else None)
+    helper = figure_helper.start(outdir)
+    try:
+        from ddfuse.evaluation.report import render_report
+
+        return render_report(outdir, progress=(lambda f: bars.update("report", f)) if bars
+                             else None, helper=helper)
+    finally:
+        if helper is not None:
+            helper.close()
 
 
 def command(args: argparse.Namespace) -> int:

@@ -131,6 +131,19 @@ def check_holdout_sensor(cfg, config: Path, holdout: str | None) -> None:
 
 
 def command(args: argparse.Namespace) -> int:
+    from ddfuse.factors import jitcache
+
+    # EKF kernels missing from numba's cache (the first run after installing): the Python
+    # reference filters for this run, the kernels compiled in the background for the next
+    was = jitcache.on_cold_cache()
+    jitcache.on_cold_cache("reference")
+    try:
+        return _command(args)
+    finally:
+        jitcache.on_cold_cache(was)
+
+
+def _command(args: argparse.Namespace) -> int:
     import time
 
     from ddfuse.estimation.config import load_config
