@@ -46,3 +46,21 @@ def test_urban_study_of_one_short_seed(tmp_path, capsys):
     assert main(["--json", str(out), "--table"]) == 0
     text = capsys.readouterr().out
     assert "3" in text and "cauchy" in text
+
+
+def test_tune_recovery_cuts_both_ends_of_the_stream():
+    """``--trim S`` (docs/design/tuning.md, the odometry v's bias): what is within S s of
+    either end goes, measurements and ground truth alike; the rest stays, in order."""
+    from types import SimpleNamespace
+
+    from ddfuse.estimation.measurements import Stream
+
+    cut = runpy.run_path(str(EXAMPLES / "tune_recovery.py"), run_name="example")["cut_ends"]
+    ts = [0.0, 1.0, 5.9, 6.0, 50.0, 114.0, 114.1, 120.0]
+    s = Stream([SimpleNamespace(t=t) for t in ts], ground_truth=[SimpleNamespace(t=t) for t in ts],
+               t0=0.0, t1=120.0)
+    cut(s, 0.0)
+    assert [m.t for m in s.measurements] == ts
+    cut(s, 6.0)
+    assert [m.t for m in s.measurements] == [6.0, 50.0, 114.0]
+    assert [g.t for g in s.ground_truth] == [6.0, 50.0, 114.0]
