@@ -3,11 +3,14 @@ they were drawn with, every measurement noise value started 3x too large or 3x t
 tuned value's error against the truth (the issue's 20-seed table, docs/design/tuning.md).
 
     python examples/tune_recovery.py run OUT.jsonl [--scenarios husky seed002] [--seeds 1-20]
-        [--duration 120] [--jobs 1]
+        [--duration 120] [--jobs 1] [--trim S] [--factors 3 0.333]
     python examples/tune_recovery.py table OUT.jsonl
 
 ``run`` appends one JSON line per (scenario, seed, start) to OUT.jsonl and skips those already
-there, so it can be stopped and resumed; ``table`` prints the markdown tables (per run, and per
+there, so it can be stopped and resumed; ``--trim S`` tunes on the bag without its first and
+last S seconds (every scenario starts and ends with a speed ramp from and to rest: cut, a
+lawnmower's speed is constant, which the twist walk can describe; docs/design/tuning.md,
+the odometry v's bias); ``table`` prints the markdown tables (per run, and per
 value the median, the worst and how many of the runs are within 20 %). CPU seconds are this
 process's and its workers' (``time.process_time`` does not see forked workers:
 ``os.times``' children).
@@ -32,9 +35,20 @@ def _cpu() -> float:
     return t.user + t.system + t.children_user + t.children_system
 
 
-def one(scenario: str, seed: int, factor: float, duration: float, jobs: int) -> dict:
-    """Simulate, tune from every stated measurement noise times ``factor``, and return the
-    tuned values against the truth."""
+def cut_ends(stream, seconds: float) -> None:
+    """Drop ``stream``'s measurements and ground truth within ``seconds`` of its first and last
+    message (in place; 0 keeps everything)."""
+    if seconds <= 0.0:
+        return
+    a, b = stream.t0 + seconds, stream.t1 - seconds
+    stream.measurements = [m for m in stream.measurements if a <= m.t <= b]
+    stream.ground_truth = [g for g in stream.ground_truth if a <= g.t <= b]
+
+
+def one(scenario: str, seed: int, factor: float, duration: float, jobs: int,
+        trim: float = 0.0) -> dict:
+    """Simulate, tune from every stated measurement noise times ``factor`` (on the bag without
+    its first and last ``trim`` s), and return the tuned values against the truth."""
     import subprocess
     import sys
 
@@ -50,6 +64,7 @@ def one(scenario: str, seed: int, factor: float, duration: float, jobs: int) -> 
                         str(duration), "-o", str(bag)], check=True, capture_output=True)
         cfg = load_config(bag.with_suffix(".yaml"))
         stream = read_stream(bag, cfg)
+        cut_ends(stream, trim)
         truth = {p.label: p.before for p in parameters(cfg, stream)
                  if p.kind not in PROCESS + ("corr",) and p.before is not None}
         c0 = _cpu()
@@ -63,7 +78,7 @@ def one(scenario: str, seed: int, factor: float, duration: float, jobs: int) -> 
                                    "status": t.status,
                                    "error": None if v is None or t.status == "not informed"
                                    else v / truth[t.param.label] - 1.0}
-    return {"scenario": scenario, "seed": seed, "factor": factor, "values": rows,
+    return {"scenario": scenario, "seed": seed, "factor": factor, "trim": trim, "values": rows,
             "runs": res.runs, "iterations": res.iterations, "cpu_s": cpu,
             "pairs": res.pairs, "message": res.message,
             "others": {t.param.label: [t.value, t.status] for t in res.tuned
@@ -75,7 +90,8 @@ def _seeds(spec: str) -> list[int]:
     return list(range(int(a), int(b or a) + 1))
 
 
-def run(out: Path, scenarios: list[str], seeds: list[int], duration: float, jobs: int) -> None:
+def run(out: Path, scenarios: list[str], seeds: list[int], duration: float, jobs: int,
+        trim: float = 0.0, factors: tuple[float, ...] = (3.0, 1.0 / 3.0)) -> None:
     done = set()
     if out.exists():
         for line in out.read_text().splitlines():
@@ -83,10 +99,10 @@ def run(out: Path, scenarios: list[str], seeds: list[int], duration: float, jobs
             done.add((r["scenario"], r["seed"], r["factor"]))
     for seed in seeds:
         for scenario in scenarios:
-            for factor in (3.0, 1.0 / 3.0):
+            for factor in factors:
                 if (scenario, seed, factor) in done:
                     continue
-                r = one(scenario, seed, factor, duration, jobs)
+                r = one(scenario, seed, factor, duration, jobs, trim)
                 with out.open("a") as f:
                     f.write(json.dumps(r) + "\n")
                 errs = {k: (None if v["error"] is None else round(100 * v["error"], 1))
@@ -144,11 +160,13 @@ def main() -> None:
     r.add_argument("--seeds", default="1-20")
     r.add_argument("--duration", type=float, default=120.0)
     r.add_argument("--jobs", type=int, default=1)
+    r.add_argument("--trim", type=float, default=0.0, help="s cut at each end before tuning")
+    r.add_argument("--factors", type=float, nargs="+", default=[3.0, 1.0 / 3.0])
     t = sub.add_parser("table")
     t.add_argument("out", type=Path)
     a = ap.parse_args()
     if a.cmd == "run":
-        run(a.out, a.scenarios, _seeds(a.seeds), a.duration, a.jobs)
+        run(a.out, a.scenarios, _seeds(a.seeds), a.duration, a.jobs, a.trim, tuple(a.factors))
     else:
         print(table(a.out))
 
