@@ -280,38 +280,30 @@ class KalmanCore:
             if judge is not None:
                 verdict, f, outlier = self._robust(t, judge, sensor, kind, yl, Sl, R, i0, i1)
                 self.last_nis = nis
-                if verdict == _EXCLUDE:
-                    log.innovations.append(_FloatInnovation(
-                        t, sensor, kind, tuple(yl[i0:i1]), _block_of(Sl, i0, i1), nis, False))
-                    keep.append(False)
-                    nis_list.append(nis)
-                    continue
-                if verdict == _RB_RECOVER:
-                    self._recover(t, sensor, kind, y[i0:i1].copy(), H[i0:i1],
-                                  R[i0:i1, i0:i1] * f, robust=True)
+                rejected = verdict == _EXCLUDE
+                if not rejected:
+                    if verdict == _RB_RECOVER:
+                        self._recover(t, sensor, kind, y[i0:i1].copy(), H[i0:i1],
+                                      R[i0:i1, i0:i1] * f, robust=True)
+                        Ut, S = innovation_cov(self.P, H, R)
+                        Sl = S.tolist()
+                        recovered = True
+                    rfac = rfac or [1.0] * len(blocks)
+                    rfac[len(keep)] = f
+                    if outlier:
+                        marked.add(len(keep))
+            else:
+                verdict = self._judge(t, sensor, kind, nis, gate, i1 - i0, (H, i0, i1))
+                if verdict == _RECOVER:
+                    self._recover(t, sensor, kind, y[i0:i1].copy(), H[i0:i1], R[i0:i1, i0:i1])
                     Ut, S = innovation_cov(self.P, H, R)
-                    Sl = S.tolist()
+                    Sl = S.tolist()  # the blocks after this one are gated with the inflated P too
                     recovered = True
-                rfac = rfac or [1.0] * len(blocks)
-                rfac[len(keep)] = f
-                if outlier:
-                    marked.add(len(keep))
-                keep.append(True)
-                nis_list.append(nis)
-                continue
-            verdict = self._judge(t, sensor, kind, nis, gate, i1 - i0, (H, i0, i1))
-            if verdict == _RECOVER:
-                self._recover(t, sensor, kind, y[i0:i1].copy(), H[i0:i1], R[i0:i1, i0:i1])
-                Ut, S = innovation_cov(self.P, H, R)
-                Sl = S.tolist()  # the blocks after this one are gated with the inflated P too
-                recovered = True
-            elif verdict == _REJECT:
+                rejected = verdict == _REJECT
+            if rejected:
                 log.innovations.append(_FloatInnovation(
                     t, sensor, kind, tuple(yl[i0:i1]), _block_of(Sl, i0, i1), nis, False))
-                keep.append(False)
-                nis_list.append(nis)
-                continue
-            keep.append(True)
+            keep.append(not rejected)
             nis_list.append(nis)
         n_acc = sum(keep)
         if fuse is not None:

@@ -17,14 +17,12 @@ from ddfuse.ekf_baseline.gps_robust import (
 from ddfuse.ekf_baseline.igvc import IgvcEkf
 from ddfuse.ekf_baseline.unicycle import UnicycleEkf
 from ddfuse.estimation.config import (
-    Config,
     GpsModelConfig,
-    RobotConfig,
-    SensorConfig,
     parse_config_text,
 )
 from ddfuse.estimation.errors import ConfigError
 from drives import straight_drive
+from test_gps_robust import _cfg  # the smoother's robust-GPS tests' config: one drive for both
 
 S = [[4.0, 0.0], [0.0, 4.0]]  # innovation covariance (m^2) with the stated R
 R = [[2.25, 0.0], [0.0, 2.25]]
@@ -119,15 +117,6 @@ def test_gps_fault_keys_are_read_and_checked():
         parse_config_text(base + "gps: {model: cauchy, fault_hold: -1}")
 
 
-def _cfg(model: str) -> Config:
-    cfg = Config(sensors=[
-        SensorConfig(kind="imu", topic="/imu", name="imu", use=("yaw_rate",)),
-        SensorConfig(kind="gps", topic="/fix", name="gps", use=("position",)),
-        SensorConfig(kind="wheels", topic="/joint_states", name="wheels", use=("speeds",),
-                     joints=("l", "r"))],
-        robot=RobotConfig(wheel_radius=R_WHEEL, track_width=TRACK), datum=DATUM)
-    cfg.gps = GpsModelConfig(model=model)
-    return cfg
 
 
 @pytest.mark.parametrize("cls", [UnicycleEkf, IgvcEkf])
