@@ -37,6 +37,7 @@ def test_a_benchmark_row_names_the_outputs_it_timed(names, outputs):
     assert row["error"] is None and row["runtime_s"] > 0
 
 
+@pytest.mark.slow
 def test_the_batch_row_says_its_solve_is_in_finish_not_in_the_latencies(capsys, tmp_path):
     """The batch's work is its whole-run solve in finish(); its update latencies miss it, so
     its row is marked and a footnote gives the solve's time (which dwarfs any update)."""

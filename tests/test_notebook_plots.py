@@ -102,6 +102,7 @@ def _figures(run: SavedRun) -> dict[str, bytes]:
     return {name: plots.save_png(fig) for name, fig in figs.items()}
 
 
+@pytest.mark.slow
 def test_figures_from_an_in_memory_result_equal_the_saved_ones(husky, tmp_path):
     cfg, out, _, result = husky
     disk = load_run(out)

@@ -95,6 +95,7 @@ print([n for n in ("estimation", "factors", "ekf_baseline", "evaluation", "ddfus
 """
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("editable", [False, True], ids=["regular", "editable"])
 def test_a_fresh_venv_install_exposes_only_ddfuse(tmp_path, editable):
     """``pip install .`` and ``pip install -e .`` in a new virtual environment (no dependencies;

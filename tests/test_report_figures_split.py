@@ -40,6 +40,7 @@ def test_the_split_deals_every_figure_once_and_alike_in_both_processes(sample_ru
     assert len(late_theirs) < len(theirs) and report_figures.split(run, 2, 0.0) == (mine, theirs)
 
 
+@pytest.mark.slow
 def test_two_processes_draw_the_page_of_one(sample_run, tmp_path, monkeypatch):
     if not figure_helper.wanted():
         pytest.skip("one CPU: no helper process is started")
@@ -73,6 +74,7 @@ def test_two_processes_draw_the_page_of_one(sample_run, tmp_path, monkeypatch):
     assert page(one) == page(two)
 
 
+@pytest.mark.slow
 def test_a_helper_that_delivers_nothing_leaves_its_share_here(sample_run, tmp_path,
                                                               monkeypatch):
     if not figure_helper.wanted():

@@ -69,6 +69,7 @@ def swapped_run():
     return _run(0.9999, swap=0.05)
 
 
+@pytest.mark.slow
 def test_misidentified_landmarks_are_gated_out(clean, swapped_run):
     res, swapped = swapped_run
     assert swapped > 50
@@ -83,6 +84,7 @@ def test_misidentified_landmarks_are_gated_out(clean, swapped_run):
         2.0 * clean["smoother_lagged"]
 
 
+@pytest.mark.slow
 def test_rejected_sightings_are_logged_as_such_for_the_nis(swapped_run):
     res, _ = swapped_run
     inn = [i for i in res.runs["smoother"].log.innovations if i.kind == "landmark"]
@@ -93,6 +95,7 @@ def test_rejected_sightings_are_logged_as_such_for_the_nis(swapped_run):
     assert 1.5 < ok.mean() < 2.5  # 2 dof: the gate's covariance is the honest one
 
 
+@pytest.mark.slow
 def test_a_lost_estimate_recovers_through_the_lock_out(clean):
     """Wheels slipping for 5 s out of sight of the landmarks carry the estimate metres off
     while its covariance, sure of the odometry, stays small: no sighting then passes the gate.

@@ -39,7 +39,7 @@ def test_smoother_landmark_innovations_on_the_seed002_sample():
         np.testing.assert_allclose(i.nis, i.residual @ np.linalg.solve(i.cov, i.residual))
 
 
-@pytest.mark.parametrize("keyframe", ["rate", "gps"])
+@pytest.mark.parametrize("keyframe", ["rate", pytest.param("gps", marks=pytest.mark.slow)])
 def test_smoother_on_the_seed002_sample_is_as_accurate_as_the_landmark_ekf(keyframe):
     """Rate keyframes (2 Hz) with 10 Hz scans: each sighting is seen from where the robot is at
     its stamp, up to 0.5 s after the keyframe (``ddfuse.factors.landmark``'s dt). Taken from the
