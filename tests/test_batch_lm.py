@@ -120,6 +120,9 @@ def test_the_sample_bags_batch_graph(sample_husky):
     final = batch.final_estimates()
     last = max(w.all_kf_t, key=w.all_kf_t.get)
     assert np.max(np.abs(final.last.state - ref.atVector(w.key(last)))) < 1e-9
+    # ../shared/bench/batch_compare.py reads the run's keyframes and graph off the estimator
+    assert batch.all_kf_t is w.all_kf_t and batch.all_graph is w.all_graph
+    assert len(batch.all_kf_t) == len(final) and batch.all_graph.size() > len(final)
 
 
 @pytest.mark.parametrize("change", ["setDiagonalDamping", "setUseFixedLambdaFactor",

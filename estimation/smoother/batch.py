@@ -29,6 +29,16 @@ class BatchSmoother(FixedLagSmoother):
         super().__init__(cfg, **kw)
         self._final = TrackBuilder()
 
+    @property
+    def all_kf_t(self) -> dict[int, float]:
+        """Every keyframe of the run: index -> stamp (s). Read-only view of the window's."""
+        return self.window.all_kf_t
+
+    @property
+    def all_graph(self) -> gtsam.NonlinearFactorGraph:
+        """Every factor of the run, the graph ``finish`` solves."""
+        return self.window.all_graph
+
     def finish(self) -> None:
         super().finish()
         if not self.initialised:
