@@ -28,6 +28,7 @@ import matplotlib.ticker
 import numpy as np
 from ddfuse.evaluation import consistency, metrics
 from ddfuse.evaluation.atomic_files import write_bytes
+from ddfuse.evaluation.figure_text import fit_lines
 from ddfuse.evaluation.local_frame import frame  # noqa: F401 - the figures' and report's frame
 from ddfuse.evaluation.results import SavedRun
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -601,7 +602,9 @@ def nis(run: SavedRun) -> Figure | None:
             verdict = (s.verdict if s else None) or "too few to judge"
             detail = (f", {100 * s.outside:.0f}% outside, mean/exp {s.ratio:.2f}"
                       if s and s.outside is not None and s.ratio is not None else "")
-            ax.set_title(f"{name}: {label}\n{verdict}{detail}", fontsize=8,
+            # a long topic would run into the next panel's title: break it to the column
+            head = fit_lines(f"{name}: {label}", 0.85 * 72 * PAGE_W / ncol, MIN_PT)
+            ax.set_title(f"{head}\n{verdict}{detail}", fontsize=MIN_PT,
                          color={"Fail": "tab:red", "Warn": "tab:orange"}.get(verdict, "k"))
             ax.grid(True, alpha=0.3)
             ax.tick_params(labelsize=7)

@@ -55,6 +55,31 @@ def test_nis_figure_draws_one_row_for_the_batchs_copy_of_the_smoothers_innovatio
     assert len(titles) == 1 and titles[0].startswith("smoother: /fix gps")
 
 
+def test_nis_titles_of_long_topics_stay_within_their_column():
+    """rl_husky_gps.bag's ``/husky_velocity_controller/odom yaw_rate`` ran into the next
+    panel's title in a row of five sensors."""
+    t = np.arange(0.0, 30.0, 0.5)
+    topics = [("/imu/data", "gyro"), ("/husky_velocity_controller/odom", "v"),
+              ("/husky_velocity_controller/odom", "yaw_rate"), ("/imu/data", "heading"),
+              ("/a_long_namespace/gps_receiver/fix", "gps")]
+    n = len(t)
+    sensor = np.array([topics[i % 5][0] for i in range(n)])
+    kind = np.array([topics[i % 5][1] for i in range(n)])
+    table = InnovationTable(t, sensor, kind, np.ones(n), np.ones(n, int), np.ones(n, bool))
+    nis = {f"{a} {b}": {"verdict": "Fail", "ratio": 0.01, "outside": 0.49} for a, b in topics}
+    m = {"estimators": {"ekf_igvc": {"nis": nis}}, "data": {"t0": 0.0}}
+    fig = plots.nis(_run(m, {"ekf_igvc": _line(t)}, innovations={"ekf_igvc": table},
+                         log_owner={"ekf_igvc": "ekf_igvc"}))
+    r = fig.canvas.get_renderer()
+    boxes = sorted((ax.title.get_window_extent(r) for ax in fig.axes if ax.get_title()),
+                   key=lambda b: b.x0)
+    assert len(boxes) == 5
+    for left, right in zip(boxes, boxes[1:], strict=False):
+        assert left.x1 < right.x0, (left, right)
+    assert all(b.x0 >= 0 and b.x1 <= fig.bbox.width for b in boxes)
+    assert fig.axes[2].get_title().startswith("ekf_igvc: /husky_velocity_controller/")
+
+
 def test_events_say_how_many_were_cut():
     e = {"events": [f"t={i}: e" for i in range(20)], "events_total": 57}
     assert report.event_summary(EstimatorScores.from_json(e)).startswith("first 20 of 57 events")
