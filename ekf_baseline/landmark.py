@@ -60,6 +60,7 @@ from ddfuse.ekf_baseline.landmark_model import (
     odometry_step,
     range_bearing_terms,
 )
+from ddfuse.ekf_baseline.landmark_relocalise import MIN_SIGHTINGS, usable_fit
 from ddfuse.estimation.config import DEFAULT_GATE, LANDMARK_NOT_IN_MAP, Config, landmark_maps
 from ddfuse.estimation.estimator import Estimate, Estimator
 from ddfuse.estimation.gaps import gap_note, grown_pose_cov, is_gap
@@ -86,6 +87,10 @@ TAU_BOUNDS = (1e-3, 0.5)  # s: the odometry sample period is clamped to this ran
 _TAU_LO, _TAU_HI = TAU_BOUNDS
 # rad: the sigma of a heading uniform on the circle, pi / sqrt(3); LandmarkSlamEkf is lost beyond
 LOST_HEADING_STD = _PI / math.sqrt(3.0)
+# rad: after a gap, a heading known worse than this is restarted from a frame of sightings
+# (landmark_relocalise) rather than updated about: a bearing's Jacobian at a heading this far
+# off moves the pose the wrong way (docs/design/gaps.md)
+RELOCALISE_HEADING_STD = 0.1
 
 
 def _wrap(a: float) -> float:
@@ -173,6 +178,7 @@ class _OdometryDrivenEkf(Estimator):
         self._t_odo: float | None = None
         self.tau: float | None = None  # s, odometry sample period
         self._pending: list[LandmarkObservation] = []  # sightings waiting for their odometry
+        self._relocalise = False  # after a gap: restart from the first frame that fixes the pose
         # odometry scale states (k_v, k_w) follow the pose when the geometry is uncertain
         self._scale = ScaleStates.of(cfg, 3)
         self.n_base = 5 if self._scale else 3
@@ -298,7 +304,7 @@ class _OdometryDrivenEkf(Estimator):
                 return
             self._odometry(m.t, *m.twist(r, L), m.sensor)
         elif isinstance(m, LandmarkObservation):
-            if self._t_odo is None:  # no odometry yet: at rest
+            if self._t_odo is None and not self._relocalise:  # no odometry yet: at rest
                 self.predict_to(m.t)
                 self._sighting(m)
             else:
@@ -323,12 +329,15 @@ class _OdometryDrivenEkf(Estimator):
         self.t = t
         self._t_odo = None
         self._pose_prior = kf.x[:3].copy()
+        self._relocalise = True
         self.log.note(t, gap_note(self.name, gap, pose))
 
     def _odometry(self, t: float, v, w, v_var: float, w_var: float, sensor: str) -> None:
         """A sample covering (previous sample, t]: the twist of that interval; apply the
         sightings inside it, then move to t. The first sample only starts the clock."""
         if self._t_odo is None:
+            if self._pending:  # the sightings after a gap, held for relocalising
+                self._flush()
             self.predict_to(t)
             self._set_control(t, v, w, v_var, w_var, sensor)
             return
@@ -339,9 +348,52 @@ class _OdometryDrivenEkf(Estimator):
 
     def _flush(self) -> None:
         pending, self._pending = self._pending, []
-        for s in pending:
-            self.predict_to(s.t)
-            self._sighting(s)
+        i = 0
+        while i < len(pending):
+            j = i + 1
+            while j < len(pending) and pending[j].t == pending[i].t:
+                j += 1
+            frame = pending[i:j]
+            i = j
+            if self._relocalise:
+                self.predict_to(frame[0].t)
+                frame = self._relocalised(frame)
+            for s in frame:
+                self.predict_to(s.t)
+                self._sighting(s)
+
+    def _relocalised(self, frame: list[LandmarkObservation]) -> list[LandmarkObservation]:
+        """After a gap, while the heading is known worse than ``RELOCALISE_HEADING_STD``:
+        restart the pose from ``frame`` (sightings of one stamp) alone when it fixes the pose
+        (``landmark_relocalise.usable_fit``), every cross term with the pose dropped. Returns
+        the sightings it did not use (the caller updates with those as usual)."""
+        kf = self.kf
+        if kf.P[2, 2] <= RELOCALISE_HEADING_STD ** 2:
+            self._relocalise = False
+            return frame
+        rows, used = self._frame_rows(frame)
+        fit = usable_fit(kf.x[:3], kf.P[:3, :3], rows) if len(rows) >= MIN_SIGHTINGS else None
+        if fit is None:
+            return frame
+        P = kf.P.copy()
+        P[:3, :] = 0.0
+        P[:, :3] = 0.0
+        P[:3, :3] = fit.cov
+        kf.P = P
+        kf.x[:3] = fit.pose
+        self._pose_prior = fit.pose.copy()
+        self._relocalise = False
+        x, y, psi = fit.pose
+        self.log.note(frame[0].t, f"{self.name}: relocalised from {len(rows)} sightings of one "
+                                  f"frame at ({x:.2f}, {y:.2f} m, {math.degrees(psi):.1f} deg), "
+                                  f"sigma {math.sqrt(fit.cov[0, 0] + fit.cov[1, 1]):.2f} m, "
+                                  f"{math.degrees(math.sqrt(fit.cov[2, 2])):.1f} deg")
+        return [s for s in frame if not any(s is u for u in used)]
+
+    def _frame_rows(self, frame: list[LandmarkObservation]):
+        """The rows of ``landmark_relocalise.fit_pose`` for the sightings of ``frame`` whose
+        landmark position is known, and those sightings."""
+        raise NotImplementedError  # pragma: no cover - abstract
 
     def finish(self) -> None:
         """Apply the sightings after the last odometry sample, with its twist held."""
@@ -441,6 +493,12 @@ class LandmarkEkf(LandmarkKernels, _OdometryDrivenEkf):
             self._sighting_compiled(m, lm, f)
         else:
             self._measure(m, lm, None, fuse=f)
+
+    def _frame_rows(self, frame: list[LandmarkObservation]):
+        used = [m for m in frame if m.has_bearing and m.landmark_id in self.landmarks]
+        rows = [(*self.landmarks[m.landmark_id], m.range, m.bearing, m.range_var,
+                 m.bearing_var) for m in used]
+        return rows, used
 
     def estimate(self) -> Estimate | None:
         return self._pose_estimate(("x", "y", "yaw"))
@@ -593,6 +651,22 @@ class LandmarkSlamEkf(_OdometryDrivenEkf):
         """(2, 2) covariance (m^2) of one mapped landmark."""
         i = self.slots[landmark_id]
         return self.kf.P[i:i + 2, i:i + 2].copy()
+
+    def _frame_rows(self, frame: list[LandmarkObservation]):
+        """As the base class's, against the mapped landmarks: a landmark's own uncertainty
+        (half the trace of its covariance, m^2) added to the range's variance and, over the
+        range squared, to the bearing's."""
+        used, rows = [], []
+        x, P = self.kf.x, self.kf.P
+        for m in frame:
+            i = self.slots.get(m.landmark_id)
+            if i is None or not m.has_bearing or m.range < MIN_RANGE:
+                continue
+            var = 0.5 * (P[i, i] + P[i + 1, i + 1])
+            used.append(m)
+            rows.append((x[i], x[i + 1], m.range, m.bearing, m.range_var + var,
+                         m.bearing_var + var / m.range ** 2))
+        return rows, used
 
     def estimate(self) -> Estimate | None:
         names = ["x", "y", "yaw"]

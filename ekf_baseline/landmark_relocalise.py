@@ -19,7 +19,7 @@ import numpy as np
 from ddfuse.ekf_baseline.landmark_model import MIN_RANGE, range_bearing_terms
 from ddfuse.estimation import chi2
 
-__all__ = ["PoseFit", "fit_pose", "MIN_SIGHTINGS"]
+__all__ = ["PoseFit", "fit_pose", "usable_fit", "MIN_SIGHTINGS"]
 
 MIN_SIGHTINGS = 2  # range-bearing sightings: with one the heading is not fixed
 P_CONSISTENT = 0.999  # the residual's chi-square below this quantile: the frame agrees with itself
@@ -106,3 +106,23 @@ def _residual(x: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         J[2 * i] = (-ar, -br, 0.0)
         J[2 * i + 1] = (aq, -bq, -1.0)
     return res, J
+
+
+AGREE_P = 0.9999  # the fit and the filter's pose, both uncertain, disagree beyond this quantile
+
+
+def usable_fit(pose: np.ndarray, pose_cov: np.ndarray, rows) -> PoseFit | None:
+    """``fit_pose(rows)`` if the filter at ``pose`` (3,) with ``pose_cov`` (3, 3) should restart
+    from it: the frame is consistent, it knows the heading better than the filter does, and it
+    agrees with the filter's pose within their joint covariance (a gap's grown covariance admits
+    nearly any pose; a tight one keeps a frame with a misidentified landmark out). Else None."""
+    fit = fit_pose(rows)
+    if fit is None or not fit.consistent or fit.cov[2, 2] >= pose_cov[2, 2]:
+        return None
+    d = fit.pose - np.asarray(pose, float)
+    d[2] = (d[2] + math.pi) % (2.0 * math.pi) - math.pi
+    try:
+        m2 = float(d @ np.linalg.solve(pose_cov + fit.cov, d))
+    except np.linalg.LinAlgError:
+        return None
+    return fit if m2 <= chi2.ppf(AGREE_P, 3) else None
