@@ -27,8 +27,17 @@ to it than to the anchor) is rejected even when the aged anchor's reach would ta
 ``HOLD_S``; a run that lasts longer re-anchors (the receiver has said the same for a minute).
 A fix that fits the anchor and not the run ends the jump. A jump taken so keeps the anchor
 before it as the other side for ``HOLD_S``: rejected fixes within the top speed's reach of it
-re-anchor too, so the return costs ``REANCHOR`` - 1 fixes. A sample beyond the top speed
-or yaw rate never re-anchors.
+re-anchor too, so the return costs ``REANCHOR`` - 1 fixes. A jump can also be accepted, being
+within the top speed's reach of the anchor (an NLOS fix some 25 m off at 25 m/s): when a run of
+rejected fixes starts, the last ``REANCHOR`` fixes accepted (since the last re-anchor) are
+searched, newest first, for one on the run's side: one that needs less than half the speed to
+reach the run's first fix than to reach the anchor, the anchor beyond the noise allowance from
+it. Found, the anchor's side is shorter than a confirmation and the run may return to the
+track the screen followed before it: held as any run, it re-anchors after ``REANCHOR`` fixes
+within the top speed's reach of that fix, so the return costs ``REANCHOR`` - 1 fixes (taking
+its fixes at once would let an NLOS run in wherever a fix before the anchor happens to lie near
+it). Otherwise the run is a jump away, held as above. A sample beyond the top speed or yaw rate
+never re-anchors.
 
 Each rejection is counted in ``rejected[(topic, reason)]`` (``Stream.rejected``); ``warnings()``
 gives one line per topic and reason with the count, the first time, value and limit. Design and
@@ -197,9 +206,7 @@ class RobotLimits:
             return True
         anchor, unconfirmed = prev
         run = self._fix_run.get(m.sensor)
-        back_to = self._return_to.get(m.sensor)
-        if self._fix_fits(anchor, fix) and (back_to is not None
-                                            or not self._holds(run, anchor, fix)):
+        if self._fix_fits(anchor, fix) and not self._holds(run, anchor, fix):
             self._fix[m.sensor] = (fix, REANCHOR if fix.t - anchor.t > GAP_S
                                    else max(unconfirmed - 1, 0))
             self._recent[m.sensor].append(fix)
@@ -208,18 +215,21 @@ class RobotLimits:
             return True
         if run and self._fix_fits(run[-1], fix):
             run.append(fix)
+            back_to = self._return_to.get(m.sensor)
         else:
             run = self._fix_run[m.sensor] = [fix]
             back_to = self._return_to[m.sensor] = self._side_before(m.sensor, anchor, fix)
         other, since = self._before_jump.get(m.sensor, (None, 0.0))
         # back to the side before a jump taken at ``since`` (for HOLD_S after it), or before a
         # jump accepted within reach
-        back = (other is not None and fix.t - since <= HOLD_S and self._fix_fits(other, fix)) \
-            or (back_to is not None and self._fix_fits(back_to, fix))
-        if len(run) >= REANCHOR and (unconfirmed or back or fix.t - run[0].t > HOLD_S):
-            if back or unconfirmed:
+        back = other is not None and fix.t - since <= HOLD_S and self._fix_fits(other, fix)
+        returns = back_to is not None and self._fix_fits(back_to, fix)
+        if len(run) >= REANCHOR and (unconfirmed or back or returns
+                                     or fix.t - run[0].t > HOLD_S):
+            if (back or unconfirmed) and not returns:
                 self._before_jump.pop(m.sensor, None)
-            else:  # a jump held past HOLD_S taken: the side before it stays the other one
+            else:  # a jump held past HOLD_S, or a return that may be wrong, taken: the side
+                # before it stays the other one
                 self._before_jump[m.sensor] = (anchor, fix.t)
             self._take(m.sensor, fix, 0)
             return True
@@ -243,12 +253,16 @@ class RobotLimits:
         """The newest recently accepted fix on the side of the rejected ``fix`` rather than on
         the ``anchor``'s, when the anchor's side is shorter than the ``REANCHOR`` fixes that
         confirm one: the anchor was a jump accepted within reach and ``fix`` returns to the
-        track before it. A fix is on the side it needs the lower speed to reach. None: the
+        track before it. A fix is on the run's side when it needs less than half the speed to
+        reach ``fix`` than to reach the anchor, and the anchor is beyond the noise allowance from
+        it (on a smooth track driven away from a jump both speeds are the track's). None: the
         anchor's side has ``REANCHOR`` fixes (or is all there is), ``fix`` is a jump away."""
         for h in reversed(self._recent[sensor]):
             to_anchor = math.hypot(anchor.e - h.e, anchor.n - h.n) / max(anchor.t - h.t, 1e-9)
             to_fix = math.hypot(fix.e - h.e, fix.n - h.n) / max(fix.t - h.t, 1e-9)
-            if h is not anchor and to_fix < to_anchor:
+            if h is not anchor and 2.0 * to_fix < to_anchor and \
+                    math.hypot(anchor.e - h.e, anchor.n - h.n) > \
+                    K_SIGMA_GPS * math.hypot(anchor.sd, h.sd):
                 return h
         return None
 
