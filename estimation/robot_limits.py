@@ -36,8 +36,10 @@ it. Found, the anchor's side is shorter than a confirmation and the run may retu
 track the screen followed before it: held as any run, it re-anchors after ``REANCHOR`` fixes
 within the top speed's reach of that fix, so the return costs ``REANCHOR`` - 1 fixes (taking
 its fixes at once would let an NLOS run in wherever a fix before the anchor happens to lie near
-it). Otherwise the run is a jump away, held as above. A sample beyond the top speed or yaw rate
-never re-anchors.
+it), and the anchor it leaves is the other side for ``HOLD_S`` (the choice can be wrong: an NLOS
+fix where the robot was seconds before looks the same; the next run back to it undoes it at
+the same cost). Otherwise the run is a jump away, held as above. A sample beyond the top speed
+or yaw rate never re-anchors.
 
 Each rejection is counted in ``rejected[(topic, reason)]`` (``Stream.rejected``); ``warnings()``
 gives one line per topic and reason with the count, the first time, value and limit. Design and

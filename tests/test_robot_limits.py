@@ -194,6 +194,21 @@ def test_the_return_from_a_jump_accepted_within_reach_is_not_held_as_a_new_jump(
     assert sum(rejected.values()) == back - 52
 
 
+def test_a_wrongly_taken_return_is_undone_by_the_next_run_back():
+    """The same pattern, then the receiver goes back to the jumped side for good (the "return"
+    was the wrong choice): the side it left is the other one, so that run re-anchors after
+    REANCHOR fixes too, not after HOLD_S."""
+    screen, _ = _screen()
+    fixes = _drive(300)
+    for i, north in ((50, 8.0), (51, 11.0)):
+        fixes[i].enu = (fixes[i].enu[0], north, 0.0)
+    for f in fixes[100:]:
+        f.enu = (f.enu[0], 11.0, 0.0)
+    passed = [screen.admit(f) for f in fixes]
+    assert passed[52:100] == [False] * (REANCHOR - 1) + [True] * (48 - REANCHOR + 1)
+    assert passed[100:] == [False] * (REANCHOR - 1) + [True] * (200 - REANCHOR + 1)
+
+
 def test_a_datum_shift_that_persists_while_driving_is_held_for_hold_s_then_taken():
     """A shift of 30 m north from fix 50 on, for good, while the robot drives east: held (the
     fixes before it are all on the anchor's side: no return), then taken after HOLD_S."""
