@@ -27,7 +27,18 @@ to it than to the anchor) is rejected even when the aged anchor's reach would ta
 ``HOLD_S``; a run that lasts longer re-anchors (the receiver has said the same for a minute).
 A fix that fits the anchor and not the run ends the jump. A jump taken so keeps the anchor
 before it as the other side for ``HOLD_S``: rejected fixes within the top speed's reach of it
-re-anchor too, so the return costs ``REANCHOR`` - 1 fixes. A sample beyond the top speed
+re-anchor too, so the return costs ``REANCHOR`` - 1 fixes. A jump can also be accepted, being
+within the top speed's reach of the anchor (an NLOS fix some 25 m off at 25 m/s): when a run of
+rejected fixes starts, the last ``REANCHOR`` fixes accepted (since the last re-anchor) are
+searched, newest first, for one on the run's side: one that needs less than half the speed to
+reach the run's first fix than to reach the anchor, the anchor beyond the noise allowance from
+it. Found, the anchor's side is shorter than a confirmation and the run may return to the
+track the screen followed before it: held as any run, it re-anchors after ``REANCHOR`` fixes
+within the top speed's reach of that fix, so the return costs ``REANCHOR`` - 1 fixes (taking
+its fixes at once would let an NLOS run in wherever a fix before the anchor happens to lie near
+it), and the anchor it leaves is the other side for ``HOLD_S`` (the choice can be wrong: an NLOS
+fix where the robot was seconds before looks the same; the next run back to it undoes it at
+the same cost). Otherwise the run is a jump away, held as above. A sample beyond the top speed
 or yaw rate never re-anchors.
 
 Each rejection is counted in ``rejected[(topic, reason)]`` (``Stream.rejected``); ``warnings()``
@@ -39,7 +50,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass
 
 from ddfuse.estimation.config import Config
@@ -106,6 +117,11 @@ class RobotLimits:
         self._fix_run: dict[str, list[_Fix]] = {}
         # sensor -> (the anchor before a jump taken after HOLD_S, when it was taken, s)
         self._before_jump: dict[str, tuple[_Fix, float]] = {}
+        # sensor -> the last REANCHOR fixes accepted since the last re-anchor, oldest first
+        self._recent: dict[str, deque[_Fix]] = {}
+        # sensor -> the fix before the anchor's side that the current run returns to (None: the
+        # run is a jump away from the anchor)
+        self._return_to: dict[str, _Fix | None] = {}
         # (topic, reason) -> (first t, value, limit text) for the warnings
         self._first: dict[tuple[str, str], tuple[float, str, str]] = {}
 
@@ -188,29 +204,36 @@ class RobotLimits:
         fix = _Fix(m.t, m.enu[0], m.enu[1], sd)
         prev = self._fix.get(m.sensor)
         if prev is None:
-            self._fix[m.sensor] = (fix, REANCHOR)
+            self._take(m.sensor, fix, REANCHOR)
             return True
         anchor, unconfirmed = prev
         run = self._fix_run.get(m.sensor)
         if self._fix_fits(anchor, fix) and not self._holds(run, anchor, fix):
             self._fix[m.sensor] = (fix, REANCHOR if fix.t - anchor.t > GAP_S
                                    else max(unconfirmed - 1, 0))
+            self._recent[m.sensor].append(fix)
             self._fix_run.pop(m.sensor, None)
+            self._return_to.pop(m.sensor, None)
             return True
         if run and self._fix_fits(run[-1], fix):
             run.append(fix)
+            back_to = self._return_to.get(m.sensor)
         else:
             run = self._fix_run[m.sensor] = [fix]
+            back_to = self._return_to[m.sensor] = self._side_before(m.sensor, anchor, fix)
         other, since = self._before_jump.get(m.sensor, (None, 0.0))
-        # back to the side before a jump taken at ``since`` (for HOLD_S after it)
+        # back to the side before a jump taken at ``since`` (for HOLD_S after it), or before a
+        # jump accepted within reach
         back = other is not None and fix.t - since <= HOLD_S and self._fix_fits(other, fix)
-        if len(run) >= REANCHOR and (unconfirmed or back or fix.t - run[0].t > HOLD_S):
-            if back or unconfirmed:
+        returns = back_to is not None and self._fix_fits(back_to, fix)
+        if len(run) >= REANCHOR and (unconfirmed or back or returns
+                                     or fix.t - run[0].t > HOLD_S):
+            if (back or unconfirmed) and not returns:
                 self._before_jump.pop(m.sensor, None)
-            else:  # a jump held past HOLD_S taken: the side before it stays the other one
+            else:  # a jump held past HOLD_S, or a return that may be wrong, taken: the side
+                # before it stays the other one
                 self._before_jump[m.sensor] = (anchor, fix.t)
-            self._fix[m.sensor] = (fix, 0)
-            del self._fix_run[m.sensor]
+            self._take(m.sensor, fix, 0)
             return True
         d = math.hypot(fix.e - anchor.e, fix.n - anchor.n)
         dt = fix.t - anchor.t
@@ -219,6 +242,31 @@ class RobotLimits:
             "explains (robot.max_speed)", m.t,
             f"{d:.1f} m in {dt:.2f} s", f"limit {self.v_max:g} m/s plus {K_SIGMA_GPS:g} sigma of "
             f"the fixes ({anchor.sd:.2g} m, {fix.sd:.2g} m)")
+
+    def _take(self, sensor: str, fix: _Fix, unconfirmed: int) -> None:
+        """``fix`` the new anchor by (re-)anchoring: the fixes accepted before it are no
+        side to return to."""
+        self._fix[sensor] = (fix, unconfirmed)
+        self._recent[sensor] = deque([fix], maxlen=REANCHOR)
+        self._fix_run.pop(sensor, None)
+        self._return_to.pop(sensor, None)
+
+    def _side_before(self, sensor: str, anchor: _Fix, fix: _Fix) -> _Fix | None:
+        """The newest recently accepted fix on the side of the rejected ``fix`` rather than on
+        the ``anchor``'s, when the anchor's side is shorter than the ``REANCHOR`` fixes that
+        confirm one: the anchor was a jump accepted within reach and ``fix`` returns to the
+        track before it. A fix is on the run's side when it needs less than half the speed to
+        reach ``fix`` than to reach the anchor, and the anchor is beyond the noise allowance from
+        it (on a smooth track driven away from a jump both speeds are the track's). None: the
+        anchor's side has ``REANCHOR`` fixes (or is all there is), ``fix`` is a jump away."""
+        for h in reversed(self._recent[sensor]):
+            to_anchor = math.hypot(anchor.e - h.e, anchor.n - h.n) / max(anchor.t - h.t, 1e-9)
+            to_fix = math.hypot(fix.e - h.e, fix.n - h.n) / max(fix.t - h.t, 1e-9)
+            if h is not anchor and 2.0 * to_fix < to_anchor and \
+                    math.hypot(anchor.e - h.e, anchor.n - h.n) > \
+                    K_SIGMA_GPS * math.hypot(anchor.sd, h.sd):
+                return h
+        return None
 
     def _holds(self, run: list[_Fix] | None, anchor: _Fix, fix: _Fix) -> bool:
         """Whether ``fix``, within reach of ``anchor`` only because the anchor has aged, goes on

@@ -178,6 +178,50 @@ def test_a_jumped_fix_within_the_aged_anchors_reach_is_still_part_of_the_jump():
     assert passed == [i not in range(50, 100) for i in range(150)]
 
 
+def test_the_return_from_a_jump_accepted_within_reach_is_not_held_as_a_new_jump():
+    """Urban seed 15's pattern: two jumped fixes (8 m, then 11 m north) come within the top
+    speed's reach of the fix before them and are accepted; the true track after them is out of
+    the last one's reach at first. It is the track the screen followed before the jump, so it
+    re-anchors after REANCHOR fixes, not held for HOLD_S as a jump from the jumped anchor."""
+    screen, rejected = _screen()  # 1.5 m/s: 0.6 m + 8.5 m in 0.4 s
+    fixes = _drive(300)  # 120 s east at 1 m/s, 2.5 Hz
+    for i, north in ((50, 8.0), (51, 11.0)):
+        fixes[i].enu = (fixes[i].enu[0], north, 0.0)
+    passed = [screen.admit(f) for f in fixes]
+    assert all(passed[:52])  # the jump is within reach: taken
+    back = passed.index(True, 52)
+    assert back == 52 + REANCHOR - 1 and all(passed[back:])
+    assert sum(rejected.values()) == back - 52
+
+
+def test_a_wrongly_taken_return_is_undone_by_the_next_run_back():
+    """The same pattern, then the receiver goes back to the jumped side for good (the "return"
+    was the wrong choice): the side it left is the other one, so that run re-anchors after
+    REANCHOR fixes too, not after HOLD_S."""
+    screen, _ = _screen()
+    fixes = _drive(300)
+    for i, north in ((50, 8.0), (51, 11.0)):
+        fixes[i].enu = (fixes[i].enu[0], north, 0.0)
+    for f in fixes[100:]:
+        f.enu = (f.enu[0], 11.0, 0.0)
+    passed = [screen.admit(f) for f in fixes]
+    assert passed[52:100] == [False] * (REANCHOR - 1) + [True] * (48 - REANCHOR + 1)
+    assert passed[100:] == [False] * (REANCHOR - 1) + [True] * (200 - REANCHOR + 1)
+
+
+def test_a_datum_shift_that_persists_while_driving_is_held_for_hold_s_then_taken():
+    """A shift of 30 m north from fix 50 on, for good, while the robot drives east: held (the
+    fixes before it are all on the anchor's side: no return), then taken after HOLD_S."""
+    screen, _ = _screen()
+    fixes = _drive(300)
+    for f in fixes[50:]:
+        f.enu = (f.enu[0], 30.0, 0.0)
+    passed = [screen.admit(f) for f in fixes]
+    first = passed.index(True, 50)
+    assert first == 50 + round(HOLD_S / 0.4) + 1 and all(passed[first:])
+    assert all(passed[:50])
+
+
 def test_an_earlier_outlier_does_not_let_a_later_jump_through():
     screen, _ = _screen()
     fixes = _drive(400, v=0.0)
