@@ -603,7 +603,10 @@ class LandmarkSlamEkf(_OdometryDrivenEkf):
         kf = self.kf
         n = kf.n
         l, Gp, Gz = landmark_from_range_bearing(kf.x[:3], m.range, m.bearing)
-        R = np.diag([m.range_var, m.bearing_var])
+        # with a bearing error common to the frame, the sighting's whole bearing variance
+        # (own + common; its correlation with the frame's other sightings is left out)
+        common = self._frames.common.get(m.sensor, 0.0)
+        R = np.diag([m.range_var, m.bearing_var + common if common else m.bearing_var])
         P = kf.P
         cross = Gp @ P[:3, :]  # (2, n)
         Pll = Gp @ P[:3, :3] @ Gp.T + Gz @ R @ Gz.T

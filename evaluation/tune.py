@@ -56,7 +56,9 @@ AT_BOUND = 0.01  # a log value this close to a bound is at it
 # a value informed at the start that the search drove this factor down, to where it no longer
 # shows in the innovations, is kept there ('negligible'), not put back to the config's
 NEGLIGIBLE = 10.0
-PROCESS_NOISE = ("slip", "walk", "twist")  # Param kinds that are process noise densities
+# Param kinds that are process noise densities, or like one may be driven to 'negligible' (a
+# landmark bearing's part common to a frame: the data may show none)
+PROCESS_NOISE = ("slip", "walk", "twist", "common")
 NOT_SEARCHED = ("corr",)  # Param kinds set by a rule beside the likelihood (correlation time)
 CORR_GAP = 1.0  # s: a sighting whose neighbours (same landmark) are this close is scattered
 START_SCALES = (1.0, 3.0, 9.0)  # common factors on the measurement noise tried first
@@ -432,10 +434,10 @@ def _correlation(problem: Problem, result: TuneResult) -> None:
         p = t.param
         if p.kind != "corr":
             continue
-        sig = next((u for u in result.tuned if u.param.sensor == p.sensor and
-                    u.param.noise_key == "bearing"), None)
-        sigma = None if sig is None else (sig.value if sig.value is not None
-                                          else sig.param.start)
+        sigma = _bearing_sigma(result, p.sensor, "bearing")
+        common = _bearing_sigma(result, p.sensor, "bearing_common")
+        if sigma and common:  # a sighting's whole bearing error: its own and its frame's part
+            sigma = math.hypot(sigma, common)
         tau = round(sighting_scatter(problem, p.sensor, sigma) or 0.0, 1) if sigma else 0.0
         if tau == p.before:
             result.tuned[k] = Tuned(p, None, "not informed", (
@@ -446,6 +448,17 @@ def _correlation(problem: Problem, result: TuneResult) -> None:
             f"from each landmark's own sightings' neighbour scatter at the tuned bearing sigma "
             f"{sigma:.3g} rad (evaluation.tune.sighting_scatter, gps_scatter's rule); set after "
             "the search, which ran with the config's"))
+
+
+def _bearing_sigma(result: TuneResult, sensor: str, key: str) -> float | None:
+    """The tuned (else the starting) value of ``sensor``'s noise ``key``; None without one."""
+    t = next((u for u in result.tuned if u.param.sensor == sensor and
+              u.param.noise_key == key), None)
+    if t is None:
+        return None
+    if t.param.kind == "common" and t.value is None:
+        return t.param.before  # not informed: the config's (None: no common part)
+    return t.value if t.value is not None else t.param.start
 
 
 def _scoring(values_at, derivs_at, x: np.ndarray, f: float, J: np.ndarray,
