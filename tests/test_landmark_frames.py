@@ -228,3 +228,31 @@ def test_the_config_key_needs_the_bearing(tmp_path):
     p.write_text("sensors: {landmarks: [{topic: /lm, map: m.yaml, "
                  "noise: {range: 0.1, bearing: 0.01, bearing_common: 0}}]}\n")
     assert load_config(p).sensors[0].noise["bearing_common"] == 0.0
+
+
+@pytest.mark.slow
+def test_the_smoother_fuses_the_frame_alike():
+    """The fixed-lag smoother's landmark factors with bearing_common (each conditional on its
+    frame's earlier sightings on the keyframe): its heading honest on the frame-correlated
+    simulation, the independent model's over-confident (30 s, 2 s lag; measured 0.96 / 1.80)."""
+    from ddfuse.estimation.smoother.fixed_lag import FixedLagSmoother
+
+    truth, meas = simulate(1, 0.005, 0.03, duration=30.0)
+    out = []
+    for common, ms in ((0.03, meas), (None, with_bearing_var(meas, 0.005**2 + 0.03**2))):
+        sm = FixedLagSmoother(cfg_of(common), initial_pose=tuple(truth[0, 1:]),
+                              landmarks=LANDMARKS, lag=2.0)
+        yaw, i = [], 0
+        while i < len(ms):
+            t = ms[i].t
+            while i < len(ms) and ms[i].t == t:
+                sm.process(ms[i])
+                i += 1
+            k = int(round(t / DT))
+            if t < 2.0 or k % 25:
+                continue
+            est = sm.estimate()
+            e = (est.pose[2] - truth[k, 3] + math.pi) % (2 * math.pi) - math.pi
+            yaw.append(e * e / est.pose_cov[2, 2])
+        out.append(float(np.mean(yaw)))
+    assert 0.5 < out[0] < 1.4 and out[1] > 1.4 * out[0], out
