@@ -220,7 +220,7 @@ def tune(cfg: Config, stream: Stream, *, holdout: str | None = None,
             engine = stack.enter_context(Engine(jobs=jobs, fork=True))
         ev = Evaluator(problem, engine)
         try:
-            result = _search(problem, ev, progress, t_start)
+            result = _staged_search(problem, ev, progress, t_start)
             _correlation(problem, result)
             return result
         finally:
@@ -228,12 +228,16 @@ def tune(cfg: Config, stream: Stream, *, holdout: str | None = None,
             problem.applier.apply([None] * len(params))
 
 
-def _search(problem: Problem, ev: Evaluator, progress, t_start: float) -> TuneResult:
+def _search(problem: Problem, ev: Evaluator, progress, t_start: float,
+            search: np.ndarray | None = None) -> TuneResult:
+    """The likelihood search over the values ``search`` marks (default: every kind but
+    ``NOT_SEARCHED``), the others held at their start."""
     params = problem.params
     n = len(params)
     with np.errstate(divide="ignore"):  # a correlation time of 0 (white): log -inf, exp 0
         x0 = np.log([p.start for p in params])
-    search = np.array([p.kind not in NOT_SEARCHED for p in params], bool)
+    if search is None:
+        search = np.array([p.kind not in NOT_SEARCHED for p in params], bool)
     say = progress or (lambda stage, f: None)
     say("information at the start", 0.0)
     seen: dict[tuple, np.ndarray] = {}  # log values -> the terms of L there
@@ -362,6 +366,44 @@ def _search(problem: Problem, ev: Evaluator, progress, t_start: float) -> TuneRe
     say("maximum likelihood", 1.0)
     return TuneResult(problem.estimator, tuned, pairs, nll0, f, len(base0), ev.runs,
                       iterations, time.perf_counter() - t_start, message)
+
+
+def _staged_search(problem: Problem, ev: Evaluator, progress, t_start: float) -> TuneResult:
+    """:func:`_search`, in two stages where a landmark sensor has a bearing part common to its
+    frames (kind 'common'): first every other value with the common part at the config's (0
+    where it states none: the independent model, so a config without it tunes as before), then
+    that sensor's range, bearing and common part from there, the rest held at the first
+    stage's values, the common part starting at the first stage's bearing sigma. Searched
+    together from the start, the common part (which the data may not want: driven to its bound)
+    stalled the others: on a simulated seed002 bag with independent bearings the wheel speed's
+    noise stayed at its 3x start (docs/design/tuning.md, session 22)."""
+    params = problem.params
+    common = [i for i, p in enumerate(params) if p.kind == "common"]
+    if not common:
+        return _search(problem, ev, progress, t_start)
+    for i in common:
+        params[i].start = params[i].before or 0.0
+    first = _search(problem, ev, progress, t_start, np.array(
+        [p.kind not in NOT_SEARCHED + ("common",) for p in params], bool))
+    sensors = {params[i].sensor for i in common}
+    for p, t in zip(params, first.tuned, strict=True):
+        if p.kind not in ("corr", "common") and t.value is not None and \
+                t.status != "not informed":
+            p.start = t.value  # (not informed: its start, where the first stage held it)
+    for i in common:
+        p = params[i]
+        bearing = next(q.start for q in params if q.sensor == p.sensor and
+                       q.kind == "landmarks" and q.noise_key == "bearing")
+        p.start = p.before or bearing
+    mask = np.array([p.sensor in sensors and p.kind in ("landmarks", "common")
+                     for p in params], bool)
+    second = _search(problem, ev, progress, t_start, mask)
+    second.tuned = [b if m else a for a, b, m in zip(first.tuned, second.tuned, mask,
+                                                     strict=True)]
+    second.pairs = first.pairs + second.pairs
+    second.nll_start = first.nll_start
+    second.iterations += first.iterations
+    return second
 
 
 def _scaled_start(params: list[Param], x0: np.ndarray, ev: Evaluator, seen: dict

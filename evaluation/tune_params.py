@@ -14,8 +14,9 @@ noise density:
 * a landmark sensor's ``noise.bearing_common`` (rad, kind 'common'): the part of the bearing
   error common to a frame's sightings (``estimation.landmark_frames``), searched with the
   bearing (the common part moves every sighting of a frame alike, the own part their
-  differences); where the config states none it starts at the bearing's start value (half the
-  variance common) and may end 'negligible' like a process noise;
+  differences), in a second stage after the others (``evaluation.tune._staged_search``); where
+  the config states none it starts at the first stage's bearing sigma and may end
+  'negligible' like a process noise;
 * a landmark sensor's ``correlation_time`` (s, kind 'corr'): not searched by the likelihood
   but set by the sightings' neighbour scatter at the tuned bearing sigma (``evaluation.tune``);
 * ``robot.twist_walk.speed`` (m/s/sqrt(s)) and ``yaw_rate`` (rad/s/sqrt(s)), the twist's own
