@@ -369,11 +369,10 @@ def _search(problem: Problem, ev: Evaluator, progress, t_start: float,
 
 
 def _staged_search(problem: Problem, ev: Evaluator, progress, t_start: float) -> TuneResult:
-    """:func:`_search`, in two stages where a landmark sensor has a bearing part common to its
-    frames (kind 'common'): first every other value with the common part at the config's (0
-    where it states none: the independent model, so a config without it tunes as before), then
-    that sensor's range, bearing and common part from there, the rest held at the first
-    stage's values, the common part starting at the first stage's bearing sigma. Searched
+    """:func:`_search`, in two stages where a landmark sensor states a bearing part common to
+    its frames (kind 'common'): first every other value with the common part held at the
+    config's, then that sensor's range, bearing and common part from there, the rest held at
+    the first stage's values. Searched
     together from the start, the common part (which the data may not want: driven to its bound)
     stalled the others: on a simulated seed002 bag with independent bearings the wheel speed's
     noise stayed at its 3x start (docs/design/tuning.md, session 22)."""
@@ -381,8 +380,6 @@ def _staged_search(problem: Problem, ev: Evaluator, progress, t_start: float) ->
     common = [i for i, p in enumerate(params) if p.kind == "common"]
     if not common:
         return _search(problem, ev, progress, t_start)
-    for i in common:
-        params[i].start = params[i].before or 0.0
     first = _search(problem, ev, progress, t_start, np.array(
         [p.kind not in NOT_SEARCHED + ("common",) for p in params], bool))
     sensors = {params[i].sensor for i in common}
@@ -390,11 +387,6 @@ def _staged_search(problem: Problem, ev: Evaluator, progress, t_start: float) ->
         if p.kind not in ("corr", "common") and t.value is not None and \
                 t.status != "not informed":
             p.start = t.value  # (not informed: its start, where the first stage held it)
-    for i in common:
-        p = params[i]
-        bearing = next(q.start for q in params if q.sensor == p.sensor and
-                       q.kind == "landmarks" and q.noise_key == "bearing")
-        p.start = p.before or bearing
     mask = np.array([p.sensor in sensors and p.kind in ("landmarks", "common")
                      for p in params], bool)
     second = _search(problem, ev, progress, t_start, mask)

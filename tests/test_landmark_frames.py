@@ -256,3 +256,27 @@ def test_the_smoother_fuses_the_frame_alike():
             yaw.append(e * e / est.pose_cov[2, 2])
         out.append(float(np.mean(yaw)))
     assert 0.5 < out[0] < 1.4 and out[1] > 1.4 * out[0], out
+
+
+def test_tune_fits_the_common_part_only_where_the_config_states_one():
+    """A config stating bearing_common gets it as a tune parameter (kind 'common', applied to
+    the config the estimators read); one without it tunes as before (no such parameter)."""
+    from ddfuse.estimation.measurements import Stream
+    from ddfuse.evaluation.tune_params import Applier, parameters
+
+    _, meas = simulate(1, 0.005, 0.03, duration=3.0)
+    st = Stream(meas)
+    for s in cfg_of(None).sensors:
+        s.noise = {"range": 0.1, "bearing": 0.01} if s.kind == "landmarks" else {"v": 0.1}
+    assert not [p for p in parameters(cfg_of(None), st) if p.kind == "common"]
+    cfg = cfg_of(0.02)
+    cfg.sensors[1].noise.update(range=0.1, bearing=0.01)
+    ps = parameters(cfg, st)
+    common = [p for p in ps if p.kind == "common"]
+    assert [(p.key, p.start, p.before) for p in common] == [
+        ("sensors.landmarks[0].noise.bearing_common", 0.02, 0.02)]
+    ap = Applier(cfg, st, ps)
+    ap.apply([0.007 if p.kind == "common" else None for p in ps])
+    assert FrameBearings(cfg).common == {"lm": pytest.approx(0.007**2)}
+    ap.apply([None] * len(ps))
+    assert cfg.sensors[1].noise["bearing_common"] == 0.02
