@@ -172,6 +172,9 @@ class TuneResult:
     iterations: int = 0
     wall_s: float = 0.0
     message: str = ""
+    # landmark sensor -> the bearing sigma (rad) of its independent model (the first stage of
+    # _staged_search), which the correlation time's rule takes (_correlation)
+    corr_sigma: dict[str, float] = field(default_factory=dict)
 
     def values(self) -> list[float | None]:
         return [t.value for t in self.tuned]
@@ -383,6 +386,7 @@ def _staged_search(problem: Problem, ev: Evaluator, progress, t_start: float) ->
     first = _search(problem, ev, progress, t_start, np.array(
         [p.kind not in NOT_SEARCHED + ("common",) for p in params], bool))
     sensors = {params[i].sensor for i in common}
+    corr_sigma = {s: _bearing_sigma(first, s, "bearing") for s in sensors}
     for p, t in zip(params, first.tuned, strict=True):
         if p.kind not in ("corr", "common") and t.value is not None and \
                 t.status != "not informed":
@@ -395,6 +399,7 @@ def _staged_search(problem: Problem, ev: Evaluator, progress, t_start: float) ->
     second.pairs = first.pairs + second.pairs
     second.nll_start = first.nll_start
     second.iterations += first.iterations
+    second.corr_sigma = {s: v for s, v in corr_sigma.items() if v}
     return second
 
 
@@ -468,10 +473,11 @@ def _correlation(problem: Problem, result: TuneResult) -> None:
         p = t.param
         if p.kind != "corr":
             continue
-        sigma = _bearing_sigma(result, p.sensor, "bearing")
-        common = _bearing_sigma(result, p.sensor, "bearing_common")
-        if sigma and common:  # a sighting's whole bearing error: its own and its frame's part
-            sigma = math.hypot(sigma, common)
+        # with a common part: the independent model's sigma (the first stage's): the rule
+        # compares a landmark's own track's scatter with white errors of the sightings' whole
+        # sigma; the second stage's own sigma leaves the frame's part out, and at it the rule
+        # read the bearings as white on mrclam1_robot1.bag (docs/design/tuning.md, session 22)
+        sigma = result.corr_sigma.get(p.sensor) or _bearing_sigma(result, p.sensor, "bearing")
         tau = round(sighting_scatter(problem, p.sensor, sigma) or 0.0, 1) if sigma else 0.0
         if tau == p.before:
             result.tuned[k] = Tuned(p, None, "not informed", (
@@ -490,8 +496,6 @@ def _bearing_sigma(result: TuneResult, sensor: str, key: str) -> float | None:
               u.param.noise_key == key), None)
     if t is None:
         return None
-    if t.param.kind == "common" and t.value is None:
-        return t.param.before  # not informed: the config's (None: no common part)
     return t.value if t.value is not None else t.param.start
 
 
