@@ -442,7 +442,8 @@ class LandmarkEkf(LandmarkKernels, _OdometryDrivenEkf):
     ``compiled`` (default): the prediction and the sightings run in the numba kernels of
     ``ekf_baseline.kalman_jit`` (``landmark_compiled``; what they defer -- a gate lock-out's
     recovery, a singular S, a landmark at the body origin -- in the Python update on the same
-    arrays); False: all in Python (numpy). The tests compare the two
+    arrays; so are the sightings of a sensor with ``noise.bearing_common``,
+    ``estimation.landmark_frames``); False: all in Python (numpy). The tests compare the two
     (tests/test_landmark_compiled.py; docs/design/ekf_kernels.md)."""
 
     name = "landmark_ekf"
