@@ -65,6 +65,7 @@ from ddfuse.estimation.config import DEFAULT_GATE, LANDMARK_NOT_IN_MAP, Config, 
 from ddfuse.estimation.estimator import Estimate, Estimator
 from ddfuse.estimation.gaps import gap_note, grown_pose_cov, is_gap
 from ddfuse.estimation.landmark_correlation import SightingClock
+from ddfuse.estimation.landmark_frames import FrameBearings, FrameTerms
 from ddfuse.estimation.measurements import (
     GroundTruthPose,
     LandmarkObservation,
@@ -166,6 +167,7 @@ class _OdometryDrivenEkf(Estimator):
             raise ValueError(f"motion must be 'exact' or 'euler', got {motion!r}")
         self.cfg = cfg
         self._clock = SightingClock(cfg)  # a correlated sensor's factor on R (fusion only)
+        self._frames = FrameBearings(cfg)  # bearings with an error common to their frame
         self.motion = motion
         self.init_std = tuple(float(s) for s in init_std)
         self.kf: KalmanCore | None = None
@@ -404,35 +406,66 @@ class _OdometryDrivenEkf(Estimator):
         raise NotImplementedError
 
     def _measure(self, m: LandmarkObservation, landmark, lcols: list[int] | None,
-                 jac_at=None, fuse: float = 1.0) -> None:
+                 jac_at=None, fuse: float = 1.0, ref=None) -> None:
         """Update with one sighting of ``landmark`` (x, y); ``lcols`` its state columns (SLAM).
         ``jac_at`` = (pose, landmark): where the Jacobians are evaluated, if not at the
         current estimate (first-estimates Jacobians). ``fuse``: the factor on R in the gain and
-        Joseph update (``estimation.landmark_correlation``; the gate and the log keep R)."""
+        Joseph update (``estimation.landmark_correlation``; the gate and the log keep R).
+        ``ref``: how :meth:`_frame_landmark` finds the landmark again when a later sighting of
+        the same frame is conditioned on this one (``estimation.landmark_frames``; default:
+        ``landmark`` itself)."""
         kf = self.kf
+        frame = self._frames.terms(m) if self._frames else None
         try:
             h, Hp, Hl = range_bearing(kf.x[:3], landmark, m.has_bearing)
             if jac_at is not None:
                 _, Hp, Hl = range_bearing(jac_at[0], jac_at[1], m.has_bearing)
+            k = h.shape[0]
+            H = np.zeros((k, kf.n))
+            H[:, :3] = Hp
+            if lcols is not None:
+                H[:, lcols] = Hl
+            if m.has_bearing:
+                z, R, angles = [m.range, m.bearing], np.diag([m.range_var, m.bearing_var]), (1,)
+            else:
+                z, R, angles = [m.range], np.array([[m.range_var]]), ()
+            if frame is not None:
+                self._condition(frame, h, H, R, jac_at is not None)
         except ValueError:
             self.log.rejected[(m.sensor, "degenerate")] += 1
             return
-        k = h.shape[0]
-        H = np.zeros((k, kf.n))
-        H[:, :3] = Hp
-        if lcols is not None:
-            H[:, lcols] = Hl
-        if m.has_bearing:
-            z, R, angles = [m.range, m.bearing], np.diag([m.range_var, m.bearing_var]), (1,)
-        else:
-            z, R, angles = [m.range], np.array([[m.range_var]]), ()
         if fuse == 1.0:
-            kf.update(m.t, m.sensor, "landmark", z, h, H, R, angles=angles,
-                      gate=self._gate(m.sensor))
+            ok = kf.update(m.t, m.sensor, "landmark", z, h, H, R, angles=angles,
+                           gate=self._gate(m.sensor))
         else:
-            kf.update_blocks(m.t, np.asarray(z, float), h, H, R,
-                             ((m.sensor, "landmark", 0, k, angles, self._gate(m.sensor)),),
-                             fuse=(fuse,))
+            ok = kf.update_blocks(m.t, np.asarray(z, float), h, H, R,
+                                  ((m.sensor, "landmark", 0, k, angles, self._gate(m.sensor)),),
+                                  fuse=(fuse,)) == 1
+        if frame is not None and ok:
+            self._frames.accepted(m, tuple(landmark) if ref is None else ref)
+
+    def _frame_landmark(self, ref):
+        """An earlier sighting's landmark from its ``ref``: (position (x, y) m, its state
+        columns or None, the position its Jacobians are taken at)."""
+        return ref, None, ref
+
+    def _condition(self, frame: FrameTerms, h: np.ndarray, H: np.ndarray, R: np.ndarray,
+                   fej: bool) -> None:
+        """Turn a sighting's bearing row (``h``, ``H``, ``R``: row 1, in place) into the
+        conditional one given its frame's earlier sightings (``estimation.landmark_frames``):
+        h + sum_j w_j (z_j - h_j), H - sum_j w_j H_j, the conditional variance. ``fej``: the
+        Jacobians at the pose before this time's updates and the landmarks' first estimates."""
+        x = self.kf.x[:3]
+        for (ref, zb), w in zip(frame.earlier, frame.weights, strict=True):
+            lm, cols, lm_jac = self._frame_landmark(ref)
+            hj, Hp, Hl = range_bearing(x, lm, True)
+            if fej:
+                _, Hp, Hl = range_bearing(self._pose_prior, lm_jac, True)
+            h[1] += w * _wrap(zb - hj[1])
+            H[1, :3] -= w * Hp[1]
+            if cols is not None:
+                H[1, cols] -= w * Hl[1]
+        R[1, 1] = frame.bearing_var
 
     def _pose_estimate(self, names: tuple[str, ...]) -> Estimate | None:
         if self.kf is None:
@@ -461,7 +494,8 @@ class LandmarkEkf(LandmarkKernels, _OdometryDrivenEkf):
     ``compiled`` (default): the prediction and the sightings run in the numba kernels of
     ``ekf_baseline.kalman_jit`` (``landmark_compiled``; what they defer -- a gate lock-out's
     recovery, a singular S, a landmark at the body origin -- in the Python update on the same
-    arrays); False: all in Python (numpy). The tests compare the two
+    arrays; so are the sightings of a sensor with ``noise.bearing_common``,
+    ``estimation.landmark_frames``); False: all in Python (numpy). The tests compare the two
     (tests/test_landmark_compiled.py; docs/design/ekf_kernels.md)."""
 
     name = "landmark_ekf"
@@ -489,7 +523,7 @@ class LandmarkEkf(LandmarkKernels, _OdometryDrivenEkf):
             self.log.rejected[(m.sensor, LANDMARK_NOT_IN_MAP)] += 1
             return
         f = self._clock.factor(m)
-        if self.compiled:
+        if self.compiled and m.sensor not in self._frames.common:
             self._sighting_compiled(m, lm, f)
         else:
             self._measure(m, lm, None, fuse=f)
@@ -598,6 +632,7 @@ class LandmarkSlamEkf(_OdometryDrivenEkf):
             self.kf.x[3:5] = scales
         self.slots.clear()
         self.first_estimate.clear()
+        self._frames.reset()
         self.log.rejected[(m.sensor, "restart")] += 1
         self.log.note(m.t, f"{self.name}: lost at a sighting of landmark {m.landmark_id} "
                            f"({why}); restarted from its pose before it ({pose[0]:.2f}, "
@@ -609,7 +644,8 @@ class LandmarkSlamEkf(_OdometryDrivenEkf):
         f = self._clock.factor(m)
         if i is not None:
             self._measure(m, self.kf.x[i:i + 2], [i, i + 1],
-                          jac_at=(self._pose_prior, self.first_estimate[m.landmark_id]), fuse=f)
+                          jac_at=(self._pose_prior, self.first_estimate[m.landmark_id]), fuse=f,
+                          ref=m.landmark_id)
             return
         if not m.has_bearing:
             self.log.rejected[(m.sensor, "range_only_unmapped")] += 1
@@ -626,7 +662,10 @@ class LandmarkSlamEkf(_OdometryDrivenEkf):
         kf = self.kf
         n = kf.n
         l, Gp, Gz = landmark_from_range_bearing(kf.x[:3], m.range, m.bearing)
-        R = np.diag([m.range_var, m.bearing_var])
+        # with a bearing error common to the frame, the sighting's whole bearing variance
+        # (own + common; its correlation with the frame's other sightings is left out)
+        common = self._frames.common.get(m.sensor, 0.0)
+        R = np.diag([m.range_var, m.bearing_var + common if common else m.bearing_var])
         P = kf.P
         cross = Gp @ P[:3, :]  # (2, n)
         Pll = Gp @ P[:3, :3] @ Gp.T + Gz @ R @ Gz.T
@@ -639,6 +678,11 @@ class LandmarkSlamEkf(_OdometryDrivenEkf):
         self.slots[m.landmark_id] = n
         self.first_estimate[m.landmark_id] = l.copy()
         self.log.note(m.t, f"landmark {m.landmark_id} added at ({l[0]:.3f}, {l[1]:.3f}) m")
+
+    def _frame_landmark(self, ref):
+        """``ref``: the landmark id: its state's position and columns, its first estimate."""
+        i = self.slots[ref]
+        return self.kf.x[i:i + 2], [i, i + 1], self.first_estimate[ref]
 
     def landmark_positions(self) -> dict[str, tuple[float, float]]:
         """Current estimate of every mapped landmark, id -> (x, y) in metres."""

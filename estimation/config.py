@@ -130,7 +130,9 @@ NOISE_KEYS = {
     "imu": ("yaw", "yaw_rate", "accel", "gyro_bias_walk", "heading_offset_walk"),
     "gps": ("horizontal", "vertical"),
     "wheels": ("speed",),
-    "landmarks": ("range", "bearing"),
+    # bearing_common: rad, the part of the bearing error common to a frame's sightings
+    # (ddfuse.estimation.landmark_frames); 0 or absent: independent bearings
+    "landmarks": ("range", "bearing", "bearing_common"),
     # field: T per axis (the heading's variance follows from the horizontal field); yaw: rad,
     # stated directly instead
     "magnetometer": ("field", "yaw", "heading_offset_walk"),
@@ -139,6 +141,7 @@ NOISE_KEYS = {
 # the sensor kinds whose messages become Heading measurements (with ``yaw`` in their use)
 HEADING_KINDS = ("imu", "magnetometer", "local_heading")
 WALK_KEYS = ("gyro_bias_walk", "heading_offset_walk")  # noise keys that may be 0 (constant)
+ZERO_OK_KEYS = (*WALK_KEYS, "bearing_common")  # noise keys that may be 0
 DEFAULT_GATE = 0.9999
 # Gate lock-out rule shared by the EKFs (ekf_baseline.kalman) and the smoother's GPS gate: this
 # many consecutive rejections of one sensor spanning at least this long mean the estimate, not
@@ -470,7 +473,11 @@ def _sensor(ck: _Checker, kind: str, i: int, raw: Any, base: Path) -> SensorConf
     if noise_raw is None:
         noise_raw = {}
     ck.mapping(noise_raw, f"{key}.noise", NOISE_KEYS[kind])  # noise: 0 or [] is no mapping
-    noise = {k: _std(ck, v, f"{key}.noise.{k}", walk=k in WALK_KEYS) for k, v in noise_raw.items()}
+    noise = {k: _std(ck, v, f"{key}.noise.{k}", walk=k in ZERO_OK_KEYS)
+             for k, v in noise_raw.items()}
+    if noise.get("bearing_common") and "bearing" not in use:
+        raise ck.fail(f"{key}.noise.bearing_common", "needs 'bearing' in use: it is the "
+                      "bearing error common to a frame's sightings")
     if "vertical" in noise and "horizontal" not in noise:
         raise ck.fail(f"{key}.noise.vertical", "needs noise.horizontal: without it the fix's own "
                       "covariance is used, vertical included")

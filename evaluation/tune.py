@@ -56,7 +56,9 @@ AT_BOUND = 0.01  # a log value this close to a bound is at it
 # a value informed at the start that the search drove this factor down, to where it no longer
 # shows in the innovations, is kept there ('negligible'), not put back to the config's
 NEGLIGIBLE = 10.0
-PROCESS_NOISE = ("slip", "walk", "twist")  # Param kinds that are process noise densities
+# Param kinds that are process noise densities, or like one may be driven to 'negligible' (a
+# landmark bearing's part common to a frame: the data may show none)
+PROCESS_NOISE = ("slip", "walk", "twist", "common")
 NOT_SEARCHED = ("corr",)  # Param kinds set by a rule beside the likelihood (correlation time)
 CORR_GAP = 1.0  # s: a sighting whose neighbours (same landmark) are this close is scattered
 START_SCALES = (1.0, 3.0, 9.0)  # common factors on the measurement noise tried first
@@ -170,6 +172,9 @@ class TuneResult:
     iterations: int = 0
     wall_s: float = 0.0
     message: str = ""
+    # landmark sensor -> the bearing sigma (rad) of its independent model (the first stage of
+    # _staged_search), which the correlation time's rule takes (_correlation)
+    corr_sigma: dict[str, float] = field(default_factory=dict)
 
     def values(self) -> list[float | None]:
         return [t.value for t in self.tuned]
@@ -218,7 +223,7 @@ def tune(cfg: Config, stream: Stream, *, holdout: str | None = None,
             engine = stack.enter_context(Engine(jobs=jobs, fork=True))
         ev = Evaluator(problem, engine)
         try:
-            result = _search(problem, ev, progress, t_start)
+            result = _staged_search(problem, ev, progress, t_start)
             _correlation(problem, result)
             return result
         finally:
@@ -226,12 +231,16 @@ def tune(cfg: Config, stream: Stream, *, holdout: str | None = None,
             problem.applier.apply([None] * len(params))
 
 
-def _search(problem: Problem, ev: Evaluator, progress, t_start: float) -> TuneResult:
+def _search(problem: Problem, ev: Evaluator, progress, t_start: float,
+            search: np.ndarray | None = None) -> TuneResult:
+    """The likelihood search over the values ``search`` marks (default: every kind but
+    ``NOT_SEARCHED``), the others held at their start."""
     params = problem.params
     n = len(params)
     with np.errstate(divide="ignore"):  # a correlation time of 0 (white): log -inf, exp 0
         x0 = np.log([p.start for p in params])
-    search = np.array([p.kind not in NOT_SEARCHED for p in params], bool)
+    if search is None:
+        search = np.array([p.kind not in NOT_SEARCHED for p in params], bool)
     say = progress or (lambda stage, f: None)
     say("information at the start", 0.0)
     seen: dict[tuple, np.ndarray] = {}  # log values -> the terms of L there
@@ -362,6 +371,38 @@ def _search(problem: Problem, ev: Evaluator, progress, t_start: float) -> TuneRe
                       iterations, time.perf_counter() - t_start, message)
 
 
+def _staged_search(problem: Problem, ev: Evaluator, progress, t_start: float) -> TuneResult:
+    """:func:`_search`, in two stages where a landmark sensor states a bearing part common to
+    its frames (kind 'common'): first every other value with the common part held at the
+    config's, then that sensor's range, bearing and common part from there, the rest held at
+    the first stage's values. Searched
+    together from the start, the common part (which the data may not want: driven to its bound)
+    stalled the others: on a simulated seed002 bag with independent bearings the wheel speed's
+    noise stayed at its 3x start (docs/design/tuning.md, session 22)."""
+    params = problem.params
+    common = [i for i, p in enumerate(params) if p.kind == "common"]
+    if not common:
+        return _search(problem, ev, progress, t_start)
+    first = _search(problem, ev, progress, t_start, np.array(
+        [p.kind not in NOT_SEARCHED + ("common",) for p in params], bool))
+    sensors = {params[i].sensor for i in common}
+    corr_sigma = {s: _bearing_sigma(first, s, "bearing") for s in sensors}
+    for p, t in zip(params, first.tuned, strict=True):
+        if p.kind not in ("corr", "common") and t.value is not None and \
+                t.status != "not informed":
+            p.start = t.value  # (not informed: its start, where the first stage held it)
+    mask = np.array([p.sensor in sensors and p.kind in ("landmarks", "common")
+                     for p in params], bool)
+    second = _search(problem, ev, progress, t_start, mask)
+    second.tuned = [b if m else a for a, b, m in zip(first.tuned, second.tuned, mask,
+                                                     strict=True)]
+    second.pairs = first.pairs + second.pairs
+    second.nll_start = first.nll_start
+    second.iterations += first.iterations
+    second.corr_sigma = {s: v for s, v in corr_sigma.items() if v}
+    return second
+
+
 def _scaled_start(params: list[Param], x0: np.ndarray, ev: Evaluator, seen: dict
                   ) -> tuple[np.ndarray, float]:
     """Where the search starts (log values) and L at the config's values ``x0``: ``x0`` with
@@ -432,10 +473,11 @@ def _correlation(problem: Problem, result: TuneResult) -> None:
         p = t.param
         if p.kind != "corr":
             continue
-        sig = next((u for u in result.tuned if u.param.sensor == p.sensor and
-                    u.param.noise_key == "bearing"), None)
-        sigma = None if sig is None else (sig.value if sig.value is not None
-                                          else sig.param.start)
+        # with a common part: the independent model's sigma (the first stage's): the rule
+        # compares a landmark's own track's scatter with white errors of the sightings' whole
+        # sigma; the second stage's own sigma leaves the frame's part out, and at it the rule
+        # read the bearings as white on mrclam1_robot1.bag (docs/design/tuning.md, session 22)
+        sigma = result.corr_sigma.get(p.sensor) or _bearing_sigma(result, p.sensor, "bearing")
         tau = round(sighting_scatter(problem, p.sensor, sigma) or 0.0, 1) if sigma else 0.0
         if tau == p.before:
             result.tuned[k] = Tuned(p, None, "not informed", (
@@ -446,6 +488,15 @@ def _correlation(problem: Problem, result: TuneResult) -> None:
             f"from each landmark's own sightings' neighbour scatter at the tuned bearing sigma "
             f"{sigma:.3g} rad (evaluation.tune.sighting_scatter, gps_scatter's rule); set after "
             "the search, which ran with the config's"))
+
+
+def _bearing_sigma(result: TuneResult, sensor: str, key: str) -> float | None:
+    """The tuned (else the starting) value of ``sensor``'s noise ``key``; None without one."""
+    t = next((u for u in result.tuned if u.param.sensor == sensor and
+              u.param.noise_key == key), None)
+    if t is None:
+        return None
+    return t.value if t.value is not None else t.param.start
 
 
 def _scoring(values_at, derivs_at, x: np.ndarray, f: float, J: np.ndarray,

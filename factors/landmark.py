@@ -17,6 +17,12 @@ dt)``, as the GPS factor does; the Jacobian then has v and w columns too.
 
 The landmark position is a constant of the factor (known map); one key, the state.
 
+Bearings with an error common to their frame (``ddfuse.estimation.landmark_frames``):
+``earlier`` lists the frame's earlier sightings on the same key and offset as ((lx, ly, z_bearing),
+w); the bearing error is then ``e - sum_j w e_j``, each ``e_j`` the same model's bearing error
+for that sighting (the conditional of the frame's stacked Gaussian, whose sigma the caller
+gives in ``noise``); empty: the plain error.
+
 GTSAM's ``BearingRangeFactor2D`` / ``RangeFactor2D`` need a Pose2 key, so they do not apply to the
 9-vector state (``ddfuse.factors.state``); these CustomFactors implement the same model on it.
 At zero range the bearing and the Jacobians are undefined; the range is floored at 1e-9 m to avoid
@@ -71,8 +77,10 @@ def _make(
     sensor_offset: tuple[float, float],
     noise: NoiseLike,
     dt: float = 0.0,
+    earlier=(),
 ) -> gtsam.CustomFactor:
     dt = float(dt)
+    earlier = tuple((float(lj[0]), float(lj[1]), float(lj[2]), float(w)) for lj, w in earlier)
     lx, ly = float(landmark[0]), float(landmark[1])
     sx, sy = float(sensor_offset[0]), float(sensor_offset[1])
     zr = float(z_range)
@@ -121,6 +129,13 @@ def _make(
                 ms[DIM] = -gb_x
                 ms[DIM + 1] = -gb_y
                 ms[DIM + 2] = gb_x * oy - gb_y * ox - 1.0
+                for ljx, ljy, _, w in earlier:  # minus the earlier sightings' rows, weighted
+                    ex = ljx - x - ox
+                    ey = ljy - y - oy
+                    q = max(ex * ex + ey * ey, _MIN_RANGE * _MIN_RANGE)
+                    ms[DIM] -= w * ey / q
+                    ms[DIM + 1] += w * ex / q
+                    ms[DIM + 2] -= w * (-ey / q * oy - ex / q * ox - 1.0)
             if dt != 0.0:
                 # chain rule through the step: rows d(err)/d(x1, y1, psi1) times its 3x5 Jacobian
                 for row in range(dim):
@@ -132,6 +147,9 @@ def _make(
         me[0] = r - zr
         if bearing:
             me[1] = (atan2(dy, dx) - psi - zb + _PI) % _TWO_PI - _PI
+            for ljx, ljy, zbj, w in earlier:
+                me[1] -= w * ((atan2(ljy - y - oy, ljx - x - ox) - psi - zbj + _PI) % _TWO_PI
+                              - _PI)
         return e
 
     return gtsam.CustomFactor(as_noise_model(noise, dim), [key], error)
@@ -145,10 +163,12 @@ def range_bearing_factor(
     noise: NoiseLike,
     sensor_offset: tuple[float, float] = (0.0, 0.0),
     dt: float = 0.0,
+    earlier=(),
 ) -> gtsam.CustomFactor:
     """Range (m) and bearing (rad) to a known landmark (x, y) in m, sighted ``dt`` s after the
-    keyframe; 2-D error, 1 key."""
-    return _make(key, landmark, z_range, z_bearing, sensor_offset, noise, dt)
+    keyframe; 2-D error, 1 key. ``earlier``: the frame's earlier sightings, ((lx, ly,
+    z_bearing), w) each (module docstring)."""
+    return _make(key, landmark, z_range, z_bearing, sensor_offset, noise, dt, earlier)
 
 
 def range_factor(

@@ -57,6 +57,13 @@ FACTORS = {
     "range_bearing_dt": lambda: range_bearing_factor(KI, (7.0, -2.0), 5.0, 0.3, unit(2),
                                                      (0.2, 0.1), dt=0.23),
     "range_neg_dt": lambda: range_factor(KI, (7.0, -2.0), 5.0, unit(1), (0.2, 0.1), dt=-0.4),
+    # bearings with an error common to their frame: conditional on two earlier sightings
+    "range_bearing_frame": lambda: range_bearing_factor(
+        KI, (7.0, -2.0), 5.0, 0.3, unit(2), (0.2, 0.1),
+        earlier=[((-3.0, 4.0, 2.9), 0.4), ((1.0, 9.0, -3.1), 0.25)]),
+    "range_bearing_frame_dt": lambda: range_bearing_factor(
+        KI, (7.0, -2.0), 5.0, 0.3, unit(2), (0.2, 0.1), dt=0.23,
+        earlier=[((-3.0, 4.0, 2.9), 0.4), ((1.0, 9.0, -3.1), 0.25)]),
     "preintegrated": lambda: preintegrated_factor(KI, KJ, PIM, noise=unit(9)),
     "preintegrated_fused": lambda: preintegrated_factor(KI, KJ, PIM_FUSED, noise=unit(9)),
 }

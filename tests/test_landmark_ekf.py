@@ -374,8 +374,8 @@ def test_slam_first_estimates_jacobians_keep_heading_unobservable():
         def _first_estimates_motion(self, Fp):
             pass
 
-        def _measure(self, m, landmark, lcols, jac_at=None, fuse=1.0):
-            _OdometryDrivenEkf._measure(self, m, landmark, lcols, fuse=fuse)
+        def _measure(self, m, landmark, lcols, jac_at=None, fuse=1.0, ref=None):
+            _OdometryDrivenEkf._measure(self, m, landmark, lcols, fuse=fuse, ref=ref)
 
     truth, meas, start = simulate(31, duration=60.0)
     var0 = INIT_STD[2] ** 2
