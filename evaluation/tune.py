@@ -432,6 +432,9 @@ def _correlation(problem: Problem, result: TuneResult) -> None:
         p = t.param
         if p.kind != "corr":
             continue
+        if p.key.startswith("sensors.imu"):  # measured before the search (tune_params)
+            result.tuned[k] = _heading_tau(problem, p)
+            continue
         sig = next((u for u in result.tuned if u.param.sensor == p.sensor and
                     u.param.noise_key == "bearing"), None)
         sigma = None if sig is None else (sig.value if sig.value is not None
@@ -446,6 +449,20 @@ def _correlation(problem: Problem, result: TuneResult) -> None:
             f"from each landmark's own sightings' neighbour scatter at the tuned bearing sigma "
             f"{sigma:.3g} rad (evaluation.tune.sighting_scatter, gps_scatter's rule); set after "
             "the search, which ran with the config's"))
+
+
+def _heading_tau(problem: Problem, p) -> Tuned:
+    """The outcome of IMU yaw correlation time ``p``: what ``evaluation.compass_correlation``
+    measured (the search ran with it), or the config's with the reason it was not."""
+    from ddfuse.evaluation.compass_correlation import measure
+
+    if p.source == "measured":
+        return Tuned(p, p.start, "tuned", (
+            "the yaw's error against the gyro's integral, a Gauss-Markov fit "
+            "(evaluation.compass_correlation); measured before the search, which ran with it"))
+    fit = measure(problem.cfg, problem.stream, p.sensor)
+    why = fit.reason if fit is not None else "no gyro to measure it against"
+    return Tuned(p, None, "not informed", f"{why}; left as the config has it")
 
 
 def _scoring(values_at, derivs_at, x: np.ndarray, f: float, J: np.ndarray,
