@@ -17,8 +17,9 @@ no window-length choice for its demeaning (an autocorrelation's 1/e time does: t
 of each window is a high-pass, and that time then grows with the window).
 
 ``measure`` returns the fit, or None with the reason when there is no gyro, too few samples, or
-the Gauss-Markov part is not identified: tau against the lag range's ends (a white error, or a
-wander slower than the window: the walk's), or sigma under the samples' own scatter.
+the Gauss-Markov part is not identified: tau at the shortest lag or sigma under the samples'
+own scatter without a walk (a white error), or tau beyond a quarter of the longest lag or a walk
+alone (a wander slower than the lags show: the walk's).
 Figures: docs/design/tuning.md ("Measured, session 22").
 """
 
@@ -36,6 +37,10 @@ __all__ = ["CompassCorrelation", "measure"]
 WINDOW_S = 60.0  # s: the gyro's bias and scale are taken as constant over a window
 MIN_SAMPLES = 200  # heading samples with a gyro reference, at least
 N_LAGS = 25  # lags, geometrically spaced from one sample period to a quarter window
+# the level of D must show within the lags: tau at most the largest lag / LEVEL_SPAN (D is at
+# 98 % of its level at 4 tau). A walk whose windows are detrended looks like a Gauss-Markov
+# error of a tau near a tenth of the window, which this rejects.
+LEVEL_SPAN = 4.0
 
 
 @dataclass(frozen=True)
@@ -126,9 +131,12 @@ def measure(cfg: Config, stream: Stream, sensor: str,
     except (RuntimeError, ValueError) as e:
         return CompassCorrelation(sensor, None, 0.0, 0.0, white, n, f"fit failed: {e}")
     sigma, walk = math.sqrt(s2), math.sqrt(q)
-    if not lo_tau < tau < hi_tau or sigma <= white:
-        why = ("the error grows with the lag like a walk or a drift (the heading offset's "
-               "walk models that)" if tau >= hi_tau or sigma <= white else
-               "the error is white from one sample to the next")
-        return CompassCorrelation(sensor, None, sigma, walk, white, n, why)
+    walked = walk * math.sqrt(hi_tau) > white  # the walk's share at the longest lag shows
+    if tau <= lo_tau or (sigma <= white and not walked):
+        return CompassCorrelation(sensor, None, sigma, walk, white, n,
+                                  "the error is white from one sample to the next")
+    if tau >= hi_tau / LEVEL_SPAN or sigma <= white:
+        return CompassCorrelation(sensor, None, sigma, walk, white, n, (
+            f"the error keeps growing over {hi_tau:.0f} s of lag, like a walk or a drift (the "
+            "heading offset's walk models that)"))
     return CompassCorrelation(sensor, float(tau), sigma, walk, white, n)
