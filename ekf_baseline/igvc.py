@@ -34,7 +34,8 @@ Models: ``ddfuse.ekf_baseline.igvc_measurements``. Every update goes through
 lock-out recovery) or the compiled kernels.
 
 A GPS sensor with ``correlation_time`` > 0 has each fix fused with an inflated R
-(``estimation.gps_correlation``), as in the unicycle EKF. Poles: within ``POLE_LIMIT_KM`` of
+(``estimation.gps_correlation``), as in the unicycle EKF, and so has each sample of a heading
+sensor with one (``estimation.heading_correlation``). Poles: within ``POLE_LIMIT_KM`` of
 a pole (|lat| > ``POLE_LIMIT_DEG``) ``process`` raises ``PolarRegionError``; why the limit is
 there, and the rest of the design notes: docs/design/igvc_ekf.md.
 """
@@ -70,6 +71,7 @@ from ddfuse.estimation.config import DEFAULT_GATE, Config, SensorConfig
 from ddfuse.estimation.estimator import Estimate, Estimator
 from ddfuse.estimation.gaps import gap_note, grown_pose_cov, is_gap
 from ddfuse.estimation.gps_correlation import inflation as gps_inflation
+from ddfuse.estimation.heading_correlation import HeadingClock
 from ddfuse.estimation.measurements import (
     ForwardAccel,
     GpsFix,
@@ -170,6 +172,8 @@ class IgvcEkf(IgvcStart, IgvcKernels, Estimator):
         self._gps_tau = {s.name: float(s.correlation_time) for s in cfg.of_kind("gps")
                          if s.correlation_time > 0.0}
         self._gps_fused: dict[str, float] = {}
+        # heading sensors with time-correlated samples (estimation.heading_correlation)
+        self._heading_clock = HeadingClock(cfg)
         self.noise = noise or IgvcNoise()
         slip = cfg.robot.slip
         if slip and noise is None:
@@ -384,12 +388,17 @@ class IgvcEkf(IgvcStart, IgvcKernels, Estimator):
         H = np.zeros((2, self.n))
         y = np.zeros(2)
         R = np.zeros((2, 2))
+        # a correlated heading sensor's factor, asked of every sample (estimation.
+        # heading_correlation: a pure function of the stream), an offset's first one too
+        hf = self._heading_clock.factor(m) if isinstance(m, Heading) else 1.0
         kind, nr = self._measurement(m, H, y, R)
         if not nr:
             return
         blocks = ((m.sensor, kind, 0, nr, (), self._info(m.sensor)[0]),)
         # the innovations are y already: h(x) = 0 in update_blocks' y = z - h(x)
-        if kind != "gps" or m.sensor not in self._gps_tau:
+        if hf != 1.0:  # correlated heading samples: fused with the sample's inflated R
+            kf.update_blocks(m.t, y[:nr], 0.0, H[:nr], R[:nr, :nr], blocks, (hf,))
+        elif kind != "gps" or m.sensor not in self._gps_tau:
             kf.update_blocks(m.t, y[:nr], 0.0, H[:nr], R[:nr, :nr], blocks)
         else:  # a GPS with correlated errors: fused with the fix's inflated covariance
             kf.update_blocks(m.t, y[:nr], 0.0, H[:nr], R[:nr, :nr], blocks, (self._gps_factor(m),))

@@ -58,7 +58,8 @@ class IgvcKernels:
         """The kernels' arguments (typ, sensor row, z0, z1, r0, r1, r01, r10, flags, rf) for
         message ``m``, or None when it needs the Python path: a heading whose offset is not
         initialised yet, a fix without a fix, wheel speeds without a wheel radius, another
-        message type. ``rf``: the factor on R in the fusion (``_gps_factor``)."""
+        message type. ``rf``: the factor on R in the fusion (``_gps_factor``; a heading sample's
+        ``HeadingClock.factor``)."""
         name = m.sensor
         row = self._jrows.get(name)
         if row is None:
@@ -70,11 +71,12 @@ class IgvcKernels:
         if cls is GyroYawRate:
             return (_T_GYRO, row, m.yaw_rate, 0.0, m.var, 0.0, 0.0, 0.0, 0, 1.0)
         if cls is Heading:
+            hf = self._heading_clock.factor(m)
             hi = self._hoff_idx.get(name)
             if hi is not None and hi not in self._hoff_ready:
                 return None
             return (_T_HEAD_POSE if m.source == "pose" else _T_HEAD, row, m.yaw, 0.0, m.var,
-                    0.0, 0.0, 0.0, 0, 1.0)
+                    0.0, 0.0, 0.0, 0, hf)
         if cls is ForwardAccel:
             return (_T_ACCEL, row, m.accel, 0.0, m.var, 0.0, 0.0, 0.0, 0, 1.0)
         if cls is WheelOdometry:

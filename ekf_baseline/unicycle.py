@@ -30,7 +30,8 @@ or the seed's Euler step; the twist and calibration states are random walks
     Heading         z = yaw            h = wrap(psi + hoff), innovation wrapped
 
 A GPS sensor with ``correlation_time`` > 0 has each fix fused with an inflated R
-(``estimation.gps_correlation``); gate, log and recovery keep R. ``cfg.ekf.rate``: 'event'
+(``estimation.gps_correlation``), and so has each sample of a heading sensor with one
+(``estimation.heading_correlation``); gate, log and recovery keep R. ``cfg.ekf.rate``: 'event'
 (predict to and update with each message) or a rate in Hz (one stacked update per step).
 Initialisation: a known pose, the first ground truth, a measured heading, or dead reckoning
 aligned onto the GPS track once the fixes spread over ``init_distance`` m.
@@ -65,6 +66,7 @@ from ddfuse.ekf_baseline.unicycle_start import UnicycleStart
 from ddfuse.estimation.config import DEFAULT_GATE, HEADING_KINDS, Config
 from ddfuse.estimation.estimator import Estimate, Estimator
 from ddfuse.estimation.gaps import gap_note, grown_pose_cov, is_gap
+from ddfuse.estimation.heading_correlation import HeadingClock
 from ddfuse.estimation.measurements import (
     GpsFix,
     GroundTruthPose,
@@ -223,6 +225,8 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
         self._walks = tuple(walks)
         # a GPS sensor with time-correlated errors (module docstring)
         self._gps_corr = any(s.correlation_time > 0.0 for s in cfg.of_kind("gps"))
+        # heading sensors with time-correlated samples (estimation.heading_correlation)
+        self._heading_clock = HeadingClock(cfg)
         # a robust GPS model (gps.model; ekf_baseline.gps_robust): its fixes take the Python path
         self._robust = robust_spec(cfg)
         # odometry scale states (ddfuse.ekf_baseline.calibration) when the config states the
@@ -509,7 +513,9 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
         R = np.zeros((mr, mr))
         blocks: list[tuple] = []  # (sensor, kind, first row, end row, angles, gate)
         nr = 0
-        corr: list[tuple] = []  # correlated GPS fixes: (block index, sensor, stamp, factor)
+        # correlated GPS fixes and heading samples: (block index, GPS sensor or None, stamp,
+        # factor)
+        corr: list[tuple] = []
         prev: dict[str, float] = {}
 
         def add(sensor, kind, m, gate):
@@ -530,6 +536,7 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
             elif isinstance(m, Heading):
                 if not info.use_yaw:
                     continue
+                hf = self._heading_clock.factor(m)
                 if not self._aligned:
                     self.log.rejected[(m.sensor, "before_init")] += 1
                     continue
@@ -538,6 +545,8 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
                     self._init_offset(t, m, hi)
                     x = kf.x.tolist()
                     continue
+                if hf != 1.0:
+                    corr.append((len(blocks), None, m.t, hf))
                 add(m.sensor, "heading", um.heading_rows(x, -1 if hi is None else hi, info.hoff,
                                                          m.yaw, m.var, H, y, R, nr), info.gate)
             elif isinstance(m, WheelOdometry):
@@ -579,7 +588,7 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
             return
         xb = kf.x[:3].tolist() if self._lie else None
         fuse = None
-        if corr:  # a fix of a GPS with correlated errors: fused with its inflated covariance
+        if corr:  # correlated GPS fixes, heading samples: fused with their inflated covariance
             fuse = [1.0] * len(blocks)
             for i, _, _, f in corr:
                 fuse[i] = f
@@ -588,7 +597,7 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
         if corr:
             verdicts = kf.last_verdicts
             for i, sensor, stamp, _ in corr:
-                if verdicts[i]:
+                if sensor is not None and verdicts[i]:
                     self._fused_fix(sensor, stamp)
         if xb is not None:
             # KalmanCore added the correction K y; its position part is the body-frame rho

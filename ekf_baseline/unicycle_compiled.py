@@ -65,7 +65,8 @@ class UnicycleKernels:
         message ``m``, or None when it needs the Python path: a heading before the heading is
         known or before its offset is initialised, a GPS fix while aligning or without a
         position, wheel speeds without the geometry, another message type. ``rf``: the factor
-        on R in the fusion (a correlated GPS sensor's fix: ``_gps_factor`` with ``prev``)."""
+        on R in the fusion (a correlated GPS sensor's fix: ``_gps_factor`` with ``prev``; a
+        correlated heading sensor's sample: ``HeadingClock.factor``)."""
         info = self._sensors.get(m.sensor) or self._sensor(m.sensor)
         row = info.row
         if row is None:
@@ -80,10 +81,11 @@ class UnicycleKernels:
         if cls is Heading:
             if not info.use_yaw:
                 return (_T_NONE, row, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 1.0)
+            hf = self._heading_clock.factor(m)
             if not self._aligned or (info.hoff_idx is not None
                                      and info.hoff_idx not in self._hoff_ready):
                 return None
-            return (_T_HEAD, row, m.yaw, 0.0, m.var, 0.0, 0.0, 0.0, 0, 1.0)
+            return (_T_HEAD, row, m.yaw, 0.0, m.var, 0.0, 0.0, 0.0, 0, hf)
         if cls is WheelOdometry:
             v, w = m.v, m.yaw_rate
             return (_T_ODOM, row, 0.0 if v is None else v, 0.0 if w is None else w, m.v_var,

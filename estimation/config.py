@@ -184,7 +184,8 @@ class SensorConfig:
     delay: float = 0.0  # s, GPS: a fix is the position this long before its stamp
     # s, GPS: the correlation time of the fixes' errors (first-order Gauss-Markov); 0 = white.
     # Each fix is fused with its covariance inflated by ddfuse.estimation.gps_correlation.inflation
-    # (landmarks: of one landmark's sightings, ddfuse.estimation.landmark_correlation)
+    # (landmarks: of one landmark's sightings, ddfuse.estimation.landmark_correlation; a heading
+    # sensor's: of its yaw samples, ddfuse.estimation.heading_correlation)
     correlation_time: float = 0.0
     # m, GPS: the smallest horizontal standard deviation a fix's stated covariance may claim;
     # below it the floor is used (None: DEFAULT_GPS_MIN_STD by the fix's status; the converter
@@ -449,13 +450,14 @@ def _sensor(ck: _Checker, kind: str, i: int, raw: Any, base: Path) -> SensorConf
     key = f"sensors.{kind}[{i}]"
     allowed = ("topic", "name", "use", "noise", "gate")
     allowed += {
-        "imu": ("mount", "heading_offset", "gyro_bias", "accel_gravity"),
+        "imu": ("mount", "heading_offset", "gyro_bias", "accel_gravity", "correlation_time"),
         "gps": ("lever_arm", "delay", "correlation_time", "min_std"),
         "wheels": ("joints",),
         "landmarks": ("map", "correlation_time"),
         "odometry": ("mount", "slope"),
-        "magnetometer": ("mount", "heading_offset", "declination", "hard_iron"),
-        "local_heading": ("mount", "heading_offset"),
+        "magnetometer": ("mount", "heading_offset", "declination", "hard_iron",
+                         "correlation_time"),
+        "local_heading": ("mount", "heading_offset", "correlation_time"),
     }.get(kind, ())
     d = ck.mapping(raw, key, allowed)
     if "topic" not in d:

@@ -473,6 +473,9 @@ def _correlation(problem: Problem, result: TuneResult) -> None:
         p = t.param
         if p.kind != "corr":
             continue
+        if p.key.startswith("sensors.imu"):  # measured before the search (tune_params)
+            result.tuned[k] = _heading_tau(problem, p)
+            continue
         # with a common part: the independent model's sigma (the first stage's): the rule
         # compares a landmark's own track's scatter with white errors of the sightings' whole
         # sigma; the second stage's own sigma leaves the frame's part out, and at it the rule
@@ -497,6 +500,20 @@ def _bearing_sigma(result: TuneResult, sensor: str, key: str) -> float | None:
     if t is None:
         return None
     return t.value if t.value is not None else t.param.start
+
+
+def _heading_tau(problem: Problem, p) -> Tuned:
+    """The outcome of IMU yaw correlation time ``p``: what ``evaluation.compass_correlation``
+    measured (the search ran with it), or the config's with the reason it was not."""
+    from ddfuse.evaluation.compass_correlation import measure
+
+    if p.source == "measured":
+        return Tuned(p, p.start, "tuned", (
+            "the yaw's error against the gyro's integral, a Gauss-Markov fit "
+            "(evaluation.compass_correlation); measured before the search, which ran with it"))
+    fit = measure(problem.cfg, problem.stream, p.sensor)
+    why = fit.reason if fit is not None else "no gyro to measure it against"
+    return Tuned(p, None, "not informed", f"{why}; left as the config has it")
 
 
 def _scoring(values_at, derivs_at, x: np.ndarray, f: float, J: np.ndarray,

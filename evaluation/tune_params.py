@@ -21,6 +21,8 @@ noise density:
   session 22), so a config without it tunes as before;
 * a landmark sensor's ``correlation_time`` (s, kind 'corr'): not searched by the likelihood
   but set by the sightings' neighbour scatter at the tuned bearing sigma (``evaluation.tune``);
+  an IMU's yaw ``correlation_time`` (kind 'corr'): measured against the gyro's integral
+  (``evaluation.compass_correlation``) before the search, which runs with it;
 * ``robot.twist_walk.speed`` (m/s/sqrt(s)) and ``yaw_rate`` (rad/s/sqrt(s)), the twist's own
   random walk, where a sensor measures that component of the twist. Where the config states
   none, the search starts from what the EKF uses then: ``robot.max_accel`` sqrt(T) (T the
@@ -139,6 +141,8 @@ def parameters(cfg: Config, stream: Stream) -> list[Param]:
                     continue  # no message of this sensor: nothing to tune it on
             out.append(Param(f"{base}.{key}", f"{s.name} {key}", start, before, source,
                              _UNITS[key], s.name, s.kind, key))
+            if (kind, key) == ("imu", "yaw"):
+                out.append(_heading_correlation(cfg, stream, s, i))
             if (kind, key) == ("landmarks", "bearing"):
                 common = s.noise.get("bearing_common")
                 if common:  # stated (> 0): the user says the frames share an error; fitted
@@ -180,6 +184,19 @@ def parameters(cfg: Config, stream: Stream) -> list[Param]:
         out.append(Param(f"robot.twist_walk.{key}", f"robot twist_walk {key}", start, before,
                          source, _UNITS[f"twist {key}"], None, "twist", key))
     return out
+
+
+def _heading_correlation(cfg: Config, stream: Stream, s, i: int) -> Param:
+    """IMU ``s``'s yaw ``correlation_time`` (kind 'corr'): measured against the gyro's
+    integral (``evaluation.compass_correlation``) where the data identify it (source
+    'measured'), else the config's."""
+    from ddfuse.evaluation.compass_correlation import measure
+
+    tau = float(s.correlation_time)
+    fit = measure(cfg, stream, s.name)
+    start, source = (round(fit.tau, 1), "measured") if fit and fit.tau else (tau, "config")
+    return Param(f"sensors.imu[{i}].correlation_time", f"{s.name} correlation_time", start, tau,
+                 source, "s", s.name, "corr", "correlation_time")
 
 
 def _twist_periods(cfg: Config, stream: Stream) -> dict[str, float | None]:

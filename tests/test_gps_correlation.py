@@ -50,6 +50,6 @@ def test_config_key(tmp_path: Path, value, why):
                  .replace("inf", ".inf"))
     with pytest.raises(ConfigError, match=rf"sensors\.gps\[0\]\.correlation_time.*{why}"):
         load_config(p)
-    p.write_text("sensors:\n  imu:\n    - topic: /imu\n      correlation_time: 20.0\n")
-    with pytest.raises(ConfigError, match=r"sensors\.imu\[0\].*correlation_time"):
+    p.write_text("sensors:\n  odometry:\n    - topic: /odom\n      correlation_time: 20.0\n")
+    with pytest.raises(ConfigError, match=r"sensors\.odometry\[0\].*correlation_time"):
         load_config(p)

@@ -30,6 +30,7 @@ import math
 import numpy as np
 from ddfuse.estimation.config import Config, SensorConfig, landmark_maps
 from ddfuse.estimation.estimator import IN_ORDER_TOLERANCE, Estimate, Estimator, wrap_angle
+from ddfuse.estimation.heading_correlation import HeadingClock
 from ddfuse.estimation.measurements import (
     GpsFix,
     GyroYawRate,
@@ -120,7 +121,7 @@ class FixedLagSmoother(Estimator):
         self.headings = HeadingAccumulator(
             self.sensors, noise, self.twist, self.window, self.gating, log,
             est_bias=self.est_bias, est_hoff=self.est_hoff,
-            est_scales=self.scale_prior is not None)
+            est_scales=self.scale_prior is not None, clock=HeadingClock(cfg))
         self.gps = GpsFusion(cfg, self.sensors, noise, self.twist, self.window, self.gating, log,
                              self.flush)
         self.landmark_fusion = LandmarkFusion(cfg, self.sensors, landmarks, self.window,

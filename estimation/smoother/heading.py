@@ -16,6 +16,7 @@ import math
 import numpy as np
 from ddfuse.estimation.config import SensorConfig
 from ddfuse.estimation.estimator import EstimatorLog, Innovation, wrap_angle
+from ddfuse.estimation.heading_correlation import HeadingClock
 from ddfuse.estimation.measurements import Heading
 from ddfuse.estimation.smoother.gating import Gating
 from ddfuse.estimation.smoother.held_twist import HeldTwist
@@ -30,15 +31,20 @@ class HeadingAccumulator:
 
     def __init__(self, sensors: dict[str, SensorConfig], noise: SmootherNoise, twist: HeldTwist,
                  window: Window, gating: Gating, log: EstimatorLog, *, est_bias: bool,
-                 est_hoff: bool, est_scales: bool) -> None:
+                 est_hoff: bool, est_scales: bool, clock: HeadingClock | None = None) -> None:
+        """``clock``: the factors of a sensor with time-correlated samples (its
+        ``correlation_time``; ``estimation.heading_correlation``), None: white."""
         self.sensors, self.noise, self.log = sensors, noise, log
         self.twist, self.window, self.gating = twist, window, gating
         self.est_bias, self.est_hoff, self.est_scales = est_bias, est_hoff, est_scales
         self.latest: Heading | None = None
+        self.clock = clock if clock else None
         # the samples since the newest keyframe: sensor, the first one carried back to the
         # keyframe (rad), the sum of the others' wrapped differences from it, summed variances
+        # as fused (each times its clock factor) and as stated (the gate's, the log's)
         self.n = 0
         self._sensor, self._ref, self._sum, self._var = "", 0.0, 0.0, 0.0
+        self._var_own = 0.0
         self._jb = self._jk = self._c1 = self._c2 = 0.0
         self._cache = None  # (key, (state, pose cov)) of with_pending
         self._rows = None  # (marginal, its rows as lists, symmetrised pose block): with_pending
@@ -49,6 +55,7 @@ class HeadingAccumulator:
         when its gate rejected it. A sample of another sensor than the interval's first is
         left out."""
         self.latest = m
+        f = 1.0 if self.clock is None else self.clock.factor(m)  # every sample, fused or not
         if self.n == 0 or m.sensor == self._sensor:
             dpsi, j_p, kw_p, c = self.twist.pim.yaw_terms()
             u = m.yaw - dpsi  # carried back to the interval's start
@@ -56,9 +63,11 @@ class HeadingAccumulator:
                 return False
             if self.n == 0:
                 self._sensor, self._ref, self._sum, self._var = m.sensor, u, 0.0, 0.0
+                self._var_own = 0.0
                 self._jb = self._jk = self._c1 = self._c2 = 0.0
             self._sum += wrap_angle(u - self._ref)
-            self._var += m.var
+            self._var += m.var * f
+            self._var_own += m.var
             # what the carried yaw depends on: the gyro bias and yaw-rate scale (first
             # order), and the yaw noise integrated up to the sample (its index-weighted
             # sum gives the mean's variance, ``pending``)
@@ -134,8 +143,9 @@ class HeadingAccumulator:
         """The interval's averaged heading measurement (closed at ``t``) against the state
         before it is fused, for the NIS: carried back to the newest keyframe, whose full
         marginal gtsam gave (psi and the offset are strongly anti-correlated: their cross
-        term matters, and the logged S had left out all but psi's variance)."""
-        h, z, var = self.pending()
+        term matters, and the logged S had left out all but psi's variance). S takes the
+        samples' stated variances, not their correlation factors (as a correlated GPS fix's)."""
+        h, z, var = self.pending(own=True)
         full = self.window.newest_marginal()
         res = np.array([wrap_angle(z - float(h @ self.window.kf_state))])
         scov = np.array([[float(h @ full @ h) + var]])
@@ -158,7 +168,7 @@ class HeadingAccumulator:
                  if full is not None and full.shape == (DIM, DIM) else n.init_hoff_sigma)
         return max(n.heading_offset_rw, walk_floor(sigma))
 
-    def pending(self, closing=None) -> tuple[np.ndarray, float, float]:
+    def pending(self, closing=None, own: bool = False) -> tuple[np.ndarray, float, float]:
         """The heading samples since the newest keyframe as one linear measurement h x = z
         (h (DIM,), z rad, variance rad^2) of the newest keyframe's state, or, with
         ``closing`` (the interval's preintegration), of the keyframe that closes it.
@@ -171,16 +181,18 @@ class HeadingAccumulator:
         out, an uncertain bias biases the heading). The variance: the samples' own var / n plus the
         mean's share of the integrated yaw noise (white: c_i = var(dpsi_i), Var(mean_i int_0^t_i) =
         sum_il c_min(i,l) / n^2, and Var(mean_i int_t_i^T) = C_T - sum_il c_max(i,l) / n^2)."""
-        terms, z, var = self.terms(closing)
+        terms, z, var = self.terms(closing, own)
         h = np.zeros(DIM)
         for i, c in terms:
             h[i] = c
         return h, z, var
 
-    def terms(self, closing=None) -> tuple[list[tuple[int, float]], float, float]:
+    def terms(self, closing=None, own: bool = False
+              ) -> tuple[list[tuple[int, float]], float, float]:
         """``pending``'s measurement with h as its (index, coefficient) pairs in index order
         (psi, then the gyro bias, offset and yaw-rate scale when they are in it): the few
-        entries ``with_pending`` works on, without a dense h."""
+        entries ``with_pending`` works on, without a dense h. The variance is the fused one
+        (the samples' variances times their clock factors), or with ``own`` the stated one."""
         s = self.sensors[self._sensor]
         n = self.n
         z = self._ref + self._sum / n
@@ -205,7 +217,7 @@ class HeadingAccumulator:
         if self.est_scales:
             terms.append((KW, jk))
             z += jk * pim.kw_lin
-        return terms, z, self._var / (n * n) + max(carried, 0.0)
+        return terms, z, (self._var_own if own else self._var) / (n * n) + max(carried, 0.0)
 
     def with_pending(self) -> tuple[np.ndarray, np.ndarray]:
         """The newest keyframe's state and 3x3 pose covariance, updated (outside the graph)

@@ -48,8 +48,11 @@ def command(args: argparse.Namespace) -> int:
     for sv in surveys:
         lines.append(f"{sv.sensor}: {sv.describe()}"
                      + (": it wanders (heading_offset_walk below)" if sv.wanders else ""))
+    tree = suggest_config(info, surveys)
+    fits = [] if info.error else compass_correlations(args.bag, tree)
+    lines += [f.describe() for f in fits]
     lines.append("")
-    text = config_text(suggest_config(info, surveys), info)
+    text = config_text(tree, info, {f.sensor: f for f in fits if f.tau is not None})
     out = sys.stdout
     out.write("".join(f"# {line}\n" if line else "#\n" for line in lines))
     if args.output is not None:
@@ -66,13 +69,46 @@ def command(args: argparse.Namespace) -> int:
     return 0
 
 
-def config_text(tree: dict, info) -> str:
+def compass_correlations(path, tree: dict) -> list:
+    """Each IMU yaw's correlation in the suggested config ``tree`` measured against its gyro
+    (``evaluation.compass_correlation``); where identified, its ``correlation_time`` is put into
+    ``tree``. [] without an IMU that gives both yaw and yaw rate."""
+    from ddfuse.estimation.bags import read_stream
+    from ddfuse.estimation.config import parse_config
+    from ddfuse.estimation.errors import DdfuseError
+    from ddfuse.evaluation.compass_correlation import measure
+
+    imus = [s for s in (tree.get("sensors") or {}).get("imu") or ()
+            if "yaw" in s.get("use", ()) and "yaw_rate" in s.get("use", ())]
+    if not imus:
+        return []
+    try:
+        cfg = parse_config({"sensors": {"imu": imus}}, f"{path} (suggested config)")
+        stream = read_stream(path, cfg)
+    except DdfuseError:  # what the bag lacks is inspect's facts to report, not this
+        return []
+    fits = [f for f in (measure(cfg, stream, s.name) for s in cfg.sensors) if f is not None]
+    for f in fits:
+        if f.tau is not None:
+            for s in imus:
+                if s["topic"] == f.sensor:
+                    s["correlation_time"] = round(f.tau, 1)
+    return fits
+
+
+def config_text(tree: dict, info, compasses: dict | None = None) -> str:
     """Config ``tree`` as YAML, each GPS sensor's suggested ``correlation_time`` with a comment
-    above it saying where the value comes from (its topic's ``scatter`` in BagInfo ``info``)."""
+    above it saying where the value comes from (its topic's ``scatter`` in BagInfo ``info``), and
+    so each IMU's whose yaw correlation was measured (``compasses``: topic -> its
+    ``compass_correlation.CompassCorrelation``)."""
     import yaml
 
     sources = {t.topic: t.scatter.source() for t in info.topics
                if t.scatter is not None and t.scatter.recommended}
+    for topic, f in (compasses or {}).items():
+        sources[topic] = (f"from the yaw's error against the gyro's integral: Gauss-Markov, "
+                          f"sigma {f.sigma:.4f} rad, {f.tau:.1f} s "
+                          "(evaluation.compass_correlation)")
     out, topic = [], None
     for line in yaml.safe_dump(tree, sort_keys=False, default_flow_style=None).splitlines():
         key = line.lstrip(" -")
