@@ -40,18 +40,21 @@ def _fuse_noise(R, blk, verdict, fs) -> None:
 def apply_update(P, H, y, R, Ut, blk, verdict, fs):
     """(P, dx): the covariance after the update from the accepted blocks and the state
     correction dx = K y (n,); ``joseph.apply_update``'s contract (R is fused in place)."""
-    _fuse_noise(R, blk, verdict, fs)
-    rows = np.concatenate([np.arange(blk[4 * b], blk[4 * b + 1])
-                           for b in range(verdict.shape[0]) if verdict[b] == 0])
-    Ha = H[rows]
-    Ua = Ut[rows]  # (ma, n)
-    Raa = R[np.ix_(rows, rows)]
+    if verdict.any() or int((blk[1::4] - blk[0::4]).sum()) != H.shape[0]:
+        _fuse_noise(R, blk, verdict, fs)
+        rows = np.concatenate([np.arange(blk[4 * b], blk[4 * b + 1])
+                               for b in range(verdict.shape[0]) if verdict[b] == 0])
+        Ha, Ua, Raa, ya = H[rows], Ut[rows], R[np.ix_(rows, rows)], y[rows]
+    else:  # every row in an accepted block (most updates): no copies
+        if (fs != 1.0).any():
+            _fuse_noise(R, blk, verdict, fs)
+        Ha, Ua, Raa, ya = H, Ut, R, y
     Sa = Ha @ Ua.T + Raa
-    ma = rows.shape[0]
+    ma = Ha.shape[0]
     Si = np.empty((ma, ma))
     inverse(Sa, ma, Si)
     K = Ua.T @ Si  # (n, ma)
-    dx = K @ y[rows]
+    dx = K @ ya
     M = np.eye(P.shape[0]) - K @ Ha
     B = (M @ P) @ M.T + (K @ Raa) @ K.T
     return 0.5 * (B + B.T), dx

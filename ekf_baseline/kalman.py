@@ -27,7 +27,8 @@ API (all arrays are float64 numpy; n = state size, m = measurement size)::
   ``log.rejected[(sensor, 'gate')]``. An accepted update applies the gain K = P H^T S^-1 and the
   Joseph form P <- (I - K H) P (I - K H)^T + K R K^T (stays symmetric PSD even with the rounding
   of K), both ``ddfuse.ekf_baseline.joseph``'s, the functions the compiled kernels compile too
-  (docs/design/ekf_kernels.md); state components in ``state_angles`` are wrapped after every
+  (docs/design/ekf_kernels.md; on a cold numba cache under ``ddfuse run``, ``joseph_numpy``'s
+  twins: ``update_functions``); state components in ``state_angles`` are wrapped after every
   predict and update.
 * Non-finite z or h(x), or an S that is not positive definite, are rejected with reason
   'nonfinite' / 'singular' and never touch the state.
