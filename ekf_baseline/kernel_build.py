@@ -5,11 +5,12 @@ smoother's Python preintegration; the "reference" cold-cache policy of ``factors
 
 ``python -m ddfuse.ekf_baseline.kernel_build NAME...`` compiles (or loads, if another process
 cached them meanwhile) the kernels NAME and then every kernel of ``jitcache.DEFAULT_BUILD``,
-one at a time: one such process at a time per user (a lock file), each detached from the run
-that started it (its own session, no terminal output), so that it outlives the run. NAME is a
-``kalman_jit`` entry point, ``joseph`` (``joseph.innovation_cov`` and ``apply_update``) or
-``preintegration`` (the smoother's kernel, ``factors.preintegration_jit``). A compile that fails
-leaves the cache as it was: the next run finds the kernel missing again and says so."""
+one at a time: one such process at a time per install and cache (a lock file,
+``jitcache.lock_path``), each detached from the run that started it (its own session, no
+terminal output), so that it outlives the run. NAME is a ``kalman_jit`` entry point, ``joseph``
+(``joseph.innovation_cov`` and ``apply_update``) or ``preintegration`` (the smoother's kernel,
+``factors.preintegration_jit``). A compile that fails leaves the cache as it was: the next run
+finds the kernel missing again and says so."""
 
 from __future__ import annotations
 
@@ -37,7 +38,7 @@ def build(name: str) -> None:
 
 def main(names: list[str]) -> int:
     """Compile (or load) ``names`` and ``jitcache.DEFAULT_BUILD`` into numba's cache, one build
-    at a time per user."""
+    at a time per install and cache."""
     import fcntl
 
     if hasattr(os, "nice"):

@@ -149,9 +149,13 @@ _started: set[str] = set()  # the kernels this process has asked a background bu
 
 
 def lock_path() -> Path:
-    """The lock file the one background build at a time holds (per user, in the temp dir)."""
+    """The lock file the one background build at a time holds, in the temp dir: one per user
+    and installed copy of ddfuse and numba cache directory (``NUMBA_CACHE_DIR``), so that a
+    build for another install or cache never stands in for this one's."""
     uid = os.getuid() if hasattr(os, "getuid") else 0
-    return Path(tempfile.gettempdir()) / f"ddfuse-kernel-build-{uid}.lock"
+    where = f"{Path(__file__).resolve().parents[1]}\0{os.environ.get('NUMBA_CACHE_DIR', '')}"
+    tag = hashlib.sha256(where.encode()).hexdigest()[:12]
+    return Path(tempfile.gettempdir()) / f"ddfuse-kernel-build-{uid}-{tag}.lock"
 
 
 def build_running() -> bool:

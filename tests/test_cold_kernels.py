@@ -146,3 +146,12 @@ def test_a_cold_preintegration_kernel_leaves_the_smoother_on_python(monkeypatch)
 def test_unknown_policy_is_refused():
     with pytest.raises(ValueError, match="on_cold_cache"):
         jitcache.on_cold_cache("later")
+
+
+def test_the_build_lock_is_per_numba_cache(monkeypatch, tmp_path):
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "a"))
+    a = jitcache.lock_path()
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "b"))
+    assert jitcache.lock_path() != a  # another cache's build never stands in for this one's
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "a"))
+    assert jitcache.lock_path() == a
