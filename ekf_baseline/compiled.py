@@ -21,8 +21,6 @@ changed.
 from __future__ import annotations
 
 import math
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -117,31 +115,10 @@ def usable(*which: str) -> bool:
     return True
 
 
-BUILD_MODULE = "ddfuse.ekf_baseline.kernel_build"  # python -m: the background build
-_started: set[str] = set()  # the kernels this process has asked a background build for
-
-
 def build_in_background(names: list[str]) -> None:
-    """Start the background build of the entry points ``names`` (once per process each), and
-    say so on the terminal (through ``jitcache``'s notice, above any progress bars)."""
-    todo = [n for n in names if n not in _started]
-    if not todo:
-        return
-    _started.update(todo)
-    try:
-        subprocess.Popen([sys.executable, "-m", BUILD_MODULE, *todo],
-                         stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                         stderr=subprocess.DEVNULL, start_new_session=True, close_fds=True)
-    except OSError as e:
-        jitcache._notice[0](f"ddfuse: the EKF kernels {', '.join(todo)} are not compiled, and "
-                            f"no background process could compile them ({e}): this run uses "
-                            "the Python reference filters (the same estimates, slower)")
-        return
-    jitcache._notice[0](
-        f"ddfuse: the EKF kernels {', '.join(todo)} are not compiled yet (first run after "
-        "installing or updating ddfuse): this run uses the Python reference filters (the same "
-        "estimates to 1e-9, slower), while a background process compiles the kernels (numba, "
-        "about half a minute of CPU) for the next runs")
+    """Ask the background build (``factors.jitcache.build_in_background``, once per process) for
+    the entry points ``names`` and every kernel of a default run."""
+    jitcache.build_in_background(names)
 
 
 def warm_up(which: str) -> None:

@@ -24,7 +24,7 @@ import numpy as np
 from numba import njit
 from numba.extending import register_jitable
 
-__all__ = ["apply_update", "innovation_cov"]
+__all__ = ["SIGNATURES", "apply_update", "innovation_cov", "load_cached", "ready"]
 
 
 @register_jitable
@@ -209,7 +209,9 @@ def joseph(P, H, R, rows, ma, n, Kt, KRt, Mt, A, B, cols, inC):
 
 
 # ----------------------------------------------------------------------------- entry points
-# (KalmanCore's; C-contiguous float64 arrays, int64 block tables)
+# (KalmanCore's; C-contiguous float64 arrays, int64 block tables). Typed at the first call
+# (numba's cache, or a compile); ``ready`` compiles them for SIGNATURES ahead of it (the
+# background build of ``ekf_baseline.kernel_build``), ``load_cached`` loads them, never compiling.
 @njit(cache=True)
 def innovation_cov(P, H, R):
     """(Ut, S): U = P H^T transposed (m, n) and S = H P H^T + R (m, m) of H (m, n)."""
@@ -244,3 +246,27 @@ def apply_update(P, H, y, R, Ut, blk, verdict, fs):
     inC = np.empty(n, np.int64)
     joseph(out, H, R, rows, ma, n, Kt, KRt, Mt, A, B, cols, inC)
     return out, dx
+
+
+_M = "float64[:, ::1]"
+SIGNATURES = {"innovation_cov": f"({_M}, {_M}, {_M})",
+              "apply_update": f"({_M}, {_M}, float64[::1], {_M}, {_M}, int64[::1], int64[::1], "
+                              "float64[::1])"}
+
+
+def ready() -> None:
+    """Compile the two entry points for SIGNATURES, or load them from numba's cache."""
+    from ddfuse.factors.jitcache import arg_types, compiling
+
+    with compiling("the Kalman update's entry points innovation_cov, apply_update"):
+        for name, sig in SIGNATURES.items():
+            globals()[name].compile(arg_types(sig))  # the key a first call caches under
+
+
+def load_cached() -> bool:
+    """Whether both entry points are ready for SIGNATURES: loaded from numba's cache where it
+    holds them (never compiling)."""
+    from ddfuse.factors.jitcache import arg_types
+    from ddfuse.factors.jitcache import load_cached as load
+
+    return all(load(globals()[name], arg_types(sig)) for name, sig in SIGNATURES.items())

@@ -27,7 +27,8 @@ API (all arrays are float64 numpy; n = state size, m = measurement size)::
   ``log.rejected[(sensor, 'gate')]``. An accepted update applies the gain K = P H^T S^-1 and the
   Joseph form P <- (I - K H) P (I - K H)^T + K R K^T (stays symmetric PSD even with the rounding
   of K), both ``ddfuse.ekf_baseline.joseph``'s, the functions the compiled kernels compile too
-  (docs/design/ekf_kernels.md); state components in ``state_angles`` are wrapped after every
+  (docs/design/ekf_kernels.md; on a cold numba cache under ``ddfuse run``, ``joseph_numpy``'s
+  twins: ``update_functions``); state components in ``state_angles`` are wrapped after every
   predict and update.
 * Non-finite z or h(x), or an S that is not positive definite, are rejected with reason
   'nonfinite' / 'singular' and never touch the state.
@@ -61,7 +62,7 @@ from collections.abc import Callable
 from functools import lru_cache
 
 import numpy as np
-from ddfuse.ekf_baseline.joseph import apply_update, innovation_cov
+from ddfuse.ekf_baseline import joseph, joseph_numpy
 from ddfuse.estimation import chi2
 from ddfuse.estimation.config import DEFAULT_LOCKOUT_COUNT, DEFAULT_LOCKOUT_TIME
 from ddfuse.estimation.estimator import EstimatorLog, Innovation
@@ -96,6 +97,28 @@ _PI = math.pi
 CORROBORATED_BY = {"heading": frozenset({"gps", "landmark"})}
 
 
+_cold: list[bool] = []  # the update's entry points were not cached when this process first looked
+
+
+def update_functions() -> tuple[Callable, Callable]:
+    """(innovation_cov, apply_update) for a new KalmanCore: ``joseph``'s compiled entry points,
+    or, under the "reference" cold-cache policy (``factors.jitcache.on_cold_cache``) in a
+    process that found them missing from numba's cache, ``joseph_numpy``'s twins (the same
+    estimates to rounding) while the background build compiles them (said on the terminal).
+    Under that policy decided once per process, so every filter of a run uses the same
+    arithmetic; under "compile" (the library's default) always the compiled ones."""
+    from ddfuse.factors.jitcache import on_cold_cache
+
+    if on_cold_cache() == "compile" or (not _cold and joseph.load_cached()):
+        return joseph.innovation_cov, joseph.apply_update
+    if not _cold:
+        from ddfuse.factors.jitcache import build_in_background
+
+        _cold.append(True)
+        build_in_background(["joseph"])
+    return joseph_numpy.innovation_cov, joseph_numpy.apply_update
+
+
 @lru_cache(maxsize=256)
 def chi2_threshold(prob: float, dof: int) -> float:
     """Chi-square gate threshold: the ``prob`` quantile of chi2 with ``dof`` degrees of freedom.
@@ -116,7 +139,8 @@ class KalmanCore:
     __slots__ = (
         "x", "P", "n", "log", "state_angles", "lockout_count", "lockout_time",
         "recovery_holdoff", "_streak", "_holdoff", "_last_ok", "recoveries", "last_nis",
-        "after_inflation", "held_in_recovery", "last_verdicts", "robust",
+        "after_inflation", "held_in_recovery", "last_verdicts", "robust", "_innovation_cov",
+        "_apply_update",
     )
 
     def __init__(
@@ -130,6 +154,7 @@ class KalmanCore:
         lockout_time: float = DEFAULT_LOCKOUT_TIME,
         recovery_holdoff: float = DEFAULT_RECOVERY_HOLDOFF,
     ) -> None:
+        self._innovation_cov, self._apply_update = update_functions()
         self.x = np.array(x0, dtype=float).reshape(-1)
         self.n = self.x.shape[0]
         self.P = np.array(P0, dtype=float).reshape(self.n, self.n)
@@ -260,7 +285,7 @@ class KalmanCore:
                 y[i0 + a] = (y[i0 + a] + _PI) % _TWO_PI - _PI
         H = np.ascontiguousarray(H, dtype=float)
         R = np.ascontiguousarray(R, dtype=float)
-        Ut, S = innovation_cov(self.P, H, R)
+        Ut, S = self._innovation_cov(self.P, H, R)
         # gate with python floats: per-block numpy calls would dominate the cost of a step
         yl = y.tolist()
         Sl = S.tolist()
@@ -285,7 +310,7 @@ class KalmanCore:
                     if verdict == _RB_RECOVER:
                         self._recover(t, sensor, kind, y[i0:i1].copy(), H[i0:i1],
                                       R[i0:i1, i0:i1] * f, robust=True)
-                        Ut, S = innovation_cov(self.P, H, R)
+                        Ut, S = self._innovation_cov(self.P, H, R)
                         Sl = S.tolist()
                         recovered = True
                     rfac = rfac or [1.0] * len(blocks)
@@ -296,7 +321,7 @@ class KalmanCore:
                 verdict = self._judge(t, sensor, kind, nis, gate, i1 - i0, (H, i0, i1))
                 if verdict == _RECOVER:
                     self._recover(t, sensor, kind, y[i0:i1].copy(), H[i0:i1], R[i0:i1, i0:i1])
-                    Ut, S = innovation_cov(self.P, H, R)
+                    Ut, S = self._innovation_cov(self.P, H, R)
                     Sl = S.tolist()  # the blocks after this one are gated with the inflated P too
                     recovered = True
                 rejected = verdict == _REJECT
@@ -323,7 +348,7 @@ class KalmanCore:
             if rfac is not None:
                 fs *= rfac
             R = R.copy()  # apply_update fuses it in place; the caller's may be a constant
-        self.P, dx = apply_update(self.P, H, np.ascontiguousarray(y, dtype=float), R, Ut, blk,
+        self.P, dx = self._apply_update(self.P, H, np.ascontiguousarray(y, dtype=float), R, Ut, blk,
                                   rejected, fs)
         self.x = self.x + dx
         if self.state_angles:

@@ -159,6 +159,7 @@ from ddfuse.ekf_baseline.kernel_codes import (  # noqa: F401 - re-exported: the 
 from ddfuse.ekf_baseline.unicycle_motion import pose_correct
 from ddfuse.estimation.lockout import gate_streak, holdoff_over, lockout_due
 from ddfuse.factors.jitcache import compiling
+from ddfuse.factors.jitcache import load_cached as _load
 from numba import njit
 
 
@@ -452,30 +453,9 @@ def ready(*names: str) -> None:
 
 def load_cached(*names: str) -> bool:
     """Load the entry points ``names`` from numba's cache where it holds them, never compiling
-    (what ``ready`` does first, numba's ``Dispatcher.compile`` up to its cache lookup); whether
-    all of them are now ready. False also where numba's internals differ from those this
-    mirrors (the caller then compiles)."""
-    from numba.core import sigutils
-    from numba.core.compiler_lock import global_compiler_lock
-
-    for name in names:
-        d = globals()[name]
-        if d.signatures:
-            continue
-        sig = _SIGNATURES[name]
-        try:
-            with global_compiler_lock:
-                args, _ = sigutils.normalize_signature(sig)
-                if d.overloads.get(tuple(args)) is not None:
-                    continue
-                cres = d._cache.load_overload(sig, d.targetctx)
-                if cres is None:
-                    return False
-                d.targetctx.insert_user_function(cres.entry_point, cres.fndesc, [cres.library])
-                d.add_overload(cres)
-        except AttributeError:  # another numba's internals
-            return False
-    return True
+    (``factors.jitcache.load_cached``); whether all of them are now ready."""
+    return all(globals()[name].signatures or _load(globals()[name], _SIGNATURES[name])
+               for name in names)
 
 
 _TABLES = ("float64[::1], int64[::1], float64[:, ::1], float64[:, ::1], int64[:, ::1], "

@@ -5,20 +5,26 @@ not of the modules whose functions it compiles in (``register_jitable``, ``njit`
 change to one of those would silently keep running the old machine code. ``guard_cache`` keeps a
 hash of every source beside the cache and drops the module's cached kernels when it changes; call
 it before the kernels are first compiled or loaded. ``compiling`` says on the terminal what a
-slow compile is doing.
+slow compile is doing. ``load_cached`` loads a kernel from the cache without ever compiling it;
+``build_in_background`` starts the one process that compiles the missing kernels for the next
+runs (under the "reference" cold-cache policy of ``ddfuse run``).
 """
 
 from __future__ import annotations
 
 import hashlib
+import os
+import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["NOTICE_AFTER_S", "compiling", "guard_cache", "on_cold_cache"]
+__all__ = ["NOTICE_AFTER_S", "build_in_background", "compiling", "guard_cache", "load_cached",
+           "on_cold_cache"]
 
 NOTICE_AFTER_S = 3.0  # s: a compile longer than this is announced (a cache load is ~0.1-0.3 s
 # of CPU, up to ~2 s of wall time on a loaded machine; a cold compile tens of seconds)
@@ -95,3 +101,108 @@ def guard_cache(sources: Iterable[Path], cache: Path, stem: str) -> None:
         stamp.write_text(digest)
     except OSError:
         pass
+
+
+def arg_types(sig: str) -> tuple:
+    """The numba argument types of ``sig`` ("(float64[::1], int64)"): the signature under which
+    numba caches a kernel typed at its first call, so ``Dispatcher.compile(arg_types(sig))`` and
+    that call share one cache entry (numba keys its cache by the signature as given)."""
+    from numba.core import sigutils
+
+    args, _ = sigutils.normalize_signature(sig)
+    return tuple(args)
+
+
+def load_cached(dispatcher, sig) -> bool:
+    """Load ``dispatcher`` (a ``numba.njit(cache=True)`` function) for the argument types
+    ``sig`` (a signature string, or ``arg_types``' tuple: the cache entry's key as compiled)
+    from numba's cache where it holds them, never compiling (numba's ``Dispatcher.compile`` up
+    to its cache lookup); whether it is now ready for them. False also where numba's internals
+    differ from those this mirrors (the caller then compiles)."""
+    from numba.core import sigutils
+    from numba.core.compiler_lock import global_compiler_lock
+
+    try:
+        with global_compiler_lock:
+            args, _ = sigutils.normalize_signature(sig)
+            if dispatcher.overloads.get(tuple(args)) is not None:
+                return True
+            cres = dispatcher._cache.load_overload(sig, dispatcher.targetctx)
+            if cres is None:
+                return False
+            dispatcher.targetctx.insert_user_function(cres.entry_point, cres.fndesc,
+                                                      [cres.library])
+            dispatcher.add_overload(cres)
+    except AttributeError:  # another numba's internals
+        return False
+    return True
+
+
+# python -m: the background build. It compiles (or loads) every kernel a default ``ddfuse run``
+# uses, plus the ones named, one at a time; named by module path so that this, the lowest layer,
+# imports nothing above it (the builder imports the kernels' modules itself).
+BUILDER = "ddfuse.ekf_baseline.kernel_build"
+# every kernel a default ``ddfuse run`` (ekf, ekf_igvc, the smoothers) uses, in the order a run
+# needs them (the builder's names: ``kernel_build``)
+DEFAULT_BUILD = ("uni_event", "world_cov", "joseph", "preintegration", "igvc_event")
+_started: set[str] = set()  # the kernels this process has asked a background build for
+
+
+def lock_path() -> Path:
+    """The lock file the one background build at a time holds, in the temp dir: one per user
+    and installed copy of ddfuse and numba cache directory (``NUMBA_CACHE_DIR``), so that a
+    build for another install or cache never stands in for this one's."""
+    uid = os.getuid() if hasattr(os, "getuid") else 0
+    where = f"{Path(__file__).resolve().parents[1]}\0{os.environ.get('NUMBA_CACHE_DIR', '')}"
+    tag = hashlib.sha256(where.encode()).hexdigest()[:12]
+    return Path(tempfile.gettempdir()) / f"ddfuse-kernel-build-{uid}-{tag}.lock"
+
+
+def build_running() -> bool:
+    """Whether a background build (this user's, any process) holds the lock now."""
+    try:
+        import fcntl
+    except ImportError:  # no flock: assume none, the builder then waits for the lock itself
+        return False
+    try:
+        with open(lock_path(), "a") as lock:
+            try:
+                fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                return True
+            fcntl.flock(lock, fcntl.LOCK_UN)
+    except OSError:
+        return False
+    return False
+
+
+def build_in_background(names: list[str]) -> None:
+    """Ask for the kernels ``names`` (the builder's names) to be compiled into numba's cache by
+    a background process: one per process, together with DEFAULT_BUILD (every kernel a default
+    run uses, so that the kernels found cold later in the same run are in that one build), and
+    none while another build holds the lock (it compiles the default set too; a name outside it
+    is asked for again by the next run). Said once on the terminal, through ``_notice``."""
+    todo = [n for n in names if n not in _started]
+    if not todo:
+        return
+    first = not _started
+    _started.update(todo)
+    _started.update(DEFAULT_BUILD)
+    running = build_running()
+    if not running:
+        try:
+            subprocess.Popen([sys.executable, "-m", BUILDER, *todo],
+                             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                             stderr=subprocess.DEVNULL, start_new_session=True, close_fds=True)
+        except OSError as e:
+            _notice[0](f"ddfuse: numba's compiled kernels are not cached, and no background "
+                       f"process could compile them ({e}): this run uses the Python reference "
+                       "code (the same estimates to 1e-9, slower)")
+            return
+    if first:
+        _notice[0](
+            "ddfuse: numba's compiled kernels are not cached yet (first run after installing or "
+            "updating ddfuse): this run uses the Python reference code for the EKFs and the "
+            "smoother's preintegration (the same estimates to 1e-9, slower), while a background "
+            f"process {'is compiling' if running else 'compiles'} the kernels (about a minute of "
+            "CPU, at low priority) for the next runs")

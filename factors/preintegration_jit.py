@@ -17,13 +17,15 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from ddfuse.factors.jitcache import compiling, guard_cache
+from ddfuse.factors.jitcache import arg_types, compiling, guard_cache
+from ddfuse.factors.jitcache import load_cached as _load
 from ddfuse.factors.kinematics import se2_step_jac, twist_coeffs
 from ddfuse.factors.preintegration import WheelGyroPreintegration, integrate_step
 from numba import njit
 from numba.extending import register_jitable
 
-__all__ = ["SLOTS", "WheelGyroPreintegrationJit", "integrate", "warm_up"]
+__all__ = ["SIGNATURE", "SLOTS", "WheelGyroPreintegrationJit", "integrate", "load_cached", "ready",
+           "warm_up"]
 
 _HERE = Path(__file__).resolve().parent
 # every file whose code the kernel compiles: numba's cache checks only this file's time stamp
@@ -70,16 +72,29 @@ def integrate(s, dt, v, w_gyro, var_v, var_w, gain, w_odo):
     s[N] += 1.0
 
 
+SIGNATURE = "(float64[::1], float64, float64, float64, float64, float64, float64, float64)"
 _warm: list[bool] = []
+
+
+def ready() -> None:
+    """Compile the kernel for SIGNATURE, or load it from numba's cache (once per process)."""
+    if not _warm:
+        with compiling("the smoother's preintegration kernel"):
+            integrate.compile(arg_types(SIGNATURE))  # the key a first call caches under
+        _warm.append(True)
+
+
+def load_cached() -> bool:
+    """Whether the kernel is ready: loaded from numba's cache where it holds it, never
+    compiling."""
+    return bool(_warm) or _load(integrate, arg_types(SIGNATURE))
 
 
 def warm_up() -> None:
     """Compile the kernel (or load it from numba's cache) once per process, so that an
     estimator's first measurement does not pay for it (~1 s cold, ~0.1 s from the cache)."""
-    if not _warm:
-        with compiling("the smoother's preintegration kernel"):
-            integrate(np.zeros(SIZE), 0.1, 1.0, 0.1, 1e-4, 1e-4, 1.0, 0.0)
-        _warm.append(True)
+    ready()
+    integrate(np.zeros(SIZE), 0.1, 1.0, 0.1, 1e-4, 1e-4, 1.0, 0.0)
 
 
 def _slot(i: int, as_int: bool = False) -> property:

@@ -31,6 +31,8 @@ def cold(monkeypatch):
     monkeypatch.setattr(compiled, "COLD_COMPILE", {})
     monkeypatch.setattr(kj, "load_cached", lambda *names: False)
     monkeypatch.setattr(compiled, "build_in_background", lambda names: asked.append(names))
+    # the update's entry points and the preintegration kernel, if this cache lacks them
+    monkeypatch.setattr(jitcache, "build_in_background", lambda names: None)
     was = jitcache.on_cold_cache()
     yield asked
     jitcache.on_cold_cache(was)
@@ -66,19 +68,90 @@ def test_an_explicit_reference_filter_asks_for_nothing(cold):
 
 def test_the_background_build_is_started_once_and_said(monkeypatch):
     started, said = [], []
-    monkeypatch.setattr(compiled, "_started", set())
-    monkeypatch.setattr(compiled.subprocess, "Popen",
+    monkeypatch.setattr(jitcache, "_started", set())
+    monkeypatch.setattr(jitcache, "build_running", lambda: False)
+    monkeypatch.setattr(jitcache.subprocess, "Popen",
                         lambda args, **kw: started.append((args, kw)))
     monkeypatch.setattr(jitcache, "_notice", [said.append])
     compiled.build_in_background(["uni_event", "world_cov"])
     compiled.build_in_background(["uni_event"])
+    jitcache.build_in_background(["joseph"])  # in the default set the first build compiles
+    jitcache.build_in_background(["preintegration"])
     assert len(started) == 1 and len(said) == 1
     args, kw = started[0]
     assert args[1:] == ["-m", "ddfuse.ekf_baseline.kernel_build", "uni_event", "world_cov"]
     assert kw["start_new_session"]  # outlives the run
-    assert "reference filters" in said[0] and "background" in said[0]
+    assert "reference code" in said[0] and "background" in said[0]
+    compiled.build_in_background(["uni_stacked"])  # outside the default set: its own build
+    assert len(started) == 2 and started[1][0][3:] == ["uni_stacked"] and len(said) == 1
+
+
+def test_no_second_builder_while_one_holds_the_lock(monkeypatch, tmp_path):
+    fcntl = pytest.importorskip("fcntl")
+    started, said = [], []
+    monkeypatch.setattr(jitcache, "_started", set())
+    monkeypatch.setattr(jitcache, "lock_path", lambda: tmp_path / "build.lock")
+    monkeypatch.setattr(jitcache.subprocess, "Popen",
+                        lambda args, **kw: started.append(args))
+    monkeypatch.setattr(jitcache, "_notice", [said.append])
+    with open(tmp_path / "build.lock", "a") as held:  # another process's build
+        assert not jitcache.build_running()
+        fcntl.flock(held, fcntl.LOCK_EX)
+        assert jitcache.build_running()  # (flock locks are per open file: this one is held)
+        jitcache.build_in_background(["uni_event"])
+    assert started == [] and len(said) == 1 and "is compiling" in said[0]
+
+
+def test_a_cold_update_uses_the_numpy_twins_for_the_whole_process(monkeypatch):
+    from ddfuse.ekf_baseline import joseph, joseph_numpy, kalman
+
+    asked = []
+    monkeypatch.setattr(kalman, "_cold", [])
+    monkeypatch.setattr(joseph, "load_cached", lambda: False)
+    monkeypatch.setattr(jitcache, "build_in_background", lambda names: asked.append(names))
+    was = jitcache.on_cold_cache()
+    try:
+        jitcache.on_cold_cache("reference")
+        assert kalman.update_functions() == (joseph_numpy.innovation_cov,
+                                             joseph_numpy.apply_update)
+        monkeypatch.setattr(joseph, "load_cached", lambda: True)  # cached meanwhile
+        assert kalman.KalmanCore([0.0], [[1.0]])._apply_update is joseph_numpy.apply_update
+        jitcache.on_cold_cache("compile")
+        assert kalman.update_functions() == (joseph.innovation_cov, joseph.apply_update)
+    finally:
+        jitcache.on_cold_cache(was)
+    assert asked == [["joseph"]]
+
+
+def test_a_cold_preintegration_kernel_leaves_the_smoother_on_python(monkeypatch):
+    from ddfuse.estimation.smoother.held_twist import compiled_preintegration
+    from ddfuse.factors import preintegration_jit
+    from ddfuse.factors.preintegration import WheelGyroPreintegration
+
+    asked = []
+    monkeypatch.setattr(preintegration_jit, "load_cached", lambda: False)
+    monkeypatch.setattr(jitcache, "build_in_background", lambda names: asked.append(names))
+    was = jitcache.on_cold_cache()
+    try:
+        jitcache.on_cold_cache("reference")
+        assert compiled_preintegration() is WheelGyroPreintegration
+        assert asked == [["preintegration"]]
+        jitcache.on_cold_cache("compile")
+        assert compiled_preintegration() is preintegration_jit.WheelGyroPreintegrationJit
+    finally:
+        jitcache.on_cold_cache(was)
+    assert asked == [["preintegration"]]
 
 
 def test_unknown_policy_is_refused():
     with pytest.raises(ValueError, match="on_cold_cache"):
         jitcache.on_cold_cache("later")
+
+
+def test_the_build_lock_is_per_numba_cache(monkeypatch, tmp_path):
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "a"))
+    a = jitcache.lock_path()
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "b"))
+    assert jitcache.lock_path() != a  # another cache's build never stands in for this one's
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "a"))
+    assert jitcache.lock_path() == a

@@ -30,11 +30,18 @@ ODOMETRY_WAIT = 0.5  # s: without odometry for this long, go on holding the last
 def compiled_preintegration() -> type[WheelGyroPreintegration]:
     """The compiled preintegration class (``factors.preintegration_jit``), its kernel compiled
     or loaded from numba's cache now rather than in the first timed ``process`` call; the
-    Python reference if numba does not import. Imported here, not at module level, so that
-    importing the smoother does not load numba."""
+    Python reference if numba does not import, or if the kernel is not in numba's cache under
+    the "reference" cold-cache policy of ``ddfuse run`` (``factors.jitcache.on_cold_cache``:
+    the background build compiles it for the next runs; the same estimates to rounding).
+    Imported here, not at module level, so that importing the smoother does not load numba."""
     try:
         from ddfuse.factors import preintegration_jit
     except ImportError:
+        return WheelGyroPreintegration
+    from ddfuse.factors import jitcache
+
+    if jitcache.on_cold_cache() == "reference" and not preintegration_jit.load_cached():
+        jitcache.build_in_background(["preintegration"])
         return WheelGyroPreintegration
     preintegration_jit.warm_up()
     return preintegration_jit.WheelGyroPreintegrationJit
