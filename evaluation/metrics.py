@@ -273,6 +273,9 @@ def se2_log_errors(est_pose: np.ndarray, ref_pose: np.ndarray) -> np.ndarray:
     return np.column_stack([(sa * bx + ca * by) / det, (-ca * bx + sa * by) / det, th])
 
 
+_COV_BLOCK = 4096  # covariances read at a time by nees_series
+
+
 def nees_series(est: Trajectory, ref: Trajectory, max_diff: float = 0.05,
                 pose_error: str = "world") -> Nees:
     """NEES of ``est`` against ``ref`` (no alignment: the covariance is in the local frame).
@@ -296,9 +299,14 @@ def nees_series(est: Trajectory, ref: Trajectory, max_diff: float = 0.05,
     if pose_error == "se2" and len(err.i_est):
         xi = se2_log_errors(est.pose[err.i_est],
                             reference_at(ref, err.t, err.i_ref, max_diff))
-    ts, vals, dofs, idx = [], [], [], []
+    m = len(err.i_est)
+    ts, vals, dofs, idx = np.empty(m), np.empty(m), np.empty(m, int), np.empty(m, np.int64)
+    n = 0
+    covs = None
     for k, i in enumerate(err.i_est):
-        p = est.cov[i]
+        if k % _COV_BLOCK == 0:  # a block of covariances at a time (a packed track's unpacked)
+            covs = est.cov_at(err.i_est[k:k + _COV_BLOCK])
+        p = covs[k % _COV_BLOCK]
         if math.isnan(err.dyaw[k]):
             e, p = err.dxy[k], p[:2, :2]
         elif pose_error == "se2":
@@ -315,11 +323,9 @@ def nees_series(est: Trajectory, ref: Trajectory, max_diff: float = 0.05,
         except np.linalg.LinAlgError:
             continue
         z = np.linalg.solve(c, e)
-        ts.append(err.t[k])
-        vals.append(float(z @ z))
-        dofs.append(len(e))
-        idx.append(int(i))
-    return Nees(np.array(ts), np.array(vals), np.array(dofs, int), np.array(idx, np.int64))
+        ts[n], vals[n], dofs[n], idx[n] = err.t[k], float(z @ z), len(e), i
+        n += 1
+    return Nees(ts[:n].copy(), vals[:n].copy(), dofs[:n].copy(), idx[:n].copy())
 
 
 def nees(est: Trajectory, ref: Trajectory, max_diff: float = 0.05,
@@ -391,9 +397,10 @@ def gate_nis(est: Trajectory, t: np.ndarray, fix_xy: np.ndarray, fix_cov: np.nda
     xy, inside = antenna_xy(est, t, lever_arm, delay)
     k = np.clip(np.searchsorted(est.t, np.asarray(t, float) - delay), 1, len(est) - 1)
     k = np.where(np.abs(est.t[k - 1] - (t - delay)) <= np.abs(est.t[k] - (t - delay)), k - 1, k)
+    pk = est.cov_at(k)[:, :2, :2]
     for i in np.nonzero(inside)[0]:
         r = np.asarray(fix_cov[i], float)
-        p = est.cov[k[i], :2, :2]
+        p = pk[i]
         c = r + p if np.all(np.isfinite(p)) and np.linalg.eigvalsh(0.5 * (p + p.T))[0] >= 0 \
             else r
         d = xy[i] - fix_xy[i]
