@@ -139,3 +139,15 @@ def test_run_npz_written_entry_by_entry_holds_the_members_savez_wrote(monkeypatc
     z = np.load(io.BytesIO(new.getvalue()))
     assert z["update_s/smoother"].dtype == np.float64
     assert np.array_equal(z["update_s/smoother"], result.runs["smoother"].update_s)
+
+
+@pytest.mark.parametrize("unit", ["s", "m"])
+def test_rpe_pairs_walked_in_blocks_are_the_pairs_of_one_walk(monkeypatch, unit):
+    rng = np.random.default_rng(6)
+    t = np.cumsum(rng.random(500) * 0.2)
+    xy = np.cumsum(rng.normal(size=(500, 2)) * 0.3, axis=0)
+    whole = metrics.rpe_pairs(t, xy, 1.0, unit)
+    monkeypatch.setattr(metrics, "_STEP_BLOCK", 3)  # a pair's run of steps spans blocks
+    blocks = metrics.rpe_pairs(t, xy, 1.0, unit)
+    assert len(whole[0]) > 20
+    assert all(np.array_equal(a, b) for a, b in zip(whole, blocks, strict=True))
