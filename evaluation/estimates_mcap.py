@@ -68,7 +68,7 @@ NAVSATFIX = "sensor_msgs/msg/NavSatFix"
 TFMESSAGE = "tf2_msgs/msg/TFMessage"
 _FIX_KNOWN = 3  # sensor_msgs/NavSatFix COVARIANCE_TYPE_KNOWN
 _CHUNK = 4 << 20  # bytes per MCAP chunk: fewer, better compressed chunks than the 1 MB default
-_BLOCK = 20_000  # messages encoded at a time (~10 MB of CDR)
+_BLOCK = 5_000  # messages encoded at a time (~2.5 MB of CDR, and its bytes copy)
 
 
 def topic_of(track: str, kind: str) -> str:

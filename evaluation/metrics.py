@@ -186,6 +186,16 @@ def reference_at(ref: Trajectory, t: np.ndarray, j: np.ndarray, max_diff: float)
     pr = ref.pose[j].copy()
     if len(ref) < 2 or len(t) == 0:
         return pr
+    for a in range(0, len(t), _REF_BLOCK):  # a block's temporaries at a time, not a track's
+        _interpolate_into(pr[a:a + _REF_BLOCK], ref, t[a:a + _REF_BLOCK], max_diff)
+    return pr
+
+
+_REF_BLOCK = 8192  # stamps reference_at interpolates at a time
+
+
+def _interpolate_into(pr: np.ndarray, ref: Trajectory, t: np.ndarray, max_diff: float) -> None:
+    """``reference_at`` for the stamps ``t``, written into their rows ``pr`` (a view)."""
     k = np.clip(np.searchsorted(ref.t, t, side="right"), 1, len(ref) - 1)
     t0, t1 = ref.t[k - 1], ref.t[k]
     # Truth at exactly 1 / (2 max_diff) Hz (10 Hz for 0.05 s) has gaps that float rounding of
@@ -194,13 +204,12 @@ def reference_at(ref: Trajectory, t: np.ndarray, j: np.ndarray, max_diff: float)
     dense = ((t0 <= t) & (t <= t1) & (t1 - t0 <= 2.0 * max_diff * (1.0 + GAP_REL_TOL))
              & (t1 > t0))
     if not dense.any():
-        return pr
+        return
     k = k[dense]
     w = ((t[dense] - t0[dense]) / (t1[dense] - t0[dense]))[:, None]
     a, b = ref.pose[k - 1], ref.pose[k]
     pr[dense, :2] = a[:, :2] + w * (b[:, :2] - a[:, :2])
     pr[dense, 2] = wrap(a[:, 2] + w[:, 0] * wrap(b[:, 2] - a[:, 2]))
-    return pr
 
 
 def pose_errors(est: Trajectory, ref: Trajectory, max_diff: float = 0.05,

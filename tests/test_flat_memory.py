@@ -151,3 +151,31 @@ def test_rpe_pairs_walked_in_blocks_are_the_pairs_of_one_walk(monkeypatch, unit)
     blocks = metrics.rpe_pairs(t, xy, 1.0, unit)
     assert len(whole[0]) > 20
     assert all(np.array_equal(a, b) for a, b in zip(whole, blocks, strict=True))
+
+
+def test_the_reference_interpolated_in_blocks_is_that_of_one_block(monkeypatch):
+    rng = np.random.default_rng(7)
+    ref = Trajectory(np.cumsum(rng.random(300) * 0.1), rng.normal(size=(300, 3)),
+                     np.full((300, 3, 3), np.nan))
+    t = np.sort(rng.uniform(ref.t[0] - 1, ref.t[-1] + 1, 200))
+    j = np.clip(np.searchsorted(ref.t, t), 0, 299)
+    whole = metrics.reference_at(ref, t, j, 0.05)
+    monkeypatch.setattr(metrics, "_REF_BLOCK", 9)
+    assert np.array_equal(metrics.reference_at(ref, t, j, 0.05), whole, equal_nan=True)
+    assert not np.array_equal(whole, ref.pose[j])  # some stamps were interpolated
+
+
+def test_estimates_mcap_encoded_in_small_blocks_is_the_same_file(tmp_path, monkeypatch):
+    from ddfuse.estimation.runner import Trajectory as Tr
+    from ddfuse.evaluation import estimates_mcap
+
+    result = _result(10)
+    tr = result.runs["smoother"].trajectory
+    # the lagged track shares stamps with the truth and the filtered track (ties across topics)
+    result.runs["smoother_lagged"].trajectory = Tr(tr.t[::3].copy(), tr.pose[::3].copy(),
+                                                   tr.cov_at(slice(None, None, 3)))
+    result.truth = Tr(tr.t.copy(), tr.pose.copy() + 0.1, np.full((len(tr), 3, 3), np.nan))
+    estimates_mcap.write_estimates(tmp_path / "a.mcap", result)
+    monkeypatch.setattr(estimates_mcap, "_BLOCK", 7)
+    estimates_mcap.write_estimates(tmp_path / "b.mcap", result)
+    assert (tmp_path / "a.mcap").read_bytes() == (tmp_path / "b.mcap").read_bytes()
