@@ -100,6 +100,11 @@ class TrackBuilder:
                                  packed=np.frombuffer(self._cov, float)[:6 * n].reshape(n, 6))
 
 
+def _no_cov(n: int) -> np.ndarray:
+    """(n, 3, 3) NaN, read-only, all one element."""
+    return np.broadcast_to(np.float64(np.nan), (n, 3, 3))
+
+
 @dataclass
 class Trajectory:
     """Poses over time in the local frame: ``t`` (N,) s, ``pose`` (N, 3) as (x m, y m, yaw rad),
@@ -123,24 +128,31 @@ class Trajectory:
     @classmethod
     def from_ground_truth(cls, truth) -> Trajectory:
         """From a list of GroundTruthPose, or from a stream's truth arrays (``t`` (N,),
-        ``pose`` (N, 3)) given as a tuple."""
+        ``pose`` (N, 3)) given as a tuple. The truth has no covariance: ``cov`` is NaN, a
+        read-only view of one value (no memory per sample)."""
         if isinstance(truth, tuple):
             t, pose = truth
             return cls(np.asarray(t, float), np.asarray(pose, float).reshape(-1, 3),
-                       np.full((len(t), 3, 3), np.nan))
+                       _no_cov(len(t)))
         n = len(truth)
         return cls(np.array([g.t for g in truth]),
                    np.array([(g.x, g.y, g.yaw) for g in truth], dtype=float).reshape(n, 3),
-                   np.full((n, 3, 3), np.nan))
+                   _no_cov(n))
 
     def __len__(self) -> int:
         return len(self.t)
 
+    def cov_at(self, index) -> np.ndarray:
+        """``cov[index]`` (``index`` a slice or an integer array): what a reader of part of
+        the covariances asks for, which a packed track unpacks for those rows only."""
+        return self.cov[index]
+
 
 class _PackedTrajectory(Trajectory):
     """A Trajectory whose covariances stay packed (TrackBuilder's 6 values per pose) until
-    ``cov`` is first read: a run that ends holds 10 floats per pose, not 13, until it is
-    scored. Otherwise a Trajectory like any other (``cov`` can be read and set)."""
+    ``cov`` is first read: a run that ends holds 10 floats per pose, not 13 (``cov_at``, which
+    scoring and the writers read through, unpacks only the rows asked for). Otherwise a
+    Trajectory like any other (``cov`` can be read and set)."""
 
     def __init__(self, t: np.ndarray, pose: np.ndarray, cov: np.ndarray | None = None, *,
                  packed: np.ndarray | None = None) -> None:
@@ -156,6 +168,11 @@ class _PackedTrajectory(Trajectory):
     @cov.setter
     def cov(self, value: np.ndarray) -> None:
         self._cov, self._packed = value, None
+
+    def cov_at(self, index) -> np.ndarray:
+        if self._cov is None:  # unpacked for these rows, not kept: the packed ones stay
+            return unpack_cov(self._packed[index])
+        return self._cov[index]
 
 
 @dataclass

@@ -68,7 +68,7 @@ NAVSATFIX = "sensor_msgs/msg/NavSatFix"
 TFMESSAGE = "tf2_msgs/msg/TFMessage"
 _FIX_KNOWN = 3  # sensor_msgs/NavSatFix COVARIANCE_TYPE_KNOWN
 _CHUNK = 4 << 20  # bytes per MCAP chunk: fewer, better compressed chunks than the 1 MB default
-_BLOCK = 20_000  # messages encoded at a time (~10 MB of CDR)
+_BLOCK = 5_000  # messages encoded at a time (~2.5 MB of CDR, and its bytes copy)
 
 
 def topic_of(track: str, kind: str) -> str:
@@ -152,7 +152,7 @@ class _Source:
 
 def _odometry(track, local: str, base: str) -> Callable:
     def encode(i0: int, i1: int):
-        p = pose_columns(track.t[i0:i1], track.pose[i0:i1], track.cov[i0:i1])
+        p = pose_columns(track.t[i0:i1], track.pose[i0:i1], track.cov_at(slice(i0, i1)))
         n = i1 - i0
         floats = np.hstack([p.position, p.orientation, p.pose_covariance, np.zeros((n, 6)),
                             np.broadcast_to(UNKNOWN_TWIST_COVARIANCE, (n, 36))])
@@ -162,7 +162,7 @@ def _odometry(track, local: str, base: str) -> Callable:
 
 def _transforms(track, local: str, base: str) -> Callable:
     def encode(i0: int, i1: int):
-        p = pose_columns(track.t[i0:i1], track.pose[i0:i1], track.cov[i0:i1])
+        p = pose_columns(track.t[i0:i1], track.pose[i0:i1], track.cov_at(slice(i0, i1)))
         return layout(TFMESSAGE, local, base).encode(
             p.stamp, np.hstack([p.position, p.orientation]))
     return encode
@@ -170,7 +170,7 @@ def _transforms(track, local: str, base: str) -> Callable:
 
 def _fixes(track, datum, base: str) -> Callable:
     def encode(i0: int, i1: int):
-        f = fix_columns(track.t[i0:i1], track.pose[i0:i1], track.cov[i0:i1], datum)
+        f = fix_columns(track.t[i0:i1], track.pose[i0:i1], track.cov_at(slice(i0, i1)), datum)
         floats = np.column_stack([f.latitude, f.longitude, f.altitude, f.position_covariance])
         return layout(NAVSATFIX, base).encode(f.stamp, floats, np.ones(i1 - i0, np.intp))
     return encode

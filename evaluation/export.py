@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -15,28 +16,31 @@ CSV_COLUMNS = ["t", "x", "y", "yaw"] + [f"cov_{a}{b}" for a in ("x", "y", "yaw")
 _CHUNK = 4096  # rows formatted per ``%``: a few MB of Python floats at a time, whatever the length
 
 
-def _write_rows(path: Path, rows: np.ndarray, fmt: str, header: str | None = None) -> None:
-    """What ``np.savetxt(path, rows, fmt=fmt, header=header, comments="")`` writes, byte for
-    byte, formatted in one ``%`` per ``_CHUNK`` rows instead of one per row (4x faster) and
-    written as it goes, so that a long track's text is never in memory whole; whole or not at
-    all (``atomic_files.replacing``)."""
-    n, k = rows.shape
+def _write_rows(path: Path, n: int, rows: Callable[[int, int], np.ndarray], fmt: str,
+                header: str | None = None) -> None:
+    """What ``np.savetxt(path, rows(0, n), fmt=fmt, header=header, comments="")`` writes, byte
+    for byte, formatted in one ``%`` per ``_CHUNK`` rows instead of one per row (4x faster) and
+    written as it goes: ``rows(a, b)`` gives rows a..b-1 (a (b - a, k) array), so that neither
+    a long track's text nor its whole table of rows is in memory at once; whole or not at all
+    (``atomic_files.replacing``)."""
     with replacing(path) as f:
         if header is not None:
             f.write(header + "\n")
         line = fmt + "\n"
         for a in range(0, n, _CHUNK):
-            part = rows[a:a + _CHUNK]
+            part = rows(a, min(a + _CHUNK, n))
             f.write((line * len(part)) % tuple(part.ravel().tolist()))
 
 
 def write_tum(path: Path, traj: Trajectory) -> None:
     """TUM format: ``t x y z qx qy qz qw`` per line (z = 0, yaw about z); NaN yaw -> 0."""
-    yaw = np.nan_to_num(traj.pose[:, 2])
-    n = len(traj)
-    rows = np.column_stack([traj.t, traj.pose[:, 0], traj.pose[:, 1], np.zeros(n), np.zeros(n),
-                            np.zeros(n), np.sin(yaw / 2), np.cos(yaw / 2)])
-    _write_rows(path, rows, "%.9f %.6f %.6f %.6f %.9f %.9f %.9f %.9f")
+    def rows(a: int, b: int) -> np.ndarray:
+        yaw = np.nan_to_num(traj.pose[a:b, 2])
+        z = np.zeros(b - a)
+        return np.column_stack([traj.t[a:b], traj.pose[a:b, 0], traj.pose[a:b, 1], z, z, z,
+                                np.sin(yaw / 2), np.cos(yaw / 2)])
+
+    _write_rows(path, len(traj), rows, "%.9f %.6f %.6f %.6f %.9f %.9f %.9f %.9f")
 
 
 def write_csv(path: Path, traj: Trajectory) -> None:
@@ -45,9 +49,12 @@ def write_csv(path: Path, traj: Trajectory) -> None:
     The stamp is written in fixed point (ns): bag stamps are epoch seconds (~1.7e9), which a
     significant-digit format would round to whole seconds. NaN stays NaN (no heading, no
     covariance)."""
-    n = len(traj)
-    rows = np.column_stack([traj.t, traj.pose, traj.cov.reshape(n, 9)])
-    _write_rows(path, rows, ",".join(["%.9f"] + ["%.10g"] * 12), header=",".join(CSV_COLUMNS))
+    def rows(a: int, b: int) -> np.ndarray:
+        cov = traj.cov_at(slice(a, b)).reshape(b - a, 9)
+        return np.column_stack([traj.t[a:b], traj.pose[a:b], cov])
+
+    _write_rows(path, len(traj), rows, ",".join(["%.9f"] + ["%.10g"] * 12),
+                header=",".join(CSV_COLUMNS))
 
 
 def read_csv(path: Path) -> Trajectory:

@@ -186,6 +186,16 @@ def reference_at(ref: Trajectory, t: np.ndarray, j: np.ndarray, max_diff: float)
     pr = ref.pose[j].copy()
     if len(ref) < 2 or len(t) == 0:
         return pr
+    for a in range(0, len(t), _REF_BLOCK):  # a block's temporaries at a time, not a track's
+        _interpolate_into(pr[a:a + _REF_BLOCK], ref, t[a:a + _REF_BLOCK], max_diff)
+    return pr
+
+
+_REF_BLOCK = 8192  # stamps reference_at interpolates at a time
+
+
+def _interpolate_into(pr: np.ndarray, ref: Trajectory, t: np.ndarray, max_diff: float) -> None:
+    """``reference_at`` for the stamps ``t``, written into their rows ``pr`` (a view)."""
     k = np.clip(np.searchsorted(ref.t, t, side="right"), 1, len(ref) - 1)
     t0, t1 = ref.t[k - 1], ref.t[k]
     # Truth at exactly 1 / (2 max_diff) Hz (10 Hz for 0.05 s) has gaps that float rounding of
@@ -194,13 +204,12 @@ def reference_at(ref: Trajectory, t: np.ndarray, j: np.ndarray, max_diff: float)
     dense = ((t0 <= t) & (t <= t1) & (t1 - t0 <= 2.0 * max_diff * (1.0 + GAP_REL_TOL))
              & (t1 > t0))
     if not dense.any():
-        return pr
+        return
     k = k[dense]
     w = ((t[dense] - t0[dense]) / (t1[dense] - t0[dense]))[:, None]
     a, b = ref.pose[k - 1], ref.pose[k]
     pr[dense, :2] = a[:, :2] + w * (b[:, :2] - a[:, :2])
     pr[dense, 2] = wrap(a[:, 2] + w[:, 0] * wrap(b[:, 2] - a[:, 2]))
-    return pr
 
 
 def pose_errors(est: Trajectory, ref: Trajectory, max_diff: float = 0.05,
@@ -273,6 +282,9 @@ def se2_log_errors(est_pose: np.ndarray, ref_pose: np.ndarray) -> np.ndarray:
     return np.column_stack([(sa * bx + ca * by) / det, (-ca * bx + sa * by) / det, th])
 
 
+_COV_BLOCK = 4096  # covariances read at a time by nees_series
+
+
 def nees_series(est: Trajectory, ref: Trajectory, max_diff: float = 0.05,
                 pose_error: str = "world") -> Nees:
     """NEES of ``est`` against ``ref`` (no alignment: the covariance is in the local frame).
@@ -296,9 +308,14 @@ def nees_series(est: Trajectory, ref: Trajectory, max_diff: float = 0.05,
     if pose_error == "se2" and len(err.i_est):
         xi = se2_log_errors(est.pose[err.i_est],
                             reference_at(ref, err.t, err.i_ref, max_diff))
-    ts, vals, dofs, idx = [], [], [], []
+    m = len(err.i_est)
+    ts, vals, dofs, idx = np.empty(m), np.empty(m), np.empty(m, int), np.empty(m, np.int64)
+    n = 0
+    covs = None
     for k, i in enumerate(err.i_est):
-        p = est.cov[i]
+        if k % _COV_BLOCK == 0:  # a block of covariances at a time (a packed track's unpacked)
+            covs = est.cov_at(err.i_est[k:k + _COV_BLOCK])
+        p = covs[k % _COV_BLOCK]
         if math.isnan(err.dyaw[k]):
             e, p = err.dxy[k], p[:2, :2]
         elif pose_error == "se2":
@@ -315,11 +332,9 @@ def nees_series(est: Trajectory, ref: Trajectory, max_diff: float = 0.05,
         except np.linalg.LinAlgError:
             continue
         z = np.linalg.solve(c, e)
-        ts.append(err.t[k])
-        vals.append(float(z @ z))
-        dofs.append(len(e))
-        idx.append(int(i))
-    return Nees(np.array(ts), np.array(vals), np.array(dofs, int), np.array(idx, np.int64))
+        ts[n], vals[n], dofs[n], idx[n] = err.t[k], float(z @ z), len(e), i
+        n += 1
+    return Nees(ts[:n].copy(), vals[:n].copy(), dofs[:n].copy(), idx[:n].copy())
 
 
 def nees(est: Trajectory, ref: Trajectory, max_diff: float = 0.05,
@@ -391,9 +406,10 @@ def gate_nis(est: Trajectory, t: np.ndarray, fix_xy: np.ndarray, fix_cov: np.nda
     xy, inside = antenna_xy(est, t, lever_arm, delay)
     k = np.clip(np.searchsorted(est.t, np.asarray(t, float) - delay), 1, len(est) - 1)
     k = np.where(np.abs(est.t[k - 1] - (t - delay)) <= np.abs(est.t[k] - (t - delay)), k - 1, k)
+    pk = est.cov_at(k)[:, :2, :2]
     for i in np.nonzero(inside)[0]:
         r = np.asarray(fix_cov[i], float)
-        p = est.cov[k[i], :2, :2]
+        p = pk[i]
         c = r + p if np.all(np.isfinite(p)) and np.linalg.eigvalsh(0.5 * (p + p.T))[0] >= 0 \
             else r
         d = xy[i] - fix_xy[i]
@@ -469,6 +485,9 @@ def path_length(xy: np.ndarray) -> float:
         else 0.0
 
 
+_STEP_BLOCK = 8192  # steps rpe_pairs walks at a time
+
+
 def rpe_pairs(t: np.ndarray, xy: np.ndarray, delta: float, unit: str = "s",
               all_pairs: bool = False, rel_tol: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
     """Index pairs (a, b) for the RPE, ``delta`` seconds (``unit`` 's') or path metres ('m')
@@ -488,12 +507,14 @@ def rpe_pairs(t: np.ndarray, xy: np.ndarray, delta: float, unit: str = "s",
     if not all_pairs:
         # The running sum, reset at each chosen sample, is evo's loop, kept as a loop so that
         # the floating-point sums (and so the chosen samples) are the same as evo's.
+        # (the steps made Python floats a block at a time: a 2 h track's whole list is 3 MB)
         ids, acc = [0], 0.0
-        for k, s in enumerate(steps.tolist(), start=1):
-            acc += s
-            if acc >= delta:
-                ids.append(k)
-                acc = 0.0
+        for k0 in range(0, len(steps), _STEP_BLOCK):
+            for k, s in enumerate(steps[k0:k0 + _STEP_BLOCK].tolist(), start=k0 + 1):
+                acc += s
+                if acc >= delta:
+                    ids.append(k)
+                    acc = 0.0
         return np.array(ids[:-1], int), np.array(ids[1:], int)
     cum = np.concatenate([[0.0], np.cumsum(steps)])
     a = np.arange(n - 1)

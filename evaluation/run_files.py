@@ -180,7 +180,7 @@ def save_run(result: RunResult, outdir: Path, config_text: str | None = None, *,
                     base_frame=frames[1], tf=tf)
     _note(outdir, ESTIMATES_FILE)
     with replacing(outdir / RUN_FILE, "wb") as f:
-        np.savez_compressed(f, **run_arrays(result, config_text))
+        _write_npz(f, _run_entries(result, config_text))
     _note(outdir, RUN_FILE)
 
 
@@ -191,33 +191,65 @@ def write_metrics(outdir: Path, metrics_dict: dict) -> None:
 
 
 
+_NPY_BLOCK = 1 << 16  # elements of a float32 column widened and written at a time
+
+
+def _write_npz(f, entries: Iterator[tuple[str, np.ndarray, bool]]) -> None:
+    """What ``np.savez_compressed`` writes for ``run_arrays``' dictionary (the same members,
+    each the same .npy bytes) from ``_run_entries`` (key, array, widen), each entry written
+    as it comes, so that only one is in memory at a time; one marked ``widen`` (the per-call
+    timings, float32 in the run) written as float64, ``_NPY_BLOCK`` elements at a time."""
+    import zipfile
+
+    with zipfile.ZipFile(f, mode="w", compression=zipfile.ZIP_DEFLATED, allowZip64=True) as z:
+        for key, a, widen in entries:
+            with z.open(key + ".npy", "w", force_zip64=True) as out:
+                if not widen:
+                    np.lib.format.write_array(out, np.asanyarray(a), allow_pickle=False)
+                    continue
+                np.lib.format.write_array_header_1_0(out, {
+                    "descr": np.lib.format.dtype_to_descr(np.dtype(float)),
+                    "fortran_order": False, "shape": a.shape})
+                flat = a.reshape(-1)
+                for i in range(0, len(flat), _NPY_BLOCK):
+                    out.write(flat[i:i + _NPY_BLOCK].astype(float).tobytes())
+
+
 def run_arrays(result: RunResult, config_text: str | None) -> dict[str, np.ndarray]:
     """The arrays of run.npz for ``result`` (module docstring)."""
+    return {k: np.asarray(a, float) if widen else a
+            for k, a, widen in _run_entries(result, config_text)}
+
+
+def _run_entries(result: RunResult, config_text: str | None
+                 ) -> Iterator[tuple[str, np.ndarray, bool]]:
+    """run.npz's (key, array, widen) for ``result``, in its order, each made when asked for;
+    ``widen``: the array is as the run holds it (the per-call timings, float32) and run.npz
+    has it as float64."""
     gps = result.gps
     lm = result.stream.landmarks
-    arrays: dict[str, np.ndarray] = {
-        "gps_t": gps.t,
-        "gps_xy": gps.xy.reshape(-1, 2),
-        "gps_cov": gps.cov.reshape(-1, 2, 2),
-        "gps_withheld": gps.withheld,
-        "landmark_ids": np.array(list(lm), dtype=str),
-        "landmark_xy": np.array(list(lm.values()), float).reshape(-1, 2),
-    }
+    yield "gps_t", gps.t, False
+    yield "gps_xy", gps.xy.reshape(-1, 2), False
+    yield "gps_cov", gps.cov.reshape(-1, 2, 2), False
+    yield "gps_withheld", gps.withheld, False
+    yield "landmark_ids", np.array(list(lm), dtype=str), False
+    yield "landmark_xy", np.array(list(lm.values()), float).reshape(-1, 2), False
     owner: dict[str, str] = {}
     logs: dict[int, str] = {}  # id(log) -> first track using it
     for name, r in result.runs.items():
         key = logs.setdefault(id(r.log), name)
         owner[name] = key
-        arrays[f"update_s/{name}"] = np.asarray(r.update_s, float)
+        upd = np.asarray(r.update_s)
+        yield f"update_s/{name}", upd, upd.dtype != float
         if key == name:
             table = InnovationTable.from_innovations(r.log.innovations)
             for f in INNOV_FIELDS:
-                arrays[f"innov/{name}/{f}"] = getattr(table, f)
+                yield f"innov/{name}/{f}", getattr(table, f), False
             # a long run's log is thinned: the exact counts of what it no longer holds one by
             # one, so that NIS from a loaded run equals metrics.json's
-            arrays[f"innov/{name}/folded"] = np.array(json.dumps(
-                [[list(k), [float(x) for x in v]] for k, v in table.folded.items()]))
-            arrays[f"innov/{name}/n_thinned"] = np.array(table.n_thinned)
+            yield f"innov/{name}/folded", np.array(json.dumps(
+                [[list(k), [float(x) for x in v]] for k, v in table.folded.items()])), False
+            yield f"innov/{name}/n_thinned", np.array(table.n_thinned), False
+            del table
     meta = {"tracks": list(result.runs), "log_owner": owner, "config_text": config_text}
-    arrays["meta"] = np.array(json.dumps(meta))
-    return arrays
+    yield "meta", np.array(json.dumps(meta)), False
