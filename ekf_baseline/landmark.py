@@ -374,7 +374,11 @@ class _OdometryDrivenEkf(Estimator):
             self._relocalise = False
             return frame
         rows, used = self._frame_rows(frame)
-        fit = usable_fit(kf.x[:3], kf.P[:3, :3], rows) if len(rows) >= MIN_SIGHTINGS else None
+        # the frame's common bearing error: exact for one sensor's frame; with several sensors
+        # the largest one's, which overstates the others' (each has its own common error)
+        common = max((self._frames.common.get(m.sensor, 0.0) for m in used), default=0.0)
+        fit = (usable_fit(kf.x[:3], kf.P[:3, :3], rows, common)
+               if len(rows) >= MIN_SIGHTINGS else None)
         if fit is None:
             return frame
         P = kf.P.copy()

@@ -19,7 +19,7 @@ import numpy as np
 from ddfuse.ekf_baseline.landmark_model import MIN_RANGE, range_bearing_terms
 from ddfuse.estimation import chi2
 
-__all__ = ["PoseFit", "fit_pose", "usable_fit", "MIN_SIGHTINGS"]
+__all__ = ["PoseFit", "fit_pose", "usable_fit", "with_common_bearing", "MIN_SIGHTINGS"]
 
 MIN_SIGHTINGS = 2  # range-bearing sightings: with one the heading is not fixed
 P_CONSISTENT = 0.999  # the residual's chi-square below this quantile: the frame agrees with itself
@@ -111,12 +111,30 @@ def _residual(x: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 AGREE_P = 0.9999  # the fit and the filter's pose, both uncertain, disagree beyond this quantile
 
 
-def usable_fit(pose: np.ndarray, pose_cov: np.ndarray, rows) -> PoseFit | None:
+def with_common_bearing(fit: PoseFit, common_var: float) -> PoseFit:
+    """``fit`` with a bearing error common to all its sightings, of variance ``common_var``
+    (rad^2; ``noise.bearing_common`` squared), added. Such an error shifts every predicted
+    bearing as a heading change does (the bearing rows' Jacobian in psi is -1, the ranges' 0),
+    so the fit's pose is the generalised least-squares one as it stands, its chi-square is
+    unchanged, and the heading's variance grows by exactly ``common_var``."""
+    if common_var <= 0.0:
+        return fit
+    cov = fit.cov.copy()
+    cov[2, 2] += common_var
+    return PoseFit(fit.pose, cov, fit.chi2, fit.dof)
+
+
+def usable_fit(pose: np.ndarray, pose_cov: np.ndarray, rows,
+               common_var: float = 0.0) -> PoseFit | None:
     """``fit_pose(rows)`` if the filter at ``pose`` (3,) with ``pose_cov`` (3, 3) should restart
     from it: the frame is consistent, it knows the heading better than the filter does, and it
     agrees with the filter's pose within their joint covariance (a gap's grown covariance admits
-    nearly any pose; a tight one keeps a frame with a misidentified landmark out). Else None."""
+    nearly any pose; a tight one keeps a frame with a misidentified landmark out). Else None.
+    ``common_var``: the variance (rad^2) of a bearing error common to the rows
+    (:func:`with_common_bearing`); the rows' bearing variances are their own parts."""
     fit = fit_pose(rows)
+    if fit is not None:
+        fit = with_common_bearing(fit, common_var)
     if fit is None or not fit.consistent or fit.cov[2, 2] >= pose_cov[2, 2]:
         return None
     d = fit.pose - np.asarray(pose, float)
