@@ -96,6 +96,7 @@ def test_the_tilt_variance_is_added():
     assert a.var == pytest.approx(ACCEL_STD ** 2 + GRAVITY ** 2 * TILT_STD ** 2, rel=1e-9)
 
 
+@pytest.mark.slow
 def test_the_tilt_variance_matches_sampled_orientation_errors():
     rng = np.random.default_rng(3)
     q = tuple(Rotation.from_euler("ZYX", [0.9, 0.15, -0.1]).as_quat())

@@ -202,6 +202,7 @@ def test_the_stream_is_primed_with_its_start_datum_and_initial_truth():
         bs.ground_truth
 
 
+@pytest.mark.slow
 def test_a_run_fed_by_the_stream_equals_one_fed_by_the_list():
     """Same trajectories, timings count, NIS tables and hold-out, whether the runner is given
     the decoded list or decodes as it goes."""

@@ -235,6 +235,7 @@ def test_recorder_killed_before_writing_the_index(tmp_path):
     assert_prefix(err.partial, full)
 
 
+@pytest.mark.slow
 def test_sweep_of_cut_offsets(tmp_path, sample):
     """30 cuts spread over the file: never anything but a one-line BagError, and whatever was
     read is the start of the full read, value for value, growing with the cut."""
@@ -421,6 +422,7 @@ def test_cli_bench_on_a_truncated_bag_measures_what_was_read_and_exits_2(tmp_pat
     assert "ekf" in out
 
 
+@pytest.mark.slow
 def test_ddfuse_bench_on_a_truncated_bag_ends_in_one_line_and_nothing_else(tmp_path):
     """As a program (entry() ends with os._exit): the child's pipe leaves no semaphore behind
     for multiprocessing's resource tracker to warn about after the error line."""

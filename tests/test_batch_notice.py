@@ -36,6 +36,7 @@ def test_run_says_so_before_the_batch_solves(tmp_path, capsys, monkeypatch):
     assert len(notes) == 1 and "whole run at once (300 keyframes)" in notes[0], err
 
 
+@pytest.mark.slow
 def test_the_default_set_leaves_the_batch_out_of_a_long_bag(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(pipeline, "DEFAULT_MAX_SPAN_S", 60.0)  # the 120 s sample is "long"
     out = tmp_path / "out"

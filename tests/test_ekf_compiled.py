@@ -157,9 +157,18 @@ def _igvc(cfg, motion="euler", datum=None):
     return lambda ref: IgvcEkf(cfg, motion=motion, reference=ref, datum=datum)
 
 
-@pytest.mark.parametrize("pose_error", ["se2", "world"])
-@pytest.mark.parametrize("estimate_offsets", [True, False])
-@pytest.mark.parametrize("rate", ["event", 10.0])
+def _grid(fast, *axes):
+    """The product of ``axes`` as pytest params: the combinations in ``fast`` in the default
+    suite, the rest of the grid marked slow."""
+    import itertools
+
+    return [pytest.param(*c, marks=() if c in fast else pytest.mark.slow)
+            for c in itertools.product(*axes)]
+
+
+@pytest.mark.parametrize(("rate", "estimate_offsets", "pose_error"),
+                         _grid({("event", True, "se2"), (10.0, False, "world")},
+                               ["event", 10.0], [True, False], ["se2", "world"]))
 def test_unicycle_compiled_matches_reference(estimate_offsets, rate, pose_error):
     cfg = _config(estimate_offsets, rate)
     stream = _stream(1)
@@ -172,8 +181,8 @@ def test_unicycle_compiled_matches_reference(estimate_offsets, rate, pose_error)
     assert ("gps", False) in kinds and ("heading", False) in kinds and ("v", False) in kinds
 
 
-@pytest.mark.parametrize("estimate_offsets", [True, False])
-@pytest.mark.parametrize("rate", ["event", 10.0])
+@pytest.mark.parametrize(("rate", "estimate_offsets"),
+                         _grid({("event", True)}, ["event", 10.0], [True, False]))
 def test_unicycle_compiled_matches_reference_with_acceleration_limits(estimate_offsets, rate):
     """The robot's acceleration limits stated: the twist densities follow the observed sample
     periods (twist_densities), at the start and again when odometry and wheel speeds go from
@@ -190,6 +199,7 @@ def test_unicycle_compiled_matches_reference_with_acceleration_limits(estimate_o
         (fast.noise.acc, fast.noise.yaw_acc)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("motion", "estimate_offsets"),
                          [("euler", False), ("icc", False), ("euler", True), ("icc", True)])
 def test_igvc_compiled_matches_reference(motion, estimate_offsets):
@@ -244,7 +254,7 @@ def test_unicycle_compiled_corroboration_matches_reference():
     assert fast.log.rejected[("/odom", "gate")] > 50
 
 
-@pytest.mark.parametrize("motion", ["euler", "icc"])
+@pytest.mark.parametrize("motion", ["euler", pytest.param("icc", marks=pytest.mark.slow)])
 def test_igvc_compiled_lockout_matches_reference(motion):
     cfg = _config(False)  # (calibration states off: see the unicycle test above)
     stream = _stream(4, duration=45.0, gps_jump=(20.0, 25.0, -5.0))
@@ -283,6 +293,7 @@ def test_unicycle_compiled_matches_reference_on_husky_bag(rate, white_gps):
     assert bool(fast.kf.recoveries) == white_gps and len(fast.state_names) == 7
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("rate", ["event", 10.0])
 def test_unicycle_compiled_matches_reference_on_sample_bag(rate):
     """The simulated sample bag (data/sample_husky.bag) as ddfuse runs it: odometry scale

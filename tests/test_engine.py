@@ -90,6 +90,7 @@ def _sweep_numbers(rows: list[dict]) -> list[dict]:
     return [{k: v for k, v in r.items() if k not in ("rtf", "update_ms")} for r in rows]
 
 
+@pytest.mark.slow
 def test_lag_sweep_points_on_worker_processes_give_the_rows_of_the_serial_sweep(monkeypatch):
     from ddfuse.evaluation.lag_sweep import lag_sweep
     from ddfuse.evaluation.shipped import DATA

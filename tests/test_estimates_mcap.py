@@ -251,6 +251,7 @@ def _partials(d: Path) -> list[Path]:
     return sorted(d.rglob(f"*{atomic_files.PARTIAL}*"))
 
 
+@pytest.mark.slow
 def test_a_run_killed_while_writing_it_leaves_no_truncated_file(tmp_path):
     """SIGKILL half way through estimates.mcap: the previous run's is gone (removed first, it
     would not match the new tracks), the new one is only a .partial- file, the directory is

@@ -100,6 +100,7 @@ def _final_pos_var(make, stream) -> float:
     return float(np.trace(ekf.estimate().pose_cov[:2, :2]))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("estimate_offsets", [True, False])
 @pytest.mark.parametrize("rate", ["event", 10.0, 1.0])
 def test_unicycle_compiled_matches_reference_with_correlated_gps(rate, estimate_offsets):
@@ -119,6 +120,7 @@ def test_unicycle_compiled_matches_reference_with_correlated_gps(rate, estimate_
     assert _final_pos_var(make(TAU), stream) > 2.0 * _final_pos_var(make(None), stream)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("motion", "estimate_offsets"),
                          [("euler", True), ("icc", False)])
 def test_igvc_compiled_matches_reference_with_correlated_gps(motion, estimate_offsets):
@@ -133,6 +135,7 @@ def test_igvc_compiled_matches_reference_with_correlated_gps(motion, estimate_of
     assert _final_pos_var(make(TAU), stream) > 2.0 * _final_pos_var(make(None), stream)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("which", ["event", 10.0, "igvc"])
 def test_compiled_lockout_matches_reference_with_correlated_gps(which):
     """A 25 m GPS jump at 20 s: the gate locks out, Python recovers (widening on R) and fuses
@@ -313,6 +316,7 @@ def multipath(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_multipath_ekf_follows_the_gps_wander_less(multipath):
     """Measured (seed 1): ekf ATE 0.455 -> 0.110 m, NEES 46.0 -> 1.11 (3 dof). Over seeds 1-6
     the ATE ratio was 0.17-0.33 and NEES with tau 30 0.7-4.2, against 46-295 white: bounds
@@ -322,6 +326,7 @@ def test_multipath_ekf_follows_the_gps_wander_less(multipath):
     assert n0 > 10.0 and n30 < 3.0
 
 
+@pytest.mark.slow
 def test_multipath_igvc(multipath):
     """ekf_igvc, measured (seed 1): NEES 32.4 -> 5.2, but ATE 0.415 -> 0.579 m. The loss is
     its odometry scale k_v (true 0.991): 0.990 -> 1.020 +- 0.008. Its state holds the true

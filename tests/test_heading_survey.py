@@ -134,6 +134,7 @@ def test_the_husky_compass_offset_drifts_as_the_bag_notes_say(husky_bag):
     assert imu["heading_offset"] == "estimate"
 
 
+@pytest.mark.slow
 def test_run_warns_about_a_wrong_fixed_offset_in_its_output_and_report(tmp_path, capsys):
     cfg_text = (SAMPLE_BAG.with_suffix(".yaml")).read_text()
     assert "heading_offset: estimate" in cfg_text

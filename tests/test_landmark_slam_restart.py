@@ -50,6 +50,7 @@ def _restarts(ekf) -> list[str]:
     return [s for s in ekf.log.messages if "restarted from its pose before it" in s]
 
 
+@pytest.mark.slow
 def test_a_lost_filter_restarts_on_the_simulated_seed002_bag():
     """sample_seed002.bag with every landmark id moved on to the next from 40 s: every sighting
     contradicts the map until a lock-out recovery at 114.6 s inflates P x2e5 (heading sigma 6.2

@@ -40,6 +40,7 @@ def test_the_readmes_library_example_gives_what_ddfuse_run_gives(tmp_path, monke
         assert lib[name].nees_mean == pytest.approx(ran[name]["nees_mean"], rel=1e-4)
 
 
+@pytest.mark.slow
 def test_a_hand_built_smoother_takes_the_configs_landmark_map():
     """FixedLagSmoother(cfg) ignored the config's map: every sighting 'not in the map', ATE
     8.73 m on the seed002 sample, against 0.012 m built with the map."""

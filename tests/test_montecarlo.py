@@ -78,6 +78,7 @@ def test_aggregate_averages_over_runs_then_ticks():
     assert s["dr"].anees is None and s["dr"].ticks == 0
 
 
+@pytest.mark.slow
 def test_gps_scenario_beats_dead_reckoning_and_is_reproducible(tmp_path):
     """Two short husky runs in two processes: the unicycle EKF beats dead reckoning, its NEES
     is finite, and a seed run again gives identical numbers (a different seed does not)."""

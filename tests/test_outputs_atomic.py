@@ -80,6 +80,7 @@ def test_a_run_after_one_with_a_report_leaves_no_stale_report(tmp_path, capsys):
     assert load_run(out).tracks.keys() == {"dr"}
 
 
+@pytest.mark.slow
 def test_a_killed_run_leaves_its_directory_marked_incomplete(tmp_path):
     """SIGKILL while the results are written (here: as the second file is renamed into place).
     Before: new tracks beside the previous run's metrics.json, nothing to tell them apart."""

@@ -8,6 +8,8 @@ import ast
 import re
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("ddfuse", "estimation", "factors", "ekf_baseline", "evaluation", "data")
 
@@ -60,6 +62,7 @@ def _uses_of_311(path: Path) -> list[str]:
     return found
 
 
+@pytest.mark.slow
 def test_no_python_311_only_names_while_310_is_promised():
     text = (ROOT / "pyproject.toml").read_text()
     assert re.search(r'^requires-python = ">=3\.10"$', text, re.M)

@@ -75,6 +75,7 @@ def test_ctrl_c_in_one_finish_keeps_the_others(sample_husky):
     assert res.runs["dr"].trajectory.t[-1] > stream.measurements[-1].t - 0.2  # to the end
 
 
+@pytest.mark.slow
 def test_run_bag_writes_the_results_then_says_it_was_interrupted(tmp_path, monkeypatch, capsys):
     from ddfuse.evaluation import estimators as registry
 

@@ -56,6 +56,7 @@ def _same_text(a: str, b: str) -> bool:
                       [float(x) for x in _NUMBER.findall(b)]))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("argv", documented_commands(), ids=lambda a: a[0])
 def test_regenerated_sample_matches_committed(argv, tmp_path):
     i = argv.index("-o")

@@ -117,6 +117,7 @@ def test_a_lost_estimate_recovers_through_the_lock_out(clean):
             3.0 * clean[n]
 
 
+@pytest.mark.slow
 def test_a_late_sighting_is_gated_against_its_own_keyframe():
     """A sighting delivered 2 s late goes to the keyframe at its stamp; one of a wrong
     landmark is rejected there (against that keyframe's marginal), a right one is fused."""

@@ -66,6 +66,7 @@ def test_a_gap_while_turning_is_predicted_as_in_fine_steps(data, gap):
     assert lo < 0.5 or hi > 2.0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("rate", ["event", 10.0])
 def test_the_compiled_filter_splits_a_gap_as_the_reference(data, rate):
     """Both paths (the numba kernels, the reference) predict a 3.3 s gap in the same equal
