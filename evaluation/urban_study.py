@@ -98,11 +98,18 @@ def table(results: list[dict]) -> str:
         rows.append(
             f"| {n} | {np.nanmean(rm):.2f}, {np.nanmax(rm):.2f} | "
             f"{np.nanmean(rm / raw[has]):.2f} | {np.nanmean(rm / best_ekf[has]):.2f} | "
-            f"{np.nanmax(fin / rm):.2f} | {np.nanmean(ne):.1f} ({np.nanmedian(ne):.1f}) | "
+            f"{np.nanmax(fin / rm):.2f} | {_nees_cell(ne)} | "
             f"{np.mean(rej):.0f} | {stopped} |")
     head = (f"{len(results)} seeds ({', '.join(str(r['seed']) for r in results)}); raw GPS "
             f"RMSE {raw.mean():.2f} m mean ({raw.min():.2f}-{raw.max():.2f}).")
     return head + "\n\n" + "\n".join(rows) + "\n"
+
+
+def _nees_cell(ne: np.ndarray) -> str:
+    """'mean (median)' of the seeds' NEES; '-' where no seed has one (dead reckoning's is NaN
+    when it states no covariance)."""
+    ne = ne[np.isfinite(ne)]
+    return f"{ne.mean():.1f} ({np.median(ne):.1f})" if len(ne) else "-"
 
 
 def merge(results: list[dict]) -> list[dict]:

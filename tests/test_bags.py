@@ -1082,6 +1082,7 @@ def test_fast_ros1_path_on_synthetic_messages(tmp_path):
     assert cov == pytest.approx([k * 0.1 for k in range(9)])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["husky", "jackal"])
 def test_fast_ros1_path_equals_rosbags_on_real_bags(request, name):
     bag = request.getfixturevalue(f"{name}_bag")

@@ -117,6 +117,7 @@ def test_sample_bags_stream_like_a_whole_bag_decode():
     assert assert_same_as_full_decode(SEED2, load_config(SEED2_CFG)) > 5000  # JointState, LM
 
 
+@pytest.mark.slow
 def test_real_husky_bag_streams_like_a_whole_bag_decode(husky_bag):
     cfg = load_config(ROOT / "data" / "configs" / "rl_husky_gps.yaml")
     assert assert_same_as_full_decode(husky_bag, cfg) == 28671
@@ -327,6 +328,7 @@ def test_a_saved_run_keeps_the_folded_counts_of_a_thinned_log(tmp_path):
     _same_tables(cs.nis_by_sensor(loaded), reference, rel=1e-12)
 
 
+@pytest.mark.slow
 def test_compact_logs_give_the_nis_tables_of_innovation_lists_on_a_simulated_run():
     """The EKF and the smoother (whose GPS gate flips ``accepted`` after logging) on the
     simulated sample: the NIS tables from their compact logs are those from lists of

@@ -46,6 +46,7 @@ def test_the_known_quantiles_are_the_formulas_to_the_bit():
         assert v == 2.0 * float(gammaincinv(dof / 2.0, p)) == float(scipy_chi2.ppf(p, dof))
 
 
+@pytest.mark.slow
 def test_a_run_with_the_usual_gates_and_bands_does_not_import_scipy_special():
     """The sample run's filters and scoring ask only for KNOWN quantiles: scipy.special (0.2 s
     of start-up) stays unloaded; an unusual probability still gets its quantile."""

@@ -151,6 +151,9 @@ def test_a_stepped_husky_bag_keeps_every_message(husky_bag, tmp_path):
 # --- ROS2 bags: sqlite3 and MCAP, read in write order ------------------------------------------
 
 ROS2 = ("sqlite3", "mcap")
+# a test of the reading order in one storage format in the default suite, both in the slow one
+SQLITE_FAST = ("sqlite3", pytest.param("mcap", marks=pytest.mark.slow))
+MCAP_FAST = (pytest.param("sqlite3", marks=pytest.mark.slow), "mcap")
 SIM_FORMAT = {"sqlite3": "ros2", "mcap": "mcap"}  # ``ddfuse simulate --format`` names
 SPEED = 1.0  # m/s, the husky scenario's top speed (its 40 m lawnmower legs)
 
@@ -256,7 +259,7 @@ def _sorted_read(monkeypatch) -> None:
                         classmethod(lambda cls, d: (None, "sorted on purpose")))
 
 
-@pytest.mark.parametrize("fmt", ROS2)
+@pytest.mark.parametrize("fmt", SQLITE_FAST)
 def test_a_ros2_bag_whose_clock_stepped_back_gives_the_clean_stream_and_one_warning(
         fmt, ros2_bags):
     clean_bag, stepped = ros2_bags[fmt]
@@ -277,7 +280,7 @@ def test_a_ros2_bag_whose_clock_stepped_back_gives_the_clean_stream_and_one_warn
         assert topic in w
 
 
-@pytest.mark.parametrize("fmt", ROS2)
+@pytest.mark.parametrize("fmt", MCAP_FAST)
 def test_a_ros2_recording_split_in_two_files_is_read_file_after_file(fmt, ros2_bags, tmp_path):
     """Split at 30 s, the clock stepping back in the second file: found, and the stream is the
     clean one."""
@@ -307,7 +310,7 @@ def test_a_stepped_ros2_bag_read_sorted_interleaves_the_repeated_seconds(fmt, ro
     assert sum(n for (topic, _), n in bs.rejected.items() if topic == "/fix") > 50
 
 
-@pytest.mark.parametrize("fmt", ROS2)
+@pytest.mark.parametrize("fmt", SQLITE_FAST)
 def test_a_clean_ros2_bag_read_in_write_order_gives_the_sorted_stream(fmt, ros2_bags,
                                                                       monkeypatch):
     clean_bag, _ = ros2_bags[fmt]
@@ -321,7 +324,7 @@ def test_a_clean_ros2_bag_read_in_write_order_gives_the_sorted_stream(fmt, ros2_
     assert _same(written, ordered)
 
 
-@pytest.mark.parametrize("fmt", ROS2)
+@pytest.mark.parametrize("fmt", MCAP_FAST)
 def test_a_ros2_bag_written_a_few_ms_out_of_record_order_gives_the_sorted_stream(
         fmt, ros2_bags, tmp_path, monkeypatch):
     """A recorder's threads write one topic's messages a little late (here /imu/data 8 ms,

@@ -103,6 +103,7 @@ def test_a_failing_bag_or_one_without_config_is_a_row_and_the_others_run(sim_bag
     assert "3 of 5 bags ran" in cap.out
 
 
+@pytest.mark.slow
 def test_each_bag_gets_its_report_and_the_fleet_page_links_it_and_shows_the_failure(
         sim_bag, tmp_path):
     bags = tmp_path / "bags"

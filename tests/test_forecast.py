@@ -53,6 +53,7 @@ def test_nothing_to_carry_gives_the_estimate_itself():
     assert carry(e, [], 11.0, (1.0, 1.0)) is e  # no odometry known
 
 
+@pytest.mark.slow
 def test_the_covariance_is_the_spread_of_the_integrated_odometry_errors():
     """Monte Carlo: per-sample twist errors, one scale error per run, and a held twist that
     walks away from its sample (density q) over the last 0.4 s, integrated exactly; the

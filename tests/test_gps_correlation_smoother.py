@@ -221,6 +221,7 @@ def multipath(tmp_path_factory):
     return bag, d / "hm.yaml"
 
 
+@pytest.mark.slow
 def test_correlated_fixes_end_to_end(multipath, tmp_path):
     """Told the fixes' correlation time, the smoother stops following the GPS's wander and
     its covariance becomes honest. Measured (seed 1, 200 s; tau 0 -> 30): filtered ATE 0.468

@@ -119,6 +119,7 @@ def test_an_offset_that_wanders_is_found_and_a_walk_suggested(sample_husky):
     assert len(hs.config_warnings([sv], with_imu(cfg, heading_offset=-1.0))) == 2
 
 
+@pytest.mark.slow
 def test_the_husky_compass_offset_drifts_as_the_bag_notes_say(husky_bag):
     """../shared/data/README.md: the IMU's yaw relative to the GPS course drifts from about
     -225 deg early in the run to about -180 deg later (+135 to +180 deg)."""
@@ -182,6 +183,7 @@ def test_online_warns_about_a_wrong_fixed_offset_as_run_does(tmp_path, capsys):
     assert "warning" not in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_gps_errors_correlated_over_30_s_do_not_make_a_constant_offset_wander():
     """husky-multipath: a constant compass offset, GPS errors a 30 s Gauss-Markov process.
     The windows scatter by more than DRIFT_RAD (each fit follows its window's GPS wander) with

@@ -52,8 +52,17 @@ def imported(name: str, path: Path, known: dict[str, Path]) -> set[str]:
 
 
 def graph(root: Path = ROOT) -> dict[str, set[str]]:
+    """Module -> the product modules it imports; the checkout's read once per process."""
+    if root == ROOT and ROOT in _GRAPHS:
+        return _GRAPHS[ROOT]
     mods = product_modules(root)
-    return {name: imported(name, path, mods) for name, path in mods.items()}
+    g = {name: imported(name, path, mods) for name, path in mods.items()}
+    if root == ROOT:
+        _GRAPHS[ROOT] = g
+    return g
+
+
+_GRAPHS: dict[Path, dict[str, set[str]]] = {}
 
 
 def cycles(g: dict[str, set[str]]) -> list[set[str]]:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 
 import bagwriter as bw
+import pytest
 from ddfuse.evaluation.cli import main
 
 T0 = 1_700_000_000.0
@@ -43,6 +44,7 @@ def test_a_topic_mostly_dropped_as_late_is_warned_of_by_run_and_online(tmp_path,
     assert "dropped by the others" in w and "reorder_window to at least 1.5 s" in w
 
 
+@pytest.mark.slow
 def test_bench_says_the_readers_warnings_once(tmp_path, capsys):
     bag = _late_bag(tmp_path)
     cfg = tmp_path / "c.yaml"

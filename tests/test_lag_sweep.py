@@ -9,6 +9,7 @@ from ddfuse.evaluation.lag_sweep import format_table, lag_sweep
 DATA = Path(__file__).resolve().parents[1] / "data"
 
 
+@pytest.mark.slow
 def test_longer_lag_smooths_more():
     """At 0.5 s the lagged output has almost no future data, so it is close to the filtered
     output; at 10 s it is better (on this sample by ~10 %: with GPS of 1 m sigma the filtered

@@ -111,6 +111,7 @@ def _stamps_in_order(spy: Spy) -> bool:
 
 # --- the clock steps back ----------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_clock_stepping_back_30_s_mid_feed_is_retimed_not_applied(data):
     """The host clock steps back 30 s at t=60 (NTP): stamps and receive times alike. Before,
     the unicycle EKF was handed the older stamps and ended 527 km off with negative variances;
@@ -304,6 +305,7 @@ def test_equal_stamps_leave_in_the_config_sensor_order():
                                                    (2.0, "/odom")]
 
 
+@pytest.mark.slow
 def test_replay_does_not_buffer_twice_and_ends_where_run_ends():
     """replay reads through BagStream, which reorders: its session passes straight on, and its
     final estimates are run()'s."""

@@ -594,6 +594,7 @@ def _nees_runs(seeds, **kw):
     return per_run, math.sqrt(np.mean(sq_pos)), names
 
 
+@pytest.mark.slow
 def test_gps_odometry_gyro_accuracy_and_consistency():
     """GPS (0.5 m, 5 Hz), wheel speed (0.05 m/s) and gyro (0.02 rad/s) at 50 Hz, 60 s, 6 seeds.
     Position RMSE well below the GPS sigma; average NEES over runs at 20 sample times inside
