@@ -128,6 +128,7 @@ def test_the_final_pose_of_each_estimator_is_its_tracks_last_row(sample_run):
         assert np.abs(c[np.ix_((0, 1, 5), (0, 1, 5))] - tr.cov[-1]).max() < 1e-12
 
 
+@pytest.mark.slow
 def test_the_mcap_reader_decodes_the_same_messages(sample_run):
     """Foxglove's own reader and ROS 2 decoder (mcap-ros2-support): profile ros2, ros2msg
     schemas, cdr messages; every message decodes and the poses are the tracks'."""

@@ -115,6 +115,7 @@ def test_compiled_path_matches_python_on_seed002_with_wheels_and_scale_states(se
     assert any(len(i.residual) == 1 for i in a.log.innovations)  # range-only sightings
 
 
+@pytest.mark.slow
 def test_compiled_path_matches_python_with_euler_motion_and_slip(seed002):
     cfg, pose, lmap, meas = seed002
     cfg = dataclasses.replace(cfg, robot=dataclasses.replace(

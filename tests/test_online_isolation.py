@@ -109,6 +109,7 @@ def test_a_failure_in_estimate_or_finish_stops_only_that_estimator(setup, where)
     assert s.errors["ekf"] is None and s.estimate("ekf") is not None
 
 
+@pytest.mark.slow
 def test_a_nan_gyro_sample_does_not_stop_the_session(setup):
     """The reviewer's case: a hand-built GyroYawRate(yaw_rate=nan) pushed at t=60. Before, the
     smoother raised RuntimeError, every later push raised KeyError and the EKF after it in the

@@ -221,6 +221,7 @@ def _without_gate(cfg):
                                  for x in cfg.sensors])
 
 
+@pytest.mark.slow
 def test_gps_outliers_gate_and_robust_kernel(husky):
     """20 fixes displaced by 30 m. The chi-square gate (as in the EKF) rejects them; with the
     gate off, the Huber kernel (threshold at the gate radius) still bounds their pull; with
