@@ -143,7 +143,8 @@ def test_a_run_sent_sigterm_writes_what_it_had_and_exits_143(tmp_path):
     assert "Traceback" not in stderr and "wall time" in stdout  # the table of what it had
     m = json.loads((out / "metrics.json").read_text())
     assert m["interrupted"].startswith("interrupted (SIGTERM) after ")
-    assert 2000 <= m["messages"] < 12000 and m["estimators"]["dr"]["samples"] > 100
+    # the signal can land while the 2000th message is in hand: 1999 counted (clean-clone CI)
+    assert 1999 <= m["messages"] < 12000 and m["estimators"]["dr"]["samples"] > 100
     assert not (out / INCOMPLETE).exists()
 
 
