@@ -394,7 +394,8 @@ class _OdometryDrivenEkf(Estimator):
                                   f"frame at ({x:.2f}, {y:.2f} m, {math.degrees(psi):.1f} deg), "
                                   f"sigma {math.sqrt(fit.cov[0, 0] + fit.cov[1, 1]):.2f} m, "
                                   f"{math.degrees(math.sqrt(fit.cov[2, 2])):.1f} deg")
-        return [s for s in frame if not any(s is u for u in used)]
+        taken = {id(u) for u in used}
+        return [s for s in frame if id(s) not in taken]
 
     def _frame_rows(self, frame: list[LandmarkObservation]):
         """The rows of ``landmark_relocalise.fit_pose`` for the sightings of ``frame`` whose

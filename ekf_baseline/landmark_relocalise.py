@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from ddfuse.ekf_baseline.landmark_model import MIN_RANGE, range_bearing_terms
 from ddfuse.estimation import chi2
+from ddfuse.estimation.estimator import wrap_angle
 
 __all__ = ["PoseFit", "fit_pose", "usable_fit", "with_common_bearing", "MIN_SIGHTINGS"]
 
@@ -82,7 +83,7 @@ def fit_pose(sightings) -> PoseFit | None:
         except np.linalg.LinAlgError:
             return None
         x = x + step
-        x[2] = (x[2] + math.pi) % (2.0 * math.pi) - math.pi
+        x[2] = wrap_angle(x[2])
         if np.max(np.abs(step)) < 1e-10:
             break
     r, J = _residual(x, s)
@@ -102,7 +103,7 @@ def _residual(x: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     for i, (lx, ly, zr, zb, _, _) in enumerate(s):
         r, b, ar, br, aq, bq = range_bearing_terms(x[0], x[1], x[2], lx, ly)
         res[2 * i] = zr - r
-        res[2 * i + 1] = (zb - b + math.pi) % (2.0 * math.pi) - math.pi
+        res[2 * i + 1] = wrap_angle(zb - b)
         J[2 * i] = (-ar, -br, 0.0)
         J[2 * i + 1] = (aq, -bq, -1.0)
     return res, J
@@ -138,7 +139,7 @@ def usable_fit(pose: np.ndarray, pose_cov: np.ndarray, rows,
     if fit is None or not fit.consistent or fit.cov[2, 2] >= pose_cov[2, 2]:
         return None
     d = fit.pose - np.asarray(pose, float)
-    d[2] = (d[2] + math.pi) % (2.0 * math.pi) - math.pi
+    d[2] = wrap_angle(d[2])
     try:
         m2 = float(d @ np.linalg.solve(pose_cov + fit.cov, d))
     except np.linalg.LinAlgError:
