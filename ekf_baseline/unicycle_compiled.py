@@ -62,7 +62,8 @@ class UnicycleKernels:
 
     def _pack(self, m, prev: dict | None = None):
         """The kernels' arguments (typ, sensor row, z0, z1, r0, r1, r01, r10, flags, rf) for
-        message ``m``, or None when it needs the Python path: a heading before the heading is
+        message ``m``, or None when it needs the Python path: odometry speed under the heavy-tailed
+        walk (``UnicycleEkf._widen_speed``), a heading before the heading is
         known or before its offset is initialised, a GPS fix while aligning or without a
         position, wheel speeds without the geometry, another message type. ``rf``: the factor
         on R in the fusion (a correlated GPS sensor's fix: ``_gps_factor`` with ``prev``; a
@@ -88,6 +89,8 @@ class UnicycleKernels:
             return (_T_HEAD, row, m.yaw, 0.0, m.var, 0.0, 0.0, 0.0, 0, hf)
         if cls is WheelOdometry:
             v, w = m.v, m.yaw_rate
+            if v is not None and self.tails is not None:
+                return None  # the heavy-tailed speed walk widens the prior in Python first
             return (_T_ODOM, row, 0.0 if v is None else v, 0.0 if w is None else w, m.v_var,
                     m.yaw_rate_var, 0.0, 0.0, (v is not None) | (w is not None) << 1, 1.0)
         if cls is GpsFix:

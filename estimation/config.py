@@ -276,8 +276,9 @@ class NodeConfig:
     nis_window: float = 30.0  # s of stamps the diagnostics' NIS verdict is taken over
 
 
-# robot.twist_walk's keys: the forward speed's and the yaw rate's random-walk densities
-TWIST_WALK_KEYS = ("speed", "yaw_rate")
+# robot.twist_walk's keys: the forward speed's and the yaw rate's random-walk densities, and
+# the heavy-tailed speed walk's burst density and share (estimation.twist_tails)
+TWIST_WALK_KEYS = ("speed", "yaw_rate", "speed_burst", "burst_share")
 
 
 @dataclass
@@ -652,6 +653,7 @@ def parse_config(raw: Any, source: str = "<config>", base: Path | None = None) -
                     raise ck.fail(f"robot.twist_walk.{k}", f"must be > 0, got {v:g}: it is the "
                                   "density of the twist's random walk, and 0 would hold the "
                                   "twist fixed (leave it out for the estimators' default)")
+            _check_speed_tails(ck, cfg.robot.twist_walk)
         if "slip" in r:
             slip = ck.mapping(r["slip"], "robot.slip", ("longitudinal", "lateral", "heading"))
             cfg.robot.slip = {k: ck.number(v, f"robot.slip.{k}", nonneg=True)
@@ -759,6 +761,27 @@ def _node(ck: _Checker, raw: Any) -> NodeConfig:
     if n.get("tf") is not None:
         nc.tf = ck.string(n["tf"], "node.tf")
     return nc
+
+
+def _check_speed_tails(ck, tw: dict[str, float]) -> None:
+    """The heavy-tailed speed walk's keys (``estimation.twist_tails``): speed_burst needs the
+    steady ``speed`` and exceeds it; burst_share needs speed_burst and lies in (0, 1)."""
+    if "burst_share" in tw:
+        if "speed_burst" not in tw:
+            raise ck.fail("robot.twist_walk.burst_share", "needs robot.twist_walk.speed_burst "
+                          "(the burst's density)")
+        if not tw["burst_share"] < 1.0:
+            raise ck.fail("robot.twist_walk.burst_share", f"must be < 1, got "
+                          f"{tw['burst_share']:g}: it is the probability of a burst per speed "
+                          "interval")
+    if "speed_burst" in tw:
+        if "speed" not in tw:
+            raise ck.fail("robot.twist_walk.speed_burst", "needs robot.twist_walk.speed (the "
+                          "steady walk's density)")
+        if not tw["speed_burst"] > tw["speed"]:
+            raise ck.fail("robot.twist_walk.speed_burst", f"must be > robot.twist_walk.speed "
+                          f"({tw['speed']:g}), got {tw['speed_burst']:g}: it is the density "
+                          "of the bursts")
 
 
 def load_config(path: str | Path) -> Config:
