@@ -108,11 +108,31 @@ class Problem:
         dims = np.array([d for _, _, d in h["groups"]] or [1])[h["group"]]
         clip = np.array([chi2.ppf(GATE_P, int(d)) for d in range(1, 5)])[np.clip(dims, 1, 4) - 1]
         t = 0.5 * (h["log_det"] + np.minimum(h["nis"], clip))
+        _speed_tail_terms(est, h, t)
         ld = h["log_det"] * np.sqrt(0.5 / np.maximum(dims, 1))
         bad = ~np.isfinite(t) | ~np.isfinite(ld)
         t[bad] = 0.0
         ld[bad] = 0.0
         return np.vstack([t, ld])
+
+
+def _speed_tail_terms(est, h: dict, t: np.ndarray) -> None:
+    """Under the heavy-tailed speed walk (``estimation.twist_tails``), each odometry speed
+    innovation's term of L in ``t`` (in place) is the mixture's negative log density, not the
+    Gaussian's of the widened S the log holds (``SpeedTails.nll``, the same clip)."""
+    kept = getattr(est, "tail_terms", None)
+    if not kept:
+        return
+    clip = chi2.ppf(GATE_P, 1)
+    for code, (sensor, kind, _) in enumerate(h["groups"]):
+        if kind != "v" or sensor not in kept:
+            continue
+        rows = np.flatnonzero(h["group"] == code)
+        terms = kept[sensor]
+        if len(rows) != len(terms):
+            raise RuntimeError(f"{sensor}: {len(rows)} speed innovations logged but "
+                               f"{len(terms)} widened by the heavy-tailed walk")
+        t[rows] = [est.tails.nll(nu, s, e, clip) for nu, s, e in terms]
 
 
 def _terms(problem: Problem, values: list[float | None]) -> np.ndarray:
@@ -476,6 +496,9 @@ def _correlation(problem: Problem, result: TuneResult) -> None:
         if p.key.startswith("sensors.imu"):  # measured before the search (tune_params)
             result.tuned[k] = _heading_tau(problem, p)
             continue
+        if p.noise_key == "burst_share":
+            result.tuned[k] = _burst_share(result, p)
+            continue
         # with a common part: the independent model's sigma (the first stage's): the rule
         # compares a landmark's own track's scatter with white errors of the sightings' whole
         # sigma; the second stage's own sigma leaves the frame's part out, and at it the rule
@@ -491,6 +514,21 @@ def _correlation(problem: Problem, result: TuneResult) -> None:
             f"from each landmark's own sightings' neighbour scatter at the tuned bearing sigma "
             f"{sigma:.3g} rad (evaluation.tune.sighting_scatter, gps_scatter's rule); set after "
             "the search, which ran with the config's"))
+
+
+def _burst_share(result: TuneResult, p) -> Tuned:
+    """The outcome of the heavy-tailed speed walk's burst share ``p``: the share measured
+    before the search (``tune_params``), kept where the search tuned both of the walk's
+    densities; else the walk stays Gaussian (a share without its burst is no config)."""
+    tw = {u.param.noise_key: u for u in result.tuned
+          if u.param.kind == "twist" and u.param.key.startswith("robot.")}
+    if all(k in tw and tw[k].value is not None for k in ("speed", "speed_burst")):
+        return Tuned(p, p.start, "tuned", (
+            "the share of the speed's sample-to-sample changes beyond 4 robust sigmas "
+            "(evaluation.tune_params.speed_tails); measured before the search, which ran with "
+            "it"))
+    return Tuned(p, None, "not informed", "the speed walk's densities were not both tuned: "
+                 "the walk stays Gaussian")
 
 
 def _bearing_sigma(result: TuneResult, sensor: str, key: str) -> float | None:

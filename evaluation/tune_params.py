@@ -26,7 +26,12 @@ noise density:
 * ``robot.twist_walk.speed`` (m/s/sqrt(s)) and ``yaw_rate`` (rad/s/sqrt(s)), the twist's own
   random walk, where a sensor measures that component of the twist. Where the config states
   none, the search starts from what the EKF uses then: ``robot.max_accel`` sqrt(T) (T the
-  shortest median sample period of the sensors measuring it), else its default density.
+  shortest median sample period of the sensors measuring it), else its default density;
+* ``robot.twist_walk.speed_burst`` (m/s/sqrt(s)) and ``burst_share`` (1, kind 'corr':
+  measured, not searched), the heavy-tailed speed walk (``estimation.twist_tails``), where the
+  config states it or the odometry speed's changes have a kurtosis of ``HEAVY_KURTOSIS`` or
+  more (``_speed_tails``); not with landmarks (the landmark EKF that tunes them has no such
+  walk).
 
 A measurement's noise is fixed when the stream is read (``estimation.converters``: the
 config's value, else the message's covariance), so a set of values is applied to the config (for
@@ -36,6 +41,7 @@ measurements alike, in place.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -66,6 +72,10 @@ _MEASURED = {
 }
 SLIP_KEYS = ("longitudinal", "lateral", "heading")
 TWIST_KEYS = ("speed", "yaw_rate")
+# the speed's sample-to-sample changes with at least this kurtosis (3: Gaussian) turn the
+# heavy-tailed speed walk on (estimation.twist_tails; rl_jackal.bag 31, rl_husky_gps.bag 3.4)
+HEAVY_KURTOSIS = 10.0
+BURST_SIGMAS = 4.0  # a change beyond this many robust sigmas counts as a burst's
 _DEFAULTS = ProcessNoise()
 # the unicycle EKF's densities where the config states none (ekf_baseline.unicycle_motion)
 _DEFAULT_WALK = {"gyro_bias_walk": _DEFAULTS.gyro_bias,
@@ -96,7 +106,7 @@ class Param:
     source: str
     unit: str
     sensor: str | None = None  # the sensor's name (its noise or walk), None for the robot's
-    kind: str = ""  # sensor kind, or 'slip' / 'walk' / 'twist'
+    kind: str = ""  # sensor kind, or 'slip' / 'walk' / 'twist' / 'corr' / 'common'
     noise_key: str = ""
 
 
@@ -183,7 +193,65 @@ def parameters(cfg: Config, stream: Stream) -> list[Param]:
             start, source = _DEFAULT_TWIST[key], "default"
         out.append(Param(f"robot.twist_walk.{key}", f"robot twist_walk {key}", start, before,
                          source, _UNITS[f"twist {key}"], None, "twist", key))
+    if periods["speed"] is not None and not cfg.of_kind("landmarks"):
+        out += _speed_tails(cfg, stream, out)
     return out
+
+
+def speed_changes(stream: Stream) -> tuple[np.ndarray, float] | None:
+    """The odometry speed's sample-to-sample changes (m/s) of the sensor with the most speed
+    samples, and its median sample period (s); None with fewer than 100 samples."""
+    by: dict[str, list[tuple[float, float]]] = {}
+    for m in stream.measurements:
+        if type(m) is WheelOdometry and m.v is not None:
+            by.setdefault(m.sensor, []).append((m.t, m.v))
+    if not by:
+        return None
+    tv = np.asarray(max(by.values(), key=len), float)
+    d = np.diff(tv, axis=0)
+    d = d[d[:, 0] > 0.0]
+    return (d[:, 1], float(np.median(d[:, 0]))) if len(d) >= 100 else None
+
+
+def speed_tails(dv: np.ndarray, period: float) -> tuple[float, float, float, float]:
+    """From the speed's changes ``dv`` (m/s) over samples ``period`` s apart: their kurtosis
+    (3 for a Gaussian walk), and the heavy-tailed walk's starting steady and burst densities
+    (m/s/sqrt(s): the robust sigma of the changes, and the RMS of those beyond
+    ``BURST_SIGMAS`` of it, over sqrt(period)) and the bursts' share of the intervals."""
+    c = dv - np.median(dv)
+    kurt = float(np.mean(c ** 4) / np.var(c) ** 2) if np.var(c) > 0.0 else 3.0
+    robust = max(1.4826 * float(np.median(np.abs(c))), 1e-6)
+    burst = np.abs(c) > BURST_SIGMAS * robust
+    share = min(max(float(np.mean(burst)), 1.0 / len(c)), 0.5)
+    rms = float(np.sqrt(np.mean(c[burst] ** 2))) if burst.any() else BURST_SIGMAS * robust
+    root = math.sqrt(period)
+    return kurt, robust / root, max(rms, 2.0 * robust) / root, share
+
+
+def _speed_tails(cfg: Config, stream: Stream, params: list[Param]) -> list[Param]:
+    """The heavy-tailed speed walk's parameters (``estimation.twist_tails``): its burst
+    density, searched with the others, and its share, measured (kind 'corr', set before the
+    search). Where the config states the walk, from the config's values (the share as it
+    states); else only where the speed's changes are heavy-tailed (kurtosis at least
+    ``HEAVY_KURTOSIS``), when the steady density starts from their robust sigma instead."""
+    tw = cfg.robot.twist_walk
+    speed = next(p for p in params if p.key == "robot.twist_walk.speed")
+    unit = _UNITS["twist speed"]
+    if "speed_burst" in tw:
+        return [Param("robot.twist_walk.speed_burst", "robot twist_walk speed_burst",
+                      tw["speed_burst"], tw["speed_burst"], "config", unit, None, "twist",
+                      "speed_burst")]
+    changes = speed_changes(stream)
+    if changes is None:
+        return []
+    kurt, steady, burst, share = speed_tails(*changes)
+    if kurt < HEAVY_KURTOSIS:
+        return []
+    speed.start, speed.source = steady, "measured"
+    return [Param("robot.twist_walk.speed_burst", "robot twist_walk speed_burst", burst, None,
+                  "measured", unit, None, "twist", "speed_burst"),
+            Param("robot.twist_walk.burst_share", "robot twist_walk burst_share", share, None,
+                  "measured", "1", None, "corr", "burst_share")]
 
 
 def _heading_correlation(cfg: Config, stream: Stream, s, i: int) -> Param:
@@ -261,7 +329,9 @@ class Applier:
         for p, v, (ms, attrs), read in zip(self.params, values, self._targets, self._read,
                                            strict=True):
             if p.kind == "corr":
-                if v is not None:
+                if v is not None and p.sensor is None:  # the speed walk's burst share
+                    twist[p.noise_key] = float(v)
+                elif v is not None:
                     cfg.sensor(p.sensor).correlation_time = float(v)
                 continue
             if p.kind in ("slip", "twist"):

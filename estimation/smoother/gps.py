@@ -28,6 +28,7 @@ from ddfuse.estimation.smoother.gps_models import RobustGps
 from ddfuse.estimation.smoother.held_twist import HeldTwist
 from ddfuse.estimation.smoother.noise import SmootherNoise, gate_radius, robustify, twist_walk
 from ddfuse.estimation.smoother.window import Window
+from ddfuse.estimation.twist_tails import held_speed_walk
 from ddfuse.factors.gps import gps_factor, gps_predict_jacobian
 from ddfuse.factors.state import DIM, PSI
 
@@ -212,7 +213,7 @@ class GpsFusion:
         nz, robot = self.noise, self.cfg.robot
         pl, pt, ph = nz.pose_noise
         tw = self.twist
-        qv = twist_walk(robot.max_accel, nz.acc, tw.v_T, robot.twist_walk.get("speed"))
+        qv = twist_walk(robot.max_accel, nz.acc, tw.v_T, held_speed_walk(robot))
         qw = twist_walk(robot.max_yaw_accel, nz.yaw_acc,
                          tw.wg_T if tw.wg is not None else tw.wo_T,
                          robot.twist_walk.get("yaw_rate"))

@@ -21,6 +21,7 @@ import math
 from ddfuse.estimation.config import RobotConfig
 from ddfuse.estimation.measurements import GyroYawRate, WheelSpeeds
 from ddfuse.estimation.smoother.noise import SmootherNoise, twist_walk
+from ddfuse.estimation.twist_tails import held_speed_walk
 from ddfuse.factors.preintegration import WheelGyroPreintegration
 from ddfuse.factors.state import BG, KV, KW
 
@@ -205,7 +206,7 @@ class HeldTwist:
             robot, n = self.robot, self.noise
             tw = robot.twist_walk
             qv, v_var = self.stale(self.v_var, self.v_T, robot.max_accel, n.acc, sv, a, t,
-                                   tw.get("speed"))
+                                   held_speed_walk(robot))
             qo, vo = self.stale(self.wo_var, self.wo_T, robot.max_yaw_accel, n.yaw_acc, so,
                                  a, t, tw.get("yaw_rate")) if self.wo is not None else (0.0, 0.0)
             qg, vg = self.stale(self.wg_var, self.wg_T, robot.max_yaw_accel, n.yaw_acc, sg,

@@ -20,6 +20,7 @@ from ddfuse.estimation.gps_course import GpsCourseStart
 from ddfuse.estimation.measurements import Heading
 from ddfuse.estimation.smoother.held_twist import ODOMETRY_WAIT
 from ddfuse.estimation.smoother.noise import twist_walk
+from ddfuse.estimation.twist_tails import held_speed_walk
 from ddfuse.factors.kinematics import se2_step
 from ddfuse.factors.state import BG, DIM, HOFF, KV, KW
 
@@ -157,7 +158,7 @@ class Initialisation:
             pos_var, psi_var = max(float(grown[0, 0]), float(grown[1, 1])), float(grown[2, 2])
             sm.log.note(t, gap_note("smoother", gap, grown) + "; the window ends there")
         else:
-            qv = twist_walk(robot.max_accel, n.acc, tw.v_T, robot.twist_walk.get("speed"))
+            qv = twist_walk(robot.max_accel, n.acc, tw.v_T, held_speed_walk(robot))
             v = float(x[3])
             grow_pos = tw.v_var * gap * gap + qv * gap ** 3 / 3.0
             psi_var = float(full[2, 2]) + min(yaw)
