@@ -518,8 +518,7 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
         nu = m.v - x[3]
         kv2 = 1.0 if ks < 0 else x[ks] * x[ks]
         extra = 0.0 if last is None else self.tails.extra(m.t - last) / kv2
-        w = self.tails.weight(nu, s, extra)
-        P[3, 3] += w * extra
+        P[3, 3] += self.tails.widening(nu, s, extra)
         self.tail_terms.setdefault(m.sensor, []).append((nu, s, extra))
 
     def _apply(self, ms) -> None:

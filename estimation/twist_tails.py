@@ -14,9 +14,12 @@ innovation variance ``s`` under that prediction ((m/s)^2), the burst adds ``extr
 
     w = p N(nu; 0, s + extra) / (p N(nu; 0, s + extra) + (1 - p) N(nu; 0, s)),
 
-and the speed's prior variance is widened by w extra before the update (the mixture collapsed
-to one Gaussian through the expected variance, as in variational-Bayes adaptive filters: a
-steady stretch keeps the small q, a burst gets the burst's). The innovation's density under the
+and the speed's prior variance is widened by ``extra`` before the update where w > 1/2 (the
+more probable component chosen from the innovation, a hard-decision two-model filter: a steady
+stretch keeps the small q, a burst gets the burst's). The soft choice, widening by w extra
+(variational-Bayes style), was measured first and dropped: with the burst's variance 100x the
+steady one on rl_jackal.bag, the prior's w alone tripled a steady sample's S (docs/design/
+tuning.md, session 23). The innovation's density under the
 model, the likelihood ``ddfuse tune`` fits, is the mixture's itself (:meth:`SpeedTails.nll`).
 
 Where no sample tells the components apart (the smoother's held sample ageing past its span)
@@ -71,12 +74,12 @@ class SpeedTails:
              + 0.5 * nu * nu * (1.0 / s - 1.0 / sb))
         return 1.0 / (1.0 + math.exp(-a)) if a > -700.0 else 0.0
 
-    def widening(self, nu: float, s: float, dt: float) -> tuple[float, float]:
-        """(w extra, w): what the speed's prior variance is widened by ((m/s)^2) at a sample
-        ``dt`` s after the previous one, and the burst's weight (module docstring)."""
-        e = self.extra(dt)
-        w = self.weight(nu, s, e)
-        return w * e, w
+    def widening(self, nu: float, s: float, extra: float) -> float:
+        """What the speed's prior variance is widened by ((m/s)^2) for innovation ``nu``
+        (m/s) of variance ``s`` under the steady walk: ``extra`` where the burst is the more
+        probable component given nu (:meth:`weight` above one half), else 0 (module
+        docstring)."""
+        return extra if self.weight(nu, s, extra) > 0.5 else 0.0
 
     def nll(self, nu: float, s: float, extra: float, clip: float = math.inf) -> float:
         """The innovation's negative log density under the mixture, less 0.5 log(2 pi) (as
