@@ -55,7 +55,7 @@ class SpeedTails:
         """The model a ``RobotConfig`` states, or None (the Gaussian walk) without
         ``twist_walk.speed_burst``."""
         tw = robot.twist_walk
-        if "speed_burst" not in tw:
+        if "speed_burst" not in tw or "speed" not in tw:  # (the config refuses the latter)
             return None
         return cls(tw["speed"], tw["speed_burst"], tw.get("burst_share", DEFAULT_SHARE))
 

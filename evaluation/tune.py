@@ -497,7 +497,7 @@ def _correlation(problem: Problem, result: TuneResult) -> None:
             result.tuned[k] = _heading_tau(problem, p)
             continue
         if p.noise_key == "burst_share":
-            result.tuned[k] = _burst_share(result, p)
+            _burst_share(result, k)
             continue
         # with a common part: the independent model's sigma (the first stage's): the rule
         # compares a landmark's own track's scatter with white errors of the sightings' whole
@@ -516,19 +516,26 @@ def _correlation(problem: Problem, result: TuneResult) -> None:
             "the search, which ran with the config's"))
 
 
-def _burst_share(result: TuneResult, p) -> Tuned:
-    """The outcome of the heavy-tailed speed walk's burst share ``p``: the share measured
-    before the search (``tune_params``), kept where the search tuned both of the walk's
-    densities; else the walk stays Gaussian (a share without its burst is no config)."""
-    tw = {u.param.noise_key: u for u in result.tuned
+def _burst_share(result: TuneResult, k: int) -> None:
+    """The outcome of the heavy-tailed speed walk's burst share, ``result.tuned[k]``: the
+    share measured before the search (``tune_params``), kept where the search tuned both of
+    the walk's densities; else the walk stays Gaussian, the burst density put back too (a
+    burst without its steady walk, or a share without its burst, is no config)."""
+    p = result.tuned[k].param
+    tw = {u.param.noise_key: i for i, u in enumerate(result.tuned)
           if u.param.kind == "twist" and u.param.key.startswith("robot.")}
-    if all(k in tw and tw[k].value is not None for k in ("speed", "speed_burst")):
-        return Tuned(p, p.start, "tuned", (
+    if all(key in tw and result.tuned[tw[key]].value is not None
+           for key in ("speed", "speed_burst")):
+        result.tuned[k] = Tuned(p, p.start, "tuned", (
             "the share of the speed's sample-to-sample changes beyond 4 robust sigmas "
             "(evaluation.tune_params.speed_tails); measured before the search, which ran with "
             "it"))
-    return Tuned(p, None, "not informed", "the speed walk's densities were not both tuned: "
-                 "the walk stays Gaussian")
+        return
+    why = "the speed walk's densities were not both tuned: the walk stays Gaussian"
+    result.tuned[k] = Tuned(p, None, "not informed", why)
+    if "speed_burst" in tw:
+        b = result.tuned[tw["speed_burst"]]
+        result.tuned[tw["speed_burst"]] = Tuned(b.param, None, "not informed", why)
 
 
 def _bearing_sigma(result: TuneResult, sensor: str, key: str) -> float | None:
