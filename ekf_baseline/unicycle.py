@@ -75,7 +75,7 @@ from ddfuse.estimation.measurements import (
     WheelOdometry,
     WheelSpeeds,
 )
-from ddfuse.estimation.twist_tails import SpeedTails
+from ddfuse.estimation.twist_tails import SpeedBursts, SpeedTails
 from ddfuse.factors.kinematics import se2_step_jac
 
 __all__ = ["ProcessNoise", "UnicycleEkf", "unicycle_process_noise", "euler_step_jac",
@@ -188,11 +188,9 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
         self._tw_period: dict[int, dict[str, float]] = {3: {}, 4: {}}  # per sensor, s
         self._tw_on = self._amax != (None, None)
         # the heavy-tailed speed walk (estimation.twist_tails): the speed's prior widened at
-        # each odometry speed sample by its burst weight; per sensor the last speed stamp and
-        # each speed innovation's (nu, s, extra) for the mixture's likelihood (ddfuse tune)
-        self.tails = SpeedTails.from_robot(r) if noise is None else None
-        self._tails_t: dict[str, float] = {}
-        self.tail_terms: dict[str, list[tuple[float, float, float]]] = {}
+        # an odometry speed sample that the burst explains better than the steady walk
+        tails = SpeedTails.from_robot(r) if noise is None else None
+        self.bursts = SpeedBursts(tails) if tails is not None else None
         self._step_jac = se2_step_jac if motion == "exact" else euler_step_jac
         self.motion = motion
         self.rate = None if cfg.ekf.rate == "event" else float(cfg.ekf.rate)
@@ -505,21 +503,14 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
                 self.kf.set_noise(self._noise_floats())
 
     def _widen_speed(self, m: WheelOdometry, x: list[float], ks: int) -> None:
-        """Widen the speed's prior variance by the burst's weighted variance for odometry
-        speed sample ``m`` (``estimation.twist_tails``: the steady walk is already in it), and
-        keep what the mixture's likelihood of the innovation needs, (nu m/s, its variance
-        under the steady walk and the burst's extra variance (m/s)^2), in ``tail_terms``.
-        With scale states the walk acts on the true speed, k_v times the state's (as the
-        prediction's Q)."""
-        last = self._tails_t.get(m.sensor)
-        self._tails_t[m.sensor] = m.t
+        """Widen the speed's prior variance for odometry speed sample ``m`` where the
+        heavy-tailed walk takes it for a burst (``estimation.twist_tails``; the steady walk is
+        in the prediction). With scale states the state is the odometry's speed, the true one
+        over k_v, and the walk acts on the true speed."""
+        kv = 1.0 if ks < 0 else x[ks]
         P = self.kf.P
-        s = float(P[3, 3]) + m.v_var
-        nu = m.v - x[3]
-        kv2 = 1.0 if ks < 0 else x[ks] * x[ks]
-        extra = 0.0 if last is None else self.tails.extra(m.t - last) / kv2
-        P[3, 3] += self.tails.widening(nu, s, extra)
-        self.tail_terms.setdefault(m.sensor, []).append((nu, s, extra))
+        P[3, 3] += self.bursts.widening(m.sensor, m.t, m.v - x[3], float(P[3, 3]) + m.v_var,
+                                        1.0 / kv) / (kv * kv)
 
     def _apply(self, ms) -> None:
         """Assemble the piecewise measurement model of the messages ``ms`` -- per measurement its
@@ -575,7 +566,7 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
                                                          m.yaw, m.var, H, y, R, nr), info.gate)
             elif isinstance(m, WheelOdometry):
                 if m.v is not None:
-                    if self.tails is not None:
+                    if self.bursts is not None:
                         self._widen_speed(m, x, ks)
                     add(m.sensor, "v", um.speed_rows(x, m.v, m.v_var, H, y, R, nr), info.gate)
                 if m.yaw_rate is not None:

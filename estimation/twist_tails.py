@@ -34,7 +34,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-__all__ = ["DEFAULT_SHARE", "SpeedTails", "held_speed_walk"]
+__all__ = ["DEFAULT_SHARE", "SpeedBursts", "SpeedTails", "held_speed_walk"]
 
 # robot.twist_walk.burst_share when only speed_burst is stated: a burst in one speed interval
 # in twenty
@@ -96,6 +96,32 @@ class SpeedTails:
         """The mixture's mean density ((m/s)^2 per s): (1 - p) steady^2 + p burst^2."""
         p = self.share
         return (1.0 - p) * self.steady * self.steady + p * self.burst * self.burst
+
+
+class SpeedBursts:
+    """An EKF's bookkeeping of the heavy-tailed walk ``tails``: per odometry sensor the stamp
+    of its last speed sample, and per speed innovation what the mixture's likelihood needs,
+    ``terms[sensor]``: (nu m/s, its variance under the steady walk, the burst's extra
+    variance of the measured speed, (m/s)^2), in the order the innovations are logged (read by
+    ``ddfuse tune``)."""
+
+    def __init__(self, tails: SpeedTails) -> None:
+        self.tails = tails
+        self.last: dict[str, float] = {}
+        self.terms: dict[str, list[tuple[float, float, float]]] = {}
+
+    def widening(self, sensor: str, t: float, nu: float, s: float, gain: float = 1.0) -> float:
+        """The variance ((m/s)^2) to add to the true speed before the update with ``sensor``'s
+        speed sample at ``t`` (innovation ``nu`` m/s of variance ``s`` under the steady walk;
+        ``gain``: the measured speed's derivative by the true speed, 1 / k_v with an odometry
+        scale): the burst's extra over the time since the sensor's previous sample where the
+        burst is the more probable component, else 0 (the first sample: 0)."""
+        last = self.last.get(sensor)
+        self.last[sensor] = t
+        extra = 0.0 if last is None else self.tails.extra(t - last)
+        e = extra * gain * gain
+        self.terms.setdefault(sensor, []).append((nu, s, e))
+        return extra if self.tails.widening(nu, s, e) > 0.0 else 0.0
 
 
 def held_speed_walk(robot) -> float | None:

@@ -120,9 +120,10 @@ def _speed_tail_terms(est, h: dict, t: np.ndarray) -> None:
     """Under the heavy-tailed speed walk (``estimation.twist_tails``), each odometry speed
     innovation's term of L in ``t`` (in place) is the mixture's negative log density, not the
     Gaussian's of the widened S the log holds (``SpeedTails.nll``, the same clip)."""
-    kept = getattr(est, "tail_terms", None)
-    if not kept:
+    bursts = getattr(est, "bursts", None)
+    if bursts is None:
         return
+    kept = bursts.terms
     clip = chi2.ppf(GATE_P, 1)
     for code, (sensor, kind, _) in enumerate(h["groups"]):
         if kind != "v" or sensor not in kept:
@@ -132,7 +133,7 @@ def _speed_tail_terms(est, h: dict, t: np.ndarray) -> None:
         if len(rows) != len(terms):
             raise RuntimeError(f"{sensor}: {len(rows)} speed innovations logged but "
                                f"{len(terms)} widened by the heavy-tailed walk")
-        t[rows] = [est.tails.nll(nu, s, e, clip) for nu, s, e in terms]
+        t[rows] = [bursts.tails.nll(nu, s, e, clip) for nu, s, e in terms]
 
 
 def _terms(problem: Problem, values: list[float | None]) -> np.ndarray:

@@ -64,7 +64,7 @@ def test_a_burst_gets_the_burst_variance_a_steady_stretch_the_steady_walk_alone(
         ekf.process(m)
     h = ekf.log.innovations.held_log_det()
     S = np.exp(h["log_det"])
-    kept = np.array(ekf.tail_terms["/odom"])
+    kept = np.array(ekf.bursts.terms["/odom"])
     assert len(kept) == len(S) == 150
     nu, s, extra = kept.T
     # the steady stretch: the logged S is the steady one, and it has settled where a random
@@ -185,7 +185,7 @@ def test_the_keys_parse_and_absent_the_walk_is_gaussian():
     cfg = _cfg()
     assert SpeedTails.from_robot(cfg.robot) == SpeedTails(STEADY, BURST, SHARE)
     assert SpeedTails.from_robot(_cfg(tails=False).robot) is None
-    assert UnicycleEkf(_cfg(tails=False), reference=True).tails is None
+    assert UnicycleEkf(_cfg(tails=False), reference=True).bursts is None
     default = _cfg(tails=False, speed_burst=BURST).robot
     assert SpeedTails.from_robot(default).share == 0.05
 
@@ -233,7 +233,7 @@ def test_tunes_likelihood_of_a_speed_innovation_is_the_mixtures():
     code = next(i for i, (_, kind, _) in enumerate(h["groups"]) if kind == "v")
     rows = h["group"] == code
     clip = chi2.ppf(GATE_P, 1)
-    want = [est.tails.nll(nu, s, e, clip) for nu, s, e in est.tail_terms["/odom"]]
+    want = [est.bursts.tails.nll(nu, s, e, clip) for nu, s, e in est.bursts.terms["/odom"]]
     np.testing.assert_allclose(terms[rows], want, rtol=1e-9)
     # not the Gaussian term of the widened S the log holds
     gauss = 0.5 * (h["log_det"][rows] + np.minimum(h["nis"][rows], clip))
