@@ -81,6 +81,7 @@ from ddfuse.estimation.measurements import (
     WheelOdometry,
     WheelSpeeds,
 )
+from ddfuse.estimation.twist_tails import SpeedBursts, SpeedTails
 
 __all__ = ["IgvcEkf", "IgvcNoise", "PolarRegionError", "POLE_LIMIT_DEG", "STATE_NAMES", "LAT",
            "LON", "sphere_radius"]
@@ -95,6 +96,8 @@ GAP_RESTART_STD = 10e3  # m: a gap that leaves the position this uncertain resta
 POLE_LIMIT_DEG = 89.91
 POLE_LIMIT_KM = 10.0
 _POLE_LIMIT_RAD = math.radians(POLE_LIMIT_DEG)
+_V, _VL, _VR = 6, 8, 9  # the forward speed and the rim speeds (STATE_NAMES)
+_SPEEDS = [_V, _VL, _VR]
 
 
 class PolarRegionError(ValueError):
@@ -194,6 +197,11 @@ class IgvcEkf(IgvcStart, IgvcKernels, Estimator):
             # the robot's stated yaw-rate walk; its speed is driven by jerk on an acceleration
             # state, which robot.twist_walk.speed (a walk of the speed itself) does not describe
             self.noise = replace(self.noise, yaw_accel_psd=cfg.robot.twist_walk["yaw_rate"] ** 2)
+        # the heavy-tailed speed walk's bursts (estimation.twist_tails) on top of the jerk-driven
+        # speed: at an odometry speed sample the burst explains better than the steady walk, v
+        # and both rim speeds widened alike by the burst's extra variance
+        tails = SpeedTails.from_robot(cfg.robot) if noise is None else None
+        self.bursts = SpeedBursts(tails) if tails is not None else None
         self._calibration_states(cfg)
         n = self.n
         ones, variable = ((gen.EULER_F_ONES, gen.EULER_F_VARIABLE) if motion == "euler"
@@ -394,6 +402,8 @@ class IgvcEkf(IgvcStart, IgvcKernels, Estimator):
         kind, nr = self._measurement(m, H, y, R)
         if not nr:
             return
+        if kind == "odometry" and m.v is not None and self.bursts is not None:
+            self._widen_speed(m, H[0], float(y[0]), float(R[0, 0]))
         blocks = ((m.sensor, kind, 0, nr, (), self._info(m.sensor)[0]),)
         # the innovations are y already: h(x) = 0 in update_blocks' y = z - h(x)
         if hf != 1.0:  # correlated heading samples: fused with the sample's inflated R
@@ -404,6 +414,17 @@ class IgvcEkf(IgvcStart, IgvcKernels, Estimator):
             kf.update_blocks(m.t, y[:nr], 0.0, H[:nr], R[:nr, :nr], blocks, (self._gps_factor(m),))
             if kf.last_verdicts[0]:
                 self._fused_fix(m.sensor, m.t)
+
+    def _widen_speed(self, m: WheelOdometry, h: np.ndarray, nu: float, r: float) -> None:
+        """Widen the prior of the speed (v and the rim speeds v_l, v_r, which a change of the
+        forward speed moves alike) for odometry speed sample ``m`` (its row ``h`` of H,
+        innovation ``nu`` m/s, variance ``r``) where the heavy-tailed walk takes it for a
+        burst (``estimation.twist_tails``)."""
+        P = self.kf.P
+        s = float(h @ P @ h) + r
+        add = self.bursts.widening(m.sensor, m.t, nu, s, float(h[_V] + h[_VL] + h[_VR]))
+        if add:
+            P[np.ix_(_SPEEDS, _SPEEDS)] += add
 
     def _gps_factor(self, m: GpsFix) -> float:
         """The factor on fix ``m``'s covariance in the fusion (module docstring): 1.0 for a

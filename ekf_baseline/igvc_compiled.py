@@ -81,6 +81,8 @@ class IgvcKernels:
             return (_T_ACCEL, row, m.accel, 0.0, m.var, 0.0, 0.0, 0.0, 0, 1.0)
         if cls is WheelOdometry:
             v, w = m.v, m.yaw_rate
+            if v is not None and self.bursts is not None:
+                return None  # the heavy-tailed speed walk widens the prior in Python first
             return (_T_ODOM, row, 0.0 if v is None else v, 0.0 if w is None else w, m.v_var,
                     m.yaw_rate_var, 0.0, 0.0, (v is not None) | (w is not None) << 1, 1.0)
         if cls is WheelSpeeds and self.wheel_radius is not None:

@@ -9,6 +9,7 @@ import math
 
 import numpy as np
 import pytest
+from ddfuse.ekf_baseline.igvc import IgvcEkf
 from ddfuse.ekf_baseline.unicycle import UnicycleEkf
 from ddfuse.estimation.config import ConfigError, parse_config
 from ddfuse.estimation.measurements import GyroYawRate, Stream, WheelOdometry
@@ -86,12 +87,38 @@ def test_a_burst_gets_the_burst_variance_a_steady_stretch_the_steady_walk_alone(
     assert not gauss.log.innovations.held_log_det()["accepted"][100]
 
 
-def test_compiled_and_reference_filters_agree_under_the_heavy_tailed_walk():
+def test_ekf_igvc_widens_its_speeds_alike_at_a_burst_only():
+    """ekf_igvc's speed is driven by jerk on an acceleration state; the burst adds its extra
+    variance to v and the rim speeds alike, where the burst is the more probable."""
+    ekf = IgvcEkf(_cfg(), reference=True)
+    stream = _steps(150, lambda k: 1.0 if k < 100 else 1.3)
+    for m in stream[:100]:
+        ekf.process(m)
+    P0 = ekf.kf.P.copy()
+    ekf.process(stream[100])
+    h = ekf.log.innovations.held_log_det()
+    S = np.exp(h["log_det"])
+    nu, s, extra = np.array(ekf.bursts.terms["/odom"]).T
+    assert len(S) == len(s) == 101
+    np.testing.assert_allclose(S[:100], s[:100], rtol=1e-12)  # steady: nothing added
+    assert extra[100] == pytest.approx((BURST ** 2 - STEADY ** 2) * DT, rel=1e-9)
+    assert S[100] == pytest.approx(s[100] + extra[100], rel=1e-9)
+    assert h["accepted"][100]
+    assert ekf.kf.x[6] > 1.2  # v followed the step
+    assert P0[6, 6] < 1e-3  # (the prior was tight: the step's acceptance is the widening's)
+    gauss = IgvcEkf(_cfg(tails=False), reference=True)
+    for m in stream[:101]:
+        gauss.process(m)
+    assert not gauss.log.innovations.held_log_det()["accepted"][100]
+
+
+@pytest.mark.parametrize("make", [UnicycleEkf, IgvcEkf])
+def test_compiled_and_reference_filters_agree_under_the_heavy_tailed_walk(make):
     from test_ekf_compiled import _run_both
 
     rng = np.random.default_rng(3)
     stream = _drive(rng, 10.0)
-    _run_both(lambda reference: UnicycleEkf(_cfg(), reference=reference), stream)
+    _run_both(lambda reference: make(_cfg(), reference=reference), stream)
 
 
 def _drive(rng, duration: float) -> list:
