@@ -233,7 +233,8 @@ def _speed_tails(cfg: Config, stream: Stream, params: list[Param]) -> list[Param
     density, searched with the others, and its share, measured (kind 'corr', set before the
     search). Where the config states the walk, from the config's values (the share as it
     states); else only where the speed's changes are heavy-tailed (kurtosis at least
-    ``HEAVY_KURTOSIS``), when the steady density starts from their robust sigma instead."""
+    ``HEAVY_KURTOSIS``), when the steady density (``params``' speed walk) starts from their
+    robust sigma instead."""
     tw = cfg.robot.twist_walk
     speed = next(p for p in params if p.key == "robot.twist_walk.speed")
     unit = _UNITS["twist speed"]
@@ -247,7 +248,7 @@ def _speed_tails(cfg: Config, stream: Stream, params: list[Param]) -> list[Param
     kurt, steady, burst, share = speed_tails(*changes)
     if kurt < HEAVY_KURTOSIS:
         return []
-    speed.start, speed.source = steady, "measured"
+    speed.start = steady  # (its source stays what the EKF used before: the table's 'before')
     return [Param("robot.twist_walk.speed_burst", "robot twist_walk speed_burst", burst, None,
                   "measured", unit, None, "twist", "speed_burst"),
             Param("robot.twist_walk.burst_share", "robot twist_walk burst_share", share, None,

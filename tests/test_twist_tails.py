@@ -233,7 +233,7 @@ def test_tune_turns_the_heavy_tailed_walk_on_only_where_the_speed_changes_are_he
     rng = np.random.default_rng(7)
     gauss = parameters(cfg, _odometry_stream(rng, heavy=False))
     assert [p.key for p in gauss if "twist_walk" in p.key] == ["robot.twist_walk.speed"]
-    assert gauss[-1].source != "measured"
+    assert gauss[-1].start == 1.0  # the EKF's default density, as before
     heavy = {p.key: p for p in parameters(cfg, _odometry_stream(rng, heavy=True))}
     share, burst = heavy["robot.twist_walk.burst_share"], heavy["robot.twist_walk.speed_burst"]
     assert share.kind == "corr" and 0.02 < share.start < 0.04
