@@ -96,8 +96,9 @@ GAP_RESTART_STD = 10e3  # m: a gap that leaves the position this uncertain resta
 POLE_LIMIT_DEG = 89.91
 POLE_LIMIT_KM = 10.0
 _POLE_LIMIT_RAD = math.radians(POLE_LIMIT_DEG)
-_V, _VL, _VR = 6, 8, 9  # the forward speed and the rim speeds (STATE_NAMES)
-_SPEEDS = [_V, _VL, _VR]
+# the states a change of the forward speed moves alike, by as much: v and the rim speeds v_l,
+# v_r (STATE_NAMES)
+_SPEEDS = [STATE_NAMES.index(k) for k in ("v", "v_l", "v_r")]
 
 
 class PolarRegionError(ValueError):
@@ -403,7 +404,9 @@ class IgvcEkf(IgvcStart, IgvcKernels, Estimator):
         if not nr:
             return
         if kind == "odometry" and m.v is not None and self.bursts is not None:
-            self._widen_speed(m, H[0], float(y[0]), float(R[0, 0]))
+            g = np.zeros(self.n)
+            g[_SPEEDS] = 1.0
+            self.bursts.widen(kf.P, m.sensor, m.t, float(y[0]), float(R[0, 0]), H[0], g)
         blocks = ((m.sensor, kind, 0, nr, (), self._info(m.sensor)[0]),)
         # the innovations are y already: h(x) = 0 in update_blocks' y = z - h(x)
         if hf != 1.0:  # correlated heading samples: fused with the sample's inflated R
@@ -414,17 +417,6 @@ class IgvcEkf(IgvcStart, IgvcKernels, Estimator):
             kf.update_blocks(m.t, y[:nr], 0.0, H[:nr], R[:nr, :nr], blocks, (self._gps_factor(m),))
             if kf.last_verdicts[0]:
                 self._fused_fix(m.sensor, m.t)
-
-    def _widen_speed(self, m: WheelOdometry, h: np.ndarray, nu: float, r: float) -> None:
-        """Widen the prior of the speed (v and the rim speeds v_l, v_r, which a change of the
-        forward speed moves alike) for odometry speed sample ``m`` (its row ``h`` of H,
-        innovation ``nu`` m/s, variance ``r``) where the heavy-tailed walk takes it for a
-        burst (``estimation.twist_tails``)."""
-        P = self.kf.P
-        s = float(h @ P @ h) + r
-        add = self.bursts.widening(m.sensor, m.t, nu, s, float(h[_V] + h[_VL] + h[_VR]))
-        if add:
-            P[np.ix_(_SPEEDS, _SPEEDS)] += add
 
     def _gps_factor(self, m: GpsFix) -> float:
         """The factor on fix ``m``'s covariance in the fusion (module docstring): 1.0 for a

@@ -31,7 +31,9 @@ or the seed's Euler step; the twist and calibration states are random walks
 
 A GPS sensor with ``correlation_time`` > 0 has each fix fused with an inflated R
 (``estimation.gps_correlation``), and so has each sample of a heading sensor with one
-(``estimation.heading_correlation``); gate, log and recovery keep R. ``cfg.ekf.rate``: 'event'
+(``estimation.heading_correlation``); gate, log and recovery keep R. Under the heavy-tailed
+speed walk (``estimation.twist_tails``) an odometry speed sample the burst explains better
+widens the speed's prior by the burst's variance first. ``cfg.ekf.rate``: 'event'
 (predict to and update with each message) or a rate in Hz (one stacked update per step).
 Initialisation: a known pose, the first ground truth, a measured heading, or dead reckoning
 aligned onto the GPS track once the fixes spread over ``init_distance`` m.
@@ -502,16 +504,6 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
             if self.compiled and self.kf is not None:  # the kernels' copy of the densities
                 self.kf.set_noise(self._noise_floats())
 
-    def _widen_speed(self, m: WheelOdometry, x: list[float], ks: int) -> None:
-        """Widen the speed's prior variance for odometry speed sample ``m`` where the
-        heavy-tailed walk takes it for a burst (``estimation.twist_tails``; the steady walk is
-        in the prediction). With scale states the state is the odometry's speed, the true one
-        over k_v, and the walk acts on the true speed."""
-        kv = 1.0 if ks < 0 else x[ks]
-        P = self.kf.P
-        P[3, 3] += self.bursts.widening(m.sensor, m.t, m.v - x[3], float(P[3, 3]) + m.v_var,
-                                        1.0 / kv) / (kv * kv)
-
     def _apply(self, ms) -> None:
         """Assemble the piecewise measurement model of the messages ``ms`` -- per measurement its
         innovation, H rows and R (``unicycle_measurements``, the kernels' models) -- and update
@@ -566,8 +558,11 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
                                                          m.yaw, m.var, H, y, R, nr), info.gate)
             elif isinstance(m, WheelOdometry):
                 if m.v is not None:
-                    if self.bursts is not None:
-                        self._widen_speed(m, x, ks)
+                    if self.bursts is not None:  # the heavy-tailed walk (module docstring)
+                        h = np.zeros(self.n)
+                        h[3] = 1.0  # with scale states the odometry's speed, k_v the true's
+                        self.bursts.widen(kf.P, m.sensor, m.t, m.v - x[3], m.v_var, h,
+                                          h / (1.0 if ks < 0 else x[ks]))
                     add(m.sensor, "v", um.speed_rows(x, m.v, m.v_var, H, y, R, nr), info.gate)
                 if m.yaw_rate is not None:
                     add(m.sensor, "yaw_rate", um.yaw_rate_rows(x, ks, wt, m.yaw_rate,

@@ -34,6 +34,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
+
 __all__ = ["DEFAULT_SHARE", "SpeedBursts", "SpeedTails", "held_speed_walk"]
 
 # robot.twist_walk.burst_share when only speed_burst is stated: a burst in one speed interval
@@ -110,18 +112,22 @@ class SpeedBursts:
         self.last: dict[str, float] = {}
         self.terms: dict[str, list[tuple[float, float, float]]] = {}
 
-    def widening(self, sensor: str, t: float, nu: float, s: float, gain: float = 1.0) -> float:
-        """The variance ((m/s)^2) to add to the true speed before the update with ``sensor``'s
-        speed sample at ``t`` (innovation ``nu`` m/s of variance ``s`` under the steady walk;
-        ``gain``: the measured speed's derivative by the true speed, 1 / k_v with an odometry
-        scale): the burst's extra over the time since the sensor's previous sample where the
-        burst is the more probable component, else 0 (the first sample: 0)."""
+    def widen(self, P: np.ndarray, sensor: str, t: float, nu: float, r: float, h: np.ndarray,
+              g: np.ndarray) -> None:
+        """Widen the prior covariance ``P`` (n, n), in place, before the update with
+        ``sensor``'s speed sample at ``t`` (innovation ``nu`` m/s, variance ``r``, row ``h``
+        (n,) of H): by the burst's extra variance over the time since the sensor's previous
+        sample along ``g`` (n,), the states' change per m/s of the true speed, where the burst
+        is the more probable component (the first sample: never)."""
         last = self.last.get(sensor)
         self.last[sensor] = t
         extra = 0.0 if last is None else self.tails.extra(t - last)
+        gain = float(h @ g)  # the measured speed's change per m/s of the true speed
+        s = float(h @ P @ h) + r
         e = extra * gain * gain
         self.terms.setdefault(sensor, []).append((nu, s, e))
-        return extra if self.tails.widening(nu, s, e) > 0.0 else 0.0
+        if self.tails.widening(nu, s, e) > 0.0:
+            P += extra * np.outer(g, g)
 
 
 def held_speed_walk(robot) -> float | None:

@@ -21,13 +21,15 @@ R_V = 1e-4  # (m/s)^2, the odometry speed's variance
 DT = 0.02  # s, 50 Hz
 
 
-def _cfg(tails: bool = True, smoother: bool = False, **walk):
+def _cfg(tails: bool = True, smoother: bool = False, bias: bool = False, **walk):
     tw = {"speed": STEADY, "yaw_rate": 0.3}
     if tails:
         tw.update(speed_burst=BURST, burst_share=SHARE)
     tw.update(walk)
-    raw = {"sensors": {"odometry": [{"topic": "/odom", "use": ["v"]}],
-                       "imu": [{"topic": "/imu", "use": ["yaw_rate"]}]},
+    imu = {"topic": "/imu", "use": ["yaw_rate"]}
+    if bias:
+        imu["gyro_bias"] = "estimate"
+    raw = {"sensors": {"odometry": [{"topic": "/odom", "use": ["v"]}], "imu": [imu]},
            "robot": {"twist_walk": tw}, "initial_pose": [0.0, 0.0, 0.0],
            "ekf": {"rate": "event"}}
     if smoother:
@@ -113,12 +115,13 @@ def test_ekf_igvc_widens_its_speeds_alike_at_a_burst_only():
 
 
 @pytest.mark.parametrize("make", [UnicycleEkf, IgvcEkf])
-def test_compiled_and_reference_filters_agree_under_the_heavy_tailed_walk(make):
+@pytest.mark.parametrize("bias", [False, True])
+def test_compiled_and_reference_filters_agree_under_the_heavy_tailed_walk(make, bias):
     from test_ekf_compiled import _run_both
 
     rng = np.random.default_rng(3)
     stream = _drive(rng, 10.0)
-    _run_both(lambda reference: make(_cfg(), reference=reference), stream)
+    _run_both(lambda reference: make(_cfg(bias=bias), reference=reference), stream)
 
 
 def _drive(rng, duration: float) -> list:
