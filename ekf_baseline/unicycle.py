@@ -189,8 +189,7 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
         self._tw_last: dict[tuple[str, int], float] = {}  # (sensor, 3 v / 4 w): last stamp
         self._tw_period: dict[int, dict[str, float]] = {3: {}, 4: {}}  # per sensor, s
         self._tw_on = self._amax != (None, None)
-        # the heavy-tailed speed walk (estimation.twist_tails): the speed's prior widened at
-        # an odometry speed sample that the burst explains better than the steady walk
+        # the heavy-tailed speed walk (estimation.twist_tails; module docstring)
         tails = SpeedTails.from_robot(r) if noise is None else None
         self.bursts = SpeedBursts(tails) if tails is not None else None
         self._step_jac = se2_step_jac if motion == "exact" else euler_step_jac
