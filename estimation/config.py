@@ -43,7 +43,9 @@ base performs (its drive controller's limits). ``robot.twist_walk`` states the p
 the twist itself, the white-acceleration densities of the random walks of the forward speed
 (``speed``, m/s/sqrt(s)) and yaw rate (``yaw_rate``, rad/s/sqrt(s)) between twist samples;
 absent, the estimators derive them from ``max_accel`` / ``max_yaw_accel`` and the samples'
-period (or their defaults), as before the key existed. ``robot.max_speed`` (m/s) and
+period (or their defaults), as before the key existed; with ``speed_burst`` (m/s/sqrt(s), above
+``speed``) and ``burst_share`` (its probability per speed interval, default 0.05) the speed's
+walk is a heavy-tailed mixture (``ddfuse.estimation.twist_tails``). ``robot.max_speed`` (m/s) and
 ``max_yaw_rate`` (rad/s) are what the robot can physically do (defaults DEFAULT_MAX_SPEED,
 DEFAULT_MAX_YAW_RATE); a sample beyond them is a glitch (``ddfuse.estimation.robot_limits``).
 A ``gate`` on a sensor is the chi-square acceptance probability of its Mahalanobis gate (e.g.
