@@ -21,7 +21,7 @@ R_V = 1e-4  # (m/s)^2, the odometry speed's variance
 DT = 0.02  # s, 50 Hz
 
 
-def _cfg(tails: bool = True, smoother: bool = False, bias: bool = False, **walk):
+def _cfg(tails: bool = True, smoother: bool = False, bias: bool = False, rate="event", **walk):
     tw = {"speed": STEADY, "yaw_rate": 0.3}
     if tails:
         tw.update(speed_burst=BURST, burst_share=SHARE)
@@ -31,7 +31,7 @@ def _cfg(tails: bool = True, smoother: bool = False, bias: bool = False, **walk)
         imu["gyro_bias"] = "estimate"
     raw = {"sensors": {"odometry": [{"topic": "/odom", "use": ["v"]}], "imu": [imu]},
            "robot": {"twist_walk": tw}, "initial_pose": [0.0, 0.0, 0.0],
-           "ekf": {"rate": "event"}}
+           "ekf": {"rate": rate}}
     if smoother:
         raw["smoother"] = {"lag": 5.0, "keyframe": "rate", "keyframe_rate": 5.0}
     return parse_config(raw)
@@ -114,14 +114,15 @@ def test_ekf_igvc_widens_its_speeds_alike_at_a_burst_only():
     assert not gauss.log.innovations.held_log_det()["accepted"][100]
 
 
-@pytest.mark.parametrize("make", [UnicycleEkf, IgvcEkf])
+@pytest.mark.parametrize(("make", "rate"), [(UnicycleEkf, "event"), (UnicycleEkf, 20.0),
+                                            (IgvcEkf, "event")])
 @pytest.mark.parametrize("bias", [False, True])
-def test_compiled_and_reference_filters_agree_under_the_heavy_tailed_walk(make, bias):
+def test_compiled_and_reference_filters_agree_under_the_heavy_tailed_walk(make, rate, bias):
     from test_ekf_compiled import _run_both
 
     rng = np.random.default_rng(3)
     stream = _drive(rng, 10.0)
-    _run_both(lambda reference: make(_cfg(bias=bias), reference=reference), stream)
+    _run_both(lambda reference: make(_cfg(bias=bias, rate=rate), reference=reference), stream)
 
 
 def _drive(rng, duration: float) -> list:
