@@ -62,12 +62,13 @@ class UnicycleKernels:
 
     def _pack(self, m, prev: dict | None = None):
         """The kernels' arguments (typ, sensor row, z0, z1, r0, r1, r01, r10, flags, rf) for
-        message ``m``, or None when it needs the Python path: odometry speed under the heavy-tailed
-        walk (``UnicycleEkf._widen_speed``), a heading before the heading is
-        known or before its offset is initialised, a GPS fix while aligning or without a
-        position, wheel speeds without the geometry, another message type. ``rf``: the factor
-        on R in the fusion (a correlated GPS sensor's fix: ``_gps_factor`` with ``prev``; a
-        correlated heading sensor's sample: ``HeadingClock.factor``)."""
+        message ``m``, or None when it needs the Python path: an odometry speed under the
+        heavy-tailed walk (``estimation.twist_tails.SpeedBursts.widen`` before its update), a
+        heading before the heading is known or before its offset is initialised, a GPS fix
+        while aligning or without a position, wheel speeds without the geometry, another
+        message type. ``rf``: the factor on R in the fusion (a correlated GPS sensor's fix:
+        ``_gps_factor`` with ``prev``; a correlated heading sensor's sample:
+        ``HeadingClock.factor``)."""
         info = self._sensors.get(m.sensor) or self._sensor(m.sensor)
         row = info.row
         if row is None:

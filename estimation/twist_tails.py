@@ -19,8 +19,8 @@ more probable component chosen from the innovation, a hard-decision two-model fi
 stretch keeps the small q, a burst gets the burst's). The soft choice, widening by w extra
 (variational-Bayes style), was measured first and dropped: with the burst's variance 100x the
 steady one on rl_jackal.bag, the prior's w alone tripled a steady sample's S (docs/design/
-tuning.md, session 23). The innovation's density under the
-model, the likelihood ``ddfuse tune`` fits, is the mixture's itself (:meth:`SpeedTails.nll`).
+tuning.md, session 23). The innovation's density under the model, the likelihood ``ddfuse
+tune`` fits, is the mixture's itself (:meth:`SpeedTails.nll`).
 
 Where no sample tells the components apart (the smoother's held sample ageing past its span)
 the walk's density is the mixture's mean, (1 - p) steady^2 + p burst^2.
