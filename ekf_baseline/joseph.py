@@ -256,11 +256,12 @@ SIGNATURES = {"innovation_cov": f"({_M}, {_M}, {_M})",
 
 def ready() -> None:
     """Compile the two entry points for SIGNATURES, or load them from numba's cache."""
-    from ddfuse.factors.jitcache import arg_types, compiling
+    from ddfuse.factors.jitcache import arg_types, compiling, one_compiler
 
     with compiling("the Kalman update's entry points innovation_cov, apply_update"):
         for name, sig in SIGNATURES.items():
-            globals()[name].compile(arg_types(sig))  # the key a first call caches under
+            with one_compiler(name):
+                globals()[name].compile(arg_types(sig))  # the key a first call caches under
 
 
 def load_cached() -> bool:

@@ -158,7 +158,7 @@ from ddfuse.ekf_baseline.kernel_codes import (  # noqa: F401 - re-exported: the 
 )
 from ddfuse.ekf_baseline.unicycle_motion import pose_correct
 from ddfuse.estimation.lockout import gate_streak, holdoff_over, lockout_due
-from ddfuse.factors.jitcache import compiling
+from ddfuse.factors.jitcache import compiling, one_compiler
 from ddfuse.factors.jitcache import load_cached as _load
 from numba import njit
 
@@ -447,7 +447,8 @@ def ready(*names: str) -> None:
         for name in todo:
             d = globals()[name]
             d._can_compile = True
-            d.compile(_SIGNATURES[name])
+            with one_compiler(name):
+                d.compile(_SIGNATURES[name])
             d.disable_compile()
 
 

@@ -7,7 +7,9 @@ hash of every source beside the cache and drops the module's cached kernels when
 it before the kernels are first compiled or loaded. ``compiling`` says on the terminal what a
 slow compile is doing. ``load_cached`` loads a kernel from the cache without ever compiling it;
 ``build_in_background`` starts the one process that compiles the missing kernels for the next
-runs (under the "reference" cold-cache policy of ``ddfuse run``).
+runs (under the "reference" cold-cache policy of ``ddfuse run``). ``one_compiler`` makes
+processes sharing a cache (a process pool's workers, test workers, the background build) compile
+each kernel once between them: the others wait for it and load it from the cache.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 __all__ = ["NOTICE_AFTER_S", "build_in_background", "compiling", "guard_cache", "load_cached",
-           "on_cold_cache"]
+           "on_cold_cache", "one_compiler", "start_build"]
 
 NOTICE_AFTER_S = 3.0  # s: a compile longer than this is announced (a cache load is ~0.1-0.3 s
 # of CPU, up to ~2 s of wall time on a loaded machine; a cold compile tens of seconds)
@@ -158,6 +160,31 @@ def lock_path() -> Path:
     return Path(tempfile.gettempdir()) / f"ddfuse-kernel-build-{uid}-{tag}.lock"
 
 
+@contextmanager
+def one_compiler(kernel: str) -> Iterator[None]:
+    """Around compiling (or loading) ``kernel`` into numba's cache: one process at a time per
+    kernel, install and cache (an exclusive ``flock`` beside ``lock_path``). numba does not
+    coordinate processes: without this, processes started together on a cold cache each spend
+    the kernel's compile (seconds to tens of seconds of CPU) on the same machine code. Inside,
+    ``Dispatcher.compile`` finds the kernel in the cache when another process has just compiled
+    it, and loads it. Never held while taking another kernel's lock, so it cannot deadlock;
+    without ``flock`` (Windows) it does nothing."""
+    try:
+        import fcntl
+    except ImportError:
+        yield
+        return
+    base = lock_path()
+    try:
+        lock = open(base.with_name(f"{base.stem}-{kernel}.lock"), "a")  # noqa: SIM115 - held
+    except OSError:  # an unwritable temp dir: compile unguarded, as numba alone would
+        yield
+        return
+    with lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        yield
+
+
 def build_running() -> bool:
     """Whether a background build (this user's, any process) holds the lock now."""
     try:
@@ -176,6 +203,15 @@ def build_running() -> bool:
     return False
 
 
+def start_build(names: list[str]) -> None:
+    """Start the background build (``BUILDER``) of ``names`` and DEFAULT_BUILD, detached (its
+    own session, no terminal output); it waits for any build holding the lock. OSError when
+    the process cannot be started."""
+    subprocess.Popen([sys.executable, "-m", BUILDER, *names],
+                     stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                     stderr=subprocess.DEVNULL, start_new_session=True, close_fds=True)
+
+
 def build_in_background(names: list[str]) -> None:
     """Ask for the kernels ``names`` (the builder's names) to be compiled into numba's cache by
     a background process: one per process, together with DEFAULT_BUILD (every kernel a default
@@ -191,9 +227,7 @@ def build_in_background(names: list[str]) -> None:
     running = build_running()
     if not running:
         try:
-            subprocess.Popen([sys.executable, "-m", BUILDER, *todo],
-                             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                             stderr=subprocess.DEVNULL, start_new_session=True, close_fds=True)
+            start_build(todo)
         except OSError as e:
             _notice[0](f"ddfuse: numba's compiled kernels are not cached, and no background "
                        f"process could compile them ({e}): this run uses the Python reference "

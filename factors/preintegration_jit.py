@@ -17,7 +17,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from ddfuse.factors.jitcache import arg_types, compiling, guard_cache
+from ddfuse.factors.jitcache import arg_types, compiling, guard_cache, one_compiler
 from ddfuse.factors.jitcache import load_cached as _load
 from ddfuse.factors.kinematics import se2_step_jac, twist_coeffs
 from ddfuse.factors.preintegration import WheelGyroPreintegration, integrate_step
@@ -79,7 +79,7 @@ _warm: list[bool] = []
 def ready() -> None:
     """Compile the kernel for SIGNATURE, or load it from numba's cache (once per process)."""
     if not _warm:
-        with compiling("the smoother's preintegration kernel"):
+        with compiling("the smoother's preintegration kernel"), one_compiler("preintegration"):
             integrate.compile(arg_types(SIGNATURE))  # the key a first call caches under
         _warm.append(True)
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 from pathlib import Path
 
@@ -79,3 +80,19 @@ def ctrl_c_raises():
     old = signal.signal(signal.SIGINT, signal.default_int_handler)
     yield
     signal.signal(signal.SIGINT, old)
+
+
+def pytest_sessionstart(session):
+    """Start one background build of every numba kernel before the tests (in the controller
+    only: pytest-xdist's workers have ``workerinput``). On a cold cache (a clean clone, as in
+    CI) the workers' tests would otherwise each compile the kernels they meet (about a minute
+    of CPU per process); with the build running, a test that needs a kernel waits for it or
+    compiles it itself, never both (``jitcache.one_compiler``), and the rest of the suite runs
+    meanwhile. On a warm cache the build only loads the kernels (~2 s of CPU)."""
+    if hasattr(session.config, "workerinput"):
+        return
+    from ddfuse.factors import jitcache
+
+    if not jitcache.build_running():
+        with contextlib.suppress(OSError):  # the tests then compile what they need
+            jitcache.start_build(["uni_stacked", "lm_predict", "lm_sighting"])

@@ -155,3 +155,32 @@ def test_the_build_lock_is_per_numba_cache(monkeypatch, tmp_path):
     assert jitcache.lock_path() != a  # another cache's build never stands in for this one's
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "a"))
     assert jitcache.lock_path() == a
+
+
+_READY = """
+from ddfuse.factors import preintegration_jit as p
+print("importing done", flush=True)
+p.ready()
+s = p.integrate.stats
+print(sum(s.cache_misses.values()), sum(s.cache_hits.values()), flush=True)
+"""
+
+
+def test_processes_on_one_cold_cache_compile_a_kernel_once(monkeypatch, tmp_path):
+    """Two processes meeting the same missing kernel: one compiles it, the other waits for it
+    and loads it from the cache (a cache miss in one, a hit in the other). Both are released
+    together, after both have imported numba, so that without the lock both would compile."""
+    import subprocess
+    import sys
+    import time
+
+    pytest.importorskip("fcntl")
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "cache"))
+    with jitcache.one_compiler("preintegration"):
+        procs = [subprocess.Popen([sys.executable, "-c", _READY], stdout=subprocess.PIPE,
+                                  text=True) for _ in range(2)]
+        for p in procs:
+            assert p.stdout.readline().strip() == "importing done"
+        time.sleep(0.3)  # both now at the lock (without it: both compiling)
+    counts = sorted(tuple(map(int, p.communicate(timeout=300)[0].split())) for p in procs)
+    assert counts == [(0, 1), (1, 0)]  # (misses, hits): one compiled, one loaded
