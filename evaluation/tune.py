@@ -394,24 +394,36 @@ def _search(problem: Problem, ev: Evaluator, progress, t_start: float,
 
 def _staged_search(problem: Problem, ev: Evaluator, progress, t_start: float) -> TuneResult:
     """:func:`_search`, in two stages where a landmark sensor states a bearing part common to
-    its frames (kind 'common'): first every other value with the common part held at the
-    config's, then that sensor's range, bearing and common part from there, the rest held at
-    the first stage's values. Searched
-    together from the start, the common part (which the data may not want: driven to its bound)
-    stalled the others: on a simulated seed002 bag with independent bearings the wheel speed's
-    noise stayed at its 3x start (docs/design/tuning.md, session 22)."""
+    its frames (kind 'common'): first the independent model (the common part held at 0) for
+    every other value, then that sensor's range, bearing and common part, the rest held at the
+    first stage's values; the second stage starts from the first stage's bearing variance split
+    evenly between the own and the common part (each sigma / sqrt(2)), whatever the config
+    states. Searched together from the start, the common part (which the data may not want:
+    driven to its bound) stalled the others: on a simulated seed002 bag with independent
+    bearings the wheel speed's noise stayed at its 3x start. Held at the config's stated value
+    in the first stage, or started from it in the second, the search ended elsewhere on
+    mrclam1_robot1.bag for each stated value, with the correlation time's rule misled
+    (docs/design/tuning.md, sessions 22 and 23)."""
     params = problem.params
     common = [i for i, p in enumerate(params) if p.kind == "common"]
     if not common:
         return _search(problem, ev, progress, t_start)
+    stated = {i: params[i].start for i in common}
+    for i in common:
+        params[i].start = 0.0  # log -inf: held, the likelihood's exp gives 0
     first = _search(problem, ev, progress, t_start, np.array(
         [p.kind not in NOT_SEARCHED + ("common",) for p in params], bool))
     sensors = {params[i].sensor for i in common}
     corr_sigma = {s: _bearing_sigma(first, s, "bearing") for s in sensors}
+    for i in common:
+        whole = corr_sigma.get(params[i].sensor)
+        params[i].start = whole / math.sqrt(2.0) if whole else stated[i]
     for p, t in zip(params, first.tuned, strict=True):
         if p.kind not in ("corr", "common") and t.value is not None and \
                 t.status != "not informed":
             p.start = t.value  # (not informed: its start, where the first stage held it)
+            if p.sensor in sensors and p.kind == "landmarks" and p.noise_key == "bearing":
+                p.start = t.value / math.sqrt(2.0)
     mask = np.array([p.sensor in sensors and p.kind in ("landmarks", "common")
                      for p in params], bool)
     second = _search(problem, ev, progress, t_start, mask)

@@ -280,3 +280,39 @@ def test_tune_fits_the_common_part_only_where_the_config_states_one():
     assert FrameBearings(cfg).common == {"lm": pytest.approx(0.007**2)}
     ap.apply([None] * len(ps))
     assert cfg.sensors[1].noise["bearing_common"] == 0.02
+
+
+def test_the_staged_search_holds_the_common_part_at_zero_then_splits_the_bearing(monkeypatch):
+    """First stage: the independent model (common part held at 0, not searched), whatever the
+    config states; second stage: the landmark sensor's values only, the common part and the
+    own bearing each starting at the first stage's bearing sigma / sqrt(2)."""
+    from types import SimpleNamespace
+
+    from ddfuse.evaluation import tune
+    from ddfuse.evaluation.tune_params import Param
+
+    def par(kind, key, start):
+        return Param(f"k.{key}", key, start, start, "config", "rad", "lm" if kind != "slip"
+                     else None, kind, key)
+
+    params = [par("landmarks", "range", 0.1), par("landmarks", "bearing", 0.03),
+              par("common", "bearing_common", 0.01), par("slip", "heading", 0.05)]
+    calls = []
+
+    def fake_search(problem, ev, progress, t0, search=None):
+        calls.append(([p.start for p in problem.params], list(search)))
+        first = len(calls) == 1
+        values = [0.12, 0.0226, None, 0.03] if first else [0.119, 0.0045, 0.0083, None]
+        return tune.TuneResult("ekf_landmark", [
+            tune.Tuned(p, v, "tuned" if v is not None else "not informed")
+            for p, v in zip(problem.params, values, strict=True)])
+
+    monkeypatch.setattr(tune, "_search", fake_search)
+    out = tune._staged_search(SimpleNamespace(params=params), None, None, 0.0)
+    (start1, mask1), (start2, mask2) = calls
+    assert start1 == [0.1, 0.03, 0.0, 0.05] and mask1 == [True, True, False, True]
+    half = 0.0226 / math.sqrt(2.0)
+    assert start2 == pytest.approx([0.12, half, half, 0.03])
+    assert mask2 == [True, True, True, False]
+    assert out.corr_sigma == {"lm": 0.0226}  # the correlation time's rule: the independent sigma
+    assert [t.value for t in out.tuned] == [0.119, 0.0045, 0.0083, 0.03]
