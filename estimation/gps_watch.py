@@ -28,7 +28,8 @@ from dataclasses import dataclass
 
 from ddfuse.estimation.config import Config
 from ddfuse.estimation.gaps import is_gap
-from ddfuse.estimation.measurements import GpsFix, GyroYawRate, WheelOdometry, WheelSpeeds
+from ddfuse.estimation.measurements import GpsFix
+from ddfuse.estimation.twist_track import TwistTrack
 
 __all__ = ["ABS_M", "K_SIGMA", "MIN_FIXES", "REL", "WINDOW_S", "Episode", "GpsWatch"]
 
@@ -76,21 +77,10 @@ class GpsWatch:
 
     def __init__(self, cfg: Config) -> None:
         self.topic = {s.name: s.topic for s in cfg.sensors}
-        r = cfg.robot
-        self.geometry = (r.wheel_radius, r.track_width)
-        odo = [s for s in cfg.of_kind("odometry") if "v" in s.use]
-        wheels = [s for s in cfg.of_kind("wheels")] if None not in self.geometry else []
-        self.v_src = odo[0].name if odo else (wheels[0].name if wheels else None)
-        gyros = [s for s in cfg.of_kind("imu") if "yaw_rate" in s.use]
-        w_odo = [s for s in cfg.of_kind("odometry") if "yaw_rate" in s.use]
-        self.w_src = gyros[0].name if gyros else (w_odo[0].name if w_odo else
-                                                  (self.v_src if wheels and not odo else None))
-        self.on = self.v_src is not None and bool(cfg.of_kind("gps"))
+        self.dr = TwistTrack(cfg)
+        self.on = self.dr.on and bool(cfg.of_kind("gps"))
         self.episodes: list[Episode] = []
         self.t0: float | None = None
-        self._x = self._y = self._s = self._yaw = 0.0
-        self._v = self._w = 0.0
-        self._t: float | None = None  # the dead reckoning's time, s
         self._refs: dict[str, deque] = {}  # sensor -> agreeing fixes (_Ref), oldest first
         self._open: dict[str, Episode] = {}  # sensor -> flagged run (an episode once long)
         self._last: float | None = None  # the last message's stamp, s
@@ -100,8 +90,7 @@ class GpsWatch:
         for sensor in list(self._open):
             self._close(sensor)
         self._refs.clear()
-        self._t = None
-        self._v = self._w = 0.0
+        self.dr.restart()
 
     def feed(self, m, accepted: bool = True) -> None:
         """Take measurement ``m`` (stamp order); ``accepted``: whether the plausibility screen
@@ -118,21 +107,8 @@ class GpsWatch:
             if m.enu is not None:
                 self._fix(m)
             return
-        if not accepted or m.sensor not in (self.v_src, self.w_src):
-            return
-        self._advance(m.t)
-        if typ is WheelOdometry:
-            if m.sensor == self.v_src and m.v is not None:
-                self._v = m.v
-            if m.sensor == self.w_src and m.yaw_rate is not None:
-                self._w = m.yaw_rate
-        elif typ is GyroYawRate:
-            self._w = m.yaw_rate
-        elif typ is WheelSpeeds:
-            v, w, _, _ = m.twist(*self.geometry)
-            self._v = v
-            if m.sensor == self.w_src:
-                self._w = w
+        if accepted:
+            self.dr.feed(m)
 
     def finish(self) -> None:
         """At the end of the input: close the open episodes."""
@@ -145,26 +121,14 @@ class GpsWatch:
         return [e.describe(t0) for e in self.episodes]
 
     # --- inside ----------------------------------------------------------------------------
-    def _advance(self, t: float) -> None:
-        if self._t is not None and t > self._t:
-            dt = t - self._t
-            # the twist held since the last sample, integrated at the mid heading
-            h = self._yaw + 0.5 * self._w * dt
-            step = self._v * dt
-            self._x += step * math.cos(h)
-            self._y += step * math.sin(h)
-            self._s += abs(step)
-            self._yaw += self._w * dt
-        if self._t is None or t > self._t:
-            self._t = t
-
     def _fix(self, m: GpsFix) -> None:
-        if self._t is None:
+        dr = self.dr
+        if dr.t is None:
             return  # no dead reckoning yet
-        self._advance(m.t)
+        dr.advance(m.t)
         c = m.cov
         now = _Ref(m.t, m.enu[0], m.enu[1], math.sqrt(max(c[0, 0], c[1, 1], 0.0)),
-                   self._x, self._y, self._s)
+                   dr.x, dr.y, dr.s)
         refs = self._refs.setdefault(m.sensor, deque())
         ref = None
         while len(refs) >= 2 and refs[1].t <= m.t - WINDOW_S:

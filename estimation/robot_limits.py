@@ -41,6 +41,16 @@ fix where the robot was seconds before looks the same; the next run back to it u
 the same cost). Otherwise the run is a jump away, held as above. A sample beyond the top speed
 or yaw rate never re-anchors.
 
+Aided by the odometry (``ddfuse.estimation.gps_motion``): where the twist samples the screen
+passed can tell (a speed source, the rotation from their frame to ENU learnt from accepted
+fixes, no gap in the feed between the two fixes), a fix must also lie where the motion
+dead-reckoned from the other fix puts it, within the fixes' noise and the dead reckoning's
+own drift allowance. There the dead reckoning, not the GPS alone, decides a held jump: a fix
+that fits the anchor so is taken (the hold above is for the aged top-speed reach, which the
+motion test replaces), and a fix accepted after a gap is not provisional when the odometry
+vouches for it (its drift allowance within the fixes' noise: the gap was the screen's own
+rejections, not an outage), so a run of jumped fixes cannot re-anchor on it.
+
 Each rejection is counted in ``rejected[(topic, reason)]`` (``Stream.rejected``); ``warnings()``
 gives one line per topic and reason with the count, the first time, value and limit. Design and
 measured figures: docs/design/plausibility.md.
@@ -54,6 +64,7 @@ from collections import Counter, deque
 from dataclasses import dataclass
 
 from ddfuse.estimation.config import Config
+from ddfuse.estimation.gps_motion import MotionCheck
 from ddfuse.estimation.measurements import GpsFix, GyroYawRate, WheelOdometry, WheelSpeeds
 
 __all__ = ["DEFAULT_MAX_ACCEL", "DEFAULT_MAX_YAW_ACCEL", "GAP_S", "K_SIGMA", "K_SIGMA_GPS",
@@ -97,6 +108,7 @@ class _Fix:
     e: float
     n: float
     sd: float  # m
+    dr: tuple[float, float, float, int] | None = None  # the dead reckoning (gps_motion)
 
 
 class RobotLimits:
@@ -112,6 +124,7 @@ class RobotLimits:
         self.alpha_max = r.max_yaw_accel if r.max_yaw_accel else DEFAULT_MAX_YAW_ACCEL
         self.geometry = (r.wheel_radius, r.track_width)
         self._channels: dict[tuple[str, str], _Channel] = {}
+        self.motion = MotionCheck(cfg, K_SIGMA_GPS)  # fixes against the dead reckoning
         # sensor -> (anchor, how many more agreeing fixes confirm it: 0 = confirmed)
         self._fix: dict[str, tuple[_Fix, int]] = {}
         self._fix_run: dict[str, list[_Fix]] = {}
@@ -129,6 +142,13 @@ class RobotLimits:
     def admit(self, m) -> bool:
         """Whether measurement ``m`` (stamp order per sensor) is plausible; a rejected one is
         counted. Measurements of other kinds always pass."""
+        self.motion.tick(m.t)
+        ok = self._admit(m)
+        if ok:
+            self.motion.dr.feed(m)
+        return ok
+
+    def _admit(self, m) -> bool:
         typ = type(m)
         if typ is WheelOdometry:
             ok = True
@@ -201,21 +221,24 @@ class RobotLimits:
     def _gps(self, m: GpsFix) -> bool:
         c = m.cov
         sd = math.sqrt(max(c[0, 0], c[1, 1], 0.0))
-        fix = _Fix(m.t, m.enu[0], m.enu[1], sd)
+        fix = _Fix(m.t, m.enu[0], m.enu[1], sd, self.motion.state(m.t))
         prev = self._fix.get(m.sensor)
         if prev is None:
             self._take(m.sensor, fix, REANCHOR)
             return True
         anchor, unconfirmed = prev
         run = self._fix_run.get(m.sensor)
-        if self._fix_fits(anchor, fix) and not self._holds(run, anchor, fix):
-            self._fix[m.sensor] = (fix, REANCHOR if fix.t - anchor.t > GAP_S
-                                   else max(unconfirmed - 1, 0))
+        if self._fix_fits(m.sensor, anchor, fix) and not self._holds(m.sensor, run, anchor, fix):
+            # after a gap a fix is provisional, unless the odometry vouches for it (a gap made
+            # of rejected fixes: the jump, not the fix after it, was the glitch)
+            gap = fix.t - anchor.t > GAP_S and not self.motion.vouches(m.sensor, anchor, fix)
+            self._fix[m.sensor] = (fix, REANCHOR if gap else max(unconfirmed - 1, 0))
             self._recent[m.sensor].append(fix)
+            self.motion.accepted(m.sensor, fix)
             self._fix_run.pop(m.sensor, None)
             self._return_to.pop(m.sensor, None)
             return True
-        if run and self._fix_fits(run[-1], fix):
+        if run and self._fix_fits(m.sensor, run[-1], fix):
             run.append(fix)
             back_to = self._return_to.get(m.sensor)
         else:
@@ -224,8 +247,9 @@ class RobotLimits:
         other, since = self._before_jump.get(m.sensor, (None, 0.0))
         # back to the side before a jump taken at ``since`` (for HOLD_S after it), or before a
         # jump accepted within reach
-        back = other is not None and fix.t - since <= HOLD_S and self._fix_fits(other, fix)
-        returns = back_to is not None and self._fix_fits(back_to, fix)
+        back = (other is not None and fix.t - since <= HOLD_S
+                and self._fix_fits(m.sensor, other, fix))
+        returns = back_to is not None and self._fix_fits(m.sensor, back_to, fix)
         if len(run) >= REANCHOR and (unconfirmed or back or returns
                                      or fix.t - run[0].t > HOLD_S):
             if (back or unconfirmed) and not returns:
@@ -248,6 +272,8 @@ class RobotLimits:
         side to return to."""
         self._fix[sensor] = (fix, unconfirmed)
         self._recent[sensor] = deque([fix], maxlen=REANCHOR)
+        self.motion.forget(sensor)
+        self.motion.accepted(sensor, fix)
         self._fix_run.pop(sensor, None)
         self._return_to.pop(sensor, None)
 
@@ -268,16 +294,22 @@ class RobotLimits:
                 return h
         return None
 
-    def _holds(self, run: list[_Fix] | None, anchor: _Fix, fix: _Fix) -> bool:
+    def _holds(self, sensor: str, run: list[_Fix] | None, anchor: _Fix, fix: _Fix) -> bool:
         """Whether ``fix``, within reach of ``anchor`` only because the anchor has aged, goes on
         the rejected ``run`` (a held jump): it fits the run's last fix, nearer than the anchor.
-        (A run longer than ``HOLD_S`` re-anchors in ``_gps``.)"""
-        if not run or not self._fix_fits(run[-1], fix):
+        Never where the odometry can tell: its test has no aged reach. (A run longer than
+        ``HOLD_S`` re-anchors in ``_gps``.)"""
+        if not run or not self._fix_fits(sensor, run[-1], fix) or \
+                self.motion.tells(sensor, anchor, fix):
             return False
         last = run[-1]
         return math.hypot(fix.e - last.e, fix.n - last.n) < \
             math.hypot(fix.e - anchor.e, fix.n - anchor.n)
 
-    def _fix_fits(self, a: _Fix, b: _Fix) -> bool:
+    def _fix_fits(self, sensor: str, a: _Fix, b: _Fix) -> bool:
+        """Whether ``b`` is within the top speed's reach of ``a`` and, where the odometry can
+        tell, where the motion dead-reckoned between them puts it (``gps_motion``)."""
         d = math.hypot(b.e - a.e, b.n - a.n)
-        return d <= self.v_max * abs(b.t - a.t) + K_SIGMA_GPS * math.hypot(a.sd, b.sd)
+        if d > self.v_max * abs(b.t - a.t) + K_SIGMA_GPS * math.hypot(a.sd, b.sd):
+            return False
+        return self.motion.fits(sensor, a, b) is not False

@@ -312,3 +312,100 @@ def test_the_live_converter_rejects_and_counts(tmp_path):
 def test_the_clean_sample_bags_lose_nothing_to_the_screen(bag, cfg):
     s = read_stream(ROOT / "data" / bag, load_config(ROOT / "data" / cfg))
     assert s.rejected == {}
+
+
+# --- aided by the odometry --------------------------------------------------------------------
+
+CAR = ", max_speed: 25.0, max_yaw_rate: 2.0"  # a car at 10 m/s, top speed 2.5 times that
+
+
+def _with_odometry(fixes: list[GpsFix], v: float = 10.0) -> list:
+    """``fixes`` merged in stamp order with 10 Hz odometry of a car driving east at ``v``."""
+    n = round((fixes[-1].t - T0) / 0.1) + 1
+    return sorted([*fixes, *(_odo(i, v, 0.0) for i in range(n))], key=lambda m: m.t)
+
+
+def _car(n: int, v: float = 10.0) -> list[GpsFix]:
+    return [_fix(T0 + 0.5 * i, v * 0.5 * i, 0.0, sd=1.5) for i in range(n)]
+
+
+def _fix_results(screen: RobotLimits, ms: list) -> list[bool]:
+    return [ok for m, ok in ((m, screen.admit(m)) for m in ms) if isinstance(m, GpsFix)]
+
+
+def test_an_nlos_run_after_a_gap_of_rejected_fixes_does_not_become_the_anchor():
+    """Urban seed 10's pattern (150-220 s): 4 NLOS fixes 42 m off are rejected, the 3 true fixes
+    after them come 2.5 s after the last accepted one (provisional to the GPS alone), and a
+    burst of 13 fixes 42 m off follows. GPS alone, 5 of the burst re-anchored on the
+    provisional anchor, the burst confirmed itself, and the true fixes after it were held as a
+    jump for HOLD_S (60 s). The odometry vouches for the true fixes after the rejected ones and
+    puts the burst off the dead-reckoned track: every true fix passes, no jumped one."""
+    screen, _ = _screen(CAR)
+    fixes = _car(240)  # 120 s east at 10 m/s, 2 Hz
+    jumped = [*range(60, 64), *range(67, 80)]
+    for i in jumped:
+        fixes[i].enu = (fixes[i].enu[0], 42.0, 0.0)
+    passed = _fix_results(screen, _with_odometry(fixes))
+    assert passed == [i not in jumped for i in range(240)]
+
+
+def test_gps_alone_holds_the_true_fixes_after_that_nlos_run():
+    """The same fixes without odometry: the screen has only the GPS's word (the behaviour above
+    is the odometry's doing)."""
+    screen, _ = _screen(CAR)
+    fixes = _car(240)
+    for i in [*range(60, 64), *range(67, 80)]:
+        fixes[i].enu = (fixes[i].enu[0], 42.0, 0.0)
+    passed = [screen.admit(f) for f in fixes]
+    assert not any(passed[80:80 + round(HOLD_S / 0.5)])
+
+
+def test_a_jump_within_the_top_speeds_reach_is_rejected_off_the_dead_reckoned_track():
+    """15 m north for one fix at 10 m/s: within the top speed's 12.5 m plus 12.7 m of noise, so
+    the GPS alone takes it; the odometry puts the car on the line (15 m against 12.7 m of noise
+    and 1.8 m of drift)."""
+    fixes = _car(100)
+    fixes[50].enu = (fixes[50].enu[0], 15.0, 0.0)
+    aided, _ = _screen(CAR)
+    assert _fix_results(aided, _with_odometry(fixes)) == [i != 50 for i in range(100)]
+    alone, _ = _screen(CAR)
+    assert all(alone.admit(f) for f in fixes)
+
+
+def test_a_gps_wrong_for_minutes_is_rejected_counted_then_said_by_the_estimator():
+    """From 40 s on every fix is 60 m north (a wrong datum) while the robot drives east at
+    2 m/s: the screen rejects the shifted fixes, counted and warned, until the odometry's own
+    drift allowance covers 60 m (well before HOLD_S: the screen no longer holds a jump on the
+    GPS's word alone where the odometry can tell); then the EKF under the robust model judges
+    them and says that GPS and odometry disagree and that it follows the odometry: neither
+    silently trusted nor silently dropped."""
+    import test_gps_robust as gr
+    from ddfuse.ekf_baseline.unicycle import UnicycleEkf
+    from drives import straight_drive
+
+    cfg = gr._cfg("cauchy")  # the robust-GPS tests' drive: wheels, gyro, 5 Hz fixes
+    rejected: Counter = Counter()
+    screen = RobotLimits(cfg, rejected)
+    ekf = UnicycleEkf(cfg, initial_pose=(0.0, 0.0, 0.0))
+    passed = []
+    for m in straight_drive(gr.DATUM, 0.0, 2.0, 120.0, np.random.default_rng(11),
+                            r_wheel=gr.R_WHEEL,
+                            sig_wheel=0.1, sig_gyro=0.01, sig_gps=1.0,
+                            fix_hook=lambda t, e, n: (e, n + 60.0) if t >= 40.0 else (e, n)):
+        if isinstance(m, GpsFix):
+            m.enu = geodesy.geodetic_to_enu(m.lat, m.lon, m.alt, *gr.DATUM)
+        ok = screen.admit(m)
+        if isinstance(m, GpsFix):
+            passed.append((m.t, ok))
+        if ok:
+            ekf.process(m)
+    ekf.finish()
+    assert all(ok for t, ok in passed if t < 40.0)
+    taken = next(t for t, ok in passed if t >= 40.0 and ok)
+    assert 45.0 < taken < 40.0 + HOLD_S
+    assert sum(rejected.values()) == sum(1 for t, ok in passed if 40.0 <= t < taken)
+    (w,) = screen.warnings()
+    assert "robot.max_speed" in w
+    said = [n for n in ekf.log.messages if "disagree" in n]
+    assert said and "following the odometry" in said[0]
+    assert float(said[0].split(":")[0][2:]) >= taken
