@@ -413,6 +413,11 @@ def _staged_search(problem: Problem, ev: Evaluator, progress, t_start: float) ->
         params[i].start = 0.0  # log -inf: held, the likelihood's exp gives 0
     first = _search(problem, ev, progress, t_start, np.array(
         [p.kind not in NOT_SEARCHED + ("common",) for p in params], bool))
+    for i in common:
+        params[i].start = stated[i]
+    common = _frames_common(problem, first, common)
+    if not common:
+        return first
     sensors = {params[i].sensor for i in common}
     corr_sigma = {s: _bearing_sigma(first, s, "bearing") for s in sensors}
     for i in common:
@@ -434,6 +439,36 @@ def _staged_search(problem: Problem, ev: Evaluator, progress, t_start: float) ->
     second.iterations += first.iterations
     second.corr_sigma = {s: v for s, v in corr_sigma.items() if v}
     return second
+
+
+def _frames_common(problem: Problem, first: TuneResult, common: list[int]) -> list[int]:
+    """Of the 'common' parameters ``common`` (indices), those the second stage fits: stated
+    (> 0) in the config, or not stated and the frames' bearing innovations of one run at the
+    first stage's values correlated (``evaluation.tune_frames``). The others' outcomes in
+    ``first`` say why not (a stated 0: the config's)."""
+    from ddfuse.evaluation.tune_frames import frame_correlation, shows_common
+
+    keep, log = [], None
+    for i in common:
+        p = first.tuned[i].param
+        if p.before is not None:
+            if p.before > 0.0:
+                keep.append(i)
+            else:
+                first.tuned[i].reason = "the config states 0: left as the config has it"
+            continue
+        if log is None:
+            est, _ = problem.run(first.values())
+            log = est.log.innovations
+        corr, pairs = frame_correlation(log, p.sensor)
+        if shows_common(corr, pairs):
+            keep.append(i)
+            continue
+        first.tuned[i].reason = (
+            f"the frames' bearing innovations under the independent model are white enough "
+            f"(correlation {corr:.3g} over {pairs} pairs of same-frame sightings; "
+            "evaluation.tune_frames): no common part fitted")
+    return keep
 
 
 def _scaled_start(params: list[Param], x0: np.ndarray, ev: Evaluator, seen: dict

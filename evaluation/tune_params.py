@@ -15,10 +15,11 @@ noise density:
   error common to a frame's sightings (``estimation.landmark_frames``), searched with the
   bearing (the common part moves every sighting of a frame alike, the own part their
   differences), in a second stage after the others (``evaluation.tune._staged_search``),
-  from the config's value, and may end 'negligible' like a process noise. Only where the
-  config states one (> 0): started from none, the search on mrclam1_robot1.bag drove the own
-  bearing sigma to 0.005 rad and lost the correlation time, NEES 7-39 (docs/design/tuning.md,
-  session 22), so a config without it tunes as before;
+  and may end 'negligible' like a process noise. Every landmark sensor fusing bearings has
+  one (start 0 where the config states none, ``source`` 'frames'); the second stage runs for
+  a sensor whose config states it (> 0) or whose frames' innovations under the first stage's
+  independent model are correlated (``evaluation.tune_frames``); otherwise it stays as the
+  config has it;
 * a landmark sensor's ``correlation_time`` (s, kind 'corr'): not searched by the likelihood
   but set by the sightings' neighbour scatter at the tuned bearing sigma (``evaluation.tune``);
   an IMU's yaw ``correlation_time`` (kind 'corr'): measured against the gyro's integral
@@ -101,8 +102,9 @@ class Param:
     label: str
     start: float
     before: float | None
-    # 'config', 'messages' (median of the stream's), 'default' or 'max_accel' (the twist walk
-    # the robot's acceleration limit gives)
+    # 'config', 'messages' (median of the stream's), 'default', 'max_accel' (the twist walk
+    # the robot's acceleration limit gives) or 'frames' (a bearing_common the config does not
+    # state: fitted where the frames' innovations show one)
     source: str
     unit: str
     sensor: str | None = None  # the sensor's name (its noise or walk), None for the robot's
@@ -154,11 +156,10 @@ def parameters(cfg: Config, stream: Stream) -> list[Param]:
             if (kind, key) == ("imu", "yaw"):
                 out.append(_heading_correlation(cfg, stream, s, i))
             if (kind, key) == ("landmarks", "bearing"):
-                common = s.noise.get("bearing_common")
-                if common:  # stated (> 0): the user says the frames share an error; fitted
-                    out.append(Param(f"{base}.bearing_common", f"{s.name} bearing_common",
-                                     common, common, "config", "rad", s.name, "common",
-                                     "bearing_common"))
+                common = s.noise.get("bearing_common")  # stated 0: the user says none
+                out.append(Param(f"{base}.bearing_common", f"{s.name} bearing_common",
+                                 common or 0.0, common, "frames" if common is None else
+                                 "config", "rad", s.name, "common", "bearing_common"))
                 tau = float(s.correlation_time)
                 out.append(Param(f"sensors.landmarks[{i}].correlation_time",
                                  f"{s.name} correlation_time", tau, tau, "config", "s",

@@ -258,9 +258,10 @@ def test_the_smoother_fuses_the_frame_alike():
     assert 0.5 < out[0] < 1.4 and out[1] > 1.4 * out[0], out
 
 
-def test_tune_fits_the_common_part_only_where_the_config_states_one():
+def test_tune_has_a_common_part_for_each_landmark_sensor_from_the_config_or_none():
     """A config stating bearing_common gets it as a tune parameter (kind 'common', applied to
-    the config the estimators read); one without it tunes as before (no such parameter)."""
+    the config the estimators read) from its value; one without it from 0 (source 'frames':
+    fitted only where the frames' innovations show it, ``tune._frames_common``)."""
     from ddfuse.estimation.measurements import Stream
     from ddfuse.evaluation.tune_params import Applier, parameters
 
@@ -268,7 +269,8 @@ def test_tune_fits_the_common_part_only_where_the_config_states_one():
     st = Stream(meas)
     for s in cfg_of(None).sensors:
         s.noise = {"range": 0.1, "bearing": 0.01} if s.kind == "landmarks" else {"v": 0.1}
-    assert not [p for p in parameters(cfg_of(None), st) if p.kind == "common"]
+    assert [(p.start, p.before, p.source) for p in parameters(cfg_of(None), st)
+            if p.kind == "common"] == [(0.0, None, "frames")]
     cfg = cfg_of(0.02)
     cfg.sensors[1].noise.update(range=0.1, bearing=0.01)
     ps = parameters(cfg, st)
@@ -316,3 +318,22 @@ def test_the_staged_search_holds_the_common_part_at_zero_then_splits_the_bearing
     assert mask2 == [True, True, True, False]
     assert out.corr_sigma == {"lm": 0.0226}  # the correlation time's rule: the independent sigma
     assert [t.value for t in out.tuned] == [0.119, 0.0045, 0.0083, 0.03]
+
+
+@pytest.mark.parametrize("own, common, shows", [(0.005, 0.03, True), (0.03, 0.0, False)])
+def test_the_independent_models_innovations_show_a_common_bearing_error(own, common, shows):
+    """The decision to fit a bearing_common the config does not state (``tune_frames``): the
+    landmark EKF fusing every sighting as independent (each bearing's whole variance stated)
+    gives same-frame bearing innovations correlated when the frames share an error, white when
+    they do not."""
+    from ddfuse.evaluation.tune_frames import frame_correlation, shows_common
+
+    truth, meas = simulate(3, own, common)
+    ekf = LandmarkEkf(cfg_of(None), landmarks=LANDMARKS, compiled=False,
+                      initial_pose=tuple(truth[0, 1:]), init_std=(0.05, 0.05, 0.02))
+    for m in with_bearing_var(meas, own**2 + common**2):
+        ekf.process(m)
+    corr, pairs = frame_correlation(ekf.log.innovations, "lm")
+    assert pairs > 100
+    assert shows_common(corr, pairs) is shows, corr
+    assert (corr > 0.5) if shows else (abs(corr) < 0.1), corr
