@@ -415,7 +415,7 @@ def _staged_search(problem: Problem, ev: Evaluator, progress, t_start: float) ->
         [p.kind not in NOT_SEARCHED + ("common",) for p in params], bool))
     for i in common:
         params[i].start = stated[i]
-    common = _frames_common(problem, first, common)
+    common, found = _frames_common(problem, first, common)
     if not common:
         return first
     sensors = {params[i].sensor for i in common}
@@ -438,17 +438,22 @@ def _staged_search(problem: Problem, ev: Evaluator, progress, t_start: float) ->
     second.nll_start = first.nll_start
     second.iterations += first.iterations
     second.corr_sigma = {s: v for s, v in corr_sigma.items() if v}
+    for i, why in found.items():
+        t = second.tuned[i]
+        t.reason = f"{why}; {t.reason}" if t.reason else why
     return second
 
 
-def _frames_common(problem: Problem, first: TuneResult, common: list[int]) -> list[int]:
+def _frames_common(problem: Problem, first: TuneResult, common: list[int]
+                   ) -> tuple[list[int], dict[int, str]]:
     """Of the 'common' parameters ``common`` (indices), those the second stage fits: stated
     (> 0) in the config, or not stated and the frames' bearing innovations of one run at the
-    first stage's values correlated (``evaluation.tune_frames``). The others' outcomes in
-    ``first`` say why not (a stated 0: the config's)."""
+    first stage's values correlated (``evaluation.tune_frames``), with the latter's reasons
+    ({index: words}). The others' outcomes in ``first`` say why not (a stated 0: the
+    config's)."""
     from ddfuse.evaluation.tune_frames import frame_correlation, shows_common
 
-    keep, log = [], None
+    keep, log, found = [], None, {}
     for i in common:
         p = first.tuned[i].param
         if p.before is not None:
@@ -463,12 +468,15 @@ def _frames_common(problem: Problem, first: TuneResult, common: list[int]) -> li
         corr, pairs = frame_correlation(log, p.sensor)
         if shows_common(corr, pairs):
             keep.append(i)
+            found[i] = (f"fitted: the frames' bearing innovations under the independent model "
+                        f"are correlated ({corr:.3g} over {pairs} pairs of same-frame "
+                        "sightings; evaluation.tune_frames)")
             continue
         first.tuned[i].reason = (
             f"the frames' bearing innovations under the independent model are white enough "
             f"(correlation {corr:.3g} over {pairs} pairs of same-frame sightings; "
             "evaluation.tune_frames): no common part fitted")
-    return keep
+    return keep, found
 
 
 def _scaled_start(params: list[Param], x0: np.ndarray, ev: Evaluator, seen: dict

@@ -337,3 +337,45 @@ def test_the_independent_models_innovations_show_a_common_bearing_error(own, com
     assert pairs > 100
     assert shows_common(corr, pairs) is shows, corr
     assert (corr > 0.5) if shows else (abs(corr) < 0.1), corr
+
+
+@pytest.mark.parametrize("correlated", [True, False])
+def test_an_unstated_common_part_is_fitted_only_where_the_frames_show_one(monkeypatch,
+                                                                         correlated):
+    """No bearing_common in the config: after the first stage one run at its values decides;
+    correlated same-frame bearing innovations start the second stage (and the outcome says
+    why), white ones end the search there (and the outcome says why not)."""
+    from types import SimpleNamespace
+
+    from ddfuse.estimation.estimator import Innovation
+    from ddfuse.evaluation import tune
+    from ddfuse.evaluation.tune_params import Param
+
+    params = [Param("k.bearing", "bearing", 0.03, 0.03, "config", "rad", "lm", "landmarks",
+                    "bearing"),
+              Param("k.common", "common", 0.0, None, "frames", "rad", "lm", "common",
+                    "bearing_common")]
+    rng = np.random.default_rng(0)
+    log = []
+    for k in range(200):  # frames of two sightings; bearing innovations share c if correlated
+        c = rng.normal() if correlated else 0.0
+        for _ in range(2):
+            r = np.array([0.0, 0.01 * (c + rng.normal())])
+            log.append(Innovation(float(k), "lm", "landmark", r, np.diag([0.01, 2e-4]), 1.0))
+    ran = []
+    problem = SimpleNamespace(params=params, run=lambda values: (
+        ran.append(values) or SimpleNamespace(log=SimpleNamespace(innovations=log)), None))
+    calls = []
+
+    def fake_search(problem, ev, progress, t0, search=None):
+        calls.append(list(search))
+        return tune.TuneResult("ekf_landmark", [
+            tune.Tuned(p, 0.02 if s else p.before, "tuned" if s else "not informed")
+            for p, s in zip(problem.params, search, strict=True)])
+
+    monkeypatch.setattr(tune, "_search", fake_search)
+    out = tune._staged_search(problem, None, None, 0.0)
+    assert len(ran) == 1 and ran[0] == [0.02, None]  # the first stage's values, no common
+    assert calls == ([[True, False], [True, True]] if correlated else [[True, False]])
+    why = out.tuned[1].reason
+    assert why.startswith("fitted: ") if correlated else "white enough" in why, why
