@@ -24,9 +24,13 @@ import subprocess
 import sys
 from pathlib import Path
 
-# Seconds by which the helper starts behind this process's figures when it is started after
-# this process has imported matplotlib (its own interpreter start and imports): its share of
-# the figures is that much smaller (``report_figures.split``).
+# Seconds by which the helper starts behind this process's figures (its share of the figures
+# is that much smaller: ``report_figures.split``). Started before this process imports
+# matplotlib (``ddfuse report``): this process's own start before it (interpreter, the
+# command's modules) and the helper's interpreter start, less the page this process builds
+# after the figures. Started after (``render_report`` from Python, ``ddfuse run``): also the
+# helper's imports. Measured: docs/results/secondary_speed.md, session 23.
+EARLY_START_S = 0.2
 LATE_START_S = 0.7
 
 
@@ -47,10 +51,10 @@ def wanted() -> bool:
 
 class Helper:
     """The helper process for the run in ``outdir``; ``lead_s``: how many seconds of figures
-    this process will have drawn before the helper is ready (``LATE_START_S`` when started
-    after the imports, else 0)."""
+    this process will have drawn before the helper is ready (``EARLY_START_S`` or
+    ``LATE_START_S``)."""
 
-    def __init__(self, outdir: Path, lead_s: float = 0.0) -> None:
+    def __init__(self, outdir: Path, lead_s: float = EARLY_START_S) -> None:
         self.lead_s = lead_s
         # stdin closed: the helper reads nothing; stderr shared, as a figure's warnings are
         self._proc = subprocess.Popen(
@@ -76,7 +80,7 @@ class Helper:
         self._proc.stdout.close()
 
 
-def start(outdir: Path, lead_s: float = 0.0) -> Helper | None:
+def start(outdir: Path, lead_s: float = EARLY_START_S) -> Helper | None:
     """A helper for ``outdir``'s figures (``Helper``), or None where none is ``wanted`` or
     none can be started (the figures are then all drawn in this process)."""
     if not wanted():

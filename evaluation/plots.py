@@ -70,12 +70,18 @@ def colors(names: Sequence[str]) -> dict[str, str]:
     return {n: PALETTE.get(n) or _OTHER[zlib.crc32(n.encode()) % len(_OTHER)] for n in names}
 
 
-def subplots(nrows: int = 1, ncols: int = 1, *, figsize: tuple[float, float], **kw
-             ) -> tuple[Figure, object]:
-    """``pyplot.subplots`` without pyplot: a Figure on its own Agg canvas (no backend chosen
-    or changed, no display needed, nothing to close) and its axes (``Figure.subplots``)."""
+def figure(figsize: tuple[float, float]) -> Figure:
+    """An empty Figure (``figsize`` in inches) on its own Agg canvas, without pyplot: no
+    backend chosen or changed, no display needed, nothing to close."""
     fig = Figure(figsize=figsize)
     FigureCanvasAgg(fig)
+    return fig
+
+
+def subplots(nrows: int = 1, ncols: int = 1, *, figsize: tuple[float, float], **kw
+             ) -> tuple[Figure, object]:
+    """``pyplot.subplots`` without pyplot: a ``figure`` and its axes (``Figure.subplots``)."""
+    fig = figure(figsize)
     return fig, fig.subplots(nrows, ncols, **kw)
 
 
@@ -182,8 +188,9 @@ def _finish(fig: Figure) -> Figure:
                 label_log_axis(axis)
     legible(fig)
     # Not fig.tight_layout(): it leaves a placeholder engine on the figure, and savefig then
-    # draws the whole figure once more (without rendering) before it renders it.
-    TightLayoutEngine().execute(fig)
+    # draws the whole figure once more (without rendering) before it renders it. rect=None as
+    # fig.tight_layout() passes it: with a rect, the layout measures every panel twice.
+    TightLayoutEngine(rect=None).execute(fig)
     return fig
 
 
@@ -594,16 +601,14 @@ def nis(run: SavedRun) -> Figure | None:
     ncol = max((len(g) for g in groups.values()), default=1)
     t0 = _t0(run)
     t_end = max((float(run.innovations[n].t.max()) - t0 for n in owners), default=1.0)
-    fig, axes = subplots(max(len(owners), 1), ncol, figsize=(PAGE_W,
-                             2.6 * max(len(owners), 1) + 0.3), squeeze=False)
-    for ax in axes.flat:
-        ax.set_axis_off()
+    fig = figure((PAGE_W, 2.6 * max(len(owners), 1) + 0.3))
+    # a panel only where a row has a sensor: an empty cell of the grid is left blank
+    grid = fig.add_gridspec(max(len(owners), 1), ncol)
     for r, name in enumerate(owners):
         table = run.innovations[name]
         nis_of = _nis_of(run, name)
         for c, (label, sel) in enumerate(groups[name].items()):
-            ax = axes[r, c]
-            ax.set_axis_on()
+            ax = fig.add_subplot(grid[r, c])
             t, v, acc = table.t[sel] - t0, table.nis[sel], table.accepted[sel]
             v = np.maximum(v, 1e-6)  # log axis: an exact zero sits at the floor
             ax.plot(t[acc], v[acc], ".", ms=1.5, color=cols[name], alpha=0.6)

@@ -1,7 +1,8 @@
-"""What a report figure costs beyond its drawing: ``plots._finish`` lays a figure out once and
-leaves no layout engine behind (else ``savefig`` draws the whole figure a second time before
-rendering it), ``plots.legible`` sizes the tick labels without making the ticks, and the
-figures' helper is one process (no resource tracker beside it)."""
+"""What a report figure costs beyond its drawing: ``plots._finish`` lays a figure out in one
+pass and leaves no layout engine behind (else ``savefig`` draws the whole figure a second time
+before rendering it), ``plots.legible`` sizes the tick labels without making the ticks, the NIS
+figure makes no blank panels, and the figures' helper is one process (no resource tracker beside
+it) that, like the command, starts without importlib.metadata."""
 
 from __future__ import annotations
 
@@ -26,6 +27,21 @@ def _figure() -> Figure:
         ax.legend(fontsize=6)
     axes[-1].set_xlabel("time [s]")
     return fig
+
+
+def test_the_layout_measures_each_panel_once(monkeypatch):
+    from matplotlib.axes import Axes
+
+    measured = []
+    real = Axes.get_tightbbox
+
+    def get_tightbbox(self, *a, **k):
+        measured.append(self)
+        return real(self, *a, **k)
+
+    monkeypatch.setattr(Axes, "get_tightbbox", get_tightbbox)
+    fig = plots._finish(_figure())
+    assert measured == fig.axes  # TightLayoutEngine with a rect (its default) measures twice
 
 
 def test_a_finished_figure_is_drawn_once_when_saved(monkeypatch):
@@ -72,3 +88,39 @@ def test_the_helper_is_a_single_process(tmp_path):
     out = subprocess.run([sys.executable, "-c", code, str(tmp_path / "none")], check=True,
                          capture_output=True, text=True, env=os.environ.copy()).stdout.split()
     assert out == ["1", "None"]
+
+
+def test_the_report_command_and_its_helper_start_without_importlib_metadata():
+    """``ddfuse.__version__`` is read when asked for: importlib.metadata (~25-50 ms of
+    imports) is not on the report's path, in either process."""
+    code = ("import sys; import ddfuse.evaluation.cli, ddfuse.evaluation.figure_helper; "
+            "print('importlib.metadata' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.split()
+    assert out == ["False"]
+
+
+def test_the_nis_figure_makes_a_panel_only_where_a_row_has_a_sensor():
+    from ddfuse.estimation.runner import Trajectory
+    from ddfuse.evaluation.consistency import InnovationTable
+    from ddfuse.evaluation.results import SavedRun
+
+    t = np.arange(0.0, 50.0, 0.5)
+    track = Trajectory(t, np.zeros((len(t), 3)), np.tile(np.eye(3) * 0.01, (len(t), 1, 1)))
+
+    def table(topics):
+        k = np.arange(len(t)) % len(topics)
+        return InnovationTable(t, np.array(topics)[k], np.full(len(t), "gps"), np.ones(len(t)),
+                               np.full(len(t), 2), np.ones(len(t), bool))
+
+    m = {"estimators": {n: {"samples": len(t), "nis": {}} for n in ("a", "b")},
+         "data": {"t0": 0.0, "gps_fixes": 0}}
+    run = SavedRun(None, m, {"a": track, "b": track}, None, np.zeros(0), np.zeros((0, 2)),
+                   np.zeros((0, 2, 2)), np.zeros(0, bool),
+                   innovations={"a": table(["/x", "/y", "/z"]), "b": table(["/x"])},
+                   log_owner={"a": "a", "b": "b"}, update_s={})
+    fig = plots.nis(run)
+    # rows a (3 sensors) and b (1) on a 2 x 3 grid: 4 panels, no blank axes beside them
+    assert len(fig.axes) == 4 and all(ax.axison for ax in fig.axes)
+    assert [ax.get_subplotspec().get_geometry() for ax in fig.axes] == [(2, 3, k, k)
+                                                                     for k in (0, 1, 2, 3)]
