@@ -2,9 +2,9 @@
 OUTDIR/plots/, drawn in this process and, where a ``figure_helper`` runs, part of them in it.
 
 Which figures the helper draws is worked out in both processes from the run's files alone
-(``split``): each figure's cost is estimated from its panel count, and the figures are dealt,
-largest first, to the process that would finish first. The page is the same whichever process
-drew a figure."""
+(``split``): each figure's cost is estimated from its panel count, and of all the ways to deal
+the figures to the two processes the one that ends soonest is taken. The page is the same
+whichever process drew a figure."""
 
 from __future__ import annotations
 
