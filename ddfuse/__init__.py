@@ -23,12 +23,6 @@ the command line), ``ddfuse.data`` (the shipped sample bags and configs).
 from __future__ import annotations
 
 from importlib import import_module
-from importlib.metadata import PackageNotFoundError, version
-
-try:
-    __version__ = version("ddfuse")
-except PackageNotFoundError:  # a source tree that was never installed
-    __version__ = "0+unknown"
 
 # name -> (module, attribute); attribute None: the module itself
 _FACADE = {
@@ -46,7 +40,21 @@ _FACADE = {
 __all__ = ["__version__", *_FACADE]
 
 
+def _version() -> str:
+    """The installed distribution's version ("0+unknown" in a source tree never installed)."""
+    # read when first asked for: importlib.metadata costs every ddfuse process ~25-50 ms
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("ddfuse")
+    except PackageNotFoundError:
+        return "0+unknown"
+
+
 def __getattr__(name: str):
+    if name == "__version__":
+        globals()[name] = value = _version()
+        return value
     try:
         module, attr = _FACADE[name]
     except KeyError:

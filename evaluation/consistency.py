@@ -171,8 +171,15 @@ class InnovationTable:
     def groups(self) -> dict[str, np.ndarray]:
         """Label 'sensor kind' -> boolean mask, in order of first appearance."""
         out: dict[str, np.ndarray] = {}
-        for s, k in dict.fromkeys(zip(self.sensor.tolist(), self.kind.tolist(), strict=True)):
-            out[f"{s} {k}"] = (self.sensor == s) & (self.kind == k)
+        # the earliest entry not yet in a group starts the next: a mask per group and nothing
+        # per entry (a long log has ~30 000 of them and a handful of groups)
+        left = np.ones(len(self.t), bool)
+        while left.any():
+            i = int(left.argmax())
+            s, k = self.sensor[i], self.kind[i]
+            mask = (self.sensor == s) & (self.kind == k)
+            out[f"{s} {k}"] = mask
+            left &= ~mask
         return out
 
 

@@ -21,7 +21,7 @@ from __future__ import annotations
 import io
 import math
 import zlib
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 
 import matplotlib.ticker
@@ -31,8 +31,11 @@ from ddfuse.evaluation.atomic_files import write_bytes
 from ddfuse.evaluation.figure_text import fit_lines
 from ddfuse.evaluation.local_frame import frame  # noqa: F401 - the figures' and report's frame
 from ddfuse.evaluation.results import SavedRun
+from matplotlib.axis import Axis
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.layout_engine import TightLayoutEngine
+from matplotlib.text import Text
 
 DPI = 100
 # Figure width [in]: at DPI, the report's content width in a 1 400 px window (1 368 px less
@@ -67,12 +70,18 @@ def colors(names: Sequence[str]) -> dict[str, str]:
     return {n: PALETTE.get(n) or _OTHER[zlib.crc32(n.encode()) % len(_OTHER)] for n in names}
 
 
-def subplots(nrows: int = 1, ncols: int = 1, *, figsize: tuple[float, float], **kw
-             ) -> tuple[Figure, object]:
-    """``pyplot.subplots`` without pyplot: a Figure on its own Agg canvas (no backend chosen
-    or changed, no display needed, nothing to close) and its axes (``Figure.subplots``)."""
+def figure(figsize: tuple[float, float]) -> Figure:
+    """An empty Figure (``figsize`` in inches) on its own Agg canvas, without pyplot: no
+    backend chosen or changed, no display needed, nothing to close."""
     fig = Figure(figsize=figsize)
     FigureCanvasAgg(fig)
+    return fig
+
+
+def subplots(nrows: int = 1, ncols: int = 1, *, figsize: tuple[float, float], **kw
+             ) -> tuple[Figure, object]:
+    """``pyplot.subplots`` without pyplot: a ``figure`` and its axes (``Figure.subplots``)."""
+    fig = figure(figsize)
     return fig, fig.subplots(nrows, ncols, **kw)
 
 
@@ -145,27 +154,43 @@ def label_log_axis(axis) -> None:
 def legible(fig: Figure, min_pt: float = MIN_PT) -> None:
     """Every text of ``fig`` (tick labels, titles, legends, annotations) at least ``min_pt``
     points."""
-    from matplotlib.text import Text
-
     for ax in fig.axes:
         for axis in (ax.xaxis, ax.yaxis):
-            ticks = axis.get_major_ticks()
-            if ticks and ticks[0].label1.get_fontsize() < min_pt:
+            # the first tick stands for those the axis makes when it is drawn (they copy its
+            # properties): asking for all of them here would make a tick per location now,
+            # and set_tick_params would then restyle each
+            if axis.majorTicks[0].label1.get_fontsize() < min_pt:
                 axis.set_tick_params(which="both", labelsize=min_pt)
-    for t in fig.findobj(Text):
+    for t in _texts(fig):
         if t.get_fontsize() < min_pt:
             t.set_fontsize(min_pt)
 
 
+def _texts(artist) -> Iterator[Text]:
+    """Every Text under ``artist`` but the tick labels: of an Axis, only its label and offset
+    text (its ticks' labels take the size ``legible`` gives the axis)."""
+    for child in artist.get_children():
+        if isinstance(child, Axis):
+            yield child.label
+            yield child.offsetText
+            continue
+        if isinstance(child, Text):
+            yield child
+        yield from _texts(child)
+
+
 def _finish(fig: Figure) -> Figure:
     """Label the ticks of log axes (``label_log_axis``), fonts at least MIN_PT (``legible``),
-    then lay the figure out tightly."""
+    then lay the figure out tightly, once: no layout engine is left on the figure."""
     for ax in fig.axes:
         for axis in (ax.xaxis, ax.yaxis):
             if axis.get_scale() == "log":
                 label_log_axis(axis)
     legible(fig)
-    fig.tight_layout()
+    # Not fig.tight_layout(): it leaves a placeholder engine on the figure, and savefig then
+    # draws the whole figure once more (without rendering) before it renders it. rect=None as
+    # fig.tight_layout() passes it: with a rect, the layout measures every panel twice.
+    TightLayoutEngine(rect=None).execute(fig)
     return fig
 
 
@@ -576,16 +601,14 @@ def nis(run: SavedRun) -> Figure | None:
     ncol = max((len(g) for g in groups.values()), default=1)
     t0 = _t0(run)
     t_end = max((float(run.innovations[n].t.max()) - t0 for n in owners), default=1.0)
-    fig, axes = subplots(max(len(owners), 1), ncol, figsize=(PAGE_W,
-                             2.6 * max(len(owners), 1) + 0.3), squeeze=False)
-    for ax in axes.flat:
-        ax.set_axis_off()
+    fig = figure((PAGE_W, 2.6 * max(len(owners), 1) + 0.3))
+    # a panel only where a row has a sensor: an empty cell of the grid is left blank
+    grid = fig.add_gridspec(max(len(owners), 1), ncol)
     for r, name in enumerate(owners):
         table = run.innovations[name]
         nis_of = _nis_of(run, name)
         for c, (label, sel) in enumerate(groups[name].items()):
-            ax = axes[r, c]
-            ax.set_axis_on()
+            ax = fig.add_subplot(grid[r, c])
             t, v, acc = table.t[sel] - t0, table.nis[sel], table.accepted[sel]
             v = np.maximum(v, 1e-6)  # log axis: an exact zero sits at the floor
             ax.plot(t[acc], v[acc], ".", ms=1.5, color=cols[name], alpha=0.6)

@@ -489,9 +489,9 @@ def estimator_options(cfg) -> str:
     return f"ekf.rate: {cfg.ekf.rate}; ekf_igvc.motion: {cfg.ekf_igvc.motion}"
 
 
-def _config(run: SavedRun) -> str:
+def _config(run: SavedRun, cfg) -> str:
+    """The Configuration section; ``cfg``: ``run_config(run)``."""
     m = run.summary
-    cfg = run_config(run)
     rows = [("estimators", ", ".join(m.estimators)),
             ("not run", "; ".join(f"{n}: {why}" for n, why in not_run(m, cfg)) or "–"),
             ("estimator options", estimator_options(cfg)),
@@ -581,6 +581,7 @@ def build_html(run: SavedRun, figures: list[tuple[str, bytes | None, str]],
                render_s: float) -> str:
     """The report page for ``run`` with its rendered ``figures``."""
     m = run.summary
+    cfg = run_config(run)  # parsed once: the summary table and the configuration use it
     bag = Path(str(m.bag)).name
     verdict = "".join(f"<li>{html.escape(line)}</li>" for line in verdict_lines(m))
     # the winner's line in bold: the first thing read
@@ -609,14 +610,14 @@ def build_html(run: SavedRun, figures: list[tuple[str, bytes | None, str]],
         "estimator's consistency per sensor, caveats</summary>"
         f"<ul>{verdict}</ul></details>"
         f"{_warnings(m)}"
-        f"<h2>Summary</h2>{_summary_table(m, run_config(run))}"
+        f"<h2>Summary</h2>{_summary_table(m, cfg)}"
         f"{tuning_section(run.outdir, m) if run.outdir else ''}"
         f"<h2>Consistency and gating per sensor</h2>{_nis_table(m)}"
         f"{_calibration_table(m)}"
         f"{_outage_table(m)}"
         f"<h2>Figures</h2>{figs}"
         f"<h2>Data</h2>{_facts(m)}"
-        f"<h2>Configuration</h2>{_config(run)}"
+        f"<h2>Configuration</h2>{_config(run, cfg)}"
         "</body></html>\n")
 
 

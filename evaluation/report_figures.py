@@ -2,12 +2,13 @@
 OUTDIR/plots/, drawn in this process and, where a ``figure_helper`` runs, part of them in it.
 
 Which figures the helper draws is worked out in both processes from the run's files alone
-(``split``): each figure's cost is estimated from its panel count, and the figures are dealt,
-largest first, to the process that would finish first. The page is the same whichever process
-drew a figure."""
+(``split``): each figure's cost is estimated from its panel count, and of all the ways to deal
+the figures to the two processes the one that ends soonest is taken. The page is the same
+whichever process drew a figure."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from pathlib import Path
 
@@ -22,12 +23,14 @@ from ddfuse.evaluation.verdict import track_kind
 FIGURES = ("trajectories", "trajectory_zooms", "trajectories_each", "errors", "nees", "nis",
            "covariance", "latency")
 
-# Estimated CPU seconds of a figure: PER_FIGURE (canvas, layout, PNG) plus PER_PANEL per panel
-# drawn (ticks, labels and titles dominate; the data's points hardly count:
-# docs/results/secondary_speed.md). Only their ratios matter to ``split``.
-PER_FIGURE = 0.1
+# Estimated CPU seconds of a figure: PER_FIGURE (canvas, PNG) plus PER_PANEL per panel drawn
+# times the figure's weight (ticks, labels and titles dominate; the data's points hardly
+# count). The weights are measured (docs/results/secondary_speed.md, session 23); only the
+# ratios matter to ``split``.
+PER_FIGURE = 0.05
 PER_PANEL = 0.1
-PANEL_WEIGHT = {"trajectories": 2.0, "covariance": 1.5, "latency": 2.0, "nis": 1.4}
+PANEL_WEIGHT = {"trajectories": 2.5, "trajectory_zooms": 1.8, "errors": 1.1, "nees": 2.0,
+                "nis": 1.4, "covariance": 1.6, "latency": 1.5}
 
 
 def panels(run: SavedRun, n_zooms: int) -> dict[str, int]:
@@ -50,21 +53,22 @@ def panels(run: SavedRun, n_zooms: int) -> dict[str, int]:
 
 
 def split(run: SavedRun, n_zooms: int, lead_s: float) -> tuple[list[str], list[str]]:
-    """(this process's figures, the helper's), each in page order: the figures dealt largest
-    estimated cost first (ties in page order) to whichever process has the least so far,
-    the helper starting ``lead_s`` seconds behind. Deterministic: both processes compute it."""
+    """(this process's figures, the helper's), each in page order: of all the ways to deal the
+    figures to the two, the one that ends soonest by estimated cost, the helper starting
+    ``lead_s`` seconds behind (ties: the first in a fixed order). Deterministic: both
+    processes compute it."""
     cost = {name: PER_FIGURE + PER_PANEL * PANEL_WEIGHT.get(name, 1.0) * k
             for name, k in panels(run, n_zooms).items() if k}
-    load = [0.0, lead_s]
-    share: list[list[str]] = [[], []]
-    for name in sorted(cost, key=lambda n: (-cost[n], FIGURES.index(n))):
-        i = 0 if load[0] <= load[1] else 1
-        share[i].append(name)
-        load[i] += cost[name]
+    names = [n for n in FIGURES if n in cost]
+    best, theirs = math.inf, frozenset()
+    for mask in range(2 ** len(names)):  # eight figures at most: 256 ways
+        helper = frozenset(n for i, n in enumerate(names) if mask >> i & 1)
+        ends = max(sum(cost[n] for n in names if n not in helper),
+                   lead_s + sum(cost[n] for n in helper) if helper else 0.0)
+        if ends < best - 1e-9:
+            best, theirs = ends, helper
     # a figure with no panels is only a note: this process writes it
-    none = [n for n in FIGURES if n not in cost]
-    return ([n for n in FIGURES if n in share[0] or n in none],
-            [n for n in FIGURES if n in share[1]])
+    return [n for n in FIGURES if n not in theirs], [n for n in FIGURES if n in theirs]
 
 
 def finish_seconds(e: EstimatorScores) -> float | None:

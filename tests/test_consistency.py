@@ -72,6 +72,18 @@ def test_nis_by_sensor_groups_and_gate_counts():
     assert by["/fix gps"].as_dict()["accepted"] == 29
 
 
+def test_groups_are_in_order_of_first_appearance_and_partition_the_log():
+    pairs = [("/imu", "heading"), ("/fix", "gps"), ("/imu", "gyro"), ("/fix", "gps"),
+             ("/imu", "heading"), ("/odom", "v"), ("/imu", "gyro"), ("/odom", "w")] * 3
+    table = cs.InnovationTable.from_innovations(
+        [_inn(0.1 * k, s, kind, 1.0) for k, (s, kind) in enumerate(pairs)])
+    groups = table.groups()
+    assert list(groups) == ["/imu heading", "/fix gps", "/imu gyro", "/odom v", "/odom w"]
+    for label, mask in groups.items():
+        assert mask.tolist() == [f"{s} {kind}" == label for s, kind in pairs], label
+    assert sum(m.astype(int) for m in groups.values()).tolist() == [1] * len(pairs)
+
+
 def test_average_nees_over_runs():
     runs = [np.array([1.0, 2.0, 3.0]), np.array([3.0, 4.0]), np.array([2.0, 3.0, 9.0, 9.0])]
     np.testing.assert_allclose(cs.average_nees(runs), [2.0, 3.0])

@@ -42,7 +42,8 @@ def test_events_header_counts_lockout_recoveries_as_accepted_as_the_gating_table
     # the report's Configuration section with this entry in place of the run's
     run = load_run(seed002_run)
     run.summary = replace(run.summary, estimators={"ekf": EstimatorScores.from_json(e)})
-    [head] = re.findall(r"<summary>ekf: (.*?)</summary>", report._config(run))
+    section = report._config(run, report.run_config(run))
+    [head] = re.findall(r"<summary>ekf: (.*?)</summary>", section)
     assert f"{table_rejected} rejected by the gate" in head, head
     assert f"{recoveries} lock-out recover" in head and "(measurement accepted)" in head
     assert "dropped" not in head  # nothing else was refused here

@@ -30,8 +30,6 @@ from ddfuse.evaluation.cli import (
 from ddfuse.evaluation.cli.arguments import DdfuseParser
 from ddfuse.evaluation.cli.guard import guarded
 
-from ddfuse import __version__
-
 # sub-command -> (its module, its line in the top-level help)
 DELEGATED = {
     "simulate": ("ddfuse.evaluation.cli.simulate", "simulate a robot drive into a bag with "
@@ -45,13 +43,25 @@ DELEGATED = {
 }
 
 
+class _Version(argparse.Action):
+    """argparse's "version" action with the version read when asked for (``ddfuse.__version__``
+    is read on first use: every other command is spared importlib.metadata)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        import ddfuse
+
+        sys.stdout.write(f"{parser.prog} {ddfuse.__version__}\n")
+        parser.exit()
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = DdfuseParser(
         prog="ddfuse",
         description="Pose estimation for differential-drive robots from ROS bags: "
                     "EKF baseline vs GTSAM fixed-lag smoother.")
     p.add_argument("-v", "--verbose", action="store_true", help="log details to stderr")
-    p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    p.add_argument("--version", action=_Version, nargs=0, default=argparse.SUPPRESS,
+                   help="show program's version number and exit")
     sub = p.add_subparsers(dest="command", required=True)
     for command in (inspect, run, report, online, node, bench, tune, fleet, compare):
         command.add_to(sub)
