@@ -34,7 +34,9 @@ class Page:
                  timeout: float = 60.0) -> None:
         from websockets.sync.client import connect
 
-        self._profile = tempfile.TemporaryDirectory(prefix="ddfuse-chromium-")
+        # Chromium's helper processes may still write to the profile as it exits
+        self._profile = tempfile.TemporaryDirectory(prefix="ddfuse-chromium-",
+                                                    ignore_cleanup_errors=True)
         self._proc = subprocess.Popen(
             [chromium(), "--headless=new", "--no-sandbox", "--disable-gpu",
              "--no-first-run", "--remote-debugging-port=0", "--remote-allow-origins=*",
