@@ -43,6 +43,7 @@ def main(names: list[str]) -> int:
 
     if hasattr(os, "nice"):
         os.nice(10)  # behind the run that started it (and the user's other work)
+    jitcache.as_background_build()
     with open(jitcache.lock_path(), "a") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)  # another build first: then these may load from it
         jitcache._notice[0] = lambda _line: None  # detached: nothing to say, nobody to read it

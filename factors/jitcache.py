@@ -25,8 +25,9 @@ from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["NOTICE_AFTER_S", "build_in_background", "compiling", "guard_cache", "load_cached",
-           "on_cold_cache", "one_compiler", "start_build"]
+__all__ = ["BUILD_WAIT_S", "NOTICE_AFTER_S", "as_background_build", "build_in_background",
+           "compiling", "guard_cache", "load_cached", "on_cold_cache", "one_compiler",
+           "start_build"]
 
 NOTICE_AFTER_S = 3.0  # s: a compile longer than this is announced (a cache load is ~0.1-0.3 s
 # of CPU, up to ~2 s of wall time on a loaded machine; a cold compile tens of seconds)
@@ -160,6 +161,13 @@ def lock_path() -> Path:
     return Path(tempfile.gettempdir()) / f"ddfuse-kernel-build-{uid}-{tag}.lock"
 
 
+# s: how long a run waits for a kernel the background build is compiling before compiling it
+# too. The build runs at nice 10: on a busy machine its compile can take minutes of wall time,
+# while the run's own compile takes seconds to tens of seconds.
+BUILD_WAIT_S = 10.0
+_role = {"holder": "run"}  # what this process writes into a kernel lock it holds
+
+
 @contextmanager
 def one_compiler(kernel: str) -> Iterator[None]:
     """Around compiling (or loading) ``kernel`` into numba's cache: one process at a time per
@@ -167,8 +175,10 @@ def one_compiler(kernel: str) -> Iterator[None]:
     coordinate processes: without this, processes started together on a cold cache each spend
     the kernel's compile (seconds to tens of seconds of CPU) on the same machine code. Inside,
     ``Dispatcher.compile`` finds the kernel in the cache when another process has just compiled
-    it, and loads it. Never held while taking another kernel's lock, so it cannot deadlock;
-    without ``flock`` (Windows) it does nothing."""
+    it, and loads it. A run waits for another run as long as it takes, but for the background
+    build (``as_background_build``) at most ``BUILD_WAIT_S``, then compiles unguarded. Never
+    held while taking another kernel's lock, so it cannot deadlock; without ``flock`` (Windows)
+    it does nothing."""
     try:
         import fcntl
     except ImportError:
@@ -181,8 +191,41 @@ def one_compiler(kernel: str) -> Iterator[None]:
         yield
         return
     with lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not _wait_for(lock, fcntl):
+            yield  # the niced background build has it: compiling here beats waiting behind it
+            return
+        lock.truncate(0)
+        lock.write(_role["holder"])
+        lock.flush()
         yield
+
+
+def _wait_for(lock, fcntl) -> bool:
+    """Take ``lock`` (exclusive), waiting as long as a run holds it but at most
+    ``BUILD_WAIT_S`` behind the background build; False when that wait ran out."""
+    start = time.monotonic()
+    while True:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return True
+        except OSError:
+            pass
+        if time.monotonic() - start >= BUILD_WAIT_S and _held_by_build(lock.name):
+            return False
+        time.sleep(0.05)
+
+
+def _held_by_build(path: str) -> bool:
+    try:
+        return Path(path).read_text() == "build"
+    except OSError:
+        return False
+
+
+def as_background_build() -> None:
+    """Mark this process as the background build: a run waiting for a kernel it compiles
+    stops waiting after ``BUILD_WAIT_S`` and compiles the kernel itself."""
+    _role["holder"] = "build"
 
 
 def build_running() -> bool:

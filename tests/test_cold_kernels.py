@@ -184,3 +184,45 @@ def test_processes_on_one_cold_cache_compile_a_kernel_once(monkeypatch, tmp_path
         time.sleep(0.3)  # both now at the lock (without it: both compiling)
     counts = sorted(tuple(map(int, p.communicate(timeout=300)[0].split())) for p in procs)
     assert counts == [(0, 1), (1, 0)]  # (misses, hits): one compiled, one loaded
+
+
+_WAITER = """
+import sys, time
+from ddfuse.factors import jitcache
+jitcache.BUILD_WAIT_S = float(sys.argv[1])
+print("started", flush=True)
+t0 = time.monotonic()
+with jitcache.one_compiler("waiting-test"):
+    print(round(time.monotonic() - t0, 2), flush=True)
+"""
+
+
+def _waiter(wait_s: float):
+    import subprocess
+    import sys
+
+    p = subprocess.Popen([sys.executable, "-c", _WAITER, str(wait_s)], stdout=subprocess.PIPE,
+                         text=True)
+    assert p.stdout.readline().strip() == "started"
+    return p
+
+
+@pytest.mark.parametrize("holder", ["build", "run"])
+def test_a_run_waits_for_another_run_but_not_long_for_the_background_build(
+        monkeypatch, tmp_path, holder):
+    """The background build compiles at nice 10; a run waiting behind it for a kernel gives up
+    after ``BUILD_WAIT_S`` and compiles it itself. Behind another run it waits to the end."""
+    import time
+
+    pytest.importorskip("fcntl")
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setitem(jitcache._role, "holder", holder)
+    with jitcache.one_compiler("waiting-test"):
+        p = _waiter(0.3)
+        time.sleep(2.0)
+        done_while_held = p.poll() is not None
+    waited = float(p.communicate(timeout=60)[0])
+    if holder == "build":
+        assert done_while_held and 0.3 <= waited < 2.0
+    else:
+        assert not done_while_held and waited >= 2.0
