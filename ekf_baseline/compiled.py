@@ -563,6 +563,17 @@ class JitKalmanCore(KalmanCore):
         if nrows == 0:
             return
         names, kinds = self._names, self.kinds
+        if hasattr(store, "extend_small"):  # an InnovationLog: the columns as they are
+            lg = self.lg[:nrows]
+            m = lg[:, 10].astype(np.int64)
+            key = (lg[:, 8].astype(np.int64) * len(kinds) + lg[:, 9].astype(np.int64)) * 3 + m
+            uniq, group = np.unique(key, return_inverse=True)
+            groups = [(names[int(u) // 3 // len(kinds)], kinds[int(u) // 3 % len(kinds)],
+                       int(u) % 3) for u in uniq.tolist()]
+            store.extend_small(lg[:, 0], lg[:, 1], group, groups, lg[:, 2:4], lg[:, 4:8],
+                               lg[:, 11] == 1.0)
+            self.ip[kj.IP_LOGN] = 0
+            return
         for r in self.lg[:nrows].tolist():
             t, nis, y0, y1, s00, s01, s10, s11, row, k, m, acc = r
             if m == 1.0:

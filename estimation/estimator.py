@@ -234,7 +234,7 @@ class InnovationLog:
     def _compact(self) -> None:
         buf = self._pending
         self._pending = []
-        codes, groups = self._codes, self._groups
+        codes = self._codes
         res, cov = self._res, self._cov
         roff, coff, gcol = self._roff, self._coff, self._g
         for inn in buf:
@@ -261,14 +261,54 @@ class InnovationLog:
             key = (inn.sensor, inn.kind, m)
             code = codes.get(key)
             if code is None:
-                code = codes[key] = len(groups)
-                groups.append(key)
+                code = self._code(key)
             gcol.append(code)
         self._t.extend([inn.t for inn in buf])
         self._nis.extend([inn.nis for inn in buf])
         self._acc.extend([1 if inn.accepted else 0 for inn in buf])
         if len(self._t) >= 2 * self.keep:
             self._fold(len(self._t) - self.keep)
+
+    def extend_small(self, t: np.ndarray, nis: np.ndarray, group: np.ndarray,
+                     groups: list[tuple[str, str, int]], y: np.ndarray, S: np.ndarray,
+                     accepted: np.ndarray) -> None:
+        """Log k innovations of dimension 1 or 2 at once, after those appended before, from
+        columns (a compiled filter's buffer): ``t``, ``nis`` (k,) float; ``group`` (k,) int,
+        each row's index into ``groups`` (sensor, kind, dim) with dim 1 or 2; ``y`` (k, 2)
+        the residual (its second column unused where dim is 1); ``S`` (k, 4) the innovation
+        covariance row-major (S[0, 0] alone where dim is 1); ``accepted`` (k,) bool. The same
+        columns as appending the records one at a time."""
+        self.compact()
+        k = len(t)
+        if k == 0:
+            return
+        dims = np.array([d for _, _, d in groups], dtype=np.int64)
+        if not np.isin(dims, (1, 2)).all():
+            raise ValueError(f"extend_small: dimensions 1 or 2, got {sorted(set(dims))}")
+        codes = np.array([self._code(key) for key in groups], dtype=np.uint16)[group]
+        m = dims[group]
+        cols = np.arange(4)
+        res = np.asarray(y, dtype=float)[cols[None, :2] < m[:, None]]
+        cov = np.asarray(S, dtype=float)[(m[:, None] == 2) | (cols[None, :] == 0)]
+        ends = np.cumsum(m)
+        self._roff.frombytes((len(self._res) + ends - m).astype(np.uint32).tobytes())
+        self._coff.frombytes((len(self._cov) + np.cumsum(m * m) - m * m)
+                             .astype(np.uint32).tobytes())
+        self._res.frombytes(res.tobytes())
+        self._cov.frombytes(cov.tobytes())
+        self._g.frombytes(codes.tobytes())
+        self._t.frombytes(np.asarray(t, dtype=float).tobytes())
+        self._nis.frombytes(np.asarray(nis, dtype=float).tobytes())
+        self._acc.frombytes(np.asarray(accepted, dtype=bool).astype(np.uint8).tobytes())
+        if len(self._t) >= 2 * self.keep:
+            self._fold(len(self._t) - self.keep)
+
+    def _code(self, key: tuple[str, str, int]) -> int:
+        code = self._codes.get(key)
+        if code is None:
+            code = self._codes[key] = len(self._groups)
+            self._groups.append(key)
+        return code
 
     def _fold(self, k: int) -> None:
         """Fold the oldest ``k`` held entries into the summary and the thinned series."""
