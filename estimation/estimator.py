@@ -282,9 +282,10 @@ class InnovationLog:
         k = len(t)
         if k == 0:
             return
+        if any(d not in (1, 2) for _, _, d in groups):
+            raise ValueError(f"extend_small: dimensions 1 or 2, got "
+                             f"{sorted({d for _, _, d in groups})}")
         dims = np.array([d for _, _, d in groups], dtype=np.int64)
-        if not np.isin(dims, (1, 2)).all():
-            raise ValueError(f"extend_small: dimensions 1 or 2, got {sorted(set(dims))}")
         codes = np.array([self._code(key) for key in groups], dtype=np.uint16)[group]
         m = dims[group]
         cols = np.arange(4)
