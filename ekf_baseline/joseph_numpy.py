@@ -14,11 +14,19 @@ per update), not bit for bit. The inverse of the accepted rows' S is ``joseph.in
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import numpy as np
 from ddfuse.ekf_baseline.joseph import inverse
 
 __all__ = ["apply_update", "innovation_cov"]
+
+
+@lru_cache(maxsize=16)
+def _eye(n: int) -> np.ndarray:
+    eye = np.eye(n)
+    eye.flags.writeable = False
+    return eye
 
 
 def innovation_cov(P, H, R):
@@ -40,13 +48,15 @@ def _fuse_noise(R, blk, verdict, fs) -> None:
 def apply_update(P, H, y, R, Ut, blk, verdict, fs):
     """(P, dx): the covariance after the update from the accepted blocks and the state
     correction dx = K y (n,); ``joseph.apply_update``'s contract (R is fused in place)."""
-    if verdict.any() or int((blk[1::4] - blk[0::4]).sum()) != H.shape[0]:
+    # the block table as Python ints: a few numpy reductions here cost more than the update
+    vl, bl = verdict.tolist(), blk.tolist()
+    if any(vl) or sum(bl[1::4]) - sum(bl[0::4]) != H.shape[0]:
         _fuse_noise(R, blk, verdict, fs)
         rows = np.concatenate([np.arange(blk[4 * b], blk[4 * b + 1])
                                for b in range(verdict.shape[0]) if verdict[b] == 0])
         Ha, Ua, Raa, ya = H[rows], Ut[rows], R[np.ix_(rows, rows)], y[rows]
     else:  # every row in an accepted block (most updates): no copies
-        if (fs != 1.0).any():
+        if any(f != 1.0 for f in fs.tolist()):
             _fuse_noise(R, blk, verdict, fs)
         Ha, Ua, Raa, ya = H, Ut, R, y
     Sa = Ha @ Ua.T + Raa
@@ -55,6 +65,6 @@ def apply_update(P, H, y, R, Ut, blk, verdict, fs):
     inverse(Sa, ma, Si)
     K = Ua.T @ Si  # (n, ma)
     dx = K @ ya
-    M = np.eye(P.shape[0]) - K @ Ha
+    M = _eye(P.shape[0]) - K @ Ha
     B = (M @ P) @ M.T + (K @ Raa) @ K.T
     return 0.5 * (B + B.T), dx

@@ -100,6 +100,11 @@ CORROBORATED_BY = {"heading": frozenset({"gps", "landmark"})}
 _cold: list[bool] = []  # the update's entry points were not cached when this process first looked
 
 
+# each block's factor on R when none is given, shared: apply_update scales R, never fs (not
+# made read-only: the compiled entry points are typed for writable arrays)
+_ONES = tuple(np.ones(nb) for nb in range(9))
+
+
 def update_functions() -> tuple[Callable, Callable]:
     """(innovation_cov, apply_update) for a new KalmanCore: ``joseph``'s compiled entry points,
     or, under the "reference" cold-cache policy (``factors.jitcache.on_cold_cache``) in a
@@ -337,12 +342,10 @@ class KalmanCore:
             return 0
         # the kernels' block table (row start, stop, -, -) and verdicts (0 accepted)
         nb = len(blocks)
-        blk = np.zeros(4 * nb, dtype=np.int64)
-        blk[0::4] = [b[2] for b in blocks]
-        blk[1::4] = [b[3] for b in blocks]
+        blk = np.array([v for b in blocks for v in (b[2], b[3], 0, 0)], dtype=np.int64)
         rejected = np.array([0 if k else 1 for k in keep], dtype=np.int64)
         if fuse is None and rfac is None:
-            fs = np.ones(nb)
+            fs = _ONES[nb] if nb < len(_ONES) else np.ones(nb)
         else:
             fs = np.ones(nb) if fuse is None else np.array(fuse, dtype=float)
             if rfac is not None:
