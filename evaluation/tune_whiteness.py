@@ -66,12 +66,14 @@ class Whiteness:
                 f"{self.rho1:.2f} over {self.n} (white: within {Z_SCORE / math.sqrt(self.n):.2g})")
         if self.white:
             return head + ": white enough"
-        spans = ", ".join(f"{m} samples ({m * self.period:.2g} s) {g:.1f}x"
-                          for m, g in sorted(self.coarse.items()))
-        return (head + f"; integrated autocorrelation time {self.tau:.1f} samples "
-                f"({self.tau * self.period:.2g} s): not white at its rate; the likelihood took "
-                f"its sample-to-sample scatter for its noise, and an estimator fusing an average "
-                f"of its samples is over-confident about it by about: {spans}")
+        text = (head + f"; integrated autocorrelation time {self.tau:.1f} samples "
+                f"({self.tau * self.period:.2g} s): not white at its rate (the likelihood counts "
+                f"its {self.n} samples as independent; they carry about {self.n / self.tau:.0f} "
+                "samples' worth)")
+        for m, g in sorted(self.coarse.items()):
+            text += (f"; an average of {m} samples ({m * self.period:.2g} s, a smoother's "
+                     f"keyframe) is over-confident about it by about {g:.1f}x")
+        return text
 
 
 def autocorrelation(z: np.ndarray, max_lag: int) -> np.ndarray:

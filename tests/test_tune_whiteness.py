@@ -49,7 +49,7 @@ def test_ar1_figures_recovered(phi):
     assert m == 12
     exact = 1.0 + 2.0 * sum((1 - k / m) * phi ** k for k in range(1, m))
     assert g == pytest.approx(exact, rel=0.1)
-    assert "not white" in w.describe()
+    assert "not white" in w.describe() and "12 samples" in w.describe()
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
