@@ -46,6 +46,7 @@ from ddfuse.evaluation.consistency import InnovationTable, SensorNis, nis_by_sen
 from ddfuse.evaluation.engine import Engine
 from ddfuse.evaluation.estimators import build
 from ddfuse.evaluation.tune_params import Applier, Param, parameters
+from ddfuse.evaluation.tune_whiteness import Whiteness, keyframe_spacing, whiteness
 
 GATE_P = 0.9999  # the innovations' NIS is clipped at this chi-square quantile
 BOUND = 100.0  # the search stays within start / BOUND .. start * BOUND
@@ -724,11 +725,14 @@ def _uninformed_reason(p: Param, info: float, where: str) -> str:
 
 @dataclass
 class Check:
-    """One run of an estimator with a set of values: NIS per 'sensor kind' and, with a GPS
-    hold-out, its score (m)."""
+    """One run of an estimator with a set of values: NIS per 'sensor kind', with a GPS
+    hold-out its score (m), and whether each sensor's scalar innovations are white
+    (``evaluation.tune_whiteness``; the average's over-confidence at the smoothers' keyframe
+    spacing)."""
 
     nis: dict[str, SensorNis]
     holdout_rmse_m: float | None
+    whiteness: list[Whiteness] = field(default_factory=list)
 
 
 def check(cfg: Config, stream: Stream, values: list[float | None], *, estimator: str,
@@ -747,4 +751,7 @@ def check(cfg: Config, stream: Stream, values: list[float | None], *, estimator:
     finally:
         problem.applier.apply([None] * len(params))
     rmse = summary.estimators[estimator].gps_holdout_rmse_m if summary else None
-    return Check(nis, rmse)
+    span = keyframe_spacing(cfg, stream)
+    white = whiteness(est.log.innovations, {(s.name, "heading"): span
+                                            for s in cfg.heading_sensors()})
+    return Check(nis, rmse, white)

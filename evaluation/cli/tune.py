@@ -121,4 +121,9 @@ def format_report(result, before, after, holdout: str | None) -> str:
     if holdout:
         b, a = fmt(before.holdout_rmse_m, ".3f"), fmt(after.holdout_rmse_m, ".3f")
         lines.append(f"{'GPS hold-out RMSE (' + holdout + '), m':56} {b:>16} {a:>16}")
+    red = [w for w in after.whiteness if not w.white]
+    if red:
+        lines += ["", "innovations at the tuned values that are not white (the likelihood assumes "
+                  "they are; evaluation.tune_whiteness):"]
+        lines += [f"  {w.describe()}" for w in red]
     return "\n".join(lines)
