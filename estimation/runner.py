@@ -16,6 +16,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
+from ddfuse.estimation import heap
 from ddfuse.estimation.errors import ConfigError
 from ddfuse.estimation.estimator import Estimate, Estimator, EstimatorLog
 from ddfuse.estimation.interrupts import deliver, held_signals, interrupt_name
@@ -501,6 +502,7 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
             stop.append(f"interrupted ({interrupt_name(held[0])}) while the results were gathered")
         elif held:
             deliver(held)
+    heap.trim()
     if progress is not None:
         progress(1.0)
     truth = None
@@ -573,6 +575,7 @@ def _feed(meas, n, fraction, select, gps, est_list, alive, errors, outputs, timi
                     lg.innovations.compact()
                 if k % 5000 == 0:
                     gc.collect(1)
+                    heap.trim()  # the temporaries' free gaps between the growing records
                 if progress is not None:
                     progress(fraction() if fraction is not None else k / max(n, 1))
             t_m = m.t

@@ -32,7 +32,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from ddfuse.estimation import chi2, gps_scatter, heading_survey
+from ddfuse.estimation import chi2, gps_scatter, heading_survey, heap
 from ddfuse.estimation.bags import BagStream
 from ddfuse.estimation.config import DEFAULT_GATE, Config
 from ddfuse.estimation.errors import BagError, RunInterrupted
@@ -46,7 +46,7 @@ from ddfuse.estimation.runner import (
     parse_holdout,
     run,
 )
-from ddfuse.evaluation import consistency, metrics
+from ddfuse.evaluation import consistency, metrics, pair_scores
 from ddfuse.evaluation import estimators as registry
 from ddfuse.evaluation.batch_cost import DEFAULT_MAX_SPAN_S, announce_solve, leave_out_notice
 from ddfuse.evaluation.consistency import SensorNis
@@ -113,37 +113,40 @@ def timing_split(*, startup: float | None, decode: float, build: float, loop: fl
                      r4(runner), r4(scoring), r4(writing), r4(total))
 
 
-def _ate_score(a: metrics.Ape) -> AteScore:
-    return AteScore(stats_of(a.position), stats_of(a.heading, math.degrees(1)))
+def _ate_score(position: metrics.Stats, heading: metrics.Stats) -> AteScore:
+    return AteScore(stats_of(position), stats_of(heading, math.degrees(1)))
 
 
 def _truth_scores(tr: Trajectory, truth: Trajectory, pose_error: str = "world") -> dict:
     """ATE (three alignments), RPE and NEES of one track against the truth: the
-    ``EstimatorScores`` fields they fill (none without an associated pair)."""
+    ``EstimatorScores`` fields they fill (none without an associated pair). The ATE, its
+    association error and the NEES walk the associated pairs a block at a time
+    (``pair_scores``)."""
     m: dict = {}
-    a = metrics.ape(tr, truth, MAX_DIFF)
-    if a.position.n == 0:
+    i, j = metrics.associate(tr.t, truth.t, MAX_DIFF)
+    if len(i) == 0:
         return m
-    m["ate_rmse_m"] = num(a.position.rmse)
-    m["ate_max_m"] = num(a.position.max)
-    m["yaw_rmse_deg"] = num(math.degrees(a.heading.rmse)) if a.heading.n else None
-    assoc = metrics.association_error(tr, truth, MAX_DIFF)
+    pos, head = pair_scores.ape_stats(tr, truth, i, j)
+    m["ate_rmse_m"] = num(pos.rmse)
+    m["ate_max_m"] = num(pos.max)
+    m["yaw_rmse_deg"] = num(math.degrees(head.rmse)) if head.n else None
+    assoc = pair_scores.association_stats(tr, truth, i, j)
     m["ate_association_rmse_m"] = num(assoc.rmse)
     aligned = {}
     for how in ("se2", "origin"):
         try:
-            aligned[how] = _ate_score(metrics.ape(tr, truth, MAX_DIFF, how))
+            aligned[how] = _ate_score(*pair_scores.ape_stats(tr, truth, i, j, how))
         except ValueError:  # too few distinct positions, or a truth without heading
             aligned[how] = None
-    m["ate"] = AteScores(_ate_score(a), a.position.n, MAX_DIFF, stats_of(assoc), **aligned)
+    m["ate"] = AteScores(_ate_score(pos, head), pos.n, MAX_DIFF, stats_of(assoc), **aligned)
     if np.isfinite(truth.pose[:, 2]).any():
         rpe = {}
         for key, delta, unit in RPE_DELTAS:
-            pos, yaw = metrics.rpe(tr, truth, delta, MAX_DIFF, unit=unit)
+            rpos, yaw = metrics.rpe(tr, truth, delta, MAX_DIFF, unit=unit, pairs=(i, j))
             # the pairs' actual spacing: a keyframe track's 1 s pairs are 1.2 s apart
             rpe[key] = RpeScore(delta, unit, num(
-                metrics.rpe_mean_delta(tr, truth, delta, MAX_DIFF, unit=unit)),
-                stats_of(pos), stats_of(yaw, math.degrees(1))) if pos.n else None
+                metrics.rpe_mean_delta(tr, truth, delta, MAX_DIFF, unit=unit, pairs=(i, j))),
+                stats_of(rpos), stats_of(yaw, math.degrees(1))) if rpos.n else None
         m["rpe"] = rpe
         m["rpe_rmse_m"] = rpe["1s"].position_m.rmse if rpe["1s"] else None
     else:
@@ -152,7 +155,7 @@ def _truth_scores(tr: Trajectory, truth: Trajectory, pose_error: str = "world") 
         # the truth's heading. Left out with the reason, not nulls beside a pair count.
         m["rpe"], m["rpe_rmse_m"] = None, None
         m["rpe_note"] = "the ground truth has no heading (position only): no RPE"
-    ns = metrics.nees_series(tr, truth, MAX_DIFF, pose_error)
+    ns = metrics.nees_series(tr, truth, MAX_DIFF, pose_error, pairs=(i, j))
     if len(ns.value):
         c = consistency.summarize(ns.value, ns.dof)
         m["nees_mean"] = num(c.mean)
@@ -600,6 +603,7 @@ out an estimator the sensors nearly allow: ``estimators.left_out``), or, before 
                                      *heading_survey.config_warnings(surveys, cfg),
                                      *gps_correlation_warnings(cfg, result.gps)])
         config_text = config_text_of(cfg)
+        heap.trim()  # scoring's temporaries, before the writers' own
         t_scored = clock()
         with writing_run(outdir, f"ddfuse run of {bag}", result):
             save_run(result, outdir, config_text, frames=(cfg.local_frame, cfg.base_frame),
