@@ -14,6 +14,7 @@ import time
 from array import array
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from ddfuse.estimation import heap
@@ -21,6 +22,7 @@ from ddfuse.estimation.errors import ConfigError
 from ddfuse.estimation.estimator import Estimate, Estimator, EstimatorLog
 from ddfuse.estimation.interrupts import deliver, held_signals, interrupt_name
 from ddfuse.estimation.measurements import GpsFix, Stream, truth_at_start
+from ddfuse.estimation.spill import SpilledColumn
 
 _NAN6 = (math.nan,) * 6
 # the 3x3 positions of the 6 packed values (xx, xy, xyaw, yy, yyaw, yawyaw), row-major
@@ -182,7 +184,9 @@ class EstimatorRun:
 
     name: str
     trajectory: Trajectory
-    update_s: np.ndarray  # wall time of each process() call, s (float32)
+    # wall time of each process() call, s (float32): an array, or a SpilledColumn
+    # (run(spill_dir=)) read by blocks (np.asarray gives it whole)
+    update_s: np.ndarray | SpilledColumn
     runtime_s: float  # total wall time in process/estimate/finish, s
     log: EstimatorLog
     error: str | None = None  # set when the estimator raised; the trajectory holds what it had
@@ -411,7 +415,8 @@ def initial_pose(cfg_initial, stream) -> tuple[float, float, float] | None:
 def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
         holdout: str | None = None, progress: Callable[[float], None] | None = None,
         interruptible: bool = False,
-        observers: Iterable[Callable[[object], None]] = ()) -> RunResult:
+        observers: Iterable[Callable[[object], None]] = (),
+        spill_dir: str | Path | None = None) -> RunResult:
     """Feed every measurement of ``stream`` to every estimator, in the stream's order: the
     order of arrival (read_stream and BagStream give stamp order; a list built to test late
     delivery may hold older stamps after newer ones, which each estimator handles as it does
@@ -430,7 +435,12 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
     nothing more): the result says so in ``interrupted``. Otherwise Ctrl-C propagates.
 
     ``observers`` are called with every measurement (withheld fixes too), outside the
-    estimators' timings: what a run learns about the data besides the estimates."""
+    estimators' timings: what a run learns about the data besides the estimates.
+
+    ``spill_dir`` (an existing directory): each estimator's per-call timings are written there
+    in blocks as they grow (``ddfuse.estimation.spill``: ``update_s.<k>.f32``, k its position
+    in ``estimators``), and its ``EstimatorRun.update_s`` is that ``SpilledColumn``; the caller
+    removes the files when done with them. Without it the timings stay in memory (an array)."""
     if not (output_rate > 0.0 and math.isfinite(output_rate)):
         raise ValueError(f"output_rate: expected Hz > 0, got {output_rate!r}")
     for n, e in estimators.items():
@@ -441,7 +451,9 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
     names = list(estimators)
     est_list = [estimators[n] for n in names]
     outputs = [TrackBuilder() for _ in names]
-    timings = [array("f") for _ in names]
+    columns = ([SpilledColumn(Path(spill_dir) / f"update_s.{k}.f32") for k in range(len(names))]
+               if spill_dir is not None else [])
+    timings = [c.tail for c in columns] or [array("f") for _ in names]
     totals = [0.0] * len(names)
     errors: list[str | None] = [None] * len(names)
     alive = [True] * len(names)
@@ -467,7 +479,8 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
     stop: list[str] = []
     try:
         fed = _feed(meas, n, fraction, select, gps, est_list, alive, errors, outputs, timings,
-                    totals, period, progress, stop if interruptible else None, tuple(observers))
+                    totals, period, progress, stop if interruptible else None, tuple(observers),
+                    columns)
     finally:
         if gc_was_enabled:
             gc.enable()
@@ -497,7 +510,8 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
         # gathering what the estimator gave is not cut short: an interrupt is held (noted in
         # ``interrupted`` after it, or raised if not interruptible)
         with held_signals() as held:
-            _gather(runs, name, est, outputs, i, timings[i], totals[i], errors, fed, gps)
+            _gather(runs, name, est, outputs, i, columns[i] if columns else timings[i],
+                    totals[i], errors, fed, gps)
         if held and interruptible:
             stop.append(f"interrupted ({interrupt_name(held[0])}) while the results were gathered")
         elif held:
@@ -515,13 +529,17 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
     return RunResult(stream, runs, gps.track(), truth, fed, "; ".join(stop) or None)
 
 
-def _gather(runs: dict, name: str, est: Estimator, outputs: list, i: int, timing: array,
-            total: float, errors: list, fed: int, gps: _GpsRecorder) -> None:
+def _gather(runs: dict, name: str, est: Estimator, outputs: list, i: int,
+            timing: array | SpilledColumn, total: float, errors: list, fed: int,
+            gps: _GpsRecorder) -> None:
     """The EstimatorRun(s) of estimator ``i`` of :func:`run` (its output track, or the batch's
     final one; its lagged track too) into ``runs``."""
     est.log.innovations.compact()
-    # a view of the compact array, not a copy
-    upd = np.frombuffer(timing, np.float32) if len(timing) else np.zeros(0, np.float32)
+    if isinstance(timing, SpilledColumn):
+        timing.close()
+        upd = timing
+    else:  # a view of the compact array, not a copy
+        upd = np.frombuffer(timing, np.float32) if len(timing) else np.zeros(0, np.float32)
     # An offline estimator (the batch) gives its whole trajectory only at the end.
     final = getattr(est, "final_estimates", None)
     track = final() if callable(final) else outputs[i]
@@ -554,9 +572,11 @@ def _final_state(est: Estimator, track) -> Estimate | None:
 
 
 def _feed(meas, n, fraction, select, gps, est_list, alive, errors, outputs, timings, totals,
-          period, progress, stop: list[str] | None = None, observers: tuple = ()) -> int:
+          period, progress, stop: list[str] | None = None, observers: tuple = (),
+          columns: list[SpilledColumn] | tuple = ()) -> int:
     """The measurement loop of :func:`run` (see there); returns how many measurements came.
-    With ``stop`` (a list), Ctrl-C ends the loop and says where in ``stop``."""
+    With ``stop`` (a list), Ctrl-C ends the loop and says where in ``stop``. ``columns``: the
+    spilled timing columns whose tails are ``timings``, spilled between messages."""
     clock = time.perf_counter
     next_tick = -math.inf
     t_start = None
@@ -573,6 +593,8 @@ def _feed(meas, n, fraction, select, gps, est_list, alive, errors, outputs, timi
                 # buffer into the store on that read)
                 for lg in est_logs:
                     lg.innovations.compact()
+                for c in columns:
+                    c.spill()
                 if k % 5000 == 0:
                     gc.collect(1)
                     heap.trim()  # the temporaries' free gaps between the growing records

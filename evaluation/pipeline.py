@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 import os
+import shutil
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -46,8 +47,9 @@ from ddfuse.estimation.runner import (
     parse_holdout,
     run,
 )
-from ddfuse.evaluation import consistency, metrics, pair_scores
+from ddfuse.evaluation import consistency, latency_stats, metrics, pair_scores
 from ddfuse.evaluation import estimators as registry
+from ddfuse.evaluation.atomic_files import OutputError
 from ddfuse.evaluation.batch_cost import DEFAULT_MAX_SPAN_S, announce_solve, leave_out_notice
 from ddfuse.evaluation.consistency import SensorNis
 from ddfuse.evaluation.run_files import config_text_of, save_run, write_metrics, writing_run
@@ -411,7 +413,6 @@ def _track_scores(r, duration: float, truth: Trajectory | None, pose_error: str 
     scored on, ``own`` (t, xy) all withheld fixes (where there are no ``common_fixes``),
     ``used`` (t, xy) the fixes the estimators received."""
     tr = r.trajectory
-    upd_ms = r.update_s * 1e3
     hold_t, hold_xy, hold_cov = held
     m: dict = {}
     # the coordinates the NEES is scored in (the report's NEES plot reads them back)
@@ -436,9 +437,7 @@ def _track_scores(r, duration: float, truth: Trajectory | None, pose_error: str 
         samples=len(tr),
         runtime_s=num(r.runtime_s),
         rtf=num(duration / r.runtime_s) if r.runtime_s > 0 else None,
-        update_ms=UpdateLatency(*(num(float(np.percentile(upd_ms, q))) for q in (50, 99, 100)),
-                                num(float(upd_ms.mean())), len(upd_ms))
-        if len(upd_ms) else None,
+        update_ms=_update_latency(r.update_s),
         nis={label: SensorNis(s.sensor, s.kind, s.accepted, s.rejected, rounded_record(s.nis))
              for label, s in consistency.nis_by_sensor(
                  consistency.InnovationTable.from_innovations(r.log.innovations)).items()},
@@ -449,6 +448,21 @@ def _track_scores(r, duration: float, truth: Trajectory | None, pose_error: str 
         final_state=calibration_states(r.final_state),
         **m)
 
+
+
+def _update_latency(update_s) -> UpdateLatency | None:
+    """p50, p99, max and mean (ms) and the count of the per-call timings ``update_s`` (s: an
+    array or a ``SpilledColumn``), read a block at a time (``latency_stats``: the percentiles
+    exact, the mean summed in float64); None without any."""
+    if not len(update_s):
+        return None
+
+    def blocks():
+        return (b * 1e3 for b in latency_stats.blocks_of(update_s))
+
+    p50, p99, top = latency_stats.percentiles(blocks, (50, 99, 100))
+    mean, n = latency_stats.mean(blocks())
+    return UpdateLatency(num(p50), num(p99), num(top), num(mean), n)
 
 
 def _common_ate(tracks: dict[str, Trajectory], truth: Trajectory | None
@@ -574,57 +588,78 @@ out an estimator the sensors nearly allow: ``estimators.left_out``), or, before 
     decode_before = stream.decode_s
     t_built = clock()
     offsets = heading_survey.recorder_for(cfg)
-    result = run(stream, ests, holdout=holdout,
-                 progress=(lambda f: progress("decode + estimate", f)) if progress else None,
-                 interruptible=True, observers=(offsets.add,))
-    t_ran = clock()
-    input_error = stream.error
-    if input_error is not None and not result.messages:
-        raise BagError(input_error)
-    decode_s = stream.decode_s
-    runtimes = {n: result.runs[n].runtime_s for n in ests if n in result.runs}
-    if names:  # keep only the tracks asked for ('smoother_lagged' alone drops 'smoother')
-        result.runs = {k: v for k, v in result.runs.items() if k in set(names)}
-    # an interrupt while the results are scored and written is held until they are complete
-    # (a second one acts at once): the run was over, its results are whole
-    with held_signals() as held:
-        out = score(result, decode_s,
-                    {n: getattr(e, "pose_error", "world") for n, e in ests.items()}, cfg=cfg)
-        surveys = result.offset_surveys = offset_surveys(result, cfg, offsets)
-        out = replace(
-            out, config=str(cfg.path) if cfg.path else None,
-            initial_pose=("first ground-truth pose" if cfg.initial_pose == "ground_truth"
-                          else list(pose) if pose else None),
-            lag_s=lag, estimators_requested=list(names) if names else None, estimators_run=chosen,
-            gps_holdout=holdout, input_error=input_error, interrupted=result.interrupted,
-            data=data_facts(result, cfg, surveys))
-        # the reader's (a topic mostly dropped or silent), then the compass offset's
-        out = replace(out, warnings=[*stream.warnings,
-                                     *heading_survey.config_warnings(surveys, cfg),
-                                     *gps_correlation_warnings(cfg, result.gps)])
-        config_text = config_text_of(cfg)
-        heap.trim()  # scoring's temporaries, before the writers' own
-        t_scored = clock()
-        with writing_run(outdir, f"ddfuse run of {bag}", result):
-            save_run(result, outdir, config_text, frames=(cfg.local_frame, cfg.base_frame),
-                     tf=cfg.node.tf)
-            out = replace(out, wall_s=timing_split(
-                startup=startup, decode=decode_s, build=t_built - t_enter - decode_before,
-                loop=t_ran - t_built, loop_decode=decode_s - decode_before, runtimes=runtimes,
-                scoring=t_scored - t_ran, writing=clock() - t_scored))
-            write_metrics(outdir, out.to_json())
-    if result.interrupted:
-        raise RunInterrupted(f"{result.interrupted}; the results of what was processed are in "
-                             f"{outdir}")
-    if held:
-        raise RunInterrupted(f"interrupted ({interrupt_name(held[0])}) while the results were "
-                             f"written; they are complete, in {outdir}")
-    if input_error:
-        err = BagError(f"{input_error}; results for the {stream.duration:.1f} s that could be "
-                       f"read are in {outdir}")
-        err.results_written = True
-        raise err
-    return out
+    spill = _spill_dir(outdir)  # the loop's timings, until the results are written
+    try:
+        result = run(stream, ests, holdout=holdout,
+                     progress=(lambda f: progress("decode + estimate", f)) if progress else None,
+                     interruptible=True, observers=(offsets.add,), spill_dir=spill)
+        t_ran = clock()
+        input_error = stream.error
+        if input_error is not None and not result.messages:
+            raise BagError(input_error)
+        decode_s = stream.decode_s
+        runtimes = {n: result.runs[n].runtime_s for n in ests if n in result.runs}
+        if names:  # keep only the tracks asked for ('smoother_lagged' alone drops 'smoother')
+            result.runs = {k: v for k, v in result.runs.items() if k in set(names)}
+        # an interrupt while the results are scored and written is held until they are complete
+        # (a second one acts at once): the run was over, its results are whole
+        with held_signals() as held:
+            out = score(result, decode_s,
+                        {n: getattr(e, "pose_error", "world") for n, e in ests.items()}, cfg=cfg)
+            surveys = result.offset_surveys = offset_surveys(result, cfg, offsets)
+            out = replace(
+                out, config=str(cfg.path) if cfg.path else None,
+                initial_pose=("first ground-truth pose" if cfg.initial_pose == "ground_truth"
+                              else list(pose) if pose else None),
+                lag_s=lag, estimators_requested=list(names) if names else None,
+                estimators_run=chosen,
+                gps_holdout=holdout, input_error=input_error, interrupted=result.interrupted,
+                data=data_facts(result, cfg, surveys))
+            # the reader's (a topic mostly dropped or silent), then the compass offset's
+            out = replace(out, warnings=[*stream.warnings,
+                                         *heading_survey.config_warnings(surveys, cfg),
+                                         *gps_correlation_warnings(cfg, result.gps)])
+            config_text = config_text_of(cfg)
+            heap.trim()  # scoring's temporaries, before the writers' own
+            t_scored = clock()
+            with writing_run(outdir, f"ddfuse run of {bag}", result):
+                save_run(result, outdir, config_text, frames=(cfg.local_frame, cfg.base_frame),
+                         tf=cfg.node.tf)
+                out = replace(out, wall_s=timing_split(
+                    startup=startup, decode=decode_s, build=t_built - t_enter - decode_before,
+                    loop=t_ran - t_built, loop_decode=decode_s - decode_before, runtimes=runtimes,
+                    scoring=t_scored - t_ran, writing=clock() - t_scored))
+                write_metrics(outdir, out.to_json())
+        if result.interrupted:
+            raise RunInterrupted(f"{result.interrupted}; the results of what was processed are in "
+                                 f"{outdir}")
+        if held:
+            raise RunInterrupted(f"interrupted ({interrupt_name(held[0])}) while the results were "
+                                 f"written; they are complete, in {outdir}")
+        if input_error:
+            err = BagError(f"{input_error}; results for the {stream.duration:.1f} s that could be "
+                           f"read are in {outdir}")
+            err.results_written = True
+            raise err
+        return out
+    finally:
+        shutil.rmtree(spill, ignore_errors=True)
+
+
+SPILL_DIR = ".ddfuse-spill"  # in the output directory, during a run (``_spill_dir``)
+
+
+def _spill_dir(outdir: Path) -> Path:
+    """``outdir``/SPILL_DIR, made empty: where the loop writes its growing records in blocks
+    (``runner.run(spill_dir=)``) until the results are written; what a killed run left there
+    is removed. OSError -> OutputError naming it."""
+    path = outdir / SPILL_DIR
+    shutil.rmtree(path, ignore_errors=True)
+    try:
+        path.mkdir()
+    except OSError as e:
+        raise OutputError.of(path, e) from None
+    return path
 
 
 def write_outputs(result: RunResult, outdir: Path, summary: RunSummary,
