@@ -22,9 +22,10 @@ from ddfuse.estimation.errors import ConfigError
 from ddfuse.estimation.estimator import Estimate, Estimator, EstimatorLog
 from ddfuse.estimation.interrupts import deliver, held_signals, interrupt_name
 from ddfuse.estimation.measurements import GpsFix, Stream, truth_at_start
-from ddfuse.estimation.spill import SpilledColumn
+from ddfuse.estimation.spill import SpilledColumn, release
 
 _NAN6 = (math.nan,) * 6
+TRACK_BLOCK = 8192  # rows of a spilling TrackBuilder written at a time (640 kB)
 # the 3x3 positions of the 6 packed values (xx, xy, xyaw, yy, yyaw, yawyaw), row-major
 _UNPACK = np.array((0, 1, 2, 1, 3, 4, 2, 4, 5))
 
@@ -48,13 +49,26 @@ class TrackBuilder:
     appended, whole (its state too). Indexing gives Estimates with t, pose and pose_cov (the
     last one: ``last`` itself)."""
 
-    __slots__ = ("_t", "_pose", "_cov", "last")
+    __slots__ = ("_t", "_pose", "_cov", "last", "_spill")
 
-    def __init__(self) -> None:
-        self._t = array("d")
-        self._pose = array("d")
-        self._cov = array("d")
+    def __init__(self, spill_to: str | Path | None = None) -> None:
         self.last: Estimate | None = None
+        # ``spill_to``: a file name prefix; the columns' full blocks go to <prefix>.t/.pose/.cov
+        # (``spill``), the arrays below being the SpilledColumns' tails
+        self._spill = None if spill_to is None else tuple(
+            SpilledColumn(f"{spill_to}.{c}", "d", k * TRACK_BLOCK)
+            for c, k in (("cov", 6), ("pose", 3), ("t", 1)))
+        if self._spill is None:
+            self._t, self._pose, self._cov = array("d"), array("d"), array("d")
+        else:
+            self._cov, self._pose, self._t = (c.tail for c in self._spill)
+
+    def spill(self) -> None:
+        """Write the full blocks of a spilling builder's columns to their files (the stamps
+        last: they count the rows); nothing for one in memory."""
+        if self._spill is not None and len(self._t) >= TRACK_BLOCK:
+            for c in self._spill:
+                c.spill(force=True)
 
     def append(self, e: Estimate) -> None:
         c = e.pose_cov
@@ -71,13 +85,22 @@ class TrackBuilder:
             self.append(e)
 
     def __len__(self) -> int:
-        return len(self._t)
+        return len(self._t) + (self._spill[2].spilled if self._spill is not None else 0)
 
     def __bool__(self) -> bool:
-        return len(self._t) > 0
+        return len(self) > 0
 
     def __getitem__(self, i: int) -> Estimate:
-        n = len(self._t)
+        n = len(self)
+        if self._spill is not None and self._spill[2].spilled:
+            tr = self.trajectory()  # a spilled row is read from the files
+            if isinstance(i, slice):
+                return [self[j] for j in range(n)[i]]
+            i = range(n)[i]
+            if i == n - 1 and self.last is not None and self.last.t == tr.t[i]:
+                return self.last
+            return Estimate(float(tr.t[i]), tuple(tr.pose[i].tolist()),
+                            tr.cov_at(slice(i, i + 1))[0])
         if isinstance(i, slice):
             return [self[j] for j in range(n)[i]]
         if i < 0:
@@ -94,7 +117,14 @@ class TrackBuilder:
 
     def trajectory(self) -> Trajectory:
         """The columns as a Trajectory, sharing their memory (no copy: appending to the builder
-        afterwards is an error); its ``cov`` is unpacked to (N, 3, 3) when first read."""
+        afterwards is an error); its ``cov`` is unpacked to (N, 3, 3) when first read. A
+        spilling builder's whole columns are memory-mapped from its files
+        (``Trajectory.release``)."""
+        if self._spill is not None and self._spill[2].spilled:
+            (cov, mc), (pose, mp), (t, mt) = (c.mapped() for c in self._spill)
+            n = len(t)
+            return _PackedTrajectory(t, pose[:3 * n].reshape(n, 3),
+                                     packed=cov[:6 * n].reshape(n, 6), maps=(mt, mp, mc))
         n = len(self._t)
         if not n:
             return Trajectory(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 3)))
@@ -150,6 +180,11 @@ class Trajectory:
         the covariances asks for, which a packed track unpacks for those rows only."""
         return self.cov[index]
 
+    def release(self) -> None:
+        """Drop from this process's memory the pages of a track read from its spill files
+        (``TrackBuilder(spill_to=)``), once a reader is done with them (they are read again
+        when next touched); nothing for a track held in memory."""
+
 
 class _PackedTrajectory(Trajectory):
     """A Trajectory whose covariances stay packed (TrackBuilder's 6 values per pose) until
@@ -158,9 +193,13 @@ class _PackedTrajectory(Trajectory):
     Trajectory like any other (``cov`` can be read and set)."""
 
     def __init__(self, t: np.ndarray, pose: np.ndarray, cov: np.ndarray | None = None, *,
-                 packed: np.ndarray | None = None) -> None:
+                 packed: np.ndarray | None = None, maps: tuple = ()) -> None:
         self.t, self.pose = t, pose
         self._cov, self._packed = cov, packed
+        self._maps = maps  # the memory maps the columns are read from, if spilled
+
+    def release(self) -> None:
+        release(self._maps)
 
     @property
     def cov(self) -> np.ndarray:
@@ -437,10 +476,12 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
     ``observers`` are called with every measurement (withheld fixes too), outside the
     estimators' timings: what a run learns about the data besides the estimates.
 
-    ``spill_dir`` (an existing directory): each estimator's per-call timings are written there
-    in blocks as they grow (``ddfuse.estimation.spill``: ``update_s.<k>.f32``, k its position
-    in ``estimators``), and its ``EstimatorRun.update_s`` is that ``SpilledColumn``; the caller
-    removes the files when done with them. Without it the timings stay in memory (an array)."""
+    ``spill_dir`` (an existing directory): each estimator's per-call timings and output track
+    are written there in blocks as they grow (``ddfuse.estimation.spill``: ``update_s.<k>.f32``
+    and ``track.<k>.t/.pose/.cov``, k its position in ``estimators``); its
+    ``EstimatorRun.update_s`` is that ``SpilledColumn`` and its trajectory is memory-mapped
+    from the files (``Trajectory.release``). The caller removes the files when done with
+    them. Without it both stay in memory."""
     if not (output_rate > 0.0 and math.isfinite(output_rate)):
         raise ValueError(f"output_rate: expected Hz > 0, got {output_rate!r}")
     for n, e in estimators.items():
@@ -450,7 +491,8 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
     select = parse_holdout(holdout)
     names = list(estimators)
     est_list = [estimators[n] for n in names]
-    outputs = [TrackBuilder() for _ in names]
+    outputs = [TrackBuilder(None if spill_dir is None else Path(spill_dir) / f"track.{k}")
+               for k in range(len(names))]
     columns = ([SpilledColumn(Path(spill_dir) / f"update_s.{k}.f32") for k in range(len(names))]
                if spill_dir is not None else [])
     timings = [c.tail for c in columns] or [array("f") for _ in names]
@@ -595,6 +637,9 @@ def _feed(meas, n, fraction, select, gps, est_list, alive, errors, outputs, timi
                     lg.innovations.compact()
                 for c in columns:
                     c.spill()
+                for o in outputs:
+                    if o is not None:
+                        o.spill()
                 if k % 5000 == 0:
                     gc.collect(1)
                     heap.trim()  # the temporaries' free gaps between the growing records

@@ -13,6 +13,7 @@ and is removed by ``remove()`` when the run's results are written (``evaluation.
 
 from __future__ import annotations
 
+import mmap
 from array import array
 from collections.abc import Iterator
 from pathlib import Path
@@ -43,14 +44,15 @@ class SpilledColumn:
         if len(self.tail) >= self.block:
             self.spill()
 
-    def spill(self) -> None:
-        """Write the tail to the file if it holds a block or more (then it is empty). The
+    def spill(self, force: bool = False) -> None:
+        """Write the tail to the file if it holds a block or more (``force``: any values at
+        all), then it is empty. The
         count of spilled values moves only once the bytes are written: a write that fails
         (a full disk) raises ``OSError`` with the tail still whole, and the next spill writes
         over the part it left; Ctrl-C or SIGTERM meanwhile is held until the file and the
         count agree, then raised (``ddfuse.estimation.interrupts``)."""
         n = len(self.tail)
-        if n < self.block:
+        if n < self.block and not (force and n):
             return
         with held_signals() as held:
             if self._file is None:  # a new file for the first block, appended to after a close
@@ -102,7 +104,29 @@ class SpilledColumn:
             for a in range(0, len(tail), size):
                 yield tail[a:a + size].copy()
 
+    def mapped(self) -> tuple[np.ndarray, mmap.mmap | None]:
+        """The whole column read-only from its file, memory-mapped (the tail spilled first),
+        and the map (None, with an empty array, when the column is empty): its pages count
+        in this process's memory only while touched (``release``)."""
+        self.spill(force=True)
+        self.close()
+        if not self.spilled:
+            return np.zeros(0, self.dtype), None
+        with open(self.path, "rb") as f:
+            m = mmap.mmap(f.fileno(), self.spilled * self.dtype.itemsize,
+                          access=mmap.ACCESS_READ)
+        return np.frombuffer(m, self.dtype), m
+
     def __array__(self, dtype=None, copy=None) -> np.ndarray:
         parts = list(self.blocks())
         out = np.concatenate(parts) if parts else np.zeros(0, self.dtype)
         return out if dtype is None else out.astype(dtype)
+
+
+def release(maps) -> None:
+    """Drop the touched pages of the memory maps ``maps`` (``SpilledColumn.mapped``'s) from
+    this process: they stay in the file (and the page cache) and are read again when next
+    touched. A map already closed is skipped."""
+    for m in maps:
+        if m is not None and not m.closed:
+            m.madvise(mmap.MADV_DONTNEED)

@@ -289,6 +289,7 @@ def _gross_outliers(result: RunResult, t: np.ndarray, xy: np.ndarray, cov: np.nd
         if not out.any():
             break
         nis = metrics.gate_nis(tr, t, xy, cov, antenna.lever_arm, antenna.delay_s)
+        tr.release()  # a spilled track's pages, read again by the next reader
         out &= ~(nis <= limit)  # NaN (no estimate there) does not vouch for the fix
     return out
 
@@ -350,6 +351,7 @@ def score(result: RunResult, decode_s: float = 0.0,
     for r in result.runs.values():
         if len(r.trajectory) > 1:
             covered &= metrics.antenna_xy(r.trajectory, hold_t, lever, delay)[1]
+            r.trajectory.release()
     # No fix inside every span (one track ends before another starts): each track could only be
     # scored on its own fixes, a ranking of different things. Then no track gets a hold-out
     # score (gps_holdout_rmse_m), only its statistics over its own fixes (gps_holdout_m).
@@ -375,10 +377,12 @@ def score(result: RunResult, decode_s: float = 0.0,
     ref_out = (_gross_outliers(result, used_t, used_xy, result.gps.cov[~result.gps.withheld],
                                antenna, used=True) if n_held else np.zeros(len(used_t), bool))
     outages = metrics.gps_outages(used_t, stream.t1) if len(used_t) else []
-    ests = {name: _track_scores(r, duration, truth, (pose_errors or {}).get(name),
-                                common_fixes, (hold_t, hold_xy, hold_cov), (own_t, own_xy),
-                                (used_t, used_xy), outages, antenna)
-            for name, r in result.runs.items()}
+    ests = {}
+    for name, r in result.runs.items():
+        ests[name] = _track_scores(r, duration, truth, (pose_errors or {}).get(name),
+                                   common_fixes, (hold_t, hold_xy, hold_cov), (own_t, own_xy),
+                                   (used_t, used_xy), outages, antenna)
+        r.trajectory.release()
     # a run that stopped with an error is not ranked: it must not cut everyone's span
     common = _common_ate({n: r.trajectory for n, r in result.runs.items() if r.error is None},
                          truth)
@@ -490,6 +494,7 @@ def _common_ate(tracks: dict[str, Trajectory], truth: Trajectory | None
     rmse = {}
     for n, tr in live.items():
         xy, _ = metrics.interpolate_xy(tr, t)
+        tr.release()
         rmse[n] = num(float(np.sqrt(np.mean(np.sum((xy - g) ** 2, axis=1)))))
     return rmse, CommonSpan(int(len(t)), base, (num(lo), num(hi)))
 

@@ -176,6 +176,7 @@ def save_run(result: RunResult, outdir: Path, config_text: str | None = None, *,
     for name, tr in tracks.items():
         for ext, write in (("tum", write_tum), ("csv", write_csv)):
             write(outdir / f"{name}.{ext}", tr)
+            tr.release()  # a spilled track's pages (runner.Trajectory.release)
             _note(outdir, f"{name}.{ext}")
     write_estimates(outdir / ESTIMATES_FILE, result, local_frame=frames[0],
                     base_frame=frames[1], tf=tf)

@@ -148,3 +148,39 @@ def test_an_interrupted_run_keeps_the_spilled_timings(tmp_path, monkeypatch):
         # had its 3000th call; the double's 3000th raised
         assert len(z["update_s/ekf"]) == m["estimators"]["ekf"]["update_ms"]["n"] == 3000
         assert len(z["update_s/dr"]) == m["estimators"]["dr"]["update_ms"]["n"] == 2999
+
+
+def test_a_spilled_track_is_the_in_memory_one(sample_husky, tmp_path, monkeypatch):
+    from ddfuse.estimation import runner
+
+    monkeypatch.setattr(runner, "TRACK_BLOCK", 64)
+    cfg, stream = sample_husky
+    g = stream.ground_truth[0]
+
+    def once(spill_dir):
+        ests = {"dr": DeadReckoning(cfg, initial_pose=(g.x, g.y, g.yaw))}
+        return run(stream, ests, spill_dir=spill_dir).runs["dr"].trajectory
+
+    mem, disk = once(None), once(tmp_path)
+    n = len(mem.t)
+    assert n > 10 * 64 and os.path.getsize(tmp_path / "track.0.t") == 8 * n  # all on disk
+    np.testing.assert_array_equal(disk.t, mem.t)
+    np.testing.assert_array_equal(disk.pose, mem.pose)
+    np.testing.assert_array_equal(disk.cov_at(slice(0, n)), mem.cov_at(slice(0, n)))
+    assert not disk.t.flags.writeable
+    disk.release()  # the pages dropped: the values are read again from the file
+    np.testing.assert_array_equal(disk.pose, mem.pose)
+
+
+def test_a_spilling_track_builder_indexes_spilled_rows(tmp_path, monkeypatch):
+    from ddfuse.estimation import runner
+    from ddfuse.estimation.estimator import Estimate
+
+    monkeypatch.setattr(runner, "TRACK_BLOCK", 4)
+    b = runner.TrackBuilder(spill_to=tmp_path / "x")
+    for k in range(11):
+        b.append(Estimate(float(k), (k, 2.0 * k, 0.1), np.diag([k + 1.0, 2.0, 3.0])))
+        b.spill()
+    assert len(b) == 11 and os.path.getsize(tmp_path / "x.t") == 8 * 8
+    assert b[1].t == 1.0 and b[1].pose == (1.0, 2.0, 0.1) and b[1].pose_cov[0, 0] == 2.0
+    assert b[-1] is b.last and [e.t for e in b[9:]] == [9.0, 10.0]
