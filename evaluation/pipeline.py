@@ -569,7 +569,10 @@ out an estimator the sensors nearly allow: ``estimators.left_out``), or, before 
     long (``batch_cost``).
 
     On a damaged or truncated bag the results of what could be read are written, then BagError
-    is raised with ``results_written`` set."""
+    is raised with ``results_written`` set. While it runs, ``outdir``/.ddfuse-spill holds the
+    loop's growing records (tracks and per-call timings, ``runner.run(spill_dir=)``): memory
+    stays flat with the bag's length; it is removed once the results are written (or the run
+    fails), and a killed run's is removed by the next run into ``outdir``."""
     clock = time.perf_counter
     t_enter, startup = clock(), process_age()
     outdir = Path(outdir)
