@@ -47,7 +47,9 @@ class TrackBuilder:
     distinct values of the symmetric 3x3 pose covariance: 10 floats each) instead of objects
     with their state arrays: a 2 h run at 10 Hz is 5.8 MB. ``last`` is the last Estimate
     appended, whole (its state too). Indexing gives Estimates with t, pose and pose_cov (the
-    last one: ``last`` itself)."""
+    last one: ``last`` itself). With ``spill_to`` (a path prefix) the columns' full blocks go
+    to files between messages (``spill``) and ``trajectory`` maps them: memory flat however
+    long the run."""
 
     __slots__ = ("_t", "_pose", "_cov", "last", "_spill")
 

@@ -1,14 +1,17 @@
 """A record that grows through a run with its full blocks written to a file instead of memory.
 
-``SpilledColumn`` is a column of one numeric type (the runner's per-call timings, float32):
-values are appended to ``tail`` (an ``array.array``: the cheap append of the timed loop), and
-``spill()`` (called between messages) writes the tail to the column's file whenever it holds
-``block`` values or more and empties it. So a run holds at most about one block per column
-in memory whatever its length; the readers walk the column ``blocks()`` at a time from the
-file, then the tail, and ``np.asarray(column)`` gives it whole for callers that want it so.
+``SpilledColumn`` is a column of one numeric type (the runner's per-call timings, float32;
+the columns of a spilling ``runner.TrackBuilder``, float64): values are appended to ``tail``
+(an ``array.array``: the cheap append of the timed loop), and ``spill()`` (called between
+messages) writes the tail to the column's file whenever it holds ``block`` values or more and
+empties it. So a run holds at most about one block per column in memory whatever its length;
+the readers walk the column ``blocks()`` at a time from the file, then the tail, or map it
+whole read-only (``mapped``, its touched pages dropped by ``release``), and
+``np.asarray(column)`` gives it whole in memory for callers that want it so.
 
-The file is raw values in native byte order, nothing else; it belongs to the run that made it
-and is removed by ``remove()`` when the run's results are written (``evaluation.pipeline``).
+The file is raw values in native byte order, nothing else; it belongs to the run that made it,
+whose caller removes it (``evaluation.pipeline.run_bag``: the whole spill directory, once the
+run's results are written).
 """
 
 from __future__ import annotations
