@@ -14,14 +14,18 @@ import time
 from array import array
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
+from ddfuse.estimation import heap
 from ddfuse.estimation.errors import ConfigError
 from ddfuse.estimation.estimator import Estimate, Estimator, EstimatorLog
 from ddfuse.estimation.interrupts import deliver, held_signals, interrupt_name
 from ddfuse.estimation.measurements import GpsFix, Stream, truth_at_start
+from ddfuse.estimation.spill import SpilledColumn, release
 
 _NAN6 = (math.nan,) * 6
+TRACK_BLOCK = 8192  # rows of a spilling TrackBuilder written at a time (640 kB)
 # the 3x3 positions of the 6 packed values (xx, xy, xyaw, yy, yyaw, yawyaw), row-major
 _UNPACK = np.array((0, 1, 2, 1, 3, 4, 2, 4, 5))
 
@@ -43,15 +47,30 @@ class TrackBuilder:
     distinct values of the symmetric 3x3 pose covariance: 10 floats each) instead of objects
     with their state arrays: a 2 h run at 10 Hz is 5.8 MB. ``last`` is the last Estimate
     appended, whole (its state too). Indexing gives Estimates with t, pose and pose_cov (the
-    last one: ``last`` itself)."""
+    last one: ``last`` itself). With ``spill_to`` (a path prefix) the columns' full blocks go
+    to files between messages (``spill``) and ``trajectory`` maps them: memory flat however
+    long the run."""
 
-    __slots__ = ("_t", "_pose", "_cov", "last")
+    __slots__ = ("_t", "_pose", "_cov", "last", "_spill")
 
-    def __init__(self) -> None:
-        self._t = array("d")
-        self._pose = array("d")
-        self._cov = array("d")
+    def __init__(self, spill_to: str | Path | None = None) -> None:
         self.last: Estimate | None = None
+        # ``spill_to``: a file name prefix; the columns' full blocks go to <prefix>.t/.pose/.cov
+        # (``spill``), the arrays below being the SpilledColumns' tails
+        self._spill = None if spill_to is None else tuple(
+            SpilledColumn(f"{spill_to}.{c}", "d", k * TRACK_BLOCK)
+            for c, k in (("cov", 6), ("pose", 3), ("t", 1)))
+        if self._spill is None:
+            self._t, self._pose, self._cov = array("d"), array("d"), array("d")
+        else:
+            self._cov, self._pose, self._t = (c.tail for c in self._spill)
+
+    def spill(self) -> None:
+        """Write the full blocks of a spilling builder's columns to their files (the stamps
+        last: they count the rows); nothing for one in memory."""
+        if self._spill is not None and len(self._t) >= TRACK_BLOCK:
+            for c in self._spill:
+                c.spill(force=True)
 
     def append(self, e: Estimate) -> None:
         c = e.pose_cov
@@ -68,13 +87,22 @@ class TrackBuilder:
             self.append(e)
 
     def __len__(self) -> int:
-        return len(self._t)
+        return len(self._t) + (self._spill[2].spilled if self._spill is not None else 0)
 
     def __bool__(self) -> bool:
-        return len(self._t) > 0
+        return len(self) > 0
 
     def __getitem__(self, i: int) -> Estimate:
-        n = len(self._t)
+        n = len(self)
+        if self._spill is not None and self._spill[2].spilled:
+            tr = self.trajectory()  # a spilled row is read from the files
+            if isinstance(i, slice):
+                return [self[j] for j in range(n)[i]]
+            i = range(n)[i]
+            if i == n - 1 and self.last is not None and self.last.t == tr.t[i]:
+                return self.last
+            return Estimate(float(tr.t[i]), tuple(tr.pose[i].tolist()),
+                            tr.cov_at(slice(i, i + 1))[0])
         if isinstance(i, slice):
             return [self[j] for j in range(n)[i]]
         if i < 0:
@@ -91,7 +119,14 @@ class TrackBuilder:
 
     def trajectory(self) -> Trajectory:
         """The columns as a Trajectory, sharing their memory (no copy: appending to the builder
-        afterwards is an error); its ``cov`` is unpacked to (N, 3, 3) when first read."""
+        afterwards is an error); its ``cov`` is unpacked to (N, 3, 3) when first read. A
+        spilling builder's whole columns are memory-mapped from its files
+        (``Trajectory.release``)."""
+        if self._spill is not None and self._spill[2].spilled:
+            (cov, mc), (pose, mp), (t, mt) = (c.mapped() for c in self._spill)
+            n = len(t)
+            return _PackedTrajectory(t, pose[:3 * n].reshape(n, 3),
+                                     packed=cov[:6 * n].reshape(n, 6), maps=(mt, mp, mc))
         n = len(self._t)
         if not n:
             return Trajectory(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3, 3)))
@@ -147,6 +182,11 @@ class Trajectory:
         the covariances asks for, which a packed track unpacks for those rows only."""
         return self.cov[index]
 
+    def release(self) -> None:
+        """Drop from this process's memory the pages of a track read from its spill files
+        (``TrackBuilder(spill_to=)``), once a reader is done with them (they are read again
+        when next touched); nothing for a track held in memory."""
+
 
 class _PackedTrajectory(Trajectory):
     """A Trajectory whose covariances stay packed (TrackBuilder's 6 values per pose) until
@@ -155,9 +195,13 @@ class _PackedTrajectory(Trajectory):
     Trajectory like any other (``cov`` can be read and set)."""
 
     def __init__(self, t: np.ndarray, pose: np.ndarray, cov: np.ndarray | None = None, *,
-                 packed: np.ndarray | None = None) -> None:
+                 packed: np.ndarray | None = None, maps: tuple = ()) -> None:
         self.t, self.pose = t, pose
         self._cov, self._packed = cov, packed
+        self._maps = maps  # the memory maps the columns are read from, if spilled
+
+    def release(self) -> None:
+        release(self._maps)
 
     @property
     def cov(self) -> np.ndarray:
@@ -181,7 +225,9 @@ class EstimatorRun:
 
     name: str
     trajectory: Trajectory
-    update_s: np.ndarray  # wall time of each process() call, s (float32)
+    # wall time of each process() call, s (float32): an array, or a SpilledColumn
+    # (run(spill_dir=)) read by blocks (np.asarray gives it whole)
+    update_s: np.ndarray | SpilledColumn
     runtime_s: float  # total wall time in process/estimate/finish, s
     log: EstimatorLog
     error: str | None = None  # set when the estimator raised; the trajectory holds what it had
@@ -410,7 +456,8 @@ def initial_pose(cfg_initial, stream) -> tuple[float, float, float] | None:
 def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
         holdout: str | None = None, progress: Callable[[float], None] | None = None,
         interruptible: bool = False,
-        observers: Iterable[Callable[[object], None]] = ()) -> RunResult:
+        observers: Iterable[Callable[[object], None]] = (),
+        spill_dir: str | Path | None = None) -> RunResult:
     """Feed every measurement of ``stream`` to every estimator, in the stream's order: the
     order of arrival (read_stream and BagStream give stamp order; a list built to test late
     delivery may hold older stamps after newer ones, which each estimator handles as it does
@@ -429,7 +476,14 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
     nothing more): the result says so in ``interrupted``. Otherwise Ctrl-C propagates.
 
     ``observers`` are called with every measurement (withheld fixes too), outside the
-    estimators' timings: what a run learns about the data besides the estimates."""
+    estimators' timings: what a run learns about the data besides the estimates.
+
+    ``spill_dir`` (an existing directory): each estimator's per-call timings and output track
+    are written there in blocks as they grow (``ddfuse.estimation.spill``: ``update_s.<k>.f32``
+    and ``track.<k>.t/.pose/.cov``, k its position in ``estimators``); its
+    ``EstimatorRun.update_s`` is that ``SpilledColumn`` and its trajectory is memory-mapped
+    from the files (``Trajectory.release``). The caller removes the files when done with
+    them. Without it both stay in memory."""
     if not (output_rate > 0.0 and math.isfinite(output_rate)):
         raise ValueError(f"output_rate: expected Hz > 0, got {output_rate!r}")
     for n, e in estimators.items():
@@ -439,8 +493,11 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
     select = parse_holdout(holdout)
     names = list(estimators)
     est_list = [estimators[n] for n in names]
-    outputs = [TrackBuilder() for _ in names]
-    timings = [array("f") for _ in names]
+    outputs = [TrackBuilder(None if spill_dir is None else Path(spill_dir) / f"track.{k}")
+               for k in range(len(names))]
+    columns = ([SpilledColumn(Path(spill_dir) / f"update_s.{k}.f32") for k in range(len(names))]
+               if spill_dir is not None else [])
+    timings = [c.tail for c in columns] or [array("f") for _ in names]
     totals = [0.0] * len(names)
     errors: list[str | None] = [None] * len(names)
     alive = [True] * len(names)
@@ -466,7 +523,8 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
     stop: list[str] = []
     try:
         fed = _feed(meas, n, fraction, select, gps, est_list, alive, errors, outputs, timings,
-                    totals, period, progress, stop if interruptible else None, tuple(observers))
+                    totals, period, progress, stop if interruptible else None, tuple(observers),
+                    columns)
     finally:
         if gc_was_enabled:
             gc.enable()
@@ -496,11 +554,13 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
         # gathering what the estimator gave is not cut short: an interrupt is held (noted in
         # ``interrupted`` after it, or raised if not interruptible)
         with held_signals() as held:
-            _gather(runs, name, est, outputs, i, timings[i], totals[i], errors, fed, gps)
+            _gather(runs, name, est, outputs, i, columns[i] if columns else timings[i],
+                    totals[i], errors, fed, gps)
         if held and interruptible:
             stop.append(f"interrupted ({interrupt_name(held[0])}) while the results were gathered")
         elif held:
             deliver(held)
+    heap.trim()
     if progress is not None:
         progress(1.0)
     truth = None
@@ -513,13 +573,17 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
     return RunResult(stream, runs, gps.track(), truth, fed, "; ".join(stop) or None)
 
 
-def _gather(runs: dict, name: str, est: Estimator, outputs: list, i: int, timing: array,
-            total: float, errors: list, fed: int, gps: _GpsRecorder) -> None:
+def _gather(runs: dict, name: str, est: Estimator, outputs: list, i: int,
+            timing: array | SpilledColumn, total: float, errors: list, fed: int,
+            gps: _GpsRecorder) -> None:
     """The EstimatorRun(s) of estimator ``i`` of :func:`run` (its output track, or the batch's
     final one; its lagged track too) into ``runs``."""
     est.log.innovations.compact()
-    # a view of the compact array, not a copy
-    upd = np.frombuffer(timing, np.float32) if len(timing) else np.zeros(0, np.float32)
+    if isinstance(timing, SpilledColumn):
+        timing.close()
+        upd = timing
+    else:  # a view of the compact array, not a copy
+        upd = np.frombuffer(timing, np.float32) if len(timing) else np.zeros(0, np.float32)
     # An offline estimator (the batch) gives its whole trajectory only at the end.
     final = getattr(est, "final_estimates", None)
     track = final() if callable(final) else outputs[i]
@@ -552,9 +616,11 @@ def _final_state(est: Estimator, track) -> Estimate | None:
 
 
 def _feed(meas, n, fraction, select, gps, est_list, alive, errors, outputs, timings, totals,
-          period, progress, stop: list[str] | None = None, observers: tuple = ()) -> int:
+          period, progress, stop: list[str] | None = None, observers: tuple = (),
+          columns: list[SpilledColumn] | tuple = ()) -> int:
     """The measurement loop of :func:`run` (see there); returns how many measurements came.
-    With ``stop`` (a list), Ctrl-C ends the loop and says where in ``stop``."""
+    With ``stop`` (a list), Ctrl-C ends the loop and says where in ``stop``. ``columns``: the
+    spilled timing columns whose tails are ``timings``, spilled between messages."""
     clock = time.perf_counter
     next_tick = -math.inf
     t_start = None
@@ -571,8 +637,14 @@ def _feed(meas, n, fraction, select, gps, est_list, alive, errors, outputs, timi
                 # buffer into the store on that read)
                 for lg in est_logs:
                     lg.innovations.compact()
+                for c in columns:
+                    c.spill()
+                for o in outputs:
+                    if o is not None:
+                        o.spill()
                 if k % 5000 == 0:
                     gc.collect(1)
+                    heap.trim()  # the temporaries' free gaps between the growing records
                 if progress is not None:
                     progress(fraction() if fraction is not None else k / max(n, 1))
             t_m = m.t

@@ -238,8 +238,11 @@ def write_estimates(path: str | Path, result, *, local_frame: str = "map",
                 schemas[s.typename] = w.register_schema(s.typename, "ros2msg", text.encode())
             ids.append(w.register_channel(s.topic, "cdr", schemas[s.typename]))
         start = [0] * len(sources)
+        tracks = [r.trajectory for r in result.runs.values()]
         for edge in edges:
             _write_block(w, ids, sources, start, edge)
+            for tr in tracks:  # a spilled track's pages of this block (Trajectory.release)
+                tr.release()
         w.finish()
     return path
 

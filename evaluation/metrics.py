@@ -150,7 +150,11 @@ def umeyama_se2(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarra
 
 def _apply_se2(pose: np.ndarray, r: np.ndarray, t: np.ndarray) -> np.ndarray:
     out = pose.copy()
-    out[:, :2] = pose[:, :2] @ r.T + t
+    # elementwise, not ``pose[:, :2] @ r.T``: BLAS rounds a row differently with the number of
+    # rows, and pair_scores applies this a block of rows at a time
+    x, y = pose[:, 0], pose[:, 1]
+    out[:, 0] = r[0, 0] * x + r[0, 1] * y + t[0]
+    out[:, 1] = r[1, 0] * x + r[1, 1] * y + t[1]
     out[:, 2] = wrap(pose[:, 2] + math.atan2(r[1, 0], r[0, 0]))
     return out
 
@@ -282,11 +286,12 @@ def se2_log_errors(est_pose: np.ndarray, ref_pose: np.ndarray) -> np.ndarray:
     return np.column_stack([(sa * bx + ca * by) / det, (-ca * bx + sa * by) / det, th])
 
 
-_COV_BLOCK = 4096  # covariances read at a time by nees_series
+_COV_BLOCK = 4096  # pairs (and their covariances) nees_series scores at a time
 
 
 def nees_series(est: Trajectory, ref: Trajectory, max_diff: float = 0.05,
-                pose_error: str = "world") -> Nees:
+                pose_error: str = "world", *, pairs: tuple[np.ndarray, np.ndarray] | None = None,
+                block: int = _COV_BLOCK) -> Nees:
     """NEES of ``est`` against ``ref`` (no alignment: the covariance is in the local frame).
 
     ``pose_error`` (``estimation.estimator.Estimate.pose_error``) says in which coordinates the
@@ -301,39 +306,45 @@ def nees_series(est: Trajectory, ref: Trajectory, max_diff: float = 0.05,
     the error, which no estimator's covariance claims (the sample bag's 10 Hz outputs sit
     0.025 s from its 20 Hz truth: mean NEES 5.3 instead of 2.9 for the EKF, all at the turns).
 
-    Samples whose covariance is missing or not positive definite are left out."""
+    Samples whose covariance is missing or not positive definite are left out. ``pairs``: the
+    associated pairs (i_est, i_ref) if the caller has them (``associate(est.t, ref.t,
+    max_diff)``); they are scored ``block`` at a time (per pair the same values whatever the
+    block: only one block's temporaries are held)."""
     if pose_error not in ("world", "se2"):
         raise ValueError(f"pose_error must be 'world' or 'se2', got {pose_error!r}")
-    err = pose_errors(est, ref, max_diff, pairing="interpolate")
-    if pose_error == "se2" and len(err.i_est):
-        xi = se2_log_errors(est.pose[err.i_est],
-                            reference_at(ref, err.t, err.i_ref, max_diff))
-    m = len(err.i_est)
+    if block < 1:
+        raise ValueError(f"block must be >= 1, got {block}")
+    i_all, j_all = pairs if pairs is not None else associate(est.t, ref.t, max_diff)
+    m = len(i_all)
     ts, vals, dofs, idx = np.empty(m), np.empty(m), np.empty(m, int), np.empty(m, np.int64)
     n = 0
-    covs = None
-    for k, i in enumerate(err.i_est):
-        if k % _COV_BLOCK == 0:  # a block of covariances at a time (a packed track's unpacked)
-            covs = est.cov_at(err.i_est[k:k + _COV_BLOCK])
-        p = covs[k % _COV_BLOCK]
-        if math.isnan(err.dyaw[k]):
-            e, p = err.dxy[k], p[:2, :2]
-        elif pose_error == "se2":
-            e = xi[k]
-            c, s = math.cos(est.pose[i, 2]), math.sin(est.pose[i, 2])
-            ai = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])  # A^-1
-            p = ai @ p @ ai.T
-        else:
-            e = np.array([err.dxy[k, 0], err.dxy[k, 1], err.dyaw[k]])
-        if not np.all(np.isfinite(p)):
-            continue
-        try:
-            c = np.linalg.cholesky(0.5 * (p + p.T))
-        except np.linalg.LinAlgError:
-            continue
-        z = np.linalg.solve(c, e)
-        ts[n], vals[n], dofs[n], idx[n] = err.t[k], float(z @ z), len(e), i
-        n += 1
+    for a in range(0, m, block):
+        i_b = i_all[a:a + block]
+        t_b, pe = est.t[i_b], est.pose[i_b]
+        pr = reference_at(ref, t_b, j_all[a:a + block], max_diff)
+        dxy, dyaw = pe[:, :2] - pr[:, :2], wrap(pe[:, 2] - pr[:, 2])
+        xi = se2_log_errors(pe, pr) if pose_error == "se2" else None
+        covs = est.cov_at(i_b)  # a packed track unpacks these rows only
+        for k, i in enumerate(i_b.tolist()):
+            p = covs[k]
+            if math.isnan(dyaw[k]):
+                e, p = dxy[k], p[:2, :2]
+            elif xi is not None:
+                e = xi[k]
+                c, s = math.cos(pe[k, 2]), math.sin(pe[k, 2])
+                ai = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])  # A^-1
+                p = ai @ p @ ai.T
+            else:
+                e = np.array([dxy[k, 0], dxy[k, 1], dyaw[k]])
+            if not np.all(np.isfinite(p)):
+                continue
+            try:
+                c = np.linalg.cholesky(0.5 * (p + p.T))
+            except np.linalg.LinAlgError:
+                continue
+            z = np.linalg.solve(c, e)
+            ts[n], vals[n], dofs[n], idx[n] = t_b[k], float(z @ z), len(e), i
+            n += 1
     return Nees(ts[:n].copy(), vals[:n].copy(), dofs[:n].copy(), idx[:n].copy())
 
 
@@ -491,7 +502,7 @@ _STEP_BLOCK = 8192  # steps rpe_pairs walks at a time
 def rpe_pairs(t: np.ndarray, xy: np.ndarray, delta: float, unit: str = "s",
               all_pairs: bool = False, rel_tol: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
     """Index pairs (a, b) for the RPE, ``delta`` seconds (``unit`` 's') or path metres ('m')
-    apart along stamps ``t`` (N,) / positions ``xy`` (N, 2).
+    apart along stamps ``t`` (N,) / positions ``xy`` (N, 2) (unused for seconds: may be None).
 
     Consecutive pairs (evo's default): the first sample, then each sample at which the time or
     path since the last chosen one reaches ``delta``. All pairs: each sample with the later one
@@ -532,47 +543,57 @@ def rpe_pairs(t: np.ndarray, xy: np.ndarray, delta: float, unit: str = "s",
 
 def rpe(est: Trajectory, ref: Trajectory, delta: float = 1.0, max_diff: float = 0.05, *,
         unit: str = "s", all_pairs: bool = False, rel_tol: float = 0.1,
-        pairs_from_reference: bool = False) -> tuple[Stats, Stats]:
+        pairs_from_reference: bool = False,
+        pairs: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[Stats, Stats]:
     """Relative pose error over ``delta`` (``unit`` 's' or 'm'): translation (m) and heading
     (rad) statistics of (ref_i^-1 ref_j)^-1 (est_i^-1 est_j) over the pairs of ``rpe_pairs``
-    taken on the associated samples."""
-    i, j = associate(est.t, ref.t, max_diff)
+    taken on the associated samples (``pairs``: (i_est, i_ref) if the caller has them)."""
+    i, j = pairs if pairs is not None else associate(est.t, ref.t, max_diff)
     if len(i) < 2:
         return Stats.of(np.zeros(0)), Stats.of(np.zeros(0))
-    pe, pr = est.pose[i], ref.pose[j]
-    src = pr if pairs_from_reference else pe
-    a, b = rpe_pairs(est.t[i], src[:, :2], delta, unit, all_pairs, rel_tol)
+    a, b = _rpe_index_pairs(est, ref, i, j, delta, unit, all_pairs, rel_tol,
+                            pairs_from_reference)
 
-    def rel(p):
-        c, s = np.cos(p[a, 2]), np.sin(p[a, 2])
-        dx, dy = p[b, 0] - p[a, 0], p[b, 1] - p[a, 1]
-        return c * dx + s * dy, -s * dx + c * dy, wrap(p[b, 2] - p[a, 2])
+    def rel(pose, idx):  # the poses at the chosen pairs only, not every associated one
+        pa, pb = pose[idx[a]], pose[idx[b]]
+        c, s = np.cos(pa[:, 2]), np.sin(pa[:, 2])
+        dx, dy = pb[:, 0] - pa[:, 0], pb[:, 1] - pa[:, 1]
+        return c * dx + s * dy, -s * dx + c * dy, wrap(pb[:, 2] - pa[:, 2])
 
-    ex, ey, eyaw = rel(pe)
-    rx, ry, ryaw = rel(pr)
+    ex, ey, eyaw = rel(est.pose, i)
+    rx, ry, ryaw = rel(ref.pose, j)
     # |t(E)| = |R_rel_ref^T (t_est_rel - t_ref_rel)| = |t_est_rel - t_ref_rel|.
     trans = np.hypot(ex - rx, ey - ry)
     yaw = np.abs(wrap(eyaw - ryaw))
     return Stats.of(trans), Stats.of(yaw[np.isfinite(yaw)])
 
 
+def _rpe_index_pairs(est, ref, i, j, delta, unit, all_pairs, rel_tol, pairs_from_reference):
+    """``rpe_pairs`` over the associated samples (i, j): indices into i and j."""
+    # the positions only for path pairs (a time delta needs the stamps alone)
+    src = (ref.pose[j, :2] if pairs_from_reference else est.pose[i, :2]) if unit == "m" \
+        else None
+    return rpe_pairs(est.t[i], src, delta, unit, all_pairs, rel_tol)
+
+
 def rpe_mean_delta(est: Trajectory, ref: Trajectory, delta: float = 1.0, max_diff: float = 0.05,
                    *, unit: str = "s", all_pairs: bool = False, rel_tol: float = 0.1,
-                   pairs_from_reference: bool = False) -> float | None:
+                   pairs_from_reference: bool = False,
+                   pairs: tuple[np.ndarray, np.ndarray] | None = None) -> float | None:
     """The mean time (``unit`` 's') or path length ('m', on the positions the pairs are taken
     on) actually spanned by ``rpe``'s pairs (same arguments): consecutive pairs reach at least
     ``delta`` at the next sample, so a track sampled every 0.4 s has pairs 1.2 s apart for a
     1 s RPE. None without pairs."""
-    i, j = associate(est.t, ref.t, max_diff)
+    i, j = pairs if pairs is not None else associate(est.t, ref.t, max_diff)
     if len(i) < 2:
         return None
-    src = (ref.pose[j] if pairs_from_reference else est.pose[i])[:, :2]
-    t = est.t[i]
-    a, b = rpe_pairs(t, src, delta, unit, all_pairs, rel_tol)
+    a, b = _rpe_index_pairs(est, ref, i, j, delta, unit, all_pairs, rel_tol,
+                            pairs_from_reference)
     if not len(a):
         return None
     if unit == "s":
-        return float(np.mean(t[b] - t[a]))
+        return float(np.mean(est.t[i[b]] - est.t[i[a]]))
+    src = ref.pose[j, :2] if pairs_from_reference else est.pose[i, :2]
     cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(src, axis=0), axis=1))])
     return float(np.mean(cum[b] - cum[a]))
 

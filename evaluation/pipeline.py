@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 import os
+import shutil
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -32,7 +33,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from ddfuse.estimation import chi2, gps_scatter, heading_survey
+from ddfuse.estimation import chi2, gps_scatter, heading_survey, heap
 from ddfuse.estimation.bags import BagStream
 from ddfuse.estimation.config import DEFAULT_GATE, Config
 from ddfuse.estimation.errors import BagError, RunInterrupted
@@ -46,8 +47,9 @@ from ddfuse.estimation.runner import (
     parse_holdout,
     run,
 )
-from ddfuse.evaluation import consistency, metrics
+from ddfuse.evaluation import consistency, latency_stats, metrics, pair_scores
 from ddfuse.evaluation import estimators as registry
+from ddfuse.evaluation.atomic_files import OutputError
 from ddfuse.evaluation.batch_cost import DEFAULT_MAX_SPAN_S, announce_solve, leave_out_notice
 from ddfuse.evaluation.consistency import SensorNis
 from ddfuse.evaluation.run_files import config_text_of, save_run, write_metrics, writing_run
@@ -113,37 +115,40 @@ def timing_split(*, startup: float | None, decode: float, build: float, loop: fl
                      r4(runner), r4(scoring), r4(writing), r4(total))
 
 
-def _ate_score(a: metrics.Ape) -> AteScore:
-    return AteScore(stats_of(a.position), stats_of(a.heading, math.degrees(1)))
+def _ate_score(position: metrics.Stats, heading: metrics.Stats) -> AteScore:
+    return AteScore(stats_of(position), stats_of(heading, math.degrees(1)))
 
 
 def _truth_scores(tr: Trajectory, truth: Trajectory, pose_error: str = "world") -> dict:
     """ATE (three alignments), RPE and NEES of one track against the truth: the
-    ``EstimatorScores`` fields they fill (none without an associated pair)."""
+    ``EstimatorScores`` fields they fill (none without an associated pair). The ATE, its
+    association error and the NEES walk the associated pairs a block at a time
+    (``pair_scores``)."""
     m: dict = {}
-    a = metrics.ape(tr, truth, MAX_DIFF)
-    if a.position.n == 0:
+    i, j = metrics.associate(tr.t, truth.t, MAX_DIFF)
+    if len(i) == 0:
         return m
-    m["ate_rmse_m"] = num(a.position.rmse)
-    m["ate_max_m"] = num(a.position.max)
-    m["yaw_rmse_deg"] = num(math.degrees(a.heading.rmse)) if a.heading.n else None
-    assoc = metrics.association_error(tr, truth, MAX_DIFF)
+    pos, head = pair_scores.ape_stats(tr, truth, i, j)
+    m["ate_rmse_m"] = num(pos.rmse)
+    m["ate_max_m"] = num(pos.max)
+    m["yaw_rmse_deg"] = num(math.degrees(head.rmse)) if head.n else None
+    assoc = pair_scores.association_stats(tr, truth, i, j)
     m["ate_association_rmse_m"] = num(assoc.rmse)
     aligned = {}
     for how in ("se2", "origin"):
         try:
-            aligned[how] = _ate_score(metrics.ape(tr, truth, MAX_DIFF, how))
+            aligned[how] = _ate_score(*pair_scores.ape_stats(tr, truth, i, j, how))
         except ValueError:  # too few distinct positions, or a truth without heading
             aligned[how] = None
-    m["ate"] = AteScores(_ate_score(a), a.position.n, MAX_DIFF, stats_of(assoc), **aligned)
+    m["ate"] = AteScores(_ate_score(pos, head), pos.n, MAX_DIFF, stats_of(assoc), **aligned)
     if np.isfinite(truth.pose[:, 2]).any():
         rpe = {}
         for key, delta, unit in RPE_DELTAS:
-            pos, yaw = metrics.rpe(tr, truth, delta, MAX_DIFF, unit=unit)
+            rpos, yaw = metrics.rpe(tr, truth, delta, MAX_DIFF, unit=unit, pairs=(i, j))
             # the pairs' actual spacing: a keyframe track's 1 s pairs are 1.2 s apart
             rpe[key] = RpeScore(delta, unit, num(
-                metrics.rpe_mean_delta(tr, truth, delta, MAX_DIFF, unit=unit)),
-                stats_of(pos), stats_of(yaw, math.degrees(1))) if pos.n else None
+                metrics.rpe_mean_delta(tr, truth, delta, MAX_DIFF, unit=unit, pairs=(i, j))),
+                stats_of(rpos), stats_of(yaw, math.degrees(1))) if rpos.n else None
         m["rpe"] = rpe
         m["rpe_rmse_m"] = rpe["1s"].position_m.rmse if rpe["1s"] else None
     else:
@@ -152,7 +157,7 @@ def _truth_scores(tr: Trajectory, truth: Trajectory, pose_error: str = "world") 
         # the truth's heading. Left out with the reason, not nulls beside a pair count.
         m["rpe"], m["rpe_rmse_m"] = None, None
         m["rpe_note"] = "the ground truth has no heading (position only): no RPE"
-    ns = metrics.nees_series(tr, truth, MAX_DIFF, pose_error)
+    ns = metrics.nees_series(tr, truth, MAX_DIFF, pose_error, pairs=(i, j))
     if len(ns.value):
         c = consistency.summarize(ns.value, ns.dof)
         m["nees_mean"] = num(c.mean)
@@ -284,6 +289,7 @@ def _gross_outliers(result: RunResult, t: np.ndarray, xy: np.ndarray, cov: np.nd
         if not out.any():
             break
         nis = metrics.gate_nis(tr, t, xy, cov, antenna.lever_arm, antenna.delay_s)
+        tr.release()  # a spilled track's pages, read again by the next reader
         out &= ~(nis <= limit)  # NaN (no estimate there) does not vouch for the fix
     return out
 
@@ -345,6 +351,7 @@ def score(result: RunResult, decode_s: float = 0.0,
     for r in result.runs.values():
         if len(r.trajectory) > 1:
             covered &= metrics.antenna_xy(r.trajectory, hold_t, lever, delay)[1]
+            r.trajectory.release()
     # No fix inside every span (one track ends before another starts): each track could only be
     # scored on its own fixes, a ranking of different things. Then no track gets a hold-out
     # score (gps_holdout_rmse_m), only its statistics over its own fixes (gps_holdout_m).
@@ -370,10 +377,12 @@ def score(result: RunResult, decode_s: float = 0.0,
     ref_out = (_gross_outliers(result, used_t, used_xy, result.gps.cov[~result.gps.withheld],
                                antenna, used=True) if n_held else np.zeros(len(used_t), bool))
     outages = metrics.gps_outages(used_t, stream.t1) if len(used_t) else []
-    ests = {name: _track_scores(r, duration, truth, (pose_errors or {}).get(name),
-                                common_fixes, (hold_t, hold_xy, hold_cov), (own_t, own_xy),
-                                (used_t, used_xy), outages, antenna)
-            for name, r in result.runs.items()}
+    ests = {}
+    for name, r in result.runs.items():
+        ests[name] = _track_scores(r, duration, truth, (pose_errors or {}).get(name),
+                                   common_fixes, (hold_t, hold_xy, hold_cov), (own_t, own_xy),
+                                   (used_t, used_xy), outages, antenna)
+        r.trajectory.release()
     # a run that stopped with an error is not ranked: it must not cut everyone's span
     common = _common_ate({n: r.trajectory for n, r in result.runs.items() if r.error is None},
                          truth)
@@ -408,7 +417,6 @@ def _track_scores(r, duration: float, truth: Trajectory | None, pose_error: str 
     scored on, ``own`` (t, xy) all withheld fixes (where there are no ``common_fixes``),
     ``used`` (t, xy) the fixes the estimators received."""
     tr = r.trajectory
-    upd_ms = r.update_s * 1e3
     hold_t, hold_xy, hold_cov = held
     m: dict = {}
     # the coordinates the NEES is scored in (the report's NEES plot reads them back)
@@ -433,9 +441,7 @@ def _track_scores(r, duration: float, truth: Trajectory | None, pose_error: str 
         samples=len(tr),
         runtime_s=num(r.runtime_s),
         rtf=num(duration / r.runtime_s) if r.runtime_s > 0 else None,
-        update_ms=UpdateLatency(*(num(float(np.percentile(upd_ms, q))) for q in (50, 99, 100)),
-                                num(float(upd_ms.mean())), len(upd_ms))
-        if len(upd_ms) else None,
+        update_ms=_update_latency(r.update_s),
         nis={label: SensorNis(s.sensor, s.kind, s.accepted, s.rejected, rounded_record(s.nis))
              for label, s in consistency.nis_by_sensor(
                  consistency.InnovationTable.from_innovations(r.log.innovations)).items()},
@@ -446,6 +452,21 @@ def _track_scores(r, duration: float, truth: Trajectory | None, pose_error: str 
         final_state=calibration_states(r.final_state),
         **m)
 
+
+
+def _update_latency(update_s) -> UpdateLatency | None:
+    """p50, p99, max and mean (ms) and the count of the per-call timings ``update_s`` (s: an
+    array or a ``SpilledColumn``), read a block at a time (``latency_stats``: the percentiles
+    exact, the mean summed in float64); None without any."""
+    if not len(update_s):
+        return None
+
+    def blocks():
+        return (b * 1e3 for b in latency_stats.blocks_of(update_s))
+
+    p50, p99, top = latency_stats.percentiles(blocks, (50, 99, 100))
+    mean, n = latency_stats.mean(blocks())
+    return UpdateLatency(num(p50), num(p99), num(top), num(mean), n)
 
 
 def _common_ate(tracks: dict[str, Trajectory], truth: Trajectory | None
@@ -473,6 +494,7 @@ def _common_ate(tracks: dict[str, Trajectory], truth: Trajectory | None
     rmse = {}
     for n, tr in live.items():
         xy, _ = metrics.interpolate_xy(tr, t)
+        tr.release()
         rmse[n] = num(float(np.sqrt(np.mean(np.sum((xy - g) ** 2, axis=1)))))
     return rmse, CommonSpan(int(len(t)), base, (num(lo), num(hi)))
 
@@ -547,7 +569,10 @@ out an estimator the sensors nearly allow: ``estimators.left_out``), or, before 
     long (``batch_cost``).
 
     On a damaged or truncated bag the results of what could be read are written, then BagError
-    is raised with ``results_written`` set."""
+    is raised with ``results_written`` set. While it runs, ``outdir``/.ddfuse-spill holds the
+    loop's growing records (tracks and per-call timings, ``runner.run(spill_dir=)``): memory
+    stays flat with the bag's length; it is removed once the results are written (or the run
+    fails), and a killed run's is removed by the next run into ``outdir``."""
     clock = time.perf_counter
     t_enter, startup = clock(), process_age()
     outdir = Path(outdir)
@@ -571,56 +596,78 @@ out an estimator the sensors nearly allow: ``estimators.left_out``), or, before 
     decode_before = stream.decode_s
     t_built = clock()
     offsets = heading_survey.recorder_for(cfg)
-    result = run(stream, ests, holdout=holdout,
-                 progress=(lambda f: progress("decode + estimate", f)) if progress else None,
-                 interruptible=True, observers=(offsets.add,))
-    t_ran = clock()
-    input_error = stream.error
-    if input_error is not None and not result.messages:
-        raise BagError(input_error)
-    decode_s = stream.decode_s
-    runtimes = {n: result.runs[n].runtime_s for n in ests if n in result.runs}
-    if names:  # keep only the tracks asked for ('smoother_lagged' alone drops 'smoother')
-        result.runs = {k: v for k, v in result.runs.items() if k in set(names)}
-    # an interrupt while the results are scored and written is held until they are complete
-    # (a second one acts at once): the run was over, its results are whole
-    with held_signals() as held:
-        out = score(result, decode_s,
-                    {n: getattr(e, "pose_error", "world") for n, e in ests.items()}, cfg=cfg)
-        surveys = result.offset_surveys = offset_surveys(result, cfg, offsets)
-        out = replace(
-            out, config=str(cfg.path) if cfg.path else None,
-            initial_pose=("first ground-truth pose" if cfg.initial_pose == "ground_truth"
-                          else list(pose) if pose else None),
-            lag_s=lag, estimators_requested=list(names) if names else None, estimators_run=chosen,
-            gps_holdout=holdout, input_error=input_error, interrupted=result.interrupted,
-            data=data_facts(result, cfg, surveys))
-        # the reader's (a topic mostly dropped or silent), then the compass offset's
-        out = replace(out, warnings=[*stream.warnings,
-                                     *heading_survey.config_warnings(surveys, cfg),
-                                     *gps_correlation_warnings(cfg, result.gps)])
-        config_text = config_text_of(cfg)
-        t_scored = clock()
-        with writing_run(outdir, f"ddfuse run of {bag}", result):
-            save_run(result, outdir, config_text, frames=(cfg.local_frame, cfg.base_frame),
-                     tf=cfg.node.tf)
-            out = replace(out, wall_s=timing_split(
-                startup=startup, decode=decode_s, build=t_built - t_enter - decode_before,
-                loop=t_ran - t_built, loop_decode=decode_s - decode_before, runtimes=runtimes,
-                scoring=t_scored - t_ran, writing=clock() - t_scored))
-            write_metrics(outdir, out.to_json())
-    if result.interrupted:
-        raise RunInterrupted(f"{result.interrupted}; the results of what was processed are in "
-                             f"{outdir}")
-    if held:
-        raise RunInterrupted(f"interrupted ({interrupt_name(held[0])}) while the results were "
-                             f"written; they are complete, in {outdir}")
-    if input_error:
-        err = BagError(f"{input_error}; results for the {stream.duration:.1f} s that could be "
-                       f"read are in {outdir}")
-        err.results_written = True
-        raise err
-    return out
+    spill = _spill_dir(outdir)  # the loop's timings, until the results are written
+    try:
+        result = run(stream, ests, holdout=holdout,
+                     progress=(lambda f: progress("decode + estimate", f)) if progress else None,
+                     interruptible=True, observers=(offsets.add,), spill_dir=spill)
+        t_ran = clock()
+        input_error = stream.error
+        if input_error is not None and not result.messages:
+            raise BagError(input_error)
+        decode_s = stream.decode_s
+        runtimes = {n: result.runs[n].runtime_s for n in ests if n in result.runs}
+        if names:  # keep only the tracks asked for ('smoother_lagged' alone drops 'smoother')
+            result.runs = {k: v for k, v in result.runs.items() if k in set(names)}
+        # an interrupt while the results are scored and written is held until they are complete
+        # (a second one acts at once): the run was over, its results are whole
+        with held_signals() as held:
+            out = score(result, decode_s,
+                        {n: getattr(e, "pose_error", "world") for n, e in ests.items()}, cfg=cfg)
+            surveys = result.offset_surveys = offset_surveys(result, cfg, offsets)
+            out = replace(
+                out, config=str(cfg.path) if cfg.path else None,
+                initial_pose=("first ground-truth pose" if cfg.initial_pose == "ground_truth"
+                              else list(pose) if pose else None),
+                lag_s=lag, estimators_requested=list(names) if names else None,
+                estimators_run=chosen,
+                gps_holdout=holdout, input_error=input_error, interrupted=result.interrupted,
+                data=data_facts(result, cfg, surveys))
+            # the reader's (a topic mostly dropped or silent), then the compass offset's
+            out = replace(out, warnings=[*stream.warnings,
+                                         *heading_survey.config_warnings(surveys, cfg),
+                                         *gps_correlation_warnings(cfg, result.gps)])
+            config_text = config_text_of(cfg)
+            heap.trim()  # scoring's temporaries, before the writers' own
+            t_scored = clock()
+            with writing_run(outdir, f"ddfuse run of {bag}", result):
+                save_run(result, outdir, config_text, frames=(cfg.local_frame, cfg.base_frame),
+                         tf=cfg.node.tf)
+                out = replace(out, wall_s=timing_split(
+                    startup=startup, decode=decode_s, build=t_built - t_enter - decode_before,
+                    loop=t_ran - t_built, loop_decode=decode_s - decode_before, runtimes=runtimes,
+                    scoring=t_scored - t_ran, writing=clock() - t_scored))
+                write_metrics(outdir, out.to_json())
+        if result.interrupted:
+            raise RunInterrupted(f"{result.interrupted}; the results of what was processed are in "
+                                 f"{outdir}")
+        if held:
+            raise RunInterrupted(f"interrupted ({interrupt_name(held[0])}) while the results were "
+                                 f"written; they are complete, in {outdir}")
+        if input_error:
+            err = BagError(f"{input_error}; results for the {stream.duration:.1f} s that could be "
+                           f"read are in {outdir}")
+            err.results_written = True
+            raise err
+        return out
+    finally:
+        shutil.rmtree(spill, ignore_errors=True)
+
+
+SPILL_DIR = ".ddfuse-spill"  # in the output directory, during a run (``_spill_dir``)
+
+
+def _spill_dir(outdir: Path) -> Path:
+    """``outdir``/SPILL_DIR, made empty: where the loop writes its growing records in blocks
+    (``runner.run(spill_dir=)``) until the results are written; what a killed run left there
+    is removed. OSError -> OutputError naming it."""
+    path = outdir / SPILL_DIR
+    shutil.rmtree(path, ignore_errors=True)
+    try:
+        path.mkdir()
+    except OSError as e:
+        raise OutputError.of(path, e) from None
+    return path
 
 
 def write_outputs(result: RunResult, outdir: Path, summary: RunSummary,

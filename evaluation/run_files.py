@@ -50,6 +50,7 @@ from ddfuse.evaluation.atomic_files import (
 from ddfuse.evaluation.consistency import InnovationTable
 from ddfuse.evaluation.estimates_mcap import ESTIMATES_FILE, write_estimates
 from ddfuse.evaluation.export import write_csv, write_tum
+from ddfuse.evaluation.latency_stats import blocks_of
 
 __all__ = ["INCOMPLETE", "METRICS_FILE", "PLOTS_DIR", "REPORT_FILE", "RUN_FILE", "TRUTH",
            "config_text_of", "incomplete_note", "save_run", "write_metrics", "writing_run"]
@@ -175,6 +176,7 @@ def save_run(result: RunResult, outdir: Path, config_text: str | None = None, *,
     for name, tr in tracks.items():
         for ext, write in (("tum", write_tum), ("csv", write_csv)):
             write(outdir / f"{name}.{ext}", tr)
+            tr.release()  # a spilled track's pages (runner.Trajectory.release)
             _note(outdir, f"{name}.{ext}")
     write_estimates(outdir / ESTIMATES_FILE, result, local_frame=frames[0],
                     base_frame=frames[1], tf=tf)
@@ -210,9 +212,8 @@ def _write_npz(f, entries: Iterator[tuple[str, np.ndarray, bool]]) -> None:
                 np.lib.format.write_array_header_1_0(out, {
                     "descr": np.lib.format.dtype_to_descr(np.dtype(float)),
                     "fortran_order": False, "shape": a.shape})
-                flat = a.reshape(-1)
-                for i in range(0, len(flat), _NPY_BLOCK):
-                    out.write(flat[i:i + _NPY_BLOCK].astype(float).tobytes())
+                for b in blocks_of(a, _NPY_BLOCK):  # a SpilledColumn's from its file
+                    out.write(b.astype(float).tobytes())
 
 
 def run_arrays(result: RunResult, config_text: str | None) -> dict[str, np.ndarray]:
@@ -239,7 +240,7 @@ def _run_entries(result: RunResult, config_text: str | None
     for name, r in result.runs.items():
         key = logs.setdefault(id(r.log), name)
         owner[name] = key
-        upd = np.asarray(r.update_s)
+        upd = r.update_s  # an array or a SpilledColumn (runner.EstimatorRun)
         yield f"update_s/{name}", upd, upd.dtype != float
         if key == name:
             table = InnovationTable.from_innovations(r.log.innovations)
