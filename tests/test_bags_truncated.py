@@ -24,6 +24,7 @@ from ddfuse.estimation.bags import read_stream
 from ddfuse.estimation.config import load_config, parse_config
 from ddfuse.estimation.errors import BagError
 from ddfuse.evaluation import cli
+from kernel_notices import without_kernel_notices
 from rosbags.rosbag1 import Reader
 
 pytest.importorskip("gtsam")
@@ -337,7 +338,7 @@ def test_cli_run_on_a_truncated_bag_writes_results_and_exits_2(tmp_path, capsys)
     rc = cli.main(["run", str(bag), "-c", str(SAMPLE_CFG), "-o", str(out),
                    "--estimators", "ekf"])
     assert rc == 2
-    err = capsys.readouterr().err.strip()
+    err = without_kernel_notices(capsys.readouterr().err)
     assert "\n" not in err and str(bag) in err and "truncated" in err and str(out) in err
     metrics = json.loads((out / "metrics.json").read_text())
     assert "truncated" in metrics["input_error"]
@@ -381,7 +382,7 @@ def test_cli_online_on_a_truncated_bag_replays_what_was_read_and_exits_2(tmp_pat
                    "--every", "10"])
     assert rc == 2
     out, err = capsys.readouterr()
-    err = err.strip()
+    err = without_kernel_notices(err)
     assert err.startswith("ddfuse: error: ") and "\n" not in err
     assert str(bag) in err and "truncated" in err and "replayed the" in err
     assert "update latency" in out and out.count("t=") > 3
@@ -391,7 +392,7 @@ def test_cli_inspect_on_a_truncated_bag_reports_what_was_read_and_exits_2(tmp_pa
     bag = cut(SAMPLE, SAMPLE.stat().st_size // 2, tmp_path / "half.bag")
     assert cli.main(["inspect", str(bag)]) == 2
     out, err = capsys.readouterr()
-    err = err.strip()
+    err = without_kernel_notices(err)
     assert err.startswith("ddfuse: error: ") and "\n" not in err
     assert str(bag) in err and "truncated" in err
     assert cli.main(["inspect", str(SAMPLE)]) == 0
@@ -412,7 +413,7 @@ def test_cli_bench_on_a_truncated_bag_measures_what_was_read_and_exits_2(tmp_pat
                    "--json", str(tmp_path / "b.json")])
     assert rc == 2
     out, err = capsys.readouterr()
-    err = err.strip()
+    err = without_kernel_notices(err)
     assert err.startswith("ddfuse: error: ") and "\n" not in err
     assert str(bag) in err and "truncated" in err
     r = json.loads((tmp_path / "b.json").read_text())[0]
@@ -529,7 +530,7 @@ def test_cli_lag_sweep_on_a_truncated_bag_sweeps_what_was_read_and_exits_2(tmp_p
                    "--json", str(tmp_path / "s.json")])
     assert rc == 2
     out, err = capsys.readouterr()
-    err = err.strip()
+    err = without_kernel_notices(err)
     assert err.startswith("ddfuse: error: ") and "\n" not in err
     assert "truncated" in err and err.endswith("swept on what could be read")
     rows = json.loads((tmp_path / "s.json").read_text())

@@ -218,11 +218,11 @@ def test_a_run_waits_for_another_run_but_not_long_for_the_background_build(
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "cache"))
     monkeypatch.setitem(jitcache._role, "holder", holder)
     with jitcache.one_compiler("waiting-test"):
-        p = _waiter(0.3)
-        time.sleep(2.0)
+        p = _waiter(0.2)
+        time.sleep(1.2)
         done_while_held = p.poll() is not None
     waited = float(p.communicate(timeout=60)[0])
     if holder == "build":
-        assert done_while_held and 0.3 <= waited < 2.0
+        assert done_while_held and 0.2 <= waited < 1.2
     else:
-        assert not done_while_held and waited >= 2.0
+        assert not done_while_held and waited >= 1.2
