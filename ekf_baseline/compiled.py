@@ -565,12 +565,10 @@ class JitKalmanCore(KalmanCore):
         names, kinds = self._names, self.kinds
         if hasattr(store, "extend_small"):  # an InnovationLog: the columns as they are
             lg = self.lg[:nrows]
-            m = lg[:, 10].astype(np.int64)
-            key = (lg[:, 8].astype(np.int64) * len(kinds) + lg[:, 9].astype(np.int64)) * 3 + m
-            uniq, group = np.unique(key, return_inverse=True)
-            groups = [(names[int(u) // 3 // len(kinds)], kinds[int(u) // 3 % len(kinds)],
-                       int(u) % 3) for u in uniq.tolist()]
-            store.extend_small(lg[:, 0], lg[:, 1], group, groups, lg[:, 2:4], lg[:, 4:8],
+            # (sensor row, kind, dimension) of each row, and the distinct ones
+            uniq, group = np.unique(lg[:, 8:11].astype(np.int64), axis=0, return_inverse=True)
+            groups = [(names[r], kinds[k], m) for r, k, m in uniq.tolist()]
+            store.extend_small(lg[:, 0], lg[:, 1], group.ravel(), groups, lg[:, 2:4], lg[:, 4:8],
                                lg[:, 11] == 1.0)
             self.ip[kj.IP_LOGN] = 0
             return
