@@ -66,6 +66,7 @@ from ddfuse.estimation.gps_watch import GpsWatch
 from ddfuse.estimation.measurements import GpsFix, GroundTruthPose, Stream, truth_at_start
 from ddfuse.estimation.robot_limits import RobotLimits
 from ddfuse.estimation.stamp_check import STAMP_TOLERANCE, UNSET_STAMP, StampCheck
+from ddfuse.estimation.truth_screen import TruthScreen, screen_truth
 
 # The names other modules and tests import from here (their homes are the modules above).
 _gps_fix = gps_fix
@@ -150,6 +151,7 @@ class BagStream:
         self._truth = (array("d"), array("d"), array("d"), array("d"))
         self._truth_fixes: list[GpsFix] = []  # truth fixes waiting for the datum
         self._truth_found = False  # a truth pose at or after t0 has been seen
+        self.truth_screen: TruthScreen | None = None  # set when the bag has been read to its end
         self._head: deque = deque()
         self._started = False
         self._msgs = BagMessages(bag, cfg, self.landmarks, self.unknown_landmarks)
@@ -466,6 +468,22 @@ class BagStream:
         if not self._truth_found and self.t0 is not None and t >= self.t0 - 1e-9:
             self._truth_found = True
 
+    def _screen_truth(self) -> None:
+        """Leave out the truth samples no robot can produce (``truth_screen``), with a
+        warning."""
+        if not self._has_truth:
+            return
+        t, pose = self.truth_arrays()
+        robot = self.cfg.robot
+        keep, found = screen_truth(self.cfg.ground_truth_topic or "ground truth", t, pose,
+                                   robot.speed_limit, robot.yaw_rate_limit)
+        self.truth_screen = found
+        line = found.warning(self.t0 or 0.0)
+        if line:
+            self.warnings.append(f"{self.bag}: {line}")
+        if found.dropped:
+            self._truth = tuple(array("d", col[keep]) for col in (t, *pose.T))
+
     def _flush_truth_fixes(self) -> None:
         fixes, self._truth_fixes = self._truth_fixes, []
         if not fixes:
@@ -496,6 +514,7 @@ class BagStream:
                 raise BagError(f"{e}; the bag is damaged: {damage[0]}") from None
             raise
         self._warn_time()
+        self._screen_truth()
         self.drops.warn_rejected()
         self.watch.finish()
         self.warnings += [f"{bag}: {w}" for w in (*self.screen.warnings(), *self.watch.warnings())]

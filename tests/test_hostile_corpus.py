@@ -33,6 +33,9 @@ The bounds (``BOUNDS``), each against the same estimator's figures on the clean 
 - ``near_clean_track`` (the real bag, no truth): each track within 0.5 m RMS of the clean run's
   track of the same estimator, at the clean track's stamps (a rejected sample changes the track
   by centimetres; the issue saw 99 km).
+- ``truth_glitch``: the estimators see the same data as on the clean bag, so ATE RMSE within
+  1 % of clean and the mean NEES at most 1.05 x clean: four truth poses turned up to 180 deg
+  from the robot's heading, if scored, raise it a hundred-fold.
 """
 
 from __future__ import annotations
@@ -177,8 +180,18 @@ def _near_clean_track(name, e, ref, out, refdir) -> list[str]:
     return [] if rms <= 0.5 else [f"{name}: {rms:.2f} m RMS from its clean track > 0.5 m"]
 
 
+def _truth_glitch(name, e, ref, out, refdir) -> list[str]:
+    bad = []
+    if abs(e["ate_rmse_m"] - ref["ate_rmse_m"]) > 0.01 * ref["ate_rmse_m"] + 1e-4:
+        bad.append(f"{name}: ATE {e['ate_rmse_m']:.4f} m, clean {ref['ate_rmse_m']:.4f}")
+    if e["nees_mean"] is None or e["nees_mean"] > 1.05 * ref["nees_mean"]:
+        bad.append(f"{name}: NEES {e['nees_mean']} > 1.05 x clean {ref['nees_mean']:.3f}")
+    return bad
+
+
 BOUNDS = {"one_sample": _one_sample, "duplicates": _duplicates, "gap": _gap,
           "clock_step": _clock_step, "near_clean_track": _near_clean_track,
+          "truth_glitch": _truth_glitch,
           "dead_reckoning": _one_sample}  # against the hold-out reference run
 
 
