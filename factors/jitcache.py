@@ -26,8 +26,8 @@ from contextlib import contextmanager
 from pathlib import Path
 
 __all__ = ["BUILD_WAIT_S", "NOTICE_AFTER_S", "as_background_build", "build_in_background",
-           "compiling", "guard_cache", "load_cached", "on_cold_cache", "one_compiler",
-           "start_build"]
+           "compiling", "deferred_build", "guard_cache", "load_cached", "on_cold_cache",
+           "one_compiler", "start_build"]
 
 NOTICE_AFTER_S = 3.0  # s: a compile longer than this is announced (a cache load is ~0.1-0.3 s
 # of CPU, up to ~2 s of wall time on a loaded machine; a cold compile tens of seconds)
@@ -260,7 +260,8 @@ def build_in_background(names: list[str]) -> None:
     a background process: one per process, together with DEFAULT_BUILD (every kernel a default
     run uses, so that the kernels found cold later in the same run are in that one build), and
     none while another build holds the lock (it compiles the default set too; a name outside it
-    is asked for again by the next run). Said once on the terminal, through ``_notice``."""
+    is asked for again by the next run). Inside ``deferred_build`` the process is started when
+    that block ends instead. Said once on the terminal, through ``_notice``."""
     todo = [n for n in names if n not in _started]
     if not todo:
         return
@@ -268,18 +269,53 @@ def build_in_background(names: list[str]) -> None:
     _started.update(todo)
     _started.update(DEFAULT_BUILD)
     running = build_running()
-    if not running:
-        try:
-            start_build(todo)
-        except OSError as e:
-            _notice[0](f"ddfuse: numba's compiled kernels are not cached, and no background "
-                       f"process could compile them ({e}): this run uses the Python reference "
-                       "code (the same estimates to 1e-9, slower)")
-            return
+    deferred = _deferred["on"] and not running
+    if deferred:
+        _deferred["names"].extend(todo)
+    elif not running and not _start(todo):
+        return
     if first:
+        then = ("and a background process compiles the kernels when this run has finished"
+                if deferred else "while a background process "
+                f"{'is compiling' if running else 'compiles'} the kernels")
         _notice[0](
             "ddfuse: numba's compiled kernels are not cached yet (first run after installing or "
             "updating ddfuse): this run uses the Python reference code for the EKFs and the "
-            "smoother's preintegration (the same estimates to 1e-9, slower), while a background "
-            f"process {'is compiling' if running else 'compiles'} the kernels (about a minute of "
-            "CPU, at low priority) for the next runs")
+            f"smoother's preintegration (the same estimates to 1e-9, slower), {then} (about a "
+            "minute of CPU, at low priority) for the next runs")
+
+
+def _start(names: list[str]) -> bool:
+    """``start_build(names)``, saying so when it cannot; whether it started."""
+    try:
+        start_build(names)
+    except OSError as e:
+        _notice[0](f"ddfuse: numba's compiled kernels are not cached, and no background "
+                   f"process could compile them ({e}): this run uses the Python reference "
+                   "code (the same estimates to 1e-9, slower)")
+        return False
+    return True
+
+
+# ``deferred_build``'s state: whether builds are held back, and the names asked for meanwhile
+_deferred: dict = {"on": False, "names": []}
+
+
+@contextmanager
+def deferred_build() -> Iterator[None]:
+    """Hold back the background build ``build_in_background`` asks for until the block ends
+    (``ddfuse run``: one pass over a bag). On a small machine the build's compiling beside the
+    run slows the run itself (2 vCPUs, rl_husky_gps.bag: first run 1.84x the second's wall
+    time with the build beside it, 1.38x with it after; docs/results/secondary_speed.md). A
+    process that builds many estimators (``ddfuse tune``, ``mc``) starts it at once, so its
+    later runs pick the kernels up from the cache."""
+    was = _deferred["on"]
+    _deferred["on"] = True
+    try:
+        yield
+    finally:
+        _deferred["on"] = was
+        if not was:
+            names, _deferred["names"] = _deferred["names"], []
+            if names and not build_running():
+                _start(names)

@@ -86,6 +86,59 @@ def test_the_background_build_is_started_once_and_said(monkeypatch):
     assert len(started) == 2 and started[1][0][3:] == ["uni_stacked"] and len(said) == 1
 
 
+def test_a_deferred_build_starts_when_the_run_is_over_with_every_name_asked(monkeypatch):
+    started, said = [], []
+    monkeypatch.setattr(jitcache, "_started", set())
+    monkeypatch.setattr(jitcache, "build_running", lambda: False)
+    monkeypatch.setattr(jitcache.subprocess, "Popen",
+                        lambda args, **kw: started.append(args))
+    monkeypatch.setattr(jitcache, "_notice", [said.append])
+    with jitcache.deferred_build():
+        compiled.build_in_background(["uni_event"])
+        with jitcache.deferred_build():  # nested: still the outer block's to start
+            compiled.build_in_background(["uni_stacked"])
+        assert started == []  # nothing beside the run
+        assert len(said) == 1 and "when this run has finished" in said[0]
+    assert len(started) == 1 and started[0][3:] == ["uni_event", "uni_stacked"]
+    with jitcache.deferred_build():  # nothing asked: nothing started
+        pass
+    assert len(started) == 1
+
+
+def test_a_deferred_build_is_not_started_when_another_build_runs_by_then(monkeypatch):
+    started, running = [], [False]
+    monkeypatch.setattr(jitcache, "_started", set())
+    monkeypatch.setattr(jitcache, "build_running", lambda: running[0])
+    monkeypatch.setattr(jitcache.subprocess, "Popen",
+                        lambda args, **kw: started.append(args))
+    monkeypatch.setattr(jitcache, "_notice", [lambda line: None])
+    with jitcache.deferred_build():
+        compiled.build_in_background(["uni_event"])
+        running[0] = True  # another run's build took the lock meanwhile
+    assert started == []
+
+
+def test_ddfuse_run_starts_the_build_once_its_results_are_written(monkeypatch, tmp_path):
+    from ddfuse.evaluation import cli
+
+    out, started, said = tmp_path / "out", [], []
+    monkeypatch.setattr(compiled, "COLD_COMPILE", {})
+    monkeypatch.setattr(compiled.kernels(), "load_cached", lambda *names: False)
+    monkeypatch.setattr(jitcache, "_started", set())
+    monkeypatch.setattr(jitcache, "build_running", lambda: False)
+    monkeypatch.setattr(jitcache.subprocess, "Popen", lambda args, **kw: started.append(
+        (args, (out / "metrics.json").is_file())))
+    monkeypatch.setattr(jitcache, "_notice", [said.append])
+    was = jitcache.on_cold_cache()
+    assert cli.main(["run", str(ROOT / "data" / "sample_husky.bag"), "-o", str(out),
+                     "--no-report", "--estimators", "ekf"]) == 0
+    assert jitcache.on_cold_cache() == was
+    assert len(started) == 1, started
+    args, written = started[0]
+    assert written and "uni_event" in args  # after the results, with the filter's kernels
+    assert any("when this run has finished" in line for line in said)
+
+
 def test_no_second_builder_while_one_holds_the_lock(monkeypatch, tmp_path):
     fcntl = pytest.importorskip("fcntl")
     started, said = [], []

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from contextlib import nullcontext
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -134,11 +135,14 @@ def command(args: argparse.Namespace) -> int:
     from ddfuse.factors import jitcache
 
     # EKF kernels missing from numba's cache (the first run after installing): the Python
-    # reference filters for this run, the kernels compiled in the background for the next
+    # reference filters for this run, the kernels compiled in the background for the next,
+    # once this one is over (beside it, the build slows it on a small machine); with --tune
+    # at once: the tuning's many runs pick the kernels up as soon as they are cached
     was = jitcache.on_cold_cache()
     jitcache.on_cold_cache("reference")
     try:
-        return _command(args)
+        with nullcontext() if args.tune else jitcache.deferred_build():
+            return _command(args)
     finally:
         jitcache.on_cold_cache(was)
 
