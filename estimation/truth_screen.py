@@ -57,7 +57,8 @@ def impossible_samples(t: np.ndarray, pose: np.ndarray, speed_limit: float,
 
     An excursion leaves at an impossible step k -> k + 1 and returns at the first later
     impossible step j -> j + 1, within ``MAX_EXCURSION_S``, where the robot could have gone from
-    sample k to sample j + 1: samples k + 1 .. j are left out."""
+    sample k to sample j + 1 and the step out of j + 1 is possible: samples k + 1 .. j are left
+    out."""
     n = len(t)
     out = np.zeros(n, bool)
     if n < 3 or not np.isfinite(pose[:, 2]).all():
@@ -72,7 +73,11 @@ def impossible_samples(t: np.ndarray, pose: np.ndarray, speed_limit: float,
         back = later[~_impossible(t[k], t[later + 1], pose[k], pose[later + 1], speed_limit,
                                   yaw_rate_limit)] if len(later) else later
         if len(back):
-            j = back[0]
+            # the first return after which the truth goes on possibly: a return to a sample
+            # that itself leaves at once (reachable from k under a generous limit) is part of
+            # the excursion
+            settled = back[~np.isin(back + 1, bad)]
+            j = settled[0] if len(settled) else back[0]
             out[k + 1:j + 1] = True
             a = int(np.searchsorted(bad, j)) + 1
         else:

@@ -74,3 +74,11 @@ def test_an_excursion_longer_than_the_limit_is_kept_and_counted():
     pose[50:200, 1] += 2.0  # 3 s away: a mocap that lost the robot, not a glitch
     keep, found = screen_truth("/vicon", t, pose, speed_limit=0.75, yaw_rate_limit=5.0)
     assert keep.all() and found.unresolved == 2
+
+
+def test_a_return_that_leaves_again_at_once_is_part_of_the_excursion():
+    # MRCLAM at 1245.6 s: -3.14, X, 2.75, 3.14 -- under a generous 10 rad/s limit the robot
+    # could reach 2.75 from -3.14 in two steps, but 2.75 leaves at once for 3.14
+    yaw = np.r_[np.full(50, -3.14), -1.2, 2.75, np.full(50, 3.14)]
+    drop, unresolved = impossible_samples(*_truth(yaw), speed_limit=0.75, yaw_rate_limit=10.0)
+    assert np.flatnonzero(drop).tolist() == [50, 51] and unresolved == 0
