@@ -471,6 +471,14 @@ def test_log_axes_carry_tick_labels_when_they_span_under_a_decade(sample_run):
     ax.set_yscale("log")
     plots.label_log_axis(ax.yaxis)
     assert len(_visible_labels(fig, ax, "y")) >= 2
+    # many decades: the decades, in plain text (no mathtext, whose parser is costly to build)
+    fig, ax = plt.subplots()
+    ax.plot([0, 1], [1e-6, 30.0])
+    ax.set_yscale("log")
+    plots.label_log_axis(ax.yaxis)
+    labels = _visible_labels(fig, ax, "y")
+    assert {"10\u207b\u2076", "10\u207b\u00b3", "0.1", "1", "10"} <= set(labels), labels
+    assert not any("$" in label for label in labels)
     plt.close("all")
 
 
