@@ -18,12 +18,18 @@ import numpy as np
 from ddfuse.estimation import gps_scatter, heading_survey, ros1_scan, rosmsg
 from ddfuse.estimation.bag_reader import open_reader
 from ddfuse.estimation.bags import BagStream
-from ddfuse.estimation.config import DEFAULT_GPS_MIN_STD, parse_config
+from ddfuse.estimation.config import (
+    DEFAULT_GPS_MIN_STD,
+    DEFAULT_MAX_SPEED,
+    DEFAULT_MAX_YAW_RATE,
+    parse_config,
+)
 from ddfuse.estimation.converters import Reject, gps_fix
 from ddfuse.estimation.errors import BagError, DdfuseError
 from ddfuse.estimation.frames import GRAVITY, body_x_tilt, rpy_matrix
 from ddfuse.estimation.geodesy import geodetic_to_enu
 from ddfuse.estimation.gps_scatter import FixScatter
+from ddfuse.estimation.truth_screen import screen_truth
 
 
 @dataclass
@@ -122,6 +128,8 @@ def _summarise(info: TopicInfo, recs: list[tuple]) -> None:
     mt = info.msgtype
     if _is_ground_truth(info.topic):
         info.notes.append("looks like ground truth (pose used for scoring only)")
+        if mt in (rosmsg.ODOMETRY, rosmsg.POSE_STAMPED):
+            _truth_glitches(info, recs)
         return
     if mt == rosmsg.ODOMETRY:
         cov = np.array([r[5] for r in recs])
@@ -167,6 +175,22 @@ def _summarise(info: TopicInfo, recs: list[tuple]) -> None:
     elif mt == rosmsg.LANDMARK:
         ids = sorted({r[1] for r in recs}, key=lambda s: (len(s), s))
         info.notes.append(f"{len(ids)} landmark ids: {', '.join(ids)}")
+
+
+def _truth_glitches(info: TopicInfo, recs: list[tuple]) -> None:
+    """A note on the pose truth's samples no robot can produce (``truth_screen``, at the
+    default limits: the bag alone says nothing of the robot's)."""
+    recs = sorted(recs, key=lambda r: r[0])
+    t = np.array([r[0] for r in recs])
+    q = np.array([r[2] for r in recs], float)  # (x, y, z, w)
+    yaw = np.arctan2(2.0 * (q[:, 3] * q[:, 2] + q[:, 0] * q[:, 1]),
+                     1.0 - 2.0 * (q[:, 1] ** 2 + q[:, 2] ** 2))
+    pose = np.column_stack([[r[1][0] for r in recs], [r[1][1] for r in recs], yaw])
+    _, found = screen_truth(info.topic, t, pose, DEFAULT_MAX_SPEED, DEFAULT_MAX_YAW_RATE)
+    line = found.warning(float(t[0]))
+    if line:
+        info.notes.append(line.removeprefix(f"{info.topic}: ")
+                          + " (at the default robot limits: ddfuse run takes the config's)")
 
 
 # m: the GPS noise the suggested config states for a topic whose covariances are unusable

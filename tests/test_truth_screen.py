@@ -82,3 +82,22 @@ def test_a_return_that_leaves_again_at_once_is_part_of_the_excursion():
     yaw = np.r_[np.full(50, -3.14), -1.2, 2.75, np.full(50, 3.14)]
     drop, unresolved = impossible_samples(*_truth(yaw), speed_limit=0.75, yaw_rate_limit=10.0)
     assert np.flatnonzero(drop).tolist() == [50, 51] and unresolved == 0
+
+
+def test_inspect_notes_a_pose_truth_that_spins_and_says_nothing_of_a_clean_one():
+    from ddfuse.estimation import baginfo, rosmsg
+
+    def recs(yaw):
+        return [(1.5e9 + k / RATE, (0.1 * k / RATE, 0.0, 0.0),
+                 (0.0, 0.0, math.sin(a / 2), math.cos(a / 2)), (0.0,) * 3, (0.0,) * 3,
+                 (0.0,) * 36) for k, a in enumerate(yaw)]
+
+    yaw = _wrap(3.10 + 0.3 / RATE * np.arange(200))
+    clean = baginfo.TopicInfo("/ground_truth", rosmsg.ODOMETRY, 200)
+    baginfo._summarise(clean, recs(yaw))
+    yaw[100:104] = _wrap(yaw[99] - 2 * np.pi * np.arange(1, 5) / 5)
+    spun = baginfo.TopicInfo("/ground_truth", rosmsg.ODOMETRY, 200)
+    baginfo._summarise(spun, recs(yaw))
+    assert clean.notes == ["looks like ground truth (pose used for scoring only)"]
+    assert len(spun.notes) == 2 and spun.notes[1].startswith(
+        "4 of 200 ground-truth samples in 1 stretch(es) left out of the scores")
