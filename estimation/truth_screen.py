@@ -1,11 +1,10 @@
 """Ground-truth samples no robot can produce, left out of the scores.
 
 A motion-capture or simulator truth can carry samples that are artefacts of how it was recorded
-or resampled rather than poses: UTIAS MRCLAM's Vicon truth, resampled onto a 50 Hz grid,
-interpolates its yaw across +-pi the long way, so the robot appears to spin a full turn in
-0.04-0.1 s (52-138 rad/s against the data's 0.57). Scored against such a sample, every
-estimator's heading is wrong by up to 180 deg there, and one sample can outweigh thousands in a
-mean NEES.
+or resampled rather than poses: a truth resampled onto a grid with its yaw interpolated across
++-pi the long way round (UTIAS MRCLAM's) has the robot spin a full turn between two samples.
+Scored against such a sample, every estimator's heading is wrong by up to 180 deg there, and
+one sample can outweigh thousands in a mean NEES.
 
 ``impossible_samples(t, pose, speed_limit, yaw_rate_limit)`` marks them. A step between two
 truth samples is impossible when the heading turns by more than the robot's top yaw rate times

@@ -304,11 +304,12 @@ _deferred: dict = {"on": False, "names": []}
 @contextmanager
 def deferred_build() -> Iterator[None]:
     """Hold back the background build ``build_in_background`` asks for until the block ends
-    (``ddfuse run``: one pass over a bag). On a small machine the build's compiling beside the
-    run slows the run itself (2 vCPUs, rl_husky_gps.bag: first run 1.84x the second's wall
-    time with the build beside it, 1.38x with it after; docs/results/secondary_speed.md). A
-    process that builds many estimators (``ddfuse tune``, ``mc``) starts it at once, so its
-    later runs pick the kernels up from the cache."""
+    (``ddfuse run``: one pass over a bag), when it starts unless another build holds the lock
+    by then. On a small machine the build's compiling beside the run slows the run itself
+    (measured: docs/results/secondary_speed.md, session 25). A process that builds many
+    estimators (``ddfuse tune``, ``mc``, ``run --tune``) starts it at once instead, so that
+    its later runs load the kernels as soon as they are cached. Nested blocks: the outermost
+    starts it."""
     was = _deferred["on"]
     _deferred["on"] = True
     try:
