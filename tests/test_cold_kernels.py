@@ -139,6 +139,21 @@ def test_ddfuse_run_starts_the_build_once_its_results_are_written(monkeypatch, t
     assert any("when this run has finished" in line for line in said)
 
 
+@pytest.mark.parametrize("tune", [False, True])
+def test_run_defers_the_build_but_run_tune_does_not(monkeypatch, tune):
+    import argparse
+
+    from ddfuse.evaluation.cli import run as run_cli
+
+    seen = []
+    monkeypatch.setattr(run_cli, "_command", lambda args: seen.append(
+        (jitcache._deferred["on"], jitcache.on_cold_cache())) or 0)
+    assert run_cli.command(argparse.Namespace(tune=tune)) == 0
+    # the tuning's many runs load the kernels as soon as the build has cached them
+    assert seen == [(not tune, "reference")]
+    assert not jitcache._deferred["on"]
+
+
 def test_no_second_builder_while_one_holds_the_lock(monkeypatch, tmp_path):
     fcntl = pytest.importorskip("fcntl")
     started, said = [], []
