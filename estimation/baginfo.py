@@ -26,7 +26,7 @@ from ddfuse.estimation.config import (
 )
 from ddfuse.estimation.converters import Reject, gps_fix
 from ddfuse.estimation.errors import BagError, DdfuseError
-from ddfuse.estimation.frames import GRAVITY, body_x_tilt, rpy_matrix
+from ddfuse.estimation.frames import GRAVITY, body_x_tilt, rpy_matrix, yaw_of_quat
 from ddfuse.estimation.geodesy import geodetic_to_enu
 from ddfuse.estimation.gps_scatter import FixScatter
 from ddfuse.estimation.truth_screen import screen_truth
@@ -182,10 +182,7 @@ def _truth_glitches(info: TopicInfo, recs: list[tuple]) -> None:
     default limits: the bag alone says nothing of the robot's)."""
     recs = sorted(recs, key=lambda r: r[0])
     t = np.array([r[0] for r in recs])
-    q = np.array([r[2] for r in recs], float)  # (x, y, z, w)
-    yaw = np.arctan2(2.0 * (q[:, 3] * q[:, 2] + q[:, 0] * q[:, 1]),
-                     1.0 - 2.0 * (q[:, 1] ** 2 + q[:, 2] ** 2))
-    pose = np.column_stack([[r[1][0] for r in recs], [r[1][1] for r in recs], yaw])
+    pose = np.array([(r[1][0], r[1][1], yaw_of_quat(r[2])) for r in recs], float)
     _, found = screen_truth(info.topic, t, pose, DEFAULT_MAX_SPEED, DEFAULT_MAX_YAW_RATE)
     line = found.warning(float(t[0]))
     if line:

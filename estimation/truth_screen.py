@@ -39,12 +39,17 @@ POS_SLACK = 0.05  # m per step
 MAX_EXCURSION_S = 2.0
 
 
+def _moves(t0, t1, p0, p1):
+    """(dt s, |turn| rad, distance m) from pose ``p0`` at ``t0`` to ``p1`` at ``t1`` (arrays
+    broadcast: (..., 3) poses, (...) stamps)."""
+    dyaw = np.abs((p1[..., 2] - p0[..., 2] + np.pi) % (2.0 * np.pi) - np.pi)
+    return np.abs(t1 - t0), dyaw, np.hypot(p1[..., 0] - p0[..., 0], p1[..., 1] - p0[..., 1])
+
+
 def _impossible(t0, t1, p0, p1, speed_limit: float, yaw_rate_limit: float):
     """Whether moving from pose ``p0`` at ``t0`` to ``p1`` at ``t1`` needs more than the
-    robot can do (arrays broadcast: (..., 3) poses, (...) stamps)."""
-    dt = np.abs(t1 - t0)
-    dyaw = np.abs((p1[..., 2] - p0[..., 2] + np.pi) % (2.0 * np.pi) - np.pi)
-    dxy = np.hypot(p1[..., 0] - p0[..., 0], p1[..., 1] - p0[..., 1])
+    robot can do (``_moves``' broadcasting)."""
+    dt, dyaw, dxy = _moves(t0, t1, p0, p1)
     return (dyaw > yaw_rate_limit * dt + YAW_SLACK) | (dxy > speed_limit * dt + POS_SLACK)
 
 
@@ -134,10 +139,9 @@ def screen_truth(topic: str, t: np.ndarray, pose: np.ndarray, speed_limit: float
     stretches = int(np.count_nonzero(np.diff(np.r_[0, drop.astype(np.int8)]) == 1))
     max_w = max_v = 0.0
     if drop.any():
-        steps = drop[:-1] | drop[1:]  # the steps into, within and out of the left-out samples
-        dt = np.maximum(np.abs(np.diff(t))[steps], 1e-9)
-        dyaw = np.abs((np.diff(pose[:, 2])[steps] + np.pi) % (2.0 * np.pi) - np.pi)
-        dxy = np.hypot(np.diff(pose[:, 0])[steps], np.diff(pose[:, 1])[steps])
+        k = np.flatnonzero(drop[:-1] | drop[1:])  # the steps into, within and out of them
+        dt, dyaw, dxy = _moves(t[k], t[k + 1], pose[k], pose[k + 1])
+        dt = np.maximum(dt, 1e-9)
         max_w, max_v = float((dyaw / dt).max()), float((dxy / dt).max())
     first = float(t[np.argmax(drop)]) if drop.any() else None
     return ~drop, TruthScreen(topic, len(t), int(drop.sum()), stretches, max_w, max_v, first,
