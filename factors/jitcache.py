@@ -130,6 +130,11 @@ def load_cached(dispatcher, sig) -> bool:
             args, _ = sigutils.normalize_signature(sig)
             if dispatcher.overloads.get(tuple(args)) is not None:
                 return True
+            # no index file, nothing cached: said without load_overload, which first
+            # initialises numba's target context (~0.7 s, all a cold run would spend in numba)
+            index = getattr(getattr(dispatcher._cache, "_cache_file", None), "_index_path", None)
+            if index is not None and not os.path.exists(index):
+                return False
             cres = dispatcher._cache.load_overload(sig, dispatcher.targetctx)
             if cres is None:
                 return False

@@ -294,3 +294,28 @@ def test_a_run_waits_for_another_run_but_not_long_for_the_background_build(
         assert done_while_held and 0.2 <= waited < 1.2
     else:
         assert not done_while_held and waited >= 1.2
+
+
+def test_a_kernel_never_cached_is_missed_without_starting_numba(tmp_path, monkeypatch):
+    """A kernel whose cache has no index file is reported missing without numba's
+    ``load_overload``, which initialises the target context first: that initialisation is
+    most of what a first run would spend in numba to find nothing."""
+    import importlib.util
+    import sys
+
+    src = tmp_path / "cold_kernel_mod.py"
+    src.write_text(
+        "from numba import njit\n\n\n@njit(cache=True)\ndef twice(x):\n    return 2.0 * x\n")
+    spec = importlib.util.spec_from_file_location("cold_kernel_mod", src)
+    mod = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "cold_kernel_mod", mod)
+    spec.loader.exec_module(mod)
+    loads = []
+    cache = mod.twice._cache
+    real = cache.load_overload
+    monkeypatch.setattr(cache, "load_overload", lambda *a: loads.append(a) or real(*a))
+    assert not Path(cache._cache_file._index_path).exists()
+    assert jitcache.load_cached(mod.twice, "(float64,)") is False
+    assert loads == []
+    assert mod.twice(1.5) == 3.0  # compiled now, and written to its cache
+    assert Path(cache._cache_file._index_path).exists()
