@@ -164,7 +164,8 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
         # the kernels compiled or loaded now, not in the first step; on a cold cache under the
         # "reference" policy (ddfuse run), the Python reference path instead (jit.usable)
         kernels = ("unicycle",) if cfg.ekf.rate == "event" else ("unicycle", "unicycle_stacked")
-        self.compiled = not reference and jit.usable(*kernels)
+        rated = any(s.noise.get("heading_offset_rate_walk") for s in cfg.heading_sensors())
+        self.compiled = not reference and not rated and jit.usable(*kernels)
         self.reference = not self.compiled
         if self.compiled:
             self.log = jit.BufferedLog()
@@ -229,6 +230,11 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
             names.append("hoff" if len(imus_h) == 1 else f"hoff:{s.name}")
             walks.append(s.noise.get("heading_offset_walk", self.noise.heading_offset) ** 2)
         self._walks = tuple(walks)
+        rate_of = []  # (hoff index, rate walk variance density) of offsets with a rate state
+        for s in imus_h:
+            q = s.noise.get("heading_offset_rate_walk")
+            if q:
+                rate_of.append((self._sensors[s.name].hoff_idx, q * q))
         # a GPS sensor with time-correlated errors (module docstring)
         self._gps_corr = any(s.correlation_time > 0.0 for s in cfg.of_kind("gps"))
         # heading sensors with time-correlated samples (estimation.heading_correlation)
@@ -244,6 +250,10 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
             "yaw_rate" in s.use for s in cfg.of_kind("imu"))
         if self._scale:  # states 3, 4 are then the odometry-frame twist (module docstring)
             names[3:5] = ["v_odo", "w" if self._w_true else "w_odo"]
+        self._hrate = []  # (hoff index, hrate index, rate walk variance density)
+        for hi, q2 in rate_of:
+            self._hrate.append((hi, len(names), q2))
+            names.append("hrate")
         self.state_names = tuple(names)
         self.n = len(names)
         self._hoff_states = tuple(i for i, nm in enumerate(names) if nm.startswith("hoff"))
@@ -393,6 +403,8 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
         P[3, 3], P[4, 4] = robot.speed_limit ** 2, robot.yaw_rate_limit ** 2
         for i, w in zip(self._bias_states + self._hoff_states, self._walks, strict=True):
             P[i, i] += w * gap
+        for _hi, ri, q2 in self._hrate:
+            P[ri, ri] += q2 * gap
         x[3] = x[4] = 0.0
         kf.x, kf.P = x, P
         self.t = t
@@ -463,6 +475,13 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
                 self._w_true)
             self._F_flat[self._if] = F
         self._Q_flat[self._iq] = q + q + tuple([w * dt for w in self._walks])
+        for hi, ri, q2 in self._hrate:
+            self._F[hi, ri] = dt
+            Q = self._Q
+            Q[hi, hi] += q2 * dt ** 3 / 3.0
+            Q[hi, ri] = Q[ri, hi] = q2 * dt * dt / 2.0
+            Q[ri, ri] = q2 * dt
+            xs[hi] += xs[ri] * dt
         xs[0], xs[1], xs[2] = x1, y1, p1
         kf.predict(self._F, self._Q, xs)
         self.t = t

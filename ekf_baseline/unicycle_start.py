@@ -76,6 +76,8 @@ class UnicycleStart:
             P0[i, i] = self.bias_std0**2
         for i in self._hoff_states:
             P0[i, i] = _PI * _PI / 3.0  # uniform on the circle until initialised from a Heading
+        for _hi, ri, _q2 in self._hrate:
+            P0[ri, ri] = 0.01 ** 2  # rad/s
         if self._scale:
             self._scale.set_prior(x0, P0)
         if self.compiled:
