@@ -15,6 +15,10 @@ State (world = local ENU frame; the same names and conventions as ``ddfuse.facto
                         heading_offset: estimate
     ..     k_v   1      odometry scales (the odometry reports v / k_v, w / k_w) when the config
     ..     k_w   1      states the geometry's uncertainty (robot.*_std)
+    ..     acc   m/s^2  the twist's rates, when ``robot.twist_walk`` holds ``speed_rate`` /
+    ..     yacc  rad/s^2  ``yaw_rate_rate`` (the first stage of ``ddfuse tune`` only; no config
+                        states them): v' = acc, w' = yacc, each rate a random walk of that
+                        density (m/s^2/sqrt(s), rad/s^2/sqrt(s)): a twist that ramps
 
 Motion: the exact SE(2) constant-twist step (``motion='exact'``, the smoother's motion model)
 or the seed's Euler step; the twist and calibration states are random walks
@@ -164,8 +168,7 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
         # the kernels compiled or loaded now, not in the first step; on a cold cache under the
         # "reference" policy (ddfuse run), the Python reference path instead (jit.usable)
         kernels = ("unicycle",) if cfg.ekf.rate == "event" else ("unicycle", "unicycle_stacked")
-        rated = any(s.noise.get("heading_offset_rate_walk") for s in cfg.heading_sensors())
-        self.compiled = not reference and not rated and jit.usable(*kernels)
+        self.compiled = not reference and jit.usable(*kernels)
         self.reference = not self.compiled
         if self.compiled:
             self.log = jit.BufferedLog()
@@ -230,11 +233,6 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
             names.append("hoff" if len(imus_h) == 1 else f"hoff:{s.name}")
             walks.append(s.noise.get("heading_offset_walk", self.noise.heading_offset) ** 2)
         self._walks = tuple(walks)
-        rate_of = []  # (hoff index, rate walk variance density) of offsets with a rate state
-        for s in imus_h:
-            q = s.noise.get("heading_offset_rate_walk")
-            if q:
-                rate_of.append((self._sensors[s.name].hoff_idx, q * q))
         # a GPS sensor with time-correlated errors (module docstring)
         self._gps_corr = any(s.correlation_time > 0.0 for s in cfg.of_kind("gps"))
         # heading sensors with time-correlated samples (estimation.heading_correlation)
@@ -250,10 +248,13 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
             "yaw_rate" in s.use for s in cfg.of_kind("imu"))
         if self._scale:  # states 3, 4 are then the odometry-frame twist (module docstring)
             names[3:5] = ["v_odo", "w" if self._w_true else "w_odo"]
-        self._hrate = []  # (hoff index, hrate index, rate walk variance density)
-        for hi, q2 in rate_of:
-            self._hrate.append((hi, len(names), q2))
-            names.append("hrate")
+        # the twist's rates (module docstring): (twist index, rate index, variance per s)
+        self._rates: list[tuple[int, int, float]] = []
+        for ti, nm, key in ((3, "acc", "speed_rate"), (4, "yacc", "yaw_rate_rate")):
+            q = r.twist_walk.get(key)
+            if q:
+                self._rates.append((ti, len(names), q * q))
+                names.append(nm)
         self.state_names = tuple(names)
         self.n = len(names)
         self._hoff_states = tuple(i for i, nm in enumerate(names) if nm.startswith("hoff"))
@@ -403,7 +404,7 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
         P[3, 3], P[4, 4] = robot.speed_limit ** 2, robot.yaw_rate_limit ** 2
         for i, w in zip(self._bias_states + self._hoff_states, self._walks, strict=True):
             P[i, i] += w * gap
-        for _hi, ri, q2 in self._hrate:
+        for _hi, ri, q2 in self._rates:
             P[ri, ri] += q2 * gap
         x[3] = x[4] = 0.0
         kf.x, kf.P = x, P
@@ -475,13 +476,13 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
                 self._w_true)
             self._F_flat[self._if] = F
         self._Q_flat[self._iq] = q + q + tuple([w * dt for w in self._walks])
-        for hi, ri, q2 in self._hrate:
-            self._F[hi, ri] = dt
+        for ti, ri, q2 in self._rates:  # x_ti' = x_ri, x_ri a walk: kalman_jit_predict's
+            self._F[ti, ri] = dt
             Q = self._Q
-            Q[hi, hi] += q2 * dt ** 3 / 3.0
-            Q[hi, ri] = Q[ri, hi] = q2 * dt * dt / 2.0
+            Q[ti, ti] += q2 * dt * dt * dt / 3.0
+            Q[ti, ri] = Q[ri, ti] = 0.5 * q2 * dt * dt
             Q[ri, ri] = q2 * dt
-            xs[hi] += xs[ri] * dt
+            xs[ti] += dt * xs[ri]
         xs[0], xs[1], xs[2] = x1, y1, p1
         kf.predict(self._F, self._Q, xs)
         self.t = t

@@ -129,8 +129,7 @@ USES = {
 }
 NOISE_KEYS = {
     "odometry": ("v", "yaw_rate"),
-    "imu": ("yaw", "yaw_rate", "accel", "gyro_bias_walk", "heading_offset_walk",
-            "heading_offset_rate_walk"),
+    "imu": ("yaw", "yaw_rate", "accel", "gyro_bias_walk", "heading_offset_walk"),
     "gps": ("horizontal", "vertical"),
     "wheels": ("speed",),
     # bearing_common: rad, the part of the bearing error common to a frame's sightings
@@ -143,7 +142,7 @@ NOISE_KEYS = {
 }
 # the sensor kinds whose messages become Heading measurements (with ``yaw`` in their use)
 HEADING_KINDS = ("imu", "magnetometer", "local_heading")
-WALK_KEYS = ("gyro_bias_walk", "heading_offset_walk", "heading_offset_rate_walk")  # noise keys that may be 0 (constant)
+WALK_KEYS = ("gyro_bias_walk", "heading_offset_walk")  # noise keys that may be 0 (constant)
 ZERO_OK_KEYS = (*WALK_KEYS, "bearing_common")  # noise keys that may be 0
 DEFAULT_GATE = 0.9999
 # Gate lock-out rule shared by the EKFs (ekf_baseline.kalman) and the smoother's GPS gate: this

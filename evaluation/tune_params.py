@@ -80,8 +80,7 @@ BURST_SIGMAS = 4.0  # a change beyond this many robust sigmas counts as a burst'
 _DEFAULTS = ProcessNoise()
 # the unicycle EKF's densities where the config states none (ekf_baseline.unicycle_motion)
 _DEFAULT_WALK = {"gyro_bias_walk": _DEFAULTS.gyro_bias,
-                 "heading_offset_walk": _DEFAULTS.heading_offset,
-                 "heading_offset_rate_walk": 0.001}
+                 "heading_offset_walk": _DEFAULTS.heading_offset}
 _DEFAULT_SLIP = {"longitudinal": _DEFAULTS.pos_long, "lateral": _DEFAULTS.pos_lat,
                  "heading": _DEFAULTS.heading}
 _DEFAULT_TWIST = {"speed": _DEFAULTS.acc, "yaw_rate": _DEFAULTS.yaw_acc}
@@ -116,7 +115,7 @@ class Param:
 _UNITS = {"accel": "m/s^2", "v": "m/s", "yaw_rate": "rad/s", "speed": "rad/s", "yaw": "rad",
           "horizontal": "m",
           "range": "m", "bearing": "rad", "gyro_bias_walk": "rad/s/sqrt(s)",
-          "heading_offset_walk": "rad/sqrt(s)", "heading_offset_rate_walk": "rad/s/sqrt(s)", "longitudinal": "m/sqrt(s)",
+          "heading_offset_walk": "rad/sqrt(s)", "longitudinal": "m/sqrt(s)",
           "lateral": "m/sqrt(s)", "heading": "rad/sqrt(s)", "twist speed": "m/s/sqrt(s)",
           "twist yaw_rate": "rad/s/sqrt(s)"}
 
@@ -167,11 +166,8 @@ def parameters(cfg: Config, stream: Stream) -> list[Param]:
                                  s.name, "corr", "correlation_time"))
         if s.kind == "imu":
             for key, wanted, use in (("gyro_bias_walk", s.gyro_bias, "yaw_rate"),
-                                     ("heading_offset_walk", s.heading_offset, "yaw"),
-                                     ("heading_offset_rate_walk", s.heading_offset, "yaw")):
+                                     ("heading_offset_walk", s.heading_offset, "yaw")):
                 if wanted != "estimate" or use not in s.use:
-                    continue
-                if key == "heading_offset_rate_walk" and key not in s.noise:
                     continue
                 before = s.noise.get(key)
                 start, source = (before, "config") if before is not None else (
@@ -298,6 +294,21 @@ def _twist_periods(cfg: Config, stream: Stream) -> dict[str, float | None]:
             T = float(np.median(d))
             out[c] = T if out[c] is None else min(out[c], T)
     return out
+
+
+# the twist's rates (``ddfuse tune``'s first stage: evaluation.tune, module docstring): the
+# density (m/s^2/sqrt(s), rad/s^2/sqrt(s)) of the white jerk driving each twist component's rate
+RATE_KEYS = {"speed": "speed_rate", "yaw_rate": "yaw_rate_rate"}
+RATE_START = 0.3
+
+
+def twist_rate_params(cfg: Config, stream: Stream) -> list[Param]:
+    """The twist's rates, one per twist component a sensor measures, for the first stage of
+    ``ddfuse tune`` (the unicycle EKF's acceleration states; no config states them)."""
+    periods = _twist_periods(cfg, stream)
+    return [Param(f"robot.twist_walk.{key}", f"robot twist_walk {key}", RATE_START, None,
+                  "default", _UNITS[f"twist {comp}"].replace("/s/", "/s^2/"), None, "twist",
+                  key) for comp, key in RATE_KEYS.items() if periods[comp] is not None]
 
 
 class Applier:

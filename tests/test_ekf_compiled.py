@@ -343,3 +343,17 @@ def test_buffered_log_reads_like_a_list():
     assert ekf.kf.recoveries
     t_rec = ekf.kf.recoveries[0][0]
     assert any(i.t == t_rec and i.kind == "gps" and i.accepted for i in inns)
+
+
+@pytest.mark.parametrize("rate", ["event", 10.0])
+def test_unicycle_compiled_matches_reference_with_rate_states(rate):
+    """The twist's rates and the heading offset's (robot.twist_walk speed_rate and
+    yaw_rate_rate, noise.heading_offset_rate_walk): three integrated walks, the kernels' and the
+    reference's predictions agree at every step."""
+    cfg = _config(True, rate)
+    cfg.robot.twist_walk = {"speed_rate": 0.3, "yaw_rate_rate": 0.2}
+    cfg.sensor("/imu").noise["heading_offset_rate_walk"] = 0.002
+    fast = _run_both(_unicycle(cfg), _stream(3))
+    assert fast.state_names[-3:] == ("hrate", "acc", "yacc")
+    x = fast.estimate().state
+    assert abs(x[-2]) < 0.5 and abs(x[-1]) < 0.5  # the drive's accelerations: <= 0.06, 0.06
