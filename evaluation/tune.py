@@ -18,6 +18,18 @@ estimator is the unicycle ``ekf`` (compiled, 0.4 s over rl_husky_gps.bag's 395 s
 ``ekf_landmark`` when the config has landmarks (the unicycle EKF does not fuse them). GPS fixes
 of a hold-out are withheld from the runs, so from the fit.
 
+With ``twist_rates``, two stages with the unicycle ``ekf``: a twist that ramps (a start from
+rest, into and out of a turn) is not the random walk the estimators' twist states are, and a
+walk fitted to the ramps states a spread the steady stretches do not have, which the
+likelihood makes up for with a smaller noise of the twist sensors. So the first stage fits
+every value with the twist's rates (``tune_params.twist_rate_params``: the EKF's acceleration
+states, a white jerk of a searched density driving each; the twist's own walks held at a
+hundredth of their start), and the second fits the process noise in the estimators' own model
+(no rates: no estimator but that stage's EKF has them, and the tuned config states none) with
+the sensors' noise held where the first put it. Not the default: the estimators' own walk then
+shows the ramps' mismatch as NIS under 1 (rl_husky_gps.bag: the ekf's gyro Fail), where one
+stage lets the sensors' values make up for it (docs/design/tuning.md).
+
 Identifiability: the outer product of the per-innovation gradients (J' J, the Fisher
 information's estimate from the scores, J from the same differences) says how much the data
 inform each value: a value with under ``MIN_INFORMATION`` (about ``MIN_INFORMATION`` / 2
@@ -230,21 +242,23 @@ def information(base: np.ndarray, bumped: list[np.ndarray], step: float) -> np.n
 def tune(cfg: Config, stream: Stream, *, holdout: str | None = None,
          estimator: str | None = None, jobs: int | None = None,
          engine: Engine | None = None, start: dict[str, float] | None = None,
-         progress: Callable[[str, float], None] | None = None) -> TuneResult:
+         progress: Callable[[str, float], None] | None = None,
+         twist_rates: bool = False) -> TuneResult:
     """Tune the noise values of ``cfg`` on ``stream`` (module docstring). ``cfg`` and the
     stream's variances are changed while it runs and left as the config had them. ``start``:
     labels or keys of parameters -> the value to start from instead of the config's (tests,
     and the measurements of docs/design/tuning.md start 3x off). ``engine``: where the runs go
     (an entered ``engine.Engine``, e.g. a Dask scheduler's); without one, ``jobs`` processes
     forked from this one (default: the cores, at most 2). ``progress(stage, fraction)`` is
-    called as it goes."""
+    called as it goes. ``twist_rates``: the two stages of the module docstring (with the
+    unicycle ``ekf`` as the tuning estimator; else one stage)."""
     t_start = time.perf_counter()
     params = parameters(cfg, stream)
     for p in params:
         if start and (p.key in start or p.label in start):
             p.start = float(start.get(p.key, start.get(p.label)))
     name = estimator or tuning_estimator(cfg)
-    rates = twist_rate_params(cfg, stream) if name == "ekf" else []
+    rates = twist_rate_params(cfg, stream) if twist_rates and name == "ekf" else []
     with contextlib.ExitStack() as stack:
         if engine is None:
             jobs = jobs or min(2, os.cpu_count() or 1)

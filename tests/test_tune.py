@@ -55,7 +55,7 @@ def tuned_sim(request, sim_bag):
     stream = read_stream(bag, cfg)
     truth = {p.key: p.before for p in parameters(cfg, stream)}
     start = {k: v * request.param for k, v in truth.items() if v}
-    return truth, tune(cfg, stream, start=start, jobs=1), cfg, stream
+    return truth, tune(cfg, stream, start=start, jobs=1, twist_rates=True), cfg, stream
 
 
 @pytest.mark.slow
