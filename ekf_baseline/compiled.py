@@ -362,7 +362,7 @@ class JitKalmanCore(KalmanCore):
     def __init__(self, x0, P0, log: BufferedLog | None = None, *, state_angles=(),
                  lockout_count: int = DEFAULT_LOCKOUT_COUNT,
                  lockout_time: float = DEFAULT_LOCKOUT_TIME, kinds=(), f_pairs=(),
-                 f_values=None, f_variable=(), q_pairs=(), walks=(), motion: int = 0,
+                 f_values=None, f_variable=(), q_pairs=(), walks=(), rates=(), motion: int = 0,
                  ks: int | None = None, noise=(), params=None, **kwargs) -> None:
         kj = self.kj = kernels()
         x0 = np.array(x0, dtype=float).reshape(-1)
@@ -374,10 +374,12 @@ class JitKalmanCore(KalmanCore):
         f_pairs = list(f_pairs)
         q_pairs = list(q_pairs)
         walks = list(walks)
+        rates = list(rates)
         nf, nq, nw, nv = len(f_pairs), len(q_pairs), len(walks), len(f_variable)
+        nr = len(rates)
         # ip: header, then F's pairs, Q's pairs, walk indices, F's variable entry numbers
         nzi = 8 * kj.MAXB + kj.MAXR + 2 * n  # the event kernels' block table and int scratch
-        ip = np.zeros(kj.IP_HEADER + nzi + 2 * nf + 2 * nq + nw + nv, dtype=np.int64)
+        ip = np.zeros(kj.IP_HEADER + nzi + 2 * nf + 2 * nq + nw + nv + 2 * nr, dtype=np.int64)
         ip[kj.IP_OFF_ZI] = kj.IP_HEADER
         o = kj.IP_HEADER + nzi
         ip[kj.IP_OFF_F] = o
@@ -392,13 +394,16 @@ class JitKalmanCore(KalmanCore):
         o += nw
         ip[kj.IP_OFF_FVAR] = o
         ip[o:o + nv] = list(f_variable)
+        o += nv
+        ip[kj.IP_OFF_RATE], ip[kj.IP_NRATE] = o, nr
+        ip[o:o + 2 * nr] = [k for i, j, _ in rates for k in (i, j)]
         ip[kj.IP_N], ip[kj.IP_MOTION], ip[kj.IP_NANG] = n, motion, len(state_angles)
         ip[kj.IP_ANG:kj.IP_ANG + len(state_angles)] = state_angles
         ip[kj.IP_LOCKN] = int(lockout_count)
         ip[kj.IP_KS] = -1 if ks is None else ks
         ip[kj.IP_NF], ip[kj.IP_NQ], ip[kj.IP_NWALK], ip[kj.IP_NFVAR] = nf, nq, nw, nv
         # fp: header, x, F values, Q values, walk variances
-        fp = np.zeros(kj.FP_X + n + nf + nq + nw)
+        fp = np.zeros(kj.FP_X + n + nf + nq + nw + nr)
         fp[kj.FP_LOCKT] = float(lockout_time)
         fp[kj.FP_LASTNIS] = math.nan
         fp[kj.FP_WHEEL_R] = fp[kj.FP_TRACK] = math.nan
@@ -411,6 +416,8 @@ class JitKalmanCore(KalmanCore):
         ip[kj.IP_OFF_QVAL] = o + nf
         ip[kj.IP_OFF_WALKV] = o + nf + nq
         fp[o + nf + nq:o + nf + nq + nw] = [w for _, w in walks]
+        ip[kj.IP_OFF_RATEV] = o + nf + nq + nw
+        fp[o + nf + nq + nw:o + nf + nq + nw + nr] = [q2 for _, _, q2 in rates]
         self.fp, self.ip = fp, ip
         self.W = np.zeros((4 * n + 8 * kj.MAXR, n))
         self._xv = fp[kj.FP_X:kj.FP_X + n]

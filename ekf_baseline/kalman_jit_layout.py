@@ -63,6 +63,9 @@ IP_WTRUE = 20  # unicycle with scale states: 1 when state 4 is the true yaw rate
 # fused), 0 when it is the odometry's (UnicycleEkf._w_true)
 IP_SLIP = 21  # landmark EKF: 1 when the robot's slip (FP_NOISE: longitudinal, lateral m^2/s,
 # heading rad^2/s) is stated
+IP_NRATE = 22  # unicycle: states driven by a rate state (integrated walks: x_i' = x_j)
+IP_OFF_RATE = 23  # offset in ip of their (i, j) pairs
+IP_OFF_RATEV = 32  # offset in fp of their rate's walk, variance per second
 IP_ANG = 24  # angle state indices (up to 8)
 MAXANG = 8
 IP_OFF_ZI = 15  # offset in ip of the event kernels' block table (MAXB, 4), then int scratch

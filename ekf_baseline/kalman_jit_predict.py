@@ -84,6 +84,31 @@ def _propagate_cov(fp, ip, W, n, dt):
 
 
 @njit(cache=True)
+def _integrated_walks(fp, ip, W, n, dt):
+    """After F P F^T + Q: the states driven by a rate state (ip's rate pairs (i, j): x_i' = x_j,
+    x_j a random walk of variance q2 per second): x_i += dt x_j and P <- G P G^T + Q_r, with
+    G = I + dt e_i e_j^T (the rest of F leaves x_j alone, so G F is the whole step's F) and
+    Q_r = q2 [[dt^3 / 3, dt^2 / 2], [dt^2 / 2, dt]] on (i, j); UnicycleEkf._predict_step's."""
+    P = W[0:n]
+    x = fp[lay.FP_X:lay.FP_X + n]
+    o = ip[lay.IP_OFF_RATE]
+    ov = ip[lay.IP_OFF_RATEV]
+    for e in range(ip[lay.IP_NRATE]):
+        i = ip[o + 2 * e]
+        j = ip[o + 2 * e + 1]
+        q2 = fp[ov + e]
+        x[i] += dt * x[j]
+        for k in range(n):
+            P[i, k] += dt * P[j, k]
+        for k in range(n):
+            P[k, i] += dt * P[k, j]
+        P[i, i] += q2 * dt * dt * dt / 3.0
+        P[i, j] += 0.5 * q2 * dt * dt
+        P[j, i] += 0.5 * q2 * dt * dt
+        P[j, j] += q2 * dt
+
+
+@njit(cache=True)
 def _put_step_f(fp, ofv, F, ks):
     """F's pose-row entries from ``scaled_step_terms``' layout (or se2_error_terms' first 12)
     into fp at ``ofv`` (UnicycleEkf._compiled_core's order), with the scale columns when
@@ -153,6 +178,9 @@ def _uni_predict(fp, ip, W, n, dt):
     x[2] = p1
     _wrap_states(x, ip)
     _propagate_cov(fp, ip, W, n, dt)
+    if ip[lay.IP_NRATE] > 0:
+        _integrated_walks(fp, ip, W, n, dt)
+        _wrap_states(x, ip)
 
 
 @njit(cache=True)

@@ -15,6 +15,10 @@ State (world = local ENU frame; the same names and conventions as ``ddfuse.facto
                         heading_offset: estimate
     ..     k_v   1      odometry scales (the odometry reports v / k_v, w / k_w) when the config
     ..     k_w   1      states the geometry's uncertainty (robot.*_std)
+    ..     acc   m/s^2  the twist's rates, when ``robot.twist_walk`` holds ``speed_rate`` /
+    ..     yacc  rad/s^2  ``yaw_rate_rate`` (the first stage of ``ddfuse tune`` only; no config
+                        states them): v' = acc, w' = yacc, each rate a random walk of that
+                        density (m/s^2/sqrt(s), rad/s^2/sqrt(s)): a twist that ramps
 
 Motion: the exact SE(2) constant-twist step (``motion='exact'``, the smoother's motion model)
 or the seed's Euler step; the twist and calibration states are random walks
@@ -244,6 +248,13 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
             "yaw_rate" in s.use for s in cfg.of_kind("imu"))
         if self._scale:  # states 3, 4 are then the odometry-frame twist (module docstring)
             names[3:5] = ["v_odo", "w" if self._w_true else "w_odo"]
+        # the twist's rates (module docstring): (twist index, rate index, variance per s)
+        self._rates: list[tuple[int, int, float]] = []
+        for ti, nm, key in ((3, "acc", "speed_rate"), (4, "yacc", "yaw_rate_rate")):
+            q = r.twist_walk.get(key)
+            if q:
+                self._rates.append((ti, len(names), q * q))
+                names.append(nm)
         self.state_names = tuple(names)
         self.n = len(names)
         self._hoff_states = tuple(i for i, nm in enumerate(names) if nm.startswith("hoff"))
@@ -393,6 +404,8 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
         P[3, 3], P[4, 4] = robot.speed_limit ** 2, robot.yaw_rate_limit ** 2
         for i, w in zip(self._bias_states + self._hoff_states, self._walks, strict=True):
             P[i, i] += w * gap
+        for _hi, ri, q2 in self._rates:
+            P[ri, ri] += q2 * gap
         x[3] = x[4] = 0.0
         kf.x, kf.P = x, P
         self.t = t
@@ -463,6 +476,13 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
                 self._w_true)
             self._F_flat[self._if] = F
         self._Q_flat[self._iq] = q + q + tuple([w * dt for w in self._walks])
+        for ti, ri, q2 in self._rates:  # x_ti' = x_ri, x_ri a walk: kalman_jit_predict's
+            self._F[ti, ri] = dt
+            Q = self._Q
+            Q[ti, ti] += q2 * dt * dt * dt / 3.0
+            Q[ti, ri] = Q[ri, ti] = 0.5 * q2 * dt * dt
+            Q[ri, ri] = q2 * dt
+            xs[ti] += dt * xs[ri]
         xs[0], xs[1], xs[2] = x1, y1, p1
         kf.predict(self._F, self._Q, xs)
         self.t = t

@@ -45,7 +45,7 @@ class UnicycleKernels:
         kf = jit.JitKalmanCore(
             x0, P0, self.log, state_angles=(2, *self._hoff_states),
             lockout_count=self._lockout[0], lockout_time=self._lockout[1], kinds=jit.UNI_KINDS,
-            f_pairs=f_pairs, q_pairs=q_pairs, walks=walks,
+            f_pairs=f_pairs, q_pairs=q_pairs, walks=walks, rates=self._rates,
             motion=0 if self.motion == "exact" else 1, ks=self._ks,
             noise=self._noise_floats(),
             params={kj.FP_WHEEL_R: r, kj.FP_TRACK: L})

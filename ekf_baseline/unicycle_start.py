@@ -19,6 +19,7 @@ __all__ = ["UnicycleStart"]
 
 _PI = math.pi
 _TWO_PI = 2.0 * math.pi
+RATE_STD0 = 1.0  # m/s^2, rad/s^2: the twist's rates' prior sigma (a ground robot's accelerations)
 _cos = math.cos
 _sin = math.sin
 
@@ -76,6 +77,8 @@ class UnicycleStart:
             P0[i, i] = self.bias_std0**2
         for i in self._hoff_states:
             P0[i, i] = _PI * _PI / 3.0  # uniform on the circle until initialised from a Heading
+        for _ti, ri, _q2 in self._rates:
+            P0[ri, ri] = RATE_STD0 ** 2
         if self._scale:
             self._scale.set_prior(x0, P0)
         if self.compiled:

@@ -18,6 +18,18 @@ estimator is the unicycle ``ekf`` (compiled, 0.4 s over rl_husky_gps.bag's 395 s
 ``ekf_landmark`` when the config has landmarks (the unicycle EKF does not fuse them). GPS fixes
 of a hold-out are withheld from the runs, so from the fit.
 
+With ``twist_rates``, two stages with the unicycle ``ekf``: a twist that ramps (a start from
+rest, into and out of a turn) is not the random walk the estimators' twist states are, and a
+walk fitted to the ramps states a spread the steady stretches do not have, which the
+likelihood makes up for with a smaller noise of the twist sensors. So the first stage fits
+every value with the twist's rates (``tune_params.twist_rate_params``: the EKF's acceleration
+states, a white jerk of a searched density driving each; the twist's own walks held at a
+hundredth of their start), and the second fits the process noise in the estimators' own model
+(no rates: no estimator but that stage's EKF has them, and the tuned config states none) with
+the sensors' noise held where the first put it. Not the default: the estimators' own walk then
+shows the ramps' mismatch as NIS under 1 (rl_husky_gps.bag: the ekf's gyro Fail), where one
+stage lets the sensors' values make up for it (docs/design/tuning.md).
+
 Identifiability: the outer product of the per-innovation gradients (J' J, the Fisher
 information's estimate from the scores, J from the same differences) says how much the data
 inform each value: a value with under ``MIN_INFORMATION`` (about ``MIN_INFORMATION`` / 2
@@ -45,7 +57,13 @@ from ddfuse.estimation.runner import run
 from ddfuse.evaluation.consistency import InnovationTable, SensorNis, nis_by_sensor
 from ddfuse.evaluation.engine import Engine
 from ddfuse.evaluation.estimators import build
-from ddfuse.evaluation.tune_params import Applier, Param, parameters
+from ddfuse.evaluation.tune_params import (
+    RATE_KEYS,
+    Applier,
+    Param,
+    parameters,
+    twist_rate_params,
+)
 from ddfuse.evaluation.tune_whiteness import Whiteness, keyframe_spacing, whiteness
 
 GATE_P = 0.9999  # the innovations' NIS is clipped at this chi-square quantile
@@ -224,33 +242,103 @@ def information(base: np.ndarray, bumped: list[np.ndarray], step: float) -> np.n
 def tune(cfg: Config, stream: Stream, *, holdout: str | None = None,
          estimator: str | None = None, jobs: int | None = None,
          engine: Engine | None = None, start: dict[str, float] | None = None,
-         progress: Callable[[str, float], None] | None = None) -> TuneResult:
+         progress: Callable[[str, float], None] | None = None,
+         twist_rates: bool = False) -> TuneResult:
     """Tune the noise values of ``cfg`` on ``stream`` (module docstring). ``cfg`` and the
     stream's variances are changed while it runs and left as the config had them. ``start``:
     labels or keys of parameters -> the value to start from instead of the config's (tests,
     and the measurements of docs/design/tuning.md start 3x off). ``engine``: where the runs go
     (an entered ``engine.Engine``, e.g. a Dask scheduler's); without one, ``jobs`` processes
     forked from this one (default: the cores, at most 2). ``progress(stage, fraction)`` is
-    called as it goes."""
+    called as it goes. ``twist_rates``: the two stages of the module docstring (with the
+    unicycle ``ekf`` as the tuning estimator; else one stage)."""
     t_start = time.perf_counter()
     params = parameters(cfg, stream)
     for p in params:
         if start and (p.key in start or p.label in start):
             p.start = float(start.get(p.key, start.get(p.label)))
     name = estimator or tuning_estimator(cfg)
-    problem = Problem(cfg, stream, params, name, holdout)
+    rates = twist_rate_params(cfg, stream) if twist_rates and name == "ekf" else []
     with contextlib.ExitStack() as stack:
         if engine is None:
             jobs = jobs or min(2, os.cpu_count() or 1)
             engine = stack.enter_context(Engine(jobs=jobs, fork=True))
-        ev = Evaluator(problem, engine)
-        try:
-            result = _staged_search(problem, ev, progress, t_start)
-            _correlation(problem, result)
-            return result
-        finally:
-            ev.close()
-            problem.applier.apply([None] * len(params))
+        first = mask = None
+        if rates:  # the sensors' noise under the twist's rates (module docstring)
+            first, mask = _rates_stage(cfg, stream, params, rates, name, holdout, engine,
+                                       progress, t_start)
+        problem = Problem(cfg, stream, params, name, holdout)
+        result = _solve(problem, engine, progress, t_start, mask)
+        if first is not None:
+            result = _joined(first, result, mask)
+        _correlation(problem, result)
+        return result
+
+
+def _rates_stage(cfg: Config, stream: Stream, params: list[Param], rates: list[Param],
+                 name: str, holdout: str | None, engine: Engine, progress, t_start: float
+                 ) -> tuple[TuneResult, np.ndarray]:
+    """The first stage of a tune with the twist's rates (module docstring): every value with
+    the rates, the twist's own walks held at a hundredth of their start (the rates take the
+    twist's changes); then each value's start for the second stage set where it ended (the
+    walks' back at their own), and which values the second stage searches: the process noise
+    but what the first stage drove to ``negligible``."""
+    walks = [p for p in params if p.kind == "twist" and p.noise_key in RATE_KEYS]
+    starts = {id(p): p.start for p in walks}
+    for p in walks:
+        p.start /= BOUND
+    search = np.array([p.kind not in NOT_SEARCHED and p not in walks
+                       for p in params + rates], bool)
+    try:
+        first = _solve(Problem(cfg, stream, params + rates, name, holdout), engine, progress,
+                       t_start, search)
+    finally:
+        for p in walks:
+            p.start = starts[id(p)]
+    second = np.zeros(len(params), bool)
+    for i, (p, t) in enumerate(zip(params, first.tuned, strict=False)):
+        if p in walks:
+            second[i] = True
+        elif t.status == "not informed":
+            second[i] = p.kind in PROCESS_NOISE and p.kind not in NOT_SEARCHED
+        elif t.value is not None:
+            p.start = t.value
+            second[i] = p.kind in PROCESS_NOISE and t.status != "negligible"
+    return first, second
+
+
+def _solve(problem: Problem, engine: Engine, progress, t_start: float,
+           search: np.ndarray | None = None) -> TuneResult:
+    """One search of ``problem`` (``_staged_search``; only the values ``search`` marks, the
+    rest held at their start, when given), the config and stream put back after it."""
+    ev = Evaluator(problem, engine)
+    try:
+        if search is None:
+            return _staged_search(problem, ev, progress, t_start)
+        return _search(problem, ev, progress, t_start, search)
+    finally:
+        ev.close()
+        problem.applier.apply([None] * len(problem.params))
+
+
+def _joined(first: TuneResult, second: TuneResult, process: np.ndarray) -> TuneResult:
+    """The two stages of a tune with the twist's rates as one result: the values the second
+    stage searched (``process``: the process noise in the estimators' own model) as it found
+    them, the rest (the measurement noise, a negligible process noise) as the first did."""
+    n = len(process)
+    rates = ", ".join(f"{t.param.noise_key} {t.value:.3g} {t.param.unit}"
+                      for t in first.tuned[n:] if t.value is not None)
+    second.tuned = [b if m else a for a, b, m in zip(first.tuned[:n], second.tuned, process,
+                                                     strict=True)]
+    keep = {t.param.label for t in first.tuned[:n]}
+    second.pairs = [q for q in first.pairs if q[0] in keep and q[1] in keep] + second.pairs
+    second.nll_start = first.nll_start
+    second.runs += first.runs
+    second.iterations += first.iterations
+    second.message = (f"{first.message}; the sensors' noise fitted with the twist's rates "
+                      f"({rates or 'not informed'}), then the process noise with it held: "
+                      f"{second.message}")
+    return second
 
 
 def _search(problem: Problem, ev: Evaluator, progress, t_start: float,
@@ -281,7 +369,7 @@ def _search(problem: Problem, ev: Evaluator, progress, t_start: float,
         return (base[0], jacobian(base[0], [r[0] for r in res], STEP),
                 jacobian(base[1], [r[1] for r in res], STEP))
 
-    xs, nll0 = _scaled_start(params, x0, ev, seen)
+    xs, nll0 = _scaled_start(params, x0, ev, seen, search)
     base0, J0, F0 = run_at(xs, np.flatnonzero(search))
     J0, F0 = _widen(J0, search), _widen(F0, search)
     info0 = np.zeros(n) if J0 is None else np.sum(J0 * J0, axis=0)
@@ -480,15 +568,17 @@ def _frames_common(problem: Problem, first: TuneResult, common: list[int]
     return keep, found
 
 
-def _scaled_start(params: list[Param], x0: np.ndarray, ev: Evaluator, seen: dict
-                  ) -> tuple[np.ndarray, float]:
+def _scaled_start(params: list[Param], x0: np.ndarray, ev: Evaluator, seen: dict,
+                  search: np.ndarray) -> tuple[np.ndarray, float]:
     """Where the search starts (log values) and L at the config's values ``x0``: ``x0`` with
     every measurement noise scaled by the one of ``START_SCALES`` that gives the lowest L.
     Values too small make the tuning EKF's gate reject what they cannot explain; the filter
     then follows other sensors and L has a local minimum there that the scoring steps do not
     leave (measured: GPS 29-65 % low, landmarks 60-70 % low from /3). Values too large have
-    no such trap, so the scan only looks upwards. The runs go into ``seen``."""
+    no such trap, so the scan only looks upwards. Only the values ``search`` marks are
+    scaled (a held one stays where it is held). The runs go into ``seen``."""
     meas = np.array([p.kind not in PROCESS_NOISE + NOT_SEARCHED for p in params], float)
+    meas *= search
     scales = START_SCALES if meas.any() else (1.0,)
     cands = [x0 + math.log(k) * meas for k in scales]
     for c, r in zip(cands, ev.many([list(np.exp(c)) for c in cands]), strict=True):

@@ -296,6 +296,21 @@ def _twist_periods(cfg: Config, stream: Stream) -> dict[str, float | None]:
     return out
 
 
+# the twist's rates (``ddfuse tune``'s first stage: evaluation.tune, module docstring): the
+# density (m/s^2/sqrt(s), rad/s^2/sqrt(s)) of the white jerk driving each twist component's rate
+RATE_KEYS = {"speed": "speed_rate", "yaw_rate": "yaw_rate_rate"}
+RATE_START = 0.3
+
+
+def twist_rate_params(cfg: Config, stream: Stream) -> list[Param]:
+    """The twist's rates, one per twist component a sensor measures, for the first stage of
+    ``ddfuse tune`` (the unicycle EKF's acceleration states; no config states them)."""
+    periods = _twist_periods(cfg, stream)
+    return [Param(f"robot.twist_walk.{key}", f"robot twist_walk {key}", RATE_START, None,
+                  "default", _UNITS[f"twist {comp}"].replace("/s/", "/s^2/"), None, "twist",
+                  key) for comp, key in RATE_KEYS.items() if periods[comp] is not None]
+
+
 class Applier:
     """Puts a set of values into ``cfg`` (the process noise, read when an estimator is built)
     and the variances of ``stream``'s measurements, in place. A value of None leaves what was

@@ -3,7 +3,7 @@ they were drawn with, every measurement noise value started 3x too large or 3x t
 tuned value's error against the truth (the issue's 20-seed table, docs/design/tuning.md).
 
     python examples/tune_recovery.py run OUT.jsonl [--scenarios husky seed002] [--seeds 1-20]
-        [--duration 120] [--jobs 1] [--trim S] [--factors 3 0.333]
+        [--duration 120] [--jobs 1] [--trim S] [--factors 3 0.333] [--twist-rates]
     python examples/tune_recovery.py table OUT.jsonl
 
 ``run`` appends one JSON line per (scenario, seed, start) to OUT.jsonl and skips those already
@@ -46,7 +46,7 @@ def cut_ends(stream, seconds: float) -> None:
 
 
 def one(scenario: str, seed: int, factor: float, duration: float, jobs: int,
-        trim: float = 0.0) -> dict:
+        trim: float = 0.0, twist_rates: bool = False) -> dict:
     """Simulate, tune from every stated measurement noise times ``factor`` (on the bag without
     its first and last ``trim`` s), and return the tuned values against the truth."""
     import subprocess
@@ -68,7 +68,8 @@ def one(scenario: str, seed: int, factor: float, duration: float, jobs: int,
         truth = {p.label: p.before for p in parameters(cfg, stream)
                  if p.kind not in PROCESS + ("corr",) and p.before is not None}
         c0 = _cpu()
-        res = tune(cfg, stream, start={k: v * factor for k, v in truth.items()}, jobs=jobs)
+        res = tune(cfg, stream, start={k: v * factor for k, v in truth.items()}, jobs=jobs,
+                   twist_rates=twist_rates)
         cpu = _cpu() - c0
     rows = {}
     for t in res.tuned:
@@ -78,7 +79,8 @@ def one(scenario: str, seed: int, factor: float, duration: float, jobs: int,
                                    "status": t.status,
                                    "error": None if v is None or t.status == "not informed"
                                    else v / truth[t.param.label] - 1.0}
-    return {"scenario": scenario, "seed": seed, "factor": factor, "trim": trim, "values": rows,
+    return {"scenario": scenario, "seed": seed, "factor": factor, "trim": trim,
+            "twist_rates": twist_rates, "values": rows,
             "runs": res.runs, "iterations": res.iterations, "cpu_s": cpu,
             "pairs": res.pairs, "message": res.message,
             "others": {t.param.label: [t.value, t.status] for t in res.tuned
@@ -91,7 +93,8 @@ def _seeds(spec: str) -> list[int]:
 
 
 def run(out: Path, scenarios: list[str], seeds: list[int], duration: float, jobs: int,
-        trim: float = 0.0, factors: tuple[float, ...] = (3.0, 1.0 / 3.0)) -> None:
+        trim: float = 0.0, factors: tuple[float, ...] = (3.0, 1.0 / 3.0),
+        twist_rates: bool = False) -> None:
     done = set()
     if out.exists():
         for line in out.read_text().splitlines():
@@ -102,7 +105,7 @@ def run(out: Path, scenarios: list[str], seeds: list[int], duration: float, jobs
             for factor in factors:
                 if (scenario, seed, factor) in done:
                     continue
-                r = one(scenario, seed, factor, duration, jobs, trim)
+                r = one(scenario, seed, factor, duration, jobs, trim, twist_rates)
                 with out.open("a") as f:
                     f.write(json.dumps(r) + "\n")
                 errs = {k: (None if v["error"] is None else round(100 * v["error"], 1))
@@ -162,11 +165,13 @@ def main() -> None:
     r.add_argument("--jobs", type=int, default=1)
     r.add_argument("--trim", type=float, default=0.0, help="s cut at each end before tuning")
     r.add_argument("--factors", type=float, nargs="+", default=[3.0, 1.0 / 3.0])
+    r.add_argument("--twist-rates", action="store_true", help="tune --twist-rates")
     t = sub.add_parser("table")
     t.add_argument("out", type=Path)
     a = ap.parse_args()
     if a.cmd == "run":
-        run(a.out, a.scenarios, _seeds(a.seeds), a.duration, a.jobs, a.trim, tuple(a.factors))
+        run(a.out, a.scenarios, _seeds(a.seeds), a.duration, a.jobs, a.trim, tuple(a.factors),
+            a.twist_rates)
     else:
         print(table(a.out))
 

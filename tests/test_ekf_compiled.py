@@ -343,3 +343,16 @@ def test_buffered_log_reads_like_a_list():
     assert ekf.kf.recoveries
     t_rec = ekf.kf.recoveries[0][0]
     assert any(i.t == t_rec and i.kind == "gps" and i.accepted for i in inns)
+
+
+@pytest.mark.parametrize("rate", ["event", 10.0])
+def test_unicycle_compiled_matches_reference_with_rate_states(rate):
+    """The twist's rates (robot.twist_walk speed_rate and yaw_rate_rate, as the first stage of
+    ``ddfuse tune`` sets them): two integrated walks, with every calibration state; the
+    kernels' and the reference's predictions agree at every step."""
+    cfg = _config(True, rate)
+    cfg.robot.twist_walk = {"speed_rate": 0.3, "yaw_rate_rate": 0.2}
+    fast = _run_both(_unicycle(cfg), _stream(3))
+    assert fast.state_names[-2:] == ("acc", "yacc")
+    x = fast.estimate().state
+    assert abs(x[-2]) < 0.5 and abs(x[-1]) < 0.5  # the drive's accelerations: <= 0.06, 0.06

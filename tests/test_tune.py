@@ -26,9 +26,11 @@ from ddfuse.evaluation.tune_yaml import tuned_text
 # The values the unicycle EKF's innovations inform on a simulated Husky drive (GPS 2.5 Hz,
 # compass and gyro 30 Hz, odometry 10 Hz): the GPS's horizontal noise, the compass's, the
 # odometry's yaw rate, and the gyro's once the twist's random walk (robot.twist_walk) is tuned
-# with it (docs/design/tuning.md has every value's figures).
+# with it (docs/design/tuning.md has every value's figures); the odometry's speed once the
+# sensors' noise is fitted with the twist's rates (the drive ramps its speed from and to rest).
 INFORMED = ("sensors.gps[0].noise.horizontal", "sensors.imu[0].noise.yaw",
-            "sensors.odometry[0].noise.yaw_rate", "sensors.imu[0].noise.yaw_rate")
+            "sensors.odometry[0].noise.yaw_rate", "sensors.imu[0].noise.yaw_rate",
+            "sensors.odometry[0].noise.v")
 # Bound on |log(tuned / true)|: the fewest-sampled of them is the GPS, N = 2.5 Hz x 40 s = 100
 # fixes; a standard deviation estimated from N Gaussian samples has a relative standard error
 # of 1 / sqrt(2 N) = 0.071, and 4 of those (0.28) leaves a chance of 6e-5 of failing. The gyro
@@ -53,7 +55,7 @@ def tuned_sim(request, sim_bag):
     stream = read_stream(bag, cfg)
     truth = {p.key: p.before for p in parameters(cfg, stream)}
     start = {k: v * request.param for k, v in truth.items() if v}
-    return truth, tune(cfg, stream, start=start, jobs=1), cfg, stream
+    return truth, tune(cfg, stream, start=start, jobs=1, twist_rates=True), cfg, stream
 
 
 @pytest.mark.slow
@@ -64,6 +66,15 @@ def test_tune_recovers_the_true_noise_from_3x_off(tuned_sim):
         assert got[key].status == "tuned", (key, got[key].reason)
         assert abs(math.log(got[key].value / truth[key])) < BOUND, (key, got[key].value,
                                                                    truth[key])
+
+
+@pytest.mark.slow
+def test_the_rates_fit_the_sensors_noise_and_stay_out_of_the_result(tuned_sim):
+    _, result, cfg, _ = tuned_sim
+    assert "the sensors' noise fitted with the twist's rates (speed_rate" in result.message
+    assert not any("rate_rate" in t.param.key or t.param.key.endswith("speed_rate")
+                   for t in result.tuned)
+    assert cfg.robot.twist_walk == {}  # the first stage's rates put back with the rest
 
 
 @pytest.mark.slow

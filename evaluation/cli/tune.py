@@ -28,6 +28,11 @@ def add_to(sub) -> None:
     sp.add_argument("--jobs", type=int, default=None, metavar="J",
                     help="processes for the estimator runs (default: the machine's cores, "
                     "at most 2)")
+    sp.add_argument("--twist-rates", action="store_true",
+                    help="fit the sensors' noise with an EKF whose twist has rates "
+                    "(acceleration states) first, then the process noise with it held: the "
+                    "sensors' own noise where the robot's speed ramps and its turns fool a "
+                    "walk of the twist (docs/design/tuning.md, 'The twist's rates')")
     add_scheduler(sp, jobs=False)
     sp.set_defaults(func=command)
 
@@ -53,7 +58,8 @@ def command(args: argparse.Namespace) -> int:
             stream = read_stream(args.bag, cfg, progress=(lambda f: bars.update("read", f))
                                  if bars else None)
             result = tune(cfg, stream, holdout=args.gps_holdout, jobs=args.jobs,
-                          engine=engine, progress=bars.update if bars else None)
+                          engine=engine, progress=bars.update if bars else None,
+                          twist_rates=args.twist_rates)
         if bars:
             bars.update("before / after", 0.0)
         before = check(cfg, stream, [None] * len(result.tuned), estimator=result.estimator,
