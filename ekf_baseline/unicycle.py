@@ -99,6 +99,9 @@ POSE_ERRORS = ("se2", "world")  # UnicycleEkf(pose_error=...): module docstring,
 # 0.1 s steps are within 0.25 % of 1 ms ones. The messages' own 10-50 Hz steps are never split.
 MAX_PREDICT_DT = 0.1
 
+# robot.twist_walk's keys of the twist's rates (module docstring), per twist component
+TWIST_RATE_KEYS = {"speed": "speed_rate", "yaw_rate": "yaw_rate_rate"}
+
 
 class _Sensor:
     """Per-sensor settings looked up once: gate, GPS lever arm, bias/offset handling."""
@@ -250,8 +253,8 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
             names[3:5] = ["v_odo", "w" if self._w_true else "w_odo"]
         # the twist's rates (module docstring): (twist index, rate index, variance per s)
         self._rates: list[tuple[int, int, float]] = []
-        for ti, nm, key in ((3, "acc", "speed_rate"), (4, "yacc", "yaw_rate_rate")):
-            q = r.twist_walk.get(key)
+        for ti, nm, comp in ((3, "acc", "speed"), (4, "yacc", "yaw_rate")):
+            q = r.twist_walk.get(TWIST_RATE_KEYS[comp])
             if q:
                 self._rates.append((ti, len(names), q * q))
                 names.append(nm)
@@ -404,7 +407,7 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
         P[3, 3], P[4, 4] = robot.speed_limit ** 2, robot.yaw_rate_limit ** 2
         for i, w in zip(self._bias_states + self._hoff_states, self._walks, strict=True):
             P[i, i] += w * gap
-        for _hi, ri, q2 in self._rates:
+        for _ti, ri, q2 in self._rates:
             P[ri, ri] += q2 * gap
         x[3] = x[4] = 0.0
         kf.x, kf.P = x, P

@@ -58,7 +58,7 @@ from ddfuse.evaluation.consistency import InnovationTable, SensorNis, nis_by_sen
 from ddfuse.evaluation.engine import Engine
 from ddfuse.evaluation.estimators import build
 from ddfuse.evaluation.tune_params import (
-    RATE_KEYS,
+    TWIST_KEYS,
     Applier,
     Param,
     parameters,
@@ -283,21 +283,21 @@ def _rates_stage(cfg: Config, stream: Stream, params: list[Param], rates: list[P
     twist's changes); then each value's start for the second stage set where it ended (the
     walks' back at their own), and which values the second stage searches: the process noise
     but what the first stage drove to ``negligible``."""
-    walks = [p for p in params if p.kind == "twist" and p.noise_key in RATE_KEYS]
-    starts = {id(p): p.start for p in walks}
-    for p in walks:
-        p.start /= BOUND
-    search = np.array([p.kind not in NOT_SEARCHED and p not in walks
+    walks = {id(p): p.start for p in params if p.kind == "twist" and p.noise_key in TWIST_KEYS}
+    for p in params:
+        if id(p) in walks:
+            p.start /= BOUND
+    search = np.array([p.kind not in NOT_SEARCHED and id(p) not in walks
                        for p in params + rates], bool)
     try:
         first = _solve(Problem(cfg, stream, params + rates, name, holdout), engine, progress,
                        t_start, search)
     finally:
-        for p in walks:
-            p.start = starts[id(p)]
+        for p in params:
+            p.start = walks.get(id(p), p.start)
     second = np.zeros(len(params), bool)
     for i, (p, t) in enumerate(zip(params, first.tuned, strict=False)):
-        if p in walks:
+        if id(p) in walks:
             second[i] = True
         elif t.status == "not informed":
             second[i] = p.kind in PROCESS_NOISE and p.kind not in NOT_SEARCHED

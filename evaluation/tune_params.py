@@ -46,6 +46,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from ddfuse.ekf_baseline.unicycle import TWIST_RATE_KEYS
 from ddfuse.ekf_baseline.unicycle_motion import ProcessNoise
 from ddfuse.estimation.config import Config
 from ddfuse.estimation.measurements import (
@@ -296,9 +297,8 @@ def _twist_periods(cfg: Config, stream: Stream) -> dict[str, float | None]:
     return out
 
 
-# the twist's rates (``ddfuse tune``'s first stage: evaluation.tune, module docstring): the
+# where the first stage of ``ddfuse tune`` (evaluation.tune, module docstring) starts the
 # density (m/s^2/sqrt(s), rad/s^2/sqrt(s)) of the white jerk driving each twist component's rate
-RATE_KEYS = {"speed": "speed_rate", "yaw_rate": "yaw_rate_rate"}
 RATE_START = 0.3
 
 
@@ -308,7 +308,7 @@ def twist_rate_params(cfg: Config, stream: Stream) -> list[Param]:
     periods = _twist_periods(cfg, stream)
     return [Param(f"robot.twist_walk.{key}", f"robot twist_walk {key}", RATE_START, None,
                   "default", _UNITS[f"twist {comp}"].replace("/s/", "/s^2/"), None, "twist",
-                  key) for comp, key in RATE_KEYS.items() if periods[comp] is not None]
+                  key) for comp, key in TWIST_RATE_KEYS.items() if periods[comp] is not None]
 
 
 class Applier:
