@@ -250,15 +250,18 @@ def tune(cfg: Config, stream: Stream, *, holdout: str | None = None,
     and the measurements of docs/design/tuning.md start 3x off). ``engine``: where the runs go
     (an entered ``engine.Engine``, e.g. a Dask scheduler's); without one, ``jobs`` processes
     forked from this one (default: the cores, at most 2). ``progress(stage, fraction)`` is
-    called as it goes. ``twist_rates``: the two stages of the module docstring (with the
-    unicycle ``ekf`` as the tuning estimator; else one stage)."""
+    called as it goes. ``twist_rates``: the two stages of the module docstring (the unicycle
+    ``ekf`` the tuning estimator; ValueError with another)."""
     t_start = time.perf_counter()
     params = parameters(cfg, stream)
     for p in params:
         if start and (p.key in start or p.label in start):
             p.start = float(start.get(p.key, start.get(p.label)))
     name = estimator or tuning_estimator(cfg)
-    rates = twist_rate_params(cfg, stream) if twist_rates and name == "ekf" else []
+    if twist_rates and name != "ekf":
+        raise ValueError(f"tune(twist_rates=True): the tuning estimator is {name}, whose twist "
+                         "has no rates to add (only the unicycle ekf's has)")
+    rates = twist_rate_params(cfg, stream) if twist_rates else []
     with contextlib.ExitStack() as stack:
         if engine is None:
             jobs = jobs or min(2, os.cpu_count() or 1)

@@ -190,6 +190,17 @@ def test_cli_refuses_a_holdout_without_gps(tmp_path, capsys):
     assert "has no gps sensor" in capsys.readouterr().err
 
 
+def test_cli_refuses_twist_rates_for_a_landmark_config(capsys):
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1] / "data"
+    code = main(["tune", str(root / "sample_seed002.bag"), "-c",
+                 str(root / "sample_seed002.yaml"), "--twist-rates"])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "--twist-rates" in err and "ekf_landmark tunes it" in err and len(err.splitlines()) == 1
+
+
 def test_two_values_with_the_same_effect_are_reported_as_a_pair():
     # per-innovation scores (J) where gyro noise and slip move the innovations alike (gyro
     # noise vs heading slip, both widening the yaw-rate innovations): J'J's inverse correlates

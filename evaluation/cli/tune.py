@@ -41,7 +41,7 @@ def command(args: argparse.Namespace) -> int:
     from ddfuse.estimation.bags import read_stream
     from ddfuse.estimation.config import load_config
     from ddfuse.evaluation.shipped import config_for
-    from ddfuse.evaluation.tune import check, tune
+    from ddfuse.evaluation.tune import check, tune, tuning_estimator
     from ddfuse.evaluation.tune_yaml import write_tuned
 
     if args.output:
@@ -52,6 +52,9 @@ def command(args: argparse.Namespace) -> int:
     cfg = load_config(config)
     if args.gps_holdout and not cfg.of_kind("gps"):
         raise DdfuseError(f"--gps-holdout {args.gps_holdout}: {config} has no gps sensor")
+    if args.twist_rates and tuning_estimator(cfg) != "ekf":
+        raise DdfuseError(f"--twist-rates: {config} has landmarks, so ekf_landmark tunes it, "
+                          "and its twist is the odometry's, with no rates to add")
     bars = progress()
     try:
         with _engine(args) as engine:  # an unreachable scheduler said before the bag is read
