@@ -111,6 +111,9 @@ class Param:
     sensor: str | None = None  # the sensor's name (its noise or walk), None for the robot's
     kind: str = ""  # sensor kind, or 'slip' / 'walk' / 'twist' / 'corr' / 'common'
     noise_key: str = ""
+    # held at ``start`` by a rule beside the likelihood, not searched (an odometry input's
+    # noise measured from its own samples: ``evaluation.tune_inputs``)
+    held: bool = False
 
 
 _UNITS = {"accel": "m/s^2", "v": "m/s", "yaw_rate": "rad/s", "speed": "rad/s", "yaw": "rad",
