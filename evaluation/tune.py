@@ -37,6 +37,11 @@ innovations' worth of information on its log, a standard error of 0.16 on it) at
 left at the config's value, said with the reason; at the optimum, pairs whose estimates are
 correlated beyond ``PAIR_CORRELATION`` in the inverse are reported, and each value's standard
 error. Design and figures: docs/design/tuning.md.
+
+In the odometry-driven ``ekf_landmark`` an odometry input's noise and the robot's slip are both
+process noise; where the search leaves an input 'not informed' (the slip took its effect), its
+noise is measured from its own samples (``evaluation.tune_inputs``), held there, and the search
+run again, so that the config's value is not put back beside a slip that already explains it.
 """
 
 from __future__ import annotations
