@@ -62,7 +62,6 @@ from ddfuse.estimation.runner import run
 from ddfuse.evaluation.consistency import InnovationTable, SensorNis, nis_by_sensor
 from ddfuse.evaluation.engine import Engine
 from ddfuse.evaluation.estimators import build
-from ddfuse.evaluation.tune_inputs import Scatter, input_series, sample_scatter
 from ddfuse.evaluation.tune_params import (
     TWIST_KEYS,
     Applier,
@@ -70,14 +69,20 @@ from ddfuse.evaluation.tune_params import (
     parameters,
     twist_rate_params,
 )
+from ddfuse.evaluation.tune_result import Tuned, TuneResult
+from ddfuse.evaluation.tune_rules import bearing_sigma, correlation, held_inputs, inputs_outcome
+from ddfuse.evaluation.tune_scoring import (
+    AT_BOUND,
+    correlated_pairs,
+    jacobian,
+    scoring,
+)
 from ddfuse.evaluation.tune_whiteness import Whiteness, keyframe_spacing, whiteness
 
 GATE_P = 0.9999  # the innovations' NIS is clipped at this chi-square quantile
 BOUND = 100.0  # the search stays within start / BOUND .. start * BOUND
 STEP = 0.02  # forward-difference step on the log of a value (2 %: gate flips make L rough)
 MIN_INFORMATION = 40.0  # Fisher information on a log value below which the data do not inform it
-PAIR_CORRELATION = 0.9  # |correlation| of two estimates beyond which the pair is reported
-AT_BOUND = 0.01  # a log value this close to a bound is at it
 # a value informed at the start that the search drove this factor down, to where it no longer
 # shows in the innovations, is kept there ('negligible'), not put back to the config's
 NEGLIGIBLE = 10.0
@@ -85,20 +90,12 @@ NEGLIGIBLE = 10.0
 # landmark bearing's part common to a frame: the data may show none)
 PROCESS_NOISE = ("slip", "walk", "twist", "common")
 NOT_SEARCHED = ("corr",)  # Param kinds set by a rule beside the likelihood (correlation time)
-CORR_GAP = 1.0  # s: a sighting whose neighbours (same landmark) are this close is scattered
 START_SCALES = (1.0, 3.0, 9.0)  # common factors on the measurement noise tried first
-MAX_ITER = 12  # iterations of one pass of the search (each 3 + p runs, p the free values)
-SHORT = 1.0 / 3.0  # the shortened scoring step, a fraction of the full one
-TRUST_START = 1.5  # the first step's largest change of a log value (a factor 4.5)
-TRUST_MAX = 3.0  # the trust radius on the log values never grows beyond this
-STOP_STEP = 0.01  # the search stops when a step changes no value by more than 1 %
-STOP_NLL = 1.0  # ... or no step predicts a decrease of L of this (nats: gate flips
-# make L rough by about as much)
 
 
 def searched(p: Param) -> bool:
     """Whether the likelihood search moves ``p``: not a kind set by a rule (``NOT_SEARCHED``)
-    and not held (an odometry input's noise its own samples gave: ``_held_inputs``)."""
+    and not held (an odometry input's noise its own samples gave: ``tune_rules.held_inputs``)."""
     return p.kind not in NOT_SEARCHED and not p.held
 
 
@@ -191,66 +188,6 @@ class Evaluator:
         self.tasks.close()
 
 
-@dataclass
-class Tuned:
-    """One parameter's outcome. ``value`` is the tuned value (SI), or None where it was left as
-    the config had it (``status`` 'not informed'); ``status``: 'tuned', 'not informed',
-    'at lower bound', 'at upper bound'; ``reason`` in words; ``se_log``: the standard error of
-    its log (a relative standard error, to first order), None when not computed. Status
-    'negligible': a process noise informed at the start, driven down NEGLIGIBLE-fold or more
-    to where the innovations no longer show it; ``value`` is that small value."""
-
-    param: Param
-    value: float | None
-    status: str
-    reason: str = ""
-    se_log: float | None = None
-    information: float | None = None
-
-
-@dataclass
-class TuneResult:
-    """What :func:`tune` found: per parameter a :class:`Tuned`, the pairs the data do not tell
-    apart (labels and the correlation of their estimates), the objective at the start and the
-    end, how many estimator runs it took and how long (s)."""
-
-    estimator: str
-    tuned: list[Tuned]
-    pairs: list[tuple[str, str, float]] = field(default_factory=list)
-    nll_start: float = math.nan
-    nll_end: float = math.nan
-    innovations: int = 0
-    runs: int = 0
-    iterations: int = 0
-    wall_s: float = 0.0
-    message: str = ""
-    # landmark sensor -> the bearing sigma (rad) of its independent model (the first stage of
-    # _staged_search), which the correlation time's rule takes (_correlation)
-    corr_sigma: dict[str, float] = field(default_factory=dict)
-
-    def values(self) -> list[float | None]:
-        return [t.value for t in self.tuned]
-
-
-def jacobian(base: np.ndarray, bumped: list[np.ndarray], step: float) -> np.ndarray | None:
-    """Per innovation, the gradient of its term of L in the log values, J (N x n), from the
-    terms at the values (``base``, (N,)) and with value i's log moved by ``step``
-    (``bumped[i]``, (N,)): J[k, i] = (bumped[i][k] - base[k]) / step. None when a run logged a
-    different number of innovations (e.g. a lock-out that one value set triggered)."""
-    if any(len(b) != len(base) for b in bumped):
-        return None
-    if not bumped:
-        return np.zeros((len(base), 0))
-    return np.stack([(b - base) / step for b in bumped], axis=1)
-
-
-def information(base: np.ndarray, bumped: list[np.ndarray], step: float) -> np.ndarray | None:
-    """The information on the log values, J' J (n x n; :func:`jacobian`'s J), None where
-    :func:`jacobian` is."""
-    J = jacobian(base, bumped, step)
-    return None if J is None else J.T @ J
-
-
 def tune(cfg: Config, stream: Stream, *, holdout: str | None = None,
          estimator: str | None = None, jobs: int | None = None,
          engine: Engine | None = None, start: dict[str, float] | None = None,
@@ -284,7 +221,7 @@ def tune(cfg: Config, stream: Stream, *, holdout: str | None = None,
                                        progress, t_start)
         problem = Problem(cfg, stream, params, name, holdout)
         result = _solve(problem, engine, progress, t_start, mask)
-        held = _held_inputs(params, stream, result) if name == "ekf_landmark" else {}
+        held = held_inputs(params, stream, result) if name == "ekf_landmark" else {}
         if any(sc.sigma is not None for sc in held.values()):
             again = _solve(problem, engine, progress, t_start, mask)
             again.runs += result.runs
@@ -293,45 +230,9 @@ def tune(cfg: Config, stream: Stream, *, holdout: str | None = None,
             result = again
         if first is not None:
             result = _joined(first, result, mask)
-        _correlation(problem, result)
-        _inputs_outcome(result, held)
+        correlation(problem, result)
+        inputs_outcome(result, held)
         return result
-
-
-def _held_inputs(params: list[Param], stream: Stream, result: TuneResult
-                 ) -> dict[int, Scatter]:
-    """For the odometry-driven ``ekf_landmark``: each odometry input (wheel speeds, odometry v
-    and yaw rate) that ``result`` left 'not informed', by parameter index, with what its own
-    samples show (``evaluation.tune_inputs``); where they give its noise, the parameter is
-    held there for the search again. The input's noise and the robot's slip are both process
-    noise there, so where the slip took the input's effect the search left the input as the
-    config had it, beside a slip that already explains the drift: the two counted it twice
-    (simulated seed002, the wheels at 3x their true noise: heading slip 0.010 rad/sqrt(s)
-    tuned beside them). An input the likelihood fixed, in a reported pair or not, keeps
-    that."""
-    out = {}
-    for i, (p, t) in enumerate(zip(params, result.tuned, strict=True)):
-        if p.kind in ("wheels", "odometry") and t.status == "not informed":
-            out[i] = sample_scatter(input_series(stream, p.sensor, p.noise_key))
-            if out[i].sigma is not None:
-                p.start, p.held = out[i].sigma, True
-    return out
-
-
-def _inputs_outcome(result: TuneResult, held: dict[int, Scatter]) -> None:
-    """The outcome of the inputs :func:`_held_inputs` looked at: tuned at what their samples
-    gave, else the reason they did not, added to why the likelihood left them."""
-    for i, sc in held.items():
-        t = result.tuned[i]
-        if sc.sigma is not None:
-            result.tuned[i] = Tuned(t.param, sc.sigma, "tuned", (
-                f"{sc.reason}: an odometry input's noise and the robot's slip are both process "
-                f"noise of {result.estimator}, which the innovations do not tell apart (the "
-                "search left it not informed; evaluation.tune_inputs); held there while the "
-                "search fitted the rest again"),
-                sc.se_log)
-        elif t.status == "not informed":
-            t.reason = f"{t.reason}; nor do its own samples: {sc.reason}"
 
 
 def _rates_stage(cfg: Config, stream: Stream, params: list[Param], rates: list[Param],
@@ -470,7 +371,7 @@ def _search(problem: Problem, ev: Evaluator, progress, t_start: float,
         first = False
         if J is None:  # runs at the start logged different innovations: no J to step with
             break
-        x, f, J, its, message = _scoring(values_at, derivs_at, xa[idx], f, J, F, lo_all[idx],
+        x, f, J, its, message = scoring(values_at, derivs_at, xa[idx], f, J, F, lo_all[idx],
                                          hi_all[idx], say)
         xa[idx] = x
         iterations += its
@@ -490,7 +391,7 @@ def _search(problem: Problem, ev: Evaluator, progress, t_start: float,
     if J.shape[1] != len(idx):  # a value freed on the last pass: J over every free one
         _, J, _ = run_at(xa, idx)
     tuned: list[Tuned | None] = [None] * n
-    for i in np.flatnonzero(~search):  # set after the search (_correlation)
+    for i in np.flatnonzero(~search):  # set after the search (tune_rules.correlation)
         tuned[i] = Tuned(params[i], params[i].before, "not informed", "")
     for i in np.flatnonzero(~free & search):
         where = "at the start" if info_frozen[i] == info0[i] else "at the start and where " \
@@ -566,7 +467,7 @@ def _staged_search(problem: Problem, ev: Evaluator, progress, t_start: float) ->
     if not common:
         return first
     sensors = {params[i].sensor for i in common}
-    corr_sigma = {s: _bearing_sigma(first, s, "bearing") for s in sensors}
+    corr_sigma = {s: bearing_sigma(first, s, "bearing") for s in sensors}
     for i in common:
         whole = corr_sigma.get(params[i].sensor)
         params[i].start = whole / math.sqrt(2.0) if whole else stated[i]
@@ -652,212 +553,6 @@ def _widen(J: np.ndarray | None, cols: np.ndarray) -> np.ndarray | None:
     out = np.zeros((J.shape[0], len(cols)))
     out[:, cols] = J
     return out
-
-
-def sighting_scatter(problem: Problem, sensor: str, sigma: float) -> float | None:
-    """The correlation time (s) that ``estimation.gps_scatter``'s rule gives for ``sensor``'s
-    landmark bearings of standard deviation ``sigma`` (rad): each sighting against the time
-    interpolation of the previous and next sightings of the same landmark, both within
-    ``CORR_GAP`` s (the robot's motion between them is smooth at that spacing, as a GPS track's
-    is between fixes), the miss's robust RMS (1.4826 MAD: a bearing jump where the robot turns
-    fast is not scatter); None without 10 such sightings or when the miss is not under
-    ``gps_scatter.CORRELATED_SCATTER`` of what white errors of ``sigma`` give."""
-    from ddfuse.estimation.gps_scatter import CORRELATED_SCATTER, scatter_correlation_time
-    from ddfuse.estimation.measurements import LandmarkObservation
-
-    by: dict[str, list] = {}
-    for m in problem.stream.measurements:
-        if type(m) is LandmarkObservation and m.sensor == sensor and m.has_bearing:
-            by.setdefault(m.landmark_id, []).append(m)
-    miss, gaps = [], []
-    for ms in by.values():
-        t = np.array([m.t for m in ms])
-        z = np.unwrap(np.array([m.bearing for m in ms]))
-        a, b = t[1:-1] - t[:-2], t[2:] - t[1:-1]
-        ok = (a > 0.0) & (b > 0.0) & (a <= CORR_GAP) & (b <= CORR_GAP)
-        w = np.where(ok, a / np.where(ok, a + b, 1.0), 0.0)
-        miss.append((z[1:-1] - (z[:-2] + w * (z[2:] - z[:-2])))[ok])
-        gaps.append(0.5 * (a + b)[ok])
-    e = np.concatenate(miss) if miss else np.zeros(0)
-    if len(e) < 10:
-        return None
-    rms = 1.4826 * float(np.median(np.abs(e - np.median(e))))
-    if rms >= CORRELATED_SCATTER * math.sqrt(1.5) * sigma:  # gps_scatter's threshold
-        return None
-    return scatter_correlation_time(rms, sigma, float(np.median(np.concatenate(gaps))))
-
-
-def _correlation(problem: Problem, result: TuneResult) -> None:
-    """Each landmark sensor's correlation time in ``result``: :func:`sighting_scatter` at the
-    bearing sigma the search found, rounded to 0.1 s (0 where the sightings scatter as white
-    ones). Set after the search, not in it: the search run again with the new time drives the
-    bearing sigma down (the likelihood keeps R in S while the fusion inflates it, so a small R
-    fits the bursts' small innovations without the filter following them): measured on
-    mrclam1_robot1.bag, 0.0268 -> 0.0022 rad with the time back at 0 after two rounds."""
-    for k, t in enumerate(result.tuned):
-        p = t.param
-        if p.kind != "corr":
-            continue
-        if p.key.startswith("sensors.imu"):  # measured before the search (tune_params)
-            result.tuned[k] = _heading_tau(problem, p)
-            continue
-        if p.noise_key == "burst_share":
-            _burst_share(result, k)
-            continue
-        # with a common part: the independent model's sigma (the first stage's): the rule
-        # compares a landmark's own track's scatter with white errors of the sightings' whole
-        # sigma; the second stage's own sigma leaves the frame's part out, and at it the rule
-        # read the bearings as white on mrclam1_robot1.bag (docs/design/tuning.md, session 22)
-        sigma = result.corr_sigma.get(p.sensor) or _bearing_sigma(result, p.sensor, "bearing")
-        tau = round(sighting_scatter(problem, p.sensor, sigma) or 0.0, 1) if sigma else 0.0
-        if tau == p.before:
-            result.tuned[k] = Tuned(p, None, "not informed", (
-                "the sightings' neighbour scatter at the tuned bearing sigma gives the same "
-                "(evaluation.tune.sighting_scatter); left as the config has it"))
-            continue
-        result.tuned[k] = Tuned(p, tau, "tuned", (
-            f"from each landmark's own sightings' neighbour scatter at the tuned bearing sigma "
-            f"{sigma:.3g} rad (evaluation.tune.sighting_scatter, gps_scatter's rule); set after "
-            "the search, which ran with the config's"))
-
-
-def _burst_share(result: TuneResult, k: int) -> None:
-    """The outcome of the heavy-tailed speed walk's burst share, ``result.tuned[k]``: the
-    share measured before the search (``tune_params``), kept where the search tuned both of
-    the walk's densities; else the walk stays Gaussian, the burst density put back too (a
-    burst without its steady walk, or a share without its burst, is no config)."""
-    p = result.tuned[k].param
-    tw = {u.param.noise_key: i for i, u in enumerate(result.tuned)
-          if u.param.kind == "twist" and u.param.key.startswith("robot.")}
-    if all(key in tw and result.tuned[tw[key]].value is not None
-           for key in ("speed", "speed_burst")):
-        result.tuned[k] = Tuned(p, p.start, "tuned", (
-            "the share of the speed's sample-to-sample changes beyond 4 robust sigmas "
-            "(evaluation.tune_params.speed_tails); measured before the search, which ran with "
-            "it"))
-        return
-    why = "the speed walk's densities were not both tuned: the walk stays Gaussian"
-    result.tuned[k] = Tuned(p, None, "not informed", why)
-    if "speed_burst" in tw:
-        b = result.tuned[tw["speed_burst"]]
-        result.tuned[tw["speed_burst"]] = Tuned(b.param, None, "not informed", why)
-
-
-def _bearing_sigma(result: TuneResult, sensor: str, key: str) -> float | None:
-    """The tuned (else the starting) value of ``sensor``'s noise ``key``; None without one."""
-    t = next((u for u in result.tuned if u.param.sensor == sensor and
-              u.param.noise_key == key), None)
-    if t is None:
-        return None
-    return t.value if t.value is not None else t.param.start
-
-
-def _heading_tau(problem: Problem, p) -> Tuned:
-    """The outcome of IMU yaw correlation time ``p``: what ``evaluation.compass_correlation``
-    measured (the search ran with it), or the config's with the reason it was not."""
-    from ddfuse.evaluation.compass_correlation import measure
-
-    if p.source == "measured":
-        return Tuned(p, p.start, "tuned", (
-            "the yaw's error against the gyro's integral, a Gauss-Markov fit "
-            "(evaluation.compass_correlation); measured before the search, which ran with it"))
-    fit = measure(problem.cfg, problem.stream, p.sensor)
-    why = fit.reason if fit is not None else "no gyro to measure it against"
-    return Tuned(p, None, "not informed", f"{why}; left as the config has it")
-
-
-def _scoring(values_at, derivs_at, x: np.ndarray, f: float, J: np.ndarray,
-             F: np.ndarray | None, lo: np.ndarray, hi: np.ndarray, say
-             ) -> tuple[np.ndarray, float, np.ndarray, int, str]:
-    """Minimise L from log values ``x`` with L = ``f``, the per-innovation gradient ``J``
-    (N x n) and the Fisher information's factor ``F`` (N x n, or None) there, within [``lo``,
-    ``hi``]. ``values_at(xs)``: L at each of the points xs (run in parallel);
-    ``derivs_at(x)``: (J, F) at x (None, None where a run logged other innovations).
-
-    Each iteration takes Levenberg-Marquardt damped steps, (H + mu diag(H)) d = -J' 1:
-    scoring (H = F'F, the expected information through the innovations' covariances), a
-    third of it, and BHHH (H = J'J, the outer product of the scores); each capped at the
-    trust radius and projected onto the bounds. They are run (in parallel) and the lowest L
-    taken when it is
-    lower than here, then its p derivative runs; else the radius shrinks and mu grows. Scoring
-    is the better step where the covariances carry the information (noise values far off: the
-    scores' outer product is then inflated by the misfit and BHHH creeps), BHHH where the
-    innovations' means do (process noise that moves the estimate). Stops when no step changes
-    a value by STOP_STEP (relative), no step predicts a decrease of L of STOP_NLL
-    (not on a small accepted decrease: a short BHHH step lowers L a little far from the
-    optimum too), or after MAX_ITER iterations. Returns the best point, its L and J, the
-    accepted iterations and why it stopped."""
-    radius, mu, iterations = TRUST_START, 0.0, 0
-    for tried in range(MAX_ITER):
-        g = J.sum(axis=0)
-        # scoring's step, a third of it (values that share innovations make F'F nearly
-        # singular and the full step overshoots along that direction), and BHHH's
-        steps = [_step(F.T @ F, g, mu, x, lo, hi, radius)] if F is not None else []
-        steps += [x + SHORT * (steps[0] - x)] if steps else []
-        steps += [_step(J.T @ J, g, mu, x, lo, hi, radius)]
-        # the largest decrease of L a quadratic model predicts at its optimum, 0.5 g' H^-1 g,
-        # undamped and uncapped (a radius shrunk by rough L must not read as convergence);
-        # the largest of the two models' (pinv of a nearly singular F'F can point across g)
-        predicted = max(0.5 * float(g @ np.linalg.pinv(H) @ g) for H in
-                        ([F.T @ F] if F is not None else []) + [J.T @ J])
-        cands = []
-        for xn in steps:
-            moved = float(np.max(np.abs(xn - x))) if len(x) else 0.0
-            if moved >= STOP_STEP and not any(np.allclose(xn, c) for c, _ in cands):
-                cands.append((xn, moved))
-        if not cands:
-            return x, f, J, iterations, (f"converged: the step changes no value by more than "
-                                         f"{100 * STOP_STEP:g} %")
-        if predicted < STOP_NLL:
-            return x, f, J, iterations, (f"converged: no step would lower L by more than "
-                                         f"{predicted:.3g} (under {STOP_NLL:g})")
-        fs = values_at([c for c, _ in cands])
-        say("maximum likelihood", min((tried + 1) / MAX_ITER, 0.99))
-        best = int(np.argmin(fs))
-        xn, moved = cands[best]
-        Jn, Fn = derivs_at(xn) if fs[best] < f else (None, None)
-        if Jn is not None:
-            iterations += 1
-            x, J, F, f = xn, Jn, Fn, fs[best]
-            radius, mu = min(2.0 * max(radius, moved), TRUST_MAX), mu / 4.0
-        else:
-            radius, mu = 0.25 * max(m for _, m in cands), max(4.0 * mu, 1e-3)
-    return x, f, J, iterations, f"stopped after {MAX_ITER} iterations"
-
-
-def _step(H: np.ndarray, g: np.ndarray, mu: float, x: np.ndarray, lo: np.ndarray,
-          hi: np.ndarray, radius: float) -> np.ndarray:
-    """The damped step from ``x`` for curvature ``H`` and gradient ``g``: a value at a bound
-    that the step pushes further out stays there; the largest change capped at ``radius``;
-    the result projected onto [``lo``, ``hi``]."""
-    d = _damped_step(H, g, mu)
-    out = ((x - lo < AT_BOUND) & (d < 0)) | ((hi - x < AT_BOUND) & (d > 0))
-    if out.any():
-        keep = ~out
-        d = np.zeros_like(d)
-        if keep.any():
-            d[keep] = _damped_step(H[np.ix_(keep, keep)], g[keep], mu)
-    big = float(np.max(np.abs(d))) if len(d) else 0.0
-    if big > radius:
-        d *= radius / big
-    return np.clip(x + d, lo, hi)
-
-
-def _damped_step(H: np.ndarray, g: np.ndarray, mu: float) -> np.ndarray:
-    """The Levenberg-Marquardt step -(H + mu diag(H))^-1 g (pseudo-inverse: a singular H)."""
-    A = H + mu * np.diag(np.diag(H))
-    return -np.linalg.pinv(A) @ g
-
-
-def correlated_pairs(cov: np.ndarray, labels: list[str],
-                     threshold: float = PAIR_CORRELATION) -> list[tuple[str, str, float]]:
-    """The pairs of estimates whose correlation in ``cov`` (the inverse of the information,
-    n x n, in ``labels``' order) is beyond ``threshold`` in magnitude: (label a, label b,
-    correlation), the values the data do not tell apart."""
-    d = np.sqrt(np.maximum(np.diag(cov), 1e-300))
-    corr = cov / np.outer(d, d)
-    return [(labels[a], labels[b], float(corr[a, b])) for a in range(len(labels))
-            for b in range(a + 1, len(labels)) if abs(corr[a, b]) > threshold]
 
 
 def _uninformed_reason(p: Param, info: float, where: str) -> str:

@@ -21,7 +21,8 @@ noise density:
   independent model are correlated (``evaluation.tune_frames``); otherwise it stays as the
   config has it;
 * a landmark sensor's ``correlation_time`` (s, kind 'corr'): not searched by the likelihood
-  but set by the sightings' neighbour scatter at the tuned bearing sigma (``evaluation.tune``);
+  but set by the sightings' neighbour scatter at the tuned bearing sigma
+  (``evaluation.tune_rules``);
   an IMU's yaw ``correlation_time`` (kind 'corr'): measured against the gyro's integral
   (``evaluation.compass_correlation``) before the search, which runs with it;
 * ``robot.twist_walk.speed`` (m/s/sqrt(s)) and ``yaw_rate`` (rad/s/sqrt(s)), the twist's own

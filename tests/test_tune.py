@@ -10,17 +10,16 @@ import pytest
 from ddfuse.estimation.bags import read_stream
 from ddfuse.estimation.config import load_config
 from ddfuse.evaluation.cli import main
-from ddfuse.evaluation.tune import (
+from ddfuse.evaluation.tune import tune
+from ddfuse.evaluation.tune_params import Applier, parameters
+from ddfuse.evaluation.tune_result import Tuned, TuneResult
+from ddfuse.evaluation.tune_scoring import (
     STOP_NLL,
     STOP_STEP,
-    Tuned,
-    TuneResult,
-    _scoring,
     correlated_pairs,
     information,
-    tune,
+    scoring,
 )
-from ddfuse.evaluation.tune_params import Applier, parameters
 from ddfuse.evaluation.tune_yaml import tuned_text
 
 # The values the unicycle EKF's innovations inform on a simulated Husky drive (GPS 2.5 Hz,
@@ -259,7 +258,7 @@ def test_scoring_finds_the_maximum_likelihood_of_a_variance_from_far_off():
     for start, fisher in ((30.0 * rms, True), (rms / 30.0, True), (1.5 * rms, False)):
         x0 = np.array([math.log(start)])
         J, F = derivs_at(x0, fisher)
-        x, f, _, its, why = _scoring(values_at, lambda x, k=fisher: derivs_at(x, k), x0,
+        x, f, _, its, why = scoring(values_at, lambda x, k=fisher: derivs_at(x, k), x0,
                                      values_at([x0])[0], J, F, x0 - math.log(100.0),
                                      x0 + math.log(100.0), lambda *a: None)
         # the search stops when a step would gain under STOP_NLL: L's curvature in log s is

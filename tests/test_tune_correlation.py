@@ -1,4 +1,4 @@
-"""evaluation.tune.sighting_scatter: a landmark sensor's correlation time from each landmark's
+"""evaluation.tune_rules.sighting_scatter: a landmark sensor's correlation time from each landmark's
 own sightings, gps_scatter's neighbour rule at the tuned bearing sigma."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 from ddfuse.estimation.measurements import LandmarkObservation
-from ddfuse.evaluation.tune import sighting_scatter
+from ddfuse.evaluation.tune_rules import sighting_scatter
 
 SIGMA = 0.02  # rad
 
