@@ -46,16 +46,20 @@ aligned onto the GPS track once the fixes spread over ``init_distance`` m.
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 
 import numpy as np
 from ddfuse.ekf_baseline import GIVEN_POSE_STD
 from ddfuse.ekf_baseline import compiled as jit
 from ddfuse.ekf_baseline import unicycle_measurements as um
-from ddfuse.ekf_baseline.calibration import ScaleStates
 from ddfuse.ekf_baseline.gps_robust import robust_spec
 from ddfuse.ekf_baseline.kalman import DEFAULT_LOCKOUT_COUNT, DEFAULT_LOCKOUT_TIME, KalmanCore
 from ddfuse.ekf_baseline.unicycle_compiled import UnicycleKernels
+from ddfuse.ekf_baseline.unicycle_layout import (
+    SensorSlot,
+    StateLayout,
+    process_noise,
+    start_mode,
+)
 from ddfuse.ekf_baseline.unicycle_measurements import delayed_gps_terms
 from ddfuse.ekf_baseline.unicycle_motion import (
     ProcessNoise,
@@ -69,7 +73,7 @@ from ddfuse.ekf_baseline.unicycle_motion import (
     unicycle_process_noise,
 )
 from ddfuse.ekf_baseline.unicycle_start import UnicycleStart
-from ddfuse.estimation.config import DEFAULT_GATE, HEADING_KINDS, Config
+from ddfuse.estimation.config import Config
 from ddfuse.estimation.estimator import Estimate, Estimator
 from ddfuse.estimation.gaps import gap_note, grown_pose_cov, is_gap
 from ddfuse.estimation.heading_correlation import HeadingClock
@@ -98,31 +102,6 @@ POSE_ERRORS = ("se2", "world")  # UnicycleEkf(pose_error=...): module docstring,
 # off by 0.3-2.7x in some direction, after 10 s by 0.035-80x (overconfident across the turn);
 # 0.1 s steps are within 0.25 % of 1 ms ones. The messages' own 10-50 Hz steps are never split.
 MAX_PREDICT_DT = 0.1
-
-# robot.twist_walk's keys of the twist's rates (module docstring), per twist component
-TWIST_RATE_KEYS = {"speed": "speed_rate", "yaw_rate": "yaw_rate_rate"}
-
-
-class _Sensor:
-    """Per-sensor settings looked up once: gate, GPS lever arm, bias/offset handling."""
-
-    __slots__ = ("gate", "lever", "bias_idx", "bias", "hoff_idx", "hoff", "uses", "delay",
-                 "row", "use_w", "use_yaw", "tau")
-
-    def __init__(self, gate=DEFAULT_GATE, lever=(0.0, 0.0), uses=None, delay=0.0, tau=0.0):
-        self.gate = gate
-        self.lever = lever
-        self.delay = delay  # s, GPS: the fix is the position this long before its stamp
-        self.tau = tau  # s, GPS: correlation time of its errors (0: white)
-        self.bias_idx: int | None = None
-        self.bias = 0.0  # rad/s, configured gyro bias when not estimated
-        self.hoff_idx: int | None = None
-        self.hoff = 0.0  # rad, configured heading offset when not estimated
-        self.uses = uses  # None: everything the message carries
-        self.row: int | None = None  # its row in the compiled core's sensor table
-        self.use_w = uses is None or "yaw_rate" in uses  # gyro and heading used
-        self.use_yaw = uses is None or "yaw" in uses
-
 
 class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
     """Unicycle EKF (module docstring). Convention for every filter in this package:
@@ -178,26 +157,12 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
         if motion not in ("exact", "euler"):
             raise ValueError(f"motion must be 'exact' or 'euler', got {motion!r}")
         self.cfg = cfg
-        self.noise = noise or ProcessNoise()
-        slip = cfg.robot.slip
-        if slip and noise is None:  # the robot's stated slip replaces the default densities
-            self.noise = replace(self.noise, pos_long=slip.get("longitudinal", self.noise.pos_long),
-                                 pos_lat=slip.get("lateral", self.noise.pos_lat),
-                                 heading=slip.get("heading", self.noise.heading))
-        # the robot's stated twist walk sets the twist's random walks; else its stated
-        # acceleration limits do (twist_densities), per component
-        r = cfg.robot
-        tw = r.twist_walk if noise is None else {}
-        if tw:
-            self.noise = replace(self.noise, acc=tw.get("speed", self.noise.acc),
-                                 yaw_acc=tw.get("yaw_rate", self.noise.yaw_acc))
-        self._amax = (None, None) if noise is not None else (
-            None if "speed" in tw else r.max_accel, None if "yaw_rate" in tw else r.max_yaw_accel)
+        self.noise, self._amax = process_noise(cfg, noise)
         self._tw_last: dict[tuple[str, int], float] = {}  # (sensor, 3 v / 4 w): last stamp
         self._tw_period: dict[int, dict[str, float]] = {3: {}, 4: {}}  # per sensor, s
         self._tw_on = self._amax != (None, None)
         # the heavy-tailed speed walk (estimation.twist_tails; module docstring)
-        tails = SpeedTails.from_robot(r) if noise is None else None
+        tails = SpeedTails.from_robot(cfg.robot) if noise is None else None
         self.bursts = SpeedBursts(tails) if tails is not None else None
         self._step_jac = se2_step_jac if motion == "exact" else euler_step_jac
         self.motion = motion
@@ -207,81 +172,28 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
         self.v_std0, self.w_std0, self.bias_std0 = v_std0, w_std0, bias_std0
         self._lockout = (lockout_count, lockout_time)
 
-        names = ["x", "y", "psi", "v", "w"]
-        self._sensors: dict[str, _Sensor] = {}
-        imus_b = [s for s in cfg.of_kind("imu")
-                  if s.gyro_bias == "estimate" and "yaw_rate" in s.use]
-        imus_h = [s for s in cfg.heading_sensors() if s.heading_offset == "estimate"]
-        for s in cfg.sensors:
-            info = _Sensor(gate=s.gate, lever=tuple(s.lever_arm), uses=set(s.use),
-                           delay=s.delay,
-                           tau=float(s.correlation_time) if s.kind == "gps" else 0.0)
-            if s.kind in HEADING_KINDS:
-                if isinstance(s.gyro_bias, float):
-                    info.bias = s.gyro_bias
-                if isinstance(s.heading_offset, float):
-                    info.hoff = s.heading_offset
-            self._sensors[s.name] = info
-        # random-walk densities (variance per second) of the calibration states, in state order:
-        # the IMU's stated ones (noise.gyro_bias_walk, heading_offset_walk), else the defaults
-        walks: list[float] = []
-        for s in imus_b:
-            info = self._sensors[s.name]
-            info.bias_idx = len(names)
-            names.append("bg" if len(imus_b) == 1 else f"bg:{s.name}")
-            walks.append(s.noise.get("gyro_bias_walk", self.noise.gyro_bias) ** 2)
-        for s in imus_h:
-            info = self._sensors[s.name]
-            info.hoff_idx = len(names)
-            names.append("hoff" if len(imus_h) == 1 else f"hoff:{s.name}")
-            walks.append(s.noise.get("heading_offset_walk", self.noise.heading_offset) ** 2)
-        self._walks = tuple(walks)
+        lay = StateLayout.of(cfg, self.noise, self._lie)
+        self._sensors = lay.sensors
+        self._walks = lay.walks
+        self._scale = lay.scale
+        self._ks = lay.scale.index if lay.scale else None
+        self._w_true = lay.w_true
+        self._rates = lay.rates
+        self.state_names = lay.names
+        self.n = len(lay.names)
+        self._hoff_states = lay.hoff_states
+        self._bias_states = lay.bias_states
+        self._hoff_ready: set[int] = set()
+        self._if, self._iq = lay.f_index, lay.q_index
         # a GPS sensor with time-correlated errors (module docstring)
         self._gps_corr = any(s.correlation_time > 0.0 for s in cfg.of_kind("gps"))
         # heading sensors with time-correlated samples (estimation.heading_correlation)
         self._heading_clock = HeadingClock(cfg)
         # a robust GPS model (gps.model; ekf_baseline.gps_robust): its fixes take the Python path
         self._robust = robust_spec(cfg)
-        # odometry scale states (ddfuse.ekf_baseline.calibration) when the config states the
-        # geometry's uncertainty and a sensor gives odometry
-        self._scale = ScaleStates.append_to(cfg, names)
-        self._ks = self._scale.index if self._scale else None
-        # with a gyro, state 4 is the true yaw rate, else the odometry's (module docstring)
-        self._w_true = bool(self._scale) and any(
-            "yaw_rate" in s.use for s in cfg.of_kind("imu"))
-        if self._scale:  # states 3, 4 are then the odometry-frame twist (module docstring)
-            names[3:5] = ["v_odo", "w" if self._w_true else "w_odo"]
-        # the twist's rates (module docstring): (twist index, rate index, variance per s)
-        self._rates: list[tuple[int, int, float]] = []
-        for ti, nm, comp in ((3, "acc", "speed"), (4, "yacc", "yaw_rate")):
-            q = r.twist_walk.get(TWIST_RATE_KEYS[comp])
-            if q:
-                self._rates.append((ti, len(names), q * q))
-                names.append(nm)
-        self.state_names = tuple(names)
-        self.n = len(names)
-        self._hoff_states = tuple(i for i, nm in enumerate(names) if nm.startswith("hoff"))
-        self._bias_states = tuple(i for i, nm in enumerate(names) if nm.startswith("bg"))
-        self._hoff_ready: set[int] = set()
 
-        # initialisation mode
-        if initial_pose is None and isinstance(cfg.initial_pose, tuple):
-            initial_pose = cfg.initial_pose
-        self._initial_pose = initial_pose
+        self._mode, self._initial_pose = start_mode(cfg, initial_pose)
         has_gps = bool(cfg.of_kind("gps"))
-        known_heading = any(
-            isinstance(s.heading_offset, float) for s in cfg.heading_sensors()
-        )
-        if initial_pose is not None:
-            self._mode = "pose"
-        elif cfg.initial_pose == "ground_truth":
-            self._mode = "ground_truth"
-        elif known_heading:
-            self._mode = "heading"  # position from the first fix (or origin), heading measured
-        elif has_gps:
-            self._mode = "align"  # dead-reckon, then align onto the GPS track
-        else:
-            self._mode = "origin"
         self._has_gps = has_gps
         self._pending_pos: tuple[float, float, np.ndarray] | None = None
         self._pending_fix: tuple[str, float] | None = None  # (sensor, stamp) of _pending_pos
@@ -303,22 +215,7 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
         self._Q = np.zeros((self.n, self.n))
         self._F_flat = self._F.reshape(-1)  # views: assigning into them fills F and Q
         self._Q_flat = self._Q.reshape(-1)
-        fr, fc = [0, 0, 0, 1, 1, 1, 2], [2, 3, 4, 2, 3, 4, 4]
-        if self._ks is not None:  # scaled_step_terms' order: the scale columns of x, y, psi
-            kv, kw = self._ks, self._ks + 1
-            fr, fc = fr + [0, 0, 1, 1, 2], fc + [kv, kw, kv, kw, kw]
-        if self._lie:  # se2_error_terms: then the pose block's rotation
-            fr, fc = fr + [0, 0, 1, 1], fc + [0, 1, 0, 1]
-        self._if = np.ravel_multi_index((fr, fc), (self.n, self.n))
-        # the upper and lower triangle of the 5x5 block (unicycle_process_noise's order), then
-        # the diagonal of the bias and the offset states
-        iu = np.triu_indices(5)
-        diag = np.array(self._bias_states + self._hoff_states, dtype=int)
-        self._iq = np.ravel_multi_index(
-            (np.concatenate([iu[0], iu[1], diag]), np.concatenate([iu[1], iu[0], diag])),
-            (self.n, self.n))
-        r = cfg.robot
-        self._wheel = (r.wheel_radius, r.track_width)
+        self._wheel = (cfg.robot.wheel_radius, cfg.robot.track_width)
 
     # ------------------------------------------------------------------ public
     def process(self, m) -> None:
@@ -414,10 +311,10 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
         self.t = t
         self.log.note(t, gap_note(self.name, gap, pose))
 
-    def _sensor(self, name: str) -> _Sensor:
+    def _sensor(self, name: str) -> SensorSlot:
         info = self._sensors.get(name)
         if info is None:  # a sensor not in the config (synthetic streams): defaults
-            info = self._sensors[name] = _Sensor()
+            info = self._sensors[name] = SensorSlot()
         return info
 
     # ------------------------------------------------------------------ filter steps
@@ -490,7 +387,7 @@ class UnicycleEkf(UnicycleStart, UnicycleKernels, Estimator):
         kf.predict(self._F, self._Q, xs)
         self.t = t
 
-    def _twist_msg(self, m, info: _Sensor) -> None:
+    def _twist_msg(self, m, info: SensorSlot) -> None:
         """With stated acceleration limits: record the twist components message ``m`` measures
         (odometry and wheel speeds: v, w; a used gyro: w) for :meth:`_twist_seen`. Both paths
         call it once per message they apply, before the next prediction."""

@@ -47,7 +47,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from ddfuse.ekf_baseline.unicycle import TWIST_RATE_KEYS
+from ddfuse.ekf_baseline.unicycle_layout import TWIST_RATE_KEYS
 from ddfuse.ekf_baseline.unicycle_motion import ProcessNoise
 from ddfuse.estimation.config import Config
 from ddfuse.estimation.measurements import (
