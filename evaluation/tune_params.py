@@ -6,10 +6,13 @@ noise density:
 
 * per sensor and measured quantity, the config's ``sensors.<kind>[i].noise.<key>``: odometry
   ``v`` and ``yaw_rate`` (m/s, rad/s), wheels ``speed`` (rad/s), IMU ``yaw`` (rad),
-  ``yaw_rate`` (rad/s) and ``accel`` (m/s^2), GPS ``horizontal`` (m), landmarks ``range`` (m)
-  and ``bearing`` (rad), for the quantities the sensor's ``use`` fuses;
-* the IMU's ``gyro_bias_walk`` (rad/s/sqrt(s)) and ``heading_offset_walk`` (rad/sqrt(s)) where
-  the config estimates the bias / offset;
+  ``yaw_rate`` (rad/s) and ``accel`` (m/s^2), a magnetometer's or local heading's ``yaw``
+  (rad; a magnetometer's config may state ``field`` (T) instead, which the reader turns into
+  each sample's heading variance: tuned, its ``yaw`` is written, which the reader takes
+  first), GPS ``horizontal`` (m), landmarks ``range`` (m) and ``bearing`` (rad), for the
+  quantities the sensor's ``use`` fuses;
+* the IMU's ``gyro_bias_walk`` (rad/s/sqrt(s)) and any heading sensor's
+  ``heading_offset_walk`` (rad/sqrt(s)) where the config estimates the bias / offset;
 * ``robot.slip.longitudinal``, ``lateral`` (m/sqrt(s)) and ``heading`` (rad/sqrt(s));
 * a landmark sensor's ``noise.bearing_common`` (rad, kind 'common'): the part of the bearing
   error common to a frame's sightings (``estimation.landmark_frames``), searched with the
@@ -23,7 +26,7 @@ noise density:
 * a landmark sensor's ``correlation_time`` (s, kind 'corr'): not searched by the likelihood
   but set by the sightings' neighbour scatter at the tuned bearing sigma
   (``evaluation.tune_rules``);
-  an IMU's yaw ``correlation_time`` (kind 'corr'): measured against the gyro's integral
+  a heading sensor's yaw ``correlation_time`` (kind 'corr'): measured against the gyro's integral
   (``evaluation.compass_correlation``) before the search, which runs with it;
 * ``robot.twist_walk.speed`` (m/s/sqrt(s)) and ``yaw_rate`` (rad/s/sqrt(s)), the twist's own
   random walk, where a sensor measures that component of the twist. Where the config states
@@ -49,7 +52,7 @@ from dataclasses import dataclass
 import numpy as np
 from ddfuse.ekf_baseline.unicycle_layout import TWIST_RATE_KEYS
 from ddfuse.ekf_baseline.unicycle_motion import ProcessNoise
-from ddfuse.estimation.config import Config
+from ddfuse.estimation.config import HEADING_KINDS, NOISE_KEYS, Config
 from ddfuse.estimation.measurements import (
     ForwardAccel,
     GpsFix,
@@ -67,6 +70,9 @@ _MEASURED = {
     ("odometry", "yaw_rate"): (WheelOdometry, ("yaw_rate_var",), "yaw_rate"),
     ("wheels", "speed"): (WheelSpeeds, ("left_var", "right_var"), "speeds"),
     ("imu", "yaw"): (Heading, ("var",), "yaw"),
+    # a magnetometer's heading noise as ``yaw`` (rad), which the reader takes before ``field``
+    ("magnetometer", "yaw"): (Heading, ("var",), "yaw"),
+    ("local_heading", "yaw"): (Heading, ("var",), "yaw"),
     ("imu", "yaw_rate"): (GyroYawRate, ("var",), "yaw_rate"),
     ("imu", "accel"): (ForwardAccel, ("var",), "accel"),
     ("gps", "horizontal"): (GpsFix, ("cov",), "position"),
@@ -158,7 +164,7 @@ def parameters(cfg: Config, stream: Stream) -> list[Param]:
                     continue  # no message of this sensor: nothing to tune it on
             out.append(Param(f"{base}.{key}", f"{s.name} {key}", start, before, source,
                              _UNITS[key], s.name, s.kind, key))
-            if (kind, key) == ("imu", "yaw"):
+            if key == "yaw" and kind in HEADING_KINDS:
                 out.append(_heading_correlation(cfg, stream, s, i))
             if (kind, key) == ("landmarks", "bearing"):
                 common = s.noise.get("bearing_common")  # stated 0: the user says none
@@ -169,10 +175,10 @@ def parameters(cfg: Config, stream: Stream) -> list[Param]:
                 out.append(Param(f"sensors.landmarks[{i}].correlation_time",
                                  f"{s.name} correlation_time", tau, tau, "config", "s",
                                  s.name, "corr", "correlation_time"))
-        if s.kind == "imu":
+        if s.kind in HEADING_KINDS:
             for key, wanted, use in (("gyro_bias_walk", s.gyro_bias, "yaw_rate"),
                                      ("heading_offset_walk", s.heading_offset, "yaw")):
-                if wanted != "estimate" or use not in s.use:
+                if wanted != "estimate" or use not in s.use or key not in NOISE_KEYS[s.kind]:
                     continue
                 before = s.noise.get(key)
                 start, source = (before, "config") if before is not None else (
@@ -262,7 +268,7 @@ def _speed_tails(cfg: Config, stream: Stream, params: list[Param]) -> list[Param
 
 
 def _heading_correlation(cfg: Config, stream: Stream, s, i: int) -> Param:
-    """IMU ``s``'s yaw ``correlation_time`` (kind 'corr'): measured against the gyro's
+    """Heading sensor ``s``'s yaw ``correlation_time`` (kind 'corr'): measured against the gyro's
     integral (``evaluation.compass_correlation``) where the data identify it (source
     'measured'), else the config's."""
     from ddfuse.evaluation.compass_correlation import measure
@@ -270,8 +276,8 @@ def _heading_correlation(cfg: Config, stream: Stream, s, i: int) -> Param:
     tau = float(s.correlation_time)
     fit = measure(cfg, stream, s.name)
     start, source = (round(fit.tau, 1), "measured") if fit and fit.tau else (tau, "config")
-    return Param(f"sensors.imu[{i}].correlation_time", f"{s.name} correlation_time", start, tau,
-                 source, "s", s.name, "corr", "correlation_time")
+    return Param(f"sensors.{s.kind}[{i}].correlation_time", f"{s.name} correlation_time", start,
+                 tau, source, "s", s.name, "corr", "correlation_time")
 
 
 def _twist_periods(cfg: Config, stream: Stream) -> dict[str, float | None]:

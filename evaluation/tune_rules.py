@@ -100,7 +100,8 @@ def correlation(problem: Problem, result: TuneResult) -> None:
         p = t.param
         if p.kind != "corr":
             continue
-        if p.key.startswith("sensors.imu"):  # measured before the search (tune_params)
+        if not p.key.startswith("sensors.landmarks") and p.noise_key == "correlation_time":
+            # a heading sensor's: measured before the search (tune_params)
             result.tuned[k] = _heading_tau(problem, p)
             continue
         if p.noise_key == "burst_share":
