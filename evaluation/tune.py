@@ -372,7 +372,7 @@ def _search(problem: Problem, ev: Evaluator, progress, t_start: float,
         if J is None:  # runs at the start logged different innovations: no J to step with
             break
         x, f, J, its, message = scoring(values_at, derivs_at, xa[idx], f, J, F, lo_all[idx],
-                                         hi_all[idx], say)
+                                        hi_all[idx], say)
         xa[idx] = x
         iterations += its
         frozen = np.flatnonzero(~free & search)
