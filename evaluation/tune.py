@@ -70,7 +70,13 @@ from ddfuse.evaluation.tune_params import (
     twist_rate_params,
 )
 from ddfuse.evaluation.tune_result import Tuned, TuneResult
-from ddfuse.evaluation.tune_rules import bearing_sigma, correlation, held_inputs, inputs_outcome
+from ddfuse.evaluation.tune_rules import (
+    bearing_sigma,
+    correlated_gps_caveat,
+    correlation,
+    held_inputs,
+    inputs_outcome,
+)
 from ddfuse.evaluation.tune_scoring import (
     AT_BOUND,
     correlated_pairs,
@@ -232,6 +238,7 @@ def tune(cfg: Config, stream: Stream, *, holdout: str | None = None,
             result = _joined(first, result, mask)
         correlation(problem, result)
         inputs_outcome(result, held)
+        correlated_gps_caveat(cfg, result)
         return result
 
 

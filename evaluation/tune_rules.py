@@ -9,6 +9,7 @@ import math
 from typing import TYPE_CHECKING
 
 import numpy as np
+from ddfuse.estimation.config import Config
 from ddfuse.estimation.measurements import Stream
 from ddfuse.evaluation.tune_inputs import Scatter, input_series, sample_scatter
 from ddfuse.evaluation.tune_params import Param
@@ -167,3 +168,23 @@ def _heading_tau(problem: Problem, p) -> Tuned:
     fit = measure(problem.cfg, problem.stream, p.sensor)
     why = fit.reason if fit is not None else "no gyro to measure it against"
     return Tuned(p, None, "not informed", f"{why}; left as the config has it")
+
+
+def correlated_gps_caveat(cfg: Config, result: TuneResult) -> None:
+    """Say, on each GPS sigma ``result`` tuned for a sensor whose config states a correlation
+    time, that it is not the fixes' stationary sigma: the likelihood takes the innovations as
+    white, which the estimators' inflation model does not make them (docs/design/tuning.md,
+    Limits: on a simulated bag with a 1.0 m, 30 s Gauss-Markov error, 0.49 m)."""
+    for t in result.tuned:
+        p = t.param
+        if p.kind != "gps" or p.noise_key != "horizontal" or t.value is None or \
+                t.status == "not informed":
+            continue
+        tau = cfg.sensor(p.sensor).correlation_time
+        if tau > 0.0:
+            note = (f"the config states errors correlated over {tau:g} s, which the likelihood "
+                    "takes as white innovations: the value fits the fixes' short-term scatter, "
+                    "below their stationary sigma (simulated, 30 s: half of it; "
+                    "docs/design/tuning.md, Limits)")
+            t.reason = f"{t.reason}; {note}" if t.reason else note
+

@@ -297,3 +297,21 @@ def test_a_value_the_data_drive_to_nothing_is_kept_small_not_put_back(sim_bag):
     assert got.status == "negligible", (got.status, got.value, got.reason)
     assert got.value < 0.005 and "no longer affects" in got.reason
 
+
+
+@pytest.mark.parametrize("tau", [0.0, 30.0])
+def test_a_gps_sigma_tuned_under_a_stated_correlation_time_says_what_it_is(tmp_path, tau):
+    from ddfuse.evaluation.tune_params import Param
+    from ddfuse.evaluation.tune_rules import correlated_gps_caveat
+
+    cfg_file = tmp_path / "c.yaml"
+    cfg_file.write_text("sensors:\n  gps:\n    - topic: /fix\n"
+                        f"      correlation_time: {tau}\n      noise: {{horizontal: 1.0}}\n")
+    cfg = load_config(cfg_file)
+    p = Param("sensors.gps[0].noise.horizontal", "/fix horizontal", 1.0, 1.0, "config", "m",
+              "/fix", "gps", "horizontal")
+    result = TuneResult("ekf", [Tuned(p, 0.49, "tuned")])
+    correlated_gps_caveat(cfg, result)
+    said = result.tuned[0].reason
+    assert ("correlated over 30 s" in said) == (tau > 0.0)
+    assert result.tuned[0].value == 0.49  # said, not changed
