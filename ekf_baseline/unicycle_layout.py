@@ -143,15 +143,15 @@ class StateLayout:
             fr, fc = fr + [0, 0, 1, 1, 2], fc + [kv, kw, kv, kw, kw]
         if lie:  # se2_error_terms: then the pose block's rotation
             fr, fc = fr + [0, 0, 1, 1], fc + [0, 1, 0, 1]
-        lay = cls(tuple(names), sensors, tuple(walks), scale, w_true, rates,
-                  np.ravel_multi_index((fr, fc), (n, n)), np.zeros(0, dtype=np.intp))
         # the upper and lower triangle of the 5x5 block (unicycle_process_noise's order), then
         # the diagonal of the bias and the offset states
         iu = np.triu_indices(5)
-        diag = np.array(lay.bias_states + lay.hoff_states, dtype=int)
+        diag = np.array([i for i, nm in enumerate(names) if nm.startswith("bg")]
+                        + [i for i, nm in enumerate(names) if nm.startswith("hoff")], dtype=int)
         q_index = np.ravel_multi_index(
             (np.concatenate([iu[0], iu[1], diag]), np.concatenate([iu[1], iu[0], diag])), (n, n))
-        return replace(lay, q_index=q_index)
+        return cls(tuple(names), sensors, tuple(walks), scale, w_true, rates,
+                   np.ravel_multi_index((fr, fc), (n, n)), q_index)
 
 
 def start_mode(cfg: Config, initial_pose: tuple[float, float, float] | None

@@ -3,8 +3,8 @@
 In ``ekf_landmark`` the odometry (wheel speeds, or odometry v and yaw rate) is the control input,
 so its per-sample noise and the robot's slip both enter as process noise, over the same steps,
 in the same body-frame directions: the innovations' likelihood cannot tell them apart (the
-estimates' correlation -0.96 to -1.00 on simulated seed002 bags and mrclam1_robot1.bag), and the
-search hands the input's part to the slip or back. What the likelihood cannot see, the series
+estimates' correlation near -1: docs/design/tuning.md), and the search hands the input's part
+to the slip or back. What the likelihood cannot see, the series
 shows: a sensor's white noise is what its samples scatter about a motion that is smooth at the
 sample rate. The order-k differences of samples x_j = s(t_j) + e_j, e white with sigma^2,
 have variance C(2k, k) sigma^2 plus the k-th difference of the motion s, which shrinks by a
@@ -68,7 +68,7 @@ def _sigma(d: np.ndarray, order: int) -> float:
     """Sigma of the samples' noise from their order-``order`` differences ``d``: the RMS of
     those within ``TRIM`` robust sigmas of 0 (a gap's or a jump's difference left out), 0
     where more than half are 0. The RMS, not the MAD alone: of quantised samples (encoder
-    counts) the MAD is a whole number of counts, and moved seed002's wheels by 20 % steps."""
+    counts) the MAD is a whole number of counts, so it moves in steps."""
     mad = MAD_SIGMA * float(np.median(np.abs(d)))
     if mad <= 0.0:
         return 0.0

@@ -69,10 +69,8 @@ _MEASURED = {
     ("odometry", "v"): (WheelOdometry, ("v_var",), "v"),
     ("odometry", "yaw_rate"): (WheelOdometry, ("yaw_rate_var",), "yaw_rate"),
     ("wheels", "speed"): (WheelSpeeds, ("left_var", "right_var"), "speeds"),
-    ("imu", "yaw"): (Heading, ("var",), "yaw"),
-    # a magnetometer's heading noise as ``yaw`` (rad), which the reader takes before ``field``
-    ("magnetometer", "yaw"): (Heading, ("var",), "yaw"),
-    ("local_heading", "yaw"): (Heading, ("var",), "yaw"),
+    # every heading sensor's ``yaw`` (rad; a magnetometer's the reader takes before ``field``)
+    **{(kind, "yaw"): (Heading, ("var",), "yaw") for kind in HEADING_KINDS},
     ("imu", "yaw_rate"): (GyroYawRate, ("var",), "yaw_rate"),
     ("imu", "accel"): (ForwardAccel, ("var",), "accel"),
     ("gps", "horizontal"): (GpsFix, ("cov",), "position"),

@@ -62,8 +62,7 @@ def held_inputs(params: list[Param], stream: Stream, result: TuneResult
     held there for the search again. The input's noise and the robot's slip are both process
     noise there, so where the slip took the input's effect the search left the input as the
     config had it, beside a slip that already explains the drift: the two counted it twice
-    (simulated seed002, the wheels at 3x their true noise: heading slip 0.010 rad/sqrt(s)
-    tuned beside them). An input the likelihood fixed, in a reported pair or not, keeps
+    (docs/design/tuning.md). An input the likelihood fixed, in a reported pair or not, keeps
     that."""
     out = {}
     for i, (p, t) in enumerate(zip(params, result.tuned, strict=True)):
@@ -174,7 +173,7 @@ def correlated_gps_caveat(cfg: Config, result: TuneResult) -> None:
     """Say, on each GPS sigma ``result`` tuned for a sensor whose config states a correlation
     time, that it is not the fixes' stationary sigma: the likelihood takes the innovations as
     white, which the estimators' inflation model does not make them (docs/design/tuning.md,
-    Limits: on a simulated bag with a 1.0 m, 30 s Gauss-Markov error, 0.49 m)."""
+    Limits)."""
     for t in result.tuned:
         p = t.param
         if p.kind != "gps" or p.noise_key != "horizontal" or t.value is None or \
