@@ -72,6 +72,7 @@ from ddfuse.evaluation.scores import (
     rounded_record,
     stats_of,
 )
+from ddfuse.evaluation.side_run import SideResult, SideRun, in_order, side_names
 
 MAX_DIFF = 0.05  # s: association of estimate and truth stamps (truth at >= 10 Hz)
 RPE_DELTAS = (("1s", 1.0, "s"), ("10m", 10.0, "m"))
@@ -94,7 +95,8 @@ def process_age() -> float | None:
 
 def timing_split(*, startup: float | None, decode: float, build: float, loop: float,
                  loop_decode: float, runtimes: dict[str, float], scoring: float,
-                 writing: float) -> WallTimes:
+                 writing: float, side: tuple[str, ...] = (), side_wait: float = 0.0
+                 ) -> WallTimes:
     """The ``wall_s`` of metrics.json, seconds rounded to 0.1 ms.
 
     In: ``startup`` (process age when run_bag began; None if unknown), ``decode`` (all of the
@@ -103,16 +105,20 @@ def timing_split(*, startup: float | None, decode: float, build: float, loop: fl
     ``loop_decode`` (its share of the decoding), ``runtimes`` (estimator -> time in its calls),
     ``scoring``, ``writing``. Out: those, plus ``runner`` (the loop less its decoding and the
     estimators' calls: the runner's own per-message work) and ``total`` (the sum: the wall time
-    from the process's start to metrics.json)."""
-    runner = loop - loop_decode - sum(runtimes.values())
-    parts = [decode, build, runner, *runtimes.values(), scoring, writing]
+    from the process's start to metrics.json). ``side``: the estimators fed in a side process
+    (their runtimes overlap the loop: in neither ``runner`` nor ``total``), ``side_wait`` the
+    part of ``loop`` spent waiting for them after the main process's own loop."""
+    own = [v for k, v in runtimes.items() if k not in side]
+    runner = loop - loop_decode - sum(own) - side_wait
+    parts = [decode, build, runner, *own, side_wait, scoring, writing]
     total = sum(parts) + (startup or 0.0)
 
     def r4(v: float | None) -> float | None:
         return None if v is None else round(float(v), 4)
 
     return WallTimes(r4(startup), r4(decode), r4(build), {k: r4(v) for k, v in runtimes.items()},
-                     r4(runner), r4(scoring), r4(writing), r4(total))
+                     r4(runner), r4(scoring), r4(writing), r4(total), list(side),
+                     r4(side_wait) if side else None)
 
 
 def _ate_score(position: metrics.Stats, heading: metrics.Stats) -> AteScore:
@@ -558,7 +564,8 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
             lag: float | None = None, holdout: str | None = None,
             progress: Callable[[str, float], None] | None = None,
             reorder_window: float | None = None,
-            notice: Callable[[str], None] | None = None) -> RunSummary:
+            notice: Callable[[str], None] | None = None,
+            side_process: bool = False) -> RunSummary:
     """Decode ``bag`` as a stream (``ddfuse.estimation.bags.BagStream``: memory bounded however long
     the bag), run the selected estimators on it, write results into ``outdir``; returns the
     run's ``RunSummary`` (written as metrics.json: its ``to_json()``). ``reorder_window`` (s)
@@ -572,7 +579,11 @@ out an estimator the sensors nearly allow: ``estimators.left_out``), or, before 
     is raised with ``results_written`` set. While it runs, ``outdir``/.ddfuse-spill holds the
     loop's growing records (tracks and per-call timings, ``runner.run(spill_dir=)``): memory
     stays flat with the bag's length; it is removed once the results are written (or the run
-    fails), and a killed run's is removed by the next run into ``outdir``."""
+    fails), and a killed run's is removed by the next run into ``outdir``.
+
+    ``side_process``: the estimators on their Python reference path (a cold kernel cache) are
+    fed in a forked second process beside the others (``ddfuse.evaluation.side_run``), when the
+    machine has a second CPU; the results are the same."""
     clock = time.perf_counter
     t_enter, startup = clock(), process_age()
     outdir = Path(outdir)
@@ -598,9 +609,11 @@ out an estimator the sensors nearly allow: ``estimators.left_out``), or, before 
     offsets = heading_survey.recorder_for(cfg)
     spill = _spill_dir(outdir)  # the loop's timings, until the results are written
     try:
-        result = run(stream, ests, holdout=holdout,
-                     progress=(lambda f: progress("decode + estimate", f)) if progress else None,
-                     interruptible=True, observers=(offsets.add,), spill_dir=spill)
+        result, side, side_wait = _run_split(
+                            bag, cfg, reorder_window, stream, ests, holdout, spill,
+                            side_names(ests) if side_process else [], offsets.add,
+                            (lambda f: progress("decode + estimate", f)) if progress else None,
+                            notice)
         t_ran = clock()
         input_error = stream.error
         if input_error is not None and not result.messages:
@@ -636,7 +649,8 @@ out an estimator the sensors nearly allow: ``estimators.left_out``), or, before 
                 out = replace(out, wall_s=timing_split(
                     startup=startup, decode=decode_s, build=t_built - t_enter - decode_before,
                     loop=t_ran - t_built, loop_decode=decode_s - decode_before, runtimes=runtimes,
-                    scoring=t_scored - t_ran, writing=clock() - t_scored))
+                    scoring=t_scored - t_ran, writing=clock() - t_scored, side=side,
+                    side_wait=side_wait))
                 write_metrics(outdir, out.to_json())
         if result.interrupted:
             raise RunInterrupted(f"{result.interrupted}; the results of what was processed are in "
@@ -652,6 +666,45 @@ out an estimator the sensors nearly allow: ``estimators.left_out``), or, before 
         return out
     finally:
         shutil.rmtree(spill, ignore_errors=True)
+
+
+def _run_split(bag, cfg: Config, reorder_window, stream, ests: dict, holdout, spill,
+               side: list[str], observer, progress, notice
+               ) -> tuple[RunResult, tuple[str, ...], float]:
+    """``runner.run`` of ``ests`` on ``stream``, the estimators ``side`` fed in a forked
+    process (``side_run``) meanwhile; those the side process could not feed are fed here after
+    the others. Returns the result (its runs in ``ests``'s order), the estimators that were fed
+    beside, and the time (s) spent waiting for them after this process's loop."""
+    def own_stream():
+        return BagStream(bag, cfg, reorder_window=reorder_window).prime()
+
+    child = None
+    if side:
+        try:
+            child = SideRun(own_stream, {n: ests[n] for n in side}, holdout)
+        except OSError as e:
+            if notice is not None:
+                notice(f"{', '.join(side)} fed in this process: no side process ({e})")
+    main = {n: e for n, e in ests.items() if child is None or n not in side}
+    result = run(stream, main, holdout=holdout, progress=progress, interruptible=True,
+                 observers=(observer,), spill_dir=spill)
+    if child is None:
+        return result, (), 0.0
+    t_wait = time.perf_counter()
+    got = child.join()
+    wait = time.perf_counter() - t_wait
+    fed_beside = tuple(side)
+    if got.error is not None:
+        fed_beside = ()
+        if notice is not None:
+            notice(f"the side process feeding {', '.join(side)} failed ({got.error}): they are "
+                   "fed here now")
+        again = run(own_stream(), {n: ests[n] for n in side}, holdout=holdout,
+                    interruptible=True)
+        got = SideResult(again.runs, again.messages, again.interrupted)
+    result.runs = in_order(ests, result.runs, got.runs)
+    result.interrupted = result.interrupted or got.interrupted
+    return result, fed_beside, wait if fed_beside else 0.0
 
 
 SPILL_DIR = ".ddfuse-spill"  # in the output directory, during a run (``_spill_dir``)

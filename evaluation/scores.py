@@ -313,6 +313,10 @@ class WallTimes(Record):
     metrics: float | None = None
     write: float | None = None
     total: float | None = None
+    # the estimators fed in a side process (``side_run``): their times overlap the others' and
+    # are not in ``total``; ``side_wait`` (in it) is the main process's wait for them after its loop
+    side_process: list[str] = field(default_factory=list)
+    side_wait: float | None = None
 
 
 @dataclass(frozen=True)

@@ -71,6 +71,25 @@ def no_plausibility_screen(monkeypatch):
 
 
 @pytest.fixture
+def cold(monkeypatch):
+    """A process whose EKF kernels are in no cache: nothing warmed up, every lookup a miss; the
+    background builds asked for recorded instead of started (yields that record)."""
+    from ddfuse.ekf_baseline import compiled
+    from ddfuse.factors import jitcache
+
+    asked: list[list[str]] = []
+    kj = compiled.kernels()
+    monkeypatch.setattr(compiled, "COLD_COMPILE", {})
+    monkeypatch.setattr(kj, "load_cached", lambda *names: False)
+    monkeypatch.setattr(compiled, "build_in_background", lambda names: asked.append(names))
+    # the update's entry points and the preintegration kernel, if this cache lacks them
+    monkeypatch.setattr(jitcache, "build_in_background", lambda names: None)
+    was = jitcache.on_cold_cache()
+    yield asked
+    jitcache.on_cold_cache(was)
+
+
+@pytest.fixture
 def ctrl_c_raises():
     """Ctrl-C as in a terminal: a process started in the background (``cmd &``, nohup, some CI
     runners) or a pytest-xdist worker has SIGINT ignored, and Python then never raises

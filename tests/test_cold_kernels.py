@@ -22,22 +22,6 @@ def _cfg():
     return load_config(ROOT / "data" / "sample_husky.yaml")
 
 
-@pytest.fixture
-def cold(monkeypatch):
-    """A process whose kernels are in no cache: nothing warmed up, every lookup a miss; the
-    background builds asked for recorded instead of started."""
-    asked: list[list[str]] = []
-    kj = compiled.kernels()
-    monkeypatch.setattr(compiled, "COLD_COMPILE", {})
-    monkeypatch.setattr(kj, "load_cached", lambda *names: False)
-    monkeypatch.setattr(compiled, "build_in_background", lambda names: asked.append(names))
-    # the update's entry points and the preintegration kernel, if this cache lacks them
-    monkeypatch.setattr(jitcache, "build_in_background", lambda names: None)
-    was = jitcache.on_cold_cache()
-    yield asked
-    jitcache.on_cold_cache(was)
-
-
 def test_reference_policy_runs_the_python_filters_and_asks_for_a_build(cold):
     jitcache.on_cold_cache("reference")
     cfg = _cfg()

@@ -99,10 +99,14 @@ def print_summary(m: RunSummary, out, headline: bool = True) -> None:
                   "metrics.json keys; speeds (rtf) in metrics.json and the report\n")
     w = m.wall_s
     if w:
-        est = ", ".join(f"{k} {v:.3f}" for k, v in w.estimators.items())
+        side = w.side_process or []
+        est = ", ".join(f"{k} {v:.3f}" for k, v in w.estimators.items() if k not in side)
+        beside = (f", waiting for the side process {w.side_wait:.3f} (it fed "
+                  + ", ".join(f"{k} {w.estimators[k]:.3f}" for k in side if k in w.estimators)
+                  + " meanwhile)") if side else ""
         out.write(f"wall time {fmt(w.total, '.3f')} s: startup {fmt(w.startup, '.3f')}, "
                   f"decode {w.decode:.3f}, build {w.build:.3f}, {est}, runner "
-                  f"{w.runner:.3f}, metrics {w.metrics:.3f}, write {w.write:.3f}"
+                  f"{w.runner:.3f}{beside}, metrics {w.metrics:.3f}, write {w.write:.3f}"
                   " (to metrics.json; the report after it not included)\n")
     if headline:
         out.write(headline_text(make_headline(m).lines()))
@@ -173,7 +177,7 @@ def _command(args: argparse.Namespace) -> int:
                 tuned = run_tuned(bag, config, cfg, args.outdir, **options)
                 m = tuned.run
             else:
-                m = run_bag(bag, cfg, args.outdir, **options)
+                m = run_bag(bag, cfg, args.outdir, side_process=True, **options)
         except ValueError as e:
             raise DdfuseError(str(e)) from None
         except (BagError, RunInterrupted) as e:

@@ -1,0 +1,151 @@
+"""Estimators fed in a forked second process beside the run.
+
+On a cold kernel cache (the first ``ddfuse run`` after installing) the EKFs run their Python
+reference path (``ddfuse.ekf_baseline.compiled.usable``), several times the compiled cost, while
+the machine's second CPU is idle until the background build starts after the run. ``ddfuse run``
+then feeds those filters in a child process, forked once they are built, from the child's own
+decoding of the bag, while the main process feeds the others: the same measurements in the same
+order reach every estimator (``ddfuse.estimation.runner.run`` in both), so the tracks are those
+of one process.
+
+Contract: the child returns its ``EstimatorRun``s (pickled through a pipe) and exits with
+``os._exit`` (no atexit work of the parent's: the background build is the parent's alone). A
+child that fails, dies or cannot be forked loses nothing: the parent's copies of those
+estimators were never fed, and :meth:`SideRun.join` says so; the caller then feeds them itself.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import pickle
+import signal
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from ddfuse.estimation.interrupts import interrupt_name
+from ddfuse.estimation.runner import EstimatorRun, run
+
+__all__ = ["SideResult", "SideRun", "cpus", "in_order", "side_names"]
+
+
+def cpus() -> int:
+    """The CPUs this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+def side_names(ests: dict) -> list[str]:
+    """The estimators of ``ests`` to feed in a side process: those on their Python reference
+    path (``reference`` true: their kernels are not in numba's cache), when at least one other
+    estimator stays in the main process, the machine has a second CPU and ``os.fork`` exists;
+    else none."""
+    side = [n for n, e in ests.items() if getattr(e, "reference", False)]
+    if not side or len(side) == len(ests) or cpus() < 2 or not hasattr(os, "fork"):
+        return []
+    return side
+
+
+def in_order(names, *runs: dict[str, EstimatorRun]) -> dict[str, EstimatorRun]:
+    """The runs of ``runs`` (dicts by track name) in the order of the estimators ``names``,
+    each one's lagged track after it."""
+    got = {k: v for r in runs for k, v in r.items()}
+    out = {k: got[k] for n in names for k in (n, f"{n}_lagged") if k in got}
+    return out | {k: v for k, v in got.items() if k not in out}
+
+
+@dataclass
+class SideResult:
+    """What the child fed: its runs (by track name, the lagged ones included), how many
+    measurements it fed, and its ``RunResult.interrupted``; ``error`` (one line) instead when it
+    gave nothing back."""
+
+    runs: dict[str, EstimatorRun]
+    messages: int = 0
+    interrupted: str | None = None
+    error: str | None = None
+
+
+class SideRun:
+    """Feed ``ests`` (built, never fed) with ``runner.run`` in a forked child, on the stream
+    ``open_stream()`` makes there (its own file handles: a descriptor shared across a fork
+    shares its offset), withholding ``holdout``'s fixes as the main run does. Ctrl-C reaches the
+    child as it reaches the parent (one process group): it stops feeding and returns what it
+    had, as ``run(interruptible=True)``."""
+
+    def __init__(self, open_stream: Callable[[], object], ests: dict,
+                 holdout: str | None = None) -> None:
+        r, w = os.pipe()
+        pid = os.fork()
+        if pid == 0:  # the child: never returns
+            os.close(r)
+            _child(w, open_stream, ests, holdout)
+        os.close(w)
+        self.pid, self._r = pid, r
+
+    def join(self) -> SideResult:
+        """Wait for the child and read what it fed. A Ctrl-C while waiting is passed on to the
+        child, which then returns what it had; ``interrupted`` says so."""
+        chunks: list[bytes] = []
+        interrupt: BaseException | None = None
+        while True:
+            try:
+                b = os.read(self._r, 1 << 20)
+            except KeyboardInterrupt as e:
+                interrupt = interrupt or e
+                _signal(self.pid, signal.SIGINT)
+                continue
+            if not b:
+                break
+            chunks.append(b)
+        os.close(self._r)
+        status = _wait(self.pid)
+        try:
+            out = pickle.loads(b"".join(chunks)) if chunks else None
+        except Exception as e:  # a child killed mid-write
+            out = None
+            status = f"{status}; its results unreadable ({type(e).__name__})"
+        if not isinstance(out, SideResult):
+            out = SideResult({}, error=f"the side process ended ({status}) with no results")
+        if interrupt is not None and out.interrupted is None:
+            out.interrupted = f"interrupted ({interrupt_name(interrupt)}) in the side process"
+        return out
+
+
+def _child(w: int, open_stream, ests: dict, holdout) -> None:
+    code = 0
+    try:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        try:
+            res = run(open_stream(), ests, holdout=holdout, interruptible=True)
+            out = SideResult(res.runs, res.messages, res.interrupted)
+        except BaseException as e:
+            out = SideResult({}, error=f"{type(e).__name__}: {e}")
+        data = pickle.dumps(out, protocol=pickle.HIGHEST_PROTOCOL)
+        with os.fdopen(w, "wb") as f:
+            f.write(data)
+    except BaseException:
+        code = 1
+    finally:
+        os._exit(code)
+
+
+def _signal(pid: int, sig: int) -> None:
+    with contextlib.suppress(ProcessLookupError):
+        os.kill(pid, sig)
+
+
+def _wait(pid: int) -> str:
+    while True:
+        try:
+            _, st = os.waitpid(pid, 0)
+            break
+        except KeyboardInterrupt:
+            _signal(pid, signal.SIGINT)
+        except ChildProcessError:
+            return "already reaped"
+    if os.WIFSIGNALED(st):
+        return f"killed by signal {os.WTERMSIG(st)}"
+    return f"exit status {os.WEXITSTATUS(st)}"
