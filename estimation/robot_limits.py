@@ -61,7 +61,7 @@ from __future__ import annotations
 import logging
 import math
 from collections import Counter, deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from ddfuse.estimation.config import Config
 from ddfuse.estimation.gps_motion import MotionCheck
@@ -87,8 +87,8 @@ HOLD_S = 60.0  # s: a held GPS jump stays rejected this long at most, then it is
 
 @dataclass(slots=True)
 class _Channel:
-    """One checked quantity of one sensor: its anchor (the last accepted value) and the run of
-    rejected samples since (for re-anchoring)."""
+    """One checked quantity of one sensor: its anchor (the last accepted value), the run of
+    rejected samples since (for re-anchoring), and the samples' own scatter (``scatter``)."""
 
     limit: float  # the top value (m/s or rad/s)
     accel: float  # the top rate of change (m/s^2 or rad/s^2)
@@ -97,9 +97,50 @@ class _Channel:
     x: float = 0.0
     var: float = 0.0
     run: list | None = None  # rejected (t, x, var) since the anchor, consecutive and agreeing
+    scatter: _Scatter | None = None
+    stated: float = math.nan  # the last sample's stated variance
 
     def fits(self, t0: float, x0: float, v0: float, t: float, x: float, var: float) -> bool:
         return abs(x - x0) <= self.accel * abs(t - t0) + K_SIGMA * math.sqrt(v0 + var)
+
+
+SCATTER_N = 64  # order-2 differences the scatter's median is taken over
+SCATTER_START = 32  # differences before a scatter is read (a burst of garbage is not one)
+SCATTER_EVERY = 16  # recomputed every this many samples
+SCATTER_GAP_S = 1.0  # s: a longer gap between samples starts the differences afresh
+SCATTER_SAY = 3.0  # the scatter's sd over the stated sd that warnings() mentions
+# the median of |x_k - 2 x_k-1 + x_k-2| over a white sample's sd (|N(0, 6)|'s median)
+_D2_MEDIAN = 0.67449 * math.sqrt(6.0)
+
+
+@dataclass(slots=True)
+class _Scatter:
+    """A twist sensor's own sample noise, read off its samples (every one, passed or not): the
+    median absolute order-2 difference of the last ``SCATTER_N``, as the variance (units^2) of
+    white noise that has that median. A smooth motion's part of a difference is its jerk times
+    dt^2; the median holds while under half the differences are glitches (a glitch moves
+    three), and a lower quantile would be biased by an encoder's quantisation; held values
+    (quantised, or a sensor that repeats) give 0. ``var`` is 0 until ``SCATTER_START``
+    differences are in."""
+
+    t: float = math.nan
+    x1: float = math.nan  # the last two samples
+    x2: float = math.nan
+    d2: deque = field(default_factory=lambda: deque(maxlen=SCATTER_N))
+    count: int = 0
+    var: float = 0.0
+
+    def add(self, t: float, x: float) -> float:
+        if not t - self.t <= SCATTER_GAP_S:  # the first sample, a gap, or out of order
+            self.x1 = self.x2 = math.nan
+        if self.x2 == self.x2:  # not NaN: two samples before this one
+            self.d2.append(abs(x - 2.0 * self.x1 + self.x2))
+            self.count += 1
+            if self.count % SCATTER_EVERY == 0 and len(self.d2) >= SCATTER_START:
+                med = sorted(self.d2)[len(self.d2) // 2]
+                self.var = (med / _D2_MEDIAN) ** 2
+        self.t, self.x2, self.x1 = t, self.x1, x
+        return self.var
 
 
 @dataclass(slots=True)
@@ -178,6 +219,16 @@ class RobotLimits:
             n = self.rejected[(topic, reason)]
             out.append(f"topic {topic}: {n} sample(s) rejected as physically implausible: "
                        f"{reason} (first at t={t:.3f}: {value}; {limit})")
+        for (sensor, what), ch in sorted(self._channels.items()):
+            sc = ch.scatter
+            if sc is None or not sc.var > SCATTER_SAY ** 2 * ch.stated:
+                continue
+            out.append(f"topic {self.topic.get(sensor, sensor)}: its {what} samples scatter with "
+                       f"sd {math.sqrt(sc.var):.3g} {ch.unit} (order-2 differences of the last "
+                       f"{len(sc.d2)}), over {SCATTER_SAY:g}x the stated "
+                       f"{math.sqrt(ch.stated):.3g} {ch.unit}: the plausibility screen allowed "
+                       "for the scatter, the estimators use the stated noise (check the "
+                       "sensor's noise, or run 'ddfuse tune')")
         return out
 
     # --- the checks ------------------------------------------------------------------------
@@ -196,6 +247,13 @@ class RobotLimits:
                 _Channel(self.v_max, self.a_max, "m/s") if what == "speed"
                 else _Channel(self.w_max, self.alpha_max, "rad/s"))
         var = var if var > 0.0 and math.isfinite(var) else 0.0
+        ch.stated = var
+        if math.isfinite(x):
+            # a stated noise below the samples' own scatter would reject good samples
+            sc = ch.scatter
+            if sc is None:
+                sc = ch.scatter = _Scatter()
+            var = max(var, sc.add(t, x))
         sd = math.sqrt(var)
         if abs(x) > ch.limit + K_SIGMA * sd:
             key = "robot.max_speed" if what == "speed" else "robot.max_yaw_rate"

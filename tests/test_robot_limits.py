@@ -409,3 +409,35 @@ def test_a_gps_wrong_for_minutes_is_rejected_counted_then_said_by_the_estimator(
     said = [n for n in ekf.log.messages if "disagree" in n]
     assert said and "following the odometry" in said[0]
     assert float(said[0].split(":")[0][2:]) >= taken
+
+
+def test_a_stated_noise_far_below_the_samples_scatter_does_not_reject_good_samples():
+    """Odometry at 50 Hz, true sd 0.05 m/s, stated 0.002 (25x too small): before, 6 sigma of
+    the stated noise rejected ~1 in 4 good samples as faster speed changes than the robot can
+    make. The screen now allows for the samples' own scatter once it has read it, still rejects
+    a glitch, and says the scatter in its warnings."""
+    from ddfuse.estimation.robot_limits import SCATTER_START
+
+    screen, rejected = _screen("")
+    rng = np.random.default_rng(3)
+    n, glitch = 600, 400
+    t = T0 + 0.02 * np.arange(n)
+    v = 1.0 + 0.5 * np.sin(0.5 * (t - T0)) + rng.normal(0.0, 0.05, n)
+    v[glitch] += 3.0  # 150 m/s^2 against the default 20, and 40 sd of the scatter
+    passed = [screen.admit(WheelOdometry(t[i], float(v[i]), None, 0.002 ** 2, 0.0, "/odom"))
+              for i in range(n)]
+    late = [i for i in range(SCATTER_START + 2, n) if not passed[i]]
+    assert late == [glitch]
+    assert sum(rejected.values()) < 30
+    (said,) = [w for w in screen.warnings() if "scatter" in w]
+    sd = float(said.split("scatter with sd ")[1].split()[0])
+    assert 0.035 < sd < 0.07 and "stated 0.002 m/s" in said  # a median of 64: ~16 % sd
+
+
+def test_held_values_read_no_scatter_and_the_stated_noise_rules():
+    screen, _ = _screen("")
+    values = [1.0] * 60 + [1.5] + [1.0] * 5  # 25 m/s^2: beyond 20 plus 6 x 0.001 sd
+    ms = [WheelOdometry(T0 + 0.02 * i, x, None, 0.001 ** 2, 0.0, "/odom")
+          for i, x in enumerate(values)]
+    assert [screen.admit(m) for m in ms] == [i != 60 for i in range(66)]
+    assert not [w for w in screen.warnings() if "scatter" in w]
