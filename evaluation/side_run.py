@@ -39,11 +39,13 @@ def cpus() -> int:
 
 def side_names(ests: dict) -> list[str]:
     """The estimators of ``ests`` to feed in a side process: those on their Python reference
-    path (``reference`` true: their kernels are not in numba's cache), when at least one other
-    estimator stays in the main process, the machine has a second CPU and ``os.fork`` exists;
-    else none."""
+    path (``reference`` true: their kernels are not in numba's cache), but the first of them
+    when nothing else would stay in the main process; none without a second CPU or
+    ``os.fork``."""
     side = [n for n, e in ests.items() if getattr(e, "reference", False)]
-    if not side or len(side) == len(ests) or cpus() < 2 or not hasattr(os, "fork"):
+    if len(side) == len(ests):
+        side = side[1:]
+    if not side or cpus() < 2 or not hasattr(os, "fork"):
         return []
     return side
 

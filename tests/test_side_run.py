@@ -137,7 +137,7 @@ def test_in_order_keeps_the_estimators_order_and_lagged_after_their_own():
     assert list(got) == ["ekf", "ekf_igvc", "smoother", "smoother_lagged", "batch"]
 
 
-def test_side_names_needs_a_second_cpu_and_a_main_estimator(monkeypatch):
+def test_side_names_needs_a_second_cpu_and_keeps_one_in_the_main_process(monkeypatch):
     class E:
         def __init__(self, ref):
             self.reference = ref
@@ -146,5 +146,7 @@ def test_side_names_needs_a_second_cpu_and_a_main_estimator(monkeypatch):
     monkeypatch.setattr(side_run, "cpus", lambda: 2)
     assert side_run.side_names(ests) == ["ekf"]
     assert side_run.side_names({"ekf": E(True)}) == []  # nothing would stay in the main process
+    # every one on the reference path: the first stays in the main process
+    assert side_run.side_names({"ekf": E(True), "ekf_igvc": E(True)}) == ["ekf_igvc"]
     monkeypatch.setattr(side_run, "cpus", lambda: 1)
     assert side_run.side_names(ests) == []
