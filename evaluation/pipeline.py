@@ -696,12 +696,16 @@ def _run_split(bag, cfg: Config, reorder_window, stream, ests: dict, holdout, sp
     fed_beside = tuple(side)
     if got.error is not None:
         fed_beside = ()
-        if notice is not None:
-            notice(f"the side process feeding {', '.join(side)} failed ({got.error}): they are "
-                   "fed here now")
-        again = run(own_stream(), {n: ests[n] for n in side}, holdout=holdout,
-                    interruptible=True)
-        got = SideResult(again.runs, again.messages, again.interrupted)
+        if result.interrupted is not None:  # the run was stopped: not started again for them
+            result.interrupted = (f"{result.interrupted}; {', '.join(side)} not run (their "
+                                  f"side process: {got.error})")
+        else:
+            if notice is not None:
+                notice(f"the side process feeding {', '.join(side)} failed ({got.error}): "
+                       "they are fed here now")
+            again = run(own_stream(), {n: ests[n] for n in side}, holdout=holdout,
+                        interruptible=True)
+            got = SideResult(again.runs, again.messages, again.interrupted)
     result.runs = in_order(ests, result.runs, got.runs)
     result.interrupted = result.interrupted or got.interrupted
     return result, fed_beside, wait if fed_beside else 0.0

@@ -23,7 +23,7 @@ import signal
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from ddfuse.estimation.interrupts import interrupt_name
+from ddfuse.estimation.interrupts import Terminated, interrupt_name
 from ddfuse.estimation.runner import EstimatorRun, run
 
 __all__ = ["SideResult", "SideRun", "cpus", "in_order", "side_names"]
@@ -88,16 +88,17 @@ class SideRun:
         self.pid, self._r = pid, r
 
     def join(self) -> SideResult:
-        """Wait for the child and read what it fed. A Ctrl-C while waiting is passed on to the
-        child, which then returns what it had; ``interrupted`` says so."""
+        """Wait for the child and read what it fed. A Ctrl-C (or a SIGTERM taken as one) while
+        waiting is passed on to the child, which then returns what it had; ``interrupted`` says
+        so."""
         chunks: list[bytes] = []
         interrupt: BaseException | None = None
         while True:
             try:
                 b = os.read(self._r, 1 << 20)
-            except KeyboardInterrupt as e:
+            except KeyboardInterrupt as e:  # Ctrl-C, or SIGTERM as ``Terminated``
                 interrupt = interrupt or e
-                _signal(self.pid, signal.SIGINT)
+                _signal(self.pid, signal.SIGTERM if isinstance(e, Terminated) else signal.SIGINT)
                 continue
             if not b:
                 break

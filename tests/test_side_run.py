@@ -108,7 +108,7 @@ def test_ctrl_c_while_waiting_is_passed_to_the_side_process(reference, tmp_path,
     real_process, real_join = UnicycleEkf.process, side_run.SideRun.join
 
     def slow_process(self, m):  # the side process's ekf takes seconds, not a fraction of one
-        time.sleep(2e-4)
+        time.sleep(1e-3)
         real_process(self, m)
 
     def join_then_ctrl_c(self):  # Ctrl-C to this process alone, while it waits
