@@ -46,6 +46,7 @@ from ddfuse.estimation.smoother.gps import GpsFusion
 from ddfuse.estimation.smoother.heading import HeadingAccumulator
 from ddfuse.estimation.smoother.held_twist import ODOMETRY_WAIT, HeldTwist, compiled_preintegration
 from ddfuse.estimation.smoother.initialisation import Initialisation
+from ddfuse.estimation.smoother.isam2 import relinearize_skip
 from ddfuse.estimation.smoother.landmarks import LandmarkFusion
 from ddfuse.estimation.smoother.noise import MIN_KEYFRAME_DT, SmootherNoise, walk_floor
 from ddfuse.estimation.smoother.outputs import compose, estimated_only
@@ -112,7 +113,8 @@ class FixedLagSmoother(Estimator):
         self.held: list = []  # messages since the last odometry sample, waiting for the next
         self.now = -math.inf  # stamp of the newest message seen
         log, noise = self.log, self.noise
-        self.window = Window(self.lag, keep_all=self.keep_all, lagged=lagged)
+        self.window = Window(self.lag, keep_all=self.keep_all, lagged=lagged,
+                             relinearize_skip=relinearize_skip(cfg.gps.model))
         # the batch's record of its preintegrated and bias-difference factors (batch_factors)
         self.factor_record: list | None = [] if self.keep_all else None
         self.twist = HeldTwist(cfg.robot, noise, pim_class, self.fixed_bias)

@@ -14,17 +14,19 @@ import gtsam
 import numpy as np
 from ddfuse.estimation.estimator import Estimate, wrap_angle
 from ddfuse.estimation.runner import TrackBuilder
-from ddfuse.estimation.smoother.isam2 import isam2_params
+from ddfuse.estimation.smoother.isam2 import RELINEARIZE_SKIP, isam2_params
 from ddfuse.factors.state import DIM, KV, NAMES
 
 
 class Window:
     """The fixed-lag window of ``lag`` s and what waits to enter it."""
 
-    def __init__(self, lag: float, *, keep_all: bool, lagged: bool) -> None:
+    def __init__(self, lag: float, *, keep_all: bool, lagged: bool,
+                 relinearize_skip: int = RELINEARIZE_SKIP) -> None:
         self.lag, self.keep_all, self.lagged = lag, keep_all, lagged
         self.track = TrackBuilder()  # lagged output, compact: (t, pose, pose cov) per keyframe
-        self.isam = gtsam.IncrementalFixedLagSmoother(self.lag, isam2_params())
+        self.relinearize_skip = relinearize_skip  # ISAM2's (``isam2.relinearize_skip``)
+        self.isam = gtsam.IncrementalFixedLagSmoother(self.lag, isam2_params(relinearize_skip))
         self.k = -1  # index of the newest keyframe
         self.kf_t: dict[int, float] = {}  # keyframes in the window
         self.all_kf_t: dict[int, float] = {}  # every keyframe of the run (keep_all only)
@@ -195,7 +197,8 @@ class Window:
 
     def restart(self) -> None:
         """An empty smoother and window (what was pending is dropped)."""
-        self.isam = gtsam.IncrementalFixedLagSmoother(self.lag, isam2_params())
+        self.isam = gtsam.IncrementalFixedLagSmoother(self.lag,
+                                                      isam2_params(self.relinearize_skip))
         self.kf_t = {}
         self.pending_graph = gtsam.NonlinearFactorGraph()
         self.pending_values = gtsam.Values()
