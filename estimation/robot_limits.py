@@ -8,7 +8,8 @@ it on) by the bag stream (``ddfuse.estimation.bags``) and the live converter
 * a twist sample (odometry v and yaw rate; wheel speeds through ``robot.wheel_radius`` and
   ``track_width``; a gyro's yaw rate) beyond the robot's top speed or yaw rate
   (``RobotConfig.speed_limit`` m/s, ``yaw_rate_limit`` rad/s) by more than ``K_SIGMA`` of its
-  stated standard deviation;
+  standard deviation (the stated one, or the sensor's own scatter where that is larger:
+  ``_Scatter``; ``warnings()`` names a scatter over 3x the stated noise);
 * a twist sample whose change since the sensor's last accepted one needs more acceleration than
   the robot has: |dv| > a_max dt + K_SIGMA sqrt(var_1 + var_2) (``robot.max_accel`` /
   ``max_yaw_accel`` when given, else ``DEFAULT_MAX_ACCEL`` / ``DEFAULT_MAX_YAW_ACCEL``);
