@@ -19,11 +19,12 @@ from __future__ import annotations
 import contextlib
 import os
 import pickle
+import select
 import signal
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from ddfuse.estimation.interrupts import Terminated, interrupt_name
+from ddfuse.estimation.interrupts import held_signals, interrupt_name
 from ddfuse.estimation.runner import EstimatorRun, run
 
 __all__ = ["SideResult", "SideRun", "cpus", "in_order", "side_names"]
@@ -89,20 +90,25 @@ class SideRun:
 
     def join(self) -> SideResult:
         """Wait for the child and read what it fed. A Ctrl-C (or a SIGTERM taken as one) while
-        waiting is passed on to the child, which then returns what it had; ``interrupted`` says
-        so."""
+        waiting is held, not raised, and passed on to the child, which then returns what it
+        had; ``interrupted`` says so. The wait polls (``select``, 0.1 s) so that a signal the
+        kernel hands to another thread of this process (a progress bar's) is seen by the main
+        thread's handler, which runs only between Python steps: a blocking read would not be
+        woken by it."""
         chunks: list[bytes] = []
-        interrupt: BaseException | None = None
-        while True:
-            try:
+        forwarded: int | None = None
+        with held_signals() as held:
+            while True:
+                if held and forwarded is None:
+                    forwarded = held[0]
+                    _signal(self.pid, forwarded)
+                ready, _, _ = select.select([self._r], [], [], 0.1)
+                if not ready:
+                    continue
                 b = os.read(self._r, 1 << 20)
-            except KeyboardInterrupt as e:  # Ctrl-C, or SIGTERM as ``Terminated``
-                interrupt = interrupt or e
-                _signal(self.pid, signal.SIGTERM if isinstance(e, Terminated) else signal.SIGINT)
-                continue
-            if not b:
-                break
-            chunks.append(b)
+                if not b:
+                    break
+                chunks.append(b)
         os.close(self._r)
         status = _wait(self.pid)
         try:
@@ -112,8 +118,8 @@ class SideRun:
             status = f"{status}; its results unreadable ({type(e).__name__})"
         if not isinstance(out, SideResult):
             out = SideResult({}, error=f"the side process ended ({status}) with no results")
-        if interrupt is not None and out.interrupted is None:
-            out.interrupted = f"interrupted ({interrupt_name(interrupt)}) in the side process"
+        if forwarded is not None and out.interrupted is None:
+            out.interrupted = f"interrupted ({interrupt_name(forwarded)}) in the side process"
         return out
 
 

@@ -130,6 +130,42 @@ def test_ctrl_c_while_waiting_is_passed_to_the_side_process(reference, tmp_path,
     assert 0 < ekf_rows < dr_rows, (ekf_rows, dr_rows, full)  # the side stopped part-way
 
 
+def test_a_signal_another_thread_takes_still_reaches_the_side_process(reference, tmp_path,
+                                                                      monkeypatch,
+                                                                      ctrl_c_raises):
+    """SIGTERM or Ctrl-C sent to the main process alone may be taken by another of its threads
+    (a progress bar's): the main thread's handler runs only between Python steps, so a wait
+    blocked in a read would sleep through it until the side process had fed the whole bag.
+    The main thread here blocks SIGINT, so the kernel hands it to the timer's thread."""
+    import threading
+    import time
+
+    from ddfuse.ekf_baseline.unicycle import UnicycleEkf
+    from ddfuse.estimation.errors import RunInterrupted
+
+    real_process, real_join = UnicycleEkf.process, side_run.SideRun.join
+
+    def slow_process(self, m):
+        time.sleep(1e-3)
+        real_process(self, m)
+
+    def join_then_ctrl_c_elsewhere(self):
+        # the timer's thread is started before the block: a thread inherits its creator's mask
+        threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGINT)).start()
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            return real_join(self)
+        finally:
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+    monkeypatch.setattr(UnicycleEkf, "process", slow_process)
+    monkeypatch.setattr(side_run.SideRun, "join", join_then_ctrl_c_elsewhere)
+    t0 = time.perf_counter()
+    with pytest.raises(RunInterrupted, match=r"^interrupted \(Ctrl-C\) after \d+ measurements"):
+        _run(tmp_path, "int", True)
+    assert time.perf_counter() - t0 < 6.0  # the whole bag at 1 ms per ekf message: ~7 s
+
+
 def test_in_order_keeps_the_estimators_order_and_lagged_after_their_own():
     runs_a = {"smoother": 1, "smoother_lagged": 2, "batch": 3}
     runs_b = {"ekf_igvc": 4, "ekf": 5}
