@@ -45,7 +45,6 @@ from ddfuse.estimation.runner import (
     Trajectory,
     initial_pose,
     parse_holdout,
-    run,
 )
 from ddfuse.evaluation import consistency, latency_stats, metrics, pair_scores
 from ddfuse.evaluation import estimators as registry
@@ -72,7 +71,7 @@ from ddfuse.evaluation.scores import (
     rounded_record,
     stats_of,
 )
-from ddfuse.evaluation.side_run import SideResult, SideRun, in_order, side_names
+from ddfuse.evaluation.side_run import run_split, side_names
 
 MAX_DIFF = 0.05  # s: association of estimate and truth stamps (truth at >= 10 Hz)
 RPE_DELTAS = (("1s", 1.0, "s"), ("10m", 10.0, "m"))
@@ -609,11 +608,12 @@ out an estimator the sensors nearly allow: ``estimators.left_out``), or, before 
     offsets = heading_survey.recorder_for(cfg)
     spill = _spill_dir(outdir)  # the loop's timings, until the results are written
     try:
-        result, side, side_wait = _run_split(
-                            bag, cfg, reorder_window, stream, ests, holdout, spill,
-                            side_names(ests) if side_process else [], offsets.add,
-                            (lambda f: progress("decode + estimate", f)) if progress else None,
-                            notice)
+        result, side, side_wait = run_split(
+            lambda: BagStream(bag, cfg, reorder_window=reorder_window).prime(), stream, ests,
+            side_names(ests) if side_process else [], holdout=holdout, spill_dir=spill,
+            observer=offsets.add,
+            progress=(lambda f: progress("decode + estimate", f)) if progress else None,
+            notice=notice)
         t_ran = clock()
         input_error = stream.error
         if input_error is not None and not result.messages:
@@ -666,49 +666,6 @@ out an estimator the sensors nearly allow: ``estimators.left_out``), or, before 
         return out
     finally:
         shutil.rmtree(spill, ignore_errors=True)
-
-
-def _run_split(bag, cfg: Config, reorder_window, stream, ests: dict, holdout, spill,
-               side: list[str], observer, progress, notice
-               ) -> tuple[RunResult, tuple[str, ...], float]:
-    """``runner.run`` of ``ests`` on ``stream``, the estimators ``side`` fed in a forked
-    process (``side_run``) meanwhile; those the side process could not feed are fed here after
-    the others. Returns the result (its runs in ``ests``'s order), the estimators that were fed
-    beside, and the time (s) spent waiting for them after this process's loop."""
-    def own_stream():
-        return BagStream(bag, cfg, reorder_window=reorder_window).prime()
-
-    child = None
-    if side:
-        try:
-            child = SideRun(own_stream, {n: ests[n] for n in side}, holdout)
-        except OSError as e:
-            if notice is not None:
-                notice(f"{', '.join(side)} fed in this process: no side process ({e})")
-    main = {n: e for n, e in ests.items() if child is None or n not in side}
-    result = run(stream, main, holdout=holdout, progress=progress, interruptible=True,
-                 observers=(observer,), spill_dir=spill)
-    if child is None:
-        return result, (), 0.0
-    t_wait = time.perf_counter()
-    got = child.join()
-    wait = time.perf_counter() - t_wait
-    fed_beside = tuple(side)
-    if got.error is not None:
-        fed_beside = ()
-        if result.interrupted is not None:  # the run was stopped: not started again for them
-            result.interrupted = (f"{result.interrupted}; {', '.join(side)} not run (their "
-                                  f"side process: {got.error})")
-        else:
-            if notice is not None:
-                notice(f"the side process feeding {', '.join(side)} failed ({got.error}): "
-                       "they are fed here now")
-            again = run(own_stream(), {n: ests[n] for n in side}, holdout=holdout,
-                        interruptible=True)
-            got = SideResult(again.runs, again.messages, again.interrupted)
-    result.runs = in_order(ests, result.runs, got.runs)
-    result.interrupted = result.interrupted or got.interrupted
-    return result, fed_beside, wait if fed_beside else 0.0
 
 
 SPILL_DIR = ".ddfuse-spill"  # in the output directory, during a run (``_spill_dir``)

@@ -21,13 +21,14 @@ import os
 import pickle
 import select
 import signal
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
 from ddfuse.estimation.interrupts import held_signals, interrupt_name
-from ddfuse.estimation.runner import EstimatorRun, run
+from ddfuse.estimation.runner import EstimatorRun, RunResult, run
 
-__all__ = ["SideResult", "SideRun", "cpus", "in_order", "side_names"]
+__all__ = ["SideResult", "SideRun", "cpus", "in_order", "run_split", "side_names"]
 
 
 def cpus() -> int:
@@ -61,12 +62,10 @@ def in_order(names, *runs: dict[str, EstimatorRun]) -> dict[str, EstimatorRun]:
 
 @dataclass
 class SideResult:
-    """What the child fed: its runs (by track name, the lagged ones included), how many
-    measurements it fed, and its ``RunResult.interrupted``; ``error`` (one line) instead when it
-    gave nothing back."""
+    """What the child fed: its runs (by track name, the lagged ones included) and its
+    ``RunResult.interrupted``; ``error`` (one line) instead when it gave nothing back."""
 
     runs: dict[str, EstimatorRun]
-    messages: int = 0
     interrupted: str | None = None
     error: str | None = None
 
@@ -123,13 +122,55 @@ class SideRun:
         return out
 
 
+def run_split(open_stream: Callable[[], object], stream, ests: dict, side: list[str], *,
+              holdout: str | None = None, spill_dir=None, observer=None, progress=None,
+              notice: Callable[[str], None] | None = None
+              ) -> tuple[RunResult, tuple[str, ...], float]:
+    """``runner.run`` of ``ests`` on ``stream`` (interruptible, with ``observer``, ``progress``
+    and ``spill_dir`` as ``run`` takes them), the estimators ``side`` fed meanwhile in a forked
+    process on ``open_stream()``; those the side process could not feed are fed here after the
+    others (``notice`` is told), unless the run was interrupted. Returns the result (its runs in
+    ``ests``'s order), the estimators that were fed beside, and the time (s) spent waiting for
+    them after this process's loop."""
+    child = None
+    if side:
+        try:
+            child = SideRun(open_stream, {n: ests[n] for n in side}, holdout)
+        except OSError as e:
+            if notice is not None:
+                notice(f"{', '.join(side)} fed in this process: no side process ({e})")
+    main = {n: e for n, e in ests.items() if child is None or n not in side}
+    result = run(stream, main, holdout=holdout, progress=progress, interruptible=True,
+                 observers=() if observer is None else (observer,), spill_dir=spill_dir)
+    if child is None:
+        return result, (), 0.0
+    t_wait = time.perf_counter()
+    got = child.join()
+    wait = time.perf_counter() - t_wait
+    if got.error is None:
+        result.runs = in_order(ests, result.runs, got.runs)
+        result.interrupted = result.interrupted or got.interrupted
+        return result, tuple(side), wait
+    if result.interrupted is not None:  # the run was stopped: not started again for them
+        result.interrupted = (f"{result.interrupted}; {', '.join(side)} not run (their side "
+                              f"process: {got.error})")
+        return result, (), 0.0
+    if notice is not None:
+        notice(f"the side process feeding {', '.join(side)} failed ({got.error}): they are "
+               "fed here now")
+    again = run(open_stream(), {n: ests[n] for n in side}, holdout=holdout, interruptible=True)
+    result.runs = in_order(ests, result.runs, again.runs)
+    result.interrupted = result.interrupted or again.interrupted
+    return result, (), 0.0
+
+
 def _child(w: int, open_stream, ests: dict, holdout) -> None:
     code = 0
     try:
         signal.signal(signal.SIGINT, signal.default_int_handler)
         try:
             res = run(open_stream(), ests, holdout=holdout, interruptible=True)
-            out = SideResult(res.runs, res.messages, res.interrupted)
+            out = SideResult(res.runs, res.interrupted)
         except BaseException as e:
             out = SideResult({}, error=f"{type(e).__name__}: {e}")
         data = pickle.dumps(out, protocol=pickle.HIGHEST_PROTOCOL)

@@ -80,15 +80,12 @@ def test_compiled_filters_stay_in_the_main_process(tmp_path):
 
 def test_a_failed_side_process_loses_nothing(reference, tmp_path, monkeypatch):
     m1, one = _run(tmp_path, "one", False)
-    real = side_run.run
-
-    def dies(stream, ests, **kw):  # in the child only: the parent's run is pipeline.run
+    def dies(w, open_stream, ests, holdout):  # the child, before it feeds anything
         os._exit(3)
 
-    monkeypatch.setattr(side_run, "run", dies)
+    monkeypatch.setattr(side_run, "_child", dies)
     notes: list[str] = []
     m2, two = _run(tmp_path, "two", True, notes)
-    monkeypatch.setattr(side_run, "run", real)
     assert any("side process feeding ekf, ekf_igvc failed (the side process ended (exit "
                "status 3) with no results): they are fed here now" in n for n in notes), notes
     assert m2.wall_s.side_process == []
@@ -186,3 +183,29 @@ def test_side_names_needs_a_second_cpu_and_keeps_one_in_the_main_process(monkeyp
     assert side_run.side_names({"ekf": E(True), "ekf_igvc": E(True)}) == ["ekf_igvc"]
     monkeypatch.setattr(side_run, "cpus", lambda: 1)
     assert side_run.side_names(ests) == []
+
+
+def test_a_truncated_bag_gives_the_same_part_with_a_side_process(reference, tmp_path):
+    """Both processes read the bag to where it breaks off: the same tracks of the part that
+    could be read, and the same error, as one process."""
+    import shutil
+
+    from ddfuse.estimation.errors import BagError
+
+    data = BAG.read_bytes()
+    bag = tmp_path / "cut.bag"
+    bag.write_bytes(data[:len(data) * 6 // 10])
+    shutil.copy(ROOT / "data" / "sample_husky.yaml", tmp_path / "cut.yaml")
+    cfg = load_config(tmp_path / "cut.yaml")
+    errors = []
+    for name, side in (("one", False), ("two", True)):
+        with pytest.raises(BagError) as e:
+            pipeline.run_bag(bag, cfg, tmp_path / name, names=NAMES, side_process=side)
+        assert e.value.results_written
+        errors.append(str(e.value).replace(str(tmp_path / name), "OUT"))
+    assert errors[0] == errors[1] and "truncated" in errors[0]
+    for track in NAMES:
+        one = (tmp_path / "one" / f"{track}.tum").read_bytes()
+        assert one and one == (tmp_path / "two" / f"{track}.tum").read_bytes(), track
+    doc = json.loads((tmp_path / "two" / "metrics.json").read_text())
+    assert doc["wall_s"]["side_process"] == ["ekf", "ekf_igvc"]
