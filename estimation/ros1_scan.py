@@ -23,7 +23,8 @@ stops at the first record that is incomplete (the file ends), without raising, a
 ``Ros1Scan.status`` then says how far it got. It reads past a damaged record (a flipped byte):
 a connection record whose definition is not text is used without it; a chunk with a damaged
 record inside is read at the offsets its index data records give; a chunk whose data cannot be
-decompressed gives what decompresses before the damage; an unparseable record is skipped to
+decompressed gives what decompresses before the damage (of LZ4, which has no block checksums,
+the records its index data vouch for: ``_trusted_prefix``); an unparseable record is skipped to
 the next chunk or chunk index record found by its 'op' field. Each is a ``Damage`` in
 ``status.damage``, with the messages it cost when the index's chunk infos can count them
 (docs/design/bag_faults.md).
@@ -234,23 +235,55 @@ def _connection(fields: dict[str, bytes], data: bytes) -> tuple[Connection, str]
 
 
 def _decompress_head(compression: str, data: bytes) -> bytes:
-    """What decompresses of damaged chunk ``data`` before its damage, as written: bz2 checks
-    each block's CRC, so the blocks before the damaged one are fed to a streaming decompressor
-    in slices until it fails. LZ4 (no block checksums as rosbags writes it) gives nothing: a
-    flipped bit garbles its output silently before it fails (record times seconds off)."""
+    """What decompresses of damaged chunk ``data`` before the decompressor fails, fed to a
+    streaming decompressor in slices until it does. bz2 checks each block's CRC, so its head
+    is exact. LZ4, as rosbags writes it, has no block checksums: a flipped bit garbles its
+    output silently before it fails (records seconds off in time, lengths shifted), so its head
+    is to be trusted only as far as ``_trusted_prefix`` checks it against the chunk's index."""
     if compression == "none":
         return data
-    if compression != "bz2":
+    if compression == "bz2":
+        dec, errors = bz2.BZ2Decompressor(), (RuntimeError, OSError, ValueError, EOFError)
+    elif compression == "lz4":
+        dec, errors = lz4.frame.LZ4FrameDecompressor(), (RuntimeError, ValueError)
+    else:
         return b""
-    dec = bz2.BZ2Decompressor()
     out = []
-    step = 1 << 14
+    step = 1 << 12 if compression == "lz4" else 1 << 14  # LZ4: a slice under its 64 KiB blocks
     try:
         for i in range(0, len(data), step):
             out.append(dec.decompress(data[i:i + step]))
-    except (RuntimeError, OSError, ValueError, EOFError):
+    except errors:
         pass
     return b"".join(out)
+
+
+def _trusted_prefix(buf: bytes, entries: list[tuple[int, int, int, int]]) -> int:
+    """How many bytes of the head ``buf`` of a damaged LZ4 chunk to read: up to the start of
+    the last of the message records that, from the chunk's first on, each stand at the offset
+    the chunk's index data ``entries`` (offset, connection, sec, nsec; sorted) give, with that
+    connection and time, and end at or before the next one's offset. The record in which the
+    damage lies keeps a good header, so the last that checks is left out too; past the damage
+    the output is shifted and no record checks (measured: docs/design/bag_faults.md)."""
+    starts: list[int] = []
+    n = len(buf)
+    for k, (off, conn, sec, nsec) in enumerate(entries):
+        nxt = entries[k + 1][0] if k + 1 < len(entries) else n
+        if off + 8 > n:
+            break
+        hend = off + 4 + _U32.unpack_from(buf, off)[0]
+        if hend + 4 > n:
+            break
+        try:
+            fields = _fields(buf, off + 4, hend)
+            ok = (_op(fields) == OP_MSGDATA and _u32(fields, "conn") == conn
+                  and fields.get("time") == _TIME.pack(sec, nsec))
+        except _Damaged:
+            ok = False
+        if not ok or hend + 4 + _U32.unpack_from(buf, hend)[0] > min(nxt, n):
+            break
+        starts.append(off)
+    return starts[-1] if starts else 0
 
 
 def _record_at(f, pos: int, size: int) -> bool:
@@ -303,12 +336,12 @@ def _find_record(f, start: int, size: int) -> int | None:
     return None
 
 
-def _chunk_offsets(f, size: int) -> list[int] | None:
-    """The message offsets (in the decompressed chunk) that the index data records at the file
-    position give, sorted; None if there are none or one is damaged. The file position is left
-    unchanged."""
+def _chunk_entries(f, size: int) -> list[tuple[int, int, int, int]] | None:
+    """The message records that the index data records at the file position list, as
+    (offset in the decompressed chunk, connection id, sec, nsec), sorted by offset; None if
+    there are none or one is damaged. The file position is left unchanged."""
     back = f.tell()
-    offsets: list[int] = []
+    entries: list[tuple[int, int, int, int]] = []
     try:
         while _record_at(f, f.tell(), size):
             head = f.read(4)
@@ -319,12 +352,21 @@ def _chunk_offsets(f, size: int) -> list[int] | None:
                 break
             if _u32(fields, "ver") != 1 or len(data) % 12:
                 return None
-            offsets += struct.unpack(f"<{len(data) // 4}I", data)[2::3]
+            conn = _u32(fields, "conn")
+            entries += [(off, conn, sec, nsec)
+                        for sec, nsec, off in struct.iter_unpack("<III", data)]
     except _Damaged:
         return None
     finally:
         f.seek(back)
-    return sorted(offsets) or None
+    return sorted(entries) or None
+
+
+def _chunk_offsets(f, size: int) -> list[int] | None:
+    """The message offsets (in the decompressed chunk) that the index data records at the file
+    position give, sorted; None if there are none or one is damaged."""
+    entries = _chunk_entries(f, size)
+    return None if entries is None else [e[0] for e in entries]
 
 
 def _next_inner_record(buf: bytes, start: int) -> int:
@@ -552,10 +594,14 @@ class Ros1Scan:
                 raise _Incomplete(f" (a {compression} chunk with {len(data)} of its {dlen} "
                                   f"bytes, which cannot be decompressed ({e}): its messages "
                                   "are lost)") from None
-            # what decompresses before the damage is whole: its records are read, then the
-            # chunk is reported damaged
+            # what decompresses before the damage is read (of LZ4 what the chunk's index
+            # data vouch for, none without them), then the chunk is reported damaged
             buf = _decompress_head(compression, data)
-            yield from self._chunk_records(buf, resync=True)
+            if compression == "lz4":
+                entries = _chunk_entries(f, self.status.file_size)
+                yield from self._chunk_records(buf[:_trusted_prefix(buf, entries or [])])
+            else:
+                yield from self._chunk_records(buf, resync=True)
             raise _Damaged(f"its {compression} data cannot be decompressed: {e}") from None
         if not cut:
             # held until the chunk is known whole: a damaged record may swallow the ones after it

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import bagwriter as bw
 import byteflip
+import lz4.frame
 import pytest
 from ddfuse.estimation import ros1_scan
 from ddfuse.estimation.bag_drops import DAMAGED
@@ -185,3 +186,82 @@ def test_flips_of_the_real_husky_bag_each_read_or_counted(husky_bag, tmp_path):
                         buf.rindex(b"message_definition=") + 40)
     lost, [w] = assert_accounted(bad, counts, cfg)
     assert not lost
+
+
+def _messages(bag: Path) -> tuple[list[ros1_scan.Message], ros1_scan.ScanStatus]:
+    scan = ros1_scan.Ros1Scan(bag, ros1_scan.read_index(bag))
+    return [m for m in scan if type(m) is ros1_scan.Message], scan.status
+
+
+def test_a_broken_lz4_chunk_gives_its_messages_before_the_damage_unaltered(tmp_path):
+    """LZ4 as rosbags writes it has no block checksums: a flip garbles the output before the
+    decompressor fails. The messages read from such a chunk are those before the damage that
+    its index data vouch for, each byte for byte as in the intact bag; the rest are counted
+    lost, and the warning says how many were read."""
+    cfg = load_config(SAMPLE_CFG)
+    counts = topic_counts(SAMPLE)
+    buf = SAMPLE.read_bytes()
+    chunk = next(r for r in byteflip.records(buf) if r.op == ros1_scan.OP_CHUNK)
+    data = buf[chunk.data:chunk.end]
+    assert data[:4] == b"\x04\x22\x4d\x18"  # an LZ4 frame
+    clean = {(m.conn.topic, m.time_ns): m.data for m in _messages(SAMPLE)[0]}
+    breaking = []
+    for off in range(len(data) // 8, len(data), len(data) // 40):
+        flipped = bytearray(data)
+        flipped[off] ^= 0x80
+        with _Breaks() as b:
+            lz4.frame.decompress(bytes(flipped))
+        if b.broke:
+            breaking.append(chunk.data + off)
+    assert len(breaking) >= 5
+    read_from_chunk = 0
+    for i, offset in enumerate(breaking):
+        bad = byteflip.flip(SAMPLE, tmp_path / f"lz4_{i}.bag", offset)
+        lost, [w] = assert_accounted(bad, counts, cfg)
+        msgs, status = _messages(bad)
+        for m in msgs:
+            assert clean[(m.conn.topic, m.time_ns)] == m.data, (offset, m.conn.topic, m.time_ns)
+        [dmg] = status.damage
+        assert "lz4 data cannot be decompressed" in dmg.what
+        read_from_chunk += dmg.salvaged
+        assert f"{dmg.salvaged} read from it" in w or not dmg.salvaged
+    in_chunk = sum(ros1_scan.read_index(SAMPLE).chunk_counts[chunk.start].values())
+    # the damage is spread over the chunk, so about half of its messages come before it
+    assert read_from_chunk >= 0.3 * in_chunk * len(breaking)
+
+
+class _Breaks:
+    """Context: whether the block raised lz4's RuntimeError (the decompression failed)."""
+
+    broke = False
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, value, tb):
+        self.broke = kind is RuntimeError
+        return self.broke
+
+
+def test_trusted_prefix_stops_before_the_last_record_that_checks():
+    """Records are trusted while each stands at its index offset with its connection and time;
+    the last that checks may hold the damage, so it is left out; no index data, nothing."""
+
+    def record(conn: int, sec: int, payload: bytes) -> bytes:
+        fields = b"".join(ros1_scan._U32.pack(len(f)) + f for f in (
+            b"op=\x02", b"conn=" + ros1_scan._U32.pack(conn),
+            b"time=" + ros1_scan._TIME.pack(sec, 0)))
+        return (ros1_scan._U32.pack(len(fields)) + fields + ros1_scan._U32.pack(len(payload))
+                + payload)
+
+    recs = [record(1, s, bytes([s]) * 7) for s in range(4)]
+    starts = [sum(len(r) for r in recs[:k]) for k in range(4)]
+    buf = b"".join(recs)
+    entries = [(starts[k], 1, k, 0) for k in range(4)]
+    assert ros1_scan._trusted_prefix(buf, entries) == starts[3]  # all check: the last left out
+    wrong_time = entries[:2] + [(starts[2], 1, 99, 0), entries[3]]
+    assert ros1_scan._trusted_prefix(buf, wrong_time) == starts[1]
+    wrong_conn = entries[:1] + [(starts[1], 2, 1, 0)] + entries[2:]
+    assert ros1_scan._trusted_prefix(buf, wrong_conn) == 0  # only the first checks: left out
+    assert ros1_scan._trusted_prefix(buf, []) == 0
+    assert ros1_scan._trusted_prefix(buf[:starts[2] + 5], entries) == starts[1]  # cut head
