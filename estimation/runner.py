@@ -378,7 +378,8 @@ def broken(e: Estimate) -> str | None:
     return (f"pose ({e.pose[0]:.3g}, {e.pose[1]:.3g}, {e.pose[2]:.3g}), pose variances "
             f"({d[0]:.3g}, {d[1]:.3g}, {d[2]:.3g}): the covariance lost positive "
             "definiteness or all meaning; the config's noise values may be far from the data's "
-            "(with sigmas of 1e-9 no recovery from a gate lock-out can reconcile the sensors)")
+            "(with sigmas of 1e-9 no recovery from a gate lock-out can reconcile the sensors; a "
+            "process noise far above the robot's motion, robot.slip or twist_walk, swamps them)")
 
 
 def _never_started(log: EstimatorLog, fixes_withheld: int = 0, fixes_fed: int = 0,

@@ -89,3 +89,28 @@ def test_run_refuses_a_finished_estimator_and_a_zero_output_rate(sample):
     assert len(run(ok, {"dr": est}).runs["dr"].trajectory)
     with pytest.raises(ValueError, match="'dr' was already run to its end"):
         run(ok, {"dr": est})
+
+
+def test_a_gps_innovation_with_a_singular_covariance_has_infinite_nis_without_a_warning():
+    """An absurd config (a slip of 1e20) can leave the fix's innovation covariance with a
+    determinant that is not positive: its NIS is infinite (the fix cannot be judged), and numpy's
+    divide-by-zero warning no longer reaches the user's terminal."""
+    import types
+    import warnings
+
+    from ddfuse.estimation.estimator import EstimatorLog
+    from ddfuse.estimation.measurements import GpsFix
+    from ddfuse.estimation.smoother.gps import GpsFusion
+
+    fusion = types.SimpleNamespace(log=EstimatorLog())
+    fix = GpsFix(t=1.0, lat=0.0, lon=0.0, alt=0.0, cov=np.eye(3), enu=(3.0, 4.0, 0.0))
+    st = np.zeros(9)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        singular = GpsFusion.innovation(fusion, fix, (0.0, 0.0), 0.0, np.zeros((2, 2)), st,
+                                        np.zeros((9, 9)))
+        regular = GpsFusion.innovation(fusion, fix, (0.0, 0.0), 0.0, np.eye(2), st,
+                                       np.zeros((9, 9)))
+    assert singular == float("inf")
+    assert regular == pytest.approx(25.0)
+    assert len(fusion.log.innovations) == 2

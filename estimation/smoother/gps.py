@@ -278,7 +278,7 @@ class GpsFusion:
         a, b, d = cov[0, 0], cov[0, 1], cov[1, 1]
         det = a * d - b * b
         r0, r1 = res
-        nis = (d * r0 * r0 - 2 * b * r0 * r1 + a * r1 * r1) / det
+        nis = (d * r0 * r0 - 2 * b * r0 * r1 + a * r1 * r1) / det if det > 0.0 else math.inf
         self.log.innovations.append(Innovation(m.t, m.sensor, "gps", res, cov, float(nis), True))
         return float(nis)
 
