@@ -171,7 +171,8 @@ def _write_tuning(outdir: Path, tuning: Tuning, bag: str | Path, config: Path | 
     with held_signals() as held:
         if tuning.applied:
             date = datetime.date.today().isoformat()
-            write_tuned(config, tuned_path, tuning.result, Path(bag).name, date)
+            write_tuned(config, tuned_path, tuning.result, Path(bag).name, date,
+                        tuning.before, tuning.after, holdout)
         else:
             remove(tuned_path)  # an earlier --tune run's: not this run's config
         write_text(outdir / TUNING_FILE, json.dumps(record, indent=1) + "\n")

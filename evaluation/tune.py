@@ -605,3 +605,33 @@ def check(cfg: Config, stream: Stream, values: list[float | None], *, estimator:
     white = whiteness(est.log.innovations, {(s.name, "heading"): span
                                             for s in cfg.heading_sensors()})
     return Check(nis, rmse, white)
+
+
+HOLDOUT_WORSE = 0.05  # the tuning issue's allowance: a hold-out within 5 % counts as no worse
+HOLDOUT_WHY = ("they fit the innovations of the data the estimators saw, and the stretch "
+               "withheld depends on what the estimators' model does not carry across it (e.g. a "
+               "heading that drifts at a rate, GPS errors correlated over it: "
+               "docs/design/tuning.md, Limits)")
+
+
+def holdout_rise(before: Check | None, after: Check | None, holdout: str | None) -> float | None:
+    """How much worse (a fraction: 0.62 for +62 %) the tuned values predict the withheld fixes
+    than the config's, by the tuning estimator's hold-out RMSE (m), when over ``HOLDOUT_WORSE``
+    and 1 cm; None otherwise (no hold-out, a run without a score, no worse)."""
+    b = before.holdout_rmse_m if before else None
+    a = after.holdout_rmse_m if after else None
+    if not (holdout and b is not None and a is not None and math.isfinite(b) and b > 0.0):
+        return None
+    return a / b - 1.0 if a > b * (1.0 + HOLDOUT_WORSE) and a - b > 0.01 else None
+
+
+def holdout_worse(before: Check | None, after: Check | None, holdout: str | None,
+                  estimator: str) -> str | None:
+    """What to say when the tuned values predict the withheld fixes worse than the config's
+    (``holdout_rise``); None when they do not."""
+    rise = holdout_rise(before, after, holdout)
+    if rise is None:
+        return None
+    return (f"the tuned values predict the fixes withheld by --gps-holdout {holdout} worse than "
+            f"the config's (the {estimator} EKF's RMSE {before.holdout_rmse_m:.3f} -> "
+            f"{after.holdout_rmse_m:.3f} m, {100.0 * rise:+.0f} %): {HOLDOUT_WHY}")

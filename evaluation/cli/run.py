@@ -222,6 +222,7 @@ def _say_tuning(tuned, outdir: Path) -> None:
     """After ``run --tune``: what tuning changed for the best estimator in one line
     (``report_tuning.change_line``) and where the two runs' results are."""
     from ddfuse.evaluation.report_tuning import change_line
+    from ddfuse.evaluation.tune import holdout_worse
 
     line = change_line(tuned.record, tuned.run, tuned.shipped)
     if not tuned.tuning.applied:
@@ -230,6 +231,13 @@ def _say_tuning(tuned, outdir: Path) -> None:
     sys.stdout.write(f"{line}\n")
     sys.stdout.write(f"the tuned config's results are these, in {outdir}/ (with tuned.yaml, "
                      f"tuning.json); the given config's in {outdir / SHIPPED}/\n")
+    t = tuned.tuning
+    worse = holdout_worse(t.before, t.after, tuned.record.get("gps_holdout"),
+                          t.result.estimator)
+    if worse:
+        sys.stdout.flush()
+        sys.stderr.write(f"ddfuse: warning: {worse}; the report's 'What tuning changed' "
+                         "compares every estimator's runs with both configs\n")
 
 
 def _notice(text: str, bars) -> None:

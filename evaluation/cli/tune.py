@@ -41,7 +41,7 @@ def command(args: argparse.Namespace) -> int:
     from ddfuse.estimation.bags import read_stream
     from ddfuse.estimation.config import load_config
     from ddfuse.evaluation.shipped import config_for
-    from ddfuse.evaluation.tune import check, tune, tuning_estimator
+    from ddfuse.evaluation.tune import check, holdout_worse, tune, tuning_estimator
     from ddfuse.evaluation.tune_yaml import write_tuned
 
     if args.output:
@@ -76,8 +76,14 @@ def command(args: argparse.Namespace) -> int:
     if args.output:
         sys.stdout.flush()
         date = datetime.date.today().isoformat()
-        write_tuned(config, args.output, result, Path(args.bag).name, date)
+        write_tuned(config, args.output, result, Path(args.bag).name, date, before, after,
+                    args.gps_holdout)
         sys.stdout.write(f"tuned config written to {args.output}\n")
+    worse = holdout_worse(before, after, args.gps_holdout, result.estimator)
+    if worse:
+        sys.stdout.flush()
+        sys.stderr.write(f"ddfuse: warning: {worse}; `ddfuse run --tune` runs every "
+                         "estimator with both configs, side by side\n")
     return 0
 
 
