@@ -193,7 +193,7 @@ def _failing(m: RunSummary) -> list[str]:
 def next_step(m: RunSummary, scored: bool) -> tuple[str | None, str]:
     """The one next command that tells more about this run, and why (only commands that work
     for its config): a GPS hold-out where nothing scores the tracks and the bag has fixes;
-    ``ddfuse tune`` where a consistency test fails (``_failing``); a GPS outage (``window:``)
+    ``ddfuse run --tune`` where a consistency test fails (``_failing``); a GPS outage (``window:``)
     where the bag has GPS and the run had none; else, with a smoother and a score,
     ``ddfuse lag-sweep``; none where no estimator produced an estimate."""
     if not any(e.samples != 0 for e in m.estimators.values()):
@@ -207,9 +207,10 @@ def next_step(m: RunSummary, scored: bool) -> tuple[str | None, str]:
     failing = _failing(m)
     if failing:
         holdout = ["--gps-holdout", m.gps_holdout] if m.gps_holdout else []
-        return (_command("ddfuse", "tune", *args, *holdout),
-                f"a consistency test fails ({', '.join(failing)}): tune fits the config's "
-                "noise values to this bag and says what changes")
+        return (_command("ddfuse", "run", *args, "--tune", *holdout, "-o", "ddfuse-tuned"),
+                f"a consistency test fails ({', '.join(failing)}): --tune fits the config's "
+                "noise values to this bag and runs every estimator with both configs, side by "
+                "side (values that fit the sensors can still score worse)")
     outage = bool(m.gps_outages) or str(m.gps_holdout or "").startswith("window")
     if has_gps and not outage and m.duration_s and m.duration_s > 2 * WINDOW_S:
         t0 = math.floor(WINDOW_AT * m.duration_s)

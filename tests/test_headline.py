@@ -143,7 +143,8 @@ def test_without_truth_a_gps_hold_out_is_suggested_only_where_there_is_gps():
 def test_a_consistency_failure_suggests_tune_with_the_runs_hold_out():
     m = _run({"ekf": 0.5, "smoother": 0.2}, truth=False, holdout="every:5",
              ekf={"nis": {"/fix gps": _nis(8.0, "Fail", "gps", "/fix")}})
-    assert _next(m) == ["ddfuse", "tune", "/data/b.bag", "--gps-holdout", "every:5"]
+    assert _next(m) == ["ddfuse", "run", "/data/b.bag", "--tune", "--gps-holdout", "every:5",
+                        "-o", "ddfuse-tuned"]
 
 
 def test_a_low_rate_nis_beside_a_passing_nees_is_explained_not_tuned():
@@ -159,7 +160,8 @@ def test_a_low_rate_nis_beside_a_passing_nees_is_explained_not_tuned():
 def test_a_config_not_beside_the_bag_is_passed_with_c():
     m = _run({"ekf": 0.5, "smoother": 0.2}, ekf={"nees": _nees(20.0, "Fail")})
     m = RunSummary.from_json({**m.to_json(), "config": "/elsewhere/my config.yaml"})
-    assert _next(m) == ["ddfuse", "tune", "/data/b.bag", "-c", "/elsewhere/my config.yaml"]
+    assert _next(m) == ["ddfuse", "run", "/data/b.bag", "-c", "/elsewhere/my config.yaml",
+                        "--tune", "-o", "ddfuse-tuned"]
 
 
 def test_no_next_command_when_no_estimator_estimated():
