@@ -681,6 +681,12 @@ def _feed(meas, n, fraction, select, gps, est_list, alive, errors, outputs, timi
                 timings[i].append(dt)
                 totals[i] += dt
                 if e is not None:
+                    last = outputs[i].last
+                    if last is not None and e.t <= last.t:
+                        # nothing newer since the last tick (a smoother waiting for its first
+                        # odometry sample): a track's stamps only increase, so its samples
+                        # never share one (evo and the metrics' interpolation need that)
+                        continue
                     bad = broken(e)
                     if bad:  # never recorded: the track keeps what it had
                         alive[i] = False
