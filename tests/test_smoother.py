@@ -606,6 +606,42 @@ def test_filtered_estimate_uses_the_headings_since_the_newest_keyframe(husky):
     assert shift == pytest.approx(kf_shift, rel=0.2)
 
 
+def test_a_heading_sample_carries_the_slip_and_offset_walk_since_the_keyframe(husky):
+    """A heading sample tau s after the keyframe reads psi + offset there plus the integrated
+    yaw rate, the heading slip and the offset's walk over tau: the preintegrated factor states
+    all three (pose_noise, heading_offset_rw), so the averaged heading factor's variance and
+    the gate carry all three. Raising the slip's heading density by dq (rad^2/s) raises the
+    average's variance by exactly dq sum_il min(tau_i, tau_l) / n^2 (before: by nothing)."""
+    cfg, stream = husky
+    ms = stream.measurements
+    q = 0.05  # rad/sqrt(s)
+    loud = replace(cfg, robot=replace(cfg.robot, slip={**cfg.robot.slip, "heading": q}))
+    a = FixedLagSmoother(cfg, initial_pose=_pose0(stream))
+    b = FixedLagSmoother(loud, initial_pose=_pose0(stream))
+    taus, add = [], a.headings.add
+
+    def add_and_note(m):  # each sample's time since the keyframe, as the accumulator sees it
+        ok = add(m)
+        if ok:
+            del taus[a.headings.n - 1:]
+            taus.append(a.twist.pim.dt_total)
+        return ok
+
+    a.headings.add = add_and_note
+    n = 0
+    while n < len(ms) and (ms[n].t - ms[0].t < 20.0 or a.headings.n < 6):
+        a.process(ms[n])
+        b.process(ms[n])
+        n += 1
+    assert a.window.k == b.window.k and a.headings.n == b.headings.n == len(taus) >= 6
+    assert not any(k[1] == "gate" for k in a.log.rejected) and not b.log.rejected
+    tau = np.array(taus)
+    share = np.minimum.outer(tau, tau).sum() / len(tau) ** 2
+    dq = q ** 2 - a.noise.pose_noise[2] ** 2
+    var_a, var_b = a.headings.pending()[2], b.headings.pending()[2]
+    assert share > 0.0 and var_b - var_a == pytest.approx(dq * share, rel=1e-6)
+
+
 @pytest.mark.parametrize("est_scales", [True, False])
 def test_the_pending_headings_update_is_the_dense_kalman_update(husky, est_scales):
     """``with_pending`` works on the few non-zeros of h in Python floats (one pass when they are

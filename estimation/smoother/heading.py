@@ -49,6 +49,7 @@ class HeadingAccumulator:
         self._cache = None  # (key, (state, pose cov)) of with_pending
         self._rows = None  # (marginal, its rows as lists, symmetrised pose block): with_pending
         self._gate_terms: tuple | None = None  # the gate's per-keyframe terms (gate)
+        self._walk_terms: tuple | None = None  # (marginal, sensor, rad^2/s): ``_walk``
 
     def add(self, m: Heading) -> bool:
         """Take heading sample ``m`` (the preintegration already advanced to its stamp): False
@@ -57,7 +58,9 @@ class HeadingAccumulator:
         self.latest = m
         f = 1.0 if self.clock is None else self.clock.factor(m)  # every sample, fused or not
         if self.n == 0 or m.sensor == self._sensor:
-            dpsi, j_p, kw_p, c = self.twist.pim.yaw_terms()
+            pim = self.twist.pim
+            dpsi, j_p, kw_p, c = pim.yaw_terms()
+            c += self._walk(m.sensor) * pim.dt_total
             u = m.yaw - dpsi  # carried back to the interval's start
             if not self.gate(m, u, c):
                 return False
@@ -78,11 +81,28 @@ class HeadingAccumulator:
             self.n += 1
         return True
 
+    def _walk(self, sensor: str) -> float:
+        """rad^2/s: what the preintegrated factor adds to the heading ``sensor`` reads over an
+        interval beside the integrated yaw rate: the slip's heading density
+        (``preintegrated_factor``'s pose_noise) and, where the sensor's offset is estimated,
+        the offset's walk (``offset_walk``). A sample carried to the keyframe carries them
+        too, or a compass stated below their share is gated, averaged and widened against
+        too small a variance (docs/design/smoother.md, heading samples)."""
+        full = self.window.full
+        c = self._walk_terms
+        if c is None or c[0] is not full or c[1] != sensor:
+            q = self.noise.pose_noise[2] ** 2
+            s = self.sensors.get(sensor)
+            if s is not None and s.heading_offset == "estimate":
+                q += self.offset_walk() ** 2
+            c = self._walk_terms = (full, sensor, q)
+        return c[2]
+
     def gate(self, m: Heading, u: float, c_pp: float) -> bool:
         """Whether heading sample ``m`` (``u``: its yaw carried back to the newest keyframe,
-        ``c_pp`` rad^2 the variance of the yaw preintegrated since it) passes its sensor's
-        chi-square gate, as in the EKFs: against the keyframe's marginal, the yaw
-        preintegrated since it and the sample's own variance. A lock-out (a run of
+        ``c_pp`` rad^2 the variance of the yaw preintegrated since it, ``_walk``'s included)
+        passes its sensor's chi-square gate, as in the EKFs: against the keyframe's marginal,
+        the yaw preintegrated since it and the sample's own variance. A lock-out (a run of
         rejections, ``ddfuse.estimation.lockout``) with GPS fixes or landmark sightings fused since
         it began means the compass is the outlier (a wrong fixed offset, a magnetic
         disturbance): it stays gated out, with a note. Without them the estimate is lost: the
@@ -204,7 +224,8 @@ class HeadingAccumulator:
         else:
             z += pim.dpsi
             jb, jk = jb - pim.j_p, jk - pim.kw_p
-            carried = pim.c_pp - (2.0 * c2 + c1) / (n * n)
+            carried = (pim.c_pp + self._walk(self._sensor) * pim.dt_total
+                       - (2.0 * c2 + c1) / (n * n))
         terms = [(PSI, 1.0)]
         if self.est_bias:
             terms.append((BG, jb))
