@@ -15,7 +15,8 @@ A fix that does not agree is flagged; it never becomes a reference, so during a 
 reference stays the last fix before it. ``MIN_FIXES`` consecutive flagged fixes make an episode,
 which ends at the last flagged fix before an agreeing one (or at the end of the input):
 ``episodes`` lists them (topic, start and end stamp s, fixes, largest disagreement m) and
-``warnings()`` says each in one line. Without a GPS or a speed source the watch is off.
+``warnings()`` says each in one line, and a topic with many under a gating GPS model once more,
+with the robust model for them. Without a GPS or a speed source the watch is off.
 Design and figures: docs/design/plausibility.md.
 """
 
@@ -31,7 +32,8 @@ from ddfuse.estimation.gaps import is_gap
 from ddfuse.estimation.measurements import GpsFix
 from ddfuse.estimation.twist_track import TwistTrack
 
-__all__ = ["ABS_M", "K_SIGMA", "MIN_FIXES", "REL", "WINDOW_S", "Episode", "GpsWatch"]
+__all__ = ["ABS_M", "K_SIGMA", "MANY_EPISODES", "MIN_FIXES", "REL", "WINDOW_S", "Episode",
+           "GpsWatch"]
 
 log = logging.getLogger(__name__)
 
@@ -40,6 +42,9 @@ K_SIGMA = 8.0  # the fixes' noise allowance, in their standard deviations (see t
 REL = 0.1  # the dead reckoning's allowance per metre travelled (scale and heading errors)
 ABS_M = 1.0  # m: and a fixed part (lever arm, the GPS delay's motion)
 MIN_FIXES = 3  # consecutive flagged fixes that make an episode
+# episodes of one topic that make it a GPS of bursts (multipath, NLOS) rather than of a rare
+# fault, where the config's model gates each fix: the summary line suggests a robust model
+MANY_EPISODES = 3
 
 
 @dataclass
@@ -77,6 +82,7 @@ class GpsWatch:
 
     def __init__(self, cfg: Config) -> None:
         self.topic = {s.name: s.topic for s in cfg.sensors}
+        self.model = cfg.gps.model if not cfg.gps.robust else None  # a gating model's name
         self.dr = TwistTrack(cfg)
         self.on = self.dr.on and bool(cfg.of_kind("gps"))
         self.episodes: list[Episode] = []
@@ -116,9 +122,25 @@ class GpsWatch:
             self._close(sensor)
 
     def warnings(self) -> list[str]:
-        """One line per episode (``Episode.describe``)."""
+        """One line per episode (``Episode.describe``); where a topic has ``MANY_EPISODES`` or
+        more and the config's GPS model gates each fix, one more: what they look like and the
+        model for them."""
         t0 = self.t0 if self.t0 is not None else 0.0
-        return [e.describe(t0) for e in self.episodes]
+        out = [e.describe(t0) for e in self.episodes]
+        if self.model is None:
+            return out
+        for topic in dict.fromkeys(e.topic for e in self.episodes):
+            eps = [e for e in self.episodes if e.topic == topic]
+            if len(eps) >= MANY_EPISODES:
+                out.append(
+                    f"topic {topic}: GPS disagreed with the odometry {len(eps)} times "
+                    f"({sum(e.fixes for e in eps)} fixes, up to "
+                    f"{max(e.size_m for e in eps):.0f} m): errors that come and go in bursts, "
+                    "as multipath and non-line-of-sight fixes in a city give; gps.model "
+                    f"'{self.model}' gates each fix and can follow a burst: a robust model "
+                    "(gps: {model: dcs}) weighs them in the smoother, the batch and the EKFs "
+                    "(docs/design/urban_gps.md)")
+        return out
 
     # --- inside ----------------------------------------------------------------------------
     def _fix(self, m: GpsFix) -> None:

@@ -76,3 +76,23 @@ def test_the_scenario_and_its_config():
     assert parsed.sensor("/imu/data").use == ("yaw_rate",)
     husky = simulate(replace(get_scenario("husky"), duration=30.0), 1)
     assert husky.gps.environment is None and sim_config(husky)["robot"]["slip"]["lateral"] == 0.0
+
+
+def test_the_configs_header_says_what_the_urban_fixes_were():
+    """The header of the config beside an urban bag counts this draw's fixes by environment
+    (they add up to every fix) and names the model for them; the generic 'outliers 0.0' of the
+    other scenarios, which an urban bag's fixes belie, is not said."""
+    import re
+
+    from ddfuse.evaluation.simulate.sidecars import truth_comment
+
+    res = simulate("urban", 3, 300.0)
+    text = " ".join(line[2:] for line in truth_comment(res, "ros1").splitlines())
+    m = re.search(r"of (\d+) fixes (\d+) in open sky .*?, (\d+) in street canyons .*?, (\d+) in "
+                  r"multipath bursts .*?, (\d+) NLOS", text)
+    assert m, text
+    n, *parts = map(int, m.groups())
+    assert n == len(res.gps.t) == sum(parts) and parts[2] + parts[3] > 0
+    assert "gps: {model: dcs}" in text and "outliers" not in text
+    gps = truth_comment(res, "ros1").split("# GPS: ")[1].splitlines()
+    assert len(gps) > 1 and all(len(line) <= 100 for line in gps)  # wrapped
