@@ -121,6 +121,11 @@ class GpsWatch:
         for sensor in list(self._open):
             self._close(sensor)
 
+    def bursty(self, topic: str) -> bool:
+        """Whether GPS ``topic`` disagreed with the odometry in ``MANY_EPISODES`` or more
+        episodes: fixes whose errors come and go in bursts."""
+        return sum(1 for e in self.episodes if e.topic == topic) >= MANY_EPISODES
+
     def warnings(self) -> list[str]:
         """One line per episode (``Episode.describe``); where a topic has ``MANY_EPISODES`` or
         more and the config's GPS model gates each fix, one more: what they look like and the
@@ -130,8 +135,8 @@ class GpsWatch:
         if self.model is None:
             return out
         for topic in dict.fromkeys(e.topic for e in self.episodes):
-            eps = [e for e in self.episodes if e.topic == topic]
-            if len(eps) >= MANY_EPISODES:
+            if self.bursty(topic):
+                eps = [e for e in self.episodes if e.topic == topic]
                 out.append(
                     f"topic {topic}: GPS disagreed with the odometry {len(eps)} times "
                     f"({sum(e.fixes for e in eps)} fixes, up to "

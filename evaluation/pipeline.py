@@ -228,13 +228,18 @@ def _residual_corr(tr: Trajectory, t: np.ndarray, xy: np.ndarray, antenna: GpsAn
     return metrics.correlation_time(t[inside], (xy - est)[inside])
 
 
-def gps_correlation_warnings(cfg: Config, gps: GpsTrack) -> list[str]:
+def gps_correlation_warnings(cfg: Config, gps: GpsTrack, watch=None) -> list[str]:
     """The advice of ``ddfuse.estimation.gps_scatter`` (the rule `inspect` suggests a GPS
     sensor's ``correlation_time`` by) when the config's value disagrees with what the run's GPS
     fixes ``gps`` (withheld ones too: the data's, whatever the hold-out) give. With more than
-    one GPS sensor the fixes are not told apart by receiver: no advice."""
+    one GPS sensor the fixes are not told apart by receiver: no advice; nor where the stream's
+    ``watch`` (``GpsWatch``) found the GPS bursty: the scatter is then the bursts', measured
+    against a stated sigma they belie (urban: 'set correlation_time: 0' for errors that wander
+    over 10 s), and its own warning names the model for them."""
     sensors = cfg.of_kind("gps")
     if len(sensors) != 1 or len(gps) == 0:
+        return []
+    if watch is not None and watch.bursty(sensors[0].topic):
         return []
     scatter = gps_scatter.fix_scatter(gps.t, gps.xy, np.trace(gps.cov, axis1=1, axis2=2) / 2.0)
     advice = scatter.advice(sensors[0].topic, sensors[0].correlation_time) if scatter else None
@@ -639,7 +644,8 @@ out an estimator the sensors nearly allow: ``estimators.left_out``), or, before 
             # the reader's (a topic mostly dropped or silent), then the compass offset's
             out = replace(out, warnings=[*stream.warnings,
                                          *heading_survey.config_warnings(surveys, cfg),
-                                         *gps_correlation_warnings(cfg, result.gps)])
+                                         *gps_correlation_warnings(
+                                             cfg, result.gps, getattr(stream, "watch", None))])
             config_text = config_text_of(cfg)
             heap.trim()  # scoring's temporaries, before the writers' own
             t_scored = clock()

@@ -99,3 +99,19 @@ def test_noise_free_fixes_give_no_time_and_no_advice(tmp_path):
     assert sc.correlated and sc.correlation_time is None and sc.recommended == 0
     assert gps_correlation_warnings(_cfg(tmp_path, 30), track) == []
     assert gps_correlation_warnings(_cfg(tmp_path, None), track) == []
+
+
+def test_no_advice_where_the_watch_found_the_gps_bursty(tmp_path):
+    """Where the GPS disagreed with the odometry in bursts (``GpsWatch.bursty``: 3 episodes or
+    more) the neighbour scatter is the bursts', measured against a stated sigma they belie: the
+    same fixes that get the advice otherwise get none (the watch's own line names the model)."""
+    from ddfuse.estimation.gps_watch import MANY_EPISODES, Episode, GpsWatch
+
+    cfg = _cfg(tmp_path, 30)
+    track = _track(_errors(None))
+    watch = GpsWatch(cfg)
+    watch.episodes = [Episode("/fix", 1000.0 + 50 * k, 1002.0 + 50 * k, 5, 30.0, 10.0)
+                      for k in range(MANY_EPISODES - 1)]
+    assert len(gps_correlation_warnings(cfg, track, watch)) == 1  # two bursts: not bursty
+    watch.episodes.append(Episode("/fix", 1300.0, 1302.0, 5, 30.0, 10.0))
+    assert watch.bursty("/fix") and gps_correlation_warnings(cfg, track, watch) == []
