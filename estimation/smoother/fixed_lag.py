@@ -347,7 +347,17 @@ class FixedLagSmoother(Estimator):
             return None
         twist = self.twist
         st, kf_cov = self.headings.with_pending()
-        pose, cov = compose(st, *twist.partial(st), kf_cov)
+        delta, q = twist.partial(st)
+        t_open = twist.pim.dt_total
+        if t_open > 0.0:
+            # the slip since the keyframe, which the preintegrated factor will state (in the
+            # keyframe's frame, as the interval's covariance): the output grows into the next
+            # keyframe's marginal instead of jumping at it
+            a, b, c = self.noise.pose_noise
+            q[0][0] += a * a * t_open
+            q[1][1] += b * b * t_open
+            q[2][2] += c * c * t_open
+        pose, cov = compose(st, delta, q, kf_cov)
         cov = self.window.with_gauge(self.window.k, cov)
         t = twist.last_t
         ahead = self.now - t
