@@ -142,6 +142,8 @@ class BagStream:
         self.gaps: list[tuple[float, float]] = []  # (last stamp before, first after), s
         self.screen = RobotLimits(cfg, self.rejected)  # what the robot cannot do: rejected
         self.watch = GpsWatch(cfg)  # GPS against the odometry: disagreements reported
+        self._datum_checked = not isinstance(cfg.datum, tuple)  # a stated datum: checked once
+        self._topic_of = {sc.name: sc.topic for sc in cfg.sensors}
         self.t0: float | None = None
         self.t1: float | None = None
         self.count = 0
@@ -422,6 +424,11 @@ class BagStream:
                 self._flush_truth_fixes()
             m.enu = geodesy.geodetic_to_enu(m.lat, m.lon, m.alt, *self.datum)
             m.datum = self.datum
+            if not self._datum_checked:
+                self._datum_checked = True
+                line = geodesy.far_datum(m, self.datum, self._topic_of.get(m.sensor, m.sensor))
+                if line:
+                    self.warnings.append(f"{self.bag}: {line}")
         ok = self.screen.admit(m)
         if not late:
             self.watch.feed(m, ok)

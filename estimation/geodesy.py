@@ -121,3 +121,20 @@ def great_circle_distance_bearing(lat1, lon1, lat2, lon2, radius=EARTH_MEAN_RADI
     x = math.cos(lat1) * math.sin(lat2) - math.sin(lat1) * math.cos(lat2) * math.cos(dlon)
     b = math.atan2(y, x)
     return d, b
+
+
+FAR_DATUM_M = 100e3  # m: a stated datum this far from the first fix is not the robot's site
+
+
+def far_datum(fix, datum: tuple[float, float, float], topic: str) -> str | None:
+    """The warning for a config whose ``frame.datum`` (lat deg, lon deg, alt m) is over
+    ``FAR_DATUM_M`` from the first GPS ``fix`` (its ``enu`` filled, m): a mistyped datum, or one
+    of another site. The fixes are still converted exactly; what breaks is what the config
+    states in that frame (a ground-truth initial pose, a landmark map). None when near."""
+    d = math.hypot(fix.enu[0], fix.enu[1])
+    if not d > FAR_DATUM_M:
+        return None
+    return (f"topic {topic}: the first fix ({fix.lat:.6f}, {fix.lon:.6f}) is {d / 1e3:.0f} km "
+            f"from frame.datum ({datum[0]:g}, {datum[1]:g}): the local ENU frame's origin "
+            "should be where the robot drives; a ground-truth initial pose or a landmark map is "
+            "read in that frame (leave frame.datum out to take the first fix)")

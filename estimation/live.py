@@ -127,6 +127,9 @@ class LiveConverter:
         self.seen: Counter = Counter()  # topic -> messages handed to ``convert``
         self.screen = RobotLimits(cfg, self.rejected)  # what the robot cannot do: rejected
         self.watch = GpsWatch(cfg)  # GPS against the odometry: disagreements logged
+        # a stated datum far from the first fix (``geodesy.far_datum``): logged when it comes
+        self._datum_checked = not isinstance(cfg.datum, tuple)
+        self._far_datum: str | None = None
         self._stamp_reason = (f"header stamp more than {self.tolerance:g} s off its topic's "
                               "clock (time went backwards or jumped)")  # the bag reader's text
 
@@ -190,6 +193,11 @@ class LiveConverter:
                     self.datum = (m.lat, m.lon, m.alt)
                 m.enu = geodesy.geodetic_to_enu(m.lat, m.lon, m.alt, *self.datum)
                 m.datum = self.datum
+                if not self._datum_checked:
+                    self._datum_checked = True
+                    self._far_datum = geodesy.far_datum(m, self.datum, topic)
+                    if self._far_datum:
+                        log.warning("%s", self._far_datum)
         return [m for m in out if self._plausible(m)]
 
     def _plausible(self, m) -> bool:
@@ -200,11 +208,13 @@ class LiveConverter:
     @property
     def warnings(self) -> list[str]:
         """What the input did that a user must know, one line each: the receive clock stepped
-        back (the messages after it re-timed), samples beyond the robot's limits (rejected), GPS
-        disagreeing with the odometry, exact duplicates (dropped). The clock's and a topic's
-        first duplicate are also logged when they happen."""
+        back (the messages after it re-timed), a stated datum far from the first fix, samples
+        beyond the robot's limits (rejected), GPS disagreeing with the odometry, exact
+        duplicates (dropped). The clock's, the datum's and a topic's first duplicate are also
+        logged when they happen."""
         line = self._steps.warning("live input", None)
-        return (([line] if line else []) + self.duplicates.warnings("live input", self.seen)
+        return (([line] if line else []) + ([self._far_datum] if self._far_datum else [])
+                + self.duplicates.warnings("live input", self.seen)
                 + self.screen.warnings() + self.watch.warnings())
 
     def _retime(self, topic: str, rec: tuple, rt: float) -> tuple:

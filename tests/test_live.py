@@ -264,3 +264,18 @@ sensors:
                              "one read just before (same header stamp and content); dropped, "
                              "each fused once"]
     assert sum("exact duplicate" in r.getMessage() for r in caplog.records) == 1
+
+
+def test_a_stated_datum_far_from_the_first_fix_is_logged_and_listed(caplog):
+    """The live converter says, when the first fix comes, what the bag reader says at the end:
+    a stated frame.datum hundreds of km from the robot (geodesy.far_datum); near, nothing."""
+    near = LiveConverter(replace(load_config(CFG), initial_pose=None))
+    _converted(near)
+    assert not any("frame.datum" in w for w in near.warnings)
+    lat, _, alt = load_config(CFG).datum
+    far = LiveConverter(replace(load_config(CFG), initial_pose=None, datum=(lat, 0.0001, alt)))
+    with caplog.at_level("WARNING", logger="ddfuse.estimation.live"):
+        _converted(far)
+    (w,) = [w for w in far.warnings if "frame.datum" in w]
+    assert w.startswith("topic /fix: the first fix (") and " km from frame.datum (" in w
+    assert [r.getMessage() for r in caplog.records if "frame.datum" in r.getMessage()] == [w]
