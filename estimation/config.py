@@ -145,6 +145,7 @@ HEADING_KINDS = ("imu", "magnetometer", "local_heading")
 WALK_KEYS = ("gyro_bias_walk", "heading_offset_walk")  # noise keys that may be 0 (constant)
 ZERO_OK_KEYS = (*WALK_KEYS, "bearing_common")  # noise keys that may be 0
 DEFAULT_GATE = 0.9999
+MAX_GPS_DELAY = 5.0  # s: a GPS sensor's delay beyond this is refused (``_sensor``)
 # Gate lock-out rule shared by the EKFs (ekf_baseline.kalman) and the smoother's GPS gate: this
 # many consecutive rejections of one sensor spanning at least this long mean the estimate, not
 # the sensor, is wrong.
@@ -522,6 +523,12 @@ def _sensor(ck: _Checker, kind: str, i: int, raw: Any, base: Path) -> SensorConf
         s.lever_arm = ck.vector(d["lever_arm"], f"{key}.lever_arm", 2)
     if "delay" in d:
         s.delay = ck.number(d["delay"], f"{key}.delay", nonneg=True)
+        if s.delay > MAX_GPS_DELAY:
+            raise ck.fail(f"{key}.delay", f"must be at most {MAX_GPS_DELAY:g} s, got "
+                          f"{d['delay']!r}: every estimator carries a fix back to the time it "
+                          "describes along the robot's twist at its stamp, which over longer is "
+                          "a guess (a receiver's latency is 0.05-0.5 s; the value is in "
+                          "seconds, not milliseconds)")
     if "correlation_time" in d:
         s.correlation_time = ck.number(d["correlation_time"], f"{key}.correlation_time",
                                        nonneg=True)

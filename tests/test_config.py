@@ -266,6 +266,7 @@ ERRORS = [
     (with_(BASE, robot={"max_yaw_accel": "fast"}), "robot.max_yaw_accel"),
     (sensor("gps", topic="/fix", delay=-0.2), "sensors.gps[0].delay"),
     (sensor("gps", topic="/fix", delay="late"), "sensors.gps[0].delay"),
+    (sensor("gps", topic="/fix", delay=100), "sensors.gps[0].delay"),  # milliseconds
     (sensor("odometry", topic="/o", delay=0.1), "sensors.odometry[0].delay"),
     (sensor("imu", topic="/i", noise={"gyro_bias_walk": -1e-4}),
      "sensors.imu[0].noise.gyro_bias_walk"),
@@ -306,6 +307,10 @@ def test_error_messages_say_what_is_wrong(tmp_path):
     msg = err(with_(BASE, smoother={"robust": "tukey"}))
     assert "huber" in msg and "cauchy" in msg and "'tukey'" in msg
     assert "allowed" in err(with_(BASE, bogus=1))
+    msg = err(sensor("gps", topic="/fix", delay=200))
+    assert "at most 5 s, got 200" in msg and "not milliseconds" in msg
+    assert parse_config(sensor("gps", topic="/fix", delay=5.0), "c.yaml",
+                        base=tmp_path).sensor("/fix").delay == 5.0
 
 
 def test_landmark_map_next_to_the_config_then_next_to_the_bag(tmp_path):
