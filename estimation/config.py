@@ -146,6 +146,9 @@ WALK_KEYS = ("gyro_bias_walk", "heading_offset_walk")  # noise keys that may be 
 ZERO_OK_KEYS = (*WALK_KEYS, "bearing_common")  # noise keys that may be 0
 DEFAULT_GATE = 0.9999
 MAX_GPS_DELAY = 5.0  # s: a GPS sensor's delay beyond this is refused (``_sensor``)
+# m/s^2 and rad/s^2: robot.max_accel / max_yaw_accel beyond this are refused (1e9 broke the
+# unicycle EKF's covariance; 1e4 still ran; the seed002-blog simulation's steps state ~480)
+MAX_ROBOT_ACCEL = 1e5
 # Gate lock-out rule shared by the EKFs (ekf_baseline.kalman) and the smoother's GPS gate: this
 # many consecutive rejections of one sensor spanning at least this long mean the estimate, not
 # the sensor, is wrong.
@@ -649,6 +652,12 @@ def parse_config(raw: Any, source: str = "<config>", base: Path | None = None) -
                 raise ck.fail(f"robot.{k}", "must be > 0: the twist's process noise is derived "
                               "from it, and 0 would hold the twist fixed (leave it out for the "
                               "estimators' default)")
+            if k in r and ck.number(r[k], f"robot.{k}") > MAX_ROBOT_ACCEL:
+                unit = "m/s^2" if k == "max_accel" else "rad/s^2"
+                raise ck.fail(f"robot.{k}", f"must be at most {MAX_ROBOT_ACCEL:g} {unit}, got "
+                              f"{r[k]!r}: the twist's process noise is derived from it (a "
+                              "ground robot's is a few; leave it out for the estimators' "
+                              "default)")
         cfg.robot = RobotConfig(**{
             k: ck.number(r[k], f"robot.{k}", positive=k in ("wheel_radius", "track_width"),
                          nonneg=True)

@@ -264,6 +264,8 @@ ERRORS = [
     (with_(BASE, robot={"slip": 0.1}), "robot.slip"),
     (with_(BASE, robot={"max_accel": -0.5}), "robot.max_accel"),
     (with_(BASE, robot={"max_yaw_accel": "fast"}), "robot.max_yaw_accel"),
+    (with_(BASE, robot={"max_yaw_accel": 1e9}), "robot.max_yaw_accel"),
+    (with_(BASE, robot={"max_accel": 100001}), "robot.max_accel"),
     (sensor("gps", topic="/fix", delay=-0.2), "sensors.gps[0].delay"),
     (sensor("gps", topic="/fix", delay="late"), "sensors.gps[0].delay"),
     (sensor("gps", topic="/fix", delay=100), "sensors.gps[0].delay"),  # milliseconds
