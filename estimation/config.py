@@ -648,11 +648,12 @@ def parse_config(raw: Any, source: str = "<config>", base: Path | None = None) -
                 raise ck.fail(f"robot.{k}", "must be > 0: a sample beyond it is rejected as "
                               "impossible for the robot (leave it out for the default)")
         for k in ("max_accel", "max_yaw_accel"):
-            if k in r and ck.number(r[k], f"robot.{k}") == 0.0:
+            v = ck.number(r[k], f"robot.{k}") if k in r else None
+            if v == 0.0:
                 raise ck.fail(f"robot.{k}", "must be > 0: the twist's process noise is derived "
                               "from it, and 0 would hold the twist fixed (leave it out for the "
                               "estimators' default)")
-            if k in r and ck.number(r[k], f"robot.{k}") > MAX_ROBOT_ACCEL:
+            if v is not None and v > MAX_ROBOT_ACCEL:
                 unit = "m/s^2" if k == "max_accel" else "rad/s^2"
                 raise ck.fail(f"robot.{k}", f"must be at most {MAX_ROBOT_ACCEL:g} {unit}, got "
                               f"{r[k]!r}: the twist's process noise is derived from it (a "

@@ -134,9 +134,11 @@ class GpsWatch:
         out = [e.describe(t0) for e in self.episodes]
         if self.model is None:
             return out
-        for topic in dict.fromkeys(e.topic for e in self.episodes):
-            if self.bursty(topic):
-                eps = [e for e in self.episodes if e.topic == topic]
+        by_topic: dict[str, list[Episode]] = {}
+        for e in self.episodes:
+            by_topic.setdefault(e.topic, []).append(e)
+        for topic, eps in by_topic.items():
+            if len(eps) >= MANY_EPISODES:
                 out.append(
                     f"topic {topic}: GPS disagreed with the odometry {len(eps)} times "
                     f"({sum(e.fixes for e in eps)} fixes, up to "

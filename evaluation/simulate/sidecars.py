@@ -121,15 +121,16 @@ def truth_comment(res: SimResult, fmt: str) -> str:
     if sc.gps and sc.gps.urban is not None and res.gps.environment is not None:
         g, u, env = sc.gps, sc.gps.urban, res.gps.environment
         counts = [int(np.sum(env == k)) for k in range(4)]  # urban_gps: OPEN .. NLOS
-        lines.append(f"GPS: latency {g.delay} s (fix stamped late), dropouts {g.dropout_prob}; "
-                     f"urban errors (docs/design/urban_gps.md): of {len(env)} fixes {counts[0]} "
-                     f"in open sky ({u.open_std:g} m per axis), {counts[1]} in street canyons "
-                     f"({u.canyon_std:g} m), {counts[2]} in multipath bursts "
-                     f"({u.burst_range[0]:g}-{u.burst_range[1]:g} m), {counts[3]} NLOS "
-                     f"({u.nlos_range[0]:g}-{u.nlos_range[1]:g} m); the receiver states "
-                     f"{g.horizontal_std:g} m throughout, and this config keeps the default "
-                     "GPS model (the gate); the model recommended for such fixes is gps: "
-                     "{model: dcs}.")
+        text = (f"GPS: latency {g.delay} s (fix stamped late), dropouts {g.dropout_prob}; "
+                f"urban errors (docs/design/urban_gps.md): of {len(env)} fixes {counts[0]} in "
+                f"open sky ({u.open_std:g} m per axis), {counts[1]} in street canyons "
+                f"({u.canyon_std:g} m), {counts[2]} in multipath bursts "
+                f"({u.burst_range[0]:g}-{u.burst_range[1]:g} m), {counts[3]} NLOS "
+                f"({u.nlos_range[0]:g}-{u.nlos_range[1]:g} m); the receiver states "
+                f"{g.horizontal_std:g} m throughout, and this config keeps the default GPS model "
+                "(the gate); the model recommended for such fixes is gps: {model: dcs}.")
+        # long: wrapped (the other lines stay as the committed sample configs have them)
+        lines += textwrap.wrap(text, 98, break_on_hyphens=False)
     elif sc.gps:
         g = sc.gps
         lines.append(f"GPS: latency {g.delay} s (fix stamped late), dropouts {g.dropout_prob}, "
@@ -139,9 +140,7 @@ def truth_comment(res: SimResult, fmt: str) -> str:
             lines.append(f"GPS errors are time-correlated: per axis a first-order Gauss-Markov "
                          f"process, correlation time {g.correlation_s:g} s (correlation_time "
                          "below), stationary std as stated below.")
-    # the urban line is long; the others stay as the committed sample configs have them
-    return "".join(f"# {w}\n" for s in lines for w in (
-        textwrap.wrap(s, 98, break_on_hyphens=False) if len(s) > 200 else [s]))
+    return "".join(f"# {s}\n" for s in lines)
 
 
 def write_sidecars(res: SimResult, path: str | Path, fmt: str = "ros1"
