@@ -225,6 +225,7 @@ class SmootherConfig:
 
 # the GPS error models of the top-level ``gps`` key (GpsModelConfig; docs/design/urban_gps.md)
 GPS_MODELS = ("default", "gaussian", "cauchy", "geman_mcclure", "dcs", "maxmix")
+GATING_GPS_MODELS = ("default", "gaussian")  # the rest replace the gate (GpsModelConfig.robust)
 
 
 @dataclass
@@ -254,7 +255,7 @@ class GpsModelConfig:
     @property
     def robust(self) -> bool:
         """True for the models that replace the gate."""
-        return self.model not in ("default", "gaussian")
+        return self.model not in GATING_GPS_MODELS
 
 
 @dataclass

@@ -32,8 +32,8 @@ from ddfuse.estimation.gaps import is_gap
 from ddfuse.estimation.measurements import GpsFix
 from ddfuse.estimation.twist_track import TwistTrack
 
-__all__ = ["ABS_M", "K_SIGMA", "MANY_EPISODES", "MIN_FIXES", "REL", "WINDOW_S", "Episode",
-           "GpsWatch"]
+__all__ = ["ABS_M", "K_SIGMA", "MANY_EPISODES", "MIN_FIXES", "REL", "ROBUST_ADVICE", "ROBUST_MODEL",
+           "WINDOW_S", "Episode", "GpsWatch"]
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +45,10 @@ MIN_FIXES = 3  # consecutive flagged fixes that make an episode
 # episodes of one topic that make it a GPS of bursts (multipath, NLOS) rather than of a rare
 # fault, where the config's model gates each fix: the summary line suggests a robust model
 MANY_EPISODES = 3
+# the robust model said for such a GPS, in the config and on the command line
+ROBUST_MODEL = "dcs"
+ROBUST_ADVICE = (f"gps: {{model: {ROBUST_MODEL}}} in the config, or "
+                 f"ddfuse run --gps-model {ROBUST_MODEL}")
 
 
 @dataclass
@@ -124,7 +128,14 @@ class GpsWatch:
     def bursty(self, topic: str) -> bool:
         """Whether GPS ``topic`` disagreed with the odometry in ``MANY_EPISODES`` or more
         episodes: fixes whose errors come and go in bursts."""
-        return sum(1 for e in self.episodes if e.topic == topic) >= MANY_EPISODES
+        return topic in self.bursts()
+
+    def bursts(self) -> dict[str, list[Episode]]:
+        """Per GPS topic with ``MANY_EPISODES`` or more episodes, its episodes in order."""
+        by_topic: dict[str, list[Episode]] = {}
+        for e in self.episodes:
+            by_topic.setdefault(e.topic, []).append(e)
+        return {t: eps for t, eps in by_topic.items() if len(eps) >= MANY_EPISODES}
 
     def warnings(self) -> list[str]:
         """One line per episode (``Episode.describe``); where a topic has ``MANY_EPISODES`` or
@@ -134,19 +145,15 @@ class GpsWatch:
         out = [e.describe(t0) for e in self.episodes]
         if self.model is None:
             return out
-        by_topic: dict[str, list[Episode]] = {}
-        for e in self.episodes:
-            by_topic.setdefault(e.topic, []).append(e)
-        for topic, eps in by_topic.items():
-            if len(eps) >= MANY_EPISODES:
-                out.append(
-                    f"topic {topic}: GPS disagreed with the odometry {len(eps)} times "
-                    f"({sum(e.fixes for e in eps)} fixes, up to "
-                    f"{max(e.size_m for e in eps):.0f} m): errors that come and go in bursts, "
-                    "as multipath and non-line-of-sight fixes in a city give; gps.model "
-                    f"'{self.model}' gates each fix and can follow a burst: a robust model "
-                    "(gps: {model: dcs}) weighs them in the smoother, the batch and the EKFs "
-                    "(docs/design/urban_gps.md)")
+        for topic, eps in self.bursts().items():
+            out.append(
+                f"topic {topic}: GPS disagreed with the odometry {len(eps)} times "
+                f"({sum(e.fixes for e in eps)} fixes, up to "
+                f"{max(e.size_m for e in eps):.0f} m): errors that come and go in bursts, "
+                "as multipath and non-line-of-sight fixes in a city give; gps.model "
+                f"'{self.model}' gates each fix and can follow a burst: a robust model "
+                f"({ROBUST_ADVICE}) weighs them in the smoother, the batch and the EKFs "
+                "(docs/design/urban_gps.md)")
         return out
 
     # --- inside ----------------------------------------------------------------------------

@@ -10,6 +10,8 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+from ddfuse.estimation.config import GATING_GPS_MODELS
+from ddfuse.estimation.gps_watch import ROBUST_MODEL
 from ddfuse.evaluation.scores import EstimatorScores, RunSummary
 from ddfuse.evaluation.verdict import (
     HOLDOUT,
@@ -190,9 +192,19 @@ def _failing(m: RunSummary) -> list[str]:
     return out
 
 
+def _gated_bursts(m: RunSummary) -> list:
+    """The data's GPS topics with bursts of disagreement (``scores.GpsBursts``) where the run's
+    GPS model gates each fix; [] where the run used a robust one or did not record its model."""
+    if m.gps_model not in GATING_GPS_MODELS or m.data is None:
+        return []
+    return list(m.data.gps_bursts or ())
+
+
 def next_step(m: RunSummary, scored: bool) -> tuple[str | None, str]:
     """The one next command that tells more about this run, and why (only commands that work
-    for its config): a GPS hold-out where nothing scores the tracks and the bag has fixes;
+    for its config): the robust GPS model where the GPS came in bursts and the run's model
+    gates (with a hold-out where nothing else scores the tracks); a GPS hold-out where nothing
+    scores the tracks and the bag has fixes;
     ``ddfuse run --tune`` where a consistency test fails (``_failing``); a GPS outage (``window:``)
     where the bag has GPS and the run had none; else, with a smoother and a score,
     ``ddfuse lag-sweep``; none where no estimator produced an estimate."""
@@ -200,6 +212,16 @@ def next_step(m: RunSummary, scored: bool) -> tuple[str | None, str]:
         return None, ""  # nothing estimated: the errors in the table say what to fix first
     args = _bag_args(m)
     has_gps = _has_gps(m)
+    bursts = _gated_bursts(m)
+    if bursts:
+        holdout = [m.gps_holdout] if m.gps_holdout else [] if scored else ["every:5"]
+        holdout = ["--gps-holdout", *holdout] if holdout else []
+        b = bursts[0]
+        return (_command("ddfuse", "run", *args, "--gps-model", ROBUST_MODEL, *holdout, "-o",
+                         f"ddfuse-{ROBUST_MODEL}"),
+                f"GPS {b.topic} disagreed with the odometry in {b.episodes} bursts (up to "
+                f"{b.largest_m:.0f} m), which gps.model '{m.gps_model}' gates fix by fix: the "
+                "robust model weighs such fixes in every estimator")
     if not scored and has_gps and not m.gps_holdout:
         return (_command("ddfuse", "run", *args, "--gps-holdout", "every:5", "-o",
                          "ddfuse-holdout"),

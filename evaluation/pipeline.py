@@ -61,6 +61,7 @@ from ddfuse.evaluation.scores import (
     EstimatorScores,
     FinalState,
     GpsAntenna,
+    GpsBursts,
     HeadingOffset,
     RpeScore,
     RunSummary,
@@ -561,7 +562,17 @@ def data_facts(result: RunResult, cfg: Config,
         path_length_m=num(length) if length is not None else None,
         path_length_from=source, t0=stream.t0, t1=stream.t1,
         datum=list(stream.datum) if stream.datum else None,
-        heading_offsets=[HeadingOffset.from_json(sv.to_dict()) for sv in surveys])
+        heading_offsets=[HeadingOffset.from_json(sv.to_dict()) for sv in surveys],
+        gps_bursts=gps_bursts(getattr(stream, "watch", None)))
+
+
+def gps_bursts(watch) -> list[GpsBursts]:
+    """Each GPS topic the ``GpsWatch`` ``watch`` (None: not watched) found bursty."""
+    if watch is None:
+        return []
+    return [GpsBursts(topic, len(eps), sum(e.fixes for e in eps),
+                      num(max(e.size_m for e in eps)), num(max(e.end - e.start for e in eps)))
+            for topic, eps in watch.bursts().items()]
 
 
 def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str] | None = None,
@@ -637,8 +648,8 @@ out an estimator the sensors nearly allow: ``estimators.left_out``), or, before 
                 out, config=str(cfg.path) if cfg.path else None,
                 initial_pose=("first ground-truth pose" if cfg.initial_pose == "ground_truth"
                               else list(pose) if pose else None),
-                lag_s=lag, estimators_requested=list(names) if names else None,
-                estimators_run=chosen,
+                lag_s=lag, gps_model=cfg.gps.model,
+                estimators_requested=list(names) if names else None, estimators_run=chosen,
                 gps_holdout=holdout, input_error=input_error, interrupted=result.interrupted,
                 data=data_facts(result, cfg, surveys))
             # the reader's (a topic mostly dropped or silent), then the compass offset's

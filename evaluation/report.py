@@ -463,6 +463,7 @@ def _facts(m: RunSummary) -> str:
                              f"{d.ground_truth_samples} samples"
              if d.ground_truth_samples else "none"),
             ("GPS fixes", _gps_fixes(m)),
+            ("GPS against the odometry", _gps_bursts(d)),
             ("landmarks in the map", str(d.landmarks if d.landmarks is not None else 0)),
             ("heading offset, measured", _heading_offsets(d)),
             ("local frame", html.escape(plots.frame(m)["text"]))]
@@ -481,6 +482,25 @@ def _facts(m: RunSummary) -> str:
             f"{srows}</table>")
 
 
+def _gps_model(m: RunSummary, cfg) -> str:
+    """The run's ``gps.model``, and the config's where the command line set another."""
+    if m.gps_model is None:
+        return "not recorded"
+    given = getattr(getattr(cfg, "gps", None), "model", None)
+    if given is not None and given != m.gps_model:
+        return f"{m.gps_model} (--gps-model; the config's is {given})"
+    return m.gps_model
+
+
+def _gps_bursts(d: DataFacts) -> str:
+    """The GPS topics that disagreed with the odometry in bursts (``scores.GpsBursts``)."""
+    if not d.gps_bursts:
+        return "none found"
+    return "; ".join(f"{html.escape(str(b.topic))}: {b.episodes} bursts ({b.fixes} fixes, up to "
+                     f"{_fmt(b.largest_m, '.0f')} m, the longest {_fmt(b.longest_s, '.1f')} s)"
+                     for b in d.gps_bursts)
+
+
 def estimator_options(cfg) -> str:
     """The estimator options in effect (the config's ``ekf`` and ``ekf_igvc`` keys, defaults
     included), e.g. "ekf.rate: event; ekf_igvc.motion: icc"; "–" without a saved config."""
@@ -496,6 +516,7 @@ def _config(run: SavedRun, cfg) -> str:
             ("not run", "; ".join(f"{n}: {why}" for n, why in not_run(m, cfg)) or "–"),
             ("estimator options", estimator_options(cfg)),
             ("smoother lag", f"{m.lag_s} s"),
+            ("GPS model", _gps_model(m, cfg)),
             ("GPS hold-out", str(m.gps_holdout or "none")),
             ("initial pose", str(m.initial_pose or "each estimator's default")),
             ("config file", str(m.config or "–"))]

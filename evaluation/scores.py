@@ -280,6 +280,20 @@ class HeadingOffset(Record):
 
 
 @dataclass(frozen=True)
+class GpsBursts(Record):
+    """A GPS topic whose fixes disagreed with the odometry's dead reckoning in several episodes
+    (``estimation.gps_watch.GpsWatch.bursts``): errors in bursts, as multipath and NLOS give.
+    ``episodes``; ``fixes`` flagged in them; ``largest_m`` the largest disagreement, m;
+    ``longest_s`` the longest episode, s."""
+
+    topic: str | None = None
+    episodes: int | None = None
+    fixes: int | None = None
+    largest_m: float | None = None
+    longest_s: float | None = None
+
+
+@dataclass(frozen=True)
 class DataFacts(Record):
     """What the report states about the data (``pipeline.data_facts``)."""
 
@@ -297,8 +311,10 @@ class DataFacts(Record):
     t1: float | None = None
     datum: list[float] | None = None
     heading_offsets: list[HeadingOffset] | None = None
+    gps_bursts: list[GpsBursts] | None = None
     READ: ClassVar = {"sensors": read_each(SensorFacts.from_json),
-                      "heading_offsets": read_each(HeadingOffset.from_json)}
+                      "heading_offsets": read_each(HeadingOffset.from_json),
+                      "gps_bursts": read_each(GpsBursts.from_json)}
 
 
 @dataclass(frozen=True)
@@ -342,6 +358,7 @@ class RunSummary(Record):
     config: str | None = None
     initial_pose: Any = None  # [x, y, yaw], 'first ground-truth pose' or None
     lag_s: float | None = None
+    gps_model: str | None = None
     estimators_requested: list[str] | None = None
     estimators_run: list[str] | None = None
     gps_holdout: str | None = None

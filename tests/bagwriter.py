@@ -290,3 +290,20 @@ def write_bag(path: str | Path, fmt: str, records: Iterable[tuple], *,
                 raise ValueError(f"{topic}: mixed message types {types[topic]}, {msg.msgtype}")
             writer.write(conns[topic], round(rt * 1e9), serialize(msg.build(store), msg.msgtype))
     return path
+
+
+def bursts_bag(path: str | Path, datum: tuple[float, float, float]) -> Path:
+    """A ROS1 bag of 80 s straight east at 1 m/s (/odom, /imu at 10 Hz, /fix at 2.5 Hz about
+    ``datum``) whose fixes sit 40 m north for 2 s at 20, 40 and 60 s: three bursts."""
+    from ddfuse.estimation import geodesy
+
+    recs = []
+    for i in range(800):
+        t = 1700000000.0 + 0.1 * i
+        recs.append(("/odom", odometry(t, 1.0, 0.0)))
+        recs.append(("/imu", imu(t, wcov=diag(1e-4, 1e-4, 1e-4))))
+        if i % 4 == 0:
+            dn = 40.0 if (i // 10) in (20, 21, 40, 41, 60, 61) else 0.0
+            lat, lon, _ = geodesy.enu_to_geodetic(0.1 * i, dn, 0.0, *datum)
+            recs.append(("/fix", navsatfix(t, lat, lon, datum[2])))
+    return write_bag(path, "ros1", recs)

@@ -456,3 +456,31 @@ def test_online_prints_a_header_once_and_always_the_final_estimate(capsys):
     assert len(rows) == 2 and rows[0].startswith("t=    0.00 s  ekf (")
     assert rows[1].endswith("(final)") and "+- (" in rows[1]
     assert 119.0 < float(rows[1][2:].split()[0]) < 120.0
+
+
+def test_an_unknown_gps_model_is_refused_with_the_choices(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["run", "--gps-model", "huber"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "argument --gps-model: invalid choice: 'huber'" in err
+    assert "dcs" in err and "Traceback" not in err
+
+
+def test_gps_model_with_tune_is_refused_naming_the_config_key(tmp_path, capsys):
+    code = main(["run", "-o", str(tmp_path / "out"), "--gps-model", "dcs", "--tune"])
+    err = capsys.readouterr().err
+    assert code != 0 and "--gps-model with --tune: set gps: {model: dcs} in" in err
+    assert not (tmp_path / "out").exists()  # refused before any work
+
+
+def test_gps_model_replaces_the_configs_for_every_estimator_and_is_recorded(tmp_path):
+    """The sample's config gates (model 'default'); --gps-model dcs runs the EKF's robust
+    update instead (another track) and metrics.json says which model ran."""
+    out = {}
+    for model in ("default", "dcs"):
+        argv = ["run", "-o", str(tmp_path / model), "--estimators", "ekf", "--no-report"]
+        assert main(argv + (["--gps-model", model] if model != "default" else [])) == 0
+        out[model] = json.loads((tmp_path / model / "metrics.json").read_text())
+    assert out["default"]["gps_model"] == "default" and out["dcs"]["gps_model"] == "dcs"
+    assert (out["default"]["estimators"]["ekf"]["ate_rmse_m"]
+            != out["dcs"]["estimators"]["ekf"]["ate_rmse_m"])

@@ -120,25 +120,11 @@ def test_the_bag_stream_reports_an_episode_as_a_warning(tmp_path):
                         f"from t={T0 + 40.0:.3f} to t={T0 + 59.6:.3f}")
 
 
-def _bursts_bag(tmp_path):
-    """80 s straight east at 1 m/s; the fixes 40 m north for 2 s at 20, 40 and 60 s."""
-    recs = []
-    for i in range(800):
-        t = T0 + 0.1 * i
-        recs.append(("/odom", bw.odometry(t, 1.0, 0.0)))
-        recs.append(("/imu", bw.imu(t, wcov=bw.diag(1e-4, 1e-4, 1e-4))))
-        if i % 4 == 0:
-            dn = 40.0 if (i // 10) in (20, 21, 40, 41, 60, 61) else 0.0
-            lat, lon, _ = geodesy.enu_to_geodetic(0.1 * i, dn, 0.0, *DATUM)
-            recs.append(("/fix", bw.navsatfix(t, lat, lon, DATUM[2])))
-    return bw.write_bag(tmp_path / "b.bag", "ros1", recs)
-
-
 @pytest.mark.parametrize("model", ["default", "gaussian", "dcs"])
 def test_bursts_of_disagreement_suggest_a_robust_model_where_the_model_gates(tmp_path, model):
     """Three bursts of 40 m are three episodes; under a model that gates each fix the stream
     says once more what they look like and which model is for them; under a robust one not."""
-    bag = _bursts_bag(tmp_path)
+    bag = bw.bursts_bag(tmp_path / "b.bag", DATUM)
     cfg = parse_config_text(CFG + f"robot: {{max_speed: 200.0}}\ngps: {{model: {model}}}\n")
     bs = BagStream(bag, cfg)
     for _ in bs:

@@ -171,3 +171,35 @@ def test_no_next_command_when_no_estimator_estimated():
     h = headline(m)
     assert h.next_command is None and not any(x.startswith("Next:") for x in h.lines())
     assert h.consistency == (("ekf", "no estimate"),)
+
+
+def _bursty(m: RunSummary, model: str | None) -> RunSummary:
+    d = m.to_json()
+    d["data"]["gps_bursts"] = [{"topic": "/fix", "episodes": 12, "fixes": 85,
+                                "largest_m": 95.0, "longest_s": 6.0}]
+    return RunSummary.from_json({**d, "gps_model": model})
+
+
+@pytest.mark.parametrize("model", ["default", "gaussian"])
+def test_gps_bursts_under_a_gating_model_suggest_the_robust_model_first(model):
+    """Bursts outrank a consistency failure (tuning would fit the noise to them); with
+    nothing else to score the run the command withholds fixes too."""
+    failing = _run({"ekf": 0.5, "smoother": 0.2}, ekf={"nees": _nees(20.0, "Fail")})
+    h = headline(_bursty(failing, model))
+    assert _next(_bursty(failing, model)) == [
+        "ddfuse", "run", "/data/b.bag", "--gps-model", "dcs", "-o", "ddfuse-dcs"]
+    assert "12 bursts" in h.next_why and f"'{model}'" in h.next_why
+    unscored = _run({"ekf": 1.0}, truth=False)
+    unscored = RunSummary.from_json({**unscored.to_json(), "estimators": {
+        "ekf": {"samples": 100}}})
+    assert _next(_bursty(unscored, model))[3:7] == [
+        "--gps-model", "dcs", "--gps-holdout", "every:5"]
+    held = _run({"ekf": 0.5, "smoother": 0.2}, truth=False, holdout="window:50:80")
+    assert _next(_bursty(held, model))[3:7] == [
+        "--gps-model", "dcs", "--gps-holdout", "window:50:80"]
+
+
+@pytest.mark.parametrize("model", ["dcs", "cauchy", None])
+def test_gps_bursts_under_a_robust_or_unrecorded_model_suggest_no_model(model):
+    m = _bursty(_run({"ekf": 0.5, "smoother": 0.2}, ekf={"nees": _nees(20.0, "Fail")}), model)
+    assert "--gps-model" not in _next(m) and "--tune" in _next(m)

@@ -88,3 +88,36 @@ def test_inspect_and_run_give_one_correlation_time(multipath_bag, tmp_path, caps
     (w,) = warnings["white"]
     assert w.endswith(f"set correlation_time: {tau} under the GPS sensor "
                       "(`ddfuse inspect` suggests the same)")
+
+
+def test_inspect_and_run_give_one_gps_model_for_bursts(tmp_path, capsys):
+    """Fixes that leave the odometry's track in three bursts: inspect suggests the robust GPS
+    model with why above it, and run with that config has nothing more to say about them;
+    with the model taken out, run says the same thing inspect did."""
+    import bagwriter as bw
+
+    bag = bw.bursts_bag(tmp_path / "bursts.bag", (47.0, 8.0, 400.0))
+    cfg_path = tmp_path / "suggested.yaml"
+    assert main(["inspect", str(bag), "-o", str(cfg_path)]) == 0
+    out = capsys.readouterr().out
+    assert "# /fix: disagreed with the odometry's dead reckoning 3 times" in out
+    text = cfg_path.read_text()
+    assert load_config(cfg_path).gps.model == "dcs"
+    lines = text.splitlines()
+    at = lines.index("gps: {model: dcs}")
+    assert lines[at - 1].startswith("# gps.model dcs: /fix disagreed with the odometry's dead "
+                                    "reckoning in 3 bursts")
+    gating = tmp_path / "gating.yaml"
+    gating.write_text(text.replace("gps: {model: dcs}", "gps: {model: default}"))
+    said = {}
+    for name, cfg in (("suggested", cfg_path), ("gating", gating)):
+        assert main(["run", str(bag), "-c", str(cfg), "-o", str(tmp_path / name),
+                     "--estimators", "ekf", "--no-report"]) == 0
+        m = json.loads((tmp_path / name / "metrics.json").read_text())
+        said[name] = [w for w in m["warnings"] if "come and go in bursts" in w]
+        assert [b["episodes"] for b in m["data"]["gps_bursts"]] == [3]
+        assert m["gps_model"] == load_config(cfg).gps.model
+    capsys.readouterr()
+    assert said["suggested"] == []
+    (w,) = said["gating"]
+    assert "gps: {model: dcs} in the config, or ddfuse run --gps-model dcs" in w

@@ -146,3 +146,23 @@ def test_averaged_heading_rows_accepted_count_leaves_out_samples_dropped_before_
     cells = _nis_rows(report._nis_table(RunSummary.from_json(m)))[
         ("smoother", "/imu/data heading, averaged per keyframe (300 values of 3600 samples)")]
     assert cells[1:3] == ["3403", "2"]
+
+
+def test_the_gps_model_row_says_where_the_command_line_overrode_the_config():
+    from ddfuse.estimation.config import parse_config_text
+
+    cfg = parse_config_text("sensors:\n  gps: [{topic: /fix}]\n")
+    m = RunSummary.from_json({"gps_model": "dcs"})
+    assert report._gps_model(m, cfg) == "dcs (--gps-model; the config's is default)"
+    assert report._gps_model(RunSummary.from_json({"gps_model": "default"}), cfg) == "default"
+    assert report._gps_model(RunSummary.from_json({}), cfg) == "not recorded"
+
+
+def test_the_facts_name_each_gps_topic_that_came_in_bursts():
+    m = RunSummary.from_json({"data": {"gps_bursts": [
+        {"topic": "/fix", "episodes": 12, "fixes": 85, "largest_m": 94.6, "longest_s": 6.0}]}})
+    facts = html.unescape(re.sub(r"<[^>]+>", " ", report._facts(m)))
+    assert "GPS against the odometry  /fix: 12 bursts (85 fixes, up to 95 m, the longest " \
+           "6.0 s)" in facts
+    assert "GPS against the odometry  none found" in html.unescape(
+        re.sub(r"<[^>]+>", " ", report._facts(RunSummary.from_json({}))))

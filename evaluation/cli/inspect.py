@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 from ddfuse.estimation.errors import DdfuseError
+from ddfuse.estimation.gps_watch import ROBUST_MODEL
 from ddfuse.evaluation.cli.terminal import fmt
 
 
@@ -51,8 +53,10 @@ def command(args: argparse.Namespace) -> int:
     tree = suggest_config(info, surveys)
     fits = [] if info.error else compass_correlations(args.bag, tree)
     lines += [f.describe() for f in fits]
+    bursts = [] if info.error else gps_bursts(args.bag, tree)
+    lines += [b.describe() for b in bursts]
     lines.append("")
-    text = config_text(tree, info, {f.sensor: f for f in fits if f.tau is not None})
+    text = config_text(tree, info, {f.sensor: f for f in fits if f.tau is not None}, bursts)
     out = sys.stdout
     out.write("".join(f"# {line}\n" if line else "#\n" for line in lines))
     if args.output is not None:
@@ -96,11 +100,61 @@ def compass_correlations(path, tree: dict) -> list:
     return fits
 
 
-def config_text(tree: dict, info, compasses: dict | None = None) -> str:
+@dataclass(frozen=True)
+class Bursts:
+    """A GPS topic that disagreed with the odometry's dead reckoning in bursts (the watch of
+    ``ddfuse run``, ``estimation.gps_watch``): ``episodes``, ``fixes`` flagged, ``largest_m`` m,
+    ``longest_s`` s."""
+
+    topic: str
+    episodes: int
+    fixes: int
+    largest_m: float
+    longest_s: float
+
+    def describe(self) -> str:
+        return (f"{self.topic}: disagreed with the odometry's dead reckoning {self.episodes} "
+                f"times ({self.fixes} fixes, up to {self.largest_m:.0f} m, the longest "
+                f"{self.longest_s:.1f} s): errors in bursts, as multipath and non-line-of-sight "
+                f"fixes give (gps: {{model: {ROBUST_MODEL}}} in the suggested config)")
+
+    def source(self) -> str:
+        return (f"gps.model {ROBUST_MODEL}: {self.topic} disagreed with the odometry's dead "
+                f"reckoning in {self.episodes} bursts (up to {self.largest_m:.0f} m), which a "
+                "gating model can follow; a robust one weighs them (docs/design/urban_gps.md; "
+                "`ddfuse run` warns by the same rule)")
+
+
+def gps_bursts(path, tree: dict) -> list[Bursts]:
+    """The GPS topics of the suggested config ``tree`` whose fixes disagree with its odometry
+    in bursts, read as ``ddfuse run`` reads them (``estimation.gps_watch``); where there are
+    any, ``tree`` gets the robust GPS model. [] without a GPS and a speed source."""
+    from ddfuse.estimation.bags import BagStream
+    from ddfuse.estimation.config import parse_config
+
+    sensors = tree.get("sensors") or {}
+    if not sensors.get("gps") or not (sensors.get("odometry") or sensors.get("wheel_speeds")):
+        return []
+    try:
+        bs = BagStream(path, parse_config({"sensors": sensors, "frame": tree.get("frame")},
+                                          f"{path} (suggested config)"))
+        for _ in bs:
+            pass
+    except DdfuseError:  # what the bag lacks is inspect's facts to report, not this
+        return []
+    out = [Bursts(topic, len(eps), sum(e.fixes for e in eps), max(e.size_m for e in eps),
+                  max(e.end - e.start for e in eps)) for topic, eps in bs.watch.bursts().items()]
+    if out:
+        tree["gps"] = {"model": ROBUST_MODEL}
+    return out
+
+
+def config_text(tree: dict, info, compasses: dict | None = None,
+                bursts: list[Bursts] | None = None) -> str:
     """Config ``tree`` as YAML, each GPS sensor's suggested ``correlation_time`` with a comment
     above it saying where the value comes from (its topic's ``scatter`` in BagInfo ``info``), and
     so each IMU's whose yaw correlation was measured (``compasses``: topic -> its
-    ``compass_correlation.CompassCorrelation``)."""
+    ``compass_correlation.CompassCorrelation``), and the GPS model where ``bursts`` set it."""
     import yaml
 
     sources = {t.topic: t.scatter.source() for t in info.topics
@@ -116,5 +170,7 @@ def config_text(tree: dict, info, compasses: dict | None = None) -> str:
             topic = key[len("topic: "):]
         elif key.startswith("correlation_time: ") and topic in sources:
             out.append(" " * (len(line) - len(key)) + f"# correlation_time {sources[topic]}")
+        elif line.startswith("gps:") and bursts:
+            out += [f"# {b.source()}" for b in bursts]
         out.append(line)
     return "\n".join(out) + "\n"

@@ -13,6 +13,7 @@ from contextlib import nullcontext
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from ddfuse.estimation.config import GPS_MODELS
 from ddfuse.estimation.errors import DdfuseError
 from ddfuse.evaluation.cli.arguments import (
     CONFIG_HELP,
@@ -44,6 +45,10 @@ def add_to(sub) -> None:
                     "only; default: all but dr that the config's sensors allow)")
     sp.add_argument("--lag", type=lag_seconds, metavar="S",
                     help="smoother lag, s (default: from the config)")
+    sp.add_argument("--gps-model", choices=GPS_MODELS, metavar="MODEL",
+                    help="the GPS error model of every estimator instead of the config's "
+                    f"gps.model: {', '.join(GPS_MODELS)} (docs/design/urban_gps.md says when "
+                    "to use which)")
     sp.add_argument("--gps-holdout", type=gps_holdout, metavar="every:K|window:T0:T1",
                     help=GPS_HOLDOUT_HELP)
     add_reorder_window(sp)
@@ -163,6 +168,12 @@ def _command(args: argparse.Namespace) -> int:
     config = config_for(bag, args.config)
     cfg = load_config(config)
     check_holdout_sensor(cfg, config, args.gps_holdout)  # before decoding
+    if args.gps_model is not None:
+        if args.tune:  # the tuned config is written from the given one's keys
+            raise DdfuseError(f"--gps-model with --tune: set gps: {{model: {args.gps_model}}} "
+                              f"in {config} instead (the tuned config is written from its "
+                              "keys)")
+        cfg.gps.model = args.gps_model
     bars = progress()
     tuned = None
     try:
