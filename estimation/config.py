@@ -64,7 +64,7 @@ from __future__ import annotations
 import math
 import re
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -802,6 +802,16 @@ def _check_speed_tails(ck, tw: dict[str, float]) -> None:
             raise ck.fail("robot.twist_walk.speed_burst", f"must be > robot.twist_walk.speed "
                           f"({tw['speed']:g}), got {tw['speed_burst']:g}: it is the density "
                           "of the bursts")
+
+
+def with_gps_model(cfg: Config, model: str | None) -> Config:
+    """``cfg`` with ``gps.model`` replaced by ``model`` (one of ``GPS_MODELS``), a copy; ``cfg``
+    itself where ``model`` is None. ConfigError for an unknown model."""
+    if model is None:
+        return cfg
+    if model not in GPS_MODELS:
+        raise ConfigError(f"gps model {model!r}: expected one of {', '.join(GPS_MODELS)}")
+    return replace(cfg, gps=replace(cfg.gps, model=model))
 
 
 def load_config(path: str | Path) -> Config:

@@ -157,13 +157,15 @@ def _command(*words: str) -> str:
 
 
 def _bag_args(m: RunSummary) -> list[str]:
-    """The bag, and ``-c CONFIG`` where the config is not the one ``shipped.config_for`` finds
-    beside the bag (BAG.yaml)."""
+    """The bag, ``-c CONFIG`` where the config is not the one ``shipped.config_for`` finds
+    beside the bag (BAG.yaml), and ``--gps-model`` where the run's came from the command line."""
     bag = str(m.bag or "BAG")
     args = [bag]
     if m.config and Path(m.config) != Path(bag).with_suffix(".yaml") and (
             Path(m.config).parent.name != "configs" or Path(m.config).stem != Path(bag).stem):
         args += ["-c", str(m.config)]
+    if m.gps_model_option and m.gps_model:
+        args += ["--gps-model", m.gps_model]
     return args
 
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ddfuse.estimation.bags import read_stream
-from ddfuse.estimation.config import load_config
+from ddfuse.estimation.config import load_config, with_gps_model
 from ddfuse.estimation.errors import BagError
 from ddfuse.estimation.measurements import GpsFix
 from ddfuse.estimation.runner import initial_pose, parse_holdout, run
@@ -29,7 +29,8 @@ _TRACKS = ("smoother", "smoother_lagged")
 
 
 def lag_sweep(bag: str | Path, config: str | Path, lags=DEFAULT_LAGS, holdout: str | None = None,
-              reference: str | None = "ekf", engine=None) -> list[dict]:
+              reference: str | None = "ekf", engine=None,
+              gps_model: str | None = None) -> list[dict]:
     """Rows ``{"estimator", "lag_s", "rmse_m", "score", "nees_mean", "rtf", "update_ms"}``, one
     per (lag, smoother track) plus one for ``reference`` (lag None). ``score`` says what the
     RMSE is against: "truth" or "gps_holdout". A truncated or damaged bag is swept on what
@@ -42,8 +43,9 @@ def lag_sweep(bag: str | Path, config: str | Path, lags=DEFAULT_LAGS, holdout: s
     A sweep with nothing to score against (no ground truth and no ``holdout``, or a hold-out
     that withholds no fix) raises ValueError saying so: before decoding when the config
     shows it (no ground_truth topic, or no gps sensor to withhold from), else after decoding,
-    before any estimator runs."""
-    cfg = load_config(config)
+    before any estimator runs. ``gps_model`` replaces the config's ``gps.model`` (every
+    point's, the reference's too)."""
+    cfg = with_gps_model(load_config(config), gps_model)
     for name in ["smoother"] + ([reference] if reference else []):
         if not registry.SPECS[name].allowed(cfg):
             raise ValueError(f"{config}: {name} needs {registry.SPECS[name].needs}, which the "
@@ -51,7 +53,8 @@ def lag_sweep(bag: str | Path, config: str | Path, lags=DEFAULT_LAGS, holdout: s
     _check_scorable(cfg, config, holdout)
     points = ([(reference, None)] if reference else []) + [("smoother", float(x)) for x in lags]
     if engine is not None and engine.kind != "serial":
-        return _on_engine(engine, [(str(bag), str(config), holdout, n, lag) for n, lag in points])
+        return _on_engine(engine, [(str(bag), str(config), holdout, n, lag, gps_model)
+                                   for n, lag in points])
     stream, damaged = _decode(bag, cfg)
     against = _scored_against(stream, bag, cfg, holdout)
     pose = initial_pose(cfg.initial_pose, stream)
@@ -97,10 +100,11 @@ def _point_rows(stream, cfg, holdout, against: str, pose, name: str,
 
 
 def sweep_point(task: tuple) -> tuple[list[dict], str | None]:
-    """One point of the sweep on a worker: ``task`` = (bag, config, holdout, name, lag); its
-    rows and the bag's damage (one line) or None. ValueError as ``lag_sweep``'s."""
-    bag, config, holdout, name, lag = task
-    cfg = load_config(config)
+    """One point of the sweep on a worker: ``task`` = (bag, config, holdout, name, lag,
+    gps_model); its rows and the bag's damage (one line) or None. ValueError as
+    ``lag_sweep``'s."""
+    bag, config, holdout, name, lag, gps_model = task
+    cfg = with_gps_model(load_config(config), gps_model)
     stream, damaged = _decode(bag, cfg)
     against = _scored_against(stream, bag, cfg, holdout)
     pose = initial_pose(cfg.initial_pose, stream)

@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 from ddfuse.estimation import chi2, gps_scatter, heading_survey, heap
 from ddfuse.estimation.bags import BagStream
-from ddfuse.estimation.config import DEFAULT_GATE, Config
+from ddfuse.estimation.config import DEFAULT_GATE, Config, with_gps_model
 from ddfuse.estimation.errors import BagError, RunInterrupted
 from ddfuse.estimation.interrupts import held_signals, interrupt_name
 from ddfuse.estimation.measurements import Stream
@@ -580,7 +580,7 @@ def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str
             progress: Callable[[str, float], None] | None = None,
             reorder_window: float | None = None,
             notice: Callable[[str], None] | None = None,
-            side_process: bool = False) -> RunSummary:
+            side_process: bool = False, gps_model: str | None = None) -> RunSummary:
     """Decode ``bag`` as a stream (``ddfuse.estimation.bags.BagStream``: memory bounded however long
     the bag), run the selected estimators on it, write results into ``outdir``; returns the
     run's ``RunSummary`` (written as metrics.json: its ``to_json()``). ``reorder_window`` (s)
@@ -598,10 +598,13 @@ out an estimator the sensors nearly allow: ``estimators.left_out``), or, before 
 
     ``side_process``: the estimators on their Python reference path (a cold kernel cache) are
     fed in a forked second process beside the others (``ddfuse.evaluation.side_run``), when the
-    machine has a second CPU; the results are the same."""
+    machine has a second CPU; the results are the same. ``gps_model`` replaces the config's
+    ``gps.model`` for every estimator (``ddfuse run --gps-model``; recorded with
+    ``gps_model_option``)."""
     clock = time.perf_counter
     t_enter, startup = clock(), process_age()
     outdir = Path(outdir)
+    cfg = with_gps_model(cfg, gps_model)
     chosen = registry.select(cfg, names)
     parse_holdout(holdout)  # a bad spec fails before any decoding
     if names is None and notice is not None:
@@ -648,7 +651,7 @@ out an estimator the sensors nearly allow: ``estimators.left_out``), or, before 
                 out, config=str(cfg.path) if cfg.path else None,
                 initial_pose=("first ground-truth pose" if cfg.initial_pose == "ground_truth"
                               else list(pose) if pose else None),
-                lag_s=lag, gps_model=cfg.gps.model,
+                lag_s=lag, gps_model=cfg.gps.model, gps_model_option=gps_model is not None,
                 estimators_requested=list(names) if names else None, estimators_run=chosen,
                 gps_holdout=holdout, input_error=input_error, interrupted=result.interrupted,
                 data=data_facts(result, cfg, surveys))

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from ddfuse.estimation.config import Config, parse_config_text
+from ddfuse.estimation.config import Config, parse_config_text, with_gps_model
 from ddfuse.estimation.errors import BagError, DdfuseError
 from ddfuse.estimation.interrupts import deliver, held_signals, interrupt_name
 from ddfuse.evaluation.atomic_files import remove, write_text
@@ -156,11 +156,12 @@ class TunedRuns:
 
 
 def _write_tuning(outdir: Path, tuning: Tuning, bag: str | Path, config: Path | None,
-                  cfg: Config, holdout: str | None) -> tuple[Config | None, dict]:
+                  cfg: Config, holdout: str | None,
+                  gps_model: str | None = None) -> tuple[Config | None, dict]:
     """tuned.yaml (when applied) and tuning.json into ``outdir``, both or neither (a signal
     meanwhile is acted on after them); the tuned Config, parsed from tuned.yaml's text with
     relative paths (landmark maps) resolved as the given config's, or None; and tuning.json's
-    dictionary."""
+    dictionary. ``gps_model`` (``--gps-model``, the tuning's) is written into tuned.yaml."""
     from ddfuse.evaluation.tune_yaml import write_tuned
 
     outdir.mkdir(parents=True, exist_ok=True)
@@ -172,7 +173,7 @@ def _write_tuning(outdir: Path, tuning: Tuning, bag: str | Path, config: Path | 
         if tuning.applied:
             date = datetime.date.today().isoformat()
             write_tuned(config, tuned_path, tuning.result, Path(bag).name, date,
-                        tuning.before, tuning.after, holdout)
+                        tuning.before, tuning.after, holdout, gps_model)
         else:
             remove(tuned_path)  # an earlier --tune run's: not this run's config
         write_text(outdir / TUNING_FILE, json.dumps(record, indent=1) + "\n")
@@ -201,13 +202,14 @@ def run_tuned(bag: str | Path, config: Path | None, cfg: Config, outdir: str | P
     def stage(prefix: str) -> Progress | None:
         return (lambda name, f: progress(f"{prefix}: {name}", f)) if progress else None
 
+    gps_model = run_args.get("gps_model")
     try:
-        tuning = tune_on_bag(bag, cfg, holdout=holdout, reorder_window=reorder_window,
-                             jobs=jobs, progress=stage("tuning"))
+        tuning = tune_on_bag(bag, with_gps_model(cfg, gps_model), holdout=holdout,
+                             reorder_window=reorder_window, jobs=jobs, progress=stage("tuning"))
     except KeyboardInterrupt as e:
         raise KeyboardInterrupt(f"interrupted ({interrupt_name(e)}) while tuning: nothing "
                                 "written") from None
-    tuned, record = _write_tuning(outdir, tuning, bag, config, cfg, holdout)
+    tuned, record = _write_tuning(outdir, tuning, bag, config, cfg, holdout, gps_model)
     common = dict(holdout=holdout, reorder_window=reorder_window, **run_args)
     if tuned is None:
         m = run_bag(bag, cfg, outdir, progress=stage("given config"), notice=notice, **common)

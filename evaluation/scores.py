@@ -359,6 +359,7 @@ class RunSummary(Record):
     initial_pose: Any = None  # [x, y, yaw], 'first ground-truth pose' or None
     lag_s: float | None = None
     gps_model: str | None = None
+    gps_model_option: bool | None = None  # True: --gps-model set gps_model, not the config
     estimators_requested: list[str] | None = None
     estimators_run: list[str] | None = None
     gps_holdout: str | None = None

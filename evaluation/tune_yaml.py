@@ -69,14 +69,15 @@ def _validation(result: TuneResult, before: Check | None, after: Check | None,
 
 def tuned_text(original: str, result: TuneResult, bag: str, date: str,
                before: Check | None = None, after: Check | None = None,
-               holdout: str | None = None) -> str:
+               holdout: str | None = None, gps_model: str | None = None) -> str:
     """``original`` (a config's YAML text) with every value ``result`` tuned (status 'tuned' or
     at a bound) set to it (3 significant digits), a comment ``tuned`` on each (on the nearest
     enclosing block-style key where the value sits in a flow mapping, which holds no comments)
     and a header saying which bag, when and how, and with the ``check`` runs of the config's
     and the tuned values (``before``, ``after``) how they compare, on the ``holdout`` spec's
     withheld fixes too. Keys the tuning did not touch keep their text; an earlier tuning's
-    header is replaced."""
+    header is replaced. ``gps_model``: the ``gps.model`` the values were tuned under where the
+    command line set it (``ddfuse run --tune --gps-model``), put in with a comment saying so."""
     from ruamel.yaml import YAML
     from ruamel.yaml.comments import CommentedMap
 
@@ -110,6 +111,13 @@ def tuned_text(original: str, result: TuneResult, bag: str, date: str,
         if anchor is not None:
             entry = notes.setdefault((id(anchor[0]), anchor[1]), (anchor[0], anchor[1], []))
             entry[2].append(path[-1] if anchor[1] != path[-1] else "")
+    if gps_model is not None:
+        gps = data.get("gps")
+        if not isinstance(gps, CommentedMap):
+            gps = data["gps"] = CommentedMap()
+        gps["model"] = gps_model
+        anchor = (gps, "model") if not gps.fa.flow_style() else (data, "gps")
+        _set_eol(*anchor, f"tuned under --gps-model {gps_model} (ddfuse tune, {bag}, {date})")
     for cm, key, names in notes.values():
         what = ", ".join(n for n in names if n)
         _set_eol(cm, key, f"tuned{': ' + what if what else ''} (ddfuse tune, {bag}, {date})")
@@ -134,11 +142,11 @@ def _set_eol(cm, key, text: str) -> None:
 
 def write_tuned(config_path: Path | None, out: Path, result: TuneResult, bag: str,
                 date: str, before: Check | None = None, after: Check | None = None,
-                holdout: str | None = None) -> None:
+                holdout: str | None = None, gps_model: str | None = None) -> None:
     """Write the tuned config to ``out`` (atomically): ``config_path``'s text with the tuned
     values (``tuned_text``, with the checks' comparison in its header); with no config file, a
     config of the tuned values alone."""
     from ddfuse.evaluation.atomic_files import write_text
 
     original = Path(config_path).read_text(encoding="utf-8") if config_path else ""
-    write_text(out, tuned_text(original, result, bag, date, before, after, holdout))
+    write_text(out, tuned_text(original, result, bag, date, before, after, holdout, gps_model))

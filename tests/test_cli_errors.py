@@ -466,13 +466,6 @@ def test_an_unknown_gps_model_is_refused_with_the_choices(capsys):
     assert "dcs" in err and "Traceback" not in err
 
 
-def test_gps_model_with_tune_is_refused_naming_the_config_key(tmp_path, capsys):
-    code = main(["run", "-o", str(tmp_path / "out"), "--gps-model", "dcs", "--tune"])
-    err = capsys.readouterr().err
-    assert code != 0 and "--gps-model with --tune: set gps: {model: dcs} in" in err
-    assert not (tmp_path / "out").exists()  # refused before any work
-
-
 def test_gps_model_replaces_the_configs_for_every_estimator_and_is_recorded(tmp_path):
     """The sample's config gates (model 'default'); --gps-model dcs runs the EKF's robust
     update instead (another track) and metrics.json says which model ran."""

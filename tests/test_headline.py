@@ -203,3 +203,12 @@ def test_gps_bursts_under_a_gating_model_suggest_the_robust_model_first(model):
 def test_gps_bursts_under_a_robust_or_unrecorded_model_suggest_no_model(model):
     m = _bursty(_run({"ekf": 0.5, "smoother": 0.2}, ekf={"nees": _nees(20.0, "Fail")}), model)
     assert "--gps-model" not in _next(m) and "--tune" in _next(m)
+
+
+def test_a_gps_model_from_the_command_line_is_carried_into_the_next_command():
+    m = _run({"ekf": 0.5, "smoother": 0.2}, ekf={"nees": _nees(20.0, "Fail")})
+    d = {**m.to_json(), "gps_model": "dcs", "gps_model_option": True}
+    assert _next(RunSummary.from_json(d)) == [
+        "ddfuse", "run", "/data/b.bag", "--gps-model", "dcs", "--tune", "-o", "ddfuse-tuned"]
+    d["gps_model_option"] = False  # the config's own dcs: nothing to carry
+    assert "--gps-model" not in _next(RunSummary.from_json(d))

@@ -34,3 +34,21 @@ def test_bad_lags_are_refused(lags, capsys):
         main(["lag-sweep", "--lags", lags])
     assert e.value.code == 2
     assert "--lags" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_gps_model_replaces_the_configs_for_every_point(tmp_path):
+    """--gps-model dcs sweeps the robust model: the EKF's and the smoother's rows move (the
+    sample's config gates), as `ddfuse run --gps-model` would."""
+    import json
+
+    rows = {}
+    for model in ("default", "dcs"):
+        out = tmp_path / f"{model}.json"
+        argv = ["lag-sweep", "--lags", "2", "--json", str(out)]
+        assert main(argv + (["--gps-model", model] if model != "default" else [])) == 0
+        rows[model] = {(r["estimator"], r["lag_s"]): r["rmse_m"]
+                       for r in json.loads(out.read_text())}
+    assert rows["default"].keys() == rows["dcs"].keys()
+    for key in rows["default"]:
+        assert rows["default"][key] != rows["dcs"][key], key

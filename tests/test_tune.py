@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 from ddfuse.estimation.bags import read_stream
-from ddfuse.estimation.config import load_config
+from ddfuse.estimation.config import load_config, parse_config_text
 from ddfuse.evaluation.cli import main
 from ddfuse.evaluation.tune import tune
 from ddfuse.evaluation.tune_params import Applier, parameters
@@ -370,3 +370,20 @@ def test_a_gps_sigma_tuned_under_a_stated_correlation_time_says_what_it_is(tmp_p
     said = result.tuned[0].reason
     assert ("correlated over 30 s" in said) == (tau > 0.0)
     assert result.tuned[0].value == 0.49  # said, not changed
+
+
+@pytest.mark.parametrize("gps_key", ["", "gps: {model: default}\n", "gps:\n  model: cauchy\n"])
+def test_a_gps_model_from_the_command_line_goes_into_the_tuned_config(tmp_path, gps_key):
+    """``ddfuse run --tune --gps-model dcs``: the values were tuned under dcs, so the tuned
+    config says dcs with why, whatever the original's gps key looked like."""
+    from ddfuse.estimation.measurements import Stream
+
+    text = "sensors:\n  imu: [{topic: /imu, use: [yaw, yaw_rate]}]\n" + gps_key
+    cfg = parse_config_text(text)
+    out = tuned_text(text, _result(cfg, Stream([])), "u.bag", "2026-12-04", gps_model="dcs")
+    path = tmp_path / "tuned.yaml"
+    path.write_text(out)
+    assert load_config(path).gps.model == "dcs"
+    assert "tuned under --gps-model dcs (ddfuse tune, u.bag, 2026-12-04)" in out
+    plain = tuned_text(text, _result(cfg, Stream([])), "u.bag", "2026-12-04")
+    assert "--gps-model" not in plain

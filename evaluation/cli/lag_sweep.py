@@ -7,6 +7,7 @@ import math
 import sys
 from pathlib import Path
 
+from ddfuse.estimation.config import GPS_MODELS
 from ddfuse.estimation.errors import BagError, DdfuseError
 from ddfuse.evaluation import lag_sweep as lag_sweep_module
 from ddfuse.evaluation.atomic_files import write_text
@@ -34,6 +35,9 @@ def _main(argv: list[str] | None) -> int:
                    help="comma-separated lags in seconds (default: 0.5,2,10,30)")
     p.add_argument("--gps-holdout", type=gps_holdout, metavar="every:K|window:T0:T1",
                    help=GPS_HOLDOUT_HELP)
+    p.add_argument("--gps-model", choices=GPS_MODELS, metavar="MODEL",
+                   help="the GPS error model instead of the config's gps.model: "
+                   f"{', '.join(GPS_MODELS)}")
     p.add_argument("--json", type=Path, metavar="FILE", help="also write the rows as JSON")
     add_scheduler(p, jobs=False)
     p.add_argument("--jobs", type=int_at_least(1), default=1, metavar="N",
@@ -58,7 +62,7 @@ def _main(argv: list[str] | None) -> int:
                 sys.stderr.write(f"ddfuse: lag-sweep: {len(lags) + 1} runs on "
                                  f"{engine.backend}\n")
             rows = lag_sweep(bag, config_for(bag, args.config), lags, args.gps_holdout,
-                             engine=engine)
+                             engine=engine, gps_model=args.gps_model)
     except ValueError as e:
         raise DdfuseError(str(e)) from None
     except BagError as e:

@@ -168,17 +168,12 @@ def _command(args: argparse.Namespace) -> int:
     config = config_for(bag, args.config)
     cfg = load_config(config)
     check_holdout_sensor(cfg, config, args.gps_holdout)  # before decoding
-    if args.gps_model is not None:
-        if args.tune:  # the tuned config is written from the given one's keys
-            raise DdfuseError(f"--gps-model with --tune: set gps: {{model: {args.gps_model}}} "
-                              f"in {config} instead (the tuned config is written from its "
-                              "keys)")
-        cfg.gps.model = args.gps_model
     bars = progress()
     tuned = None
     try:
         try:
-            options = dict(names=args.estimators, lag=args.lag, holdout=args.gps_holdout,
+            options = dict(names=args.estimators, lag=args.lag, gps_model=args.gps_model,
+                           holdout=args.gps_holdout,
                            progress=bars.update if bars else None,
                            reorder_window=args.reorder_window,
                            notice=lambda text: _notice(text, bars))
