@@ -348,27 +348,28 @@ class FixedLagSmoother(Estimator):
         twist = self.twist
         st, kf_cov = self.headings.with_pending()
         delta, q = twist.partial(st)
-        t_open = twist.pim.dt_total
+        t = twist.last_t
+        ahead = self.now - t
+        yr = (twist.yaw_rate(twist.wg_q, twist.wo_q, twist.wg_var, twist.wo_var)
+              if ahead > 0.0 and twist.v is not None else None)
+        t_open = twist.pim.dt_total + (ahead if yr is not None else 0.0)
         if t_open > 0.0:
-            # the slip since the keyframe, which the preintegrated factor will state (in the
-            # keyframe's frame, as the interval's covariance): the output grows into the next
-            # keyframe's marginal instead of jumping at it
+            # the slip since the keyframe (to the held twist's end where it is carried on),
+            # which the preintegrated factor will state (in the keyframe's frame, as the
+            # interval's covariance): the output grows into the next keyframe's marginal
+            # instead of jumping at it
             a, b, c = self.noise.pose_noise
             q[0][0] += a * a * t_open
             q[1][1] += b * b * t_open
             q[2][2] += c * c * t_open
         pose, cov = compose(st, delta, q, kf_cov)
         cov = self.window.with_gauge(self.window.k, cov)
-        t = twist.last_t
-        ahead = self.now - t
-        if ahead > 0.0 and twist.v is not None:
-            yr = twist.yaw_rate(twist.wg_q, twist.wo_q, twist.wg_var, twist.wo_var)
-            if yr is not None:
-                wg, wo, _, _, gain = yr
-                sl = st.tolist()  # Python floats: numpy scalars cost 4 us in se2_step
-                bg, kv, kw = sl[BG], sl[KV], sl[KW]
-                pose, t = se2_step(pose[0], pose[1], pose[2], kv * twist.v,
-                                   wg - gain * bg + kw * wo, ahead), self.now
+        if yr is not None:
+            wg, wo, _, _, gain = yr
+            sl = st.tolist()  # Python floats: numpy scalars cost 4 us in se2_step
+            bg, kv, kw = sl[BG], sl[KV], sl[KW]
+            pose, t = se2_step(pose[0], pose[1], pose[2], kv * twist.v,
+                               wg - gain * bg + kw * wo, ahead), self.now
         return Estimate(t, (pose[0], pose[1], wrap_angle(pose[2])), cov, st.copy(), None, NAMES)
 
     def finish(self) -> None:
