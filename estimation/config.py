@@ -149,6 +149,9 @@ MAX_GPS_DELAY = 5.0  # s: a GPS sensor's delay beyond this is refused (``_sensor
 # m/s^2 and rad/s^2: robot.max_accel / max_yaw_accel beyond this are refused (1e9 broke the
 # unicycle EKF's covariance; 1e4 still ran; the seed002-blog simulation's steps state ~480)
 MAX_ROBOT_ACCEL = 1e5
+# m: robot.wheel_radius / track_width beyond these are refused, the mistake they catch being
+# millimetres (a 165 mm wheel written 165); the largest haul trucks' are about 2 m and 10 m
+MAX_GEOMETRY_M = {"wheel_radius": 5.0, "track_width": 20.0}
 # Gate lock-out rule shared by the EKFs (ekf_baseline.kalman) and the smoother's GPS gate: this
 # many consecutive rejections of one sensor spanning at least this long mean the estimate, not
 # the sensor, is wrong.
@@ -681,6 +684,10 @@ def parse_config(raw: Any, source: str = "<config>", base: Path | None = None) -
         for k in ("wheel_radius", "track_width"):
             if f"{k}_std" in r and k not in r:
                 raise ck.fail(f"robot.{k}_std", f"needs robot.{k} (the nominal value)")
+            v = getattr(cfg.robot, k)
+            if v is not None and v > MAX_GEOMETRY_M[k]:
+                raise ck.fail(f"robot.{k}", f"must be at most {MAX_GEOMETRY_M[k]:g} m, got "
+                              f"{r[k]!r}: it is in metres ({v:g} mm is {v / 1000:g} m)")
     if cfg.of_kind("wheels") and (cfg.robot.wheel_radius is None or cfg.robot.track_width is None):
         raise ck.fail("robot", "wheel speed sensors need robot.wheel_radius and robot.track_width")
     if d.get("ground_truth") is not None:

@@ -39,6 +39,11 @@ CASES = [
     ({**sensor("odometry", **ODOM), "robot": {"max_accel": 0}}, "robot.max_accel", "> 0"),
     ({**sensor("odometry", **ODOM), "robot": {"max_yaw_accel": 0.0}}, "robot.max_yaw_accel",
      "> 0"),
+    # geometry in millimetres (a wheel radius of 1e9 ran, only the screen warned)
+    ({**sensor("odometry", **ODOM), "robot": {"wheel_radius": 165, "track_width": 0.555}},
+     "robot.wheel_radius", "165 mm is 0.165 m"),
+    ({**sensor("odometry", **ODOM), "robot": {"wheel_radius": 0.165, "track_width": 555}},
+     "robot.track_width", "in metres"),
     # one joint as both wheels
     ({**sensor("wheels", topic="/js", joints=["a", "a"], noise={"speed": 0.1}), "robot": ROBOT},
      "sensors.wheels[0].joints", "twice"),
