@@ -133,11 +133,11 @@ def gps_bursts(path, tree: dict) -> list[Bursts]:
     from ddfuse.estimation.config import parse_config
 
     sensors = tree.get("sensors") or {}
-    if not sensors.get("gps") or not (sensors.get("odometry") or sensors.get("wheel_speeds")):
+    if not sensors.get("gps") or not (sensors.get("odometry") or sensors.get("wheels")):
         return []
     try:
-        bs = BagStream(path, parse_config({"sensors": sensors, "frame": tree.get("frame")},
-                                          f"{path} (suggested config)"))
+        raw = {k: tree[k] for k in ("sensors", "frame", "robot") if k in tree}
+        bs = BagStream(path, parse_config(raw, f"{path} (suggested config)"))
         for _ in bs:
             pass
     except DdfuseError:  # what the bag lacks is inspect's facts to report, not this
