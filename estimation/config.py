@@ -152,6 +152,20 @@ MAX_ROBOT_ACCEL = 1e5
 # m: robot.wheel_radius / track_width beyond these are refused, the mistake they catch being
 # millimetres (a 165 mm wheel written 165); the largest haul trucks' are about 2 m and 10 m
 MAX_GEOMETRY_M = {"wheel_radius": 5.0, "track_width": 20.0}
+# the process noises' largest values (robot.slip m/sqrt(s) or rad/sqrt(s); robot.twist_walk
+# m/s/sqrt(s) or rad/s/sqrt(s)); beyond them a value is refused: a twist walk of 1000 took the
+# unicycle EKF's ATE on the sample bag from 0.12 to 3.3 m with its NEES passing, a slip of 100
+# made the smoother's system indeterminate (config fuzzing, session 31). Tuned values stay
+# within them (``evaluation.tune``)
+MAX_PROCESS_NOISE = {"robot.slip": 10.0, "robot.twist_walk": 100.0}
+# the GPS antenna's offset from the base frame, m per axis
+MAX_LEVER_ARM_M = 100.0
+
+
+def process_noise_max(key: str) -> float | None:
+    """The largest value config key ``key`` (``robot.slip.heading``, ...) may have, or None."""
+    return MAX_PROCESS_NOISE.get(key.rpartition(".")[0]) if key != (
+        "robot.twist_walk.burst_share") else None
 # Gate lock-out rule shared by the EKFs (ekf_baseline.kalman) and the smoother's GPS gate: this
 # many consecutive rejections of one sensor spanning at least this long mean the estimate, not
 # the sensor, is wrong.
@@ -528,6 +542,10 @@ def _sensor(ck: _Checker, kind: str, i: int, raw: Any, base: Path) -> SensorConf
                                     ("orientation", "level"))
     if "lever_arm" in d:
         s.lever_arm = ck.vector(d["lever_arm"], f"{key}.lever_arm", 2)
+        if max(abs(x) for x in s.lever_arm) > MAX_LEVER_ARM_M:
+            raise ck.fail(f"{key}.lever_arm", f"must be within {MAX_LEVER_ARM_M:g} m of the base "
+                          f"frame on each axis, got {list(s.lever_arm)}: the antenna's offset "
+                          "in metres")
     if "delay" in d:
         s.delay = ck.number(d["delay"], f"{key}.delay", nonneg=True)
         if s.delay > MAX_GPS_DELAY:
@@ -676,11 +694,14 @@ def parse_config(raw: Any, source: str = "<config>", base: Path | None = None) -
                     raise ck.fail(f"robot.twist_walk.{k}", f"must be > 0, got {v:g}: it is the "
                                   "density of the twist's random walk, and 0 would hold the "
                                   "twist fixed (leave it out for the estimators' default)")
+                _at_most(ck, f"robot.twist_walk.{k}", v)
             _check_speed_tails(ck, cfg.robot.twist_walk)
         if "slip" in r:
             slip = ck.mapping(r["slip"], "robot.slip", ("longitudinal", "lateral", "heading"))
             cfg.robot.slip = {k: ck.number(v, f"robot.slip.{k}", nonneg=True)
                               for k, v in slip.items()}
+            for k, v in cfg.robot.slip.items():
+                _at_most(ck, f"robot.slip.{k}", v)
         for k in ("wheel_radius", "track_width"):
             if f"{k}_std" in r and k not in r:
                 raise ck.fail(f"robot.{k}_std", f"needs robot.{k} (the nominal value)")
@@ -788,6 +809,15 @@ def _node(ck: _Checker, raw: Any) -> NodeConfig:
     if n.get("tf") is not None:
         nc.tf = ck.string(n["tf"], "node.tf")
     return nc
+
+
+def _at_most(ck: _Checker, key: str, v: float) -> None:
+    """ConfigError where process noise ``key`` exceeds ``process_noise_max``."""
+    top = process_noise_max(key)
+    if top is not None and v > top:
+        raise ck.fail(key, f"must be at most {top:g}, got {v:g}: a density of the robot's motion "
+                      "(per sqrt(s)); a ground robot's is well under 1 (leave it out for the "
+                      "estimators' default, or let `ddfuse tune` estimate it)")
 
 
 def _check_speed_tails(ck, tw: dict[str, float]) -> None:

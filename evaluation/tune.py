@@ -55,7 +55,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from ddfuse.estimation import chi2
-from ddfuse.estimation.config import Config
+from ddfuse.estimation.config import Config, process_noise_max
 from ddfuse.estimation.estimator import InnovationLog
 from ddfuse.estimation.measurements import Stream
 from ddfuse.estimation.runner import run
@@ -341,6 +341,10 @@ def _search(problem: Problem, ev: Evaluator, progress, t_start: float,
     info0 = np.zeros(n) if J0 is None else np.sum(J0 * J0, axis=0)
     free = (info0 >= MIN_INFORMATION if J0 is not None else np.ones(n, bool)) & search
     lo_all, hi_all = x0 - math.log(BOUND), x0 + math.log(BOUND)
+    # a value the config would refuse is no candidate (config.process_noise_max)
+    caps = np.array([math.log(c) if (c := process_noise_max(p.key)) else math.inf
+                     for p in params])
+    hi_all = np.minimum(hi_all, caps)
     xa = xs.copy()
     J = np.zeros((1, n))
     iterations, message = 0, "nothing to tune: no value is informed by the data"
@@ -438,8 +442,10 @@ def _search(problem: Problem, ev: Evaluator, progress, t_start: float,
             status, reason = "at lower bound", (f"at the search's lower bound (start / "
                                                 f"{BOUND:g}): the data want it smaller")
         elif hi_all[i] - xa[i] < AT_BOUND:
-            status, reason = "at upper bound", (f"at the search's upper bound (start x "
-                                                f"{BOUND:g}): the data want it larger")
+            status, reason = "at upper bound", (
+                f"at the largest value a config may state ({math.exp(caps[i]):g}): the data "
+                "want it larger" if hi_all[i] == caps[i] else
+                f"at the search's upper bound (start x {BOUND:g}): the data want it larger")
         tuned[i] = Tuned(p, float(np.exp(xa[i])), status, reason, se, float(info[k, k]))
     pairs = correlated_pairs(cov, [params[i].label for i in idx])
     say("maximum likelihood", 1.0)
