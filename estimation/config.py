@@ -709,6 +709,12 @@ def parse_config(raw: Any, source: str = "<config>", base: Path | None = None) -
             if v is not None and v > MAX_GEOMETRY_M[k]:
                 raise ck.fail(f"robot.{k}", f"must be at most {MAX_GEOMETRY_M[k]:g} m, got "
                               f"{r[k]!r}: it is in metres ({v:g} mm is {v / 1000:g} m)")
+            sd = getattr(cfg.robot, f"{k}_std")
+            if v is not None and sd is not None and sd > v:
+                raise ck.fail(f"robot.{k}_std", f"must be at most robot.{k} ({v:g} m), got "
+                              f"{sd:g}: the 1-sigma uncertainty of that nominal value (the "
+                              "odometry's scale error it gives is estimated; over 100 % the "
+                              "scale could change sign)")
     if cfg.of_kind("wheels") and (cfg.robot.wheel_radius is None or cfg.robot.track_width is None):
         raise ck.fail("robot", "wheel speed sensors need robot.wheel_radius and robot.track_width")
     if d.get("ground_truth") is not None:

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 from ddfuse.estimation import heap
-from ddfuse.estimation.errors import ConfigError
+from ddfuse.estimation.errors import ConfigError, error_line
 from ddfuse.estimation.estimator import Estimate, Estimator, EstimatorLog
 from ddfuse.estimation.interrupts import deliver, held_signals, interrupt_name
 from ddfuse.estimation.measurements import GpsFix, Stream, truth_at_start
@@ -544,7 +544,7 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
                     else:
                         outputs[i].append(last)
             except Exception as exc:
-                errors[i] = f"{type(exc).__name__} in finish: {exc}"
+                errors[i] = f"{type(exc).__name__} in finish: {error_line(exc)}"
             except KeyboardInterrupt as exc:
                 if not interruptible:
                     raise
@@ -674,7 +674,7 @@ def _feed(meas, n, fraction, select, gps, est_list, alive, errors, outputs, timi
                     e = est.estimate() if record else None
                 except Exception as exc:  # one estimator failing must not end the run
                     alive[i] = False
-                    errors[i] = f"{type(exc).__name__} at t={t_m:.3f}: {exc}"
+                    errors[i] = f"{type(exc).__name__} at t={t_m:.3f}: {error_line(exc)}"
                     est.log.note(t_m, f"stopped: {errors[i]}")
                     continue
                 dt = clock() - t_a

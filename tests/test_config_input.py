@@ -44,6 +44,9 @@ CASES = [
      "robot.wheel_radius", "165 mm is 0.165 m"),
     ({**sensor("odometry", **ODOM), "robot": {"wheel_radius": 0.165, "track_width": 555}},
      "robot.track_width", "in metres"),
+    ({**sensor("odometry", **ODOM), "robot": {"wheel_radius": 0.165, "track_width": 0.555,
+                                              "track_width_std": 1000.0}},
+     "robot.track_width_std", "at most robot.track_width (0.555 m)"),
     # process noise no ground robot has (config fuzzing: a twist walk of 1000 took the
     # unicycle EKF's ATE on the sample from 0.12 to 3.3 m with its NEES passing; a slip of 100
     # made the smoother's system indeterminate)

@@ -133,3 +133,54 @@ def test_every_track_has_increasing_stamps_when_an_estimator_has_nothing_newer(t
         t = r.trajectory.t
         assert r.error is None and len(t) > (40 if name == "smoother_lagged" else 150), name
         assert np.all(np.diff(t) > 0.0), (name, t[:3])
+
+
+class _Raising(DeadReckoning):
+    """Dead reckoning that raises gtsam's kind of message (a paragraph: a blank first line,
+    the reason, the variable on the next line, advice) at its 500th update, or in finish."""
+
+    TEXT = ("\nIndeterminate linear system detected while working near variable\n"
+            "8646911284551352381 (Symbol: x61).\n\nThrown when a linear system is ill-posed.\n")
+
+    def __init__(self, cfg, where: str) -> None:
+        super().__init__(cfg)
+        self.where, self.n = where, 0
+
+    def process(self, m):
+        self.n += 1
+        if self.where == "update" and self.n == 500:
+            raise RuntimeError(self.TEXT)
+        return super().process(m)
+
+    def finish(self):
+        if self.where == "finish":
+            raise RuntimeError(self.TEXT)
+        return super().finish()
+
+
+@pytest.mark.parametrize("where", ["update", "finish"])
+def test_a_multi_line_exception_is_one_line_in_the_error_row(sample, where):
+    """gtsam's messages are paragraphs; the run's error row (metrics.json, the table, the
+    report) takes the reason and the variable it names, on one line."""
+    cfg, stream = sample
+    err = run(stream, {"bad": _Raising(cfg, where)}).runs["bad"].error
+    assert "\n" not in err
+    assert err.endswith("Indeterminate linear system detected while working near variable x61")
+
+
+def test_gtsams_own_exception_text_becomes_one_line_naming_the_variable():
+    import gtsam
+    from ddfuse.estimation.errors import error_line
+
+    x0, x1 = gtsam.symbol("x", 0), gtsam.symbol("x", 1)
+    graph = gtsam.NonlinearFactorGraph()  # x1 tied to x0 only: no prior, indeterminate
+    graph.add(gtsam.BetweenFactorPose2(x0, x1, gtsam.Pose2(), gtsam.noiseModel.Unit.Create(3)))
+    values = gtsam.Values()
+    values.insert(x0, gtsam.Pose2())
+    values.insert(x1, gtsam.Pose2())
+    with pytest.raises(RuntimeError) as e:
+        gtsam.Marginals(graph, values)
+    line = error_line(str(e.value))
+    assert "\n" not in line and line.startswith("Indeterminate linear system")
+    assert line.endswith(" x0") or line.endswith(" x1")
+    assert "\n" in str(e.value)  # what it was made from

@@ -362,7 +362,8 @@ def test_gives_up_when_gtsam_keeps_failing(husky, monkeypatch):
     an ill-conditioned model (a scale walk of 1e-5 on the simulator did this 519 times in a
     400 s run, each re-start from a staler estimate: 15 m off at the end). After
     MAX_RECOVERIES + 1 within RECOVERY_WINDOW s the smoother stops with an error that names
-    gtsam's reason (its first non-blank line), keeping the window's keyframes."""
+    gtsam's reason (its first non-blank line and the variable it names), keeping the window's
+    keyframes."""
     import ddfuse.estimation.smoother.window as window_module
     from ddfuse.estimation.smoother import MAX_RECOVERIES
 
@@ -393,7 +394,7 @@ def test_gives_up_when_gtsam_keeps_failing(husky, monkeypatch):
     state["fail"] = True
     with pytest.raises(RuntimeError, match=r"smoother: 4 re-initialisations within 10 s at "
                        r"t=.*\(Indeterminate linear system detected while working near "
-                       r"variable\): its system is ill-conditioned"):
+                       r"variable x15\): its system is ill-conditioned"):
         for m in ms[len(ms) // 3:]:
             sm.process(m)
     assert state["raised"] == MAX_RECOVERIES + 1

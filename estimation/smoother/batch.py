@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import gtsam
 from ddfuse.estimation.config import Config
+from ddfuse.estimation.errors import error_line
 from ddfuse.estimation.estimator import Estimate, wrap_angle
 from ddfuse.estimation.runner import TrackBuilder
 from ddfuse.estimation.smoother.batch_factors import VectorisedGraph
@@ -56,7 +57,9 @@ class BatchSmoother(FixedLagSmoother):
                                          system).values
             marg = gtsam.Marginals(system.linearize(result), result)
         except RuntimeError as e:
-            self.log.note(self.twist.last_t, f"batch optimisation failed: {e}")
+            self.log.note(self.twist.last_t, f"batch optimisation failed: {error_line(str(e))}"
+                          ": the whole run's system is ill-conditioned; check the config's noise "
+                          "values, priors and delays")
             return
         for j, t in sorted(window.all_kf_t.items(), key=lambda jt: jt[1]):
             key = int(window.key(j))

@@ -14,6 +14,7 @@ import math
 from typing import TYPE_CHECKING
 
 import numpy as np
+from ddfuse.estimation.errors import error_line
 from ddfuse.estimation.estimator import wrap_angle
 from ddfuse.estimation.gaps import gap_note, grown_pose_cov, is_gap
 from ddfuse.estimation.gps_course import GpsCourseStart
@@ -238,9 +239,7 @@ class Initialisation:
         sm = self.sm
         window = sm.window
         t = window.kf_t[window.k]
-        # gtsam's messages start with a blank line
-        first = next((line.strip() for line in reason.splitlines() if line.strip()),
-                     "gtsam error")
+        first = error_line(reason)
         self.recovery_t = [r for r in self.recovery_t if r > t - RECOVERY_WINDOW] + [t]
         if len(self.recovery_t) > MAX_RECOVERIES:
             window.capture_leaving(math.inf, newest=True)  # what the window holds is kept
