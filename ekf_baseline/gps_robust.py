@@ -72,7 +72,8 @@ class EkfRobustGps:
         """The verdict on a fix at ``t`` s: (FUSE, EXCLUDE or RECOVER, the factor f >= 1 on its
         R in the fusion, outlier?). ``y`` (2,) m, ``S`` and ``R`` (2, 2) m^2 as nested
         sequences: the innovation, its covariance with the stated R, and R. After RECOVER the
-        caller inflates P (so the fix is ordinary against ``S`` with R scaled by f) and fuses."""
+        caller inflates P (so the fix is ordinary against ``S`` with R scaled by f; for RECOVER
+        f is the learned scale alone, no kernel: the fix is followed) and fuses."""
         s2 = self.scale.factor
         a, b, d = (S[0][0] + (s2 - 1.0) * R[0][0], S[0][1] + (s2 - 1.0) * R[0][1],
                    S[1][1] + (s2 - 1.0) * R[1][1])
@@ -113,7 +114,10 @@ class EkfRobustGps:
             self._hold_now *= 2.0
             self._win.clear()
             self._sum = 0.0
-            return RECOVER, f, False
+            # the fix the filter now follows is fused as an inlier (R s^2): the kernel's weight
+            # at its distance from the lost estimate, up to 1 / MAX_FACTOR, made the inflation
+            # and the fusion a no-op (x1), the filter lost on (a wrong start, session 31)
+            return RECOVER, s2, False
         self._excluded += 1
         return EXCLUDE, f, True
 

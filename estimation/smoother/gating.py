@@ -65,7 +65,7 @@ class Gating:
         return REJECT
 
     def widen_link(self, key, t_m: float, H: np.ndarray, y: np.ndarray, R: np.ndarray,
-                   what: str, calibration: bool = True) -> int:
+                   what: str, calibration: bool = True, lockout: bool = True) -> int:
         """Widen the newest keyframe's belief by the smallest alpha that makes innovation ``y``
         of a measurement (H (m, DIM), R (m, m)) at ``t_m`` ordinary (``GpsFusion.widen``), the
         lock-out of ``key`` (a sensor, or (sensor, kind)) recovered: P + (alpha - 1) P_ww, so
@@ -73,7 +73,8 @@ class Gating:
         twist, and with ``calibration`` the gyro bias and heading offset where they are
         estimated; a state held at its value never is (gtsam's Cholesky would refuse its prior
         against its 1e-6 walk). Returns the new keyframe (docs/design/smoother.md, Gates and
-        lock-outs)."""
+        lock-outs). Without ``lockout`` (a widening no gate's lock-out asked for) the lock-out's
+        bookkeeping and note are left out."""
         window = self.window
         full = window.full
         w = [0, 1, 2, 3, 4]
@@ -100,6 +101,8 @@ class Gating:
             q[ww] += np.outer(d, d)
         q = 0.5 * (q + q.T) + np.eye(DIM) * self.noise.fixed_sigma ** 2
         j = self.window.link_keyframe(q, self.noise.fixed_sigma)
+        if not lockout:
+            return j
         sensor = key[0] if isinstance(key, tuple) else key
         count, first = self.lockout.streak(key)
         wait = self.lockout.recovered(key, t_m)

@@ -36,6 +36,7 @@ from ddfuse.factors.state import DIM, PSI
 # disagreement of GPS and odometry, said once (GpsFusion._outlier_run)
 DISAGREE_S = 10.0
 DISAGREE_FIXES = 10
+START_WRONG = "start wrong"  # _outlier_run: no fix has agreed since the start
 
 
 class GpsFusion:
@@ -57,6 +58,10 @@ class GpsFusion:
         self.robust = RobustGps(cfg.gps) if cfg.gps.robust else None
         # per sensor: [stamp of the first of the current run of outliers, fixes in it, noted]
         self.outlier_run: dict[str, list] = {}
+        # the sensors with DISAGREE_FIXES fixes in a row the model took for inliers, and the
+        # length of each sensor's current run of them
+        self.agreed: set[str] = set()
+        self.inliers: dict[str, int] = {}
 
     def fuse(self, m: GpsFix, k: int, dt: float) -> None:
         """Fix ``m`` on keyframe ``k``, ``dt`` s after it (the sensor's delay taken off)."""
@@ -138,23 +143,45 @@ class GpsFusion:
                 self.log.rejected[(m.sensor, "outlier")] += 1
             else:  # learnt from the fixes taken for inliers: outliers cannot inflate it
                 self.robust.scale.add(m.t, inn.nis)
-        if self._outlier_run(m, outlier):
+        run = self._outlier_run(m, outlier)
+        if run == START_WRONG and k == self.window.k:
+            # the start, not the GPS: widened to this fix, fused without the kernel (which
+            # would weigh it by its distance from the wrong estimate), the GPS followed
+            k = self.widen(m, s, dt, cov, lockout=False)
+            self.window.add(self.robust.inlier_factor(self.window.key(k), m.enu[0], m.enu[1],
+                                                      cov, r, f, s.lever_arm, dt))
+            return
+        if run:
             return  # a disagreement said: the odometry is followed, the outlier not fused
+        n = self.inliers[m.sensor] = 0 if outlier else self.inliers.get(m.sensor, 0) + 1
+        if n >= DISAGREE_FIXES:
+            self.agreed.add(m.sensor)
         self.window.add(factor)
 
-    def _outlier_run(self, m: GpsFix, outlier: bool) -> bool:
+    def _outlier_run(self, m: GpsFix, outlier: bool) -> bool | str:
         """A run of fixes the model takes for outliers over DISAGREE_S s or more (a wrong datum, a
         spoofed receiver, a long canyon) is said once, with what the estimate follows; its end,
         when a fix agrees again, too. Returns True while such a run goes on: its outliers are
         no longer fused, so that their sum cannot drag the estimate (the outlier component or
         the kernel's tail still pulls) -- until a fix agrees again, judged against the
-        odometry's growing uncertainty."""
+        odometry's growing uncertainty. Where the sensor's fixes have not agreed since the
+        start (never DISAGREE_FIXES inliers in a row), the start is the one value against the
+        GPS's many (a wrong ``initial_pose``): said, and ``START_WRONG`` returned instead, for
+        the estimate to follow the GPS."""
         run = self.outlier_run.get(m.sensor)
         if outlier:
             if run is None:
                 run = self.outlier_run[m.sensor] = [m.t, 0, False]
             run[1] += 1
             if not run[2] and m.t - run[0] >= DISAGREE_S and run[1] >= DISAGREE_FIXES:
+                if m.sensor not in self.agreed:
+                    self.log.note(m.t, f"{m.sensor}: no fix has agreed with the estimate since "
+                                  f"the start ({run[1]} over {m.t - run[0]:.1f} s taken for "
+                                  f"outliers by the {self.cfg.gps.model} model): the start is "
+                                  "taken for wrong (the config's initial_pose?), not the GPS; "
+                                  "the estimate is widened to the fixes and follows the GPS")
+                    del self.outlier_run[m.sensor]
+                    return START_WRONG
                 run[2] = True
                 self.log.note(m.t, f"{m.sensor}: GPS and odometry disagree: {run[1]} fixes "
                               f"over {m.t - run[0]:.1f} s taken for outliers by the "
@@ -246,7 +273,8 @@ class GpsFusion:
             return None
         return cov
 
-    def widen(self, m: GpsFix, s: SensorConfig, dt: float, r: np.ndarray) -> int:
+    def widen(self, m: GpsFix, s: SensorConfig, dt: float, r: np.ndarray,
+              lockout: bool = True) -> int:
         """Recover from a gate lock-out on fix ``m`` (``dt`` s from the newest keyframe) as the
         EKFs do, by widening the belief by the smallest factor alpha that makes the fix's
         innovation ordinary (``estimation.lockout.inflation``), here inside the graph: the fix
@@ -258,7 +286,7 @@ class GpsFusion:
         self.flush()  # the newest keyframe's motion and heading factors, without the fix
         pred, H = gps_predict_jacobian(self.window.kf_state, s.lever_arm, dt)
         y = np.array((m.enu[0] - pred[0], m.enu[1] - pred[1]))
-        return self.gating.widen_link(m.sensor, m.t, H, y, r, "fix")
+        return self.gating.widen_link(m.sensor, m.t, H, y, r, "fix", lockout=lockout)
 
     def innovation(self, m, lever, dt, r: np.ndarray, st: np.ndarray | None = None,
                    full: np.ndarray | None = None) -> float:

@@ -67,3 +67,13 @@ class RobustGps:
         k = self.k / (f if self.gm.model == "dcs" else math.sqrt(f))
         outlier = float(y @ np.linalg.solve(s_y, y)) > gate_nis
         return gps_factor(key, e, n, robust_model(self.gm.model, k, base), lever, dt), outlier
+
+    def inlier_factor(self, key: int, e: float, n: float, cov: np.ndarray, r: np.ndarray,
+                      f: float, lever: tuple[float, float], dt: float) -> gtsam.NonlinearFactor:
+        """``factor``'s fix as an inlier, without the kernel or the outlier component: for a
+        fix the estimate is moved to (a start taken for wrong, ``GpsFusion``), where a kernel
+        would weigh it by its distance from the wrong estimate, i.e. not at all."""
+        c = cov + (self.scale.factor * f - 1.0) * r
+        base = (gtsam.noiseModel.Diagonal.Variances(np.array((c[0, 0], c[1, 1])))
+                if c[0, 1] == 0.0 else gtsam.noiseModel.Gaussian.Covariance(c))
+        return gps_factor(key, e, n, base, lever, dt)
