@@ -224,6 +224,8 @@ def next_step(m: RunSummary, scored: bool) -> tuple[str | None, str]:
                 f"GPS {b.topic} disagreed with the odometry in {b.episodes} bursts (up to "
                 f"{b.largest_m:.0f} m), which gps.model '{m.gps_model}' gates fix by fix: the "
                 "robust model weighs such fixes in every estimator")
+    if not scored and m.has_ground_truth:
+        return None, ""  # the truth is there, the tracks failed: their errors say what to fix
     if not scored and has_gps and not m.gps_holdout:
         return (_command("ddfuse", "run", *args, "--gps-holdout", "every:5", "-o",
                          "ddfuse-holdout"),

@@ -212,3 +212,14 @@ def test_a_gps_model_from_the_command_line_is_carried_into_the_next_command():
         "ddfuse", "run", "/data/b.bag", "--gps-model", "dcs", "--tune", "-o", "ddfuse-tuned"]
     d["gps_model_option"] = False  # the config's own dcs: nothing to carry
     assert "--gps-model" not in _next(RunSummary.from_json(d))
+
+
+def test_no_hold_out_is_offered_for_want_of_truth_when_the_truth_is_there():
+    """Every track ended in error (a datum 4462 km off): nothing scored, but the bag has its
+    truth; a hold-out 'for want of ground truth' would be wrong. The errors say what to fix."""
+    m = _run({"ekf": 1.0}, truth=False)
+    m = RunSummary.from_json({**m.to_json(), "has_ground_truth": True, "estimators": {
+        "ekf": {"samples": 21, "error": "numerical breakdown at t=2.1: ..."}}})
+    assert headline(m).next_command is None
+    m = RunSummary.from_json({**m.to_json(), "has_ground_truth": False})
+    assert _next(m)[3:5] == ["--gps-holdout", "every:5"]
