@@ -44,6 +44,10 @@ FUSE, EXCLUDE, RECOVER = 0, 1, 2  # EkfRobustGps.judge's verdicts
 MAX_FACTOR = 1.0e4  # the largest factor on R (a fix 100 sigma off still has a finite R)
 WINDOW_PROB = 0.999  # the window test's chi-square quantile
 MIN_WINDOW_FIXES = 3  # fewer fixes in the window: no verdict
+# fixes in a row taken for inliers after which the GPS has agreed with the estimate; before
+# that, a faulty window blames the start, not the GPS (the smoother's DISAGREE_FIXES)
+AGREE_FIXES = 10
+START_HOLD = 10.0  # s: and such a faulty stretch is the start's after this long (DISAGREE_S)
 
 
 class EkfRobustGps:
@@ -66,6 +70,8 @@ class EkfRobustGps:
         self.faulty_since: float | None = None
         self._excluded = 0
         self.faults: list[tuple[float, float, int, str]] = []  # (from, to, fixes, how it ended)
+        self._inliers = 0  # fixes in a row fused as inliers
+        self.agreed = False  # AGREE_FIXES of them since the start
         self.notes: list[tuple[float, str]] = []  # (stamp, message) for the caller's log
 
     def judge(self, t: float, y, S, R) -> tuple[int, float, bool]:
@@ -95,9 +101,12 @@ class EkfRobustGps:
                     f"{self._limit():.0f}); following the odometry")))
                 return EXCLUDE, f, True
             if outlier:  # beyond the gate: not fused (a filter cannot take it back)
+                self._inliers = 0
                 return EXCLUDE, f, True
             # the NIS with the stated R: the scale is learned from the inliers only
             self.scale.add(t, _nis2(y, S))
+            self._inliers += 1
+            self.agreed = self.agreed or self._inliers >= AGREE_FIXES
             return FUSE, f, False
         if not faulty:
             self._end(t, "consistent", (
@@ -106,6 +115,17 @@ class EkfRobustGps:
                 "following the GPS"))
             self._hold_now = self.hold
             return (EXCLUDE, f, True) if outlier else (FUSE, f, False)
+        if not self.agreed and t - self.faulty_since >= START_HOLD:
+            # no run of agreement since the start: the start (one stated value) is taken for
+            # wrong rather than the GPS, after the smoother's DISAGREE_S, not fault_hold
+            self._end(t, "recovered", (
+                f"{self.sensor}: no fix has agreed with the estimate since the start (GPS "
+                f"inconsistent for {t - self.faulty_since:.1f} s, {self._excluded} fixes not "
+                "fused): the start is taken for wrong (the config's initial_pose?), not the "
+                "GPS; covariance inflated; following the GPS"))
+            self._win.clear()
+            self._sum = 0.0
+            return RECOVER, s2, False
         if t - self.faulty_since >= self._hold_now:
             self._end(t, "recovered", (
                 f"{self.sensor}: GPS inconsistent for {t - self.faulty_since:.1f} s "

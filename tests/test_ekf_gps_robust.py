@@ -95,8 +95,35 @@ def test_correlated_fixes_need_a_larger_window_sum_to_be_faulty():
     verdicts = {}
     for tau in (0.0, 10.0):
         m = EkfRobustGps("gps", GpsModelConfig(model="cauchy", fault_window=5.0), None, tau)
+        for t in np.arange(-20.0, 0.0, 0.5):  # agreeing first: a disagreement is the GPS's
+            m.judge(t, [0.0, 0.0], S, R)
         verdicts[tau] = [m.judge(t, [5.0, 0.0], S, R)[0] for t in np.arange(0.0, 5.0, 0.5)]
     assert EXCLUDE in verdicts[0.0] and EXCLUDE not in verdicts[10.0]
+
+
+def test_fixes_that_never_agreed_since_the_start_are_followed_after_start_hold():
+    """A faulty stretch before AGREE_FIXES inliers in a row blames the start (a wrong
+    initial_pose), not the GPS: RECOVER START_HOLD s after the verdict, not fault_hold (30),
+    the fix fused at the learned scale (1 here); after agreement the same stretch is the
+    GPS's fault and waits fault_hold."""
+    from ddfuse.ekf_baseline.gps_robust import START_HOLD
+
+    def first_recovery(m, t0):
+        out = [(t, m.judge(t, [60.0, 0.0], S, R)) for t in np.arange(t0, t0 + 40.0, 0.5)]
+        first_ex = next(t for t, v in out if v[0] == EXCLUDE)
+        t_rec, v = next((t, v) for t, v in out if v[0] == RECOVER)
+        return t_rec - first_ex, v
+
+    m = _model(fault_window=5.0)
+    wait, v = first_recovery(m, 0.0)
+    assert START_HOLD <= wait <= START_HOLD + 1.0 and v[1] == pytest.approx(1.0)
+    assert any("no fix has agreed with the estimate since the start" in n for _, n in m.notes)
+    m = _model(fault_window=5.0)
+    for t in np.arange(-10.0, 0.0, 0.5):
+        m.judge(t, [0.0, 0.0], S, R)
+    wait, _ = first_recovery(m, 0.0)
+    assert 30.0 <= wait <= 31.0 and any("takes itself for lost" in n for _, n in m.notes)
+    assert not any("since the start" in n for _, n in m.notes)
 
 
 @pytest.mark.parametrize("model", ["cauchy", "geman_mcclure", "dcs", "maxmix"])
