@@ -100,7 +100,8 @@ class Gating:
             d = np.linalg.pinv(H[:, w]) @ rest
             q[ww] += np.outer(d, d)
         q = 0.5 * (q + q.T) + np.eye(DIM) * self.noise.fixed_sigma ** 2
-        j = self.window.link_keyframe(q, self.noise.fixed_sigma)
+        # a widening no lock-out asked for is a start taken for wrong: the batch keeps q too
+        j = self.window.link_keyframe(q, self.noise.fixed_sigma if lockout else None)
         if not lockout:
             return j
         sensor = key[0] if isinstance(key, tuple) else key

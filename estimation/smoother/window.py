@@ -76,15 +76,17 @@ class Window:
         self.kf_cov = cov0[:3, :3].copy()
         self.full, self.full_k = cov0, self.k
 
-    def link_keyframe(self, q: np.ndarray, batch_sigma: float) -> int:
+    def link_keyframe(self, q: np.ndarray, batch_sigma: float | None) -> int:
         """A keyframe at the newest's stamp and value, tied to it by a zero-mean link with
         covariance ``q`` (DIM, DIM): its marginal is the newest's widened by ``q`` (a gate
         lock-out's recovery). The batch ties the two by ``batch_sigma`` instead: the robot did
-        not jump, the filter was lost. Only the new keyframe is output. Returns its index."""
+        not jump, the filter was lost; with ``batch_sigma`` None it keeps ``q`` too (a stated
+        start taken for wrong: the whole run cannot leave the start's prior, what comes after
+        the link can). Only the new keyframe is output. Returns its index."""
         x, full = self.kf_state, self.full
         i, t = self.k, self.kf_t[self.k]
         j = self.k = i + 1
-        if self.keep_all:
+        if self.keep_all and batch_sigma is not None:
             self.all_graph.add(gtsam.BetweenFactorVector(
                 self.key(i), self.key(j), np.zeros(DIM),
                 gtsam.noiseModel.Isotropic.Sigma(DIM, batch_sigma)))
