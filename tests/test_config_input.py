@@ -62,6 +62,11 @@ CASES = [
     # a vertical sigma that was silently ignored
     (sensor("gps", topic="/f", noise={"vertical": 2.0}), "sensors.gps[0].noise.vertical",
      "horizontal"),
+    # a start's yaw and a fixed heading offset in degrees (90 ran as 90 rad)
+    ({**sensor("odometry", **ODOM), "initial_pose": [0.0, 0.0, 90.0]}, "initial_pose[2]",
+     "the yaw is in radians (90 deg would be 1.5708)"),
+    (sensor("imu", topic="/i", use=["yaw"], noise={"yaw": 0.02}, heading_offset=20.0),
+     "sensors.imu[0].heading_offset", "the offset is in radians"),
     # a mount in degrees
     (sensor("imu", topic="/i", mount={"rpy": [90, 0, 0]}), "sensors.imu[0].mount.rpy[0]",
      "radians"),
