@@ -115,23 +115,20 @@ class EkfRobustGps:
                 "following the GPS"))
             self._hold_now = self.hold
             return (EXCLUDE, f, True) if outlier else (FUSE, f, False)
-        if not self.agreed and t - self.faulty_since >= START_HOLD:
-            # no run of agreement since the start: the start (one stated value) is taken for
-            # wrong rather than the GPS, after the smoother's DISAGREE_S, not fault_hold
+        # no run of agreement since the start: after START_HOLD (the smoother's DISAGREE_S)
+        # the start, one stated value, is taken for wrong rather than the GPS
+        start = not self.agreed and t - self.faulty_since >= START_HOLD
+        if start or t - self.faulty_since >= self._hold_now:
+            span, n = t - self.faulty_since, self._excluded
             self._end(t, "recovered", (
                 f"{self.sensor}: no fix has agreed with the estimate since the start (GPS "
-                f"inconsistent for {t - self.faulty_since:.1f} s, {self._excluded} fixes not "
-                "fused): the start is taken for wrong (the config's initial_pose?), not the "
-                "GPS; covariance inflated; following the GPS"))
-            self._win.clear()
-            self._sum = 0.0
-            return RECOVER, s2, False
-        if t - self.faulty_since >= self._hold_now:
-            self._end(t, "recovered", (
-                f"{self.sensor}: GPS inconsistent for {t - self.faulty_since:.1f} s "
-                f"({self._excluded} fixes not fused): the filter takes itself for lost, "
-                "covariance inflated; following the GPS"))
-            self._hold_now *= 2.0
+                f"inconsistent for {span:.1f} s, {n} fixes not fused): the start is taken for "
+                "wrong (the config's initial_pose?), not the GPS; covariance inflated; "
+                "following the GPS" if start else
+                f"{self.sensor}: GPS inconsistent for {span:.1f} s ({n} fixes not fused): the "
+                "filter takes itself for lost, covariance inflated; following the GPS"))
+            if not start:
+                self._hold_now *= 2.0
             self._win.clear()
             self._sum = 0.0
             # the fix the filter now follows is fused as an inlier (R s^2): the kernel's weight

@@ -164,8 +164,7 @@ MAX_LEVER_ARM_M = 100.0
 
 def process_noise_max(key: str) -> float | None:
     """The largest value config key ``key`` (``robot.slip.heading``, ...) may have, or None."""
-    return MAX_PROCESS_NOISE.get(key.rpartition(".")[0]) if key != (
-        "robot.twist_walk.burst_share") else None
+    return MAX_PROCESS_NOISE.get(key.rpartition(".")[0])
 # Gate lock-out rule shared by the EKFs (ekf_baseline.kalman) and the smoother's GPS gate: this
 # many consecutive rejections of one sensor spanning at least this long mean the estimate, not
 # the sensor, is wrong.

@@ -563,16 +563,7 @@ def data_facts(result: RunResult, cfg: Config,
         path_length_from=source, t0=stream.t0, t1=stream.t1,
         datum=list(stream.datum) if stream.datum else None,
         heading_offsets=[HeadingOffset.from_json(sv.to_dict()) for sv in surveys],
-        gps_bursts=gps_bursts(getattr(stream, "watch", None)))
-
-
-def gps_bursts(watch) -> list[GpsBursts]:
-    """Each GPS topic the ``GpsWatch`` ``watch`` (None: not watched) found bursty."""
-    if watch is None:
-        return []
-    return [GpsBursts(topic, len(eps), sum(e.fixes for e in eps),
-                      num(max(e.size_m for e in eps)), num(max(e.end - e.start for e in eps)))
-            for topic, eps in watch.bursts().items()]
+        gps_bursts=GpsBursts.of_watch(getattr(stream, "watch", None)))
 
 
 def run_bag(bag: str | Path, cfg: Config, outdir: str | Path, *, names: list[str] | None = None,

@@ -292,6 +292,15 @@ class GpsBursts(Record):
     largest_m: float | None = None
     longest_s: float | None = None
 
+    @classmethod
+    def of_watch(cls, watch) -> list[GpsBursts]:
+        """Each GPS topic the ``GpsWatch`` ``watch`` (None: not watched) found bursty."""
+        if watch is None:
+            return []
+        return [cls(topic, len(eps), sum(e.fixes for e in eps), num(max(e.size_m for e in eps)),
+                    num(max(e.end - e.start for e in eps)))
+                for topic, eps in watch.bursts().items()]
+
 
 @dataclass(frozen=True)
 class DataFacts(Record):

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from dataclasses import dataclass
 from pathlib import Path
 
 from ddfuse.estimation.errors import DdfuseError
@@ -54,7 +53,7 @@ def command(args: argparse.Namespace) -> int:
     fits = [] if info.error else compass_correlations(args.bag, tree)
     lines += [f.describe() for f in fits]
     bursts = [] if info.error else gps_bursts(args.bag, tree)
-    lines += [b.describe() for b in bursts]
+    lines += [_burst_fact(b) for b in bursts]
     lines.append("")
     text = config_text(tree, info, {f.sensor: f for f in fits if f.tau is not None}, bursts)
     out = sys.stdout
@@ -100,37 +99,30 @@ def compass_correlations(path, tree: dict) -> list:
     return fits
 
 
-@dataclass(frozen=True)
-class Bursts:
-    """A GPS topic that disagreed with the odometry's dead reckoning in bursts (the watch of
-    ``ddfuse run``, ``estimation.gps_watch``): ``episodes``, ``fixes`` flagged, ``largest_m`` m,
-    ``longest_s`` s."""
-
-    topic: str
-    episodes: int
-    fixes: int
-    largest_m: float
-    longest_s: float
-
-    def describe(self) -> str:
-        return (f"{self.topic}: disagreed with the odometry's dead reckoning {self.episodes} "
-                f"times ({self.fixes} fixes, up to {self.largest_m:.0f} m, the longest "
-                f"{self.longest_s:.1f} s): errors in bursts, as multipath and non-line-of-sight "
-                f"fixes give (gps: {{model: {ROBUST_MODEL}}} in the suggested config)")
-
-    def source(self) -> str:
-        return (f"gps.model {ROBUST_MODEL}: {self.topic} disagreed with the odometry's dead "
-                f"reckoning in {self.episodes} bursts (up to {self.largest_m:.0f} m), which a "
-                "gating model can follow; a robust one weighs them (docs/design/urban_gps.md; "
-                "`ddfuse run` warns by the same rule)")
+def _burst_fact(b) -> str:
+    """A ``scores.GpsBursts`` as inspect's fact line."""
+    return (f"{b.topic}: disagreed with the odometry's dead reckoning {b.episodes} times "
+            f"({b.fixes} fixes, up to {b.largest_m:.0f} m, the longest {b.longest_s:.1f} s): "
+            "errors in bursts, as multipath and non-line-of-sight fixes give "
+            f"(gps: {{model: {ROBUST_MODEL}}} in the suggested config)")
 
 
-def gps_bursts(path, tree: dict) -> list[Bursts]:
+def _burst_source(b) -> str:
+    """A ``scores.GpsBursts`` as the comment above the suggested ``gps.model``."""
+    return (f"gps.model {ROBUST_MODEL}: {b.topic} disagreed with the odometry's dead reckoning "
+            f"in {b.episodes} bursts (up to {b.largest_m:.0f} m), which a gating model can "
+            "follow; a robust one weighs them (docs/design/urban_gps.md; `ddfuse run` warns by "
+            "the same rule)")
+
+
+def gps_bursts(path, tree: dict) -> list:
     """The GPS topics of the suggested config ``tree`` whose fixes disagree with its odometry
     in bursts, read as ``ddfuse run`` reads them (``estimation.gps_watch``); where there are
-    any, ``tree`` gets the robust GPS model. [] without a GPS and a speed source."""
+    any, ``tree`` gets the robust GPS model. ``scores.GpsBursts`` per topic; [] without a GPS
+    and a speed source."""
     from ddfuse.estimation.bags import BagStream
     from ddfuse.estimation.config import parse_config
+    from ddfuse.evaluation.scores import GpsBursts
 
     sensors = tree.get("sensors") or {}
     if not sensors.get("gps") or not (sensors.get("odometry") or sensors.get("wheels")):
@@ -142,15 +134,14 @@ def gps_bursts(path, tree: dict) -> list[Bursts]:
             pass
     except DdfuseError:  # what the bag lacks is inspect's facts to report, not this
         return []
-    out = [Bursts(topic, len(eps), sum(e.fixes for e in eps), max(e.size_m for e in eps),
-                  max(e.end - e.start for e in eps)) for topic, eps in bs.watch.bursts().items()]
+    out = GpsBursts.of_watch(bs.watch)
     if out:
         tree["gps"] = {"model": ROBUST_MODEL}
     return out
 
 
 def config_text(tree: dict, info, compasses: dict | None = None,
-                bursts: list[Bursts] | None = None) -> str:
+                bursts: list | None = None) -> str:
     """Config ``tree`` as YAML, each GPS sensor's suggested ``correlation_time`` with a comment
     above it saying where the value comes from (its topic's ``scatter`` in BagInfo ``info``), and
     so each IMU's whose yaw correlation was measured (``compasses``: topic -> its
@@ -171,6 +162,6 @@ def config_text(tree: dict, info, compasses: dict | None = None,
         elif key.startswith("correlation_time: ") and topic in sources:
             out.append(" " * (len(line) - len(key)) + f"# correlation_time {sources[topic]}")
         elif line.startswith("gps:") and bursts:
-            out += [f"# {b.source()}" for b in bursts]
+            out += [f"# {_burst_source(b)}" for b in bursts]
         out.append(line)
     return "\n".join(out) + "\n"
