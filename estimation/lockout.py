@@ -23,6 +23,9 @@ import numpy as np
 from ddfuse.estimation.config import DEFAULT_LOCKOUT_COUNT, DEFAULT_LOCKOUT_TIME
 
 DEFAULT_RECOVERY_HOLDOFF = 10.0  # s before a second recovery of the same measurement; doubles
+# acceptances in a row after which a measurement model has agreed with the estimate since the
+# start (``Lockout.agreed``); the robust GPS models' run of inliers is as long
+AGREED_RUN = 10
 MAX_INFLATION = 1e12  # largest covariance scale factor tried by a recovery
 
 
@@ -91,12 +94,22 @@ class Lockout:
         self._streak: dict[Hashable, list] = {}
         # key -> (earliest stamp of the next recovery, the hold-off that set it)
         self._hold: dict[Hashable, tuple[float, float]] = {}
+        self._run: dict[Hashable, int] = {}  # key -> acceptances in a row
+        self._agreed: set[Hashable] = set()  # keys with AGREED_RUN of them at some time
 
     def accepted(self, key: Hashable) -> None:
         """The measurement passed the gate: its streak ends."""
         s = self._streak.get(key)
         if s is not None:
             s[:] = gate_streak(False, math.nan, *s)
+        n = self._run[key] = self._run.get(key, 0) + 1
+        if n == AGREED_RUN:
+            self._agreed.add(key)
+
+    def agreed(self, key: Hashable) -> bool:
+        """Whether ``key`` was ever accepted AGREED_RUN times in a row: without that, a
+        lock-out from the start is the stated start's fault, not a lost estimate's."""
+        return key in self._agreed
 
     def rejected(self, key: Hashable, t: float) -> bool:
         """The measurement at ``t`` failed the gate. True if that locks the estimator out and a
@@ -104,6 +117,7 @@ class Lockout:
         :meth:`corroborated`); False for a plain rejection."""
         s = self._streak.setdefault(key, [0, t, 0])
         s[:] = gate_streak(True, t, *s)
+        self._run[key] = 0
         if not lockout_due(s[0], s[1], t, self.count, self.time):
             return False
         ho = self._hold.get(key)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from ddfuse.estimation.lockout import MAX_INFLATION, Lockout, inflation
+from ddfuse.estimation.lockout import AGREED_RUN, MAX_INFLATION, Lockout, inflation
 
 
 @pytest.mark.parametrize("seed", range(5))
@@ -71,3 +71,21 @@ def test_recovery_holdoff_doubles_until_one_takes():
     assert lock(40.0)  # the recovery took: no hold-off
     assert lo.corroborated("gps", 42.0) == 10.0
     assert not lock(43.0)
+
+
+def test_agreed_needs_a_run_of_acceptances_and_keeps_it():
+    """A model has agreed with the estimate once it was accepted AGREED_RUN times in a row (a
+    rejection restarts the count); from then on a lock-out is a lost estimate's, never the
+    start's again, whatever follows."""
+    lo = Lockout(count=5, time=1.0, holdoff=10.0)
+    for _ in range(AGREED_RUN - 1):
+        lo.accepted("gps")
+    lo.rejected("gps", 0.0)
+    for _ in range(AGREED_RUN - 1):
+        lo.accepted("gps")
+    assert not lo.agreed("gps")
+    lo.accepted("gps")
+    assert lo.agreed("gps") and not lo.agreed("compass")
+    for i in range(10):
+        lo.rejected("gps", float(i))
+    assert lo.agreed("gps")

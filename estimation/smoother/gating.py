@@ -100,15 +100,19 @@ class Gating:
             d = np.linalg.pinv(H[:, w]) @ rest
             q[ww] += np.outer(d, d)
         q = 0.5 * (q + q.T) + np.eye(DIM) * self.noise.fixed_sigma ** 2
-        # a widening no lock-out asked for is a start taken for wrong: the batch keeps q too
-        j = self.window.link_keyframe(q, self.noise.fixed_sigma if lockout else None)
+        # a widening no lock-out asked for, or a lock-out of a sensor that never agreed with
+        # the estimate, is a start taken for wrong: the batch keeps q too
+        start = not lockout or not self.lockout.agreed(key)
+        j = self.window.link_keyframe(q, None if start else self.noise.fixed_sigma)
         if not lockout:
             return j
         sensor = key[0] if isinstance(key, tuple) else key
         count, first = self.lockout.streak(key)
         wait = self.lockout.recovered(key, t_m)
         self.log.rejected[(sensor, "lockout_recovery")] += 1
+        why = ("; none had agreed with the estimate since the start: the start is taken for "
+               "wrong (the config's initial_pose?), in the batch too" if start else "")
         self.log.note(t_m, f"{sensor}: gate lock-out after {count} rejections over "
                       f"{t_m - first:.1f} s; belief widened x{alpha:.3g} and the {what} "
-                      f"fused (next recovery not before {wait:.0f} s)")
+                      f"fused (next recovery not before {wait:.0f} s){why}")
         return j

@@ -282,7 +282,9 @@ class GpsFusion:
         covariance (alpha - 1) times the newest keyframe's marginal (the odometry scales
         excepted), so its marginal is the widened one while the window stays whole (the lagged
         output keeps smoothing across the jump). The batch ties the two keyframes tightly
-        instead: the robot did not jump, the filter was lost. Returns the new keyframe."""
+        instead (the robot did not jump, the filter was lost) unless the GPS never agreed with
+        the estimate since the start (``Lockout.agreed``): the start is then what was wrong.
+        Returns the new keyframe."""
         self.flush()  # the newest keyframe's motion and heading factors, without the fix
         pred, H = gps_predict_jacobian(self.window.kf_state, s.lever_arm, dt)
         y = np.array((m.enu[0] - pred[0], m.enu[1] - pred[1]))
