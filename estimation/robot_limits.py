@@ -19,10 +19,12 @@ it on) by the bag stream (``ddfuse.estimation.bags``) and the live converter
 
 Re-anchoring (the last accepted sample could itself be the glitch, or the robot really changed
 speed faster than the limit says): ``REANCHOR`` consecutive rejected samples of one sensor that
-agree with each other by the same test replace the anchor, the last of them is passed on. For a
-twist sensor this holds whatever the anchor; for GPS only while the anchor is provisional (the
-first fix, or one accepted more than ``GAP_S`` after the one before it, until ``REANCHOR`` fixes
-in a row have agreed with it): a confirmed fix keeps its place, and a held GPS jump stays
+agree with each other by the same test replace the anchor. For a twist sensor this holds
+whatever the anchor, and the next sample decides: one that fits the run is passed on, one that
+fits the anchor before it restores that anchor (the run was a dropout: none of it is passed).
+For GPS the last of the run is passed on, and only while the anchor is provisional (the first
+fix, or one accepted more than ``GAP_S`` after the one before it, until ``REANCHOR`` fixes in a
+row have agreed with it): a confirmed fix keeps its place, and a held GPS jump stays
 rejected while it holds: a fix that goes on the run of rejected fixes (fits its last one, nearer
 to it than to the anchor) is rejected even when the aged anchor's reach would take it, up to
 ``HOLD_S``; a run that lasts longer re-anchors (the receiver has said the same for a minute).
@@ -98,6 +100,9 @@ class _Channel:
     x: float = 0.0
     var: float = 0.0
     run: list | None = None  # rejected (t, x, var) since the anchor, consecutive and agreeing
+    # the anchor a run replaced, (t, x, var), until a sample fits either: one that fits it
+    # says the run was the glitch and restores it
+    before: tuple | None = None
     scatter: _Scatter | None = None
     stated: float = math.nan  # the last sample's stated variance
 
@@ -260,17 +265,23 @@ class RobotLimits:
             key = "robot.max_speed" if what == "speed" else "robot.max_yaw_rate"
             return self._reject(sensor, f"{what} beyond the robot's top {what} ({key})", t,
                                 f"{what} {x:.6g} {ch.unit}", f"limit {ch.limit:g} {ch.unit}")
-        if math.isnan(ch.t) or ch.fits(ch.t, ch.x, ch.var, t, x, var):
-            ch.t, ch.x, ch.var, ch.run = t, x, var, None
+        if (math.isnan(ch.t) or ch.fits(ch.t, ch.x, ch.var, t, x, var)
+                or (ch.before is not None and ch.fits(*ch.before, t, x, var))):
+            ch.t, ch.x, ch.var, ch.run, ch.before = t, x, var, None, None
             return True
         run = ch.run
         if run and ch.fits(*run[-1], t, x, var):
             run.append((t, x, var))
         else:
             run = ch.run = [(t, x, var)]
-        if len(run) >= REANCHOR:  # they agree with each other: the anchor was the odd one
+        if len(run) >= REANCHOR:
+            # they agree with each other: the anchor may have been the odd one. The next
+            # sample decides, so that a dropout of REANCHOR samples (a wheel-speed driver's
+            # half second of zeros) reaches no estimator: one that fits the run is passed on
+            # (the robot did change faster than the limit), one that fits the old anchor
+            # restores it
+            ch.before = (ch.t, ch.x, ch.var)
             ch.t, ch.x, ch.var, ch.run = t, x, var, None
-            return True
         acc = "robot.max_accel" if what == "speed" else "robot.max_yaw_accel"
         return self._reject(
             sensor, f"{what} change faster than the robot can accelerate ({acc})", t,
