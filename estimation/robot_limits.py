@@ -19,9 +19,11 @@ it on) by the bag stream (``ddfuse.estimation.bags``) and the live converter
 
 Re-anchoring (the last accepted sample could itself be the glitch, or the robot really changed
 speed faster than the limit says): ``REANCHOR`` consecutive rejected samples of one sensor that
-agree with each other by the same test replace the anchor. For a twist sensor this holds
-whatever the anchor, and the next sample decides: one that fits the run is passed on, one that
-fits the anchor before it restores that anchor (the run was a dropout: none of it is passed).
+agree with each other by the same test replace the anchor. For a twist sensor: at once while the
+anchor is not confirmed (the first sample, or a re-anchor, until ``REANCHOR`` samples in a row
+fit it), else once the run spans ``TWIST_HOLD_S``; the next sample decides: one that fits the run
+is passed on, one that fits the anchor before it restores that anchor (the run was a dropout:
+none of it is passed).
 For GPS the last of the run is passed on, and only while the anchor is provisional (the first
 fix, or one accepted more than ``GAP_S`` after the one before it, until ``REANCHOR`` fixes in a
 row have agreed with it): a confirmed fix keeps its place, and a held GPS jump stays
@@ -71,7 +73,7 @@ from ddfuse.estimation.gps_motion import MotionCheck
 from ddfuse.estimation.measurements import GpsFix, GyroYawRate, WheelOdometry, WheelSpeeds
 
 __all__ = ["DEFAULT_MAX_ACCEL", "DEFAULT_MAX_YAW_ACCEL", "GAP_S", "K_SIGMA", "K_SIGMA_GPS",
-           "HOLD_S", "REANCHOR", "RobotLimits"]
+           "HOLD_S", "REANCHOR", "TWIST_HOLD_S", "RobotLimits"]
 
 log = logging.getLogger(__name__)
 
@@ -86,6 +88,9 @@ K_SIGMA_GPS = 6.0  # a fix's noise allowance (2-D: P(|d| > 6 sigma) = exp(-18) =
 REANCHOR = 5  # consecutive rejected samples that agree with each other replace the anchor
 GAP_S = 2.0  # s: a fix accepted this long after the one before is provisional
 HOLD_S = 60.0  # s: a held GPS jump stays rejected this long at most, then it is the position
+# s: a run of twist samples against a confirmed anchor re-anchors only once it spans this long
+# (a wheel driver's dropout or a spike is shorter; a speed held this long is the robot's)
+TWIST_HOLD_S = 1.0
 
 
 @dataclass(slots=True)
@@ -103,6 +108,7 @@ class _Channel:
     # the anchor a run replaced, (t, x, var), until a sample fits either: one that fits it
     # says the run was the glitch and restores it
     before: tuple | None = None
+    agreed: int = 0  # samples accepted in a row since the first one or a re-anchor
     scatter: _Scatter | None = None
     stated: float = math.nan  # the last sample's stated variance
 
@@ -267,6 +273,7 @@ class RobotLimits:
                                 f"{what} {x:.6g} {ch.unit}", f"limit {ch.limit:g} {ch.unit}")
         if (math.isnan(ch.t) or ch.fits(ch.t, ch.x, ch.var, t, x, var)
                 or (ch.before is not None and ch.fits(*ch.before, t, x, var))):
+            ch.agreed = 0 if math.isnan(ch.t) else ch.agreed + 1
             ch.t, ch.x, ch.var, ch.run, ch.before = t, x, var, None, None
             return True
         run = ch.run
@@ -274,14 +281,14 @@ class RobotLimits:
             run.append((t, x, var))
         else:
             run = ch.run = [(t, x, var)]
-        if len(run) >= REANCHOR:
-            # they agree with each other: the anchor may have been the odd one. The next
-            # sample decides, so that a dropout of REANCHOR samples (a wheel-speed driver's
-            # half second of zeros) reaches no estimator: one that fits the run is passed on
-            # (the robot did change faster than the limit), one that fits the old anchor
-            # restores it
+        if len(run) >= REANCHOR and (ch.agreed < REANCHOR or t - run[0][0] >= TWIST_HOLD_S):
+            # they agree with each other: the anchor may have been the odd one (one not yet
+            # confirmed by REANCHOR samples at once, a confirmed one after TWIST_HOLD_S). The
+            # next sample decides, so that the run itself reaches no estimator: one that fits
+            # the run is passed on (the robot did change faster than the limit), one that fits
+            # the old anchor restores it (a dropout, a wheel driver's second of zeros)
             ch.before = (ch.t, ch.x, ch.var)
-            ch.t, ch.x, ch.var, ch.run = t, x, var, None
+            ch.t, ch.x, ch.var, ch.run, ch.agreed = t, x, var, None, 0
         acc = "robot.max_accel" if what == "speed" else "robot.max_yaw_accel"
         return self._reject(
             sensor, f"{what} change faster than the robot can accelerate ({acc})", t,

@@ -14,7 +14,7 @@ from ddfuse.estimation.bags import BagStream, read_stream
 from ddfuse.estimation.config import load_config, parse_config_text
 from ddfuse.estimation.live import LiveConverter
 from ddfuse.estimation.measurements import GpsFix, GyroYawRate, WheelOdometry, WheelSpeeds
-from ddfuse.estimation.robot_limits import HOLD_S, REANCHOR, RobotLimits
+from ddfuse.estimation.robot_limits import HOLD_S, REANCHOR, TWIST_HOLD_S, RobotLimits
 
 ROOT = Path(__file__).resolve().parents[1]
 T0 = 1700000000.0
@@ -99,30 +99,44 @@ def test_a_glitch_as_the_first_sample_re_anchors_after_consecutive_agreeing_ones
 
 
 def test_a_real_step_faster_than_the_limit_is_followed_after_the_re_anchor():
+    """Against an anchor not yet confirmed by REANCHOR samples the run re-anchors at once;
+    against a confirmed one once it spans TWIST_HOLD_S; either way the sample after the
+    re-anchoring one is the first passed on."""
     screen, _ = _screen("")
-    values = [0.0] * 5 + [15.0] * 10  # 150 m/s^2 for one period: beyond the default 20
+    values = [0.0] * 4 + [15.0] * 10  # 150 m/s^2 for one period: beyond the default 20
     passed = [screen.admit(m) for m in _speeds(values)]
-    assert passed == [True] * 5 + [False] * REANCHOR + [True] * (10 - REANCHOR)
+    assert passed == [True] * 4 + [False] * REANCHOR + [True] * (10 - REANCHOR)
+    screen, _ = _screen(", max_accel: 0.5")  # 3 m/s from 0 would take 6 s at the limit
+    ms = _speeds([0.0] * 10 + [3.0] * 30)
+    passed = [screen.admit(m) for m in ms]
+    held = next(i for i in range(10, 40) if ms[i].t - ms[10].t >= TWIST_HOLD_S)
+    assert passed == [True] * 10 + [False] * (held - 9) + [True] * (39 - held)
 
 
-@pytest.mark.parametrize("n", [REANCHOR, REANCHOR + 2])
-def test_a_dropout_as_long_as_a_re_anchor_reaches_no_estimator(n):
-    """A wheel-speed driver that reports 0 for half a second while the robot drives at
-    1 m/s (stated max_accel 0.5 m/s^2). Before, the REANCHOR-th zero was passed on and the
-    return rejected for REANCHOR - 1 samples: on data/sample_husky.bag the smoother held 0.5 s
-    of standing still and its ATE went 0.101 -> 0.314 m for the rest of the run (batch 0.082
-    -> 0.248). Now the sample after the run decides: back at the old anchor's speed, it is
-    passed and the zeros never are. A dropout longer than REANCHOR + 1 samples is followed
-    (the robot may really have stopped)."""
+@pytest.mark.parametrize("n", [REANCHOR, REANCHOR + 2, 10])
+def test_a_dropout_shorter_than_the_hold_reaches_no_estimator(n):
+    """A wheel-speed driver that reports 0 for up to a second while the robot drives at 1 m/s
+    (stated max_accel 0.5 m/s^2). Before, the REANCHOR-th zero was passed on and the return
+    rejected for REANCHOR - 1 samples: on data/sample_husky.bag the smoother held 0.5 s of
+    standing still and its ATE went 0.101 -> 0.313 m for the rest of the run (batch 0.082 ->
+    0.247; 10 zeros: 0.607 m). Now a run against a confirmed anchor waits TWIST_HOLD_S, and
+    the sample after it decides: back at the old anchor's speed, it is passed and the zeros
+    never are."""
     screen, rejected = _screen(", max_accel: 0.5")
     values = [1.0] * 10 + [0.0] * n + [1.0] * 10
     passed = [screen.admit(m) for m in _speeds(values)]
-    if n == REANCHOR:
-        assert passed == [True] * 10 + [False] * n + [True] * 10
-    else:  # the zero after the re-anchor fits it: passed, and the return re-anchors again
-        assert passed[:10 + REANCHOR] == [True] * 10 + [False] * REANCHOR
-        assert passed[10 + REANCHOR:10 + n] == [True] * (n - REANCHOR)
-        assert passed[10 + n:10 + n + REANCHOR] == [False] * REANCHOR and all(passed[-5:])
+    assert passed == [True] * 10 + [False] * n + [True] * 10
+    assert sum(rejected.values()) == n
+
+
+def test_a_stop_held_past_the_hold_is_followed():
+    """2 s of zeros after 1 m/s (beyond max_accel 0.5): a real stop (or a wrong limit). The
+    run re-anchors once it spans TWIST_HOLD_S and the zeros after it are passed on."""
+    screen, _ = _screen(", max_accel: 0.5")
+    ms = _speeds([1.0] * 10 + [0.0] * 20)
+    passed = [screen.admit(m) for m in ms]
+    held = next(i for i in range(10, 30) if ms[i].t - ms[10].t >= TWIST_HOLD_S)
+    assert passed == [True] * 10 + [False] * (held - 9) + [True] * (29 - held)
 
 
 def test_samples_that_do_not_agree_with_each_other_do_not_re_anchor():
