@@ -105,8 +105,8 @@ class _Channel:
     x: float = 0.0
     var: float = 0.0
     run: list | None = None  # rejected (t, x, var) since the anchor, consecutive and agreeing
-    # the anchor a run replaced, (t, x, var), until a sample fits either: one that fits it
-    # says the run was the glitch and restores it
+    # the anchor a run replaced, (t, x, var, agreed), until a sample fits either: one that
+    # fits it says the run was the glitch and restores it
     before: tuple | None = None
     agreed: int = 0  # samples accepted in a row since the first one or a re-anchor
     scatter: _Scatter | None = None
@@ -271,9 +271,13 @@ class RobotLimits:
             key = "robot.max_speed" if what == "speed" else "robot.max_yaw_rate"
             return self._reject(sensor, f"{what} beyond the robot's top {what} ({key})", t,
                                 f"{what} {x:.6g} {ch.unit}", f"limit {ch.limit:g} {ch.unit}")
-        if (math.isnan(ch.t) or ch.fits(ch.t, ch.x, ch.var, t, x, var)
-                or (ch.before is not None and ch.fits(*ch.before, t, x, var))):
-            ch.agreed = 0 if math.isnan(ch.t) else ch.agreed + 1
+        first = math.isnan(ch.t)
+        fits = first or ch.fits(ch.t, ch.x, ch.var, t, x, var)
+        b = ch.before
+        if fits or (b is not None and ch.fits(b[0], b[1], b[2], t, x, var)):
+            # the anchor confirmed once more, or (the run was the glitch) the one before it as
+            # confirmed as it was
+            ch.agreed = 0 if first else ch.agreed + 1 if fits else b[3] + 1
             ch.t, ch.x, ch.var, ch.run, ch.before = t, x, var, None, None
             return True
         run = ch.run
@@ -287,7 +291,7 @@ class RobotLimits:
             # next sample decides, so that the run itself reaches no estimator: one that fits
             # the run is passed on (the robot did change faster than the limit), one that fits
             # the old anchor restores it (a dropout, a wheel driver's second of zeros)
-            ch.before = (ch.t, ch.x, ch.var)
+            ch.before = (ch.t, ch.x, ch.var, ch.agreed)
             ch.t, ch.x, ch.var, ch.run, ch.agreed = t, x, var, None, 0
         acc = "robot.max_accel" if what == "speed" else "robot.max_yaw_accel"
         return self._reject(

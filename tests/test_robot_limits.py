@@ -475,3 +475,15 @@ def test_held_values_read_no_scatter_and_the_stated_noise_rules():
           for i, x in enumerate(values)]
     assert [screen.admit(m) for m in ms] == [i != 60 for i in range(66)]
     assert not [w for w in screen.warnings() if "scatter" in w]
+
+
+def test_a_restored_anchor_stays_confirmed():
+    """After a dropout restored it, the anchor is as confirmed as before: a second dropout
+    right after it waits TWIST_HOLD_S too (it would re-anchor after REANCHOR samples, and the
+    sample after it passed, were the restored anchor taken for a new one)."""
+    screen, _ = _screen(", max_accel: 0.5")
+    t = [m.t for m in _speeds([0.0] * 20)]
+    n = next(k for k in range(1, 20) if t[k] - t[0] >= TWIST_HOLD_S) + 1  # re-anchors at the n-th
+    values = [1.0] * 10 + [0.0] * n + [1.0] + [0.0] * 8 + [1.0] * 5
+    passed = [screen.admit(m) for m in _speeds(values)]
+    assert passed == [v == 1.0 for v in values]
