@@ -20,9 +20,12 @@ from ddfuse.estimation.lockout import Lockout, inflation
 from ddfuse.estimation.measurements import GpsFix, LandmarkObservation
 from ddfuse.estimation.smoother.noise import SmootherNoise, gate_radius
 from ddfuse.estimation.smoother.window import Window
-from ddfuse.factors.state import BG, DIM, HOFF
+from ddfuse.factors.state import BG, DIM, HOFF, PSI
 
 ACCEPT, REJECT, RECOVER = 0, 1, 2  # verdicts of the gate (Gating.verdict)
+# rad^2 added to the heading's variance by the widening of a start taken for wrong (1 rad
+# sigma; (pi/2)^2 made the sample bag's batch indeterminate)
+START_HEADING_VAR = 1.0
 
 
 class Gating:
@@ -103,6 +106,15 @@ class Gating:
         # a widening no lock-out asked for, or a lock-out of a sensor that never agreed with
         # the estimate, is a start taken for wrong: the batch keeps q too
         start = not lockout or not self.lockout.agreed(key)
+        if start and calibration:
+            # the start's heading is as suspect as its position: alpha scales a 5 mrad
+            # sigma, which a 180 deg error outlasts (4 lock-outs on the sample bag); the
+            # compass's sum psi + offset keeps its variance
+            q[PSI, PSI] += START_HEADING_VAR
+            if self.est_hoff:
+                q[HOFF, HOFF] += START_HEADING_VAR
+                q[PSI, HOFF] -= START_HEADING_VAR
+                q[HOFF, PSI] -= START_HEADING_VAR
         j = self.window.link_keyframe(q, None if start else self.noise.fixed_sigma)
         if not lockout:
             return j
