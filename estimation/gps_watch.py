@@ -178,6 +178,7 @@ class GpsWatch:
         d_dr = math.hypot(now.x - ref.x, now.y - ref.y)
         allowed = K_SIGMA * math.hypot(now.sd, ref.sd) + REL * (now.s - ref.s) + ABS_M
         size = abs(d_gps - d_dr)
+        m.odometry_agrees = size <= allowed
         if size <= allowed:
             refs.append(now)
             if m.sensor in self._open:

@@ -101,7 +101,9 @@ class GpsFix:
     ``cov`` is the 3x3 ENU position covariance, m^2 (NavSatFix's own order: east, north, up).
     ``enu`` is filled by the stream once the datum is known: (east, north, up) in metres, in the
     ENU frame at ``datum`` (lat deg, lon deg, alt m), which the stream fills alongside it.
-    ``status`` is NavSatStatus.status (-1 no fix, 0 fix, 1 SBAS, 2 GBAS)."""
+    ``status`` is NavSatStatus.status (-1 no fix, 0 fix, 1 SBAS, 2 GBAS). ``odometry_agrees``
+    is the GPS watch's verdict on the fix (``estimation.gps_watch``): whether its distance from
+    an earlier fix matches the odometry's dead-reckoned distance (None: not compared)."""
 
     t: float
     lat: float  # deg
@@ -112,6 +114,7 @@ class GpsFix:
     sensor: str = "gps"
     enu: tuple[float, float, float] | None = None
     datum: tuple[float, float, float] | None = None
+    odometry_agrees: bool | None = None
 
 
 @dataclass(slots=True)

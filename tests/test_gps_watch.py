@@ -11,7 +11,7 @@ import pytest
 from ddfuse.estimation import geodesy
 from ddfuse.estimation.bags import BagStream
 from ddfuse.estimation.config import parse_config_text
-from ddfuse.estimation.gps_watch import MIN_FIXES, GpsWatch
+from ddfuse.estimation.gps_watch import MIN_FIXES, WINDOW_S, GpsWatch
 from ddfuse.estimation.measurements import GpsFix, GyroYawRate, WheelOdometry
 
 T0 = 1700000000.0
@@ -68,6 +68,23 @@ def test_a_held_jump_is_one_episode_with_its_interval_and_size():
     (line,) = w.warnings()
     assert line.startswith("topic /fix: GPS disagreed with the odometry's dead reckoning from "
                            f"t={ep.start:.3f} to t={ep.end:.3f} (60.0-79.6 s into the input")
+
+
+def test_each_compared_fix_carries_the_watch_verdict():
+    """``GpsFix.odometry_agrees``: None for the fixes of the first WINDOW_S (nothing old enough
+    to compare with), False inside a held jump, True elsewhere; the smoother reads it to tell
+    a wrong estimate (the fixes move as the odometry does) from a wrong GPS."""
+    ms = _drive(120.0, jump=(40.0, 60.0, 30.0))
+    _watch(ms)
+    fixes = [m for m in ms if isinstance(m, GpsFix)]
+    for f in fixes:
+        dt = f.t - T0
+        if dt < WINDOW_S:
+            assert f.odometry_agrees is None
+        elif 40.0 <= dt < 60.0:
+            assert f.odometry_agrees is False
+        elif dt >= 60.0 + WINDOW_S or dt < 40.0:
+            assert f.odometry_agrees is True
 
 
 def test_a_jump_that_lasts_to_the_end_is_closed_there():

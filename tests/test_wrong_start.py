@@ -80,11 +80,12 @@ def test_a_gated_lockout_from_the_start_lets_the_batch_leave_it(wrong_start_gate
     assert "gate lock-out" in notes and "the start is taken for wrong" in notes
 
 
-@pytest.fixture(scope="module", params=["default", "dcs"])
+@pytest.fixture(scope="module", params=[("default", 4.7), ("dcs", 4.7), ("dcs", 3.5)])
 def wrong_heading(request):
     cfg = load_config(ROOT / "data" / "sample_husky.yaml")
-    # the truth starts at (0, 0, pi/2): the position right, the heading 180 deg off
-    cfg = replace(cfg, initial_pose=(0.0, 0.0, 4.7), gps=replace(cfg.gps, model=request.param))
+    # the truth starts at (0, 0, pi/2): the position right, the heading 180 or 110 deg off
+    model, yaw = request.param
+    cfg = replace(cfg, initial_pose=(0.0, 0.0, yaw), gps=replace(cfg.gps, model=model))
     stream = read_stream(ROOT / "data" / "sample_husky.bag", cfg)
     built = registry.build(cfg, stream, ["smoother", "batch"], pose=cfg.initial_pose)
     return stream, run(stream, built).runs
@@ -96,13 +97,17 @@ def test_a_wrong_start_heading_is_widened_with_the_position(wrong_heading, name)
     alpha alone scaled a 5 mrad sigma that a 180 deg error outlasts. Measured, from 30 s on
     (smoother, lagged, batch): `default` 0.13, 0.10, 0.09 m (before 4 lock-outs, 1.2 m from 20 s
     on); `dcs` 0.17, 0.12, 0.16 m, where before the smoother never left the start's heading
-    (42.5 m from 30 s on, 24 m from the truth at the end)."""
+    (42.5 m from 30 s on, 24 m from the truth at the end). 110 deg off under `dcs` the first
+    fixes agree (the robot has not gone far), and a disagreement is the GPS's; once its fixes
+    have moved as the odometry does (the GPS watch) for ESTIMATE_WRONG_S, it is the estimate's:
+    from 50 s on 0.23, 0.18, 0.17 m (before 23.9, 23.8, 23.7 m RMS from 30 s on: the odometry
+    followed for good)."""
     stream, runs = wrong_heading
     r = runs[name]
     assert r.error is None
     tr = r.trajectory
     gt = np.array([(g.t, g.x, g.y) for g in stream.ground_truth])
-    late = tr.t >= gt[0, 0] + 30.0
+    late = tr.t >= gt[0, 0] + 50.0
     ex = tr.pose[late, 0] - np.interp(tr.t[late], gt[:, 0], gt[:, 1])
     ey = tr.pose[late, 1] - np.interp(tr.t[late], gt[:, 0], gt[:, 2])
     assert float(np.sqrt(np.mean(ex * ex + ey * ey))) < 0.4

@@ -36,6 +36,9 @@ from ddfuse.factors.state import DIM, PSI
 # disagreement of GPS and odometry, said once (GpsFusion._outlier_run)
 DISAGREE_S = 10.0
 DISAGREE_FIXES = 10
+# s: a run of outliers whose fixes the GPS watch finds moving as the odometry does, none
+# otherwise, this long is the estimate's fault (urban multipath holds an offset 2-10 s)
+ESTIMATE_WRONG_S = 30.0
 START_WRONG = "start wrong"  # _outlier_run: no fix has agreed since the start
 
 
@@ -171,8 +174,12 @@ class GpsFusion:
         run = self.outlier_run.get(m.sensor)
         if outlier:
             if run is None:
-                run = self.outlier_run[m.sensor] = [m.t, 0, False]
+                # stamp of the first, fixes, noted, fixes the GPS watch found moving as the
+                # odometry does / not
+                run = self.outlier_run[m.sensor] = [m.t, 0, False, 0, 0]
             run[1] += 1
+            if m.odometry_agrees is not None:
+                run[3 if m.odometry_agrees else 4] += 1
             if not run[2] and m.t - run[0] >= DISAGREE_S and run[1] >= DISAGREE_FIXES:
                 if m.sensor not in self.agreed:
                     self.log.note(m.t, f"{m.sensor}: no fix has agreed with the estimate since "
@@ -186,6 +193,17 @@ class GpsFusion:
                 self.log.note(m.t, f"{m.sensor}: GPS and odometry disagree: {run[1]} fixes "
                               f"over {m.t - run[0]:.1f} s taken for outliers by the "
                               f"{self.cfg.gps.model} model; following the odometry")
+            elif run[2] and m.t - run[0] >= ESTIMATE_WRONG_S and run[4] == 0 \
+                    and run[3] >= DISAGREE_FIXES:
+                # the fixes move as the odometry says (the watch compares distances, no
+                # heading) for longer than a burst lasts: the estimate left them, not the GPS
+                # (a wrong start heading whose first fixes agreed)
+                self.log.note(m.t, f"{m.sensor}: the {run[1]} fixes taken for outliers over "
+                              f"{m.t - run[0]:.1f} s move as the odometry does: the estimate "
+                              "is taken for wrong (its heading?), not the GPS; widened to the "
+                              "fixes, the GPS followed")
+                del self.outlier_run[m.sensor]
+                return START_WRONG
             return run[2]
         if run is not None:
             if run[2]:
