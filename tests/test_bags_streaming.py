@@ -95,6 +95,8 @@ def key(m) -> str:
     (numpy's vectorised and scalar paths may differ in the last bit)."""
     vals = []
     for f in dataclasses.fields(m):
+        if f.name == "odometry_agrees":  # the stream's GPS watch's mark, not a decoded value
+            continue
         v = getattr(m, f.name)
         if f.name == "enu" and v is not None:
             v = tuple(round(x, 9) + 0.0 for x in v)
