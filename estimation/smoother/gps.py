@@ -16,6 +16,7 @@ from __future__ import annotations
 import bisect
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import gtsam
 import numpy as np
@@ -42,6 +43,19 @@ ESTIMATE_WRONG_S = 30.0
 START_WRONG = "start wrong"  # _outlier_run: no fix has agreed since the start
 
 
+@dataclass(slots=True)
+class _OutlierRun:
+    """A sensor's current run of fixes the robust model takes for outliers: the first one's
+    stamp (s), how many, whether the disagreement was said, and how many of them the GPS watch
+    found moving as the odometry does / not (``GpsFix.odometry_agrees``)."""
+
+    t0: float
+    fixes: int = 0
+    said: bool = False
+    moving: int = 0
+    jumping: int = 0
+
+
 class GpsFusion:
     """Builds the GPS factors; keeps, per sensor with a correlation time, the stamps of the
     fixes fused (from the last one before the window's lag on)."""
@@ -59,8 +73,8 @@ class GpsFusion:
         self.fused_t: dict[str, list[float]] = {}  # per sensor: stamps (sorted) of fused fixes
         # the config's robust GPS model (gps.model), None for 'default' and 'gaussian'
         self.robust = RobustGps(cfg.gps) if cfg.gps.robust else None
-        # per sensor: [stamp of the first of the current run of outliers, fixes in it, noted]
-        self.outlier_run: dict[str, list] = {}
+        # per sensor: its current run of outliers
+        self.outlier_run: dict[str, _OutlierRun] = {}
         # the sensors with DISAGREE_FIXES fixes in a row the model took for inliers, and the
         # length of each sensor's current run of them
         self.agreed: set[str] = set()
@@ -167,50 +181,53 @@ class GpsFusion:
         when a fix agrees again, too. Returns True while such a run goes on: its outliers are
         no longer fused, so that their sum cannot drag the estimate (the outlier component or
         the kernel's tail still pulls) -- until a fix agrees again, judged against the
-        odometry's growing uncertainty. Where the sensor's fixes have not agreed since the
-        start (never DISAGREE_FIXES inliers in a row), the start is the one value against the
-        GPS's many (a wrong ``initial_pose``): said, and ``START_WRONG`` returned instead, for
-        the estimate to follow the GPS."""
+        odometry's growing uncertainty. ``START_WRONG`` is returned instead, for the estimate
+        to be widened and follow the GPS, where the sensor's fixes have not agreed since the
+        start (never DISAGREE_FIXES inliers in a row: the start is the one value against the
+        GPS's many, a wrong ``initial_pose``), or where the run's fixes have all moved as the
+        odometry does (the GPS watch's ``odometry_agrees``) for ESTIMATE_WRONG_S (the estimate
+        left them: a wrong start heading whose first fixes agreed)."""
         run = self.outlier_run.get(m.sensor)
-        if outlier:
-            if run is None:
-                # stamp of the first, fixes, noted, fixes the GPS watch found moving as the
-                # odometry does / not
-                run = self.outlier_run[m.sensor] = [m.t, 0, False, 0, 0]
-            run[1] += 1
-            if m.odometry_agrees is not None:
-                run[3 if m.odometry_agrees else 4] += 1
-            if not run[2] and m.t - run[0] >= DISAGREE_S and run[1] >= DISAGREE_FIXES:
-                if m.sensor not in self.agreed:
-                    self.log.note(m.t, f"{m.sensor}: no fix has agreed with the estimate since "
-                                  f"the start ({run[1]} over {m.t - run[0]:.1f} s taken for "
-                                  f"outliers by the {self.cfg.gps.model} model): the start is "
-                                  "taken for wrong (the config's initial_pose?), not the GPS; "
-                                  "the estimate is widened to the fixes and follows the GPS")
-                    del self.outlier_run[m.sensor]
-                    return START_WRONG
-                run[2] = True
-                self.log.note(m.t, f"{m.sensor}: GPS and odometry disagree: {run[1]} fixes "
-                              f"over {m.t - run[0]:.1f} s taken for outliers by the "
-                              f"{self.cfg.gps.model} model; following the odometry")
-            elif run[2] and m.t - run[0] >= ESTIMATE_WRONG_S and run[4] == 0 \
-                    and run[3] >= DISAGREE_FIXES:
-                # the fixes move as the odometry says (the watch compares distances, no
-                # heading) for longer than a burst lasts: the estimate left them, not the GPS
-                # (a wrong start heading whose first fixes agreed)
-                self.log.note(m.t, f"{m.sensor}: the {run[1]} fixes taken for outliers over "
-                              f"{m.t - run[0]:.1f} s move as the odometry does: the estimate "
-                              "is taken for wrong (its heading?), not the GPS; widened to the "
-                              "fixes, the GPS followed")
+        if not outlier:
+            if run is not None:
+                if run.said:
+                    self.log.note(m.t, f"{m.sensor}: GPS agrees with the odometry again after "
+                                  f"{run.fixes} outliers over {m.t - run.t0:.1f} s; following "
+                                  "the GPS")
+                del self.outlier_run[m.sensor]
+            return False
+        if run is None:
+            run = self.outlier_run[m.sensor] = _OutlierRun(m.t)
+        run.fixes += 1
+        if m.odometry_agrees is not None:
+            if m.odometry_agrees:
+                run.moving += 1
+            else:
+                run.jumping += 1
+        span = m.t - run.t0
+        what = f"{run.fixes} over {span:.1f} s taken for outliers by the {self.cfg.gps.model} model"
+        if not run.said and span >= DISAGREE_S and run.fixes >= DISAGREE_FIXES:
+            if m.sensor not in self.agreed:
+                self.log.note(m.t, f"{m.sensor}: no fix has agreed with the estimate since the "
+                              f"start ({what}): the start is taken for wrong (the config's "
+                              "initial_pose?), not the GPS; the estimate is widened to the "
+                              "fixes and follows the GPS")
                 del self.outlier_run[m.sensor]
                 return START_WRONG
-            return run[2]
-        if run is not None:
-            if run[2]:
-                self.log.note(m.t, f"{m.sensor}: GPS agrees with the odometry again after "
-                              f"{run[1]} outliers over {m.t - run[0]:.1f} s; following the GPS")
+            run.said = True
+            self.log.note(m.t, f"{m.sensor}: GPS and odometry disagree: {run.fixes} fixes over "
+                          f"{span:.1f} s taken for outliers by the {self.cfg.gps.model} model; "
+                          "following the odometry")
+        elif (run.said and span >= ESTIMATE_WRONG_S and run.jumping == 0
+              and run.moving >= DISAGREE_FIXES):
+            # the watch compares distances, which need no heading; a run longer than a burst
+            # lasts whose fixes all move as the odometry does is the estimate's fault
+            self.log.note(m.t, f"{m.sensor}: the fixes taken for outliers ({what}) move as the "
+                          "odometry does: the estimate is taken for wrong (its heading?), not "
+                          "the GPS; widened to the fixes, the GPS followed")
             del self.outlier_run[m.sensor]
-        return False
+            return START_WRONG
+        return run.said
 
     def inflation(self, m: GpsFix) -> float:
         """The factor f (>= 1) by which fix ``m``'s covariance is inflated for fusion
