@@ -24,7 +24,7 @@ from ddfuse.estimation.config import DEFAULT_LOCKOUT_COUNT, DEFAULT_LOCKOUT_TIME
 
 DEFAULT_RECOVERY_HOLDOFF = 10.0  # s before a second recovery of the same measurement; doubles
 # acceptances in a row after which a measurement model has agreed with the estimate since the
-# start (``Lockout.agreed``); the robust GPS models' run of inliers is as long
+# start (``Lockout.agreed``; the smoother's robust GPS models count their inliers here too)
 AGREED_RUN = 10
 MAX_INFLATION = 1e12  # largest covariance scale factor tried by a recovery
 
@@ -106,6 +106,11 @@ class Lockout:
         if n == AGREED_RUN:
             self._agreed.add(key)
 
+    def disagreed(self, key: Hashable) -> None:
+        """The measurement was not taken, with no gate to judge it (a robust model's outlier):
+        its run of acceptances ends, its streak is left alone."""
+        self._run[key] = 0
+
     def agreed(self, key: Hashable) -> bool:
         """Whether ``key`` was ever accepted AGREED_RUN times in a row: without that, a
         lock-out from the start is the stated start's fault, not a lost estimate's."""
@@ -117,7 +122,7 @@ class Lockout:
         :meth:`corroborated`); False for a plain rejection."""
         s = self._streak.setdefault(key, [0, t, 0])
         s[:] = gate_streak(True, t, *s)
-        self._run[key] = 0
+        self.disagreed(key)
         if not lockout_due(s[0], s[1], t, self.count, self.time):
             return False
         ho = self._hold.get(key)

@@ -75,10 +75,6 @@ class GpsFusion:
         self.robust = RobustGps(cfg.gps) if cfg.gps.robust else None
         # per sensor: its current run of outliers
         self.outlier_run: dict[str, _OutlierRun] = {}
-        # the sensors with DISAGREE_FIXES fixes in a row the model took for inliers, and the
-        # length of each sensor's current run of them
-        self.agreed: set[str] = set()
-        self.inliers: dict[str, int] = {}
 
     def fuse(self, m: GpsFix, k: int, dt: float) -> None:
         """Fix ``m`` on keyframe ``k``, ``dt`` s after it (the sensor's delay taken off)."""
@@ -170,9 +166,10 @@ class GpsFusion:
             return
         if run:
             return  # a disagreement said: the odometry is followed, the outlier not fused
-        n = self.inliers[m.sensor] = 0 if outlier else self.inliers.get(m.sensor, 0) + 1
-        if n >= DISAGREE_FIXES:
-            self.agreed.add(m.sensor)
+        if outlier:  # the run of inliers that vouches for the start (Lockout.agreed)
+            self.gating.lockout.disagreed(m.sensor)
+        else:
+            self.gating.lockout.accepted(m.sensor)
         self.window.add(factor)
 
     def _outlier_run(self, m: GpsFix, outlier: bool) -> bool | str:
@@ -183,7 +180,7 @@ class GpsFusion:
         the kernel's tail still pulls) -- until a fix agrees again, judged against the
         odometry's growing uncertainty. ``START_WRONG`` is returned instead, for the estimate
         to be widened and follow the GPS, where the sensor's fixes have not agreed since the
-        start (never DISAGREE_FIXES inliers in a row: the start is the one value against the
+        start (never AGREED_RUN inliers in a row: the start is the one value against the
         GPS's many, a wrong ``initial_pose``), or where the run's fixes have all moved as the
         odometry does (the GPS watch's ``odometry_agrees``) for ESTIMATE_WRONG_S (the estimate
         left them: a wrong start heading whose first fixes agreed)."""
@@ -207,7 +204,7 @@ class GpsFusion:
         span = m.t - run.t0
         what = f"{run.fixes} over {span:.1f} s taken for outliers by the {self.cfg.gps.model} model"
         if not run.said and span >= DISAGREE_S and run.fixes >= DISAGREE_FIXES:
-            if m.sensor not in self.agreed:
+            if not self.gating.lockout.agreed(m.sensor):
                 self.log.note(m.t, f"{m.sensor}: no fix has agreed with the estimate since the "
                               f"start ({what}): the start is taken for wrong (the config's "
                               "initial_pose?), not the GPS; the estimate is widened to the "
