@@ -139,27 +139,36 @@ class VectorisedGraph:
         h[:, KW] = zo / sd - r * k * vo / (var * sd)
         return r / sd, h
 
-    def error(self, values: gtsam.Values) -> float:
-        """The graph's error at ``values``: half the sum of squared whitened residuals (robust
-        losses for the robust factors among the rest), as ``NonlinearFactorGraph.error``."""
-        x = self._states(values)
+    def whitened(self, x: np.ndarray):
+        """At the states ``x`` (n_keys, 9) in ``keys`` order: the intervals' whitened Jacobians
+        ``ai``, ``aj`` (n, 9, 9) and right-hand sides ``b`` (n, 9) (linear rows ``ai dx_i + aj
+        dx_j = b``), and the bias rows' whitened Jacobians ``hb`` (m, 9) and residuals ``eb``
+        (m,) (rows ``hb dx = -eb``)."""
+        e, (hi, hj) = self._preintegrated(x, True)
+        b = -(self.r @ e[:, :, None])[:, :, 0]
+        eb, hb = self._bias(x, True)
+        return self.r @ hi, self.r @ hj, b, hb, eb
+
+    def error_at(self, x: np.ndarray, values: gtsam.Values) -> float:
+        """``error`` with the recorded factors' states given: ``x`` (n_keys, 9) in ``keys``
+        order, read from ``values``."""
         e, _ = self._preintegrated(x, False)
         w = np.einsum("nab,nb->na", self.r, e)
         eb, _ = self._bias(x, False)
         return 0.5 * float(np.sum(w * w)) + 0.5 * float(np.sum(eb * eb)) + self.rest.error(values)
 
+    def error(self, values: gtsam.Values) -> float:
+        """The graph's error at ``values``: half the sum of squared whitened residuals (robust
+        losses for the robust factors among the rest), as ``NonlinearFactorGraph.error``."""
+        return self.error_at(self._states(values), values)
+
     def linearize(self, values: gtsam.Values) -> gtsam.GaussianFactorGraph:
         """The graph linearised at ``values``, as ``NonlinearFactorGraph.linearize``: the rest's
         factors, then one whitened ``JacobianFactor`` per interval (and per lone bias row)."""
-        x = self._states(values)
-        e, (hi, hj) = self._preintegrated(x, True)
-        ai = self.r @ hi
-        aj = self.r @ hj
-        b = -np.einsum("nab,nb->na", self.r, e)
-        eb, hb = self._bias(x, True)
+        ai, aj, b, hb, eb = self.whitened(self._states(values))
         lin = self.rest.linearize(values)
         push, jf = lin.push_back, gtsam.JacobianFactor
-        n_p, has = len(e), self.joined >= 0
+        n_p, has = len(b), self.joined >= 0
         rows = self.joined[has]
         ai10 = np.zeros((n_p, DIM + 1, DIM))
         ai10[:, :DIM] = ai

@@ -57,43 +57,81 @@ def _damping(dims: list[tuple[int, int]], lam: float) -> gtsam.GaussianFactorGra
     return damp
 
 
+class _GtsamStep:
+    """One linearisation solved by gtsam: the damped graph eliminated by multifrontal Cholesky
+    in COLAMD order."""
+
+    def __init__(self, linear: gtsam.GaussianFactorGraph, ordering: gtsam.Ordering,
+                 dims: list[tuple[int, int]], zero: gtsam.VectorValues) -> None:
+        self.linear, self.ordering, self.dims = linear, ordering, dims
+        self.old_error = linear.error(zero)
+
+    def solve(self, lam: float) -> gtsam.VectorValues | None:
+        damped = gtsam.GaussianFactorGraph()
+        damped.push_back(self.linear)
+        damped.push_back(_damping(self.dims, lam))
+        try:
+            return damped.optimize(self.ordering)
+        except RuntimeError:  # gtsam's IndeterminateSystemException
+            return None
+
+    def change(self, delta: gtsam.VectorValues) -> float:
+        return self.old_error - self.linear.error(delta)
+
+
+class _GtsamSystem:
+    """A graph (``linearize`` to a ``GaussianFactorGraph``, ``error``) solved by gtsam."""
+
+    def __init__(self, graph, ordering: gtsam.Ordering, initial: gtsam.Values) -> None:
+        self.graph, self.ordering = graph, ordering
+        self.zero = initial.zeroVectors()
+        self.dims = [(int(k), self.zero.at(k).shape[0]) for k in initial.keys()]  # noqa: SIM118
+
+    def error(self, values: gtsam.Values) -> float:
+        return self.graph.error(values)
+
+    def linearize(self, values: gtsam.Values) -> _GtsamStep:
+        return _GtsamStep(self.graph.linearize(values), self.ordering, self.dims, self.zero)
+
+    def retract(self, values: gtsam.Values, delta: gtsam.VectorValues) -> gtsam.Values:
+        return values.retract(delta)
+
+
 def levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values,
                         params: gtsam.LevenbergMarquardtParams, system=None) -> LmResult:
     """Minimise ``graph``'s error from ``initial`` as gtsam's ``LevenbergMarquardtOptimizer``
     with ``params`` does (isotropic damping, fixed lambda factor, multifrontal Cholesky in COLAMD
     order; ValueError for other params). A system that cannot be solved at any lambda is not an
     error: as gtsam, it stops at ``lambdaUpperBound`` with the values it has. ``system``: what
-    linearises ``graph`` and evaluates its error (``linearize(values)``, ``error(values)``, e.g.
-    ``batch_factors.VectorisedGraph``); by default ``graph`` itself."""
+    evaluates and solves ``graph``: either a graph-like object (``linearize(values)`` to a
+    ``GaussianFactorGraph`` and ``error(values)``, e.g. ``batch_factors.VectorisedGraph``; by
+    default ``graph`` itself), solved by gtsam, or a system with ``error``, ``retract(values,
+    delta)`` and ``linearize(values)`` returning a step with ``old_error``, ``solve(lam)``
+    (None where the damped system has no solution) and ``change(delta)`` (the linear model's
+    decrease), e.g. ``batch_banded.BandedSystem``."""
     _check(params)
-    ordering = gtsam.Ordering.ColamdNonlinearFactorGraph(graph)  # gtsam's ensureHasOrdering
-    zero = initial.zeroVectors()
-    dims = [(int(k), zero.at(k).shape[0]) for k in initial.keys()]  # noqa: SIM118 (Values: no __iter__)
+    if system is None or not hasattr(system, "retract"):
+        # gtsam's ensureHasOrdering
+        system = _GtsamSystem(graph if system is None else system,
+                              gtsam.Ordering.ColamdNonlinearFactorGraph(graph), initial)
     lam, factor = params.getlambdaInitial(), params.getlambdaFactor()
     upper, lower = params.getlambdaUpperBound(), params.getlambdaLowerBound()
     rel_tol, abs_tol = params.getRelativeErrorTol(), params.getAbsoluteErrorTol()
     max_iter = params.getMaxIterations()
-    system = graph if system is None else system
     values, error, iterations, rejected = initial, system.error(initial), 0, 0
     if error <= params.getErrorTol() or iterations >= max_iter:
         return LmResult(values, iterations, error, lam)
     while True:
         current = error
         linear = system.linearize(values)
-        old_linear = linear.error(zero)
+        old_linear = linear.old_error
         while True:  # tryLambda until it returns true
-            damped = gtsam.GaussianFactorGraph()
-            damped.push_back(linear)
-            damped.push_back(_damping(dims, lam))
-            try:
-                delta = damped.optimize(ordering)
-            except RuntimeError:  # gtsam's IndeterminateSystemException
-                delta = None
+            delta = linear.solve(lam)
             success = stop = False
             if delta is not None:
-                change_linear = old_linear - linear.error(delta)
+                change_linear = linear.change(delta)
                 if change_linear >= 0.0:
-                    new_values = values.retract(delta)
+                    new_values = system.retract(values, delta)
                     new_error = system.error(new_values)
                     change = error - new_error
                     if change_linear > np.finfo(float).eps * old_linear:
