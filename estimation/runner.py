@@ -86,6 +86,18 @@ class TrackBuilder:
         for e in estimates:
             self.append(e)
 
+    def extend_columns(self, t: np.ndarray, pose: np.ndarray, pose_cov: np.ndarray,
+                       last: Estimate) -> None:
+        """Append N estimates at once: stamps ``t`` (N,) s, poses (N, 3) and their covariances
+        (N, 3, 3), as ``append`` of each would (``last``: the N-th, whole)."""
+        v = np.asarray(pose_cov, float).reshape(-1, 9)
+        packed = np.column_stack((v[:, 0], (v[:, 1] + v[:, 3]) * 0.5, (v[:, 2] + v[:, 6]) * 0.5,
+                                  v[:, 4], (v[:, 5] + v[:, 7]) * 0.5, v[:, 8]))
+        self._cov.extend(packed.ravel().tolist())
+        self._pose.extend(np.asarray(pose, float).ravel().tolist())
+        self._t.extend(np.asarray(t, float).tolist())
+        self.last = last
+
     def __len__(self) -> int:
         return len(self._t) + (self._spill[2].spilled if self._spill is not None else 0)
 

@@ -4,29 +4,44 @@ offline optimum the fixed-lag outputs are compared with. Its trajectory is at th
 
 from __future__ import annotations
 
+import math
+
 import gtsam
+import numpy as np
 from ddfuse.estimation.config import Config
 from ddfuse.estimation.errors import error_line
-from ddfuse.estimation.estimator import Estimate, wrap_angle
+from ddfuse.estimation.estimator import Estimate
 from ddfuse.estimation.runner import TrackBuilder
 from ddfuse.estimation.smoother.batch_banded import BandedSystem
 from ddfuse.estimation.smoother.batch_factors import VectorisedGraph
 from ddfuse.estimation.smoother.batch_lm import levenberg_marquardt
 from ddfuse.estimation.smoother.fixed_lag import FixedLagSmoother
 from ddfuse.factors.state import NAMES
-from threadpoolctl import threadpool_limits
+from threadpoolctl import ThreadpoolController
+
+_controller: list[ThreadpoolController] = []
 
 
-def _solve(window, system: VectorisedGraph, params: gtsam.LevenbergMarquardtParams):
-    """The whole run's LM solution and a function from a key to its marginal covariance (9, 9);
-    RuntimeError where the system cannot be solved."""
+def _blas() -> ThreadpoolController:
+    """The process's BLAS libraries (found once: the search reads every loaded library)."""
+    if not _controller:
+        _controller.append(ThreadpoolController())
+    return _controller[0]
+
+
+def _solve(window, system: VectorisedGraph, params: gtsam.LevenbergMarquardtParams
+           ) -> tuple[list[int], np.ndarray, np.ndarray]:
+    """The whole run's LM solution: its keys, their states (n, 9) and marginal covariances
+    (n, 9, 9) in that order; RuntimeError where the system cannot be solved."""
     banded = BandedSystem.build(system, window.all_values)
-    if banded is None:
-        result = levenberg_marquardt(window.all_graph, window.all_values, params, system).values
-        return result, gtsam.Marginals(system.linearize(result), result).marginalCovariance
-    result = levenberg_marquardt(window.all_graph, window.all_values, params, banded).values
-    covs = dict(zip(banded.keys, banded.marginals(result), strict=True))
-    return result, covs.__getitem__
+    if banded is not None:
+        result = levenberg_marquardt(window.all_graph, window.all_values, params, banded).values
+        return banded.keys, banded.states(result), banded.marginals(result)
+    result = levenberg_marquardt(window.all_graph, window.all_values, params, system).values
+    marg = gtsam.Marginals(system.linearize(result), result)
+    keys = sorted(int(k) for k in result.keys())  # noqa: SIM118 (Values: no __iter__)
+    return (keys, np.array([result.atVector(k) for k in keys]),
+            np.array([marg.marginalCovariance(k) for k in keys]))
 
 
 class BatchSmoother(FixedLagSmoother):
@@ -68,20 +83,26 @@ class BatchSmoother(FixedLagSmoother):
             # bias-difference factors evaluated together with numpy (batch_lm, batch_factors),
             # the normal equations solved as one banded matrix where they are one
             # (batch_banded); BLAS's threads only cost more on these small blocks
-            with threadpool_limits(1, user_api="blas"):
-                result, covs = _solve(window, VectorisedGraph(window.all_graph,
-                                                              self.factor_record), params)
+            with _blas().limit(limits=1, user_api="blas"):
+                keys, states, covs = _solve(window, VectorisedGraph(window.all_graph,
+                                                                    self.factor_record), params)
         except RuntimeError as e:
             self.log.note(self.twist.last_t, f"batch optimisation failed: {error_line(str(e))}"
                           ": the whole run's system is ill-conditioned; check the config's noise "
                           "values, priors and delays")
             return
-        for j, t in sorted(window.all_kf_t.items(), key=lambda jt: jt[1]):
-            key = int(window.key(j))
-            x = result.atVector(key)
-            cov = window.with_gauge(j, covs(key))
-            self._final.append(Estimate(t, (float(x[0]), float(x[1]), wrap_angle(float(x[2]))),
-                                        cov[:3, :3].copy(), x.copy(), cov.copy(), NAMES))
+        index = {k: i for i, k in enumerate(keys)}
+        order = sorted(window.all_kf_t.items(), key=lambda jt: jt[1])
+        rows = np.array([index[int(window.key(j))] for j, _ in order], dtype=int)
+        x, cov = states[rows], covs[rows]
+        gauge = window.gauge_vars(np.array([j for j, _ in order]))
+        cov[:, 0, 0] += gauge
+        cov[:, 1, 1] += gauge
+        pose = np.column_stack((x[:, 0], x[:, 1], np.remainder(x[:, 2] + math.pi, 2.0 * math.pi)
+                                - math.pi))
+        last = Estimate(order[-1][1], tuple(pose[-1].tolist()), cov[-1, :3, :3].copy(),
+                        x[-1].copy(), cov[-1].copy(), NAMES)
+        self._final.extend_columns(np.array([t for _, t in order]), pose, cov[:, :3, :3], last)
 
     def lagged_estimates(self):  # the batch has no lagged output of its own
         return None

@@ -40,7 +40,7 @@ class _Triplets:
     while the pattern holds (gtsam leaves out the zeros of ``b``, not of ``J``, so ``b`` is
     kept apart)."""
 
-    def __init__(self, rows: np.ndarray, cols: np.ndarray, n: int, u: int) -> None:
+    def __init__(self, rows: np.ndarray, cols: np.ndarray) -> None:
         self.rows, self.cols = rows, cols
         order = np.lexsort((cols, rows))
         counts = np.bincount(rows) if len(rows) else np.zeros(0, dtype=int)
@@ -52,7 +52,7 @@ class _Triplets:
         self.span = int(np.max(np.maximum.reduceat(c, at) // DIM
                                - np.minimum.reduceat(c, at) // DIM)) if len(at) else 0
         self.groups = []  # per row length L: positions of its rows' entries (m, L), upper pairs
-        h_idx = []
+        pairs = []
         for length in np.unique(counts[nonempty]).tolist():
             sel = order[starts[counts == length][:, None] + np.arange(length)]
             cc = cols[sel]
@@ -60,14 +60,20 @@ class _Triplets:
             cj = np.broadcast_to(cc[:, None, :], (len(cc), length, length))
             upper = ci <= cj
             self.groups.append((sel, upper))
-            h_idx.append(_upper_band_index(ci[upper], cj[upper], u, n))
-        self.h_idx = np.concatenate(h_idx) if h_idx else np.zeros(0, dtype=int)
+            pairs.append((ci[upper], cj[upper]))
+        self._pairs = pairs
+
+    def band_index(self, u: int, n: int) -> np.ndarray:
+        """Where ``weights``' entries go in a flat (u + 1, n) upper band array."""
+        if not self._pairs:
+            return np.zeros(0, dtype=int)
+        return np.concatenate([_upper_band_index(ci, cj, u, n) for ci, cj in self._pairs])
 
     def same(self, rows: np.ndarray, cols: np.ndarray) -> bool:
         return np.array_equal(rows, self.rows) and np.array_equal(cols, self.cols)
 
     def weights(self, vals: np.ndarray) -> np.ndarray:
-        """``J^T J``'s upper band entries (at ``h_idx``) for ``J``'s values ``vals``."""
+        """``J^T J``'s upper band entries (at ``band_index``) for ``J``'s values ``vals``."""
         out = []
         for sel, upper in self.groups:
             v = vals[sel]
@@ -83,59 +89,65 @@ class BandedSystem:
     ``MAX_KEY_SPAN`` apart)."""
 
     def __init__(self, graph: VectorisedGraph, keys: list[int], span: int,
-                 first: tuple[gtsam.Values, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
-                 ) -> None:
-        """``first``: the rest's triplets (``_rest_triplets``) at the values ``build`` had."""
+                 first: tuple[gtsam.Values, np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+                 pattern: _Triplets) -> None:
+        """``first``: the rest's triplets (``_rest_triplets``) at the values ``build`` had,
+        ``pattern`` their ``_Triplets``."""
         self.graph, self.keys = graph, keys
-        self.n = n = len(keys) * DIM
-        self.u = u = DIM * (span + 1) - 1
+        self.n = len(keys) * DIM
         self._pos = pos = {k: i for i, k in enumerate(keys)}
         base = np.arange(DIM)
-        # the intervals' 18 columns (keyframe i's 9, then j's) and their upper-band entries
+        # the intervals' 18 columns (keyframe i's 9, then j's)
         ii = np.array([pos[k] for k in graph.keys_i], dtype=int)
         ij = np.array([pos[k] for k in graph.keys_j], dtype=int)
         cols = np.concatenate([ii[:, None] * DIM + base, ij[:, None] * DIM + base], axis=1)
-        self._int_cols = cols.ravel()
         self._int_upper = cols[:, :, None] <= cols[:, None, :]
         shape = self._int_upper.shape
-        int_band = _upper_band_index(np.broadcast_to(cols[:, :, None], shape)[self._int_upper],
-                                     np.broadcast_to(cols[:, None, :], shape)[self._int_upper],
-                                     u, n)
+        self._int_pairs = (np.broadcast_to(cols[:, :, None], shape)[self._int_upper],
+                           np.broadcast_to(cols[:, None, :], shape)[self._int_upper])
         # the bias rows: one row on keyframe j's 9 columns
         ib = np.array([pos[graph.keys[i]] for i in graph.ib], dtype=int)
         bcols = ib[:, None] * DIM + base
         self._upper9 = base[:, None] <= base[None, :]
         shape = (len(ib), DIM, DIM)
-        bias_band = _upper_band_index(
-            np.broadcast_to(bcols[:, :, None], shape)[:, self._upper9],
-            np.broadcast_to(bcols[:, None, :], shape)[:, self._upper9], u, n).ravel()
-        self._bias_cols = bcols.ravel()
-        self._static_band = np.concatenate([int_band, bias_band])
-        self._static_g = np.concatenate([self._int_cols, self._bias_cols])
+        self._bias_pairs = (np.broadcast_to(bcols[:, :, None], shape)[:, self._upper9].ravel(),
+                            np.broadcast_to(bcols[:, None, :], shape)[:, self._upper9].ravel())
+        self._static_g = np.concatenate([cols.ravel(), bcols.ravel()])
         self._vg_pos = np.array([pos[k] for k in graph.keys], dtype=int)
+        self._rest_cols = self._rest_columns(graph, pos)
         self._x: tuple[gtsam.Values, np.ndarray] | None = None
-        values, rows, rcols, vals, b = first
-        self._first: tuple | None = (values, rows, rcols, vals, b)
-        self._pattern = _Triplets(rows, rcols, n, u)
-        self._band_idx = np.concatenate([self._static_band, self._pattern.h_idx])
+        self._first: tuple | None = first
+        self._set_band(span, pattern)
+
+    def _set_band(self, span: int, pattern: _Triplets) -> None:
+        """``u`` for ``span`` and where every entry of ``H`` goes in the band."""
+        self.u = u = DIM * (span + 1) - 1
+        self._pattern = pattern
+        self._band_idx = np.concatenate([_upper_band_index(*self._int_pairs, u, self.n),
+                                         _upper_band_index(*self._bias_pairs, u, self.n),
+                                         pattern.band_index(u, self.n)])
 
     @staticmethod
-    def _rest_triplets(graph: VectorisedGraph, values: gtsam.Values, pos: dict[int, int],
-                       n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def _rest_columns(graph: VectorisedGraph, pos: dict[int, int]) -> np.ndarray:
+        """Global column of each of the rest's ``sparseJacobian_`` columns but b's: it numbers
+        them by the rest's own keys in key order."""
+        rest_keys = sorted(int(k) for k in graph.rest.keyVector())
+        starts = np.array([pos[k] * DIM for k in rest_keys], dtype=int).reshape(-1, 1)
+        return (starts + np.arange(DIM)).ravel()
+
+    @staticmethod
+    def _rest_triplets(graph: VectorisedGraph, values: gtsam.Values, col_of: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The rest's whitened system at ``values``: ``J`` as (rows, global columns, values)
-        and ``b`` per row. ``sparseJacobian_`` numbers its columns by the rest's own keys in
-        key order, then b's."""
+        and ``b`` per row."""
         if not graph.rest.size():
             return np.zeros(0, dtype=int), np.zeros(0, dtype=int), np.zeros(0), np.zeros(0)
-        rest_keys = sorted(int(k) for k in graph.rest.keyVector())
         trip = graph.rest.linearize(values).sparseJacobian_()
         rows = trip[0].astype(int) - 1
         cols = trip[1].astype(int) - 1
-        in_b = cols == len(rest_keys) * DIM
+        in_b = cols == len(col_of)
         b = np.zeros(int(rows.max()) + 1 if len(rows) else 0)
         b[rows[in_b]] = trip[2][in_b]
-        starts = np.array([pos[k] * DIM for k in rest_keys], dtype=int).reshape(-1, 1)
-        col_of = (starts + np.arange(DIM)).ravel()
         j = ~in_b
         return rows[j], col_of[cols[j]], trip[2][j], b
 
@@ -144,22 +156,24 @@ class BandedSystem:
         """The banded form of ``graph`` at the keys of ``values``, or None where it does not
         apply (then gtsam's sparse elimination solves it)."""
         keys = sorted(int(k) for k in values.keys())  # noqa: SIM118 (Values: no __iter__)
-        for k in keys:
-            try:
-                if values.atVector(k).shape != (DIM,):
-                    return None
-            except RuntimeError:  # not a Vector value
-                return None
+        try:
+            x = [values.atVector(k) for k in keys]
+        except RuntimeError:  # not a Vector value
+            return None
+        if any(xk.shape != (DIM,) for xk in x):
+            return None
         pos = {k: i for i, k in enumerate(keys)}
-        n = len(keys) * DIM
         ii = np.array([pos[k] for k in graph.keys_i], dtype=int)
         ij = np.array([pos[k] for k in graph.keys_j], dtype=int)
         span = int(np.max(np.abs(ij - ii))) if len(ii) else 1
-        rows, cols, vals, b = cls._rest_triplets(graph, values, pos, n)
-        span = max(span, _Triplets(rows, cols, n, DIM - 1).span, 1)
+        rows, cols, vals, b = cls._rest_triplets(graph, values, cls._rest_columns(graph, pos))
+        pattern = _Triplets(rows, cols)
+        span = max(span, pattern.span, 1)
         if span > MAX_KEY_SPAN:
             return None
-        return cls(graph, keys, span, (values, rows, cols, vals, b))
+        system = cls(graph, keys, span, (values, rows, cols, vals, b), pattern)
+        system._x = (values, np.array(x))
+        return system
 
     # -- the system contract of batch_lm.levenberg_marquardt -----------------------------------
 
@@ -196,10 +210,11 @@ class BandedSystem:
         if self._first is not None and self._first[0] is values:
             _, rows, cols, vals, rb = self._first
         else:
-            rows, cols, vals, rb = self._rest_triplets(self.graph, values, self._pos, n)
-            if not self._pattern.same(rows, cols):  # a robust weight of exactly 0, say
-                self._pattern = _Triplets(rows, cols, n, u)
-                self._band_idx = np.concatenate([self._static_band, self._pattern.h_idx])
+            rows, cols, vals, rb = self._rest_triplets(self.graph, values, self._rest_cols)
+            if not self._pattern.same(rows, cols):  # a Jacobian entry of exactly 0, say
+                pattern = _Triplets(rows, cols)
+                self._set_band(max(pattern.span, (self.u + 1) // DIM - 1), pattern)
+                u = self.u
         self._first = None
         band = np.bincount(self._band_idx, minlength=(u + 1) * n, weights=np.concatenate(
             [(at @ a)[self._int_upper], hh[:, self._upper9].ravel(),

@@ -186,6 +186,16 @@ class Window:
         """The position variance (m^2) keyframe ``j``'s outputs add to gtsam's marginal."""
         return next((v for first, v in reversed(self.gauge) if first <= j), 0.0)
 
+    def gauge_vars(self, js: np.ndarray) -> np.ndarray:
+        """``gauge_var`` of each keyframe index in ``js`` (m^2), shape of ``js``."""
+        js = np.asarray(js)
+        if not self.gauge:
+            return np.zeros(js.shape)
+        firsts = np.array([first for first, _ in self.gauge])
+        var = np.array([0.0] + [v for _, v in self.gauge])
+        # the last entry whose first <= j: gauge firsts are appended in increasing order
+        return var[np.searchsorted(firsts, js, side="right")]
+
     def with_gauge(self, j: int, cov: np.ndarray) -> np.ndarray:
         """``cov`` (pose first: x, y) with keyframe ``j``'s gauge variance on x and y (a copy
         when there is one, else ``cov`` itself)."""
