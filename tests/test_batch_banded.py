@@ -194,6 +194,10 @@ def test_a_system_without_a_solution_is_refused_as_gtsam_refuses_it():
     assert step.solve(1e-3) is not None  # damping determines it
     with pytest.raises(IndefiniteSystem):
         banded.marginals(values)
+    step.band[banded.u, 3] = np.nan  # a NaN pivot: LAPACK would pass it through
+    assert step.solve(1e-3) is None
+    with pytest.raises(IndefiniteSystem, match="not finite"):
+        step.cholesky(1e-3)
     assert isinstance(IndefiniteSystem(), RuntimeError)  # the batch's note for a failed solve
 
 

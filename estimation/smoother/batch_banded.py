@@ -247,9 +247,12 @@ class BandedStep:
         damped = self.band.copy()
         damped[self.u] += lam
         try:
-            return cholesky_banded(damped, overwrite_ab=True, lower=False, check_finite=False)
+            c = cholesky_banded(damped, overwrite_ab=True, lower=False, check_finite=False)
         except (LinAlgError, ValueError) as e:
             raise IndefiniteSystem("the information matrix is not positive definite") from e
+        if not np.all(np.isfinite(c)):  # LAPACK passes a NaN pivot through
+            raise IndefiniteSystem("the information matrix is not finite")
+        return c
 
     def solve(self, lam: float) -> np.ndarray | None:
         """The damped step ``(H + lam I)^-1 g``, or None where ``H + lam I`` is not positive
