@@ -37,8 +37,8 @@ def _upper_band_index(rows: np.ndarray, cols: np.ndarray, u: int, n: int) -> np.
 class _Triplets:
     """The pattern of a sparse Jacobian ``J`` given as (row, column) pairs, with the index
     arrays that turn its values into ``J^T J``'s upper band entries: computed once, reused
-    while the pattern holds (gtsam leaves out the zeros of ``b``, not of ``J``, so ``b`` is
-    kept apart)."""
+    while the pattern holds. gtsam's sparse Jacobian leaves exact zeros out, of ``b`` (a prior
+    at its own value) and of ``J``: ``b`` is kept apart, and a pattern that changes is rebuilt."""
 
     def __init__(self, rows: np.ndarray, cols: np.ndarray) -> None:
         self.rows, self.cols = rows, cols
