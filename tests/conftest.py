@@ -49,6 +49,21 @@ def sample_husky():
 
 
 @pytest.fixture(scope="session")
+def sample_batch(sample_husky):
+    """The batch smoother run over data/sample_husky.bag from the true start and finished
+    (its whole-run graph and solution); shared read-only by the tests."""
+    from ddfuse.estimation.smoother import BatchSmoother
+
+    cfg, stream = sample_husky
+    g = stream.ground_truth[0]
+    batch = BatchSmoother(cfg, initial_pose=(g.x, g.y, g.yaw))
+    for m in stream.measurements:
+        batch.process(m)
+    batch.finish()
+    return batch
+
+
+@pytest.fixture(scope="session")
 def seed002_run(tmp_path_factory) -> Path:
     """Output folder of ``ddfuse run`` on the landmark sample data/sample_seed002.bag (wheel
     speeds with the robot's geometry), ekf_landmark alone; shared read-only by the tests."""

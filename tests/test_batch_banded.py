@@ -10,7 +10,6 @@ import gtsam
 import numpy as np
 import pytest
 from ddfuse.estimation.estimator import wrap_angle
-from ddfuse.estimation.smoother import BatchSmoother
 from ddfuse.estimation.smoother.batch_banded import MAX_KEY_SPAN, BandedSystem, IndefiniteSystem
 from ddfuse.estimation.smoother.batch_factors import VectorisedGraph
 from ddfuse.estimation.smoother.batch_lm import levenberg_marquardt
@@ -201,13 +200,8 @@ def test_a_system_without_a_solution_is_refused_as_gtsam_refuses_it():
     assert isinstance(IndefiniteSystem(), RuntimeError)  # the batch's note for a failed solve
 
 
-def test_the_sample_bags_batch_is_gtsams_solution(sample_husky):
-    cfg, stream = sample_husky
-    g = stream.ground_truth[0]
-    batch = BatchSmoother(cfg, initial_pose=(g.x, g.y, g.yaw))
-    for m in stream.measurements:
-        batch.process(m)
-    batch.finish()
+def test_the_sample_bags_batch_is_gtsams_solution(sample_batch):
+    batch = sample_batch
     w = batch.window
     system = VectorisedGraph(w.all_graph, batch.factor_record)
     ref = levenberg_marquardt(w.all_graph, w.all_values, _params(), system)

@@ -9,7 +9,6 @@ import math
 import gtsam
 import numpy as np
 import pytest
-from ddfuse.estimation.smoother import BatchSmoother
 from ddfuse.estimation.smoother.batch_lm import levenberg_marquardt
 
 
@@ -103,13 +102,8 @@ def test_same_steps_and_result_as_gtsams_optimizer(problem):
             assert got.rejected > 0 and abs(got.values.atVector(20)[0] - 1.0) < 1e-3
 
 
-def test_the_sample_bags_batch_graph(sample_husky):
-    cfg, stream = sample_husky
-    g = stream.ground_truth[0]
-    batch = BatchSmoother(cfg, initial_pose=(g.x, g.y, g.yaw))
-    for m in stream.measurements:
-        batch.process(m)
-    batch.finish()
+def test_the_sample_bags_batch_graph(sample_batch):
+    batch = sample_batch
     w = batch.window
     ref, iters, err, _ = _gtsam_lm(w.all_graph, w.all_values, _params())
     got = levenberg_marquardt(w.all_graph, w.all_values, _params())
