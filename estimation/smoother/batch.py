@@ -58,6 +58,19 @@ class BatchSmoother(FixedLagSmoother):
         kw.setdefault("lagged", False)  # its output is the final solve's, not a lagged one
         super().__init__(cfg, **kw)
         self._final = TrackBuilder()
+        self._finished = False
+
+    def estimate(self) -> Estimate | None:
+        """None until ``finish``: the batch's output is the final solve's trajectory
+        (``final_estimates``), and the online run's filtered estimates, which it builds its
+        graph with, are nobody's output (the runner asks at every output tick). After
+        ``finish``, the online run's last filtered estimate, as the smoother's."""
+        return super().estimate() if self._finished else None
+
+    def online_estimate(self) -> Estimate | None:
+        """The online run's filtered estimate now (the smoother's ``estimate``): what the
+        batch's gating sees, for diagnostics."""
+        return super().estimate()
 
     @property
     def all_kf_t(self) -> dict[int, float]:
@@ -71,6 +84,7 @@ class BatchSmoother(FixedLagSmoother):
 
     def finish(self) -> None:
         super().finish()
+        self._finished = True
         if not self.initialised:
             return
         params = gtsam.LevenbergMarquardtParams()
