@@ -67,11 +67,11 @@ def _ekf_slam(cfg, st, pose, lag, _):
     return LandmarkSlamEkf(cfg, initial_pose=pose)
 
 
-def _smoother(cfg, st, pose, lag, tracks):
+def _smoother(cfg, st, pose, lag, tracks, keep_all=None):
     from ddfuse.estimation.smoother import FixedLagSmoother
 
     return FixedLagSmoother(cfg, initial_pose=pose, landmarks=st.landmarks, lag=lag,
-                            lagged="smoother_lagged" in tracks)
+                            lagged="smoother_lagged" in tracks, keep_all=keep_all)
 
 
 def _batch(cfg, st, pose, lag, _):
@@ -131,7 +131,8 @@ def build(cfg: Config, stream, names: list[str] | str | None = None, *,
     ``stream`` (a Stream, or a primed BagStream), the smoother's lag from the config unless
     ``lag`` (s). ``tracks``: the output tracks that will be used (default: all of them); the
     smoother skips its lagged output (docs/design/performance.md) when 'smoother_lagged' is
-    not among them."""
+    not among them. With both 'smoother' and 'batch', the batch is a ``SharedBatch`` of the
+    smoother: one online run, its graph solved at the end."""
     from ddfuse.estimation.runner import initial_pose
 
     chosen = select(cfg, names)
@@ -139,7 +140,20 @@ def build(cfg: Config, stream, names: list[str] | str | None = None, *,
         pose = initial_pose(cfg.initial_pose, stream)
     lag = cfg.smoother.lag if lag is None else lag
     wanted = None if tracks is None else set(tracks)
-    return {n: SPECS[n].build(cfg, stream, pose, lag, wanted) for n in chosen}
+    if not ("smoother" in chosen and "batch" in chosen):
+        return {n: SPECS[n].build(cfg, stream, pose, lag, wanted) for n in chosen}
+    # The batch solves the graph the smoother's online run builds: with both, one online run
+    # keeps every factor and the batch solves it at the end (SharedBatch), not a second one.
+    from ddfuse.estimation.smoother import SharedBatch
+
+    spec = SPECS["smoother"]
+    smoother = _smoother(cfg, stream, pose, lag, frozenset(
+        t for t in spec.produces if wanted is None or t in wanted), keep_all=True)
+    built = {}
+    for n in chosen:
+        built[n] = (smoother if n == "smoother" else SharedBatch(smoother) if n == "batch"
+                    else SPECS[n].build(cfg, stream, pose, lag, wanted))
+    return built
 
 
 def names_list(names, what: str = "estimators") -> list[str] | None:

@@ -13,7 +13,7 @@ Design and history: docs/design/smoother.md.
 """
 
 from ddfuse.estimation.gps_course import COURSE_SIGMA_MAX, INIT_DISTANCE
-from ddfuse.estimation.smoother.batch import BatchSmoother
+from ddfuse.estimation.smoother.batch import BatchSmoother, SharedBatch
 from ddfuse.estimation.smoother.fixed_lag import FixedLagSmoother
 from ddfuse.estimation.smoother.held_twist import ODOMETRY_WAIT
 from ddfuse.estimation.smoother.initialisation import (
@@ -34,6 +34,7 @@ from ddfuse.estimation.smoother.noise import (
 __all__ = [
     "COURSE_SIGMA_MAX", "GAP_HEADING_SIGMA", "INIT_DISTANCE", "MAX_RECOVERIES", "MIN_KEYFRAME_DT",
     "ODOMETRY_WAIT", "POSE_NOISE_FLOOR", "RECOVERY_WINDOW", "RELINEARIZE", "RELINEARIZE_SKIP",
-    "RESTART_HEADING_WAIT", "WALK_FLOOR", "BatchSmoother", "FixedLagSmoother", "SmootherNoise",
+    "RESTART_HEADING_WAIT", "WALK_FLOOR", "BatchSmoother", "FixedLagSmoother", "SharedBatch",
+    "SmootherNoise",
     "isam2_params", "walk_floor",
 ]

@@ -29,6 +29,7 @@ import math
 
 import numpy as np
 from ddfuse.estimation.config import Config, SensorConfig, landmark_maps
+from ddfuse.estimation.errors import error_line
 from ddfuse.estimation.estimator import IN_ORDER_TOLERANCE, Estimate, Estimator, wrap_angle
 from ddfuse.estimation.heading_correlation import HeadingClock
 from ddfuse.estimation.measurements import (
@@ -66,7 +67,7 @@ class FixedLagSmoother(Estimator):
 
     def __init__(self, cfg: Config, *, initial_pose=None, landmarks=None, lag: float | None = None,
                  noise: SmootherNoise | None = None, reference: bool = False,
-                 lagged: bool = True) -> None:
+                 lagged: bool = True, keep_all: bool | None = None) -> None:
         """``initial_pose``: (x m, y m, psi rad) in local ENU, else the config's, else from the
         GPS course; ``landmarks``: id -> (east, north) m, else the config's maps; ``lag`` (s):
         else the config's. ``reference``: preintegrate with the Python
@@ -74,11 +75,16 @@ class FixedLagSmoother(Estimator):
         ``lagged``: whether to output the lagged track (``lagged_estimates``); its covariances
         are a quarter to a third of the smoother's cost, so a caller that does not use it turns
         it off. The filtered output is the same either way, and ``final_state`` is still
-        given."""
+        given. ``keep_all``: keep every factor of the run too (the class's default: the
+        batch's), for a batch that shares this run (``batch.SharedBatch``)."""
         super().__init__()
         self.cfg = cfg
+        if keep_all is not None:
+            self.keep_all = keep_all
         pim_class = WheelGyroPreintegration if reference else compiled_preintegration()
         self.stopped: str | None = None  # why it gave up (then every process call says so)
+        self.failed: str | None = None  # an error that left ``process`` (a sharing batch reads it)
+        self.finished = False
         self.lag = float(lag if lag is not None else cfg.smoother.lag)
         if not (self.lag > 0.0 and math.isfinite(self.lag)):
             # gtsam would take it and fail later, deep inside an update (IndexError on 'x0')
@@ -138,7 +144,14 @@ class FixedLagSmoother(Estimator):
     def process(self, m) -> None:
         """Consume one measurement: in stamp order, but for a GPS fix or a landmark sighting up
         to the lag late (``late_horizon``, ``_late``); an older one of another kind raises
-        ``LateMeasurement``."""
+        ``LateMeasurement``. An error raised here is kept in ``failed`` too."""
+        try:
+            self._process(m)
+        except Exception as exc:
+            self.failed = f"{type(exc).__name__} at t={m.t:.3f}: {error_line(exc)}"
+            raise
+
+    def _process(self, m) -> None:
         if self.stopped is not None:
             # kf_t was emptied when it stopped: say why, not KeyError
             raise RuntimeError(f"the smoother stopped earlier: {self.stopped}")
@@ -373,6 +386,10 @@ class FixedLagSmoother(Estimator):
         return Estimate(t, (pose[0], pose[1], wrap_angle(pose[2])), cov, st.copy(), None, NAMES)
 
     def finish(self) -> None:
+        """Close the run (once: a batch that shares this run may have closed it already)."""
+        if self.finished:
+            return
+        self.finished = True
         if not self.initialised:
             course = self.init.course
             why = ("the GPS track never moved far enough" if course.last_fix is not None else
