@@ -543,8 +543,17 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
             gc.enable()
         gc.unfreeze()
     runs: dict[str, EstimatorRun] = {}
+    # an estimator that solves another's online run at the end (``source``: the batch sharing
+    # the smoother's) stops where that one stopped
+    index = {id(e): k for k, e in enumerate(est_list)}
+    sources = [index.get(id(getattr(e, "source", None))) for e in est_list]
     for i, (name, est) in enumerate(zip(names, est_list, strict=True)):
         t_a = clock()
+        src = sources[i]
+        if alive[i] and src is not None and src != i and errors[src] is not None:
+            alive[i] = False
+            errors[i] = f"stopped with {names[src]}, whose online run it solves: {errors[src]}"
+            est.log.note(est_list[src].newest_t, f"stopped: {errors[i]}")
         if alive[i]:
             try:
                 est.finish()

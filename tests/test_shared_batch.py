@@ -58,24 +58,27 @@ def test_the_shared_batch_is_the_batch_and_the_smoother_unchanged(sample_husky, 
     np.testing.assert_array_equal(fa.state_cov, fb.state_cov)
 
 
-def test_the_batch_stops_where_its_smoother_stops(sample_husky, monkeypatch):
+@pytest.mark.parametrize("fault", ["error", "interrupt"])
+def test_the_batch_stops_where_its_smoother_stops(sample_husky, monkeypatch, fault):
+    """An error in the smoother's update, or Ctrl-C inside it (its state half-updated): the
+    batch does not solve what that run left, and says why."""
     cfg, stream = sample_husky
     ests = registry.build(cfg, stream, ["smoother", "batch"])
     t_fail = stream.measurements[0].t + 30.0
-    real = FixedLagSmoother._process
+    real = FixedLagSmoother.process
 
     def failing(self, m):
         if m.t >= t_fail:
-            raise ArithmeticError("injected")
+            raise ArithmeticError("injected") if fault == "error" else KeyboardInterrupt
         return real(self, m)
 
-    monkeypatch.setattr(FixedLagSmoother, "_process", failing)
-    result = run(stream, ests)
+    monkeypatch.setattr(FixedLagSmoother, "process", failing)
+    result = run(stream, ests, interruptible=True)
     smoother, batch = result.runs["smoother"], result.runs["batch"]
-    assert "ArithmeticError" in smoother.error and "injected" in smoother.error
-    assert batch.error.startswith("RuntimeError")
-    assert "stopped with the smoother whose online run it shares" in batch.error
-    assert "injected" in batch.error
+    said = "ArithmeticError at t=" if fault == "error" else "interrupted (Ctrl-C) inside an update"
+    assert said in smoother.error
+    assert batch.error == f"stopped with smoother, whose online run it solves: {smoother.error}"
+    assert "stopped: stopped with smoother" in batch.log.messages[-1]
     assert len(batch.trajectory.t) == 0  # no whole-run solve of a run cut short
 
 

@@ -142,7 +142,8 @@ class SharedBatch(Estimator):
     (the same factors: one online run with one config makes the same gating decisions), and
     ``finish`` solves it, instead of a second online run of the same smoother. Its log shares
     the source's innovations and rejections (the same as a batch's own would be), its notes are
-    the source's and its own. It stops where the source stopped."""
+    the source's and its own. ``runner.run`` stops it where it stops the source (an error, a
+    broken output, an interrupt inside an update: ``source``)."""
 
     name = "batch"
 
@@ -157,24 +158,17 @@ class SharedBatch(Estimator):
         self._final = TrackBuilder()
         self._finished = False
 
-    def _check(self) -> None:
-        if self.source.failed is not None:
-            raise RuntimeError("stopped with the smoother whose online run it shares: "
-                               f"{self.source.failed}")
-
     def late_horizon(self, m) -> float:
         return self.source.late_horizon(m)
 
     def process(self, m) -> None:
-        """Nothing of its own: the source processes ``m``; raises once the source failed."""
-        self._check()
+        """Nothing of its own: the source processes ``m``."""
 
     def estimate(self) -> Estimate | None:
         """None until ``finish`` (as ``BatchSmoother.estimate``), then the source's."""
         return self.source.estimate() if self._finished else None
 
     def finish(self) -> None:
-        self._check()
         source = self.source
         source.finish()  # once: the runner's own call of it returns at once
         own = self.log.messages

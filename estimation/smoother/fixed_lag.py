@@ -29,7 +29,6 @@ import math
 
 import numpy as np
 from ddfuse.estimation.config import Config, SensorConfig, landmark_maps
-from ddfuse.estimation.errors import error_line
 from ddfuse.estimation.estimator import IN_ORDER_TOLERANCE, Estimate, Estimator, wrap_angle
 from ddfuse.estimation.heading_correlation import HeadingClock
 from ddfuse.estimation.measurements import (
@@ -83,7 +82,6 @@ class FixedLagSmoother(Estimator):
             self.keep_all = keep_all
         pim_class = WheelGyroPreintegration if reference else compiled_preintegration()
         self.stopped: str | None = None  # why it gave up (then every process call says so)
-        self.failed: str | None = None  # an error that left ``process`` (a sharing batch reads it)
         self.finished = False
         self.lag = float(lag if lag is not None else cfg.smoother.lag)
         if not (self.lag > 0.0 and math.isfinite(self.lag)):
@@ -144,14 +142,7 @@ class FixedLagSmoother(Estimator):
     def process(self, m) -> None:
         """Consume one measurement: in stamp order, but for a GPS fix or a landmark sighting up
         to the lag late (``late_horizon``, ``_late``); an older one of another kind raises
-        ``LateMeasurement``. An error raised here is kept in ``failed`` too."""
-        try:
-            self._process(m)
-        except Exception as exc:
-            self.failed = f"{type(exc).__name__} at t={m.t:.3f}: {error_line(exc)}"
-            raise
-
-    def _process(self, m) -> None:
+        ``LateMeasurement``."""
         if self.stopped is not None:
             # kf_t was emptied when it stopped: say why, not KeyError
             raise RuntimeError(f"the smoother stopped earlier: {self.stopped}")
@@ -386,10 +377,13 @@ class FixedLagSmoother(Estimator):
         return Estimate(t, (pose[0], pose[1], wrap_angle(pose[2])), cov, st.copy(), None, NAMES)
 
     def finish(self) -> None:
-        """Close the run (once: a batch that shares this run may have closed it already)."""
-        if self.finished:
-            return
-        self.finished = True
+        """Close the run, once: a batch that shares this run may have closed it already (a
+        ``finish`` that raised is tried again, and raises again)."""
+        if not self.finished:
+            self._finish()
+            self.finished = True
+
+    def _finish(self) -> None:
         if not self.initialised:
             course = self.init.course
             why = ("the GPS track never moved far enough" if course.last_fix is not None else
