@@ -441,6 +441,10 @@ def _track_scores(r, duration: float, truth: Trajectory | None, pose_error: str 
             m["gps_holdout_m"] = stats_of(metrics.Stats.of(e))
             if common_fixes:
                 m["gps_holdout_rmse_m"] = m["gps_holdout_m"].rmse
+                nees = metrics.gate_nis(tr, hold_t, hold_xy, hold_cov, antenna.lever_arm,
+                                        antenna.delay_s)
+                if np.isfinite(nees).any():
+                    m["gps_holdout_nees"] = rounded_record(consistency.summarize(nees, 2))
             else:  # the fixes it was scored on: its own span's
                 m["gps_holdout_span_s"] = (num(tr.t[0]), num(tr.t[-1]))
     if len(tr) > 1:

@@ -89,6 +89,8 @@ def _summary_table(m: RunSummary, cfg=None) -> str:
         ("RPE 1 s [m]", lambda e: _rpe_rmse(e, "1s"), ".3f", True),
         ("RPE 10 m [m]", lambda e: _rpe_rmse(e, "10m"), ".3f", True),
         ("GPS hold-out RMSE [m]", lambda e: e.gps_holdout_rmse_m, ".3f", True),
+        ("hold-out NEES", lambda e: e.gps_holdout_nees and e.gps_holdout_nees.mean, ".2f",
+         False),
         ("NEES mean", lambda e: e.nees_mean, ".2f", False),
         ("runtime [s]", lambda e: e.runtime_s, ".2f", False),
         # no speed for an estimator that never estimated (it only turned measurements away)
@@ -125,6 +127,8 @@ def _summary_table(m: RunSummary, cfg=None) -> str:
                 text += f" ({spacing})"
             if h == "NEES mean" and v is not None:
                 text += f" ({_verdict_cell(e.nees.verdict if e.nees else None)})"
+            if h == "hold-out NEES" and v is not None:
+                text += f" ({_verdict_cell(e.gps_holdout_nees.verdict)})"
             cells.append(f"<td{cls}>{text}</td>")
         fx = e.final_xy
         cells.append(f"<td>({fx[0]:.2f}, {fx[1]:.2f})</td>" if fx else "<td>–</td>")
@@ -151,6 +155,10 @@ def _summary_table(m: RunSummary, cfg=None) -> str:
     if "GPS hold-out RMSE [m]" in shown:
         notes.append("GPS hold-out RMSE: distance to the GPS fixes withheld from the "
                      "estimators.")
+    if "hold-out NEES" in shown:
+        notes.append("Hold-out NEES: the same distances normalised by the track's position "
+                     "covariance plus the fix's own (2 dof), with its verdict: whether the "
+                     "estimator's covariance covers its hold-out error.")
     if "NEES mean" in shown:
         notes.append("NEES mean against the truth, with its verdict.")
     if "RTF [x]" in shown:

@@ -197,6 +197,9 @@ class EstimatorScores(Record):
     rpe: dict[str, RpeScore | None] | None = None
     nees: Consistency | None = None
     gps_holdout_m: Stats | None = None
+    # the withheld fixes' distance normalised by the track's position covariance plus the fix's
+    # own (2 dof): whether the estimator's covariance covers its hold-out error
+    gps_holdout_nees: Consistency | None = None
     gps_outages: list[OutageDrift] | None = None
     nis: dict[str, SensorNis] = field(default_factory=dict)
     rejected: dict[str, int] = field(default_factory=dict)  # "sensor: reason" -> count
@@ -212,6 +215,7 @@ class EstimatorScores(Record):
         "final_xy": tuple, "gps_holdout_span_s": tuple, "span_s": tuple,
         "update_ms": UpdateLatency.from_json, "ate": AteScores.from_json,
         "rpe": read_values(RpeScore.from_json), "nees": Consistency.from_json,
+        "gps_holdout_nees": Consistency.from_json,
         "gps_holdout_m": Stats.from_json, "gps_outages": read_each(OutageDrift.from_json),
         "nis": read_values(SensorNis.from_json), "final_state": FinalState.from_json}
     finish_s: float | None = None  # s in finish() alone, where ``ddfuse bench`` measured it

@@ -264,3 +264,32 @@ def test_the_path_length_from_gps_fixes_is_not_their_noise(sample_husky):
     facts = data_facts(res, _replace(cfg, ground_truth_topic=None), surveys=[])
     assert facts.path_length_from == "GPS fixes"
     assert facts.path_length_m == pytest.approx(truth_m, rel=0.1)
+
+
+def test_holdout_nees_tells_a_lucky_track_from_a_calibrated_one():
+    """Two tracks 3 m off the withheld fixes (exact, stated at 1 m): the same hold-out RMSE,
+    but one claims 0.1 m and the other 2.5 m. The hold-out NEES is d' (P + R)^-1 d per fix:
+    9 / 1.01 (over-confident: Fail) and 9 / 7.25 (inside the 2-dof band: Pass)."""
+    fix_t = np.arange(0.0, 120.0, 0.4)
+    fix_xy = _pose(fix_t)[:, :2]
+    withheld = np.arange(len(fix_t)) % 5 == 0
+    t = np.arange(0.0, 120.0, 0.1)
+    tracks = {"tight": _track(t, err=3.0, sigma=0.1), "wide": _track(t, err=3.0, sigma=2.5)}
+    m = score(_result(tracks, fix_t, fix_xy, withheld))
+    tight, wide = m.estimators["tight"], m.estimators["wide"]
+    assert tight.gps_holdout_rmse_m == pytest.approx(wide.gps_holdout_rmse_m) == \
+        pytest.approx(3.0, abs=1e-6)
+    assert tight.gps_holdout_nees.n == wide.gps_holdout_nees.n == m.gps_holdout_scored_fixes
+    assert tight.gps_holdout_nees.mean == pytest.approx(9.0 / 1.01, rel=1e-4)
+    assert wide.gps_holdout_nees.mean == pytest.approx(9.0 / 7.25, rel=1e-4)
+    assert tight.gps_holdout_nees.verdict == "Fail" and tight.gps_holdout_nees.above == 1.0
+    assert wide.gps_holdout_nees.verdict == "Pass"
+    # written and read back with the run's metrics
+    back = type(m).from_json(m.to_json())
+    assert back.estimators["tight"].gps_holdout_nees == tight.gps_holdout_nees
+
+
+def test_no_holdout_no_holdout_nees():
+    t = np.arange(0.0, 60.0, 0.1)
+    m = score(_result({"ekf": _track(t)}, [], np.zeros((0, 2)), [], truth=_truth(60.0)))
+    assert m.estimators["ekf"].gps_holdout_nees is None
