@@ -16,6 +16,13 @@ sensor's ``heading_offset_walk`` and the gyro's own noise model). The structure 
 no window-length choice for its demeaning (an autocorrelation's 1/e time does: the detrending
 of each window is a high-pass, and that time then grows with the window).
 
+Its wander by time scale, sqrt(D(L) / L) at the shortest and the longest lag (rad/sqrt(s)),
+is what a random walk would state as its density at that scale: equal for a walk, falling with
+the lag for a white error, growing for a drift whose rate wanders (an orientation filter's yaw
+against its magnetometer). A walk fitted to the samples one by one (``ddfuse tune``'s
+likelihood) takes the shortest scale's; over a GPS outage the longest scale's is the one that
+moves the heading.
+
 ``measure`` returns the fit, or None with the reason when there is no gyro, too few samples, or
 the Gauss-Markov part is not identified: tau at the shortest lag or sigma under the samples'
 own scatter without a walk (a white error), or tau beyond a quarter of the longest lag or a walk
@@ -32,7 +39,7 @@ import numpy as np
 from ddfuse.estimation.config import Config
 from ddfuse.estimation.measurements import GyroYawRate, Heading, Stream
 
-__all__ = ["CompassCorrelation", "measure"]
+__all__ = ["CompassCorrelation", "drifts", "measure"]
 
 WINDOW_S = 60.0  # s: the gyro's bias and scale are taken as constant over a window
 MIN_SAMPLES = 200  # heading samples with a gyro reference, at least
@@ -41,6 +48,9 @@ N_LAGS = 25  # lags, geometrically spaced from one sample period to a quarter wi
 # 98 % of its level at 4 tau). A walk whose windows are detrended looks like a Gauss-Markov
 # error of a tau near a tenth of the window, which this rejects.
 LEVEL_SPAN = 4.0
+# the longest lag's wander over the shortest's beyond which the error is not one walk: a walk
+# with the samples' white scatter on top gives under 1 (the scatter shows at the shortest lag)
+DRIFT_RATIO = 2.0
 
 
 @dataclass(frozen=True)
@@ -48,7 +58,9 @@ class CompassCorrelation:
     """The fit of ``measure`` for one heading sensor: ``tau`` (s) and ``sigma`` (rad) of the
     Gauss-Markov part, ``walk`` (rad/sqrt(s)) of the random walk beside it, ``white`` (rad)
     the sample-to-sample scatter (the differences' RMS / sqrt 2), ``n`` samples used; ``tau``
-    None when not identified (``reason`` says why)."""
+    None when not identified (``reason`` says why). ``wander`` (rad/sqrt(s), rad/sqrt(s), s):
+    sqrt(D(L) / L) at the shortest and the longest lag, and that lag (module docstring); None
+    when too few lags were measured."""
 
     sensor: str
     tau: float | None
@@ -57,6 +69,7 @@ class CompassCorrelation:
     white: float
     n: int
     reason: str = ""
+    wander: tuple[float, float, float] | None = None
 
     def describe(self) -> str:
         """One line for inspect's table / tune's note."""
@@ -123,20 +136,36 @@ def measure(cfg: Config, stream: Stream, sensor: str,
     if len(lags_a) < 5 or not (D_a > 0.0).all():
         return CompassCorrelation(sensor, None, 0.0, 0.0, white, n, "too few lags to fit")
     lo_tau, hi_tau = lags_a[0], lags_a[-1]
+    wander = (math.sqrt(D_a[0] / lo_tau), math.sqrt(D_a[-1] / hi_tau), float(hi_tau))
     try:
         (s2, tau, q), _ = curve_fit(_model, lags_a, D_a, p0=(0.5 * D_a[-1], 0.1 * hi_tau, 0.0),
                                     bounds=((0.0, 0.1 * lo_tau, 0.0), (np.inf, 10.0 * hi_tau,
                                                                        np.inf)),
                                     sigma=D_a)  # relative errors: every lag counts alike
     except (RuntimeError, ValueError) as e:
-        return CompassCorrelation(sensor, None, 0.0, 0.0, white, n, f"fit failed: {e}")
+        return CompassCorrelation(sensor, None, 0.0, 0.0, white, n, f"fit failed: {e}",
+                                  wander)
     sigma, walk = math.sqrt(s2), math.sqrt(q)
     walked = walk * math.sqrt(hi_tau) > white  # the walk's share at the longest lag shows
     if tau <= lo_tau or (sigma <= white and not walked):
         return CompassCorrelation(sensor, None, sigma, walk, white, n,
-                                  "the error is white from one sample to the next")
+                                  "the error is white from one sample to the next", wander)
     if tau >= hi_tau / LEVEL_SPAN or sigma <= white:
         return CompassCorrelation(sensor, None, sigma, walk, white, n, (
             f"the error keeps growing over {hi_tau:.0f} s of lag, like a walk or a drift (the "
-            "heading offset's walk models that)"))
-    return CompassCorrelation(sensor, float(tau), sigma, walk, white, n)
+            f"heading offset's walk models that{_faster(wander)})"), wander)
+    return CompassCorrelation(sensor, float(tau), sigma, walk, white, n, wander=wander)
+
+
+def drifts(wander: tuple[float, float, float] | None) -> bool:
+    """Whether ``wander`` grows with the lag by more than ``DRIFT_RATIO``: a drift whose rate
+    wanders, faster at long lags than any one walk density states."""
+    return wander is not None and wander[1] > DRIFT_RATIO * wander[0]
+
+
+def _faster(wander: tuple[float, float, float] | None) -> str:
+    if not drifts(wander):
+        return ""
+    short, long_, lag = wander
+    return (f", as a walk only to a point: it wanders at {short:.2g} rad/sqrt(s) from one "
+            f"sample to the next and at {long_:.2g} over {lag:.0f} s")

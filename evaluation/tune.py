@@ -74,6 +74,7 @@ from ddfuse.evaluation.tune_rules import (
     bearing_sigma,
     correlated_gps_caveat,
     correlation,
+    drifting_heading_caveat,
     held_inputs,
     inputs_outcome,
 )
@@ -239,6 +240,7 @@ def tune(cfg: Config, stream: Stream, *, holdout: str | None = None,
         correlation(problem, result)
         inputs_outcome(result, held)
         correlated_gps_caveat(cfg, result)
+        drifting_heading_caveat(problem, result)
         return result
 
 

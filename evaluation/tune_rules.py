@@ -169,6 +169,29 @@ def _heading_tau(problem: Problem, p) -> Tuned:
     return Tuned(p, None, "not informed", f"{why}; left as the config has it")
 
 
+def drifting_heading_caveat(problem: Problem, result: TuneResult) -> None:
+    """Say, on each heading-offset walk ``result`` tuned, when the heading sensor's error against
+    the gyro's integral wanders faster at long lags than that walk states
+    (``compass_correlation.drifts``): the likelihood of the samples one by one fits their
+    shortest scale, not the drift over a GPS outage (docs/design/tuning.md, Limits)."""
+    from ddfuse.evaluation.compass_correlation import DRIFT_RATIO, drifts, measure
+
+    for t in result.tuned:
+        p = t.param
+        if p.noise_key != "heading_offset_walk" or t.value is None or \
+                t.status == "not informed":
+            continue
+        fit = measure(problem.cfg, problem.stream, p.sensor)
+        if fit is None or not drifts(fit.wander) or t.value * DRIFT_RATIO > fit.wander[1]:
+            continue
+        short, long_, lag = fit.wander
+        note = (f"the yaw's error against the gyro's integral wanders at {long_:.2g} "
+                f"rad/sqrt(s) over {lag:.0f} s and at {short:.2g} from one sample to the next, "
+                "faster than one walk: the value fits the samples' scale, not the heading's "
+                "drift over a GPS outage (docs/design/tuning.md, Limits)")
+        t.reason = f"{t.reason}; {note}" if t.reason else note
+
+
 def correlated_gps_caveat(cfg: Config, result: TuneResult) -> None:
     """Say, on each GPS sigma ``result`` tuned for a sensor whose config states a correlation
     time, that it is not the fixes' stationary sigma: the likelihood takes the innovations as
