@@ -51,7 +51,9 @@ class Headline:
     ``realtime``: the same for the real-time tracks (best, next) where the best overall is not
     one; ``consistency``: (track, word) per track with an estimate, ``basis`` what the words rest
     on; ``next_command`` (a shell command line) and ``next_why``; ``caveat``: one line where a
-    failing consistency test has a known cause that is no fault (``verdict.low_rate_nis``)."""
+    failing consistency test has a known cause that is no fault (``verdict.low_rate_nis``);
+    ``holdout``: (track, word) per track with a NEES on the withheld GPS fixes
+    (``gps_holdout_nees``), the word as ``consistency_word``'s, and ``holdout_fixes`` how many."""
 
     score: str | None
     order: tuple[Place, ...]
@@ -65,6 +67,8 @@ class Headline:
     next_why: str
     no_score: str | None = None
     caveat: str | None = None
+    holdout: tuple[tuple[str, str], ...] = ()
+    holdout_fixes: int | None = None
 
     @property
     def best(self) -> Place | None:
@@ -80,6 +84,10 @@ class Headline:
         out.append(f"Consistency ({self.basis}): "
                    + ", ".join(f"{n} {w}" for n, w in self.consistency) + "."
                    if self.consistency else "Consistency: no estimator produced an estimate.")
+        if self.holdout:
+            out.append(f"Hold-out consistency (NEES on the {self.holdout_fixes} withheld fixes: "
+                       "does the covariance cover the error?): "
+                       + ", ".join(f"{n} {w}" for n, w in self.holdout) + ".")
         if self.caveat:
             out.append(self.caveat)
         if self.next_command:
@@ -279,6 +287,9 @@ def headline(m: RunSummary | dict) -> Headline:
         caveat = ("NIS Fail, below the band, on rate sensors (" + ", ".join(
             f"{n} {lab}" for n, lab, _ in rate) + "): the motion model's process noise, sized "
             "for the largest accelerations, not the sensor noise (see the verdict).")
+    held = tuple((n, _word(e.gps_holdout_nees.verdict, [_direction(e.gps_holdout_nees)]))
+                 for n, e in m.estimators.items()
+                 if e.samples and e.gps_holdout_nees and e.gps_holdout_nees.verdict)
     return Headline(r.figure, tuple(order), tied, margin_m, margin_rel, realtime, tuple(words),
                     basis, cmd, why, None if order else r.what.removeprefix("No score: "),
-                    caveat)
+                    caveat, held, m.gps_holdout_scored_fixes if held else None)

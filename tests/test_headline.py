@@ -223,3 +223,24 @@ def test_no_hold_out_is_offered_for_want_of_truth_when_the_truth_is_there():
     assert headline(m).next_command is None
     m = RunSummary.from_json({**m.to_json(), "has_ground_truth": False})
     assert _next(m)[3:5] == ["--gps-holdout", "every:5"]
+
+
+def test_the_hold_out_nees_checks_every_track_that_has_one():
+    """Without truth the NIS line cannot check a lagged or batch track (they share the
+    smoother's innovations); a NEES on the withheld fixes can, and gets its own line with the
+    same words; a track without one is not named in it, and a run without one has no line."""
+    held = {"n": 150, "dof": 2, "mean": 6.9, "expected": 2.0, "ratio": 3.45, "band": [0.05, 7.4],
+            "below": 0.0, "above": 0.55, "outside": 0.55, "verdict": "Fail"}
+    ok = {**held, "mean": 2.1, "ratio": 1.05, "above": 0.04, "outside": 0.06, "verdict": "Pass"}
+    m = _run({"ekf": 3.6, "smoother_lagged": 3.2, "batch": 3.3}, truth=False,
+             holdout="window:150:210", ekf={"gps_holdout_nees": held},
+             smoother_lagged={"gps_holdout_nees": ok})
+    m = RunSummary.from_json({**m.to_json(), "gps_holdout_scored_fixes": 150})
+    h = headline(m)
+    assert dict(h.holdout) == {"ekf": "over-confident", "smoother_lagged": "consistent"}
+    line = next(x for x in h.lines() if x.startswith("Hold-out consistency"))
+    assert line == ("Hold-out consistency (NEES on the 150 withheld fixes: does the covariance "
+                    "cover the error?): ekf over-confident, smoother_lagged consistent.")
+    assert dict(h.consistency)["smoother_lagged"] == "not checked"  # the NIS line's, unchanged
+    plain = headline(_run({"ekf": 3.6, "batch": 3.3}, truth=False, holdout="every:5"))
+    assert not plain.holdout and not any(x.startswith("Hold-out") for x in plain.lines())
