@@ -111,6 +111,9 @@ def _comparison_table(shipped: RunSummary, tuned: RunSummary) -> str:
     nees = any(r.estimators[n].nees_mean is not None for r in (shipped, tuned) for n in names)
     head = (f"<th>{html.escape(label)} [m], given</th><th>tuned</th>" if label else "")
     head += "<th>NEES mean, given</th><th>tuned</th>" if nees else ""
+    held = any(r.estimators[n].gps_holdout_nees is not None for r in (shipped, tuned)
+               for n in names)
+    head += "<th>hold-out NEES, given</th><th>tuned</th>" if held else ""
     head += "".join(f"<th>NIS {html.escape(k)}: given → tuned</th>" for k in sensors)
     best_t = min(t_scores.values()) if t_scores else None
     rows = []
@@ -124,6 +127,9 @@ def _comparison_table(shipped: RunSummary, tuned: RunSummary) -> str:
         for e in (a, b) if nees else ():
             cells.append(f"<td>{_n(e.nees_mean, '.2f')} "
                          f"{_v(e.nees.verdict if e.nees else None)}</td>")
+        for e in (a, b) if held else ():
+            h = e.gps_holdout_nees
+            cells.append(f"<td>{_n(h and h.mean, '.2f')} {_v(h.verdict if h else None)}</td>")
         na, nb = _nis_verdicts(a), _nis_verdicts(b)
         for k in sensors:
             if k not in na and k not in nb:
@@ -137,6 +143,10 @@ def _comparison_table(shipped: RunSummary, tuned: RunSummary) -> str:
     note = ("NIS: mean over expected per sensor (1 is consistent) with its verdict. "
             + ("NEES mean against the truth with its verdict (expected: the pose's dimension). "
                if nees else "No NEES: the bag has no ground truth. ")
+            + ("Hold-out NEES: the withheld fixes' distance normalised by the track's position "
+               "covariance plus the fix's own (expected 2): whether the covariance covers the "
+               "hold-out error, the score beside it being how large that error is. " if held
+               else "")
             + ("Green bold: the best score with the tuned config." if label else
                "No score: neither ground truth nor withheld GPS fixes."))
     return (f"<table><tr><th class='l'>estimator</th>{head}</tr>{''.join(rows)}</table>"
@@ -213,7 +223,8 @@ def _fail_count(e) -> int:
 
 def change_line(t: dict, tuned: RunSummary, shipped: RunSummary | None) -> str:
     """One line for the terminal: what tuning changed for the best estimator of the tuned run
-    (its score, NEES and count of NIS Fail, given → tuned), or why nothing was applied."""
+    (its score, NEES, hold-out NEES and count of NIS Fail, given → tuned), or why nothing was
+    applied."""
     if not t.get("applied"):
         return f"tuning changed nothing: {t.get('why_not')}; the results are the config's"
     n = sum(1 for v in t.get("values") or [] if v.get("status") != "not informed")
@@ -236,9 +247,16 @@ def change_line(t: dict, tuned: RunSummary, shipped: RunSummary | None) -> str:
     if b.nees_mean is not None or (a is not None and a.nees_mean is not None):
         parts.append(f"NEES {_plain(a.nees_mean if a else None, '.2f')} -> "
                      f"{_plain(b.nees_mean, '.2f')}")
+    ha, hb = a.gps_holdout_nees if a else None, b.gps_holdout_nees
+    if ha is not None or hb is not None:
+        parts.append(f"hold-out NEES {_held(ha)} -> {_held(hb)}")
     parts.append(f"NIS Fail on {_fail_count(a) if a else '-'} -> {_fail_count(b)} of "
                  f"{len(b.nis or {})} sensors")
     return f"tuning: {what}; for {best} (best with it): " + ", ".join(parts)
+
+
+def _held(c) -> str:
+    return "-" if c is None else f"{_plain(c.mean, '.2f')} {c.verdict or ''}".rstrip()
 
 
 def _plain(v, spec: str) -> str:

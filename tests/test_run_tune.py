@@ -324,6 +324,35 @@ def test_without_truth_the_section_ranks_on_the_holdout_and_shows_no_nees():
                     "GPS hold-out RMSE 2.000 -> 1.000 m, NIS Fail on 0 -> 0 of 0 sensors")
 
 
+def test_the_section_shows_each_configs_hold_out_nees_beside_its_score():
+    """The given config scores 3.6 m with a covariance that does not cover it (NEES 6.9,
+    Fail), the tuned one 5.9 m with one that does (1.0, Pass): both columns, both verdicts."""
+    import numpy as np
+    from ddfuse.evaluation.consistency import summarize
+    from ddfuse.evaluation.report_tuning import _comparison_table, change_line
+    from ddfuse.evaluation.scores import EstimatorScores
+
+    chi = np.random.default_rng(0).chisquare(2, 150)
+
+    def run(rmse, scale):
+        e = EstimatorScores(samples=100, gps_holdout_rmse_m=rmse,
+                            gps_holdout_nees=summarize(scale * chi, 2))
+        return RunSummary(gps_holdout="window:150:210", gps_holdout_fixes=150,
+                          gps_holdout_scored_fixes=150, estimators={"ekf": e})
+
+    given, tuned = run(3.6, 3.45), run(5.9, 1.0)
+    table = _comparison_table(given, tuned)
+    head, row = table.split("</tr>")[:2]
+    assert "<th>hold-out NEES, given</th><th>tuned</th>" in head
+    g, t = given.estimators["ekf"].gps_holdout_nees, tuned.estimators["ekf"].gps_holdout_nees
+    assert g.verdict == "Fail" and t.verdict == "Pass"
+    assert f'{g.mean:.2f} <span class="Fail">Fail</span>' in row
+    assert f'{t.mean:.2f} <span class="Pass">Pass</span>' in row
+    assert "whether the covariance covers the hold-out error" in table
+    line = change_line({"applied": True, "values": [{"status": "tuned"}]}, tuned, given)
+    assert f"hold-out NEES {g.mean:.2f} Fail -> {t.mean:.2f} Pass, NIS Fail" in line
+
+
 @pytest.mark.slow
 def test_ctrl_c_in_the_given_configs_run_keeps_the_tuned_results_and_the_report_says_so(
         tmp_path, monkeypatch):
