@@ -100,6 +100,12 @@ def _values_table(t: dict) -> str:
             f"none; what the estimators used instead. {html.escape(note)}</p>")
 
 
+def _breakable(topic: str) -> str:
+    """``topic`` escaped, free to break after a slash or an underscore: unbroken, a long one
+    (/husky_velocity_controller/odom) ran over its neighbours' headers."""
+    return html.escape(topic).replace("/", "/<wbr>").replace("_", "_<wbr>")
+
+
 def _comparison_table(shipped: RunSummary, tuned: RunSummary) -> str:
     label, s_scores = scores(shipped)
     _, t_scores = scores(tuned)
@@ -114,7 +120,7 @@ def _comparison_table(shipped: RunSummary, tuned: RunSummary) -> str:
     held = any(r.estimators[n].gps_holdout_nees is not None for r in (shipped, tuned)
                for n in names)
     head += "<th>hold-out NEES, given</th><th>tuned</th>" if held else ""
-    head += "".join(f"<th>NIS {html.escape(k)}: given → tuned</th>" for k in sensors)
+    head += "".join(f"<th>NIS {_breakable(k)}: given → tuned</th>" for k in sensors)
     best_t = min(t_scores.values()) if t_scores else None
     rows = []
     for n in names:
