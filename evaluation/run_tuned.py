@@ -140,6 +140,8 @@ def tuning_json(tuning: Tuning, *, bag: str, config: str | None, holdout: str | 
     out["holdout_rmse_m"] = {
         "before": num(tuning.before.holdout_rmse_m) if tuning.before else None,
         "after": num(tuning.after.holdout_rmse_m) if tuning.after else None}
+    out["holdout_nees"] = {k: (num(c.holdout_nees.mean) if c and c.holdout_nees else None)
+                           for k, c in (("before", tuning.before), ("after", tuning.after))}
     return out
 
 

@@ -59,7 +59,12 @@ from ddfuse.estimation.config import Config, process_noise_max
 from ddfuse.estimation.estimator import InnovationLog
 from ddfuse.estimation.measurements import Stream
 from ddfuse.estimation.runner import run
-from ddfuse.evaluation.consistency import InnovationTable, SensorNis, nis_by_sensor
+from ddfuse.evaluation.consistency import (
+    Consistency,
+    InnovationTable,
+    SensorNis,
+    nis_by_sensor,
+)
 from ddfuse.evaluation.engine import Engine
 from ddfuse.evaluation.estimators import build
 from ddfuse.evaluation.tune_params import (
@@ -584,13 +589,15 @@ def _uninformed_reason(p: Param, info: float, where: str) -> str:
 @dataclass
 class Check:
     """One run of an estimator with a set of values: NIS per 'sensor kind', with a GPS
-    hold-out its score (m), and whether each sensor's scalar innovations are white
+    hold-out its score (m) and its NEES on the withheld fixes (``gps_holdout_nees``: whether its
+    covariance covers that error), and whether each sensor's scalar innovations are white
     (``evaluation.tune_whiteness``; the average's over-confidence at the smoothers' keyframe
     spacing)."""
 
     nis: dict[str, SensorNis]
     holdout_rmse_m: float | None
     whiteness: list[Whiteness] = field(default_factory=list)
+    holdout_nees: Consistency | None = None
 
 
 def check(cfg: Config, stream: Stream, values: list[float | None], *, estimator: str,
@@ -608,11 +615,12 @@ def check(cfg: Config, stream: Stream, values: list[float | None], *, estimator:
         summary = score(result, cfg=cfg) if holdout else None
     finally:
         problem.applier.apply([None] * len(params))
-    rmse = summary.estimators[estimator].gps_holdout_rmse_m if summary else None
+    scored = summary.estimators[estimator] if summary else None
     span = keyframe_spacing(cfg, stream)
     white = whiteness(est.log.innovations, {(s.name, "heading"): span
                                             for s in cfg.heading_sensors()})
-    return Check(nis, rmse, white)
+    return Check(nis, scored.gps_holdout_rmse_m if scored else None, white,
+                 scored.gps_holdout_nees if scored else None)
 
 
 HOLDOUT_WORSE = 0.05  # the tuning issue's allowance: a hold-out within 5 % counts as no worse
@@ -640,6 +648,17 @@ def holdout_worse(before: Check | None, after: Check | None, holdout: str | None
     rise = holdout_rise(before, after, holdout)
     if rise is None:
         return None
+    nees = holdout_nees_change(before, after)
     return (f"the tuned values predict the fixes withheld by --gps-holdout {holdout} worse than "
             f"the config's (the {estimator} EKF's RMSE {before.holdout_rmse_m:.3f} -> "
-            f"{after.holdout_rmse_m:.3f} m, {100.0 * rise:+.0f} %): {HOLDOUT_WHY}")
+            f"{after.holdout_rmse_m:.3f} m, {100.0 * rise:+.0f} %{nees}): {HOLDOUT_WHY}")
+
+
+def holdout_nees_change(before: Check, after: Check) -> str:
+    """', its hold-out NEES 6.88 Fail -> 1.01 Pass (expected 2: ...)' where both runs have one,
+    else ''."""
+    b, a = before.holdout_nees, after.holdout_nees
+    if b is None or a is None:
+        return ""
+    return (f"; its hold-out NEES {b.mean:.2f} {b.verdict or '-'} -> {a.mean:.2f} "
+            f"{a.verdict or '-'}, expected 2: whether its covariance covers that error")

@@ -95,6 +95,7 @@ def test_tuning_json_holds_the_values_before_and_after_and_the_tuned_config_has_
     assert load_config(off).sensor("/fix").noise["horizontal"] == pytest.approx(OFF * truth)
     assert set(t["nis"]["before"]) == set(t["nis"]["after"]) >= {"/fix gps", "/imu/data heading"}
     assert all(t["holdout_rmse_m"][k] > 0 for k in ("before", "after"))
+    assert all(t["holdout_nees"][k] > 0 for k in ("before", "after"))
 
 
 def _ratio_error(m: RunSummary, name: str, label: str) -> float:

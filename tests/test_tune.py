@@ -162,14 +162,17 @@ def test_the_tuned_config_loads_keeps_the_original_keys_and_marks_the_values(tmp
     assert set(yaml.safe_load(out)) == set(raw)
 
 
-def _check(rmse: float | None, scale: float):
-    """A ``Check`` of two sensors whose NIS is ``scale`` times chi-square(1) (0.01: Fail)."""
+def _check(rmse: float | None, scale: float, held: float | None = None):
+    """A ``Check`` of two sensors whose NIS is ``scale`` times chi-square(1) (0.01: Fail), with
+    a hold-out NEES of ``held`` times chi-square(2) over 150 fixes where given."""
     from ddfuse.evaluation.consistency import SensorNis, summarize
     from ddfuse.evaluation.tune import Check
 
-    v = scale * np.random.default_rng(0).chisquare(1, 2000)
+    rng = np.random.default_rng(0)
+    v = scale * rng.chisquare(1, 2000)
     nis = {f"/s{i} v": SensorNis(f"/s{i}", "v", 2000, 0, summarize(v, 1)) for i in range(2)}
-    return Check(nis, rmse)
+    nees = None if held is None else summarize(held * rng.chisquare(2, 150), 2)
+    return Check(nis, rmse, holdout_nees=nees)
 
 
 def test_a_tuned_config_that_predicts_the_holdout_worse_is_said_to():
@@ -177,6 +180,11 @@ def test_a_tuned_config_that_predicts_the_holdout_worse_is_said_to():
 
     said = holdout_worse(_check(3.606, 0.01), _check(5.825, 1.0), "window:150:210", "ekf")
     assert "window:150:210" in said and "3.606 -> 5.825 m" in said and "+62 %" in said
+    assert "hold-out NEES" not in said  # none measured
+    b, a = _check(3.606, 0.01, 3.4), _check(5.825, 1.0, 1.0)
+    said = holdout_worse(b, a, "window:150:210", "ekf")
+    assert (f"+62 %; its hold-out NEES {b.holdout_nees.mean:.2f} Fail -> "
+            f"{a.holdout_nees.mean:.2f} Pass, expected 2") in said
     # within the issue's 5 %, or under a centimetre, or with nothing to compare: nothing said
     assert holdout_worse(_check(3.606, 1), _check(3.78, 1), "every:5", "ekf") is None
     assert holdout_worse(_check(0.1, 1), _check(0.109, 1), "every:5", "ekf") is None
@@ -195,13 +203,14 @@ def test_the_tuned_configs_header_says_how_it_compares_and_a_retune_replaces_it(
     src = files(configs) / "rl_husky_gps.yaml"
     cfg = load_config(src)
     result = _result(cfg, Stream([]))
-    before, after = _check(3.606, 0.01), _check(5.825, 1.0)
+    before, after = _check(3.606, 0.01, 3.4), _check(5.825, 1.0, 1.0)
     out = tuned_text(src.read_text(), result, "rl_husky_gps.bag", "2026-12-02", before, after,
                      "window:150:210")
     head = out[:out.index("\n\n")]
     flat = " ".join(line[2:] for line in head.splitlines())
     assert "Fail on 2 -> 0 of 2 sensors" in flat
-    assert "3.606 m with the config's values, 5.825 m tuned" in flat
+    assert (f"3.606 m with the config's values, 5.825 m tuned; NEES "
+            f"{before.holdout_nees.mean:.2f} Fail -> {after.holdout_nees.mean:.2f} Pass") in flat
     assert "WORSE by 62 % on that hold-out" in flat
     assert all(line.startswith("# ") and len(line) <= 100 for line in head.splitlines())
     again = tuned_text(out, result, "other.bag", "2026-12-03")
@@ -225,7 +234,8 @@ def test_cli_prints_the_table_and_writes_the_tuned_config(sim_bag, tmp_path, cap
                  "--jobs", "1"]) == 0
     text = capsys.readouterr().out
     for row in ("sensors.gps[0].noise.horizontal [m]", "NIS mean / expected", "/fix gps",
-                "GPS hold-out RMSE (every:5), m", "not informed"):
+                "GPS hold-out RMSE (every:5), m", "GPS hold-out NEES (expected 2)",
+                "not informed"):
         assert row in text
     cfg = load_config(out)
     assert np.isfinite(cfg.sensor("/fix").noise["horizontal"])
