@@ -133,6 +133,8 @@ def rows_of(m) -> list[dict]:
         rows.append({"estimator": name, "score": kind, "score_m": score,
                      "ate_rmse_m": e.ate_rmse_m, "gps_holdout_rmse_m": e.gps_holdout_rmse_m,
                      "nees_mean": e.nees_mean, "nees_verdict": _verdict_of(e.nees),
+                     "gps_holdout_nees_mean": e.gps_holdout_nees.mean if e.gps_holdout_nees
+                     else None, "gps_holdout_nees_verdict": _verdict_of(e.gps_holdout_nees),
                      "nis_verdicts": {k: _verdict_of(s.nis) for k, s in (e.nis or {}).items()},
                      "rtf": e.rtf if e.samples != 0 else None, "error": e.error})
     return rows

@@ -103,17 +103,25 @@ def _nis_cell(verdicts: dict) -> str:
     return ", ".join(f"{_e(k)} {verdict_cell(v)}" for k, v in verdicts.items())
 
 
+def _held(r: dict) -> str:
+    """The row's hold-out NEES with its verdict (rows of fleets written before it: –)."""
+    v = r.get("gps_holdout_nees_mean")
+    if v is None:
+        return '<span class="na">–</span>'
+    return f"{fmt(v, '.2f')} {verdict_cell(r.get('gps_holdout_nees_verdict'))}"
+
+
 def _rows_table(doc: dict) -> str:
     head = ("<tr><th class='l'>bag</th><th class='l'>estimator</th><th class='l'>scored on</th>"
             "<th>score [m]</th><th>ATE RMSE [m]</th><th>GPS hold-out RMSE [m]</th>"
-            "<th>NEES mean</th><th>NEES</th><th class='l'>NIS per sensor</th><th>RTF [x]</th>"
-            "<th class='l'>error</th></tr>")
+            "<th>hold-out NEES</th><th>NEES mean</th><th>NEES</th>"
+            "<th class='l'>NIS per sensor</th><th>RTF [x]</th><th class='l'>error</th></tr>")
     bags = {b["bag"]: b for b in doc["bags"]}
     rows = []
     for r in doc["rows"]:
         b = bags[r["bag"]]
         if r["estimator"] is None:
-            rows.append(f"<tr class='failed'>{_bag_cell(b)}<td class='err' colspan='10'>"
+            rows.append(f"<tr class='failed'>{_bag_cell(b)}<td class='err' colspan='11'>"
                         f"ERROR: {_e(r['error'])}</td></tr>")
             continue
         best = " class='best'" if r["estimator"] == b["winner"] or (
@@ -123,6 +131,7 @@ def _rows_table(doc: dict) -> str:
                     f"<td class='l'>{_scored_on(r['score'])}</td>"
                     f"<td{best}>{fmt(r['score_m'])}</td><td>{fmt(r['ate_rmse_m'])}</td>"
                     f"<td>{fmt(r['gps_holdout_rmse_m'])}</td>"
+                    f"<td>{_held(r)}</td>"
                     f"<td>{fmt(r['nees_mean'], '.2f')}</td>"
                     f"<td>{verdict_cell(r['nees_verdict'])}</td>"
                     f"<td class='l'>{_nis_cell(r['nis_verdicts'])}</td>"

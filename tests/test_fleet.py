@@ -9,6 +9,7 @@ import shutil
 import socket
 from pathlib import Path
 
+import numpy as np
 import pytest
 from ddfuse.evaluation.cli import main
 from ddfuse.evaluation.fleet import bag_standing, find_bags, output_names, standings
@@ -176,3 +177,27 @@ def test_the_fleet_page_names_a_tie_and_what_a_bag_is_scored_on():
     assert "1 bag without an outright winner" in page
     assert '/fix gps <span class="Warn">Warn</span>' in page
     assert "<a href" not in page  # no report rendered, no link
+    # the hold-out NEES beside the hold-out score (a fleet.json written before it had none)
+    na = '<td><span class="na">–</span></td>'
+    rows[0] |= {"gps_holdout_nees_mean": 6.88, "gps_holdout_nees_verdict": "Fail"}
+    held = fleet_html(doc, stamp="then")
+    assert '<td>6.88 <span class="Fail">Fail</span></td>' in held
+    assert held.count(na) == page.count(na) - 1
+
+
+def test_fleet_rows_carry_the_hold_out_nees():
+    from ddfuse.evaluation.consistency import summarize
+    from ddfuse.evaluation.fleet import rows_of
+    from ddfuse.evaluation.scores import EstimatorScores, RunSummary
+
+    nees = summarize(np.full(150, 9.0), 2)  # every fix above the 2-dof band
+    m = RunSummary(gps_holdout="window:150:210", gps_holdout_fixes=150,
+                   gps_holdout_scored_fixes=150, estimators={
+                       "ekf": EstimatorScores(samples=10, gps_holdout_rmse_m=3.6,
+                                              gps_holdout_nees=nees),
+                       "dr": EstimatorScores(samples=10, gps_holdout_rmse_m=9.0)})
+    rows = {r["estimator"]: r for r in rows_of(m)}
+    assert rows["ekf"]["gps_holdout_nees_mean"] == pytest.approx(9.0)
+    assert rows["ekf"]["gps_holdout_nees_verdict"] == "Fail"
+    assert rows["dr"]["gps_holdout_nees_mean"] is None
+    assert rows["dr"]["gps_holdout_nees_verdict"] is None
