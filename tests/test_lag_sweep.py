@@ -52,3 +52,20 @@ def test_gps_model_replaces_the_configs_for_every_point(tmp_path):
     assert rows["default"].keys() == rows["dcs"].keys()
     for key in rows["default"]:
         assert rows["default"][key] != rows["dcs"][key], key
+
+
+@pytest.mark.slow
+def test_without_truth_the_nees_is_the_hold_outs(tmp_path):
+    """Scored against withheld fixes (the sample's config without its truth), the NEES column
+    is each track's NEES on those fixes (``gps_holdout_nees``), not an empty truth NEES."""
+    import yaml
+
+    cfg = yaml.safe_load((DATA / "sample_husky.yaml").read_text())
+    cfg.pop("ground_truth")
+    cfg.pop("initial_pose")
+    config = tmp_path / "no_truth.yaml"
+    config.write_text(yaml.safe_dump(cfg))
+    rows = lag_sweep(DATA / "sample_husky.bag", config, (2.0,), holdout="every:5")
+    assert {r["score"] for r in rows} == {"gps_holdout"} and len(rows) == 3
+    assert all(r["nees_mean"] is not None and 0.1 < r["nees_mean"] < 20.0 for r in rows), rows
+    assert "| NEES (gps_holdout) |" in format_table(rows)
