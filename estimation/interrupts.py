@@ -22,8 +22,8 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-__all__ = ["Terminated", "deliver", "held_signals", "interrupt_name", "sigterm_received",
-           "terminate_as_interrupt"]
+__all__ = ["Terminated", "deliver", "held_signals", "interrupt_in", "interrupt_name",
+           "sigterm_received", "terminate_as_interrupt"]
 
 _SIGNALS = (signal.SIGINT, signal.SIGTERM)
 _received: list[int] = []  # SIGTERM once the handler of terminate_as_interrupt ran
@@ -54,6 +54,24 @@ def interrupt_name(what: BaseException | int) -> str:
     """How the run's messages name what stopped it: 'SIGTERM' for ``Terminated`` or the signal
     number SIGTERM (one ``held_signals`` held), else 'Ctrl-C'."""
     return "SIGTERM" if isinstance(what, Terminated) or what == signal.SIGTERM else "Ctrl-C"
+
+
+def interrupt_in(exc: BaseException) -> KeyboardInterrupt | None:
+    """The interrupt (KeyboardInterrupt: Ctrl-C, or ``Terminated``) that ``exc`` is, or carries
+    as its cause or context; None when it carries none. A signal whose handler runs while a C
+    function is being called (numba's dispatcher preparing a kernel's arguments) can leave its
+    KeyboardInterrupt pending when the function returns a result: Python then raises
+    ``SystemError('... returned a result with an exception set')`` from it, which an ``except
+    Exception`` meant for an estimator's own failure would take for one, and the interrupt would
+    be lost."""
+    seen: set[int] = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return e
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return None
 
 
 @contextmanager

@@ -20,7 +20,7 @@ import numpy as np
 from ddfuse.estimation import heap
 from ddfuse.estimation.errors import ConfigError, error_line
 from ddfuse.estimation.estimator import Estimate, Estimator, EstimatorLog
-from ddfuse.estimation.interrupts import deliver, held_signals, interrupt_name
+from ddfuse.estimation.interrupts import deliver, held_signals, interrupt_in, interrupt_name
 from ddfuse.estimation.measurements import GpsFix, Stream, truth_at_start
 from ddfuse.estimation.spill import SpilledColumn, release
 
@@ -564,13 +564,17 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
                         errors[i] = f"numerical breakdown at the end: {bad}"
                     else:
                         outputs[i].append(last)
-            except Exception as exc:
-                errors[i] = f"{type(exc).__name__} in finish: {error_line(exc)}"
-            except KeyboardInterrupt as exc:
-                if not interruptible:
-                    raise
-                errors[i] = f"interrupted ({interrupt_name(exc)}) in finish"
-                stop.append(f"{name} interrupted in finish")
+            except BaseException as exc:
+                ki = interrupt_in(exc)
+                if ki is None and not isinstance(exc, Exception):
+                    raise  # SystemExit, GeneratorExit: not the estimator's failure
+                if ki is None:
+                    errors[i] = f"{type(exc).__name__} in finish: {error_line(exc)}"
+                elif not interruptible:
+                    raise ki from None
+                else:
+                    errors[i] = f"interrupted ({interrupt_name(ki)}) in finish"
+                    stop.append(f"{name} interrupted in finish")
         totals[i] += clock() - t_a
         est._run_finished = True  # fed to its end: another run() of it is refused
         # gathering what the estimator gave is not cut short: an interrupt is held (noted in
@@ -694,6 +698,8 @@ def _feed(meas, n, fraction, select, gps, est_list, alive, errors, outputs, timi
                     est.process(m)
                     e = est.estimate() if record else None
                 except Exception as exc:  # one estimator failing must not end the run
+                    if (ki := interrupt_in(exc)) is not None:
+                        raise ki from None  # Ctrl-C inside compiled code: an interrupt
                     alive[i] = False
                     errors[i] = f"{type(exc).__name__} at t={t_m:.3f}: {error_line(exc)}"
                     est.log.note(t_m, f"stopped: {errors[i]}")

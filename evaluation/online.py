@@ -57,6 +57,7 @@ from ddfuse.estimation.config import Config
 from ddfuse.estimation.errors import BagError
 from ddfuse.estimation.estimator import Estimate, Estimator
 from ddfuse.estimation.forecast import MAX_CARRY_S, OdometryTwist, carry
+from ddfuse.estimation.interrupts import interrupt_in
 from ddfuse.estimation.measurements import Stream
 from ddfuse.estimation.runner import broken, initial_pose
 from ddfuse.evaluation import estimators as registry
@@ -325,7 +326,11 @@ class OnlineSession:
 
     def _stop(self, name: str, t: float | None, exc: Exception) -> None:
         """Stop estimator ``name`` after ``exc`` (at stamp ``t``; None: in finish); its last
-        estimate is what was kept before."""
+        estimate is what was kept before. An ``exc`` that carries a Ctrl-C (one that came
+        inside a compiled call: ``interrupts.interrupt_in``) is raised as that interrupt, as
+        a plain Ctrl-C there would be, not taken for the estimator's failure."""
+        if (ki := interrupt_in(exc)) is not None:
+            raise ki from None
         est = self.estimators[name]
         why = f"{type(exc).__name__}: {exc}"
         at = "in finish" if t is None else f"at t={t:.3f}"

@@ -18,22 +18,37 @@ from ddfuse.evaluation import pipeline
 ROOT = Path(__file__).resolve().parents[1]
 
 
-class _CtrlC(DeadReckoning):
-    """Dead reckoning that receives Ctrl-C inside its ``at``-th update, or in ``finish``."""
+def _interrupt(kind: str, ki: type = KeyboardInterrupt) -> None:
+    """Raise the interrupt ``ki`` as Python raises it: plain, or (``kind`` 'in C') as a C call
+    (numba's dispatcher) that returned a result while its handler's exception was pending
+    reports it: SystemError from it."""
+    if kind == "plain":
+        raise ki
+    try:
+        raise ki
+    except KeyboardInterrupt as e:
+        raise SystemError("CPUDispatcher(<function apply_update>) returned a result with an "
+                          "exception set") from e
 
-    def __init__(self, cfg, at: int | None = None, in_finish: bool = False, **kw) -> None:
+
+class _CtrlC(DeadReckoning):
+    """Dead reckoning that receives Ctrl-C inside its ``at``-th update, or in ``finish``
+    (``kind``: how it reaches Python, ``_interrupt``)."""
+
+    def __init__(self, cfg, at: int | None = None, in_finish: bool = False,
+                 kind: str = "plain", ki: type = KeyboardInterrupt, **kw) -> None:
         super().__init__(cfg, **kw)
-        self.calls, self.at, self.in_finish = 0, at, in_finish
+        self.calls, self.at, self.in_finish, self.kind, self.ki = 0, at, in_finish, kind, ki
 
     def process(self, m) -> None:
         self.calls += 1
         if self.calls == self.at:
-            raise KeyboardInterrupt
+            _interrupt(self.kind, self.ki)
         super().process(m)
 
     def finish(self) -> None:
         if self.in_finish:
-            raise KeyboardInterrupt
+            _interrupt(self.kind, self.ki)
         super().finish()
 
 
@@ -42,11 +57,16 @@ def _pose(stream):
     return (g.x, g.y, g.yaw)
 
 
-def test_ctrl_c_inside_an_update_ends_the_feed_and_keeps_every_track(sample_husky):
+@pytest.mark.parametrize("kind", ["plain", "in C"])
+def test_ctrl_c_inside_an_update_ends_the_feed_and_keeps_every_track(sample_husky, kind):
+    """Also when the Ctrl-C came inside a compiled call and reached Python as SystemError from
+    it ('in C'): an interrupt, not that estimator's failure, or the run would go on without
+    it (found in the side process, its ekf_igvc stopped by 'CPUDispatcher(<function
+    apply_update>) returned a result with an exception set')."""
     cfg, stream = sample_husky
     n = len(stream.measurements)
     ests = {"a": DeadReckoning(cfg, initial_pose=_pose(stream)),
-            "b": _CtrlC(cfg, at=n // 2, initial_pose=_pose(stream))}
+            "b": _CtrlC(cfg, at=n // 2, kind=kind, initial_pose=_pose(stream))}
     res = run(stream, ests, interruptible=True)
     t_stop = stream.measurements[n // 2 - 1].t
     at = f"{t_stop - stream.measurements[0].t:.3f} s after the first measurement"
@@ -61,18 +81,46 @@ def test_ctrl_c_inside_an_update_ends_the_feed_and_keeps_every_track(sample_husk
     assert np.allclose(a.trajectory.pose[:k], b.trajectory.pose)
     # without interruptible, Ctrl-C stops the caller (mc, bench...) as it always did
     with pytest.raises(KeyboardInterrupt):
-        run(stream, {"b": _CtrlC(cfg, at=10, initial_pose=_pose(stream))})
+        run(stream, {"b": _CtrlC(cfg, at=10, kind=kind, initial_pose=_pose(stream))})
 
 
-def test_ctrl_c_in_one_finish_keeps_the_others(sample_husky):
+@pytest.mark.parametrize("kind", ["plain", "in C"])
+def test_ctrl_c_in_one_finish_keeps_the_others(sample_husky, kind):
     cfg, stream = sample_husky
-    ests = {"slow": _CtrlC(cfg, in_finish=True, initial_pose=_pose(stream)),
+    ests = {"slow": _CtrlC(cfg, in_finish=True, kind=kind, initial_pose=_pose(stream)),
             "dr": DeadReckoning(cfg, initial_pose=_pose(stream))}
     res = run(stream, ests, interruptible=True)
     assert res.interrupted == "slow interrupted in finish"
     assert res.runs["slow"].error == "interrupted (Ctrl-C) in finish"
     assert res.runs["dr"].error is None
     assert res.runs["dr"].trajectory.t[-1] > stream.measurements[-1].t - 0.2  # to the end
+    with pytest.raises(KeyboardInterrupt):
+        run(stream, {"slow": _CtrlC(cfg, in_finish=True, kind=kind,
+                                    initial_pose=_pose(stream))})
+
+
+def test_sigterm_inside_a_compiled_call_is_named_as_sigterm(sample_husky):
+    from ddfuse.estimation.interrupts import Terminated
+
+    cfg, stream = sample_husky
+    res = run(stream, {"b": _CtrlC(cfg, at=50, kind="in C", ki=Terminated,
+                                   initial_pose=_pose(stream))}, interruptible=True)
+    assert res.interrupted.startswith("interrupted (SIGTERM) after 49 measurements")
+    assert res.runs["b"].error.startswith("interrupted (SIGTERM) inside an update")
+
+
+def test_an_estimators_own_system_error_is_its_failure_not_an_interrupt(sample_husky):
+    cfg, stream = sample_husky
+
+    class Broken(DeadReckoning):
+        def process(self, m):
+            raise SystemError("a C extension's own bug")
+
+    res = run(stream, {"x": Broken(cfg, initial_pose=_pose(stream)),
+                       "dr": DeadReckoning(cfg, initial_pose=_pose(stream))}, interruptible=True)
+    assert res.interrupted is None
+    assert res.runs["x"].error.startswith("SystemError at t=")
+    assert res.runs["dr"].error is None
 
 
 @pytest.mark.slow
