@@ -38,6 +38,22 @@ def _run(tmp_path, name, side, notes=None):
     return m, out
 
 
+def _endless(process, quick: int = 2000, pause: float = 0.05):
+    """``process`` slowed so that the side process cannot end before the Ctrl-C the test sends
+    (whichever process the balance leaves longer): its first ``quick`` messages at 1 ms each
+    (some track to return), then ``pause`` s each, minutes for the rest of the bag."""
+    import time
+
+    calls = [0]
+
+    def slow_process(self, m):
+        calls[0] += 1
+        time.sleep(1e-3 if calls[0] <= quick else pause)
+        process(self, m)
+
+    return slow_process
+
+
 def _same_outputs(a: Path, b: Path, ma, mb) -> None:
     for track in NAMES:
         assert (a / f"{track}.tum").read_bytes() == (b / f"{track}.tum").read_bytes(), track
@@ -55,7 +71,8 @@ def test_the_reference_filters_are_fed_beside_and_give_one_process_results(refer
     m1, one = _run(tmp_path, "one", False)
     m2, two = _run(tmp_path, "two", True)
     assert m1.wall_s.side_process == [] and m1.wall_s.side_wait is None
-    assert m2.wall_s.side_process == ["ekf", "ekf_igvc"] and m2.wall_s.side_wait >= 0.0
+    # the two reference filters would make the side process the longer one: ekf_igvc alone
+    assert m2.wall_s.side_process == ["ekf_igvc"] and m2.wall_s.side_wait >= 0.0
     _same_outputs(one, two, m1, m2)
     # the tracks keep the estimators' order (the side ones were gathered last)
     assert list(m2.estimators) == list(m1.estimators)
@@ -86,7 +103,7 @@ def test_a_failed_side_process_loses_nothing(reference, tmp_path, monkeypatch):
     monkeypatch.setattr(side_run, "_child", dies)
     notes: list[str] = []
     m2, two = _run(tmp_path, "two", True, notes)
-    assert any("side process feeding ekf, ekf_igvc failed (the side process ended (exit "
+    assert any("side process feeding ekf_igvc failed (the side process ended (exit "
                "status 3) with no results): they are fed here now" in n for n in notes), notes
     assert m2.wall_s.side_process == []
     _same_outputs(one, two, m1, m2)
@@ -99,20 +116,16 @@ def test_ctrl_c_while_waiting_is_passed_to_the_side_process(reference, tmp_path,
     import threading
     import time
 
-    from ddfuse.ekf_baseline.unicycle import UnicycleEkf
+    from ddfuse.ekf_baseline.igvc import IgvcEkf
     from ddfuse.estimation.errors import RunInterrupted
 
-    real_process, real_join = UnicycleEkf.process, side_run.SideRun.join
-
-    def slow_process(self, m):  # the side process's ekf takes seconds, not a fraction of one
-        time.sleep(1e-3)
-        real_process(self, m)
+    real_process, real_join = IgvcEkf.process, side_run.SideRun.join
 
     def join_then_ctrl_c(self):  # Ctrl-C to this process alone, while it waits
         threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGINT)).start()
         return real_join(self)
 
-    monkeypatch.setattr(UnicycleEkf, "process", slow_process)
+    monkeypatch.setattr(IgvcEkf, "process", _endless(real_process))
     monkeypatch.setattr(side_run.SideRun, "join", join_then_ctrl_c)
     t0 = time.perf_counter()
     with pytest.raises(RunInterrupted, match=r"^interrupted \(Ctrl-C\) after \d+ measurements"):
@@ -122,7 +135,7 @@ def test_ctrl_c_while_waiting_is_passed_to_the_side_process(reference, tmp_path,
     assert doc["interrupted"].startswith("interrupted (Ctrl-C) after")
     assert {"ekf", "ekf_igvc", "smoother", "dr"} <= set(doc["estimators"])
     full = doc["messages"]
-    ekf_rows = len((tmp_path / "int" / "ekf.tum").read_text().splitlines())
+    ekf_rows = len((tmp_path / "int" / "ekf_igvc.tum").read_text().splitlines())
     dr_rows = len((tmp_path / "int" / "dr.tum").read_text().splitlines())
     assert 0 < ekf_rows < dr_rows, (ekf_rows, dr_rows, full)  # the side stopped part-way
 
@@ -137,14 +150,10 @@ def test_a_signal_another_thread_takes_still_reaches_the_side_process(reference,
     import threading
     import time
 
-    from ddfuse.ekf_baseline.unicycle import UnicycleEkf
+    from ddfuse.ekf_baseline.igvc import IgvcEkf
     from ddfuse.estimation.errors import RunInterrupted
 
-    real_process, real_join = UnicycleEkf.process, side_run.SideRun.join
-
-    def slow_process(self, m):
-        time.sleep(1e-3)
-        real_process(self, m)
+    real_process, real_join = IgvcEkf.process, side_run.SideRun.join
 
     def join_then_ctrl_c_elsewhere(self):
         # the timer's thread is started before the block: a thread inherits its creator's mask
@@ -155,7 +164,7 @@ def test_a_signal_another_thread_takes_still_reaches_the_side_process(reference,
         finally:
             signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
 
-    monkeypatch.setattr(UnicycleEkf, "process", slow_process)
+    monkeypatch.setattr(IgvcEkf, "process", _endless(real_process))
     monkeypatch.setattr(side_run.SideRun, "join", join_then_ctrl_c_elsewhere)
     t0 = time.perf_counter()
     with pytest.raises(RunInterrupted, match=r"^interrupted \(Ctrl-C\) after \d+ measurements"):
@@ -208,4 +217,4 @@ def test_a_truncated_bag_gives_the_same_part_with_a_side_process(reference, tmp_
         one = (tmp_path / "one" / f"{track}.tum").read_bytes()
         assert one and one == (tmp_path / "two" / f"{track}.tum").read_bytes(), track
     doc = json.loads((tmp_path / "two" / "metrics.json").read_text())
-    assert doc["wall_s"]["side_process"] == ["ekf", "ekf_igvc"]
+    assert doc["wall_s"]["side_process"] == ["ekf_igvc"]
