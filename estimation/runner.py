@@ -564,10 +564,8 @@ def run(stream, estimators: dict[str, Estimator], *, output_rate: float = 10.0,
                         errors[i] = f"numerical breakdown at the end: {bad}"
                     else:
                         outputs[i].append(last)
-            except BaseException as exc:
+            except (Exception, KeyboardInterrupt) as exc:
                 ki = interrupt_in(exc)
-                if ki is None and not isinstance(exc, Exception):
-                    raise  # SystemExit, GeneratorExit: not the estimator's failure
                 if ki is None:
                     errors[i] = f"{type(exc).__name__} in finish: {error_line(exc)}"
                 elif not interruptible:

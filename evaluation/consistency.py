@@ -88,6 +88,10 @@ class Consistency:
     def as_dict(self) -> dict:
         return asdict(self)
 
+    def brief(self) -> str:
+        """'6.88 Fail': the mean and the verdict (the mean alone without one), for one line."""
+        return f"{self.mean:.2f} {self.verdict}" if self.verdict else f"{self.mean:.2f}"
+
     def to_json(self) -> dict:
         """``as_dict`` with the band as a list, as metrics.json holds it."""
         d = asdict(self)

@@ -255,14 +255,10 @@ def change_line(t: dict, tuned: RunSummary, shipped: RunSummary | None) -> str:
                      f"{_plain(b.nees_mean, '.2f')}")
     ha, hb = a.gps_holdout_nees if a else None, b.gps_holdout_nees
     if ha is not None or hb is not None:
-        parts.append(f"hold-out NEES {_held(ha)} -> {_held(hb)}")
+        parts.append("hold-out NEES " + " -> ".join(c.brief() if c else "-" for c in (ha, hb)))
     parts.append(f"NIS Fail on {_fail_count(a) if a else '-'} -> {_fail_count(b)} of "
                  f"{len(b.nis or {})} sensors")
     return f"tuning: {what}; for {best} (best with it): " + ", ".join(parts)
-
-
-def _held(c) -> str:
-    return "-" if c is None else f"{_plain(c.mean, '.2f')} {c.verdict or ''}".rstrip()
 
 
 def _plain(v, spec: str) -> str:

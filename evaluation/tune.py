@@ -655,10 +655,10 @@ def holdout_worse(before: Check | None, after: Check | None, holdout: str | None
 
 
 def holdout_nees_change(before: Check, after: Check) -> str:
-    """', its hold-out NEES 6.88 Fail -> 1.01 Pass (expected 2: ...)' where both runs have one,
+    """', its hold-out NEES 6.88 Fail -> 1.01 Pass, expected 2: ...' where both runs have one,
     else ''."""
     b, a = before.holdout_nees, after.holdout_nees
     if b is None or a is None:
         return ""
-    return (f"; its hold-out NEES {b.mean:.2f} {b.verdict or '-'} -> {a.mean:.2f} "
-            f"{a.verdict or '-'}, expected 2: whether its covariance covers that error")
+    return (f"; its hold-out NEES {b.brief()} -> {a.brief()}, expected 2: whether its "
+            "covariance covers that error")

@@ -60,8 +60,8 @@ def _validation(result: TuneResult, before: Check | None, after: Check | None,
     b, a = before.holdout_rmse_m, after.holdout_rmse_m
     if holdout and b is not None and a is not None:
         nb, na = before.holdout_nees, after.holdout_nees
-        nees = (f"; NEES {nb.mean:.2f} {nb.verdict or '-'} -> {na.mean:.2f} {na.verdict or '-'}"
-                " (expected 2: whether the covariance covers the error)"
+        nees = (f"; NEES {nb.brief()} -> {na.brief()} (expected 2: whether the covariance "
+                "covers the error)"
                 if nb is not None and na is not None else "")
         out.append(f"Validated on the fixes withheld by --gps-holdout {holdout}: RMSE "
                    f"{b:.3f} m with the config's values, {a:.3f} m tuned{nees}.")

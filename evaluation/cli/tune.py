@@ -137,8 +137,7 @@ def format_report(result, before, after, holdout: str | None) -> str:
         b, a = fmt(before.holdout_rmse_m, ".3f"), fmt(after.holdout_rmse_m, ".3f")
         lines.append(f"{'GPS hold-out RMSE (' + holdout + '), m':56} {b:>16} {a:>16}")
         if before.holdout_nees is not None or after.holdout_nees is not None:
-            b, a = (fmt(c.holdout_nees.mean, ".2f") + f" {c.holdout_nees.verdict or '-'}"
-                    if c.holdout_nees else "-" for c in (before, after))
+            b, a = (c.holdout_nees.brief() if c.holdout_nees else "-" for c in (before, after))
             lines.append(f"{'GPS hold-out NEES (expected 2)':56} {b:>16} {a:>16}")
     red = [w for w in after.whiteness if not w.white]
     if red:
